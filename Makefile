@@ -1,0 +1,39 @@
+# texelbake: `make demo` and `make test` are the two commands a newcomer needs.
+SHELL := /bin/bash
+VENV  := .venv
+PY    := $(VENV)/bin/python
+PIP   := $(VENV)/bin/pip
+STAMP := $(VENV)/.installed
+APT_PACKAGES := libusb-1.0-0 libgl1 libegl1 libopengl0 libx11-6 libudev1 libidn2-0 libgmp10 libgomp1 redis-server
+
+.PHONY: setup demo test test-fast lint bench clean
+
+setup: $(STAMP)
+
+# Re-runs only when pyproject.toml changes: a second `make setup` does nothing.
+$(STAMP): pyproject.toml scripts/apt-deps.sh
+	bash scripts/apt-deps.sh $(APT_PACKAGES)
+	test -x $(PY) || python3.11 -m venv $(VENV)
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q -e '.[dev]'
+	touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/texelbake demo --out demo_out
+
+test: setup
+	$(PY) -m pytest -q -p no:cacheprovider --timeout=900
+
+test-fast: setup
+	$(PY) -m pytest -q -x -m "not service and not browser and not slow"
+
+lint: setup
+	$(VENV)/bin/ruff check texelbake schemas workers services tests benchmarks
+	$(VENV)/bin/mypy texelbake
+
+bench: setup
+	mkdir -p bench_out
+	$(PY) benchmarks/raycast.py --json bench_out/raycast.json
+
+clean:
+	rm -rf $(VENV) demo_out bench_out

@@ -1,0 +1,26 @@
+"""Numerical tolerances in one place (after trimesh's `tol`). Modules import `TOL` and pass
+values on as `eps=` keyword arguments; no literal tolerances scattered through the code."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    # geometry
+    zero_area: float = 1e-14          # relative to bbox_diag**2: faces below are degenerate
+    merge: float = 1e-10              # relative to bbox_diag: vertex welding
+    ray_offset: float = 1e-5          # relative to bbox_diag: origin offset along the normal
+    # linear algebra
+    svd_rcond: float = 1e-12          # relative singular value cut-off for pseudo-inverses
+    energy_floor: float = 1e-300      # ||R||_F^2 below this is treated as an all-zero matrix
+    # visible projected area
+    avis_floor: float = 1e-9          # relative to texel area: a_vis below is "fully masked"
+    # directions
+    grazing_cos: float = 1e-6         # n.w below this counts as below the horizon
+    # brdf
+    brdf_eps: float = 1e-12
+
+
+TOL = Tolerances()
