@@ -1,0 +1,1 @@
+"""Pydantic models of the wire contract (bake settings, jobs, reports). No heavy imports here."""

@@ -1,0 +1,82 @@
+"""Bake settings: the one validated description of what a bake does.
+
+Shared by the CLI, the in-process pipeline, the API (request body) and the workers. Every field has
+a default so `BakeSettings()` is the embedded default bake. The JSON Schema is exported from here.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class BakeSettings(BaseModel):
+    """Settings of one bake. Field docs cite the seed each knob comes from."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    seed: int = Field(0, ge=0, description="Seed of every random choice; reruns are byte-identical.")
+    # geometry
+    atlas_resolution: int = Field(
+        16, ge=2, le=4096, description="Finest CPM level: N x N texels over M1's atlas (power of two)."
+    )
+    mesh_levels: int = Field(2, ge=1, le=8, description="Simplified meshes M1..Mn (QEM).")
+    simplify_ratio: float = Field(0.25, gt=0.0, lt=1.0, description="Face ratio M_{i+1}/M_i.")
+    m1_faces: int = Field(
+        0, ge=0, description="Target faces of M1; 0 = simplify_ratio x the original face count."
+    )
+    samples_per_texel: int = Field(
+        64, ge=1, le=65536, description="Dense samples X on M_org per finest texel (on average)."
+    )
+    # characteristic points (seed 000 §3)
+    n_light_dirs: int = Field(64, ge=1, le=4096, description="N_i light directions (texel frame).")
+    n_view_dirs: int = Field(64, ge=1, le=4096, description="N_o view directions (texel frame).")
+    n_heldout: int = Field(256, ge=0, le=65536, description="Held-out direction pairs per texel.")
+    psi: float = Field(0.97, gt=0.0, le=1.0, description="Energy fraction that fixes the rank k.")
+    eps_db: float = Field(30.0, gt=0.0, le=200.0, description="Target SNR (dB) for the bisection on c.")
+    c_max: int = Field(64, ge=1, le=4096, description="Maximum characteristic points per texel.")
+    n_trials: int = Field(4, ge=1, le=64, description="Random column draws per c; best kept.")
+    weights: Literal["nnls", "clamp"] = Field(
+        "nnls", description="nnls: exact non-negative LS; clamp: the seed's C+R1 with negatives to 0."
+    )
+    colour: Literal["auto", "luminance", "per_channel"] = "auto"
+    decorrelation_threshold: float = Field(
+        0.9, ge=-1.0, le=1.0, description="Channels correlated below this are selected per channel."
+    )
+    n_batch: int = Field(1024, ge=16, description="Max columns of one R; bigger texels go in batches.")
+    hierarchy: Literal["children", "dense"] = Field(
+        "children",
+        description="children: coarse texels select from their children's weighted points; "
+        "dense: from all dense samples, as the seed.",
+    )
+    # visible projected area (seed 000 §3.4)
+    avis_resolution: int = Field(16, ge=2, le=256, description="Cube-map face resolution.")
+    avis_keep_fraction: float = Field(0.06, gt=0.0, le=1.0, description="Haar coefficients kept.")
+    # farm
+    shard_texels: int = Field(8, ge=1, le=4096, description="Tile side (finest texels) of a shard.")
+    # optional stages
+    btf: bool = Field(False, description="Run the BTF stage (real-time target).")
+    previews: bool = Field(False, description="Render previews after export.")
+
+    @model_validator(mode="after")
+    def _check(self) -> BakeSettings:
+        for name in ("atlas_resolution", "avis_resolution", "shard_texels"):
+            v = getattr(self, name)
+            if v & (v - 1):
+                raise ValueError(f"{name} must be a power of two, got {v}")
+        if self.shard_texels > self.atlas_resolution:
+            raise ValueError(
+                f"shard_texels ({self.shard_texels}) must not exceed atlas_resolution "
+                f"({self.atlas_resolution})"
+            )
+        return self
+
+    def digest(self, *fields: str) -> str:
+        """Hex digest of the given fields (all when none): content-derived artifact names."""
+        data = self.model_dump()
+        if fields:
+            data = {k: data[k] for k in fields}
+        return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
