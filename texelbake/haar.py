@@ -1,0 +1,220 @@
+"""2-D Haar compression of square maps, with point evaluation (seed 000, §3.4).
+
+The seed stores the visible projected area a_vis on a cube map and compresses "each face of the
+cube-map using Haar wavelets", keeping 4-6.5 % of the original size, and picks Haar for "rapid
+signal reconstruction". This module holds that compression, independent of what the maps mean.
+
+Transform: PyWavelets `wavedec2(x, "haar", mode="periodization")` at full depth
+(J = log2(res) levels, so the approximation is a single coefficient). PyWavelets' Haar filters are
+orthonormal (1/sqrt 2), so every coefficient c multiplies a basis function of unit L2 norm and
+|c| *is* the L2 norm of its contribution: keeping the largest |c| per map is the L2-optimal
+choice for the given count (Parseval).
+
+Storage (`HaarCoeffs`): CSR over maps. `indices` are flat positions in the res x res Mallat layout
+of `pywt.coeffs_to_array` (approximation at [0, 0]; for a subband of size s the horizontal detail
+'da' at rows [s, 2s) x cols [0, s), the vertical detail 'ad' at rows [0, s) x cols [s, 2s), the
+diagonal 'dd' at [s, 2s) x [s, 2s)), sorted within each map; exact zeros are not stored.
+
+Point evaluation (`eval_haar_point`) is hand-written because PyWavelets only offers full
+inverses: the value at pixel (iv, iu) is the approximation / res plus, for every support size
+S = 2, 4, ..., res, the three detail coefficients of the block containing the pixel times
+(sign_row, sign_col, sign_row * sign_col) / S, where sign = +1 in the first half of the block and -1
+in the second (PyWavelets' Haar detail is (x[2k] - x[2k+1]) / sqrt 2). That is 3J + 1 = O(log res)
+look-ups per point, vectorized over all query points; no inverse transform.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pywt
+
+from texelbake.errors import NumericalError, SettingsError, ShapeError
+
+_WAVELET = "haar"
+_MODE = "periodization"
+
+
+@dataclass(frozen=True)
+class HaarCoeffs:
+    """Sparse Haar coefficients of a batch of res x res maps (CSR over maps).
+
+    res : side of every map (a power of two)
+    batch_shape : leading shape of the maps that were compressed, e.g. (n_texels, 6)
+    offsets : (n_maps + 1,) int64, map i owns entries offsets[i]:offsets[i+1]
+    indices : (nnz,) int32, flat index into the res x res Mallat coefficient layout, ascending per map
+    values : (nnz,) float32 (or the dtype asked for), the kept coefficients
+    """
+
+    res: int
+    batch_shape: tuple[int, ...]
+    offsets: np.ndarray
+    indices: np.ndarray
+    values: np.ndarray
+
+    @property
+    def n_maps(self) -> int:
+        return int(self.offsets.shape[0] - 1)
+
+    @property
+    def nnz(self) -> int:
+        return int(self.values.shape[0])
+
+    @property
+    def kept_fraction(self) -> float:
+        """Stored coefficients / dense map entries (the seed's "% of the original space" if an
+        index costs no space; with a 16-bit index and a 32-bit value multiply by 1.5)."""
+        total = self.n_maps * self.res * self.res
+        return float(self.nnz / total) if total else 0.0
+
+
+def _check_res(res: int, field: str = "res") -> int:
+    res_i = int(res)
+    if res_i != res or res_i < 1 or (res_i & (res_i - 1)) != 0:
+        raise SettingsError(f"{field} must be a positive power of two for a full-depth Haar "
+                            f"transform, got {res!r}")
+    return res_i
+
+
+def _mallat_to_list(dense: np.ndarray) -> list:
+    """(n, res, res) Mallat layout -> the wavedec2 list [cA, (cH, cV, cD) coarse ... fine]."""
+    res = dense.shape[-1]
+    out: list = [dense[:, :1, :1]]
+    s = 1
+    while s < res:
+        out.append((dense[:, s:2 * s, :s], dense[:, :s, s:2 * s], dense[:, s:2 * s, s:2 * s]))
+        s *= 2
+    return out
+
+
+def compress_haar(face_maps: np.ndarray, keep_fraction: float, *,
+                  dtype: type = np.float32) -> HaarCoeffs:
+    """Full-depth 2-D Haar transform of every map, keeping its largest coefficients.
+
+    face_maps : (..., res, res) float, res a power of two; every leading index is one map
+        (e.g. (n_texels, 6, res, res): one map per cube face per texel)
+    keep_fraction : in (0, 1]; each map keeps K = max(1, ceil(keep_fraction * res^2)) coefficients
+        of largest magnitude (ties broken by position, so reruns are identical); exact zeros
+        among them are dropped
+    dtype : storage dtype of the values (float32 by default, DESIGN.md "float32 for storage")
+    returns : HaarCoeffs
+    """
+    maps = np.asarray(face_maps, dtype=np.float64)
+    if maps.ndim < 2 or maps.shape[-1] != maps.shape[-2]:
+        raise ShapeError(f"face_maps must be (..., res, res), got {maps.shape}")
+    res = _check_res(maps.shape[-1], "face_maps.shape[-1]")
+    keep = float(keep_fraction)
+    if not (0.0 < keep <= 1.0):
+        raise SettingsError(f"keep_fraction must be in (0, 1], got {keep_fraction!r}")
+    if not np.all(np.isfinite(maps)):
+        raise NumericalError("face_maps contains NaN or Inf; Haar compression needs finite maps")
+    batch_shape = tuple(int(s) for s in maps.shape[:-2])
+    flat_maps = maps.reshape(-1, res, res)  # (n_maps, res, res)
+    n_maps = flat_maps.shape[0]
+    n_coef = res * res
+    if n_maps == 0:
+        return HaarCoeffs(res, batch_shape, np.zeros(1, np.int64), np.zeros(0, np.int32),
+                          np.zeros(0, dtype))
+    levels = int(round(math.log2(res)))
+    coeffs = pywt.wavedec2(flat_maps, _WAVELET, mode=_MODE, level=levels, axes=(-2, -1))
+    arr, _ = pywt.coeffs_to_array(coeffs, axes=(-2, -1))  # (n_maps, res, res)
+    arr = arr.reshape(n_maps, n_coef)
+    k = min(n_coef, max(1, math.ceil(keep * n_coef)))
+    order = np.argsort(-np.abs(arr), axis=1, kind="stable")[:, :k]  # (n_maps, k)
+    order.sort(axis=1)
+    vals = np.take_along_axis(arr, order, axis=1)  # (n_maps, k)
+    nonzero = vals != 0.0
+    counts = nonzero.sum(axis=1)
+    offsets = np.zeros(n_maps + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    return HaarCoeffs(res, batch_shape, offsets, order[nonzero].astype(np.int32),
+                      vals[nonzero].astype(dtype))
+
+
+def _dense_coeffs(coeffs: HaarCoeffs) -> np.ndarray:
+    """(n_maps, res * res) float64 coefficient arrays with the dropped entries zero."""
+    n_coef = coeffs.res * coeffs.res
+    dense = np.zeros((coeffs.n_maps, n_coef), dtype=np.float64)
+    map_of = np.repeat(np.arange(coeffs.n_maps), np.diff(coeffs.offsets))
+    dense[map_of, coeffs.indices] = coeffs.values.astype(np.float64)
+    return dense
+
+
+def decompress_haar(coeffs: HaarCoeffs) -> np.ndarray:
+    """Full inverse transform (reference for tests and for re-coarsening; not for rendering).
+
+    returns : (*batch_shape, res, res) float64
+    """
+    res = coeffs.res
+    dense = _dense_coeffs(coeffs).reshape(-1, res, res)
+    if dense.shape[0] == 0:
+        return np.zeros((*coeffs.batch_shape, res, res), dtype=np.float64)
+    if res == 1:
+        return dense.reshape(*coeffs.batch_shape, 1, 1)
+    rec = pywt.waverec2(_mallat_to_list(dense), _WAVELET, mode=_MODE, axes=(-2, -1))
+    return rec.reshape(*coeffs.batch_shape, res, res)
+
+
+def haar_point_terms(res: int, iu: np.ndarray, iv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 3J + 1 coefficients whose support contains each pixel, and their basis values.
+
+    res : map side, a power of two
+    iu, iv : (n,) int, column and row of the pixel in the map ([row=iv, col=iu])
+    returns : (flat_index (n, 3J + 1) int64 into the Mallat layout,
+               basis_value (n, 3J + 1) float64)
+    """
+    res = _check_res(res)
+    iu = np.asarray(iu, dtype=np.int64)
+    iv = np.asarray(iv, dtype=np.int64)
+    levels = int(round(math.log2(res)))
+    idx = [np.zeros_like(iu)]
+    val = [np.full(iu.shape, 1.0 / res)]
+    for j in range(1, levels + 1):  # loop over log2(res) levels, vectorized over points
+        size = 1 << j          # support side S
+        s = res // size        # subband side
+        rr, cc = iv // size, iu // size
+        sr = np.where((iv % size) < size // 2, 1.0, -1.0)
+        sc = np.where((iu % size) < size // 2, 1.0, -1.0)
+        idx += [(s + rr) * res + cc, rr * res + (s + cc), (s + rr) * res + (s + cc)]
+        val += [sr / size, sc / size, sr * sc / size]
+    return np.stack(idx, axis=-1), np.stack(val, axis=-1)
+
+
+def eval_haar_point(coeffs: HaarCoeffs, map_index: np.ndarray, iu: np.ndarray,
+                    iv: np.ndarray) -> np.ndarray:
+    """Reconstruct single pixels from the sparse coefficients (no inverse transform).
+
+    coeffs : HaarCoeffs
+    map_index : (n,) int, flat index into batch_shape (for (n_texels, 6): texel * 6 + face)
+    iu, iv : (n,) int in [0, res), column and row of the pixel
+    returns : (n,) float64, equal to decompress_haar(coeffs) at those pixels up to rounding
+    """
+    map_index = np.asarray(map_index, dtype=np.int64).ravel()
+    iu = np.asarray(iu, dtype=np.int64).ravel()
+    iv = np.asarray(iv, dtype=np.int64).ravel()
+    if not (map_index.shape == iu.shape == iv.shape):
+        raise ShapeError(f"map_index, iu, iv must have one shape, got {map_index.shape}, "
+                         f"{iu.shape}, {iv.shape}")
+    if map_index.size == 0:
+        return np.zeros(0, dtype=np.float64)
+    res = coeffs.res
+    if map_index.min() < 0 or map_index.max() >= coeffs.n_maps:
+        raise ShapeError(f"map_index must be in [0, {coeffs.n_maps}), got range "
+                         f"[{map_index.min()}, {map_index.max()}]")
+    for name, a in (("iu", iu), ("iv", iv)):
+        if a.min() < 0 or a.max() >= res:
+            raise ShapeError(f"{name} must be in [0, {res}), got [{a.min()}, {a.max()}]")
+    n_coef = res * res
+    # Global sorted keys: maps ascend with the CSR offsets, indices ascend within a map.
+    map_of = np.repeat(np.arange(coeffs.n_maps, dtype=np.int64), np.diff(coeffs.offsets))
+    keys = map_of * n_coef + coeffs.indices.astype(np.int64)  # (nnz,)
+    flat_idx, basis = haar_point_terms(res, iu, iv)  # (n, 3J+1)
+    query = map_index[:, None] * n_coef + flat_idx
+    if keys.shape[0] == 0:
+        return np.zeros(map_index.shape, dtype=np.float64)
+    pos_c = np.minimum(np.searchsorted(keys, query), keys.shape[0] - 1)
+    found = keys[pos_c] == query
+    vals = np.where(found, coeffs.values[pos_c].astype(np.float64), 0.0)
+    return np.sum(vals * basis, axis=1)
