@@ -1,0 +1,354 @@
+"""Randomized column sampling of the characteristic-point matrix (seed 000, §3.3, Table 2, Eq. 11).
+
+The seed selects characteristic points as columns of R (d x m) with the relative-error column
+sampling of Drineas, Mahoney and Muthukrishnan 2006 (DMM06), reproduced as Table 2 of seed 000:
+
+1. SVD R = U Sigma V^T, split into the top k and the remaining rho - k singular triplets
+   (rho = rank R).
+2. p_i = 1/3 ( ||(V_k)_(i)||^2 / ||V_k||_F^2
+             + ||(V_k)_(i)|| ||(Sigma_{rho-k} V_{rho-k}^T)^(i)|| / sum_j (same)
+             + ||(Sigma_{rho-k} V_{rho-k}^T)^(i)||^2 / ||Sigma_{rho-k} V_{rho-k}^T||_F^2 ).
+   (V_k)_(i) is row i of V_k (the rank-k leverage of column i) and
+   (Sigma_{rho-k} V_{rho-k}^T)^(i) is column i of the residual R - R_k expressed in the
+   residual left singular basis, so its norm is the norm of column i of R - R_k. The middle term
+   is garbled in the seed's PDF; we read it as the product of the two norms normalised to sum to
+   one (it is the mixed term of DMM06 and the only reading that is a probability).
+3. Draw c columns i.i.d. from p (with replacement, as DMM06), deduplicate: a repeated column
+   adds nothing to span(C).
+
+Weights: the seed takes alpha = C^+ R 1 (Eq. 11) and clamps negatives to 0 (§3.3 text);
+DESIGN.md's default solves the non-negative least-squares problem min ||C alpha - R 1||,
+alpha >= 0, exactly (scipy.optimize.nnls). Both are here so they can be compared.
+
+SVD path (measured, this machine, 2 torch threads, float64, d = 4096, median of 3 runs after a
+warm-up; R = nonnegative rank-20 + 1e-3 noise with five columns scaled by 1e6, the specular
+case; errors against torch.linalg.svd in float64; "p err" = max |p - p_full| of the Table 2
+probabilities at the psi = 0.97 rank; see `benchmarks/column_sampling.py --svd`):
+
+    m      full SVD   Gram eigh (R^T R)   svd_lowrank(q=k+10, niter=4)
+    64     0.05 s     0.010 s, p err 3e-10   0.06 s, p err 1e-15 (top-q only)
+    256    0.41 s     0.05 s,  p err 6e-9    0.13 s
+    1024   1.05 s     0.33 s,  p err 2e-8    0.30 s
+
+The Gram route squares the condition number: singular values below ~sqrt(eps) * s_max
+(~1.5e-8 s_max) are lost to rounding, and so are their right singular vectors. Table 2 needs
+V_k only for the top k triplets (psi-energy rank: far above that floor unless psi is within
+~1e-16 of 1) and the residual column norms, which we take as ||R_j||^2 - ||(R_k)_j||^2 from
+exact column norms rather than from the tail triplets. So `svd_float64(R, method="auto")` uses
+the Gram eigen-decomposition when d >= 2 m (tall R, the usual case) and the full SVD otherwise;
+`method="full"` is the reference. svd_lowrank needs k in advance and was not faster at m <= 256.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+import torch
+
+from texelbake.errors import SettingsError, ShapeError
+from texelbake.tol import TOL
+
+SvdMethod = Literal["auto", "full", "gram"]
+
+
+def _as_matrix(name: str, a: np.ndarray) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 2:
+        raise ShapeError(f"{name} must be a 2-D (d, m) array, got shape {a.shape}")
+    return a
+
+
+def svd_float64(
+    R: np.ndarray, method: SvdMethod = "auto", rcond: float = TOL.svd_rcond
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Thin SVD of R in float64 through torch.linalg.
+
+    R : (d, m) float (upcast to float64)
+    method : "full" (torch.linalg.svd), "gram" (eigh of R^T R, U = R V / s), or "auto" (gram when
+        d >= 2 m, see the module docstring for the measurements)
+    rcond : for "gram": singular values <= rcond * s_max get zero left vectors (U columns) since
+        R V / s is meaningless there
+    returns : (U (d, r) float64, s (r,) float64 descending, Vt (r, m) float64), r = min(d, m).
+        U s Vt reproduces R to float64 rounding for both methods; for "gram", U columns of
+        singular values below ~1.5e-8 s_max are not orthonormal (see module docstring).
+    """
+    R = _as_matrix("R", R)
+    d, m = R.shape
+    r = min(d, m)
+    if r == 0:
+        return np.zeros((d, 0)), np.zeros(0), np.zeros((0, m))
+    if method not in ("auto", "full", "gram"):
+        raise SettingsError(f"svd method must be 'auto', 'full' or 'gram', got {method!r}")
+    use_gram = method == "gram" or (method == "auto" and d >= 2 * m)
+    Rt = torch.as_tensor(R)
+    if not use_gram:
+        U, s, Vt = torch.linalg.svd(Rt, full_matrices=False)
+        return U.numpy(), s.numpy(), Vt.numpy()
+    G = Rt.T @ Rt  # (m, m)
+    lam, V = torch.linalg.eigh(G)  # ascending
+    lam = lam.flip(0).clamp(min=0.0)[:r]
+    V = V.flip(1)[:, :r]  # (m, r)
+    s = lam.sqrt()
+    keep = s > rcond * (s[0] if s.numel() else 0.0)
+    inv = torch.where(keep, 1.0 / torch.where(keep, s, torch.ones_like(s)), torch.zeros_like(s))
+    U = (Rt @ V) * inv[None, :]  # (d, r)
+    return U.numpy(), s.numpy(), V.T.contiguous().numpy()
+
+
+def energy_rank(s: np.ndarray, psi: float) -> int:
+    """Smallest k with sum_{r<=k} s_r^2 >= psi * sum_r s_r^2 (seed 000 §4.1, DESIGN.md).
+
+    s : (r,) float64 singular values, descending
+    psi : energy fraction in (0, 1]
+    returns : k in [1, r]; 0 when sum s^2 <= TOL.energy_floor (all-zero R)
+    """
+    s = np.asarray(s, dtype=np.float64).ravel()
+    if not 0.0 < psi <= 1.0:
+        raise SettingsError(f"psi must be in (0, 1], got {psi}")
+    e = s * s
+    total = float(e.sum())
+    if s.size == 0 or total <= TOL.energy_floor:
+        return 0
+    cum = np.cumsum(e)
+    # relative slack: cum[-1] may differ from total by rounding; psi = 1 must still hit r
+    k = int(np.searchsorted(cum, psi * total * (1.0 - 4 * np.finfo(np.float64).eps))) + 1
+    return min(k, s.size)
+
+
+def _numerical_rank(s: np.ndarray, rcond: float) -> int:
+    if s.size == 0 or s[0] <= 0.0:
+        return 0
+    return int(np.count_nonzero(s > rcond * s[0]))
+
+
+def _leverage_and_residual(
+    s: np.ndarray, Vt: np.ndarray, k: int, col_energy: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Squared row norms of V_k (m,) and squared residual column norms ||(R - R_k)_j||^2 (m,)."""
+    Vk_t = Vt[:k]  # (k, m)
+    lev2 = np.sum(Vk_t * Vk_t, axis=0)  # (m,)
+    sv = s[:, None] * Vt  # (r, m): column j is U^T R_j
+    if col_energy is None:
+        col_energy = np.sum(sv * sv, axis=0)
+    top = np.sum(sv[:k] * sv[:k], axis=0)
+    res2 = np.clip(col_energy - top, 0.0, None)  # (m,)
+    return lev2, res2
+
+
+def column_probabilities(
+    U: np.ndarray,
+    s: np.ndarray,
+    Vt: np.ndarray,
+    k: int,
+    *,
+    col_energy: np.ndarray | None = None,
+    rcond: float = TOL.svd_rcond,
+) -> np.ndarray:
+    """The three-term column probabilities of seed 000 Table 2 (DMM06), see module docstring.
+
+    U : (d, r) float64, s : (r,) float64, Vt : (r, m) float64 — a thin SVD of R (U unused but
+        kept in the signature so the call reads like Table 2)
+    k : target rank, 0 <= k
+    col_energy : optional (m,) float64 exact squared column norms ||R_j||^2; when given the
+        residual norms are ||R_j||^2 - ||(R_k)_j||^2 (exact even when the tail of the SVD is
+        inaccurate, e.g. from the Gram route); otherwise they come from s and Vt
+    returns : (m,) float64, p >= 0, sum p = 1; all zeros when R is all zero (k = 0).
+
+    Degenerate cases (defined, tested):
+    - k >= numerical rank rho (s_r > rcond * s_max), or residual energy <= rcond * ||R||_F^2:
+      the residual terms are 0/0; they are defined as 0 and p is renormalised, i.e.
+      p = leverage scores / k.
+    - columns whose energy is <= rcond^2 * max column energy (all-zero columns, fully occluded
+      samples) get p = 0: they are never drawn. Rounding in V would otherwise give them ~1e-30.
+    """
+    s = np.asarray(s, dtype=np.float64).ravel()
+    Vt = np.asarray(Vt, dtype=np.float64)
+    if Vt.ndim != 2 or Vt.shape[0] != s.size:
+        raise ShapeError(f"Vt must be (r, m) with r = len(s) = {s.size}, got {Vt.shape}")
+    m = Vt.shape[1]
+    rho = _numerical_rank(s, rcond)
+    k = int(min(max(k, 0), rho))
+    if k == 0 or m == 0:
+        return np.zeros(m, dtype=np.float64)
+    if col_energy is not None:
+        col_energy = np.asarray(col_energy, dtype=np.float64).ravel()
+        if col_energy.shape != (m,):
+            raise ShapeError(f"col_energy must be ({m},), got {col_energy.shape}")
+    lev2, res2 = _leverage_and_residual(s[:rho], Vt[:rho], k, col_energy)
+    energy = col_energy if col_energy is not None else np.sum((s[:rho, None] * Vt[:rho]) ** 2, 0)
+    dead = energy <= rcond * rcond * float(energy.max())
+    lev2[dead] = 0.0
+    res2[dead] = 0.0
+    terms = []
+    lev_sum = float(lev2.sum())
+    if lev_sum > 0.0:
+        terms.append(lev2 / lev_sum)
+    res_sum = float(res2.sum())
+    # k = rank: the residual terms are 0/0, defined as 0. A residual energy <= rcond * ||R||_F^2
+    # is at the rounding level of ||R_j||^2 - ||(R_k)_j||^2 (m * eps * ||R||^2 ~ 1e-13 for
+    # m = 1024) and is treated the same way.
+    if k < rho and res_sum > rcond * float(energy.sum()):
+        terms.append(res2 / res_sum)
+        mix = np.sqrt(lev2 * res2)
+        mix_sum = float(mix.sum())
+        if mix_sum > 0.0:
+            terms.append(mix / mix_sum)
+    p = np.sum(terms, axis=0)
+    total = float(p.sum())
+    return p / total if total > 0.0 else np.zeros(m, dtype=np.float64)
+
+
+def leverage_probabilities(s: np.ndarray, Vt: np.ndarray, k: int) -> np.ndarray:
+    """First term of Table 2 only: p_i = ||(V_k)_(i)||^2 / k (rank-k leverage scores).
+
+    s : (r,) float64, Vt : (r, m) float64, k >= 0
+    returns : (m,) float64 summing to 1 (zeros when k = 0 or R = 0)
+    """
+    s = np.asarray(s, dtype=np.float64).ravel()
+    Vt = np.asarray(Vt, dtype=np.float64)
+    rho = _numerical_rank(s, TOL.svd_rcond)
+    k = int(min(max(k, 0), rho))
+    m = Vt.shape[1]
+    if k == 0:
+        return np.zeros(m, dtype=np.float64)
+    lev2 = np.sum(Vt[:k] ** 2, axis=0)
+    return lev2 / float(lev2.sum())
+
+
+def uniform_probabilities(m: int, col_energy: np.ndarray | None = None) -> np.ndarray:
+    """Uniform p over the m columns (over the nonzero ones when col_energy (m,) is given).
+
+    returns : (m,) float64 summing to 1, zeros if no column qualifies
+    """
+    p = np.ones(int(m), dtype=np.float64)
+    if col_energy is not None:
+        p = (np.asarray(col_energy, dtype=np.float64) > 0.0).astype(np.float64)
+    total = float(p.sum())
+    return p / total if total > 0 else p
+
+
+def sample_columns(p: np.ndarray, c: int, rng: np.random.Generator) -> np.ndarray:
+    """Draw c column indices i.i.d. from p (with replacement, DMM06), then deduplicate.
+
+    p : (m,) float64 probabilities (need not be exactly normalised; renormalised here)
+    c : number of draws, >= 0
+    rng : numpy Generator (seeded by the caller)
+    returns : (c',) int64 sorted unique indices, c' <= c; empty when c = 0 or p is all zero
+    """
+    p = np.asarray(p, dtype=np.float64).ravel()
+    c = int(c)
+    if c < 0:
+        raise SettingsError(f"c must be >= 0, got {c}")
+    if np.any(~np.isfinite(p)) or np.any(p < 0):
+        raise ShapeError("p must be finite and non-negative")
+    total = float(p.sum())
+    if c == 0 or total <= 0.0:
+        return np.zeros(0, dtype=np.int64)
+    # inverse-CDF sampling: deterministic for a seeded rng, independent of numpy's choice() impl
+    cdf = np.cumsum(p / total)
+    cdf[-1] = 1.0
+    u = rng.random(c)
+    idx = np.searchsorted(cdf, u, side="right")
+    idx = np.minimum(idx, p.size - 1)
+    # searchsorted never lands on a p = 0 column (its cdf step is empty) except by the clamp
+    return np.unique(idx).astype(np.int64)
+
+
+def pivoted_qr_columns(R: np.ndarray, c: int) -> np.ndarray:
+    """First c pivots of column-pivoted QR (scipy.linalg.qr(pivoting=True)), a deterministic
+    baseline for column selection.
+
+    R : (d, m) float64
+    returns : (min(c, m),) int64 column indices in pivot order; columns with zero norm are
+        dropped (QR pivots them last, they add nothing)
+    """
+    R = _as_matrix("R", R)
+    c = int(min(max(int(c), 0), R.shape[1]))
+    if c == 0 or R.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    _, _, piv = scipy.linalg.qr(R, mode="economic", pivoting=True)
+    cols = piv[:c].astype(np.int64)
+    norms = np.linalg.norm(R[:, cols], axis=0)
+    return cols[norms > 0.0]
+
+
+def fit_weights(
+    C: np.ndarray,
+    target: np.ndarray,
+    method: Literal["nnls", "clamp"] = "nnls",
+    rcond: float = TOL.svd_rcond,
+) -> np.ndarray:
+    """Weights alpha with C alpha ~= target (seed 000 Eq. 10-11).
+
+    C : (d, c) float64, the selected columns of R
+    target : (d,) float64, R 1 (the row sums of R)
+    method : "nnls" — min ||C alpha - target||_2 s.t. alpha >= 0 (scipy.optimize.nnls, exact);
+        "clamp" — the seed's alpha = C^+ target (pseudo-inverse in float64 through torch, relative
+        cut-off rcond) with negative entries set to 0.
+    returns : (c,) float64, alpha >= 0. Zero columns get alpha = 0. A zero target gives alpha = 0.
+
+    Columns are scaled to unit norm before solving (alpha is scale-covariant per column, and the
+    sign constraint is unchanged), which keeps NNLS well conditioned when the columns span a
+    dynamic range of 1e6 or more (specular lobes).
+    """
+    C = _as_matrix("C", C)
+    target = np.asarray(target, dtype=np.float64).ravel()
+    d, c = C.shape
+    if target.shape != (d,):
+        raise ShapeError(f"target must be ({d},) to match C {C.shape}, got {target.shape}")
+    if method not in ("nnls", "clamp"):
+        raise SettingsError(f"weights method must be 'nnls' or 'clamp', got {method!r}")
+    alpha = np.zeros(c, dtype=np.float64)
+    if c == 0 or d == 0:
+        return alpha
+    norms = np.linalg.norm(C, axis=0)  # (c,)
+    live = norms > 0.0
+    if not np.any(live) or not np.any(target != 0.0):
+        return alpha
+    Cn = C[:, live] / norms[live]  # (d, c_live)
+    if method == "nnls":
+        # maxiter: scipy's default 3 * c can stop early on degenerate (duplicate) columns
+        sol, _ = scipy.optimize.nnls(Cn, target, maxiter=max(50 * Cn.shape[1], 100))
+    else:
+        pinv = torch.linalg.pinv(torch.as_tensor(Cn), rtol=rcond).numpy()  # (c_live, d)
+        sol = np.clip(pinv @ target, 0.0, None)
+    alpha[live] = sol / norms[live]
+    return alpha
+
+
+def projection_error(R: np.ndarray, cols: np.ndarray, rcond: float = TOL.svd_rcond) -> float:
+    """Relative matrix error ||R - C C^+ R||_F / ||R||_F of a column selection (seed 000 §3.3).
+
+    R : (d, m) float64; cols : (c,) int64
+    returns : float in [0, 1]; 0.0 for an all-zero R
+    """
+    R = _as_matrix("R", R)
+    total = float(np.sum(R * R))
+    if total <= TOL.energy_floor:
+        return 0.0
+    cols = np.asarray(cols, dtype=np.int64).ravel()
+    if cols.size == 0:
+        return 1.0
+    # orthonormal basis of span(C) from an SVD of C in float64 (rank-revealing, handles
+    # duplicate or zero columns)
+    Uc, sc, _ = np.linalg.svd(R[:, cols], full_matrices=False)
+    r = _numerical_rank(sc, rcond)
+    Q = Uc[:, :r]  # (d, r)
+    resid = R - Q @ (Q.T @ R)
+    return float(np.sqrt(max(float(np.sum(resid * resid)), 0.0) / total))
+
+
+def eckart_young_error(s: np.ndarray, c: int) -> float:
+    """Best rank-c relative error ||R - R_c||_F / ||R||_F = sqrt(sum_{r>c} s_r^2 / sum s_r^2).
+
+    No selection of c columns can do better (Eckart–Young). s : (r,) float64 descending.
+    """
+    s = np.asarray(s, dtype=np.float64).ravel()
+    e = s * s
+    total = float(e.sum())
+    if total <= TOL.energy_floor:
+        return 0.0
+    return float(np.sqrt(max(float(e[int(c) :].sum()), 0.0) / total))

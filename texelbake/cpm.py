@@ -1,0 +1,620 @@
+"""Characteristic points of one texel (seed 000, §3.2–3.3 and §4.1) on plain arrays.
+
+Notation (seed 000): a texel p owns m surface samples x_j of M_org with normals n_j and areas
+dA_j (its g(p)). On d direction pairs (w_i, w_o) the apparent reflectance (Eq. 4) times the
+sample area fills the matrix of Eq. 9,
+
+    R[(i, o), j] = V(x_j, w_i) V(x_j, w_o) f_r(x_j, w_i, w_o) (n_j . w_i)+ (n_j . w_o)+ dA_j,
+
+and the filtered reflectance is Eq. 7, f_bar(w_i, w_o) = (R 1)[(i, o)] / a_vis(w_o) with the visible
+projected area a_vis(w_o) = sum_j V(x_j, w_o) (n_j . w_o)+ dA_j (Eq. 3, discretised on the same
+samples and the same visibility, so a flat Lambertian texel reproduces its BRDF exactly:
+R 1 / a_vis = (rho / pi) cos(theta_i) there, whatever the sample areas).
+
+Rows follow `texelbake.directions.product_pairs`: row r = i * n_o + o on a product grid of n_i
+light and n_o view directions. Arrays carry a trailing colour axis ch (1 or 3).
+
+Limit a_vis -> 0 (grazing or fully masked view directions). In exact arithmetic f_bar stays
+bounded there (it is an a_vis-weighted mean of V_i f_r cos_i), but both R 1 and any
+approximation C alpha go to zero with a_vis, so their ratio is 0/0 in floating point and the
+approximation error is amplified without bound. Such a row also carries no light to the
+viewer: the texel's projected visible area is zero. Definition used everywhere in texelbake:
+when a_vis(w_o) <= eps (eps = TOL.avis_floor * texel area by default), f_bar := 0 and the row
+is *invalid*: excluded from every SNR and from the renderer's sum (its radiance contribution
+is a_vis * f_bar <= eps * max(f_r cos_i), i.e. nothing).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from typing import Any, Literal
+
+import numpy as np
+
+from texelbake.column_sampling import (
+    column_probabilities,
+    energy_rank,
+    fit_weights,
+    sample_columns,
+    svd_float64,
+)
+from texelbake.errors import NumericalError, SettingsError, ShapeError
+from texelbake.tol import TOL
+
+#: Rec. 709 / sRGB luminance weights, used to select points on one matrix for correlated colour
+LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
+
+BrdfFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+# --------------------------------------------------------------------------- the matrix R
+
+
+def _clamped_cos(name: str, cos: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    cos = np.asarray(cos, dtype=np.float64)
+    if cos.shape != shape:
+        raise ShapeError(f"{name} must be {shape}, got {cos.shape}")
+    # below TOL.grazing_cos the direction counts as below the horizon (same rule as avis)
+    return np.where(cos > TOL.grazing_cos, cos, 0.0)
+
+
+def _check_vis(name: str, vis: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    vis = np.asarray(vis)
+    if vis.shape != shape:
+        raise ShapeError(f"{name} must be {shape}, got {vis.shape}")
+    return vis.astype(bool)
+
+
+def _check_area(area: np.ndarray) -> np.ndarray:
+    area = np.asarray(area, dtype=np.float64)
+    if area.ndim != 1:
+        raise ShapeError(f"area must be (m,), got {area.shape}")
+    if not np.all(np.isfinite(area)) or np.any(area < 0):
+        raise NumericalError("area must be finite and >= 0 (sample areas dA_j)")
+    return area
+
+
+def reflectance_matrix(
+    brdf_vals: np.ndarray | BrdfFn,
+    vis_i: np.ndarray,
+    vis_o: np.ndarray,
+    cos_i: np.ndarray,
+    cos_o: np.ndarray,
+    area: np.ndarray,
+    *,
+    rows_per_chunk: int = 512,
+) -> np.ndarray:
+    """The matrix of seed 000 Eq. 9 on a product grid (separable visibility): Eq. 4 x dA.
+
+    R[(i, o), j] = V(x_j, w_i) V(x_j, w_o) f_r(x_j, w_i, w_o) (n_j . w_i)+ (n_j . w_o)+ dA_j,
+    row (i, o) = i * n_o + o. Visibility is separable on a product grid, so it costs
+    m * (n_i + n_o) rays.
+
+    brdf_vals : (n_i, n_o, m, ch) float, f_r in each sample's shading frame, or a callable
+        brdf(row_i (b,) int64, row_o (b,) int64) -> (b, m, ch) float evaluated over chunks of
+        rows_per_chunk rows (bounds memory to one chunk of BRDF values)
+    vis_i : (m, n_i) bool, V(x_j, w_i); vis_o : (m, n_o) bool, V(x_j, w_o)
+    cos_i : (m, n_i) float, n_j . w_i with the sample's shading normal (clamped again here: values
+        <= TOL.grazing_cos count as 0); cos_o : (m, n_o) float, n_j . w_o
+    area : (m,) float, dA_j >= 0
+    returns : (n_i * n_o, m, ch) float64
+    """
+    area = _check_area(area)
+    m = area.shape[0]
+    vis_i = np.asarray(vis_i)
+    vis_o = np.asarray(vis_o)
+    if vis_i.ndim != 2 or vis_o.ndim != 2:
+        raise ShapeError(f"vis_i, vis_o must be (m, n_i), (m, n_o); got {vis_i.shape}, {vis_o.shape}")
+    n_i, n_o = vis_i.shape[1], vis_o.shape[1]
+    vis_i = _check_vis("vis_i", vis_i, (m, n_i))
+    vis_o = _check_vis("vis_o", vis_o, (m, n_o))
+    gi = (vis_i * _clamped_cos("cos_i", cos_i, (m, n_i))).T  # (n_i, m)
+    go = (vis_o * _clamped_cos("cos_o", cos_o, (m, n_o)) * area[:, None]).T  # (n_o, m)
+    d = n_i * n_o
+    if callable(brdf_vals):
+        row_i, row_o = np.repeat(np.arange(n_i), n_o), np.tile(np.arange(n_o), n_i)
+        chunks = []
+        step = max(int(rows_per_chunk), 1)
+        for r0 in range(0, d, step):  # loop over row chunks (memory bound), not per row
+            ri, ro = row_i[r0 : r0 + step], row_o[r0 : r0 + step]
+            f = np.asarray(brdf_vals(ri, ro), dtype=np.float64)
+            if f.ndim != 3 or f.shape[:2] != (ri.size, m):
+                raise ShapeError(f"brdf callable must return ({ri.size}, {m}, ch), got {f.shape}")
+            chunks.append(f * (gi[ri] * go[ro])[:, :, None])
+        if not chunks:
+            return np.zeros((0, m, 1), dtype=np.float64)
+        return np.concatenate(chunks, axis=0)
+    f = np.asarray(brdf_vals, dtype=np.float64)
+    if f.ndim != 4 or f.shape[:3] != (n_i, n_o, m):
+        raise ShapeError(f"brdf_vals must be ({n_i}, {n_o}, {m}, ch), got {f.shape}")
+    R = f * (gi[:, None, :] * go[None, :, :])[:, :, :, None]  # (n_i, n_o, m, ch)
+    return R.reshape(d, m, f.shape[3])
+
+
+def reflectance_pairs(
+    brdf_vals: np.ndarray,
+    vis_i: np.ndarray,
+    vis_o: np.ndarray,
+    cos_i: np.ndarray,
+    cos_o: np.ndarray,
+    area: np.ndarray,
+) -> np.ndarray:
+    """Eq. 9's matrix on d arbitrary (paired, not product) direction pairs, e.g. held-out pairs.
+
+    brdf_vals : (d, m, ch) float; vis_i, vis_o : (m, d) bool; cos_i, cos_o : (m, d) float;
+    area : (m,) float
+    returns : (d, m, ch) float64, R[r, j] = V_i V_o f_r cos_i+ cos_o+ dA_j for pair r
+    """
+    area = _check_area(area)
+    m = area.shape[0]
+    f = np.asarray(brdf_vals, dtype=np.float64)
+    if f.ndim != 3 or f.shape[1] != m:
+        raise ShapeError(f"brdf_vals must be (d, {m}, ch), got {f.shape}")
+    d = f.shape[0]
+    g = (
+        _check_vis("vis_i", vis_i, (m, d))
+        * _check_vis("vis_o", vis_o, (m, d))
+        * _clamped_cos("cos_i", cos_i, (m, d))
+        * _clamped_cos("cos_o", cos_o, (m, d))
+        * area[:, None]
+    ).T  # (d, m)
+    return f * g[:, :, None]
+
+
+def avis_on_grid(vis_o: np.ndarray, cos_o: np.ndarray, area: np.ndarray) -> np.ndarray:
+    """Visible projected area a_vis(w_o) = sum_j V(x_j, w_o) (n_j . w_o)+ dA_j (seed 000 Eq. 3).
+
+    Same samples, visibility and cosine clamp as `reflectance_matrix`, so Eq. 7 is exact for a
+    flat Lambertian texel.
+
+    vis_o : (m, n_o) bool; cos_o : (m, n_o) float; area : (m,) float
+    returns : (n_o,) float64 (index a row r of R with row_o = r % n_o)
+    """
+    area = _check_area(area)
+    m = area.shape[0]
+    vis_o = np.asarray(vis_o)
+    if vis_o.ndim != 2:
+        raise ShapeError(f"vis_o must be (m, n_o), got {vis_o.shape}")
+    n_o = vis_o.shape[1]
+    vis_o = _check_vis("vis_o", vis_o, (m, n_o))
+    return np.einsum("jo,j->o", vis_o * _clamped_cos("cos_o", cos_o, (m, n_o)), area)
+
+
+def avis_floor(texel_area: float) -> float:
+    """Absolute a_vis floor eps = TOL.avis_floor * texel_area (texel_area = sum of dA_j)."""
+    return TOL.avis_floor * float(texel_area)
+
+
+def filtered_reflectance(
+    R_times_weights: np.ndarray, avis_rows: np.ndarray, eps: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 7: f_bar = (R w) / a_vis row by row, with the defined limit at a_vis -> 0.
+
+    R_times_weights : (d, ch) or (d,) float, R 1 (reference) or C alpha (approximation)
+    avis_rows : (d,) float, a_vis(w_o) of each row (avis_on_grid(...)[row_o])
+    eps : absolute floor (see `avis_floor`); rows with a_vis <= eps get f_bar = 0, valid False
+    returns : (f_bar same shape as R_times_weights, float64; valid (d,) bool)
+    """
+    rw = np.asarray(R_times_weights, dtype=np.float64)
+    avis_rows = np.asarray(avis_rows, dtype=np.float64).ravel()
+    if rw.shape[0] != avis_rows.shape[0] or rw.ndim not in (1, 2):
+        raise ShapeError(f"R_times_weights (d, ch) and avis_rows (d,) disagree: {rw.shape}, {avis_rows.shape}")
+    valid = np.isfinite(avis_rows) & (avis_rows > float(eps))
+    denom = np.where(valid, avis_rows, 1.0)
+    fbar = rw / (denom[:, None] if rw.ndim == 2 else denom)
+    fbar[~valid] = 0.0
+    return fbar, valid
+
+
+def snr_db(ref: np.ndarray, approx: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """SNR in dB, 10 log10(sum ref^2 / sum (ref - approx)^2), over valid rows and all channels.
+
+    ref, approx : (d, ch) or (d,) float; valid : (d,) bool or None (all rows)
+    returns : float. Defined limits: error 0 -> +inf (also when the signal is 0 too, e.g. an
+        all-zero target reproduced by alpha = 0, or no valid row); signal 0 with error > 0 ->
+        -inf. Both sums are scaled by max |value| first, so no overflow or underflow for
+        values spanning 1e-300..1e300.
+    """
+    ref = np.asarray(ref, dtype=np.float64)
+    approx = np.asarray(approx, dtype=np.float64)
+    if ref.shape != approx.shape:
+        raise ShapeError(f"ref and approx must have the same shape, got {ref.shape}, {approx.shape}")
+    if valid is not None:
+        valid = np.asarray(valid, dtype=bool).ravel()
+        if valid.shape[0] != ref.shape[0]:
+            raise ShapeError(f"valid must be ({ref.shape[0]},), got {valid.shape}")
+        ref, approx = ref[valid], approx[valid]
+    if ref.size == 0:
+        return math.inf
+    scale = float(max(np.max(np.abs(ref)), np.max(np.abs(approx))))
+    if not math.isfinite(scale):
+        raise NumericalError("snr_db: non-finite reference or approximation")
+    if scale == 0.0:
+        return math.inf
+    r, a = ref / scale, approx / scale
+    signal = float(np.sum(r * r))
+    noise = float(np.sum((r - a) ** 2))
+    if noise == 0.0:
+        return math.inf
+    if signal == 0.0:
+        return -math.inf
+    return 10.0 * math.log10(signal / noise)
+
+
+# --------------------------------------------------------------------------- the fit
+
+
+@dataclass
+class TexelFit:
+    """Characteristic points of one texel: f_bar ~ (sum_k weights[k] R[:, columns[k]]) / a_vis.
+
+    columns : (c,) int64, sorted unique sample indices into the texel's m samples
+    weights : (c, ch) float32, alpha per point and channel (>= 0). In per-channel mode a point
+        selected for one channel has zero weight in the others, so the renderer's sum is the
+        same in both modes.
+    k : int, psi-energy rank of the selection matrix (max over channels in per-channel mode; of
+        the final candidate pool when batched)
+    c : int, number of points (= columns.size)
+    snr_db_insample : float, SNR of Eq. 7 on the sampled pairs with the float32 weights
+    snr_db_heldout : float, NaN until measured (`evaluate_fit`)
+    colour_mode : "luminance" | "per_channel"
+    channel_correlation : float, min pairwise Pearson correlation of the channels of R (1.0 for
+        a single channel or constant channels)
+    k_channels, c_channels : (g,) int64, k and number of points per selection group (one group
+        in luminance mode, one per channel otherwise)
+    c_capped : bool, c_max < k so c was capped at c_max
+    eps_reached : bool, snr_db_insample >= eps_db
+    valid : bool, False when the texel cannot be fitted (no samples, no valid row)
+    reason : str, "" or a short description of what was special
+    """
+
+    columns: np.ndarray
+    weights: np.ndarray
+    k: int
+    c: int
+    snr_db_insample: float
+    colour_mode: str
+    valid: bool
+    reason: str = ""
+    snr_db_heldout: float = math.nan
+    channel_correlation: float = 1.0
+    k_channels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    c_channels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    c_capped: bool = False
+    eps_reached: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """Arrays stay numpy arrays (np.savez-able), scalars become Python scalars."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = np.array(v, copy=True) if isinstance(v, np.ndarray) else v
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TexelFit:
+        """Inverse of to_dict; also accepts the 0-d arrays np.load returns for scalars."""
+        kwargs: dict[str, Any] = {}
+        types = {
+            "columns": np.int64, "weights": np.float32,
+            "k_channels": np.int64, "c_channels": np.int64,
+        }
+        for f in fields(cls):
+            if f.name not in data:
+                continue
+            v = data[f.name]
+            if f.name in types:
+                kwargs[f.name] = np.asarray(v, dtype=types[f.name])
+            elif f.name in ("k", "c"):
+                kwargs[f.name] = int(v)
+            elif f.name in ("valid", "c_capped", "eps_reached"):
+                kwargs[f.name] = bool(v)
+            elif f.name in ("colour_mode", "reason"):
+                kwargs[f.name] = str(v)
+            else:
+                kwargs[f.name] = float(v)
+        return cls(**kwargs)
+
+
+def _empty_fit(m_ch: int, reason: str, valid: bool, snr: float, corr: float = 1.0) -> TexelFit:
+    return TexelFit(
+        columns=np.zeros(0, dtype=np.int64),
+        weights=np.zeros((0, m_ch), dtype=np.float32),
+        k=0,
+        c=0,
+        snr_db_insample=snr,
+        colour_mode="luminance",
+        valid=valid,
+        reason=reason,
+        channel_correlation=corr,
+        eps_reached=valid and snr == math.inf,
+    )
+
+
+def channel_correlation(R: np.ndarray) -> float:
+    """Min pairwise Pearson correlation between the colour channels of R (d, m, ch), flattened.
+
+    A channel with zero variance correlates with everything (1.0): there is nothing to select
+    for it separately. returns 1.0 for ch == 1.
+    """
+    ch = R.shape[2]
+    if ch < 2 or R.shape[0] * R.shape[1] < 2:
+        return 1.0
+    X = R.reshape(-1, ch)  # (d*m, ch)
+    Xc = X - X.mean(axis=0)
+    cov = Xc.T @ Xc  # (ch, ch)
+    sd = np.sqrt(np.diag(cov))
+    ok = sd > 0.0
+    corr = np.ones((ch, ch))
+    both = ok[:, None] & ok[None, :]
+    corr[both] = (cov / np.outer(np.where(ok, sd, 1.0), np.where(ok, sd, 1.0)))[both]
+    return float(np.clip(corr.min(), -1.0, 1.0))
+
+
+@dataclass
+class _GroupFit:
+    cols: np.ndarray  # (c,) int64 into the texel's columns
+    alpha: np.ndarray  # (c, ch_g) float64
+    k: int
+    snr: float
+    capped: bool
+
+
+class _Fitter:
+    """One selection group: selection matrix S (d, m) and the channels it fits."""
+
+    def __init__(
+        self,
+        R: np.ndarray,
+        S: np.ndarray,
+        chans: np.ndarray,
+        avis_rows: np.ndarray,
+        eps_avis: float,
+        *,
+        psi: float,
+        eps_db: float,
+        c_max: int,
+        n_trials: int,
+        weights: Literal["nnls", "clamp"],
+        n_batch: int,
+        rng: np.random.Generator,
+    ):
+        self.R, self.S, self.chans = R, S, chans
+        self.avis_rows, self.eps_avis = avis_rows, eps_avis
+        self.psi, self.eps_db, self.c_max = psi, eps_db, c_max
+        self.n_trials, self.weights, self.n_batch, self.rng = n_trials, weights, n_batch, rng
+
+    def _trial(self, cols: np.ndarray, target: np.ndarray, fbar_ref, valid) -> tuple[np.ndarray, float]:
+        Rg = self.R[:, cols][:, :, self.chans]  # (d, c, ch_g)
+        alpha = np.stack(
+            [fit_weights(Rg[:, :, g], target[:, g], self.weights) for g in range(len(self.chans))],
+            axis=1,
+        ) if cols.size else np.zeros((0, len(self.chans)))  # (c, ch_g)
+        approx = np.einsum("dcg,cg->dg", Rg, alpha)  # (d, ch_g)
+        fbar_apx, _ = filtered_reflectance(approx, self.avis_rows, self.eps_avis)
+        return alpha, snr_db(fbar_ref, fbar_apx, valid)
+
+    def select(self, cand: np.ndarray) -> _GroupFit:
+        """Select among candidate columns cand (m',) for the target sum over cand.
+
+        Batching (n_batch bounds the columns in one SVD): if m' > n_batch, cand is split into
+        contiguous batches of n_batch (sample order, i.e. spatially coherent in g(p)); each
+        batch is fitted on its own partial sum (same psi, eps, c_max); the union of the batch
+        selections is the new candidate pool, which is fitted against the full sum over cand.
+        The pool is at most ceil(m'/n_batch) * c_max <= m'/2 + c_max columns (n_batch >=
+        2 c_max is enforced), so the recursion terminates.
+        """
+        target = self.R[:, cand][:, :, self.chans].sum(axis=1)  # (d, ch_g)
+        if cand.size > self.n_batch:
+            pools = [self.select(cand[b0 : b0 + self.n_batch]).cols for b0 in range(0, cand.size, self.n_batch)]
+            pool = np.unique(np.concatenate(pools)).astype(np.int64)
+            if pool.size > self.n_batch:
+                pool = self.select(pool).cols
+            return self._select_direct(pool, target)
+        return self._select_direct(cand, target)
+
+    def _select_direct(self, cand: np.ndarray, target: np.ndarray) -> _GroupFit:
+        fbar_ref, valid = filtered_reflectance(target, self.avis_rows, self.eps_avis)
+        S = self.S[:, cand]  # (d, m')
+        col_energy = np.einsum("dm,dm->m", S, S)
+        U, s, Vt = svd_float64(S)
+        k = energy_rank(s, self.psi)
+        if k == 0:  # nothing to select: zero matrix; alpha = 0 reproduces it
+            empty = np.zeros(0, dtype=np.int64)
+            _, snr = self._trial(empty, target, fbar_ref, valid)
+            return _GroupFit(empty, np.zeros((0, len(self.chans))), 0, snr, False)
+        p = column_probabilities(U, s, Vt, k, col_energy=col_energy)
+        cache: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+
+        def best_of_trials(c: int) -> tuple[np.ndarray, np.ndarray, float]:
+            if c not in cache:
+                best: tuple[np.ndarray, np.ndarray, float] | None = None
+                seen: set[bytes] = set()
+                for _ in range(self.n_trials):  # loop over a handful of randomized trials
+                    local = sample_columns(p, c, self.rng)
+                    key = local.tobytes()
+                    if key in seen:  # same draw again: same fit, skip the solve
+                        continue
+                    seen.add(key)
+                    cols = cand[local]
+                    alpha, snr = self._trial(cols, target, fbar_ref, valid)
+                    if best is None or snr > best[2]:
+                        best = (cols, alpha, snr)
+                assert best is not None  # n_trials >= 1 is checked in fit_texel
+                cache[c] = best
+            return cache[c]
+
+        capped = self.c_max < k
+        lo, hi = (self.c_max, self.c_max) if capped else (k, self.c_max)
+        # seed 000 §4.1: bisection on [k, c_max] with the median as the probe
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if best_of_trials(mid)[2] >= self.eps_db:
+                hi = mid
+            else:
+                lo = mid + 1
+        cols, alpha, snr = best_of_trials(lo)
+        return _GroupFit(cols, alpha, k, snr, capped)
+
+
+def fit_texel(
+    R: np.ndarray,
+    avis_rows: np.ndarray,
+    *,
+    psi: float = 0.97,
+    eps_db: float = 30.0,
+    c_max: int = 64,
+    n_trials: int = 8,
+    weights: Literal["nnls", "clamp"] = "nnls",
+    colour: Literal["auto", "luminance", "per_channel"] = "auto",
+    decorrelation_threshold: float = 0.5,
+    seed: int = 0,
+    n_batch: int = 2048,
+    texel_area: float | None = None,
+) -> TexelFit:
+    """Characteristic points and weights of one texel (seed 000 §3.3, §4.1; DMM06 Table 2).
+
+    R : (d, m, ch) float64, Eq. 9's matrix (see `reflectance_matrix`); ch = 1 or 3 (any ch works;
+        luminance weights are Rec. 709 for ch = 3 and equal otherwise)
+    avis_rows : (d,) float64, a_vis(w_o) per row
+    psi : energy fraction for k (seed: 0.97); eps_db : target SNR of Eq. 7 in dB (seed: 30)
+    c_max : max number of draws c; n_trials : randomized trials per c, the best (by the Eq. 7 SNR,
+        1/a_vis included) is kept; weights : "nnls" (DESIGN.md default) or "clamp" (the seed)
+    colour : "luminance" selects on sum_ch w_ch R[..., ch] and fits alpha per channel;
+        "per_channel" selects per channel; "auto" = per_channel when the min pairwise channel
+        correlation (`channel_correlation`) is below decorrelation_threshold
+    seed : rng seed (trials); equal inputs and seed give byte-identical output
+    n_batch : max columns in one SVD (see _Fitter.select for the scheme); must be >= 2 c_max
+    texel_area : scale of the a_vis floor (eps = TOL.avis_floor * texel_area); default: the
+        largest a_vis over the rows (~ the texel area for directions near its normal)
+    returns : TexelFit
+
+    c search (seed §4.1): bisection on [k, c_max]; for a probe c, n_trials draws of c columns
+    from the Table 2 probabilities, alpha fitted per channel, best SNR kept; the interval keeps
+    the half that contains the smallest c reaching eps_db. If c_max < k, c = c_max (c_capped).
+    Defined special cases: m = 0 -> c = 0, valid False; all-zero R -> c = 0, SNR +inf, valid
+    True; no row with a_vis > eps -> c = 0, valid False; non-finite R or a_vis -> NumericalError.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    avis_rows = np.asarray(avis_rows, dtype=np.float64).ravel()
+    if R.ndim != 3:
+        raise ShapeError(f"R must be (d, m, ch), got shape {R.shape}")
+    d, m, ch = R.shape
+    if avis_rows.shape != (d,):
+        raise ShapeError(f"avis_rows must be ({d},) to match R {R.shape}, got {avis_rows.shape}")
+    if not 0.0 < psi <= 1.0:
+        raise SettingsError(f"psi must be in (0, 1], got {psi}")
+    if c_max < 1 or n_trials < 1:
+        raise SettingsError(f"c_max and n_trials must be >= 1, got c_max={c_max}, n_trials={n_trials}")
+    if n_batch < 2 * c_max:
+        raise SettingsError(f"n_batch must be >= 2 * c_max = {2 * c_max}, got {n_batch}")
+    if colour not in ("auto", "luminance", "per_channel"):
+        raise SettingsError(f"colour must be 'auto', 'luminance' or 'per_channel', got {colour!r}")
+    if weights not in ("nnls", "clamp"):
+        raise SettingsError(f"weights must be 'nnls' or 'clamp', got {weights!r}")
+    if ch < 1:
+        raise ShapeError(f"R needs at least one channel, got {R.shape}")
+    if not np.all(np.isfinite(R)):
+        raise NumericalError(f"R has {int(np.count_nonzero(~np.isfinite(R)))} non-finite entries")
+    if not np.all(np.isfinite(avis_rows)):
+        raise NumericalError("avis_rows has non-finite entries")
+    if m == 0 or d == 0:
+        return _empty_fit(ch, "empty texel (m = 0 samples or d = 0 rows)", False, math.nan)
+
+    if texel_area is None:
+        texel_area = float(avis_rows.max()) if avis_rows.size else 0.0
+    eps_avis = avis_floor(texel_area)
+    fbar_ref, valid = filtered_reflectance(R.sum(axis=1), avis_rows, eps_avis)
+    if not np.any(valid):
+        return _empty_fit(ch, "no row with a_vis above the floor (fully masked texel)", False, math.nan)
+    if float(np.sum(R * R)) <= TOL.energy_floor:
+        return _empty_fit(ch, "all-zero R: nothing reflects, c = 0", True, math.inf)
+
+    corr = channel_correlation(R)
+    mode = colour
+    if colour == "auto":
+        mode = "per_channel" if (ch > 1 and corr < decorrelation_threshold) else "luminance"
+    if ch == 1:
+        mode = "luminance"
+
+    rng = np.random.default_rng(seed)
+    cand = np.arange(m, dtype=np.int64)
+    if mode == "luminance":
+        lw = LUMA_709 if ch == 3 else np.full(ch, 1.0 / ch)
+        S = np.einsum("dmc,c->dm", R, lw)  # (d, m)
+        groups = [(S, np.arange(ch))]
+    else:
+        groups = [(R[:, :, g], np.array([g])) for g in range(ch)]
+    fits = [
+        _Fitter(
+            R, S, chans, avis_rows, eps_avis, psi=psi, eps_db=eps_db, c_max=int(c_max),
+            n_trials=int(n_trials), weights=weights, n_batch=int(n_batch), rng=rng,
+        ).select(cand)
+        for S, chans in groups
+    ]
+
+    # merge groups: union of columns, weights (c, ch) with zeros where a group does not fit
+    columns = np.unique(np.concatenate([gf.cols for gf in fits])).astype(np.int64)
+    w64 = np.zeros((columns.size, ch), dtype=np.float64)
+    for gf, (_, chans) in zip(fits, groups, strict=True):  # loop over <= ch groups
+        pos = np.searchsorted(columns, gf.cols)
+        w64[np.ix_(pos, chans)] = gf.alpha
+    w32 = w64.astype(np.float32)
+    approx = np.einsum("dcx,cx->dx", R[:, columns], w32.astype(np.float64))  # (d, ch)
+    fbar_apx, _ = filtered_reflectance(approx, avis_rows, eps_avis)
+    snr = snr_db(fbar_ref, fbar_apx, valid)
+    capped = any(gf.capped for gf in fits)
+    reasons = []
+    if capped:
+        reasons.append(f"c_max={c_max} < k: c capped")
+    if snr < eps_db:
+        reasons.append(f"eps {eps_db} dB not reached (SNR {snr:.2f} dB)")
+    return TexelFit(
+        columns=columns,
+        weights=w32,
+        k=max(gf.k for gf in fits),
+        c=int(columns.size),
+        snr_db_insample=snr,
+        colour_mode=mode,
+        valid=True,
+        reason="; ".join(reasons),
+        channel_correlation=corr,
+        k_channels=np.array([gf.k for gf in fits], dtype=np.int64),
+        c_channels=np.array([gf.cols.size for gf in fits], dtype=np.int64),
+        c_capped=capped,
+        eps_reached=bool(snr >= eps_db),
+    )
+
+
+def reconstruct(
+    fit: TexelFit, R_rows: np.ndarray, avis_rows: np.ndarray, eps: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 7 from the characteristic points on any rows (e.g. held-out pairs), seed Eq. 8.
+
+    R_rows : (d', m, ch) float64 (only the fit's columns are read; the full matrix is accepted
+        so the reference R_rows 1 can be formed from the same array)
+    avis_rows : (d',) float64; eps : absolute a_vis floor
+    returns : (f_bar_approx (d', ch) float64, valid (d',) bool)
+    """
+    R_rows = np.asarray(R_rows, dtype=np.float64)
+    if R_rows.ndim != 3 or R_rows.shape[2] != fit.weights.shape[1]:
+        raise ShapeError(f"R_rows must be (d', m, {fit.weights.shape[1]}), got {R_rows.shape}")
+    w = np.asarray(fit.weights, dtype=np.float64)
+    approx = np.einsum("dcx,cx->dx", R_rows[:, fit.columns], w)  # (d', ch)
+    return filtered_reflectance(approx, avis_rows, eps)
+
+
+def evaluate_fit(
+    fit: TexelFit, R_rows: np.ndarray, avis_rows: np.ndarray, eps: float
+) -> float:
+    """SNR (dB) of the fit against the full Eq. 7 on the given rows (held-out generalization).
+
+    R_rows : (d', m, ch) float64, all m columns; avis_rows : (d',) float64; eps : a_vis floor
+    returns : float (see snr_db for the limits)
+    """
+    R_rows = np.asarray(R_rows, dtype=np.float64)
+    fbar_ref, valid = filtered_reflectance(R_rows.sum(axis=1), avis_rows, eps)
+    fbar_apx, _ = reconstruct(fit, R_rows, avis_rows, eps)
+    return snr_db(fbar_ref, fbar_apx, valid)
