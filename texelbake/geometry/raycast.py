@@ -1,0 +1,223 @@
+"""Batched ray casting and closest points over open3d's Embree scene.
+
+`RayCaster` wraps `open3d.t.geometry.RaycastingScene` (Embree, float32): arrays of rays go in
+as large batches (default 2**20 rays), no Python per ray. Directions are normalized here, so
+every distance is in scene units along a unit direction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from texelbake.errors import ShapeError
+from texelbake.geometry.closest import closest_point_on_triangles
+from texelbake.geometry.mesh import bbox_diagonal, check_faces, check_points
+from texelbake.tol import TOL
+
+DEFAULT_BATCH = 2**20
+
+
+@dataclass(frozen=True, eq=False)
+class RayHits:
+    """First hits of n rays.
+
+    t : (n,) float64 distance along the unit direction, inf when missed
+    prim : (n,) int64 triangle index, -1 when missed
+    bary : (n, 2) float64 (u, v): hit = (1 - u - v) p0 + u p1 + v p2 of triangle `prim`
+        (open3d's convention); zeros when missed
+    normal : (n, 3) float64 unit geometric normal of the hit triangle; zeros when missed
+    """
+
+    t: np.ndarray
+    prim: np.ndarray
+    bary: np.ndarray
+    normal: np.ndarray
+
+    @property
+    def hit(self) -> np.ndarray:
+        """(n,) bool."""
+        return self.prim >= 0
+
+    def bary3(self) -> np.ndarray:
+        """(n, 3) float64 barycentric weights of (p0, p1, p2)."""
+        return np.column_stack([1.0 - self.bary[:, 0] - self.bary[:, 1], self.bary])
+
+
+def _check_rays(origins: object, dirs: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Coerce rays; return (origins (n,3), unit dirs (n,3), ok (n,) bool for nonzero dirs)."""
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(dirs, dtype=np.float64)
+    if o.ndim != 2 or o.shape[1] != 3:
+        raise ShapeError(f"origins must have shape (n, 3), got {o.shape}")
+    if d.shape != o.shape:
+        raise ShapeError(f"dirs must have the shape of origins {o.shape}, got {d.shape}")
+    length = np.linalg.norm(d, axis=1)
+    ok = (length > 0) & np.isfinite(length) & np.isfinite(o).all(axis=1)
+    d = np.divide(d, length[:, None], out=np.zeros_like(d), where=ok[:, None])
+    return o, d, ok
+
+
+def offset_origins(
+    points: object, normals: object, eps: float | None = None, *, bbox_diag: float | None = None
+) -> np.ndarray:
+    """Move ray origins off the surface along the normal to avoid self-intersection.
+
+    points : (n, 3) float64
+    normals : (n, 3) float64, unit (oriented to the side the rays leave from)
+    eps : absolute offset; default TOL.ray_offset * bbox_diag (bbox of `points` when
+        `bbox_diag` is not given; pass the scene's diagonal for consistency across batches)
+    returns : (n, 3) float64
+    """
+    p = np.asarray(points, dtype=np.float64)
+    nrm = np.asarray(normals, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or nrm.shape != p.shape:
+        raise ShapeError(f"points and normals must both be (n, 3), got {p.shape} and {nrm.shape}")
+    if eps is None:
+        diag = bbox_diagonal(p) if bbox_diag is None else float(bbox_diag)
+        eps = TOL.ray_offset * diag
+    return p + float(eps) * nrm
+
+
+class RayCaster:
+    """Ray queries against one triangle mesh (built once).
+
+    points : (n, 3) float64, faces : (f, 3) int64. Stored in Embree as float32.
+    nthreads : 0 = open3d's default (all cores).
+    Attributes `rays_cast` and `points_queried` count the work done, for rays/s figures.
+    """
+
+    def __init__(self, points: object, faces: object, *, nthreads: int = 0) -> None:
+        pts = check_points(points)
+        fcs = check_faces(faces, pts.shape[0])
+        self.points = pts
+        self.faces = fcs
+        self.nthreads = int(nthreads)
+        self.bbox_diag = bbox_diagonal(pts)
+        self.rays_cast = 0
+        self.points_queried = 0
+        self._scene = o3d.t.geometry.RaycastingScene(nthreads=self.nthreads)
+        if fcs.shape[0] > 0:
+            self._scene.add_triangles(
+                o3d.core.Tensor(np.ascontiguousarray(pts, dtype=np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(fcs, dtype=np.uint32)),
+            )
+        self._empty = fcs.shape[0] == 0
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    def occluded(
+        self,
+        origins: object,
+        dirs: object,
+        tmax: float | np.ndarray = np.inf,
+        batch: int = DEFAULT_BATCH,
+    ) -> np.ndarray:
+        """True where the ray from origin along dir hits the mesh at 0 < t < tmax.
+
+        origins, dirs : (n, 3) float64 (dirs need not be unit; zero dirs are never occluded)
+        tmax : scalar or (n,) float64 distance along the unit direction (inf allowed)
+        returns : (n,) bool
+        """
+        o, d, ok = _check_rays(origins, dirs)
+        n = o.shape[0]
+        tm = np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,))
+        out = np.zeros(n, dtype=bool)
+        if n == 0 or self._empty:
+            return out
+        self.rays_cast += n
+        # Embree takes one scalar tfar per call: rays with a finite tmax get their direction
+        # scaled by tmax and tfar = 1; the rest keep unit directions and tfar = inf.
+        finite = np.isfinite(tm) & (tm > 0) & ok
+        infinite = (tm == np.inf) & ok
+        if infinite.all():
+            out[:] = self._occluded_batches(o, d, np.inf, batch)
+        else:
+            if finite.any():
+                idx = np.flatnonzero(finite)
+                out[idx] = self._occluded_batches(o[idx], d[idx] * tm[idx, None], 1.0, batch)
+            if infinite.any():
+                idx = np.flatnonzero(infinite)
+                out[idx] = self._occluded_batches(o[idx], d[idx], np.inf, batch)
+        return out
+
+    def _occluded_batches(
+        self, o: np.ndarray, d: np.ndarray, tfar: float, batch: int
+    ) -> np.ndarray:
+        n = o.shape[0]
+        out = np.empty(n, dtype=bool)
+        batch = max(int(batch), 1)
+        for start in range(0, n, batch):  # a loop over large batches, not rays
+            stop = min(start + batch, n)
+            rays = np.empty((stop - start, 6), dtype=np.float32)
+            rays[:, :3] = o[start:stop]
+            rays[:, 3:] = d[start:stop]
+            res = self._scene.test_occlusions(
+                o3d.core.Tensor.from_numpy(rays), tfar=tfar, nthreads=self.nthreads
+            )
+            out[start:stop] = res.numpy()
+        return out
+
+    def cast(self, origins: object, dirs: object, batch: int = DEFAULT_BATCH) -> RayHits:
+        """First hit of each ray (see RayHits).
+
+        origins, dirs : (n, 3) float64 (dirs need not be unit; zero dirs miss)
+        """
+        o, d, ok = _check_rays(origins, dirs)
+        n = o.shape[0]
+        t = np.full(n, np.inf)
+        prim = np.full(n, -1, dtype=np.int64)
+        bary = np.zeros((n, 2))
+        normal = np.zeros((n, 3))
+        if n == 0 or self._empty:
+            return RayHits(t, prim, bary, normal)
+        self.rays_cast += n
+        invalid = np.uint32(o3d.t.geometry.RaycastingScene.INVALID_ID)
+        batch = max(int(batch), 1)
+        for start in range(0, n, batch):
+            stop = min(start + batch, n)
+            rays = np.empty((stop - start, 6), dtype=np.float32)
+            rays[:, :3] = o[start:stop]
+            rays[:, 3:] = d[start:stop]
+            res = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self.nthreads)
+            pid = res["primitive_ids"].numpy()
+            hit = (pid != invalid) & ok[start:stop]
+            sl = slice(start, stop)
+            t[sl] = np.where(hit, res["t_hit"].numpy().astype(np.float64), np.inf)
+            prim[sl] = np.where(hit, pid.astype(np.int64), -1)
+            bary[sl] = np.where(hit[:, None], res["primitive_uvs"].numpy(), 0.0)
+            normal[sl] = np.where(hit[:, None], res["primitive_normals"].numpy(), 0.0)
+        return RayHits(t, prim, bary, normal)
+
+    def closest_points(
+        self, queries: object, batch: int = DEFAULT_BATCH
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Closest point on the mesh to each query.
+
+        Embree (float32) picks the triangle; the point and barycentrics are then recomputed
+        on that triangle in float64, so they are exact for the chosen triangle.
+        queries : (n, 3) float64
+        returns : (points (n, 3) float64, prim (n,) int64, bary (n, 2) float64 (u, v) with
+            point = (1 - u - v) p0 + u p1 + v p2). With an empty mesh: NaN points, prim -1.
+        """
+        q = check_points(queries, "queries")
+        n = q.shape[0]
+        if self._empty or n == 0:
+            return np.full((n, 3), np.nan), np.full(n, -1, dtype=np.int64), np.zeros((n, 2))
+        self.points_queried += n
+        prim = np.empty(n, dtype=np.int64)
+        batch = max(int(batch), 1)
+        for start in range(0, n, batch):
+            stop = min(start + batch, n)
+            res = self._scene.compute_closest_points(
+                o3d.core.Tensor(np.ascontiguousarray(q[start:stop], dtype=np.float32)),
+                nthreads=self.nthreads,
+            )
+            prim[start:stop] = res["primitive_ids"].numpy().astype(np.int64)
+        tri = self.points[self.faces[prim]]  # (n, 3, 3)
+        points, w = closest_point_on_triangles(q, tri[:, 0], tri[:, 1], tri[:, 2])
+        return points, prim, np.ascontiguousarray(w[:, 1:])

@@ -1,0 +1,205 @@
+"""Dense, area-weighted, stratified point samples X on M_org (seed 000, §4.1).
+
+Each sample x_j carries the quantities the apparent-reflectance matrix needs (seed 000,
+Eq. 7: n_j, the material at x_j, and ΔA_j): its shading normal, material id, texture
+coordinates of M_org and the area ΔA_j it stands for. Counts per triangle follow its area
+(largest remainder), every triangle of nonzero area gets at least one sample, and the
+samples of one triangle share its area equally, so Σ_j ΔA_j equals the surface area up to
+floating-point summation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from texelbake.errors import ShapeError
+from texelbake.geometry.mesh import bbox_diagonal, check_faces, check_points, triangle_areas
+from texelbake.tol import TOL
+
+# fractional part of the golden ratio: the Kronecker (Fibonacci-lattice) step of the
+# second coordinate of the per-triangle stratified point set
+_GOLDEN = 0.6180339887498949
+
+
+@dataclass(frozen=True, eq=False)
+class Samples:
+    """m surface samples.
+
+    positions : (m, 3) float64
+    normals : (m, 3) float64 unit shading normals (corner normals interpolated, else geometric)
+    face : (m,) int64 triangle of M_org holding the sample
+    bary : (m, 3) float64 barycentric weights of the triangle's corners
+    uv : (m, 2) float64 M_org texture coordinates (zeros when none were given)
+    material : (m,) int32 material index (zeros when none was given)
+    area : (m,) float64 ΔA_j
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    uv: np.ndarray
+    material: np.ndarray
+    area: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+    def subset(self, index: np.ndarray) -> Samples:
+        """Samples at `index` ((k,) int64 or (m,) bool)."""
+        return Samples(
+            self.positions[index],
+            self.normals[index],
+            self.face[index],
+            self.bary[index],
+            self.uv[index],
+            self.material[index],
+            self.area[index],
+        )
+
+
+def empty_samples() -> Samples:
+    return Samples(
+        np.zeros((0, 3)),
+        np.zeros((0, 3)),
+        np.zeros(0, np.int64),
+        np.zeros((0, 3)),
+        np.zeros((0, 2)),
+        np.zeros(0, np.int32),
+        np.zeros(0),
+    )
+
+
+def allocate_counts(areas: np.ndarray, n_samples: int, eps_area: float = 0.0) -> np.ndarray:
+    """Samples per triangle: one for every triangle with area > eps_area, the remaining
+    n_samples - (#such triangles) split in proportion to area by largest remainder (ties
+    broken by triangle index).
+
+    areas : (f,) float64
+    returns : (f,) int64 summing to max(n_samples, #triangles with area > eps_area)
+    """
+    areas = np.asarray(areas, dtype=np.float64)
+    live = areas > eps_area
+    counts = live.astype(np.int64)
+    rest = int(n_samples) - int(counts.sum())
+    total = float(areas[live].sum())
+    if rest <= 0 or total <= 0:
+        return counts
+    quota = np.where(live, areas, 0.0) * (rest / total)  # (f,)
+    base = np.floor(quota).astype(np.int64)
+    left = rest - int(base.sum())
+    if left > 0:
+        order = np.argsort(-(quota - base), kind="stable")
+        base[order[:left]] += 1
+    return counts + base
+
+
+def square_to_triangle(u: np.ndarray) -> np.ndarray:
+    """Area-preserving map of the unit square onto the triangle (Heitz 2019, "A Low-Distortion
+    Map Between Triangle and Square"), which keeps stratification better than the sqrt map.
+
+    u : (m, 2) float64 in [0, 1)^2
+    returns : (m, 3) float64 barycentric weights
+    """
+    u1 = u[:, 0]
+    u2 = u[:, 1]
+    upper = u2 > u1
+    b0 = np.where(upper, 0.5 * u1, u1 - 0.5 * u2)
+    b1 = np.where(upper, u2 - 0.5 * u1, 0.5 * u2)
+    return np.column_stack([b0, b1, 1.0 - b0 - b1])
+
+
+def stratified_unit_square(counts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """For each triangle i, counts[i] points in [0,1)^2 forming a jittered Fibonacci lattice:
+    point k is ((k + ξ) / c, frac(s + k φ)) with ξ uniform per point and a random shift s per
+    triangle (Cranley–Patterson rotation), so each horizontal stratum of height 1/c holds one
+    point and the second coordinate is low-discrepancy.
+
+    counts : (f,) int64
+    returns : (sum(counts), 2) float64, grouped by triangle in order
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    m = int(counts.sum())
+    starts = np.cumsum(counts) - counts
+    tri = np.repeat(np.arange(counts.shape[0]), counts)  # (m,)
+    k = np.arange(m, dtype=np.int64) - starts[tri]  # index inside the triangle
+    c = counts[tri].astype(np.float64)
+    shift = rng.random(counts.shape[0])[tri]
+    jitter = rng.random(m)
+    u1 = (k + jitter) / c
+    u2 = np.mod(shift + k * _GOLDEN, 1.0)
+    return np.column_stack([np.minimum(u1, np.nextafter(1.0, 0.0)), u2])
+
+
+def sample_surface(
+    points: object,
+    faces: object,
+    n_samples: int,
+    seed: int,
+    *,
+    corner_normals: object | None = None,
+    corner_uvs: object | None = None,
+    face_material: object | None = None,
+    eps: float = TOL.zero_area,
+) -> Samples:
+    """Area-weighted, per-triangle stratified samples of a triangle mesh.
+
+    points : (n, 3) float64; faces : (f, 3) int64
+    n_samples : requested count m; the result has max(m, #nondegenerate triangles) samples
+        so every triangle with area > eps * bbox_diag**2 is represented (degenerate
+        triangles get none)
+    seed : seeds the jitter and shifts; equal inputs give byte-identical output
+    corner_normals : (f, 3, 3) float64 or None — shading normals per face corner
+    corner_uvs : (f, 3, 2) float64 or None
+    face_material : (f,) int32 or None
+    returns : Samples, grouped by triangle in face order; ΔA of a triangle's samples is
+        its area / its count. Empty (typed) when nothing has area or n_samples <= 0.
+    """
+    pts = check_points(points)
+    fcs = check_faces(faces, pts.shape[0])
+    f = fcs.shape[0]
+    if corner_normals is not None:
+        corner_normals = np.asarray(corner_normals, dtype=np.float64)
+        if corner_normals.shape != (f, 3, 3):
+            raise ShapeError(f"corner_normals must be ({f}, 3, 3), got {corner_normals.shape}")
+    if corner_uvs is not None:
+        corner_uvs = np.asarray(corner_uvs, dtype=np.float64)
+        if corner_uvs.shape != (f, 3, 2):
+            raise ShapeError(f"corner_uvs must be ({f}, 3, 2), got {corner_uvs.shape}")
+    if face_material is not None:
+        face_material = np.asarray(face_material)
+        if face_material.shape != (f,):
+            raise ShapeError(f"face_material must be ({f},), got {face_material.shape}")
+        face_material = face_material.astype(np.int32)
+    if f == 0 or int(n_samples) <= 0:
+        return empty_samples()
+
+    areas = triangle_areas(pts, fcs)  # (f,)
+    eps_area = eps * bbox_diagonal(pts) ** 2
+    counts = allocate_counts(areas, int(n_samples), eps_area)  # (f,)
+    m = int(counts.sum())
+    if m == 0:
+        return empty_samples()
+    rng = np.random.default_rng(seed)
+    bary = square_to_triangle(stratified_unit_square(counts, rng))  # (m, 3)
+    face = np.repeat(np.arange(f, dtype=np.int64), counts)  # (m,)
+    tri = pts[fcs[face]]  # (m, 3, 3)
+    positions = np.einsum("mk,mkd->md", bary, tri)
+    geo = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    geo /= np.linalg.norm(geo, axis=1, keepdims=True)  # only nondegenerate faces are sampled
+    if corner_normals is None:
+        normals = geo
+    else:
+        interp = np.einsum("mk,mkd->md", bary, corner_normals[face])
+        length = np.linalg.norm(interp, axis=1, keepdims=True)
+        good = (length[:, 0] > TOL.brdf_eps) & np.isfinite(length[:, 0])
+        normals = np.where(good[:, None], interp / np.where(good, length[:, 0], 1.0)[:, None], geo)
+    if corner_uvs is None:
+        uv = np.zeros((m, 2))
+    else:
+        uv = np.einsum("mk,mkd->md", bary, corner_uvs[face])
+    material = np.zeros(m, np.int32) if face_material is None else face_material[face]
+    area = (areas / np.maximum(counts, 1))[face]
+    return Samples(positions, normals, face, bary, uv, material, area)

@@ -1,0 +1,284 @@
+"""Texel assignment g(p) and texel frames (seed 000, §4.1).
+
+Every sample x_j of M_org goes to the texel of M1's atlas under its exact closest point on
+M1 (triangle id + float64 barycentrics → uv → texel); the seed's k-d tree over samples of
+M1 approximates this. Mip level ℓ is the atlas at resolution N_ℓ = N / 2^ℓ and its texel
+(r, c) holds the samples of its four children (2r + i, 2c + j) — the seed's box filter — so
+a level-ℓ texel is the level-0 texel shifted right by ℓ bits in row and column.
+
+Texel convention (see `texelbake.geometry.atlas`): row 0 at the top, row = floor((1 - v) N),
+col = floor(u N), flat index row * N + col.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from texelbake.errors import SettingsError, ShapeError
+from texelbake.frames import tangent_frames
+from texelbake.geometry.atlas import Atlas, rasterize_atlas
+from texelbake.geometry.mesh import Mesh, check_points
+from texelbake.geometry.raycast import RayCaster
+from texelbake.tol import TOL
+
+
+def uv_to_texel(uv: object, resolution: int) -> tuple[np.ndarray, np.ndarray]:
+    """Texel (row, col) containing each uv at resolution N (uv outside [0,1] is clamped).
+
+    uv : (n, 2) float64
+    returns : (row (n,) int64, col (n,) int64)
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ShapeError(f"uv must have shape (n, 2), got {uv.shape}")
+    n = int(resolution)
+    col = np.clip(np.floor(uv[:, 0] * n), 0, n - 1).astype(np.int64)
+    row = np.clip(np.floor((1.0 - uv[:, 1]) * n), 0, n - 1).astype(np.int64)
+    return row, col
+
+
+def texel_centers_uv(resolution: int) -> np.ndarray:
+    """(N*N, 2) float64 uv of every texel centre, in flat order row * N + col."""
+    n = int(resolution)
+    row, col = np.divmod(np.arange(n * n, dtype=np.int64), n)
+    return np.column_stack([(col + 0.5) / n, 1.0 - (row + 0.5) / n])
+
+
+def bilinear_texels(uv: object, resolution: int) -> tuple[np.ndarray, np.ndarray]:
+    """The four texels around each uv and their bilinear weights (clamped at the border),
+    for filtered look-ups (trilinear = two levels of this).
+
+    uv : (n, 2) float64
+    returns : (index (n, 4) int64 flat texel ids, weight (n, 4) float64 summing to 1)
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ShapeError(f"uv must have shape (n, 2), got {uv.shape}")
+    n = int(resolution)
+    x = np.clip(uv[:, 0] * n - 0.5, 0.0, n - 1.0)  # continuous column of texel centres
+    y = np.clip((1.0 - uv[:, 1]) * n - 0.5, 0.0, n - 1.0)
+    c0 = np.minimum(np.floor(x).astype(np.int64), n - 1)
+    r0 = np.minimum(np.floor(y).astype(np.int64), n - 1)
+    c1 = np.minimum(c0 + 1, n - 1)
+    r1 = np.minimum(r0 + 1, n - 1)
+    fx = x - c0
+    fy = y - r0
+    index = np.stack([r0 * n + c0, r0 * n + c1, r1 * n + c0, r1 * n + c1], axis=1)
+    weight = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    return index, weight
+
+
+@dataclass(frozen=True, eq=False)
+class TexelAssignment:
+    """Samples grouped by texel at every mip level.
+
+    resolution : N (level 0); n_levels : L; level ℓ has N >> ℓ texels per side
+    prim : (m,) int64 M1 triangle under each sample's closest point
+    bary : (m, 3) float64 barycentrics of that closest point
+    uv : (m, 2) float64 atlas uv of the closest point
+    distance : (m,) float64 sample-to-M1 distance
+    row, col : (m,) int64 level-0 texel
+    orders : L arrays (m,) int64 — sample ids sorted by texel at level ℓ (stable)
+    offsets : L arrays (N_ℓ² + 1,) int64 — samples of texel p at level ℓ are
+        orders[ℓ][offsets[ℓ][p]:offsets[ℓ][p + 1]]
+    """
+
+    resolution: int
+    n_levels: int
+    prim: np.ndarray
+    bary: np.ndarray
+    uv: np.ndarray
+    distance: np.ndarray
+    row: np.ndarray
+    col: np.ndarray
+    orders: tuple[np.ndarray, ...]
+    offsets: tuple[np.ndarray, ...]
+
+    def _check_level(self, level: int) -> int:
+        level = int(level)
+        if not 0 <= level < self.n_levels:
+            raise SettingsError(f"level must be in [0, {self.n_levels}), got {level}")
+        return level
+
+    def resolution_at(self, level: int) -> int:
+        return self.resolution >> self._check_level(level)
+
+    def texel_index(self, level: int) -> np.ndarray:
+        """(m,) int64 flat texel id of every sample at `level`."""
+        level = self._check_level(level)
+        n_l = self.resolution >> level
+        return (self.row >> level) * n_l + (self.col >> level)
+
+    def counts(self, level: int) -> np.ndarray:
+        """(N_ℓ²,) int64 samples per texel."""
+        return np.diff(self.offsets[self._check_level(level)])
+
+    def samples_of(self, level: int, texel: int) -> np.ndarray:
+        """(k,) int64 ids of the samples in texel `texel` (flat id) at `level`."""
+        level = self._check_level(level)
+        off = self.offsets[level]
+        texel = int(texel)
+        if not 0 <= texel < off.shape[0] - 1:
+            raise SettingsError(f"texel must be in [0, {off.shape[0] - 1}), got {texel}")
+        return self.orders[level][off[texel] : off[texel + 1]]
+
+    def occupied(self, level: int) -> np.ndarray:
+        """(k,) int64 flat ids of the texels holding at least one sample, ascending."""
+        return np.flatnonzero(self.counts(level) > 0)
+
+
+def assign_texels(
+    sample_positions: object,
+    m1: Mesh,
+    atlas: Atlas,
+    n_levels: int,
+    *,
+    caster: RayCaster | None = None,
+) -> TexelAssignment:
+    """Assign every sample to its texel at every mip level by exact closest point on M1.
+
+    sample_positions : (m, 3) float64 points on M_org
+    m1 : M1 (same faces as atlas.mesh); atlas : from build_atlas
+    n_levels : L >= 1; N must be divisible by 2^(L-1) so every level has whole texels
+    caster : a RayCaster over atlas.mesh to reuse (built when None)
+    returns : TexelAssignment
+    """
+    pts = check_points(sample_positions, "sample_positions")
+    n_levels = int(n_levels)
+    n = int(atlas.resolution)
+    if n_levels < 1:
+        raise SettingsError(f"n_levels must be >= 1, got {n_levels}")
+    if n % (1 << (n_levels - 1)) != 0:
+        raise SettingsError(
+            f"atlas resolution {n} must be divisible by 2^(n_levels-1) = {1 << (n_levels - 1)}"
+        )
+    if m1.num_faces != atlas.mesh.num_faces:
+        raise ShapeError(
+            f"m1 has {m1.num_faces} faces but the atlas mesh has {atlas.mesh.num_faces}"
+        )
+    m = pts.shape[0]
+    if caster is None:
+        caster = RayCaster(atlas.mesh.vertices, atlas.mesh.faces)
+    if m:
+        closest, prim, bary2 = caster.closest_points(pts)
+    else:
+        closest, prim, bary2 = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2))
+    bary = np.column_stack([1.0 - bary2[:, 0] - bary2[:, 1], bary2])  # (m, 3)
+    uv = np.einsum("mk,mkd->md", bary, atlas.corner_uvs[prim])  # (m, 2)
+    row, col = uv_to_texel(uv, n)
+    orders = []
+    offsets = []
+    for level in range(n_levels):  # a handful of mip levels
+        n_l = n >> level
+        idx = (row >> level) * n_l + (col >> level)
+        orders.append(np.argsort(idx, kind="stable").astype(np.int64))
+        counts = np.bincount(idx, minlength=n_l * n_l)
+        offsets.append(np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
+    return TexelAssignment(
+        resolution=n,
+        n_levels=n_levels,
+        prim=prim,
+        bary=bary,
+        uv=uv,
+        distance=np.linalg.norm(closest - pts, axis=1),
+        row=row,
+        col=col,
+        orders=tuple(orders),
+        offsets=tuple(offsets),
+    )
+
+
+def face_uv_tangents(atlas: Atlas) -> tuple[np.ndarray, np.ndarray]:
+    """d position / d u of every atlas triangle (the UV tangent), unit length.
+
+    Solves [e1 e2] = [dP/du dP/dv] [[du1 du2], [dv1 dv2]] per triangle.
+    returns : (tangent (f, 3) float64, valid (f,) bool — False where the uv triangle is
+        degenerate; those rows are zero)
+    """
+    tri = atlas.mesh.triangles()  # (f, 3, 3)
+    cuv = atlas.corner_uvs
+    e1 = tri[:, 1] - tri[:, 0]
+    e2 = tri[:, 2] - tri[:, 0]
+    d1 = cuv[:, 1] - cuv[:, 0]
+    d2 = cuv[:, 2] - cuv[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]  # (f,)
+    scale = float(np.abs(cuv).max()) if cuv.size else 1.0
+    ok = np.abs(det) > TOL.zero_area * scale * scale
+    safe = np.where(ok, det, 1.0)
+    dpdu = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / safe[:, None]
+    length = np.linalg.norm(dpdu, axis=1)
+    ok &= length > 0
+    tangent = np.divide(dpdu, length[:, None], out=np.zeros_like(dpdu), where=ok[:, None])
+    return tangent, ok
+
+
+def texel_frames(
+    assignment: TexelAssignment,
+    normals: object,
+    areas: object,
+    m1: Mesh,
+    atlas: Atlas,
+    level: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Tangent frame (rows t, b, n) of every texel at `level`.
+
+    n = Σ ΔA_j n_j / |Σ ΔA_j n_j| over the texel's samples (area-weighted mean normal);
+    t = the UV tangent dP/du of the M1 triangle under the texel centre (when the centre is
+    outside every chart, of the triangle under the texel's sample nearest the centre in uv),
+    made orthogonal to n; b = n × t (right-handed; on a mirrored chart b = -dP/dv).
+    Texels with no samples, or whose normals cancel, get a frame from the M1 triangle under
+    their centre (or the default frame of `texelbake.frames.tangent_frames`) and valid False.
+
+    normals : (m, 3) float64 sample shading normals; areas : (m,) float64 ΔA
+    returns : (frames (N_ℓ², 3, 3) float64, valid (N_ℓ²,) bool)
+    """
+    nrm = check_points(normals, "normals")
+    w = np.asarray(areas, dtype=np.float64)
+    m = assignment.prim.shape[0]
+    if nrm.shape[0] != m or w.shape != (m,):
+        raise ShapeError(
+            f"normals (m, 3) and areas (m,) must match the {m} assigned samples, "
+            f"got {nrm.shape} and {w.shape}"
+        )
+    if m1.num_faces != atlas.mesh.num_faces:
+        raise ShapeError(
+            f"m1 has {m1.num_faces} faces but the atlas mesh has {atlas.mesh.num_faces}"
+        )
+    n_l = assignment.resolution_at(level)
+    n_tex = n_l * n_l
+    idx = assignment.texel_index(level)  # (m,)
+    nsum = np.stack(
+        [np.bincount(idx, weights=w * nrm[:, k], minlength=n_tex) for k in range(3)], axis=1
+    )  # (N_ℓ², 3)
+    length = np.linalg.norm(nsum, axis=1)
+    wsum = np.bincount(idx, weights=np.abs(w), minlength=n_tex)
+    counts = assignment.counts(level)
+    valid = (counts > 0) & (length > TOL.grazing_cos * wsum) & (length > 0)
+
+    face_tangent, tangent_ok = face_uv_tangents(atlas)
+    face_normal = atlas.mesh.face_normals()
+    under, _, _ = rasterize_atlas(atlas.corner_uvs, n_l)  # (N_ℓ²,) M1 face under centre
+    # fallback face: the texel's sample nearest to the texel centre in uv
+    centres = texel_centers_uv(n_l)
+    if m:
+        dist = np.linalg.norm(assignment.uv - centres[idx], axis=1)
+        order = np.lexsort((np.arange(m), dist, idx))
+        first = np.ones(m, dtype=bool)
+        first[1:] = idx[order][1:] != idx[order][:-1]
+        nearest_face = np.full(n_tex, -1, dtype=np.int64)
+        nearest_face[idx[order][first]] = assignment.prim[order][first]
+    else:
+        nearest_face = np.full(n_tex, -1, dtype=np.int64)
+    face = np.where(under >= 0, under, nearest_face)  # (N_ℓ²,)
+    has_face = face >= 0
+    safe_face = np.where(has_face, face, 0)
+
+    n_out = np.where(
+        valid[:, None],
+        np.divide(nsum, length[:, None], out=np.zeros_like(nsum), where=length[:, None] > 0),
+        np.where(has_face[:, None], face_normal[safe_face], 0.0),
+    )
+    t_in = np.where((has_face & tangent_ok[safe_face])[:, None], face_tangent[safe_face], 0.0)
+    return tangent_frames(n_out, t_in), valid
