@@ -1,0 +1,103 @@
+"""Wire models of bake jobs (`/api/v1/jobs`): the job, its stages, its shards and its events.
+
+Job states: queued (created; the plan task is on the `ingest` queue) -> running (planned; stages
+are being worked off) -> succeeded | failed | cancelled. Stage and shard states: pending (waiting
+for the stages it depends on) -> queued (sent to the broker) -> running -> done | failed |
+cancelled.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.settings import BakeSettings
+
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+UnitState = Literal["pending", "queued", "running", "done", "failed", "cancelled"]
+TERMINAL_JOB_STATES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
+
+
+class JobCreate(BaseModel):
+    """Request body of `POST /api/v1/jobs`."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    asset_id: str = Field(min_length=1, max_length=64)
+    settings: BakeSettings = Field(default_factory=BakeSettings)
+
+
+class ShardPublic(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+    shard: int
+    state: UnitState
+    attempts: int = Field(description="Times a worker started this shard (redeliveries included).")
+    worker: str | None = Field(None, description="hostname:pid of the last worker that ran it.")
+    seconds: float | None = Field(None, description="Wall time of the successful run.")
+    artifact_key: str | None = None
+    error: str | None = None
+
+
+class StagePublic(BaseModel):
+    name: str
+    queue: str
+    state: UnitState
+    depends_on: list[str]
+    n_shards: int
+    n_done: int
+    progress: float = Field(description="Fraction of shards done, 0..1.")
+    started_at: datetime | None = None
+    finished_at: datetime | None = None
+    seconds: float | None = Field(None, description="Wall time from first start to last finish.")
+    shards: list[ShardPublic] = Field(default_factory=list)
+
+
+class SkippedStage(BaseModel):
+    stage: str
+    reason: str
+
+
+class JobPublic(BaseModel):
+    id: str
+    asset_id: str
+    state: JobState
+    settings: BakeSettings
+    progress: float = Field(description="Fraction of all planned shards done, 0..1.")
+    stages: list[StagePublic] = Field(description="Planned stages in execution order.")
+    skipped: list[SkippedStage] = Field(default_factory=list)
+    error: str | None = None
+    created_at: datetime
+    started_at: datetime | None = None
+    finished_at: datetime | None = None
+    seconds: float | None = None
+    previews: list[str] = Field(default_factory=list, description="Names under .../previews/.")
+
+
+class JobSummary(BaseModel):
+    """A job in a listing (no per-shard detail)."""
+
+    id: str
+    asset_id: str
+    state: JobState
+    progress: float
+    error: str | None = None
+    created_at: datetime
+    finished_at: datetime | None = None
+
+
+class JobsPublic(BaseModel):
+    data: list[JobSummary]
+    count: int
+
+
+class JobEvent(BaseModel):
+    """One server-sent event: `id: seq`, `event: kind`, `data: JobEvent JSON`."""
+
+    seq: int
+    job_id: str
+    kind: str = Field(description="job | stage | shard")
+    data: dict[str, Any]
+    at: datetime

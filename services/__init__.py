@@ -1,0 +1,1 @@
+"""The texelbake HTTP service (FastAPI): routes, auth, upload handling, the job store."""

@@ -1,0 +1,71 @@
+"""The one settings class of the service, read from the environment (prefix `TEXELBAKE_`).
+
+Shared by the API and the Celery workers. The secret and the broker URL are required; the
+placeholder secret `changethis` is refused outside `environment=development`.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+PLACEHOLDER_SECRET = "changethis"
+API_V1 = "/api/v1"
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="TEXELBAKE_", env_file=None, extra="ignore")
+
+    environment: Literal["development", "test", "production"] = "development"
+    secret_key: str = Field(min_length=8, description="HMAC key for stored token digests.")
+    redis_url: str = Field(description="Celery broker, e.g. redis://127.0.0.1:6379/0")
+    database_url: str | None = Field(
+        None, description="SQLAlchemy URL; default SQLite at <artifact_root>/texelbake.db"
+    )
+    artifact_root: Path = Field(Path("texelbake-data"), description="Shared by every worker.")
+    tokens: dict[str, str] = Field(
+        default_factory=dict, description="Bootstrap bearer tokens: token -> tenant (JSON)."
+    )
+    # uploads
+    max_upload_bytes: int = Field(256 << 20, ge=1)
+    max_unpacked_bytes: int = Field(1 << 30, ge=1, description="Zip/usdz: total unpacked cap.")
+    max_zip_ratio: float = Field(100.0, gt=1.0, description="Zip/usdz: unpacked/packed cap.")
+    max_zip_members: int = Field(4096, ge=1)
+    validate_timeout: float = Field(120.0, gt=0, description="Seconds for the pxr check.")
+    # farm
+    visibility_timeout: int = Field(
+        3600, ge=5, description="Redis redelivery of unacked messages; above the longest shard."
+    )
+    max_attempts: int = Field(3, ge=1, description="Redelivery cap: starts of one shard.")
+    max_retries: int = Field(4, ge=0, description="Retries of a transient fault per delivery.")
+    retry_backoff_max: int = Field(60, ge=1)
+    sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
+
+    @model_validator(mode="after")
+    def _refuse_placeholder(self) -> Settings:
+        if self.secret_key == PLACEHOLDER_SECRET and self.environment != "development":
+            raise ValueError(
+                f"TEXELBAKE_SECRET_KEY is the placeholder {PLACEHOLDER_SECRET!r}; "
+                f"set a real secret for environment={self.environment!r}"
+            )
+        return self
+
+    @property
+    def db_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.artifact_root / 'texelbake.db').resolve()}"
+
+    @property
+    def lease_seconds(self) -> int:
+        """A running shard with no progress for this long is handed to another worker."""
+        return self.visibility_timeout + 30
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()  # type: ignore[call-arg]

@@ -1,0 +1,194 @@
+"""The job store: SQLAlchemy tables for tokens, assets, jobs, stages, the shard ledger and events.
+
+SQLite by default (WAL, a busy timeout so several worker processes can write), PostgreSQL by URL.
+Job state lives here, never only in the broker: the broker only moves work.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from datetime import UTC, datetime
+
+from sqlalchemy import (
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+    create_engine,
+    event,
+)
+from sqlalchemy.engine import Engine
+from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC).replace(tzinfo=None)
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class ApiToken(Base):
+    __tablename__ = "api_tokens"
+    digest: Mapped[str] = mapped_column(String(64), primary_key=True)  # HMAC-SHA256(secret, token)
+    tenant: Mapped[str] = mapped_column(String(128), index=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+
+
+class Asset(Base):
+    __tablename__ = "assets"
+    __table_args__ = (UniqueConstraint("tenant", "sha256", name="uq_asset_tenant_sha"),)
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    tenant: Mapped[str] = mapped_column(String(128), index=True)
+    sha256: Mapped[str] = mapped_column(String(64))
+    filename: Mapped[str] = mapped_column(String(255))
+    kind: Mapped[str] = mapped_column(String(8))
+    root_layer: Mapped[str] = mapped_column(String(1024))
+    size_bytes: Mapped[int] = mapped_column(Integer)
+    n_files: Mapped[int] = mapped_column(Integer)
+    created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+
+
+class Job(Base):
+    __tablename__ = "jobs"
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    tenant: Mapped[str] = mapped_column(String(128), index=True)
+    asset_id: Mapped[str] = mapped_column(ForeignKey("assets.id"))
+    settings_json: Mapped[str] = mapped_column(Text)
+    state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    skipped_json: Mapped[str] = mapped_column(Text, default="[]")
+    plan_sent: Mapped[bool] = mapped_column(Boolean, default=False)
+    broker_run_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+
+
+class Stage(Base):
+    __tablename__ = "stages"
+    __table_args__ = (UniqueConstraint("job_id", "name", name="uq_stage"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id"), index=True)
+    name: Mapped[str] = mapped_column(String(32))
+    position: Mapped[int] = mapped_column(Integer)
+    queue: Mapped[str] = mapped_column(String(32))
+    depends_on_json: Mapped[str] = mapped_column(Text, default="[]")
+    n_shards: Mapped[int] = mapped_column(Integer)
+    state: Mapped[str] = mapped_column(String(16), default="pending")
+    started_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+
+
+class Shard(Base):
+    """The shard ledger: one row per (job, stage, shard)."""
+
+    __tablename__ = "shards"
+    __table_args__ = (
+        UniqueConstraint("job_id", "stage", "shard", name="uq_shard"),
+        Index("ix_shard_state", "state"),
+    )
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id"), index=True)
+    stage: Mapped[str] = mapped_column(String(32))
+    shard: Mapped[int] = mapped_column(Integer)
+    queue: Mapped[str] = mapped_column(String(32))
+    state: Mapped[str] = mapped_column(String(16), default="pending")
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    completions: Mapped[int] = mapped_column(Integer, default=0)
+    lost: Mapped[int] = mapped_column(Integer, default=0)  # deliveries that died mid-shard
+    task_id: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    sent: Mapped[bool] = mapped_column(Boolean, default=False)
+    broker_run_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    enqueued_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    started_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    heartbeat_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    seconds: Mapped[float | None] = mapped_column(Float, nullable=True)
+    worker: Mapped[str | None] = mapped_column(String(255), nullable=True)
+    artifact_key: Mapped[str | None] = mapped_column(String(1024), nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+
+
+class Event(Base):
+    __tablename__ = "events"
+    seq: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(String(64), index=True)
+    kind: Mapped[str] = mapped_column(String(16))
+    data_json: Mapped[str] = mapped_column(Text)
+    at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+
+
+_engines: dict[tuple[str, bool], Engine] = {}
+_lock = threading.RLock()
+
+
+def get_engine(url: str, *, readonly: bool = False) -> Engine:
+    """One engine per (URL, mode) per process; tables created on first use.
+
+    SQLite: writers open `BEGIN IMMEDIATE` so a read-then-write transaction (the conditional
+    ledger updates) waits for the lock instead of failing with a stale WAL snapshot; the
+    `readonly` engine (API reads) keeps deferred transactions so reads never queue on writers.
+    """
+    key = (url, readonly if url.startswith("sqlite") else False)
+    with _lock:
+        eng = _engines.get(key)
+        if eng is not None:
+            return eng
+        if url.startswith("sqlite"):
+            eng = create_engine(
+                url, connect_args={"timeout": 60, "check_same_thread": False}, pool_pre_ping=True
+            )
+            immediate = not readonly
+
+            @event.listens_for(eng, "connect")
+            def _sqlite_connect(dbapi_conn, _record):  # noqa: ANN001
+                dbapi_conn.isolation_level = None  # we emit BEGIN ourselves
+                cur = dbapi_conn.cursor()
+                cur.execute("PRAGMA journal_mode=WAL")
+                cur.execute("PRAGMA synchronous=NORMAL")
+                cur.execute("PRAGMA busy_timeout=60000")
+                cur.close()
+
+            @event.listens_for(eng, "begin")
+            def _sqlite_begin(conn):  # noqa: ANN001
+                conn.exec_driver_sql("BEGIN IMMEDIATE" if immediate else "BEGIN")
+        else:
+            eng = create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
+        if not readonly:
+            _create_tables(eng)
+        else:
+            get_engine(url)  # make sure the tables exist
+        _engines[key] = eng
+        return eng
+
+
+def _create_tables(eng: Engine, tries: int = 5) -> None:
+    """create_all, tolerating a concurrent process creating the same tables first."""
+    for i in range(tries):
+        try:
+            Base.metadata.create_all(eng)
+            return
+        except (IntegrityError, ProgrammingError, OperationalError):
+            if i == tries - 1:
+                raise
+            time.sleep(0.2 * (i + 1))
+
+
+def session_factory(url: str, *, readonly: bool = False) -> sessionmaker:
+    return sessionmaker(bind=get_engine(url, readonly=readonly), expire_on_commit=False)
+
+
+def dispose_engines() -> None:
+    """Drop pooled connections (after fork in a worker child)."""
+    with _lock:
+        for eng in _engines.values():
+            eng.dispose(close=False)

@@ -1,0 +1,437 @@
+"""The shard ledger: job, stage and shard state transitions, as conditional updates.
+
+Used by the API (create, cancel, sweep) and by the workers (start, finish, fail). Every
+transition is one transaction whose `UPDATE ... WHERE state = <expected>` decides who wins, so
+two workers finishing the last two shards of a stage at once promote the next stage exactly
+once, a redelivered shard that is already done is skipped, and a shard is counted done once.
+
+Sending to the broker happens *after* the commit: a shard is first marked `queued` with
+`sent = False`, then sent, then marked `sent = True` with the broker's run id. A send that fails
+(broker down) or a broker that restarted (its run id changed: queued messages are gone) leaves
+rows the sweeper re-sends. A running shard whose lease expired (worker killed, message lost) is
+re-queued by the sweeper too. Re-running a shard is harmless: stage outputs are idempotent.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Any
+
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from schemas.job import TERMINAL_JOB_STATES
+from services.db import Event, Job, Shard, Stage, utcnow
+
+RUN_SHARD_TASK = "workers.tasks.run_shard"
+PLAN_JOB_TASK = "workers.tasks.plan_job"
+PLAN_QUEUE = "ingest"
+
+
+@dataclass(frozen=True)
+class Send:
+    """A message to put on the broker: `task(*args)` on `queue`, tracked by ledger row `row_id`."""
+
+    task: str
+    args: tuple[Any, ...]
+    queue: str
+    row_id: int | None  # shard row id; None for the plan task (tracked on the job row)
+    job_id: str
+    expect_task_id: str | None = None  # claim: send only if the row still has this task id
+
+
+# a sender: (task name, args, queue, task id) -> None; raises when the broker is unreachable
+Sender = Callable[[str, tuple, str, str], None]
+
+
+def add_event(s: Session, job_id: str, kind: str, data: dict[str, Any]) -> None:
+    s.add(Event(job_id=job_id, kind=kind, data_json=json.dumps(data, sort_keys=True)))
+
+
+def _set_job_state(s: Session, job_id: str, new: str, expect: Iterable[str], **extra) -> bool:
+    now = utcnow()
+    values: dict[str, Any] = {"state": new, **extra}
+    if new in TERMINAL_JOB_STATES:
+        values["finished_at"] = now
+    n = s.execute(
+        update(Job).where(Job.id == job_id, Job.state.in_(list(expect))).values(**values)
+    ).rowcount
+    if n:
+        ev = {"state": new}
+        if "error" in extra:
+            ev["error"] = extra["error"]
+        add_event(s, job_id, "job", ev)
+    return bool(n)
+
+
+# ---------------------------------------------------------------- create / plan
+
+
+def create_job(
+    sm: sessionmaker, job_id: str, tenant: str, asset_id: str, settings_json: str
+) -> Send:
+    with sm.begin() as s:
+        s.add(Job(id=job_id, tenant=tenant, asset_id=asset_id, settings_json=settings_json))
+        s.flush()
+        add_event(s, job_id, "job", {"state": "queued"})
+    return Send(PLAN_JOB_TASK, (job_id,), PLAN_QUEUE, None, job_id)
+
+
+def record_plan(
+    sm: sessionmaker,
+    job_id: str,
+    stages: list[tuple[str, str, int, tuple[str, ...]]],
+    skipped: list[tuple[str, str]],
+) -> list[Send]:
+    """Insert the planned stages and their shard rows (once), start the job, queue ready stages.
+
+    stages : [(name, queue, n_shards, depends_on)] in execution order.
+    """
+    with sm.begin() as s:
+        job = s.get(Job, job_id)
+        if job is None or job.state != "queued":
+            return []
+        exists = s.scalar(select(func.count()).select_from(Stage).where(Stage.job_id == job_id))
+        if not exists:
+            for pos, (name, queue, n_shards, deps) in enumerate(stages):
+                s.add(
+                    Stage(
+                        job_id=job_id,
+                        name=name,
+                        position=pos,
+                        queue=queue,
+                        depends_on_json=json.dumps(list(deps)),
+                        n_shards=int(n_shards),
+                    )
+                )
+                for k in range(int(n_shards)):
+                    s.add(Shard(job_id=job_id, stage=name, shard=k, queue=queue))
+            s.flush()
+        _set_job_state(
+            s, job_id, "running", ["queued"], started_at=utcnow(), skipped_json=json.dumps(skipped)
+        )
+        return _promote_ready(s, job_id)
+
+
+def _promote_ready(s: Session, job_id: str) -> list[Send]:
+    """Queue every pending stage whose dependencies are all done (conditional per stage)."""
+    stages = s.scalars(select(Stage).where(Stage.job_id == job_id).order_by(Stage.position)).all()
+    done = {st.name for st in stages if st.state == "done"}
+    sends: list[Send] = []
+    for st in stages:
+        if st.state != "pending" or not set(json.loads(st.depends_on_json)) <= done:
+            continue
+        won = s.execute(
+            update(Stage)
+            .where(Stage.id == st.id, Stage.state == "pending")
+            .values(state="queued", started_at=utcnow())
+        ).rowcount
+        if not won:
+            continue
+        s.execute(
+            update(Shard)
+            .where(Shard.job_id == job_id, Shard.stage == st.name, Shard.state == "pending")
+            .values(state="queued", sent=False)
+        )
+        add_event(s, job_id, "stage", {"stage": st.name, "state": "queued"})
+        rows = s.execute(
+            select(Shard.id, Shard.shard, Shard.queue)
+            .where(Shard.job_id == job_id, Shard.stage == st.name, Shard.state == "queued")
+            .order_by(Shard.shard)
+        ).all()
+        sends += [Send(RUN_SHARD_TASK, (job_id, st.name, k), q, rid, job_id) for rid, k, q in rows]
+    return sends
+
+
+# ---------------------------------------------------------------- sending
+
+
+def new_task_id(send: Send) -> str:
+    tail = secrets.token_hex(4)
+    if send.row_id is None:
+        return f"{send.job_id}.plan.{tail}"
+    return f"{send.job_id}.{send.args[1]}.{send.args[2]}.{tail}"
+
+
+def dispatch(sm: sessionmaker, sends: list[Send], sender: Sender, run_id: str | None) -> int:
+    """Send each message, then mark its row sent (only if it is still queued). Returns the count
+    sent; stops at the first broker failure (the sweeper re-sends the rest)."""
+    n = 0
+    for send in sends:
+        task_id = new_task_id(send)
+        if send.row_id is not None:
+            with sm.begin() as s:  # record the id first so a cancel can revoke it
+                ok = s.execute(
+                    update(Shard)
+                    .where(
+                        Shard.id == send.row_id,
+                        Shard.state == "queued",
+                        Shard.task_id.is_not_distinct_from(send.expect_task_id),
+                    )
+                    .values(task_id=task_id)
+                ).rowcount
+            if not ok:
+                continue
+        sender(send.task, send.args, send.queue, task_id)
+        with sm.begin() as s:
+            if send.row_id is None:
+                s.execute(
+                    update(Job)
+                    .where(Job.id == send.job_id)
+                    .values(plan_sent=True, broker_run_id=run_id)
+                )
+            else:
+                s.execute(
+                    update(Shard)
+                    .where(Shard.id == send.row_id, Shard.state == "queued")
+                    .values(sent=True, broker_run_id=run_id, enqueued_at=utcnow())
+                )
+        n += 1
+    return n
+
+
+# ---------------------------------------------------------------- worker side
+
+
+@dataclass(frozen=True)
+class StartResult:
+    action: str  # "run" | "done" | "inactive" | "exceeded"
+    attempts: int = 0
+
+
+def start_shard(
+    sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str, max_attempts: int
+) -> StartResult:
+    """Claim a shard for this delivery. Counts the attempt; past `max_attempts` the shard and the
+    job fail (the redelivery cap for a shard that kills its worker)."""
+    with sm.begin() as s:
+        job = s.get(Job, job_id)
+        row = s.scalar(
+            select(Shard).where(Shard.job_id == job_id, Shard.stage == stage, Shard.shard == shard)
+        )
+        if job is None or row is None:
+            return StartResult("inactive")
+        if row.state == "done":
+            return StartResult("done", row.attempts)
+        if job.state != "running" or row.state not in ("queued", "running"):
+            return StartResult("inactive", row.attempts)
+        attempts = row.attempts + 1
+        # state "running" here means the previous delivery never finished: its worker died
+        lost = row.lost + (1 if row.state == "running" else 0)
+        if lost >= max_attempts:
+            msg = (
+                f"shard {stage}/{shard} was lost {lost} times with its worker "
+                f"(max_attempts={max_attempts}); not redelivering it again"
+            )
+            _fail(s, job_id, stage, shard, msg)
+            return StartResult("exceeded", row.attempts)
+        now = utcnow()
+        s.execute(
+            update(Shard)
+            .where(Shard.id == row.id)
+            .values(
+                state="running",
+                attempts=attempts,
+                lost=lost,
+                started_at=now,
+                heartbeat_at=now,
+                worker=worker,
+                error=None,
+            )
+        )
+        s.execute(
+            update(Stage)
+            .where(Stage.job_id == job_id, Stage.name == stage, Stage.state == "queued")
+            .values(state="running")
+        )
+        add_event(
+            s,
+            job_id,
+            "shard",
+            {
+                "stage": stage,
+                "shard": shard,
+                "state": "running",
+                "attempts": attempts,
+                "worker": worker,
+            },
+        )
+        return StartResult("run", attempts)
+
+
+def finish_shard(
+    sm: sessionmaker, job_id: str, stage: str, shard: int, artifact_key: str, seconds: float
+) -> list[Send]:
+    """Mark a shard done (once); if it was the stage's last, finish the stage (once) and queue
+    the stages that were waiting for it; if every stage is done, the job succeeds."""
+    with sm.begin() as s:
+        won = s.execute(
+            update(Shard)
+            .where(
+                Shard.job_id == job_id,
+                Shard.stage == stage,
+                Shard.shard == shard,
+                Shard.state.in_(["queued", "running"]),
+            )
+            .values(
+                state="done",
+                completions=Shard.completions + 1,
+                finished_at=utcnow(),
+                seconds=float(seconds),
+                artifact_key=str(artifact_key),
+                error=None,
+            )
+        ).rowcount
+        if not won:
+            return []
+        add_event(
+            s,
+            job_id,
+            "shard",
+            {"stage": stage, "shard": shard, "state": "done", "seconds": round(float(seconds), 4)},
+        )
+        left = s.scalar(
+            select(func.count())
+            .select_from(Shard)
+            .where(Shard.job_id == job_id, Shard.stage == stage, Shard.state != "done")
+        )
+        if left:
+            return []
+        stage_won = s.execute(
+            update(Stage)
+            .where(
+                Stage.job_id == job_id, Stage.name == stage, Stage.state.in_(["queued", "running"])
+            )
+            .values(state="done", finished_at=utcnow())
+        ).rowcount
+        if not stage_won:
+            return []
+        add_event(s, job_id, "stage", {"stage": stage, "state": "done"})
+        not_done = s.scalar(
+            select(func.count())
+            .select_from(Stage)
+            .where(Stage.job_id == job_id, Stage.state != "done")
+        )
+        if not not_done:
+            _set_job_state(s, job_id, "succeeded", ["running"])
+            return []
+        job = s.get(Job, job_id)
+        if job is None or job.state != "running":
+            return []
+        return _promote_ready(s, job_id)
+
+
+def _fail(s: Session, job_id: str, stage: str, shard: int, error: str) -> None:
+    s.execute(
+        update(Shard)
+        .where(
+            Shard.job_id == job_id,
+            Shard.stage == stage,
+            Shard.shard == shard,
+            Shard.state != "done",
+        )
+        .values(state="failed", error=error, finished_at=utcnow())
+    )
+    s.execute(
+        update(Stage)
+        .where(Stage.job_id == job_id, Stage.name == stage, Stage.state != "done")
+        .values(state="failed", finished_at=utcnow())
+    )
+    add_event(
+        s, job_id, "shard", {"stage": stage, "shard": shard, "state": "failed", "error": error}
+    )
+    _set_job_state(s, job_id, "failed", ["queued", "running"], error=f"{stage}/{shard}: {error}")
+
+
+def fail_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: str) -> None:
+    """Terminal failure of a shard (bad input, or retries exhausted): the job fails with it."""
+    with sm.begin() as s:
+        _fail(s, job_id, stage, shard, error)
+
+
+def fail_job(sm: sessionmaker, job_id: str, error: str) -> None:
+    with sm.begin() as s:
+        _set_job_state(s, job_id, "failed", ["queued", "running"], error=error)
+
+
+def release_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: str) -> None:
+    """A transient fault: the shard goes back to `queued` (sent) while Celery retries it."""
+    with sm.begin() as s:
+        s.execute(
+            update(Shard)
+            .where(
+                Shard.job_id == job_id,
+                Shard.stage == stage,
+                Shard.shard == shard,
+                Shard.state == "running",
+            )
+            .values(state="queued", error=error)
+        )
+
+
+# ---------------------------------------------------------------- API side
+
+
+def cancel_job(sm: sessionmaker, job_id: str) -> list[str]:
+    """Cancel a job that is not finished; returns the task ids to revoke. State rows are kept."""
+    with sm.begin() as s:
+        if not _set_job_state(s, job_id, "cancelled", ["queued", "running"]):
+            return []
+        ids = [
+            t
+            for t in s.scalars(
+                select(Shard.task_id).where(
+                    Shard.job_id == job_id, Shard.state.in_(["queued", "running"])
+                )
+            )
+            if t
+        ]
+        for model in (Shard, Stage):
+            s.execute(
+                update(model)
+                .where(model.job_id == job_id, model.state.in_(["pending", "queued", "running"]))
+                .values(state="cancelled")
+            )
+        return ids
+
+
+def sweep(
+    sm: sessionmaker, run_id: str | None, lease: timedelta, now: datetime | None = None
+) -> list[Send]:
+    """What to (re)send: unplanned jobs whose plan message was never sent or was lost with a
+    broker restart; queued shards likewise; running shards whose lease expired."""
+    now = now or utcnow()
+    sends: list[Send] = []
+    with sm.begin() as s:
+        for job_id, sent, rid in s.execute(
+            select(Job.id, Job.plan_sent, Job.broker_run_id).where(Job.state == "queued")
+        ):
+            if not sent or rid != run_id:
+                sends.append(Send(PLAN_JOB_TASK, (job_id,), PLAN_QUEUE, None, job_id))
+        active = select(Job.id).where(Job.state == "running")
+        s.execute(
+            update(Shard)
+            .where(
+                Shard.job_id.in_(active),
+                Shard.state == "running",
+                Shard.started_at < now - lease,
+            )
+            .values(state="queued", sent=False)
+        )
+        rows = s.execute(
+            select(Shard.id, Shard.job_id, Shard.stage, Shard.shard, Shard.queue, Shard.task_id)
+            .where(
+                Shard.job_id.in_(active),
+                Shard.state == "queued",
+                (Shard.sent.is_(False)) | (Shard.broker_run_id.is_distinct_from(run_id)),
+            )
+            .order_by(Shard.id)
+        ).all()
+        sends += [
+            Send(RUN_SHARD_TASK, (j, st, k), q, rid, j, tid) for rid, j, st, k, q, tid in rows
+        ]
+    return sends

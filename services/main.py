@@ -1,0 +1,96 @@
+"""The FastAPI application: `uvicorn services.main:app` (settings from the environment).
+
+The API never imports torch or pxr: it enqueues tasks by name, and uploads are checked with
+pxr in a child process (`services.validate`). A background thread sweeps the shard ledger
+(`services.ledger.sweep`): it re-sends work lost with a Redis restart or a dead worker.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from contextlib import asynccontextmanager
+from datetime import timedelta
+
+from celery import Celery
+from fastapi import FastAPI
+from fastapi.routing import APIRoute
+
+from services import ledger
+from services.auth import ensure_tokens
+from services.broker import broker_run_id, celery_sender
+from services.config import API_V1, Settings, get_settings
+from services.db import session_factory
+from services.routers import assets, jobs, utils
+from workers.celeryconfig import celery_config
+
+log = logging.getLogger("texelbake.api")
+
+
+def custom_generate_unique_id(route: APIRoute) -> str:
+    """Stable operation ids: `<tag>-<handler name>` (e.g. `jobs-read_job`)."""
+    return f"{route.tags[0]}-{route.name}"
+
+
+def sweep_once(app: FastAPI) -> int:
+    st: Settings = app.state.settings
+    run_id = broker_run_id(st.redis_url)
+    if run_id is None:
+        return 0
+    sends = ledger.sweep(app.state.writer, run_id, timedelta(seconds=st.lease_seconds))
+    if not sends:
+        return 0
+    return ledger.dispatch(app.state.writer, sends, celery_sender(app.state.celery), run_id)
+
+
+def _sweeper(app: FastAPI, stop: threading.Event) -> None:
+    while not stop.wait(app.state.settings.sweep_interval):
+        try:
+            n = sweep_once(app)
+            if n:
+                log.info("sweeper re-sent %d messages", n)
+        except Exception as exc:  # noqa: BLE001 - keep sweeping; the next tick retries
+            log.warning("sweep failed: %r", exc)
+
+
+def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> FastAPI:
+    settings = settings or get_settings()
+    settings.artifact_root.mkdir(parents=True, exist_ok=True)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        ensure_tokens(app.state.writer, settings.secret_key, settings.tokens)
+        stop = threading.Event()
+        thread = None
+        if sweeper:
+            thread = threading.Thread(target=_sweeper, args=(app, stop), daemon=True)
+            thread.start()
+        yield
+        stop.set()
+        if thread is not None:
+            thread.join(timeout=5)
+
+    app = FastAPI(
+        title="texelbake",
+        version="0.1.0",
+        openapi_url=f"{API_V1}/openapi.json",
+        generate_unique_id_function=custom_generate_unique_id,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.writer = session_factory(settings.db_url)
+    app.state.reader = session_factory(settings.db_url, readonly=True)
+    celery = Celery("texelbake")
+    celery.conf.update(celery_config(settings))
+    app.state.celery = celery
+    for r in (utils.router, assets.router, jobs.router):
+        app.include_router(r, prefix=API_V1)
+    return app
+
+
+def __getattr__(name: str):
+    """`services.main:app` is built on first access, so importing this module needs no env."""
+    if name == "app":
+        globals()["app"] = create_app()
+        return globals()["app"]
+    raise AttributeError(name)

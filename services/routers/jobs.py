@@ -1,0 +1,362 @@
+"""`/jobs`: create (plan on the ingest queue), list, read, events (SSE), result, previews,
+report, cancel. A tenant sees only its own jobs: anyone else's is a 404."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import re
+import uuid
+import zipfile
+from collections import defaultdict
+from pathlib import Path
+
+from fastapi import APIRouter, Header, HTTPException, Request, status
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from schemas.job import (
+    TERMINAL_JOB_STATES,
+    JobCreate,
+    JobPublic,
+    JobsPublic,
+    JobSummary,
+    ShardPublic,
+    SkippedStage,
+    StagePublic,
+)
+from schemas.settings import BakeSettings
+from services import ledger, storage
+from services.broker import broker_run_id, celery_sender
+from services.db import Asset, Event, Job, Shard, Stage
+from services.deps import CurrentTenant, SessionDep, SettingsDep, WriterDep
+from services.routers.assets import ASSET_NOT_FOUND
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+
+JOB_NOT_FOUND = "job not found"
+JOB_NOT_FINISHED = "job has not succeeded"
+PREVIEW_NOT_FOUND = "preview not found"
+REPORT_NOT_FOUND = "report not found"
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
+_EPOCH = (1980, 1, 1, 0, 0, 0)
+
+
+def _own_job(session: Session, job_id: str, tenant: str) -> Job:
+    job = session.get(Job, job_id)
+    if job is None or job.tenant != tenant:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, JOB_NOT_FOUND)
+    return job
+
+
+def _seconds(a, b) -> float | None:  # noqa: ANN001
+    return (b - a).total_seconds() if a is not None and b is not None else None
+
+
+def _progress(done: int, total: int) -> float:
+    return done / total if total else 0.0
+
+
+def job_public(session: Session, job: Job, root: Path) -> JobPublic:
+    stages = session.scalars(
+        select(Stage).where(Stage.job_id == job.id).order_by(Stage.position)
+    ).all()
+    shards = session.scalars(
+        select(Shard).where(Shard.job_id == job.id).order_by(Shard.stage, Shard.shard)
+    ).all()
+    by_stage: dict[str, list[Shard]] = defaultdict(list)
+    for sh in shards:
+        by_stage[sh.stage].append(sh)
+    out_stages = []
+    for st in stages:
+        rows = by_stage.get(st.name, [])
+        done = sum(r.state == "done" for r in rows)
+        starts = [r.started_at for r in rows if r.started_at is not None]
+        ends = [r.finished_at for r in rows if r.finished_at is not None]
+        first = min(starts) if starts else None
+        last = max(ends) if ends and st.state == "done" else None
+        out_stages.append(
+            StagePublic(
+                name=st.name,
+                queue=st.queue,
+                state=st.state,
+                depends_on=json.loads(st.depends_on_json),
+                n_shards=st.n_shards,
+                n_done=done,
+                progress=_progress(done, st.n_shards),
+                started_at=first,
+                finished_at=last,
+                seconds=_seconds(first, last),
+                shards=[ShardPublic.model_validate(r) for r in rows],
+            )
+        )
+    total = sum(s.n_shards for s in stages)
+    done = sum(s.n_done for s in out_stages)
+    previews_dir = storage.job_out(root, job.id) / "previews"
+    previews = (
+        sorted(p.name for p in previews_dir.iterdir() if p.is_file() and not p.name.startswith("."))
+        if previews_dir.is_dir()
+        else []
+    )
+    return JobPublic(
+        id=job.id,
+        asset_id=job.asset_id,
+        state=job.state,
+        settings=BakeSettings.model_validate_json(job.settings_json),
+        progress=_progress(done, total),
+        stages=out_stages,
+        skipped=[SkippedStage(stage=a, reason=b) for a, b in json.loads(job.skipped_json or "[]")],
+        error=job.error,
+        created_at=job.created_at,
+        started_at=job.started_at,
+        finished_at=job.finished_at,
+        seconds=_seconds(job.created_at, job.finished_at),
+        previews=previews,
+    )
+
+
+@router.post("", response_model=JobPublic, status_code=status.HTTP_201_CREATED)
+def create_job(
+    body: JobCreate,
+    request: Request,
+    session: SessionDep,
+    writer: WriterDep,
+    tenant: CurrentTenant,
+    settings: SettingsDep,
+) -> JobPublic:
+    """Create a bake job for one of this tenant's assets; its stages are planned by a worker."""
+    asset = session.get(Asset, body.asset_id)
+    if asset is None or asset.tenant != tenant:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, ASSET_NOT_FOUND)
+    job_id = uuid.uuid4().hex
+    send = ledger.create_job(writer, job_id, tenant, asset.id, body.settings.model_dump_json())
+    try:  # a broker outage is not the client's problem: the sweeper sends it later
+        ledger.dispatch(
+            writer,
+            [send],
+            celery_sender(request.app.state.celery),
+            broker_run_id(settings.redis_url),
+        )
+    except Exception:  # noqa: BLE001
+        pass
+    with writer() as s:
+        return job_public(s, s.get(Job, job_id), settings.artifact_root)
+
+
+@router.get("", response_model=JobsPublic)
+def read_jobs(
+    session: SessionDep, tenant: CurrentTenant, skip: int = 0, limit: int = 100
+) -> JobsPublic:
+    """This tenant's jobs, newest first."""
+    skip, limit = max(skip, 0), min(max(limit, 0), 1000)
+    q = select(Job).where(Job.tenant == tenant)
+    count = session.scalar(select(func.count()).select_from(q.subquery())) or 0
+    jobs = session.scalars(
+        q.order_by(Job.created_at.desc(), Job.id).offset(skip).limit(limit)
+    ).all()
+    ids = [j.id for j in jobs]
+    totals = (
+        dict(
+            session.execute(
+                select(Stage.job_id, func.sum(Stage.n_shards))
+                .where(Stage.job_id.in_(ids))
+                .group_by(Stage.job_id)
+            ).all()
+        )
+        if ids
+        else {}
+    )
+    dones = (
+        dict(
+            session.execute(
+                select(Shard.job_id, func.count())
+                .where(Shard.job_id.in_(ids), Shard.state == "done")
+                .group_by(Shard.job_id)
+            ).all()
+        )
+        if ids
+        else {}
+    )
+    data = [
+        JobSummary(
+            id=j.id,
+            asset_id=j.asset_id,
+            state=j.state,
+            progress=_progress(int(dones.get(j.id, 0)), int(totals.get(j.id, 0) or 0)),
+            error=j.error,
+            created_at=j.created_at,
+            finished_at=j.finished_at,
+        )
+        for j in jobs
+    ]
+    return JobsPublic(data=data, count=count)
+
+
+@router.get("/{job_id}", response_model=JobPublic)
+def read_job(
+    job_id: str, session: SessionDep, tenant: CurrentTenant, settings: SettingsDep
+) -> JobPublic:
+    """State, per-stage and per-shard progress, timings and errors of one job."""
+    return job_public(session, _own_job(session, job_id, tenant), settings.artifact_root)
+
+
+def _events_after(reader, job_id: str, after: int) -> tuple[list[Event], str | None]:  # noqa: ANN001
+    with reader() as s:
+        rows = s.scalars(
+            select(Event)
+            .where(Event.job_id == job_id, Event.seq > after)
+            .order_by(Event.seq)
+            .limit(500)
+        ).all()
+        state = s.scalar(select(Job.state).where(Job.id == job_id))
+    return list(rows), state
+
+
+@router.get(
+    "/{job_id}/events",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"text/event-stream": {}}, "description": "Server-sent events."}},
+)
+def read_job_events(
+    job_id: str,
+    request: Request,
+    session: SessionDep,
+    tenant: CurrentTenant,
+    last_event_id: str | None = Header(None),
+) -> StreamingResponse:
+    """Server-sent events of one job (`event: job|stage|shard`, `data: JSON`, `id: seq`); the
+    stream ends after the job's terminal event. Reconnect with `Last-Event-ID` to resume."""
+    _own_job(session, job_id, tenant)
+    try:
+        after = int(last_event_id or 0)
+    except ValueError:
+        after = 0
+    reader = request.app.state.reader
+
+    async def stream():
+        nonlocal after
+        idle = 0.0
+        while True:
+            rows, state = await run_in_threadpool(_events_after, reader, job_id, after)
+            for ev in rows:
+                after = ev.seq
+                payload = {
+                    "seq": ev.seq,
+                    "job_id": ev.job_id,
+                    "kind": ev.kind,
+                    "data": json.loads(ev.data_json),
+                    "at": ev.at.isoformat(),
+                }
+                yield f"id: {ev.seq}\nevent: {ev.kind}\ndata: {json.dumps(payload)}\n\n"
+            if rows:
+                idle = 0.0
+                continue
+            if state in TERMINAL_JOB_STATES or state is None:
+                return
+            if await request.is_disconnected():
+                return
+            await asyncio.sleep(0.25)
+            idle += 0.25
+            if idle >= 15.0:
+                idle = 0.0
+                yield ": keep-alive\n\n"
+
+    return StreamingResponse(
+        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
+    )
+
+
+def _require_done(job: Job) -> None:
+    if job.state != "succeeded":
+        raise HTTPException(status.HTTP_409_CONFLICT, f"{JOB_NOT_FINISHED} (state {job.state})")
+
+
+def build_result_zip(out_dir: Path, dest: Path) -> Path:
+    """Zip the baked bundle deterministically (sorted names, fixed times), atomically."""
+    if dest.is_file():
+        return dest
+    tmp = dest.with_name(f".{dest.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    files = sorted(p for p in out_dir.rglob("*") if p.is_file() and not p.name.startswith("."))
+    files = [
+        p for p in files if not any(part.startswith(".") for part in p.relative_to(out_dir).parts)
+    ]
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for p in files:
+            info = zipfile.ZipInfo(p.relative_to(out_dir).as_posix(), date_time=_EPOCH)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, p.read_bytes())
+    os.replace(tmp, dest)
+    return dest
+
+
+@router.get(
+    "/{job_id}/result",
+    response_class=FileResponse,
+    responses={200: {"content": {"application/zip": {}}, "description": "The baked USD bundle."}},
+)
+def read_job_result(
+    job_id: str, session: SessionDep, tenant: CurrentTenant, settings: SettingsDep
+) -> FileResponse:
+    """The baked USD bundle (root layer, payload, maps, report) as a zip."""
+    job = _own_job(session, job_id, tenant)
+    _require_done(job)
+    root = settings.artifact_root
+    dest = build_result_zip(
+        storage.job_out(root, job.id), storage.job_dir(root, job.id) / "result.zip"
+    )
+    return FileResponse(dest, media_type="application/zip", filename=f"{job.id}.zip")
+
+
+@router.get(
+    "/{job_id}/previews/{name}",
+    response_class=FileResponse,
+    responses={200: {"content": {"image/png": {}}}},
+)
+def read_job_preview(
+    job_id: str, name: str, session: SessionDep, tenant: CurrentTenant, settings: SettingsDep
+) -> FileResponse:
+    """One preview image of a finished job (names are listed in the job's `previews`)."""
+    job = _own_job(session, job_id, tenant)
+    folder = storage.job_out(settings.artifact_root, job.id) / "previews"
+    path = folder / name
+    if not _NAME.match(name) or not path.is_file() or path.is_symlink():
+        raise HTTPException(status.HTTP_404_NOT_FOUND, PREVIEW_NOT_FOUND)
+    return FileResponse(path)
+
+
+@router.get("/{job_id}/report")
+def read_job_report(
+    job_id: str, session: SessionDep, tenant: CurrentTenant, settings: SettingsDep
+) -> JSONResponse:
+    """The bake report (timings, errors, skipped stages) of a finished job."""
+    job = _own_job(session, job_id, tenant)
+    _require_done(job)
+    path = storage.job_out(settings.artifact_root, job.id) / "report.json"
+    if not path.is_file():
+        raise HTTPException(status.HTTP_404_NOT_FOUND, REPORT_NOT_FOUND)
+    return JSONResponse(json.loads(path.read_text()))
+
+
+@router.delete("/{job_id}", response_model=JobPublic, status_code=status.HTTP_202_ACCEPTED)
+def delete_job(
+    job_id: str,
+    request: Request,
+    session: SessionDep,
+    writer: WriterDep,
+    tenant: CurrentTenant,
+    settings: SettingsDep,
+) -> JobPublic:
+    """Cancel a job: queued shards are dropped, running ones revoked; its state is kept."""
+    _own_job(session, job_id, tenant)
+    task_ids = ledger.cancel_job(writer, job_id)
+    if task_ids:
+        try:
+            request.app.state.celery.control.revoke(task_ids, terminate=True, signal="SIGTERM")
+        except Exception:  # noqa: BLE001 - broker down: workers skip cancelled shards anyway
+            pass
+    with writer() as s:
+        return job_public(s, s.get(Job, job_id), settings.artifact_root)

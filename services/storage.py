@@ -1,0 +1,40 @@
+"""Where things live under the artifact root (shared by the API and every worker).
+
+<root>/assets/<sha256>/bundle/...      an accepted upload (read-only after the rename)
+<root>/work/<key>/artifacts/...        stage artifacts; key = hash(asset sha, settings)
+<root>/jobs/<job id>/out/...           the baked USD bundle, report.json, previews/
+<root>/jobs/<job id>/result.zip        the bundle as one download (built on first request)
+<root>/tmp/                            staging of uploads (same filesystem: atomic renames)
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+
+def assets_dir(root: Path) -> Path:
+    return Path(root) / "assets"
+
+
+def asset_bundle(root: Path, sha256: str) -> Path:
+    return assets_dir(root) / sha256 / "bundle"
+
+
+def tmp_dir(root: Path) -> Path:
+    d = Path(root) / "tmp"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def work_dir(root: Path, asset_sha256: str, settings_digest: str) -> Path:
+    key = hashlib.sha256(f"{asset_sha256}:{settings_digest}".encode()).hexdigest()[:24]
+    return Path(root) / "work" / key
+
+
+def job_dir(root: Path, job_id: str) -> Path:
+    return Path(root) / "jobs" / job_id
+
+
+def job_out(root: Path, job_id: str) -> Path:
+    return job_dir(root, job_id) / "out"

@@ -1,0 +1,269 @@
+"""Uploads are hostile until proven otherwise: size caps, safe unpacking, the pxr check.
+
+Flow: stream to a staging file under `<root>/tmp` (size cap, SHA-256 while reading) -> unpack
+into a staging bundle (`.zip`/`.usdz`: member names, links, member count, unpacked size and
+compression ratio checked before and while extracting) -> `services.validate` in a subprocess
+-> one atomic rename into `<root>/assets/<sha256>/`. Any rejection deletes the staging folder:
+nothing is stored for a rejected upload.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import stat
+import subprocess
+import sys
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+from services import storage
+
+KINDS = {".usda": "usda", ".usdc": "usdc", ".usd": "usdc", ".usdz": "usdz", ".zip": "zip"}
+LAYER_SUFFIXES = (".usd", ".usda", ".usdc")
+_SAFE = re.compile(r"[^A-Za-z0-9._-]+")
+
+# stable `detail` prefixes (asserted by the tests)
+UNSUPPORTED = "unsupported file type"
+TOO_LARGE = "upload exceeds"
+BOMB_SIZE = "bundle unpacks to more than"
+BOMB_RATIO = "compression ratio above"
+TOO_MANY = "bundle has more than"
+BAD_ZIP = "not a valid zip archive"
+BAD_MEMBER = "bundle member path is not allowed"
+LINK_MEMBER = "bundle member is a link"
+NO_ROOT = "bundle has no root layer"
+VALIDATE_FAILED = "asset could not be checked"
+
+
+class UploadRejected(Exception):
+    """A 4xx for the client; `detail` names the offending path."""
+
+    def __init__(self, status: int, detail: str):
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+
+
+@dataclass(frozen=True)
+class Staged:
+    """An upload that passed every check, staged under `<root>/tmp/<name>/`."""
+
+    sha256: str
+    kind: str
+    filename: str
+    root_layer: str
+    size_bytes: int
+    n_files: int
+    staging: Path  # holds bundle/ and meta.json
+
+
+def kind_of(filename: str) -> str:
+    suffix = Path(filename or "").suffix.lower()
+    if suffix not in KINDS:
+        raise UploadRejected(
+            415,
+            f"{UNSUPPORTED}: {filename!r}; expected one of .usda, .usdc, .usd, .usdz, .zip",
+        )
+    return KINDS[suffix]
+
+
+def safe_name(filename: str, kind: str) -> str:
+    stem = _SAFE.sub("_", Path(filename).stem).strip("._") or "asset"
+    return f"{stem[:100]}{Path(filename).suffix.lower()}"
+
+
+def _check_member(info: zipfile.ZipInfo) -> PurePosixPath:
+    name = info.filename
+    mode = info.external_attr >> 16
+    if stat.S_ISLNK(mode):
+        raise UploadRejected(422, f"{LINK_MEMBER}: {name}")
+    norm = name.replace("\\", "/")
+    p = PurePosixPath(norm)
+    if (
+        not norm
+        or norm.startswith("/")
+        or re.match(r"^[A-Za-z]:", norm)
+        or any(part in ("..",) for part in p.parts)
+        or "\x00" in norm
+    ):
+        raise UploadRejected(422, f"{BAD_MEMBER}: {name}")
+    return p
+
+
+def unpack_zip(
+    src: Path, dest: Path, *, max_unpacked: int, max_ratio: float, max_members: int
+) -> list[str]:
+    """Extract a zip/usdz into `dest` with every hostile case refused; returns member names in
+    archive order (files only)."""
+    packed = max(os.path.getsize(src), 1)
+    try:
+        zf = zipfile.ZipFile(src)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise UploadRejected(422, f"{BAD_ZIP}: {src.name} ({exc})") from exc
+    with zf:
+        infos = zf.infolist()
+        if len(infos) > max_members:
+            raise UploadRejected(413, f"{TOO_MANY} {max_members} members: {src.name}")
+        declared = sum(i.file_size for i in infos)
+        if declared > max_unpacked:
+            raise UploadRejected(413, f"{BOMB_SIZE} {max_unpacked} bytes: {src.name}")
+        if declared / packed > max_ratio:
+            raise UploadRejected(413, f"{BOMB_RATIO} {max_ratio:g}: {src.name}")
+        seen: set[str] = set()
+        files: list[str] = []
+        total = 0
+        for info in infos:
+            p = _check_member(info)
+            key = str(p).lower()
+            if key in seen:
+                raise UploadRejected(422, f"{BAD_MEMBER}: {info.filename} (duplicate)")
+            seen.add(key)
+            if info.file_size / max(info.compress_size, 1) > max_ratio and info.file_size > 4096:
+                raise UploadRejected(413, f"{BOMB_RATIO} {max_ratio:g}: {info.filename}")
+            target = dest.joinpath(*p.parts)
+            if info.is_dir():
+                target.mkdir(parents=True, exist_ok=True)
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            written = 0
+            try:
+                with zf.open(info) as fin, open(target, "wb") as fout:
+                    while block := fin.read(1 << 20):
+                        written += len(block)
+                        total += len(block)
+                        # the header can lie: count what actually comes out
+                        if written > info.file_size or total > max_unpacked:
+                            raise UploadRejected(
+                                413, f"{BOMB_SIZE} {max_unpacked} bytes: {info.filename}"
+                            )
+                        fout.write(block)
+            except (zipfile.BadZipFile, zlib_error(), NotImplementedError, EOFError) as exc:
+                raise UploadRejected(422, f"{BAD_ZIP}: {info.filename} ({exc})") from exc
+            files.append(str(p))
+    return files
+
+
+def zlib_error() -> type[Exception]:
+    import zlib
+
+    return zlib.error
+
+
+def _root_of_zip(files: list[str], upload_name: str) -> str:
+    top = sorted(f for f in files if "/" not in f and f.lower().endswith(LAYER_SUFFIXES))
+    if len(top) == 1:
+        return top[0]
+    stem = Path(upload_name).stem.lower()
+    named = [f for f in top if Path(f).stem.lower() == stem]
+    if len(named) == 1:
+        return named[0]
+    if not top:
+        raise UploadRejected(422, f"{NO_ROOT}: no top-level .usd/.usda/.usdc in {upload_name}")
+    raise UploadRejected(
+        422,
+        f"{NO_ROOT}: several top-level layers in {upload_name} ({', '.join(top)}); name the "
+        f"root like the zip file",
+    )
+
+
+def stream_to_file(chunks, dest: Path, max_bytes: int, filename: str) -> tuple[str, int]:  # noqa: ANN001
+    """Write an iterable of byte chunks to `dest`, hashing; 413 past `max_bytes`."""
+    h = hashlib.sha256()
+    n = 0
+    with open(dest, "wb") as f:
+        for block in chunks:
+            n += len(block)
+            if n > max_bytes:
+                raise UploadRejected(413, f"{TOO_LARGE} {max_bytes} bytes: {filename}")
+            h.update(block)
+            f.write(block)
+    return h.hexdigest(), n
+
+
+def run_validator(bundle: Path, root_rel: str, timeout: float) -> list[tuple[str, str]]:
+    """`services.validate` in a child process (pxr stays out of the API)."""
+    cmd = [sys.executable, "-m", "services.validate", str(bundle), root_rel, str(int(timeout))]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(Path(__file__).resolve().parents[1]), env.get("PYTHONPATH", "")]
+    )
+    try:
+        proc = subprocess.run(cmd, capture_output=True, timeout=timeout + 5, env=env, check=False)
+    except subprocess.TimeoutExpired as exc:
+        raise UploadRejected(422, f"{VALIDATE_FAILED}: {root_rel} (timed out)") from exc
+    try:
+        out = json.loads(proc.stdout.decode() or "{}")
+        return [(str(a), str(b)) for a, b in out["problems"]]
+    except (ValueError, KeyError) as exc:
+        tail = proc.stderr.decode(errors="replace").strip().splitlines()[-1:] or [""]
+        raise UploadRejected(
+            422,
+            f"{VALIDATE_FAILED}: {root_rel} (checker exited {proc.returncode}: {tail[0][:200]})",
+        ) from exc
+
+
+def stage_upload(chunks, filename: str, root: Path, settings) -> Staged:  # noqa: ANN001
+    """Receive, unpack and check an upload; on any rejection nothing is left on disk."""
+    kind = kind_of(filename)
+    staging = storage.tmp_dir(root) / f"up-{os.urandom(8).hex()}"
+    staging.mkdir()
+    try:
+        raw = staging / "upload.bin"
+        sha, size = stream_to_file(chunks, raw, settings.max_upload_bytes, filename)
+        bundle = staging / "bundle"
+        bundle.mkdir()
+        if kind in ("zip", "usdz"):
+            files = unpack_zip(
+                raw,
+                bundle,
+                max_unpacked=settings.max_unpacked_bytes,
+                max_ratio=settings.max_zip_ratio,
+                max_members=settings.max_zip_members,
+            )
+            if kind == "usdz":  # the first member is the default layer (usdz spec)
+                if not files or not files[0].lower().endswith(LAYER_SUFFIXES):
+                    raise UploadRejected(
+                        422, f"{NO_ROOT}: the first member of {filename} is not a USD layer"
+                    )
+                root_rel = files[0]
+            else:
+                root_rel = _root_of_zip(files, filename)
+            raw.unlink()
+        else:
+            root_rel = safe_name(filename, kind)
+            os.replace(raw, bundle / root_rel)
+            files = [root_rel]
+        problems = run_validator(bundle, root_rel, settings.validate_timeout)
+        if problems:
+            shown = "; ".join(f"{reason}: {path}" for path, reason in problems[:5])
+            more = f" (+{len(problems) - 5} more)" if len(problems) > 5 else ""
+            raise UploadRejected(422, shown + more)
+        meta = {"root_layer": root_rel, "kind": kind, "n_files": len(files)}
+        (staging / "meta.json").write_text(json.dumps(meta, sort_keys=True))
+        return Staged(sha, kind, filename, root_rel, size, len(files), staging)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+
+
+def commit_staged(staged: Staged, root: Path) -> Path:
+    """Atomically move the staged bundle to `<root>/assets/<sha>/`; if another upload of the
+    same bytes won the race, keep theirs. Returns the asset folder."""
+    final = storage.assets_dir(root) / staged.sha256
+    final.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.rename(staged.staging, final)
+    except OSError:
+        shutil.rmtree(staged.staging, ignore_errors=True)
+        if not (final / "meta.json").is_file():
+            raise
+    return final
+
+
+def read_meta(asset_folder: Path) -> dict:
+    return json.loads((asset_folder / "meta.json").read_text())

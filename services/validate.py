@@ -1,0 +1,150 @@
+"""Check an unpacked upload with pxr: every asset path resolves inside the bundle.
+
+Run as a subprocess by the API (`python -m services.validate BUNDLE_DIR ROOT_REL`), so that
+pxr is never imported into the API process and a hostile file that crashes or exhausts pxr
+takes down only this child (it runs under CPU and memory rlimits). Prints one JSON object:
+`{"problems": [[path, reason], ...]}` (empty list: accepted).
+
+Reasons (stable strings; the API puts them in the 4xx `detail`):
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import sys
+from pathlib import Path
+
+CANNOT_OPEN = "pxr cannot open"
+ABSOLUTE = "absolute asset path"
+URL = "URL asset path"
+ESCAPES = "asset path escapes the bundle"
+LINK = "asset path is a link"
+MISSING = "asset path does not exist"
+BAD_PATH = "asset path is not allowed"
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+_SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]*:")
+_DRIVE = re.compile(r"^[A-Za-z]:[\\/]")
+
+
+def _classify(raw: str, layer: Path, bundle: Path) -> tuple[str | None, Path | None]:
+    """(reason or None, resolved path or None) for one authored asset path."""
+    path = raw
+    if path.endswith("]") and "[" in path:  # package-relative: pkg.usdz[member]
+        path = path[: path.index("[")]
+    if not path:
+        return None, None
+    if "\x00" in path:
+        return BAD_PATH, None
+    if path.startswith(("/", "\\")) or _DRIVE.match(path):
+        return ABSOLUTE, None
+    if _SCHEME.match(path):
+        return URL, None
+    rel = path.replace("\\", "/")
+    target = Path(os.path.normpath(layer.parent / rel))
+    try:
+        target.relative_to(bundle)
+    except ValueError:
+        return ESCAPES, None
+    # a link anywhere on the way is refused, even one pointing back inside
+    probe = bundle
+    for part in target.relative_to(bundle).parts:
+        probe = probe / part
+        if probe.is_symlink():
+            return LINK, None
+    if "<UDIM>" in rel:
+        pattern = target.name.replace("<UDIM>", "[0-9][0-9][0-9][0-9]")
+        if not any(target.parent.glob(pattern)):
+            return MISSING, None
+        return None, None
+    if not target.exists():
+        return MISSING, None
+    return None, target
+
+
+def check_bundle(bundle: Path, root_rel: str) -> list[tuple[str, str]]:
+    """All problems of an unpacked upload, as (path, reason), sorted; [] when accepted.
+
+    bundle : the unpacked upload; root_rel : the root layer, relative to `bundle`. Sublayers, references, payloads and
+    asset-valued attributes (including time samples and arrays) of every reachable layer are
+    checked; USD layers found on the way are followed.
+    """
+    from pxr import Sdf, Tf, Usd, UsdUtils
+
+    bundle = Path(os.path.realpath(bundle))
+    root_layer = bundle / root_rel
+    problems: set[tuple[str, str]] = set()
+    seen: set[Path] = set()
+    todo = [root_layer]
+    while todo:
+        layer_path = todo.pop()
+        if layer_path in seen:
+            continue
+        seen.add(layer_path)
+        rel_layer = str(layer_path.relative_to(bundle))
+        try:
+            layer = Sdf.Layer.FindOrOpen(str(layer_path))
+        except Tf.ErrorException:
+            layer = None
+        if layer is None:
+            problems.add((rel_layer, CANNOT_OPEN))
+            continue
+        try:
+            subs, refs, payloads = UsdUtils.ExtractExternalReferences(str(layer_path))
+        except Tf.ErrorException:
+            problems.add((rel_layer, CANNOT_OPEN))
+            continue
+        for raw in sorted(set(subs) | set(refs) | set(payloads)):
+            reason, target = _classify(raw, layer_path, bundle)
+            if reason is not None:
+                problems.add((f"{raw} (in {rel_layer})", reason))
+            elif target is not None and target.suffix.lower() in USD_SUFFIXES:
+                if target.suffix.lower() == ".usdz":
+                    problems.add((f"{raw} (in {rel_layer})", "nested .usdz is not supported"))
+                else:
+                    todo.append(target)
+    if not problems:
+        try:
+            stage = Usd.Stage.Open(str(root_layer))
+        except Tf.ErrorException:
+            stage = None
+        if stage is None:
+            problems.add((str(root_layer.relative_to(bundle)), CANNOT_OPEN))
+    if not problems:
+        problems.update(_core_check(root_layer, bundle))
+    return sorted(problems)
+
+
+def _core_check(root_layer: Path, bundle: Path) -> list[tuple[str, str]]:
+    """The ingest engineer's own check, when it exists (it raises AssetPathError naming the path)."""
+    try:
+        from texelbake.scene import check_asset_paths  # type: ignore[attr-defined]
+    except ImportError:
+        return []
+    from texelbake.errors import AssetError
+
+    try:
+        check_asset_paths(root_layer)
+    except AssetError as exc:
+        return [(str(root_layer.relative_to(bundle)), str(exc))]
+    return []
+
+
+def main(argv: list[str]) -> int:
+    """argv: BUNDLE_DIR ROOT_REL [CPU_SECONDS]."""
+    import resource
+
+    bundle, root_rel = Path(argv[0]), argv[1]
+    cpu = int(float(argv[2])) if len(argv) > 2 else 120
+    # CPU only: an address-space limit breaks torch/open3d imports of the core check; the
+    # unpacked size is already capped by the upload handler
+    resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu))
+    problems = check_bundle(bundle, root_rel)
+    sys.stdout.write(json.dumps({"problems": [list(p) for p in problems]}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))

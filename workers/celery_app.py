@@ -1,0 +1,23 @@
+"""The Celery app: `celery -A workers.celery_app worker -Q cpm -c 1 --prefetch-multiplier 1`.
+
+Importing this module does not import torch or pxr (the API imports it to enqueue by name);
+the tasks module is loaded by workers only (`include`).
+"""
+
+from __future__ import annotations
+
+from celery import Celery
+from celery.signals import worker_process_init
+
+from workers.celeryconfig import celery_config
+
+app = Celery("texelbake", include=["workers.tasks"])
+app.conf.update(celery_config())
+
+
+@worker_process_init.connect
+def _fresh_connections(**_kwargs) -> None:
+    """A forked pool child must not share the parent's pooled DB connections."""
+    from services.db import dispose_engines
+
+    dispose_engines()

@@ -1,0 +1,51 @@
+"""Celery configuration: queues per workload, late acks, prefetch 1, redelivery, retries.
+
+Read by `workers.celery_app`; the broker URL and the visibility timeout come from the one
+settings class (`services.config.Settings`), shared with the API.
+"""
+
+from __future__ import annotations
+
+from kombu import Queue
+
+from services.config import Settings, get_settings
+
+#: one queue per workload
+QUEUES = ("ingest", "geometry", "cpm", "avis", "btf", "export", "render")
+
+#: worker services: queue families that share a process type (compose and `texelbake stack`)
+QUEUE_FAMILIES: dict[str, tuple[str, ...]] = {
+    "prep": ("ingest", "geometry", "export"),
+    "numeric": ("cpm", "avis", "btf"),
+    "render": ("render",),
+}
+
+
+def celery_config(settings: Settings | None = None) -> dict:
+    st = settings or get_settings()
+    return {
+        "broker_url": st.redis_url,
+        "result_backend": None,  # job state lives in the database, not in Redis
+        "task_ignore_result": True,
+        "task_queues": [Queue(q, routing_key=q) for q in QUEUES],
+        "task_default_queue": "ingest",
+        "task_create_missing_queues": False,
+        # a message is acknowledged only after the task returns; a worker that dies (kill -9,
+        # OOM) puts it back; the redelivery cap is counted in the shard ledger (max_attempts)
+        "task_acks_late": True,
+        "task_reject_on_worker_lost": True,
+        "worker_prefetch_multiplier": 1,
+        "broker_transport_options": {
+            # unacked messages come back after this long: above the longest shard
+            "visibility_timeout": st.visibility_timeout,
+        },
+        "broker_connection_retry": True,
+        "broker_connection_retry_on_startup": True,
+        "broker_connection_max_retries": None,  # survive a Redis restart
+        "worker_cancel_long_running_tasks_on_connection_loss": False,
+        "task_serializer": "json",
+        "accept_content": ["json"],
+        "worker_send_task_events": False,
+        "worker_hijack_root_logger": False,
+        "enable_utc": True,
+    }

@@ -1,0 +1,181 @@
+"""Thin tasks over `texelbake.pipeline`: load by id, call one core function, record the result.
+
+Tasks carry ids only (job id, stage name, shard index); arrays live in the artifact store.
+Bad input (`texelbake.errors.TexelbakeError`) fails the job at once; transient faults (I/O,
+database or broker hiccups) are retried with exponential backoff and jitter, a bounded number of
+times, then fail the job with the reason. Redelivery after a lost worker is Celery's
+(`acks_late` + `reject_on_worker_lost`), capped in the ledger (`Settings.max_attempts`).
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import socket
+import time
+import traceback
+from pathlib import Path
+
+import kombu.exceptions
+import redis
+import sqlalchemy.exc
+from celery.utils.log import get_task_logger
+
+from schemas.settings import BakeSettings
+from services import ledger, storage
+from services.broker import broker_run_id, celery_sender
+from services.config import get_settings
+from services.db import Asset, Job, session_factory
+from texelbake.errors import TexelbakeError
+from workers.celery_app import app
+
+log = get_task_logger(__name__)
+
+#: faults worth a retry: the same call can succeed a moment later
+TRANSIENT = (
+    OSError,
+    sqlalchemy.exc.OperationalError,
+    redis.RedisError,
+    kombu.exceptions.OperationalError,
+    TimeoutError,
+)
+
+
+def _sm():
+    return session_factory(get_settings().db_url)
+
+
+def _worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _dispatch(sends: list[ledger.Send]) -> None:
+    """Send what became ready; a broker outage leaves the rows unsent for the API's sweeper."""
+    if not sends:
+        return
+    st = get_settings()
+    try:
+        ledger.dispatch(_sm(), sends, celery_sender(app), broker_run_id(st.redis_url))
+    except TRANSIENT as exc:
+        log.warning("could not send %d messages (the sweeper will): %r", len(sends), exc)
+
+
+def _backoff(retries: int) -> float:
+    st = get_settings()
+    base = min(float(st.retry_backoff_max), 2.0**retries)
+    return base * (0.5 + random.random() / 2)  # jitter: 50..100 % of the exponential step
+
+
+def load_job(job_id: str) -> tuple[Job, Asset, BakeSettings, Path]:
+    """The job row, its asset row, its settings and the asset's root layer path."""
+    with _sm()() as s:
+        job = s.get(Job, job_id)
+        if job is None:
+            raise TexelbakeError(f"job {job_id} is not in the database")
+        asset = s.get(Asset, job.asset_id)
+        if asset is None:
+            raise TexelbakeError(f"asset {job.asset_id} of job {job_id} is not in the database")
+    settings = BakeSettings.model_validate_json(job.settings_json)
+    root = get_settings().artifact_root
+    return job, asset, settings, storage.asset_bundle(root, asset.sha256) / asset.root_layer
+
+
+@app.task(name="workers.tasks.plan_job", bind=True, max_retries=None)
+def plan_job(self, job_id: str) -> None:
+    """Decide the stages of a job (`texelbake.pipeline.plan_bake`) and queue the first ones."""
+    from texelbake import pipeline
+
+    try:
+        _job, _asset, settings, asset_path = load_job(job_id)
+        plan = pipeline.plan_bake(asset_path, settings)
+        stages = [(sp.name, sp.queue, sp.n_shards, tuple(sp.depends_on)) for sp in plan.stages]
+        sends = ledger.record_plan(_sm(), job_id, stages, [list(x) for x in plan.skipped])
+        _dispatch(sends)
+    except TexelbakeError as exc:
+        ledger.fail_job(_sm(), job_id, f"plan: {exc}")
+    except TRANSIENT as exc:
+        st = get_settings()
+        if self.request.retries >= st.max_retries:
+            ledger.fail_job(_sm(), job_id, f"plan: transient fault persisted: {exc!r}")
+            return
+        raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
+
+
+def execute_shard(job_id: str, stage: str, shard: int) -> str:
+    """The body of one shard: the core stage function for (stage, shard). Returns its key."""
+    from texelbake import pipeline
+
+    job, asset, settings, asset_path = load_job(job_id)
+    root = get_settings().artifact_root
+    workdir = storage.work_dir(root, asset.sha256, settings.digest())
+    out_dir = storage.job_out(root, job_id)
+    if stage == "export":
+        baked = pipeline.finalize(workdir, asset_path, settings, out_dir)
+        return str(Path(baked).relative_to(out_dir))
+    if stage == "render":
+        return _render(workdir, asset_path, settings, out_dir, shard)
+    return pipeline.run_shard(workdir, asset_path, settings, stage, shard)
+
+
+def _render(
+    workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: Path, shard: int
+) -> str:
+    """Previews of the finished job, rendered from the written USD."""
+    try:
+        from texelbake.render import render_previews  # type: ignore[attr-defined]
+    except ImportError:
+        from texelbake import pipeline
+
+        return pipeline.run_shard(workdir, asset_path, settings, "render", shard)
+    roots = sorted(p for p in out_dir.glob("*_baked.usda"))
+    if not roots:
+        raise TexelbakeError(f"render: no *_baked.usda in {out_dir}; export has not run")
+    written = render_previews(roots[0], out_dir / "previews")
+    return ",".join(sorted(Path(p).name for p in written))
+
+
+@app.task(name="workers.tasks.run_shard", bind=True, max_retries=None)
+def run_shard(self, job_id: str, stage: str, shard: int) -> None:
+    """Claim the shard in the ledger, run it, record it, queue what became ready."""
+    st = get_settings()
+    sm = _sm()
+    try:
+        start = ledger.start_shard(sm, job_id, stage, int(shard), _worker_name(), st.max_attempts)
+    except TRANSIENT as exc:
+        raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
+    if start.action != "run":
+        log.info("shard %s/%s/%s not run: %s", job_id, stage, shard, start.action)
+        return
+    t0 = time.perf_counter()
+    try:
+        key = execute_shard(job_id, stage, int(shard))
+    except TexelbakeError as exc:
+        ledger.fail_shard(sm, job_id, stage, int(shard), f"{type(exc).__name__}: {exc}")
+        return
+    except TRANSIENT as exc:
+        if self.request.retries >= st.max_retries:
+            ledger.fail_shard(
+                sm,
+                job_id,
+                stage,
+                int(shard),
+                f"transient fault persisted after "
+                f"{st.max_retries} retries: {type(exc).__name__}: {exc}",
+            )
+            return
+        ledger.release_shard(sm, job_id, stage, int(shard), f"retrying: {exc!r}")
+        raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
+    except Exception as exc:  # a bug, not bad input: fail loudly with the traceback's tail
+        tail = traceback.format_exc(limit=3)
+        ledger.fail_shard(sm, job_id, stage, int(shard), f"{type(exc).__name__}: {exc}\n{tail}")
+        raise
+    seconds = time.perf_counter() - t0
+    for i in range(st.max_retries + 1):  # recording the result must not lose the shard
+        try:
+            sends = ledger.finish_shard(sm, job_id, stage, int(shard), key, seconds)
+            break
+        except sqlalchemy.exc.OperationalError:
+            if i == st.max_retries:
+                raise
+            time.sleep(_backoff(i))
+    _dispatch(sends)
