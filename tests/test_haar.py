@@ -1,0 +1,127 @@
+"""Haar compression (texelbake.haar): round trip, Parseval optimality, point evaluation."""
+
+import math
+
+import numpy as np
+import pytest
+
+from texelbake.errors import NumericalError, SettingsError, ShapeError
+from texelbake.haar import compress_haar, decompress_haar, eval_haar_point, haar_point_terms
+
+
+def _smooth_maps(rng, shape, res):
+    """Smooth maps with a few sharp edges, like a_vis faces."""
+    y, x = np.meshgrid(np.linspace(0, 1, res), np.linspace(0, 1, res), indexing="ij")
+    base = np.cos(2.0 * x + rng.random(shape + (1, 1))) * (1 + y)
+    step = (x + 0.3 * y > rng.random(shape + (1, 1))).astype(float)
+    return base + 0.5 * step
+
+
+@pytest.mark.parametrize("res", [1, 2, 8, 32])
+def test_round_trip_lossless(rng, res):
+    maps = rng.normal(size=(3, 6, res, res))
+    c = compress_haar(maps, 1.0, dtype=np.float64)
+    assert c.batch_shape == (3, 6) and c.res == res and c.n_maps == 18
+    rec = decompress_haar(c)
+    assert rec.shape == maps.shape and rec.dtype == np.float64
+    # orthonormal transform in float64: round-off only (~log2(res) * 1e-16 of the values)
+    np.testing.assert_allclose(rec, maps, rtol=0, atol=1e-12)
+
+
+def test_float32_storage_round_trip(rng):
+    maps = rng.normal(size=(4, 16, 16))
+    c = compress_haar(maps, 1.0)
+    assert c.values.dtype == np.float32 and c.indices.dtype == np.int32
+    # float32 values: relative rounding 2^-24 per coefficient
+    np.testing.assert_allclose(decompress_haar(c), maps, rtol=0, atol=1e-5)
+
+
+def test_truncation_error_is_dropped_energy(rng):
+    """Parseval: with an orthonormal basis the L2 error equals the norm of the dropped
+    coefficients, and keeping the largest ones is optimal (pywt computes the truth)."""
+    import pywt
+
+    res = 16
+    maps = _smooth_maps(rng, (5,), res)
+    keep = 0.1
+    c = compress_haar(maps, keep, dtype=np.float64)
+    k = math.ceil(keep * res * res)
+    assert np.all(np.diff(c.offsets) <= k)
+    err = decompress_haar(c) - maps
+    for i in range(5):
+        arr, _ = pywt.coeffs_to_array(pywt.wavedec2(maps[i], "haar", mode="periodization"))
+        mags = np.sort(np.abs(arr.ravel()))[::-1]
+        dropped = np.sum(mags[k:] ** 2)
+        np.testing.assert_allclose(np.sum(err[i] ** 2), dropped, rtol=1e-9, atol=1e-20)
+
+
+def test_error_decreases_with_kept_fraction(rng):
+    maps = _smooth_maps(rng, (6,), 32)
+    errs = []
+    for keep in (0.01, 0.04, 0.065, 0.2, 1.0):
+        rec = decompress_haar(compress_haar(maps, keep, dtype=np.float64))
+        errs.append(np.linalg.norm(rec - maps) / np.linalg.norm(maps))
+    assert all(a >= b for a, b in zip(errs, errs[1:], strict=False))
+    assert errs[-1] < 1e-12 and errs[0] > 1e-3
+
+
+def test_zero_maps_store_nothing():
+    c = compress_haar(np.zeros((2, 6, 8, 8)), 0.1)
+    assert c.nnz == 0
+    assert np.all(decompress_haar(c) == 0)
+    assert np.all(eval_haar_point(c, np.array([0, 11]), np.array([1, 7]), np.array([0, 3])) == 0)
+
+
+@pytest.mark.parametrize("res", [1, 2, 4, 64])
+def test_point_eval_equals_full_inverse(rng, res):
+    maps = _smooth_maps(rng, (4, 6), res)
+    c = compress_haar(maps, 0.05)
+    full = decompress_haar(c).reshape(-1, res, res)
+    n = 2000
+    mi = rng.integers(0, c.n_maps, n)
+    iu = rng.integers(0, res, n)
+    iv = rng.integers(0, res, n)
+    pts = eval_haar_point(c, mi, iu, iv)
+    assert pts.shape == (n,) and pts.dtype == np.float64
+    np.testing.assert_allclose(pts, full[mi, iv, iu], rtol=0, atol=1e-12)
+
+
+def test_point_terms_count_is_logarithmic():
+    idx, val = haar_point_terms(64, np.array([5, 63]), np.array([0, 17]))
+    assert idx.shape == (2, 3 * 6 + 1) and val.shape == idx.shape
+    # every point touches distinct coefficients, one per (level, subband) plus the mean
+    assert all(len(set(row)) == idx.shape[1] for row in idx)
+
+
+def test_errors(rng):
+    with pytest.raises(SettingsError, match="power of two"):
+        compress_haar(np.zeros((6, 12, 12)), 0.1)
+    with pytest.raises(ShapeError):
+        compress_haar(np.zeros((6, 8, 4)), 0.1)
+    with pytest.raises(SettingsError, match="keep_fraction"):
+        compress_haar(np.zeros((6, 8, 8)), 0.0)
+    with pytest.raises(SettingsError, match="keep_fraction"):
+        compress_haar(np.zeros((6, 8, 8)), 1.5)
+    bad = np.zeros((2, 4, 4))
+    bad[1, 2, 3] = np.nan
+    with pytest.raises(NumericalError):
+        compress_haar(bad, 0.5)
+    c = compress_haar(rng.normal(size=(2, 4, 4)), 0.5)
+    with pytest.raises(ShapeError):
+        eval_haar_point(c, np.array([2]), np.array([0]), np.array([0]))
+    with pytest.raises(ShapeError):
+        eval_haar_point(c, np.array([0]), np.array([4]), np.array([0]))
+
+
+def test_empty_batch_and_queries():
+    c = compress_haar(np.zeros((0, 6, 8, 8)), 0.1)
+    assert c.n_maps == 0 and decompress_haar(c).shape == (0, 6, 8, 8)
+    out = eval_haar_point(c, np.zeros(0, int), np.zeros(0, int), np.zeros(0, int))
+    assert out.shape == (0,) and out.dtype == np.float64
+
+
+def test_deterministic(rng):
+    maps = _smooth_maps(rng, (3, 6), 16)
+    a, b = compress_haar(maps, 0.06), compress_haar(maps.copy(), 0.06)
+    assert a.indices.tobytes() == b.indices.tobytes()
+    assert a.values.tobytes() == b.values.tobytes()
