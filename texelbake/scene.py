@@ -39,11 +39,8 @@ import numpy as np
 from texelbake.errors import AssetError, AssetPathError
 from texelbake.model import (
     PREVIEW_DEFAULTS,
-    SHADER_CELLULAR,
-    SHADER_LAMBERT,
     SHADER_MEASURED,
     SHADER_MODELS,
-    SHADER_PHONG,
     SHADER_PREVIEW,
     AssetModel,
     Camera,
@@ -51,6 +48,7 @@ from texelbake.model import (
     Material,
     Texture,
 )
+from texelbake.shaderdefs import SHADER_INPUTS
 from texelbake.tol import TOL
 
 __all__ = [
@@ -65,32 +63,16 @@ __all__ = [
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
 
-#: defaults for unauthored inputs of texelbake's own shader ids (see the table in texelbake.model)
+#: defaults for unauthored inputs of texelbake's own shader ids: the Sdr definitions'
+#: defaults (texelbake.shaderdefs.SHADER_INPUTS), colours as tuples
 TEXELBAKE_DEFAULTS: dict[str, dict[str, Any]] = {
-    SHADER_LAMBERT: {"diffuseColor": (0.18, 0.18, 0.18)},
-    SHADER_PHONG: {
-        "diffuseColor": (0.18, 0.18, 0.18),
-        "specularColor": (0.04, 0.04, 0.04),
-        "exponent": 32.0,
-    },
-    SHADER_MEASURED: {"file": "", "scale": 1.0},
-    SHADER_CELLULAR: {
-        "cellScale": 10.0,
-        "seed": 0,
-        "borderWidth": 0.05,
-        "borderColor": (0.02, 0.02, 0.02),
-        "borderRoughness": 0.3,
-        "cellColorA": (0.8, 0.1, 0.1),
-        "cellColorB": (0.1, 0.3, 0.8),
-    },
+    sid: {name: ("" if type_name == "asset" else default)
+          for name, type_name, default in inputs}
+    for sid, inputs in SHADER_INPUTS.items()
 }
 
 #: the fallback for faces with no bound material: grey Lambert, path ""
 DEFAULT_MATERIAL = Material(path="", model="lambert", params={"diffuseColor": np.full(3, 0.18)})
-
-# MERL layout: int32 dims (3), then 3 channels of float64 (theta_h, theta_d, phi_d) tables.
-_MERL_DIMS = (90, 90, 180)
-_MERL_SCALE = np.array([1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0])
 
 # UsdUVTexture output name -> channels of the canonical RGBA image
 _TEXTURE_OUTPUT_CHANNELS = {
@@ -461,39 +443,32 @@ def _load_image(resolved: str, prim: str) -> tuple[np.ndarray, bool, str]:
 
 
 def _load_merl(resolved: str, prim: str) -> np.ndarray:
-    """A MERL .binary BRDF table -> (3, 90, 90, 180) float64, RGB-scaled, MERL layout."""
-    try:  # prefer the brdf module's reader when it exists
-        from texelbake.brdf import read_merl  # type: ignore[attr-defined]
-    except ImportError:
-        read_merl = None
+    """A MERL .binary BRDF -> (3, n_th, n_td, n_pd) float64 via `texelbake.brdf.read_merl`
+    (channel scales (1, 1.15, 1.66) / 1500 applied; standard files are (3, 90, 90, 180)).
+
+    A file inside a `.usdz` is copied to a temporary file first (the reader takes a path).
+    """
     from pxr import Ar
 
-    if read_merl is not None and not Ar.IsPackageRelativePath(resolved):
+    from texelbake.brdf import read_merl
+
+    def read(filename: str) -> np.ndarray:
         try:
-            table = np.asarray(read_merl(resolved), dtype=np.float64)
-        except AssetError:
-            raise
-        except Exception as exc:  # the reader's own typed errors, re-raised naming the prim
-            raise AssetError(f"cannot read MERL file '{resolved}': {exc}",
-                             path=resolved, prim=prim) from exc
-        if table.shape == (3, *_MERL_DIMS):
-            return table
-    data = _read_resolved_bytes(resolved, prim)
-    n_cells = int(np.prod(_MERL_DIMS))
-    if len(data) < 12:
-        raise AssetError(f"MERL file '{resolved}' is truncated ({len(data)} bytes)",
-                         path=resolved, prim=prim)
-    dims = np.frombuffer(data[:12], dtype="<i4")
-    if tuple(int(d) for d in dims) != _MERL_DIMS:
-        raise AssetError(
-            f"MERL file '{resolved}' has dims {tuple(int(d) for d in dims)}, expected {_MERL_DIMS}",
-            path=resolved, prim=prim)
-    expected = 12 + 3 * n_cells * 8
-    if len(data) != expected:
-        raise AssetError(f"MERL file '{resolved}' has {len(data)} bytes, expected {expected}",
-                         path=resolved, prim=prim)
-    table = np.frombuffer(data[12:], dtype="<f8").reshape(3, *_MERL_DIMS)  # (3, 90, 90, 180)
-    return table * _MERL_SCALE[:, None, None, None]
+            return np.asarray(read_merl(filename), dtype=np.float64)
+        except AssetError as exc:  # re-raised naming the shader prim as well
+            raise AssetError(f"{exc} (measured BRDF '{resolved}')", path=resolved,
+                             prim=prim) from exc
+
+    if Ar.IsPackageRelativePath(resolved):
+        data = _read_resolved_bytes(resolved, prim)
+        with tempfile.TemporaryDirectory() as tmp:
+            local = os.path.join(tmp, "brdf.binary")
+            Path(local).write_bytes(data)
+            return read(local)
+    if not os.path.isfile(resolved):
+        raise AssetPathError(f"measured BRDF '{resolved}' does not exist", path=resolved,
+                             prim=prim)
+    return read(resolved)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1057,7 +1032,8 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
     `sourceColorSpace` is sRGB, or auto with an 8-bit file); `scale`/`bias` are reordered to
     follow those channels. `wrapS/T = useMetadata` takes the file's wrap metadata, else "black".
     A "merl" material holds the file's resolved path in params["file"], the table in
-    params["table"] (MERL RGB scale applied) and the shader's `scale` input unapplied.
+    params["table"] (`texelbake.brdf.read_merl`: MERL RGB scale applied, invalid entries 0)
+    and the shader's `scale` input unapplied.
 
     raises : AssetPathError (unsafe / missing asset paths), AssetError (unreadable file, no mesh,
         NaN/Inf points, out-of-range indices, every face degenerate), each naming the prim/file.
