@@ -52,6 +52,12 @@ def add_event(s: Session, job_id: str, kind: str, data: dict[str, Any]) -> None:
     s.add(Event(job_id=job_id, kind=kind, data_json=json.dumps(data, sort_keys=True)))
 
 
+def _lock_job(s: Session, job_id: str) -> Job | None:
+    """The job row, locked until the transaction ends (PostgreSQL `FOR UPDATE`; SQLite's
+    writers are already serialized by `BEGIN IMMEDIATE`)."""
+    return s.scalar(select(Job).where(Job.id == job_id).with_for_update())
+
+
 def _set_job_state(s: Session, job_id: str, new: str, expect: Iterable[str], **extra) -> bool:
     now = utcnow()
     values: dict[str, Any] = {"state": new, **extra}
@@ -92,7 +98,7 @@ def record_plan(
     stages : [(name, queue, n_shards, depends_on)] in execution order.
     """
     with sm.begin() as s:
-        job = s.get(Job, job_id)
+        job = _lock_job(s, job_id)
         if job is None or job.state != "queued":
             return []
         exists = s.scalar(select(func.count()).select_from(Stage).where(Stage.job_id == job_id))
@@ -269,6 +275,11 @@ def finish_shard(
     """Mark a shard done (once); if it was the stage's last, finish the stage (once) and queue
     the stages that were waiting for it; if every stage is done, the job succeeds."""
     with sm.begin() as s:
+        # serialize the finishes of one job: under READ COMMITTED two transactions finishing
+        # the last two shards would each count the other's shard as not done, and nobody would
+        # promote the next stage (test_concurrent_last_shards_promote_once caught this)
+        if _lock_job(s, job_id) is None:
+            return []
         won = s.execute(
             update(Shard)
             .where(

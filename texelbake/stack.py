@@ -1,0 +1,304 @@
+"""`texelbake stack up` / `down`: the compose stack as local processes, for development and tests.
+
+Starts redis-server (only when no Redis is reachable at the given URL), one uvicorn API and one
+Celery worker per queue family (`prep`: ingest, geometry, export; `numeric`: cpm, avis, btf;
+`render`: render), each in its own process group with its log under `<workdir>/logs/`. The pids,
+URLs and environment go to `<workdir>/stack.json`; `stack_down(workdir)` stops exactly those
+processes. Stdlib only: the core package does not import Celery, FastAPI or Redis.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import urlparse
+
+from texelbake.errors import SettingsError, StageError
+
+#: queue family -> queues (the same split as docker-compose.yml and workers.celeryconfig)
+QUEUE_FAMILIES: dict[str, tuple[str, ...]] = {
+    "prep": ("ingest", "geometry", "export"),
+    "numeric": ("cpm", "avis", "btf"),
+    "render": ("render",),
+}
+_REPO = Path(__file__).resolve().parents[1]
+HEALTH_PATH = "/api/v1/utils/health-check/"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def redis_ping(url: str, timeout: float = 0.5) -> bool:
+    """True when a Redis server answers PING at `url` (raw RESP over a socket)."""
+    u = urlparse(url)
+    try:
+        with socket.create_connection((u.hostname or "127.0.0.1", u.port or 6379), timeout) as s:
+            s.sendall(b"*1\r\n$4\r\nPING\r\n")
+            return s.recv(64).startswith((b"+PONG", b"-NOAUTH"))
+    except OSError:
+        return False
+
+
+@dataclass
+class Stack:
+    """Processes of a local stack. `procs` holds only processes this object started."""
+
+    workdir: Path
+    api_url: str
+    redis_url: str
+    env: dict[str, str]
+    commands: dict[str, list[str]]
+    procs: dict[str, subprocess.Popen] = field(default_factory=dict)
+    pids: dict[str, int] = field(default_factory=dict)
+
+    # ---------------------------------------------------------------- processes
+    def start(self, name: str) -> int:
+        """(Re)start the process `name` (`redis`, `api`, `worker-<family>[-i]`); returns its pid."""
+        if name in self.procs and self.procs[name].poll() is None:
+            return self.procs[name].pid
+        logs = self.workdir / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        log = open(logs / f"{name}.log", "ab")  # noqa: SIM115 - owned by the child
+        proc = subprocess.Popen(
+            self.commands[name],
+            cwd=str(_REPO),
+            env=self.env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        log.close()
+        self.procs[name] = proc
+        self.pids[name] = proc.pid
+        self._save()
+        return proc.pid
+
+    def signal(self, name: str, sig: int = signal.SIGTERM) -> None:
+        """Send `sig` to the process group of `name` (the worker and its pool children)."""
+        pid = self.pids.get(name)
+        if pid is None:
+            return
+        try:
+            os.killpg(pid, sig)
+        except ProcessLookupError:
+            pass
+
+    def stop(self, name: str, timeout: float = 20.0) -> None:
+        self.signal(name, signal.SIGTERM)
+        proc = self.procs.get(name)
+        if proc is not None:
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.signal(name, signal.SIGKILL)
+                proc.wait(10)
+        else:
+            _wait_gone(self.pids.get(name), timeout)
+        self.pids.pop(name, None)
+        self.procs.pop(name, None)
+        self._save()
+
+    def kill(self, name: str) -> None:
+        """kill -9 the whole process group of `name`."""
+        self.signal(name, signal.SIGKILL)
+        proc = self.procs.get(name)
+        if proc is not None:
+            proc.wait(10)
+        self.pids.pop(name, None)
+        self.procs.pop(name, None)
+        self._save()
+
+    def wait_healthy(self, timeout: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                with urllib.request.urlopen(self.api_url + HEALTH_PATH, timeout=2) as r:
+                    if r.status == 200:
+                        return
+            except (urllib.error.URLError, OSError):
+                pass
+            proc = self.procs.get("api")
+            if proc is not None and proc.poll() is not None:
+                raise StageError(
+                    f"the API exited with {proc.returncode}; see {self.workdir}/logs/api.log"
+                )
+            time.sleep(0.2)
+        raise StageError(f"the API at {self.api_url} was not healthy within {timeout} s")
+
+    def wait_redis(self, timeout: float = 20.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not redis_ping(self.redis_url):
+            if time.monotonic() > deadline:
+                raise StageError(f"redis at {self.redis_url} did not answer within {timeout} s")
+            time.sleep(0.1)
+
+    def _save(self) -> None:
+        state = {
+            "api_url": self.api_url,
+            "redis_url": self.redis_url,
+            "pids": self.pids,
+            "commands": self.commands,
+            "env": {k: v for k, v in self.env.items() if k.startswith("TEXELBAKE_")},
+        }
+        tmp = self.workdir / ".stack.json.tmp"
+        tmp.write_text(json.dumps(state, indent=2, sort_keys=True))
+        os.replace(tmp, self.workdir / "stack.json")
+
+
+def _wait_gone(pid: int | None, timeout: float) -> None:
+    if pid is None:
+        return
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:  # reap it if it is our own child (a zombie still answers kill 0)
+            if os.waitpid(pid, os.WNOHANG)[0] == pid:
+                return
+        except ChildProcessError:
+            pass
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.1)
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
+def worker_command(name: str, queues: tuple[str, ...], concurrency: int = 1) -> list[str]:
+    return [
+        sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker",
+        "-P", "prefork", "-c", str(concurrency), "--prefetch-multiplier", "1",
+        "-Q", ",".join(queues), "-n", f"{name}@%h", "-l", "INFO",
+        "--without-gossip", "--without-mingle", "--without-heartbeat",
+    ]  # fmt: skip
+
+
+def stack_up(
+    workdir: str | Path,
+    *,
+    port: int | None = None,
+    redis_url: str | None = None,
+    database_url: str | None = None,
+    artifact_root: str | Path | None = None,
+    secret_key: str | None = None,
+    tokens: dict[str, str] | None = None,
+    workers: dict[str, int] | None = None,
+    environment: str = "development",
+    extra_env: dict[str, str] | None = None,
+    api: bool = True,
+    timeout: float = 60.0,
+) -> Stack:
+    """Start the stack as local processes and wait until the API is healthy.
+
+    workers : worker process count per queue family (default one each of prep, numeric,
+        render); `{}` starts none. Names are `worker-<family>-<i>`.
+    tokens : bearer token -> tenant (default: one fresh token for tenant `dev`, written to
+        stack.json under env TEXELBAKE_TOKENS).
+    Returns the Stack; its `env` is the environment every process got.
+    """
+    workdir = Path(workdir).resolve()
+    workdir.mkdir(parents=True, exist_ok=True)
+    workers = {"prep": 1, "numeric": 1, "render": 1} if workers is None else dict(workers)
+    for fam in workers:
+        if fam not in QUEUE_FAMILIES:
+            raise SettingsError(
+                f"unknown queue family {fam!r}; expected one of {sorted(QUEUE_FAMILIES)}"
+            )
+    commands: dict[str, list[str]] = {}
+    start_redis = False
+    if redis_url is None:
+        default = "redis://127.0.0.1:6379/0"
+        if redis_ping(default):
+            redis_url = default
+        else:
+            rport = free_port()
+            redis_url = f"redis://127.0.0.1:{rport}/0"
+            start_redis = True
+    elif not redis_ping(redis_url):
+        u = urlparse(redis_url)
+        if u.hostname not in ("127.0.0.1", "localhost"):
+            raise StageError(f"no Redis answers at {redis_url} and it is not local")
+        rport = u.port or 6379
+        start_redis = True
+    if start_redis:
+        exe = shutil.which("redis-server") or "/usr/bin/redis-server"
+        commands["redis"] = [
+            exe, "--port", str(rport), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+            "--daemonize", "no", "--dir", str(workdir),
+        ]  # fmt: skip
+    port = port or free_port()
+    env = dict(os.environ)
+    env.update(
+        {
+            "PYTHONPATH": os.pathsep.join(p for p in (str(_REPO), env.get("PYTHONPATH", "")) if p),
+            "TEXELBAKE_ENVIRONMENT": environment,
+            "TEXELBAKE_SECRET_KEY": secret_key or secrets.token_hex(16),
+            "TEXELBAKE_REDIS_URL": redis_url,
+            "TEXELBAKE_ARTIFACT_ROOT": str(Path(artifact_root or workdir / "artifacts").resolve()),
+            "TEXELBAKE_TOKENS": json.dumps(tokens or {secrets.token_urlsafe(16): "dev"}),
+            "OMP_NUM_THREADS": env.get("OMP_NUM_THREADS", "1"),
+        }
+    )
+    if database_url:
+        env["TEXELBAKE_DATABASE_URL"] = database_url
+    env.update(extra_env or {})
+    commands["api"] = [
+        sys.executable, "-m", "uvicorn", "services.main:app", "--host", "127.0.0.1",
+        "--port", str(port), "--log-level", "warning",
+    ]  # fmt: skip
+    for fam, n in sorted(workers.items()):
+        for i in range(n):
+            name = f"worker-{fam}-{i}"
+            commands[name] = worker_command(name, QUEUE_FAMILIES[fam])
+    stack = Stack(workdir, f"http://127.0.0.1:{port}", redis_url, env, commands)
+    try:
+        if start_redis:
+            stack.start("redis")
+            stack.wait_redis()
+        if api:
+            stack.start("api")
+            stack.wait_healthy(timeout)
+        for name in commands:
+            if name.startswith("worker-"):
+                stack.start(name)
+    except BaseException:
+        stack_down(workdir)
+        raise
+    return stack
+
+
+def stack_down(workdir: str | Path, timeout: float = 20.0) -> list[str]:
+    """Stop the processes recorded in `<workdir>/stack.json` (workers, API, then Redis).
+    Returns the names stopped."""
+    path = Path(workdir) / "stack.json"
+    if not path.is_file():
+        return []
+    state = json.loads(path.read_text())
+    pids: dict[str, int] = state.get("pids", {})
+    order = sorted(pids, key=lambda n: (n == "redis", n == "api", n))
+    for name in order:
+        try:
+            os.killpg(pids[name], signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+    for name in order:
+        _wait_gone(pids[name], timeout)
+    state["pids"] = {}
+    path.write_text(json.dumps(state, indent=2, sort_keys=True))
+    return order
