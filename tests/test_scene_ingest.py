@@ -283,15 +283,29 @@ def test_geomsubset_bindings_and_default_material(tmp_path):
     stage.Save()
     asset = load_asset(tmp_path / "a.usda")
     paths = [m.path for m in asset.materials]
-    assert paths == ["/Root/Looks/A", "/Root/Looks/B", ""]
+    assert paths == ["/Root/Looks/B", "/Root/Looks/A", ""]  # subsets first, then the mesh
     assert asset.materials[2] is DEFAULT_MATERIAL and asset.materials[2].model == "lambert"
     # fan order: polygon i -> triangles 2i, 2i + 1
     np.testing.assert_array_equal(asset.face_material[asset.face_mesh == 0],
-                                  [0, 0, 1, 1, 0, 0, 1, 1])
+                                  [1, 1, 0, 0, 1, 1, 0, 0])
     np.testing.assert_array_equal(asset.face_material[asset.face_mesh == 1], [2, 2])
-    np.testing.assert_allclose(asset.materials[1].params["diffuseColor"], [0, 0, 1])
-    assert asset.materials[0].params["roughness"] == pytest.approx(0.25)
-    assert asset.materials[0].params["ior"] == pytest.approx(1.5)  # PREVIEW_DEFAULTS
+    np.testing.assert_allclose(asset.materials[0].params["diffuseColor"], [0, 0, 1])
+    assert asset.materials[1].params["roughness"] == pytest.approx(0.25)
+    assert asset.materials[1].params["ior"] == pytest.approx(1.5)  # PREVIEW_DEFAULTS
+
+
+def test_mesh_binding_hidden_by_subsets_is_not_listed(tmp_path):
+    stage = new_stage(tmp_path / "a.usda")
+    mesh = grid_mesh(stage, "/Root/m", 2, 1)
+    bind(mesh, preview_material(stage, "/Root/Looks/Unused"))
+    for i, name in enumerate(("L", "R")):
+        sub = UsdGeom.Subset.CreateGeomSubset(mesh, name, UsdGeom.Tokens.face, Vt.IntArray([i]),
+                                              UsdShade.Tokens.materialBind)
+        bind(sub, preview_material(stage, f"/Root/Looks/{name}"))
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    assert [m.path for m in asset.materials] == ["/Root/Looks/L", "/Root/Looks/R"]
+    np.testing.assert_array_equal(asset.face_material, [0, 0, 1, 1])
 
 
 def test_uv_texture_network_with_srgb_decode(tmp_path):

@@ -980,11 +980,12 @@ def _bound(prim: Any, warns: list[str]) -> Any:
 
 def _face_materials(prim: Any, n_faces: int, time: Any, index_of: Any, warns: list[str],
                     source: str) -> np.ndarray:
-    """(F,) int32 material index per source polygon: the mesh binding, then GeomSubsets."""
+    """(F,) int32 material index per source polygon: GeomSubsets (familyName materialBind),
+    then the mesh's own binding (or the default material) for faces no subset covers."""
     from pxr import UsdGeom, UsdShade
 
     path = str(prim.GetPath())
-    face_mat = np.full(n_faces, index_of(_bound(prim, warns)), dtype=np.int32)
+    face_mat = np.full(n_faces, -1, dtype=np.int32)  # -1: not (yet) bound by a subset
     for subset in UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets():
         sub_path = str(subset.GetPath())
         if subset.GetElementTypeAttr().Get() != UsdGeom.Tokens.face:
@@ -996,7 +997,11 @@ def _face_materials(prim: Any, n_faces: int, time: Any, index_of: Any, warns: li
             first = int(idx[np.flatnonzero(bad)[0]])
             raise AssetError(f"GeomSubset {sub_path}: face index {first} is out of range for "
                              f"{n_faces} faces of mesh {path}", path=source, prim=sub_path)
-        face_mat[idx] = index_of(_bound(subset.GetPrim(), warns))
+        if idx.size:
+            face_mat[idx] = index_of(_bound(subset.GetPrim(), warns))
+    rest = face_mat < 0
+    if rest.any():  # only materials some face uses enter the list
+        face_mat[rest] = index_of(_bound(prim, warns))
     return face_mat
 
 
