@@ -127,7 +127,12 @@ def _rows(a: np.ndarray, lo: int, hi: int) -> np.ndarray:
 def _valid(wi: np.ndarray, wo: np.ndarray, eps: float) -> np.ndarray:
     """(n,) bool: both directions above the horizon and finite."""
     ok = (wi[:, 2] > eps) & (wo[:, 2] > eps)
-    ok &= np.isfinite(wi.sum(axis=1) + wo.sum(axis=1))
+    s = wi[:, 0] + wi[:, 1]  # column sums: ~5x faster than .sum(axis=1) on (n, 3)
+    s += wi[:, 2]
+    s += wo[:, 0]
+    s += wo[:, 1]
+    s += wo[:, 2]
+    ok &= np.isfinite(s)
     return ok
 
 
@@ -637,9 +642,9 @@ _S1 = np.uint64(0xBF58476D1CE4E5B9)
 _S2 = np.uint64(0x94D049BB133111EB)
 
 
-def _hash_cells(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray, salt: int) -> np.ndarray:
-    """Deterministic uniform [0, 1) float64 per integer cell (splitmix64 finaliser over the
-    cell coordinates, seed and a salt). Arrays of equal (broadcastable) shape, int64."""
+def _hash_u64(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray, salt: int) -> np.ndarray:
+    """Deterministic 64-bit hash per integer cell (splitmix64 finaliser over the cell
+    coordinates, the seed and a salt). int64 arrays of broadcastable shapes -> uint64."""
     x = np.atleast_1d(np.asarray(ix, dtype=np.int64)).view(np.uint64) * _M1
     x ^= np.atleast_1d(np.asarray(iy, dtype=np.int64)).view(np.uint64) * _M2
     sd = np.atleast_1d(np.asarray(seed, dtype=np.int64)).view(np.uint64)
@@ -649,7 +654,23 @@ def _hash_cells(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray, salt: int) -> 
     x ^= x >> np.uint64(27)
     x *= _S2
     x ^= x >> np.uint64(31)
-    return (x >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+    return x
+
+
+def _hash_cells(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray, salt: int) -> np.ndarray:
+    """Uniform [0, 1) float64 per integer cell (top 53 bits of ``_hash_u64``)."""
+    return (_hash_u64(ix, iy, seed, salt) >> np.uint64(11)).astype(np.float64) * 2.0**-53
+
+
+def _feature_points(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The Worley feature point of each cell: (ix + u, iy + v), u and v the high and low 32 bits
+    of one hash (one hash per cell instead of two). Returns (x, y) float64."""
+    h = _hash_u64(ix, iy, seed, 0)
+    u = (h >> np.uint64(32)).astype(np.float64) * 2.0**-32
+    v = (h & np.uint64(0xFFFFFFFF)).astype(np.float64) * 2.0**-32
+    u += ix
+    v += iy
+    return u, v
 
 
 _NEIGHBOURS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dtype=np.int64)
@@ -658,7 +679,7 @@ _NEIGHBOURS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dty
 def worley(points: Any, seed: Any = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Worley (1996) cellular noise with one feature point per unit cell.
 
-    Each integer cell (i, j) holds the feature point (i, j) + (hash_x, hash_y) (seeded hash);
+    Each integer cell (i, j) holds the feature point (i, j) + (u, v), (u, v) from a seeded hash;
     each query checks its own and the 8 neighbouring cells (numpy broadcasting over (n, 9)).
     3 x 3 cells give F1 exactly and F2 in all but rare configurations (a feature point two cells
     away can be nearer than the 3 x 3 second-nearest) — the usual Worley trade-off.
@@ -685,14 +706,17 @@ def worley(points: Any, seed: Any = 0) -> tuple[np.ndarray, np.ndarray, np.ndarr
         base = np.floor(p).astype(np.int64)  # (b, 2)
         nb = base[:, None, :] + _NEIGHBOURS[None]  # (b, 9, 2)
         sd = seed_a.reshape(1, 1) if seed_a.size == 1 else seed_a[lo:hi, None]  # (b|1, 1)
-        fx = nb[..., 0] + _hash_cells(nb[..., 0], nb[..., 1], sd, 0) - p[:, None, 0]
-        fy = nb[..., 1] + _hash_cells(nb[..., 0], nb[..., 1], sd, 1) - p[:, None, 1]
-        d2 = fx * fx + fy * fy  # (b, 9)
-        two = np.partition(d2, 1, axis=1)[:, :2]
-        f1[lo:hi] = np.sqrt(two[:, 0])
-        f2[lo:hi] = np.sqrt(two[:, 1])
-        arg = np.argmin(d2, axis=1)
-        cell[lo:hi] = np.take_along_axis(nb, arg[:, None, None], axis=1)[:, 0]
+        fx, fy = _feature_points(nb[..., 0], nb[..., 1], sd)  # (b, 9) each
+        fx -= p[:, None, 0]
+        fy -= p[:, None, 1]
+        fx *= fx
+        fy *= fy
+        fx += fy  # squared distances (b, 9)
+        two = np.argpartition(fx, 1, axis=1)[:, :2]  # [:, 0] nearest, [:, 1] second
+        d2 = np.take_along_axis(fx, two, axis=1)
+        f1[lo:hi] = np.sqrt(d2[:, 0])
+        f2[lo:hi] = np.sqrt(d2[:, 1])
+        cell[lo:hi] = np.take_along_axis(nb, two[:, :1, None], axis=1)[:, 0]
     f1[~finite] = np.nan
     f2[~finite] = np.nan
     cell[~finite] = 0
