@@ -251,7 +251,7 @@ def texel_frames(
     idx = assignment.texel_index(level)  # (m,)
     nsum = np.stack(
         [np.bincount(idx, weights=w * nrm[:, k], minlength=n_tex) for k in range(3)], axis=1
-    )  # (N_ℓ², 3)
+    ).astype(np.float64)  # (N_ℓ², 3); bincount of nothing is int64
     length = np.linalg.norm(nsum, axis=1)
     wsum = np.bincount(idx, weights=np.abs(w), minlength=n_tex)
     counts = assignment.counts(level)

@@ -1,0 +1,205 @@
+"""Texel assignment g(p) per mip level, CSR grouping and texel frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from geometry_meshes import bumpy_sphere, plane_grid, random_rotation
+
+from texelbake.errors import SettingsError, ShapeError
+from texelbake.geometry.atlas import build_atlas, rasterize_atlas
+from texelbake.geometry.closest import closest_point_on_triangles
+from texelbake.geometry.hierarchy import simplify_hierarchy
+from texelbake.geometry.mesh import Mesh
+from texelbake.geometry.sampling import sample_surface
+from texelbake.geometry.texels import (
+    assign_texels,
+    bilinear_texels,
+    texel_centers_uv,
+    texel_frames,
+    uv_to_texel,
+)
+
+N = 64
+LEVELS = 4
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    v, f = bumpy_sphere(4, amplitude=0.03)
+    (m1,) = simplify_hierarchy(v, f, 1, target_faces=600)
+    atlas = build_atlas(m1, N)
+    s = sample_surface(v, f, 20_000, seed=0)
+    return v, f, m1, atlas, s, assign_texels(s.positions, m1, atlas, LEVELS)
+
+
+@pytest.fixture(scope="module")
+def tilted_plane():
+    rng = np.random.default_rng(3)
+    rot = random_rotation(rng)
+    v, f = plane_grid(12, 12, size=2.0)
+    v = v @ rot.T + np.array([0.3, -0.2, 0.7])
+    normal = rot @ np.array([0.0, 0.0, 1.0])
+    (m1,) = simplify_hierarchy(v, f, 1, target_faces=16)
+    atlas = build_atlas(m1, 32)
+    corner_normals = np.broadcast_to(normal, (f.shape[0], 3, 3))
+    s = sample_surface(v, f, 8000, seed=1, corner_normals=corner_normals)
+    return v, f, m1, atlas, s, assign_texels(s.positions, m1, atlas, 3), normal
+
+
+def test_every_sample_is_assigned_once(sphere):
+    *_, s, a = sphere
+    m = len(s)
+    for level in range(LEVELS):
+        assert a.counts(level).sum() == m
+        assert np.array_equal(np.sort(a.orders[level]), np.arange(m))
+        assert a.offsets[level].shape == ((N >> level) ** 2 + 1,)
+
+
+def test_parent_counts_are_sums_of_their_four_children(sphere):
+    *_, a = sphere
+    for level in range(LEVELS - 1):
+        n = N >> level
+        child = a.counts(level).reshape(n // 2, 2, n // 2, 2)
+        parent = a.counts(level + 1).reshape(n // 2, n // 2)
+        np.testing.assert_array_equal(child.sum(axis=(1, 3)), parent)
+
+
+def test_sample_texel_contains_its_uv(sphere):
+    *_, a = sphere
+    for level in range(LEVELS):
+        n = N >> level
+        row, col = np.divmod(a.texel_index(level), n)
+        u, v = a.uv[:, 0], a.uv[:, 1]
+        assert ((u >= col / n) & (u <= (col + 1) / n)).all()
+        assert ((1 - v >= row / n) & (1 - v <= (row + 1) / n)).all()
+
+
+def test_csr_lookup_matches_a_scan(sphere):
+    *_, a = sphere
+    for level in (0, 2):
+        idx = a.texel_index(level)
+        for texel in np.unique(idx)[::37]:
+            np.testing.assert_array_equal(a.samples_of(level, texel), np.flatnonzero(idx == texel))
+    assert np.array_equal(a.occupied(0), np.unique(a.texel_index(0)))
+
+
+def test_assignment_is_the_exact_closest_point(sphere):
+    v, f, m1, atlas, s, a = sphere
+    # brute force over all M1 triangles in float64 for a subset of samples
+    sub = np.arange(0, len(s), 97)
+    q = s.positions[sub]
+    tri = m1.triangles()
+    k, nf = q.shape[0], tri.shape[0]
+    qq = np.repeat(q, nf, axis=0)
+    cand, _ = closest_point_on_triangles(
+        qq, np.tile(tri[:, 0], (k, 1)), np.tile(tri[:, 1], (k, 1)), np.tile(tri[:, 2], (k, 1))
+    )
+    best = np.linalg.norm(cand - qq, axis=1).reshape(k, nf).min(axis=1)
+    # Embree ranks candidate triangles in float32 (~1e-7 relative); the distance is then
+    # exact in float64 on the chosen triangle
+    np.testing.assert_allclose(a.distance[sub], best, atol=1e-6 * m1.bbox_diag)
+    # the uv is the atlas uv at the stated barycentrics of the stated triangle
+    expect = np.einsum("mk,mkd->md", a.bary, atlas.corner_uvs[a.prim])
+    np.testing.assert_allclose(a.uv, expect, atol=1e-15)
+
+
+def test_frames_are_orthonormal_and_right_handed(sphere):
+    v, f, m1, atlas, s, a = sphere
+    for level in (0, 2):
+        frames, valid = texel_frames(a, s.normals, s.area, m1, atlas, level)
+        n = N >> level
+        assert frames.shape == (n * n, 3, 3) and valid.shape == (n * n,)
+        np.testing.assert_allclose(
+            frames @ frames.transpose(0, 2, 1), np.broadcast_to(np.eye(3), frames.shape), atol=1e-12
+        )
+        np.testing.assert_allclose(np.linalg.det(frames), 1.0, atol=1e-12)
+        assert np.array_equal(valid, a.counts(level) > 0)  # no cancelling normals on a sphere
+        # n is the normalized area-weighted mean normal (independent bincount-free sum)
+        idx = a.texel_index(level)
+        for texel in np.flatnonzero(valid)[::53]:
+            sel = idx == texel
+            mean = (s.area[sel, None] * s.normals[sel]).sum(axis=0)
+            np.testing.assert_allclose(frames[texel, 2], mean / np.linalg.norm(mean), atol=1e-12)
+
+
+def test_flat_plane_frames_have_the_plane_normal_and_the_uv_tangent(tilted_plane):
+    v, f, m1, atlas, s, a, normal = tilted_plane
+    frames, valid = texel_frames(a, s.normals, s.area, m1, atlas, 0)
+    assert valid.any() and (~valid).any()  # charts leave empty texels
+    np.testing.assert_allclose(
+        frames[valid, 2], np.broadcast_to(normal, (valid.sum(), 3)), atol=1e-14
+    )
+    # empty texels still get an orthonormal frame; those under a chart take its normal
+    np.testing.assert_allclose(
+        frames @ frames.transpose(0, 2, 1), np.broadcast_to(np.eye(3), frames.shape), atol=1e-12
+    )
+    # t points where u grows: step in u from the texel centre and compare 3-D directions
+    face, bary, _ = rasterize_atlas(atlas.corner_uvs, 32)
+    inner = np.flatnonzero(valid & (face >= 0))
+    centres = texel_centers_uv(32)[inner]
+    p0 = np.einsum("nk,nkd->nd", bary[inner], m1.triangles()[face[inner]])
+    # on a plane the uv map of one triangle extends affinely: the position at u + du
+    tri_uv = atlas.corner_uvs[face[inner]]
+    du = 1e-3
+    target = centres + np.array([du, 0.0])
+    e1, e2 = tri_uv[:, 1] - tri_uv[:, 0], tri_uv[:, 2] - tri_uv[:, 0]
+    rel = target - tri_uv[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e2[:, 0] * e1[:, 1]
+    w1 = (rel[:, 0] * e2[:, 1] - e2[:, 0] * rel[:, 1]) / det
+    w2 = (e1[:, 0] * rel[:, 1] - rel[:, 0] * e1[:, 1]) / det
+    w = np.column_stack([1 - w1 - w2, w1, w2])
+    p1 = np.einsum("nk,nkd->nd", w, m1.triangles()[face[inner]])
+    step = (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)
+    np.testing.assert_allclose(frames[inner, 0], step, atol=1e-9)
+
+
+def test_empty_texel_frames_are_flagged():
+    v, f = plane_grid(4, 4)
+    m1 = Mesh(v, f)
+    atlas = build_atlas(m1, 16)
+    # a single sample: exactly one texel is valid at level 0
+    a = assign_texels(np.array([[0.5, 0.5, 0.0]]), m1, atlas, 2)
+    frames, valid = texel_frames(a, np.array([[0.0, 0.0, 1.0]]), np.array([1.0]), m1, atlas, 0)
+    assert valid.sum() == 1 and valid[a.texel_index(0)[0]]
+    np.testing.assert_allclose(frames[valid, 2], [[0.0, 0.0, 1.0]], atol=1e-15)
+    # opposite normals cancel: the texel has samples but no mean normal
+    pts = np.array([[0.5, 0.5, 0.0], [0.5, 0.5, 0.0]])
+    a2 = assign_texels(pts, m1, atlas, 1)
+    nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+    frames2, valid2 = texel_frames(a2, nrm, np.ones(2), m1, atlas, 0)
+    assert not valid2.any()
+    np.testing.assert_allclose(np.linalg.det(frames2), 1.0, atol=1e-12)
+    # no samples at all: typed, all invalid
+    a3 = assign_texels(np.zeros((0, 3)), m1, atlas, 2)
+    assert a3.counts(1).sum() == 0 and a3.prim.dtype == np.int64
+    frames3, valid3 = texel_frames(a3, np.zeros((0, 3)), np.zeros(0), m1, atlas, 1)
+    assert frames3.shape == (64, 3, 3) and not valid3.any()
+
+
+def test_uv_texel_helpers():
+    n = 8
+    centres = texel_centers_uv(n)
+    row, col = uv_to_texel(centres, n)
+    np.testing.assert_array_equal(row * n + col, np.arange(n * n))
+    assert uv_to_texel(np.array([[0.0, 1.0]]), n) == (0, 0)  # top-left corner
+    assert tuple(x[0] for x in uv_to_texel(np.array([[1.0, 0.0]]), n)) == (n - 1, n - 1)
+    # bilinear weights reproduce a linear function of the texel centres exactly (inside)
+    rng = np.random.default_rng(0)
+    uv = rng.uniform(0.5 / n, 1 - 0.5 / n, size=(200, 2))
+    idx, w = bilinear_texels(uv, n)
+    np.testing.assert_allclose(w.sum(axis=1), 1.0)
+    field = 2.0 * centres[:, 0] - 3.0 * centres[:, 1] + 0.5
+    np.testing.assert_allclose((w * field[idx]).sum(axis=1), 2 * uv[:, 0] - 3 * uv[:, 1] + 0.5)
+
+
+def test_bad_arguments(tilted_plane):
+    v, f, m1, atlas, s, a, _ = tilted_plane
+    with pytest.raises(SettingsError, match="divisible"):
+        assign_texels(s.positions, m1, atlas, 7)  # 32 is not divisible by 2^6
+    with pytest.raises(SettingsError, match="level"):
+        a.counts(3)
+    with pytest.raises(ShapeError, match="faces"):
+        assign_texels(s.positions, Mesh(v, f), atlas, 2)
+    with pytest.raises(ShapeError, match="normals"):
+        texel_frames(a, s.normals[:5], s.area, m1, atlas, 0)
