@@ -34,11 +34,11 @@ universal `outputs:surface`, so any USD viewer shows something. The ingest reads
 UsdPreviewSurface expresses exactly (the wall's Lambertian: specular workflow with zero
 specular colour; the bolt's metal) have only `outputs:surface`.
 
-Meaning of the `texelbake:cellular` inputs as authored here (the BRDF module owns the
-evaluation): `cellScale` cells per scene unit of object-space position, `seed` the feature
-point seed, `borderWidth` the half-width of the metallic border in units of the cell pitch
-(a point is on a border where F2 - F1 < borderWidth), `borderRoughness` the roughness of that
-metal, `cellColorA`/`cellColorB` the range of the Lambertian cell colours.
+Meaning of the `texelbake:cellular` inputs (evaluated by `texelbake.brdf.cellular`): Worley
+cells over `st * cellScale` (the cloisonne's st is a spherical map, so 16 gives 16 cells
+around and 16 from pole to pole), `seed` the feature-point seed, `borderWidth` in cell
+units (a point is on a border where F2 - F1 < borderWidth), `borderRoughness` the roughness
+of the border metal, `cellColorA`/`cellColorB` the range of the Lambertian cell colours.
 
 Textures are 8-bit sRGB PNGs named `{scene}_{size}_{role}.png`, written beside the layer and
 referenced by a relative path (`./wall_small_albedo.png`), so both sizes of one scene can
@@ -83,7 +83,7 @@ LAYER_SUFFIXES = (".usda", ".usdc", ".usd")
 #             side of a block's jittered front grid, texture width in pixels
 #             (small 360 triangles, 256 px; full 29568 triangles, 1024 px)
 #   bolt      bump cells around and along the shaft (8 triangles each), texture size
-#             (small 812 triangles, 128 px; full 9964, ~ the seed's 10496, 1024 px)
+#             (small 812 triangles, 128 px; full 10784, ~ the seed's 10496, 1024 px)
 #   cloisonne icosphere subdivision levels (20*4**levels triangles), number of bumps
 #             (small 1280 triangles; full 20480)
 # ------------------------------------------------------------------------------------------
@@ -99,7 +99,7 @@ SCENE_PARAMS: Mapping[str, Mapping[str, Mapping[str, int]]] = MappingProxyType(
         },
         "bolt": {
             "small": {"around": 12, "along": 8, "tex_res": 128},
-            "full": {"around": 44, "along": 28, "tex_res": 1024},
+            "full": {"around": 46, "along": 29, "tex_res": 1024},
         },
         "cloisonne": {
             "small": {"subdiv": 3, "bumps": 24},
@@ -129,9 +129,9 @@ _SEEDS = MappingProxyType({"cylinder": 1000, "wall": 2000, "bolt": 3000, "cloiso
 #: the cloisonné shader's inputs (names and types: texelbake.model's table)
 CELLULAR_INPUTS: Mapping[str, Any] = MappingProxyType(
     {
-        "cellScale": 4.0,
+        "cellScale": 16.0,
         "seed": 7,
-        "borderWidth": 0.06,
+        "borderWidth": 0.08,
         "borderColor": (1.0, 0.78, 0.34),
         "borderRoughness": 0.12,
         "cellColorA": (0.08, 0.22, 0.62),

@@ -36,13 +36,14 @@ from texelbake.model import SHADER_CELLULAR, SHADER_LAMBERT, SHADER_MEASURED, SH
 #: the source type under which texelbake's definitions are registered
 SOURCE_TYPE = "texelbake"
 
-#: shader id -> ((input name, Sdf type name, default), ...), as in texelbake.model's table
+#: shader id -> ((input name, Sdf type name, default), ...): names and types as in
+#: texelbake.model's table, defaults as texelbake.brdf's *_DEFAULTS (a test checks both)
 SHADER_INPUTS: Mapping[str, tuple[tuple[str, str, object], ...]] = MappingProxyType(
     {
         SHADER_LAMBERT: (("diffuseColor", "color3f", (0.18, 0.18, 0.18)),),
         SHADER_PHONG: (
             ("diffuseColor", "color3f", (0.18, 0.18, 0.18)),
-            ("specularColor", "color3f", (0.04, 0.04, 0.04)),
+            ("specularColor", "color3f", (0.0, 0.0, 0.0)),
             ("exponent", "float", 32.0),
         ),
         SHADER_MEASURED: (
@@ -52,11 +53,11 @@ SHADER_INPUTS: Mapping[str, tuple[tuple[str, str, object], ...]] = MappingProxyT
         SHADER_CELLULAR: (
             ("cellScale", "float", 8.0),
             ("seed", "int", 0),
-            ("borderWidth", "float", 0.05),
+            ("borderWidth", "float", 0.08),
             ("borderColor", "color3f", (1.0, 0.78, 0.34)),
-            ("borderRoughness", "float", 0.1),
-            ("cellColorA", "color3f", (0.1, 0.25, 0.6)),
-            ("cellColorB", "color3f", (0.75, 0.15, 0.12)),
+            ("borderRoughness", "float", 0.25),
+            ("cellColorA", "color3f", (0.70, 0.08, 0.06)),
+            ("cellColorB", "color3f", (0.05, 0.20, 0.65)),
         ),
     }
 )
