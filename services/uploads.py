@@ -32,6 +32,7 @@ UNSUPPORTED = "unsupported file type"
 TOO_LARGE = "upload exceeds"
 BOMB_SIZE = "bundle unpacks to more than"
 BOMB_RATIO = "compression ratio above"
+LYING = "bundle member inflates beyond its declared size"
 TOO_MANY = "bundle has more than"
 BAD_ZIP = "not a valid zip archive"
 BAD_MEMBER = "bundle member path is not allowed"
@@ -96,24 +97,31 @@ def _check_member(info: zipfile.ZipInfo) -> PurePosixPath:
 
 
 def unpack_zip(
-    src: Path, dest: Path, *, max_unpacked: int, max_ratio: float, max_members: int
+    src: Path,
+    dest: Path,
+    *,
+    max_unpacked: int,
+    max_ratio: float,
+    max_members: int,
+    display: str | None = None,
 ) -> list[str]:
     """Extract a zip/usdz into `dest` with every hostile case refused; returns member names in
     archive order (files only)."""
     packed = max(os.path.getsize(src), 1)
+    shown = display or src.name
     try:
         zf = zipfile.ZipFile(src)
     except (zipfile.BadZipFile, OSError) as exc:
-        raise UploadRejected(422, f"{BAD_ZIP}: {src.name} ({exc})") from exc
+        raise UploadRejected(422, f"{BAD_ZIP}: {shown} ({exc})") from exc
     with zf:
         infos = zf.infolist()
         if len(infos) > max_members:
-            raise UploadRejected(413, f"{TOO_MANY} {max_members} members: {src.name}")
+            raise UploadRejected(413, f"{TOO_MANY} {max_members} members: {shown}")
         declared = sum(i.file_size for i in infos)
         if declared > max_unpacked:
-            raise UploadRejected(413, f"{BOMB_SIZE} {max_unpacked} bytes: {src.name}")
+            raise UploadRejected(413, f"{BOMB_SIZE} {max_unpacked} bytes: {shown}")
         if declared / packed > max_ratio:
-            raise UploadRejected(413, f"{BOMB_RATIO} {max_ratio:g}: {src.name}")
+            raise UploadRejected(413, f"{BOMB_RATIO} {max_ratio:g}: {shown}")
         seen: set[str] = set()
         files: list[str] = []
         total = 0
@@ -137,7 +145,9 @@ def unpack_zip(
                         written += len(block)
                         total += len(block)
                         # the header can lie: count what actually comes out
-                        if written > info.file_size or total > max_unpacked:
+                        if written > info.file_size:
+                            raise UploadRejected(413, f"{LYING}: {info.filename}")
+                        if total > max_unpacked:
                             raise UploadRejected(
                                 413, f"{BOMB_SIZE} {max_unpacked} bytes: {info.filename}"
                             )
@@ -224,6 +234,7 @@ def stage_upload(chunks, filename: str, root: Path, settings) -> Staged:  # noqa
                 max_unpacked=settings.max_unpacked_bytes,
                 max_ratio=settings.max_zip_ratio,
                 max_members=settings.max_zip_members,
+                display=filename,
             )
             if kind == "usdz":  # the first member is the default layer (usdz spec)
                 if not files or not files[0].lower().endswith(LAYER_SUFFIXES):
