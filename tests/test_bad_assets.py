@@ -34,7 +34,8 @@ def test_no_mesh(tmp_path):
     stage = new_stage(tmp_path / "a.usda")
     UsdGeom.Sphere.Define(stage, "/Root/ball")
     stage.Save()
-    with pytest.raises(AssetError, match="no UsdGeom.Mesh") as err:
+    with (pytest.warns(AssetWarning, match="/Root/ball"),
+          pytest.raises(AssetError, match="no UsdGeom.Mesh") as err):
         load_asset(tmp_path / "a.usda")
     assert "a.usda" in str(err.value) and "/Root" in str(err.value)
 
@@ -223,6 +224,29 @@ def test_dotdot_inside_the_folder_is_fine(tmp_path):
     path = _textured(tmp_path, "./sub/../tex.png")
     asset = load_asset(path)
     assert asset.materials[0].textures["diffuseColor"].pixels.shape == (1, 1, 3)
+
+
+def test_symlink_escaping_the_folder(tmp_path):
+    inner = tmp_path / "asset"
+    inner.mkdir()
+    write_png(tmp_path / "secret.png", np.zeros((1, 1, 3), np.uint8))
+    (inner / "tex.png").symlink_to(tmp_path / "secret.png")
+    path = _textured(inner, "./tex.png")
+    with pytest.raises(AssetPathError, match="escapes") as err:
+        load_asset(path)
+    _assert_names(err, "./tex.png", "/Root/Looks/M/Texture")
+
+
+def test_reference_to_a_file_pxr_cannot_read(tmp_path):
+    (tmp_path / "model.obj").write_text("v 0 0 0\n")
+    stage = new_stage(tmp_path / "a.usda")
+    grid_mesh(stage, "/Root/m", 1, 1)
+    stage.DefinePrim("/Root/prop").GetReferences().AddReference("./model.obj")
+    stage.Save()
+    with pytest.raises(AssetError, match="cannot open") as err:
+        check_asset_paths(tmp_path / "a.usda")
+    assert not isinstance(err.value, AssetPathError)
+    _assert_names(err, "model.obj")
 
 
 def test_missing_sublayer(tmp_path):

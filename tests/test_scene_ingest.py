@@ -644,3 +644,118 @@ def test_asset_model_is_immutable(tmp_path):
         asset.points[0, 0] = 1.0
     with pytest.raises(TypeError):
         asset.materials[0].params["x"] = 1  # type: ignore[index]
+
+
+# ------------------------------------------------------------------------------------------
+# UsdSkel skinning, interface inputs, normalize, skipped prims
+# ------------------------------------------------------------------------------------------
+
+
+def _skinned_stage(path):
+    from pxr import UsdSkel
+
+    stage = new_stage(path)
+    root = UsdSkel.Root.Define(stage, "/Root/Char")
+    root.AddTranslateOp().Set(Gf.Vec3d(10, 0, 0))
+    skel = UsdSkel.Skeleton.Define(stage, "/Root/Char/Skel")
+    skel.CreateJointsAttr(["a", "a/b"])
+    joint_b = Gf.Matrix4d().SetTranslate(Gf.Vec3d(1, 0, 0))
+    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1), joint_b]))
+    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1), joint_b]))
+    anim = UsdSkel.Animation.Define(stage, "/Root/Char/Skel/Anim")
+    anim.CreateJointsAttr(["a", "a/b"])
+    anim.CreateTranslationsAttr(Vt.Vec3fArray([(0, 0, 0), (1, 0, 0)]))
+    anim.CreateScalesAttr(Vt.Vec3hArray([(1, 1, 1), (1, 1, 1)]))
+    rot = anim.CreateRotationsAttr()
+    rot.Set(Vt.QuatfArray([Gf.Quatf(1), Gf.Quatf(1)]), 0.0)
+    quarter = Gf.Quatf(Gf.Rotation(Gf.Vec3d(0, 0, 1), 90).GetQuat())
+    rot.Set(Vt.QuatfArray([Gf.Quatf(1), quarter]), 1.0)
+    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets(
+        [anim.GetPath()])
+    rest = np.array([(0, 0, 0), (1, 0, 0), (2, 0, 0), (2, 1, 0), (0, 1, 0)], dtype=np.float32)
+    mesh = triangle_mesh(stage, "/Root/Char/Body", rest, [0, 1, 3, 1, 2, 3, 0, 3, 4])
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+    joints = np.array([[0, 1], [0, 1], [0, 1], [0, 1], [0, 1]])
+    weights = np.array([[1, 0], [1, 0], [0.5, 0.5], [0, 1], [1, 0]], dtype=np.float32)
+    binding.CreateJointIndicesPrimvar(False, 2).Set(Vt.IntArray(joints.ravel().tolist()))
+    binding.CreateJointWeightsPrimvar(False, 2).Set(Vt.FloatArray(weights.ravel().tolist()))
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1))
+    stage.Save()
+    return rest.astype(np.float64), weights.astype(np.float64)
+
+
+def _lbs_reference(rest, weights, degrees):
+    """Linear blend skinning written out: joint b at (1, 0, 0) turns by `degrees` about z;
+    skinning matrix_j = inv(bind_j) @ skel_j (row vectors); the SkelRoot adds (10, 0, 0)."""
+    bind_b = _affine_row(np.eye(3), [1, 0, 0])
+    skel_b = _affine_row(_rot_row("z", degrees), [1, 0, 0])
+    skin = [np.eye(4), np.linalg.inv(bind_b) @ skel_b]
+    hom = np.c_[rest, np.ones(len(rest))]
+    out = sum(weights[:, [j]] * (hom @ skin[j]) for j in range(2))
+    return out[:, :3] + [10, 0, 0]
+
+
+def test_usdskel_skinning_matches_linear_blend_reference(tmp_path):
+    rest, weights = _skinned_stage(tmp_path / "a.usda")
+    asset = load_asset(tmp_path / "a.usda")
+    np.testing.assert_array_equal(asset.time_codes, [0.0, 1.0])
+    assert asset.has_deformation
+    # float32 skinning inside UsdSkel: ~1e-7 relative on unit-sized coordinates
+    np.testing.assert_allclose(asset.points_over_time[0], _lbs_reference(rest, weights, 0),
+                               atol=1e-5)
+    np.testing.assert_allclose(asset.points_over_time[1], _lbs_reference(rest, weights, 90),
+                               atol=1e-5)
+    # between samples USD slerps the joint rotation: 45 degrees at t = 0.5
+    half = load_asset(tmp_path / "a.usda", time_code=0.5)
+    np.testing.assert_allclose(half.points, _lbs_reference(rest, weights, 45), atol=1e-5)
+    # computed normals follow the skinned surface
+    np.testing.assert_allclose(np.einsum("fcj,fj->fc", half.corner_normals,
+                                         half.face_normals())[0], 1.0, atol=1e-9)
+
+
+def test_material_interface_input_drives_shader(tmp_path):
+    stage = new_stage(tmp_path / "a.usda")
+    mesh = grid_mesh(stage, "/Root/m", 1, 1)
+    mat = preview_material(stage, "/Root/Looks/M", (0.5, 0.5, 0.5))
+    tint = mat.CreateInput("tint", Sdf.ValueTypeNames.Color3f)
+    tint.Set((0.9, 0.1, 0.2))
+    UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/M/Surface")).GetInput(
+        "diffuseColor").ConnectToSource(tint)
+    bind(mesh, mat)
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    np.testing.assert_allclose(asset.materials[0].params["diffuseColor"], [0.9, 0.1, 0.2],
+                               atol=1e-7)
+
+
+def test_sphere_light_normalize(tmp_path):
+    stage = new_stage(tmp_path / "a.usda")
+    grid_mesh(stage, "/Root/m", 1, 1)
+    for name, radius in (("Small", 0.1), ("Big", 2.0)):
+        light = UsdLux.SphereLight.Define(stage, f"/Root/{name}")
+        light.CreateRadiusAttr(radius)
+        light.CreateIntensityAttr(8.0)
+        light.CreateNormalizeAttr(True)
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    # normalize: radiance / (4 pi r^2), so intensity pi r^2 L = 8 / 4 whatever the radius
+    for light in asset.lights:
+        np.testing.assert_allclose(light.radiance_scale, np.full(3, 2.0))
+
+
+def test_point_instancers_and_other_gprims_are_skipped_with_a_warning(tmp_path):
+    stage = new_stage(tmp_path / "a.usda")
+    grid_mesh(stage, "/Root/m", 1, 1)
+    inst = UsdGeom.PointInstancer.Define(stage, "/Root/Scatter")
+    grid_mesh(stage, "/Root/Scatter/Prototypes/leaf", 1, 1)
+    inst.CreatePrototypesRel().SetTargets(["/Root/Scatter/Prototypes/leaf"])
+    inst.CreateProtoIndicesAttr([0, 0])
+    inst.CreatePositionsAttr([(0, 0, 0), (1, 0, 0)])
+    UsdGeom.Sphere.Define(stage, "/Root/ball")
+    stage.Save()
+    with pytest.warns(AssetWarning) as record:
+        asset = load_asset(tmp_path / "a.usda")
+    assert asset.mesh_paths == ("/Root/m",)
+    texts = " ".join(str(r.message) for r in record)
+    assert "/Root/Scatter" in texts and "/Root/ball" in texts

@@ -127,15 +127,16 @@ def _first_layer_member(package: str) -> str:
     raise AssetError("the .usdz package holds no USD layer", path=package)
 
 
-def _iter_asset_values(value: Any) -> Iterator[str]:
-    """Every asset path string inside a metadata / attribute value (nested dicts, lists)."""
+def _iter_asset_values(value: Any) -> Iterator[tuple[str, bool]]:
+    """(asset path, is a composition arc) for every asset path inside a metadata or attribute
+    value (nested dicts, lists; reference / payload list ops are arcs)."""
     from pxr import Sdf
 
     if isinstance(value, Sdf.AssetPath):
-        yield value.path
+        yield value.path, False
     elif isinstance(value, Sdf.AssetPathArray):
         for v in value:
-            yield v.path
+            yield v.path, False
     elif isinstance(value, (Sdf.ReferenceListOp, Sdf.PayloadListOp)):
         seen: list[str] = []
         for items in (
@@ -144,11 +145,13 @@ def _iter_asset_values(value: Any) -> Iterator[str]:
             value.prependedItems,
             value.appendedItems,
             value.orderedItems,
+            value.deletedItems,
         ):
             for item in items:
                 if item.assetPath and item.assetPath not in seen:
                     seen.append(item.assetPath)
-        yield from seen
+        for asset in seen:
+            yield asset, True
     elif isinstance(value, dict):
         for k in sorted(value, key=str):
             yield from _iter_asset_values(value[k])
@@ -157,25 +160,35 @@ def _iter_asset_values(value: Any) -> Iterator[str]:
             yield from _iter_asset_values(v)
 
 
-def _layer_asset_paths(layer: Any) -> list[tuple[str, str]]:
-    """(authored asset path, spec path holding it) for every asset path in one Sdf layer."""
+#: spec metadata whose asset paths are layers USD composes (value clips)
+_CLIP_KEYS = ("clips", "clipAssetPaths", "clipManifestAssetPath")
+
+
+def _layer_asset_paths(layer: Any) -> list[tuple[str, str, bool]]:
+    """(authored asset path, spec path holding it, is a layer USD composes) for every asset
+    path in one Sdf layer: sublayers, references, payloads, clips, asset-valued attributes
+    (defaults and time samples) and asset-valued metadata, variants included."""
     from pxr import Sdf
 
-    found: list[tuple[str, str]] = [(p, "<subLayers>") for p in layer.subLayerPaths]
+    found: list[tuple[str, str, bool]] = [(p, "<subLayers>", True) for p in layer.subLayerPaths]
     spec_paths: list[Any] = []
     layer.Traverse(Sdf.Path.absoluteRootPath, spec_paths.append)
     for spec_path in sorted(spec_paths, key=str):
         spec = layer.GetObjectAtPath(spec_path)
-        if spec is None or spec_path == Sdf.Path.absoluteRootPath:
+        if spec is None:
             continue
         if isinstance(spec, Sdf.VariantSpec):
             spec = spec.primSpec
+        where = "<layer metadata>" if spec_path == Sdf.Path.absoluteRootPath else str(spec_path)
         for key in spec.ListInfoKeys():
+            if key in ("subLayers", "subLayerOffsets"):
+                continue
             try:
                 value = spec.GetInfo(key)
             except (TypeError, RuntimeError):  # values pxr cannot convert hold no asset paths
                 continue
-            found.extend((p, str(spec_path)) for p in _iter_asset_values(value))
+            found.extend((p, where, arc or key in _CLIP_KEYS)
+                         for p, arc in _iter_asset_values(value))
     return found
 
 
@@ -292,14 +305,14 @@ def check_asset_paths(path: str | Path) -> list[str]:
             stack.append(_Loc(loc.file, _first_layer_member(loc.file)))
             continue
         layer = _open_layer(loc)
-        for asset, spec in _layer_asset_paths(layer):
+        for asset, spec, is_layer in _layer_asset_paths(layer):
             target = _resolve_safe(asset, loc, root_dir, spec)
             if target is None:
                 continue
             files.add(target.file)
             name = target.member if target.member is not None else target.file
-            if name.lower().endswith(USD_EXTENSIONS):
-                stack.append(target)
+            if is_layer or name.lower().endswith(USD_EXTENSIONS):
+                stack.append(target)  # checked above, so safe to open as a layer
     return sorted(files)
 
 
@@ -764,9 +777,10 @@ def _area_weighted_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """
     tri = points[tris]  # (t, 3, 3)
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (t, 3)
-    acc = np.zeros_like(points)
-    for c in range(3):
-        np.add.at(acc, tris[:, c], cross)
+    n = points.shape[0]
+    flat = tris.reshape(-1)  # (3t,) every corner adds its triangle's cross product
+    acc = np.stack([np.bincount(flat, weights=np.repeat(cross[:, k], 3), minlength=n)
+                    for k in range(3)], axis=1)  # (n, 3)
     corner = acc[tris]  # (t, 3, 3)
     length = np.linalg.norm(corner, axis=2, keepdims=True)
     face_len = np.linalg.norm(cross, axis=1, keepdims=True)
@@ -775,8 +789,67 @@ def _area_weighted_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     return np.where(length > 0, unit, face_unit[:, None, :])
 
 
+def _skinning_queries(stage: Any, warns: list[str]) -> dict[str, tuple[Any, Any]]:
+    """mesh prim path -> (UsdSkel.SkinningQuery, UsdSkel.SkeletonQuery) for skinned meshes.
+
+    Linear-blend (and dual-quaternion) skinning of points is evaluated by UsdSkel itself
+    (`SkinningQuery.ComputeSkinnedPoints`); blend shapes are not applied (warning).
+    """
+    from pxr import Usd, UsdSkel
+
+    out: dict[str, tuple[Any, Any]] = {}
+    roots = [p for p in stage.Traverse(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
+             if p.IsA(UsdSkel.Root)]
+    if not roots:
+        return out
+    cache = UsdSkel.Cache()
+    for prim in roots:
+        root = UsdSkel.Root(prim)
+        cache.Populate(root, Usd.PrimDefaultPredicate)
+        for binding in cache.ComputeSkelBindings(root, Usd.PrimDefaultPredicate):
+            skel_query = cache.GetSkelQuery(binding.GetSkeleton())
+            if not skel_query:
+                _warn(warns, f"skeleton {binding.GetSkeleton().GetPath()}: invalid; its "
+                             "meshes are read unskinned")
+                continue
+            for sq in binding.GetSkinningTargets():
+                path = str(sq.GetPrim().GetPath())
+                if not sq.HasJointInfluences():
+                    continue
+                if sq.HasBlendShapes():
+                    _warn(warns, f"mesh {path}: UsdSkel blend shapes are not applied")
+                out[path] = (sq, skel_query)
+    return out
+
+
+def _world_points(prim: Any, points: np.ndarray, time: Any, xcache: Any,
+                  skin: tuple[Any, Any] | None, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh points (n, 3) float64 in local space -> world (n, 3) float64, and the (3, 3) linear
+    part of the frame that took them there.
+
+    Unskinned: the prim's local-to-world transform. Skinned: UsdSkel's skinned points (skel
+    space) times the Skeleton's local-to-world (the mesh's own transform does not apply).
+    """
+    from pxr import Vt
+
+    if skin is None:
+        world = _matrix(xcache.GetLocalToWorldTransform(prim))
+    else:
+        sq, skel_query = skin
+        xforms = skel_query.ComputeSkinningTransforms(time)
+        skinned = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
+        if xforms is None or not sq.ComputeSkinnedPoints(xforms, skinned, time):
+            raise AssetError(f"mesh {prim.GetPath()}: UsdSkel could not skin its points "
+                             f"with skeleton {skel_query.GetPrim().GetPath()}",
+                             path=source, prim=str(prim.GetPath()))
+        points = np.array(skinned, dtype=np.float64).reshape(-1, 3)
+        world = _matrix(xcache.GetLocalToWorldTransform(skel_query.GetPrim()))
+    return points @ world[:3, :3] + world[3, :3], world[:3, :3]
+
+
 def _read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | None,
-               uv_names: list[str], warns: list[str], source: str) -> _MeshData:
+               uv_names: list[str], warns: list[str], source: str,
+               skin: tuple[Any, Any] | None = None) -> _MeshData:
     from pxr import UsdGeom
 
     mesh = UsdGeom.Mesh(prim)
@@ -812,9 +885,7 @@ def _read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | N
         keep = ~np.isin(tri_face, holes)
         tri_fv, tri_face = tri_fv[keep], tri_face[keep]
 
-    world = _matrix(xcache.GetLocalToWorldTransform(prim))
-    lin = world[:3, :3]
-    points_w = points @ lin + world[3, :3]  # (n, 3)
+    points_w, lin = _world_points(prim, points, time, xcache, skin, source)  # (n, 3), (3, 3)
     det = float(np.linalg.det(lin))
     left = mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded
     if left != (det < 0):  # either flips the winding; both cancel
@@ -825,7 +896,13 @@ def _read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | N
     corner_normals = None
     pv_api = UsdGeom.PrimvarsAPI(prim)
     nrm_pv = pv_api.GetPrimvar("normals")
-    if nrm_pv and nrm_pv.HasAuthoredValue():
+    if skin is not None:
+        # UsdSkel in Python skins points only: normals are computed from the skinned surface
+        if (nrm_pv and nrm_pv.HasAuthoredValue()) or mesh.GetNormalsAttr().HasAuthoredValue():
+            _warn(warns, f"mesh {path}: skinned by UsdSkel; its authored (rest-pose) normals are "
+                         "replaced by normals computed from the skinned points")
+        values, interp, label = None, "", ""
+    elif nrm_pv and nrm_pv.HasAuthoredValue():
         values, interp, label = _primvar_values(nrm_pv, time, 3), nrm_pv.GetInterpolation(), \
             "primvars:normals"
     elif mesh.GetNormalsAttr().HasAuthoredValue():
@@ -1075,8 +1152,14 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
     mesh_prims: list[Any] = []
     lights: list[Light] = []
     cameras: list[Camera] = []
-    for prim in stage.Traverse(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
-        if prim.IsA(UsdGeom.Mesh):
+    prims = iter(Usd.PrimRange(stage.GetPseudoRoot(),
+                               Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+    for prim in prims:
+        if prim.IsA(UsdGeom.PointInstancer):
+            _warn(warns, f"point instancer {prim.GetPath()}: not supported; its prototypes "
+                         "and instances are skipped")
+            prims.PruneChildren()
+        elif prim.IsA(UsdGeom.Mesh):
             if _is_rendered(prim, time):
                 mesh_prims.append(prim)
             else:
@@ -1087,11 +1170,15 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
             light = _read_light(prim, time, xcache, warns)
             if light is not None:
                 lights.append(light)
+        elif prim.IsA(UsdGeom.Gprim) and _is_rendered(prim, time):
+            _warn(warns, f"prim {prim.GetPath()}: {prim.GetTypeName()} is not a UsdGeom.Mesh; "
+                         "ignored")
     if not mesh_prims:
         raise AssetError("the asset has no UsdGeom.Mesh prim (nothing to bake)", path=source,
                          prim=str(stage.GetDefaultPrim().GetPath()) if stage.GetDefaultPrim()
                          else "/")
 
+    skins = _skinning_queries(stage, warns)
     meshes: list[_MeshData] = []
     for prim in mesh_prims:
         n_faces = len(UsdGeom.Mesh(prim).GetFaceVertexCountsAttr().Get(time) or [])
@@ -1099,7 +1186,8 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
         uv_names = sorted({
             tex.st_primvar for i in np.unique(face_mat).tolist()
             for tex in materials[i].textures.values()})
-        meshes.append(_read_mesh(prim, time, xcache, face_mat, uv_names, warns, source))
+        meshes.append(_read_mesh(prim, time, xcache, face_mat, uv_names, warns, source,
+                                 skins.get(str(prim.GetPath()))))
 
     # ---- assemble, computing missing normals, dropping degenerate triangles ----------------
     all_points = np.concatenate([m.points for m in meshes], axis=0)  # (n, 3)
@@ -1133,7 +1221,7 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
             f"mesh(es) {', '.join(m.path for m in meshes)}", path=source, prim=meshes[0].path)
 
     # materials used only by dropped faces stay in the list: indices are stable per binding
-    time_codes, points_over_time = _time_samples(stage, mesh_prims, meshes, time_code, source)
+    time_codes, points_over_time = _time_samples(mesh_prims, meshes, skins, source)
     return AssetModel(
         source=source,
         points=all_points,
@@ -1162,21 +1250,36 @@ def _is_light(prim: Any) -> bool:
     return bool(prim.HasAPI(UsdLux.LightAPI))
 
 
-def _time_samples(stage: Any, mesh_prims: list[Any], meshes: list[_MeshData],
-                  time_code: float | None, source: str) -> tuple[np.ndarray, np.ndarray]:
-    """Union of the time samples of every mesh's points and of its (ancestors') transforms.
+def _time_samples(mesh_prims: list[Any], meshes: list[_MeshData],
+                  skins: dict[str, tuple[Any, Any]], source: str) -> tuple[np.ndarray, np.ndarray]:
+    """Union of the time samples of every mesh's points, of its (ancestors') transforms and,
+    for skinned meshes, of the skeleton's animation, skinning primvars and transforms.
 
-    returns : time_codes (t,) float64, points_over_time (t, n, 3) float64 (world, flattened)
+    returns : time_codes (t,) float64, points_over_time (t, n, 3) float64 (world, flattened,
+        the vertex order of `points`)
     """
     from pxr import Usd, UsdGeom
 
     times: set[float] = set()
-    for prim in mesh_prims:
-        times.update(UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples())
+
+    def add_xform_samples(prim: Any) -> None:
         for anc in _ancestors(prim):
             xf = UsdGeom.Xformable(anc)
             if xf:
                 times.update(xf.GetTimeSamples())
+
+    for prim in mesh_prims:
+        times.update(UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples())
+        skin = skins.get(str(prim.GetPath()))
+        if skin is None:
+            add_xform_samples(prim)
+            continue
+        sq, skel_query = skin
+        times.update(sq.GetTimeSamples())
+        anim = skel_query.GetAnimQuery()
+        if anim:
+            times.update(anim.GetJointTransformTimeSamples())
+        add_xform_samples(skel_query.GetPrim())
     if not times:
         return np.zeros(0), np.zeros((0, sum(m.points.shape[0] for m in meshes), 3))
     codes = np.array(sorted(times), dtype=np.float64)
@@ -1198,8 +1301,8 @@ def _time_samples(stage: Any, mesh_prims: list[Any], meshes: list[_MeshData],
                 raise AssetError(
                     f"mesh {m.path} has NaN/Inf points at time {t:g} (first at index "
                     f"{int(np.flatnonzero(bad)[0])})", path=source, prim=m.path)
-            world = _matrix(xcache.GetLocalToWorldTransform(prim))
-            per_mesh.append(pts @ world[:3, :3] + world[3, :3])
+            world_pts, _ = _world_points(prim, pts, tc, xcache, skins.get(m.path), source)
+            per_mesh.append(world_pts)
         frames.append(np.concatenate(per_mesh, axis=0))
     return codes, np.stack(frames)
 
