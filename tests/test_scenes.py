@@ -236,7 +236,7 @@ def test_cloisonne_material_convention(written):
     # closed, outward-facing blob
     pts, counts, idx = _mesh_arrays(mesh)
     assert _signed_volume(pts, _fan(counts, idx)) > 0.9 * 4 / 3 * math.pi * np.prod(
-        scenes._CLOISONNE["scale"])
+        scenes._CLOISONNE_SCALE)
 
 
 def test_textures_exist_beside_the_layer_and_read(written):

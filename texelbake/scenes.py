@@ -109,18 +109,17 @@ SCENE_PARAMS: Mapping[str, Mapping[str, Mapping[str, int]]] = MappingProxyType(
 )
 
 # Size-independent shape constants (scene units).
-_CYLINDER = MappingProxyType({"radius": 1.0, "height": 2.0, "ridge_slope_deg": 50.0})
-_WALL = MappingProxyType(
+_CYLINDER: Mapping[str, float] = MappingProxyType({"radius": 1.0, "height": 2.0, "ridge_slope_deg": 50.0})
+_WALL: Mapping[str, float] = MappingProxyType(
     {"block_w": 0.4, "block_h": 0.2, "gap": 0.03, "depth": 0.06, "bevel": 0.015,
      "jitter": 0.005}
 )
-_BOLT = MappingProxyType(
+_BOLT: Mapping[str, float] = MappingProxyType(
     {"radius": 0.4, "length": 1.6, "bump_ratio": 0.45, "head_radius": 0.7,
      "head_height": 0.35}
 )
-_CLOISONNE = MappingProxyType(
-    {"amplitude": 0.07, "bump_width": 0.22, "scale": (1.0, 1.25, 0.9)}
-)
+_CLOISONNE: Mapping[str, float] = MappingProxyType({"amplitude": 0.07, "bump_width": 0.22})
+_CLOISONNE_SCALE = (1.0, 1.25, 0.9)  # the blob is a bumpy ellipsoid
 _METERS_PER_UNIT = MappingProxyType(
     {"cylinder": 0.01, "wall": 1.0, "bolt": 0.01, "cloisonne": 0.01}
 )
@@ -394,14 +393,13 @@ def _wall(p: Mapping[str, int], rng: np.random.Generator) -> _SceneSpec:
     interior = np.zeros((s + 1, s + 1), bool)
     interior[1:-1, 1:-1] = True
     front[..., 2] = depth + jitter * rng.uniform(-1.0, 1.0, (nb, s + 1, s + 1)) * interior
-    front = front.reshape(nb, -1, 3)
     a, b = np.meshgrid(np.arange(s), np.arange(s), indexing="xy")
     v00 = (b * (s + 1) + a).ravel()
     v10, v01, v11 = v00 + 1, v00 + s + 1, v00 + s + 2
     grid_tris = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
     nfv = (s + 1) ** 2
     tris = grid_tris[None] + (np.arange(nb) * nfv)[:, None, None]  # (nb, 2s^2, 3)
-    front_pts = front.reshape(-1, 3)
+    front_pts = front.reshape(-1, 3)  # (nb * (s+1)^2, 3), block-major
     front_tris = tris.reshape(-1, 3)
     front_n = _vertex_normals(front_pts, front_tris)
 
@@ -625,7 +623,7 @@ def _cloisonne(p: Mapping[str, int], rng: np.random.Generator) -> _SceneSpec:
     width = _CLOISONNE["bump_width"] * (24.0 / p["bumps"]) ** 0.25  # more, finer bumps
     ang2 = 2.0 * (1.0 - dirs @ centres.T)  # (n, k) squared chord length
     radius = 1.0 + (heights[None, :] * np.exp(-ang2 / width ** 2)).sum(axis=1)
-    points = dirs * radius[:, None] * np.asarray(_CLOISONNE["scale"])
+    points = dirs * radius[:, None] * np.asarray(_CLOISONNE_SCALE)
     normals = _vertex_normals(points, tris)
     # st: spherical, faceVarying so faces across the u seam do not wrap backwards
     corner = dirs[tris.ravel()]
