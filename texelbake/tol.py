@@ -21,6 +21,11 @@ class Tolerances:
     grazing_cos: float = 1e-6         # n.w below this counts as below the horizon
     # brdf
     brdf_eps: float = 1e-12
+    # btf (seed 001)
+    pca_eig_rcond: float = 1e-12      # Gram eigenvalue / largest below this: component dropped
+    phong_alpha_min: float = 1e-3     # Phong exponent outside [min, max]: fit diverged
+    phong_alpha_max: float = 1e4
+    dir_match: float = 1e-6           # directions closer than this (chord) are the same sample
 
 
 TOL = Tolerances()
