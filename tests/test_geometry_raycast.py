@@ -187,3 +187,19 @@ def test_offset_origins_avoid_self_hits(rng):
     d = rng.normal(size=(4000, 3))
     d *= np.sign(np.einsum("nd,nd->n", d, nrm))[:, None]
     assert not caster.occluded(offset_origins(pts, nrm, bbox_diag=caster.bbox_diag), d).any()
+
+
+def test_non_finite_rays_are_not_cast():
+    caster = RayCaster(PLANE_V, PLANE_F)
+    o = np.array([[0.0, 0.0, 1.0], [np.nan, 0.0, 1.0], [0.0, 0.0, 1.0], [0.1, 0.1, 1.0]])
+    d = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [np.inf, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    assert caster.occluded(o, d).tolist() == [True, False, False, True]
+    assert caster.occluded(o, d, tmax=np.array([2.0, 2.0, 2.0, np.nan])).tolist() == [
+        True,
+        False,
+        False,
+        False,
+    ]
+    assert caster.cast(o, d).hit.tolist() == [True, False, False, True]
+    with pytest.raises(ShapeError, match="tmax"):
+        caster.occluded(o, d, tmax=np.ones(3))

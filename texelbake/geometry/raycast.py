@@ -47,17 +47,35 @@ class RayHits:
 
 
 def _check_rays(origins: object, dirs: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Coerce rays; return (origins (n,3), unit dirs (n,3), ok (n,) bool for nonzero dirs)."""
+    """Coerce rays; return (origins (n,3), dirs (n,3) as given, length (n,) of dirs).
+
+    length is 0 for rays that cannot be cast (zero, NaN or Inf direction or NaN/Inf origin).
+    """
     o = np.asarray(origins, dtype=np.float64)
     d = np.asarray(dirs, dtype=np.float64)
     if o.ndim != 2 or o.shape[1] != 3:
         raise ShapeError(f"origins must have shape (n, 3), got {o.shape}")
     if d.shape != o.shape:
         raise ShapeError(f"dirs must have the shape of origins {o.shape}, got {d.shape}")
-    length = np.linalg.norm(d, axis=1)
-    ok = (length > 0) & np.isfinite(length) & np.isfinite(o).all(axis=1)
-    d = np.divide(d, length[:, None], out=np.zeros_like(d), where=ok[:, None])
-    return o, d, ok
+    length = np.sqrt(np.einsum("ij,ij->i", d, d))
+    bad = ~np.isfinite(length) | ~np.isfinite(o).all(axis=1)
+    if bad.any():
+        length = np.where(bad, 0.0, length)
+    return o, d, length
+
+
+def _ray_block(o: np.ndarray, d: np.ndarray, scale: np.ndarray | None, live: np.ndarray | None):
+    """(b, 6) float32 rays [o, d * scale]; rays not `live` become harmless (origin 0, dir +z)."""
+    rays = np.empty((o.shape[0], 6), dtype=np.float32)
+    with np.errstate(invalid="ignore", over="ignore"):  # dead rays are overwritten below
+        rays[:, :3] = o
+        if scale is None:
+            rays[:, 3:] = d
+        else:
+            rays[:, 3:] = d * scale[:, None]
+    if live is not None and not live.all():
+        rays[~live] = (0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    return rays
 
 
 def offset_origins(
@@ -119,55 +137,56 @@ class RayCaster:
     ) -> np.ndarray:
         """True where the ray from origin along dir hits the mesh at 0 < t < tmax.
 
-        origins, dirs : (n, 3) float64 (dirs need not be unit; zero dirs are never occluded)
-        tmax : scalar or (n,) float64 distance along the unit direction (inf allowed)
+        origins, dirs : (n, 3) float64 (dirs need not be unit; zero / non-finite rays are
+            never occluded)
+        tmax : scalar or (n,) float64 distance along the unit direction (inf allowed;
+            NaN or <= 0 means not occluded)
         returns : (n,) bool
         """
-        o, d, ok = _check_rays(origins, dirs)
+        o, d, length = _check_rays(origins, dirs)
         n = o.shape[0]
-        tm = np.broadcast_to(np.asarray(tmax, dtype=np.float64), (n,))
+        tm = np.asarray(tmax, dtype=np.float64)
+        if tm.ndim and tm.shape != (n,):
+            raise ShapeError(f"tmax must be a scalar or ({n},), got {tm.shape}")
         out = np.zeros(n, dtype=bool)
         if n == 0 or self._empty:
             return out
         self.rays_cast += n
+        live = length > 0
+        batch = max(int(batch), 1)
+        if tm.ndim == 0 and np.isinf(tm) and tm > 0:
+            # the common case: directions go to Embree as given (it does not need unit ones)
+            all_live = bool(live.all())
+            for start in range(0, n, batch):  # a loop over large batches, not rays
+                sl = slice(start, min(start + batch, n))
+                lv = None if all_live else live[sl]
+                out[sl] = self._test(_ray_block(o[sl], d[sl], None, lv), np.inf)
+            return out & live
         # Embree takes one scalar tfar per call: rays with a finite tmax get their direction
-        # scaled by tmax and tfar = 1; the rest keep unit directions and tfar = inf.
-        finite = np.isfinite(tm) & (tm > 0) & ok
-        infinite = (tm == np.inf) & ok
-        if infinite.all():
-            out[:] = self._occluded_batches(o, d, np.inf, batch)
-        else:
-            if finite.any():
-                idx = np.flatnonzero(finite)
-                out[idx] = self._occluded_batches(o[idx], d[idx] * tm[idx, None], 1.0, batch)
-            if infinite.any():
-                idx = np.flatnonzero(infinite)
-                out[idx] = self._occluded_batches(o[idx], d[idx], np.inf, batch)
+        # scaled to length tmax and tfar = 1; those with tmax = inf keep tfar = inf.
+        tm = np.broadcast_to(tm, (n,))
+        finite = live & np.isfinite(tm) & (tm > 0)
+        infinite = live & (tm == np.inf)
+        for group, tfar in ((finite, 1.0), (infinite, np.inf)):
+            idx = np.flatnonzero(group)
+            for start in range(0, idx.shape[0], batch):
+                sel = idx[start : start + batch]
+                scale = tm[sel] / length[sel] if tfar == 1.0 else None
+                out[sel] = self._test(_ray_block(o[sel], d[sel], scale, None), tfar)
         return out
 
-    def _occluded_batches(
-        self, o: np.ndarray, d: np.ndarray, tfar: float, batch: int
-    ) -> np.ndarray:
-        n = o.shape[0]
-        out = np.empty(n, dtype=bool)
-        batch = max(int(batch), 1)
-        for start in range(0, n, batch):  # a loop over large batches, not rays
-            stop = min(start + batch, n)
-            rays = np.empty((stop - start, 6), dtype=np.float32)
-            rays[:, :3] = o[start:stop]
-            rays[:, 3:] = d[start:stop]
-            res = self._scene.test_occlusions(
-                o3d.core.Tensor.from_numpy(rays), tfar=tfar, nthreads=self.nthreads
-            )
-            out[start:stop] = res.numpy()
-        return out
+    def _test(self, rays: np.ndarray, tfar: float) -> np.ndarray:
+        res = self._scene.test_occlusions(
+            o3d.core.Tensor.from_numpy(rays), tfar=tfar, nthreads=self.nthreads
+        )
+        return res.numpy()
 
     def cast(self, origins: object, dirs: object, batch: int = DEFAULT_BATCH) -> RayHits:
         """First hit of each ray (see RayHits).
 
-        origins, dirs : (n, 3) float64 (dirs need not be unit; zero dirs miss)
+        origins, dirs : (n, 3) float64 (dirs need not be unit; zero / non-finite rays miss)
         """
-        o, d, ok = _check_rays(origins, dirs)
+        o, d, length = _check_rays(origins, dirs)
         n = o.shape[0]
         t = np.full(n, np.inf)
         prim = np.full(n, -1, dtype=np.int64)
@@ -176,17 +195,16 @@ class RayCaster:
         if n == 0 or self._empty:
             return RayHits(t, prim, bary, normal)
         self.rays_cast += n
+        live = length > 0
+        inv_len = np.divide(1.0, length, out=np.zeros_like(length), where=live)
         invalid = np.uint32(o3d.t.geometry.RaycastingScene.INVALID_ID)
         batch = max(int(batch), 1)
         for start in range(0, n, batch):
-            stop = min(start + batch, n)
-            rays = np.empty((stop - start, 6), dtype=np.float32)
-            rays[:, :3] = o[start:stop]
-            rays[:, 3:] = d[start:stop]
+            sl = slice(start, min(start + batch, n))
+            rays = _ray_block(o[sl], d[sl], inv_len[sl], live[sl])  # unit directions
             res = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self.nthreads)
             pid = res["primitive_ids"].numpy()
-            hit = (pid != invalid) & ok[start:stop]
-            sl = slice(start, stop)
+            hit = (pid != invalid) & live[sl]
             t[sl] = np.where(hit, res["t_hit"].numpy().astype(np.float64), np.inf)
             prim[sl] = np.where(hit, pid.astype(np.int64), -1)
             bary[sl] = np.where(hit[:, None], res["primitive_uvs"].numpy(), 0.0)
