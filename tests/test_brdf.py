@@ -123,6 +123,10 @@ def test_reciprocity(name, merl_file):
         # round-off at bin boundaries ("to the table's symmetry")
         same = np.all(a == b, axis=1)
         assert same.mean() > 0.999
+    elif name == "merl_linear":
+        # interpolation weights from (theta_h, theta_d, phi_d) computed from wi or from wo:
+        # equal up to the round-off of the rotations and atan2 (measured <= 3e-12 relative)
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=0.0)
     else:
         # every model is symmetric term by term; only floating-point reassociation differs
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=0.0)
@@ -672,6 +676,24 @@ def test_diffuse_albedo_per_model(merl_file):
     mf = model.Material("/M/mf", "merl", {"file": str(merl_file[0])})
     mc, err = brdf.directional_albedo(_analytic_for_merl, _view(0.0), n_samples=N_MC, seed=22)
     np.testing.assert_allclose(brdf.diffuse_albedo(mf)[0], mc[0], rtol=5e-3, atol=4 * err.max())
+
+
+def test_shading_normal_from_normal_map():
+    # a normal map stored as 0..1 colours, remapped by the UsdUVTexture scale 2 / bias -1
+    n_ts = np.array([0.6, 0.0, 0.8])  # unit tangent-space normal
+    img = np.tile((n_ts + 1.0) / 2.0, (2, 2, 1))
+    tex = _tex(img, scale=(2.0, 2.0, 2.0, 1.0), bias=(-1.0, -1.0, -1.0, 0.0))
+    mat = model.Material("/M/nm", "preview", textures={"normal": tex})
+    uv = np.random.default_rng(27).random((5, 2))
+    # float32 pixels: (0.8 + 1)/2 = 0.9 is stored to ~3e-8, hence the tolerance
+    np.testing.assert_allclose(brdf.shading_normal(mat, uv), np.tile(n_ts, (5, 1)), atol=1e-7)
+    # unnormalised constant -> normalised; below the tangent plane -> (0, 0, 1)
+    const = model.Material("/M/c", "preview", {"normal": (0.0, 3.0, 4.0)})
+    np.testing.assert_allclose(brdf.shading_normal(const), [[0.0, 0.6, 0.8]], rtol=1e-15)
+    flipped = model.Material("/M/f", "preview", {"normal": (0.0, 0.0, -1.0)})
+    np.testing.assert_array_equal(brdf.shading_normal(flipped), [[0.0, 0.0, 1.0]])
+    lam = model.Material("/M/l", "lambert", {})
+    np.testing.assert_array_equal(brdf.shading_normal(lam, uv), np.tile([0.0, 0.0, 1.0], (5, 1)))
 
 
 def test_evaluate_by_face_groups_materials():

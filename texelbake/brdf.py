@@ -518,10 +518,14 @@ def _merl_angles(wi: np.ndarray, wo: np.ndarray) -> tuple[np.ndarray, ...]:
     half/difference angles, as ``std_coords_to_half_diff_coords`` in ``BRDFRead.cpp``)."""
     h = wi + wo
     h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), TOL.brdf_eps)
-    th = np.arccos(np.clip(h[:, 2], -1.0, 1.0))
-    ph = np.arctan2(h[:, 1], h[:, 0])
-    cp, sp = np.cos(ph), np.sin(ph)
-    ct, st = np.cos(th), np.sin(th)
+    # cos/sin of theta_half and phi_half straight from h (no trig round trip)
+    ct = np.clip(h[:, 2], -1.0, 1.0)
+    th = np.arccos(ct)
+    st = np.hypot(h[:, 0], h[:, 1])
+    pole = st <= TOL.brdf_eps  # h = n: phi_half undefined, take 0 (as atan2(0, 0) in MERL)
+    inv = 1.0 / np.where(pole, 1.0, st)
+    cp = np.where(pole, 1.0, h[:, 0] * inv)
+    sp = np.where(pole, 0.0, h[:, 1] * inv)
     # rotate wi by -phi_half about the normal, then by -theta_half about the binormal
     x = cp * wi[:, 0] + sp * wi[:, 1]
     y = cp * wi[:, 1] - sp * wi[:, 0]
@@ -868,6 +872,8 @@ def sample_texture(tex: model.Texture, uv: Any) -> np.ndarray:
                 f"texture {tex.path!r}: {axis} {mode!r} not one of {list(_WRAP_MODES)}"
             )
     h, w, c = pix.shape
+    if c > 4:
+        raise ShapeError(f"texture {tex.path!r}: at most 4 channels, got {c}")
     n = uv.shape[0]
     if n == 0:
         return np.zeros((0, c))
@@ -893,8 +899,6 @@ def sample_texture(tex: model.Texture, uv: Any) -> np.ndarray:
             out += v * wgt
     scale = np.resize(np.asarray(tex.scale, dtype=np.float64), 4)[:c]
     bias = np.resize(np.asarray(tex.bias, dtype=np.float64), 4)[:c]
-    if c > 4:
-        raise ShapeError(f"texture {tex.path!r}: at most 4 channels, got {c}")
     out *= scale
     out += bias
     return out
@@ -905,7 +909,7 @@ def sample_texture(tex: model.Texture, uv: Any) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 _COLOR_INPUTS = frozenset(
-    {"diffuseColor", "specularColor", "borderColor", "cellColorA", "cellColorB"}
+    {"diffuseColor", "specularColor", "borderColor", "cellColorA", "cellColorB", "normal"}
 )
 _MODELS = ("lambert", "phong", "preview", "merl", "cellular")
 _DEFAULTS: Mapping[str, Mapping[str, Any]] = {
@@ -1063,6 +1067,33 @@ def diffuse_albedo(material: model.Material, uv: Any = None) -> np.ndarray:
     rho = np.pi * merl_lookup(_merl_table(material), wi, wo).mean(axis=0)
     scale = _scalar(_input(material, "scale", n, uv_a), n, "scale")[:, None]
     return np.broadcast_to(rho[None, :] * scale, (n, 3)).copy()
+
+
+def shading_normal(material: model.Material, uv: Any = None) -> np.ndarray:
+    """Tangent-space shading normal of a material: UsdPreviewSurface's ``normal`` input
+    ("Expects normal in tangent space [(-1,-1,-1), (1,1,1)]"; a normal map is connected
+    through a UsdUVTexture whose scale (2, 2, 2, 1) and bias (-1, -1, -1, 0) do the remapping,
+    so the sampled value is used as is), normalised. (0, 0, 1) for the other models, and where
+    the value is not finite, has zero length or points below the tangent plane (z <= 0).
+
+    :func:`evaluate` does not apply it: the caller owns the shading frame (build it with
+    ``frames.tangent_frames(normal_world, tangent_world)`` and pass directions in it), so that
+    the cosine terms and the BRDF use the same normal.
+
+    material : model.Material; uv : (n, 2) float64 or None (then n = 1)
+    returns : (n, 3) float64 unit vectors in the (t, b, n) frame of the surface
+    """
+    _check_model(material)
+    uv_a = None if uv is None else _uv(uv)
+    n = 1 if uv_a is None else uv_a.shape[0]
+    up = np.zeros((n, 3))
+    up[:, 2] = 1.0
+    if material.model != "preview":
+        return up
+    v = np.broadcast_to(_color(_input(material, "normal", n, uv_a), n, "normal"), (n, 3))
+    length = np.linalg.norm(v, axis=1, keepdims=True)
+    ok = np.isfinite(length[:, 0]) & (length[:, 0] > TOL.brdf_eps) & (v[:, 2] > 0.0)
+    return np.where(ok[:, None], v / np.where(ok[:, None], length, 1.0), up)
 
 
 def evaluate_by_face(
