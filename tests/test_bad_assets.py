@@ -365,6 +365,19 @@ def test_unsupported_surface_shader_falls_back_to_constants(tmp_path):
     assert m.params["metallic"] == 1.0 and m.params["roughness"] == 0.5  # the rest: defaults
 
 
+def test_udim_texture_falls_back_to_constant(tmp_path):
+    write_png(tmp_path / "tex.1001.png", np.zeros((1, 1, 3), np.uint8))
+    path = _textured(tmp_path, "./tex.<UDIM>.png")
+    assert check_asset_paths(path) == sorted(  # the tile is part of the bundle
+        str((tmp_path / n).resolve()) for n in ("a.usda", "tex.1001.png"))
+    with pytest.warns(AssetWarning, match="UDIM"):
+        asset = load_asset(path)
+    assert not asset.materials[0].textures
+    (tmp_path / "tex.1001.png").unlink()
+    with pytest.raises(AssetPathError, match="UDIM"):
+        check_asset_paths(path)
+
+
 def test_material_without_surface(tmp_path):
     stage = new_stage(tmp_path / "a.usda")
     mesh = grid_mesh(stage, "/Root/m", 1, 1)

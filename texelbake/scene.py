@@ -200,15 +200,15 @@ def _path_error(reason: str, asset: str, holder: _Loc, spec: str) -> AssetPathEr
     )
 
 
-def _resolve_safe(asset: str, holder: _Loc, root_dir: str, spec: str) -> _Loc | None:
+def _resolve_safe(asset: str, holder: _Loc, root_dir: str, spec: str) -> list[_Loc]:
     """Anchor `asset` to the layer `holder`; raise AssetPathError unless it stays inside.
 
-    Returns the location of the file, or None for an empty path.
+    Returns the location of the file (every tile for a `<UDIM>` pattern; none for "").
     """
     from pxr import Ar
 
     if asset == "":
-        return None
+        return []
     if asset.startswith("`"):
         raise _path_error("is an expression; expressions are not allowed", asset, holder, spec)
     if _URL_RE.match(asset):
@@ -229,30 +229,33 @@ def _resolve_safe(asset: str, holder: _Loc, root_dir: str, spec: str) -> _Loc | 
         members = _zip_members(holder.file)
         if "<UDIM>" in member:
             pattern = re.compile(re.escape(member).replace("<UDIM>", r"\d{4}") + "$")
-            if not any(pattern.match(m) for m in members):
+            tiles = [_Loc(holder.file, m) for m in sorted(members) if pattern.match(m)]
+            if not tiles:
                 raise _path_error("matches no UDIM tile in the package", asset, holder, spec)
-            return None
+            return tiles
         if member not in members:
             raise _path_error("does not exist in the package", asset, holder, spec)
         if inner is not None:
             raise _path_error("nests a package inside a package", asset, holder, spec)
-        return _Loc(holder.file, member)
+        return [_Loc(holder.file, member)]
     target = os.path.realpath(os.path.join(os.path.dirname(holder.file), outer))
     if os.path.commonpath([target, root_dir]) != root_dir:
         raise _path_error(f"escapes the asset's folder {root_dir}", asset, holder, spec)
     if "<UDIM>" in target:
         folder, name = os.path.split(target)
         pattern = re.compile(re.escape(name).replace("<UDIM>", r"\d{4}") + "$")
-        if not os.path.isdir(folder) or not any(pattern.match(n) for n in os.listdir(folder)):
+        names = sorted(os.listdir(folder)) if os.path.isdir(folder) else []
+        tiles = [_Loc(os.path.join(folder, n)) for n in names if pattern.match(n)]
+        if not tiles:
             raise _path_error("matches no UDIM tile", asset, holder, spec)
-        return None
+        return tiles
     if not os.path.isfile(target):
         raise _path_error("does not exist", asset, holder, spec)
     if inner is not None:
         if inner not in _zip_members(target):
             raise _path_error("does not exist in the package", asset, holder, spec)
-        return _Loc(target, inner)
-    return _Loc(target)
+        return [_Loc(target, inner)]
+    return [_Loc(target)]
 
 
 def _open_layer(loc: _Loc) -> Any:
@@ -306,13 +309,11 @@ def check_asset_paths(path: str | Path) -> list[str]:
             continue
         layer = _open_layer(loc)
         for asset, spec, is_layer in _layer_asset_paths(layer):
-            target = _resolve_safe(asset, loc, root_dir, spec)
-            if target is None:
-                continue
-            files.add(target.file)
-            name = target.member if target.member is not None else target.file
-            if is_layer or name.lower().endswith(USD_EXTENSIONS):
-                stack.append(target)  # checked above, so safe to open as a layer
+            for target in _resolve_safe(asset, loc, root_dir, spec):
+                files.add(target.file)
+                name = target.member if target.member is not None else target.file
+                if is_layer or name.lower().endswith(USD_EXTENSIONS):
+                    stack.append(target)  # checked above, so safe to open as a layer
     return sorted(files)
 
 
@@ -587,7 +588,9 @@ class _MaterialReader:
                 src_id = self._shader_id(src_prim)
                 if src_id == "UsdUVTexture":
                     out_name = UsdShade.Output(src).GetBaseName()
-                    textures[name] = self._read_texture(src_prim, out_name, mat_path)
+                    texture = self._read_texture(src_prim, out_name, mat_path)
+                    if texture is not None:
+                        textures[name] = texture
                 else:
                     _warn(self.warns,
                           f"material {mat_path}: input {name} of shader {prim.GetPath()} is "
@@ -622,7 +625,8 @@ class _MaterialReader:
         value = src.Get(self.time)
         return default if value is None else value
 
-    def _read_texture(self, prim: Any, out_name: str, mat_path: str) -> Texture:
+    def _read_texture(self, prim: Any, out_name: str, mat_path: str) -> Texture | None:
+        """The Texture a UsdUVTexture output provides; None (with a warning) for UDIM sets."""
         from pxr import UsdShade
 
         shader = UsdShade.Shader(prim)
@@ -631,6 +635,10 @@ class _MaterialReader:
         if asset is None or not asset.path:
             raise AssetPathError(f"UsdUVTexture of material {mat_path} has no file",
                                  path="", prim=prim_path)
+        if "<UDIM>" in asset.path:
+            _warn(self.warns, f"material {mat_path}: UDIM texture '{asset.path}' of {prim_path} "
+                              "is not supported; using the input's constant value")
+            return None
         resolved = asset.resolvedPath
         if not resolved:
             raise AssetPathError(
