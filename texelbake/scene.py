@@ -1324,6 +1324,23 @@ def _fmt_vec(v: Any) -> str:
     return "(" + ", ".join(f"{float(x):.4g}" for x in np.asarray(v).reshape(-1)) + ")"
 
 
+def _param_summary(mat: Material) -> str:
+    """`name=value` for a material's constants (for "preview", only those off the spec
+    defaults; never the MERL table or file, shown separately)."""
+    parts = []
+    for key in sorted(mat.params):
+        if key in ("table", "file"):
+            continue
+        value = mat.params[key]
+        if mat.model == "preview" and key in PREVIEW_DEFAULTS and np.allclose(
+                np.asarray(value, dtype=np.float64), np.asarray(PREVIEW_DEFAULTS[key], np.float64)):
+            continue
+        text = (_fmt_vec(value) if isinstance(value, np.ndarray)
+                else f"{value:.4g}" if isinstance(value, float) else str(value))
+        parts.append(f"{key}={text}")
+    return ", ".join(parts)
+
+
 def describe(asset: AssetModel) -> str:
     """The human-readable summary `texelbake inspect FILE` prints.
 
@@ -1344,6 +1361,9 @@ def describe(asset: AssetModel) -> str:
     for i, mat in enumerate(asset.materials):
         name = mat.path or "<default grey lambert>"
         lines.append(f"  {name}: {mat.model}, {int(used[i])} triangles")
+        shown = _param_summary(mat)
+        if shown:
+            lines.append(f"    {shown}")
         for inp, tex in sorted(mat.textures.items()):
             h, w, c = tex.pixels.shape
             lines.append(f"    {inp} <- texture {tex.path} ({w}x{h}, {c} ch, "
