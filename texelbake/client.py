@@ -1,0 +1,210 @@
+"""`texelbake submit FILE --server URL`: upload, follow progress, download the baked bundle.
+
+Uses only httpx and the standard library (no server imports). A layer file that uses other
+files (textures, sublayers) is sent as a `.zip` bundle of exactly the files it uses (found with
+`texelbake.scene.check_asset_paths`); a folder is zipped whole; `.usdz` and `.zip` go as they are.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import sys
+import time
+import zipfile
+from collections.abc import Callable, Iterator
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+import httpx
+
+from texelbake.errors import AssetError, StageError
+
+API = "/api/v1"
+_EPOCH = (1980, 1, 1, 0, 0, 0)
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+def _zip_files(files: list[tuple[str, Path]]) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for arc, path in sorted(files):
+            info = zipfile.ZipInfo(arc, date_time=_EPOCH)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, path.read_bytes())
+    return buf.getvalue()
+
+
+def package(path: str | Path) -> tuple[str, bytes]:
+    """(upload name, bytes) for a layer file, a folder, a `.usdz` or a `.zip`."""
+    path = Path(path)
+    if path.is_dir():
+        files = [(p.relative_to(path).as_posix(), p) for p in path.rglob("*") if p.is_file()]
+        return f"{path.name}.zip", _zip_files(files)
+    if not path.is_file():
+        raise AssetError("file to submit does not exist", path=str(path))
+    if path.suffix.lower() in (".usdz", ".zip"):
+        return path.name, path.read_bytes()
+    try:
+        from texelbake.scene import check_asset_paths
+    except ImportError:  # pxr missing on this machine: send the layer alone
+        return path.name, path.read_bytes()
+    used = [Path(p) for p in check_asset_paths(path)]
+    base = path.resolve().parent
+    if len(used) <= 1:
+        return path.name, path.read_bytes()
+    files = []
+    for p in used:
+        rel = Path(os.path.relpath(p, base))
+        if rel.parts and rel.parts[0] == "..":
+            raise AssetError("asset uses a file outside its folder", path=str(p))
+        files.append((PurePosixPath(*rel.parts).as_posix(), p))
+    return f"{path.stem}.zip", _zip_files(files)
+
+
+class _Bar:
+    """A one-line text progress bar on stderr (stdlib only)."""
+
+    def __init__(self, enabled: bool, width: int = 30):
+        self.enabled, self.width, self.last = enabled, width, ""
+
+    def show(self, fraction: float, label: str) -> None:
+        if not self.enabled:
+            return
+        n = int(round(max(0.0, min(1.0, fraction)) * self.width))
+        line = f"\r[{'#' * n}{'.' * (self.width - n)}] {fraction * 100:5.1f}% {label:<40}"
+        if line != self.last:
+            sys.stderr.write(line)
+            sys.stderr.flush()
+            self.last = line
+
+    def close(self) -> None:
+        if self.enabled and self.last:
+            sys.stderr.write("\n")
+
+
+def iter_events(
+    client: httpx.Client, job_id: str, *, retry: float = 1.0, deadline: float | None = None
+) -> Iterator[dict[str, Any]]:
+    """Server-sent events of a job, reconnecting (with Last-Event-ID) until the stream ends
+    after the job's terminal event."""
+    last = None
+    while True:
+        headers = {"Last-Event-ID": str(last)} if last is not None else {}
+        try:
+            with client.stream(
+                "GET",
+                f"{API}/jobs/{job_id}/events",
+                headers=headers,
+                timeout=httpx.Timeout(10.0, read=60.0),
+            ) as r:
+                if r.status_code != 200:
+                    raise StageError(f"events of job {job_id}: HTTP {r.status_code} {r.read()!r}")
+                data: list[str] = []
+                for line in r.iter_lines():
+                    if line.startswith("data: "):
+                        data.append(line[6:])
+                    elif line == "" and data:
+                        ev = json.loads("\n".join(data))
+                        data = []
+                        last = ev["seq"]
+                        yield ev
+            return  # the server ended the stream: the job is finished
+        except (httpx.TransportError, httpx.RemoteProtocolError):
+            if deadline is not None and time.monotonic() > deadline:
+                raise
+            time.sleep(retry)
+
+
+def _check(r: httpx.Response, what: str) -> httpx.Response:
+    if r.status_code >= 400:
+        try:
+            detail = r.json().get("detail")
+        except ValueError:
+            detail = r.text[:500]
+        raise StageError(f"{what}: HTTP {r.status_code}: {detail}")
+    return r
+
+
+def safe_extract(data: bytes, out_dir: Path) -> list[Path]:
+    """Unpack the result zip into `out_dir`, refusing members that would land outside it."""
+    out_dir = Path(out_dir).resolve()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    with zipfile.ZipFile(io.BytesIO(data)) as zf:
+        for info in zf.infolist():
+            target = (out_dir / info.filename).resolve()
+            if out_dir not in target.parents or info.is_dir():
+                if info.is_dir():
+                    continue
+                raise StageError(f"result member escapes the output folder: {info.filename}")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            tmp = target.with_name(f".{target.name}.part")
+            tmp.write_bytes(zf.read(info))
+            os.replace(tmp, target)
+            written.append(target)
+    return written
+
+
+def submit(
+    file: str | Path,
+    server: str,
+    token: str,
+    out_dir: str | Path,
+    settings: dict[str, Any] | None = None,
+    *,
+    progress: bool = True,
+    timeout: float = 24 * 3600.0,
+    on_event: Callable[[dict[str, Any]], None] | None = None,
+    transport: httpx.BaseTransport | None = None,
+) -> Path:
+    """Upload `file`, create a job with `settings`, follow its events with a progress bar,
+    download and unpack the result into `out_dir`. Returns the baked root layer path.
+
+    Raises StageError when the server refuses the upload or the job fails or is cancelled
+    (the message carries the server's `detail` / the job's error).
+    """
+    headers = {"Authorization": f"Bearer {token}"}
+    deadline = time.monotonic() + timeout
+    bar = _Bar(progress)
+    with httpx.Client(
+        base_url=server.rstrip("/"), headers=headers, timeout=120.0, transport=transport
+    ) as c:
+        name, data = package(file)
+        asset = _check(
+            c.post(f"{API}/assets", files={"file": (name, data)}), f"upload {name}"
+        ).json()
+        job = _check(
+            c.post(f"{API}/jobs", json={"asset_id": asset["id"], "settings": settings or {}}),
+            "create job",
+        ).json()
+        job_id = job["id"]
+        try:
+            for ev in iter_events(c, job_id, deadline=deadline):
+                if on_event is not None:
+                    on_event(ev)
+                if ev["kind"] in ("stage", "job") or ev["data"].get("state") == "done":
+                    job = _check(c.get(f"{API}/jobs/{job_id}"), "job status").json()
+                    running = [
+                        s["name"] for s in job["stages"] if s["state"] in ("queued", "running")
+                    ]
+                    bar.show(job["progress"], f"{job['state']} {' '.join(running)}")
+                if time.monotonic() > deadline:
+                    raise StageError(f"job {job_id} did not finish within {timeout} s")
+        finally:
+            bar.close()
+        job = _check(c.get(f"{API}/jobs/{job_id}"), "job status").json()
+        if job["state"] != "succeeded":
+            raise StageError(f"job {job_id} ended {job['state']}: {job.get('error')}")
+        r = _check(c.get(f"{API}/jobs/{job_id}/result"), "download result")
+    files = safe_extract(r.content, Path(out_dir))
+    roots = sorted(
+        p for p in files if p.name.endswith("_baked.usda") and p.parent == Path(out_dir).resolve()
+    )
+    if not roots:
+        roots = sorted(p for p in files if p.suffix == ".usda")
+    if not roots:
+        raise StageError(f"the result of job {job_id} holds no .usda root layer")
+    return roots[0]
