@@ -574,7 +574,9 @@ def merl_lookup(
             ih = np.clip(uh.astype(np.int64), 0, n_th - 1)
             i_d = np.clip(ud.astype(np.int64), 0, n_td - 1)
             ip = np.clip(up.astype(np.int64), 0, n_pd - 1)
-            out[lo:hi] = flat[:, (ih * n_td + i_d) * n_pd + ip].T
+            idx = (ih * n_td + i_d) * n_pd + ip
+            for ch in range(3):  # np.take per channel: ~10x faster than flat[:, idx]
+                out[lo:hi, ch] = np.take(flat[ch], idx)
             continue
         xh = np.clip(uh - 0.5, 0.0, n_th - 1.0)
         xd = np.clip(ud - 0.5, 0.0, n_td - 1.0)
@@ -590,7 +592,10 @@ def merl_lookup(
         for ih, wh in ((h0, 1.0 - fh), (h1, fh)):  # 8 corners
             for i_d, wd in ((d0, 1.0 - fd), (d1, fd)):
                 for ip, wp in ((p0, 1.0 - fp), (p1, fp)):
-                    acc += flat[:, (ih * n_td + i_d) * n_pd + ip].T * (wh * wd * wp)[:, None]
+                    idx = (ih * n_td + i_d) * n_pd + ip
+                    wgt = wh * wd * wp
+                    for ch in range(3):
+                        acc[:, ch] += np.take(flat[ch], idx) * wgt
         out[lo:hi] = acc
     out[~ok] = 0.0
     return out
@@ -666,15 +671,19 @@ def _hash_cells(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray, salt: int) -> 
     return (_hash_u64(ix, iy, seed, salt) >> np.uint64(11)).astype(np.float64) * 2.0**-53
 
 
-def _feature_points(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray) -> tuple[np.ndarray, ...]:
-    """The Worley feature point of each cell: (ix + u, iy + v), u and v the high and low 32 bits
-    of one hash (one hash per cell instead of two). Returns (x, y) float64."""
+def _feature_offsets(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The Worley feature point of each cell relative to its corner: (u, v) in [0, 1)^2, the
+    high and low 32 bits of one hash (one hash per cell instead of two). float64 arrays."""
     h = _hash_u64(ix, iy, seed, 0)
     u = (h >> np.uint64(32)).astype(np.float64) * 2.0**-32
     v = (h & np.uint64(0xFFFFFFFF)).astype(np.float64) * 2.0**-32
-    u += ix
-    v += iy
     return u, v
+
+
+def _feature_points(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Absolute feature points (ix + u, iy + v) of cells, float64 arrays."""
+    u, v = _feature_offsets(ix, iy, seed)
+    return u + ix, v + iy
 
 
 _NEIGHBOURS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dtype=np.int64)
@@ -684,7 +693,8 @@ def worley(points: Any, seed: Any = 0) -> tuple[np.ndarray, np.ndarray, np.ndarr
     """Worley (1996) cellular noise with one feature point per unit cell.
 
     Each integer cell (i, j) holds the feature point (i, j) + (u, v), (u, v) from a seeded hash;
-    each query checks its own and the 8 neighbouring cells (numpy broadcasting over (n, 9)).
+    each query checks its own and the 8 neighbouring cells (a loop over the 9 offsets, each
+    vectorized over all queries, keeping running nearest / second-nearest distances).
     3 x 3 cells give F1 exactly and F2 in all but rare configurations (a feature point two cells
     away can be nearer than the 3 x 3 second-nearest) — the usual Worley trade-off.
 
@@ -708,19 +718,24 @@ def worley(points: Any, seed: Any = 0) -> tuple[np.ndarray, np.ndarray, np.ndarr
         hi = min(lo + _CHUNK, n)
         p = np.where(finite[lo:hi, None], pts[lo:hi], 0.0)
         base = np.floor(p).astype(np.int64)  # (b, 2)
-        nb = base[:, None, :] + _NEIGHBOURS[None]  # (b, 9, 2)
-        sd = seed_a.reshape(1, 1) if seed_a.size == 1 else seed_a[lo:hi, None]  # (b|1, 1)
-        fx, fy = _feature_points(nb[..., 0], nb[..., 1], sd)  # (b, 9) each
-        fx -= p[:, None, 0]
-        fy -= p[:, None, 1]
-        fx *= fx
-        fy *= fy
-        fx += fy  # squared distances (b, 9)
-        two = np.argpartition(fx, 1, axis=1)[:, :2]  # [:, 0] nearest, [:, 1] second
-        d2 = np.take_along_axis(fx, two, axis=1)
-        f1[lo:hi] = np.sqrt(d2[:, 0])
-        f2[lo:hi] = np.sqrt(d2[:, 1])
-        cell[lo:hi] = np.take_along_axis(nb, two[:, :1, None], axis=1)[:, 0]
+        frac = p - base  # (b, 2) position inside the own cell
+        sd = seed_a.reshape(1) if seed_a.size == 1 else seed_a[lo:hi]  # (b|1,)
+        d1 = np.full(hi - lo, np.inf)  # running nearest / second-nearest squared distances
+        d2 = np.full(hi - lo, np.inf)
+        arg = np.zeros(hi - lo, dtype=np.int64)
+        for k, (ox, oy) in enumerate(_NEIGHBOURS):  # the 3 x 3 cells, vectorized over b
+            fx, fy = _feature_offsets(base[:, 0] + ox, base[:, 1] + oy, sd)
+            fx += ox - frac[:, 0]  # feature - query, relative to the own cell: no large
+            fy += oy - frac[:, 1]  # coordinates, so no cancellation far from the origin
+            dk = fx * fx
+            dk += fy * fy
+            nearer = dk < d1
+            np.minimum(d2, np.where(nearer, d1, dk), out=d2)
+            np.copyto(d1, dk, where=nearer)
+            np.copyto(arg, k, where=nearer)
+        f1[lo:hi] = np.sqrt(d1)
+        f2[lo:hi] = np.sqrt(d2)
+        cell[lo:hi] = base + _NEIGHBOURS[arg]
     f1[~finite] = np.nan
     f2[~finite] = np.nan
     cell[~finite] = 0
