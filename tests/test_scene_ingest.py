@@ -759,3 +759,14 @@ def test_point_instancers_and_other_gprims_are_skipped_with_a_warning(tmp_path):
     assert asset.mesh_paths == ("/Root/m",)
     texts = " ".join(str(r.message) for r in record)
     assert "/Root/Scatter" in texts and "/Root/ball" in texts
+
+
+def test_computed_normals_where_the_vertex_sum_cancels(tmp_path):
+    # a two-sided triangle: both windings share all three vertices, so every vertex sum is 0;
+    # each corner then takes its own triangle's normal
+    stage = new_stage(tmp_path / "a.usda")
+    triangle_mesh(stage, "/Root/m", [(0, 0, 0), (1, 0, 0), (0, 1, 0)], [0, 1, 2, 0, 2, 1])
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    np.testing.assert_allclose(asset.corner_normals[0], np.tile([0, 0, 1.0], (3, 1)))
+    np.testing.assert_allclose(asset.corner_normals[1], np.tile([0, 0, -1.0], (3, 1)))

@@ -777,24 +777,47 @@ def _primvar_values(primvar: Any, time: Any, width: int) -> np.ndarray | None:
     return values
 
 
-def _area_weighted_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+def _tri_cross(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """(t, 3) float64 cross products (p1 - p0) x (p2 - p0): twice the area times the unit
+    normal. Written per component: several times faster than np.cross on (t, 3) arrays."""
+    p0, p1, p2 = points[tris[:, 0]], points[tris[:, 1]], points[tris[:, 2]]
+    e1, e2 = p1 - p0, p2 - p0
+    return np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1],
+                     e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
+                     e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], axis=1)
+
+
+def _row_norm(v: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.einsum("...j,...j->...", v, v))
+
+
+def _area_weighted_normals(points: np.ndarray, tris: np.ndarray,
+                           cross: np.ndarray | None = None) -> np.ndarray:
     """(t, 3, 3) corner normals: per vertex, the sum of incident triangle cross products.
 
+    points : (n, 3) float64; tris : (t, 3) int64; cross : (t, 3) float64 `_tri_cross` if known
     The cross product is twice the area times the unit normal, so the sum is area-weighted.
-    A vertex whose sum vanishes takes its triangle's own normal.
+    A vertex whose sum vanishes (an isolated degenerate fan, opposite faces) takes the normal
+    of each triangle it is a corner of (zero for a degenerate triangle).
     """
-    tri = points[tris]  # (t, 3, 3)
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (t, 3)
+    if cross is None:
+        cross = _tri_cross(points, tris)
     n = points.shape[0]
     flat = tris.reshape(-1)  # (3t,) every corner adds its triangle's cross product
     acc = np.stack([np.bincount(flat, weights=np.repeat(cross[:, k], 3), minlength=n)
                     for k in range(3)], axis=1)  # (n, 3)
-    corner = acc[tris]  # (t, 3, 3)
-    length = np.linalg.norm(corner, axis=2, keepdims=True)
-    face_len = np.linalg.norm(cross, axis=1, keepdims=True)
-    face_unit = np.divide(cross, face_len, out=np.zeros_like(cross), where=face_len > 0)
-    unit = np.divide(corner, length, out=np.zeros_like(corner), where=length > 0)
-    return np.where(length > 0, unit, face_unit[:, None, :])
+    length = _row_norm(acc)  # (n,)
+    ok = length > 0
+    vertex_unit = np.zeros_like(acc)
+    vertex_unit[ok] = acc[ok] / length[ok, None]
+    corner = vertex_unit[tris]  # (t, 3, 3)
+    bad_t, bad_c = np.nonzero(~ok[tris])
+    if bad_t.size:
+        face = cross[bad_t]
+        face_len = _row_norm(face)[:, None]
+        corner[bad_t, bad_c] = np.divide(face, face_len, out=np.zeros_like(face),
+                                         where=face_len > 0)
+    return corner
 
 
 def _skinning_queries(stage: Any, warns: list[str]) -> dict[str, tuple[Any, Any]]:
@@ -936,7 +959,7 @@ def _read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | N
             if not ok.all():
                 _warn(warns, f"mesh {path}: {int((~ok).sum())} authored normal(s) are zero or "
                              "not finite; those corners use computed normals")
-                computed = _area_weighted_normals(points_w, tri_vid)
+                computed = _area_weighted_normals(points_w, tri_vid)  # (T, 3, 3)
                 corner_normals = np.where(ok, corner_normals, computed)
 
     # UVs: primvars:st, else the primvar the material's textures read, else any texCoord2f
@@ -1206,21 +1229,21 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
                                           ("faces", "normals", "uvs", "has", "mat", "mesh")}
     dropped = sum(m.bad_polygons for m in meshes)
     for mi, m in enumerate(meshes):
-        tri = m.points[m.tris]  # (t, 3, 3)
-        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-        keep = area > min_area
+        cross = _tri_cross(m.points, m.tris)  # (t, 3)
+        keep = 0.5 * _row_norm(cross) > min_area
         n_drop = int((~keep).sum())
         if n_drop:
             dropped += n_drop
             _warn(warns, f"mesh {m.path}: dropped {n_drop} zero-area / degenerate triangle(s) "
                          f"(area <= {min_area:.3g})")
         normals = (m.corner_normals if m.corner_normals is not None
-                   else _area_weighted_normals(m.points, m.tris))
-        parts["faces"].append(m.tris[keep] + offsets[mi])
-        parts["normals"].append(normals[keep])
-        parts["uvs"].append(m.corner_uvs[keep])
+                   else _area_weighted_normals(m.points, m.tris, cross))
+        sel = slice(None) if n_drop == 0 else keep  # no masked copies for clean meshes
+        parts["faces"].append(m.tris[sel] + offsets[mi])
+        parts["normals"].append(normals[sel])
+        parts["uvs"].append(m.corner_uvs[sel])
         parts["has"].append(np.full(int(keep.sum()), m.has_uvs))
-        parts["mat"].append(m.tri_material[keep])
+        parts["mat"].append(m.tri_material[sel])
         parts["mesh"].append(np.full(int(keep.sum()), mi, dtype=np.int32))
     faces = np.concatenate(parts["faces"]).astype(np.int64).reshape(-1, 3)
     if faces.shape[0] == 0:
