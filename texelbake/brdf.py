@@ -1,8 +1,9 @@
 """BRDF models, vectorized over flat arrays of direction pairs.
 
-Every BRDF here evaluates f_r(x, wi, wo), the quantity the characteristic-point matrix R is
-built from (seed 000, Eq. 7 and Eq. 9: R[(wi, wo), j] = V V f_r(x_j, wi, wo) (n.wi)+ (n.wo)+ dA_j)
-and the quantity the BTF stage filters (seed 001, Eq. 1).
+Every BRDF here evaluates f_r(x, wi, wo), the SV-BRDF of seed 000, Eq. 1, from which the
+apparent reflectance f = V(wi) V(wo) f_r (n.wi)(n.wo) (seed 000, Eq. 4) and the matrix
+R[(wi, wo), j] = f(x_j, wi, wo) dA_j (seed 000, Eqs. 7 and 9) are built; the BTF stage filters
+the same quantity (seed 001, Eq. 1).
 
 Conventions (shared by every function of this module):
 
@@ -159,14 +160,15 @@ def phong(
     kd: Any, ks: Any, exponent: Any, wi: Any, wo: Any, *, eps: float = TOL.grazing_cos
 ) -> np.ndarray:
     """Energy-normalised modified Phong (Lafortune & Willems 1994, "Using the modified Phong
-    reflectance model for physically based rendering", Eq. 6):
+    reflectance model for physically based rendering", Sec. 3):
 
         f_r = kd / pi + ks (e + 2) / (2 pi) max(0, cos a)^e,   cos a = r(wi) . wo,
 
     r(wi) = (-wi.x, -wi.y, wi.z) the mirror direction of wi about the normal. cos a is
     symmetric in (wi, wo), so the model is reciprocal; with kd + ks <= 1 its directional albedo
-    is <= 1 (the lobe integrates to at most 1 at normal incidence). This is also the Phong model
-    the BTF stage fits to the top pyramid level (seed 001, Sec. 4).
+    is <= 1 (the lobe integrates to at most 1 at normal incidence). Not the same function as the
+    shading-model fit of seed 001, Eq. 5 (ka + kd (N.L) + ks (N.H)^alpha, a cosine-weighted
+    Blinn-Phong), which the BTF stage owns.
 
     kd, ks : (3,) or (n, 3) float64; exponent : () or (n,) float64 >= 0
     wi, wo : (n, 3) float64; returns : (n, 3) float64
@@ -341,7 +343,7 @@ def preview_surface(
 
 
 def _preview_params(params: Mapping[str, Any], n: int) -> dict[str, np.ndarray]:
-    unknown = set(params) - set(model.PREVIEW_DEFAULTS) - {"alpha"}
+    unknown = set(params) - set(model.PREVIEW_DEFAULTS)
     if unknown:
         raise SettingsError(
             f"unknown UsdPreviewSurface inputs {sorted(unknown)}; expected a subset of "
