@@ -770,3 +770,31 @@ def test_computed_normals_where_the_vertex_sum_cancels(tmp_path):
     asset = load_asset(tmp_path / "a.usda")
     np.testing.assert_allclose(asset.corner_normals[0], np.tile([0, 0, 1.0], (3, 1)))
     np.testing.assert_allclose(asset.corner_normals[1], np.tile([0, 0, -1.0], (3, 1)))
+
+
+@pytest.mark.parametrize("interp", ["constant", "uniform", "vertex", "faceVarying"])
+def test_authored_normal_interpolations(tmp_path, interp):
+    stage = new_stage(tmp_path / "a.usda")
+    mesh = grid_mesh(stage, "/Root/m", 2, 1)  # 6 points, 2 quads, 8 corners
+    count = {"constant": 1, "uniform": 2, "vertex": 6, "faceVarying": 8}[interp]
+    rng = np.random.default_rng(count)
+    values = rng.normal(size=(count, 3)) + [0, 0, 3]
+    values /= np.linalg.norm(values, axis=1, keepdims=True)
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(values.astype(np.float32)))
+    mesh.SetNormalsInterpolation(interp)
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    fvi = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+    # triangles of the fan: polygon p gives (s, s+1, s+2), (s, s+2, s+3), s = 4p
+    corners = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    poly = np.array([0, 0, 1, 1])
+    if interp == "constant":
+        expected = np.broadcast_to(values[0], (4, 3, 3))
+    elif interp == "uniform":
+        expected = np.repeat(values[poly][:, None], 3, axis=1)
+    elif interp == "vertex":
+        expected = values[fvi[corners]]
+    else:
+        expected = values[corners]
+    np.testing.assert_array_equal(asset.faces, fvi[corners])
+    np.testing.assert_allclose(asset.corner_normals, expected, atol=1e-6)  # float32 storage
