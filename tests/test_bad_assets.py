@@ -392,3 +392,13 @@ def test_every_error_is_a_texelbake_error(tmp_path):
     path = _textured(tmp_path, "http://x.org/t.png")
     with pytest.raises(TexelbakeError):
         load_asset(path)
+
+
+def test_orthographic_camera_warns(tmp_path):
+    stage = new_stage(tmp_path / "a.usda")
+    grid_mesh(stage, "/Root/m", 1, 1)
+    UsdGeom.Camera.Define(stage, "/Root/Ortho").CreateProjectionAttr(UsdGeom.Tokens.orthographic)
+    stage.Save()
+    with pytest.warns(AssetWarning, match="/Root/Ortho"):
+        asset = load_asset(tmp_path / "a.usda")
+    assert [c.path for c in asset.cameras] == ["/Root/Ortho"]

@@ -644,6 +644,12 @@ def test_asset_model_is_immutable(tmp_path):
         asset.points[0, 0] = 1.0
     with pytest.raises(TypeError):
         asset.materials[0].params["x"] = 1  # type: ignore[index]
+    with pytest.raises(ValueError):
+        asset.materials[0].params["diffuseColor"][0] = 1.0
+    with pytest.raises(ValueError):
+        asset.materials[0].textures["diffuseColor"].pixels[0, 0, 0] = 1.0
+    with pytest.raises(ValueError):
+        DEFAULT_MATERIAL.params["diffuseColor"][0] = 1.0
 
 
 # ------------------------------------------------------------------------------------------

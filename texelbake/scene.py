@@ -72,7 +72,16 @@ TEXELBAKE_DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 #: the fallback for faces with no bound material: grey Lambert, path ""
-DEFAULT_MATERIAL = Material(path="", model="lambert", params={"diffuseColor": np.full(3, 0.18)})
+def _readonly(params: dict[str, Any]) -> dict[str, Any]:
+    """Arrays in material params made read-only (Materials are shared, immutable values)."""
+    for value in params.values():
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False
+    return params
+
+
+DEFAULT_MATERIAL = Material(path="", model="lambert",
+                            params=_readonly({"diffuseColor": np.full(3, 0.18)}))
 
 # UsdUVTexture output name -> channels of the canonical RGBA image
 _TEXTURE_OUTPUT_CHANNELS = {
@@ -532,7 +541,7 @@ class _MaterialReader:
         found = self._surface(material, "texelbake")
         if found is not None:
             prim, sid = found
-            if sid in SHADER_MODELS:
+            if sid is not None and sid in SHADER_MODELS:
                 return self._read_shader(mat_path, prim, sid)
             _warn(self.warns,
                   f"material {mat_path}: unsupported shader id {sid!r} on "
@@ -543,7 +552,7 @@ class _MaterialReader:
                               "using UsdPreviewSurface defaults")
             return self._constant_preview(mat_path, None)
         prim, sid = found
-        if sid in SHADER_MODELS:
+        if sid is not None and sid in SHADER_MODELS:
             return self._read_shader(mat_path, prim, sid)
         _warn(self.warns,
               f"material {mat_path}: unsupported shader network (shader {prim.GetPath()}, id "
@@ -563,7 +572,7 @@ class _MaterialReader:
                     value = inp.GetAttr().Get(self.time)
                     if value is not None:
                         params[name] = _coerce_like(value, default)
-        return Material(path=mat_path, model="preview", params=params)
+        return Material(path=mat_path, model="preview", params=_readonly(params))
 
     def _read_shader(self, mat_path: str, prim: Any, sid: str) -> Material:
         from pxr import UsdShade
@@ -613,7 +622,8 @@ class _MaterialReader:
                     path=shown, prim=str(prim.GetPath()))
             params["file"] = resolved
             params["table"] = _load_merl(resolved, str(prim.GetPath()))
-        return Material(path=mat_path, model=SHADER_MODELS[sid], params=params, textures=textures)
+        return Material(path=mat_path, model=SHADER_MODELS[sid], params=_readonly(params),
+                        textures=textures)
 
     def _input_value(self, shader: Any, name: str, default: Any) -> Any:
         inp = shader.GetInput(name)
@@ -696,9 +706,11 @@ class _MaterialReader:
                 _warn(self.warns, f"material {mat_path}: st of {prim_path} is driven by an "
                                   f"unsupported node {src.GetPrim().GetPath()} (id {rid!r}); "
                                   "using primvar st")
+        pixels_out = np.ascontiguousarray(rgba[..., sel], dtype=np.float32)  # (h, w, len(sel))
+        pixels_out.flags.writeable = False
         return Texture(
             path=resolved,
-            pixels=np.ascontiguousarray(rgba[..., sel], dtype=np.float32),
+            pixels=pixels_out,
             wrap_s=wraps[0],
             wrap_t=wraps[1],
             scale=scale,  # type: ignore[arg-type]
@@ -1053,10 +1065,13 @@ def _read_light(prim: Any, time: Any, xcache: Any, warns: list[str]) -> Light | 
                  radius=0.0 if treat_as_point else radius, radiance_scale=radiance)
 
 
-def _read_camera(prim: Any, time: Any, xcache: Any) -> Camera:
+def _read_camera(prim: Any, time: Any, xcache: Any, warns: list[str]) -> Camera:
     from pxr import UsdGeom
 
     cam = UsdGeom.Camera(prim)
+    if cam.GetProjectionAttr().Get(time) != UsdGeom.Tokens.perspective:
+        _warn(warns, f"camera {prim.GetPath()}: projection is "
+                     f"{cam.GetProjectionAttr().Get(time)}; read as perspective")
     world = _matrix(xcache.GetLocalToWorldTransform(prim))
     return Camera(
         path=str(prim.GetPath()),
@@ -1196,7 +1211,7 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
             else:
                 _warn(warns, f"mesh {prim.GetPath()}: invisible or guide purpose; skipped")
         elif prim.IsA(UsdGeom.Camera):
-            cameras.append(_read_camera(prim, time, xcache))
+            cameras.append(_read_camera(prim, time, xcache, warns))
         elif _is_light(prim):
             light = _read_light(prim, time, xcache, warns)
             if light is not None:
