@@ -715,6 +715,35 @@ def test_evaluate_by_face_groups_materials():
                                  np.zeros((0, 3))).shape == (0, 3)
 
 
+def test_sample_index_matches_per_row_uv():
+    # CPM layout: m samples, d direction pairs each; inputs resolved per sample then gathered
+    m, d = 300, 7
+    uv_s = np.random.default_rng(28).random((m, 2))
+    rows = np.repeat(np.arange(m), d)
+    rng = np.random.default_rng(29)
+    rows = rng.permutation(rows)  # any order
+    wi, wo = _random_pairs(m * d, seed=30)
+    tex = _tex(np.random.default_rng(31).random((5, 4, 3)))
+    mats = [
+        model.Material("/M/t", "preview", {"metallic": 0.2}, textures={"diffuseColor": tex,
+                                                                        "roughness": tex}),
+        model.Material("/M/c", "cellular", CELLULAR, textures={"cellColorA": tex}),
+        model.Material("/M/l", "lambert", {"diffuseColor": (0.3, 0.3, 0.3)}),
+    ]
+    for mat in mats:
+        want = brdf.evaluate(mat, wi, wo, uv_s[rows])
+        got = brdf.evaluate(mat, wi, wo, uv_s, sample_index=rows)
+        np.testing.assert_array_equal(got, want, err_msg=mat.path)
+    idx = rng.integers(0, 3, m)[rows]  # one material per sample
+    want = brdf.evaluate_by_face(mats, idx, wi, wo, uv_s[rows])
+    got = brdf.evaluate_by_face(mats, idx, wi, wo, uv_s, sample_index=rows)
+    np.testing.assert_array_equal(got, want)
+    with pytest.raises(ShapeError, match="sample_index"):
+        brdf.evaluate(mats[0], wi, wo, uv_s, sample_index=np.full(m * d, m))
+    with pytest.raises(ShapeError, match="sample_index"):
+        brdf.evaluate(mats[0], wi, wo, uv_s, sample_index=rows[:5])
+
+
 def test_errors():
     wi, wo = _random_pairs(10, seed=25)
     with pytest.raises(ShapeError, match="wi"):

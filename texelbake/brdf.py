@@ -815,6 +815,37 @@ def cellular_color(params: Mapping[str, Any], uv: Any) -> np.ndarray:
     return _cell_color(p, cell)
 
 
+def _cellular_split(
+    p: Mapping[str, np.ndarray], uv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-uv part of the cellular shader: border (m,) bool, cell colour (m, 3), finite (m,)."""
+    f1, f2, cell = _cells(p, uv)
+    finite = ~np.isnan(f1)
+    return (f2 - f1) < p["borderWidth"], _cell_color(p, cell), finite
+
+
+def _cellular_shade(
+    border: np.ndarray,
+    color: np.ndarray,
+    finite: np.ndarray,
+    border_color: np.ndarray,
+    border_roughness: np.ndarray,
+    wi: np.ndarray,
+    wo: np.ndarray,
+    eps: float,
+) -> np.ndarray:
+    """Per-row shading: border (n,) bool, color (n, 3), finite (n,), border_color (1|n, 3),
+    border_roughness (1|n,), wi/wo (n, 3) -> (n, 3)."""
+    out = lambert(color, wi, wo, eps=eps)
+    out[~finite] = 0.0  # non-finite uv: no defined cell, no reflectance
+    if np.any(border):
+        sel = np.flatnonzero(border)
+        bc = border_color if border_color.shape[0] == 1 else border_color[sel]
+        br = border_roughness if border_roughness.shape[0] == 1 else border_roughness[sel]
+        out[sel] = ggx_conductor(bc, br, wi[sel], wo[sel], eps=eps)
+    return out
+
+
 def cellular(
     params: Mapping[str, Any], uv: Any, wi: Any, wo: Any, *, eps: float = TOL.grazing_cos
 ) -> np.ndarray:
@@ -833,17 +864,10 @@ def cellular(
     if uv.shape[0] != n:
         raise ShapeError(f"uv must be ({n}, 2) to match wi, got {uv.shape}")
     p = _cellular_params(params, n)
-    f1, f2, cell = _cells(p, uv)
-    border = (f2 - f1) < p["borderWidth"]
-    out = lambert(_cell_color(p, cell), wi, wo, eps=eps)
-    out[np.isnan(f1)] = 0.0  # non-finite uv: no defined cell, no reflectance
-    if np.any(border):
-        sel = np.flatnonzero(border)
-        bc = p["borderColor"] if p["borderColor"].shape[0] == 1 else p["borderColor"][sel]
-        br = p["borderRoughness"]
-        br = br if br.shape[0] == 1 else br[sel]
-        out[sel] = ggx_conductor(bc, br, wi[sel], wo[sel], eps=eps)
-    return out
+    border, color, finite = _cellular_split(p, uv)
+    return _cellular_shade(
+        border, color, finite, p["borderColor"], p["borderRoughness"], wi, wo, eps
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -940,9 +964,12 @@ _DEFAULTS: Mapping[str, Mapping[str, Any]] = {
 _CONSTANT_INPUTS = frozenset({"seed", "cellScale", "useSpecularWorkflow", "file", "table"})
 
 
-def _input(material: model.Material, name: str, n: int, uv: np.ndarray | None) -> Any:
-    """A material input as an array broadcastable to (n,) / (n, 3): the texture sampled at uv
-    when the input is textured, else the constant, else the model's default."""
+def _input(
+    material: model.Material, name: str, n: int, uv: np.ndarray | None
+) -> tuple[Any, bool]:
+    """A material input: (value, textured). The texture sampled at uv ((n, 3) colour or (n,)
+    scalar, textured=True) when the input is textured, else the constant, else the model's
+    default (textured=False, the raw value)."""
     tex = material.textures.get(name)
     if tex is not None and name not in _CONSTANT_INPUTS:
         if uv is None:
@@ -952,11 +979,27 @@ def _input(material: model.Material, name: str, n: int, uv: np.ndarray | None) -
             )
         v = sample_texture(tex, uv)  # (n, c)
         if name in _COLOR_INPUTS:
-            return v[:, :3] if v.shape[1] >= 3 else np.repeat(v[:, :1], 3, axis=1)
-        return v[:, 0]
+            return (v[:, :3] if v.shape[1] >= 3 else np.repeat(v[:, :1], 3, axis=1)), True
+        return v[:, 0], True
     if name in material.params:
-        return material.params[name]
-    return _DEFAULTS[material.model][name]
+        return material.params[name], False
+    return _DEFAULTS[material.model][name], False
+
+
+def _inputs(
+    material: model.Material,
+    names: Sequence[str],
+    uv: np.ndarray | None,
+    rows: np.ndarray | None,
+) -> dict[str, Any]:
+    """Resolve inputs once per uv row (textures sampled at uv (m, 2)), then gather the
+    textured ones to the evaluation rows (rows (n,) int into uv, or None for rows = uv rows)."""
+    m = 1 if uv is None else uv.shape[0]
+    out = {}
+    for name in names:
+        v, textured = _input(material, name, m, uv)
+        out[name] = np.take(v, rows, axis=0) if (textured and rows is not None) else v
+    return out
 
 
 def _check_model(material: model.Material) -> None:
@@ -984,6 +1027,7 @@ def evaluate(
     wo: Any,
     uv: Any = None,
     *,
+    sample_index: Any = None,
     eps: float = TOL.grazing_cos,
 ) -> np.ndarray:
     """Evaluate a material's BRDF.
@@ -994,7 +1038,11 @@ def evaluate(
     texture channels (a 1- or 2-channel texture is read as grey), scalar inputs the first.
 
     material : model.Material; wi, wo : (n, 3) float64 local-frame unit vectors
-    uv : (n, 2) float64 or None (required for textured inputs and the cellular model)
+    uv : (n, 2) float64 or None (required for textured inputs and the cellular model); with
+        ``sample_index`` it is (m, 2), one row per surface sample
+    sample_index : (n,) int into uv, or None. The CPM layout (many direction pairs per sample):
+        textures and the cellular pattern are then evaluated once per sample (m rows) and
+        gathered, instead of once per (sample, direction pair) row.
     returns : (n, 3) float64, 1/sr
     raises SettingsError (naming material.path) for an unknown model, ShapeError for bad shapes
     """
@@ -1002,31 +1050,52 @@ def evaluate(
     wi, wo = _dirs(wi, wo)
     n = wi.shape[0]
     uv_a = None if uv is None else _uv(uv)
-    if uv_a is not None and uv_a.shape[0] != n:
+    rows = _rows_index(sample_index, n, uv_a)
+    if uv_a is not None and rows is None and uv_a.shape[0] != n:
         raise ShapeError(f"uv must be ({n}, 2) to match wi, got {uv_a.shape}")
     kind = material.model
     if kind == "lambert":
-        return lambert(_input(material, "diffuseColor", n, uv_a), wi, wo, eps=eps)
+        p = _inputs(material, ("diffuseColor",), uv_a, rows)
+        return lambert(p["diffuseColor"], wi, wo, eps=eps)
     if kind == "phong":
-        return phong(
-            _input(material, "diffuseColor", n, uv_a),
-            _input(material, "specularColor", n, uv_a),
-            _input(material, "exponent", n, uv_a),
-            wi,
-            wo,
-            eps=eps,
-        )
+        p = _inputs(material, ("diffuseColor", "specularColor", "exponent"), uv_a, rows)
+        return phong(p["diffuseColor"], p["specularColor"], p["exponent"], wi, wo, eps=eps)
     if kind == "preview":
-        params = {k: _input(material, k, n, uv_a) for k in _PREVIEW_BRDF_INPUTS}
-        return preview_surface(params, wi, wo, eps=eps)
+        return preview_surface(_inputs(material, _PREVIEW_BRDF_INPUTS, uv_a, rows), wi, wo,
+                               eps=eps)
     if kind == "merl":
-        scale = _scalar(_input(material, "scale", n, uv_a), n, "scale")[:, None]
-        return merl_lookup(_merl_table(material), wi, wo, eps=eps) * scale
-    # cellular
+        scale = _scalar(_inputs(material, ("scale",), uv_a, rows)["scale"], n, "scale")
+        return merl_lookup(_merl_table(material), wi, wo, eps=eps) * scale[:, None]
+    # cellular: the pattern once per uv row, the shading per evaluation row
     if uv_a is None:
         raise ShapeError(f"material {material.path!r}: the cellular model needs uv (n, 2)")
-    params = {k: _input(material, k, n, uv_a) for k in CELLULAR_DEFAULTS}
-    return cellular(params, uv_a, wi, wo, eps=eps)
+    m = uv_a.shape[0]
+    p = _cellular_params(_inputs(material, tuple(CELLULAR_DEFAULTS), uv_a, None), m)
+    border, color, finite = _cellular_split(p, uv_a)
+    bc, br = p["borderColor"], p["borderRoughness"]
+    if rows is not None:
+        border, color, finite = border[rows], color[rows], finite[rows]
+        bc = bc if bc.shape[0] == 1 else bc[rows]
+        br = br if br.shape[0] == 1 else br[rows]
+    return _cellular_shade(border, color, finite, bc, br, wi, wo, eps)
+
+
+def _rows_index(sample_index: Any, n: int, uv: np.ndarray | None) -> np.ndarray | None:
+    if sample_index is None:
+        return None
+    rows = np.asarray(sample_index)
+    if rows.shape != (n,) or not (np.issubdtype(rows.dtype, np.integer) or n == 0):
+        raise ShapeError(f"sample_index must be ({n},) int, got {rows.shape} {rows.dtype}")
+    if uv is None:  # no per-sample inputs to gather: every row uses the constants
+        return None
+    rows = rows.astype(np.int64)
+    m = uv.shape[0]
+    if n and (rows.min() < 0 or rows.max() >= m):
+        raise ShapeError(
+            f"sample_index must lie in [0, {m - 1}] (uv has {m} rows), got "
+            f"[{rows.min()}, {rows.max()}]"
+        )
+    return rows
 
 
 _PREVIEW_BRDF_INPUTS = (
@@ -1062,27 +1131,26 @@ def diffuse_albedo(material: model.Material, uv: Any = None) -> np.ndarray:
     n = 1 if uv_a is None else uv_a.shape[0]
     kind = material.model
     if kind in ("lambert", "phong"):
-        return np.broadcast_to(
-            _color(_input(material, "diffuseColor", n, uv_a), n, "diffuseColor"), (n, 3)
-        ).copy()
+        d = _inputs(material, ("diffuseColor",), uv_a, None)["diffuseColor"]
+        return np.broadcast_to(_color(d, n, "diffuseColor"), (n, 3)).copy()
     if kind == "preview":
-        d = _color(_input(material, "diffuseColor", n, uv_a), n, "diffuseColor")
-        m = np.clip(_scalar(_input(material, "metallic", n, uv_a), n, "metallic"), 0.0, 1.0)
-        wf = _scalar(_input(material, "useSpecularWorkflow", n, uv_a), n, "useSpecularWorkflow")
+        p = _inputs(material, ("diffuseColor", "metallic", "useSpecularWorkflow"), uv_a, None)
+        d = _color(p["diffuseColor"], n, "diffuseColor")
+        m = np.clip(_scalar(p["metallic"], n, "metallic"), 0.0, 1.0)
+        wf = _scalar(p["useSpecularWorkflow"], n, "useSpecularWorkflow")
         out = np.where(wf[:, None] != 0.0, d, d * (1.0 - m[:, None]))
         return np.broadcast_to(out, (n, 3)).copy()
     if kind == "cellular":
         if uv_a is None:
             raise ShapeError(f"material {material.path!r}: the cellular model needs uv (n, 2)")
-        params = {k: _input(material, k, n, uv_a) for k in CELLULAR_DEFAULTS}
-        return cellular_color(params, uv_a)
+        return cellular_color(_inputs(material, tuple(CELLULAR_DEFAULTS), uv_a, None), uv_a)
     # merl
     g = (np.arange(_ALBEDO_GRID) + 0.5) / _ALBEDO_GRID
     u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
     wi = cosine_hemisphere(u)
     wo = np.broadcast_to(np.array([0.0, 0.0, 1.0]), wi.shape)
     rho = np.pi * merl_lookup(_merl_table(material), wi, wo).mean(axis=0)
-    scale = _scalar(_input(material, "scale", n, uv_a), n, "scale")[:, None]
+    scale = _scalar(_inputs(material, ("scale",), uv_a, None)["scale"], n, "scale")[:, None]
     return np.broadcast_to(rho[None, :] * scale, (n, 3)).copy()
 
 
@@ -1107,7 +1175,7 @@ def shading_normal(material: model.Material, uv: Any = None) -> np.ndarray:
     up[:, 2] = 1.0
     if material.model != "preview":
         return up
-    v = np.broadcast_to(_color(_input(material, "normal", n, uv_a), n, "normal"), (n, 3))
+    v = np.broadcast_to(_color(_input(material, "normal", n, uv_a)[0], n, "normal"), (n, 3))
     length = np.linalg.norm(v, axis=1, keepdims=True)
     ok = np.isfinite(length[:, 0]) & (length[:, 0] > TOL.brdf_eps) & (v[:, 2] > 0.0)
     return np.where(ok[:, None], v / np.where(ok[:, None], length, 1.0), up)
@@ -1120,6 +1188,7 @@ def evaluate_by_face(
     wo: Any,
     uv: Any = None,
     *,
+    sample_index: Any = None,
     eps: float = TOL.grazing_cos,
 ) -> np.ndarray:
     """Evaluate many (sample, direction-pair) entries with a material per entry: groups by
@@ -1127,6 +1196,8 @@ def evaluate_by_face(
 
     materials : sequence of model.Material; material_index : (n,) int
     wi, wo : (n, 3) float64; uv : (n, 2) float64 or None
+    sample_index : (n,) int or None; when given, uv is (m, 2) per surface sample and
+        textures / the cellular pattern are evaluated once per sample (see :func:`evaluate`)
     returns : (n, 3) float64
     """
     wi, wo = _dirs(wi, wo)
@@ -1136,7 +1207,8 @@ def evaluate_by_face(
         raise ShapeError(f"material_index must be ({n},) int, got {idx.shape} {idx.dtype}")
     idx = idx.astype(np.int64)
     uv_a = None if uv is None else _uv(uv)
-    if uv_a is not None and uv_a.shape[0] != n:
+    rows = _rows_index(sample_index, n, uv_a)
+    if uv_a is not None and rows is None and uv_a.shape[0] != n:
         raise ShapeError(f"uv must be ({n}, 2) to match wi, got {uv_a.shape}")
     out = np.zeros((n, 3), dtype=np.float64)
     if n == 0:
@@ -1150,7 +1222,15 @@ def evaluate_by_face(
     bounds = np.flatnonzero(np.diff(idx[order])) + 1
     for group in np.split(order, bounds):  # one group per material present
         mat = materials[int(idx[group[0]])]
+        if rows is None:
+            out[group] = evaluate(
+                mat, wi[group], wo[group], None if uv_a is None else uv_a[group], eps=eps
+            )
+            continue
+        # only the samples this material uses: resolve inputs on them, then gather
+        used, local = np.unique(rows[group], return_inverse=True)
         out[group] = evaluate(
-            mat, wi[group], wo[group], None if uv_a is None else uv_a[group], eps=eps
+            mat, wi[group], wo[group], None if uv_a is None else uv_a[used],
+            sample_index=local, eps=eps,
         )
     return out
