@@ -65,12 +65,30 @@ def test_target_faces_and_soup_input():
 
 def test_boundary_is_preserved_on_a_plane():
     v, f = plane_grid(16, 16)
-    (m1,) = simplify_hierarchy(v, f, 1, target_faces=32)
-    # a flat square keeps its corners and its area exactly
-    np.testing.assert_allclose(m1.area(), 1.0, rtol=1e-9)
+    # 64 boundary edges: a locked boundary needs >= 62 triangles, so 80 is reachable
+    (m1,) = simplify_hierarchy(v, f, 1, target_faces=80)
+    assert m1.num_faces <= 80
+    # a flat square keeps its corners, its boundary vertices and its area exactly
+    np.testing.assert_allclose(m1.area(), 1.0, rtol=1e-12)
     np.testing.assert_allclose(np.abs(m1.vertices[:, 2]).max(), 0.0, atol=1e-12)
+    on_border = (np.isclose(v[:, 0], 0) | np.isclose(v[:, 0], 1)) | (
+        np.isclose(v[:, 1], 0) | np.isclose(v[:, 1], 1)
+    )
+    kept = {tuple(p) for p in np.round(m1.vertices, 12)}
+    assert all(tuple(p) in kept for p in np.round(v[on_border], 12))
+
+
+def test_locked_boundaries_fall_back_when_the_target_is_out_of_reach():
+    v, f = plane_grid(16, 16)
+    # 32 faces cannot keep all 64 boundary vertices: the level is redone unlocked and
+    # still lands near its target, flat, with the square's area up to float32-ish error
+    (m1,) = simplify_hierarchy(v, f, 1, target_faces=32)
+    assert m1.num_faces <= 1.5 * 32
+    np.testing.assert_allclose(m1.area(), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(np.abs(m1.vertices[:, 2]).max(), 0.0, atol=1e-12)
+    # unlocked vertices are re-placed by the quadric solve (measured within 2e-8)
     for corner in ([0, 0], [1, 0], [0, 1], [1, 1]):
-        assert np.isclose(np.linalg.norm(m1.vertices[:, :2] - corner, axis=1), 0).any()
+        assert (np.linalg.norm(m1.vertices[:, :2] - corner, axis=1) < 1e-6).any()
 
 
 def test_errors_name_the_problem():

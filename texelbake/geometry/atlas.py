@@ -25,11 +25,10 @@ from texelbake.geometry.closest import closest_point_on_triangles
 from texelbake.geometry.mesh import Mesh, face_components
 from texelbake.geometry.raycast import RayCaster
 
-#: xatlas packing is retried with a texel density shrunk by this factor until one N × N page holds all charts
-_SHRINK = 0.9
+#: xatlas packing is retried with a texel density shrunk by this factor until one N × N page
+#: holds all charts
+_SHRINK = 0.96
 _MAX_TRIES = 60
-#: bisection steps on the texel density after the first fit
-_REFINE_STEPS = 4
 #: fraction of the way from a corner of M_i to its face's centroid used to pick its chart
 SEAM_PULL = 1e-3
 #: assumed fraction of the square the packed charts cover, for the first density guess
@@ -93,8 +92,9 @@ def _xatlas_pack(
 def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
     """UV-parameterize M1 into one N × N page with xatlas.
 
-    xatlas packs at a texel density (texels per scene unit); the density starts from the
-    surface area and shrinks until every chart fits one page of exactly N × N texels.
+    xatlas packs at a texel density (texels per scene unit): one unconstrained pack gives
+    the page size at a first-guess density, the density is scaled so that size becomes N,
+    then shrunk by 4 % steps until every chart fits one page of exactly N × N texels.
     mesh : M1; resolution : N (>= 8); padding_texels : >= 0
     returns : Atlas
     raises SettingsError for bad arguments, StageError when packing does not converge.
@@ -113,29 +113,24 @@ def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
     def fits(candidate: xatlas.Atlas) -> bool:
         return candidate.atlas_count == 1 and candidate.width == n and candidate.height == n
 
+    # 1) pack at a first-guess density with no page limit; 2) scale the density so the
+    # larger side becomes N; 3) shrink by small steps until one N x N page holds it all
+    # (padding is in absolute texels, so the scaling is close but not exact).
     tpu = math.sqrt(_FIRST_UTILIZATION * n * n / area)
-    too_big = None
+    free = _xatlas_pack(mesh.vertices, mesh.faces, 0, padding_texels, tpu)
+    side = max(free.width, free.height)
+    if side > 0:
+        tpu *= (n - padding_texels) / side
     for _ in range(_MAX_TRIES):  # a few packing attempts, each over all charts at once
         xa = _xatlas_pack(mesh.vertices, mesh.faces, n, padding_texels, tpu)
         if fits(xa):
             break
-        too_big = tpu
         tpu *= _SHRINK
     else:
         raise StageError(
             f"geometry: xatlas could not pack M1 ({mesh.num_faces} faces) into one "
             f"{n} x {n} page (last: {xa.atlas_count} pages of {xa.width} x {xa.height})"
         )
-    if too_big is not None:
-        # bisect the density between the last failure and the first fit: a fuller page
-        lo = tpu
-        for _ in range(_REFINE_STEPS):
-            mid = 0.5 * (lo + too_big)
-            trial = _xatlas_pack(mesh.vertices, mesh.faces, n, padding_texels, mid)
-            if fits(trial):
-                lo, xa = mid, trial
-            else:
-                too_big = mid
     vmap, indices, uvs = xa[0]
     vmap = vmap.astype(np.int64)
     indices = indices.astype(np.int64)
