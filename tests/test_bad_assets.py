@@ -130,6 +130,15 @@ def test_all_faces_degenerate(tmp_path):
     assert "/Root/flat" in str(err.value)
 
 
+def test_mesh_without_faces(tmp_path):
+    stage = new_stage(tmp_path / "a.usda")
+    UsdGeom.Mesh.Define(stage, "/Root/empty")
+    stage.Save()
+    with pytest.raises(AssetError, match="no faces") as err:
+        load_asset(tmp_path / "a.usda")
+    assert "/Root/empty" in str(err.value)
+
+
 def test_geomsubset_index_out_of_range(tmp_path):
     stage = new_stage(tmp_path / "a.usda")
     mesh = grid_mesh(stage, "/Root/m", 1, 1)

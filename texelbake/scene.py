@@ -244,8 +244,9 @@ def _resolve_safe(asset: str, holder: _Loc, root_dir: str, spec: str) -> list[_L
             return tiles
         if member not in members:
             raise _path_error("does not exist in the package", asset, holder, spec)
-        if inner is not None:
-            raise _path_error("nests a package inside a package", asset, holder, spec)
+        if inner is not None or member.lower().endswith(".usdz"):
+            raise _path_error("nests a .usdz package inside a package (not supported)",
+                              asset, holder, spec)
         return [_Loc(holder.file, member)]
     target = os.path.realpath(os.path.join(os.path.dirname(holder.file), outer))
     if os.path.commonpath([target, root_dir]) != root_dir:
@@ -1261,6 +1262,10 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
         parts["mat"].append(m.tri_material[sel])
         parts["mesh"].append(np.full(int(keep.sum()), mi, dtype=np.int32))
     faces = np.concatenate(parts["faces"]).astype(np.int64).reshape(-1, 3)
+    if faces.shape[0] == 0 and dropped == 0:
+        raise AssetError(
+            f"the mesh(es) {', '.join(m.path for m in meshes)} have no faces", path=source,
+            prim=meshes[0].path)
     if faces.shape[0] == 0:
         raise AssetError(
             f"every face is degenerate (zero area or fewer than 3 vertices; {dropped} dropped) in "
