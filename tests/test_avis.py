@@ -30,6 +30,7 @@ from texelbake.avis import (
     dirs_to_cube,
     eval_closed_form,
     unoccluded_texels,
+    visible_fraction,
 )
 from texelbake.errors import NumericalError, SettingsError, ShapeError
 from texelbake.geometry.raycast import RayCaster
@@ -469,3 +470,45 @@ def test_texel_frame_cube_equals_rotated_world():
                                 np.tile(d_world, (n, 1))).reshape(n, 96)
     want = avis_from_visibility(vis, s["nrm"], s["ar"], s["tex"], 4, d_world)
     np.testing.assert_allclose(tex_maps.reshape(4, -1), want, rtol=1e-9, atol=1e-12)
+
+
+# ------------------------------------------------------------------ visible-fraction storage
+
+
+def test_visible_fraction_fill():
+    u = np.zeros((1, 6, 4, 4))
+    u[0, 0, :2] = 2.0  # defined on the two upper rows of face 0 only
+    a = np.zeros_like(u)
+    a[0, 0, :2] = np.array([[1.0, 2.0, 0.5, 0.0], [1.0, 1.0, 1.0, 1.0]])
+    f = visible_fraction(a, u)
+    np.testing.assert_allclose(f[0, 0, :2], a[0, 0, :2] / 2.0)
+    # undefined rows of face 0 continue the row above; faces without any U stay 0
+    np.testing.assert_allclose(f[0, 0, 2], f[0, 0, 1])
+    np.testing.assert_allclose(f[0, 0, 3], f[0, 0, 1])
+    assert np.all(f[0, 1:] == 0) and f.min() >= 0 and f.max() <= 1
+
+
+def test_fraction_storage_beats_direct_and_respects_bound():
+    """Bounded ray texels store F = a_vis / U and multiply by the exact U at look-up: at the
+    seed's kept fraction this must be more accurate than compressing a_vis directly, and can
+    never exceed the unoccluded area (nor leak where it is zero, e.g. below the horizon)."""
+    s = _heightfield(k=16, q=2, n_side=4)
+    args = (s["pos"], s["nrm"], s["ar"], s["tex"], 4, 16, s["caster"].occluded,
+            s["mesh_points"])
+    lvl = avis_level(*args)
+    assert lvl.bounded.all() and not lvl.closed.any()
+    direct = AvisLevel(lvl.n_side, lvl.res, lvl.closed, np.zeros(16, bool), lvl.cf,
+                       lvl.ray_texels, lvl.ray_maps, lvl.texel_area)
+    d = cube_directions(16).reshape(-1, 3)
+    dense = lvl.dense_maps().reshape(16, -1)
+    errs = []
+    for level in (lvl, direct):
+        table = compress_level(level, _frames_identity(16), 0.065)
+        a = np.stack([table.evaluate(np.full(d.shape[0], t), d, interp="nearest")[0]
+                      for t in range(16)])
+        errs.append(np.linalg.norm(a - dense) / np.linalg.norm(dense))
+        if level is lvl:
+            bound = closed_form_maps(lvl.cf, 16).reshape(16, -1)
+            assert np.all(a <= bound * (1 + 1e-12))
+            assert np.all(a[bound == 0] == 0) and (bound == 0).mean() > 0.3
+    assert errs[0] < 0.7 * errs[1], errs

@@ -330,7 +330,8 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
 
 def avis_ortho_grids(caster, sample_positions: np.ndarray, texel_of_sample: np.ndarray,
                      n_texels: int, res: int, *, grid_res: int = 256, max_rays: int = 1 << 21,
-                     seed: int = 0, dtype: type = np.float32) -> np.ndarray:
+                     seed: int = 0, texel_of_points: Callable | None = None,
+                     dtype: type = np.float32) -> np.ndarray:
     """a_vis on a world-direction cube map by orthographic ray grids (the seed's method, §3.4,
     with rays instead of GPU renderings), shared by all texels and all levels.
 
@@ -346,6 +347,8 @@ def avis_ortho_grids(caster, sample_positions: np.ndarray, texel_of_sample: np.n
     sample_positions : (m, 3) float64; texel_of_sample : (m,) int in [0, n_texels)
     res : cube face side; grid_res : rays per side of each orthographic grid
     seed : jitter seed (the same jitter pattern is used for every direction)
+    texel_of_points : optional (k, 3) float64 -> (k,) int texel of surface points (e.g. closest
+        point on M1 -> atlas texel, -1 for none); default: texel of the nearest sample
     returns : (n_texels, 6, res, res) `dtype`, world-direction cube maps
     """
     pos = np.asarray(sample_positions, dtype=np.float64)
@@ -377,7 +380,7 @@ def avis_ortho_grids(caster, sample_positions: np.ndarray, texel_of_sample: np.n
     px, py = px[inside], py[inside]
     n_pix = px.shape[0]
     basis = tangent_frames(dirs_cube)  # (nd, 3, 3): rows (U, V, w)
-    tree = cKDTree(pos)
+    tree = cKDTree(pos) if texel_of_points is None else None
     db = max(1, min(nd, max(int(max_rays), 1) // n_pix))
     for d0 in range(0, nd, db):  # loop over batches of directions
         fr = basis[d0:d0 + db]  # (b, 3, 3)
@@ -389,8 +392,12 @@ def avis_ortho_grids(caster, sample_positions: np.ndarray, texel_of_sample: np.n
         did = np.repeat(np.arange(d0, d0 + fr.shape[0]), n_pix)
         front = np.isfinite(hits.t) & (np.einsum("ki,ki->k", hits.normal, -ray_d) > 0)
         p = o[front] + hits.t[front, None] * ray_d[front]
-        _, nn = tree.query(p)
-        key = tex[nn] * nd + did[front]
+        if texel_of_points is None:
+            hit_tex = tex[tree.query(p)[1]]
+        else:
+            hit_tex = np.asarray(texel_of_points(p), dtype=np.int64)
+        ok = (hit_tex >= 0) & (hit_tex < n_texels)
+        key = hit_tex[ok] * nd + did[front][ok]
         out += np.bincount(key, minlength=n_texels * nd) * (h * h)
     return out.reshape(n_texels, 6, res, res).astype(dtype)
 
@@ -721,7 +728,11 @@ class AvisTable:
         the unoccluded upper bound for the other `bounded` texels)
     bounded : (n_texels,) bool
     ray_row : (n_texels,) int64 row of the texel in `haar` (-1 for closed-form texels)
-    haar : HaarCoeffs of the (n_ray, 6, res, res) world-direction cube maps
+    haar : HaarCoeffs of the (n_ray, 6, res, res) world-direction cube maps: for a bounded
+        ray texel the *visible fraction* F = a_vis / U (U the unoccluded projected area, its
+        closed form; F in [0, 1]), otherwise a_vis itself. Look-up: a = U(w) clip(F(w), 0, 1)
+        with U exact at w, so the horizon kink is exact and only the smoother masking
+        fraction is compressed (3-4x lower error at equal size, benchmarks/avis_methods.py)
     """
 
     res: int
@@ -773,8 +784,8 @@ class AvisTable:
         if rq.size:
             a[rq] = self._eval_maps(self.ray_row[t[rq]], w[rq], interp)
             bq = rq[self.bounded[t[rq]]]
-            if bq.size:  # a_vis <= unoccluded projected area (exact at the horizon)
-                a[bq] = np.minimum(a[bq], eval_closed_form(self.cf, t[bq], w[bq]))
+            if bq.size:  # stored visible fraction times the exact unoccluded area
+                a[bq] = np.clip(a[bq], 0.0, 1.0) * eval_closed_form(self.cf, t[bq], w[bq])
         a = np.maximum(a, 0.0)
         valid = dir_ok & (a > floor * self.texel_area[t]) & (self.texel_area[t] > 0)
         return np.where(valid, a, 0.0), valid
@@ -827,6 +838,43 @@ class AvisTable:
         return np.sum(taps * wts, axis=0)
 
 
+def visible_fraction(maps: np.ndarray, unoccluded: np.ndarray) -> np.ndarray:
+    """F = a_vis / U on cube maps, with the directions where U = 0 (F undefined) filled by
+    repeated 4-neighbour averaging inside each face, so that bilinear look-ups just above the
+    horizon and the Haar transform see a smooth extension rather than a jump to 0.
+
+    maps, unoccluded : (r, 6, res, res) float64 a_vis and its unoccluded bound U >= a_vis
+    returns : (r, 6, res, res) float64 in [0, 1]
+    """
+    a = np.asarray(maps, dtype=np.float64)
+    u = np.asarray(unoccluded, dtype=np.float64)
+    defined = u > 0
+    f = np.clip(np.divide(a, u, out=np.zeros_like(a), where=defined), 0.0, 1.0)
+    res = a.shape[-1]
+    for _ in range(2 * res):  # dilation steps (a face is filled after at most 2 res of them)
+        todo = ~defined
+        if not todo.any():
+            break
+        val = np.where(defined, f, 0.0)
+        cnt = defined.astype(np.float64)
+        s_val = np.zeros_like(val)
+        s_cnt = np.zeros_like(cnt)
+        s_val[..., 1:, :] += val[..., :-1, :]
+        s_val[..., :-1, :] += val[..., 1:, :]
+        s_val[..., :, 1:] += val[..., :, :-1]
+        s_val[..., :, :-1] += val[..., :, 1:]
+        s_cnt[..., 1:, :] += cnt[..., :-1, :]
+        s_cnt[..., :-1, :] += cnt[..., 1:, :]
+        s_cnt[..., :, 1:] += cnt[..., :, :-1]
+        s_cnt[..., :, :-1] += cnt[..., :, 1:]
+        grow = todo & (s_cnt > 0)
+        if not grow.any():
+            break
+        f[grow] = s_val[grow] / s_cnt[grow]
+        defined = defined | grow
+    return f
+
+
 def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float) -> AvisTable:
     """AvisTable of a level: closed-form terms as they are, Haar for the ray-based texels.
 
@@ -839,6 +887,11 @@ def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float) -
         raise ShapeError(f"frames must be ({n}, 3, 3), got {frames.shape}")
     ray_row = np.full(n, -1, dtype=np.int64)
     ray_row[level.ray_texels] = np.arange(level.ray_texels.shape[0])
-    haar = compress_haar(level.ray_maps.reshape(-1, 6, level.res, level.res), keep_fraction)
+    maps = level.ray_maps.copy()  # (n_ray, 6, res, res)
+    frac = level.bounded[level.ray_texels]
+    if frac.any():
+        unocc = closed_form_maps(level.cf, level.res, level.ray_texels[frac])
+        maps[frac] = visible_fraction(maps[frac], unocc)
+    haar = compress_haar(maps, keep_fraction)
     return AvisTable(level.res, frames, level.texel_area, level.closed, level.bounded, level.cf,
                      ray_row, haar)
