@@ -82,6 +82,8 @@ def _exact(x: torch.Tensor, n_max: int, eps: float) -> tuple[torch.Tensor, torch
         gram = x64 @ x64.mT  # (b, t, t)
     else:
         gram = x64.mT @ x64  # (b, d, d)
+    if not bool(torch.isfinite(gram).all()):  # the Gram is small; NaN/Inf in x propagate here
+        raise ShapeError("PCA data contains NaN or Inf")
     evals, evecs = torch.linalg.eigh(gram)  # ascending
     evals = torch.flip(evals, dims=[-1])[:, :n_max]  # (b, n)
     evecs = torch.flip(evecs, dims=[-1])[:, :, :n_max]  # (b, t|d, n)
@@ -113,6 +115,8 @@ def _randomized(
     for _ in range(power_iters):
         basis = orth(x @ orth(x.mT @ basis))
     small = (basis.mT @ x).to(torch.float64)  # (b, q, d)
+    if not bool(torch.isfinite(small).all()):
+        raise ShapeError("PCA data contains NaN or Inf")
     _, s, vh = torch.linalg.svd(small, full_matrices=False)  # s: (b, q), vh: (b, q, d)
     s = s[:, :n_max]
     vh = vh[:, :n_max]
@@ -173,8 +177,6 @@ def pca_batched(
         sing = sing * keep
         comps32 = comps.to(torch.float32)
         weights = xt @ comps32.to(xt.dtype).mT  # (b, t, n): projections on the stored basis
-    if not bool(torch.isfinite(weights).all()):  # cheaper than scanning x; NaN/Inf propagate
-        raise ShapeError("PCA data contains NaN or Inf")
     weights_np = np.zeros((b, t, n_max))
     comps_np = np.zeros((b, n_max, d), np.float32)
     sing_np = np.zeros((b, n_max))

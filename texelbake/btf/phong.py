@@ -8,14 +8,19 @@ above the horizon (z > TOL.grazing_cos) take part in fits and averages; below th
 model is defined as 0 (a BTF is zero there).
 
 The fit is Levenberg-Marquardt (scipy.optimize.least_squares, method="lm") over
-(ka, kd, ks, log alpha): the log keeps alpha positive without bounds (LM takes none). Unless a
-start x0 is given, the start is the best of a log-spaced grid of exponents, each with
-(ka, kd, ks) from linear least squares (the model is linear in them for a fixed alpha).
+(ka, kd, ks, log alpha): the log keeps alpha positive without bounds (LM takes none). The model
+is linear in (ka, kd, ks) for a fixed alpha, so LM first runs on log alpha alone with the three
+linear parameters solved by least squares inside the residual (variable projection, Golub &
+Pereyra), then polishes all four: this converges from far starts where a plain 4-parameter LM
+chases alpha to infinity. The start exponent is x0's, or the best of a log-spaced grid.
 
 Divergence guard: the fit is rejected, and the tabulated mean kept (model "table"), when LM
 fails or raises, a parameter is not finite, alpha leaves [TOL.phong_alpha_min,
-TOL.phong_alpha_max] (a lobe narrower than any sampling resolves, e.g. chasing one spike), or
-the fitted lobe is worse (RMS) than the best constant. The reason is in `PhongFit.message`.
+TOL.phong_alpha_max] (a lobe narrower than any sampling resolves, e.g. chasing one spike) and
+dropping the lobe (ks = 0) costs more than `lobe_tolerance` of RMS, or the fit is worse (RMS)
+than the best constant. When alpha runs off but the lobe explains nothing (alpha is then
+unidentifiable, e.g. a flat mean), the diffuse part ka + kd (N.L) is kept. The reason is in
+`PhongFit.message`.
 """
 
 from __future__ import annotations
@@ -98,12 +103,15 @@ def fit_phong(
     alpha_min: float = TOL.phong_alpha_min,
     alpha_max: float = TOL.phong_alpha_max,
     max_nfev: int = 400,
+    lobe_tolerance: float = 0.01,
 ) -> PhongFit:
     """Fit Eq. 5 to a tabulated mean by Levenberg-Marquardt, with the divergence guard.
 
     mean : (d,) float64 the top-level mean mu(wi, wo) of the Y channel
     wi, wo : (d, 3) float64 unit directions of the pairs, texel frame
     x0 : optional start (ka, kd, ks, alpha); default: best of a grid of exponents
+    lobe_tolerance : a diverged exponent is forgiven (ks = 0, diffuse only) when dropping the
+        lobe raises the RMS by at most this fraction
     returns : PhongFit
     """
     mean = np.asarray(mean, dtype=np.float64)
@@ -140,8 +148,19 @@ def fit_phong(
         return PhongFit((0.0,) * 4, "table", 0.0, rms_fit, rms_const, nfev,
                         f"Phong fit rejected ({reason}); kept the tabulated mean")
 
+    def varpro(q: np.ndarray) -> np.ndarray:
+        # variable projection: for a given log alpha the best (ka, kd, ks) are linear least
+        # squares, so LM searches one well-behaved dimension first
+        alpha = np.exp(np.clip(q[0], -_LOG_ALPHA_CLIP, _LOG_ALPHA_CLIP))
+        coef, _ = _linear_params(y, nl, nh, alpha)
+        return resid(np.array([*coef, q[0]]))
+
     try:
         with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            pre = least_squares(varpro, start[3:], method="lm", max_nfev=max_nfev)
+            alpha0 = np.exp(np.clip(pre.x[0], -_LOG_ALPHA_CLIP, _LOG_ALPHA_CLIP))
+            coef0, _ = _linear_params(y, nl, nh, alpha0)
+            start = np.array([*coef0, pre.x[0]])
             sol = least_squares(resid, start, method="lm", max_nfev=max_nfev, x_scale="jac")
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
         return table(f"Levenberg-Marquardt raised {type(exc).__name__}: {exc}", np.inf, 0)
@@ -150,14 +169,28 @@ def fit_phong(
     with np.errstate(over="ignore", invalid="ignore"):
         r = resid(p)
     rms_fit = float(np.sqrt(np.mean(r**2))) if np.all(np.isfinite(r)) else np.inf
-    nfev = int(sol.nfev)
+    nfev = int(sol.nfev + pre.nfev)
     if not np.all(np.isfinite(p)) or not np.isfinite(rms_fit):
         return table("non-finite parameters", rms_fit, nfev)
+    bad = None
     if not alpha_min <= alpha <= alpha_max:
-        return table(f"alpha={alpha:.4g} outside [{alpha_min:g}, {alpha_max:g}]: diverged", rms_fit,
-                     nfev)
-    if sol.status <= 0:
-        return table(f"Levenberg-Marquardt did not converge: {sol.message}", rms_fit, nfev)
+        bad = f"alpha={alpha:.4g} outside [{alpha_min:g}, {alpha_max:g}]: diverged"
+    elif sol.status <= 0:
+        bad = f"Levenberg-Marquardt did not converge: {sol.message}"
+    if bad is not None:
+        # An exponent running off is harmless when the lobe explains nothing (ks (N.H)^alpha is
+        # then a constant or zero, alpha unidentifiable): keep ka + kd (N.L) if it is within
+        # `lobe_tolerance` of the diverged fit's RMS; otherwise the lobe was chasing something
+        # (a spike) and the tabulated mean is kept.
+        coef = np.linalg.lstsq(np.stack([np.ones_like(nl), nl], axis=1), y, rcond=None)[0]
+        rms_diffuse = float(np.sqrt(np.mean((coef[0] + coef[1] * nl - y) ** 2)))
+        if rms_diffuse <= rms_fit * (1.0 + lobe_tolerance) and rms_diffuse <= rms_const:
+            params = (float(coef[0]), float(coef[1]), 0.0, 1.0)
+            return PhongFit(params, "phong", rms_diffuse, rms_fit, rms_const, nfev,
+                            f"Phong lobe unidentifiable ({bad}); kept ka + kd (N.L), "
+                            f"RMS {rms_diffuse:.4g}")
+        return table(f"{bad}; without the lobe RMS {rms_diffuse:.4g} vs {rms_fit:.4g}",
+                     rms_fit, nfev)
     if rms_fit > rms_const * (1.0 + 1e-9):
         return table(f"RMS {rms_fit:.4g} worse than a constant's {rms_const:.4g}", rms_fit, nfev)
     params = (float(p[0]), float(p[1]), float(p[2]), alpha)
