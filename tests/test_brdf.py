@@ -581,7 +581,7 @@ def test_sample_texture_wrap_modes():
     # black blends with 0 within half a texel of the edge: at s = 0 half of column 0
     uv0 = np.array([[0.0, 0.25]])
     assert brdf.sample_texture(_tex(PIX, wrap_s="black", wrap_t="clamp"), uv0)[0, 0] == 4.0
-    # wrap_t acts on t: t = 1.25 is a quarter texel... above the top edge -> repeat gives row 1
+    # wrap_t acts on t: t = 1.25 repeats to t = 0.25, the centre of row 1 (the bottom row)
     uvt = np.array([[0.5 / 3, 1.25]])
     assert brdf.sample_texture(_tex(PIX, wrap_s="clamp", wrap_t="repeat"), uvt)[0, 0] == 8.0
 

@@ -715,7 +715,7 @@ def worley(points: Any, seed: Any = 0) -> tuple[np.ndarray, np.ndarray, np.ndarr
     f1 = np.empty(n)
     f2 = np.empty(n)
     cell = np.empty((n, 2), dtype=np.int64)
-    finite = np.isfinite(pts).all(axis=1)
+    finite: np.ndarray = np.all(np.isfinite(pts), axis=1)
     for lo in range(0, n, _CHUNK):
         hi = min(lo + _CHUNK, n)
         p = np.where(finite[lo:hi, None], pts[lo:hi], 0.0)
