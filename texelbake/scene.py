@@ -1313,24 +1313,28 @@ def _time_samples(mesh_prims: list[Any], meshes: list[_MeshData],
 
     times: set[float] = set()
 
-    def add_xform_samples(prim: Any) -> None:
+    def xform_samples(prim: Any) -> list[float]:
+        found: list[float] = []
         for anc in _ancestors(prim):
             xf = UsdGeom.Xformable(anc)
             if xf:
-                times.update(xf.GetTimeSamples())
+                found.extend(xf.GetTimeSamples())
+        return found
 
+    varying: list[bool] = []  # per mesh: do its world points change at all?
     for prim in mesh_prims:
-        times.update(UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples())
+        mesh_times = list(UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples())
         skin = skins.get(str(prim.GetPath()))
         if skin is None:
-            add_xform_samples(prim)
-            continue
-        sq, skel_query = skin
-        times.update(sq.GetTimeSamples())
-        anim = skel_query.GetAnimQuery()
-        if anim:
-            times.update(anim.GetJointTransformTimeSamples())
-        add_xform_samples(skel_query.GetPrim())
+            mesh_times += xform_samples(prim)
+        else:
+            sq, skel_query = skin
+            mesh_times += list(sq.GetTimeSamples()) + xform_samples(skel_query.GetPrim())
+            anim = skel_query.GetAnimQuery()
+            if anim:
+                mesh_times += list(anim.GetJointTransformTimeSamples())
+        times.update(mesh_times)
+        varying.append(len(set(mesh_times)) > 1)
     if not times:
         return np.zeros(0), np.zeros((0, sum(m.points.shape[0] for m in meshes), 3))
     codes = np.array(sorted(times), dtype=np.float64)
@@ -1339,7 +1343,10 @@ def _time_samples(mesh_prims: list[Any], meshes: list[_MeshData],
         tc = Usd.TimeCode(t)
         xcache = UsdGeom.XformCache(tc)
         per_mesh = []
-        for prim, m in zip(mesh_prims, meshes, strict=True):
+        for prim, m, moves in zip(mesh_prims, meshes, varying, strict=True):
+            if not moves:  # at most one sample: the same points at every time
+                per_mesh.append(m.points)
+                continue
             raw = UsdGeom.Mesh(prim).GetPointsAttr().Get(tc)
             pts = np.asarray(raw if raw is not None else [], dtype=np.float64).reshape(-1, 3)
             if pts.shape[0] != m.points.shape[0]:
