@@ -20,23 +20,30 @@ Weights: the seed takes alpha = C^+ R 1 (Eq. 11) and clamps negatives to 0 (§3.
 DESIGN.md's default solves the non-negative least-squares problem min ||C alpha - R 1||,
 alpha >= 0, exactly (scipy.optimize.nnls). Both are here so they can be compared.
 
-SVD path (measured, this machine, 2 torch threads, float64, d = 4096, median of 3 runs after a
-warm-up; R = nonnegative rank-20 + 1e-3 noise with five columns scaled by 1e6, the specular
-case; errors against torch.linalg.svd in float64; "p err" = max |p - p_full| of the Table 2
-probabilities at the psi = 0.97 rank; see `benchmarks/column_sampling.py --svd`):
+SVD path (measured by `benchmarks/column_sampling.py --svd` on this shared 2-core machine: CPU
+seconds with torch on one thread, min of 3, since wall time under the machine's load is noise;
+d = 4096, R = Gaussian rank-60 with spectrum 0.85^r + 1e-4 noise, k ~ 11 at psi = 0.97;
+"specular" = the same with five columns scaled by 1e6; p err = max |p - p_full| of the Table 2
+probabilities at the psi-rank, s err = max |s_r - s_full_r| / s_1 over r <= k):
 
-    m      full SVD   Gram eigh (R^T R)   svd_lowrank(q=k+10, niter=4)
-    64     0.05 s     0.010 s, p err 3e-10   0.06 s, p err 1e-15 (top-q only)
-    256    0.41 s     0.05 s,  p err 6e-9    0.13 s
-    1024   1.05 s     0.33 s,  p err 2e-8    0.30 s
+    m      full SVD (gesdd)   Gram eigh of R^T R       svd_lowrank (adaptive q, niter 4)
+    64     0.007 s            0.005 s  p err 1e-13     (falls back to gram: q > m/4)
+    128    0.024-0.033 s      0.012-0.015 s  3e-14     0.055 s  4e-14
+    256    0.083-0.088 s      0.043-0.046 s  3e-15     0.11-0.20 s  4e-15
+    512    0.36 s             0.16-0.17 s  6e-14       0.32-0.52 s  5e-14
+    1024   1.59-1.71 s        0.79-0.83 s  8e-14       0.64-1.05 s  2e-13
+    (s err <= 3e-15 for every path and size)
 
 The Gram route squares the condition number: singular values below ~sqrt(eps) * s_max
-(~1.5e-8 s_max) are lost to rounding, and so are their right singular vectors. Table 2 needs
-V_k only for the top k triplets (psi-energy rank: far above that floor unless psi is within
-~1e-16 of 1) and the residual column norms, which we take as ||R_j||^2 - ||(R_k)_j||^2 from
-exact column norms rather than from the tail triplets. So `svd_float64(R, method="auto")` uses
-the Gram eigen-decomposition when d >= 2 m (tall R, the usual case) and the full SVD otherwise;
-`method="full"` is the reference. svd_lowrank needs k in advance and was not faster at m <= 256.
+(~1.5e-8 s_max) are lost to rounding, and so are their singular vectors. Table 2 needs V_k only
+for the top k triplets (the psi-energy rank, far above that floor unless psi is within ~1e-16 of
+1) and the residual column norms, which column_probabilities takes as ||R_j||^2 - ||(R_k)_j||^2
+from exact column energies rather than from the tail triplets; with that, the probabilities agree
+with the full SVD to 1e-13 even for the 1e6 specular case, at half the time. So
+`svd_float64(R, method="auto")` uses the Gram eigen-decomposition for tall R (d >= 2 m, the usual
+case) and the full SVD otherwise; svd_lowrank was not faster at equal accuracy except marginally
+for m = 1024 with k ~ 4, so `top_singular(method="auto")` does not pick it (method="lowrank"
+remains available for very wide texels with small k).
 """
 
 from __future__ import annotations
@@ -98,24 +105,72 @@ def svd_float64(
     return U.numpy(), s.numpy(), V.T.contiguous().numpy()
 
 
-def energy_rank(s: np.ndarray, psi: float) -> int:
-    """Smallest k with sum_{r<=k} s_r^2 >= psi * sum_r s_r^2 (seed 000 §4.1, DESIGN.md).
+def energy_rank(s: np.ndarray, psi: float, total: float | None = None) -> int:
+    """Smallest k with sum_{r<=k} s_r^2 >= psi * ||R||_F^2 (seed 000 §4.1, DESIGN.md).
 
-    s : (r,) float64 singular values, descending
+    s : (r,) float64 singular values, descending (all of them, or the top ones when total is
+        given)
     psi : energy fraction in (0, 1]
-    returns : k in [1, r]; 0 when sum s^2 <= TOL.energy_floor (all-zero R)
+    total : ||R||_F^2 when s is a partial spectrum; default sum s^2
+    returns : k in [1, r]; 0 when the energy is <= TOL.energy_floor (all-zero R). With a partial
+        spectrum that does not reach psi, returns r + 1 (more triplets needed).
     """
     s = np.asarray(s, dtype=np.float64).ravel()
     if not 0.0 < psi <= 1.0:
         raise SettingsError(f"psi must be in (0, 1], got {psi}")
     e = s * s
-    total = float(e.sum())
-    if s.size == 0 or total <= TOL.energy_floor:
+    full = total is None
+    total = float(e.sum()) if total is None else float(total)
+    if total <= TOL.energy_floor:
         return 0
     cum = np.cumsum(e)
-    # relative slack: cum[-1] may differ from total by rounding; psi = 1 must still hit r
-    k = int(np.searchsorted(cum, psi * total * (1.0 - 4 * np.finfo(np.float64).eps))) + 1
-    return min(k, s.size)
+    # relative slack: cum[-1] differs from ||R||_F^2 by rounding; psi = 1 must still hit r
+    k = int(np.searchsorted(cum, psi * total * (1.0 - 64 * np.finfo(np.float64).eps))) + 1
+    return min(k, s.size) if full else k
+
+
+def top_singular(
+    R: np.ndarray,
+    psi: float,
+    *,
+    method: Literal["auto", "full", "gram", "lowrank"] = "auto",
+    oversample: int = 10,
+    niter: int = 4,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The singular triplets Table 2 needs: at least the top k of R, and k = energy_rank(psi).
+
+    R : (d, m) float64; psi : energy fraction in (0, 1]
+    method : "full" / "gram" (see svd_float64), "lowrank" (torch.svd_lowrank with q = k +
+        oversample triplets and niter power iterations, q doubled until the psi energy is reached
+        within q - oversample triplets; ||R||_F^2 is known exactly from the entries, so k is exact
+        without the tail; falls back to "auto" beyond q = min(d, m) / 4), or "auto" = svd_float64's
+        auto (gram for tall R, else full; lowrank was not faster, see the module docstring).
+    seed : seed of svd_lowrank's random test matrix (torch RNG forked, global state untouched)
+    returns : (U (d, q), s (q,), Vt (q, m), k); q = min(d, m) for full/gram. Pass exact column
+        energies to column_probabilities when q < rank (its residual terms need them).
+    """
+    R = _as_matrix("R", R)
+    d, m = R.shape
+    total = float(np.sum(R * R))
+    if method not in ("auto", "full", "gram", "lowrank"):
+        raise SettingsError(f"svd method must be auto/full/gram/lowrank, got {method!r}")
+    r_max = min(d, m)
+    if method == "lowrank" and r_max > 0 and total > TOL.energy_floor:
+        q = min(2 * oversample, r_max)
+        Rt = torch.as_tensor(R)
+        while 4 * q <= r_max:  # beyond m/4 triplets a full decomposition is cheaper
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed)
+                U, s, V = torch.svd_lowrank(Rt, q=q, niter=niter)
+            s_np = s.numpy()
+            k = energy_rank(s_np, psi, total)
+            if k + oversample <= q:
+                return U.numpy(), s_np, V.T.contiguous().numpy(), k
+            q = 2 * q
+        method = "auto"
+    U, s, Vt = svd_float64(R, "full" if method == "full" else ("gram" if method == "gram" else "auto"))
+    return U, s, Vt, energy_rank(s, psi, total)
 
 
 def _numerical_rank(s: np.ndarray, rcond: float) -> int:
@@ -134,7 +189,12 @@ def _leverage_and_residual(
     if col_energy is None:
         col_energy = np.sum(sv * sv, axis=0)
     top = np.sum(sv[:k] * sv[:k], axis=0)
-    res2 = np.clip(col_energy - top, 0.0, None)  # (m,)
+    res2 = col_energy - top  # (m,)
+    # ||R_j||^2 - ||(R_k)_j||^2 cancels: below ~(k + 1) eps ||R_j||^2 it is rounding, not signal
+    # (a column inside span(U_k) up to float64). Zeroing it keeps the residual terms from being
+    # driven by noise (e.g. the 1e6-scaled columns of a specular lobe).
+    noise = 32.0 * (k + 1) * np.finfo(np.float64).eps * col_energy
+    res2 = np.where(res2 > noise, res2, 0.0)
     return lev2, res2
 
 
@@ -158,9 +218,9 @@ def column_probabilities(
     returns : (m,) float64, p >= 0, sum p = 1; all zeros when R is all zero (k = 0).
 
     Degenerate cases (defined, tested):
-    - k >= numerical rank rho (s_r > rcond * s_max), or residual energy <= rcond * ||R||_F^2:
-      the residual terms are 0/0; they are defined as 0 and p is renormalised, i.e.
-      p = leverage scores / k.
+    - k >= numerical rank rho (s_r > rcond * s_max), or every residual column norm at rounding
+      level (||(R - R_k)_j||^2 <= 32 (k + 1) eps ||R_j||^2): the residual terms are 0/0; they
+      are defined as 0 and p is renormalised, i.e. p = leverage scores / k.
     - columns whose energy is <= rcond^2 * max column energy (all-zero columns, fully occluded
       samples) get p = 0: they are never drawn. Rounding in V would otherwise give them ~1e-30.
     """
@@ -187,10 +247,9 @@ def column_probabilities(
     if lev_sum > 0.0:
         terms.append(lev2 / lev_sum)
     res_sum = float(res2.sum())
-    # k = rank: the residual terms are 0/0, defined as 0. A residual energy <= rcond * ||R||_F^2
-    # is at the rounding level of ||R_j||^2 - ||(R_k)_j||^2 (m * eps * ||R||^2 ~ 1e-13 for
-    # m = 1024) and is treated the same way.
-    if k < rho and res_sum > rcond * float(energy.sum()):
+    # k = rank: the residual terms are 0/0, defined as 0 (also when every residual column norm is
+    # at rounding level, see _leverage_and_residual)
+    if k < rho and res_sum > 0.0:
         terms.append(res2 / res_sum)
         mix = np.sqrt(lev2 * res2)
         mix_sum = float(mix.sum())
