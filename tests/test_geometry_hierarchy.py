@@ -104,3 +104,12 @@ def test_errors_name_the_problem():
         simplify_hierarchy(v, f, 3)
     with pytest.raises(StageError, match="M_org"):
         simplify_hierarchy(np.zeros((3, 3)), np.array([[0, 1, 2]]), 1)
+
+
+def test_hierarchy_is_deterministic():
+    v, f = icosphere(3)
+    a = simplify_hierarchy(v, f, 2)
+    b = simplify_hierarchy(v, f, 2)
+    for x, y in zip(a, b, strict=True):
+        assert x.vertices.tobytes() == y.vertices.tobytes()
+        assert x.faces.tobytes() == y.faces.tobytes()

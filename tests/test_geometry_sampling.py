@@ -175,3 +175,11 @@ def test_closest_point_on_triangles_is_the_projection():
     assert (w >= -1e-12).all() and np.allclose(w.sum(axis=1), 1.0)
     for x in (a, b, c):
         assert (np.einsum("nd,nd->n", p - q, x - q) <= 1e-9).all()
+
+
+def test_bad_corner_normals_fall_back_to_geometric():
+    v, f = plane_grid(2, 2)
+    cn = np.zeros((f.shape[0], 3, 3))  # zero normals everywhere
+    cn[0] = np.nan  # and NaN on face 0
+    s = sample_surface(v, f, 64, seed=0, corner_normals=cn)
+    np.testing.assert_array_equal(s.normals, np.tile([0.0, 0.0, 1.0], (len(s), 1)))

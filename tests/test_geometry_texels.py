@@ -7,7 +7,7 @@ import pytest
 from geometry_meshes import bumpy_sphere, plane_grid, random_rotation
 
 from texelbake.errors import SettingsError, ShapeError
-from texelbake.geometry.atlas import build_atlas, rasterize_atlas
+from texelbake.geometry.atlas import atlas_uv_of_points, build_atlas, rasterize_atlas
 from texelbake.geometry.closest import closest_point_on_triangles
 from texelbake.geometry.hierarchy import simplify_hierarchy
 from texelbake.geometry.mesh import Mesh
@@ -17,6 +17,7 @@ from texelbake.geometry.texels import (
     bilinear_texels,
     texel_centers_uv,
     texel_frames,
+    texel_surface_points,
     uv_to_texel,
 )
 
@@ -203,3 +204,16 @@ def test_bad_arguments(tilted_plane):
         assign_texels(s.positions, Mesh(v, f), atlas, 2)
     with pytest.raises(ShapeError, match="normals"):
         texel_frames(a, s.normals[:5], s.area, m1, atlas, 0)
+
+
+def test_texel_surface_points_lie_on_m1_at_their_uv(sphere):
+    v, f, m1, atlas, s, a = sphere
+    pts, nrm, face, valid = texel_surface_points(atlas, 1)
+    n = N >> 1
+    assert pts.shape == (n * n, 3) and valid.any() and (~valid).any()
+    assert not pts[~valid].any() and (face[~valid] == -1).all()
+    # independent check: the point's atlas uv (closest point on M1 -> uv) is the texel centre
+    uv, prim, dist = atlas_uv_of_points(pts[valid], atlas)
+    assert dist.max() < 1e-9 * m1.bbox_diag
+    np.testing.assert_allclose(uv, texel_centers_uv(n)[valid], atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(nrm[valid], axis=1), 1.0)

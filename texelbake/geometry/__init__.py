@@ -23,6 +23,7 @@ from texelbake.geometry.texels import (
     bilinear_texels,
     texel_centers_uv,
     texel_frames,
+    texel_surface_points,
     uv_to_texel,
 )
 
@@ -45,6 +46,7 @@ __all__ = [
     "simplify_hierarchy",
     "texel_centers_uv",
     "texel_frames",
+    "texel_surface_points",
     "uv_to_texel",
     "weld",
 ]

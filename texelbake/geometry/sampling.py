@@ -151,7 +151,8 @@ def sample_surface(
         so every triangle with area > eps * bbox_diag**2 is represented (degenerate
         triangles get none)
     seed : seeds the jitter and shifts; equal inputs give byte-identical output
-    corner_normals : (f, 3, 3) float64 or None — shading normals per face corner
+    corner_normals : (f, 3, 3) float64 or None — shading normals per face corner; where the
+        interpolated normal is zero or not finite the sample takes the geometric normal
     corner_uvs : (f, 3, 2) float64 or None
     face_material : (f,) int32 or None
     returns : Samples, grouped by triangle in face order; ΔA of a triangle's samples is
@@ -185,14 +186,22 @@ def sample_surface(
     rng = np.random.default_rng(seed)
     bary = square_to_triangle(stratified_unit_square(counts, rng))  # (m, 3)
     face = np.repeat(np.arange(f, dtype=np.int64), counts)  # (m,)
-    tri = pts[fcs[face]]  # (m, 3, 3)
-    positions = np.einsum("mk,mkd->md", bary, tri)
-    geo = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    geo /= np.linalg.norm(geo, axis=1, keepdims=True)  # only nondegenerate faces are sampled
+    corner = fcs[face]  # (m, 3) vertex ids; per-corner sums keep temporaries at (m, 3)
+    positions = (
+        bary[:, 0:1] * pts[corner[:, 0]]
+        + bary[:, 1:2] * pts[corner[:, 1]]
+        + bary[:, 2:3] * pts[corner[:, 2]]
+    )
+    tri = pts[fcs]  # (f, 3, 3)
+    face_geo = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (f, 3)
+    face_len = np.linalg.norm(face_geo, axis=1, keepdims=True)
+    face_geo = np.divide(face_geo, face_len, out=np.zeros_like(face_geo), where=face_len > 0)
+    geo = face_geo[face]  # sampled faces are nondegenerate, so these are unit
     if corner_normals is None:
         normals = geo
     else:
-        interp = np.einsum("mk,mkd->md", bary, corner_normals[face])
+        cn = corner_normals[face]  # (m, 3, 3)
+        interp = bary[:, 0:1] * cn[:, 0] + bary[:, 1:2] * cn[:, 1] + bary[:, 2:3] * cn[:, 2]
         length = np.linalg.norm(interp, axis=1, keepdims=True)
         good = (length[:, 0] > TOL.brdf_eps) & np.isfinite(length[:, 0])
         normals = np.where(good[:, None], interp / np.where(good, length[:, 0], 1.0)[:, None], geo)

@@ -190,6 +190,28 @@ def assign_texels(
     )
 
 
+def texel_surface_points(
+    atlas: Atlas, level: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The point of M1 under every texel centre at `level` (the "position map" a normal-map
+    or albedo bake shoots rays from, and the texel footprint of rendering look-ups).
+
+    returns : (points (N_ℓ², 3) float64, normals (N_ℓ², 3) float64 unit geometric normals of
+        M1, face (N_ℓ²,) int64 M1 triangle or -1, valid (N_ℓ²,) bool — False where the centre
+        is outside every chart; those rows are zero)
+    """
+    n_l = int(atlas.resolution) >> int(level)
+    if n_l < 1:
+        raise SettingsError(f"level {level} leaves no texels of the {atlas.resolution} atlas")
+    face, bary, _ = rasterize_atlas(atlas.corner_uvs, n_l)
+    valid = face >= 0
+    safe = np.where(valid, face, 0)
+    tri = atlas.mesh.triangles()[safe]  # (N_ℓ², 3, 3)
+    points = np.where(valid[:, None], np.einsum("nk,nkd->nd", bary, tri), 0.0)
+    normals = np.where(valid[:, None], atlas.mesh.face_normals()[safe], 0.0)
+    return points, normals, face, valid
+
+
 def face_uv_tangents(atlas: Atlas) -> tuple[np.ndarray, np.ndarray]:
     """d position / d u of every atlas triangle (the UV tangent), unit length.
 
