@@ -118,9 +118,12 @@ class RayCaster:
         self.points_queried = 0
         self._scene = o3d.t.geometry.RaycastingScene(nthreads=self.nthreads)
         if fcs.shape[0] > 0:
+            # kept on the instance: from_numpy shares memory with these arrays
+            self._vertices32 = np.ascontiguousarray(pts, dtype=np.float32)
+            self._faces32 = np.ascontiguousarray(fcs, dtype=np.uint32)
             self._scene.add_triangles(
-                o3d.core.Tensor(np.ascontiguousarray(pts, dtype=np.float32)),
-                o3d.core.Tensor(np.ascontiguousarray(fcs, dtype=np.uint32)),
+                o3d.core.Tensor.from_numpy(self._vertices32),
+                o3d.core.Tensor.from_numpy(self._faces32),
             )
         self._empty = fcs.shape[0] == 0
 
@@ -232,7 +235,7 @@ class RayCaster:
         for start in range(0, n, batch):
             stop = min(start + batch, n)
             res = self._scene.compute_closest_points(
-                o3d.core.Tensor(np.ascontiguousarray(q[start:stop], dtype=np.float32)),
+                o3d.core.Tensor.from_numpy(np.ascontiguousarray(q[start:stop], dtype=np.float32)),
                 nthreads=self.nthreads,
             )
             prim[start:stop] = res["primitive_ids"].numpy().astype(np.int64)

@@ -126,7 +126,7 @@ def stratified_unit_square(counts: np.ndarray, rng: np.random.Generator) -> np.n
     tri = np.repeat(np.arange(counts.shape[0]), counts)  # (m,)
     k = np.arange(m, dtype=np.int64) - starts[tri]  # index inside the triangle
     c = counts[tri].astype(np.float64)
-    shift = rng.random(counts.shape[0])[tri]
+    shift = np.asarray(rng.random(counts.shape[0]))[tri]
     jitter = rng.random(m)
     u1 = (k + jitter) / c
     u2 = np.mod(shift + k * _GOLDEN, 1.0)
