@@ -15,6 +15,7 @@ from avis_scenes import (
 
 from texelbake.avis import (
     AvisLevel,
+    AvisTable,
     avis_cube_maps,
     avis_from_visibility,
     avis_level,
@@ -29,6 +30,10 @@ from texelbake.avis import (
     default_eps,
     dirs_to_cube,
     eval_closed_form,
+    geometric_normals,
+    level_from_arrays,
+    level_to_arrays,
+    stack_tiles,
     unoccluded_texels,
     visible_fraction,
 )
@@ -512,3 +517,67 @@ def test_fraction_storage_beats_direct_and_respects_bound():
             assert np.all(a <= bound * (1 + 1e-12))
             assert np.all(a[bound == 0] == 0) and (bound == 0).mean() > 0.3
     assert errs[0] < 0.7 * errs[1], errs
+
+
+# ----------------------------------------------------------------- tiles, storage, normals
+
+
+def test_geometric_normals():
+    pts, faces = uv_sphere(6, 8)
+    fid = np.array([0, 5, 17, 30])
+    n = geometric_normals(pts, faces, fid)
+    cr = np.cross(pts[faces[fid, 1]] - pts[faces[fid, 0]], pts[faces[fid, 2]] - pts[faces[fid, 0]])
+    np.testing.assert_allclose(n, cr / np.linalg.norm(cr, axis=1, keepdims=True), rtol=1e-14)
+    assert geometric_normals(pts, faces, np.zeros(0, int)).shape == (0, 3)
+    with pytest.raises(ShapeError):
+        geometric_normals(pts, faces, np.array([faces.shape[0]]))
+
+
+def test_tiles_stack_to_the_whole_level():
+    """The plate scene's 4 x 4 level computed as four 2 x 2 tiles (local texel ids, one
+    scene-wide ray_eps) and stacked equals the level computed at once."""
+    s = _plate_scene(hole=True)
+    eps = default_eps(s["pos"])
+    whole = avis_level(s["pos"], s["nrm"], s["ar"], s["tex"], 4, 4, s["caster"].occluded,
+                       s["pts"], ray_eps=eps)
+    iy, ix = np.divmod(s["tex"], 4)
+    tiles = []
+    for ty in range(2):
+        for tx in range(2):
+            sel = (iy // 2 == ty) & (ix // 2 == tx)
+            local = (iy[sel] % 2) * 2 + ix[sel] % 2
+            tiles.append(avis_level(s["pos"][sel], s["nrm"][sel], s["ar"][sel], local, 2, 4,
+                                    s["caster"].occluded, s["pts"], ray_eps=eps))
+    stacked = stack_tiles(tiles, 2)
+    assert np.array_equal(stacked.closed, whole.closed)
+    assert np.array_equal(stacked.ray_texels, whole.ray_texels)
+    assert np.array_equal(stacked.cf.offsets, whole.cf.offsets)
+    np.testing.assert_allclose(stacked.dense_maps(), whole.dense_maps(), rtol=1e-12, atol=1e-15)
+    with pytest.raises(ShapeError):
+        stack_tiles(tiles[:3], 2)
+
+
+def test_level_and_table_arrays_round_trip():
+    import io
+
+    s = _plate_scene(hole=True)
+    lvl = avis_level(s["pos"], s["nrm"], s["ar"], s["tex"], 4, 4, s["caster"].occluded,
+                     s["pts"])
+    buf = io.BytesIO()
+    np.savez(buf, **level_to_arrays(lvl))
+    buf.seek(0)
+    back = level_from_arrays(np.load(buf))
+    assert back.n_side == 4 and back.res == 4 and back.max_terms == lvl.max_terms
+    assert np.array_equal(back.dense_maps(), lvl.dense_maps())
+    table = compress_level(lvl, _frames_identity(16), 0.1)
+    buf = io.BytesIO()
+    np.savez(buf, **table.to_arrays())
+    buf.seek(0)
+    t2 = AvisTable.from_arrays(np.load(buf))
+    d = cube_directions(4).reshape(-1, 3)
+    for t in (0, 5, 15):
+        a1, v1 = table.evaluate(np.full(d.shape[0], t), d)
+        a2, v2 = t2.evaluate(np.full(d.shape[0], t), d)
+        assert np.array_equal(a1, a2) and np.array_equal(v1, v2)
+    with pytest.raises(ShapeError):
+        level_from_arrays({"meta": np.array([4, 4, 256])})

@@ -214,6 +214,27 @@ def default_eps(positions: np.ndarray) -> float:
     return TOL.ray_offset * _bbox_diag(np.asarray(positions, dtype=np.float64).reshape(-1, 3))
 
 
+def geometric_normals(points: np.ndarray, faces: np.ndarray,
+                      face_of_sample: np.ndarray) -> np.ndarray:
+    """The geometric normal of the M_org triangle of every sample (what a_vis needs; the
+    samples' shading normals are for the BRDF).
+
+    points : (v, 3) float64; faces : (f, 3) int; face_of_sample : (m,) int in [0, f)
+    returns : (m, 3) float64 unit (zero for degenerate triangles)
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    fcs = np.asarray(faces, dtype=np.int64)
+    fid = np.asarray(face_of_sample, dtype=np.int64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or fcs.ndim != 2 or fcs.shape[1] != 3:
+        raise ShapeError(f"points (v, 3) and faces (f, 3) expected, got {pts.shape}, {fcs.shape}")
+    if fid.size and (fid.min() < 0 or fid.max() >= fcs.shape[0]):
+        raise ShapeError(f"face_of_sample must be in [0, {fcs.shape[0]})")
+    tri = pts[fcs[fid]]  # (m, 3, 3)
+    cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(cr, axis=1, keepdims=True)
+    return np.divide(cr, length, out=np.zeros_like(cr), where=length > 0)
+
+
 def _area_matrix(tex: np.ndarray, areas: np.ndarray, n_texels: int) -> sp.csr_matrix:
     """(n_texels, m) sparse: row t holds dA_j of the samples of texel t."""
     m = tex.shape[0]
@@ -633,6 +654,78 @@ class AvisLevel:
         return out
 
 
+_LEVEL_ARRAYS = ("closed", "bounded", "cf_offsets", "cf_normals", "cf_areas", "ray_texels",
+                 "ray_maps", "texel_area")
+
+
+def level_to_arrays(level: AvisLevel) -> dict[str, np.ndarray]:
+    """Named arrays of an AvisLevel (for np.savez in the artifact store between the per-tile
+    and the top stages); inverse of `level_from_arrays`."""
+    return {
+        "meta": np.array([level.n_side, level.res, level.max_terms], dtype=np.int64),
+        "closed": level.closed, "bounded": level.bounded, "cf_offsets": level.cf.offsets,
+        "cf_normals": level.cf.normals, "cf_areas": level.cf.areas,
+        "ray_texels": level.ray_texels, "ray_maps": level.ray_maps,
+        "texel_area": level.texel_area,
+    }
+
+
+def level_from_arrays(arrays) -> AvisLevel:
+    """AvisLevel from `level_to_arrays` output (any mapping of name -> array, e.g. an NpzFile)."""
+    missing = [k for k in ("meta", *_LEVEL_ARRAYS) if k not in arrays]
+    if missing:
+        raise ShapeError(f"a_vis level arrays are missing {missing}")
+    n_side, res, max_terms = (int(x) for x in np.asarray(arrays["meta"]))
+    level = AvisLevel(
+        n_side, res, np.asarray(arrays["closed"], bool), np.asarray(arrays["bounded"], bool),
+        ClosedForm(np.asarray(arrays["cf_offsets"], np.int64),
+                   np.asarray(arrays["cf_normals"], np.float64),
+                   np.asarray(arrays["cf_areas"], np.float64)),
+        np.asarray(arrays["ray_texels"], np.int64), np.asarray(arrays["ray_maps"], np.float64),
+        np.asarray(arrays["texel_area"], np.float64), max_terms)
+    n = n_side * n_side
+    if (level.closed.shape != (n,) or level.cf.n_texels != n
+            or level.ray_maps.shape != (level.ray_texels.shape[0], 6, res, res)):
+        raise ShapeError(f"a_vis level arrays are inconsistent with n_side={n_side}, res={res}")
+    return level
+
+
+def stack_tiles(tiles: list[AvisLevel], tiles_per_side: int) -> AvisLevel:
+    """One level from a row-major grid of equally sized tiles (the farm's per-tile results).
+
+    tiles : T * T AvisLevels of side n (tile (ty, tx) at index ty * T + tx, local texel ids
+        iy * n + ix), all with one res and max_terms
+    returns : AvisLevel of side T * n with texel id (ty n + iy) (T n) + tx n + ix
+    """
+    t_side = int(tiles_per_side)
+    if t_side < 1 or len(tiles) != t_side * t_side:
+        raise ShapeError(f"expected {t_side}^2 tiles, got {len(tiles)}")
+    n, res, max_terms = tiles[0].n_side, tiles[0].res, tiles[0].max_terms
+    if any((t.n_side, t.res, t.max_terms) != (n, res, max_terms) for t in tiles):
+        raise ShapeError("tiles must share n_side, res and max_terms")
+    side = t_side * n
+    iy, ix = np.divmod(np.arange(n * n), n)
+    closed = np.zeros(side * side, dtype=bool)
+    bounded = np.zeros(side * side, dtype=bool)
+    area = np.zeros(side * side)
+    owners, normals, areas, ray_ids, ray_maps = [], [], [], [], []
+    for k, tile in enumerate(tiles):  # a loop over tiles
+        ty, tx = divmod(k, t_side)
+        gid = (ty * n + iy) * side + tx * n + ix  # (n*n,) local -> global
+        closed[gid], bounded[gid], area[gid] = tile.closed, tile.bounded, tile.texel_area
+        owners.append(gid[np.repeat(np.arange(n * n), np.diff(tile.cf.offsets))])
+        normals.append(tile.cf.normals)
+        areas.append(tile.cf.areas)
+        ray_ids.append(gid[tile.ray_texels])
+        ray_maps.append(tile.ray_maps)
+    cf = _merge_terms(np.concatenate(owners), np.concatenate(normals), np.concatenate(areas),
+                      side * side)
+    ids = np.concatenate(ray_ids)
+    order = np.argsort(ids, kind="stable")
+    maps = np.concatenate(ray_maps)[order] if ids.size else np.zeros((0, 6, res, res))
+    return AvisLevel(side, res, closed, bounded, cf, ids[order], maps, area, max_terms)
+
+
 def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                texel_of_sample: np.ndarray, n_side: int, res: int, occluded_fn: OccludedFn,
                mesh_points: np.ndarray, *, closed_form: bool = True, max_terms: int = 256,
@@ -645,6 +738,10 @@ def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     closed_form : False forces rays for every texel (for measuring what the skip saves)
     max_terms : ray texels with at most this many distinct normals keep their unoccluded
         upper bound (see AvisLevel.bounded); closed texels always keep all their terms
+    ray_eps : ray-origin offset and closed-form detection slack; default
+        `default_eps(positions)`. When a level is computed in tiles (texel ids local to the
+        tile, see `stack_tiles`), pass one scene-wide value so that every tile casts the rays
+        the whole level would.
     returns : AvisLevel
     """
     pos, nrm, ar, tex, n_texels = _coerce_samples(normals, areas, texel_of_sample,
@@ -747,6 +844,42 @@ class AvisTable:
     @property
     def n_texels(self) -> int:
         return int(self.closed.shape[0])
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Named arrays (what the payload writer stores; float32 Haar values)."""
+        return {
+            "meta": np.array([self.res, self.haar.res], dtype=np.int64),
+            "frames": self.frames, "texel_area": self.texel_area, "closed": self.closed,
+            "bounded": self.bounded, "cf_offsets": self.cf.offsets,
+            "cf_normals": self.cf.normals, "cf_areas": self.cf.areas, "ray_row": self.ray_row,
+            "haar_offsets": self.haar.offsets, "haar_indices": self.haar.indices,
+            "haar_values": self.haar.values,
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays) -> AvisTable:
+        """Inverse of `to_arrays` (any mapping of name -> array)."""
+        need = ("meta", "frames", "texel_area", "closed", "bounded", "cf_offsets", "cf_normals",
+                "cf_areas", "ray_row", "haar_offsets", "haar_indices", "haar_values")
+        missing = [k for k in need if k not in arrays]
+        if missing:
+            raise ShapeError(f"a_vis table arrays are missing {missing}")
+        res = int(np.asarray(arrays["meta"])[0])
+        ray_row = np.asarray(arrays["ray_row"], np.int64)
+        n_ray = int(ray_row.max()) + 1 if ray_row.size else 0
+        haar = HaarCoeffs(res, (n_ray, 6), np.asarray(arrays["haar_offsets"], np.int64),
+                          np.asarray(arrays["haar_indices"], np.int32),
+                          np.asarray(arrays["haar_values"]))
+        if haar.n_maps != n_ray * 6:
+            raise ShapeError(f"haar_offsets describe {haar.n_maps} maps, ray_row needs "
+                             f"{n_ray * 6}")
+        cf = ClosedForm(np.asarray(arrays["cf_offsets"], np.int64),
+                        np.asarray(arrays["cf_normals"], np.float64),
+                        np.asarray(arrays["cf_areas"], np.float64))
+        return cls(res, np.asarray(arrays["frames"], np.float64),
+                   np.asarray(arrays["texel_area"], np.float64),
+                   np.asarray(arrays["closed"], bool), np.asarray(arrays["bounded"], bool), cf,
+                   ray_row, haar)
 
     def evaluate(self, texels: np.ndarray, dirs_texel: np.ndarray, *,
                  interp: str = "bilinear",
