@@ -60,6 +60,9 @@ from texelbake.tol import TOL
 
 SvdMethod = Literal["auto", "full", "gram"]
 
+#: top_singular keeps the Gram route only when span(V_k) is resolved to 1e-6 (1 / this factor)
+GRAM_SUBSPACE_TOL = 1e6
+
 
 def _as_matrix(name: str, a: np.ndarray) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
@@ -76,11 +79,10 @@ def svd_float64(
     R : (d, m) float (upcast to float64)
     method : "full" (torch.linalg.svd), "gram" (eigh of R^T R, U = R V / s), or "auto" (gram when
         d >= 2 m, see the module docstring for the measurements)
-    rcond : for "gram": singular values <= rcond * s_max get zero left vectors (U columns) since
-        R V / s is meaningless there
+    rcond : for "gram": singular values <= max(rcond, sqrt(m eps)) * s_max are not resolved by
+        the Gram route (R^T R has absolute error ~ m eps s_max^2); they are returned as 0 with
+        zero U columns, so U s Vt reproduces R to ~sqrt(m eps) ||R||_2 (full: to rounding)
     returns : (U (d, r) float64, s (r,) float64 descending, Vt (r, m) float64), r = min(d, m).
-        U s Vt reproduces R to float64 rounding for both methods; for "gram", U columns of
-        singular values below ~1.5e-8 s_max are not orthonormal (see module docstring).
     """
     R = _as_matrix("R", R)
     d, m = R.shape
@@ -99,7 +101,12 @@ def svd_float64(
     lam = lam.flip(0).clamp(min=0.0)[:r]
     V = V.flip(1)[:, :r]  # (m, r)
     s = lam.sqrt()
-    keep = s > rcond * (s[0] if s.numel() else 0.0)
+    # eigenvalues of R^T R carry an absolute error ~ m eps s_1^2: singular values below
+    # sqrt(m eps) s_1 are not resolved by this route and are reported as exact zeros (so the
+    # numerical rank stays meaningful), their U columns as zeros
+    floor = max(rcond, float(np.sqrt(m * np.finfo(np.float64).eps))) * float(s[0])
+    s = torch.where(s > floor, s, torch.zeros_like(s))
+    keep = s > 0.0
     inv = torch.where(keep, 1.0 / torch.where(keep, s, torch.ones_like(s)), torch.zeros_like(s))
     U = (Rt @ V) * inv[None, :]  # (d, r)
     return U.numpy(), s.numpy(), V.T.contiguous().numpy()
@@ -145,7 +152,10 @@ def top_singular(
         oversample triplets and niter power iterations, q doubled until the psi energy is reached
         within q - oversample triplets; ||R||_F^2 is known exactly from the entries, so k is exact
         without the tail; falls back to "auto" beyond q = min(d, m) / 4), or "auto" = svd_float64's
-        auto (gram for tall R, else full; lowrank was not faster, see the module docstring).
+        auto (gram for tall R, else full; lowrank was not faster, see the module docstring), with
+        a full SVD instead whenever the Gram route cannot resolve span(V_k): Davis-Kahan bound
+        m eps s_1^2 / (s_k^2 - s_{k+1}^2) > 1e-6 (k reaching into singular values below
+        ~1e-4 s_1, i.e. psi within ~1e-8 of 1, or a near-degenerate gap at k).
     seed : seed of svd_lowrank's random test matrix (torch RNG forked, global state untouched)
     returns : (U (d, q), s (q,), Vt (q, m), k); q = min(d, m) for full/gram. Pass exact column
         energies to column_probabilities when q < rank (its residual terms need them).
@@ -170,7 +180,16 @@ def top_singular(
             q = 2 * q
         method = "auto"
     U, s, Vt = svd_float64(R, "full" if method == "full" else ("gram" if method == "gram" else "auto"))
-    return U, s, Vt, energy_rank(s, psi, total)
+    k = energy_rank(s, psi, total)
+    if method == "auto" and d >= 2 * m and 0 < k <= s.size:
+        # the Gram route resolves span(V_k) to ~ m eps s_1^2 / (s_k^2 - s_{k+1}^2) (Davis-Kahan);
+        # Table 2 only needs that subspace (its leverage scores are rotation-invariant within
+        # it), so keep Gram when that is <= 1e-6 and redo the full SVD otherwise
+        gap = s[k - 1] ** 2 - (s[k] ** 2 if k < s.size else 0.0)
+        if gap <= GRAM_SUBSPACE_TOL * m * np.finfo(np.float64).eps * s[0] ** 2:
+            U, s, Vt = svd_float64(R, "full")
+            k = energy_rank(s, psi, total)
+    return U, s, Vt, k
 
 
 def _numerical_rank(s: np.ndarray, rcond: float) -> int:

@@ -35,10 +35,9 @@ import numpy as np
 
 from texelbake.column_sampling import (
     column_probabilities,
-    energy_rank,
     fit_weights,
     sample_columns,
-    svd_float64,
+    top_singular,
 )
 from texelbake.errors import NumericalError, SettingsError, ShapeError
 from texelbake.tol import TOL
@@ -428,8 +427,7 @@ class _Fitter:
         fbar_ref, valid = filtered_reflectance(target, self.avis_rows, self.eps_avis)
         S = self.S[:, cand]  # (d, m')
         col_energy = np.einsum("dm,dm->m", S, S)
-        U, s, Vt = svd_float64(S)
-        k = energy_rank(s, self.psi)
+        U, s, Vt, k = top_singular(S, self.psi)
         if k == 0:  # nothing to select: zero matrix; alpha = 0 reproduces it
             empty = np.zeros(0, dtype=np.int64)
             _, snr = self._trial(empty, target, fbar_ref, valid)
