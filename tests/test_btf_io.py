@@ -84,7 +84,8 @@ def test_json_and_csv_directions_with_exr(tmp_path, rng):
     (tmp_path / "dirs.csv").write_text(
         "file,theta_i,phi_i,theta_o,phi_o\n"
         + "".join(f"{n},{a[0]},{a[1]},{a[2]},{a[3]}\n" for n, a in zip(names, angles, strict=True)))
-    assert read_directions_file(tmp_path / "dirs.json") == read_directions_file(tmp_path / "dirs.csv")
+    from_json = read_directions_file(tmp_path / "dirs.json")
+    assert from_json == read_directions_file(tmp_path / "dirs.csv")
     for table in ("dirs.json", "dirs.csv"):
         m = load_measured_btf(tmp_path, tmp_path / table)
         assert np.array_equal(m.btf[0], data["a.exr"])  # EXR is linear: taken as is

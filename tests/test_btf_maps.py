@@ -69,7 +69,8 @@ def test_zero_valued_directions_below_horizon(rng):
     assert np.all(np.isfinite(rec))
     # look-ups below the horizon return exactly zero
     n = below.size
-    out = btf_lookup(maps, np.full((n, 2), 0.5), maps.dirs_i[below], maps.dirs_o[below], np.zeros(n))
+    uv = np.full((n, 2), 0.5)
+    out = btf_lookup(maps, uv, maps.dirs_i[below], maps.dirs_o[below], np.zeros(n))
     assert np.all(out == 0.0)
     err = btf_errors(btf, maps)
     assert set(err) == {"Y", "Cb", "Cr"} and err["Y"]["max"] >= err["Y"]["avg"] >= err["Y"]["min"]

@@ -20,6 +20,7 @@ from texelbake.btf.pca import pca_batched
 from texelbake.btf.phong import fit_phong, phong_eval
 from texelbake.btf.render import btf_lookup, btf_lookup_texels
 from texelbake.btf.report import btf_errors, btf_report, compression_stats, error_vs_components
+from texelbake.btf.stage import author_btf_shader, bake_btf, btf_from_texels
 
 __all__ = [
     "SHADER_BTF",
@@ -28,7 +29,10 @@ __all__ = [
     "BuildInfo",
     "DirectionLUT",
     "MeasuredBTF",
+    "author_btf_shader",
+    "bake_btf",
     "bonn_directions",
+    "btf_from_texels",
     "btf_errors",
     "btf_lookup",
     "btf_lookup_texels",

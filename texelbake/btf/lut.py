@@ -46,7 +46,8 @@ def dirs_from_degrees(theta_deg, phi_deg) -> np.ndarray:
 
 def bonn_angles() -> tuple[np.ndarray, np.ndarray]:
     """The 81 (theta, phi) of the Bonn UBO2003 sampling, degrees, in ring order: (81,) x 2."""
-    theta = np.concatenate([np.full(c, t) for t, c in zip(BONN_THETAS, BONN_PHI_COUNTS, strict=True)])
+    rings = zip(BONN_THETAS, BONN_PHI_COUNTS, strict=True)
+    theta = np.concatenate([np.full(c, t) for t, c in rings])
     phi = np.concatenate([np.arange(c) * (360.0 / c) for c in BONN_PHI_COUNTS])
     return theta, phi
 

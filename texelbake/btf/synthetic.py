@@ -56,7 +56,8 @@ def _surface(size: int, rng: np.random.Generator):
             dy = (yy - cy + 0.5) % 1.0 - 0.5
             dist = np.sqrt(dx * dx + dy * dy)
             inside = dist < r
-            height = np.maximum(height, np.where(inside, a * np.cos(0.5 * np.pi * dist / r) ** 2, 0))
+            bump = np.where(inside, a * np.cos(0.5 * np.pi * dist / r) ** 2, 0.0)
+            height = np.maximum(height, bump)
             mask = np.maximum(mask, np.clip((r - dist) / (0.15 * r), 0.0, 1.0))
     height += 0.003 * np.sin(2 * np.pi * 3 * xx) * np.sin(2 * np.pi * 2 * yy)
     stripes = 0.8 + 0.2 * np.sin(2 * np.pi * 8 * (xx + 0.3 * yy))

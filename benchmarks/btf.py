@@ -1,0 +1,169 @@
+"""BTF level-of-detail benchmark (issue 5; seed 001).
+
+Inputs: baked BTFs as .npz files (keys `btf` (d, h, w, 3), `dirs_i` (d, 3), `dirs_o` (d, 3) —
+the f_r of every finest texel on the direction grid, written by the CPM pipeline) and/or
+`--synthetic`: a deterministic 64 x 64 texel BTF on the Bonn UBO2003 sampling (81 light x 81
+view directions: theta 0, 15, 30, 45, 60, 75 degrees with 1, 6, 12, 18, 20, 24 phi samples), the
+seed's size (80,621,568 bytes as 8-bit RGB), rendered from a bumpy two-material height field
+with shadowing, masking and parallax (`texelbake.btf.synthetic`).
+
+Per input: one build with the default settings (8, 2, 2 components, lambda_max by the stop
+rule) -> compression ratio, per-channel MSE (avg/min/max over direction images, values scaled to
+[0, 1]), seconds per stage; then the seed's Fig. 6: a full build for each n in --n (Y
+components), time and error side by side, plotted. With --compare-pca, the level-1 PCA problem
+is also solved by both solvers (exact Gram eigh vs randomized) for time and error.
+
+    .venv/bin/python benchmarks/btf.py --synthetic --json out/btf.json [baked.npz ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from texelbake.btf.compress import BTFSettings, to_ycbcr_planes  # noqa: E402
+from texelbake.btf.laplacian import reduce  # noqa: E402
+from texelbake.btf.pca import pca_batched  # noqa: E402
+from texelbake.btf.report import (  # noqa: E402
+    btf_report,
+    error_vs_components,
+    plot_error_vs_components,
+)
+from texelbake.btf.synthetic import synthetic_btf  # noqa: E402
+
+SEED_REFERENCE = {
+    "compression_ratio": 43.9,
+    "mse_Y_avg_range": [0.0137, 0.0359],
+    "raw_bytes": 80_621_568,
+    "build_seconds_bar": 20.0,
+}
+
+
+def load_npz(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    with np.load(path) as z:
+        missing = {"btf", "dirs_i", "dirs_o"} - set(z.files)
+        if missing:
+            raise SystemExit(f"{path}: missing keys {sorted(missing)} (has {z.files})")
+        return z["btf"].astype(np.float32), z["dirs_i"], z["dirs_o"]
+
+
+def compare_pca(btf: np.ndarray, settings: BTFSettings) -> dict:
+    """Level-1 Y/Cb/Cr PCA by both solvers: seconds and squared error against the optimum."""
+    planes = to_ycbcr_planes(btf)  # (3, h, w, d)
+    lev1 = np.stack([reduce(planes[c]) for c in range(3)])  # F_1 as a stand-in of L_1's shape
+    del planes
+    x = lev1.reshape(3, -1, lev1.shape[-1])
+    out = {"shape": list(x.shape)}
+    for method in ("exact", "randomized"):
+        t0 = time.perf_counter()
+        res = pca_batched(x, settings.n_components, method=method,
+                          oversample=settings.pca_oversample,
+                          power_iters=settings.pca_power_iters, seed=settings.seed)
+        secs = time.perf_counter() - t0
+        rec = np.einsum("btn,bnd->btd", res.weights, res.components.astype(np.float64))
+        out[method] = {"seconds": secs, "sq_error": float(((rec - x) ** 2).sum())}
+    out["error_ratio_randomized_over_exact"] = (
+        out["randomized"]["sq_error"] / max(out["exact"]["sq_error"], 1e-300))
+    return out
+
+
+def run_input(name: str, btf, dirs_i, dirs_o, args) -> dict:
+    settings = BTFSettings(pca_method=args.pca_method)
+    print(f"\n== {name}: {btf.shape[0]} pairs, {btf.shape[1]} x {btf.shape[2]} texels, "
+          f"{btf.nbytes / 1e6:.0f} MB float32")
+    maps, rep = btf_report(btf, dirs_i, dirs_o, settings)
+    sec = rep["seconds"]
+    print(f"build {sec['build_total']:.2f} s wall ({rep['cpu_seconds_build']:.2f} s CPU): "
+          + ", ".join(f"{k} {v:.2f}" for k, v in sec.items() if k not in ("build_total",)))
+    print(f"lambda_max {rep['top_level']}, PCA {rep['pca_methods']}, mean {rep['mean_models']}; "
+          f"{rep['fit_message']}")
+    print(f"compression {rep['compression_ratio']:.3f}x (8-bit raw {rep['raw_bytes_8bit']} B / "
+          f"{rep['compressed_bytes']} B; float32 raw: {rep['compression_ratio_float32']:.1f}x; "
+          f"LUT {rep['lut_bytes']} B extra)")
+    for ch, m in rep["mse"].items():
+        print(f"  MSE {ch:2s}: avg {m['avg']:.5f}  min {m['min']:.5f}  max {m['max']:.5f}")
+    del maps
+    rows = error_vs_components(btf, dirs_i, dirs_o, args.n, settings)
+    print(f"{'n':>4} {'seconds':>8} {'cpu s':>8} {'ratio':>8} {'Y avg':>9} {'Y min':>9} "
+          f"{'Y max':>9} {'Cb avg':>9} {'Cr avg':>9}")
+    for r in rows:
+        m = r["mse"]
+        print(f"{r['n']:>4} {r['seconds']:>8.2f} {r['cpu_seconds']:>8.2f} "
+              f"{r['compression_ratio']:>8.2f} {m['Y']['avg']:>9.5f} {m['Y']['min']:>9.5f} "
+              f"{m['Y']['max']:>9.5f} {m['Cb']['avg']:>9.5f} {m['Cr']['avg']:>9.5f}")
+    plot = Path(args.json).with_name(f"{Path(args.json).stem}_{name}_components.png") \
+        if args.json else Path(f"btf_{name}_components.png")
+    plot_error_vs_components(rows, plot, title=f"{name}: Y error vs components (Fig. 6)")
+    print(f"plot: {plot}")
+    result = {
+        "compression_ratio": rep["compression_ratio"],
+        "mse": rep["mse"],
+        "seconds": rep["seconds"],
+        "cpu_seconds_build": rep["cpu_seconds_build"],
+        "report": rep,
+        "components": rows,
+        "plot": str(plot),
+        "bar": {
+            "ratio_ok": rep["compression_ratio"] >= SEED_REFERENCE["compression_ratio"] - 5e-3,
+            "y_mse_ok": rep["mse"]["Y"]["avg"] <= SEED_REFERENCE["mse_Y_avg_range"][1],
+            "time_ok": sec["build_total"] <= SEED_REFERENCE["build_seconds_bar"],
+        },
+    }
+    if args.compare_pca:
+        result["pca_solvers_level1"] = compare_pca(btf, settings)
+        c = result["pca_solvers_level1"]
+        print(f"level-1 PCA {c['shape']}: exact {c['exact']['seconds']:.2f} s, randomized "
+              f"{c['randomized']['seconds']:.2f} s, error ratio "
+              f"{c['error_ratio_randomized_over_exact']:.5f}")
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("inputs", nargs="*", type=Path, help=".npz files with btf, dirs_i, dirs_o")
+    ap.add_argument("--synthetic", action="store_true", help="add the 64x64x81x81 synthetic BTF")
+    ap.add_argument("--size", type=int, default=64, help="synthetic texels per side")
+    ap.add_argument("--save-synthetic", type=Path, default=None, help="also write it as .npz")
+    ap.add_argument("--n", type=int, nargs="+", default=[2, 4, 8, 16])
+    ap.add_argument("--pca-method", default="auto", choices=["auto", "exact", "randomized"])
+    ap.add_argument("--compare-pca", action="store_true")
+    ap.add_argument("--json", type=str, default=None, help="write the results here")
+    args = ap.parse_args(argv)
+    if not args.inputs and not args.synthetic:
+        ap.error("give .npz inputs and/or --synthetic")
+    results = {}
+    for path in args.inputs:
+        btf, di, do = load_npz(path)
+        results[path.stem] = run_input(path.stem, btf, di, do, args)
+        del btf
+    if args.synthetic:
+        t0 = time.perf_counter()
+        btf, di, do = synthetic_btf(args.size)
+        print(f"synthetic BTF generated in {time.perf_counter() - t0:.1f} s")
+        if args.save_synthetic:
+            np.savez(args.save_synthetic, btf=btf, dirs_i=di, dirs_o=do)
+        results["synthetic"] = run_input("synthetic", btf, di, do, args)
+    out = {
+        "inputs": results,
+        "seed_reference": SEED_REFERENCE,
+        "machine": {"platform": platform.platform(), "python": platform.python_version(),
+                    "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024},
+    }
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(out, indent=2, sort_keys=True))
+        print(f"\nJSON: {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,69 @@
+"""BTF stage glue: texel arrays -> BTF images, bake_btf, the USD shader referencing the maps."""
+
+import numpy as np
+import pytest
+
+from texelbake.btf.compress import BTFSettings, reconstruct_btf
+from texelbake.btf.lut import bonn_directions
+from texelbake.btf.maps_io import SHADER_BTF, read_btf_maps
+from texelbake.btf.stage import author_btf_shader, bake_btf, btf_from_texels
+from texelbake.errors import ShapeError
+
+
+def _grid(n=4):
+    dirs = bonn_directions()[:n]
+    return np.repeat(dirs, n, axis=0), np.tile(dirs, (n, 1))
+
+
+def test_btf_from_texels_scatters_by_flat_id(rng):
+    fbar = rng.random((5, 16, 3)).astype(np.float32)
+    ids = np.array([0, 7, 13, 35, 20])
+    btf, covered = btf_from_texels(fbar, ids, 6)
+    assert btf.shape == (16, 6, 6, 3) and covered.sum() == 5
+    for t, i in enumerate(ids):
+        r, c = divmod(int(i), 6)
+        assert covered[r, c] and np.array_equal(btf[:, r, c], fbar[t])
+    assert np.all(btf[:, ~covered] == 0)
+    with pytest.raises(ShapeError, match="duplicates"):
+        btf_from_texels(fbar, np.array([0, 0, 1, 2, 3]), 6)
+    with pytest.raises(ShapeError, match="texel ids"):
+        btf_from_texels(fbar, ids, 5)
+
+
+def test_bake_btf_writes_maps_and_report(tmp_path, rng):
+    di, do = _grid()
+    btf = rng.random((16, 8, 8, 3)).astype(np.float32)
+    maps, rep = bake_btf(btf, di, do, tmp_path, BTFSettings(n_components=(64, 64, 64)))
+    assert set(rep["files"]) == {"eigen", "weights", "lut", "pairs"}
+    assert all((tmp_path / f).is_file() for f in rep["files"].values())
+    assert set(rep["mse"]) == {"Y", "Cb", "Cr"}
+    assert rep["mse"]["Y"]["max"] < 1e-10  # all components kept: exact
+    back = read_btf_maps(tmp_path)
+    assert np.abs(reconstruct_btf(back) - btf).max() < 1e-5
+    assert {"ycbcr", "pyramid", "mean_fit", "pca", "build_total"} <= set(rep["seconds"])
+
+
+def test_author_btf_shader_resolves_next_to_layer(tmp_path, rng):
+    from pxr import Usd, UsdShade, UsdValidation
+
+    di, do = _grid()
+    btf = rng.random((16, 6, 6, 3)).astype(np.float32)
+    maps, rep = bake_btf(btf, di, do, tmp_path, BTFSettings(n_components=(4, 1, 1)))
+    layer = tmp_path / "payload.usda"
+    stage = Usd.Stage.CreateNew(str(layer))
+    shader = author_btf_shader(stage, "/Looks/Baked", rep["files"], maps)
+    stage.GetRootLayer().Save()
+    assert shader.GetIdAttr().Get() == SHADER_BTF
+    mat = UsdShade.Material(stage.GetPrimAtPath("/Looks/Baked"))
+    src = mat.GetSurfaceOutput("texelbake_btf").GetConnectedSources()[0][0].source
+    assert src.GetPath() == shader.GetPrim().GetPath()
+    for part in ("eigen", "weights", "lut", "pairs"):
+        asset = shader.GetInput(f"{part}Map").Get()
+        assert (tmp_path / asset.path).is_file()
+    assert shader.GetInput("topLevel").Get() == maps.top_level
+    ctx = UsdValidation.ValidationContext(
+        list(UsdValidation.ValidationRegistry().GetAllValidatorMetadata()), True)
+    names = {e.GetName() for e in ctx.Validate(stage)}
+    assert "UnresolvableDependency" not in names  # the maps resolve next to the layer
+    with pytest.raises(ShapeError, match="lacks BTF parts"):
+        author_btf_shader(stage, "/Looks/B2", {"eigen": "x.exr"}, maps)
