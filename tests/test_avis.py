@@ -581,3 +581,16 @@ def test_level_and_table_arrays_round_trip():
         assert np.array_equal(a1, a2) and np.array_equal(v1, v2)
     with pytest.raises(ShapeError):
         level_from_arrays({"meta": np.array([4, 4, 256])})
+
+
+def test_unoccluded_detection_equals_brute_force():
+    """Per sample (one texel per sample), the bounded hull test equals the definition: every
+    mesh vertex on or below the sample's tangent plane lifted by eps."""
+    pts, faces = uv_sphere(14, 28, bump=lambda t, p: np.where(
+        t > np.pi / 2, 0.06 * np.sin(4 * t) * np.cos(5 * p), 0.0))
+    pos, nrm, _, _ = sample_faces(pts, faces, 2, seed=4)
+    eps = default_eps(pos)
+    got = unoccluded_texels(pos, nrm, np.arange(pos.shape[0]), pos.shape[0], pts, eps=eps)
+    brute = np.max(nrm @ pts.T - np.einsum("ij,ij->i", nrm, pos)[:, None], axis=1) <= eps
+    assert 0.2 < brute.mean() < 0.9  # both outcomes well represented
+    assert np.array_equal(got, brute)

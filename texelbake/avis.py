@@ -451,7 +451,7 @@ def unoccluded_texels(positions: np.ndarray, normals: np.ndarray, texel_of_sampl
     positions, normals : (m, 3) float64 samples and geometric normals
     texel_of_sample : (m,) int; mesh_points : (v, 3) float64 vertices of M_org
     eps : default `default_eps(positions)` (the same offset avis_cube_maps uses)
-    chunk : bound on the (samples x hull vertices) products held at once
+    chunk : bound on the (distinct normals x hull vertices) products held at once
     returns : (n_texels,) bool
     """
     pos, nrm, _, tex, n_texels = _coerce_samples(normals, np.zeros(len(np.asarray(normals))),
@@ -466,14 +466,42 @@ def unoccluded_texels(positions: np.ndarray, normals: np.ndarray, texel_of_sampl
     if m == 0 or pts.shape[0] == 0:
         return np.ones(n_texels, dtype=bool)
     try:
-        cand = pts[ConvexHull(pts).vertices]
+        hull = ConvexHull(pts)
+        cand, facets = pts[hull.vertices], hull.equations  # facets: e . y + off <= 0
     except (QhullError, ValueError):
-        cand = np.unique(pts, axis=0)
-    step = max(1, int(chunk) // max(cand.shape[0], 1))
-    support = np.empty(m, dtype=np.float64)
-    for s0 in range(0, m, step):  # loop over memory-bounded chunks
-        support[s0:s0 + step] = (nrm[s0:s0 + step] @ cand.T).max(axis=1)
-    ok = support - np.einsum("ji,ji->j", nrm, pos) <= eps
+        cand, facets = np.unique(pts, axis=0), np.zeros((0, 4))
+    # The support function h(n) = max_y n . y depends on the normal only, so it is bounded
+    # once per distinct normal (samples of one triangle share theirs), then refined only where
+    # the bounds cannot decide. All three steps are exact inequalities:
+    #   lower: h(n) >= max over a subset of the hull vertices (a vertex above -> sample fails);
+    #   upper: with centre c, R = max |y - c| and the hull facet (e, off) nearest to n,
+    #          h(n) <= n.c + (-off - e.c) + |n - e| R  (a sample on a hull facet passes);
+    #   exact: max over all hull vertices, for the undecided normals only.
+    uniq, inv = np.unique(nrm + 0.0, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    thresh = np.einsum("ji,ji->j", nrm, pos) + eps  # sample passes iff h(n_j) <= thresh_j
+    sub = cand[np.linspace(0, cand.shape[0] - 1, min(cand.shape[0], 256)).astype(np.int64)]
+    lower = (uniq @ sub.T).max(axis=1)  # (U,)
+    centre = cand.mean(axis=0)
+    radius = float(np.linalg.norm(cand - centre, axis=1).max())
+    upper = uniq @ centre + radius
+    if facets.shape[0]:
+        _, near = cKDTree(facets[:, :3]).query(uniq)
+        e, off = facets[near, :3], facets[near, 3]
+        via_facet = (uniq @ centre - off - np.einsum("ui,i->u", e, centre)
+                     + np.linalg.norm(uniq - e, axis=1) * radius)
+        upper = np.minimum(upper, via_facet)
+    ok = thresh >= upper[inv]
+    undecided = ~ok & (thresh >= lower[inv])
+    need = np.unique(inv[undecided])
+    if need.size:
+        step = max(1, int(chunk) // max(cand.shape[0], 1))
+        exact = np.empty(need.shape[0], dtype=np.float64)
+        for s0 in range(0, need.shape[0], step):  # loop over memory-bounded chunks
+            exact[s0:s0 + step] = (uniq[need[s0:s0 + step]] @ cand.T).max(axis=1)
+        support = np.full(uniq.shape[0], np.inf)
+        support[need] = exact
+        ok |= undecided & (thresh >= support[inv])
     bad = np.bincount(tex[~ok], minlength=n_texels)
     return bad == 0
 
