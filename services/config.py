@@ -43,6 +43,9 @@ class Settings(BaseSettings):
     max_attempts: int = Field(3, ge=1, description="Redelivery cap: starts of one shard.")
     max_retries: int = Field(4, ge=0, description="Retries of a transient fault per delivery.")
     retry_backoff_max: int = Field(60, ge=1)
+    sse_max_seconds: float = Field(
+        300.0, gt=0, description="An events stream closes after this long; clients reconnect."
+    )
     sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
 
     @model_validator(mode="after")

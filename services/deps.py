@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Request, status
+from fastapi import Depends, HTTPException, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -56,3 +56,8 @@ def get_current_tenant(
 
 
 CurrentTenant = Annotated[str, Depends(get_current_tenant)]
+
+
+#: paging of listings; out-of-range values are a 422, never a database overflow
+SkipQ = Annotated[int, Query(ge=0, le=1_000_000_000)]
+LimitQ = Annotated[int, Query(ge=1, le=1000)]

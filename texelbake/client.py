@@ -111,7 +111,10 @@ def iter_events(
                         data = []
                         last = ev["seq"]
                         yield ev
-            return  # the server ended the stream: the job is finished
+            r = client.get(f"{API}/jobs/{job_id}")
+            if r.status_code != 200 or r.json()["state"] in TERMINAL:
+                return  # the job is finished (or gone): no more events
+            # the server closed a long stream while the job runs: reconnect
         except (httpx.TransportError, httpx.RemoteProtocolError):
             if deadline is not None and time.monotonic() > deadline:
                 raise

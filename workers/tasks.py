@@ -99,6 +99,9 @@ def plan_job(self, job_id: str) -> None:
             ledger.fail_job(_sm(), job_id, f"plan: transient fault persisted: {exc!r}")
             return
         raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
+    except Exception as exc:  # a bug: the job fails with the reason instead of hanging
+        ledger.fail_job(_sm(), job_id, f"plan: {type(exc).__name__}: {exc}")
+        raise
 
 
 def execute_shard(job_id: str, stage: str, shard: int) -> str:

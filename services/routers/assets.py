@@ -12,7 +12,7 @@ from sqlalchemy.exc import IntegrityError
 from schemas.asset import AssetPublic, AssetsPublic
 from services import uploads
 from services.db import Asset
-from services.deps import CurrentTenant, SessionDep, SettingsDep, WriterDep
+from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 
 router = APIRouter(prefix="/assets", tags=["assets"])
 
@@ -89,10 +89,9 @@ async def create_asset(
 
 @router.get("", response_model=AssetsPublic)
 def read_assets(
-    session: SessionDep, tenant: CurrentTenant, skip: int = 0, limit: int = 100
+    session: SessionDep, tenant: CurrentTenant, skip: SkipQ = 0, limit: LimitQ = 100
 ) -> AssetsPublic:
     """This tenant's assets, newest first."""
-    skip, limit = max(skip, 0), min(max(limit, 0), 1000)
     q = select(Asset).where(Asset.tenant == tenant)
     count = session.scalar(select(func.count()).select_from(q.subquery())) or 0
     rows = session.scalars(q.order_by(Asset.created_at.desc(), Asset.id).offset(skip).limit(limit))

@@ -32,7 +32,7 @@ from schemas.settings import BakeSettings
 from services import ledger, storage
 from services.broker import broker_run_id, celery_sender
 from services.db import Asset, Event, Job, Shard, Stage
-from services.deps import CurrentTenant, SessionDep, SettingsDep, WriterDep
+from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.routers.assets import ASSET_NOT_FOUND
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -148,10 +148,9 @@ def create_job(
 
 @router.get("", response_model=JobsPublic)
 def read_jobs(
-    session: SessionDep, tenant: CurrentTenant, skip: int = 0, limit: int = 100
+    session: SessionDep, tenant: CurrentTenant, skip: SkipQ = 0, limit: LimitQ = 100
 ) -> JobsPublic:
     """This tenant's jobs, newest first."""
-    skip, limit = max(skip, 0), min(max(limit, 0), 1000)
     q = select(Job).where(Job.tenant == tenant)
     count = session.scalar(select(func.count()).select_from(q.subquery())) or 0
     jobs = session.scalars(
@@ -228,17 +227,21 @@ def read_job_events(
     last_event_id: str | None = Header(None),
 ) -> StreamingResponse:
     """Server-sent events of one job (`event: job|stage|shard`, `data: JSON`, `id: seq`); the
-    stream ends after the job's terminal event. Reconnect with `Last-Event-ID` to resume."""
+    stream ends after the job's terminal event, or after `sse_max_seconds` (reconnect with
+    `Last-Event-ID` to resume)."""
     _own_job(session, job_id, tenant)
     try:
         after = int(last_event_id or 0)
     except ValueError:
         after = 0
     reader = request.app.state.reader
+    max_seconds = request.app.state.settings.sse_max_seconds
 
     async def stream():
         nonlocal after
         idle = 0.0
+        loop = asyncio.get_running_loop()
+        t_end = loop.time() + max_seconds
         while True:
             rows, state = await run_in_threadpool(_events_after, reader, job_id, after)
             for ev in rows:
@@ -256,8 +259,8 @@ def read_job_events(
                 continue
             if state in TERMINAL_JOB_STATES or state is None:
                 return
-            if await request.is_disconnected():
-                return
+            if await request.is_disconnected() or loop.time() > t_end:
+                return  # a client reconnects with Last-Event-ID
             await asyncio.sleep(0.25)
             idle += 0.25
             if idle >= 15.0:
