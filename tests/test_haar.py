@@ -81,9 +81,10 @@ def test_point_eval_equals_full_inverse(rng, res):
     mi = rng.integers(0, c.n_maps, n)
     iu = rng.integers(0, res, n)
     iv = rng.integers(0, res, n)
-    pts = eval_haar_point(c, mi, iu, iv)
-    assert pts.shape == (n,) and pts.dtype == np.float64
-    np.testing.assert_allclose(pts, full[mi, iv, iu], rtol=0, atol=1e-12)
+    for dense_limit in (0, 1 << 30):  # sparse search and dense gather paths
+        pts = eval_haar_point(c, mi, iu, iv, dense_limit=dense_limit)
+        assert pts.shape == (n,) and pts.dtype == np.float64
+        np.testing.assert_allclose(pts, full[mi, iv, iu], rtol=0, atol=1e-12)
 
 
 def test_point_terms_count_is_logarithmic():

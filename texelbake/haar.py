@@ -183,12 +183,15 @@ def haar_point_terms(res: int, iu: np.ndarray, iv: np.ndarray) -> tuple[np.ndarr
 
 
 def eval_haar_point(coeffs: HaarCoeffs, map_index: np.ndarray, iu: np.ndarray,
-                    iv: np.ndarray) -> np.ndarray:
+                    iv: np.ndarray, *, dense_limit: int = 1 << 20) -> np.ndarray:
     """Reconstruct single pixels from the sparse coefficients (no inverse transform).
 
     coeffs : HaarCoeffs
     map_index : (n,) int, flat index into batch_shape (for (n_texels, 6): texel * 6 + face)
     iu, iv : (n,) int in [0, res), column and row of the pixel
+    dense_limit : tables with at most this many dense coefficients (n_maps * res^2) are
+        gathered from a dense coefficient array; larger ones are searched in the sparse keys
+        (memory O(nnz)); both give the same values
     returns : (n,) float64, equal to decompress_haar(coeffs) at those pixels up to rounding
     """
     map_index = np.asarray(map_index, dtype=np.int64).ravel()
@@ -207,13 +210,17 @@ def eval_haar_point(coeffs: HaarCoeffs, map_index: np.ndarray, iu: np.ndarray,
         if a.min() < 0 or a.max() >= res:
             raise ShapeError(f"{name} must be in [0, {res}), got [{a.min()}, {a.max()}]")
     n_coef = res * res
+    if coeffs.nnz == 0:
+        return np.zeros(map_index.shape, dtype=np.float64)
+    flat_idx, basis = haar_point_terms(res, iu, iv)  # (n, 3J+1)
+    query = map_index[:, None] * n_coef + flat_idx
+    if coeffs.n_maps * n_coef <= dense_limit:
+        # small tables: gather from the dense coefficient array (same values, ~3x faster)
+        vals = _dense_coeffs(coeffs).ravel()[query]
+        return np.sum(vals * basis, axis=1)
     # Global sorted keys: maps ascend with the CSR offsets, indices ascend within a map.
     map_of = np.repeat(np.arange(coeffs.n_maps, dtype=np.int64), np.diff(coeffs.offsets))
     keys = map_of * n_coef + coeffs.indices.astype(np.int64)  # (nnz,)
-    flat_idx, basis = haar_point_terms(res, iu, iv)  # (n, 3J+1)
-    query = map_index[:, None] * n_coef + flat_idx
-    if keys.shape[0] == 0:
-        return np.zeros(map_index.shape, dtype=np.float64)
     pos_c = np.minimum(np.searchsorted(keys, query), keys.shape[0] - 1)
     found = keys[pos_c] == query
     vals = np.where(found, coeffs.values[pos_c].astype(np.float64), 0.0)
