@@ -126,8 +126,8 @@ def method_table(name, scene, res, qs, grids, q_ref, g_ref):
     for q in qs:
         maps, t, r, m = run_samples(q)
         e = per_texel_error(maps, ref)
-        rows.append({"scene": name, "method": "samples", "param": q, "samples": m, "rays": r, "seconds": t,
-                         "median": e[0], "p90": e[1], "total": e[2]})
+        rows.append({"scene": name, "method": "samples", "param": q, "samples": m, "rays": r,
+                     "seconds": t, "median": e[0], "p90": e[1], "total": e[2]})
         print(f"{'samples q=' + str(q):>16} {r:>12,} {t:>8.2f} {e[0]:>11.2%} {e[1]:>9.2%} "
               f"{e[2]:>10.3%}")
     for g in grids:
@@ -176,9 +176,11 @@ def haar_table(res, q, keeps):
         t0 = time.perf_counter()
         eval_haar_point(c, mi, iu, iv)
         eps = nq / (time.perf_counter() - t0)
-        out.append({"keep": keep, "stored": c.kept_fraction, "bytes_fraction": 1.5 * c.kept_fraction,
-                        "rel_l2": rel, "max_err_over_area": mx, "fraction_rel_l2": rel_f,
-                        "fraction_max_err_over_area": mx_f, "compress_s": t_c, "point_evals_per_s": eps})
+        out.append({"keep": keep, "stored": c.kept_fraction,
+                    "bytes_fraction": 1.5 * c.kept_fraction, "rel_l2": rel,
+                    "max_err_over_area": mx, "fraction_rel_l2": rel_f,
+                    "fraction_max_err_over_area": mx_f, "compress_s": t_c,
+                    "point_evals_per_s": eps})
         print(f"{keep:>7.3f} {c.kept_fraction:>8.2%} {1.5 * c.kept_fraction:>19.2%} "
               f"{rel:>11.3%} {mx:>13.3%} {rel_f:>13.3%} {mx_f:>13.3%} {t_c:>11.3f} "
               f"{eps:>14,.0f}")

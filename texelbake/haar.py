@@ -44,7 +44,8 @@ class HaarCoeffs:
     res : side of every map (a power of two)
     batch_shape : leading shape of the maps that were compressed, e.g. (n_texels, 6)
     offsets : (n_maps + 1,) int64, map i owns entries offsets[i]:offsets[i+1]
-    indices : (nnz,) int32, flat index into the res x res Mallat coefficient layout, ascending per map
+    indices : (nnz,) int32, flat index into the res x res Mallat coefficient layout,
+        ascending within each map
     values : (nnz,) float32 (or the dtype asked for), the kept coefficients
     """
 
