@@ -425,10 +425,10 @@ def avis_ortho_grids(caster, sample_positions: np.ndarray, texel_of_sample: np.n
         did = np.repeat(np.arange(d0, d0 + fr.shape[0]), n_pix)
         front = np.isfinite(hits.t) & (np.einsum("ki,ki->k", hits.normal, -ray_d) > 0)
         p = o[front] + hits.t[front, None] * ray_d[front]
-        if texel_of_points is None:
-            hit_tex = tex[tree.query(p)[1]]
-        else:
+        if texel_of_points is not None:
             hit_tex = np.asarray(texel_of_points(p), dtype=np.int64)
+        elif tree is not None:
+            hit_tex = tex[tree.query(p)[1]]
         ok = (hit_tex >= 0) & (hit_tex < n_texels)
         key = hit_tex[ok] * nd + did[front][ok]
         out += np.bincount(key, minlength=n_texels * nd) * (h * h)
