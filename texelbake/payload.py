@@ -1,0 +1,406 @@
+"""The baked USD: writer and reader (DESIGN.md "The baked USD").
+
+A baked asset is a folder:
+
+    <name>_baked.usda        root layer: references the source, adds the payload, LOD variants
+    <name>_payload.usdc      the baked data (crate): LOD meshes M1..Mn with atlas uvs, one Scope
+                             per CPM level holding its arrays, the preview material
+    source/...               a copy of the source asset and the files it references
+    <name>_albedo.png, <name>_normal.png
+                             UsdPreviewSurface fallback maps baked onto M1
+    report.json              what the bake measured
+
+Array attributes live in the `texelbake:` namespace, flattened, each with an int[] companion
+`<name>:shape`; the dtype maps one-to-one onto a USD value type (float32 -> float[], float64 ->
+double[], int32 -> int[], int64 -> int64[], uint8 -> uchar[], bool -> bool[]), so `read_baked`
+returns arrays identical to what was written. `read_baked` is the only way the renderer gets
+baked data.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
+
+from texelbake.errors import AssetError, ShapeError
+from texelbake.store import atomic_write_bytes
+
+SHADER_CPM = "texelbake:cpm"
+_NS = "texelbake:"
+
+_DTYPES: dict[str, tuple[Any, Any]] = {
+    # numpy dtype name -> (Sdf value type, Vt array class)
+    "float32": (Sdf.ValueTypeNames.FloatArray, Vt.FloatArray),
+    "float64": (Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray),
+    "int32": (Sdf.ValueTypeNames.IntArray, Vt.IntArray),
+    "int64": (Sdf.ValueTypeNames.Int64Array, Vt.Int64Array),
+    "uint8": (Sdf.ValueTypeNames.UCharArray, Vt.UCharArray),
+    "bool": (Sdf.ValueTypeNames.BoolArray, Vt.BoolArray),
+}
+_FROM_USD = {
+    "float[]": np.float32, "double[]": np.float64, "int[]": np.int32, "int64[]": np.int64,
+    "uchar[]": np.uint8, "bool[]": np.bool_,
+}
+
+
+@dataclass
+class LodMesh:
+    """M_i with its atlas uvs. vertices (n, 3) float64, faces (f, 3) int64, corner_uvs (f, 3, 2)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    corner_uvs: np.ndarray
+
+
+@dataclass
+class BakedAsset:
+    """Everything a bake writes, as arrays.
+
+    levels : one dict of named arrays per CPM level (level 0 finest), as `texelbake.stages`
+        assembles them (CSR texel offsets, characteristic points, weights, a_vis tables)
+    arrays : bake-wide arrays (direction grids, material table, ...)
+    meshes : M1..Mn
+    albedo, normal : (N, N, 3) float32 preview maps over M1's atlas (normal in [-1, 1])
+    metadata : JSON-able dict written to customLayerData["texelbake"]
+    """
+
+    name: str
+    levels: list[dict[str, np.ndarray]]
+    arrays: dict[str, np.ndarray]
+    meshes: list[LodMesh]
+    albedo: np.ndarray
+    normal: np.ndarray
+    metadata: dict[str, Any] = field(default_factory=dict)
+    source_layer: str = ""
+    root_layer: str = ""
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _author_array(prim: Usd.Prim, name: str, arr: np.ndarray) -> None:
+    arr = np.asarray(arr)
+    key = arr.dtype.name
+    if key not in _DTYPES:
+        raise ShapeError(f"payload array {name!r}: unsupported dtype {arr.dtype}")
+    vtype, vt = _DTYPES[key]
+    flat = np.ascontiguousarray(arr.reshape(-1))
+    value = vt(flat.tolist()) if key in ("bool", "uint8") else vt.FromNumpy(flat)
+    prim.CreateAttribute(f"{_NS}{name}", vtype, custom=True).Set(value)
+    prim.CreateAttribute(f"{_NS}{name}:shape", Sdf.ValueTypeNames.IntArray, custom=True).Set(
+        Vt.IntArray([int(x) for x in arr.shape])
+    )
+
+
+def _author_arrays(prim: Usd.Prim, arrays: dict[str, np.ndarray]) -> None:
+    for name in sorted(arrays):
+        _author_array(prim, name, arrays[name])
+
+
+def _author_mesh(stage: Usd.Stage, path: str, mesh: LodMesh) -> UsdGeom.Mesh:
+    geom = UsdGeom.Mesh.Define(stage, path)
+    v = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int32)
+    geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(v))
+    geom.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(f)))
+    geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(f.reshape(-1)))
+    geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    lo, hi = (v.min(axis=0), v.max(axis=0)) if len(v) else (np.zeros(3), np.zeros(3))
+    geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+    st = UsdGeom.PrimvarsAPI(geom).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
+    )
+    st.Set(Vt.Vec2fArray.FromNumpy(
+        np.ascontiguousarray(mesh.corner_uvs.reshape(-1, 2), dtype=np.float32)))
+    return geom
+
+
+def _author_preview_material(
+    stage: Usd.Stage, path: str, albedo_file: str, normal_file: str, cpm_scope: str
+) -> UsdShade.Material:
+    """UsdPreviewSurface with the baked albedo and normal maps (what any viewer shows), and
+    texelbake's CPM shader on the `texelbake` render context."""
+    mat = UsdShade.Material.Define(stage, path)
+    reader = UsdShade.Shader.Define(stage, f"{path}/stReader")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    st_out = reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+    surf = UsdShade.Shader.Define(stage, f"{path}/PreviewSurface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
+    for name, file, cs, out_name, out_type, scale, bias in (
+        ("diffuseColor", albedo_file, "sRGB", "rgb", Sdf.ValueTypeNames.Float3, None, None),
+        ("normal", normal_file, "raw", "rgb", Sdf.ValueTypeNames.Float3,
+         (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0)),
+    ):
+        tex = UsdShade.Shader.Define(stage, f"{path}/{name}Texture")
+        tex.CreateIdAttr("UsdUVTexture")
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(file))
+        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(cs)
+        tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
+        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
+        if scale is not None:
+            tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*scale))
+            tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*bias))
+        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(st_out)
+        out = tex.CreateOutput(out_name, out_type)
+        ty = Sdf.ValueTypeNames.Color3f if name == "diffuseColor" else Sdf.ValueTypeNames.Normal3f
+        surf.CreateInput(name, ty).ConnectToSource(out)
+    mat.CreateSurfaceOutput().ConnectToSource(surf.CreateOutput("surface", Sdf.ValueTypeNames.Token))
+    cpm = UsdShade.Shader.Define(stage, f"{path}/CPM")
+    cpm.CreateIdAttr(SHADER_CPM)
+    cpm.GetPrim().CreateRelationship(f"{_NS}levels", custom=True).SetTargets([Sdf.Path(cpm_scope)])
+    mat.CreateSurfaceOutput("texelbake").ConnectToSource(
+        cpm.CreateOutput("surface", Sdf.ValueTypeNames.Token)
+    )
+    return mat
+
+
+def _new_stage(path: Path) -> Usd.Stage:
+    """A new stage on a temporary file beside `path` (so relative asset paths resolve while
+    authoring); `_commit_stage` saves it and renames it onto `path`."""
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    if tmp.exists():
+        tmp.unlink()
+    stage = Usd.Stage.CreateNew(str(tmp))
+    if stage is None:
+        raise AssetError("could not create USD layer", path=str(tmp))
+    return stage
+
+
+def _commit_stage(stage: Usd.Stage, path: Path) -> None:
+    layer = stage.GetRootLayer()
+    tmp = layer.realPath
+    if not layer.Save():
+        raise AssetError("could not write USD layer", path=str(path))
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+
+
+def _write_png(path: Path, rgb: np.ndarray, srgb: bool) -> None:
+    import OpenImageIO as oiio
+
+    x = np.clip(np.asarray(rgb, dtype=np.float64), 0.0, 1.0)
+    if srgb:
+        x = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    px = np.round(x * 255.0).astype(np.uint8)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
+    os.close(fd)
+    try:
+        out = oiio.ImageOutput.create(tmp)
+        out.open(tmp, oiio.ImageSpec(px.shape[1], px.shape[0], 3, "uint8"))
+        out.write_image(px)
+        out.close()
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def copy_source(source_layer: Path, dependencies: list[str], dest: Path) -> Path:
+    """Copy the source layer and the files it references (paths relative to its folder) into
+    `dest`; returns the copied root layer."""
+    src_root = Path(source_layer).resolve().parent
+    for dep in sorted({str(Path(d).resolve()) for d in dependencies} | {str(source_layer)}):
+        rel = Path(dep).resolve().relative_to(src_root)
+        target = dest / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(dep, target)
+    return dest / Path(source_layer).resolve().relative_to(src_root)
+
+
+def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
+                      original_mesh_paths: list[str]) -> Path:
+    """Write the baked folder (see module docstring). `source_copy` is the source root layer
+    already copied under out_dir. Returns the root layer path."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    name = baked.name
+    src_stage = Usd.Stage.Open(str(source_copy), Usd.Stage.LoadNone)
+    if src_stage is None:
+        raise AssetError("cannot reopen the copied source", path=str(source_copy))
+    default = src_stage.GetDefaultPrim()
+    root_name = default.GetName() if default else "Asset"
+    up_axis = UsdGeom.GetStageUpAxis(src_stage)
+    mpu = UsdGeom.GetStageMetersPerUnit(src_stage)
+
+    albedo_file = f"{name}_albedo.png"
+    normal_file = f"{name}_normal.png"
+    _write_png(out_dir / albedo_file, baked.albedo, srgb=True)
+    _write_png(out_dir / normal_file, 0.5 * (baked.normal + 1.0), srgb=False)
+
+    # ---- payload layer (crate)
+    payload_file = f"{name}_payload.usdc"
+    pstage = _new_stage(out_dir / payload_file)
+    UsdGeom.SetStageUpAxis(pstage, up_axis)
+    UsdGeom.SetStageMetersPerUnit(pstage, mpu)
+    # (no Sdf.ChangeBlock here: Usd-level Define/CreateAttribute are not safe inside one)
+    baked_root = UsdGeom.Scope.Define(pstage, "/Baked")
+    pstage.SetDefaultPrim(baked_root.GetPrim())
+    cpm_scope = UsdGeom.Scope.Define(pstage, "/Baked/CPM")
+    _author_arrays(cpm_scope.GetPrim(), baked.arrays)
+    for lvl, arrays in enumerate(baked.levels):
+        scope = UsdGeom.Scope.Define(pstage, f"/Baked/CPM/L{lvl:02d}")
+        _author_arrays(scope.GetPrim(), arrays)
+    UsdGeom.Scope.Define(pstage, "/Baked/Looks")
+    mat = _author_preview_material(
+        pstage, "/Baked/Looks/BakedPreview", f"./{albedo_file}", f"./{normal_file}", "/Baked/CPM"
+    )
+    for i, mesh in enumerate(baked.meshes, start=1):
+        geom = _author_mesh(pstage, f"/Baked/LOD{i}", mesh)
+        UsdShade.MaterialBindingAPI.Apply(geom.GetPrim()).Bind(mat)
+    _commit_stage(pstage, out_dir / payload_file)
+
+    # ---- root layer
+    root_file = out_dir / f"{name}_baked.usda"
+    stage = _new_stage(root_file)
+    UsdGeom.SetStageUpAxis(stage, up_axis)
+    UsdGeom.SetStageMetersPerUnit(stage, mpu)
+    rel_source = os.path.relpath(source_copy, out_dir)
+    root = UsdGeom.Xform.Define(stage, f"/{root_name}")
+    stage.SetDefaultPrim(root.GetPrim())
+    Usd.ModelAPI(root.GetPrim()).SetKind(Kind.Tokens.component)
+    root.GetPrim().GetReferences().AddReference(f"./{rel_source}")
+    baked_prim = UsdGeom.Scope.Define(stage, f"/{root_name}/Baked").GetPrim()
+    baked_prim.GetPayloads().AddPayload(f"./{payload_file}")
+    vset = root.GetPrim().GetVariantSets().AddVariantSet("LOD")
+    n_lod = len(baked.meshes)
+    default_root = Sdf.Path(default.GetPath()) if default else Sdf.Path(f"/{root_name}")
+    for v in range(n_lod + 1):
+        vname = f"LOD{v}"
+        vset.AddVariant(vname)
+        vset.SetVariantSelection(vname)
+        with vset.GetVariantEditContext():
+            for i in range(1, n_lod + 1):
+                img = UsdGeom.Imageable(stage.OverridePrim(f"/{root_name}/Baked/LOD{i}"))
+                img.CreateVisibilityAttr(
+                    UsdGeom.Tokens.inherited if i == v else UsdGeom.Tokens.invisible
+                )
+            for mp in original_mesh_paths:
+                rel = Sdf.Path(mp).MakeRelativePath(default_root)
+                target = Sdf.Path(f"/{root_name}").AppendPath(rel)
+                img = UsdGeom.Imageable(stage.OverridePrim(target))
+                img.CreateVisibilityAttr(
+                    UsdGeom.Tokens.inherited if v == 0 else UsdGeom.Tokens.invisible
+                )
+    vset.SetVariantSelection("LOD1" if n_lod else "LOD0")
+    stage.GetRootLayer().customLayerData = {"texelbake": _plain_json(baked.metadata)}
+    _commit_stage(stage, root_file)
+    return root_file
+
+
+def _plain_json(obj: Any) -> Any:
+    """customLayerData takes dicts, strings, numbers and typed arrays: round trip through JSON
+    (NaN/inf written as strings), lists become Vt string / double arrays."""
+    plain = json.loads(
+        json.dumps(obj, default=lambda o: o.item() if hasattr(o, "item") else str(o)),
+        parse_constant=lambda c: c,
+    )
+
+    def convert(x: Any) -> Any:
+        if isinstance(x, dict):
+            return {k: convert(v) for k, v in x.items() if v is not None}
+        if isinstance(x, list):
+            if all(isinstance(v, str) for v in x):
+                return Vt.StringArray(x)
+            if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in x):
+                return Vt.DoubleArray([float(v) for v in x])
+            return Vt.StringArray([json.dumps(v) for v in x])
+        return x
+
+    return convert(plain)
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _read_arrays(prim: Usd.Prim) -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    for attr in prim.GetAttributes():
+        full = attr.GetName()
+        if not full.startswith(_NS) or full.endswith(":shape"):
+            continue
+        name = full[len(_NS):]
+        tname = str(attr.GetTypeName())
+        if tname not in _FROM_USD:
+            continue
+        shape_attr = prim.GetAttribute(f"{full}:shape")
+        shape = tuple(int(x) for x in shape_attr.Get()) if shape_attr else None
+        value = attr.Get()
+        arr = np.array(value, dtype=_FROM_USD[tname]) if value is not None \
+            else np.zeros(0, _FROM_USD[tname])
+        out[name] = arr.reshape(shape) if shape is not None else arr
+    return out
+
+
+def read_baked(path: str | Path) -> BakedAsset:
+    """Read a baked asset (root layer path) back into arrays identical to what was written."""
+    path = Path(path)
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise AssetError("cannot open baked USD", path=str(path))
+    root = stage.GetDefaultPrim()
+    if not root:
+        raise AssetError("baked USD has no defaultPrim", path=str(path))
+    baked_path = root.GetPath().AppendChild("Baked")
+    cpm = stage.GetPrimAtPath(baked_path.AppendChild("CPM"))
+    if not cpm:
+        raise AssetError("no texelbake payload (Baked/CPM) found", path=str(path),
+                         prim=str(baked_path))
+    arrays = _read_arrays(cpm)
+    levels = []
+    for child in sorted(cpm.GetChildren(), key=lambda p: p.GetName()):
+        levels.append(_read_arrays(child))
+    meshes = []
+    i = 1
+    while True:
+        prim = stage.GetPrimAtPath(baked_path.AppendChild(f"LOD{i}"))
+        if not prim:
+            break
+        geom = UsdGeom.Mesh(prim)
+        v = np.array(geom.GetPointsAttr().Get(), dtype=np.float32).astype(np.float64)
+        f = np.array(geom.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
+        st = UsdGeom.PrimvarsAPI(geom).GetPrimvar("st").Get()
+        uv = np.array(st, dtype=np.float32).astype(np.float64).reshape(-1, 3, 2)
+        meshes.append(LodMesh(v, f, uv))
+        i += 1
+    meta = dict(stage.GetRootLayer().customLayerData.get("texelbake", {}))
+    name = path.name.removesuffix("_baked.usda")
+    albedo = _read_png(path.parent / f"{name}_albedo.png", srgb=True)
+    normal = _read_png(path.parent / f"{name}_normal.png", srgb=False) * 2.0 - 1.0
+    source = ""
+    refs = root.GetPrimStack()
+    for spec in refs:
+        items = spec.referenceList.prependedItems or spec.referenceList.explicitItems
+        if items:
+            source = str((path.parent / items[0].assetPath).resolve())
+            break
+    return BakedAsset(name, levels, arrays, meshes, albedo.astype(np.float32),
+                      normal.astype(np.float32), meta, source, str(path))
+
+
+def _read_png(path: Path, srgb: bool) -> np.ndarray:
+    import OpenImageIO as oiio
+
+    if not path.is_file():
+        return np.zeros((0, 0, 3), np.float32)
+    buf = oiio.ImageBuf(str(path))
+    px = buf.get_pixels(oiio.FLOAT)[..., :3].astype(np.float64)
+    if srgb:
+        px = np.where(px <= 0.04045, px / 12.92, ((px + 0.055) / 1.055) ** 2.4)
+    return px
+
+
+def atomic_json(path: Path, obj: Any) -> None:
+    atomic_write_bytes(path, json.dumps(obj, indent=2, sort_keys=True,
+                                        default=lambda o: o.item() if hasattr(o, "item")
+                                        else str(o)).encode())

@@ -1,0 +1,155 @@
+"""Which stages an asset needs, and running them.
+
+A bake is a plan of stages; some are sharded by texel tile. Every shard is a pure function from
+files in the artifact store to files in the artifact store (`texelbake.stages`), so the same code
+runs in one process (`bake`) or as Celery tasks (`run_shard`, called by `workers.tasks`).
+
+Tiles: the finest CPM level has N x N texels (N = settings.atlas_resolution); a shard owns an
+S x S tile (S = settings.shard_texels) and every coarser level's texels inside it (levels
+0..log2 S). Levels coarser than a tile (log2 S + 1 .. log2 N) are one `*_top` shard.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from schemas.settings import BakeSettings
+from texelbake import stages
+from texelbake.errors import SettingsError, StageError
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    name: str
+    queue: str
+    n_shards: int
+    depends_on: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Plan:
+    stages: tuple[StagePlan, ...]
+    skipped: tuple[tuple[str, str], ...] = ()
+
+    def stage(self, name: str) -> StagePlan:
+        for s in self.stages:
+            if s.name == name:
+                return s
+        raise StageError(f"stage {name!r} is not in this plan ({[s.name for s in self.stages]})")
+
+
+def n_tiles(settings: BakeSettings) -> int:
+    side = settings.atlas_resolution // settings.shard_texels
+    return side * side
+
+
+def plan_bake(asset_path: Path, settings: BakeSettings) -> Plan:
+    """The stages this asset and these settings need, in execution order, with what is skipped."""
+    tiles = n_tiles(settings)
+    has_top = settings.shard_texels < settings.atlas_resolution
+    plan = [
+        StagePlan("ingest", "ingest", 1),
+        StagePlan("geometry", "geometry", 1, ("ingest",)),
+        StagePlan("cpm", "cpm", tiles, ("geometry",)),
+    ]
+    skipped: list[tuple[str, str]] = []
+    if has_top:
+        plan.append(StagePlan("cpm_top", "cpm", 1, ("cpm",)))
+    plan.append(StagePlan("avis", "avis", tiles, ("geometry",)))
+    if has_top:
+        plan.append(StagePlan("avis_top", "avis", 1, ("avis",)))
+    cpm_deps = ("cpm_top",) if has_top else ("cpm",)
+    avis_deps = ("avis_top",) if has_top else ("avis",)
+    if settings.btf:
+        plan.append(StagePlan("btf", "btf", 1, cpm_deps))
+    else:
+        skipped.append(("btf", "no real-time target requested (settings.btf is false)"))
+    export_deps = cpm_deps + avis_deps + (("btf",) if settings.btf else ())
+    plan.append(StagePlan("export", "export", 1, export_deps))
+    if settings.previews:
+        plan.append(StagePlan("render", "render", 1, ("export",)))
+    else:
+        skipped.append(("render", "previews not requested (settings.previews is false)"))
+    skipped.append(
+        ("srf", "impostor parameterization is not part of this version (seed 002 not implemented)")
+    )
+    return Plan(tuple(plan), tuple(skipped))
+
+
+_RUNNERS = {
+    "ingest": stages.run_ingest,
+    "geometry": stages.run_geometry,
+    "cpm": stages.run_cpm_tile,
+    "cpm_top": stages.run_cpm_top,
+    "avis": stages.run_avis_tile,
+    "avis_top": stages.run_avis_top,
+    "btf": stages.run_btf,
+    "export": stages.run_export,
+    "render": stages.run_render,
+}
+
+
+def run_shard(
+    workdir: Path, asset_path: Path, settings: BakeSettings, stage: str, shard: int
+) -> str:
+    """Run one shard of one stage; idempotent. Returns the artifact key it wrote (or found)."""
+    plan = plan_bake(asset_path, settings)
+    sp = plan.stage(stage)
+    if not 0 <= shard < sp.n_shards:
+        raise SettingsError(f"shard {shard} out of range for stage {stage!r} (0..{sp.n_shards - 1})")
+    ctx = stages.StageContext.create(Path(workdir), Path(asset_path), settings)
+    return _RUNNERS[stage](ctx, shard)
+
+
+@dataclass
+class BakeResult:
+    root_layer: Path
+    report: dict = field(default_factory=dict)
+
+
+def finalize(workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: Path) -> Path:
+    """The export stage's body: write the baked USD, maps and report.json into `out_dir`."""
+    ctx = stages.StageContext.create(Path(workdir), Path(asset_path), settings)
+    return stages.export_to(ctx, Path(out_dir))
+
+
+def bake(
+    asset_path: Path,
+    out_dir: Path,
+    settings: BakeSettings | None = None,
+    *,
+    workdir: Path | None = None,
+    progress: bool = True,
+) -> Path:
+    """Run every planned stage and shard in this process and write the baked USD to `out_dir`.
+
+    Returns the root layer path. `workdir` holds the artifact store (default out_dir/.work).
+    """
+    from tqdm import tqdm
+
+    settings = settings or BakeSettings()
+    asset_path = Path(asset_path)
+    out_dir = Path(out_dir)
+    workdir = Path(workdir) if workdir is not None else out_dir / ".work"
+    plan = plan_bake(asset_path, settings)
+    ctx = stages.StageContext.create(workdir, asset_path, settings)
+    seconds: dict[str, float] = {}
+    root: Path | None = None
+    for sp in plan.stages:
+        t0 = time.perf_counter()
+        if sp.name == "export":
+            root = stages.export_to(ctx, out_dir, plan=plan)
+        elif sp.name == "render":
+            stages.run_render(ctx, 0)
+        else:
+            bar = tqdm(range(sp.n_shards), desc=f"{sp.name:<9}", unit="shard",
+                       disable=not progress, leave=True)
+            for shard in bar:
+                _RUNNERS[sp.name](ctx, shard)
+        seconds[sp.name] = time.perf_counter() - t0
+    if root is None:
+        raise StageError("the plan has no export stage")
+    stages.update_report_seconds(out_dir, seconds)
+    return root
