@@ -1,0 +1,225 @@
+"""`texelbake` command line: scenes, inspect, bake, demo, render, report, submit, stack.
+
+Heavy modules are imported inside each command so `texelbake --help` is instant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from texelbake.errors import TexelbakeError
+
+# the embedded default of `texelbake demo`: small enough for a laptop in well under a minute
+DEMO_SETTINGS = {
+    "atlas_resolution": 32,
+    "shard_texels": 16,
+    "samples_per_texel": 16,
+    "n_light_dirs": 32,
+    "n_view_dirs": 32,
+    "n_heldout": 64,
+    "c_max": 32,
+}
+
+
+def _settings(args: argparse.Namespace, base: dict | None = None):
+    from pydantic import ValidationError
+
+    from schemas.settings import BakeSettings
+
+    data = dict(base or {})
+    if getattr(args, "settings", None):
+        data.update(json.loads(Path(args.settings).read_text()))
+    for item in getattr(args, "set", None) or []:
+        if "=" not in item:
+            raise TexelbakeError(f"--set expects KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        try:
+            data[key] = json.loads(value)
+        except json.JSONDecodeError:
+            data[key] = value
+    try:
+        return BakeSettings(**data)
+    except ValidationError as exc:
+        raise TexelbakeError(f"invalid bake settings: {exc}") from exc
+
+
+def cmd_scenes(args: argparse.Namespace) -> int:
+    from texelbake.scenes import SCENE_NAMES, write_scene
+
+    names = SCENE_NAMES if args.name == "all" else (args.name,)
+    out = Path(args.output)
+    for name in names:
+        path = out / f"{name}_{args.size}.usda" if args.name == "all" else out
+        print(write_scene(name, path, args.size))
+    return 0
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from texelbake.scene import describe, load_asset
+
+    print(describe(load_asset(args.file)))
+    return 0
+
+
+def _print_summary(root: Path) -> None:
+    report = json.loads((root.parent / "report.json").read_text())
+    print(f"baked: {root}")
+    print(f"report: {root.parent / 'report.json'}  (total {report.get('total_seconds', 0):.1f} s)")
+    print(f"{'level':>5} {'texels':>7} {'valid':>6} {'c mean':>7} {'SNR in':>7} {'SNR ho':>7} "
+          f"{'ho p5':>6} {'avis err':>8}")
+    for lv in report["levels"]:
+        print(f"{lv['level']:>5} {lv['texels']:>7} {lv['texels_valid']:>6} "
+              f"{lv['c'].get('mean', 0):>7.1f} {lv['snr_insample_db'].get('mean', float('nan')):>7.1f} "
+              f"{lv['snr_heldout_db'].get('mean', float('nan')):>7.1f} "
+              f"{lv['snr_heldout_db'].get('p5', float('nan')):>6.1f} "
+              f"{lv['avis']['rel_error']:>8.3f}")
+    for s in report.get("skipped", []):
+        print(f"skipped {s['stage']}: {s['reason']}")
+
+
+def cmd_bake(args: argparse.Namespace) -> int:
+    from texelbake.pipeline import bake
+
+    settings = _settings(args)
+    root = bake(Path(args.file), Path(args.output), settings, progress=not args.quiet)
+    _print_summary(root)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Bake generated scenes in one process (no servers) and say where the results are."""
+    from texelbake.pipeline import bake
+    from texelbake.scenes import write_scene
+
+    out = Path(args.out)
+    settings = _settings(args, DEMO_SETTINGS)
+    names = args.scenes.split(",")
+    for name in names:
+        t0 = time.perf_counter()
+        scene = write_scene(name, out / "scenes" / f"{name}_small.usda", "small")
+        root = bake(scene, out / name, settings, progress=True)
+        print(f"\n== {name} ({time.perf_counter() - t0:.1f} s)")
+        _print_summary(root)
+        if args.previews:
+            try:
+                from texelbake.render import render_previews
+            except ImportError:
+                print("previews: the renderer is not available in this build")
+            else:
+                for p in render_previews(root, out / name / "previews", size="small"):
+                    print(f"preview: {p}")
+    print(f"\nresults in {out.resolve()}")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from texelbake.render import render_cli
+
+    return render_cli(args)
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from texelbake.render import write_report_plot
+
+    print(write_report_plot(Path(args.dir)))
+    return 0
+
+
+def cmd_submit(args: argparse.Namespace) -> int:
+    from texelbake.client import submit
+
+    settings = _settings(args)
+    result = submit(Path(args.file), server=args.server, token=args.token,
+                    out_dir=Path(args.output), settings=settings.model_dump())
+    print(result)
+    return 0
+
+
+def cmd_stack(args: argparse.Namespace) -> int:
+    from texelbake import stack
+
+    if args.action == "up":
+        stack.stack_up(Path(args.dir))
+    else:
+        stack.stack_down(Path(args.dir))
+    return 0
+
+
+def _add_settings_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--settings", help="JSON file of bake settings (schemas.settings.BakeSettings)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override one bake setting, e.g. --set atlas_resolution=64")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="texelbake", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("scenes", help="write a generated test scene as USD")
+    p.add_argument("name", choices=["cylinder", "wall", "bolt", "cloisonne", "all"])
+    p.add_argument("-o", "--output", required=True, help="FILE.usda (or a folder with 'all')")
+    p.add_argument("--size", choices=["small", "full"], default="small")
+    p.set_defaults(func=cmd_scenes)
+
+    p = sub.add_parser("inspect", help="print what texelbake reads from a USD asset")
+    p.add_argument("file")
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("bake", help="bake an asset in this process (no servers)")
+    p.add_argument("file")
+    p.add_argument("-o", "--output", required=True, help="output folder")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    _add_settings_args(p)
+    p.set_defaults(func=cmd_bake)
+
+    p = sub.add_parser("demo", help="bake generated scenes in one process")
+    p.add_argument("--out", default="demo_out")
+    p.add_argument("--scenes", default="cylinder", help="comma-separated scene names")
+    p.add_argument("--no-previews", dest="previews", action="store_false")
+    _add_settings_args(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("render", help="render a baked USD")
+    p.add_argument("file")
+    p.add_argument("--modes", default="gt,cpm,normalmap,equal-time")
+    p.add_argument("-o", "--output", default=None)
+    p.add_argument("--width", type=int, default=256)
+    p.add_argument("--height", type=int, default=256)
+    p.add_argument("--spp", type=int, default=4)
+    p.add_argument("--gt-spp", type=int, default=256)
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("report", help="draw the speed-against-error plot of a render folder")
+    p.add_argument("dir")
+    p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("submit", help="upload an asset to a texelbake server and fetch the result")
+    p.add_argument("file")
+    p.add_argument("--server", required=True)
+    p.add_argument("--token", required=True)
+    p.add_argument("-o", "--output", default="result")
+    _add_settings_args(p)
+    p.set_defaults(func=cmd_submit)
+
+    p = sub.add_parser("stack", help="start/stop redis, the API and workers as local processes")
+    p.add_argument("action", choices=["up", "down"])
+    p.add_argument("--dir", default="var/stack", help="state folder (pids, logs, database)")
+    p.set_defaults(func=cmd_stack)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except TexelbakeError as exc:
+        print(f"texelbake: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
