@@ -118,6 +118,13 @@ def run_input(name: str, btf, dirs_i, dirs_o, args) -> dict:
             "time_ok": sec["build_total"] <= SEED_REFERENCE["build_seconds_bar"],
         },
     }
+    half = BTFSettings(pca_method=args.pca_method, storage="float16")
+    _, rep16 = btf_report(btf, dirs_i, dirs_o, half)
+    result["float16_storage"] = {k: rep16[k] for k in ("compression_ratio", "mse", "seconds",
+                                                        "compressed_bytes")}
+    print(f"float16 maps: {rep16['compression_ratio']:.2f}x, MSE Y avg "
+          f"{rep16['mse']['Y']['avg']:.5f} (Cb {rep16['mse']['Cb']['avg']:.5f}, Cr "
+          f"{rep16['mse']['Cr']['avg']:.5f}), build {rep16['seconds']['build_total']:.2f} s")
     if args.compare_pca:
         result["pca_solvers_level1"] = compare_pca(btf, settings)
         c = result["pca_solvers_level1"]

@@ -151,3 +151,22 @@ def test_read_maps_errors(tmp_path, rng):
     (tmp_path / "btf_lut.exr").unlink()
     with pytest.raises(AssetError):
         read_btf_maps(tmp_path)
+
+
+def test_half_storage_round_trip_and_error(tmp_path, rng):
+    from texelbake.btf.compress import reconstruct_btf
+
+    full = _small_maps(rng, n_components=(36, 36, 36))
+    rng2 = np.random.default_rng(12345)  # same input as `full`
+    half = _small_maps(rng2, n_components=(36, 36, 36), storage="float16")
+    assert half.storage == "float16"
+    assert np.array_equal(half.eigen, half.eigen.astype(np.float16).astype(np.float32))
+    assert half.compressed_bytes() < 0.51 * full.compressed_bytes() + 64
+    write_btf_maps(half, tmp_path)
+    back = read_btf_maps(tmp_path)
+    assert back.storage == "float16" and back.eigen.tobytes() == half.eigen.tobytes()
+    assert all(a.tobytes() == b.tobytes() for a, b in zip(half.weights, back.weights,
+                                                           strict=True))
+    # half precision: relative 2^-11 per stored value, values in [0, 1], a few dozen terms
+    err = np.abs(reconstruct_btf(back) - reconstruct_btf(full)).max()
+    assert 0 < err < 5e-3

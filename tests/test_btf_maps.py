@@ -241,3 +241,14 @@ def test_input_errors(rng):
         btf_lookup(maps, np.zeros((1, 2)), di[:1], do[:1], np.array([np.nan]))
     assert btf_lookup(maps, np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 3)),
                       np.zeros(0)).shape == (0, 3)
+
+
+def test_rebuild_is_byte_identical_with_randomized_pca(rng):
+    btf, di, do = _btf(rng, 24, 20, n=8)  # 480 texels x 64 pairs at level 0
+    s = BTFSettings(n_components=(4, 2, 2), pca_method="randomized", top_level=2)
+    a, ia = build_btf_maps(btf, di, do, s)
+    b, ib = build_btf_maps(btf.copy(), di, do, s)
+    assert ia.pca_methods[0] == "randomized"
+    assert a.eigen.tobytes() == b.eigen.tobytes()
+    assert all(x.tobytes() == y.tobytes() for x, y in zip(a.weights, b.weights, strict=True))
+    assert a.mean_params.tobytes() == b.mean_params.tobytes()

@@ -38,6 +38,8 @@ from texelbake.btf.phong import above_horizon, fit_phong, phong_eval
 from texelbake.errors import NumericalError, SettingsError, ShapeError
 
 MEAN_MODELS = ("phong", "constant", "table")
+#: storage precision of the two maps -> bytes per value
+STORAGE_BYTES = {"float32": 4, "float16": 2}
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,8 @@ class BTFSettings:
         sketch; pca_exact_max: "auto" solves exactly when min(texels, pairs) <= this
     fit_phong : False keeps the tabulated Y mean (d floats) instead of Eq. 5
     lut_resolution : R of the R x R nearest-direction tables
+    storage : "float32" (the seed's 128-bit RGBA textures) | "float16" (half-float maps, what a
+        GPU samples natively today: half the bytes; components and weights rounded to half)
     seed : randomized PCA seed
     """
 
@@ -64,6 +68,7 @@ class BTFSettings:
     pca_exact_max: int = 512
     fit_phong: bool = True
     lut_resolution: int = 64
+    storage: str = "float32"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -87,6 +92,9 @@ class BTFSettings:
         for name in ("pca_oversample", "pca_power_iters", "pca_exact_max"):
             if int(getattr(self, name)) < 0:
                 raise SettingsError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.storage not in STORAGE_BYTES:
+            raise SettingsError(f"storage must be one of {sorted(STORAGE_BYTES)}, got "
+                                f"{self.storage!r}")
         if int(self.lut_resolution) < 1:
             raise SettingsError(f"lut_resolution must be >= 1, got {self.lut_resolution}")
 
@@ -104,6 +112,8 @@ class BTFMaps:
     mean_table : (3, d) float32 tabulated top-level mean, used for "table" rows (else zero)
     dirs_i, dirs_o : (d, 3) float32 directions of the pairs (texel frame)
     lut : DirectionLUT; pyramid_filter : filter used; notes : what happened (fallbacks, ...)
+    storage : "float32" | "float16" precision of `eigen` and `weights` in the files (the arrays
+        are float32 holding values representable at that precision)
     """
 
     eigen: np.ndarray
@@ -117,6 +127,7 @@ class BTFMaps:
     lut: DirectionLUT
     pyramid_filter: str = "box3"
     notes: tuple[str, ...] = ()
+    storage: str = "float32"
 
     @property
     def top_level(self) -> int:
@@ -135,12 +146,13 @@ class BTFMaps:
         return slice(0, a), slice(a, a + b), slice(a + b, sum(self.n_components))
 
     def compressed_bytes(self) -> int:
-        """Bytes of the two maps as float32 plus the mean parameters (the seed's §3.3 count;
-        the direction tables are reported separately)."""
+        """Bytes of the two maps at their storage precision plus the float32 mean parameters
+        (the seed's §3.3 count; the direction tables are reported separately)."""
         mean = sum(
             {"phong": 4, "constant": 1, "table": self.num_pairs}[m] for m in self.mean_models
         )
-        return 4 * (self.eigen.size + sum(w.size for w in self.weights) + mean)
+        maps = self.eigen.size + sum(w.size for w in self.weights)
+        return STORAGE_BYTES[self.storage] * maps + 4 * mean
 
     def lut_bytes(self) -> int:
         lut = self.lut
@@ -324,6 +336,7 @@ def build_btf_maps(
             power_iters=settings.pca_power_iters,
             exact_max=settings.pca_exact_max,
             seed=settings.seed + k,
+            store_dtype=settings.storage,
         )
         methods.append(res.method)
         wmap = np.zeros((hk, wk, n_tot), np.float32)
@@ -338,6 +351,15 @@ def build_btf_maps(
                     f"non-zero ({hk * wk} texels, rank-deficient or constant)"
                 )
         weights.append(wmap)
+    storage = settings.storage
+    if storage == "float16":
+        peak = max(float(np.abs(w).max()) for w in weights)
+        if peak > float(np.finfo(np.float16).max):
+            storage = "float32"  # components are half-rounded, weights stay exact float32
+            notes.append(f"weights reach {peak:.4g} > float16 max: weight map kept as float32 "
+                         "(storage float32)")
+        else:
+            weights = [w.astype(np.float16).astype(np.float32) for w in weights]
     seconds["pca"] = time.perf_counter() - t0
     del levels, planes
 
@@ -353,6 +375,7 @@ def build_btf_maps(
         lut=lut,
         pyramid_filter=settings.pyramid_filter,
         notes=tuple(notes),
+        storage=storage,
     )
     return maps, BuildInfo(seconds, tuple(methods), fit_message, tuple(notes))
 

@@ -3,7 +3,8 @@
 Four files next to each other, `<stem>_<part>.exr`:
 
 * `eigen`   — eigen Laplacian BRDF map: an image L (levels) high and d (pairs) wide, one float
-              channel per component, named `Y00 .. Y07, Cb00, Cb01, Cr00, Cr01`.
+              channel per component, named `Y00 .. Y07, Cb00, Cb01, Cr00, Cr01` (FLOAT, or
+              HALF when the maps' storage is float16; the LUT and pairs files are always FLOAT).
 * `weights` — PCA weight map: every level's (h_k, w_k, C) weights packed into one image, level 0
               at (0, 0), levels >= 1 stacked in a column to its right (offsets in the metadata),
               same channel names.
@@ -45,10 +46,11 @@ def channel_names(n_components: tuple[int, int, int]) -> list[str]:
             for j in range(n)]
 
 
-def _write_exr(path: Path, pixels: np.ndarray, names: list[str], meta: str | None = None) -> None:
+def _write_exr(path: Path, pixels: np.ndarray, names: list[str], meta: str | None = None,
+               half: bool = False) -> None:
     pixels = np.ascontiguousarray(pixels, dtype=np.float32)
     h, w, c = pixels.shape
-    spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
+    spec = oiio.ImageSpec(w, h, c, oiio.HALF if half else oiio.FLOAT)
     spec.channelnames = tuple(names)
     spec.attribute("compression", "zip")
     if meta is not None:
@@ -119,11 +121,13 @@ def write_btf_maps(maps: BTFMaps, folder: str | os.PathLike, stem: str = "btf") 
         "pyramid_filter": maps.pyramid_filter,
         "lut_resolution": maps.lut.resolution,
         "notes": list(maps.notes),
+        "storage": maps.storage,
         "files": {p: f"{stem}_{p}.exr" for p in PARTS},
     }
     paths = {p: folder / f"{stem}_{p}.exr" for p in PARTS}
-    _write_exr(paths["eigen"], maps.eigen, names, json.dumps(meta, sort_keys=True))
-    _write_exr(paths["weights"], canvas, names)
+    half = maps.storage == "float16"
+    _write_exr(paths["eigen"], maps.eigen, names, json.dumps(meta, sort_keys=True), half)
+    _write_exr(paths["weights"], canvas, names, half=half)
     lut_px = np.stack([maps.lut.light_table, maps.lut.view_table], axis=-1).astype(np.float32)
     _write_exr(paths["lut"], lut_px, ["light", "view"])
     pairs = np.concatenate(
@@ -196,4 +200,5 @@ def read_btf_maps(folder: str | os.PathLike, stem: str = "btf") -> BTFMaps:
         lut=lut,
         pyramid_filter=str(meta["pyramid_filter"]),
         notes=tuple(meta["notes"]),
+        storage=str(meta.get("storage", "float32")),
     )

@@ -134,6 +134,7 @@ def pca_batched(
     exact_max: int = 512,
     seed: int = 0,
     eps: float = TOL.pca_eig_rcond,
+    store_dtype: str = "float32",
 ) -> PCAResult:
     """Uncentred PCA (truncated SVD) of b data matrices of one shape, in one batched call.
 
@@ -141,6 +142,8 @@ def pca_batched(
     n_components : n for every problem, or one n per problem; problems with fewer texels or
         directions than n get min(n, t, d) non-zero components, the rest are zero rows
     method : "auto" | "exact" | "randomized" (see module docstring)
+    store_dtype : "float32" | "float16": the components are rounded to this storage precision
+        (and returned as float32 holding those values) before the weights are projected
     returns : PCAResult with n_max = max(n_components) columns / rows
     """
     xt = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x)
@@ -152,6 +155,8 @@ def pca_batched(
     ns = [int(n_components)] * b if np.isscalar(n_components) else [int(v) for v in n_components]
     if len(ns) != b or min(ns, default=1) < 0:
         raise SettingsError(f"n_components must be >= 0, one per problem ({b}), got {ns}")
+    if store_dtype not in ("float32", "float16"):
+        raise SettingsError(f"store_dtype must be 'float32' or 'float16', got {store_dtype!r}")
     if method not in METHODS:
         raise SettingsError(f"PCA method must be one of {METHODS}, got {method!r}")
     n_max = max(ns, default=0)
@@ -175,7 +180,7 @@ def pca_batched(
         keep = torch.arange(n_solve)[None, :] < torch.as_tensor(ns)[:, None]  # (b, n)
         comps = sign_normalize(comps * keep[:, :, None])
         sing = sing * keep
-        comps32 = comps.to(torch.float32)
+        comps32 = comps.to(getattr(torch, store_dtype)).to(torch.float32)
         weights = xt @ comps32.to(xt.dtype).mT  # (b, t, n): projections on the stored basis
     weights_np = np.zeros((b, t, n_max))
     comps_np = np.zeros((b, n_max, d), np.float32)
