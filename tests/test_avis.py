@@ -201,21 +201,25 @@ def test_heightfield_table_lookup_total(rng):
     function, measured): 0.67 % worst at theta = 75 deg, within the 1 % acceptance."""
     s = _heightfield(k=32, q=2, n_side=2)
     lvl = avis_level(s["pos"], s["nrm"], s["ar"], s["tex"], 2, 16, s["caster"].occluded,
-                     s["mesh_points"])
+                     s["mesh_points"], max_terms=1024)
     assert not lvl.closed.any()  # bumps everywhere: nothing provably unoccluded
-    table = compress_level(lvl, _frames_identity(4), 1.0)
+    assert lvl.bounded.all()  # 512 facets per texel: the visible fraction F is stored
+    direct = AvisLevel(lvl.n_side, lvl.res, lvl.closed, np.zeros(4, bool), lvl.cf,
+                       lvl.ray_texels, lvl.ray_maps, lvl.texel_area)
     n = 300
     cos_t = rng.uniform(np.cos(np.radians(80)), 1.0, n)
     phi = rng.uniform(0, 2 * np.pi, n)
     sin_t = np.sqrt(1 - cos_t**2)
     w = np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
-    tot = np.zeros(n)
-    for t in range(4):  # four texels
-        a, valid = table.evaluate(np.full(n, t), w)
-        assert valid.all()
-        tot += a
-    rel = np.abs(tot - cos_t) / cos_t
-    assert rel.max() < 0.01, rel.max()
+    for level in (lvl, direct):  # F times exact U, and a_vis itself
+        table = compress_level(level, _frames_identity(4), 1.0)
+        tot = np.zeros(n)
+        for t in range(4):  # four texels
+            a, valid = table.evaluate(np.full(n, t), w)
+            assert valid.all()
+            tot += a
+        rel = np.abs(tot - cos_t) / cos_t
+        assert rel.max() < 0.01, rel.max()
 
 
 # ------------------------------------------------------------------------------ closed form

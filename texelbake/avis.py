@@ -867,9 +867,10 @@ class AvisTable:
     ray_row : (n_texels,) int64 row of the texel in `haar` (-1 for closed-form texels)
     haar : HaarCoeffs of the (n_ray, 6, res, res) world-direction cube maps: for a bounded
         ray texel the *visible fraction* F = a_vis / U (U the unoccluded projected area, its
-        closed form; F in [0, 1]), otherwise a_vis itself. Look-up: a = U(w) clip(F(w), 0, 1)
-        with U exact at w, so the horizon kink is exact and only the smoother masking
-        fraction is compressed (3-4x lower error at equal size, benchmarks/avis_methods.py)
+        closed form; F in [0, 1]), otherwise a_vis itself. Look-up: U F at the taps (U exact
+        at each tap direction), interpolated, then min(., U(w)) with U exact at w: the
+        horizon is exact and compression only touches the smoother masking fraction
+        (about 4x lower error at the seed's kept fraction, benchmarks/avis_methods.py)
     """
 
     res: int
@@ -955,19 +956,28 @@ class AvisTable:
             a[cl] = eval_closed_form(self.cf, t[cl], w[cl])
         rq = np.flatnonzero(~cl)
         if rq.size:
-            a[rq] = self._eval_maps(self.ray_row[t[rq]], w[rq], interp)
-            bq = rq[self.bounded[t[rq]]]
-            if bq.size:  # stored visible fraction times the exact unoccluded area
-                a[bq] = np.clip(a[bq], 0.0, 1.0) * eval_closed_form(self.cf, t[bq], w[bq])
+            bnd = self.bounded[t[rq]]
+            a[rq] = self._eval_maps(self.ray_row[t[rq]], w[rq], interp, t[rq], bnd)
+            bq = rq[bnd]
+            if bq.size:  # a_vis <= U, exact at w (a_vis -> 0 at the horizon with U)
+                a[bq] = np.minimum(a[bq], eval_closed_form(self.cf, t[bq], w[bq]))
         a = np.maximum(a, 0.0)
         valid = dir_ok & (a > floor * self.texel_area[t]) & (self.texel_area[t] > 0)
         return np.where(valid, a, 0.0), valid
 
-    def _eval_maps(self, rows: np.ndarray, w: np.ndarray, interp: str) -> np.ndarray:
+    def _eval_maps(self, rows: np.ndarray, w: np.ndarray, interp: str, texels: np.ndarray,
+                   bounded: np.ndarray) -> np.ndarray:
+        """a_vis from the Haar maps. For bounded texels the maps hold F = a_vis / U: nearest
+        returns U(w) F(texel); bilinear interpolates the products U(tap) F(tap) over the four
+        taps (so a lossless table interpolates a_vis itself, and compression only touches F)."""
         res = self.res
         face, iu, iv, fu, fv = dirs_to_cube(w, res)
         if interp == "nearest":
-            return eval_haar_point(self.haar, rows * 6 + face, iu, iv)
+            val = eval_haar_point(self.haar, rows * 6 + face, iu, iv)
+            if bounded.any():
+                val[bounded] = (np.clip(val[bounded], 0.0, 1.0)
+                                * eval_closed_form(self.cf, texels[bounded], w[bounded]))
+            return val
         # Seamless bilinear: the four taps are texel centres of the face's plane extended by
         # one texel. A tap inside the face is read directly; a tap beyond an edge is turned
         # back into a direction and read by a bilinear look-up (clamped to that face) on the
@@ -983,14 +993,19 @@ class AvisTable:
         inside = (tu >= 0) & (tu <= res - 1) & (tv >= 0) & (tv <= res - 1)
         taps[inside] = eval_haar_point(self.haar, r4[inside] * 6 + f4[inside],
                                        tu[inside].astype(np.int64), tv[inside].astype(np.int64))
+        sc = 2.0 * (tu + 0.5) / res - 1.0
+        tc = 2.0 * (tv + 0.5) / res - 1.0
+        basis = _FACE_BASIS[f4]  # (4n, 3, 3)
+        tap_dirs = basis[:, 0] + sc[:, None] * basis[:, 1] + tc[:, None] * basis[:, 2]
         out = ~inside
         if out.any():
-            sc = 2.0 * (tu[out] + 0.5) / res - 1.0
-            tc = 2.0 * (tv[out] + 0.5) / res - 1.0
-            basis = _FACE_BASIS[f4[out]]  # (k, 3, 3)
-            tap_dirs = basis[:, 0] + sc[:, None] * basis[:, 1] + tc[:, None] * basis[:, 2]
-            tf, _, _, tfu, tfv = dirs_to_cube(tap_dirs, res)
+            tf, _, _, tfu, tfv = dirs_to_cube(tap_dirs[out], res)
             taps[out] = self._bilinear_in_face(r4[out], tf, tfu, tfv)
+        b4 = np.tile(bounded, 4)
+        if b4.any():  # F at the taps times U exactly at the tap directions
+            td = tap_dirs[b4] / np.linalg.norm(tap_dirs[b4], axis=1, keepdims=True)
+            taps[b4] = np.clip(taps[b4], 0.0, 1.0) * eval_closed_form(
+                self.cf, np.tile(texels, 4)[b4], td)
         wts = np.concatenate([(1 - au) * (1 - av), au * (1 - av), (1 - au) * av, au * av])
         return np.sum((taps * wts).reshape(4, -1), axis=0)
 
