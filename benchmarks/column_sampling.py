@@ -70,7 +70,7 @@ from texelbake.cpm import (  # noqa: E402
 )
 from texelbake.directions import heldout_pairs, hemisphere_directions, product_pairs  # noqa: E402
 
-METHODS = ("seed+clamp", "seed+nnls", "leverage", "uniform", "pivqr")
+METHODS = ("seed+clamp", "seed+nnls", "leverage", "uniform", "pivqr", "eq7+nnls")
 
 # --------------------------------------------------------------------------- synthetic texels
 
@@ -110,13 +110,16 @@ def synthetic_texels(
     n_o: int = 64,
     n_heldout: int = 1024,
     seed: int = 0,
+    n_pairs_train: int = 0,
 ) -> list[dict]:
     """Height-field texels with ridges of two materials; visibility by open3d ray casting.
 
     Each texel: a 1 x 1 tile of ridges (random orientation, phase and height), the texel is its
     central 0.5 x 0.5 square (the rest of the tile shadows and masks it); m samples area-weighted
     on the texel's triangles (flat face normals), R on the n_i x n_o product grid and on
-    n_heldout independent pairs.
+    n_heldout independent pairs; with n_pairs_train > 0 also on that many further independent
+    pairs (keys R_pairs, avis_pairs) to compare training on a product grid with training on
+    distinct pairs (2 m d rays instead of m (n_i + n_o)).
     """
     import open3d as o3d  # heavy import kept local
 
@@ -175,15 +178,20 @@ def synthetic_texels(
         R = reflectance_matrix(brdf, vis_i, vis_o, cos_i, cos_o, area)
         _, row_o = product_pairs(n_i, n_o)
         avis = avis_on_grid(vis_o, cos_o, area)[row_o]
-        vi_h = visible(np.broadcast_to(wi_h[None], (m, n_heldout, 3)))
-        vo_h = visible(np.broadcast_to(wo_h[None], (m, n_heldout, 3)))
-        ci_h, co_h = n_s @ wi_h.T, n_s @ wo_h.T
-        R_h = reflectance_pairs(_blinn_phong(n_s, mat, wi_h, wo_h), vi_h, vo_h, ci_h, co_h, area)
-        avis_h = avis_on_grid(vo_h, co_h, area)  # paired: row r uses wo_h[r]
-        out.append(
-            {"R": R, "avis": avis, "R_heldout": R_h, "avis_heldout": avis_h,
-             "texel_area": float(area.sum())}
-        )
+        def paired(wi_p, wo_p, n_s=n_s, mat=mat, area=area, visible=visible):
+            n_p = wi_p.shape[0]
+            vi = visible(np.broadcast_to(wi_p[None], (m, n_p, 3)))
+            vo = visible(np.broadcast_to(wo_p[None], (m, n_p, 3)))
+            ci, co = n_s @ wi_p.T, n_s @ wo_p.T
+            Rp = reflectance_pairs(_blinn_phong(n_s, mat, wi_p, wo_p), vi, vo, ci, co, area)
+            return Rp, avis_on_grid(vo, co, area)  # paired: row r uses wo_p[r]
+
+        R_h, avis_h = paired(wi_h, wo_h)
+        tex = {"R": R, "avis": avis, "R_heldout": R_h, "avis_heldout": avis_h,
+               "texel_area": float(area.sum())}
+        if n_pairs_train > 0:
+            tex["R_pairs"], tex["avis_pairs"] = paired(*heldout_pairs(n_pairs_train, seed + 7919))
+        out.append(tex)
     return out
 
 
@@ -250,19 +258,35 @@ def run(
         t_svd = time.process_time() - t0
         col_energy = np.einsum("dm,dm->m", S, S)
         k = energy_rank(s, psi)
+        # eq7: the same on F = diag(1/a_vis) R (texelbake's default, fit_texel rows="eq7")
+        t0 = time.process_time()
+        inv = np.where(valid_in, 1.0 / np.where(valid_in, avis, 1.0), 0.0)
+        F, S_w = R * inv[:, None, None], S * inv[:, None]
+        U_w, s_w, Vt_w = svd_float64(S_w)
+        t_svd_w = time.process_time() - t0
+        k_w = energy_rank(s_w, psi)
+        ce_w = np.einsum("dm,dm->m", S_w, S_w)
+        target_w = F.sum(axis=1)
         rng = np.random.default_rng(seed + t)
 
-        t0 = time.process_time()
-        fit = fit_texel(R, avis, psi=psi, n_trials=n_trials, seed=seed + t,
-                        texel_area=tex["texel_area"])
-        t_fit = time.process_time() - t0
-        fits.append({"k": fit.k, "c": fit.c, "snr_insample": fit.snr_db_insample,
-                     "snr_heldout": evaluate_fit(fit, Rh, avis_h, eps),
-                     "colour_mode": fit.colour_mode, "seconds": t_fit, "m": R.shape[1]})
+        variants = [("eq7", R, avis, "eq7"), ("seed-rows", R, avis, "seed")]
+        if "R_pairs" in tex:
+            variants.append(("eq7, distinct pairs", tex["R_pairs"], tex["avis_pairs"], "eq7"))
+        for name, Rt, at, how_rows in variants:  # loop over a few fit variants
+            t0 = time.process_time()
+            fit = fit_texel(Rt, at, psi=psi, n_trials=n_trials, seed=seed + t,
+                            texel_area=tex["texel_area"], rows=how_rows)
+            t_fit = time.process_time() - t0
+            fits.append({"texel": t, "variant": name, "k": fit.k, "c": fit.c,
+                         "snr_insample": fit.snr_db_insample,
+                         "snr_heldout": evaluate_fit(fit, Rh, avis_h, eps),
+                         "colour_mode": fit.colour_mode, "seconds": t_fit, "m": R.shape[1],
+                         "d": int(Rt.shape[0])})
         for c in cs:  # loop over a handful of c values
             floor[c].append(eckart_young_error(s, c))
             ke = max(min(k, c), 1)
             probs = {
+                "eq7": column_probabilities(U_w, s_w, Vt_w, max(min(k_w, c), 1), col_energy=ce_w),
                 "seed": column_probabilities(U, s, Vt, ke, col_energy=col_energy),
                 "leverage": leverage_probabilities(s, Vt, ke),
                 "uniform": uniform_probabilities(S.shape[1], col_energy),
@@ -277,14 +301,16 @@ def run(
                 else:
                     pkey = mth.split("+")[0]
                     how = "clamp" if mth.endswith("clamp") else "nnls"
+                    Rfit, tfit = (F, target_w) if pkey == "eq7" else (R, target)
                     best = None
                     for _ in range(n_trials):  # randomized trials
                         cols = sample_columns(probs[pkey], c, rng)
-                        alpha = _weights(R, cols, target, how)
+                        alpha = _weights(Rfit, cols, tfit, how)
                         err = _rel_err(ref_in, _eq7(R, cols, alpha, avis, eps), valid_in)
                         if best is None or err < best[2]:
                             best = (cols, alpha, err)
-                secs = time.process_time() - t0 + (t_svd if mth != "uniform" and mth != "pivqr" else 0)
+                secs = time.process_time() - t0 + {"seed+clamp": t_svd, "seed+nnls": t_svd,
+                                                   "leverage": t_svd, "eq7+nnls": t_svd_w}.get(mth, 0.0)
                 cols, alpha, err_in = best
                 mat_err = projection_error(S, cols)
                 err_h = _rel_err(ref_h, _eq7(Rh, cols, alpha, avis_h, eps), valid_h)
@@ -318,9 +344,10 @@ def print_table(res: dict) -> None:
             r = res["methods"][mth][str(c)]
             cells.append(f"{r['matrix']:.4f} {r['insample']:.4f} {r['heldout']:.4f} {r['seconds']:.3f}")
         print(f"{c:>4} {res['eckart_young'][str(c)]:>9.4f} | " + " | ".join(f"{x:>30}" for x in cells))
-    print("fit_texel (bisection, eps 30 dB):")
+    print("fit_texel (bisection on c, eps 30 dB, c_max 64):")
     for f in res["fit_texel"]:
-        print(f"  m={f['m']} k={f['k']} c={f['c']} mode={f['colour_mode']} "
+        print(f"  texel {f['texel']} {f['variant']:20s} d={f['d']} m={f['m']} k={f['k']} c={f['c']} "
+              f"mode={f['colour_mode']} "
               f"SNR in={f['snr_insample']:.1f} dB held-out={f['snr_heldout']:.1f} dB "
               f"{f['seconds']:.2f} s")
     if res["below_floor"]:
@@ -424,6 +451,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dirs", type=int, default=64, help="n_i = n_o")
     ap.add_argument("--heldout", type=int, default=1024)
     ap.add_argument("--trials", type=int, default=8)
+    ap.add_argument("--pairs-train", type=int, default=4096,
+                    help="also fit on this many distinct random pairs (0: off)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--svd", action="store_true", help="only time the SVD paths")
     args = ap.parse_args(argv)
@@ -436,7 +465,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.npz:
         texels = load_texels_npz(args.npz)
     else:
-        texels = synthetic_texels(args.texels, args.m, args.dirs, args.dirs, args.heldout, args.seed)
+        texels = synthetic_texels(args.texels, args.m, args.dirs, args.dirs, args.heldout, args.seed,
+                                  n_pairs_train=args.pairs_train)
     print(f"texels ready in {time.process_time() - t0:.1f} s")
     import torch
 

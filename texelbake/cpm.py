@@ -379,15 +379,24 @@ class _Fitter:
         weights: Literal["nnls", "clamp"],
         n_batch: int,
         rng: np.random.Generator,
+        rows: Literal["eq7", "seed"],
     ):
-        self.S, self.chans = S, chans
+        self.chans = chans
+        valid = np.isfinite(avis_rows) & (avis_rows > eps_avis)
+        inv_avis = np.where(valid, 1.0 / np.where(valid, avis_rows, 1.0), 0.0)  # (d,)
+        # rows="eq7": select and fit on F = diag(1/a_vis) R, the matrix whose row sums are
+        # Eq. 7 itself (invalid rows zero); rows="seed": on R as the seed (§3.2 notes the
+        # mismatch). f_bar = (R_fit alpha) * eval_scale in both cases.
+        fit_scale = inv_avis if rows == "eq7" else np.ones_like(inv_avis)
+        self.eval_scale = np.ones_like(inv_avis) * valid if rows == "eq7" else inv_avis
+        self.S = S * fit_scale[:, None]  # (d, m)
         # (ch_g, d, m) contiguous per channel: column gathers and mat-vecs go through BLAS
-        self.Rc = np.ascontiguousarray(np.moveaxis(R[:, :, chans], 2, 0))
-        self.avis_rows, self.eps_avis = avis_rows, eps_avis
+        self.Rc = np.ascontiguousarray(np.moveaxis(R[:, :, chans], 2, 0) * fit_scale[None, :, None])
+        self.valid = valid
         self.psi, self.eps_db, self.c_max = psi, eps_db, c_max
         self.n_trials, self.weights, self.n_batch, self.rng = n_trials, weights, n_batch, rng
 
-    def _trial(self, cols: np.ndarray, target: np.ndarray, fbar_ref, valid) -> tuple[np.ndarray, float]:
+    def _trial(self, cols: np.ndarray, target: np.ndarray, fbar_ref) -> tuple[np.ndarray, float]:
         n_g = len(self.chans)
         alpha = np.zeros((cols.size, n_g))  # (c, ch_g)
         approx = np.zeros((self.Rc.shape[1], n_g))  # (d, ch_g)
@@ -395,8 +404,8 @@ class _Fitter:
             C = self.Rc[g][:, cols]  # (d, c)
             alpha[:, g] = fit_weights(C, target[:, g], self.weights)
             approx[:, g] = C @ alpha[:, g]
-        fbar_apx, _ = filtered_reflectance(approx, self.avis_rows, self.eps_avis)
-        return alpha, snr_db(fbar_ref, fbar_apx, valid)
+        fbar_apx = approx * self.eval_scale[:, None]
+        return alpha, snr_db(fbar_ref, fbar_apx, self.valid)
 
     def select(self, cand: np.ndarray, c_max: int | None = None) -> _GroupFit:
         """Select among candidate columns cand (m',) for the target sum over cand.
@@ -424,13 +433,13 @@ class _Fitter:
         return self._select_direct(cand, target, c_max)
 
     def _select_direct(self, cand: np.ndarray, target: np.ndarray, c_max: int) -> _GroupFit:
-        fbar_ref, valid = filtered_reflectance(target, self.avis_rows, self.eps_avis)
+        fbar_ref = target * self.eval_scale[:, None]  # (d, ch_g), Eq. 7
         S = self.S[:, cand]  # (d, m')
         col_energy = np.einsum("dm,dm->m", S, S)
         U, s, Vt, k = top_singular(S, self.psi)
         if k == 0:  # nothing to select: zero matrix; alpha = 0 reproduces it
             empty = np.zeros(0, dtype=np.int64)
-            _, snr = self._trial(empty, target, fbar_ref, valid)
+            _, snr = self._trial(empty, target, fbar_ref)
             return _GroupFit(empty, np.zeros((0, len(self.chans))), 0, snr, False)
         p = column_probabilities(U, s, Vt, k, col_energy=col_energy)
         cache: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
@@ -446,7 +455,7 @@ class _Fitter:
                         continue
                     seen.add(key)
                     cols = cand[local]
-                    alpha, snr = self._trial(cols, target, fbar_ref, valid)
+                    alpha, snr = self._trial(cols, target, fbar_ref)
                     if best is None or snr > best[2]:
                         best = (cols, alpha, snr)
                 assert best is not None  # n_trials >= 1 is checked in fit_texel
@@ -480,6 +489,7 @@ def fit_texel(
     seed: int = 0,
     n_batch: int = 2048,
     texel_area: float | None = None,
+    rows: Literal["eq7", "seed"] = "eq7",
 ) -> TexelFit:
     """Characteristic points and weights of one texel (seed 000 §3.3, §4.1; DMM06 Table 2).
 
@@ -496,6 +506,11 @@ def fit_texel(
     n_batch : max columns in one SVD (see _Fitter.select for the scheme), >= 2
     texel_area : scale of the a_vis floor (eps = TOL.avis_floor * texel_area); default: the
         largest a_vis over the rows (~ the texel area for directions near its normal)
+    rows : "eq7" (default) selects columns and fits alpha on F = diag(1/a_vis) R, whose row sums
+        are Eq. 7 itself, so the NNLS objective is exactly the error the SNR measures (the
+        "new matrix formulation which also includes the 1/a_vis term" the seed's §3.2 leaves to
+        future work); "seed" selects and fits on R as the seed does. Rows with a_vis <= eps
+        get zero weight under "eq7". Measured in benchmarks/column_sampling.py.
     returns : TexelFit
 
     c search (seed §4.1): bisection on [k, c_max]; for a probe c, n_trials draws of c columns
@@ -521,6 +536,8 @@ def fit_texel(
         raise SettingsError(f"colour must be 'auto', 'luminance' or 'per_channel', got {colour!r}")
     if weights not in ("nnls", "clamp"):
         raise SettingsError(f"weights must be 'nnls' or 'clamp', got {weights!r}")
+    if rows not in ("eq7", "seed"):
+        raise SettingsError(f"rows must be 'eq7' or 'seed', got {rows!r}")
     if ch < 1:
         raise ShapeError(f"R needs at least one channel, got {R.shape}")
     if not np.all(np.isfinite(R)):
@@ -557,7 +574,7 @@ def fit_texel(
     fits = [
         _Fitter(
             R, S, chans, avis_rows, eps_avis, psi=psi, eps_db=eps_db, c_max=int(c_max),
-            n_trials=int(n_trials), weights=weights, n_batch=int(n_batch), rng=rng,
+            n_trials=int(n_trials), weights=weights, n_batch=int(n_batch), rng=rng, rows=rows,
         ).select(cand)
         for S, chans in groups
     ]
