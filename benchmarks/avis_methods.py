@@ -43,11 +43,15 @@ from avis_scenes import (  # noqa: E402
 )
 
 from texelbake.avis import (  # noqa: E402
+    AvisLevel,
     avis_cube_maps,
+    avis_from_visibility,
     avis_level,
     avis_ortho_grids,
     closed_form_maps,
     closed_form_terms,
+    compress_level,
+    default_eps,
     visible_fraction,
 )
 from texelbake.geometry.raycast import RayCaster  # noqa: E402
@@ -187,6 +191,46 @@ def haar_table(res, q, keeps):
     return out
 
 
+def lookup_table(res, keeps, n_dirs=400):
+    """End to end: AvisTable.evaluate at random directions (theta < 85 deg) against a_vis
+    from rays cast at exactly those directions, per texel; F-storage vs direct storage."""
+    pts, faces, texel_fn, n_side = scene_heightfield(32)
+    pos, nrm, ar, _ = sample_faces(pts, faces, 2, seed=11)
+    tex = texel_fn(pos)
+    nt = n_side ** 2
+    caster = RayCaster(pts, faces)
+    lvl = avis_level(pos, nrm, ar, tex, n_side, res, caster.occluded, pts, max_terms=4096)
+    direct = AvisLevel(lvl.n_side, lvl.res, lvl.closed, np.zeros(nt, bool), lvl.cf,
+                       lvl.ray_texels, lvl.ray_maps, lvl.texel_area)
+    rng = np.random.default_rng(5)
+    cos_t = rng.uniform(np.cos(np.radians(85)), 1, n_dirs)
+    phi = rng.uniform(0, 2 * np.pi, n_dirs)
+    sin_t = np.sqrt(1 - cos_t ** 2)
+    w = np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
+    m = pos.shape[0]
+    vis = ~caster.occluded(np.repeat(pos + default_eps(pos) * nrm, n_dirs, axis=0),
+                           np.tile(w, (m, 1))).reshape(m, n_dirs)
+    truth = avis_from_visibility(vis, nrm, ar, tex, nt, w)  # (nt, n_dirs)
+    frames = np.broadcast_to(np.eye(3), (nt, 3, 3)).copy()
+    print(f"\n[look-up] res {res}, {nt} texels, {n_dirs} random directions (theta < 85 deg); "
+          f"per-texel relative L2 error against rays at those directions")
+    print(f"{'keep':>7} {'storage':>9} {'interp':>9} {'error':>8} {'look-ups/s':>11}")
+    out = []
+    for keep in keeps:
+        for name, level in (("F = a/U", lvl), ("a_vis", direct)):
+            table = compress_level(level, frames, keep)
+            for interp in ("nearest", "bilinear"):
+                t0 = time.perf_counter()  # one batched call, as a renderer would make
+                a = table.evaluate(np.repeat(np.arange(nt), n_dirs), np.tile(w, (nt, 1)),
+                                   interp=interp)[0].reshape(nt, n_dirs)
+                rate = a.size / (time.perf_counter() - t0)
+                err = float(np.linalg.norm(a - truth) / np.linalg.norm(truth))
+                out.append({"keep": keep, "storage": name, "interp": interp, "rel_l2": err,
+                            "lookups_per_s": rate})
+                print(f"{keep:>7.3f} {name:>9} {interp:>9} {err:>8.2%} {rate:>11,.0f}")
+    return out
+
+
 def closed_form_table(res):
     out = []
     print(f"\n[closed form] res {res}")
@@ -238,6 +282,7 @@ def main() -> None:
     haar_res = args.haar_res or (16 if quick else 32)
     results["haar"] = haar_table(haar_res, 2,
                                  (0.02, 0.04, 0.065, 0.1, 0.2, 1.0))
+    results["lookup"] = lookup_table(16, (1.0, 0.065, 0.04))
     results["closed_form"] = closed_form_table(8)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))

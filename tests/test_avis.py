@@ -252,6 +252,8 @@ def test_closed_form_any_direction_brute_force(rng):
     contrib = np.where(dots > TOL.grazing_cos, dots, 0.0) * s["ar"]
     want = np.sum(contrib * (s["tex"][None, :] == texels[:, None]), axis=1)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+    pairs = eval_closed_form(cf, texels, w, dense_limit=0)  # the CSR-pair path
+    np.testing.assert_allclose(pairs, want, rtol=1e-12, atol=1e-15)
     # single-vector form where every term faces w: a_vis = S . w
     sv = cf.sum_vectors()
     ok = np.array([np.all(cf.normals[cf.offsets[t]:cf.offsets[t + 1]] @ wi > 0)

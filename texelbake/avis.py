@@ -536,6 +536,27 @@ class ClosedForm:
     def n_texels(self) -> int:
         return int(self.offsets.shape[0] - 1)
 
+    def padded(self, max_elems: int = 1 << 23) -> tuple[np.ndarray, np.ndarray] | None:
+        """(normals (n_texels, k_max, 3), areas (n_texels, k_max)) zero-padded per texel, or
+        None when n_texels * k_max exceeds max_elems (then evaluation uses the CSR pairs).
+        Cached: built once per ClosedForm."""
+        cache = self.__dict__.get("_padded")
+        if cache is not None and cache[0] == max_elems:
+            return cache[1]
+        counts = np.diff(self.offsets)
+        k_max = int(counts.max()) if counts.size else 0
+        result: tuple[np.ndarray, np.ndarray] | None = None
+        if self.n_texels * max(k_max, 1) <= max_elems:
+            nrm = np.zeros((self.n_texels, k_max, 3))
+            area = np.zeros((self.n_texels, k_max))
+            owner = np.repeat(np.arange(self.n_texels), counts)
+            slot = np.arange(owner.shape[0]) - np.repeat(self.offsets[:-1], counts)
+            nrm[owner, slot] = self.normals
+            area[owner, slot] = self.areas
+            result = (nrm, area)
+        self.__dict__["_padded"] = (max_elems, result)  # frozen dataclass: bypass setattr
+        return result
+
     def sum_vectors(self) -> np.ndarray:
         """(n_texels, 3) float64 sum_k areas_k normals_k: a_vis(w) = S . w exactly wherever
         every normals_k . w >= 0 (e.g. a flat texel: one term)."""
@@ -579,10 +600,13 @@ def closed_form_terms(normals: np.ndarray, areas: np.ndarray, texel_of_sample: n
     return _merge_terms(tex[sel], nrm[sel], ar[sel], n_texels)
 
 
-def eval_closed_form(cf: ClosedForm, texels: np.ndarray, dirs_world: np.ndarray) -> np.ndarray:
+def eval_closed_form(cf: ClosedForm, texels: np.ndarray, dirs_world: np.ndarray, *,
+                     dense_limit: int = 1 << 23) -> np.ndarray:
     """Exact a_vis of closed-form texels at arbitrary directions (no rays, no cube map).
 
     texels : (n,) int; dirs_world : (n, 3) float64 unit
+    dense_limit : use the zero-padded (n_texels, k_max) layout when n_texels * k_max is at
+        most this (about 4x faster), else the CSR pairs; both give the same sums
     returns : (n,) float64 (0 for texels without terms)
     """
     t = np.asarray(texels, dtype=np.int64).ravel()
@@ -591,6 +615,21 @@ def eval_closed_form(cf: ClosedForm, texels: np.ndarray, dirs_world: np.ndarray)
         raise ShapeError(f"dirs_world must be ({t.shape[0]}, 3), got {w.shape}")
     if t.size and (t.min() < 0 or t.max() >= cf.n_texels):
         raise ShapeError(f"texels must be in [0, {cf.n_texels})")
+    if t.size == 0:
+        return np.zeros(0, dtype=np.float64)
+    padded = cf.padded(dense_limit)
+    if padded is not None:
+        # dense (n_texels, k_max) layout: one gather and one einsum per chunk of queries
+        nrm_p, area_p = padded
+        k_max = max(nrm_p.shape[1], 1)
+        out = np.empty(t.shape[0], dtype=np.float64)
+        step = max(1, (1 << 22) // k_max)
+        for q0 in range(0, t.shape[0], step):  # memory-bounded chunks of queries
+            tq = t[q0:q0 + step]
+            d = np.einsum("qkj,qj->qk", nrm_p[tq], w[q0:q0 + step])  # (q, k_max)
+            out[q0:q0 + step] = np.sum(np.where(d > TOL.grazing_cos, d, 0.0) * area_p[tq],
+                                       axis=1)
+        return out
     start = cf.offsets[t]
     counts = cf.offsets[t + 1] - start  # (n,)
     query = np.repeat(np.arange(t.shape[0]), counts)  # (pairs,)
