@@ -77,3 +77,62 @@ def dir_listing(root) -> list[str]:  # noqa: ANN001
     return sorted(
         os.path.relpath(os.path.join(d, f), root) for d, _, fs in os.walk(root) for f in fs
     )
+
+
+#: the cheapest bake settings that still shard the cpm and avis stages (4 tiles + a top level)
+CHEAP_SETTINGS = {
+    "atlas_resolution": 32,
+    "shard_texels": 16,
+    "n_light_dirs": 16,
+    "n_view_dirs": 16,
+    "samples_per_texel": 16,
+    "n_heldout": 16,
+    "c_max": 16,
+    "n_trials": 1,
+    "avis_resolution": 4,
+}
+
+
+def usd_values(root_layer) -> dict:  # noqa: ANN001
+    """Every attribute value of the composed stage (payloads loaded), keyed by
+    (prim path, attribute name); arrays as numpy, asset paths by their authored path."""
+    import numpy as np
+    from pxr import Sdf, Usd
+
+    stage = Usd.Stage.Open(str(root_layer), Usd.Stage.LoadAll)
+    out = {}
+    for prim in stage.TraverseAll():
+        for attr in prim.GetAttributes():
+            v = attr.Get()
+            if isinstance(v, Sdf.AssetPath):
+                v = v.path
+            elif v is not None and hasattr(v, "__len__") and not isinstance(v, str):
+                try:
+                    v = np.asarray(v)
+                except (TypeError, ValueError):
+                    v = str(v)
+            out[(str(prim.GetPath()), attr.GetName())] = v
+    return out
+
+
+def assert_same_bake(root_a, root_b) -> int:  # noqa: ANN001
+    """Assert two baked results are identical: every composed attribute value and the bytes
+    of every map; returns the number of attributes compared."""
+    import numpy as np
+
+    va, vb = usd_values(root_a), usd_values(root_b)
+    assert sorted(va) == sorted(vb)
+    for key in va:
+        a, b = va[key], vb[key]
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            a, b = np.asarray(a), np.asarray(b)
+            # NaN marks "no value" (e.g. held-out SNR of an empty texel): equal where both NaN
+            assert np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"), key
+        else:
+            assert a == b, (key, a, b)
+    da, db = root_a.parent, root_b.parent
+    maps = sorted(p.name for p in da.iterdir() if p.suffix in (".exr", ".png", ".usdc"))
+    assert maps == sorted(p.name for p in db.iterdir() if p.suffix in (".exr", ".png", ".usdc"))
+    for name in maps:
+        assert (da / name).read_bytes() == (db / name).read_bytes(), name
+    return len(va)
