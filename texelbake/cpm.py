@@ -485,7 +485,7 @@ def fit_texel(
     n_trials: int = 8,
     weights: Literal["nnls", "clamp"] = "nnls",
     colour: Literal["auto", "luminance", "per_channel"] = "auto",
-    decorrelation_threshold: float = 0.9,
+    decorrelation_threshold: float = 0.5,
     seed: int = 0,
     n_batch: int = 2048,
     texel_area: float | None = None,
@@ -501,7 +501,10 @@ def fit_texel(
         1/a_vis included) is kept; weights : "nnls" (DESIGN.md default) or "clamp" (the seed)
     colour : "luminance" selects on sum_ch w_ch R[..., ch] and fits alpha per channel;
         "per_channel" selects per channel; "auto" = per_channel when the min pairwise channel
-        correlation (`channel_correlation`) is below decorrelation_threshold
+        correlation (`channel_correlation`) is below decorrelation_threshold. Measured (random
+        two-material texels, m = 120, c_max 64): at correlation -0.17 per-channel reaches 31 dB
+        with 86 points where luminance stalls at 19 dB; at 0.76 and 0.93 both give the same SNR
+        but per-channel needs 75-86 points against 44-46, hence the default 0.5
     seed : rng seed (trials); equal inputs and seed give byte-identical output
     n_batch : max columns in one SVD (see _Fitter.select for the scheme), >= 2
     texel_area : scale of the a_vis floor (eps = TOL.avis_floor * texel_area); default: the
