@@ -344,6 +344,13 @@ def test_batching(rng):
     for fit in (fb, fu):
         assert fit.valid and fit.eps_reached and fit.c <= 8 * 3
         assert np.all(np.diff(fit.columns) > 0) and fit.columns.max() < 200
+    # a pool of batch selections larger than n_batch is reduced again (20 batches x <= 5
+    # points > n_batch = 10): the recursion terminates and the result is still a valid fit
+    mix2 = rng.random((4, 200))
+    R2 = np.einsum("dkx,km->dmx", base[:, :, :1], mix2)
+    fr = fit_texel(R2, avis, n_batch=10, c_max=8, seed=1)
+    assert fr.valid and 1 <= fr.c <= 8 and fr.columns.max() < 200
+    assert fr.snr_db_insample > 20.0  # rank-4 texel: a few columns already fit well
     with pytest.raises(SettingsError):
         fit_texel(R, avis, n_batch=1)
 

@@ -172,11 +172,11 @@ def top_singular(
         while 4 * q <= r_max:  # beyond m/4 triplets a full decomposition is cheaper
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(seed)
-                U, s, V = torch.svd_lowrank(Rt, q=q, niter=niter)
-            s_np = s.numpy()
+                U_t, s_t, V_t = torch.svd_lowrank(Rt, q=q, niter=niter)
+            s_np = s_t.numpy()
             k = energy_rank(s_np, psi, total)
             if k + oversample <= q:
-                return U.numpy(), s_np, V.T.contiguous().numpy(), k
+                return U_t.numpy(), s_np, V_t.T.contiguous().numpy(), k
             q = 2 * q
         method = "auto"
     U, s, Vt = svd_float64(R, "full" if method == "full" else ("gram" if method == "gram" else "auto"))
