@@ -600,3 +600,31 @@ def test_unoccluded_detection_equals_brute_force():
     brute = np.max(nrm @ pts.T - np.einsum("ij,ij->i", nrm, pos)[:, None], axis=1) <= eps
     assert 0.2 < brute.mean() < 0.9  # both outcomes well represented
     assert np.array_equal(got, brute)
+
+
+def test_cube_maps_skip_casts_no_rays_and_shape_errors():
+    s = _plate_scene(hole=True)
+    calls = []
+
+    def counting(o, d):
+        calls.append(len(o))
+        return s["caster"].occluded(o, d)
+
+    skip = np.zeros(16, bool)
+    skip[5] = True
+    full = _maps(s, 4)
+    part = avis_cube_maps(s["pos"], s["nrm"], s["ar"], s["tex"], 16, None, 4, counting,
+                          skip_texels=skip, dtype=np.float64)
+    assert np.all(part[5] == 0) and np.array_equal(part[~skip], full[~skip])
+    n5 = int(np.sum(s["tex"] == 5))
+    facing = int(np.sum(s["nrm"][s["tex"] != 5] @ cube_directions(4).reshape(-1, 3).T
+                        > TOL.grazing_cos))
+    assert sum(calls) == facing and n5 > 0  # one ray per facing pair, none for texel 5
+    with pytest.raises(ShapeError):
+        avis_cube_maps(s["pos"], s["nrm"], s["ar"], s["tex"], 16, np.zeros((3, 3, 3)), 4,
+                       counting)
+    with pytest.raises(ShapeError):
+        avis_cube_maps(s["pos"], s["nrm"], s["ar"], s["tex"], 16, None, 4, counting,
+                       skip_texels=np.zeros(3, bool))
+    with pytest.raises(ShapeError):
+        avis_cube_maps(s["pos"][:5], s["nrm"], s["ar"], s["tex"], 16, None, 4, counting)
