@@ -163,7 +163,7 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
     n = s.atlas_resolution
     meshes = simplify_hierarchy(
         asset.points, asset.faces, s.mesh_levels, s.simplify_ratio,
-        target_faces=s.m1_faces or None,
+        target_faces=m1_target_faces(asset.num_faces, s),
     )
     m1 = meshes[0]
     atlas = _build_atlas_fitting(m1, n)
@@ -203,12 +203,21 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
     return ctx.store.write_arrays(key, out)
 
 
+def m1_target_faces(n_faces: int, settings: BakeSettings) -> int:
+    """Faces of M1: settings.m1_faces, or simplify_ratio x the original but at most N^2 / 8
+    (about eight finest texels per M1 triangle), so the atlas charts fit one N x N page with
+    padding (a ridged cylinder keeps a chart per ridge until its ridges are simplified away)."""
+    if settings.m1_faces:
+        return int(settings.m1_faces)
+    cap = max(8, settings.atlas_resolution ** 2 // 8)
+    return int(min(max(8, round(settings.simplify_ratio * n_faces)), cap))
+
+
 def _build_atlas_fitting(m1: Mesh, n: int):
-    """The atlas with the widest chart padding (2, then 1 texel) that still fits one page."""
-    try:
-        return build_atlas(m1, n, padding_texels=2)
-    except StageError:
-        return build_atlas(m1, n, padding_texels=1)
+    """The atlas of M1 with one texel of chart padding (bilinear look-ups stay inside a chart;
+    the preview maps are dilated into the padding). Measured on the full cylinder's M1 at
+    N = 32: padding 2 covers 100 texel centres and needs two pages, padding 1 covers 200."""
+    return build_atlas(m1, n, padding_texels=1)
 
 
 # --------------------------------------------------------------------------- texel bookkeeping
