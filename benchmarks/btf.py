@@ -38,6 +38,7 @@ from texelbake.btf.report import (  # noqa: E402
     error_vs_components,
     plot_error_vs_components,
 )
+from texelbake.btf.stage import fill_uncovered  # noqa: E402
 from texelbake.btf.synthetic import synthetic_btf  # noqa: E402
 
 SEED_REFERENCE = {
@@ -48,12 +49,15 @@ SEED_REFERENCE = {
 }
 
 
-def load_npz(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def load_npz(path: Path):
+    """(btf, dirs_i, dirs_o, covered or None) from an .npz (optional key `covered` (h, w) bool:
+    atlas texels with data; the others are pull-push filled and left out of the errors)."""
     with np.load(path) as z:
         missing = {"btf", "dirs_i", "dirs_o"} - set(z.files)
         if missing:
             raise SystemExit(f"{path}: missing keys {sorted(missing)} (has {z.files})")
-        return z["btf"].astype(np.float32), z["dirs_i"], z["dirs_o"]
+        covered = z["covered"].astype(bool) if "covered" in z.files else None
+        return z["btf"].astype(np.float32), z["dirs_i"], z["dirs_o"], covered
 
 
 def compare_pca(btf: np.ndarray, settings: BTFSettings) -> dict:
@@ -76,11 +80,15 @@ def compare_pca(btf: np.ndarray, settings: BTFSettings) -> dict:
     return out
 
 
-def run_input(name: str, btf, dirs_i, dirs_o, args) -> dict:
+def run_input(name: str, btf, dirs_i, dirs_o, args, covered=None) -> dict:
     settings = BTFSettings(pca_method=args.pca_method)
     print(f"\n== {name}: {btf.shape[0]} pairs, {btf.shape[1]} x {btf.shape[2]} texels, "
           f"{btf.nbytes / 1e6:.0f} MB float32")
-    maps, rep = btf_report(btf, dirs_i, dirs_o, settings)
+    if covered is not None:
+        print(f"{int(covered.sum())} of {covered.size} texels covered by the atlas; the rest "
+              "pull-push filled and not counted in the errors")
+        btf = fill_uncovered(btf, covered)
+    maps, rep = btf_report(btf, dirs_i, dirs_o, settings, texel_mask=covered)
     sec = rep["seconds"]
     print(f"build {sec['build_total']:.2f} s wall ({rep['cpu_seconds_build']:.2f} s CPU): "
           + ", ".join(f"{k} {v:.2f}" for k, v in sec.items() if k not in ("build_total",)))
@@ -92,7 +100,7 @@ def run_input(name: str, btf, dirs_i, dirs_o, args) -> dict:
     for ch, m in rep["mse"].items():
         print(f"  MSE {ch:2s}: avg {m['avg']:.5f}  min {m['min']:.5f}  max {m['max']:.5f}")
     del maps
-    rows = error_vs_components(btf, dirs_i, dirs_o, args.n, settings)
+    rows = error_vs_components(btf, dirs_i, dirs_o, args.n, settings, texel_mask=covered)
     print(f"{'n':>4} {'seconds':>8} {'cpu s':>8} {'ratio':>8} {'Y avg':>9} {'Y min':>9} "
           f"{'Y max':>9} {'Cb avg':>9} {'Cr avg':>9}")
     for r in rows:
@@ -119,7 +127,7 @@ def run_input(name: str, btf, dirs_i, dirs_o, args) -> dict:
         },
     }
     half = BTFSettings(pca_method=args.pca_method, storage="float16")
-    _, rep16 = btf_report(btf, dirs_i, dirs_o, half)
+    _, rep16 = btf_report(btf, dirs_i, dirs_o, half, texel_mask=covered)
     result["float16_storage"] = {k: rep16[k] for k in ("compression_ratio", "mse", "seconds",
                                                         "compressed_bytes")}
     print(f"float16 maps: {rep16['compression_ratio']:.2f}x, MSE Y avg "
@@ -149,8 +157,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("give .npz inputs and/or --synthetic")
     results = {}
     for path in args.inputs:
-        btf, di, do = load_npz(path)
-        results[path.stem] = run_input(path.stem, btf, di, do, args)
+        btf, di, do, covered = load_npz(path)
+        results[path.stem] = run_input(path.stem, btf, di, do, args, covered)
         del btf
     if args.synthetic:
         t0 = time.perf_counter()

@@ -6,7 +6,8 @@ import pytest
 from texelbake.btf.compress import BTFSettings, reconstruct_btf
 from texelbake.btf.lut import bonn_directions
 from texelbake.btf.maps_io import SHADER_BTF, read_btf_maps
-from texelbake.btf.stage import author_btf_shader, bake_btf, btf_from_texels
+from texelbake.btf.report import btf_errors
+from texelbake.btf.stage import author_btf_shader, bake_btf, btf_from_texels, fill_uncovered
 from texelbake.errors import ShapeError
 
 
@@ -67,3 +68,36 @@ def test_author_btf_shader_resolves_next_to_layer(tmp_path, rng):
     assert "UnresolvableDependency" not in names  # the maps resolve next to the layer
     with pytest.raises(ShapeError, match="lacks BTF parts"):
         author_btf_shader(stage, "/Looks/B2", {"eigen": "x.exr"}, maps)
+
+
+def test_fill_uncovered_pull_push(rng):
+    btf = rng.random((5, 7, 9, 3)).astype(np.float32)
+    covered = rng.random((7, 9)) < 0.4
+    out = fill_uncovered(btf, covered)
+    assert np.array_equal(out[:, covered], btf[:, covered])  # data untouched
+    lo = btf[:, covered].min(axis=1)  # (5, 3)
+    hi = btf[:, covered].max(axis=1)
+    # filled texels are averages of covered ones: inside their per-image range
+    assert np.all(out[:, ~covered] >= lo[:, None] - 1e-6)
+    assert np.all(out[:, ~covered] <= hi[:, None] + 1e-6)
+    one = np.zeros((7, 9), bool)
+    one[3, 4] = True  # a single covered texel fills the whole map with its value
+    assert np.allclose(fill_uncovered(btf, one), btf[:, 3:4, 4:5], atol=1e-6)
+    with pytest.raises(ShapeError):
+        fill_uncovered(btf, covered[:3])
+
+
+def test_masked_errors_match_brute_force(tmp_path, rng):
+    di, do = _grid()
+    btf = rng.random((16, 6, 5, 3)).astype(np.float32)
+    maps, _ = bake_btf(btf, di, do, tmp_path, BTFSettings(n_components=(2, 1, 1)))
+    mask = rng.random((6, 5)) < 0.5
+    got = btf_errors(btf, maps, texel_mask=mask, value_scale=2.0)
+    from texelbake.btf.color import rgb_to_ycbcr
+
+    diff = rgb_to_ycbcr(reconstruct_btf(maps).astype(np.float64)) - rgb_to_ycbcr(
+        btf.astype(np.float64))  # (d, h, w, 3)
+    per = (diff[:, mask] ** 2).mean(axis=1) * 4.0  # (d, 3), value_scale**2 = 4
+    for c, name in enumerate(("Y", "Cb", "Cr")):
+        assert np.isclose(got[name]["avg"], per[:, c].mean(), rtol=1e-5)
+        assert np.isclose(got[name]["max"], per[:, c].max(), rtol=1e-5)

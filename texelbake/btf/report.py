@@ -48,19 +48,30 @@ def compression_stats(maps: BTFMaps) -> dict[str, float]:
 
 
 def btf_errors(
-    btf: np.ndarray, maps: BTFMaps, *, value_scale: float | None = None, lod: float = 0.0
+    btf: np.ndarray,
+    maps: BTFMaps,
+    *,
+    value_scale: float | None = None,
+    lod: float = 0.0,
+    texel_mask: np.ndarray | None = None,
 ) -> dict[str, dict[str, float]]:
     """Per-channel MSE of the reconstruction (seed's Table 1 averaging, see module docstring).
 
     btf : (d, h, w, 3) the input the maps were built from; value_scale : multiplier to [0, 1]
+        (default 1 / the largest RGB value over the masked texels)
+    texel_mask : optional (h, w) bool, the texels that count (e.g. atlas texels with data)
     returns : {"Y": {"avg", "min", "max"}, "Cb": ..., "Cr": ...}
     """
     btf = np.asarray(btf)
     d, h, w, _ = btf.shape
     if (h, w) != maps.shape or d != maps.num_pairs:
         raise ShapeError(f"btf {btf.shape} does not match the maps ({d} pairs of {maps.shape})")
+    mask = np.ones((h, w), bool) if texel_mask is None else np.asarray(texel_mask, dtype=bool)
+    if mask.shape != (h, w):
+        raise ShapeError(f"texel_mask must be {(h, w)}, got {mask.shape}")
+    n_tex = int(mask.sum())
     if value_scale is None:
-        peak = float(np.max(btf))
+        peak = float(np.max(btf[:, mask])) if n_tex else 0.0
         value_scale = 1.0 / peak if peak > 0 else 1.0
     valid = above_horizon(maps.dirs_i.astype(np.float64), maps.dirs_o.astype(np.float64))
     truth = to_ycbcr_planes(btf)  # (3, h, w, d)
@@ -68,7 +79,9 @@ def btf_errors(
     for c, name in enumerate(CHANNELS):
         diff = reconstruct_channel(maps, c, lod)  # (h, w, d)
         diff -= truth[c]
-        per_image = np.einsum("hwd,hwd->d", diff, diff, dtype=np.float64) / (h * w)
+        diff = diff[mask] if n_tex < h * w else diff.reshape(h * w, -1)  # (n_tex, d)
+        sq = np.einsum("td,td->d", diff, diff, dtype=np.float64)
+        per_image = sq / max(n_tex, 1)
         per_image = per_image[valid] * value_scale**2
         if per_image.size == 0:
             out[name] = {"avg": 0.0, "min": 0.0, "max": 0.0}
@@ -85,8 +98,10 @@ def btf_report(
     settings: BTFSettings | None = None,
     *,
     value_scale: float | None = None,
+    texel_mask: np.ndarray | None = None,
 ) -> tuple[BTFMaps, dict]:
     """Build the maps and measure them: compression, MSE per channel, seconds per stage.
+    texel_mask : optional (h, w) bool texels counted in the errors (see `btf_errors`)
 
     returns : (maps, report dict with compression_ratio, mse {Y, Cb, Cr: {avg, min, max}},
         seconds {stage: s, total: s}, cpu_seconds, top_level, pca_methods, mean_models, notes)
@@ -96,7 +111,7 @@ def btf_report(
     maps, info = build_btf_maps(btf, dirs_i, dirs_o, settings)
     build_s, build_cpu = time.perf_counter() - t0, time.process_time() - c0
     t0 = time.perf_counter()
-    mse = btf_errors(btf, maps, value_scale=value_scale)
+    mse = btf_errors(btf, maps, value_scale=value_scale, texel_mask=texel_mask)
     err_s = time.perf_counter() - t0
     report = {
         **compression_stats(maps),
@@ -123,6 +138,7 @@ def error_vs_components(
     settings: BTFSettings | None = None,
     *,
     value_scale: float | None = None,
+    texel_mask: np.ndarray | None = None,
 ) -> list[dict]:
     """The seed's Fig. 6: Y error against the number of Y components, each a full build.
 
@@ -140,7 +156,7 @@ def error_vs_components(
         t0, c0 = time.perf_counter(), time.process_time()
         maps, _ = build_btf_maps(btf, dirs_i, dirs_o, s)
         secs, cpu = time.perf_counter() - t0, time.process_time() - c0
-        mse = btf_errors(btf, maps, value_scale=value_scale)
+        mse = btf_errors(btf, maps, value_scale=value_scale, texel_mask=texel_mask)
         rows.append({"n": int(n), "seconds": secs, "cpu_seconds": cpu, "mse": mse,
                      "compression_ratio": compression_stats(maps)["compression_ratio"]})
         del maps

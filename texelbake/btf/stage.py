@@ -48,6 +48,40 @@ def btf_from_texels(
     return btf, covered.reshape(n, n)
 
 
+def fill_uncovered(btf: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """Pull-push fill of texels without data (atlas gutters), so the Laplacian pyramid does not
+    see artificial edges at chart borders (zeros next to data are high-frequency energy the
+    PCA would spend components on, for texels that are never rendered).
+
+    Pull: 2 x 2 sums of (value * mask, mask) up to 1 x 1; push: each uncovered texel takes the
+    mask-weighted average of the finest coarser level that has data. Covered texels are
+    unchanged. btf : (d, h, w, 3); covered : (h, w) bool -> (d, h, w, 3) same dtype.
+    """
+    btf = np.asarray(btf)
+    covered = np.asarray(covered, dtype=bool)
+    if covered.shape != btf.shape[1:3]:
+        raise ShapeError(f"covered must be {btf.shape[1:3]}, got {covered.shape}")
+    if covered.all() or not covered.any():
+        return btf.copy()
+    vals = [np.moveaxis(btf * covered[None, :, :, None], 0, 2)]  # (h, w, d, 3)
+    masks = [covered.astype(btf.dtype)]
+    while vals[-1].shape[0] > 1 or vals[-1].shape[1] > 1:  # pull: a handful of levels
+        v, m = vals[-1], masks[-1]
+        ph, pw = v.shape[0] % 2, v.shape[1] % 2
+        v = np.pad(v, ((0, ph), (0, pw), (0, 0), (0, 0)))
+        m = np.pad(m, ((0, ph), (0, pw)))
+        vals.append(v[0::2, 0::2] + v[1::2, 0::2] + v[0::2, 1::2] + v[1::2, 1::2])
+        masks.append(m[0::2, 0::2] + m[1::2, 0::2] + m[0::2, 1::2] + m[1::2, 1::2])
+    filled = vals[-1] / masks[-1][:, :, None, None]
+    for v, m in zip(reversed(vals[:-1]), reversed(masks[:-1]), strict=True):  # push
+        up = filled[np.arange(v.shape[0]) // 2][:, np.arange(v.shape[1]) // 2]
+        avg = v / np.maximum(m, 1e-30)[:, :, None, None]
+        filled = np.where((m > 0)[:, :, None, None], avg, up)
+    out = np.moveaxis(filled, 2, 0).astype(btf.dtype)
+    out[:, covered] = btf[:, covered]  # exact, not v / 1
+    return out
+
+
 def bake_btf(
     btf: np.ndarray,
     dirs_i: np.ndarray,
@@ -57,14 +91,20 @@ def bake_btf(
     *,
     stem: str = "btf",
     value_scale: float | None = None,
+    covered: np.ndarray | None = None,
 ) -> tuple[BTFMaps, dict]:
     """Build the Laplacian BTF, write its EXR maps to `out_dir`, return (maps, report).
 
     btf : (d, h, w, 3) float32 linear RGB; dirs_i, dirs_o : (d, 3) unit, texel frame
+    covered : optional (h, w) bool texels with data; the others are pull-push filled before
+        the build and left out of the error statistics
     report : compression ratio, MSE per channel (avg/min/max), seconds per stage, plus
         "files": part -> file name relative to out_dir
     """
-    maps, report = btf_report(btf, dirs_i, dirs_o, settings, value_scale=value_scale)
+    if covered is not None:
+        btf = fill_uncovered(btf, covered)
+    maps, report = btf_report(btf, dirs_i, dirs_o, settings, value_scale=value_scale,
+                              texel_mask=covered)
     paths = write_btf_maps(maps, out_dir, stem)
     report["files"] = {part: p.name for part, p in paths.items()}
     return maps, report
