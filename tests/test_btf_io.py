@@ -60,6 +60,13 @@ def test_load_ubo2003_folder_png(tmp_path, rng):
     for k, f in enumerate(m.files):  # 8-bit PNG is sRGB: decoded to linear
         assert np.allclose(m.btf[k], srgb_to_linear(imgs[f] / 255.0), atol=1e-6)
     assert np.allclose(m.angles, pairs)
+    jpg = tmp_path / "jpg"
+    jpg.mkdir()
+    _write(jpg / "tl030 pl090 tv045 pv180.jpg", np.full((4, 5, 3), 128, np.uint8), oiio.UINT8)
+    mj = load_measured_btf(jpg)
+    # JPEG is 8-bit sRGB: a flat 128 decodes to 0.2158 linear (JPEG may shift a level or two)
+    assert np.allclose(mj.btf, srgb_to_linear(128 / 255.0), atol=0.01)
+    assert np.allclose(mj.angles, [[30, 90, 45, 180]])
     assert np.allclose(m.dirs_i[2], dirs_from_degrees(75.0, 345.0))
     assert np.allclose(m.dirs_o[1], dirs_from_degrees(30.0, 120.0))
 

@@ -32,11 +32,13 @@ def _btf(rng, h=9, w=7, n=N_DIR):
     return rng.random((n * n, h, w, 3)).astype(np.float32), di, do
 
 
-@pytest.mark.parametrize(("h", "w"), [(9, 7), (16, 16), (1, 1), (2, 13)])
-def test_all_components_reconstruct_input(rng, h, w):
+@pytest.mark.parametrize(("h", "w", "filt"), [(9, 7, "box3"), (16, 16, "box3"), (1, 1, "box3"),
+                                              (2, 13, "box3"), (9, 7, "gauss5")])
+def test_all_components_reconstruct_input(rng, h, w, filt):
     btf, di, do = _btf(rng, h, w)
     top = int(np.ceil(np.log2(max(h, w))))  # down to a 1 x 1 top level
-    maps, info = build_btf_maps(btf, di, do, BTFSettings(n_components=ALL, top_level=top))
+    maps, info = build_btf_maps(btf, di, do, BTFSettings(n_components=ALL, top_level=top,
+                                                           pyramid_filter=filt))
     assert maps.weights[-1].shape[:2] == (1, 1)
     rec = reconstruct_btf(maps)
     assert rec.shape == btf.shape
