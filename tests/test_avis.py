@@ -493,10 +493,13 @@ def test_visible_fraction_fill():
     a[0, 0, :2] = np.array([[1.0, 2.0, 0.5, 0.0], [1.0, 1.0, 1.0, 1.0]])
     f = visible_fraction(a, u)
     np.testing.assert_allclose(f[0, 0, :2], a[0, 0, :2] / 2.0)
-    # undefined rows of face 0 continue the row above; faces without any U stay 0
+    # undefined rows of face 0 take the nearest defined texel (the row above, same column);
+    # faces without any U stay 0
     np.testing.assert_allclose(f[0, 0, 2], f[0, 0, 1])
     np.testing.assert_allclose(f[0, 0, 3], f[0, 0, 1])
     assert np.all(f[0, 1:] == 0) and f.min() >= 0 and f.max() <= 1
+    with pytest.raises(ShapeError):
+        visible_fraction(a, u[..., :2])
 
 
 def test_fraction_storage_beats_direct_and_respects_bound():
@@ -628,3 +631,19 @@ def test_cube_maps_skip_casts_no_rays_and_shape_errors():
                        skip_texels=np.zeros(3, bool))
     with pytest.raises(ShapeError):
         avis_cube_maps(s["pos"][:5], s["nrm"], s["ar"], s["tex"], 16, None, 4, counting)
+
+
+def test_visible_fraction_nearest_fill_brute_force():
+    rng = np.random.default_rng(1)
+    u = (rng.random((3, 6, 8, 8)) > 0.6).astype(float)
+    a = rng.random(u.shape) * u
+    f = visible_fraction(a, u)
+    for idx in np.ndindex(u.shape):  # reference: nearest defined entry of the column
+        r, fc, i, j = idx
+        if u[idx] > 0:
+            assert f[idx] == a[idx]
+            continue
+        col = np.flatnonzero(u[r, fc, :, j] > 0)
+        if col.size:
+            k = col[np.argmin(np.abs(col - i) + 1e-9 * (col > i))]  # ties: lower index
+            assert f[idx] == a[r, fc, k, j]

@@ -1065,40 +1065,43 @@ class AvisTable:
         return np.sum(taps * wts, axis=0)
 
 
+def _fill_along(f: np.ndarray, ok: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fill undefined entries with the nearest defined entry along one axis (ties: lower
+    index). Vectorized: forward and backward running maxima of the defined indices."""
+    n = f.shape[axis]
+    shape = [1] * f.ndim
+    shape[axis] = n
+    pos = np.arange(n).reshape(shape)
+    prev = np.maximum.accumulate(np.where(ok, pos, -1), axis=axis)
+    nxt = n - 1 - np.maximum.accumulate(np.flip(np.where(ok, n - 1 - pos, -1), axis=axis),
+                                        axis=axis)
+    nxt = np.flip(nxt, axis=axis)  # index of the next defined entry, n when none
+    d_prev = np.where(prev >= 0, pos - prev, n + 1)
+    d_next = np.where(nxt < n, nxt - pos, n + 1)
+    src = np.where(d_prev <= d_next, prev, nxt)
+    found = np.minimum(d_prev, d_next) <= n
+    filled = np.take_along_axis(f, np.clip(src, 0, n - 1), axis=axis)
+    return np.where(ok, f, np.where(found, filled, 0.0)), ok | found
+
+
 def visible_fraction(maps: np.ndarray, unoccluded: np.ndarray) -> np.ndarray:
-    """F = a_vis / U on cube maps, with the directions where U = 0 (F undefined) filled by
-    repeated 4-neighbour averaging inside each face, so that bilinear look-ups just above the
-    horizon and the Haar transform see a smooth extension rather than a jump to 0.
+    """F = a_vis / U on cube maps. Where U = 0 (F undefined) F takes the value of the nearest
+    defined texel of the same face along its column, else along its row, so that bilinear
+    look-ups just above the horizon and the Haar transform see a piecewise-constant extension
+    rather than a jump to 0; faces with no defined texel are 0.
 
     maps, unoccluded : (r, 6, res, res) float64 a_vis and its unoccluded bound U >= a_vis
     returns : (r, 6, res, res) float64 in [0, 1]
     """
     a = np.asarray(maps, dtype=np.float64)
     u = np.asarray(unoccluded, dtype=np.float64)
+    if a.shape != u.shape or a.ndim < 2:
+        raise ShapeError(f"maps and unoccluded must share a (..., res, res) shape, got "
+                         f"{a.shape} and {u.shape}")
     defined = u > 0
     f = np.clip(np.divide(a, u, out=np.zeros_like(a), where=defined), 0.0, 1.0)
-    res = a.shape[-1]
-    for _ in range(2 * res):  # dilation steps (a face is filled after at most 2 res of them)
-        todo = ~defined
-        if not todo.any():
-            break
-        val = np.where(defined, f, 0.0)
-        cnt = defined.astype(np.float64)
-        s_val = np.zeros_like(val)
-        s_cnt = np.zeros_like(cnt)
-        s_val[..., 1:, :] += val[..., :-1, :]
-        s_val[..., :-1, :] += val[..., 1:, :]
-        s_val[..., :, 1:] += val[..., :, :-1]
-        s_val[..., :, :-1] += val[..., :, 1:]
-        s_cnt[..., 1:, :] += cnt[..., :-1, :]
-        s_cnt[..., :-1, :] += cnt[..., 1:, :]
-        s_cnt[..., :, 1:] += cnt[..., :, :-1]
-        s_cnt[..., :, :-1] += cnt[..., :, 1:]
-        grow = todo & (s_cnt > 0)
-        if not grow.any():
-            break
-        f[grow] = s_val[grow] / s_cnt[grow]
-        defined = defined | grow
+    f, defined = _fill_along(f, defined, axis=-2)  # along columns (iv)
+    f, _ = _fill_along(f, defined, axis=-1)  # then rows (iu), for columns without values
     return f
 
 
