@@ -316,6 +316,8 @@ def test_weighted_points_vs_brute_force_sum(rng):
     snr = 10 * np.log10(np.sum(ref_f**2) / np.sum((ref_f - apx_f) ** 2))
     assert fit.snr_db_insample == pytest.approx(snr, abs=1e-8)
     assert fit.eps_reached == (fit.snr_db_insample >= 30.0)
+    # every stored point carries weight (drawn points NNLS left at 0 are dropped)
+    assert fit.c == fit.columns.size and np.all(np.any(fit.weights != 0, axis=1))
 
 
 def test_nnls_never_worse_than_clamp_on_the_same_points(rng):

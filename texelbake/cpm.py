@@ -249,7 +249,8 @@ def snr_db(ref: np.ndarray, approx: np.ndarray, valid: np.ndarray | None = None)
 class TexelFit:
     """Characteristic points of one texel: f_bar ~ (sum_k weights[k] R[:, columns[k]]) / a_vis.
 
-    columns : (c,) int64, sorted unique sample indices into the texel's m samples
+    columns : (c,) int64, sorted unique sample indices into the texel's m samples; only points
+        with a nonzero weight in some channel are kept (NNLS leaves many drawn points at 0)
     weights : (c, ch) float32, alpha per point and channel (>= 0). In per-channel mode a point
         selected for one channel has zero weight in the others, so the renderer's sum is the
         same in both modes.
@@ -261,8 +262,8 @@ class TexelFit:
     colour_mode : "luminance" | "per_channel"
     channel_correlation : float, min pairwise Pearson correlation of the channels of R (1.0 for
         a single channel or constant channels)
-    k_channels, c_channels : (g,) int64, k and number of points per selection group (one group
-        in luminance mode, one per channel otherwise)
+    k_channels, c_channels : (g,) int64, k and number of points with nonzero weight per selection
+        group (one group in luminance mode, one per channel otherwise)
     c_capped : bool, c_max < k so c was capped at c_max
     eps_reached : bool, snr_db_insample >= eps_db
     valid : bool, False when the texel cannot be fitted (no samples, no valid row)
@@ -589,6 +590,10 @@ def fit_texel(
         pos = np.searchsorted(columns, gf.cols)
         w64[np.ix_(pos, chans)] = gf.alpha
     w32 = w64.astype(np.float32)
+    # NNLS solutions are sparse: a drawn point whose weight is 0 in every channel contributes
+    # nothing and would only cost render time, so it is not stored
+    live = np.any(w32 != 0.0, axis=1)
+    columns, w32 = columns[live], w32[live]
     approx = np.einsum("dcx,cx->dx", R[:, columns], w32.astype(np.float64))  # (d, ch)
     fbar_apx, _ = filtered_reflectance(approx, avis_rows, eps_avis)
     snr = snr_db(fbar_ref, fbar_apx, valid)
@@ -609,7 +614,9 @@ def fit_texel(
         reason="; ".join(reasons),
         channel_correlation=corr,
         k_channels=np.array([gf.k for gf in fits], dtype=np.int64),
-        c_channels=np.array([gf.cols.size for gf in fits], dtype=np.int64),
+        c_channels=np.array(
+            [int(np.count_nonzero(np.any(gf.alpha != 0.0, axis=1))) for gf in fits], dtype=np.int64
+        ),
         c_capped=capped,
         eps_reached=bool(snr >= eps_db),
     )
