@@ -1,0 +1,327 @@
+"""Public entry points of the renderer: `render`, `render_previews`, `write_report_plot`, and
+the diagnostic images (mip level colour-coded, seed 000 Fig. 9; characteristic-point density
+over the atlas and on the model, its Fig. 8).
+
+`render_report.json` (written by `render_previews` and by `benchmarks/render.py`)::
+
+    {"scene": name, "width": w, "height": h, "reference": {"mode": "gt", "spp": n, ...},
+     "modes": {mode: {"seconds", "rays_cast", "spp", "rmse", "psnr_db", "snr_db",
+                      "files": [...], ...}},
+     "sweep": [{"mode", "spp", "eps_db", "seconds", "rays_cast", "rmse", "psnr_db",
+                "snr_db"}, ...]}
+
+Errors are against the reference `gt` image (more eye rays per pixel than any other entry);
+PSNR uses the reference's peak (`texelbake.metrics`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from texelbake import metrics
+from texelbake.errors import SettingsError, StageError
+from texelbake.render import camera as cam_mod
+from texelbake.render.core import (
+    MODES,
+    RenderResult,
+    RenderScene,
+    load_scene,
+    render_frame,
+    resolve_camera,
+)
+from texelbake.render.images import write_exr, write_png
+
+#: preview sizes: (pixels per side, reference spp, gt sweep spp, cpm sweep spp, spp of the
+#: compared images)
+PREVIEW_SIZES: dict[str, dict[str, Any]] = {
+    "small": {"px": 96, "ref_spp": 64, "gt_sweep": (1, 4, 16), "cpm_sweep": (1, 4), "spp": 4},
+    "medium": {"px": 256, "ref_spp": 256, "gt_sweep": (1, 4, 16, 64), "cpm_sweep": (1, 4, 16),
+               "spp": 4},
+    "full": {"px": 512, "ref_spp": 1024, "gt_sweep": (1, 4, 16, 64, 256),
+             "cpm_sweep": (1, 4, 16), "spp": 4},
+}
+
+
+def render(baked_root: str | Path, mode: str, *, width: int, height: int, spp: int,
+           camera: object = None, out_dir: str | Path | None = None, seed: int = 0,
+           **kw: Any) -> RenderResult:
+    """Render a baked USD in one mode ("gt", "cpm", "normalmap", "equal-time").
+
+    camera : None (the asset's camera, else auto-framed), a `camera.PinholeCamera`, a
+        `model.Camera`, or a number (auto-frame at that distance factor)
+    out_dir : when given, writes `<mode>.exr` (linear float) and `<mode>.png` (sRGB)
+    kw : mode options (cpm: lod_bias, local_light_ratio, max_error_px; equal-time:
+        budget_seconds)
+    returns : RenderResult (image (h, w, 3) float32, seconds, rays_cast, spp)
+    """
+    scene = load_scene(baked_root)
+    cam = resolve_camera(scene, camera, width, height)
+    res = render_frame(scene, mode, cam, spp, seed, **kw)
+    if out_dir is not None:
+        out = Path(out_dir)
+        write_exr(out / f"{mode}.exr", res.image)
+        write_png(out / f"{mode}.png", res.image)
+    return res
+
+
+# --------------------------------------------------------------------------- diagnostics
+
+
+def level_colours(level: np.ndarray, n_levels: int) -> np.ndarray:
+    """Mip level image -> colours (seed 000 Fig. 9): level j gets colour j of a qualitative
+    map, fractional levels blend the two neighbours, -1 (M_org fallback) is white, NaN
+    (background) black.
+
+    level : (h, w) float; returns (h, w, 3) float64 in [0, 1]
+    """
+    from matplotlib import colormaps
+
+    lv = np.asarray(level, dtype=np.float64)
+    pal = np.asarray(colormaps["tab10"].colors)[:, :3]
+    out = np.zeros(lv.shape + (3,))
+    ok = np.isfinite(lv) & (lv >= 0)
+    x = np.clip(np.where(ok, lv, 0.0), 0.0, max(n_levels - 1, 0))
+    j0 = np.floor(x).astype(np.int64)
+    j1 = np.minimum(j0 + 1, max(n_levels - 1, 0))
+    f = (x - j0)[..., None]
+    col = (1 - f) * pal[j0 % 10] + f * pal[j1 % 10]
+    out[ok] = col[ok]
+    out[lv == -1.0] = 1.0
+    return out
+
+
+def density_atlas(scene: RenderScene, level: int = 0) -> np.ndarray:
+    """Characteristic points per texel of one level as an (n_l, n_l) int64 image (row 0 is the
+    top of the atlas, v = 1)."""
+    lv = scene.baked.levels[level]
+    counts = np.diff(lv["texel_offsets"])
+    n_l = int(round(math.sqrt(counts.shape[0])))
+    return counts.reshape(n_l, n_l).astype(np.int64)
+
+
+def density_colours(counts: np.ndarray, vmax: float | None = None) -> np.ndarray:
+    """Counts -> viridis colours, zero counts dark grey. (h, w) -> (h, w, 3) float64."""
+    from matplotlib import colormaps
+
+    c = np.asarray(counts, dtype=np.float64)
+    vmax = float(c.max()) if vmax is None else float(vmax)
+    rgb = colormaps["viridis"](np.clip(c / max(vmax, 1.0), 0.0, 1.0))[..., :3]
+    rgb[c <= 0] = 0.15
+    return rgb
+
+
+def density_on_model(scene: RenderScene, cam: cam_mod.PinholeCamera, level: int = 0,
+                     seed: int = 0) -> np.ndarray:
+    """M1 coloured by the characteristic-point count of the texel under each pixel (nearest
+    texel of `level`), shaded by |n·v| so the shape reads (seed 000 Fig. 8).
+    returns (h, w, 3) float64 in [0, 1] (background black)"""
+    counts = density_atlas(scene, level)
+    n_l = counts.shape[0]
+    m = scene.baked.meshes[0]
+    off = cam_mod.sample_offsets(1, cam.width * cam.height, seed)
+    o, d = cam_mod.eye_rays(cam, off)
+    hits = scene.lods[0].cast(o, d)
+    out = np.zeros((o.shape[0], 3))
+    idx = np.flatnonzero(hits.hit)
+    if idx.size:
+        prim = hits.prim[idx]
+        uv = np.einsum("nk,nkj->nj", hits.bary3()[idx], m.corner_uvs[prim])
+        x = np.clip(np.floor(uv[:, 0] * n_l), 0, n_l - 1).astype(np.int64)
+        y = np.clip(np.floor((1.0 - uv[:, 1]) * n_l), 0, n_l - 1).astype(np.int64)
+        col = density_colours(counts, counts.max())[y, x]
+        shade = np.abs(np.einsum("ij,ij->i", scene.lod_face_normals[0][prim], d[idx]))
+        out[idx] = col * (0.35 + 0.65 * shade[:, None])
+    return out.reshape(cam.height, cam.width, 3)
+
+
+def _upscale(img: np.ndarray, min_px: int = 256) -> np.ndarray:
+    k = max(1, int(math.ceil(min_px / max(img.shape[:2]))))
+    return np.repeat(np.repeat(img, k, axis=0), k, axis=1)
+
+
+# --------------------------------------------------------------------------- previews, report
+
+
+def _errors(img: np.ndarray, ref: np.ndarray) -> dict[str, float]:
+    return {"rmse": metrics.rmse(img, ref), "psnr_db": metrics.psnr_db(img, ref),
+            "snr_db": metrics.snr_db(img, ref)}
+
+
+def _entry(res: RenderResult, ref: np.ndarray | None, eps_db: float | None) -> dict[str, Any]:
+    e: dict[str, Any] = {"mode": res.mode, "spp": res.spp, "seconds": round(res.seconds, 4),
+                         "rays_cast": res.rays_cast}
+    if eps_db is not None and res.mode == "cpm":
+        e["eps_db"] = eps_db
+    if ref is not None:
+        e.update(_errors(res.image, ref))
+    return e
+
+
+def _eps_db(scene: RenderScene) -> float | None:
+    s = scene.baked.metadata.get("settings", {})
+    v = s.get("eps_db") if hasattr(s, "get") else None
+    return None if v is None else float(v)
+
+
+def render_previews(baked_root: str | Path, out_dir: str | Path, *, size: str = "small",
+                    seed: int = 0) -> list[Path]:
+    """Previews of every mode, the diagnostics and `render_report.json` (module docstring)
+    for one baked USD. Used by `make demo` (size "small") and the farm's render stage.
+
+    Writes into out_dir: gt, cpm, normalmap, equal-time (.exr linear, .png sRGB);
+    diff_<mode>.png (ΔE*ab against gt); mip_levels.png; cp_density_atlas.png;
+    cp_density_model.png; render_report.json; speed_error.png. Returns the written paths.
+    """
+    if size not in PREVIEW_SIZES:
+        raise SettingsError(f"field 'size': expected one of {sorted(PREVIEW_SIZES)}, got "
+                            f"{size!r}")
+    cfg = PREVIEW_SIZES[size]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = load_scene(baked_root)
+    px = cfg["px"]
+    cam = resolve_camera(scene, None, px, px)
+    report = compare_modes(scene, cam, spp=cfg["spp"], ref_spp=cfg["ref_spp"],
+                           gt_sweep=cfg["gt_sweep"], cpm_sweep=cfg["cpm_sweep"], seed=seed,
+                           out_dir=out)
+    report["scene"] = scene.baked.name
+    report["size"] = size
+    files = [Path(f) for m in report["modes"].values() for f in m.get("files", [])]
+    files.append(write_png(out / "cp_density_atlas.png",
+                           _upscale(density_colours(density_atlas(scene))), srgb=False))
+    files.append(write_png(out / "cp_density_model.png", density_on_model(scene, cam),
+                           srgb=False))
+    rep_path = out / "render_report.json"
+    _write_json(rep_path, report)
+    files.append(rep_path)
+    files.append(write_report_plot(out))
+    return files
+
+
+def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, ref_spp: int,
+                  gt_sweep: tuple[int, ...] = (), cpm_sweep: tuple[int, ...] = (),
+                  seed: int = 0, out_dir: Path | None = None,
+                  modes: tuple[str, ...] = MODES, reference: RenderResult | None = None,
+                  **kw: Any) -> dict[str, Any]:
+    """Render the reference and every mode, measure their errors (report dict, module
+    docstring). Images and difference maps are written to out_dir when given."""
+    ref = reference if reference is not None else render_frame(
+        scene, "gt", cam, ref_spp, seed + 1000)
+    ref_img = ref.image
+    eps_db = _eps_db(scene)
+    report: dict[str, Any] = {
+        "width": cam.width, "height": cam.height,
+        "reference": {"mode": "gt", "spp": ref.spp, "seconds": round(ref.seconds, 4),
+                      "rays_cast": ref.rays_cast},
+        "modes": {}, "sweep": [],
+    }
+    if out_dir is not None:
+        write_exr(out_dir / "gt_reference.exr", ref_img)
+        write_png(out_dir / "gt_reference.png", ref_img)
+    results: dict[str, RenderResult] = {}
+    for mode in modes:  # a loop over the four modes
+        if mode == "equal-time":
+            res = render_frame(scene, mode, cam, spp, seed,
+                               budget_seconds=results["cpm"].seconds if "cpm" in results
+                               else None, **kw)
+        else:
+            res = render_frame(scene, mode, cam, spp, seed, **(kw if mode == "cpm" else {}))
+        results[mode] = res
+        entry = _entry(res, ref_img, eps_db)
+        if mode == "cpm":
+            entry["mesh"] = res.extras.get("mesh")
+            entry["fallback_fraction"] = res.extras.get("fallback_fraction")
+        if out_dir is not None:
+            files = [str(write_exr(out_dir / f"{mode}.exr", res.image)),
+                     str(write_png(out_dir / f"{mode}.png", res.image))]
+            dmap = metrics.difference_map(res.image, ref_img)
+            files.append(str(metrics.write_difference_map(out_dir / f"diff_{mode}.png",
+                                                          dmap)))
+            entry["delta_e_mean"] = float(dmap.mean())
+            if mode == "cpm":
+                files.append(str(write_png(
+                    out_dir / "mip_levels.png",
+                    level_colours(res.extras["level"], len(scene.baked.levels)), srgb=False)))
+            entry["files"] = files
+        report["modes"][mode] = entry
+        report["sweep"].append({k: v for k, v in entry.items() if k != "files"})
+    for s in gt_sweep:
+        if s != spp or "gt" not in results:
+            report["sweep"].append(_entry(render_frame(scene, "gt", cam, s, seed), ref_img,
+                                          eps_db))
+    for s in cpm_sweep:
+        if s != spp or "cpm" not in results:
+            report["sweep"].append(_entry(render_frame(scene, "cpm", cam, s, seed, **kw),
+                                          ref_img, eps_db))
+    return report
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    from texelbake.payload import atomic_json
+
+    atomic_json(path, _finite(obj))
+
+
+def _finite(obj: Any) -> Any:
+    """JSON has no inf: exact matches are written as the string "inf"."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return str(obj)
+    return obj
+
+
+def write_report_plot(report_dir: str | Path) -> Path:
+    """Speed against error (matplotlib PNG `speed_error.png` beside `render_report.json`):
+    PSNR (dB) against seconds per frame, one curve per (mode, ε) of the sweep, each point
+    labelled with its eye rays per pixel."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = Path(report_dir)
+    path = d / "render_report.json"
+    if not path.is_file():
+        raise StageError(f"no render_report.json in {d}")
+    report = json.loads(path.read_text())
+    sweep = [e for e in report.get("sweep", [])
+             if isinstance(e.get("psnr_db"), (int, float)) and e.get("seconds", 0) > 0]
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for e in sweep:
+        key = e["mode"] + (f" (ε = {e['eps_db']:g} dB)" if "eps_db" in e else "")
+        groups.setdefault(key, []).append(e)
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
+    markers = {"gt": "o", "cpm": "s", "normalmap": "^", "equal-time": "D"}
+    for key in sorted(groups):
+        pts = sorted(groups[key], key=lambda e: e["seconds"])
+        mode = pts[0]["mode"]
+        xs = [e["seconds"] for e in pts]
+        ys = [e["psnr_db"] for e in pts]
+        ax.plot(xs, ys, marker=markers.get(mode, "x"), label=key,
+                linestyle="-" if len(pts) > 1 else "none")
+        for e in pts:
+            ax.annotate(str(e["spp"]), (e["seconds"], e["psnr_db"]), fontsize=7,
+                        xytext=(3, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds per frame")
+    ax.set_ylabel("PSNR against gt (dB)")
+    ref = report.get("reference", {})
+    ax.set_title(f"{report.get('scene', '')} {report.get('width', '')}×"
+                 f"{report.get('height', '')}, reference gt at {ref.get('spp', '?')} spp")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out = d / "speed_error.png"
+    tmp = d / ".speed_error.tmp.png"
+    fig.savefig(tmp)
+    plt.close(fig)
+    tmp.replace(out)
+    return out

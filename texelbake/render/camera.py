@@ -1,0 +1,154 @@
+"""Pinhole cameras and stratified eye rays (wavefront: all rays of a pass at once).
+
+A camera looks down its local -Z with +Y up (USD). The horizontal field of view comes from the
+USD camera's horizontal aperture and focal length; the vertical one follows the image aspect
+(square pixels), as USD's "conform horizontal" does.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from texelbake.errors import SettingsError, ShapeError
+from texelbake.model import Camera
+
+
+@dataclass(frozen=True, eq=False)
+class PinholeCamera:
+    """position : (3,) float64; rotation : (3, 3) float64 world_from_camera (columns x, y, z of
+    the camera in world space); tan_half_x : tan of half the horizontal field of view;
+    width, height : pixels."""
+
+    position: np.ndarray
+    rotation: np.ndarray
+    tan_half_x: float
+    width: int
+    height: int
+
+    @property
+    def tan_half_y(self) -> float:
+        return self.tan_half_x * self.height / self.width
+
+    @property
+    def forward(self) -> np.ndarray:
+        """(3,) unit viewing direction (camera -Z) in world space."""
+        return -self.rotation[:, 2]
+
+    @property
+    def pixel_angle(self) -> float:
+        """Angular size of one pixel at the image centre (radians, small-angle)."""
+        return 2.0 * self.tan_half_x / self.width
+
+
+def _check_size(width: int, height: int) -> tuple[int, int]:
+    w, h = int(width), int(height)
+    if w < 1 or h < 1:
+        raise SettingsError(f"field 'width'/'height': must be >= 1, got {w} x {h}")
+    return w, h
+
+
+def from_usd(camera: Camera, width: int, height: int) -> PinholeCamera:
+    """The asset's camera (texelbake.model.Camera) at this image size."""
+    w, h = _check_size(width, height)
+    m = np.asarray(camera.world_from_camera, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise ShapeError(f"world_from_camera must be (4, 4), got {m.shape}")
+    rot = m[:3, :3]
+    # strip scale so directions stay unit
+    rot = rot / np.linalg.norm(rot, axis=0, keepdims=True)
+    if camera.focal_length <= 0 or camera.horizontal_aperture <= 0:
+        raise SettingsError(
+            f"camera {camera.path}: focal length and aperture must be > 0, got "
+            f"{camera.focal_length}, {camera.horizontal_aperture}")
+    tan_x = 0.5 * camera.horizontal_aperture / camera.focal_length
+    return PinholeCamera(m[:3, 3].copy(), rot, float(tan_x), w, h)
+
+
+def look_at(eye: object, target: object, width: int, height: int, *, fov_deg: float = 27.0,
+            up: object = (0.0, 1.0, 0.0)) -> PinholeCamera:
+    """A camera at `eye` looking at `target` with horizontal field of view `fov_deg`."""
+    w, h = _check_size(width, height)
+    eye = np.asarray(eye, dtype=np.float64)
+    z = eye - np.asarray(target, dtype=np.float64)
+    if np.linalg.norm(z) == 0:
+        raise SettingsError("field 'camera': eye and target coincide")
+    z /= np.linalg.norm(z)
+    up = np.asarray(up, dtype=np.float64)
+    if abs(float(np.dot(up, z))) > 0.999:
+        up = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return PinholeCamera(eye.copy(), np.stack([x, y, z], axis=1),
+                         math.tan(math.radians(fov_deg) / 2.0), w, h)
+
+
+def auto_frame(bounds: object, width: int, height: int, *, distance: float = 1.1,
+               view_from: object = (0.3, 0.4, 1.0), fov_deg: float = 27.0) -> PinholeCamera:
+    """Frame a bounding box: look at its centre from direction `view_from`, at `distance`
+    times the distance at which the bounding sphere just fills the narrower field of view."""
+    b = np.asarray(bounds, dtype=np.float64)
+    if b.shape != (2, 3):
+        raise ShapeError(f"bounds must be (2, 3), got {b.shape}")
+    if distance <= 0:
+        raise SettingsError(f"field 'distance': must be > 0, got {distance}")
+    centre = b.mean(axis=0)
+    radius = max(0.5 * float(np.linalg.norm(b[1] - b[0])), 1e-12)
+    d = np.asarray(view_from, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    tan_x = math.tan(math.radians(fov_deg) / 2.0)
+    tan_min = min(tan_x, tan_x * height / width)
+    dist = distance * radius / math.sin(math.atan(tan_min))
+    return look_at(centre + dist * d, centre, width, height, fov_deg=fov_deg)
+
+
+def strata(spp: int) -> tuple[int, int]:
+    """(nx, ny) with nx * ny == spp and nx the largest divisor of spp not above sqrt(spp)."""
+    spp = int(spp)
+    if spp < 1:
+        raise SettingsError(f"field 'spp': must be >= 1, got {spp}")
+    nx = max(d for d in range(1, math.isqrt(spp) + 1) if spp % d == 0)
+    return nx, spp // nx
+
+
+def sample_offsets(spp: int, n_pixels: int, seed: int, start: int = 0,
+                   stop: int | None = None) -> np.ndarray:
+    """Stratified jittered sub-pixel positions of samples start..stop-1 of every pixel:
+    (stop - start, n_pixels, 2) float64 in [0, 1).
+
+    Sample s of every pixel lies in stratum s of an nx x ny grid (`strata`), jittered
+    independently per pixel by a generator seeded with (seed, start), so a pass of samples
+    can be generated on its own (memory stays bounded at 1024 samples per pixel).
+    """
+    nx, ny = strata(spp)
+    stop = spp if stop is None else int(stop)
+    if not 0 <= start < stop <= spp:
+        raise SettingsError(f"sample range [{start}, {stop}) outside [0, {spp})")
+    rng = np.random.default_rng([int(seed), int(start)])
+    s = np.arange(start, stop)
+    cell = np.stack([s % nx, s // nx], axis=1).astype(np.float64)  # (k, 2)
+    jitter = rng.random((stop - start, n_pixels, 2))
+    return (cell[:, None, :] + jitter) / np.array([nx, ny], dtype=np.float64)
+
+
+def eye_rays(cam: PinholeCamera, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eye rays through the given sub-pixel positions of every pixel.
+
+    offsets : (k, h * w, 2) float64 positions in [0, 1)² per pixel (row-major pixels)
+    returns : (origins (k * h * w, 3), dirs (k * h * w, 3) unit) float64, ordered
+        [sample][pixel] so that a (k, h * w) reshape sums samples per pixel
+    """
+    w, h = cam.width, cam.height
+    off = np.asarray(offsets, dtype=np.float64)
+    if off.ndim != 3 or off.shape[1:] != (h * w, 2):
+        raise ShapeError(f"offsets must be (k, {h * w}, 2), got {off.shape}")
+    rows, cols = np.divmod(np.arange(h * w), w)
+    x = (2.0 * (cols[None, :] + off[..., 0]) / w - 1.0) * cam.tan_half_x
+    y = (1.0 - 2.0 * (rows[None, :] + off[..., 1]) / h) * cam.tan_half_y
+    d_cam = np.stack([x, y, -np.ones_like(x)], axis=-1).reshape(-1, 3)
+    d = d_cam @ cam.rotation.T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.broadcast_to(cam.position, d.shape).copy(), d

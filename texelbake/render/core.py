@@ -1,0 +1,657 @@
+"""The renderer: a wavefront ray tracer over open3d/Embree and its modes (seed 000 §4.2, §5).
+
+Every mode traces all eye rays of a pass at once (`camera.eye_rays`), shades the hits with
+whole-array numpy and sums the samples of each pixel with a box filter; loops run over sample
+passes, lights, levels and materials only.
+
+Modes (all read the baked USD through `texelbake.payload.read_baked` and the copied source):
+
+- ``gt`` — M_org, stratified eye rays, direct light with shadow rays against M_org
+  (`shade.direct_radiance`).
+- ``cpm`` — characteristic point maps, Eq. 12 of seed 000:
+  f̄_r(p; ωi, ωo) = 1/a_vis(p, ωo) Σ_k V(x̂k, ωi) V(x̂k, ωo) f_r(x̂k, ωi, ωo) (n_k·ωi)⁺
+  (n_gk·ωo)⁺ w_k, radiance L = Σ_l E_l f̄_r (the weights w_k include α_k and ΔA, so E_l times
+  the sum is already the radiance; cos_i on the shading normal, cos_o on the geometric normal,
+  as `texelbake.stages.fit_level` built R). The mesh M_i is picked per frame by projected size
+  (`choose_mesh`), the texel and mip level j per eye ray from its ray differential (pixel
+  footprint → atlas footprint), trilinear across texels and levels; where j < 0 (the
+  viewer is closer than the finest level) the ray falls back to M_org.
+  *Per-frame texel radiance.* Seed 000 §3.1 assumes a distant viewer and distant lights per
+  texel: ωo is one direction per texel. texelbake takes it from the texel's weighted
+  characteristic-point centroid toward the camera position, and per light ωi from each point
+  (exact for point lights). With that, Eq. 12 for every texel of every level depends on the
+  frame but not on the pixel: it is evaluated once per frame for all texels (one shadow ray
+  per point and light, one view ray per point toward the camera, a segment sum over the CSR
+  and one a_vis look-up per texel), and the eye rays only fetch and blend texel radiances —
+  the hint of the issue, carried to the view term. The cost per pixel is then an eye ray on
+  M_i, which is what makes CPM many times faster than multi-sampling M_org.
+  Inter-object shadows: the seed tests a shadow ray on the *other* objects' M_i; a baked asset
+  renders alone here, so there is no such test (intra-object shadowing is V(x̂k, ωi) on
+  M_org). Local lights (§4.2): the mip level is also capped so that the distance to each point
+  light is at least `local_light_ratio` texel sizes (ωi about constant across the texel).
+- ``normalmap`` — the baseline studios bake today: M1 with the baked albedo and tangent-space
+  normal maps, multi-sampled, the material's BRDF with its Lambertian part replaced by the
+  albedo map (`normalmap_brdf`), shadows on M1.
+- ``equal-time`` — M_org with as many eye rays per pixel as fit in the time budget (by
+  default the time of the ``cpm`` image at the given spp, measured in this call).
+
+Timing: `RenderResult.seconds` counts the rendering of one frame (rays, shading, per-frame
+precomputation), not reading the USD files and building the ray-tracing structures, which a
+renderer does once per scene (`RenderScene.setup_seconds`).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from texelbake import brdf as brdf_mod
+from texelbake.errors import SettingsError, StageError
+from texelbake.geometry.raycast import RayCaster
+from texelbake.geometry.texels import bilinear_texels
+from texelbake.model import AssetModel, Camera
+from texelbake.normalmap import face_tangent_space
+from texelbake.render import camera as cam_mod
+from texelbake.render.camera import PinholeCamera
+from texelbake.render.shade import direct_radiance, light_at
+from texelbake.tol import TOL
+
+MODES = ("gt", "cpm", "normalmap", "equal-time")
+
+#: rays per wavefront pass (bounds memory: ~1 kB of temporaries per ray)
+PASS_RAYS = 1 << 17
+
+
+@dataclass
+class RenderResult:
+    """One rendered image.
+
+    image : (h, w, 3) float32 linear radiance
+    seconds : wall time of the frame (see module docstring)
+    rays_cast : every ray traced (eye, shadow, view and fallback rays)
+    spp : eye rays per pixel
+    extras : per-mode diagnostics (cpm: `level` (h, w) float32 mean mip level of the samples,
+        -1 where M_org was used, NaN on background; `mesh` the M_i used; fallback fraction)
+    """
+
+    image: np.ndarray
+    seconds: float
+    rays_cast: int
+    spp: int
+    mode: str = ""
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- the scene
+
+
+class OrgScene:
+    """M_org ready to render: an AssetModel with its ray caster (what `gt` traces). Also
+    usable without a bake (`render_model`)."""
+
+    def __init__(self, asset: AssetModel) -> None:
+        self.asset = asset
+        self.materials = asset.materials
+        self.lights = asset.lights
+        self.org = RayCaster(asset.points, asset.faces)
+        self.org_face_normals = asset.face_normals()
+        self.diag = self.org.bbox_diag
+        self.ray_eps = TOL.ray_offset * self.diag
+
+    def default_camera(self, width: int, height: int) -> PinholeCamera:
+        if self.asset.cameras:
+            return cam_mod.from_usd(self.asset.cameras[0], width, height)
+        return cam_mod.auto_frame(self.asset.bounds, width, height)
+
+
+class RenderScene(OrgScene):
+    """A baked asset ready to render: the baked arrays, M_org with its materials and lights,
+    and ray casters over M_org and every M_i (built once)."""
+
+    def __init__(self, baked_root: str | Path) -> None:
+        from texelbake.payload import read_baked
+        from texelbake.scene import load_asset
+
+        t0 = time.perf_counter()
+        self.root = Path(baked_root)
+        self.baked = read_baked(self.root)
+        if not self.baked.source_layer:
+            raise StageError(f"baked asset {self.root} names no source layer")
+        if not self.baked.meshes:
+            raise StageError(f"baked asset {self.root} has no LOD meshes")
+        if not self.baked.levels:
+            raise StageError(f"baked asset {self.root} has no CPM levels")
+        super().__init__(load_asset(self.baked.source_layer))
+        self.lods = [RayCaster(m.vertices, m.faces) for m in self.baked.meshes]
+        self.lod_face_normals = [_face_normals(m.vertices, m.faces) for m in self.baked.meshes]
+        self.n0 = int(round(math.sqrt(len(self.baked.levels[0]["texel_offsets"]) - 1)))
+        self.lod_uv_ratio, self.lod_uv_exact = zip(
+            *(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0)
+              for i, m in enumerate(self.baked.meshes)),
+            strict=True)
+        self.lod_error = [_hausdorff(self.org, c, self.asset.points, m.vertices)
+                          for c, m in zip(self.lods, self.baked.meshes, strict=True)]
+        from texelbake.stages import avis_table_from
+
+        self._tables = [avis_table_from(lv) for lv in self.baked.levels]
+        self._nm: dict[str, np.ndarray] | None = None
+        self.setup_seconds = time.perf_counter() - t0
+
+    def avis_table(self, level: int):
+        """The level's a_vis table (texelbake.avis.AvisTable), rebuilt once at load."""
+        return self._tables[level]
+
+
+def _face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    tri = v[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+
+
+def _uv_ratio(v: np.ndarray, f: np.ndarray, cuv: np.ndarray, first: bool = False
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle of M_i: atlas uv area per world area (f,), and whether its interpolated
+    uvs can be trusted (f,) bool. Triangles of a coarse M_i whose corners map into different
+    charts (their uv density is far from the atlas' median) are looked up by closest point on
+    M1 instead (the exact composite map T(T_i(·)) of seed 000 §4.1)."""
+    tri = v[f]
+    if first:  # M1 carries the atlas itself: its interpolated uvs are exact
+        a_w0 = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
+                                    axis=1)
+        d1, d2 = cuv[:, 1] - cuv[:, 0], cuv[:, 2] - cuv[:, 0]
+        a_uv0 = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+        r = np.divide(a_uv0, a_w0, out=np.zeros_like(a_w0), where=a_w0 > 0)
+        med0 = float(np.median(r[r > 0])) if np.any(r > 0) else 1.0
+        return np.where(r > 0, r, med0), np.ones(len(f), bool)
+    a_w = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    d1, d2 = cuv[:, 1] - cuv[:, 0], cuv[:, 2] - cuv[:, 0]
+    a_uv = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    ok = a_w > 0
+    ratio = np.divide(a_uv, a_w, out=np.zeros_like(a_w), where=ok)
+    med = float(np.median(ratio[ok & (ratio > 0)])) if np.any(ok & (ratio > 0)) else 1.0
+    exact = ok & (ratio > 0.25 * med) & (ratio < 4.0 * med)
+    return np.where(exact, ratio, med), exact
+
+
+def _hausdorff(org: RayCaster, lod: RayCaster, org_points: np.ndarray,
+               lod_points: np.ndarray) -> float:
+    """Symmetric vertex-to-surface distance between M_org and M_i (an estimate of their
+    Hausdorff distance from the vertices of each side)."""
+    a, _, _ = org.closest_points(lod_points)
+    b, _, _ = lod.closest_points(org_points)
+    return float(max(np.linalg.norm(a - lod_points, axis=1).max(initial=0.0),
+                     np.linalg.norm(b - org_points, axis=1).max(initial=0.0)))
+
+
+@functools.lru_cache(maxsize=2)
+def _scene_cached(path: str, mtime_ns: int) -> RenderScene:
+    return RenderScene(path)
+
+
+def load_scene(baked_root: str | Path) -> RenderScene:
+    """A RenderScene, cached per file (path and modification time)."""
+    p = Path(baked_root).resolve()
+    if not p.is_file():
+        raise StageError(f"baked USD {p} does not exist")
+    return _scene_cached(str(p), p.stat().st_mtime_ns)
+
+
+def resolve_camera(scene: RenderScene, camera: object, width: int, height: int) -> PinholeCamera:
+    """camera : None (the asset's, else auto-framed), a PinholeCamera, a model.Camera, or a
+    number = auto-frame distance factor (`camera.auto_frame`)."""
+    if camera is None:
+        return scene.default_camera(width, height)
+    if isinstance(camera, PinholeCamera):
+        if (camera.width, camera.height) != (width, height):
+            return PinholeCamera(camera.position, camera.rotation, camera.tan_half_x, width,
+                                 height)
+        return camera
+    if isinstance(camera, Camera):
+        return cam_mod.from_usd(camera, width, height)
+    if isinstance(camera, (int, float)):
+        return cam_mod.auto_frame(scene.asset.bounds, width, height, distance=float(camera))
+    raise SettingsError(f"field 'camera': expected None, PinholeCamera, Camera or a distance, "
+                        f"got {type(camera).__name__}")
+
+
+# --------------------------------------------------------------------------- wavefront loop
+
+
+def _passes(cam: PinholeCamera, spp: int, seed: int):
+    """Yield (sample start, origins, dirs) of passes of whole samples (every pixel)."""
+    n_pix = cam.width * cam.height
+    per_pass = max(1, PASS_RAYS // n_pix)
+    for start in range(0, spp, per_pass):  # a loop over passes of many rays
+        stop = min(spp, start + per_pass)
+        off = cam_mod.sample_offsets(spp, n_pix, seed, start, stop)
+        o, d = cam_mod.eye_rays(cam, off)
+        yield start, o, d
+
+
+def _slices(n: int):
+    for a in range(0, n, PASS_RAYS):
+        yield slice(a, min(n, a + PASS_RAYS))
+
+
+# --------------------------------------------------------------------------- gt
+
+
+def shade_org(scene: OrgScene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, int]:
+    """Radiance along eye rays traced against M_org. o, d : (n, 3); returns ((n, 3), rays)."""
+    a = scene.asset
+    hits = scene.org.cast(o, d)
+    rays = o.shape[0]
+    out = np.zeros((o.shape[0], 3))
+    idx = np.flatnonzero(hits.hit)
+    if idx.size == 0:
+        return out, rays
+    prim = hits.prim[idx]
+    b = hits.bary3()[idx]  # (k, 3)
+    p = np.einsum("nk,nkj->nj", b, a.points[a.faces[prim]])
+    ns = np.einsum("nk,nkj->nj", b, a.corner_normals[prim])
+    ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
+    uv = np.einsum("nk,nkj->nj", b, a.corner_uvs[prim])
+    mat = a.face_material[prim]
+
+    def brdf(sel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi, wo, uv[sel])
+
+    rad, shadow = direct_radiance(p, scene.org_face_normals[prim], ns, -d[idx], scene.lights,
+                                  brdf, scene.org, scene.ray_eps)
+    out[idx] = rad
+    return out, rays + shadow
+
+
+def _render_org(scene: OrgScene, cam: PinholeCamera, spp: int, seed: int
+                ) -> tuple[np.ndarray, int]:
+    acc = np.zeros((cam.height * cam.width, 3))
+    rays = 0
+    for _, o, d in _passes(cam, spp, seed):
+        rad = np.zeros_like(o)
+        for sl in _slices(o.shape[0]):
+            rad[sl], r = shade_org(scene, o[sl], d[sl])
+            rays += r
+        acc += rad.reshape(-1, cam.height * cam.width, 3).sum(axis=0)
+    return (acc / spp).reshape(cam.height, cam.width, 3), rays
+
+
+# --------------------------------------------------------------------------- normal map
+
+
+def _normalmap_tables(scene: RenderScene) -> dict[str, np.ndarray]:
+    """Per finest texel: material and texture uv of its heaviest characteristic point (the
+    material id map a baker writes beside the albedo and normal maps), filled in empty texels
+    from the nearest filled one; the material's own diffuse albedo there."""
+    if scene._nm is not None:
+        return scene._nm
+    from scipy.spatial import cKDTree
+
+    lv = scene.baked.levels[0]
+    n = scene.n0
+    counts = np.diff(lv["texel_offsets"])
+    tex = np.repeat(np.arange(n * n), counts)
+    w = lv["point_weight"].astype(np.float64).sum(axis=1)
+    # heaviest point per texel: sort by (texel, weight)
+    order = np.lexsort((w, tex))
+    last = np.flatnonzero(np.r_[tex[order][1:] != tex[order][:-1], True])
+    best = order[last]  # one point per filled texel
+    filled = tex[best]
+    if filled.size == 0:
+        raise StageError(f"{scene.root}: the finest CPM level has no points")
+    rc = np.stack(np.divmod(np.arange(n * n), n), axis=1)
+    _, near = cKDTree(rc[filled]).query(rc)
+    src = best[near]
+    mat = lv["point_material"][src].astype(np.int64)
+    uv = lv["point_uv"][src].astype(np.float64)
+    kd = np.zeros((n * n, 3))
+    for m in np.unique(mat):  # the few materials
+        sel = mat == m
+        kd[sel] = brdf_mod.diffuse_albedo(scene.materials[int(m)], uv[sel])
+    scene._nm = {"material": mat, "uv": uv, "kd": kd,
+                 "frames": face_tangent_space(*_m1(scene))}
+    return scene._nm
+
+
+def _m1(scene: RenderScene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    m = scene.baked.meshes[0]
+    return m.vertices, m.faces, m.corner_uvs
+
+
+def _bilinear_map(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear look-up of an (N, N, c) atlas map at uv (n, 2) (row = (1 - v) N)."""
+    n = img.shape[0]
+    idx, w = bilinear_texels(uv, n)
+    flat = img.reshape(n * n, -1).astype(np.float64)
+    return np.einsum("nk,nkc->nc", w, flat[idx])
+
+
+def normalmap_brdf(scene: RenderScene, texel: np.ndarray, albedo: np.ndarray):
+    """The baseline's BRDF at hits on M1: the texel's material (nearest texel of the material
+    map) with its Lambertian part replaced by the albedo map,
+    f = max(f_mat − kd_mat/π + albedo/π, 0): what a look-dev artist gets by plugging the baked
+    albedo into the material's diffuse colour (exact for Lambertian materials)."""
+    nm = _normalmap_tables(scene)
+    mat = nm["material"][texel]
+
+    def brdf(sel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        t = texel[sel]
+        f = brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi, wo, nm["uv"],
+                                      sample_index=t)
+        lam = (wi[:, 2] > TOL.grazing_cos) & (wo[:, 2] > TOL.grazing_cos)
+        f += lam[:, None] * (albedo[sel] - nm["kd"][t]) / np.pi
+        return np.maximum(f, 0.0)
+
+    return brdf
+
+
+def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, int]:
+    """Radiance along eye rays traced against M1 with the baked normal and albedo maps."""
+    v, f, cuv = _m1(scene)
+    nm = _normalmap_tables(scene)
+    caster = scene.lods[0]
+    hits = caster.cast(o, d)
+    rays = o.shape[0]
+    out = np.zeros((o.shape[0], 3))
+    idx = np.flatnonzero(hits.hit)
+    if idx.size == 0:
+        return out, rays
+    prim = hits.prim[idx]
+    b = hits.bary3()[idx]
+    p = np.einsum("nk,nkj->nj", b, v[f[prim]])
+    uv = np.einsum("nk,nkj->nj", b, cuv[prim])
+    albedo = _bilinear_map(scene.baked.albedo, uv)
+    local = _bilinear_map(scene.baked.normal, uv)
+    ns = np.einsum("nji,nj->ni", nm["frames"][prim], local)  # tangent space -> world
+    ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
+    n = scene.n0
+    x = np.clip(np.floor(uv[:, 0] * n), 0, n - 1).astype(np.int64)
+    y = np.clip(np.floor((1.0 - uv[:, 1]) * n), 0, n - 1).astype(np.int64)
+    texel = y * n + x
+    rad, shadow = direct_radiance(p, scene.lod_face_normals[0][prim], ns, -d[idx], scene.lights,
+                                  normalmap_brdf(scene, texel, albedo), caster, scene.ray_eps)
+    out[idx] = rad
+    return out, rays + shadow
+
+
+def _render_normalmap(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int):
+    acc = np.zeros((cam.height * cam.width, 3))
+    rays = 0
+    for _, o, d in _passes(cam, spp, seed):
+        rad = np.zeros_like(o)
+        for sl in _slices(o.shape[0]):
+            rad[sl], r = shade_normalmap(scene, o[sl], d[sl])
+            rays += r
+        acc += rad.reshape(-1, cam.height * cam.width, 3).sum(axis=0)
+    return (acc / spp).reshape(cam.height, cam.width, 3), rays
+
+
+# --------------------------------------------------------------------------- cpm
+
+
+def choose_mesh(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0) -> int:
+    """Index i (0 = M1) of the coarsest M_i whose distance to M_org (vertex Hausdorff
+    estimate) projects to at most `max_error_px` pixels at the bounding box's nearest point;
+    M1 when none does (seed 000 §4.2: level chosen by projected size)."""
+    lo, hi = scene.asset.bounds
+    centre = 0.5 * (lo + hi)
+    radius = 0.5 * float(np.linalg.norm(hi - lo))
+    dist = max(float(np.linalg.norm(centre - cam.position)) - radius, 1e-9 * scene.diag)
+    for i in range(len(scene.lods) - 1, 0, -1):
+        if scene.lod_error[i] / (dist * cam.pixel_angle) <= max_error_px:
+            return i
+    return 0
+
+
+def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Eq. 12 for every texel of one level, for this frame (module docstring).
+
+    cam_pos : (3,) float64
+    returns : (radiance (n_l², 3) float64, exists (n_l²,) bool — the texel has characteristic
+        points, rays cast)
+    """
+    lv = scene.baked.levels[level]
+    offsets = lv["texel_offsets"]
+    n_tex = offsets.shape[0] - 1
+    counts = np.diff(offsets)
+    exists = counts > 0
+    radiance = np.zeros((n_tex, 3))
+    n_pts = int(offsets[-1])
+    if n_pts == 0:
+        return radiance, exists, 0
+    tex = np.repeat(np.arange(n_tex), counts)  # (P,)
+    pos = lv["point_position"].astype(np.float64)
+    ng = lv["point_geom_normal"].astype(np.float64)
+    ns = lv["point_normal"].astype(np.float64)
+    ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
+    ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-300)
+    w = lv["point_weight"].astype(np.float64)  # (P, 3)
+    # one view direction per texel: weighted centroid -> camera
+    ws = np.abs(w).sum(axis=1)
+    ws = np.where(np.bincount(tex, ws, n_tex)[tex] > 0, ws, 1.0)
+    wsum = np.bincount(tex, ws, n_tex)
+    cen = np.stack([np.bincount(tex, ws * pos[:, c], n_tex) for c in range(3)], axis=1)
+    cen = np.divide(cen, wsum[:, None], out=np.zeros_like(cen), where=wsum[:, None] > 0)
+    wo_tex = cam_pos[None, :] - cen
+    wo_tex /= np.maximum(np.linalg.norm(wo_tex, axis=1, keepdims=True), 1e-300)
+    wo = wo_tex[tex]
+    g = TOL.grazing_cos
+    cos_go = np.einsum("ij,ij->i", ng, wo)
+    view = (cos_go > g) & (np.einsum("ij,ij->i", ns, wo) > g)
+    rays = 0
+    vi = np.flatnonzero(view)
+    if vi.size:  # V(x̂k, ωo): a ray from the point toward the camera
+        tmax = np.linalg.norm(cam_pos[None, :] - pos[vi], axis=1)
+        occ = scene.org.occluded(pos[vi] + scene.ray_eps * ng[vi], wo[vi], tmax=tmax)
+        rays += vi.size
+        view[vi[occ]] = False
+    mat = lv["point_material"].astype(np.int64)
+    uv = lv["point_uv"].astype(np.float64)
+
+    def brdf(sel: np.ndarray, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
+        return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi_l, wo_l, uv[sel])
+
+    # Σ_l E_l V_i f_r cos_i (the shading of `direct_radiance`, at the points, toward ωo)
+    lit, r = direct_radiance(pos, ng, ns, wo, scene.lights, brdf, scene.org, scene.ray_eps)
+    rays += r
+    contrib = np.where(view[:, None], lit * w * cos_go[:, None], 0.0)  # (P, 3)
+    num = np.stack([np.bincount(tex, contrib[:, c], n_tex) for c in range(3)], axis=1)
+    live = np.flatnonzero(exists)
+    frames = lv["frames"][live]
+    wo_local = np.einsum("nij,nj->ni", frames, wo_tex[live])
+    a, valid = scene.avis_table(level).evaluate(live, wo_local)
+    radiance[live] = np.where(valid[:, None], num[live] / np.where(valid, a, 1.0)[:, None], 0.0)
+    return radiance, exists, rays
+
+
+@dataclass
+class CpmFrame:
+    """Per-frame data of the cpm mode: texel radiance of every level."""
+
+    mesh: int
+    radiance: list[np.ndarray]
+    exists: list[np.ndarray]
+    rays: int
+
+
+def cpm_frame(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0) -> CpmFrame:
+    rad, ex = [], []
+    rays = 0
+    for level in range(len(scene.baked.levels)):  # a loop over the few mip levels
+        r, e, n = texel_radiance(scene, level, cam.position)
+        rad.append(r)
+        ex.append(e)
+        rays += n
+    return CpmFrame(choose_mesh(scene, cam, max_error_px), rad, ex, rays)
+
+
+def _lookup_level(frame: CpmFrame, level: int, uv: np.ndarray, n0: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear texel radiance at one level; weights of texels without points are dropped.
+    returns : (radiance (n, 3), weight sum (n,) — 0 where no texel around uv exists)"""
+    n_l = max(n0 >> level, 1)
+    idx, w = bilinear_texels(uv, n_l)
+    w = w * frame.exists[level][idx]
+    s = w.sum(axis=1)
+    rad = np.einsum("nk,nkc->nc", w, frame.radiance[level][idx])
+    return np.divide(rad, s[:, None], out=np.zeros_like(rad), where=s[:, None] > 0), s
+
+
+def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
+              d: np.ndarray, spp: int, *, lod_bias: float = 0.0,
+              local_light_ratio: float = 8.0) -> tuple[np.ndarray, np.ndarray, int]:
+    """Radiance along eye rays from the characteristic point maps (module docstring).
+
+    returns : (radiance (n, 3), level (n,) float64 — the fractional mip level used, -1 where
+        M_org was used, NaN for misses; rays cast)
+    """
+    i = frame.mesh
+    mesh = scene.baked.meshes[i]
+    caster = scene.lods[i]
+    n = o.shape[0]
+    out = np.zeros((n, 3))
+    level = np.full(n, np.nan)
+    hits = caster.cast(o, d)
+    rays = n
+    idx = np.flatnonzero(hits.hit)
+    if idx.size:
+        prim = hits.prim[idx]
+        b = hits.bary3()[idx]
+        p = np.einsum("nk,nkj->nj", b, mesh.vertices[mesh.faces[prim]])
+        uv = np.einsum("nk,nkj->nj", b, mesh.corner_uvs[prim])
+        inexact = ~scene.lod_uv_exact[i][prim]
+        if inexact.any():  # the exact composite map: closest point on M1, its atlas uv
+            v1, f1, c1 = _m1(scene)
+            _, p1, b1 = scene.lods[0].closest_points(p[inexact])
+            w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
+            uv[inexact] = np.einsum("nk,nkj->nj", w1, c1[p1])
+        # ray differential: the pixel's footprint on M_i (screen-space derivatives, seed 000
+        # §4.2; the footprint of the pixel, not of the sample, as texture hardware does under
+        # multi-sampling), mapped into the atlas by the triangle's uv density
+        t = np.linalg.norm(p - o[idx], axis=1)
+        cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", scene.lod_face_normals[i][prim],
+                                            d[idx])), 1e-3)
+        cos_p = np.clip(d[idx] @ cam.forward, 1e-3, 1.0)
+        area_world = (t * cam.pixel_angle) ** 2 * cos_p ** 3 / cos_t
+        ratio = scene.lod_uv_ratio[i][prim]
+        lam = 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(scene.n0)
+        lam += lod_bias
+        s0 = 1.0 / (scene.n0 * np.sqrt(ratio))  # world size of a finest texel
+        for light in scene.lights:  # local lights: keep ωi about constant across a texel
+            if light.kind != "distant":
+                _, _, dist = light_at(light, p)
+                lam = np.minimum(lam, np.log2(np.maximum(dist / (local_light_ratio * s0),
+                                                         1e-300)))
+        n_lv = len(frame.radiance)
+        use = lam >= 0.0
+        lam_c = np.clip(lam, 0.0, n_lv - 1.0)
+        j0 = np.floor(lam_c).astype(np.int64)
+        fr = lam_c - j0
+        rad = np.zeros((idx.size, 3))
+        wsum = np.zeros(idx.size)
+        for j in range(n_lv):  # a loop over the few levels; each sample touches two
+            for sel, wt in ((np.flatnonzero(use & (j0 == j)), None),
+                            (np.flatnonzero(use & (j0 + 1 == j) & (fr > 0)), "up")):
+                if sel.size == 0:
+                    continue
+                r, s = _lookup_level(frame, j, uv[sel], scene.n0)
+                weight = (1.0 - fr[sel]) if wt is None else fr[sel]
+                weight = weight * (s > 0)
+                rad[sel] += weight[:, None] * r
+                wsum[sel] += weight
+        ok = use & (wsum > 0)
+        out[idx[ok]] = rad[ok] / wsum[ok, None]
+        level[idx[ok]] = lam_c[ok]
+        # closer than the finest level (or no texel there): multi-sample M_org
+        fb = idx[~ok]
+        if fb.size:
+            out[fb], r = shade_org(scene, o[fb], d[fb])
+            rays += r
+            level[fb] = -1.0
+    return out, level, rays
+
+
+def _render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):
+    max_error_px = kw.pop("max_error_px", 1.0)
+    frame = cpm_frame(scene, cam, max_error_px)
+    n_pix = cam.height * cam.width
+    acc = np.zeros((n_pix, 3))
+    lvl_sum = np.zeros(n_pix)
+    lvl_cnt = np.zeros(n_pix)
+    fallback = 0
+    rays = frame.rays
+    for _, o, d in _passes(cam, spp, seed):
+        rad = np.zeros_like(o)
+        lvl = np.full(o.shape[0], np.nan)
+        for sl in _slices(o.shape[0]):
+            rad[sl], lvl[sl], r = shade_cpm(scene, frame, cam, o[sl], d[sl], spp, **kw)
+            rays += r
+        acc += rad.reshape(-1, n_pix, 3).sum(axis=0)
+        lv = lvl.reshape(-1, n_pix)
+        hit = np.isfinite(lv)
+        lvl_sum += np.where(hit, lv, 0.0).sum(axis=0)
+        lvl_cnt += hit.sum(axis=0)
+        fallback += int(np.sum(lv == -1.0))
+    level_img = np.divide(lvl_sum, lvl_cnt, out=np.full(n_pix, np.nan), where=lvl_cnt > 0)
+    extras = {
+        "level": level_img.reshape(cam.height, cam.width).astype(np.float32),
+        "mesh": f"M{frame.mesh + 1}",
+        "fallback_fraction": fallback / max(float(lvl_cnt.sum()), 1.0),
+        "frame_rays": frame.rays,
+    }
+    return (acc / spp).reshape(cam.height, cam.width, 3), rays, extras
+
+
+# --------------------------------------------------------------------------- entry points
+
+
+def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, seed: int = 0,
+                 *, budget_seconds: float | None = None, **kw) -> RenderResult:
+    """Render one image of `scene` (already loaded) in `mode` (see module docstring)."""
+    if mode not in MODES:
+        raise SettingsError(f"field 'mode': expected one of {MODES}, got {mode!r}")
+    spp = int(spp)
+    cam_mod.strata(spp)  # validates spp
+    extras: dict[str, Any] = {}
+    t0 = time.perf_counter()
+    if mode == "gt":
+        img, rays = _render_org(scene, cam, spp, seed)
+    elif mode == "normalmap":
+        img, rays = _render_normalmap(scene, cam, spp, seed)
+    elif mode == "cpm":
+        img, rays, extras = _render_cpm(scene, cam, spp, seed, **kw)
+    else:  # equal-time
+        if budget_seconds is None:
+            budget_seconds = render_frame(scene, "cpm", cam, spp, seed, **kw).seconds
+        # pilot: one eye ray per pixel measures the cost of a sample of M_org
+        t1 = time.perf_counter()
+        img, rays = _render_org(scene, cam, 1, seed)
+        per_spp = time.perf_counter() - t1
+        n_eq = max(1, int(budget_seconds // max(per_spp, 1e-9)))
+        extras = {"budget_seconds": float(budget_seconds), "pilot_seconds": per_spp}
+        t0 = time.perf_counter()
+        if n_eq > 1:
+            img, rays = _render_org(scene, cam, n_eq, seed)
+        else:
+            t0 -= per_spp
+        spp = n_eq
+    seconds = time.perf_counter() - t0
+    return RenderResult(img.astype(np.float32), seconds, int(rays), spp, mode, extras)
+
+
+def render_model(asset: AssetModel, cam: PinholeCamera, spp: int, seed: int = 0
+                 ) -> RenderResult:
+    """`gt` of an AssetModel directly (no bake): M_org, direct light, shadows."""
+    scene = OrgScene(asset)
+    cam_mod.strata(int(spp))
+    t0 = time.perf_counter()
+    img, rays = _render_org(scene, cam, int(spp), seed)
+    return RenderResult(img.astype(np.float32), time.perf_counter() - t0, int(rays), int(spp),
+                        "gt")
