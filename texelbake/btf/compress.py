@@ -367,7 +367,7 @@ def build_btf_maps(
         eigen=eigen,
         weights=tuple(weights),
         n_components=settings.n_components,
-        mean_models=tuple(models),
+        mean_models=(models[0], models[1], models[2]),
         mean_params=params,
         mean_table=table,
         dirs_i=di32,
@@ -407,15 +407,14 @@ def reconstruct_channel(maps: BTFMaps, channel: int, lod: float = 0.0) -> np.nda
     wk = lod_weights(np.array([lod]), maps.top_level)[0]  # (L,)
     wi, wo = maps.dirs_i.astype(np.float64), maps.dirs_o.astype(np.float64)
     mean = mean_on_pairs(maps.mean_models, maps.mean_params, maps.mean_table, wi, wo)[:, channel]
-    out = None
-    for k in range(maps.top_level, -1, -1):
-        wmap = maps.weights[k][:, :, sl]  # (h_k, w_k, n)
-        term = wmap @ maps.eigen[k][:, sl].T  # (h_k, w_k, d)
-        if k == maps.top_level:
-            term += mean.astype(np.float32)
-        elif wk[k] != 1.0:
+    top = maps.top_level
+    out = maps.weights[top][:, :, sl] @ maps.eigen[top][:, sl].T  # (h_top, w_top, d)
+    out += mean.astype(np.float32)
+    for k in range(top - 1, -1, -1):
+        term = maps.weights[k][:, :, sl] @ maps.eigen[k][:, sl].T  # (h_k, w_k, d)
+        if wk[k] != 1.0:
             term *= np.float32(wk[k])
-        out = term if out is None else term + expand(out, term.shape[:2])
+        out = term + expand(out, term.shape[:2])
     return out
 
 

@@ -69,15 +69,14 @@ def top_level_for(h: int, w: int, stop_texels: int) -> int:
 def _reduce_axis(img: np.ndarray, axis: int, offsets, weights) -> np.ndarray:
     n = img.shape[axis]
     keep = 2 * np.arange(parent_size(n))  # (n1,)
-    out = None
+    terms = []
     for off, wt in zip(offsets, weights, strict=True):
-        idx = np.clip(keep + off, 0, n - 1)
-        term = np.take(img, idx, axis=axis)
+        term = np.take(img, np.clip(keep + off, 0, n - 1), axis=axis)  # a copy
         term *= img.dtype.type(wt)
-        if out is None:
-            out = term
-        else:
-            out += term
+        terms.append(term)
+    out = terms[0]
+    for term in terms[1:]:
+        out += term
     return out
 
 

@@ -152,7 +152,10 @@ def pca_batched(
     if xt.dtype not in (torch.float32, torch.float64):
         xt = xt.to(torch.float64)
     b, t, d = xt.shape
-    ns = [int(n_components)] * b if np.isscalar(n_components) else [int(v) for v in n_components]
+    if isinstance(n_components, int | np.integer):
+        ns = [int(n_components)] * b
+    else:
+        ns = [int(v) for v in n_components]
     if len(ns) != b or min(ns, default=1) < 0:
         raise SettingsError(f"n_components must be >= 0, one per problem ({b}), got {ns}")
     if store_dtype not in ("float32", "float16"):

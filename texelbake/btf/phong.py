@@ -130,12 +130,12 @@ def fit_phong(
     rms_const = float(np.sqrt(np.mean((y - y.mean()) ** 2)))
 
     if x0 is None:
-        best = None
+        best_sse, best_coef, best_alpha = np.inf, np.zeros(3), 1.0
         for alpha in np.geomspace(1.0, 1000.0, 16):  # 16 exponents: a handful, not per-sample
             coef, sse = _linear_params(y, nl, nh, float(alpha))
-            if best is None or sse < best[0]:
-                best = (sse, coef, float(alpha))
-        start = np.array([*best[1], np.log(best[2])])
+            if sse < best_sse:
+                best_sse, best_coef, best_alpha = sse, coef, float(alpha)
+        start = np.array([*best_coef, np.log(best_alpha)])
     else:
         ka, kd, ks, alpha = (float(v) for v in x0)
         start = np.array([ka, kd, ks, np.log(max(alpha, 1e-300))])

@@ -46,10 +46,10 @@ def _surface(size: int, rng: np.random.Generator):
     height = np.zeros((size, size))
     mask = np.zeros((size, size))
     grid = 5
-    for gy in range(grid):  # 25 bumps: a handful, each vectorized over all texels
-        for gx in range(grid):
-            cx = (gx + 0.5 + rng.uniform(-0.25, 0.25)) / grid
-            cy = (gy + 0.5 + rng.uniform(-0.25, 0.25)) / grid
+    for row in range(grid):  # 25 bumps: a handful, each vectorized over all texels
+        for col in range(grid):
+            cx = (col + 0.5 + rng.uniform(-0.25, 0.25)) / grid
+            cy = (row + 0.5 + rng.uniform(-0.25, 0.25)) / grid
             r = rng.uniform(0.06, 0.095)
             a = rng.uniform(0.035, 0.07)
             dx = (xx - cx + 0.5) % 1.0 - 0.5
@@ -65,14 +65,14 @@ def _surface(size: int, rng: np.random.Generator):
     albedo_a = np.array([0.60, 0.30, 0.15]) * mottle[..., None]
     albedo_b = np.array([0.20, 0.28, 0.40]) * stripes[..., None]
     albedo = mask[..., None] * albedo_a + (1 - mask[..., None]) * albedo_b  # (s, s, 3)
-    ks = 0.35 * mask + 0.05 * (1 - mask)
-    alpha = 30.0 * mask + 6.0 * (1 - mask)
+    spec_k = 0.35 * mask + 0.05 * (1 - mask)
+    spec_alpha = 30.0 * mask + 6.0 * (1 - mask)
     # normals from central differences (periodic), height in tile units, texel = 1 / size
     gx = (np.roll(height, -1, axis=1) - np.roll(height, 1, axis=1)) * size / 2
     gy = (np.roll(height, -1, axis=0) - np.roll(height, 1, axis=0)) * size / 2
     normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    return height, albedo, ks, alpha, normal
+    return height, albedo, spec_k, spec_alpha, normal
 
 
 def _visibility(height: np.ndarray, dirs: np.ndarray, steps: int = 14, soft: float = 0.008):
