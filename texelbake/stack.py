@@ -202,6 +202,8 @@ def stack_up(
     environment: str = "development",
     extra_env: dict[str, str] | None = None,
     api: bool = True,
+    queues: dict[str, tuple[str, ...]] | None = None,
+    pin_cpus: dict[str, int] | None = None,
     timeout: float = 60.0,
 ) -> Stack:
     """Start the stack as local processes and wait until the API is healthy.
@@ -210,15 +212,21 @@ def stack_up(
         render); `{}` starts none. Names are `worker-<family>-<i>`.
     tokens : bearer token -> tenant (default: one fresh token for tenant `dev`, written to
         stack.json under env TEXELBAKE_TOKENS).
+    queues : queue family -> queues, overriding `QUEUE_FAMILIES` (e.g. a family serving only
+        `cpm`, for benchmarks).
+    pin_cpus : family -> first CPU: worker i of that family runs on CPU (first + i) % ncpu
+        (`taskset`), so one process uses one core even where a library starts a thread per
+        core (open3d's ray casting).
     Returns the Stack; its `env` is the environment every process got.
     """
+    families = dict(QUEUE_FAMILIES) | dict(queues or {})
     workdir = Path(workdir).resolve()
     workdir.mkdir(parents=True, exist_ok=True)
     workers = {"prep": 1, "numeric": 1, "render": 1} if workers is None else dict(workers)
     for fam in workers:
-        if fam not in QUEUE_FAMILIES:
+        if fam not in families:
             raise SettingsError(
-                f"unknown queue family {fam!r}; expected one of {sorted(QUEUE_FAMILIES)}"
+                f"unknown queue family {fam!r}; expected one of {sorted(families)}"
             )
     commands: dict[str, list[str]] = {}
     start_redis = False
@@ -262,10 +270,16 @@ def stack_up(
         sys.executable, "-m", "uvicorn", "services.main:app", "--host", "127.0.0.1",
         "--port", str(port), "--log-level", "warning",
     ]  # fmt: skip
+    ncpu = os.cpu_count() or 1
     for fam, n in sorted(workers.items()):
         for i in range(n):
             name = f"worker-{fam}-{i}"
-            commands[name] = worker_command(name, QUEUE_FAMILIES[fam])
+            commands[name] = worker_command(name, families[fam])
+            if pin_cpus and fam in pin_cpus:
+                cpu = (pin_cpus[fam] + i) % ncpu
+                commands[name] = [shutil.which("taskset") or "taskset", "-c", str(cpu)] + commands[
+                    name
+                ]
     stack = Stack(workdir, f"http://127.0.0.1:{port}", redis_url, env, commands)
     try:
         if start_redis:

@@ -16,8 +16,13 @@ app.conf.update(celery_config())
 
 
 @worker_process_init.connect
-def _fresh_connections(**_kwargs) -> None:
-    """A forked pool child must not share the parent's pooled DB connections."""
+def _init_pool_child(**_kwargs) -> None:
+    """A forked pool child must not share the parent's pooled DB connections; it imports the
+    core pipeline (torch, open3d, pxr) once here, not inside its first shard's time."""
+    import os
+
     from services.db import dispose_engines
 
     dispose_engines()
+    if os.environ.get("TEXELBAKE_WARM_IMPORT", "1") != "0":
+        import texelbake.pipeline  # noqa: F401

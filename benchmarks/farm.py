@@ -1,0 +1,233 @@
+"""The farm's throughput: the cpm stage of the full cylinder on 1 vs 2 worker processes, the
+farm's overhead against the in-process bake, and `GET /jobs/{id}` latency under 50 clients.
+
+    .venv/bin/python benchmarks/farm.py --json bench_out/farm.json
+
+Method (one run, ratios only):
+- in-process: a child process pinned to one CPU runs ingest and geometry (untimed), then every
+  cpm shard in order (timed): `t_inprocess`.
+- farm with n = 1, 2 cpm workers, each pinned to its own CPU (`taskset`), one prep worker, a
+  real redis-server and uvicorn, SQLite; the avis worker starts only after the cpm stage ends
+  so nothing else competes for the cores. Stage time = first cpm shard start -> last cpm shard
+  finish, from the shard ledger: `t_farm[n]`.
+- speedup_2_workers = t_farm[1] / t_farm[2]; overhead_fraction = (t_farm[1] - t_inprocess) /
+  t_inprocess (per shard: divided by the shard count).
+- status latency: 50 concurrent clients (one connection each) poll `GET /jobs/{id}` of the
+  finished job every `--poll` seconds for `--seconds`; p50/p99 of all request latencies.
+Bars (issue 6): speedup >= 1.7, overhead <= 10 % of stage time, p99 <= 50 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from texelbake.stack import free_port, stack_down, stack_up, worker_command  # noqa: E402
+
+SETTINGS = {
+    "atlas_resolution": 64,
+    "shard_texels": 16,
+    "n_light_dirs": 16,
+    "n_view_dirs": 16,
+    "samples_per_texel": 16,
+    "n_heldout": 32,
+    "c_max": 16,
+    "n_trials": 1,
+    "avis_resolution": 8,
+}
+TOKEN = "bench-token-0123456789abcdef"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+FAMILIES = {
+    "prep": ("ingest", "geometry", "export"),
+    "cpmonly": ("cpm",),
+    "rest": ("avis", "btf", "render"),
+}
+
+_INPROC = r"""
+import json, os, sys, time
+os.sched_setaffinity(0, {0})
+from pathlib import Path
+from schemas.settings import BakeSettings
+from texelbake import pipeline
+asset, wd, settings = Path(sys.argv[1]), Path(sys.argv[2]), BakeSettings(**json.loads(sys.argv[3]))
+for st in ("ingest", "geometry"):
+    pipeline.run_shard(wd, asset, settings, st, 0)
+n = pipeline.plan_bake(asset, settings).stage("cpm").n_shards
+times = []
+for k in range(n):
+    t0 = time.perf_counter()
+    pipeline.run_shard(wd, asset, settings, "cpm", k)
+    times.append(time.perf_counter() - t0)
+print(json.dumps({"shard_seconds": times}))
+"""
+
+
+def in_process(asset: Path, work: Path) -> dict:
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+    out = subprocess.run(
+        [sys.executable, "-c", _INPROC, str(asset), str(work), json.dumps(SETTINGS)],
+        capture_output=True, text=True, env=env, check=True, cwd=REPO,
+    )  # fmt: skip
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def wait_job(api: str, job_id: str, pred, timeout: float = 1800.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        j = httpx.get(f"{api}/api/v1/jobs/{job_id}", headers=AUTH, timeout=30).json()
+        if pred(j):
+            return j
+        if j["state"] in ("failed", "cancelled"):
+            raise RuntimeError(f"job {job_id} ended {j['state']}: {j['error']}")
+        time.sleep(0.5)
+    raise TimeoutError(f"job {job_id} did not get there in {timeout} s")
+
+
+def farm_run(asset: Path, work: Path, n_workers: int) -> dict:
+    stack = stack_up(
+        work,
+        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        tokens={TOKEN: "bench"},
+        workers={"prep": 1, "cpmonly": n_workers},
+        queues=FAMILIES,
+        pin_cpus={"cpmonly": 0},
+        environment="test",
+        extra_env={"OMP_NUM_THREADS": "1"},
+    )
+    try:
+        time.sleep(8.0)  # pool children finish their warm imports before the job starts
+        with httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=120) as c:
+            aid = c.post("/assets", files={"file": (asset.name, asset.read_bytes())}).json()["id"]
+            job_id = c.post("/jobs", json={"asset_id": aid, "settings": SETTINGS}).json()["id"]
+        j = wait_job(
+            stack.api_url,
+            job_id,
+            lambda j: any(s["name"] == "cpm" and s["state"] == "done" for s in j["stages"]),
+        )
+        cpm = next(s for s in j["stages"] if s["name"] == "cpm")
+        name = "worker-rest-0"
+        stack.commands[name] = worker_command(name, FAMILIES["rest"])
+        stack.start(name)
+        j = wait_job(stack.api_url, job_id, lambda j: j["state"] == "succeeded")
+        result = {
+            "stage_seconds": cpm["seconds"],
+            "n_shards": cpm["n_shards"],
+            "shard_seconds": [sh["seconds"] for sh in cpm["shards"]],
+            "job_seconds": j["seconds"],
+        }
+        if n_workers == 1:
+            result["latency"] = asyncio.run(status_latency(stack.api_url, job_id))
+        return result
+    finally:
+        stack_down(work)
+
+
+async def status_latency(
+    api: str, job_id: str, clients: int = 50, poll: float = 0.5, seconds: float = 10.0
+) -> dict:
+    lat: list[float] = []
+    errors = 0
+
+    async def one(i: int) -> None:
+        nonlocal errors
+        async with httpx.AsyncClient(base_url=api, headers=AUTH, timeout=30) as c:
+            await asyncio.sleep(poll * i / clients)  # spread the clients over one interval
+            t_end = time.perf_counter() + seconds
+            while time.perf_counter() < t_end:
+                t0 = time.perf_counter()
+                r = await c.get(f"/api/v1/jobs/{job_id}")
+                dt = time.perf_counter() - t0
+                if r.status_code != 200:
+                    errors += 1
+                lat.append(dt)
+                await asyncio.sleep(max(0.0, poll - dt))
+
+    await asyncio.gather(*(one(i) for i in range(clients)))
+    ms = np.asarray(lat) * 1e3
+    return {
+        "clients": clients,
+        "poll_interval_s": poll,
+        "requests": int(ms.size),
+        "errors": errors,
+        "p50_ms": float(np.percentile(ms, 50)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "max_ms": float(ms.max()),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--size", default="full", choices=["small", "full"])
+    args = ap.parse_args(argv)
+    from texelbake.scenes import write_scene
+
+    with tempfile.TemporaryDirectory(prefix="texelbake-farm-") as tmp:
+        tmp = Path(tmp)
+        asset = write_scene("cylinder", tmp / "scene" / "cylinder.usda", args.size)
+        t0 = time.perf_counter()
+        inproc = in_process(asset, tmp / "inproc")
+        t_in = float(sum(inproc["shard_seconds"]))
+        print(f"in-process cpm stage: {t_in:8.2f} s  ({len(inproc['shard_seconds'])} shards)")
+        f1 = farm_run(asset, tmp / "farm1", 1)
+        print(f"farm, 1 cpm worker:   {f1['stage_seconds']:8.2f} s")
+        f2 = farm_run(asset, tmp / "farm2", 2)
+        print(f"farm, 2 cpm workers:  {f2['stage_seconds']:8.2f} s")
+        n = f1["n_shards"]
+        speedup = f1["stage_seconds"] / f2["stage_seconds"]
+        overhead = (f1["stage_seconds"] - t_in) / t_in
+        lat = f1["latency"]
+        out = {
+            "scene": f"cylinder/{args.size}",
+            "settings": SETTINGS,
+            "n_shards": n,
+            "cpu_count": os.cpu_count(),
+            "inprocess_stage_s": t_in,
+            "farm_stage_s_1_worker": f1["stage_seconds"],
+            "farm_stage_s_2_workers": f2["stage_seconds"],
+            "speedup_2_workers": speedup,
+            "overhead_fraction": overhead,
+            "overhead_per_shard_s": (f1["stage_seconds"] - t_in) / n,
+            "status_p50_ms": lat["p50_ms"],
+            "status_p99_ms": lat["p99_ms"],
+            "status_latency": lat,
+            "bars": {
+                "speedup_2_workers": ">= 1.7",
+                "overhead_fraction": "<= 0.10",
+                "status_p99_ms": "<= 50",
+            },
+            "pass": {
+                "speedup_2_workers": speedup >= 1.7,
+                "overhead_fraction": overhead <= 0.10,
+                "status_p99_ms": lat["p99_ms"] <= 50.0,
+            },
+            "benchmark_seconds": time.perf_counter() - t0,
+        }
+    print(f"{'metric':<28}{'value':>12}  bar")
+    print(f"{'speedup_2_workers':<28}{speedup:>12.3f}  >= 1.7")
+    print(f"{'overhead_fraction':<28}{overhead:>12.3f}  <= 0.10")
+    print(f"{'status_p50_ms':<28}{lat['p50_ms']:>12.2f}")
+    print(
+        f"{'status_p99_ms':<28}{lat['p99_ms']:>12.2f}  <= 50   ({lat['requests']} requests, "
+        f"{lat['clients']} clients every {lat['poll_interval_s']} s)"
+    )
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(out, indent=2, sort_keys=True))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
