@@ -325,3 +325,34 @@ def test_projection_error_never_below_eckart_young(rng):
     R = low_rank(rng, 10, 4, r=4)
     assert projection_error(R, np.arange(4)) < 1e-12
     assert projection_error(R, np.zeros(0, dtype=np.int64)) == 1.0
+
+
+# ----------------------------------------------------------------------- the benchmark
+
+
+def test_benchmark_run_on_arrays(rng):
+    # benchmarks/column_sampling.py run() on small arrays (no ray casting): every method
+    # reports, none beats the Eckart-Young floor, medians are finite
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "column_sampling.py"
+    spec = importlib.util.spec_from_file_location("bench_column_sampling", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    texels = []
+    for _ in range(2):
+        base = rng.random((64, 4, 3))
+        mix = rng.random((4, 30))
+        R = np.einsum("dkx,km->dmx", base, mix) + 1e-3 * rng.random((64, 30, 3))
+        Rh = np.einsum("dkx,km->dmx", rng.random((16, 4, 3)), mix)
+        texels.append({"R": R, "avis": np.full(64, 2.0), "R_heldout": Rh,
+                       "avis_heldout": np.full(16, 2.0), "texel_area": 2.0})
+    res = bench.run(texels, cs=(1, 4), n_trials=2)
+    assert res["below_floor"] == []
+    assert set(res["methods"]) == set(bench.METHODS)
+    for mth in bench.METHODS:
+        for c in ("1", "4"):
+            row = res["methods"][mth][c]
+            assert all(np.isfinite(row[key]) for key in ("matrix", "insample", "heldout"))
+            assert row["matrix"] >= res["eckart_young"][c] - 1e-9
