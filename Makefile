@@ -6,7 +6,7 @@ PIP   := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
 APT_PACKAGES := libusb-1.0-0 libgl1 libegl1 libopengl0 libx11-6 libudev1 libidn2-0 libgmp10 libgomp1 redis-server
 
-.PHONY: setup demo test test-fast lint bench clean
+.PHONY: setup demo test test-fast lint bench scenes clean
 
 setup: $(STAMP)
 
@@ -31,9 +31,19 @@ lint: setup
 	$(VENV)/bin/ruff check texelbake schemas workers services tests benchmarks
 	$(VENV)/bin/mypy texelbake
 
+# Each benchmark prints a table (time beside error) and writes JSON; minutes, not for CI.
 bench: setup
 	mkdir -p bench_out
 	$(PY) benchmarks/raycast.py --json bench_out/raycast.json
+	$(PY) benchmarks/brdf_throughput.py --json bench_out/brdf.json
+	$(PY) benchmarks/column_sampling.py --json bench_out/column_sampling.json
+	$(PY) benchmarks/avis_methods.py --json bench_out/avis_methods.json
+	$(PY) benchmarks/bake.py --scene cylinder --size full --json bench_out/bake.json
+	$(PY) benchmarks/btf.py --json bench_out/btf.json
+
+scenes: setup
+	$(VENV)/bin/texelbake scenes all -o build/scenes --size small
+	$(VENV)/bin/texelbake scenes all -o build/scenes --size full
 
 clean:
-	rm -rf $(VENV) demo_out bench_out
+	rm -rf $(VENV) demo_out bench_out build
