@@ -10,11 +10,9 @@ does not depend on how texels are sharded: the farm and the in-process bake writ
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import hashlib
 import json
-import typing
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -626,74 +624,14 @@ def json_dumps(obj) -> str:
 # --------------------------------------------------------------------------- visible projected area
 
 
-def _dataclass_arrays(obj, prefix: str, sep: str = ".") -> dict[str, np.ndarray]:
-    """Flatten a (nested) dataclass of arrays and scalars into named arrays."""
-    out: dict[str, np.ndarray] = {}
-    for f in dataclasses.fields(obj):
-        v = getattr(obj, f.name)
-        if dataclasses.is_dataclass(v):
-            out.update(_dataclass_arrays(v, f"{prefix}{f.name}{sep}", sep))
-        else:
-            out[f"{prefix}{f.name}"] = np.asarray(v)
-    return out
-
-
-def _dataclass_from(cls, data: dict[str, np.ndarray], prefix: str, sep: str = "."):
-    """Inverse of `_dataclass_arrays` (scalars come back as Python int/float, tuples as
-    tuples)."""
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        t = hints[f.name]
-        if dataclasses.is_dataclass(t):
-            kwargs[f.name] = _dataclass_from(t, data, f"{prefix}{f.name}{sep}", sep)
-            continue
-        key = f"{prefix}{f.name}"
-        if key not in data:
-            continue
-        v = data[key]
-        if typing.get_origin(t) is tuple:
-            kwargs[f.name] = tuple(int(x) for x in np.asarray(v).ravel())
-        else:
-            kwargs[f.name] = v.item() if v.ndim == 0 else v
-    return cls(**kwargs)
-
-
 def _avis_level_arrays(level: avis_mod.AvisLevel, prefix: str) -> dict[str, np.ndarray]:
-    return _dataclass_arrays(level, prefix)
+    return {f"{prefix}{k}": v for k, v in avis_mod.level_to_arrays(level).items()}
 
 
 def _avis_level_from(data: dict[str, np.ndarray], prefix: str) -> avis_mod.AvisLevel:
-    return _dataclass_from(avis_mod.AvisLevel, data, prefix)
-
-
-def _place_levels(parts: list[avis_mod.AvisLevel], ids: list[np.ndarray], n_side: int,
-                  res: int) -> avis_mod.AvisLevel:
-    """Assemble a level of n_side x n_side texels from parts whose local texel t is global
-    texel ids[part][t] (tiles of the same level)."""
-    n = n_side * n_side
-    closed = np.zeros(n, bool)
-    bounded = np.zeros(n, bool)
-    area = np.zeros(n)
-    owners, normals, areas, ray_ids, ray_maps = [], [], [], [], []
-    for part, g in zip(parts, ids, strict=True):
-        closed[g] = part.closed
-        bounded[g] = part.bounded
-        area[g] = part.texel_area
-        owners.append(np.repeat(g, np.diff(part.cf.offsets)))
-        normals.append(part.cf.normals.reshape(-1, 3))
-        areas.append(part.cf.areas)
-        ray_ids.append(g[part.ray_texels])
-        ray_maps.append(part.ray_maps)
-    owner = np.concatenate(owners)
-    order = np.argsort(owner, kind="stable")
-    offsets = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=n))]).astype(np.int64)
-    rid = np.concatenate(ray_ids)
-    rorder = np.argsort(rid, kind="stable")
-    maps = np.concatenate(ray_maps)[rorder] if rid.size else np.zeros((0, 6, res, res))
-    cf = avis_mod.ClosedForm(offsets, np.concatenate(normals)[order], np.concatenate(areas)[order])
-    return avis_mod.AvisLevel(n_side, res, closed, bounded, cf, rid[rorder].astype(np.int64), maps,
-                              area, parts[0].max_terms)
+    return avis_mod.level_from_arrays(
+        {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)}
+    )
 
 
 def _avis_key(ctx: StageContext, tile: int | None) -> str:
@@ -739,8 +677,7 @@ def run_avis_top(ctx: StageContext, shard: int = 0) -> str:
     top = f"L{ctx.tile_levels - 1:02d}_"
     parts = [_avis_level_from(ctx.store.read_arrays(_avis_key(ctx, t)), top)
              for t in range(per_row * per_row)]
-    level = _place_levels(parts, [np.array([t]) for t in range(per_row * per_row)], per_row,
-                          s.avis_resolution)
+    level = avis_mod.stack_tiles(parts, per_row)
     out = {}
     for lvl in range(ctx.tile_levels, ctx.n_levels):
         level = avis_mod.coarsen_level(level)
@@ -758,16 +695,8 @@ def avis_levels(ctx: StageContext) -> list[avis_mod.AvisLevel]:
     levels = []
     for lvl in range(ctx.n_levels):
         if lvl < ctx.tile_levels:
-            sub = side >> lvl
-            n_l = n >> lvl
-            ids = []
-            for t in range(per_row * per_row):
-                tr, tc = divmod(t, per_row)
-                r = tr * sub + np.arange(sub)
-                c = tc * sub + np.arange(sub)
-                ids.append((r[:, None] * n_l + c[None, :]).ravel())
             parts = [_avis_level_from(d, f"L{lvl:02d}_") for d in tiles]
-            levels.append(_place_levels(parts, ids, n_l, s.avis_resolution))
+            levels.append(avis_mod.stack_tiles(parts, per_row))
         else:
             levels.append(_avis_level_from(top, f"L{lvl:02d}_"))
     return levels
@@ -775,12 +704,14 @@ def avis_levels(ctx: StageContext) -> list[avis_mod.AvisLevel]:
 
 def avis_table_arrays(table: avis_mod.AvisTable) -> dict[str, np.ndarray]:
     """An AvisTable as payload arrays (`avis:` namespace)."""
-    return _dataclass_arrays(table, "avis:", ":")
+    return {f"avis:{k}": v for k, v in table.to_arrays().items()}
 
 
 def avis_table_from(arrays: dict[str, np.ndarray]) -> avis_mod.AvisTable:
     """Inverse of `avis_table_arrays` (used by the renderer on `read_baked` output)."""
-    return _dataclass_from(avis_mod.AvisTable, arrays, "avis:", ":")
+    return avis_mod.AvisTable.from_arrays(
+        {k[5:]: v for k, v in arrays.items() if k.startswith("avis:")}
+    )
 
 
 # --------------------------------------------------------------------------- btf, render
