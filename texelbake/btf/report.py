@@ -119,6 +119,7 @@ def btf_report(
         "seconds": {**{k: float(v) for k, v in info.seconds.items()}, "build_total": build_s,
                     "error_measurement": err_s},
         "cpu_seconds_build": build_cpu,
+        "cpu_seconds": {k: float(v) for k, v in info.cpu_seconds.items()},
         "top_level": maps.top_level,
         "n_components": list(maps.n_components),
         "pca_methods": list(info.pca_methods),
