@@ -89,7 +89,12 @@ from texelbake.cpm import (  # noqa: E402
     reflectance_matrix,
     reflectance_pairs,
 )
-from texelbake.directions import heldout_pairs, hemisphere_directions, product_pairs  # noqa: E402
+from texelbake.directions import (  # noqa: E402
+    balanced_pairs,
+    heldout_pairs,
+    hemisphere_directions,
+    product_pairs,
+)
 
 METHODS = ("seed+clamp", "seed+nnls", "leverage", "uniform", "pivqr", "eq7+nnls")
 
@@ -132,6 +137,7 @@ def synthetic_texels(
     n_heldout: int = 1024,
     seed: int = 0,
     n_pairs_train: int = 0,
+    n_sub: int = 0,
 ) -> list[dict]:
     """Height-field texels with ridges of two materials; visibility by open3d ray casting.
 
@@ -140,7 +146,9 @@ def synthetic_texels(
     on the texel's triangles (flat face normals), R on the n_i x n_o product grid and on
     n_heldout independent pairs; with n_pairs_train > 0 also on that many further independent
     pairs (keys R_pairs, avis_pairs) to compare training on a product grid with training on
-    distinct pairs (2 m d rays instead of m (n_i + n_o)).
+    distinct pairs (2 m d rays instead of m (n_i + n_o)); with n_sub > 0 also on n_i * n_o rows
+    of an n_sub x n_sub grid chosen by `balanced_pairs` (keys R_sub, avis_sub; separable
+    visibility with m * 2 n_sub rays).
     """
     import open3d as o3d  # heavy import kept local
 
@@ -212,6 +220,16 @@ def synthetic_texels(
                "texel_area": float(area.sum())}
         if n_pairs_train > 0:
             tex["R_pairs"], tex["avis_pairs"] = paired(*heldout_pairs(n_pairs_train, seed + 7919))
+        if n_sub > 0:
+            wi_s = hemisphere_directions(n_sub, seed=2 * seed + 101)
+            wo_s = hemisphere_directions(n_sub, seed=2 * seed + 102)
+            si, so = balanced_pairs(n_sub, n_sub, n_i * n_o, seed=seed)
+            vi_s, vo_s = visible(wi_s), visible(wo_s)  # (m, n_sub) each: separable
+            ci_s, co_s = n_s @ wi_s.T, n_s @ wo_s.T
+            tex["R_sub"] = reflectance_pairs(
+                _blinn_phong(n_s, mat, wi_s[si], wo_s[so]), vi_s[:, si], vo_s[:, so],
+                ci_s[:, si], co_s[:, so], area)
+            tex["avis_sub"] = avis_on_grid(vo_s, co_s, area)[so]
         out.append(tex)
     return out
 
@@ -293,6 +311,8 @@ def run(
         variants = [("eq7", R, avis, "eq7"), ("seed-rows", R, avis, "seed")]
         if "R_pairs" in tex:
             variants.append(("eq7, distinct pairs", tex["R_pairs"], tex["avis_pairs"], "eq7"))
+        if "R_sub" in tex:
+            variants.append(("eq7, balanced subgrid", tex["R_sub"], tex["avis_sub"], "eq7"))
         for name, Rt, at, how_rows in variants:  # loop over a few fit variants
             t0 = time.process_time()
             fit = fit_texel(Rt, at, psi=psi, n_trials=n_trials, seed=seed + t,
@@ -367,7 +387,7 @@ def print_table(res: dict) -> None:
         print(f"{c:>4} {res['eckart_young'][str(c)]:>9.4f} | " + " | ".join(f"{x:>30}" for x in cells))
     print("fit_texel (bisection on c, eps 30 dB, c_max 64):")
     for f in res["fit_texel"]:
-        print(f"  texel {f['texel']} {f['variant']:20s} d={f['d']} m={f['m']} k={f['k']} c={f['c']} "
+        print(f"  texel {f['texel']} {f['variant']:22s} d={f['d']} m={f['m']} k={f['k']} c={f['c']} "
               f"mode={f['colour_mode']} "
               f"SNR in={f['snr_insample']:.1f} dB held-out={f['snr_heldout']:.1f} dB "
               f"{f['seconds']:.2f} s")
@@ -474,6 +494,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=8)
     ap.add_argument("--pairs-train", type=int, default=4096,
                     help="also fit on this many distinct random pairs (0: off)")
+    ap.add_argument("--sub", type=int, default=256,
+                    help="also fit on dirs^2 balanced rows of a sub x sub grid (0: off)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--svd", action="store_true", help="only time the SVD paths")
     args = ap.parse_args(argv)
@@ -487,7 +509,7 @@ def main(argv: list[str] | None = None) -> int:
         texels = load_texels_npz(args.npz)
     else:
         texels = synthetic_texels(args.texels, args.m, args.dirs, args.dirs, args.heldout, args.seed,
-                                  n_pairs_train=args.pairs_train)
+                                  n_pairs_train=args.pairs_train, n_sub=args.sub)
     print(f"texels ready in {time.process_time() - t0:.1f} s")
     import torch
 

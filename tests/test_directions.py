@@ -1,7 +1,12 @@
 import numpy as np
 import pytest
 
-from texelbake.directions import heldout_pairs, hemisphere_directions, product_pairs
+from texelbake.directions import (
+    balanced_pairs,
+    heldout_pairs,
+    hemisphere_directions,
+    product_pairs,
+)
 from texelbake.errors import SettingsError
 
 
@@ -70,3 +75,26 @@ def test_heldout_pairs():
     assert np.min(np.linalg.norm(wi[:, None] - grid[None], axis=2)) > 1e-9
     assert not np.allclose(wi, wo)
     assert heldout_pairs(0)[0].shape == (0, 3)
+
+
+def test_balanced_pairs():
+    ri, ro = balanced_pairs(16, 32, 256, seed=2)
+    assert ri.dtype == ro.dtype == np.int64 and ri.shape == ro.shape == (256,)
+    key = ri * 32 + ro
+    assert np.all(np.diff(key) > 0)  # sorted, no duplicate pair
+    # exactly balanced: each light 16 times, each view 8 times
+    assert np.all(np.bincount(ri, minlength=16) == 16)
+    assert np.all(np.bincount(ro, minlength=32) == 8)
+    a = balanced_pairs(16, 32, 256, seed=2)
+    assert a[0].tobytes() == ri.tobytes() and a[1].tobytes() == ro.tobytes()
+    assert not np.array_equal(balanced_pairs(16, 32, 256, seed=3)[1], ro)
+    # d = n_i * n_o is the full product grid
+    fi, fo = balanced_pairs(4, 6, 24)
+    pi, po = product_pairs(4, 6)
+    np.testing.assert_array_equal(fi, pi)
+    np.testing.assert_array_equal(fo, po)
+    assert balanced_pairs(4, 4, 0)[0].shape == (0,)
+    with pytest.raises(SettingsError):
+        balanced_pairs(16, 32, 100)
+    with pytest.raises(SettingsError):
+        balanced_pairs(2, 2, 8)

@@ -26,6 +26,7 @@ from texelbake.errors import SettingsError
 # Fixed stream tags, so that the light grid, the view grid and the held-out pairs are three
 # independent sequences even when the caller passes the same seed to each.
 _TAG_HELDOUT = 0x4E1D
+_TAG_BALANCED = 0xBA1A
 
 
 def _check_count(name: str, n: int) -> int:
@@ -82,6 +83,35 @@ def product_pairs(n_i: int, n_o: int) -> tuple[np.ndarray, np.ndarray]:
     row_i = np.repeat(np.arange(n_i, dtype=np.int64), n_o)
     row_o = np.tile(np.arange(n_o, dtype=np.int64), n_i)
     return row_i, row_o
+
+
+def balanced_pairs(n_i: int, n_o: int, d: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A subset of d rows of the n_i x n_o product grid, every direction used equally often.
+
+    Visibility stays separable (m * (n_i + n_o) rays) but the d rows see n_i light and n_o view
+    directions instead of sqrt(d) each: with n_i = n_o = 256 and d = 4096 every direction appears
+    16 times. Construction (cyclic, no duplicate pair): with r = d / n_i views per light, light
+    pi[a] gets the views po[(a r + k) mod n_o], k < r, for seeded random permutations pi, po;
+    a r + k runs over d consecutive integers, so every view appears exactly d / n_o times.
+    Rows are sorted by (i, o).
+
+    n_i, n_o : grid sizes; d : number of rows, a multiple of n_i and of n_o, <= n_i * n_o
+    returns : (row_i (d,) int64, row_o (d,) int64), index pairs into the two direction sets
+    """
+    n_i, n_o, d = _check_count("n_i", n_i), _check_count("n_o", n_o), _check_count("d", d)
+    if d == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    if n_i == 0 or n_o == 0 or d % n_i or d % n_o or d > n_i * n_o:
+        raise SettingsError(
+            f"d ({d}) must be a multiple of n_i ({n_i}) and n_o ({n_o}) and <= n_i * n_o"
+        )
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), _TAG_BALANCED]))
+    perm_i, perm_o = rng.permutation(n_i), rng.permutation(n_o)
+    r = d // n_i
+    a = np.repeat(np.arange(n_i, dtype=np.int64), r)  # (d,)
+    k = np.tile(np.arange(r, dtype=np.int64), n_i)  # (d,)
+    key = np.sort(perm_i[a] * n_o + perm_o[(a * r + k) % n_o])
+    return key // n_o, key % n_o
 
 
 def heldout_pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
