@@ -189,3 +189,32 @@ def test_normalmap_and_equal_time_on_a_flat_plane(baked_plane, tmp_path):
     assert eq.spp == 1  # no budget: the one-sample pilot image
     with pytest.raises(SettingsError):
         render(baked_plane, "nope", **kw)
+
+
+def test_previews_and_report(baked_plane, tmp_path, monkeypatch):
+    import json
+
+    from texelbake.render import api
+
+    monkeypatch.setitem(api.PREVIEW_SIZES, "tiny", {
+        "px": 24, "ref_spp": 16, "gt_sweep": (1, 4), "cpm_sweep": (1,), "spp": 4})
+    files = api.render_previews(baked_plane, tmp_path, size="tiny")
+    names = {p.name for p in files}
+    for mode in ("gt", "cpm", "normalmap", "equal-time"):
+        assert {f"{mode}.png", f"{mode}.exr", f"far_{mode}.png", f"diff_{mode}.png"} <= names
+    assert {"mip_levels.png", "far_mip_levels.png", "cp_density_atlas.png",
+            "cp_density_model.png", "render_report.json", "speed_error.png"} <= names
+    rep = json.loads((tmp_path / "render_report.json").read_text())
+    for view in (rep, rep["far"]):
+        for mode in ("gt", "cpm", "normalmap", "equal-time"):
+            e = view["modes"][mode]
+            assert e["seconds"] > 0 and e["rays_cast"] > 0 and e["spp"] >= 1
+            assert isinstance(e["psnr_db"], float) or e["psnr_db"] == "inf"
+        assert {e["spp"] for e in view["sweep"] if e["mode"] == "gt"} >= {1, 4}
+    # the far view uses the characteristic point maps, flat plane: cpm = gt to >= 50 dB
+    assert rep["far"]["modes"]["cpm"]["fallback_fraction"] < 0.5
+    # the gt image at 4 spp against the 16-spp reference of a flat, evenly lit plane: only
+    # the plane's border pixels differ
+    assert rep["modes"]["gt"]["psnr_db"] > 20.0
+    with pytest.raises(SettingsError):
+        api.render_previews(baked_plane, tmp_path, size="huge")

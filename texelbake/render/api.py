@@ -173,9 +173,14 @@ def render_previews(baked_root: str | Path, out_dir: str | Path, *, size: str = 
     """Previews of every mode, the diagnostics and `render_report.json` (module docstring)
     for one baked USD. Used by `make demo` (size "small") and the farm's render stage.
 
-    Writes into out_dir: gt, cpm, normalmap, equal-time (.exr linear, .png sRGB);
-    diff_<mode>.png (ΔE*ab against gt); mip_levels.png; cp_density_atlas.png;
-    cp_density_model.png; render_report.json; speed_error.png. Returns the written paths.
+    Two views: "near" — the asset's camera (what a user looks at; where the finest texels
+    are larger than a pixel the cpm mode falls back to M_org, and mip_levels.png shows it in
+    white); "far" — the same view moved back until a finest texel spans about a pixel
+    (`core.lod_camera`), where the characteristic point maps are used; its files carry the
+    prefix `far_`. Writes into out_dir, per view: gt_reference, gt, cpm, normalmap,
+    equal-time (.exr linear, .png sRGB); diff_<mode>.png (ΔE*ab against the reference);
+    mip_levels.png; and cp_density_atlas.png, cp_density_model.png, render_report.json,
+    speed_error.png. Returns the written paths.
     """
     if size not in PREVIEW_SIZES:
         raise SettingsError(f"field 'size': expected one of {sorted(PREVIEW_SIZES)}, got "
@@ -185,16 +190,19 @@ def render_previews(baked_root: str | Path, out_dir: str | Path, *, size: str = 
     out.mkdir(parents=True, exist_ok=True)
     scene = load_scene(baked_root)
     px = cfg["px"]
-    cam = resolve_camera(scene, None, px, px)
-    report = compare_modes(scene, cam, spp=cfg["spp"], ref_spp=cfg["ref_spp"],
-                           gt_sweep=cfg["gt_sweep"], cpm_sweep=cfg["cpm_sweep"], seed=seed,
-                           out_dir=out)
+    near = resolve_camera(scene, None, px, px)
+    far = resolve_camera(scene, "lod", px, px)
+    opts = {"spp": cfg["spp"], "ref_spp": cfg["ref_spp"], "gt_sweep": cfg["gt_sweep"],
+            "cpm_sweep": cfg["cpm_sweep"], "seed": seed}
+    report = compare_modes(scene, near, out_dir=out, **opts)
+    report["far"] = compare_modes(scene, far, out_dir=out, prefix="far_", **opts)
     report["scene"] = scene.baked.name
     report["size"] = size
-    files = [Path(f) for m in report["modes"].values() for f in m.get("files", [])]
+    files = [Path(f) for view in (report, report["far"]) for m in view["modes"].values()
+             for f in m.get("files", [])]
     files.append(write_png(out / "cp_density_atlas.png",
                            _upscale(density_colours(density_atlas(scene))), srgb=False))
-    files.append(write_png(out / "cp_density_model.png", density_on_model(scene, cam),
+    files.append(write_png(out / "cp_density_model.png", density_on_model(scene, near),
                            srgb=False))
     rep_path = out / "render_report.json"
     _write_json(rep_path, report)
@@ -207,7 +215,7 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
                   gt_sweep: tuple[int, ...] = (), cpm_sweep: tuple[int, ...] = (),
                   seed: int = 0, out_dir: Path | None = None,
                   modes: tuple[str, ...] = MODES, reference: RenderResult | None = None,
-                  **kw: Any) -> dict[str, Any]:
+                  prefix: str = "", **kw: Any) -> dict[str, Any]:
     """Render the reference and every mode, measure their errors (report dict, module
     docstring). Images and difference maps are written to out_dir when given."""
     ref = reference if reference is not None else render_frame(
@@ -215,14 +223,15 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
     ref_img = ref.image
     eps_db = _eps_db(scene)
     report: dict[str, Any] = {
-        "width": cam.width, "height": cam.height,
+        "width": cam.width, "height": cam.height, "camera_position": cam.position.tolist(),
+        "coverage": float(np.mean(ref.image.max(axis=2) > 0)),
         "reference": {"mode": "gt", "spp": ref.spp, "seconds": round(ref.seconds, 4),
                       "rays_cast": ref.rays_cast},
         "modes": {}, "sweep": [],
     }
     if out_dir is not None:
-        write_exr(out_dir / "gt_reference.exr", ref_img)
-        write_png(out_dir / "gt_reference.png", ref_img)
+        write_exr(out_dir / f"{prefix}gt_reference.exr", ref_img)
+        write_png(out_dir / f"{prefix}gt_reference.png", ref_img)
     results: dict[str, RenderResult] = {}
     for mode in modes:  # a loop over the four modes
         if mode == "equal-time":
@@ -237,15 +246,15 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
             entry["mesh"] = res.extras.get("mesh")
             entry["fallback_fraction"] = res.extras.get("fallback_fraction")
         if out_dir is not None:
-            files = [str(write_exr(out_dir / f"{mode}.exr", res.image)),
-                     str(write_png(out_dir / f"{mode}.png", res.image))]
+            files = [str(write_exr(out_dir / f"{prefix}{mode}.exr", res.image)),
+                     str(write_png(out_dir / f"{prefix}{mode}.png", res.image))]
             dmap = metrics.difference_map(res.image, ref_img)
-            files.append(str(metrics.write_difference_map(out_dir / f"diff_{mode}.png",
-                                                          dmap)))
+            files.append(str(metrics.write_difference_map(
+                out_dir / f"{prefix}diff_{mode}.png", dmap)))
             entry["delta_e_mean"] = float(dmap.mean())
             if mode == "cpm":
                 files.append(str(write_png(
-                    out_dir / "mip_levels.png",
+                    out_dir / f"{prefix}mip_levels.png",
                     level_colours(res.extras["level"], len(scene.baked.levels)), srgb=False)))
             entry["files"] = files
         report["modes"][mode] = entry
@@ -292,12 +301,14 @@ def write_report_plot(report_dir: str | Path) -> Path:
     if not path.is_file():
         raise StageError(f"no render_report.json in {d}")
     report = json.loads(path.read_text())
-    sweep = [e for e in report.get("sweep", [])
-             if isinstance(e.get("psnr_db"), (int, float)) and e.get("seconds", 0) > 0]
     groups: dict[str, list[dict[str, Any]]] = {}
-    for e in sweep:
-        key = e["mode"] + (f" (ε = {e['eps_db']:g} dB)" if "eps_db" in e else "")
-        groups.setdefault(key, []).append(e)
+    views = [("", report)] + ([("far: ", report["far"])] if "far" in report else [])
+    for label, view in views:
+        for e in view.get("sweep", []):
+            if not (isinstance(e.get("psnr_db"), (int, float)) and e.get("seconds", 0) > 0):
+                continue
+            key = label + e["mode"] + (f" (ε = {e['eps_db']:g} dB)" if "eps_db" in e else "")
+            groups.setdefault(key, []).append(e)
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
     markers = {"gt": "o", "cpm": "s", "normalmap": "^", "equal-time": "D"}
     for key in sorted(groups):

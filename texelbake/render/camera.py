@@ -152,3 +152,12 @@ def eye_rays(cam: PinholeCamera, offsets: np.ndarray) -> tuple[np.ndarray, np.nd
     d = d_cam @ cam.rotation.T
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return np.broadcast_to(cam.position, d.shape).copy(), d
+
+
+def dolly(cam: PinholeCamera, centre: object, distance: float) -> PinholeCamera:
+    """The same camera moved along its viewing axis so that `centre`'s depth along the axis
+    becomes `distance` (orientation and field of view kept: the same view from farther)."""
+    c = np.asarray(centre, dtype=np.float64)
+    depth = float(np.dot(c - cam.position, cam.forward))
+    pos = cam.position - cam.forward * (float(distance) - depth)
+    return PinholeCamera(pos, cam.rotation.copy(), cam.tan_half_x, cam.width, cam.height)

@@ -137,15 +137,31 @@ class RenderScene(OrgScene):
             strict=True)
         self.lod_error = [_hausdorff(self.org, c, self.asset.points, m.vertices)
                           for c, m in zip(self.lods, self.baked.meshes, strict=True)]
-        from texelbake.stages import avis_table_from
-
-        self._tables = [avis_table_from(lv) for lv in self.baked.levels]
+        self._tables = [_avis_table(lv) for lv in self.baked.levels]
         self._nm: dict[str, np.ndarray] | None = None
         self.setup_seconds = time.perf_counter() - t0
 
     def avis_table(self, level: int):
         """The level's a_vis table (texelbake.avis.AvisTable), rebuilt once at load."""
         return self._tables[level]
+
+
+def _avis_table(level: dict[str, np.ndarray]):
+    """The level's AvisTable through `stages.avis_table_from` (the payload contract). Bakes
+    written before the flat `avis:<name>` layout stored the dataclass fields nested
+    (`avis:cf:offsets`, `avis:haar:values`, ...): those are renamed and read the same way."""
+    from texelbake.avis import AvisTable
+    from texelbake.errors import ShapeError
+    from texelbake.stages import avis_table_from
+
+    try:
+        return avis_table_from(level)
+    except ShapeError:
+        if "avis:cf:offsets" not in level:
+            raise
+    old = {k[5:].replace(":", "_"): v for k, v in level.items() if k.startswith("avis:")}
+    old["meta"] = np.array([int(old["res"]), int(old.get("haar_res", old["res"]))], np.int64)
+    return AvisTable.from_arrays(old)
 
 
 def _face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -203,11 +219,34 @@ def load_scene(baked_root: str | Path) -> RenderScene:
     return _scene_cached(str(p), p.stat().st_mtime_ns)
 
 
-def resolve_camera(scene: RenderScene, camera: object, width: int, height: int) -> PinholeCamera:
-    """camera : None (the asset's, else auto-framed), a PinholeCamera, a model.Camera, or a
-    number = auto-frame distance factor (`camera.auto_frame`)."""
+def texel_size(scene: RenderScene) -> float:
+    """World size of a finest CPM texel on M1 (median over M1's triangles)."""
+    return 1.0 / (scene.n0 * math.sqrt(float(np.median(scene.lod_uv_ratio[0]))))
+
+
+def lod_camera(scene: RenderScene, width: int, height: int, texel_px: float = 0.7
+               ) -> PinholeCamera:
+    """The asset's camera (else auto-framed) moved back along its axis until a finest CPM
+    texel at the bounding box centre projects to `texel_px` pixels — the distance from which
+    the characteristic point maps apply (closer, the renderer falls back to M_org); never
+    moved closer than the asset's camera."""
+    cam = scene.default_camera(width, height)
+    centre = scene.asset.bounds.mean(axis=0)
+    depth = float(np.dot(centre - cam.position, cam.forward))
+    far = texel_size(scene) / (texel_px * cam.pixel_angle)
+    return cam_mod.dolly(cam, centre, far) if far > depth else cam
+
+
+def resolve_camera(scene: OrgScene, camera: object, width: int, height: int) -> PinholeCamera:
+    """camera : None (the asset's, else auto-framed), "lod" (`lod_camera`), a PinholeCamera,
+    a model.Camera, or a number = auto-frame distance factor (`camera.auto_frame`)."""
     if camera is None:
         return scene.default_camera(width, height)
+    if isinstance(camera, str):
+        if camera != "lod" or not isinstance(scene, RenderScene):
+            raise SettingsError(f"field 'camera': the only named camera is 'lod', got "
+                                f"{camera!r}")
+        return lod_camera(scene, width, height)
     if isinstance(camera, PinholeCamera):
         if (camera.width, camera.height) != (width, height):
             return PinholeCamera(camera.position, camera.rotation, camera.tan_half_x, width,
