@@ -232,20 +232,22 @@ def _check_btf(btf: np.ndarray, dirs_i: np.ndarray, dirs_o: np.ndarray):
 def to_ycbcr_planes(btf: np.ndarray) -> np.ndarray:
     """(d, h, w, 3) RGB -> (3, h, w, d) YCbCr, same float dtype (texel-major per channel).
 
-    Per channel one weighted sum of the RGB planes and one blocked, threaded transpose (torch);
-    about 4 passes over the input per channel, the output is the only full-size allocation.
+    One blocked, threaded transpose (torch) of the whole array to (texel, rgb, d), then three
+    contiguous multiply-adds per channel: measured 0.5 s CPU for the 64 x 64 x 6561 BTF against
+    1.4-2.3 s for per-channel weighted sums followed by per-channel transposes. Costs one
+    transient input-sized buffer.
     """
     d, h, w, _ = btf.shape
     out = np.empty((3, h, w, d), dtype=btf.dtype)
-    src = torch.from_numpy(np.ascontiguousarray(btf)).reshape(d, h * w, 3)
+    src = torch.from_numpy(np.ascontiguousarray(btf)).reshape(d, h * w * 3)
     dst = torch.from_numpy(out).reshape(3, h * w, d)
-    m = YCBCR_FROM_RGB.astype(btf.dtype)
+    m = YCBCR_FROM_RGB
     with torch.no_grad():
+        texel_rgb = src.T.contiguous().reshape(h * w, 3, d)
         for c in range(3):
-            plane = src[:, :, 0] * float(m[c, 0])
-            plane += src[:, :, 1] * float(m[c, 1])
-            plane += src[:, :, 2] * float(m[c, 2])  # (d, t)
-            dst[c].copy_(plane.T)
+            torch.mul(texel_rgb[:, 0], float(m[c, 0]), out=dst[c])
+            dst[c].add_(texel_rgb[:, 1], alpha=float(m[c, 1]))
+            dst[c].add_(texel_rgb[:, 2], alpha=float(m[c, 2]))
     return out
 
 
