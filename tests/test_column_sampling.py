@@ -356,3 +356,25 @@ def test_benchmark_run_on_arrays(rng):
             row = res["methods"][mth][c]
             assert all(np.isfinite(row[key]) for key in ("matrix", "insample", "heldout"))
             assert row["matrix"] >= res["eckart_young"][c] - 1e-9
+
+
+def test_benchmark_synthetic_texels_physical():
+    # the ridge generator behind the measurements: shapes, R >= 0, and a_vis bounded by the
+    # unoccluded projected area sum_j dA_j (n_j . w)+ <= sum_j dA_j
+    import importlib.util
+    from pathlib import Path
+
+    pytest.importorskip("open3d")
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "column_sampling.py"
+    spec = importlib.util.spec_from_file_location("bench_column_sampling2", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    (tex,) = bench.synthetic_texels(1, m=24, n_i=4, n_o=4, n_heldout=8, seed=1, n_sub=8)
+    assert tex["R"].shape == (16, 24, 3) and tex["R_heldout"].shape == (8, 24, 3)
+    assert tex["R_sub"].shape == (16, 24, 3)
+    for key in ("R", "R_heldout", "R_sub"):
+        assert np.all(tex[key] >= 0) and np.all(np.isfinite(tex[key]))
+    for key in ("avis", "avis_heldout", "avis_sub"):
+        assert np.all(tex[key] >= 0) and np.all(tex[key] <= tex["texel_area"] * (1 + 1e-12))
+    # sharp ridges: some entries vanish (shadowed, masked or below a facet's own horizon)
+    assert np.any(tex["R"][:, :, 1] == 0.0)
