@@ -510,25 +510,30 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray
     return radiance, exists, rays
 
 
-@dataclass
 class CpmFrame:
-    """Per-frame data of the cpm mode: texel radiance of every level."""
+    """Per-frame data of the cpm mode: the texel radiance of each level, computed the first
+    time a sample needs that level (a far view touches only the coarse levels)."""
 
-    mesh: int
-    radiance: list[np.ndarray]
-    exists: list[np.ndarray]
-    rays: int
+    def __init__(self, scene: RenderScene, cam: PinholeCamera, mesh: int) -> None:
+        self.scene = scene
+        self.cam_pos = np.asarray(cam.position, dtype=np.float64)
+        self.mesh = mesh
+        self.n_levels = len(scene.baked.levels)
+        self._levels: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.rays = 0
+
+    def level(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """(radiance (n_j², 3), exists (n_j²,) bool) of level j."""
+        if j not in self._levels:
+            rad, ex, n = texel_radiance(self.scene, j, self.cam_pos)
+            self._levels[j] = (rad, ex)
+            self.rays += n
+        return self._levels[j]
 
 
 def cpm_frame(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0) -> CpmFrame:
-    rad, ex = [], []
-    rays = 0
-    for level in range(len(scene.baked.levels)):  # a loop over the few mip levels
-        r, e, n = texel_radiance(scene, level, cam.position)
-        rad.append(r)
-        ex.append(e)
-        rays += n
-    return CpmFrame(choose_mesh(scene, cam, max_error_px), rad, ex, rays)
+    """The per-frame state of the cpm mode (mesh M_i chosen, texel radiance on demand)."""
+    return CpmFrame(scene, cam, choose_mesh(scene, cam, max_error_px))
 
 
 def _lookup_level(frame: CpmFrame, level: int, uv: np.ndarray, n0: int
@@ -536,10 +541,11 @@ def _lookup_level(frame: CpmFrame, level: int, uv: np.ndarray, n0: int
     """Bilinear texel radiance at one level; weights of texels without points are dropped.
     returns : (radiance (n, 3), weight sum (n,) — 0 where no texel around uv exists)"""
     n_l = max(n0 >> level, 1)
+    radiance, exists = frame.level(level)
     idx, w = bilinear_texels(uv, n_l)
-    w = w * frame.exists[level][idx]
+    w = w * exists[idx]
     s = w.sum(axis=1)
-    rad = np.einsum("nk,nkc->nc", w, frame.radiance[level][idx])
+    rad = np.einsum("nk,nkc->nc", w, radiance[idx])
     return np.divide(rad, s[:, None], out=np.zeros_like(rad), where=s[:, None] > 0), s
 
 
@@ -588,7 +594,7 @@ def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.nda
                 _, _, dist = light_at(light, p)
                 lam = np.minimum(lam, np.log2(np.maximum(dist / (local_light_ratio * s0),
                                                          1e-300)))
-        n_lv = len(frame.radiance)
+        n_lv = frame.n_levels
         use = lam >= 0.0
         lam_c = np.clip(lam, 0.0, n_lv - 1.0)
         j0 = np.floor(lam_c).astype(np.int64)
@@ -625,7 +631,7 @@ def _render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **k
     lvl_sum = np.zeros(n_pix)
     lvl_cnt = np.zeros(n_pix)
     fallback = 0
-    rays = frame.rays
+    rays = 0
     for _, o, d in _passes(cam, spp, seed):
         rad = np.zeros_like(o)
         lvl = np.full(o.shape[0], np.nan)
@@ -638,6 +644,7 @@ def _render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **k
         lvl_sum += np.where(hit, lv, 0.0).sum(axis=0)
         lvl_cnt += hit.sum(axis=0)
         fallback += int(np.sum(lv == -1.0))
+    rays += frame.rays
     level_img = np.divide(lvl_sum, lvl_cnt, out=np.full(n_pix, np.nan), where=lvl_cnt > 0)
     extras = {
         "level": level_img.reshape(cam.height, cam.width).astype(np.float32),
@@ -669,17 +676,19 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
     else:  # equal-time
         if budget_seconds is None:
             budget_seconds = render_frame(scene, "cpm", cam, spp, seed, **kw).seconds
-        # pilot: one eye ray per pixel measures the cost of a sample of M_org
+        # pilot at the cpm image's spp measures the cost of an eye ray per pixel on M_org
+        # (one sample per pixel under-estimates it: fixed costs per pass dominate)
         t1 = time.perf_counter()
-        img, rays = _render_org(scene, cam, 1, seed)
-        per_spp = time.perf_counter() - t1
-        n_eq = max(1, int(budget_seconds // max(per_spp, 1e-9)))
-        extras = {"budget_seconds": float(budget_seconds), "pilot_seconds": per_spp}
+        img, rays = _render_org(scene, cam, spp, seed)
+        pilot = time.perf_counter() - t1
+        n_eq = max(1, int(budget_seconds / max(pilot / spp, 1e-9)))
+        extras = {"budget_seconds": float(budget_seconds), "pilot_seconds": pilot,
+                  "pilot_spp": spp}
         t0 = time.perf_counter()
-        if n_eq > 1:
+        if n_eq != spp:
             img, rays = _render_org(scene, cam, n_eq, seed)
         else:
-            t0 -= per_spp
+            t0 -= pilot
         spp = n_eq
     seconds = time.perf_counter() - t0
     return RenderResult(img.astype(np.float32), seconds, int(rays), spp, mode, extras)
