@@ -33,8 +33,10 @@ def ensure_tokens(sm: sessionmaker, secret_key: str, tokens: dict[str, str]) -> 
                 s.add(ApiToken(digest=d, tenant=tenant))
 
 
-def tenant_of(sm: sessionmaker, secret_key: str, token: str) -> str | None:
+def tenant_by_digest(sm: sessionmaker, digest: str) -> str | None:
     with sm() as s:
-        return s.scalar(
-            select(ApiToken.tenant).where(ApiToken.digest == token_digest(secret_key, token))
-        )
+        return s.scalar(select(ApiToken.tenant).where(ApiToken.digest == digest))
+
+
+def tenant_of(sm: sessionmaker, secret_key: str, token: str) -> str | None:
+    return tenant_by_digest(sm, token_digest(secret_key, token))

@@ -372,7 +372,7 @@ def fail_job(sm: sessionmaker, job_id: str, error: str) -> None:
 def release_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: str) -> None:
     """A transient fault: the shard goes back to `queued` (sent) while Celery retries it."""
     with sm.begin() as s:
-        s.execute(
+        if s.execute(
             update(Shard)
             .where(
                 Shard.job_id == job_id,
@@ -381,7 +381,13 @@ def release_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: 
                 Shard.state == "running",
             )
             .values(state="queued", error=error)
-        )
+        ).rowcount:
+            add_event(
+                s,
+                job_id,
+                "shard",
+                {"stage": stage, "shard": shard, "state": "queued", "error": error},
+            )
 
 
 # ---------------------------------------------------------------- API side
@@ -424,15 +430,25 @@ def sweep(
             if not sent or rid != run_id:
                 sends.append(Send(PLAN_JOB_TASK, (job_id,), PLAN_QUEUE, None, job_id))
         active = select(Job.id).where(Job.state == "running")
-        s.execute(
-            update(Shard)
-            .where(
+        expired = s.execute(
+            select(Shard.id, Shard.job_id, Shard.stage, Shard.shard).where(
                 Shard.job_id.in_(active),
                 Shard.state == "running",
                 Shard.started_at < now - lease,
             )
-            .values(state="queued", sent=False)
-        )
+        ).all()
+        for rid, j, st, k in expired:
+            if s.execute(
+                update(Shard)
+                .where(Shard.id == rid, Shard.state == "running")
+                .values(state="queued", sent=False)
+            ).rowcount:
+                add_event(
+                    s,
+                    j,
+                    "shard",
+                    {"stage": st, "shard": k, "state": "queued", "reason": "lease expired"},
+                )
         rows = s.execute(
             select(Shard.id, Shard.job_id, Shard.stage, Shard.shard, Shard.queue, Shard.task_id)
             .where(

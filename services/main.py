@@ -21,7 +21,9 @@ from services.auth import ensure_tokens
 from services.broker import broker_run_id, celery_sender
 from services.config import API_V1, Settings, get_settings
 from services.db import session_factory
+from services.deps import TokenCache
 from services.routers import assets, jobs, utils
+from services.routers.jobs import JobCache
 from workers.celeryconfig import celery_config
 
 log = logging.getLogger("texelbake.api")
@@ -80,6 +82,8 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     app.state.settings = settings
     app.state.writer = session_factory(settings.db_url)
     app.state.reader = session_factory(settings.db_url, readonly=True)
+    app.state.token_cache = TokenCache()
+    app.state.job_cache = JobCache()
     celery = Celery("texelbake")
     celery.conf.update(celery_config(settings))
     app.state.celery = celery

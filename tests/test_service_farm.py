@@ -226,3 +226,41 @@ def test_restart_redis_and_api_mid_job(cylinder, reference, tmp_path):
         assert_ledger_clean(stack, job_id)
         root = download(stack, job_id, tmp_path / "result")
         assert_same_bake(root, reference)
+
+
+def test_cancel_revokes_running_shard_and_keeps_state(cylinder, tmp_path):
+    with farm(tmp_path / "stack") as stack:
+        job_id = start_job(stack, cylinder)
+        job = wait_for(
+            stack,
+            job_id,
+            lambda j: any(
+                sh["state"] == "running"
+                for s in j["stages"]
+                if s["name"] == "cpm"
+                for sh in s["shards"]
+            ),
+        )
+        running = next(
+            sh
+            for s in job["stages"]
+            if s["name"] == "cpm"
+            for sh in s["shards"]
+            if sh["state"] == "running"
+        )
+        pid = int(running["worker"].rsplit(":", 1)[1])
+        r = httpx.delete(f"{stack.api_url}/api/v1/jobs/{job_id}", headers=AUTH, timeout=30)
+        assert r.status_code == 202 and r.json()["state"] == "cancelled"
+        # the revoke terminates the pool child that ran the shard
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and os.path.exists(f"/proc/{pid}"):
+            time.sleep(0.1)
+        assert (
+            not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"
+        )
+        time.sleep(3.0)  # nothing runs on after a cancel
+        job = httpx.get(f"{stack.api_url}/api/v1/jobs/{job_id}", headers=AUTH).json()
+        assert job["state"] == "cancelled"
+        states = {sh["state"] for s in job["stages"] for sh in s["shards"]}
+        assert states <= {"done", "cancelled"} and "cancelled" in states
+        assert not any(r.state == "running" for r in ledger_rows(stack, job_id))

@@ -204,6 +204,7 @@ def stack_up(
     api: bool = True,
     queues: dict[str, tuple[str, ...]] | None = None,
     pin_cpus: dict[str, int] | None = None,
+    api_workers: int = 1,
     timeout: float = 60.0,
 ) -> Stack:
     """Start the stack as local processes and wait until the API is healthy.
@@ -217,6 +218,7 @@ def stack_up(
     pin_cpus : family -> first CPU: worker i of that family runs on CPU (first + i) % ncpu
         (`taskset`), so one process uses one core even where a library starts a thread per
         core (open3d's ray casting).
+    api_workers : uvicorn worker processes of the API.
     Returns the Stack; its `env` is the environment every process got.
     """
     families = dict(QUEUE_FAMILIES) | dict(queues or {})
@@ -268,7 +270,7 @@ def stack_up(
     env.update(extra_env or {})
     commands["api"] = [
         sys.executable, "-m", "uvicorn", "services.main:app", "--host", "127.0.0.1",
-        "--port", str(port), "--log-level", "warning",
+        "--port", str(port), "--log-level", "warning", "--workers", str(int(api_workers)),
     ]  # fmt: skip
     ncpu = os.cpu_count() or 1
     for fam, n in sorted(workers.items()):
