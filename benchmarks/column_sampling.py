@@ -108,7 +108,7 @@ _MATS_EXP = np.array([1.0, 60.0])
 
 
 def _heightfield_mesh(n_grid: int, period: float, height: float, angle: float, phase: float):
-    """Sharp triangular ridges z = height * tri((x cos a + y sin a) / period + phase) on [0, 1]^2."""
+    """Sharp ridges z = height * tri((x cos a + y sin a) / period + phase) on [0, 1]^2."""
     t = np.linspace(0.0, 1.0, n_grid)
     X, Y = np.meshgrid(t, t, indexing="ij")
     u = (X * math.cos(angle) + Y * math.sin(angle)) / period + phase
@@ -190,7 +190,7 @@ def synthetic_texels(
         origin = pts + 1e-4 * n_s
 
         def visible(dirs, origin=origin, scene=scene):
-            """(m, n) bool for every sample and direction (dirs (n, 3)), or paired when (m, n, 3)."""
+            """(m, n) bool per sample and direction (dirs (n, 3)); paired when dirs is (m, n, 3)."""
             if dirs.ndim == 2:
                 o = np.repeat(origin[:, None, :], dirs.shape[0], axis=1)
                 dd = np.broadcast_to(dirs[None], o.shape)
@@ -209,6 +209,7 @@ def synthetic_texels(
         R = reflectance_matrix(brdf, vis_i, vis_o, cos_i, cos_o, area)
         _, row_o = product_pairs(n_i, n_o)
         avis = avis_on_grid(vis_o, cos_o, area)[row_o]
+
         def paired(wi_p, wo_p, n_s=n_s, mat=mat, area=area, visible=visible):
             n_p = wi_p.shape[0]
             vi = visible(np.broadcast_to(wi_p[None], (m, n_p, 3)))
@@ -218,8 +219,13 @@ def synthetic_texels(
             return Rp, avis_on_grid(vo, co, area)  # paired: row r uses wo_p[r]
 
         R_h, avis_h = paired(wi_h, wo_h)
-        tex = {"R": R, "avis": avis, "R_heldout": R_h, "avis_heldout": avis_h,
-               "texel_area": float(area.sum())}
+        tex = {
+            "R": R,
+            "avis": avis,
+            "R_heldout": R_h,
+            "avis_heldout": avis_h,
+            "texel_area": float(area.sum()),
+        }
         if n_pairs_train > 0:
             tex["R_pairs"], tex["avis_pairs"] = paired(*heldout_pairs(n_pairs_train, seed + 7919))
         if n_sub > 0:
@@ -229,8 +235,13 @@ def synthetic_texels(
             vi_s, vo_s = visible(wi_s), visible(wo_s)  # (m, n_sub) each: separable
             ci_s, co_s = n_s @ wi_s.T, n_s @ wo_s.T
             tex["R_sub"] = reflectance_pairs(
-                _blinn_phong(n_s, mat, wi_s[si], wo_s[so]), vi_s[:, si], vo_s[:, so],
-                ci_s[:, si], co_s[:, so], area)
+                _blinn_phong(n_s, mat, wi_s[si], wo_s[so]),
+                vi_s[:, si],
+                vo_s[:, so],
+                ci_s[:, si],
+                co_s[:, so],
+                area,
+            )
             tex["avis_sub"] = avis_on_grid(vo_s, co_s, area)[so]
         out.append(tex)
     return out
@@ -244,9 +255,13 @@ def load_texels_npz(path: str | Path) -> list[dict]:
     t = 0
     while f"R_{t}" in data:
         out.append(
-            {"R": data[f"R_{t}"], "avis": data[f"avis_{t}"], "R_heldout": data[f"R_heldout_{t}"],
-             "avis_heldout": data[f"avis_heldout_{t}"],
-             "texel_area": float(data[f"texel_area_{t}"])}
+            {
+                "R": data[f"R_{t}"],
+                "avis": data[f"avis_{t}"],
+                "R_heldout": data[f"R_heldout_{t}"],
+                "avis_heldout": data[f"avis_heldout_{t}"],
+                "texel_area": float(data[f"texel_area_{t}"]),
+            }
         )
         t += 1
     return out
@@ -317,14 +332,30 @@ def run(
             variants.append(("eq7, balanced subgrid", tex["R_sub"], tex["avis_sub"], "eq7"))
         for name, Rt, at, how_rows in variants:  # loop over a few fit variants
             t0 = time.process_time()
-            fit = fit_texel(Rt, at, psi=psi, n_trials=n_trials, seed=seed + t,
-                            texel_area=tex["texel_area"], rows=how_rows)
+            fit = fit_texel(
+                Rt,
+                at,
+                psi=psi,
+                n_trials=n_trials,
+                seed=seed + t,
+                texel_area=tex["texel_area"],
+                rows=how_rows,
+            )
             t_fit = time.process_time() - t0
-            fits.append({"texel": t, "variant": name, "k": fit.k, "c": fit.c,
-                         "snr_insample": fit.snr_db_insample,
-                         "snr_heldout": evaluate_fit(fit, Rh, avis_h, eps),
-                         "colour_mode": fit.colour_mode, "seconds": t_fit, "m": R.shape[1],
-                         "d": int(Rt.shape[0])})
+            fits.append(
+                {
+                    "texel": t,
+                    "variant": name,
+                    "k": fit.k,
+                    "c": fit.c,
+                    "snr_insample": fit.snr_db_insample,
+                    "snr_heldout": evaluate_fit(fit, Rh, avis_h, eps),
+                    "colour_mode": fit.colour_mode,
+                    "seconds": t_fit,
+                    "m": R.shape[1],
+                    "d": int(Rt.shape[0]),
+                }
+            )
         for c in cs:  # loop over a handful of c values
             floor[c].append(eckart_young_error(s, c))
             ke = max(min(k, c), 1)
@@ -352,8 +383,16 @@ def run(
                         err = _rel_err(ref_in, _eq7(R, cols, alpha, avis, eps), valid_in)
                         if best is None or err < best[2]:
                             best = (cols, alpha, err)
-                secs = time.process_time() - t0 + {"seed+clamp": t_svd, "seed+nnls": t_svd,
-                                                   "leverage": t_svd, "eq7+nnls": t_svd_w}.get(mth, 0.0)
+                secs = (
+                    time.process_time()
+                    - t0
+                    + {
+                        "seed+clamp": t_svd,
+                        "seed+nnls": t_svd,
+                        "leverage": t_svd,
+                        "eq7+nnls": t_svd_w,
+                    }.get(mth, 0.0)
+                )
                 cols, alpha, err_in = best
                 mat_err = projection_error(S, cols)
                 err_h = _rel_err(ref_h, _eq7(Rh, cols, alpha, avis_h, eps), valid_h)
@@ -361,17 +400,32 @@ def run(
                 # slack covers rounding (~sqrt(m) eps), anything more is a benchmark bug
                 if mat_err < floor[c][-1] - 1e-9:
                     wrong.append({"texel": t, "method": mth, "c": c})
-                rows[mth][c].append({"matrix": mat_err, "insample": err_in, "heldout": err_h,
-                                     "seconds": secs, "n_cols": int(cols.size)})
-    result = {"cs": list(cs), "n_texels": len(texels), "methods": {}, "eckart_young": {},
-              "below_floor": wrong, "fit_texel": fits,
-              "shapes": [list(np.shape(t["R"])) for t in texels]}
+                rows[mth][c].append(
+                    {
+                        "matrix": mat_err,
+                        "insample": err_in,
+                        "heldout": err_h,
+                        "seconds": secs,
+                        "n_cols": int(cols.size),
+                    }
+                )
+    result = {
+        "cs": list(cs),
+        "n_texels": len(texels),
+        "methods": {},
+        "eckart_young": {},
+        "below_floor": wrong,
+        "fit_texel": fits,
+        "shapes": [list(np.shape(t["R"])) for t in texels],
+    }
     for c in cs:
         result["eckart_young"][str(c)] = float(np.median(floor[c]))
     for mth in METHODS:
         result["methods"][mth] = {
-            str(c): {key: float(np.median([r[key] for r in rows[mth][c]]))
-                     for key in ("matrix", "insample", "heldout", "seconds", "n_cols")}
+            str(c): {
+                key: float(np.median([r[key] for r in rows[mth][c]]))
+                for key in ("matrix", "insample", "heldout", "seconds", "n_cols")
+            }
             for c in cs
         }
     return result
@@ -385,14 +439,20 @@ def print_table(res: dict) -> None:
         cells = []
         for mth in METHODS:
             r = res["methods"][mth][str(c)]
-            cells.append(f"{r['matrix']:.4f} {r['insample']:.4f} {r['heldout']:.4f} {r['seconds']:.3f}")
-        print(f"{c:>4} {res['eckart_young'][str(c)]:>9.4f} | " + " | ".join(f"{x:>30}" for x in cells))
+            cells.append(
+                f"{r['matrix']:.4f} {r['insample']:.4f} {r['heldout']:.4f} {r['seconds']:.3f}"
+            )
+        print(
+            f"{c:>4} {res['eckart_young'][str(c)]:>9.4f} | " + " | ".join(f"{x:>30}" for x in cells)
+        )
     print("fit_texel (bisection on c, eps 30 dB, c_max 64):")
     for f in res["fit_texel"]:
-        print(f"  texel {f['texel']} {f['variant']:22s} d={f['d']} m={f['m']} k={f['k']} c={f['c']} "
-              f"mode={f['colour_mode']} "
-              f"SNR in={f['snr_insample']:.1f} dB held-out={f['snr_heldout']:.1f} dB "
-              f"{f['seconds']:.2f} s")
+        print(
+            f"  texel {f['texel']} {f['variant']:22s} d={f['d']} m={f['m']} k={f['k']} c={f['c']} "
+            f"mode={f['colour_mode']} "
+            f"SNR in={f['snr_insample']:.1f} dB held-out={f['snr_heldout']:.1f} dB "
+            f"{f['seconds']:.2f} s"
+        )
     if res["below_floor"]:
         print("WRONG: methods below the Eckart-Young floor:", res["below_floor"])
 
@@ -405,8 +465,11 @@ def plot(res: dict, path: str) -> None:
 
     cs = res["cs"]
     fig, axes = plt.subplots(1, 4, figsize=(18, 4.2))
-    titles = ["(i) matrix error ||S-CC+S||/||S||", "(ii) Eq. 7 rel. error, sampled pairs",
-              "(iii) Eq. 7 rel. error, held-out pairs"]
+    titles = [
+        "(i) matrix error ||S-CC+S||/||S||",
+        "(ii) Eq. 7 rel. error, sampled pairs",
+        "(iii) Eq. 7 rel. error, held-out pairs",
+    ]
     for ax, key, title in zip(axes[:3], ("matrix", "insample", "heldout"), titles, strict=True):
         for mth in METHODS:
             ax.plot(cs, [res["methods"][mth][str(c)][key] for c in cs], marker="o", label=mth)
@@ -416,10 +479,19 @@ def plot(res: dict, path: str) -> None:
         ax.legend(fontsize=7)
     ax = axes[3]
     for mth in METHODS:
-        ax.plot([res["methods"][mth][str(c)]["seconds"] for c in cs],
-                [res["methods"][mth][str(c)]["heldout"] for c in cs], marker="o", label=mth)
-    ax.set(xscale="log", yscale="log", xlabel="seconds per texel", ylabel="held-out error",
-           title="speed against error")
+        ax.plot(
+            [res["methods"][mth][str(c)]["seconds"] for c in cs],
+            [res["methods"][mth][str(c)]["heldout"] for c in cs],
+            marker="o",
+            label=mth,
+        )
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="seconds per texel",
+        ylabel="held-out error",
+        title="speed against error",
+    )
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -448,7 +520,9 @@ def measure_svd(
             for kind in ("smooth", "specular"):
                 # spectrum 0.85^r over 60 triplets (k ~ 10 at psi = 0.97) + 1e-4 noise
                 r = min(60, m)
-                A = (rng.standard_normal((d, r)) * 0.85 ** np.arange(r)) @ rng.standard_normal((r, m))
+                A = (rng.standard_normal((d, r)) * 0.85 ** np.arange(r)) @ rng.standard_normal(
+                    (r, m)
+                )
                 A += 1e-4 * rng.standard_normal((d, m))
                 if kind == "specular":
                     A[:, :5] *= 1e6  # five columns of a specular lobe: dynamic range 1e6
@@ -468,17 +542,29 @@ def measure_svd(
                             k2 = energy_rank(s2, 0.97)
                         times[meth].append(time.process_time() - t0)
                         p = column_probabilities(U2, s2, Vt2, k2, col_energy=ce)
-                        errs[meth] = (float(np.max(np.abs(p - p_ref))),
-                                      float(np.max(np.abs(s2[:k] - s[:k])) / s[0]), k2)
+                        errs[meth] = (
+                            float(np.max(np.abs(p - p_ref))),
+                            float(np.max(np.abs(s2[:k] - s[:k])) / s[0]),
+                            k2,
+                        )
                 row = {"d": d, "m": m, "kind": kind, "k": k}
                 for meth in times:
-                    row[meth] = {"cpu_seconds": float(np.min(times[meth])), "p_err": errs[meth][0],
-                                 "s_err": errs[meth][1], "k": errs[meth][2]}
+                    row[meth] = {
+                        "cpu_seconds": float(np.min(times[meth])),
+                        "p_err": errs[meth][0],
+                        "s_err": errs[meth][1],
+                        "k": errs[meth][2],
+                    }
                 out.append(row)
-                print(f"d={d} m={m:5d} {kind:9s} k={k:3d} | " + " | ".join(
-                    f"{meth} {row[meth]['cpu_seconds']:.3f}s p_err {row[meth]['p_err']:.0e} "
-                    f"s_err {row[meth]['s_err']:.0e} k {row[meth]['k']}" for meth in times),
-                    flush=True)
+                print(
+                    f"d={d} m={m:5d} {kind:9s} k={k:3d} | "
+                    + " | ".join(
+                        f"{meth} {row[meth]['cpu_seconds']:.3f}s p_err {row[meth]['p_err']:.0e} "
+                        f"s_err {row[meth]['s_err']:.0e} k {row[meth]['k']}"
+                        for meth in times
+                    ),
+                    flush=True,
+                )
     finally:
         torch.set_num_threads(n_threads)
     return out
@@ -494,10 +580,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dirs", type=int, default=64, help="n_i = n_o")
     ap.add_argument("--heldout", type=int, default=1024)
     ap.add_argument("--trials", type=int, default=8)
-    ap.add_argument("--pairs-train", type=int, default=4096,
-                    help="also fit on this many distinct random pairs (0: off)")
-    ap.add_argument("--sub", type=int, default=256,
-                    help="also fit on dirs^2 balanced rows of a sub x sub grid (0: off)")
+    ap.add_argument(
+        "--pairs-train",
+        type=int,
+        default=4096,
+        help="also fit on this many distinct random pairs (0: off)",
+    )
+    ap.add_argument(
+        "--sub",
+        type=int,
+        default=256,
+        help="also fit on dirs^2 balanced rows of a sub x sub grid (0: off)",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--svd", action="store_true", help="only time the SVD paths")
     args = ap.parse_args(argv)
@@ -510,8 +604,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.npz:
         texels = load_texels_npz(args.npz)
     else:
-        texels = synthetic_texels(args.texels, args.m, args.dirs, args.dirs, args.heldout, args.seed,
-                                  n_pairs_train=args.pairs_train, n_sub=args.sub)
+        texels = synthetic_texels(
+            args.texels,
+            args.m,
+            args.dirs,
+            args.dirs,
+            args.heldout,
+            args.seed,
+            n_pairs_train=args.pairs_train,
+            n_sub=args.sub,
+        )
     print(f"texels ready in {time.process_time() - t0:.1f} s")
     import torch
 

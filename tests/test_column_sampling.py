@@ -25,7 +25,7 @@ def low_rank(rng, d, m, r, noise=0.0):
 
 
 def brute_probabilities(R, k):
-    """Table 2 straight from numpy's full SVD and the explicit residual Sigma_{rho-k} V_{rho-k}^T."""
+    """Table 2 from numpy's full SVD and the explicit residual Sigma_{rho-k} V_{rho-k}^T."""
     _, s, Vt = np.linalg.svd(R, full_matrices=False)
     rho = int(np.sum(s > 1e-12 * s[0]))
     Vk = Vt[:k].T  # (m, k)
@@ -346,8 +346,15 @@ def test_benchmark_run_on_arrays(rng):
         mix = rng.random((4, 30))
         R = np.einsum("dkx,km->dmx", base, mix) + 1e-3 * rng.random((64, 30, 3))
         Rh = np.einsum("dkx,km->dmx", rng.random((16, 4, 3)), mix)
-        texels.append({"R": R, "avis": np.full(64, 2.0), "R_heldout": Rh,
-                       "avis_heldout": np.full(16, 2.0), "texel_area": 2.0})
+        texels.append(
+            {
+                "R": R,
+                "avis": np.full(64, 2.0),
+                "R_heldout": Rh,
+                "avis_heldout": np.full(16, 2.0),
+                "texel_area": 2.0,
+            }
+        )
     res = bench.run(texels, cs=(1, 4), n_trials=2)
     assert res["below_floor"] == []
     assert set(res["methods"]) == set(bench.METHODS)

@@ -53,8 +53,21 @@ def texel(rng, m=40, kd=None, ks=(0.0, 0.5), exps=(1.0, 30.0), vis_p=0.8, tilt=0
     R = reflectance_matrix(brdf, vis_i, vis_o, cos_i, cos_o, area)
     _, ro = product_pairs(N_I, N_O)
     avis = avis_on_grid(vis_o, cos_o, area)[ro]
-    return {"R": R, "avis": avis, "area": area, "n_s": n_s, "mat": mat, "wi": wi, "wo": wo,
-            "vis_i": vis_i, "vis_o": vis_o, "brdf": brdf, "kd": kd, "ks": ks, "exps": exps}
+    return {
+        "R": R,
+        "avis": avis,
+        "area": area,
+        "n_s": n_s,
+        "mat": mat,
+        "wi": wi,
+        "wo": wo,
+        "vis_i": vis_i,
+        "vis_o": vis_o,
+        "brdf": brdf,
+        "kd": kd,
+        "ks": ks,
+        "exps": exps,
+    }
 
 
 def flat_lambert(m=30, rho=(0.5, 0.3, 0.2), extra_wo=None, rng=None):
@@ -87,8 +100,14 @@ def test_reflectance_matrix_brute_force(rng):
         for o in range(0, N_O, 3):
             f = t["brdf"](np.array([i]), np.array([o]))[0]  # (m, 3)
             for j in range(6):
-                ref = (t["vis_i"][j, i] * t["vis_o"][j, o] * f[j] * max(cos_i[j, i], 0.0)
-                       * max(cos_o[j, o], 0.0) * t["area"][j])
+                ref = (
+                    t["vis_i"][j, i]
+                    * t["vis_o"][j, o]
+                    * f[j]
+                    * max(cos_i[j, i], 0.0)
+                    * max(cos_o[j, o], 0.0)
+                    * t["area"][j]
+                )
                 np.testing.assert_allclose(R[i * N_O + o, j], ref, rtol=1e-14, atol=0)
     # the array form and the callable form agree exactly
     ri, ro = product_pairs(N_I, N_O)
@@ -96,8 +115,14 @@ def test_reflectance_matrix_brute_force(rng):
     R2 = reflectance_matrix(f_all, t["vis_i"], t["vis_o"], cos_i, cos_o, t["area"])
     np.testing.assert_array_equal(R, R2)
     # paired form on the grid's own pairs reproduces the product form
-    Rp = reflectance_pairs(t["brdf"](ri, ro), t["vis_i"][:, ri], t["vis_o"][:, ro],
-                           cos_i[:, ri], cos_o[:, ro], t["area"])
+    Rp = reflectance_pairs(
+        t["brdf"](ri, ro),
+        t["vis_i"][:, ri],
+        t["vis_o"][:, ro],
+        cos_i[:, ri],
+        cos_o[:, ro],
+        t["area"],
+    )
     np.testing.assert_allclose(Rp, R, rtol=1e-15, atol=0)
 
 
@@ -105,8 +130,10 @@ def test_avis_on_grid_brute_force(rng):
     t = texel(rng, m=9)
     cos_o = t["n_s"] @ t["wo"].T
     av = avis_on_grid(t["vis_o"], cos_o, t["area"])
-    ref = [sum(t["area"][j] * max(cos_o[j, o], 0) for j in range(9) if t["vis_o"][j, o])
-           for o in range(N_O)]
+    ref = [
+        sum(t["area"][j] * max(cos_o[j, o], 0) for j in range(9) if t["vis_o"][j, o])
+        for o in range(N_O)
+    ]
     np.testing.assert_allclose(av, ref, rtol=1e-14)
 
 
@@ -115,12 +142,15 @@ def test_matrix_shape_errors(rng):
     cos_i = t["n_s"] @ t["wi"].T
     cos_o = t["n_s"] @ t["wo"].T
     with pytest.raises(ShapeError):
-        reflectance_matrix(np.ones((N_I, N_O, 4, 3)), t["vis_i"], t["vis_o"], cos_i, cos_o, t["area"])
+        reflectance_matrix(
+            np.ones((N_I, N_O, 4, 3)), t["vis_i"], t["vis_o"], cos_i, cos_o, t["area"]
+        )
     with pytest.raises(ShapeError):
         reflectance_matrix(t["brdf"], t["vis_i"], t["vis_o"], cos_i[:, :3], cos_o, t["area"])
     with pytest.raises(ShapeError):
-        reflectance_matrix(lambda ri, ro: np.ones((len(ri), 4, 3)), t["vis_i"], t["vis_o"],
-                           cos_i, cos_o, t["area"])
+        reflectance_matrix(
+            lambda ri, ro: np.ones((len(ri), 4, 3)), t["vis_i"], t["vis_o"], cos_i, cos_o, t["area"]
+        )
     with pytest.raises(NumericalError):
         avis_on_grid(t["vis_o"], cos_o, np.full(5, np.nan))
 
@@ -201,7 +231,9 @@ def test_snr_db_extreme_scale_against_exact_fractions(rng):
         ref = rng.random((50, 3)) * scale
         apx = ref * (1 + 1e-3 * rng.standard_normal((50, 3)))
         sig = sum(Fraction(x) ** 2 for x in ref.ravel())
-        noi = sum((Fraction(a) - Fraction(b)) ** 2 for a, b in zip(ref.ravel(), apx.ravel(), strict=True))
+        noi = sum(
+            (Fraction(a) - Fraction(b)) ** 2 for a, b in zip(ref.ravel(), apx.ravel(), strict=True)
+        )
         exact = 10 * math.log10(sig / noi)
         assert snr_db(ref, apx) == pytest.approx(exact, abs=1e-9)
 
@@ -222,8 +254,14 @@ def test_flat_lambertian_exact(rng):
     wi_h, wo_h = heldout_pairs(64, seed=3)
     m = R.shape[1]
     n_s = np.tile([0.0, 0.0, 1.0], (m, 1))
-    Rh = reflectance_pairs(np.broadcast_to(rho / np.pi, (64, m, 3)), np.ones((m, 64), bool),
-                           np.ones((m, 64), bool), n_s @ wi_h.T, n_s @ wo_h.T, area)
+    Rh = reflectance_pairs(
+        np.broadcast_to(rho / np.pi, (64, m, 3)),
+        np.ones((m, 64), bool),
+        np.ones((m, 64), bool),
+        n_s @ wi_h.T,
+        n_s @ wo_h.T,
+        area,
+    )
     avis_h = avis_on_grid(np.ones((m, 64), bool), n_s @ wo_h.T, area)
     fbar_h, _ = reconstruct(fit, Rh, avis_h, avis_floor(area.sum()))
     np.testing.assert_allclose(fbar_h, rho[None] / np.pi * wi_h[:, 2:3], atol=1e-6)
@@ -265,8 +303,15 @@ def test_c_max_below_k(rng):
 
 def test_specular_dynamic_range_snr_against_mpmath(rng):
     # a sharp Phong lobe (exponent 2000) beside a dim diffuse material: R spans > 1e6
-    t = texel(rng, m=40, kd=[[1e-4, 1e-4, 1e-4], [1e-4, 2e-4, 3e-4]], ks=(0.0, 1.0),
-              exps=(1.0, 2000.0), vis_p=0.9, tilt=0.3)
+    t = texel(
+        rng,
+        m=40,
+        kd=[[1e-4, 1e-4, 1e-4], [1e-4, 2e-4, 3e-4]],
+        ks=(0.0, 1.0),
+        exps=(1.0, 2000.0),
+        vis_p=0.9,
+        tilt=0.3,
+    )
     R, avis = t["R"], t["avis"]
     pos = R[R > 0]
     assert pos.max() / pos.min() > 1e6
@@ -284,8 +329,12 @@ def test_specular_dynamic_range_snr_against_mpmath(rng):
         a = mpmath.mpf(avis[r])
         for x in range(3):
             ref = mpmath.fsum(mpmath.mpf(v) for v in R[r, :, x]) / a
-            apx = mpmath.fsum(mpmath.mpf(w[k, x]) * mpmath.mpf(R[r, j, x])
-                              for k, j in enumerate(fit.columns)) / a
+            apx = (
+                mpmath.fsum(
+                    mpmath.mpf(w[k, x]) * mpmath.mpf(R[r, j, x]) for k, j in enumerate(fit.columns)
+                )
+                / a
+            )
             sig += ref**2
             noi += (ref - apx) ** 2
     exact = float(10 * mpmath.log10(sig / noi))
@@ -304,8 +353,13 @@ def test_weighted_points_vs_brute_force_sum(rng):
     f = t["brdf"](ri, ro)  # (d, m, 3)
     brute = np.zeros((len(ri), 3))
     for j in range(40):  # Eq. 7's sum sample by sample
-        g = t["vis_i"][j, ri] * t["vis_o"][j, ro] * np.clip(cos_i[j, ri], 0, None) \
-            * np.clip(cos_o[j, ro], 0, None) * t["area"][j]
+        g = (
+            t["vis_i"][j, ri]
+            * t["vis_o"][j, ro]
+            * np.clip(cos_i[j, ri], 0, None)
+            * np.clip(cos_o[j, ro], 0, None)
+            * t["area"][j]
+        )
         brute += f[:, j] * g[:, None]
     apx = np.zeros_like(brute)
     for k, j in enumerate(fit.columns):
@@ -401,3 +455,15 @@ def test_fit_input_errors():
     for bad in ({"psi": 0.0}, {"c_max": 0}, {"n_trials": 0}, {"colour": "rgb"}, {"weights": "x"}):
         with pytest.raises(SettingsError):
             fit_texel(np.ones((4, 2, 1)), np.ones(4), **bad)
+
+
+def test_channel_correlation_matches_numpy(rng):
+    R = rng.random((20, 7, 3))
+    R[:, :, 2] = 0.3 * R[:, :, 0] + 0.1 * rng.random((20, 7))
+    ref = np.corrcoef(R.reshape(-1, 3).T).min()
+    assert channel_correlation(R) == pytest.approx(ref, abs=1e-10)
+    const = R.copy()
+    const[:, :, 1] = 0.5  # zero-variance channel: correlates with everything
+    ref2 = np.corrcoef(const.reshape(-1, 3)[:, [0, 2]].T).min()
+    assert channel_correlation(const) == pytest.approx(ref2, abs=1e-10)
+    assert channel_correlation(R[:, :, :1]) == 1.0

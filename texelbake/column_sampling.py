@@ -60,9 +60,6 @@ from texelbake.tol import TOL
 
 SvdMethod = Literal["auto", "full", "gram"]
 
-#: top_singular keeps the Gram route only when span(V_k) is resolved to 1e-6 (1 / this factor)
-GRAM_SUBSPACE_TOL = 1e6
-
 
 def _as_matrix(name: str, a: np.ndarray) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
@@ -154,8 +151,8 @@ def top_singular(
         without the tail; falls back to "auto" beyond q = min(d, m) / 4), or "auto" = svd_float64's
         auto (gram for tall R, else full; lowrank was not faster, see the module docstring), with
         a full SVD instead whenever the Gram route cannot resolve span(V_k): Davis-Kahan bound
-        m eps s_1^2 / (s_k^2 - s_{k+1}^2) > 1e-6 (k reaching into singular values below
-        ~1e-4 s_1, i.e. psi within ~1e-8 of 1, or a near-degenerate gap at k).
+        m eps s_1^2 / (s_k^2 - s_{k+1}^2) > TOL.gram_subspace = 1e-6 (k reaching into singular
+        values below ~1e-4 s_1, i.e. psi within ~1e-8 of 1, or a near-degenerate gap at k).
     seed : seed of svd_lowrank's random test matrix (torch RNG forked, global state untouched)
     returns : (U (d, q), s (q,), Vt (q, m), k); q = min(d, m) for full/gram. Pass exact column
         energies to column_probabilities when q < rank (its residual terms need them).
@@ -179,14 +176,16 @@ def top_singular(
                 return U_t.numpy(), s_np, V_t.T.contiguous().numpy(), k
             q = 2 * q
         method = "auto"
-    U, s, Vt = svd_float64(R, "full" if method == "full" else ("gram" if method == "gram" else "auto"))
+    U, s, Vt = svd_float64(
+        R, "full" if method == "full" else ("gram" if method == "gram" else "auto")
+    )
     k = energy_rank(s, psi, total)
     if method == "auto" and d >= 2 * m and 0 < k <= s.size:
         # the Gram route resolves span(V_k) to ~ m eps s_1^2 / (s_k^2 - s_{k+1}^2) (Davis-Kahan);
         # Table 2 only needs that subspace (its leverage scores are rotation-invariant within
-        # it), so keep Gram when that is <= 1e-6 and redo the full SVD otherwise
+        # it), so keep Gram when that is <= TOL.gram_subspace and redo the full SVD otherwise
         gap = s[k - 1] ** 2 - (s[k] ** 2 if k < s.size else 0.0)
-        if gap <= GRAM_SUBSPACE_TOL * m * np.finfo(np.float64).eps * s[0] ** 2:
+        if gap * TOL.gram_subspace <= m * np.finfo(np.float64).eps * s[0] ** 2:
             U, s, Vt = svd_float64(R, "full")
             k = energy_rank(s, psi, total)
     return U, s, Vt, k
@@ -212,7 +211,7 @@ def _leverage_and_residual(
     # ||R_j||^2 - ||(R_k)_j||^2 cancels: below ~(k + 1) eps ||R_j||^2 it is rounding, not signal
     # (a column inside span(U_k) up to float64). Zeroing it keeps the residual terms from being
     # driven by noise (e.g. the 1e6-scaled columns of a specular lobe).
-    noise = 32.0 * (k + 1) * np.finfo(np.float64).eps * col_energy
+    noise = TOL.residual_rounding * (k + 1) * np.finfo(np.float64).eps * col_energy
     res2 = np.where(res2 > noise, res2, 0.0)
     return lev2, res2
 

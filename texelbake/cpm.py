@@ -105,7 +105,9 @@ def reflectance_matrix(
     vis_i = np.asarray(vis_i)
     vis_o = np.asarray(vis_o)
     if vis_i.ndim != 2 or vis_o.ndim != 2:
-        raise ShapeError(f"vis_i, vis_o must be (m, n_i), (m, n_o); got {vis_i.shape}, {vis_o.shape}")
+        raise ShapeError(
+            f"vis_i, vis_o must be (m, n_i), (m, n_o); got {vis_i.shape}, {vis_o.shape}"
+        )
     n_i, n_o = vis_i.shape[1], vis_o.shape[1]
     vis_i = _check_vis("vis_i", vis_i, (m, n_i))
     vis_o = _check_vis("vis_o", vis_o, (m, n_o))
@@ -199,7 +201,9 @@ def filtered_reflectance(
     rw = np.asarray(R_times_weights, dtype=np.float64)
     avis_rows = np.asarray(avis_rows, dtype=np.float64).ravel()
     if rw.shape[0] != avis_rows.shape[0] or rw.ndim not in (1, 2):
-        raise ShapeError(f"R_times_weights (d, ch) and avis_rows (d,) disagree: {rw.shape}, {avis_rows.shape}")
+        raise ShapeError(
+            f"R_times_weights (d, ch) and avis_rows (d,) disagree: {rw.shape}, {avis_rows.shape}"
+        )
     valid = np.isfinite(avis_rows) & (avis_rows > float(eps))
     denom = np.where(valid, avis_rows, 1.0)
     fbar = rw / (denom[:, None] if rw.ndim == 2 else denom)
@@ -219,7 +223,9 @@ def snr_db(ref: np.ndarray, approx: np.ndarray, valid: np.ndarray | None = None)
     ref = np.asarray(ref, dtype=np.float64)
     approx = np.asarray(approx, dtype=np.float64)
     if ref.shape != approx.shape:
-        raise ShapeError(f"ref and approx must have the same shape, got {ref.shape}, {approx.shape}")
+        raise ShapeError(
+            f"ref and approx must have the same shape, got {ref.shape}, {approx.shape}"
+        )
     if valid is not None:
         valid = np.asarray(valid, dtype=bool).ravel()
         if valid.shape[0] != ref.shape[0]:
@@ -298,8 +304,10 @@ class TexelFit:
         """Inverse of to_dict; also accepts the 0-d arrays np.load returns for scalars."""
         kwargs: dict[str, Any] = {}
         types = {
-            "columns": np.int64, "weights": np.float32,
-            "k_channels": np.int64, "c_channels": np.int64,
+            "columns": np.int64,
+            "weights": np.float32,
+            "k_channels": np.int64,
+            "c_channels": np.int64,
         }
         for f in fields(cls):
             if f.name not in data:
@@ -342,11 +350,15 @@ def channel_correlation(R: np.ndarray) -> float:
     ch = R.shape[2]
     if ch < 2 or R.shape[0] * R.shape[1] < 2:
         return 1.0
-    X = R.reshape(-1, ch)  # (d*m, ch)
-    Xc = X - X.mean(axis=0)
-    cov = Xc.T @ Xc  # (ch, ch)
-    sd = np.sqrt(np.diag(cov))
-    ok = sd > 0.0
+    X = R.reshape(-1, ch)  # (d*m, ch), a view: no copy of a large R
+    mu = X.mean(axis=0)
+    # one-pass covariance; its cancellation only matters for near-constant channels, and the
+    # value feeds a threshold decision, not arithmetic
+    cov = X.T @ X - X.shape[0] * np.outer(mu, mu)  # (ch, ch)
+    var = np.diag(cov)
+    # a variance below the one-pass rounding (TOL.const_channel_var of sum x^2): constant
+    ok = var > TOL.const_channel_var * np.einsum("nc,nc->c", X, X)
+    sd = np.sqrt(np.where(ok, var, 1.0))
     corr = np.ones((ch, ch))
     both = ok[:, None] & ok[None, :]
     corr[both] = (cov / np.outer(np.where(ok, sd, 1.0), np.where(ok, sd, 1.0)))[both]
@@ -533,7 +545,9 @@ def fit_texel(
     if not 0.0 < psi <= 1.0:
         raise SettingsError(f"psi must be in (0, 1], got {psi}")
     if c_max < 1 or n_trials < 1:
-        raise SettingsError(f"c_max and n_trials must be >= 1, got c_max={c_max}, n_trials={n_trials}")
+        raise SettingsError(
+            f"c_max and n_trials must be >= 1, got c_max={c_max}, n_trials={n_trials}"
+        )
     if n_batch < 2:
         raise SettingsError(f"n_batch must be >= 2, got {n_batch}")
     if colour not in ("auto", "luminance", "per_channel"):
@@ -556,8 +570,10 @@ def fit_texel(
     eps_avis = avis_floor(texel_area)
     fbar_ref, valid = filtered_reflectance(R.sum(axis=1), avis_rows, eps_avis)
     if not np.any(valid):
-        return _empty_fit(ch, "no row with a_vis above the floor (fully masked texel)", False, math.nan)
-    if float(np.sum(R * R)) <= TOL.energy_floor:
+        return _empty_fit(
+            ch, "no row with a_vis above the floor (fully masked texel)", False, math.nan
+        )
+    if float(np.vdot(R, R)) <= TOL.energy_floor:
         return _empty_fit(ch, "all-zero R: nothing reflects, c = 0", True, math.inf)
 
     corr = channel_correlation(R)
@@ -577,8 +593,19 @@ def fit_texel(
         groups = [(R[:, :, g], np.array([g])) for g in range(ch)]
     fits = [
         _Fitter(
-            R, S, chans, avis_rows, eps_avis, psi=psi, eps_db=eps_db, c_max=int(c_max),
-            n_trials=int(n_trials), weights=weights, n_batch=int(n_batch), rng=rng, rows=rows,
+            R,
+            S,
+            chans,
+            avis_rows,
+            eps_avis,
+            psi=psi,
+            eps_db=eps_db,
+            c_max=int(c_max),
+            n_trials=int(n_trials),
+            weights=weights,
+            n_batch=int(n_batch),
+            rng=rng,
+            rows=rows,
         ).select(cand)
         for S, chans in groups
     ]
@@ -640,9 +667,7 @@ def reconstruct(
     return filtered_reflectance(approx, avis_rows, eps)
 
 
-def evaluate_fit(
-    fit: TexelFit, R_rows: np.ndarray, avis_rows: np.ndarray, eps: float
-) -> float:
+def evaluate_fit(fit: TexelFit, R_rows: np.ndarray, avis_rows: np.ndarray, eps: float) -> float:
     """SNR (dB) of the fit against the full Eq. 7 on the given rows (held-out generalization).
 
     R_rows : (d', m, ch) float64, all m columns; avis_rows : (d',) float64; eps : a_vis floor

@@ -15,6 +15,9 @@ class Tolerances:
     # linear algebra
     svd_rcond: float = 1e-12          # relative singular value cut-off for pseudo-inverses
     energy_floor: float = 1e-300      # ||R||_F^2 below this is treated as an all-zero matrix
+    gram_subspace: float = 1e-6       # Gram-route span(V_k) error bound above this: full SVD
+    residual_rounding: float = 32.0   # x (k+1) eps ||R_j||^2: residual column energy is rounding
+    const_channel_var: float = 1e-10  # variance / sum x^2 below this: a constant colour channel
     # visible projected area
     avis_floor: float = 1e-9          # relative to texel area: a_vis below is "fully masked"
     # directions
