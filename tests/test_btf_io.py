@@ -98,6 +98,10 @@ def test_json_and_csv_directions_with_exr(tmp_path, rng):
         assert np.array_equal(m.btf[0], data["a.exr"])  # EXR is linear: taken as is
         assert np.allclose(m.dirs_i[1], dirs_from_degrees(50.0, 60.0))
         assert np.allclose(m.dirs_o[0], dirs_from_degrees(30.0, 40.0))
+    crop = load_measured_btf(tmp_path, tmp_path / "dirs.csv", crop=(1, 0, 2, 1))
+    assert np.array_equal(crop.btf[1], data["b.exr"][1:3, 0:1])
+    with pytest.raises(AssetError, match="crop"):
+        load_measured_btf(tmp_path, tmp_path / "dirs.csv", crop=(2, 0, 2, 1))
 
 
 def test_import_errors(tmp_path, rng):
