@@ -88,8 +88,8 @@ def linear_to_lab(rgb: object, white: float = 1.0) -> np.ndarray:
 
 def difference_map(image: object, reference: object, white: float | None = None) -> np.ndarray:
     """Perceptual difference per pixel: CIE ΔE*ab (1976) between the two images in L*a*b*,
-    both scaled by the same white (default: the reference's 99.5th percentile luminance, the
-    exposure a viewer would pick). ΔE ≈ 2.3 is a just-noticeable difference.
+    both scaled by the same white (default: the 99.5th percentile luminance of the
+    reference's non-black pixels, the exposure a viewer would pick). ΔE ≈ 2.3 is a just-noticeable difference.
 
     image, reference : (h, w, 3) float; returns (h, w) float64 >= 0
     """
@@ -98,7 +98,8 @@ def difference_map(image: object, reference: object, white: float | None = None)
         raise ShapeError(f"difference_map needs (h, w, 3) images, got {ref.shape}")
     if white is None:
         lum = ref @ _RGB_TO_XYZ[1]
-        white = float(np.percentile(lum, 99.5))
+        lum = lum[lum > 0]
+        white = float(np.percentile(lum, 99.5)) if lum.size else 1.0
         white = white if white > 0 else 1.0
     return np.linalg.norm(linear_to_lab(img, white) - linear_to_lab(ref, white), axis=-1)
 
