@@ -82,7 +82,7 @@ def level_colours(level: np.ndarray, n_levels: int) -> np.ndarray:
     from matplotlib import colormaps
 
     lv = np.asarray(level, dtype=np.float64)
-    pal = np.asarray(colormaps["tab10"].colors)[:, :3]
+    pal = np.asarray(colormaps["tab10"](np.arange(10)))[:, :3]
     out = np.zeros(lv.shape + (3,))
     ok = np.isfinite(lv) & (lv >= 0)
     x = np.clip(np.where(ok, lv, 0.0), 0.0, max(n_levels - 1, 0))

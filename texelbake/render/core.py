@@ -478,8 +478,8 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray
     wsum = np.bincount(tex, ws, n_tex)
     cen = np.stack([np.bincount(tex, ws * pos[:, c], n_tex) for c in range(3)], axis=1)
     cen = np.divide(cen, wsum[:, None], out=np.zeros_like(cen), where=wsum[:, None] > 0)
-    wo_tex = cam_pos[None, :] - cen
-    wo_tex /= np.maximum(np.linalg.norm(wo_tex, axis=1, keepdims=True), 1e-300)
+    wo_tex = np.asarray(cam_pos[None, :] - cen, dtype=np.float64)
+    wo_tex = wo_tex / np.maximum(np.linalg.norm(wo_tex, axis=1, keepdims=True), 1e-300)
     wo = wo_tex[tex]
     g = TOL.grazing_cos
     cos_go = np.einsum("ij,ij->i", ng, wo)
@@ -617,8 +617,8 @@ def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.nda
         # closer than the finest level (or no texel there): multi-sample M_org
         fb = idx[~ok]
         if fb.size:
-            out[fb], r = shade_org(scene, o[fb], d[fb])
-            rays += r
+            out[fb], r_fb = shade_org(scene, o[fb], d[fb])
+            rays += r_fb
             level[fb] = -1.0
     return out, level, rays
 

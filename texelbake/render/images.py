@@ -46,7 +46,7 @@ def _check(image: object) -> np.ndarray:
     if img.ndim == 2:
         img = img[..., None]
     if img.ndim != 3 or img.shape[2] not in (1, 3, 4) or img.size == 0:
-        raise ShapeError(f"image must be (h, w), (h, w, 1|3|4), got {np.shape(image)}")
+        raise ShapeError(f"image must be (h, w), (h, w, 1|3|4), got {img.shape}")
     return img
 
 
