@@ -218,3 +218,16 @@ def test_previews_and_report(baked_plane, tmp_path, monkeypatch):
     assert rep["modes"]["gt"]["psnr_db"] > 20.0
     with pytest.raises(SettingsError):
         api.render_previews(baked_plane, tmp_path, size="huge")
+
+
+def test_well_stratified_is_the_largest_balanced_count():
+    from texelbake.render.core import well_stratified
+
+    def balanced(m):
+        nx, ny = cam_mod.strata(m)
+        return ny <= 2 * nx
+
+    for n in range(1, 300):  # brute force over every count
+        m = well_stratified(n)
+        assert m <= n and balanced(m)
+        assert not any(balanced(k) for k in range(m + 1, n + 1))

@@ -308,6 +308,19 @@ def shade_org(scene: OrgScene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray
     return out, rays + shadow
 
 
+def well_stratified(n: int) -> int:
+    """The largest count <= n whose stratification grid (`camera.strata`) is no more than
+    twice as long as wide (a prime count would give a 1 x n grid, stratified on one axis only).
+    """
+    m = max(int(n), 1)
+    while m > 1:
+        nx, ny = cam_mod.strata(m)
+        if ny <= 2 * nx:
+            return m
+        m -= 1
+    return 1
+
+
 def _render_org(scene: OrgScene, cam: PinholeCamera, spp: int, seed: int
                 ) -> tuple[np.ndarray, int]:
     acc = np.zeros((cam.height * cam.width, 3))
@@ -681,7 +694,7 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
         t1 = time.perf_counter()
         img, rays = _render_org(scene, cam, spp, seed)
         pilot = time.perf_counter() - t1
-        n_eq = max(1, int(budget_seconds / max(pilot / spp, 1e-9)))
+        n_eq = well_stratified(max(1, int(budget_seconds / max(pilot / spp, 1e-9))))
         extras = {"budget_seconds": float(budget_seconds), "pilot_seconds": pilot,
                   "pilot_spp": spp}
         t0 = time.perf_counter()
