@@ -231,3 +231,18 @@ def test_well_stratified_is_the_largest_balanced_count():
         m = well_stratified(n)
         assert m <= n and balanced(m)
         assert not any(balanced(k) for k in range(m + 1, n + 1))
+
+
+def test_render_report_writes_the_modes_asked_for(baked_plane, tmp_path):
+    import json
+
+    from texelbake.render import render_report
+
+    path = render_report(baked_plane, tmp_path, modes="gt,cpm", width=16, height=16, spp=1,
+                         ref_spp=4, camera=3.0)
+    rep = json.loads(path.read_text())
+    assert set(rep["modes"]) == {"gt", "cpm"}
+    assert rep["reference"]["spp"] == 4
+    assert (tmp_path / "cpm.exr").is_file() and (tmp_path / "speed_error.png").is_file()
+    with pytest.raises(SettingsError):
+        render_report(baked_plane, tmp_path, modes="gt,bogus", width=8, height=8)

@@ -2,6 +2,7 @@
 
     render(baked_root, mode, *, width, height, spp, camera=None, out_dir=None, seed=0)
     render_previews(baked_root, out_dir, *, size="small")
+    render_report(baked_root, out_dir, *, modes=..., width, height, spp, ref_spp, camera)
     write_report_plot(report_dir)
 
 See `texelbake.render.core` for the modes and `texelbake.render.api` for the report.
@@ -12,6 +13,7 @@ from texelbake.render.api import (
     compare_modes,
     render,
     render_previews,
+    render_report,
     write_report_plot,
 )
 from texelbake.render.camera import PinholeCamera, auto_frame, from_usd, look_at
@@ -20,5 +22,5 @@ from texelbake.render.core import MODES, RenderResult, RenderScene, load_scene, 
 __all__ = [
     "MODES", "PREVIEW_SIZES", "PinholeCamera", "RenderResult", "RenderScene", "auto_frame",
     "compare_modes", "from_usd", "load_scene", "look_at", "render", "render_frame",
-    "render_previews", "write_report_plot",
+    "render_previews", "render_report", "write_report_plot",
 ]

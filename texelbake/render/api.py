@@ -211,6 +211,35 @@ def render_previews(baked_root: str | Path, out_dir: str | Path, *, size: str = 
     return files
 
 
+def render_report(baked_root: str | Path, out_dir: str | Path, *,
+                  modes: tuple[str, ...] | str = MODES, width: int = 512, height: int = 512,
+                  spp: int = 4, ref_spp: int = 1024, camera: object = None,
+                  gt_sweep: tuple[int, ...] = (), cpm_sweep: tuple[int, ...] = (),
+                  seed: int = 0) -> Path:
+    """What `texelbake render BAKED.usda --modes gt,cpm,normalmap,equal-time` does: render
+    the reference gt (`ref_spp`) and each mode (`spp`), write their images, difference maps
+    and `render_report.json` (module docstring) into out_dir, and the speed-against-error
+    plot. modes : tuple or comma-separated string. Returns the report's path."""
+    if isinstance(modes, str):
+        modes = tuple(m.strip() for m in modes.split(",") if m.strip())
+    unknown = [m for m in modes if m not in MODES]
+    if unknown or not modes:
+        raise SettingsError(f"field 'modes': expected some of {MODES}, got {modes!r}")
+    # equal-time needs the cpm image's time: render cpm first when both are asked for
+    modes = tuple(sorted(modes, key=MODES.index))
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = load_scene(baked_root)
+    cam = resolve_camera(scene, camera, width, height)
+    report = compare_modes(scene, cam, spp=spp, ref_spp=ref_spp, gt_sweep=gt_sweep,
+                           cpm_sweep=cpm_sweep, seed=seed, out_dir=out, modes=modes)
+    report["scene"] = scene.baked.name
+    path = out / "render_report.json"
+    _write_json(path, report)
+    write_report_plot(out)
+    return path
+
+
 def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, ref_spp: int,
                   gt_sweep: tuple[int, ...] = (), cpm_sweep: tuple[int, ...] = (),
                   seed: int = 0, out_dir: Path | None = None,
