@@ -246,3 +246,26 @@ def test_render_report_writes_the_modes_asked_for(baked_plane, tmp_path):
     assert (tmp_path / "cpm.exr").is_file() and (tmp_path / "speed_error.png").is_file()
     with pytest.raises(SettingsError):
         render_report(baked_plane, tmp_path, modes="gt,bogus", width=8, height=8)
+
+
+def test_diagnostic_colours_and_density(baked_plane):
+    from matplotlib import colormaps
+
+    from texelbake.render import api
+    from texelbake.render.core import load_scene
+
+    lv = np.array([[np.nan, -1.0], [0.0, 1.5]])
+    c = api.level_colours(lv, n_levels=3)
+    pal = np.asarray(colormaps["tab10"](np.arange(10)))[:, :3]
+    np.testing.assert_array_equal(c[0, 0], 0.0)  # background
+    np.testing.assert_array_equal(c[0, 1], 1.0)  # M_org fallback
+    np.testing.assert_allclose(c[1, 0], pal[0])
+    np.testing.assert_allclose(c[1, 1], 0.5 * (pal[1] + pal[2]))
+    scene = load_scene(baked_plane)
+    dens = api.density_atlas(scene, 0)
+    counts = np.diff(scene.baked.levels[0]["texel_offsets"])
+    assert dens.shape == (16, 16) and dens.sum() == counts.sum() > 0
+    np.testing.assert_array_equal(dens.ravel(), counts)
+    cam = cam_mod.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), 12, 12, fov_deg=20.0)
+    img = api.density_on_model(scene, cam)
+    assert img.shape == (12, 12, 3) and img.max() > 0  # the plane fills the view
