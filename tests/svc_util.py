@@ -83,11 +83,11 @@ def dir_listing(root) -> list[str]:  # noqa: ANN001
 CHEAP_SETTINGS = {
     "atlas_resolution": 32,
     "shard_texels": 16,
-    "n_light_dirs": 16,
-    "n_view_dirs": 16,
-    "samples_per_texel": 16,
-    "n_heldout": 16,
-    "c_max": 16,
+    "n_light_dirs": 8,
+    "n_view_dirs": 8,
+    "samples_per_texel": 8,
+    "n_heldout": 8,
+    "c_max": 8,
     "n_trials": 1,
     "avis_resolution": 4,
 }

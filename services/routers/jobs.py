@@ -388,7 +388,8 @@ def delete_job(
     task_ids = ledger.cancel_job(writer, job_id)
     if task_ids:
         try:
-            request.app.state.celery.control.revoke(task_ids, terminate=True, signal="SIGTERM")
+            # SIGKILL: a pool child deep in numpy/torch did not act on SIGTERM (measured)
+            request.app.state.celery.control.revoke(task_ids, terminate=True, signal="SIGKILL")
         except Exception:  # noqa: BLE001 - broker down: workers skip cancelled shards anyway
             pass
     with writer() as s:
