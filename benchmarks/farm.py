@@ -41,10 +41,10 @@ from texelbake.stack import free_port, stack_down, stack_up, worker_command  # n
 SETTINGS = {
     "atlas_resolution": 64,
     "shard_texels": 16,
-    "n_light_dirs": 16,
-    "n_view_dirs": 16,
+    "n_light_dirs": 8,
+    "n_view_dirs": 8,
     "samples_per_texel": 16,
-    "n_heldout": 32,
+    "n_heldout": 16,
     "c_max": 16,
     "n_trials": 1,
     "avis_resolution": 8,

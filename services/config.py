@@ -46,6 +46,12 @@ class Settings(BaseSettings):
     sse_max_seconds: float = Field(
         300.0, gt=0, description="An events stream closes after this long; clients reconnect."
     )
+    heartbeat_interval: float = Field(
+        10.0, gt=0, description="Seconds between a running shard's heartbeats."
+    )
+    heartbeat_timeout: float = Field(
+        60.0, gt=0, description="A running shard silent this long is re-queued (worker gone)."
+    )
     sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
 
     @model_validator(mode="after")
@@ -63,10 +69,14 @@ class Settings(BaseSettings):
             return self.database_url
         return f"sqlite:///{(self.artifact_root / 'texelbake.db').resolve()}"
 
-    @property
-    def lease_seconds(self) -> int:
-        """A running shard with no progress for this long is handed to another worker."""
-        return self.visibility_timeout + 30
+    @model_validator(mode="after")
+    def _heartbeats(self) -> Settings:
+        if self.heartbeat_timeout <= 2 * self.heartbeat_interval:
+            raise ValueError(
+                f"heartbeat_timeout ({self.heartbeat_timeout}) must exceed twice "
+                f"heartbeat_interval ({self.heartbeat_interval})"
+            )
+        return self
 
 
 @lru_cache

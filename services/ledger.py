@@ -9,7 +9,8 @@ Sending to the broker happens *after* the commit: a shard is first marked `queue
 `sent = False`, then sent, then marked `sent = True` with the broker's run id. A send that fails
 (broker down) or a broker that restarted (its run id changed: queued messages are gone) leaves
 rows the sweeper re-sends. A running shard whose lease expired (worker killed, message lost) is
-re-queued by the sweeper too. Re-running a shard is harmless: stage outputs are idempotent.
+re-queued by the sweeper too (a running shard sends heartbeats; one silent for
+`heartbeat_timeout` has lost its worker). Re-running a shard is harmless: stage outputs are idempotent.
 """
 
 from __future__ import annotations
@@ -369,6 +370,24 @@ def fail_job(sm: sessionmaker, job_id: str, error: str) -> None:
         _set_job_state(s, job_id, "failed", ["queued", "running"], error=error)
 
 
+def heartbeat(sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str) -> bool:
+    """A running shard is alive (its worker still holds it). False when it no longer holds it."""
+    with sm.begin() as s:
+        return bool(
+            s.execute(
+                update(Shard)
+                .where(
+                    Shard.job_id == job_id,
+                    Shard.stage == stage,
+                    Shard.shard == shard,
+                    Shard.state == "running",
+                    Shard.worker == worker,
+                )
+                .values(heartbeat_at=utcnow())
+            ).rowcount
+        )
+
+
 def release_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: str) -> None:
     """A transient fault: the shard goes back to `queued` (sent) while Celery retries it."""
     with sm.begin() as s:
@@ -420,7 +439,8 @@ def sweep(
     sm: sessionmaker, run_id: str | None, lease: timedelta, now: datetime | None = None
 ) -> list[Send]:
     """What to (re)send: unplanned jobs whose plan message was never sent or was lost with a
-    broker restart; queued shards likewise; running shards whose lease expired."""
+    broker restart; queued shards likewise; running shards whose last heartbeat is older
+    than `lease` (their worker died with them)."""
     now = now or utcnow()
     sends: list[Send] = []
     with sm.begin() as s:
@@ -434,7 +454,7 @@ def sweep(
             select(Shard.id, Shard.job_id, Shard.stage, Shard.shard).where(
                 Shard.job_id.in_(active),
                 Shard.state == "running",
-                Shard.started_at < now - lease,
+                func.coalesce(Shard.heartbeat_at, Shard.started_at) < now - lease,
             )
         ).all()
         for rid, j, st, k in expired:

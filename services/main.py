@@ -39,7 +39,7 @@ def sweep_once(app: FastAPI) -> int:
     run_id = broker_run_id(st.redis_url)
     if run_id is None:
         return 0
-    sends = ledger.sweep(app.state.writer, run_id, timedelta(seconds=st.lease_seconds))
+    sends = ledger.sweep(app.state.writer, run_id, timedelta(seconds=st.heartbeat_timeout))
     if not sends:
         return 0
     return ledger.dispatch(app.state.writer, sends, celery_sender(app.state.celery), run_id)

@@ -53,7 +53,13 @@ def farm(workdir: Path, database_url: str | None = None, **kw):
         tokens={TOKEN: "farm"},
         workers=kw.pop("workers", {"prep": 1, "numeric": 1}),
         environment="test",
-        extra_env={"TEXELBAKE_SWEEP_INTERVAL": "1", "TEXELBAKE_VISIBILITY_TIMEOUT": "120", **kw},
+        extra_env={
+            "TEXELBAKE_SWEEP_INTERVAL": "1",
+            "TEXELBAKE_VISIBILITY_TIMEOUT": "120",
+            "TEXELBAKE_HEARTBEAT_INTERVAL": "1",
+            "TEXELBAKE_HEARTBEAT_TIMEOUT": "6",
+            **kw,
+        },
     )
     try:
         yield stack
@@ -200,6 +206,10 @@ def test_kill_9_worker_holding_a_cpm_shard(cylinder, reference, tmp_path):
         rows = assert_ledger_clean(stack, job_id)
         killed = next(r for r in rows if r.stage == "cpm" and r.shard == victim["shard"])
         assert killed.attempts >= 2 and killed.lost >= 1
+        # only the lost shard ran again
+        assert all(r.attempts == 1 for r in rows if r is not killed), [
+            (r.stage, r.shard, r.attempts) for r in rows
+        ]
         root = download(stack, job_id, tmp_path / "result")
         assert_same_bake(root, reference)
 
@@ -264,3 +274,36 @@ def test_cancel_revokes_running_shard_and_keeps_state(cylinder, tmp_path):
         states = {sh["state"] for s in job["stages"] for sh in s["shards"]}
         assert states <= {"done", "cancelled"} and "cancelled" in states
         assert not any(r.state == "running" for r in ledger_rows(stack, job_id))
+
+
+def test_kill_9_whole_worker_then_restart_it(cylinder, reference, tmp_path):
+    """The worker's parent and pool child die together (host lost): the shard's heartbeats
+    stop, the sweeper re-queues it, and a restarted worker completes the job."""
+    with farm(tmp_path / "stack") as stack:
+        job_id = start_job(stack, cylinder)
+        job = wait_for(
+            stack,
+            job_id,
+            lambda j: any(
+                sh["state"] == "running"
+                for s in j["stages"]
+                if s["name"] == "cpm"
+                for sh in s["shards"]
+            ),
+        )
+        victim = next(
+            sh
+            for s in job["stages"]
+            if s["name"] == "cpm"
+            for sh in s["shards"]
+            if sh["state"] == "running"
+        )
+        stack.kill("worker-numeric-0")
+        time.sleep(1.0)
+        stack.start("worker-numeric-0")
+        wait_for(stack, job_id, lambda j: j["state"] == "succeeded")
+        rows = assert_ledger_clean(stack, job_id)
+        again = next(r for r in rows if r.stage == "cpm" and r.shard == victim["shard"])
+        assert again.attempts >= 2
+        root = download(stack, job_id, tmp_path / "result")
+        assert_same_bake(root, reference)

@@ -92,7 +92,7 @@ def iter_events(
     after the job's terminal event."""
     last = None
     while True:
-        headers = {"Last-Event-ID": str(last)} if last is not None else {}
+        headers: dict[str, str] = {"Last-Event-ID": str(last)} if last is not None else {}
         try:
             with client.stream(
                 "GET",

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import random
 import socket
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -58,6 +59,18 @@ def _dispatch(sends: list[ledger.Send]) -> None:
         ledger.dispatch(_sm(), sends, celery_sender(app), broker_run_id(st.redis_url))
     except TRANSIENT as exc:
         log.warning("could not send %d messages (the sweeper will): %r", len(sends), exc)
+
+
+def _heartbeats(
+    sm, job_id: str, stage: str, shard: int, stop: threading.Event, interval: float
+) -> None:  # noqa: ANN001
+    """While a shard runs: tell the ledger every `interval` s that this worker still holds it."""
+    me = _worker_name()
+    while not stop.wait(interval):
+        try:
+            ledger.heartbeat(sm, job_id, stage, shard, me)
+        except TRANSIENT as exc:  # a missed beat is not fatal; a silent worker is re-queued
+            log.warning("heartbeat of %s/%s/%s failed: %r", job_id, stage, shard, exc)
 
 
 def _backoff(retries: int) -> float:
@@ -150,6 +163,13 @@ def run_shard(self, job_id: str, stage: str, shard: int) -> None:
         log.info("shard %s/%s/%s not run: %s", job_id, stage, shard, start.action)
         return
     t0 = time.perf_counter()
+    stop = threading.Event()
+    beat = threading.Thread(
+        target=_heartbeats,
+        args=(sm, job_id, stage, int(shard), stop, st.heartbeat_interval),
+        daemon=True,
+    )
+    beat.start()
     try:
         key = execute_shard(job_id, stage, int(shard))
     except TexelbakeError as exc:
@@ -172,6 +192,9 @@ def run_shard(self, job_id: str, stage: str, shard: int) -> None:
         tail = traceback.format_exc(limit=3)
         ledger.fail_shard(sm, job_id, stage, int(shard), f"{type(exc).__name__}: {exc}\n{tail}")
         raise
+    finally:
+        stop.set()
+        beat.join(timeout=10)
     seconds = time.perf_counter() - t0
     for i in range(st.max_retries + 1):  # recording the result must not lose the shard
         try:
