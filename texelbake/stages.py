@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
 from schemas.settings import BakeSettings
 from texelbake import avis as avis_mod
@@ -360,10 +361,21 @@ def fit_level(
         weights (p, 3) float32, k, c, snr_in, snr_ho (t,), mode (t,) int8, valid (t,) bool,
         and when settings.btf, fbar (t, d, 3) float32 (Eq. 7 on the training grid).
     """
-    # Per-texel matrices are small (d x m, m ~ tens): torch's thread pool only adds contention
-    # (measured: a 1024 x 16 SVD takes 1.5 ms on 1 thread, 78 ms on 2 threads of a loaded
-    # machine). Parallelism comes from shards / worker processes instead.
+    # Per-texel matrices are small (d x m, m ~ tens to hundreds): BLAS and torch thread pools
+    # only add contention (measured on a loaded 2-core machine: a 1024 x 16 SVD takes 1.5 ms on
+    # 1 torch thread and 78 ms on 2; a 4096 x 256 QR went from milliseconds to minutes with
+    # multi-threaded OpenBLAS). Parallelism comes from shards / worker processes instead.
     torch.set_num_threads(1)
+    with threadpool_limits(limits=1):
+        return _fit_level(ctx, level, texels, candidates)
+
+
+def _fit_level(
+    ctx: StageContext,
+    level: int,
+    texels: np.ndarray,
+    candidates: PointSet,
+) -> dict[str, np.ndarray]:
     s = ctx.settings
     geo = ctx.geometry()
     n = s.atlas_resolution
