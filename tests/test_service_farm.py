@@ -205,7 +205,9 @@ def test_kill_9_worker_holding_a_cpm_shard(cylinder, reference, tmp_path):
         wait_for(stack, job_id, lambda j: j["state"] == "succeeded")
         rows = assert_ledger_clean(stack, job_id)
         killed = next(r for r in rows if r.stage == "cpm" and r.shard == victim["shard"])
-        assert killed.attempts >= 2 and killed.lost >= 1
+        # redelivered by Celery (reject_on_worker_lost: counted as lost) or re-queued by the
+        # sweeper when its heartbeats stopped, whichever came first: it ran again either way
+        assert killed.attempts >= 2
         # only the lost shard ran again
         assert all(r.attempts == 1 for r in rows if r is not killed), [
             (r.stage, r.shard, r.attempts) for r in rows
