@@ -7,6 +7,7 @@ import hmac
 import secrets
 
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import sessionmaker
 
 from services.db import ApiToken
@@ -26,11 +27,14 @@ def issue_token(sm: sessionmaker, secret_key: str, tenant: str) -> str:
 
 def ensure_tokens(sm: sessionmaker, secret_key: str, tokens: dict[str, str]) -> None:
     """Register the bootstrap tokens of the settings (token -> tenant), idempotently."""
-    with sm.begin() as s:
-        for token, tenant in sorted(tokens.items()):
-            d = token_digest(secret_key, token)
-            if s.get(ApiToken, d) is None:
-                s.add(ApiToken(digest=d, tenant=tenant))
+    for token, tenant in sorted(tokens.items()):
+        d = token_digest(secret_key, token)
+        try:
+            with sm.begin() as s:
+                if s.get(ApiToken, d) is None:
+                    s.add(ApiToken(digest=d, tenant=tenant))
+        except IntegrityError:  # another API process registered it first
+            pass
 
 
 def tenant_by_digest(sm: sessionmaker, digest: str) -> str | None:

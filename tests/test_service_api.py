@@ -334,3 +334,34 @@ def test_placeholder_secret_refused_outside_development():
     Settings(secret_key="changethis", redis_url="redis://x", environment="development")
     with pytest.raises(ValueError, match="redis_url"):
         Settings(secret_key="s3cretvalue")  # type: ignore[call-arg]
+
+
+def test_api_process_imports_neither_torch_nor_pxr(tmp_path):
+    """The API enqueues by name and checks uploads in a child process: importing and building
+    the app must not pull in the heavy core (torch, pxr, open3d)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from services.main import create_app\n"
+        "from services.config import Settings\n"
+        f"create_app(Settings(secret_key='0123456789', redis_url='redis://127.0.0.1:1/0', "
+        f"artifact_root={str(tmp_path)!r}), sweeper=False)\n"
+        "import workers.celery_app\n"
+        "heavy = sorted(m for m in ('torch', 'pxr', 'open3d') if m in sys.modules)\n"
+        "print(','.join(heavy))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env={
+            **__import__("os").environ,
+            "TEXELBAKE_SECRET_KEY": "0123456789",
+            "TEXELBAKE_REDIS_URL": "redis://127.0.0.1:1/0",
+        },
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "", f"the API imported {out.stdout.strip()}"
