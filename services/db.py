@@ -9,6 +9,7 @@ from __future__ import annotations
 import threading
 import time
 from datetime import UTC, datetime
+from pathlib import Path
 
 from sqlalchemy import (
     Boolean,
@@ -23,7 +24,7 @@ from sqlalchemy import (
     create_engine,
     event,
 )
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
@@ -144,6 +145,9 @@ def get_engine(url: str, *, readonly: bool = False) -> Engine:
         if eng is not None:
             return eng
         if url.startswith("sqlite"):
+            db_file = make_url(url).database
+            if db_file and db_file != ":memory:":  # a worker may start before the API
+                Path(db_file).parent.mkdir(parents=True, exist_ok=True)
             eng = create_engine(
                 url, connect_args={"timeout": 60, "check_same_thread": False}, pool_pre_ping=True
             )

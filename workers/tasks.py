@@ -15,6 +15,7 @@ import socket
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 
 import kombu.exceptions
@@ -151,46 +152,64 @@ def _render(
 
 
 @app.task(name="workers.tasks.run_shard", bind=True, max_retries=None)
-def run_shard(self, job_id: str, stage: str, shard: int) -> None:
+def run_shard(self, job_id: str, stage: str, shard: int) -> str:
     """Claim the shard in the ledger, run it, record it, queue what became ready."""
+
+    def retry(exc: Exception, countdown: float) -> Exception:
+        return self.retry(exc=exc, countdown=countdown)
+
+    return shard_body(job_id, stage, int(shard), retries=self.request.retries, retry=retry)
+
+
+def shard_body(
+    job_id: str,
+    stage: str,
+    shard: int,
+    *,
+    retries: int,
+    retry: Callable[[Exception, float], Exception],
+) -> str:
+    """The task body as a plain function. Returns the outcome: "done", "failed" or
+    "skipped:<why>"; for a transient fault it raises what `retry(exc, countdown)` returns
+    (Celery's `Retry`) until `max_retries`, then fails the shard and the job."""
     st = get_settings()
     sm = _sm()
     try:
-        start = ledger.start_shard(sm, job_id, stage, int(shard), _worker_name(), st.max_attempts)
+        start = ledger.start_shard(sm, job_id, stage, shard, _worker_name(), st.max_attempts)
     except TRANSIENT as exc:
-        raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
+        raise retry(exc, _backoff(retries)) from exc
     if start.action != "run":
         log.info("shard %s/%s/%s not run: %s", job_id, stage, shard, start.action)
-        return
+        return f"skipped:{start.action}"
     t0 = time.perf_counter()
     stop = threading.Event()
     beat = threading.Thread(
         target=_heartbeats,
-        args=(sm, job_id, stage, int(shard), stop, st.heartbeat_interval),
+        args=(sm, job_id, stage, shard, stop, st.heartbeat_interval),
         daemon=True,
     )
     beat.start()
     try:
-        key = execute_shard(job_id, stage, int(shard))
-    except TexelbakeError as exc:
-        ledger.fail_shard(sm, job_id, stage, int(shard), f"{type(exc).__name__}: {exc}")
-        return
+        key = execute_shard(job_id, stage, shard)
+    except TexelbakeError as exc:  # bad input: no retry
+        ledger.fail_shard(sm, job_id, stage, shard, f"{type(exc).__name__}: {exc}")
+        return "failed"
     except TRANSIENT as exc:
-        if self.request.retries >= st.max_retries:
+        if retries >= st.max_retries:
             ledger.fail_shard(
                 sm,
                 job_id,
                 stage,
-                int(shard),
+                shard,
                 f"transient fault persisted after "
                 f"{st.max_retries} retries: {type(exc).__name__}: {exc}",
             )
-            return
-        ledger.release_shard(sm, job_id, stage, int(shard), f"retrying: {exc!r}")
-        raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
+            return "failed"
+        ledger.release_shard(sm, job_id, stage, shard, f"retrying: {exc!r}")
+        raise retry(exc, _backoff(retries)) from exc
     except Exception as exc:  # a bug, not bad input: fail loudly with the traceback's tail
         tail = traceback.format_exc(limit=3)
-        ledger.fail_shard(sm, job_id, stage, int(shard), f"{type(exc).__name__}: {exc}\n{tail}")
+        ledger.fail_shard(sm, job_id, stage, shard, f"{type(exc).__name__}: {exc}\n{tail}")
         raise
     finally:
         stop.set()
@@ -198,10 +217,11 @@ def run_shard(self, job_id: str, stage: str, shard: int) -> None:
     seconds = time.perf_counter() - t0
     for i in range(st.max_retries + 1):  # recording the result must not lose the shard
         try:
-            sends = ledger.finish_shard(sm, job_id, stage, int(shard), key, seconds)
+            sends = ledger.finish_shard(sm, job_id, stage, shard, key, seconds)
             break
         except sqlalchemy.exc.OperationalError:
             if i == st.max_retries:
                 raise
             time.sleep(_backoff(i))
     _dispatch(sends)
+    return "done"
