@@ -462,11 +462,12 @@ def choose_mesh(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.
 
 
 def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, int]:
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Eq. 12 for every texel of one level, for this frame (module docstring).
 
     cam_pos : (3,) float64
-    returns : (radiance (n_l², 3) float64, exists (n_l²,) bool — the texel has characteristic
+    returns : (radiance (n_l², 3) float64, a_vis (n_l²,) float64 toward the camera (0 where
+        invalid: the a_vis -> 0 limit), exists (n_l²,) bool — the texel has characteristic
         points, rays cast)
     """
     lv = scene.baked.levels[level]
@@ -475,9 +476,10 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray
     counts = np.diff(offsets)
     exists = counts > 0
     radiance = np.zeros((n_tex, 3))
+    avis = np.zeros(n_tex)
     n_pts = int(offsets[-1])
     if n_pts == 0:
-        return radiance, exists, 0
+        return radiance, avis, exists, 0
     tex = np.repeat(np.arange(n_tex), counts)  # (P,)
     pos = lv["point_position"].astype(np.float64)
     ng = lv["point_geom_normal"].astype(np.float64)
@@ -520,7 +522,8 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray
     wo_local = np.einsum("nij,nj->ni", frames, wo_tex[live])
     a, valid = scene.avis_table(level).evaluate(live, wo_local)
     radiance[live] = np.where(valid[:, None], num[live] / np.where(valid, a, 1.0)[:, None], 0.0)
-    return radiance, exists, rays
+    avis[live] = np.where(valid, a, 0.0)
+    return radiance, avis, exists, rays
 
 
 class CpmFrame:
@@ -532,14 +535,14 @@ class CpmFrame:
         self.cam_pos = np.asarray(cam.position, dtype=np.float64)
         self.mesh = mesh
         self.n_levels = len(scene.baked.levels)
-        self._levels: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._levels: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.rays = 0
 
-    def level(self, j: int) -> tuple[np.ndarray, np.ndarray]:
-        """(radiance (n_j², 3), exists (n_j²,) bool) of level j."""
+    def level(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(radiance (n_j², 3), a_vis (n_j²,), exists (n_j²,) bool) of level j."""
         if j not in self._levels:
-            rad, ex, n = texel_radiance(self.scene, j, self.cam_pos)
-            self._levels[j] = (rad, ex)
+            rad, avis, ex, n = texel_radiance(self.scene, j, self.cam_pos)
+            self._levels[j] = (rad, avis, ex)
             self.rays += n
         return self._levels[j]
 
@@ -549,22 +552,37 @@ def cpm_frame(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0)
     return CpmFrame(scene, cam, choose_mesh(scene, cam, max_error_px))
 
 
-def _lookup_level(frame: CpmFrame, level: int, uv: np.ndarray, n0: int
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def _lookup_level(frame: CpmFrame, level: int, uv: np.ndarray, n0: int,
+                  filtering: str = "projected") -> tuple[np.ndarray, np.ndarray]:
     """Bilinear texel radiance at one level; weights of texels without points are dropped.
+
+    filtering : "projected" — each texel weighted by its bilinear weight times its visible
+        projected area a_vis toward the viewer, L = Σ w a L / Σ w a = Σ w num / Σ w a (the
+        pixel integrates radiance over the visible projected area, and a_vis is exactly that
+        per texel; a masked texel adds nothing instead of darkening its neighbours, and the
+        a_vis -> 0 limit needs no special case); "radiance" — plain bilinear of L (what a
+        texture unit does).
     returns : (radiance (n, 3), weight sum (n,) — 0 where no texel around uv exists)"""
     n_l = max(n0 >> level, 1)
-    radiance, exists = frame.level(level)
+    radiance, avis, exists = frame.level(level)
     idx, w = bilinear_texels(uv, n_l)
     w = w * exists[idx]
     s = w.sum(axis=1)
+    if filtering == "projected":
+        wa = w * avis[idx]
+        sa = wa.sum(axis=1)
+        rad = np.einsum("nk,nkc->nc", wa, radiance[idx])
+        return np.divide(rad, sa[:, None], out=np.zeros_like(rad), where=sa[:, None] > 0), s
+    if filtering != "radiance":
+        raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
     rad = np.einsum("nk,nkc->nc", w, radiance[idx])
     return np.divide(rad, s[:, None], out=np.zeros_like(rad), where=s[:, None] > 0), s
 
 
 def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
               d: np.ndarray, spp: int, *, lod_bias: float = 0.0,
-              local_light_ratio: float = 8.0) -> tuple[np.ndarray, np.ndarray, int]:
+              local_light_ratio: float = 8.0, filtering: str = "projected"
+              ) -> tuple[np.ndarray, np.ndarray, int]:
     """Radiance along eye rays from the characteristic point maps (module docstring).
 
     returns : (radiance (n, 3), level (n,) float64 — the fractional mip level used, -1 where
@@ -619,7 +637,7 @@ def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.nda
                             (np.flatnonzero(use & (j0 + 1 == j) & (fr > 0)), "up")):
                 if sel.size == 0:
                     continue
-                r, s = _lookup_level(frame, j, uv[sel], scene.n0)
+                r, s = _lookup_level(frame, j, uv[sel], scene.n0, filtering)
                 weight = (1.0 - fr[sel]) if wt is None else fr[sel]
                 weight = weight * (s > 0)
                 rad[sel] += weight[:, None] * r
