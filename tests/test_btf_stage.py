@@ -101,3 +101,16 @@ def test_masked_errors_match_brute_force(tmp_path, rng):
     for c, name in enumerate(("Y", "Cb", "Cr")):
         assert np.isclose(got[name]["avg"], per[:, c].mean(), rtol=1e-5)
         assert np.isclose(got[name]["max"], per[:, c].max(), rtol=1e-5)
+
+
+def test_default_value_scale_ignores_a_spike(rng):
+    from texelbake.btf.report import default_value_scale
+
+    btf = rng.random((20, 10, 10, 3)).astype(np.float32)  # uniform [0, 1): p99.9 ~ 0.999
+    btf[3, 2, 2, 0] = 100.0  # one specular spike must not set the white point
+    assert 1.0 < default_value_scale(btf) < 1.01
+    mask = np.zeros((10, 10), bool)
+    mask[:5] = True
+    btf[:, 5:] *= 10.0  # outside the mask: ignored
+    assert 1.0 < default_value_scale(btf, mask) < 1.01
+    assert default_value_scale(np.zeros((2, 3, 3, 3))) == 1.0
