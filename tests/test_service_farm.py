@@ -309,3 +309,29 @@ def test_kill_9_whole_worker_then_restart_it(cylinder, reference, tmp_path):
         assert again.attempts >= 2
         root = download(stack, job_id, tmp_path / "result")
         assert_same_bake(root, reference)
+
+
+def test_renderer_worker_writes_previews(cylinder, tmp_path):
+    """previews=true adds the render stage: the renderer worker renders the finished job's
+    previews from the written USD; they are listed on the job and served by the API."""
+    with farm(tmp_path / "stack", workers={"prep": 1, "numeric": 1, "render": 1}) as stack:
+        with httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=60) as c:
+            aid = c.post(
+                "/assets", files={"file": ("cylinder.usda", cylinder.read_bytes())}
+            ).json()["id"]
+            r = c.post(
+                "/jobs", json={"asset_id": aid, "settings": {**CHEAP_SETTINGS, "previews": True}}
+            )
+            assert r.status_code == 201, r.text
+            job_id = r.json()["id"]
+            job = wait_for(stack, job_id, lambda j: j["state"] == "succeeded")
+            assert "render" in [s["name"] for s in job["stages"]]
+            render = next(s for s in job["stages"] if s["name"] == "render")
+            pid = int(render["shards"][0]["worker"].rsplit(":", 1)[1])
+            assert pid in _child_pids(stack.pids["worker-render-0"])  # the renderer did it
+            pngs = [n for n in job["previews"] if n.endswith(".png")]
+            assert pngs, job["previews"]
+            img = c.get(f"/jobs/{job_id}/previews/{pngs[0]}")
+            assert img.status_code == 200 and img.content[:8] == b"\x89PNG\r\n\x1a\n"
+            for bad in ("..%2Freport.json", ".hidden", "nope.png"):
+                assert c.get(f"/jobs/{job_id}/previews/{bad}").status_code == 404
