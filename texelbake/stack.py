@@ -227,9 +227,7 @@ def stack_up(
     workers = {"prep": 1, "numeric": 1, "render": 1} if workers is None else dict(workers)
     for fam in workers:
         if fam not in families:
-            raise SettingsError(
-                f"unknown queue family {fam!r}; expected one of {sorted(families)}"
-            )
+            raise SettingsError(f"unknown queue family {fam!r}; expected one of {sorted(families)}")
     commands: dict[str, list[str]] = {}
     start_redis = False
     if redis_url is None:
