@@ -365,3 +365,28 @@ def test_api_process_imports_neither_torch_nor_pxr(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "", f"the API imported {out.stdout.strip()}"
+
+
+def test_stack_down_stops_exactly_what_stack_up_started(tmp_path):
+    import subprocess
+
+    work = tmp_path / "s"
+    stack = stack_up(
+        work,
+        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        workers={"prep": 1},
+        environment="test",
+    )
+    pids = dict(stack.pids)
+    assert set(pids) == {"redis", "api", "worker-prep-0"}
+    state = json.loads((work / "stack.json").read_text())
+    assert state["pids"] == pids and state["api_url"] == stack.api_url
+    assert json.loads(state["env"]["TEXELBAKE_TOKENS"])  # a fresh dev token was issued
+    assert sorted(stack_down(work)) == sorted(pids)
+    for pid in pids.values():
+        alive = subprocess.run(
+            ["ps", "-o", "stat=", "-p", str(pid)], capture_output=True, text=True
+        ).stdout.strip()
+        assert alive in ("", "Z"), (pid, alive)
+    assert json.loads((work / "stack.json").read_text())["pids"] == {}
+    assert stack_down(work) == []  # a second down is harmless
