@@ -388,6 +388,21 @@ def heartbeat(sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str
         )
 
 
+def stage_seconds(sm: sessionmaker, job_id: str) -> dict[str, float]:
+    """Wall time per finished stage of a job: first shard start to last shard finish."""
+    with sm() as s:
+        rows = s.execute(
+            select(Shard.stage, func.min(Shard.started_at), func.max(Shard.finished_at))
+            .where(Shard.job_id == job_id, Shard.state == "done")
+            .group_by(Shard.stage)
+        ).all()
+    return {
+        st: round((b - a).total_seconds(), 4)
+        for st, a, b in rows
+        if a is not None and b is not None
+    }
+
+
 def release_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: str) -> None:
     """A transient fault: the shard goes back to `queued` (sent) while Celery retries it."""
     with sm.begin() as s:

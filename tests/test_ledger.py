@@ -85,6 +85,8 @@ def test_plan_fan_out_fan_in(sm):
         out += run(sm, job, "avis", k)
     assert [(s.args[1], s.args[2]) for s in out] == [("export", 0)]
     assert run(sm, job, "export", 0) == []
+    secs = ledger.stage_seconds(sm, job)
+    assert set(secs) == {"ingest", "cpm", "avis", "export"} and min(secs.values()) >= 0
     with sm() as s:
         assert s.get(Job, job).state == "succeeded"
         assert all(r.completions == 1 for r in s.scalars(select(Shard)))
