@@ -22,6 +22,7 @@ from services.broker import broker_run_id, celery_sender
 from services.config import API_V1, Settings, get_settings
 from services.db import session_factory
 from services.deps import TokenCache
+from services.limits import BodyLimit
 from services.routers import assets, jobs, utils
 from services.routers.jobs import JobCache
 from workers.celeryconfig import celery_config
@@ -89,6 +90,7 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     app.state.celery = celery
     for r in (utils.router, assets.router, jobs.router):
         app.include_router(r, prefix=API_V1)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
     return app
 
 

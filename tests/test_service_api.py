@@ -269,6 +269,25 @@ def test_reject_upload_too_large(api, a):
     )
 
 
+def test_reject_huge_body_before_parsing(api, a):
+    """A body far above the cap is refused from its Content-Length, unread (the multipart
+    parser would otherwise spool all of it to disk first)."""
+    before = stored(api)
+    r = upload(a, "huge.usda", b"#usda 1.0\n" + b" " * (4 * MAX_UPLOAD))
+    assert r.status_code == 413 and r.json()["detail"].startswith("upload exceeds")
+
+    def chunks():  # no Content-Length: counted while streaming
+        yield b"--x\r\nContent-Disposition: form-data; name=file; filename=h.usda\r\n\r\n"
+        for _ in range(40):
+            yield b" " * 65536
+
+    r = a.post(
+        "/assets", content=chunks(), headers={"Content-Type": "multipart/form-data; boundary=x"}
+    )
+    assert r.status_code == 413
+    assert stored(api) == before
+
+
 def test_reject_unsupported_type(api, a):
     rejected(api, a, "model.obj", b"v 0 0 0", 415, "unsupported file type", "model.obj")
 

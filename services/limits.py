@@ -1,0 +1,73 @@
+"""An ASGI guard on request body size: the multipart parser spools a whole upload to disk
+before a route runs, so the upload cap must act on the raw byte stream, not in the route."""
+
+from __future__ import annotations
+
+import json
+
+from services.uploads import TOO_LARGE
+
+#: multipart framing and form fields around the file
+SLACK = 64 * 1024
+
+
+class BodyLimit:
+    """Refuse request bodies above `max_bytes` (+ framing slack) with 413: at once when the
+    Content-Length says so, else as soon as the streamed body passes the cap."""
+
+    def __init__(self, app, max_bytes: int):  # noqa: ANN001
+        self.app = app
+        self.limit = int(max_bytes) + SLACK
+
+    async def __call__(self, scope, receive, send):  # noqa: ANN001
+        if scope["type"] != "http" or scope.get("method") not in ("POST", "PUT", "PATCH"):
+            return await self.app(scope, receive, send)
+        headers = dict(scope.get("headers") or [])
+        length = headers.get(b"content-length")
+        if length is not None and length.isdigit() and int(length) > self.limit:
+            return await _too_large(send, self.limit - SLACK)
+        seen = 0
+        started = False
+        refused = False
+
+        async def guarded_receive():
+            nonlocal seen, refused
+            if refused:
+                return {"type": "http.disconnect"}
+            message = await receive()
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > self.limit:
+                    # answer 413 now; the app sees a disconnect and whatever it then tries to
+                    # send (a 400 for a broken body) is dropped
+                    refused = True
+                    if not started:
+                        await _too_large(send, self.limit - SLACK)
+                    return {"type": "http.disconnect"}
+            return message
+
+        async def tracking_send(message):
+            nonlocal started
+            if refused:
+                return
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, guarded_receive, tracking_send)
+        except Exception:
+            if not refused:
+                raise
+
+
+async def _too_large(send, cap: int) -> None:  # noqa: ANN001
+    body = json.dumps({"detail": f"{TOO_LARGE} {cap} bytes: request body"}).encode()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": 413,
+            "headers": [(b"content-type", b"application/json"), (b"connection", b"close")],
+        }
+    )
+    await send({"type": "http.response.body", "body": body})
