@@ -14,6 +14,11 @@ components), time and error side by side, plotted. With --compare-pca, the level
 is also solved by both solvers (exact Gram eigh vs randomized) for time and error.
 
     .venv/bin/python benchmarks/btf.py --synthetic --json out/btf.json [baked.npz ...]
+    .venv/bin/python benchmarks/btf.py --bake-scenes --atlas 32 --json out/btf.json
+
+--bake-scenes runs the pipeline's ingest, geometry and CPM stages with btf=True on the four test
+scenes (slow: 4-25 minutes per scene at a 32^2 atlas on this shared machine) and benchmarks the
+collected f_r tables; the .npz files stay in --bake-dir for reruns.
 """
 
 from __future__ import annotations
@@ -58,6 +63,47 @@ def load_npz(path: Path):
             raise SystemExit(f"{path}: missing keys {sorted(missing)} (has {z.files})")
         covered = z["covered"].astype(bool) if "covered" in z.files else None
         return z["btf"].astype(np.float32), z["dirs_i"], z["dirs_o"], covered
+
+
+def bake_scene_btf(name: str, atlas: int, workdir: Path) -> Path:
+    """Bake test scene `name` through the pipeline's ingest, geometry and CPM stages with
+    btf=True and collect the finest level's f_r tables into `<workdir>/<name><atlas>.npz`
+    (keys btf, dirs_i, dirs_o, covered). Tiles already in the artifact store are reused, so an
+    interrupted run resumes. Reads the CPM level arrays through `stages._level_key` until the
+    pipeline's own BTF stage (`stages.run_btf`) is wired.
+    """
+    from schemas.settings import BakeSettings
+    from texelbake import pipeline, scenes, stages
+    from texelbake.btf.stage import btf_from_texels
+
+    folder = workdir / f"{name}{atlas}"
+    folder.mkdir(parents=True, exist_ok=True)
+    asset = scenes.write_scene(name, folder / "scene.usda", "small")
+    s = BakeSettings(atlas_resolution=atlas, shard_texels=min(atlas, 16), btf=True)
+    work = folder / "work"
+    t0 = time.perf_counter()
+    for stage in ("ingest", "geometry"):
+        pipeline.run_shard(work, asset, s, stage, 0)
+    ctx = stages.StageContext.create(work, asset, s)
+    ids, fbar, valid = [], [], []
+    for tile in range(pipeline.n_tiles(s)):  # one CPM shard per tile
+        pipeline.run_shard(work, asset, s, "cpm", tile)
+        arrays = ctx.store.read_arrays(stages._level_key(ctx, 0, tile))
+        ids.append(arrays["texel"])
+        fbar.append(arrays["fbar"])
+        valid.append(arrays["valid"])
+    ids_all, fbar_all, ok = np.concatenate(ids), np.concatenate(fbar), np.concatenate(valid)
+    dirs = stages.direction_sets(s)
+    n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
+    dirs_i = np.repeat(dirs["dirs_i"], n_o, axis=0)  # the CPM grid's row = i * n_o + o
+    dirs_o = np.tile(dirs["dirs_o"], (n_i, 1))
+    btf, _ = btf_from_texels(fbar_all, ids_all, atlas)
+    _, covered = btf_from_texels(fbar_all[ok], ids_all[ok], atlas)
+    out = workdir / f"{name}{atlas}.npz"
+    np.savez(out, btf=btf, dirs_i=dirs_i, dirs_o=dirs_o, covered=covered)
+    print(f"baked {name} at {atlas}^2 in {time.perf_counter() - t0:.0f} s: {out} "
+          f"({int(covered.sum())} texels with data)")
+    return out
 
 
 def compare_pca(btf: np.ndarray, settings: BTFSettings) -> dict:
@@ -146,6 +192,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("inputs", nargs="*", type=Path, help=".npz files with btf, dirs_i, dirs_o")
     ap.add_argument("--synthetic", action="store_true", help="add the 64x64x81x81 synthetic BTF")
+    ap.add_argument("--bake-scenes", nargs="*", default=None, metavar="SCENE",
+                    help="bake these test scenes (cylinder wall bolt cloisonne; none listed = "
+                         "all four) through the pipeline's CPM stage and add their BTFs")
+    ap.add_argument("--atlas", type=int, default=32, help="atlas resolution of --bake-scenes")
+    ap.add_argument("--bake-dir", type=Path, default=Path("out/btf_bakes"))
     ap.add_argument("--size", type=int, default=64, help="synthetic texels per side")
     ap.add_argument("--save-synthetic", type=Path, default=None, help="also write it as .npz")
     ap.add_argument("--n", type=int, nargs="+", default=[2, 4, 8, 16])
@@ -153,8 +204,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--compare-pca", action="store_true")
     ap.add_argument("--json", type=str, default=None, help="write the results here")
     args = ap.parse_args(argv)
+    if args.bake_scenes is not None:
+        from texelbake.scenes import SCENE_NAMES
+
+        for name in args.bake_scenes or SCENE_NAMES:
+            args.inputs.append(bake_scene_btf(name, args.atlas, args.bake_dir))
     if not args.inputs and not args.synthetic:
-        ap.error("give .npz inputs and/or --synthetic")
+        ap.error("give .npz inputs, --bake-scenes and/or --synthetic")
     results = {}
     for path in args.inputs:
         btf, di, do, covered = load_npz(path)
