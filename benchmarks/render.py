@@ -42,11 +42,15 @@ against M_org) dominate the error, and the coarse CPM levels these views use hav
 SNR of 21-31 dB (median) with 16 x 16 training directions (`report.json` of the bakes): cpm
 converges to ~50-52 dB (cpm@16 adds < 4 dB) while gt keeps improving with eye rays. PSNR is
 over the whole frame (≥ 99.8 % background), which inflates every value by the same amount and
-keeps the ranking. Diagnosis (in the renderer's report): Eq. 12 summed over all texels carries
-the gt's flux to 1.5 % (wall), but the cpm image is ~10 % darker than gt where M1's texels
-cover the screen (mortar texels whose samples are mostly masked still get their full M1 area);
-with all dense samples in place of the characteristic points the image is the same, so the
-fit is not the cause.
+keeps the ranking. Diagnosis (wall and bolt, 64² lod view): Eq. 12 summed over all texels
+carries the gt's flux to 1.5 % (wall), and a_vis from the table matches a brute-force ray count
+to 0.2 %; with all dense samples in place of the characteristic points the image is the same,
+so neither the fit nor a_vis is the cause. The cpm image is ~12 % (wall) / ~26 % (bolt) darker
+because each texel's radiance is spread over the screen area S_t that M1 gives it, while Eq. 12
+normalises by its visible projected area a_t: Σ S_t = Σ a_t to 1 %, but bright texels get
+S/a = 0.89 and dark (masked, shadowed) ones 1.09 on the wall. A flux-preserving rescale by
+a_t / S_t (S_t of M1 per frame, including M1's own occlusion) is the next step; a crude
+analytic S_t made it worse, so it is not in.
 """
 
 from __future__ import annotations
