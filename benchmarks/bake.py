@@ -107,13 +107,15 @@ def main() -> None:
     ap.add_argument("--size", default="full", choices=["small", "full"])
     ap.add_argument("--json", type=Path)
     ap.add_argument("--atlas", type=int, default=32)
+    ap.add_argument("--spt", type=int, default=32, help="samples per finest texel (average)")
     ap.add_argument("--sweep", action="store_true", help="also vary each main knob alone")
     ap.add_argument("--workdir", type=Path, default=None)
     args = ap.parse_args()
     work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-bench-"))
     scene = write_scene(args.scene, work / f"{args.scene}_{args.size}.usda", args.size)
     base = dict(atlas_resolution=args.atlas, shard_texels=min(16, args.atlas),
-                n_light_dirs=64, n_view_dirs=64, c_max=64, eps_db=30.0)
+                samples_per_texel=args.spt, n_light_dirs=64, n_view_dirs=64, c_max=64,
+                eps_db=30.0)
     main_run = run_one(scene, BakeSettings(**base), work / "main", with_avis_ref=True)
     print(f"\n{args.scene} ({args.size}), {args.atlas}x{args.atlas} texels, 64x64 pairs, "
           f"c_max 64, eps 30 dB")

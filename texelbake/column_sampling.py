@@ -69,7 +69,8 @@ def _as_matrix(name: str, a: np.ndarray) -> np.ndarray:
 
 
 def svd_float64(
-    R: np.ndarray, method: SvdMethod = "auto", rcond: float = TOL.svd_rcond
+    R: np.ndarray, method: SvdMethod = "auto", rcond: float = TOL.svd_rcond, *,
+    compute_u: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Thin SVD of R in float64 through torch.linalg.
 
@@ -80,6 +81,8 @@ def svd_float64(
         the Gram route (R^T R has absolute error ~ m eps s_max^2); they are returned as 0 with
         zero U columns, so U s Vt reproduces R to ~sqrt(m eps) ||R||_2 (full: to rounding)
     returns : (U (d, r) float64, s (r,) float64 descending, Vt (r, m) float64), r = min(d, m).
+        With compute_u=False the Gram route skips U = R V / s (a d x m x r product Table 2
+        does not need) and returns U as an empty (d, 0) array.
     """
     R = _as_matrix("R", R)
     d, m = R.shape
@@ -105,6 +108,8 @@ def svd_float64(
     s = torch.where(s > floor, s, torch.zeros_like(s))
     keep = s > 0.0
     inv = torch.where(keep, 1.0 / torch.where(keep, s, torch.ones_like(s)), torch.zeros_like(s))
+    if not compute_u:
+        return np.zeros((d, 0)), s.numpy(), V.T.contiguous().numpy()
     U = (Rt @ V) * inv[None, :]  # (d, r)
     return U.numpy(), s.numpy(), V.T.contiguous().numpy()
 
@@ -141,6 +146,7 @@ def top_singular(
     oversample: int = 10,
     niter: int = 4,
     seed: int = 0,
+    compute_u: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """The singular triplets Table 2 needs: at least the top k of R, and k = energy_rank(psi).
 
@@ -177,7 +183,8 @@ def top_singular(
             q = 2 * q
         method = "auto"
     U, s, Vt = svd_float64(
-        R, "full" if method == "full" else ("gram" if method == "gram" else "auto")
+        R, "full" if method == "full" else ("gram" if method == "gram" else "auto"),
+        compute_u=compute_u,
     )
     k = energy_rank(s, psi, total)
     if method == "auto" and d >= 2 * m and 0 < k <= s.size:

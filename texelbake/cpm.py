@@ -423,18 +423,33 @@ class _Fitter:
 
     def _reduce(self, cand: np.ndarray, target: np.ndarray) -> list[tuple] | None:
         """Per channel (A (r, m'), t (r,), rest): ||Rc[g][:, cand] a - target_g||^2 =
-        ||A a - t||^2 + rest for every a, with r = m' rows instead of d (thin QR of the
-        candidate columns). Only for rows="eq7", where the Eq. 7 error *is* this residual
-        (eval_scale is the 0/1 valid mask and invalid rows are zero in Rc). Measured on a
-        4096 x 256 texel: the trials' NNLS solves run on 256 rows instead of 4096."""
+        ||A a - t||^2 + rest for every a (to ~sqrt(eps) ||M||), with r <= m' rows instead of d.
+        Only for rows="eq7", where the Eq. 7 error *is* this residual (eval_scale is the 0/1
+        valid mask and invalid rows are zero in Rc).
+
+        From the Gram matrix of the unit-scaled columns, G = Mn^T Mn = V diag(lam) V^T (one BLAS
+        syrk, d m'^2 flops, then an m' x m' eigh): A = diag(sqrt(lam)) V^T diag(norms),
+        t = diag(1/sqrt(lam)) V^T Mn^T target over the resolved eigenvalues (lam > m' eps
+        lam_max; the rest carry no energy of M). Rank-revealing, so duplicate, collinear and
+        zero columns (frequent: one material's facets are rank 1) need no special case.
+        Measured, one thread, 4096 x 200: Gram 4.5 ms against 34 ms for a thin QR without
+        forming Q. The trials rank draws on this; the kept fit's SNR is recomputed in full."""
         d, m = self.Rc.shape[1], cand.size
         if self.rows != "eq7" or m >= d // 2:
             return None
         out = []
         for g in range(len(self.chans)):  # loop over <= 3 channels
-            Q, A = np.linalg.qr(self.Rc[g][:, cand])  # (d, m'), (m', m')
+            M = self.Rc[g][:, cand]  # (d, m')
             t = target[:, g]
-            tq = Q.T @ t
+            norms = np.linalg.norm(M, axis=0)
+            scale = np.where(norms > 0, norms, 1.0)
+            Mn = M / scale  # unit columns; zero columns stay zero
+            lam, V = np.linalg.eigh(Mn.T @ Mn)  # ascending
+            keep = lam > max(float(lam[-1]), 0.0) * m * np.finfo(np.float64).eps
+            sq = np.sqrt(lam[keep])
+            Vk = V[:, keep]  # (m', r)
+            A = (sq[:, None] * Vk.T) * scale[None, :]  # (r, m'): A^T A = M^T M
+            tq = (Vk.T @ (Mn.T @ t)) / sq  # (r,)
             out.append((A, tq, max(float(t @ t - tq @ tq), 0.0)))
         return out
 
@@ -484,7 +499,7 @@ class _Fitter:
         fbar_ref = target * self.eval_scale[:, None]  # (d, ch_g), Eq. 7
         S = self.S[:, cand]  # (d, m')
         col_energy = np.einsum("dm,dm->m", S, S)
-        U, s, Vt, k = top_singular(S, self.psi)
+        U, s, Vt, k = top_singular(S, self.psi, compute_u=False)  # Table 2 needs no U
         if k == 0:  # nothing to select: zero matrix; alpha = 0 reproduces it
             empty = np.zeros(0, dtype=np.int64)
             _, snr = self._trial(empty, target, fbar_ref)
