@@ -27,6 +27,8 @@ from texelbake.payload import read_baked
 from texelbake.pipeline import bake
 from texelbake.scenes import write_scene
 
+JOBS = 2  # processes for the sharded stages: this machine's cores
+
 
 def avis_reference_error(root: Path, ctx: stages.StageContext, n_texels: int = 24,
                          res_ref: int = 64, seed: int = 0) -> dict:
@@ -70,7 +72,7 @@ def run_one(scene: Path, settings: BakeSettings, out: Path, with_avis_ref: bool)
         shutil.rmtree(out)
     stages._CASTERS.clear()
     t0 = time.perf_counter()
-    root = bake(scene, out, settings, progress=False)
+    root = bake(scene, out, settings, progress=False, jobs=JOBS)
     total = time.perf_counter() - t0
     report = json.loads((out / "report.json").read_text())
     rays = sum(c.rays_cast for c in stages._CASTERS.values())

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -85,7 +86,8 @@ def cmd_bake(args: argparse.Namespace) -> int:
     from texelbake.pipeline import bake
 
     settings = _settings(args)
-    root = bake(Path(args.file), Path(args.output), settings, progress=not args.quiet)
+    root = bake(Path(args.file), Path(args.output), settings, progress=not args.quiet,
+                jobs=args.jobs)
     _print_summary(root)
     return 0
 
@@ -101,7 +103,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     for name in names:
         t0 = time.perf_counter()
         scene = write_scene(name, out / "scenes" / f"{name}_small.usda", "small")
-        root = bake(scene, out / name, settings, progress=True)
+        root = bake(scene, out / name, settings, progress=True, jobs=os.cpu_count() or 1)
         print(f"\n== {name} ({time.perf_counter() - t0:.1f} s)")
         _print_summary(root)
         if args.previews:
@@ -173,6 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1,
+                   help="processes for the sharded stages (default: all cores)")
     _add_settings_args(p)
     p.set_defaults(func=cmd_bake)
 

@@ -23,6 +23,7 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -219,9 +220,11 @@ def copy_source(source_layer: Path, dependencies: list[str], dest: Path) -> Path
 
 
 def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
-                      original_mesh_paths: list[str]) -> Path:
+                      original_mesh_paths: list[str], *,
+                      author_extra: Callable[[Usd.Stage], None] | None = None) -> Path:
     """Write the baked folder (see module docstring). `source_copy` is the source root layer
-    already copied under out_dir. Returns the root layer path."""
+    already copied under out_dir; `author_extra(payload_stage)` may add to the payload layer
+    (the BTF shader). Returns the root layer path."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     name = baked.name
@@ -258,6 +261,8 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     for i, mesh in enumerate(baked.meshes, start=1):
         geom = _author_mesh(pstage, f"/Baked/LOD{i}", mesh)
         UsdShade.MaterialBindingAPI.Apply(geom.GetPrim()).Bind(mat)
+    if author_extra is not None:
+        author_extra(pstage)
     _commit_stage(pstage, out_dir / payload_file)
 
     # ---- root layer

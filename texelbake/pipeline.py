@@ -109,10 +109,22 @@ class BakeResult:
     report: dict = field(default_factory=dict)
 
 
-def finalize(workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: Path) -> Path:
-    """The export stage's body: write the baked USD, maps and report.json into `out_dir`."""
+def finalize(workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: Path, *,
+             stage_seconds: dict[str, float] | None = None, plan: Plan | None = None) -> Path:
+    """The export stage's body: write the baked USD, maps and report.json into `out_dir`
+    (`stage_seconds`: the farm's timings per stage, for the report)."""
     ctx = stages.StageContext.create(Path(workdir), Path(asset_path), settings)
-    return stages.export_to(ctx, Path(out_dir))
+    plan = plan or plan_bake(asset_path, settings)
+    root = stages.export_to(ctx, Path(out_dir), stage_seconds=stage_seconds, plan=plan)
+    if stage_seconds:
+        stages.update_report_seconds(Path(out_dir), stage_seconds)
+    return root
+
+
+def _run_in_subprocess(workdir: str, asset_path: str, settings_json: str, stage: str,
+                       shard: int) -> str:
+    return run_shard(Path(workdir), Path(asset_path),
+                     BakeSettings.model_validate_json(settings_json), stage, shard)
 
 
 def bake(
@@ -122,10 +134,14 @@ def bake(
     *,
     workdir: Path | None = None,
     progress: bool = True,
+    jobs: int = 1,
 ) -> Path:
-    """Run every planned stage and shard in this process and write the baked USD to `out_dir`.
+    """Run every planned stage and shard on this machine (no broker, no server) and write the
+    baked USD to `out_dir`.
 
     Returns the root layer path. `workdir` holds the artifact store (default out_dir/.work).
+    jobs : processes for the sharded stages (cpm, avis); 1 runs everything in this process.
+        The result does not depend on it (per-texel seeds, content-derived artifacts).
     """
     from tqdm import tqdm
 
@@ -142,7 +158,11 @@ def bake(
         if sp.name == "export":
             root = stages.export_to(ctx, out_dir, plan=plan)
         elif sp.name == "render":
-            stages.run_render(ctx, 0)
+            for p in stages.run_render(ctx, 0, out_dir=out_dir):
+                if progress:
+                    print(f"preview: {p}")
+        elif jobs > 1 and sp.n_shards > 1:
+            _run_parallel(workdir, asset_path, settings, sp, jobs, progress)
         else:
             bar = tqdm(range(sp.n_shards), desc=f"{sp.name:<9}", unit="shard",
                        disable=not progress, leave=True)
@@ -153,3 +173,26 @@ def bake(
         raise StageError("the plan has no export stage")
     stages.update_report_seconds(out_dir, seconds)
     return root
+
+
+def _run_parallel(workdir: Path, asset_path: Path, settings: BakeSettings, sp: StagePlan,
+                  jobs: int, progress: bool) -> None:
+    """The shards of one stage on `jobs` fresh processes (spawn: no fork after Embree and BLAS
+    have started threads)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from tqdm import tqdm
+
+    ctx_mp = mp.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=min(jobs, sp.n_shards), mp_context=ctx_mp) as pool:
+        futures = [
+            pool.submit(_run_in_subprocess, str(workdir), str(asset_path),
+                        settings.model_dump_json(), sp.name, shard)
+            for shard in range(sp.n_shards)
+        ]
+        bar = tqdm(total=sp.n_shards, desc=f"{sp.name:<9}", unit="shard", disable=not progress)
+        for fut in as_completed(futures):
+            fut.result()
+            bar.update(1)
+        bar.close()

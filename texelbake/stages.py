@@ -37,7 +37,7 @@ from texelbake.store import ArtifactStore, file_sha256
 from texelbake.tol import TOL
 
 #: settings that change no stage output (farm layout and optional downstream stages)
-_LAYOUT_ONLY = {"shard_texels", "previews", "btf"}
+_LAYOUT_ONLY = {"shard_texels", "previews"}
 _GEOMETRY_FIELDS = (
     "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",
 )
@@ -729,16 +729,46 @@ def avis_table_from(arrays: dict[str, np.ndarray]) -> avis_mod.AvisTable:
 # --------------------------------------------------------------------------- btf, render
 
 
+def _btf_key(ctx: StageContext) -> str:
+    return ctx.key("btf", "btf")
+
+
 def run_btf(ctx: StageContext, shard: int = 0) -> str:
-    """BTF level of detail (seed 001) from the finest level's filtered reflectance."""
-    raise StageError(
-        "the BTF stage (seed 001) is not wired into the bake yet; run with btf=false"
-    )
+    """BTF level of detail (seed 001) from the finest level's filtered reflectance: exactly the
+    Eq. 7 values the CPM stage measured against (f_bar on the N_i x N_o grid), one BTF image per
+    direction pair over the atlas; EXR maps and a report under the store."""
+    from texelbake.btf import BTFSettings, bake_btf, btf_from_texels
+
+    key = _btf_key(ctx)
+    out = ctx.store.path(key)
+    if (out / "report.json").is_file():
+        return key
+    level0 = cpm_levels(ctx)[0]
+    if "fbar" not in level0:
+        raise StageError("the CPM artifacts of this bake carry no f_bar (settings.btf was off)")
+    ok = level0["valid"]
+    n = ctx.settings.atlas_resolution
+    btf, covered = btf_from_texels(level0["fbar"][ok], level0["texel"][ok], n)
+    dirs = direction_sets(ctx.settings)
+    n_o = len(dirs["dirs_o"])
+    di = np.repeat(dirs["dirs_i"], n_o, axis=0)  # row r = i * n_o + o
+    do = np.tile(dirs["dirs_o"], (len(dirs["dirs_i"]), 1))
+    out.mkdir(parents=True, exist_ok=True)
+    _, report = bake_btf(btf, di, do, out, BTFSettings(), covered=covered)
+    ctx.store.write_json(f"{key}/report.json", report)
+    return key
 
 
-def run_render(ctx: StageContext, shard: int = 0) -> str:
-    """Previews of the finished bake, rendered from the written USD."""
-    raise StageError("preview rendering is not wired into the bake yet; run with previews=false")
+def run_render(ctx: StageContext, shard: int = 0, out_dir: Path | None = None) -> list[Path]:
+    """Previews of the finished bake, rendered from the written USD (texelbake.render)."""
+    from texelbake.render import render_previews
+
+    if out_dir is None:
+        raise StageError("the render stage needs the folder of the written bake")
+    roots = sorted(Path(out_dir).glob("*_baked.usda"))
+    if not roots:
+        raise StageError(f"no baked USD in {out_dir} to render previews from")
+    return render_previews(roots[0], Path(out_dir) / "previews", size="small")
 
 
 # --------------------------------------------------------------------------- export
@@ -895,12 +925,37 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
                      for m in asset.materials], np.int32)},
         meshes=meshes, albedo=albedo, normal=normal, metadata=metadata,
     )
+    author_extra = None
+    if s.btf:
+        author_extra = _export_btf(ctx, out_dir, report)
     source_copy = payload.copy_source(
         ctx.asset_path, check_asset_paths(ctx.asset_path), out_dir / "source"
     )
-    root = payload.write_baked_asset(out_dir, source_copy, baked, list(asset.mesh_paths))
+    root = payload.write_baked_asset(out_dir, source_copy, baked, list(asset.mesh_paths),
+                                     author_extra=author_extra)
     payload.atomic_json(out_dir / "report.json", report)
     return root
+
+
+def _export_btf(ctx: StageContext, out_dir: Path, report: dict):
+    """Copy the BTF maps beside the baked layer, add their report, and return the callback that
+    authors texelbake's Laplacian BTF shader in the preview material of the payload."""
+    import shutil
+
+    from texelbake.btf import author_btf_shader, read_btf_maps
+
+    src = ctx.store.path(_btf_key(ctx))
+    btf_report = ctx.store.read_json(f"{_btf_key(ctx)}/report.json")
+    for name in sorted(btf_report["files"].values()):
+        shutil.copyfile(src / name, out_dir / name)
+    report["btf"] = btf_report
+    maps = read_btf_maps(out_dir, "btf")
+    files = {part: f"./{name}" for part, name in btf_report["files"].items()}
+
+    def author(stage) -> None:
+        author_btf_shader(stage, "/Baked/Looks/BakedPreview", files, maps)
+
+    return author
 
 
 def update_report_seconds(out_dir: Path, seconds: dict[str, float]) -> None:

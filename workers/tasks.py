@@ -9,7 +9,6 @@ times, then fail the job with the reason. Redelivery after a lost worker is Cele
 
 from __future__ import annotations
 
-import inspect
 import os
 import random
 import socket
@@ -128,13 +127,11 @@ def execute_shard(job_id: str, stage: str, shard: int) -> str:
     workdir = storage.work_dir(root, asset.sha256, settings.digest())
     out_dir = storage.job_out(root, job_id)
     if stage == "export":
-        extra: dict = {}
-        params = inspect.signature(pipeline.finalize).parameters
-        if "stage_seconds" in params:  # the farm's own timings, from the ledger
-            extra["stage_seconds"] = ledger.stage_seconds(_sm(), job_id)
-        if "plan" in params:
-            extra["plan"] = pipeline.plan_bake(asset_path, settings)
-        baked = pipeline.finalize(workdir, asset_path, settings, out_dir, **extra)
+        baked = pipeline.finalize(
+            workdir, asset_path, settings, out_dir,
+            stage_seconds=ledger.stage_seconds(_sm(), job_id),  # the farm's own timings
+            plan=pipeline.plan_bake(asset_path, settings),
+        )
         return str(Path(baked).relative_to(out_dir))
     if stage == "render":
         return _render(workdir, asset_path, settings, out_dir, shard)
