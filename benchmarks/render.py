@@ -34,9 +34,11 @@ c_max 16, ε 30 dB (what bakes in ~4 min here); 512², `lod` camera, reference g
 | cylinder |        131 |       234.7 |    1.07 |     219x |      51.38 |      52.77 (6)   |       46.27 | 50.64 |
 | wall     |        383 |       851.7 |    6.00 |     142x |      47.89 |      56.25 (9)   |       46.34 | 50.67 |
 | bolt     |        265 |       946.7 |    3.91 |     242x |      51.31 |      53.02 (4)   |       47.38 | 53.02 |
+| cloisonne|        246 |       170.2 |    0.38 |     451x |      59.54 |      56.91 (6)   |       56.84 | 58.80 |
 
-Speed: met everywhere (110-242x). Error: cpm beats normalmap everywhere (the missing masking
-and shadowing, seed 000 Fig. 1), but not equal-time: with a 64² atlas for the whole object the
+Speed: met everywhere (219-451x). Error: cpm beats normalmap everywhere (the missing masking
+and shadowing, seed 000 Fig. 1); it beats equal-time on the cloisonné (a sharp metal border
+under a sphere light: gt is noisy, cpm@4 59.5 dB against 56.9), not on the other three: with a 64² atlas for the whole object the
 finest texel is ~1 pixel only when the object is ~12-25 px wide, so its silhouette pixels (M1
 against M_org) dominate the error, and the coarse CPM levels these views use have held-out
 SNR of 21-31 dB (median) with 16 x 16 training directions (`report.json` of the bakes): cpm
