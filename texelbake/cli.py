@@ -119,9 +119,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from texelbake.render import render_cli
+    from texelbake.render import render_report
 
-    return render_cli(args)
+    out = Path(args.output) if args.output else Path(args.file).parent / "render"
+    report = render_report(Path(args.file), out, modes=args.modes, width=args.width,
+                           height=args.height, spp=args.spp, ref_spp=args.ref_spp,
+                           camera=_camera_arg(args.camera))
+    print(report)
+    return 0
+
+
+def _camera_arg(value: str | None):
+    if value is None or value == "lod":
+        return value
+    try:
+        return float(value)
+    except ValueError as exc:
+        raise TexelbakeError(f"--camera must be 'lod' or a distance, got {value!r}") from exc
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -193,8 +207,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=256)
-    p.add_argument("--spp", type=int, default=4)
-    p.add_argument("--gt-spp", type=int, default=256)
+    p.add_argument("--spp", type=int, default=4, help="eye rays per pixel of each mode")
+    p.add_argument("--ref-spp", type=int, default=256, help="eye rays per pixel of the reference")
+    p.add_argument("--camera", default=None,
+                   help="the asset's camera (default), 'lod', or an auto-frame distance")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("report", help="draw the speed-against-error plot of a render folder")
