@@ -21,8 +21,8 @@ from texelbake.scene import load_asset
 from texelbake.scenes import write_scene
 from texelbake.stages import avis_table_from
 
-SMALL = dict(atlas_resolution=16, shard_texels=8, samples_per_texel=8, n_light_dirs=12,
-             n_view_dirs=12, n_heldout=16, c_max=12, n_trials=2, mesh_levels=1)
+SMALL = {"atlas_resolution": 16, "shard_texels": 8, "samples_per_texel": 8, "n_light_dirs": 12,
+         "n_view_dirs": 12, "n_heldout": 16, "c_max": 12, "n_trials": 2, "mesh_levels": 1}
 
 
 def write_plane(path: Path, albedo=(0.6, 0.4, 0.2), n=8) -> Path:

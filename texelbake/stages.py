@@ -366,8 +366,12 @@ def fit_level(
     # 1 torch thread and 78 ms on 2; a 4096 x 256 QR went from milliseconds to minutes with
     # multi-threaded OpenBLAS). Parallelism comes from shards / worker processes instead.
     torch.set_num_threads(1)
+    caster = ctx.caster()
+    rays0 = caster.rays_cast
     with threadpool_limits(limits=1):
-        return _fit_level(ctx, level, texels, candidates)
+        out = _fit_level(ctx, level, texels, candidates)
+    out["rays"] = np.array([caster.rays_cast - rays0], np.int64)  # work done, for rays/s
+    return out
 
 
 def _fit_level(
@@ -570,7 +574,9 @@ def _concat_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
         base += int(p["offsets"][-1])
     out["offsets"] = np.concatenate(offs)
     for k in parts[0]:
-        if k != "offsets":
+        if k == "rays":
+            out[k] = np.array([sum(int(p[k].sum()) for p in parts if k in p)], np.int64)
+        elif k != "offsets":
             out[k] = np.concatenate([p[k] for p in parts])
     return out
 
@@ -622,7 +628,9 @@ def _sort_by_texel(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         [np.arange(a, a + c) for a, c in zip(starts, counts, strict=True)]
     ) if len(order) else np.zeros(0, np.int64)
     out = {k: v[order] for k, v in data.items()
-           if k not in ("offsets", "point_sample", "point_weight")}
+           if k not in ("offsets", "point_sample", "point_weight", "rays")}
+    if "rays" in data:
+        out["rays"] = data["rays"]
     out["offsets"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     out["point_sample"] = data["point_sample"][point_idx.astype(np.int64)]
     out["point_weight"] = data["point_weight"][point_idx.astype(np.int64)]
@@ -667,16 +675,25 @@ def run_avis_tile(ctx: StageContext, shard: int) -> str:
     idx = np.nonzero(inside)[0]
     local = (row[idx] - tr * side) * side + (col[idx] - tc * side)
     caster = ctx.caster()
+    rays0 = caster.rays_cast
     level = avis_mod.avis_level(
         geo["sample_pos"][idx], geo["sample_gnrm"][idx], geo["sample_area"][idx], local, side,
         s.avis_resolution, caster.occluded, ctx.asset().points,
         ray_eps=TOL.ray_offset * caster.bbox_diag,
     )
     out = _avis_level_arrays(level, "L00_")
+    out["rays"] = np.array([caster.rays_cast - rays0], np.int64)
     for lvl in range(1, ctx.tile_levels):
         level = avis_mod.coarsen_level(level)
         out.update(_avis_level_arrays(level, f"L{lvl:02d}_"))
     return ctx.store.write_arrays(key, out)
+
+
+def avis_rays(ctx: StageContext) -> int:
+    """Rays the a_vis tiles cast (closed-form texels cast none)."""
+    per_row = ctx.settings.atlas_resolution // ctx.settings.shard_texels
+    return int(sum(int(ctx.store.read_arrays(_avis_key(ctx, t)).get("rays", np.zeros(1)).sum())
+                   for t in range(per_row * per_row)))
 
 
 def run_avis_top(ctx: StageContext, shard: int = 0) -> str:
@@ -847,6 +864,7 @@ def assemble_level(ctx: StageContext, level: int, data: dict[str, np.ndarray],
         "snr_heldout_db": _percentiles(data["snr_ho"][valid]),
         "per_channel_texels": int(np.sum(data["mode"][valid] == 1)),
         "points": int(len(pts)),
+        "rays": int(data["rays"].sum()) if "rays" in data else 0,
         "bytes": int(sum(a.nbytes for a in arrays.values())),
         "avis": {
             "closed_form_texels": int(avis_level.closed.sum()),
@@ -899,6 +917,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "settings": s.model_dump(),
         "levels": level_reports,
         "samples": int(len(geo["sample_area"])),
+        "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
         "surface_area": float(geo["sample_area"].sum()),
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "stage_seconds": dict(stage_seconds or {}),

@@ -131,7 +131,8 @@ def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
     else:
         raise StageError(
             f"geometry: xatlas could not pack M1 ({mesh.num_faces} faces) into one "
-            f"{n} x {n} page (last: {xa.atlas_count} pages of {xa.width} x {xa.height})"
+            f"{n} x {n} page (last: {xa.atlas_count} pages of {xa.width} x {xa.height}); "
+            f"raise atlas_resolution or lower m1_faces"
         )
     vmap, indices, uvs = xa[0]
     vmap = vmap.astype(np.int64)
