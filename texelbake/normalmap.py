@@ -109,5 +109,5 @@ def bake_preview_maps(
     f2 = filled.reshape(resolution, resolution)
     alb = dilate(alb.reshape(shape), f2)
     nrm = dilate(nrm.reshape(shape), f2)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=2, keepdims=True), 1e-12)
+    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=2, keepdims=True), 1e-12)
     return alb.astype(np.float32), nrm.astype(np.float32), f2

@@ -115,7 +115,8 @@ def _author_mesh(stage: Usd.Stage, path: str, mesh: LodMesh) -> UsdGeom.Mesh:
     geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(f.reshape(-1)))
     geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     lo, hi = (v.min(axis=0), v.max(axis=0)) if len(v) else (np.zeros(3), np.zeros(3))
-    geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+    geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(float(lo[0]), float(lo[1]), float(lo[2])),
+                                         Gf.Vec3f(float(hi[0]), float(hi[1]), float(hi[2]))]))
     st = UsdGeom.PrimvarsAPI(geom).CreatePrimvar(
         "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
     )
@@ -148,7 +149,7 @@ def _author_preview_material(
         tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(cs)
         tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
         tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
-        if scale is not None:
+        if scale is not None and bias is not None:
             tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*scale))
             tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*bias))
         tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(st_out)
@@ -197,6 +198,8 @@ def _write_png(path: Path, rgb: np.ndarray, srgb: bool) -> None:
     os.close(fd)
     try:
         out = oiio.ImageOutput.create(tmp)
+        if out is None:
+            raise AssetError("OpenImageIO cannot write PNG", path=str(path))
         out.open(tmp, oiio.ImageSpec(px.shape[1], px.shape[0], 3, "uint8"))
         out.write_image(px)
         out.close()
@@ -341,7 +344,7 @@ def _read_arrays(prim: Usd.Prim) -> dict[str, np.ndarray]:
         shape_attr = prim.GetAttribute(f"{full}:shape")
         shape = tuple(int(x) for x in shape_attr.Get()) if shape_attr else None
         value = attr.Get()
-        arr = np.array(value, dtype=_FROM_USD[tname]) if value is not None \
+        arr: np.ndarray = np.array(value, dtype=_FROM_USD[tname]) if value is not None \
             else np.zeros(0, _FROM_USD[tname])
         out[name] = arr.reshape(shape) if shape is not None else arr
     return out
@@ -399,7 +402,10 @@ def _read_png(path: Path, srgb: bool) -> np.ndarray:
     if not path.is_file():
         return np.zeros((0, 0, 3), np.float32)
     buf = oiio.ImageBuf(str(path))
-    px = buf.get_pixels(oiio.FLOAT)[..., :3].astype(np.float64)
+    pixels = buf.get_pixels(oiio.FLOAT)
+    if pixels is None:
+        raise AssetError("cannot read image", path=str(path))
+    px = np.asarray(pixels)[..., :3].astype(np.float64)
     if srgb:
         px = np.where(px <= 0.04045, px / 12.92, ((px + 0.055) / 1.055) ** 2.4)
     return px

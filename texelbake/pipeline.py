@@ -12,6 +12,7 @@ S x S tile (S = settings.shard_texels) and every coarser level's texels inside i
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -78,7 +79,9 @@ def plan_bake(asset_path: Path, settings: BakeSettings) -> Plan:
     return Plan(tuple(plan), tuple(skipped))
 
 
-_RUNNERS = {
+#: stage -> shard body (the render stage needs the exported folder: `bake` and the farm call
+#: `stages.run_render` / `texelbake.render` directly)
+_RUNNERS: dict[str, Callable[[stages.StageContext, int], str]] = {
     "ingest": stages.run_ingest,
     "geometry": stages.run_geometry,
     "cpm": stages.run_cpm_tile,
@@ -87,7 +90,6 @@ _RUNNERS = {
     "avis_top": stages.run_avis_top,
     "btf": stages.run_btf,
     "export": stages.run_export,
-    "render": stages.run_render,
 }
 
 
@@ -99,6 +101,8 @@ def run_shard(
     sp = plan.stage(stage)
     if not 0 <= shard < sp.n_shards:
         raise SettingsError(f"shard {shard} out of range for stage {stage!r} (0..{sp.n_shards - 1})")
+    if stage not in _RUNNERS:
+        raise StageError(f"stage {stage!r} is not run by shard (render previews from the export)")
     ctx = stages.StageContext.create(Path(workdir), Path(asset_path), settings)
     return _RUNNERS[stage](ctx, shard)
 

@@ -850,7 +850,7 @@ def assemble_level(ctx: StageContext, level: int, data: dict[str, np.ndarray],
             unocc = avis_mod.closed_form_maps(avis_level.cf, avis_level.res,
                                               avis_level.ray_texels[frac])
             ref[frac] = avis_mod.visible_fraction(ref[frac], unocc)
-        err = float(np.linalg.norm(table_maps - ref) / max(np.linalg.norm(ref), 1e-300))
+        err = float(np.linalg.norm(table_maps - ref)) / max(float(np.linalg.norm(ref)), 1e-300)
     valid = data["valid"]
     report = {
         "level": level,
