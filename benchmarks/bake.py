@@ -111,6 +111,8 @@ def main() -> None:
     ap.add_argument("--spt", type=int, default=32, help="samples per finest texel (average)")
     ap.add_argument("--sweep", action="store_true", help="also vary each main knob alone")
     ap.add_argument("--workdir", type=Path, default=None)
+    ap.add_argument("--compare-hierarchy", action="store_true",
+                    help="also bake with hierarchy='dense' (the seed) and print both per level")
     args = ap.parse_args()
     work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-bench-"))
     scene = write_scene(args.scene, work / f"{args.scene}_{args.size}.usda", args.size)
@@ -137,6 +139,16 @@ def main() -> None:
         print(f"{lv['level']:>5} {lv['texels_valid']:>6} {lv['c_mean'] or 0:>6.1f} "
               f"{lv['insample_db'] or float('nan'):>7.1f} {lv['heldout_db'] or float('nan'):>7.1f}")
     out = {"scene": args.scene, "size": args.size, **main_run, "sweep": []}
+    if args.compare_hierarchy:
+        dense = run_one(scene, BakeSettings(**{**base, "hierarchy": "dense"}), work / "dense",
+                        with_avis_ref=False)
+        print(f"\nhierarchy: children (default) {main_run['stage_seconds'].get('cpm', 0) + main_run['stage_seconds'].get('cpm_top', 0):.1f} s"
+              f" vs dense (seed) {dense['stage_seconds'].get('cpm', 0) + dense['stage_seconds'].get('cpm_top', 0):.1f} s of cpm stages")
+        print(f"{'level':>5} {'children c':>10} {'ho dB':>7} {'dense c':>8} {'ho dB':>7}")
+        for a, b in zip(main_run["levels"], dense["levels"], strict=True):
+            print(f"{a['level']:>5} {a['c_mean'] or 0:>10.1f} {a['heldout_db'] or float('nan'):>7.1f} "
+                  f"{b['c_mean'] or 0:>8.1f} {b['heldout_db'] or float('nan'):>7.1f}")
+        out["dense"] = dense
     if args.sweep:
         print(f"\n{'knob':<20} {'value':>6} {'seconds':>8} {'ho dB':>7} {'avis err':>8}")
         for knob, values in (("samples_per_texel", (16, 32, 64)),

@@ -52,11 +52,13 @@ def main() -> None:
     ap.add_argument("--spt", type=int, default=32)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--m1-faces", type=int, default=0, help="BakeSettings.m1_faces (0: auto)")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="texelbake-dump-"))
     scene = write_scene(args.scene, work / f"{args.scene}.usda", args.size)
     settings = BakeSettings(atlas_resolution=args.atlas, shard_texels=min(16, args.atlas),
-                            samples_per_texel=args.spt, n_light_dirs=64, n_view_dirs=64)
+                            samples_per_texel=args.spt, n_light_dirs=64, n_view_dirs=64,
+                            m1_faces=args.m1_faces)
     ctx = stages.StageContext.create(work, scene, settings)
     stages.run_ingest(ctx)
     stages.run_geometry(ctx)

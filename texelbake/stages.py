@@ -160,12 +160,20 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
     s = ctx.settings
     asset = ctx.asset()
     n = s.atlas_resolution
-    meshes = simplify_hierarchy(
-        asset.points, asset.faces, s.mesh_levels, s.simplify_ratio,
-        target_faces=m1_target_faces(asset.num_faces, s),
-    )
-    m1 = meshes[0]
-    atlas = _build_atlas_fitting(m1, n)
+    target = m1_target_faces(asset.num_faces, s)
+    for attempt in range(4):  # a few halvings of M1 until its charts fit one page
+        meshes = simplify_hierarchy(
+            asset.points, asset.faces, s.mesh_levels, s.simplify_ratio, target_faces=target,
+        )
+        try:
+            atlas = _build_atlas_fitting(meshes[0], n)
+            break
+        except StageError:
+            # xatlas makes about one chart per M1 face on assets of separate parts (the wall's
+            # blocks); fewer faces means fewer charts. An explicit m1_faces is not second-guessed.
+            if s.m1_faces or attempt == 3 or target // 2 < 8:
+                raise
+            target //= 2
     samples = sample_surface(
         asset.points, asset.faces, n * n * s.samples_per_texel, s.seed,
         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
