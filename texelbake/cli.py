@@ -112,8 +112,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
             except ImportError:
                 print("previews: the renderer is not available in this build")
             else:
-                for p in render_previews(root, out / name / "previews", size="small"):
-                    print(f"preview: {p}")
+                files = render_previews(root, out / name / "previews", size="small")
+                print(f"previews: {out / name / 'previews'} ({len(files)} files: gt, cpm, "
+                      f"normalmap, equal-time, differences, mip levels, point density)")
     print(f"\nresults in {out.resolve()}")
     return 0
 
