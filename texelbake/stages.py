@@ -646,9 +646,6 @@ def _sort_by_texel(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
-def json_dumps(obj) -> str:
-    return json.dumps(obj, indent=2, sort_keys=True)
-
 
 # --------------------------------------------------------------------------- visible projected area
 
