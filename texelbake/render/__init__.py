@@ -17,10 +17,17 @@ from texelbake.render.api import (
     write_report_plot,
 )
 from texelbake.render.camera import PinholeCamera, auto_frame, from_usd, look_at
-from texelbake.render.core import MODES, RenderResult, RenderScene, load_scene, render_frame
+from texelbake.render.core import (
+    EXTRA_MODES,
+    MODES,
+    RenderResult,
+    RenderScene,
+    load_scene,
+    render_frame,
+)
 
 __all__ = [
-    "MODES", "PREVIEW_SIZES", "PinholeCamera", "RenderResult", "RenderScene", "auto_frame",
+    "EXTRA_MODES", "MODES", "PREVIEW_SIZES", "PinholeCamera", "RenderResult", "RenderScene", "auto_frame",
     "compare_modes", "from_usd", "load_scene", "look_at", "render", "render_frame",
     "render_previews", "render_report", "write_report_plot",
 ]

@@ -50,13 +50,14 @@ PREVIEW_SIZES: dict[str, dict[str, Any]] = {
 def render(baked_root: str | Path, mode: str, *, width: int, height: int, spp: int,
            camera: object = None, out_dir: str | Path | None = None, seed: int = 0,
            **kw: Any) -> RenderResult:
-    """Render a baked USD in one mode ("gt", "cpm", "normalmap", "equal-time").
+    """Render a baked USD in one mode ("gt", "cpm", "normalmap", "equal-time", or "btf" when
+    the bake wrote BTF maps, `BakeSettings.btf`).
 
     camera : None (the asset's camera, else auto-framed), a `camera.PinholeCamera`, a
         `model.Camera`, or a number (auto-frame at that distance factor)
     out_dir : when given, writes `<mode>.exr` (linear float) and `<mode>.png` (sRGB)
     kw : mode options (cpm: lod_bias, local_light_ratio, max_error_px; equal-time:
-        budget_seconds)
+        budget_seconds; btf: lod_bias, interpolate)
     returns : RenderResult (image (h, w, 3) float32, seconds, rays_cast, spp)
     """
     scene = load_scene(baked_root)

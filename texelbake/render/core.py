@@ -32,6 +32,16 @@ Modes (all read the baked USD through `texelbake.payload.read_baked` and the cop
 - ``normalmap`` — the baseline studios bake today: M1 with the baked albedo and tangent-space
   normal maps, multi-sampled, the material's BRDF with its Lambertian part replaced by the
   albedo map (`normalmap_brdf`), shadows on M1.
+- ``btf`` — the real-time target (seed 001 §3.4): M1 with the baked BTF maps
+  (`btf_eigen.exr`, `btf_weights.exr`, `btf_lut.exr`, `btf_pairs.exr` beside the baked USD,
+  written when `BakeSettings.btf` is on). Per light L = E_l V(p, ωi) f̄(ωi, ωo) with f̄ from
+  `texelbake.btf.btf_lookup` (Eq. 7 of seed 001, continuous LOD): f̄ is the filtered
+  reflectance of seed 000 Eq. 7, (Σ f V V cos_i cos_o ΔA)/a_vis, which already carries both
+  cosines, so it is multiplied by the irradiance E_l only. ωi, ωo are expressed in the texel
+  frame of the finest texel under the hit (`levels[0]["frames"]`, rows t, b, n), shadows are
+  traced on M1 (as ``normalmap``), and λ comes from the pixel footprint exactly as in ``cpm``
+  (clamped to [0, λ_max] by the look-up). Not in `MODES` (previews and reports iterate MODES
+  and most bakes carry no BTF maps); `render_frame` accepts it through `EXTRA_MODES`.
 - ``equal-time`` — M_org with as many eye rays per pixel as fit in the time budget (by
   default the time of the ``cpm`` image at the given spp, measured in this call).
 
@@ -63,6 +73,8 @@ from texelbake.render.shade import direct_radiance, light_at
 from texelbake.tol import TOL
 
 MODES = ("gt", "cpm", "normalmap", "equal-time")
+#: modes `render_frame` accepts beyond MODES (they need optional bake outputs)
+EXTRA_MODES = ("btf",)
 
 #: rays per wavefront pass (bounds memory: ~1 kB of temporaries per ray)
 PASS_RAYS = 1 << 17
@@ -139,6 +151,7 @@ class RenderScene(OrgScene):
                           for c, m in zip(self.lods, self.baked.meshes, strict=True)]
         self._tables = [_avis_table(lv) for lv in self.baked.levels]
         self._nm: dict[str, np.ndarray] | None = None
+        self._btf: Any = None
         self.setup_seconds = time.perf_counter() - t0
 
     def avis_table(self, level: int):
@@ -444,6 +457,98 @@ def _render_normalmap(scene: RenderScene, cam: PinholeCamera, spp: int, seed: in
     return (acc / spp).reshape(cam.height, cam.width, 3), rays
 
 
+# --------------------------------------------------------------------------- btf
+
+
+def btf_maps(scene: RenderScene):
+    """The bake's BTF maps (texelbake.btf.BTFMaps), read once from beside the baked USD."""
+    if scene._btf is None:
+        from texelbake.btf import read_btf_maps
+
+        folder = scene.root.parent
+        need = [folder / f"btf_{p}.exr" for p in ("eigen", "weights", "lut", "pairs")]
+        missing = [str(f) for f in need if not f.is_file()]
+        if missing:
+            raise StageError(f"baked asset {scene.root}: mode 'btf' needs the BTF maps "
+                             f"(bake with settings.btf on); missing {missing}")
+        maps = read_btf_maps(folder, "btf")
+        if tuple(maps.shape) != (scene.n0, scene.n0):
+            raise StageError(f"{folder}/btf_weights.exr: BTF map is {tuple(maps.shape)}, "
+                             f"expected the atlas resolution ({scene.n0}, {scene.n0})")
+        scene._btf = maps
+    return scene._btf
+
+
+def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarray,
+              *, lod_bias: float = 0.0, interpolate: bool = False) -> tuple[np.ndarray, int]:
+    """Radiance along eye rays traced against M1 with the BTF maps (module docstring).
+
+    o, d : (n, 3) float64 eye rays; returns (radiance (n, 3) float64, rays cast)
+    """
+    from texelbake.btf import btf_lookup_texels
+
+    maps = btf_maps(scene)
+    v, f, cuv = _m1(scene)
+    caster = scene.lods[0]
+    hits = caster.cast(o, d)
+    rays = o.shape[0]
+    out = np.zeros((o.shape[0], 3))
+    idx = np.flatnonzero(hits.hit)
+    if idx.size == 0:
+        return out, rays
+    prim = hits.prim[idx]
+    b = hits.bary3()[idx]
+    p = np.einsum("nk,nkj->nj", b, v[f[prim]])
+    uv = np.einsum("nk,nkj->nj", b, cuv[prim])
+    n = scene.n0
+    col = np.clip(np.floor(uv[:, 0] * n), 0, n - 1).astype(np.int64)
+    row = np.clip(np.floor((1.0 - uv[:, 1]) * n), 0, n - 1).astype(np.int64)
+    frames = scene.baked.levels[0]["frames"][row * n + col].astype(np.float64)  # (k, 3, 3)
+    ng = scene.lod_face_normals[0][prim]
+    wo = -d[idx]
+    # λ from the pixel footprint on M1 mapped into the atlas (as `shade_cpm`)
+    t = np.linalg.norm(p - o[idx], axis=1)
+    cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", ng, d[idx])), 1e-3)
+    cos_p = np.clip(d[idx] @ cam.forward, 1e-3, 1.0)
+    area_world = (t * cam.pixel_angle) ** 2 * cos_p ** 3 / cos_t
+    ratio = scene.lod_uv_ratio[0][prim]
+    lam = 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(n) + lod_bias
+    lam = np.clip(lam, 0.0, float(maps.top_level))
+    g = TOL.grazing_cos
+    view_ok = np.einsum("ij,ij->i", ng, wo) > g
+    wo_l = np.einsum("nij,nj->ni", frames, wo)
+    for light in scene.lights:  # a loop over the few lights
+        wi, e, tmax = light_at(light, p)
+        live = np.flatnonzero(view_ok & (np.einsum("ij,ij->i", ng, wi) > g)
+                              & (e.max(axis=1) > 0))
+        if live.size == 0:
+            continue
+        origins = p[live] + scene.ray_eps * ng[live]
+        tm = tmax[live] if np.isfinite(tmax[live]).any() else np.inf
+        lit = ~caster.occluded(origins, wi[live], tmax=tm)
+        rays += live.size
+        live = live[lit]
+        if live.size == 0:
+            continue
+        wi_l = np.einsum("nij,nj->ni", frames[live], wi[live])
+        fbar = btf_lookup_texels(maps, row[live], col[live], wi_l, wo_l[live], lam[live],
+                                 interpolate)
+        out[idx[live]] += e[live] * fbar  # f̄ carries cos_i cos_o already: E_l only
+    return out, rays
+
+
+def _render_btf(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):
+    acc = np.zeros((cam.height * cam.width, 3))
+    rays = 0
+    for _, o, d in _passes(cam, spp, seed):
+        rad = np.zeros_like(o)
+        for sl in _slices(o.shape[0]):
+            rad[sl], r = shade_btf(scene, cam, o[sl], d[sl], **kw)
+            rays += r
+        acc += rad.reshape(-1, cam.height * cam.width, 3).sum(axis=0)
+    return (acc / spp).reshape(cam.height, cam.width, 3), rays
+
+
 # --------------------------------------------------------------------------- cpm
 
 
@@ -692,8 +797,9 @@ def _render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **k
 def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, seed: int = 0,
                  *, budget_seconds: float | None = None, **kw) -> RenderResult:
     """Render one image of `scene` (already loaded) in `mode` (see module docstring)."""
-    if mode not in MODES:
-        raise SettingsError(f"field 'mode': expected one of {MODES}, got {mode!r}")
+    if mode not in MODES + EXTRA_MODES:
+        raise SettingsError(f"field 'mode': expected one of {MODES + EXTRA_MODES}, got "
+                            f"{mode!r}")
     spp = int(spp)
     cam_mod.strata(spp)  # validates spp
     extras: dict[str, Any] = {}
@@ -704,6 +810,10 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
         img, rays = _render_normalmap(scene, cam, spp, seed)
     elif mode == "cpm":
         img, rays, extras = _render_cpm(scene, cam, spp, seed, **kw)
+    elif mode == "btf":
+        if not isinstance(scene, RenderScene):
+            raise SettingsError("field 'mode': 'btf' needs a baked asset (RenderScene)")
+        img, rays = _render_btf(scene, cam, spp, seed, **kw)
     else:  # equal-time
         if budget_seconds is None:
             budget_seconds = render_frame(scene, "cpm", cam, spp, seed, **kw).seconds
