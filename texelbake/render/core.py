@@ -64,7 +64,7 @@ import numpy as np
 from texelbake import brdf as brdf_mod
 from texelbake.errors import SettingsError, StageError
 from texelbake.geometry.raycast import RayCaster
-from texelbake.geometry.texels import bilinear_texels
+from texelbake.geometry.texels import bilinear_texels, uv_to_texel
 from texelbake.model import AssetModel, Camera
 from texelbake.normalmap import face_tangent_space
 from texelbake.render import camera as cam_mod
@@ -334,17 +334,23 @@ def well_stratified(n: int) -> int:
     return 1
 
 
-def _render_org(scene: OrgScene, cam: PinholeCamera, spp: int, seed: int
-                ) -> tuple[np.ndarray, int]:
+def _accumulate(cam: PinholeCamera, spp: int, seed: int, shade) -> tuple[np.ndarray, int]:
+    """Box-filtered image of `shade(o, d) -> (radiance (n, 3), rays)` over the stratified eye
+    rays of every pass, in slices (no loop per pixel)."""
     acc = np.zeros((cam.height * cam.width, 3))
     rays = 0
     for _, o, d in _passes(cam, spp, seed):
         rad = np.zeros_like(o)
         for sl in _slices(o.shape[0]):
-            rad[sl], r = shade_org(scene, o[sl], d[sl])
+            rad[sl], r = shade(o[sl], d[sl])
             rays += r
         acc += rad.reshape(-1, cam.height * cam.width, 3).sum(axis=0)
     return (acc / spp).reshape(cam.height, cam.width, 3), rays
+
+
+def _render_org(scene: OrgScene, cam: PinholeCamera, spp: int, seed: int
+                ) -> tuple[np.ndarray, int]:
+    return _accumulate(cam, spp, seed, lambda o, d: shade_org(scene, o, d))
 
 
 # --------------------------------------------------------------------------- normal map
@@ -416,29 +422,34 @@ def normalmap_brdf(scene: RenderScene, texel: np.ndarray, albedo: np.ndarray):
     return brdf
 
 
-def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, int]:
-    """Radiance along eye rays traced against M1 with the baked normal and albedo maps."""
+def _hit_m1(scene: RenderScene, o: np.ndarray, d: np.ndarray):
+    """Eye rays against M1: (idx (k,) rays that hit, prim (k,), p (k, 3), uv (k, 2) atlas uv,
+    row (k,), col (k,) finest texel under the hit)."""
     v, f, cuv = _m1(scene)
-    nm = _normalmap_tables(scene)
-    caster = scene.lods[0]
-    hits = caster.cast(o, d)
-    rays = o.shape[0]
-    out = np.zeros((o.shape[0], 3))
+    hits = scene.lods[0].cast(o, d)
     idx = np.flatnonzero(hits.hit)
-    if idx.size == 0:
-        return out, rays
     prim = hits.prim[idx]
     b = hits.bary3()[idx]
     p = np.einsum("nk,nkj->nj", b, v[f[prim]])
     uv = np.einsum("nk,nkj->nj", b, cuv[prim])
+    row, col = uv_to_texel(uv, scene.n0)
+    return idx, prim, p, uv, row, col
+
+
+def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, int]:
+    """Radiance along eye rays traced against M1 with the baked normal and albedo maps."""
+    nm = _normalmap_tables(scene)
+    caster = scene.lods[0]
+    rays = o.shape[0]
+    out = np.zeros((o.shape[0], 3))
+    idx, prim, p, uv, row, col = _hit_m1(scene, o, d)
+    if idx.size == 0:
+        return out, rays
     albedo = _bilinear_map(scene.baked.albedo, uv)
     local = _bilinear_map(scene.baked.normal, uv)
     ns = np.einsum("nji,nj->ni", nm["frames"][prim], local)  # tangent space -> world
     ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
-    n = scene.n0
-    x = np.clip(np.floor(uv[:, 0] * n), 0, n - 1).astype(np.int64)
-    y = np.clip(np.floor((1.0 - uv[:, 1]) * n), 0, n - 1).astype(np.int64)
-    texel = y * n + x
+    texel = row * scene.n0 + col
     rad, shadow = direct_radiance(p, scene.lod_face_normals[0][prim], ns, -d[idx], scene.lights,
                                   normalmap_brdf(scene, texel, albedo), caster, scene.ray_eps)
     out[idx] = rad
@@ -446,15 +457,7 @@ def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray) -> tuple[n
 
 
 def _render_normalmap(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int):
-    acc = np.zeros((cam.height * cam.width, 3))
-    rays = 0
-    for _, o, d in _passes(cam, spp, seed):
-        rad = np.zeros_like(o)
-        for sl in _slices(o.shape[0]):
-            rad[sl], r = shade_normalmap(scene, o[sl], d[sl])
-            rays += r
-        acc += rad.reshape(-1, cam.height * cam.width, 3).sum(axis=0)
-    return (acc / spp).reshape(cam.height, cam.width, 3), rays
+    return _accumulate(cam, spp, seed, lambda o, d: shade_normalmap(scene, o, d))
 
 
 # --------------------------------------------------------------------------- btf
@@ -488,21 +491,13 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
     from texelbake.btf import btf_lookup_texels
 
     maps = btf_maps(scene)
-    v, f, cuv = _m1(scene)
     caster = scene.lods[0]
-    hits = caster.cast(o, d)
     rays = o.shape[0]
     out = np.zeros((o.shape[0], 3))
-    idx = np.flatnonzero(hits.hit)
+    idx, prim, p, _, row, col = _hit_m1(scene, o, d)
     if idx.size == 0:
         return out, rays
-    prim = hits.prim[idx]
-    b = hits.bary3()[idx]
-    p = np.einsum("nk,nkj->nj", b, v[f[prim]])
-    uv = np.einsum("nk,nkj->nj", b, cuv[prim])
     n = scene.n0
-    col = np.clip(np.floor(uv[:, 0] * n), 0, n - 1).astype(np.int64)
-    row = np.clip(np.floor((1.0 - uv[:, 1]) * n), 0, n - 1).astype(np.int64)
     frames = scene.baked.levels[0]["frames"][row * n + col].astype(np.float64)  # (k, 3, 3)
     ng = scene.lod_face_normals[0][prim]
     wo = -d[idx]
@@ -538,15 +533,7 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
 
 
 def _render_btf(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):
-    acc = np.zeros((cam.height * cam.width, 3))
-    rays = 0
-    for _, o, d in _passes(cam, spp, seed):
-        rad = np.zeros_like(o)
-        for sl in _slices(o.shape[0]):
-            rad[sl], r = shade_btf(scene, cam, o[sl], d[sl], **kw)
-            rays += r
-        acc += rad.reshape(-1, cam.height * cam.width, 3).sum(axis=0)
-    return (acc / spp).reshape(cam.height, cam.width, 3), rays
+    return _accumulate(cam, spp, seed, lambda o, d: shade_btf(scene, cam, o, d, **kw))
 
 
 # --------------------------------------------------------------------------- cpm
