@@ -407,7 +407,9 @@ def _read_png(path: Path, srgb: bool) -> np.ndarray:
         raise AssetError("cannot read image", path=str(path))
     px = np.asarray(pixels)[..., :3].astype(np.float64)
     if srgb:
-        px = np.where(px <= 0.04045, px / 12.92, ((px + 0.055) / 1.055) ** 2.4)
+        from texelbake.scene import srgb_to_linear
+
+        px = srgb_to_linear(px.astype(np.float32)).astype(np.float64)
     return px
 
 

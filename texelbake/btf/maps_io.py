@@ -68,16 +68,23 @@ def _write_exr(path: Path, pixels: np.ndarray, names: list[str], meta: str | Non
     os.replace(tmp, path)
 
 
-def _read_exr(path: Path, names: list[str]) -> tuple[np.ndarray, str | None]:
+def read_float_pixels(path: str | Path) -> tuple[np.ndarray, oiio.ImageSpec]:
+    """Any image OpenImageIO reads, as (h, w, c) float32 pixels and its spec; AssetError naming
+    the file when it cannot be opened or read."""
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise AssetError(f"cannot open EXR: {oiio.geterror()}", path=str(path))
+        raise AssetError(f"cannot open image: {oiio.geterror()}", path=str(path))
     spec = inp.spec()
     pixels = inp.read_image(oiio.FLOAT)
     inp.close()
     if pixels is None:
-        raise AssetError("cannot read EXR pixels", path=str(path))
-    pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+        raise AssetError("cannot read image pixels", path=str(path))
+    return (np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels),
+            spec)
+
+
+def _read_exr(path: Path, names: list[str]) -> tuple[np.ndarray, str | None]:
+    pixels, spec = read_float_pixels(path)
     have = list(spec.channelnames)
     missing = [n for n in names if n not in have]
     if missing:

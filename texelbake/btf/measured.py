@@ -28,7 +28,9 @@ import numpy as np
 import OpenImageIO as oiio
 
 from texelbake.btf.lut import dirs_from_degrees
+from texelbake.btf.maps_io import read_float_pixels
 from texelbake.errors import AssetError, AssetPathError
+from texelbake.scene import srgb_to_linear
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".hdr")
 DIRECTION_FILES = ("directions.json", "directions.csv")
@@ -113,24 +115,9 @@ def read_directions_file(path: str | os.PathLike) -> dict[str, tuple[float, floa
     return out
 
 
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 decoding of values in [0, 1]. (...) float -> same shape float32."""
-    x = np.asarray(x, dtype=np.float64)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
 def read_image_rgb(path: str | os.PathLike, *, srgb: str = "auto") -> np.ndarray:
     """One image as (h, w, 3) float32 linear RGB. srgb : "auto" | "yes" | "no"."""
-    path = Path(path)
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise AssetError(f"cannot open image: {oiio.geterror()}", path=str(path))
-    spec = inp.spec()
-    px = inp.read_image(oiio.FLOAT)
-    inp.close()
-    if px is None:
-        raise AssetError("cannot read image pixels", path=str(path))
-    px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    px, spec = read_float_pixels(Path(path))
     if spec.nchannels >= 3:
         px = px[:, :, :3]
     else:
