@@ -204,7 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("render", help="render a baked USD")
     p.add_argument("file")
-    p.add_argument("--modes", default="gt,cpm,normalmap,equal-time")
+    p.add_argument("--modes", default="gt,cpm,normalmap,equal-time",
+                   help="comma-separated: gt, cpm, normalmap, equal-time, btf (bakes with btf on)")
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=256)

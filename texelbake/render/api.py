@@ -27,9 +27,11 @@ from texelbake import metrics
 from texelbake.errors import SettingsError, StageError
 from texelbake.render import camera as cam_mod
 from texelbake.render.core import (
+    EXTRA_MODES,
     MODES,
     RenderResult,
     RenderScene,
+    has_btf_maps,
     load_scene,
     render_frame,
     resolve_camera,
@@ -179,7 +181,7 @@ def render_previews(baked_root: str | Path, out_dir: str | Path, *, size: str = 
     white); "far" — the same view moved back until a finest texel spans about a pixel
     (`core.lod_camera`), where the characteristic point maps are used; its files carry the
     prefix `far_`. Writes into out_dir, per view: gt_reference, gt, cpm, normalmap,
-    equal-time (.exr linear, .png sRGB); diff_<mode>.png (ΔE*ab against the reference);
+    equal-time, and btf when the bake wrote BTF maps (.exr linear, .png sRGB); diff_<mode>.png (ΔE*ab against the reference);
     mip_levels.png; and cp_density_atlas.png, cp_density_model.png, render_report.json,
     speed_error.png. Returns the written paths.
     """
@@ -195,8 +197,9 @@ def render_previews(baked_root: str | Path, out_dir: str | Path, *, size: str = 
     far = resolve_camera(scene, "lod", px, px)
     opts = {"spp": cfg["spp"], "ref_spp": cfg["ref_spp"], "gt_sweep": cfg["gt_sweep"],
             "cpm_sweep": cfg["cpm_sweep"], "seed": seed}
-    report = compare_modes(scene, near, out_dir=out, **opts)
-    report["far"] = compare_modes(scene, far, out_dir=out, prefix="far_", **opts)
+    modes = MODES + (("btf",) if has_btf_maps(scene) else ())
+    report = compare_modes(scene, near, out_dir=out, modes=modes, **opts)
+    report["far"] = compare_modes(scene, far, out_dir=out, prefix="far_", modes=modes, **opts)
     report["scene"] = scene.baked.name
     report["size"] = size
     files = [Path(f) for view in (report, report["far"]) for m in view["modes"].values()
@@ -223,11 +226,12 @@ def render_report(baked_root: str | Path, out_dir: str | Path, *,
     plot. modes : tuple or comma-separated string. Returns the report's path."""
     if isinstance(modes, str):
         modes = tuple(m.strip() for m in modes.split(",") if m.strip())
-    unknown = [m for m in modes if m not in MODES]
+    known = MODES + EXTRA_MODES
+    unknown = [m for m in modes if m not in known]
     if unknown or not modes:
-        raise SettingsError(f"field 'modes': expected some of {MODES}, got {modes!r}")
+        raise SettingsError(f"field 'modes': expected some of {known}, got {modes!r}")
     # equal-time needs the cpm image's time: render cpm first when both are asked for
-    modes = tuple(sorted(modes, key=MODES.index))
+    modes = tuple(sorted(set(modes), key=known.index))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scene = load_scene(baked_root)
@@ -245,9 +249,12 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
                   gt_sweep: tuple[int, ...] = (), cpm_sweep: tuple[int, ...] = (),
                   seed: int = 0, out_dir: Path | None = None,
                   modes: tuple[str, ...] = MODES, reference: RenderResult | None = None,
-                  prefix: str = "", **kw: Any) -> dict[str, Any]:
+                  prefix: str = "", btf_kw: dict[str, Any] | None = None,
+                  **kw: Any) -> dict[str, Any]:
     """Render the reference and every mode, measure their errors (report dict, module
-    docstring). Images and difference maps are written to out_dir when given."""
+    docstring). Images and difference maps are written to out_dir when given.
+    kw : cpm options; btf_kw : btf options (lod_bias, interpolate)."""
+    btf_kw = btf_kw or {}
     ref = reference if reference is not None else render_frame(
         scene, "gt", cam, ref_spp, seed + 1000)
     ref_img = ref.image
@@ -269,7 +276,8 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
                                budget_seconds=results["cpm"].seconds if "cpm" in results
                                else None, **kw)
         else:
-            res = render_frame(scene, mode, cam, spp, seed, **(kw if mode == "cpm" else {}))
+            res = render_frame(scene, mode, cam, spp, seed,
+                               **(kw if mode == "cpm" else btf_kw if mode == "btf" else {}))
         results[mode] = res
         entry = _entry(res, ref_img, eps_db)
         if mode == "cpm":
@@ -340,7 +348,7 @@ def write_report_plot(report_dir: str | Path) -> Path:
             key = label + e["mode"] + (f" (ε = {e['eps_db']:g} dB)" if "eps_db" in e else "")
             groups.setdefault(key, []).append(e)
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
-    markers = {"gt": "o", "cpm": "s", "normalmap": "^", "equal-time": "D"}
+    markers = {"gt": "o", "cpm": "s", "normalmap": "^", "equal-time": "D", "btf": "v"}
     for key in sorted(groups):
         pts = sorted(groups[key], key=lambda e: e["seconds"])
         mode = pts[0]["mode"]

@@ -463,14 +463,22 @@ def _render_normalmap(scene: RenderScene, cam: PinholeCamera, spp: int, seed: in
 # --------------------------------------------------------------------------- btf
 
 
+def _btf_files(scene: RenderScene) -> list[Path]:
+    return [scene.root.parent / f"btf_{p}.exr" for p in ("eigen", "weights", "lut", "pairs")]
+
+
+def has_btf_maps(scene: RenderScene) -> bool:
+    """Whether the bake wrote BTF maps beside its USD (`BakeSettings.btf`)."""
+    return all(f.is_file() for f in _btf_files(scene))
+
+
 def btf_maps(scene: RenderScene):
     """The bake's BTF maps (texelbake.btf.BTFMaps), read once from beside the baked USD."""
     if scene._btf is None:
         from texelbake.btf import read_btf_maps
 
         folder = scene.root.parent
-        need = [folder / f"btf_{p}.exr" for p in ("eigen", "weights", "lut", "pairs")]
-        missing = [str(f) for f in need if not f.is_file()]
+        missing = [str(f) for f in _btf_files(scene) if not f.is_file()]
         if missing:
             raise StageError(f"baked asset {scene.root}: mode 'btf' needs the BTF maps "
                              f"(bake with settings.btf on); missing {missing}")
