@@ -73,25 +73,20 @@ def icosphere(levels: int) -> tuple[np.ndarray, np.ndarray]:
     return pts, faces
 
 
-def write_plane_usd(path: Path, rho=RHO, light_dir=(0.3, 0.2, 0.9), intensity=3.0,
-                    cells: int = 4) -> Path:
-    """A flat unit plane (cells x cells quads in z = 0, facing +z) with one Lambertian
-    texelbake material, a distant light and a camera looking down at it."""
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    root = UsdGeom.Xform.Define(stage, "/Root")
-    stage.SetDefaultPrim(root.GetPrim())
-    xs, ys = np.meshgrid(np.linspace(-0.5, 0.5, cells + 1), np.linspace(-0.5, 0.5, cells + 1))
-    pts = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+def _author_quad_grid(stage, path: str, rect, cells: int):
+    """A cells x cells grid of quads over rect = (x0, x1, y0, y1, z), facing +z, with st."""
+    x0, x1, y0, y1, z = rect
+    xs, ys = np.meshgrid(np.linspace(x0, x1, cells + 1), np.linspace(y0, y1, cells + 1))
+    pts = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, float(z))], axis=1)
     idx, st = [], []
     for j in range(cells):
         for i in range(cells):
             v = j * (cells + 1) + i
             quad_ids = [v, v + 1, v + cells + 2, v + cells + 1]
             idx += quad_ids
-            st += [(pts[q, 0] + 0.5, pts[q, 1] + 0.5) for q in quad_ids]
-    mesh = UsdGeom.Mesh.Define(stage, "/Root/Plane")
+            st += [((pts[q, 0] - x0) / (x1 - x0), (pts[q, 1] - y0) / (y1 - y0))
+                   for q in quad_ids]
+    mesh = UsdGeom.Mesh.Define(stage, path)
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
     mesh.CreateFaceVertexCountsAttr([4] * (cells * cells))
     mesh.CreateFaceVertexIndicesAttr(idx)
@@ -100,14 +95,31 @@ def write_plane_usd(path: Path, rho=RHO, light_dir=(0.3, 0.2, 0.9), intensity=3.
     mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
     UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
         "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
-    ).Set(Vt.Vec2fArray([Gf.Vec2f(*map(float, s)) for s in st]))
+    ).Set(Vt.Vec2fArray([Gf.Vec2f(*map(float, q)) for q in st]))
+    return mesh
+
+
+def write_plane_usd(path: Path, rho=RHO, light_dir=(0.3, 0.2, 0.9), intensity=3.0,
+                    cells: int = 4, occluder=None) -> Path:
+    """A flat unit plane (cells x cells quads in z = 0, facing +z) with one Lambertian
+    texelbake material, a distant light and a camera looking down at it; with occluder =
+    (x0, x1, y0, y1, z) a second mesh, a quad floating above it that casts a shadow."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, "/Root")
+    stage.SetDefaultPrim(root.GetPrim())
+    meshes = [_author_quad_grid(stage, "/Root/Plane", (-0.5, 0.5, -0.5, 0.5, 0.0), cells)]
+    if occluder is not None:
+        meshes.append(_author_quad_grid(stage, "/Root/Occluder", occluder, 1))
     mat = UsdShade.Material.Define(stage, "/Root/Looks/Lambert")
     sh = UsdShade.Shader.Define(stage, "/Root/Looks/Lambert/Surface")
     sh.CreateIdAttr("texelbake:lambert")
     sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*map(float, rho)))
     mat.CreateSurfaceOutput("texelbake").ConnectToSource(
         sh.CreateOutput("surface", Sdf.ValueTypeNames.Token))
-    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+    for mesh in meshes:
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
     light = UsdLux.DistantLight.Define(stage, "/Root/Sun")
     d = np.asarray(light_dir, dtype=np.float64)
     d /= np.linalg.norm(d)
