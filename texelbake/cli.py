@@ -23,6 +23,7 @@ DEMO_SETTINGS = {
     "n_view_dirs": 32,
     "n_heldout": 64,
     "c_max": 32,
+    "btf": True,
 }
 
 
@@ -114,7 +115,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             else:
                 files = render_previews(root, out / name / "previews", size="small")
                 print(f"previews: {out / name / 'previews'} ({len(files)} files: gt, cpm, "
-                      f"normalmap, equal-time, differences, mip levels, point density)")
+                      f"normalmap, equal-time, btf, differences, mip levels, point density)")
     print(f"\nresults in {out.resolve()}")
     return 0
 
@@ -197,7 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="bake generated scenes in one process")
     p.add_argument("--out", default="demo_out")
-    p.add_argument("--scenes", default="cylinder", help="comma-separated scene names")
+    p.add_argument("--scenes", default="cylinder,wall,bolt,cloisonne",
+                   help="comma-separated scene names (default: the four test scenes)")
     p.add_argument("--no-previews", dest="previews", action="store_false")
     _add_settings_args(p)
     p.set_defaults(func=cmd_demo)

@@ -536,6 +536,9 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
         wi_l = np.einsum("nij,nj->ni", frames[live], wi[live])
         fbar = btf_lookup_texels(maps, row[live], col[live], wi_l, wo_l[live], lam[live],
                                  interpolate)
+        # a truncated PCA can undershoot zero where f̄ is near zero (measured: -0.06 in the
+        # demo's cylinder at 16²); reflectance is not negative, so neither is the radiance
+        fbar = np.maximum(fbar, 0.0)
         out[idx[live]] += e[live] * fbar  # f̄ carries cos_i cos_o already: E_l only
     return out, rays
 
