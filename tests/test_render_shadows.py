@@ -72,3 +72,22 @@ def test_cpm_carries_the_shadow_of_another_object(baked_shadow):
     np.testing.assert_allclose(y_cpm[lit], y_gt[lit], rtol=0.05)
     # the shadow's edges are blurred by the texel filter, nothing else differs much
     assert metrics.psnr_db(cpm.image, gt.image) >= 25.0
+
+
+def test_texel_radiance_of_a_subset_equals_the_full_level(baked_shadow):
+    """The cpm mode computes Eq. 12 only for the texels a frame looks up; each texel's value
+    must not depend on which others are computed with it."""
+    from texelbake.render.core import load_scene, resolve_camera, texel_radiance
+
+    scene = load_scene(baked_shadow)
+    cam = resolve_camera(scene, "lod", 32, 32)
+    for level in (0, 2):
+        rad, avis, ex, rays = texel_radiance(scene, level, cam.position)
+        assert ex.sum() > 10 and rad[ex].max() > 0
+        rng = np.random.default_rng(level)
+        sub = np.sort(rng.choice(rad.shape[0], size=rad.shape[0] // 3, replace=False))
+        r2, a2, e2, rays2 = texel_radiance(scene, level, cam.position, sub)
+        np.testing.assert_array_equal(e2, ex[sub])
+        np.testing.assert_allclose(r2, rad[sub], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(a2, avis[sub], rtol=1e-12, atol=1e-15)
+        assert rays2 < rays

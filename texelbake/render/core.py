@@ -564,32 +564,41 @@ def choose_mesh(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.
     return 0
 
 
-def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray
+def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray,
+                   texels: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Eq. 12 for every texel of one level, for this frame (module docstring).
+    """Eq. 12 for the texels of one level (all, or the ids in `texels`), for this frame
+    (module docstring). Each texel's value depends only on its own points, so computing a
+    subset gives the same values as computing all.
 
-    cam_pos : (3,) float64
-    returns : (radiance (n_l², 3) float64, a_vis (n_l²,) float64 toward the camera (0 where
-        invalid: the a_vis -> 0 limit), exists (n_l²,) bool — the texel has characteristic
+    cam_pos : (3,) float64; texels : (t,) int64 distinct texel ids, None = every texel
+    returns : (radiance (t, 3) float64, a_vis (t,) float64 toward the camera (0 where
+        invalid: the a_vis -> 0 limit), exists (t,) bool — the texel has characteristic
         points, rays cast)
     """
     lv = scene.baked.levels[level]
     offsets = lv["texel_offsets"]
-    n_tex = offsets.shape[0] - 1
-    counts = np.diff(offsets)
+    if texels is None:
+        texels = np.arange(offsets.shape[0] - 1)
+    texels = np.asarray(texels, dtype=np.int64)
+    n_tex = texels.shape[0]
+    counts = offsets[texels + 1] - offsets[texels]
     exists = counts > 0
     radiance = np.zeros((n_tex, 3))
     avis = np.zeros(n_tex)
-    n_pts = int(offsets[-1])
+    n_pts = int(counts.sum())
     if n_pts == 0:
         return radiance, avis, exists, 0
-    tex = np.repeat(np.arange(n_tex), counts)  # (P,)
-    pos = lv["point_position"].astype(np.float64)
-    ng = lv["point_geom_normal"].astype(np.float64)
-    ns = lv["point_normal"].astype(np.float64)
+    tex = np.repeat(np.arange(n_tex), counts)  # (P,) local texel of each point
+    # the points of the chosen texels: each texel's CSR range, concatenated
+    first = np.cumsum(counts) - counts
+    pt = offsets[texels][tex] + (np.arange(n_pts) - first[tex])
+    pos = lv["point_position"][pt].astype(np.float64)
+    ng = lv["point_geom_normal"][pt].astype(np.float64)
+    ns = lv["point_normal"][pt].astype(np.float64)
     ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
     ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-300)
-    w = lv["point_weight"].astype(np.float64)  # (P, 3)
+    w = lv["point_weight"][pt].astype(np.float64)  # (P, 3)
     # one view direction per texel: weighted centroid -> camera
     ws = np.abs(w).sum(axis=1)
     ws = np.where(np.bincount(tex, ws, n_tex)[tex] > 0, ws, 1.0)
@@ -609,21 +618,27 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray
         occ = scene.org.occluded(pos[vi] + scene.ray_eps * ng[vi], wo[vi], tmax=tmax)
         rays += vi.size
         view[vi[occ]] = False
-    mat = lv["point_material"].astype(np.int64)
-    uv = lv["point_uv"].astype(np.float64)
+    mat = lv["point_material"][pt].astype(np.int64)
+    uv = lv["point_uv"][pt].astype(np.float64)
 
     def brdf(sel: np.ndarray, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
         return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi_l, wo_l, uv[sel])
 
-    # Σ_l E_l V_i f_r cos_i (the shading of `direct_radiance`, at the points, toward ωo)
-    lit, r = direct_radiance(pos, ng, ns, wo, scene.lights, brdf, scene.org, scene.ray_eps)
-    rays += r
+    # Σ_l E_l V_i f_r cos_i (the shading of `direct_radiance`, at the points, toward ωo),
+    # for the points that see the camera (the others add nothing)
+    lit = np.zeros((n_pts, 3))
+    seen = np.flatnonzero(view)
+    if seen.size:
+        lit[seen], r = direct_radiance(pos[seen], ng[seen], ns[seen], wo[seen], scene.lights,
+                                       lambda sel, wi_l, wo_l: brdf(seen[sel], wi_l, wo_l),
+                                       scene.org, scene.ray_eps)
+        rays += r
     contrib = np.where(view[:, None], lit * w * cos_go[:, None], 0.0)  # (P, 3)
     num = np.stack([np.bincount(tex, contrib[:, c], n_tex) for c in range(3)], axis=1)
     live = np.flatnonzero(exists)
-    frames = lv["frames"][live]
+    frames = lv["frames"][texels[live]]
     wo_local = np.einsum("nij,nj->ni", frames, wo_tex[live])
-    a, valid = scene.avis_table(level).evaluate(live, wo_local)
+    a, valid = scene.avis_table(level).evaluate(texels[live], wo_local)
     radiance[live] = np.where(valid[:, None], num[live] / np.where(valid, a, 1.0)[:, None], 0.0)
     avis[live] = np.where(valid, a, 0.0)
     return radiance, avis, exists, rays
@@ -631,23 +646,33 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray
 
 class CpmFrame:
     """Per-frame data of the cpm mode: the texel radiance of each level, computed the first
-    time a sample needs that level (a far view touches only the coarse levels)."""
+    time a sample needs that texel (a frame touches the texels it sees, on the levels its
+    footprints select: far views only coarse levels, and never the back of the object)."""
 
     def __init__(self, scene: RenderScene, cam: PinholeCamera, mesh: int) -> None:
         self.scene = scene
         self.cam_pos = np.asarray(cam.position, dtype=np.float64)
         self.mesh = mesh
         self.n_levels = len(scene.baked.levels)
-        self._levels: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._levels: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.rays = 0
 
-    def level(self, j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(radiance (n_j², 3), a_vis (n_j²,), exists (n_j²,) bool) of level j."""
+    def level(self, j: int, texels: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(radiance (n_j², 3), a_vis (n_j²,), exists (n_j²,) bool) of level j, computed
+        for `texels` (ids, any shape; None = all) if not yet; other entries may be unset."""
         if j not in self._levels:
-            rad, avis, ex, n = texel_radiance(self.scene, j, self.cam_pos)
-            self._levels[j] = (rad, avis, ex)
-            self.rays += n
-        return self._levels[j]
+            n = self.scene.baked.levels[j]["texel_offsets"].shape[0] - 1
+            self._levels[j] = (np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool),
+                               np.zeros(n, bool))
+        rad, avis, ex, done = self._levels[j]
+        want = np.arange(done.shape[0]) if texels is None else np.unique(texels)
+        todo = want[~done[want]]
+        if todo.size:
+            r, a, e, n_rays = texel_radiance(self.scene, j, self.cam_pos, todo)
+            rad[todo], avis[todo], ex[todo], done[todo] = r, a, e, True
+            self.rays += n_rays
+        return rad, avis, ex
 
 
 def cpm_frame(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0) -> CpmFrame:
@@ -667,8 +692,8 @@ def _lookup_level(frame: CpmFrame, level: int, uv: np.ndarray, n0: int,
         texture unit does).
     returns : (radiance (n, 3), weight sum (n,) — 0 where no texel around uv exists)"""
     n_l = max(n0 >> level, 1)
-    radiance, avis, exists = frame.level(level)
     idx, w = bilinear_texels(uv, n_l)
+    radiance, avis, exists = frame.level(level, idx)
     w = w * exists[idx]
     s = w.sum(axis=1)
     if filtering == "projected":
