@@ -64,6 +64,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -71,23 +73,34 @@ if str(ROOT) not in sys.path:
 from schemas.settings import BakeSettings  # noqa: E402
 from texelbake.pipeline import bake  # noqa: E402
 from texelbake.render.api import _write_json, compare_modes, write_report_plot  # noqa: E402
-from texelbake.render.core import load_scene, render_frame, resolve_camera  # noqa: E402
+from texelbake.render.core import MODES, load_scene, render_frame, resolve_camera  # noqa: E402
 from texelbake.scenes import write_scene  # noqa: E402
 
+#: bake settings of the benchmark besides the atlas and ε: what bakes a small scene in a few
+#: minutes here (`--quality high`: 32 x 32 directions, c_max 32, 6 x 32² a_vis cells)
+QUALITY = {
+    "fast": {"samples_per_texel": 16, "n_light_dirs": 16, "n_view_dirs": 16, "n_heldout": 16,
+             "c_max": 16},
+    "high": {"samples_per_texel": 16, "n_light_dirs": 32, "n_view_dirs": 32, "n_heldout": 16,
+             "c_max": 32, "avis_resolution": 32},
+}
 
-def bake_scene(scene: str, work: Path, atlas: int, eps_db: float) -> Path:
-    src = write_scene(scene, work / "src" / f"{scene}.usda", "small")
-    settings = BakeSettings(atlas_resolution=atlas, shard_texels=min(atlas, 16),
-                            samples_per_texel=16, n_light_dirs=16, n_view_dirs=16,
-                            n_heldout=16, c_max=16, mesh_levels=2, eps_db=eps_db)
-    out = work / f"baked_a{atlas}_e{eps_db:g}"
-    root = out / f"{scene}_baked.usda"
+
+def bake_scene(scene: str, work: Path, atlas: int, eps_db: float, *, size: str = "small",
+               quality: str = "fast", m1_faces: int = 0, btf: bool = False) -> Path:
+    src = write_scene(scene, work / "src" / f"{scene}_{size}.usda", size)
+    settings = BakeSettings(atlas_resolution=atlas, shard_texels=min(atlas, 16), mesh_levels=2,
+                            eps_db=eps_db, m1_faces=m1_faces, btf=btf, **QUALITY[quality])
+    out = work / (f"baked_{size}_a{atlas}_e{eps_db:g}_{quality}" + (f"_m{m1_faces}" if m1_faces
+                                                                     else "")
+                  + ("_btf" if btf else ""))
+    root = out / f"{scene}_{size}_baked.usda"
     if root.is_file():
         return root
     t0 = time.perf_counter()
-    root = bake(src, out, settings, progress=False)
-    print(f"baked {scene} (atlas {atlas}, eps {eps_db:g} dB) in "
-          f"{time.perf_counter() - t0:.0f} s", flush=True)
+    root = bake(src, out, settings, progress=False, jobs=2)
+    print(f"baked {scene} ({size}, atlas {atlas}, eps {eps_db:g} dB, {quality}, M1 "
+          f"{m1_faces or 'default'} faces) in {time.perf_counter() - t0:.0f} s", flush=True)
     return root
 
 
@@ -103,6 +116,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--baked", type=Path, default=None)
     ap.add_argument("--camera", choices=("lod", "asset"), default="lod")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--scene-size", choices=("small", "full"), default="small")
+    ap.add_argument("--quality", choices=sorted(QUALITY), default="fast")
+    ap.add_argument("--m1-faces", type=int, default=0,
+                    help="faces of M1 (0: the bake's rule); a smooth M1 leaves the detail to "
+                         "the maps, as the seed's cylinder")
+    ap.add_argument("--btf", action="store_true", help="bake BTF maps and add the btf mode")
     ap.add_argument("--work", type=Path, default=Path("bench_out/render"))
     args = ap.parse_args(argv)
 
@@ -110,7 +129,9 @@ def main(argv: list[str] | None = None) -> dict:
     work = args.work / args.scene
     out = args.out or work / f"images_{args.size}"
     out.mkdir(parents=True, exist_ok=True)
-    root = args.baked or bake_scene(args.scene, work, args.atlas, eps_list[0])
+    bake_kw = {"size": args.scene_size, "quality": args.quality, "m1_faces": args.m1_faces,
+               "btf": args.btf}
+    root = args.baked or bake_scene(args.scene, work, args.atlas, eps_list[0], **bake_kw)
     scene = load_scene(root)
     cam = resolve_camera(scene, "lod" if args.camera == "lod" else None, args.size, args.size)
     print(f"{args.scene}: {args.size}x{args.size}, camera {args.camera} at "
@@ -121,10 +142,11 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"reference gt at {args.ref_spp} spp: {ref.seconds:.1f} s "
           f"({time.perf_counter() - t0:.1f} s wall)", flush=True)
     gt_sweep = tuple(s for s in (1, 4, 16, 64, 256) if s <= args.ref_spp // 4)
+    modes = MODES + (("btf",) if args.btf else ())
     report = compare_modes(scene, cam, spp=args.spp, ref_spp=args.ref_spp, gt_sweep=gt_sweep,
-                           cpm_sweep=(1, 4, 16), out_dir=out, reference=ref)
+                           cpm_sweep=(1, 4, 16), out_dir=out, reference=ref, modes=modes)
     for eps in eps_list[1:]:  # further ε: one bake each, cpm at the same spp
-        sc = load_scene(bake_scene(args.scene, work, args.atlas, eps))
+        sc = load_scene(bake_scene(args.scene, work, args.atlas, eps, **bake_kw))
         for s in (1, args.spp, 16):
             r = render_frame(sc, "cpm", cam, s, 0)
             from texelbake.render.api import _entry
@@ -133,6 +155,9 @@ def main(argv: list[str] | None = None) -> dict:
     report["scene"] = args.scene
     report["camera"] = args.camera
     report["atlas"] = scene.n0
+    report["bake"] = {**bake_kw, "m1_faces_actual": int(scene.lods[0].num_faces),
+                      "org_faces": int(scene.asset.num_faces)}
+    report["object_pixels"] = int(np.sum(ref.image.max(axis=2) > 0))
     ref_s = ref.seconds
     modes = report["modes"]
     cpm, eq, nm = modes["cpm"], modes["equal-time"], modes["normalmap"]

@@ -27,7 +27,7 @@ from texelbake import cpm, directions
 from texelbake.errors import StageError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.atlas import build_atlas, map_into_atlas
-from texelbake.geometry.hierarchy import simplify_hierarchy
+from texelbake.geometry.hierarchy import enclose, simplify_hierarchy
 from texelbake.geometry.mesh import Mesh
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import sample_surface
@@ -161,10 +161,21 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
     asset = ctx.asset()
     n = s.atlas_resolution
     target = m1_target_faces(asset.num_faces, s)
+    samples = sample_surface(
+        asset.points, asset.faces, n * n * s.samples_per_texel, s.seed,
+        corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
+        face_material=asset.face_material,
+    )
+    offsets: list[float] = []
     for attempt in range(4):  # a few halvings of M1 until its charts fit one page
         meshes = simplify_hierarchy(
             asset.points, asset.faces, s.mesh_levels, s.simplify_ratio, target_faces=target,
         )
+        if s.enclose_meshes:  # every M_i covers M_org's outline (geometry.hierarchy.enclose)
+            probe = samples.positions[:: max(1, samples.positions.shape[0] // 200_000)]
+            moved = [enclose(m, probe) for m in meshes]
+            meshes = [m for m, _ in moved]
+            offsets = [off for _, off in moved]
         try:
             atlas = _build_atlas_fitting(meshes[0], n)
             break
@@ -174,11 +185,6 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
             if s.m1_faces or attempt == 3 or target // 2 < 8:
                 raise
             target //= 2
-    samples = sample_surface(
-        asset.points, asset.faces, n * n * s.samples_per_texel, s.seed,
-        corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
-        face_material=asset.face_material,
-    )
     assignment = assign_texels(samples.positions, atlas.mesh, atlas, ctx.n_levels)
     gnrm = asset.face_normals()[samples.face]
     out: dict[str, np.ndarray] = {
@@ -196,6 +202,7 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
         "m1_vertices": atlas.mesh.vertices,
         "m1_faces": atlas.mesh.faces,
         "m1_corner_uvs": atlas.corner_uvs,
+        "mesh_offsets": np.asarray(offsets, dtype=np.float64),
     }
     for level in range(ctx.n_levels):
         frames, valid = texel_frames(

@@ -150,6 +150,7 @@ class RenderScene(OrgScene):
         self.lod_error = [_hausdorff(self.org, c, self.asset.points, m.vertices)
                           for c, m in zip(self.lods, self.baked.meshes, strict=True)]
         self._tables = [_avis_table(lv) for lv in self.baked.levels]
+        self._points: dict[int, dict[str, np.ndarray]] = {}
         self._nm: dict[str, np.ndarray] | None = None
         self._btf: Any = None
         self.setup_seconds = time.perf_counter() - t0
@@ -157,6 +158,22 @@ class RenderScene(OrgScene):
     def avis_table(self, level: int):
         """The level's a_vis table (texelbake.avis.AvisTable), rebuilt once at load."""
         return self._tables[level]
+
+    def points(self, level: int) -> dict[str, np.ndarray]:
+        """The level's characteristic points in float64, unit normals (converted once):
+        position, geom_normal, normal (P, 3); weight (P, 3); material (P,) int64; uv (P, 2)."""
+        if level not in self._points:
+            lv = self.baked.levels[level]
+            ng = lv["point_geom_normal"].astype(np.float64)
+            ns = lv["point_normal"].astype(np.float64)
+            ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-300)
+            ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
+            self._points[level] = {
+                "position": lv["point_position"].astype(np.float64), "geom_normal": ng,
+                "normal": ns, "weight": lv["point_weight"].astype(np.float64),
+                "material": lv["point_material"].astype(np.int64),
+                "uv": lv["point_uv"].astype(np.float64)}
+        return self._points[level]
 
 
 def _avis_table(level: dict[str, np.ndarray]):
@@ -593,12 +610,8 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray,
     # the points of the chosen texels: each texel's CSR range, concatenated
     first = np.cumsum(counts) - counts
     pt = offsets[texels][tex] + (np.arange(n_pts) - first[tex])
-    pos = lv["point_position"][pt].astype(np.float64)
-    ng = lv["point_geom_normal"][pt].astype(np.float64)
-    ns = lv["point_normal"][pt].astype(np.float64)
-    ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
-    ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-300)
-    w = lv["point_weight"][pt].astype(np.float64)  # (P, 3)
+    cp = scene.points(level)
+    pos, ng, ns, w = cp["position"][pt], cp["geom_normal"][pt], cp["normal"][pt], cp["weight"][pt]
     # one view direction per texel: weighted centroid -> camera
     ws = np.abs(w).sum(axis=1)
     ws = np.where(np.bincount(tex, ws, n_tex)[tex] > 0, ws, 1.0)
@@ -618,8 +631,7 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray,
         occ = scene.org.occluded(pos[vi] + scene.ray_eps * ng[vi], wo[vi], tmax=tmax)
         rays += vi.size
         view[vi[occ]] = False
-    mat = lv["point_material"][pt].astype(np.int64)
-    uv = lv["point_uv"][pt].astype(np.float64)
+    mat, uv = cp["material"][pt], cp["uv"][pt]
 
     def brdf(sel: np.ndarray, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
         return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi_l, wo_l, uv[sel])
@@ -654,24 +666,42 @@ class CpmFrame:
         self.cam_pos = np.asarray(cam.position, dtype=np.float64)
         self.mesh = mesh
         self.n_levels = len(scene.baked.levels)
-        self._levels: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        # per level: radiance, a_vis, exists, computed, requested
+        self._levels: dict[int, tuple[np.ndarray, ...]] = {}
         self.rays = 0
+
+    def _arrays(self, j: int) -> tuple[np.ndarray, ...]:
+        if j not in self._levels:
+            n = self.scene.baked.levels[j]["texel_offsets"].shape[0] - 1
+            self._levels[j] = (np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool),
+                               np.zeros(n, bool), np.zeros(n, bool))
+        return self._levels[j]
+
+    def request(self, j: int, texels: np.ndarray) -> None:
+        """Mark texels (ids, any shape) of level j as needed by the next `flush`."""
+        self._arrays(j)[4][np.asarray(texels).ravel()] = True
+
+    def flush(self) -> None:
+        """Compute every requested texel not yet computed: one `texel_radiance` call per
+        level (each call has a fixed cost; a frame's look-ups would otherwise make dozens)."""
+        for j in sorted(self._levels):
+            wanted, done = self._levels[j][4], self._levels[j][3]
+            self._compute(j, np.flatnonzero(wanted & ~done))
+
+    def _compute(self, j: int, todo: np.ndarray) -> None:
+        if todo.size:
+            rad, avis, ex, done, _ = self._arrays(j)
+            r, a, e, n_rays = texel_radiance(self.scene, j, self.cam_pos, todo)
+            rad[todo], avis[todo], ex[todo], done[todo] = r, a, e, True
+            self.rays += n_rays
 
     def level(self, j: int, texels: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(radiance (n_j², 3), a_vis (n_j²,), exists (n_j²,) bool) of level j, computed
         for `texels` (ids, any shape; None = all) if not yet; other entries may be unset."""
-        if j not in self._levels:
-            n = self.scene.baked.levels[j]["texel_offsets"].shape[0] - 1
-            self._levels[j] = (np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool),
-                               np.zeros(n, bool))
-        rad, avis, ex, done = self._levels[j]
+        rad, avis, ex, done, _ = self._arrays(j)
         want = np.arange(done.shape[0]) if texels is None else np.unique(texels)
-        todo = want[~done[want]]
-        if todo.size:
-            r, a, e, n_rays = texel_radiance(self.scene, j, self.cam_pos, todo)
-            rad[todo], avis[todo], ex[todo], done[todo] = r, a, e, True
-            self.rays += n_rays
+        self._compute(j, want[~done[want]])
         return rad, avis, ex
 
 
@@ -680,10 +710,11 @@ def cpm_frame(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0)
     return CpmFrame(scene, cam, choose_mesh(scene, cam, max_error_px))
 
 
-def _lookup_level(frame: CpmFrame, level: int, uv: np.ndarray, n0: int,
+def _lookup_level(frame: CpmFrame, level: int, idx: np.ndarray, w: np.ndarray,
                   filtering: str = "projected") -> tuple[np.ndarray, np.ndarray]:
     """Bilinear texel radiance at one level; weights of texels without points are dropped.
 
+    idx, w : (n, 4) the bilinear texels and weights (`geometry.texels.bilinear_texels`)
     filtering : "projected" — each texel weighted by its bilinear weight times its visible
         projected area a_vis toward the viewer, L = Σ w a L / Σ w a = Σ w num / Σ w a (the
         pixel integrates radiance over the visible projected area, and a_vis is exactly that
@@ -691,8 +722,6 @@ def _lookup_level(frame: CpmFrame, level: int, uv: np.ndarray, n0: int,
         a_vis -> 0 limit needs no special case); "radiance" — plain bilinear of L (what a
         texture unit does).
     returns : (radiance (n, 3), weight sum (n,) — 0 where no texel around uv exists)"""
-    n_l = max(n0 >> level, 1)
-    idx, w = bilinear_texels(uv, n_l)
     radiance, avis, exists = frame.level(level, idx)
     w = w * exists[idx]
     s = w.sum(axis=1)
@@ -701,10 +730,96 @@ def _lookup_level(frame: CpmFrame, level: int, uv: np.ndarray, n0: int,
         sa = wa.sum(axis=1)
         rad = np.einsum("nk,nkc->nc", wa, radiance[idx])
         return np.divide(rad, sa[:, None], out=np.zeros_like(rad), where=sa[:, None] > 0), s
-    if filtering != "radiance":
-        raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
     rad = np.einsum("nk,nkc->nc", w, radiance[idx])
     return np.divide(rad, s[:, None], out=np.zeros_like(rad), where=s[:, None] > 0), s
+
+
+def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
+                 d: np.ndarray, *, lod_bias: float = 0.0, local_light_ratio: float = 8.0
+                 ) -> dict[str, Any]:
+    """First half of `shade_cpm`: eye rays against M_i, atlas uv, mip level λ of every hit;
+    the texels the look-ups will read are requested from `frame` (computed in one batch by
+    `CpmFrame.flush`)."""
+    i = frame.mesh
+    mesh = scene.baked.meshes[i]
+    hits = scene.lods[i].cast(o, d)
+    idx = np.flatnonzero(hits.hit)
+    h: dict[str, Any] = {"n": o.shape[0], "idx": idx, "rays": o.shape[0]}
+    if idx.size == 0:
+        return h
+    prim = hits.prim[idx]
+    b = hits.bary3()[idx]
+    p = np.einsum("nk,nkj->nj", b, mesh.vertices[mesh.faces[prim]])
+    uv = np.einsum("nk,nkj->nj", b, mesh.corner_uvs[prim])
+    inexact = ~scene.lod_uv_exact[i][prim]
+    if inexact.any():  # the exact composite map: closest point on M1, its atlas uv
+        v1, f1, c1 = _m1(scene)
+        _, p1, b1 = scene.lods[0].closest_points(p[inexact])
+        w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
+        uv[inexact] = np.einsum("nk,nkj->nj", w1, c1[p1])
+    # ray differential: the pixel's footprint on M_i (screen-space derivatives, seed 000
+    # §4.2; the footprint of the pixel, not of the sample, as texture hardware does under
+    # multi-sampling), mapped into the atlas by the triangle's uv density
+    t = np.linalg.norm(p - o[idx], axis=1)
+    cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", scene.lod_face_normals[i][prim],
+                                        d[idx])), 1e-3)
+    cos_p = np.clip(d[idx] @ cam.forward, 1e-3, 1.0)
+    area_world = (t * cam.pixel_angle) ** 2 * cos_p ** 3 / cos_t
+    ratio = scene.lod_uv_ratio[i][prim]
+    lam = 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(scene.n0)
+    lam += lod_bias
+    s0 = 1.0 / (scene.n0 * np.sqrt(ratio))  # world size of a finest texel
+    for light in scene.lights:  # local lights: keep ωi about constant across a texel
+        if light.kind != "distant":
+            _, _, dist = light_at(light, p)
+            lam = np.minimum(lam, np.log2(np.maximum(dist / (local_light_ratio * s0),
+                                                     1e-300)))
+    n_lv = frame.n_levels
+    use = lam >= 0.0
+    lam_c = np.clip(lam, 0.0, n_lv - 1.0)
+    j0 = np.floor(lam_c).astype(np.int64)
+    fr = lam_c - j0
+    # per level, the samples reading it (weight 1 - fr at j0, fr at j0 + 1) and their texels
+    reads = []
+    for j in range(n_lv):  # a loop over the few levels; each sample touches two
+        for sel, up in ((np.flatnonzero(use & (j0 == j)), False),
+                        (np.flatnonzero(use & (j0 + 1 == j) & (fr > 0)), True)):
+            if sel.size:
+                tex, w = bilinear_texels(uv[sel], max(scene.n0 >> j, 1))
+                frame.request(j, tex)
+                reads.append((j, sel, up, tex, w))
+    h.update(use=use, lam_c=lam_c, fr=fr, reads=reads)
+    return h
+
+
+def _cpm_finish(scene: RenderScene, frame: CpmFrame, o: np.ndarray, d: np.ndarray,
+                h: dict[str, Any], filtering: str = "projected"
+                ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Second half of `shade_cpm`: trilinear look-ups of the texel radiance, M_org where the
+    maps do not apply. returns (radiance (n, 3), level (n,), rays cast)"""
+    n, idx, rays = h["n"], h["idx"], h["rays"]
+    out = np.zeros((n, 3))
+    level = np.full(n, np.nan)
+    if idx.size == 0:
+        return out, level, rays
+    use, lam_c, fr = h["use"], h["lam_c"], h["fr"]
+    rad = np.zeros((idx.size, 3))
+    wsum = np.zeros(idx.size)
+    for j, sel, up, tex, w in h["reads"]:
+        r, s = _lookup_level(frame, j, tex, w, filtering)
+        weight = (fr[sel] if up else 1.0 - fr[sel]) * (s > 0)
+        rad[sel] += weight[:, None] * r
+        wsum[sel] += weight
+    ok = use & (wsum > 0)
+    out[idx[ok]] = rad[ok] / wsum[ok, None]
+    level[idx[ok]] = lam_c[ok]
+    # closer than the finest level (or no texel there): multi-sample M_org
+    fb = idx[~ok]
+    if fb.size:
+        out[fb], r_fb = shade_org(scene, o[fb], d[fb])
+        rays += r_fb
+        level[fb] = -1.0
+    return out, level, rays
 
 
 def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
@@ -716,74 +831,17 @@ def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.nda
     returns : (radiance (n, 3), level (n,) float64 — the fractional mip level used, -1 where
         M_org was used, NaN for misses; rays cast)
     """
-    i = frame.mesh
-    mesh = scene.baked.meshes[i]
-    caster = scene.lods[i]
-    n = o.shape[0]
-    out = np.zeros((n, 3))
-    level = np.full(n, np.nan)
-    hits = caster.cast(o, d)
-    rays = n
-    idx = np.flatnonzero(hits.hit)
-    if idx.size:
-        prim = hits.prim[idx]
-        b = hits.bary3()[idx]
-        p = np.einsum("nk,nkj->nj", b, mesh.vertices[mesh.faces[prim]])
-        uv = np.einsum("nk,nkj->nj", b, mesh.corner_uvs[prim])
-        inexact = ~scene.lod_uv_exact[i][prim]
-        if inexact.any():  # the exact composite map: closest point on M1, its atlas uv
-            v1, f1, c1 = _m1(scene)
-            _, p1, b1 = scene.lods[0].closest_points(p[inexact])
-            w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
-            uv[inexact] = np.einsum("nk,nkj->nj", w1, c1[p1])
-        # ray differential: the pixel's footprint on M_i (screen-space derivatives, seed 000
-        # §4.2; the footprint of the pixel, not of the sample, as texture hardware does under
-        # multi-sampling), mapped into the atlas by the triangle's uv density
-        t = np.linalg.norm(p - o[idx], axis=1)
-        cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", scene.lod_face_normals[i][prim],
-                                            d[idx])), 1e-3)
-        cos_p = np.clip(d[idx] @ cam.forward, 1e-3, 1.0)
-        area_world = (t * cam.pixel_angle) ** 2 * cos_p ** 3 / cos_t
-        ratio = scene.lod_uv_ratio[i][prim]
-        lam = 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(scene.n0)
-        lam += lod_bias
-        s0 = 1.0 / (scene.n0 * np.sqrt(ratio))  # world size of a finest texel
-        for light in scene.lights:  # local lights: keep ωi about constant across a texel
-            if light.kind != "distant":
-                _, _, dist = light_at(light, p)
-                lam = np.minimum(lam, np.log2(np.maximum(dist / (local_light_ratio * s0),
-                                                         1e-300)))
-        n_lv = frame.n_levels
-        use = lam >= 0.0
-        lam_c = np.clip(lam, 0.0, n_lv - 1.0)
-        j0 = np.floor(lam_c).astype(np.int64)
-        fr = lam_c - j0
-        rad = np.zeros((idx.size, 3))
-        wsum = np.zeros(idx.size)
-        for j in range(n_lv):  # a loop over the few levels; each sample touches two
-            for sel, wt in ((np.flatnonzero(use & (j0 == j)), None),
-                            (np.flatnonzero(use & (j0 + 1 == j) & (fr > 0)), "up")):
-                if sel.size == 0:
-                    continue
-                r, s = _lookup_level(frame, j, uv[sel], scene.n0, filtering)
-                weight = (1.0 - fr[sel]) if wt is None else fr[sel]
-                weight = weight * (s > 0)
-                rad[sel] += weight[:, None] * r
-                wsum[sel] += weight
-        ok = use & (wsum > 0)
-        out[idx[ok]] = rad[ok] / wsum[ok, None]
-        level[idx[ok]] = lam_c[ok]
-        # closer than the finest level (or no texel there): multi-sample M_org
-        fb = idx[~ok]
-        if fb.size:
-            out[fb], r_fb = shade_org(scene, o[fb], d[fb])
-            rays += r_fb
-            level[fb] = -1.0
-    return out, level, rays
+    h = _cpm_prepare(scene, frame, cam, o, d, lod_bias=lod_bias,
+                     local_light_ratio=local_light_ratio)
+    frame.flush()
+    return _cpm_finish(scene, frame, o, d, h, filtering)
 
 
 def _render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):
     max_error_px = kw.pop("max_error_px", 1.0)
+    filtering = kw.pop("filtering", "projected")
+    if filtering not in ("projected", "radiance"):
+        raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
     frame = cpm_frame(scene, cam, max_error_px)
     n_pix = cam.height * cam.width
     acc = np.zeros((n_pix, 3))
@@ -791,11 +849,18 @@ def _render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **k
     lvl_cnt = np.zeros(n_pix)
     fallback = 0
     rays = 0
+    # two phases, so that the texel radiance of the whole frame is computed in one batch per
+    # level (`CpmFrame.flush`): every eye ray first, then every look-up
+    passes = []
     for _, o, d in _passes(cam, spp, seed):
+        passes.append((o, d, [(sl, _cpm_prepare(scene, frame, cam, o[sl], d[sl], **kw))
+                              for sl in _slices(o.shape[0])]))
+    frame.flush()
+    for o, d, prepared in passes:
         rad = np.zeros_like(o)
         lvl = np.full(o.shape[0], np.nan)
-        for sl in _slices(o.shape[0]):
-            rad[sl], lvl[sl], r = shade_cpm(scene, frame, cam, o[sl], d[sl], spp, **kw)
+        for sl, h in prepared:
+            rad[sl], lvl[sl], r = _cpm_finish(scene, frame, o[sl], d[sl], h, filtering)
             rays += r
         acc += rad.reshape(-1, n_pix, 3).sum(axis=0)
         lv = lvl.reshape(-1, n_pix)
