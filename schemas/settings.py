@@ -27,8 +27,8 @@ class BakeSettings(BaseModel):
     simplify_ratio: float = Field(0.25, gt=0.0, lt=1.0, description="Face ratio M_{i+1}/M_i.")
     enclose_meshes: bool = Field(
         True,
-        description="Move M1..Mn outward until they cover M_org's outline (the 99th percentile "
-        "of its samples' distance outside); false: the seed's QEM meshes as they are.",
+        description="Move M1..Mn outward until they cover M_org's outline (each face's plane to "
+        "its farthest sample outside); false: the seed's QEM meshes as they are.",
     )
     m1_faces: int = Field(
         0, ge=0, description="Target faces of M1; 0 = simplify_ratio x the original face count."

@@ -82,3 +82,35 @@ def test_fit_shape_error():
     wi, wo = _grid()
     with pytest.raises(ShapeError, match="mean must be"):
         fit_phong(np.zeros(3), wi, wo)
+
+
+def test_resolvable_alpha_from_the_direction_spacing():
+    """(cos(δ/2))^alpha = 1/2 with δ the median nearest-neighbour angle: directions 20
+    degrees apart on a great circle resolve alpha = ln(1/2) / ln(cos 10 deg) = 45.2."""
+    from texelbake.btf.compress import resolvable_alpha
+
+    t = np.radians(np.arange(0, 81, 20.0))
+    dirs = np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], axis=1)
+    expect = np.log(0.5) / np.log(np.cos(np.radians(10.0)))
+    assert resolvable_alpha(dirs, dirs) == pytest.approx(expect, rel=1e-6)
+    # the larger spacing of the two sets decides
+    fine = np.stack([np.sin(t / 2), np.zeros_like(t), np.cos(t / 2)], axis=1)
+    assert resolvable_alpha(fine, dirs) == pytest.approx(expect, rel=1e-6)
+
+
+def test_a_lobe_sharper_than_the_sampling_keeps_the_table():
+    """The bolt's case: a specular spike sampled on a coarse grid. An exponent beyond what the
+    grid resolves would be evaluated between the pairs as highlights the data never had, so
+    the fit keeps the tabulated mean; an exactly diffuse mean on the same grid keeps Eq. 5."""
+    from texelbake.btf.compress import resolvable_alpha
+
+    wi, wo = _grid()
+    cap = resolvable_alpha(wi, wo)
+    spiky = phong_eval((0.01, 0.2, 5.0, 3000.0), wi, wo)
+    assert fit_phong(spiky, wi, wo).model == "phong"  # unbounded, it chases the spike
+    fit = fit_phong(spiky, wi, wo, alpha_max=cap)
+    assert fit.model == "table" and "outside" in fit.message
+    diffuse = phong_eval((0.0, 0.19, 0.0, 1.0), wi, wo)
+    fit = fit_phong(diffuse, wi, wo, alpha_max=cap)
+    assert fit.model == "phong" and abs(fit.params[2]) < 1e-9
+    np.testing.assert_allclose(fit.params[1], 0.19, rtol=1e-6)
