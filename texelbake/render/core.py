@@ -722,6 +722,8 @@ def _lookup_level(frame: CpmFrame, level: int, idx: np.ndarray, w: np.ndarray,
         a_vis -> 0 limit needs no special case); "radiance" — plain bilinear of L (what a
         texture unit does).
     returns : (radiance (n, 3), weight sum (n,) — 0 where no texel around uv exists)"""
+    if filtering not in ("projected", "radiance"):
+        raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
     radiance, avis, exists = frame.level(level, idx)
     w = w * exists[idx]
     s = w.sum(axis=1)
@@ -840,7 +842,7 @@ def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.nda
 def _render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):
     max_error_px = kw.pop("max_error_px", 1.0)
     filtering = kw.pop("filtering", "projected")
-    if filtering not in ("projected", "radiance"):
+    if filtering not in ("projected", "radiance"):  # before any ray is cast
         raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
     frame = cpm_frame(scene, cam, max_error_px)
     n_pix = cam.height * cam.width
