@@ -2,7 +2,8 @@
 
     .venv/bin/python benchmarks/render.py --scene cylinder --json out.json
         [--size 512] [--ref-spp 1024] [--spp 4] [--atlas 64] [--baked PATH]
-        [--camera lod|asset] [--eps 30] [--out DIR]
+        [--camera lod|asset] [--eps 30] [--out DIR] [--scene-size small|full]
+        [--quality fast|high] [--m1-faces N] [--btf]
 
 Bakes the scene (texelbake.scenes, small size, `--atlas` finest texels per side) unless
 `--baked` names a baked USD, renders the reference `gt` at `--ref-spp` eye rays per pixel,
@@ -23,37 +24,30 @@ the object small in a 512² frame; the JSON records the fraction of pixels it co
 The bar (issue 4): cpm at 4 eye rays per pixel at least 20x faster than the reference, with a
 lower error than equal-time and than normalmap.
 
-Measured 2026-11-21 (2 cores shared with ~7 other jobs, load 5-10: seconds are noisy by
-±30 %, compare ratios within one run only; the cylinder row is a rerun on a quieter machine,
-with a_vis-weighted texel filtering; an earlier run under load gave 667 s / 6.06 s = 110x and
-51.18 against equal-time 51.28 at 5 spp). Small scenes baked with atlas 64², 16 x 16 direction grids,
-c_max 16, ε 30 dB (what bakes in ~4 min here); 512², `lod` camera, reference gt at 1024 spp.
+Measured 2026-11-21, second session (benchmarks/results/render_<scene>_512.json; one run per
+scene on an otherwise idle 2-core machine; `--scene-size full --atlas 128 --quality high --btf`,
+the cylinder with `--m1-faces 192`, a smooth M1 as the seed's Fig. 1 where the ridges live in
+the maps; 512², `lod` camera, reference gt at 1024 spp; coarse meshes enclosing M_org):
 
-| scene    | covered px | reference s | cpm@4 s | speed-up | PSNR cpm@4 | equal-time (spp) | normalmap@4 | gt@4  |
-|----------|-----------:|------------:|--------:|---------:|-----------:|-----------------:|------------:|------:|
-| cylinder |        131 |       234.7 |    1.07 |     219x |      51.38 |      52.77 (6)   |       46.27 | 50.64 |
-| wall     |        383 |       851.7 |    6.00 |     142x |      47.89 |      56.25 (9)   |       46.34 | 50.67 |
-| bolt     |        265 |       946.7 |    3.91 |     242x |      51.31 |      53.02 (4)   |       47.38 | 53.02 |
-| cloisonne|        246 |       170.2 |    0.38 |     451x |      59.54 |      56.91 (6)   |       56.84 | 58.80 |
+| scene    | object px | reference s | cpm@4 s | speed-up | cpm@4 | equal-time (spp) | normalmap@4 | btf@4 | gt@4  |
+|----------|----------:|------------:|--------:|---------:|------:|-----------------:|------------:|------:|------:|
+| cylinder |       636 |        47.5 |   0.236 |     201x | 44.68 |      42.66 (4)   |       36.81 | 37.18 | 42.66 |
+| wall     |       859 |        49.8 |   0.323 |     154x | 43.94 |      46.46 (6)   |       41.78 | 44.62 | 44.27 |
+| bolt     |      1048 |        50.9 |   0.263 |     193x | 49.87 |      47.68 (4)   |       41.42 | 28.21 | 47.68 |
 
-Speed: met everywhere (219-451x). Error: cpm beats normalmap everywhere (the missing masking
-and shadowing, seed 000 Fig. 1); it beats equal-time on the cloisonné (a sharp metal border
-under a sphere light: gt is noisy, cpm@4 59.5 dB against 56.9), not on the other three: with a 64² atlas for the whole object the
-finest texel is ~1 pixel only when the object is ~12-25 px wide, so its silhouette pixels (M1
-against M_org) dominate the error, and the coarse CPM levels these views use have held-out
-SNR of 21-31 dB (median) with 16 x 16 training directions (`report.json` of the bakes): cpm
-converges to ~50-52 dB (cpm@16 adds < 4 dB) while gt keeps improving with eye rays. PSNR is
-over the whole frame (≥ 99.8 % background), which inflates every value by the same amount and
-keeps the ranking. Diagnosis (wall and bolt, 64² lod view): Eq. 12 summed over all texels
-carries the gt's flux to 1.5 % (wall), and a_vis from the table matches a brute-force ray count
-to 0.2 %; with all dense samples in place of the characteristic points the image is the same,
-so neither the fit nor a_vis is the cause. The cpm image is ~12 % (wall) / ~26 % (bolt) darker
-because each texel's radiance is spread over the screen area S_t that M1 gives it, while Eq. 12
-normalises by its visible projected area a_t: Σ S_t = Σ a_t to 1 %, but bright texels get
-S/a = 0.89 and dark (masked, shadowed) ones 1.09 on the wall. Tried and left out: dividing
-Eq. 12's numerator by S_t (M1 rasterised in the atlas at 4 x 4 points per texel, with M1's own
-occlusion toward the camera) brings the flux closer (bolt 0.72 -> 0.83 of gt, cylinder 0.96 ->
-1.00) but not the PSNR (wall 29.9 -> 28.5, bolt 36.3 -> 36.4, cylinder 33.1 -> 32.6 dB at 64²).
+(PSNR in dB over the whole frame; object px: pixels the reference covers.) The bar holds on the
+cylinder and the bolt: sub-pixel ridges and bumps whose masking, shadowing and (bolt) sharp
+metallic lobe the maps carry, while gt at 4 spp is noisy and the normal map misses them (grey
+where gt shows the ridges' blue/yellow split). It fails on the wall: its detail (mortar rows
+2-3 pixels apart) is at the scale of the texels these views use (mip levels 1-2), so the maps
+blur it while gt resolves it with few samples. cpm levels off (cylinder cpm@16 45.4 dB against
+gt@16 52.3): its error is bias (fits, a_vis table, texel filter), not noise. btf on the bolt is
+11x too bright: its lobe (the fit wants alpha ~1900) is far narrower than the 32 x 32 direction
+grid (~20 degrees), and nearest-pair look-ups snap near-mirror directions onto sampled mirror
+pairs; such BRDFs would need f̄ averaged over each direction cell.
+
+Earlier (first session, small scenes, 64² bakes, M1 inside M_org) cpm beat equal-time only on the
+cloisonné; the M1 rim (6-8 % darker images) and per-frame cost were the main causes, both fixed.
 """
 
 from __future__ import annotations
