@@ -467,3 +467,15 @@ def test_channel_correlation_matches_numpy(rng):
     ref2 = np.corrcoef(const.reshape(-1, 3)[:, [0, 2]].T).min()
     assert channel_correlation(const) == pytest.approx(ref2, abs=1e-10)
     assert channel_correlation(R[:, :, :1]) == 1.0
+
+
+def test_weights_past_float32_range_are_dropped_not_stored_as_inf():
+    """NNLS weights 1/scale of a vanishing column: past float32 they would be stored as inf and
+    poison the next level's R with inf x 0 = NaN (the small bolt at 32²); they become 0."""
+    from texelbake.cpm import _storable_weights
+
+    w = np.array([[0.5, 2.0], [1e39, 3.0], [np.nan, 1.0], [-1e300, np.inf]])
+    out = _storable_weights(w)
+    assert out.dtype == np.float32 and np.isfinite(out).all()
+    np.testing.assert_array_equal(out, np.array([[0.5, 2.0], [0.0, 3.0], [0.0, 1.0],
+                                                 [0.0, 0.0]], np.float32))

@@ -547,6 +547,19 @@ class _Fitter:
         return _GroupFit(cols, alpha, k, snr, capped)
 
 
+def _storable_weights(w64: np.ndarray) -> np.ndarray:
+    """float32 weights; a weight that is not finite or would overflow float32 becomes 0.
+
+    NNLS gives a column whose values are vanishingly small (a point seen at grazing angles,
+    or a child's point carrying a tiny area at a coarse level) a weight of 1/its scale; past
+    float32's range that is inf, and inf x 0 = NaN poisons the next level's R (seen on the
+    small bolt at 32²). Such a point represents nothing; dropping it keeps the texel finite,
+    and the fit's SNR, recomputed from the stored weights, reports what was lost."""
+    w = np.asarray(w64, dtype=np.float64)
+    ok = np.isfinite(w) & (np.abs(w) <= 1e-3 * float(np.finfo(np.float32).max))
+    return np.where(ok, w, 0.0).astype(np.float32)
+
+
 def fit_texel(
     R: np.ndarray,
     avis_rows: np.ndarray,
@@ -675,7 +688,7 @@ def fit_texel(
     for gf, (_, chans) in zip(fits, groups, strict=True):  # loop over <= ch groups
         pos = np.searchsorted(columns, gf.cols)
         w64[np.ix_(pos, chans)] = gf.alpha
-    w32 = w64.astype(np.float32)
+    w32 = _storable_weights(w64)
     # NNLS solutions are sparse: a drawn point whose weight is 0 in every channel contributes
     # nothing and would only cost render time, so it is not stored
     live = np.any(w32 != 0.0, axis=1)
