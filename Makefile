@@ -39,7 +39,9 @@ bench: setup
 	$(PY) benchmarks/column_sampling.py --json bench_out/column_sampling.json
 	$(PY) benchmarks/avis_methods.py --json bench_out/avis_methods.json
 	$(PY) benchmarks/bake.py --scene cylinder --size full --json bench_out/bake.json
-	$(PY) benchmarks/btf.py --json bench_out/btf.json
+	$(PY) benchmarks/btf.py --synthetic --json bench_out/btf.json
+	$(PY) benchmarks/render.py --scene cylinder --scene-size full --atlas 128 --quality high \
+		--m1-faces 192 --btf --json bench_out/render_cylinder.json
 
 scenes: setup
 	$(VENV)/bin/texelbake scenes all -o build/scenes --size small
