@@ -210,6 +210,11 @@ class StartResult:
     attempts: int = 0
 
 
+def _shard_is(job_id: str, stage: str, shard: int) -> tuple:
+    """The WHERE conditions naming one shard of a job."""
+    return (Shard.job_id == job_id, Shard.stage == stage, Shard.shard == shard)
+
+
 def start_shard(
     sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str, max_attempts: int
 ) -> StartResult:
@@ -218,7 +223,7 @@ def start_shard(
     with sm.begin() as s:
         job = s.get(Job, job_id)
         row = s.scalar(
-            select(Shard).where(Shard.job_id == job_id, Shard.stage == stage, Shard.shard == shard)
+            select(Shard).where(*_shard_is(job_id, stage, shard))
         )
         if job is None or row is None:
             return StartResult("inactive")
@@ -284,9 +289,7 @@ def finish_shard(
         won = s.execute(
             update(Shard)
             .where(
-                Shard.job_id == job_id,
-                Shard.stage == stage,
-                Shard.shard == shard,
+                *_shard_is(job_id, stage, shard),
                 Shard.state.in_(["queued", "running"]),
             )
             .values(
@@ -341,9 +344,7 @@ def _fail(s: Session, job_id: str, stage: str, shard: int, error: str) -> None:
     s.execute(
         update(Shard)
         .where(
-            Shard.job_id == job_id,
-            Shard.stage == stage,
-            Shard.shard == shard,
+            *_shard_is(job_id, stage, shard),
             Shard.state != "done",
         )
         .values(state="failed", error=error, finished_at=utcnow())
@@ -377,9 +378,7 @@ def heartbeat(sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str
             s.execute(
                 update(Shard)
                 .where(
-                    Shard.job_id == job_id,
-                    Shard.stage == stage,
-                    Shard.shard == shard,
+                    *_shard_is(job_id, stage, shard),
                     Shard.state == "running",
                     Shard.worker == worker,
                 )
@@ -409,9 +408,7 @@ def release_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: 
         if s.execute(
             update(Shard)
             .where(
-                Shard.job_id == job_id,
-                Shard.stage == stage,
-                Shard.shard == shard,
+                *_shard_is(job_id, stage, shard),
                 Shard.state == "running",
             )
             .values(state="queued", error=error)

@@ -106,6 +106,17 @@ def wait_for(stack, job_id: str, pred, timeout: float = 240.0, every: float = 0.
     raise AssertionError(f"timed out; last status: {last}")
 
 
+def _running_cpm_shards(job: dict) -> list[dict]:
+    return [sh for s in job["stages"] if s["name"] == "cpm" for sh in s["shards"]
+            if sh["state"] == "running"]
+
+
+def wait_for_running_cpm_shard(stack, job_id: str) -> dict:
+    """Wait until a cpm shard of the job runs; return that shard's status."""
+    job = wait_for(stack, job_id, lambda j: bool(_running_cpm_shards(j)), every=0.05)
+    return _running_cpm_shards(job)[0]
+
+
 def download(stack, job_id: str, out: Path) -> Path:
     from texelbake.client import safe_extract
 
@@ -182,22 +193,7 @@ def test_kill_9_worker_holding_a_cpm_shard(cylinder, reference, tmp_path):
     with farm(tmp_path / "stack") as stack:
         job_id = start_job(stack, cylinder)
 
-        def cpm_running(j):
-            return any(
-                sh["state"] == "running"
-                for s in j["stages"]
-                if s["name"] == "cpm"
-                for sh in s["shards"]
-            )
-
-        job = wait_for(stack, job_id, cpm_running, every=0.05)
-        victim = next(
-            sh
-            for s in job["stages"]
-            if s["name"] == "cpm"
-            for sh in s["shards"]
-            if sh["state"] == "running"
-        )
+        victim = wait_for_running_cpm_shard(stack, job_id)
         pid = int(victim["worker"].rsplit(":", 1)[1])
         # the pool child of the numeric worker holds the shard: that is the process we kill
         assert pid in _child_pids(stack.pids["worker-numeric-0"])
@@ -243,23 +239,7 @@ def test_restart_redis_and_api_mid_job(cylinder, reference, tmp_path):
 def test_cancel_revokes_running_shard_and_keeps_state(cylinder, tmp_path):
     with farm(tmp_path / "stack") as stack:
         job_id = start_job(stack, cylinder)
-        job = wait_for(
-            stack,
-            job_id,
-            lambda j: any(
-                sh["state"] == "running"
-                for s in j["stages"]
-                if s["name"] == "cpm"
-                for sh in s["shards"]
-            ),
-        )
-        running = next(
-            sh
-            for s in job["stages"]
-            if s["name"] == "cpm"
-            for sh in s["shards"]
-            if sh["state"] == "running"
-        )
+        running = wait_for_running_cpm_shard(stack, job_id)
         pid = int(running["worker"].rsplit(":", 1)[1])
         r = httpx.delete(f"{stack.api_url}/api/v1/jobs/{job_id}", headers=AUTH, timeout=30)
         assert r.status_code == 202 and r.json()["state"] == "cancelled"
@@ -283,23 +263,7 @@ def test_kill_9_whole_worker_then_restart_it(cylinder, reference, tmp_path):
     stop, the sweeper re-queues it, and a restarted worker completes the job."""
     with farm(tmp_path / "stack") as stack:
         job_id = start_job(stack, cylinder)
-        job = wait_for(
-            stack,
-            job_id,
-            lambda j: any(
-                sh["state"] == "running"
-                for s in j["stages"]
-                if s["name"] == "cpm"
-                for sh in s["shards"]
-            ),
-        )
-        victim = next(
-            sh
-            for s in job["stages"]
-            if s["name"] == "cpm"
-            for sh in s["shards"]
-            if sh["state"] == "running"
-        )
+        victim = wait_for_running_cpm_shard(stack, job_id)
         stack.kill("worker-numeric-0")
         time.sleep(1.0)
         stack.start("worker-numeric-0")

@@ -166,16 +166,13 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
         face_material=asset.face_material,
     )
-    offsets: list[float] = []
     for attempt in range(4):  # a few halvings of M1 until its charts fit one page
         meshes = simplify_hierarchy(
             asset.points, asset.faces, s.mesh_levels, s.simplify_ratio, target_faces=target,
         )
         if s.enclose_meshes:  # every M_i covers M_org's outline (geometry.hierarchy.enclose)
             probe = samples.positions[:: max(1, samples.positions.shape[0] // 200_000)]
-            moved = [enclose(m, probe) for m in meshes]
-            meshes = [m for m, _ in moved]
-            offsets = [off for _, off in moved]
+            meshes = [enclose(m, probe)[0] for m in meshes]
         try:
             atlas = _build_atlas_fitting(meshes[0], n)
             break
@@ -202,7 +199,6 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
         "m1_vertices": atlas.mesh.vertices,
         "m1_faces": atlas.mesh.faces,
         "m1_corner_uvs": atlas.corner_uvs,
-        "mesh_offsets": np.asarray(offsets, dtype=np.float64),
     }
     for level in range(ctx.n_levels):
         frames, valid = texel_frames(

@@ -69,7 +69,7 @@ from texelbake.model import AssetModel, Camera
 from texelbake.normalmap import face_tangent_space
 from texelbake.render import camera as cam_mod
 from texelbake.render.camera import PinholeCamera
-from texelbake.render.shade import direct_radiance, light_at
+from texelbake.render.shade import direct_radiance, light_at, lit_points
 from texelbake.tol import TOL
 
 MODES = ("gt", "cpm", "normalmap", "equal-time")
@@ -526,28 +526,13 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
     frames = scene.baked.levels[0]["frames"][row * n + col].astype(np.float64)  # (k, 3, 3)
     ng = scene.lod_face_normals[0][prim]
     wo = -d[idx]
-    # λ from the pixel footprint on M1 mapped into the atlas (as `shade_cpm`)
-    t = np.linalg.norm(p - o[idx], axis=1)
-    cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", ng, d[idx])), 1e-3)
-    cos_p = np.clip(d[idx] @ cam.forward, 1e-3, 1.0)
-    area_world = (t * cam.pixel_angle) ** 2 * cos_p ** 3 / cos_t
-    ratio = scene.lod_uv_ratio[0][prim]
-    lam = 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(n) + lod_bias
+    lam = footprint_level(scene, cam, 0, prim, p, o[idx], d[idx]) + lod_bias
     lam = np.clip(lam, 0.0, float(maps.top_level))
-    g = TOL.grazing_cos
-    view_ok = np.einsum("ij,ij->i", ng, wo) > g
+    view_ok = np.einsum("ij,ij->i", ng, wo) > TOL.grazing_cos
     wo_l = np.einsum("nij,nj->ni", frames, wo)
     for light in scene.lights:  # a loop over the few lights
-        wi, e, tmax = light_at(light, p)
-        live = np.flatnonzero(view_ok & (np.einsum("ij,ij->i", ng, wi) > g)
-                              & (e.max(axis=1) > 0))
-        if live.size == 0:
-            continue
-        origins = p[live] + scene.ray_eps * ng[live]
-        tm = tmax[live] if np.isfinite(tmax[live]).any() else np.inf
-        lit = ~caster.occluded(origins, wi[live], tmax=tm)
-        rays += live.size
-        live = live[lit]
+        live, wi, e, r = lit_points(light, p, ng, view_ok, caster, scene.ray_eps)
+        rays += r
         if live.size == 0:
             continue
         wi_l = np.einsum("nij,nj->ni", frames[live], wi[live])
@@ -695,12 +680,11 @@ class CpmFrame:
             rad[todo], avis[todo], ex[todo], done[todo] = r, a, e, True
             self.rays += n_rays
 
-    def level(self, j: int, texels: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def level(self, j: int, texels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(radiance (n_j², 3), a_vis (n_j²,), exists (n_j²,) bool) of level j, computed
-        for `texels` (ids, any shape; None = all) if not yet; other entries may be unset."""
+        for `texels` (ids, any shape) if not yet; other entries may be unset."""
         rad, avis, ex, done, _ = self._arrays(j)
-        want = np.arange(done.shape[0]) if texels is None else np.unique(texels)
+        want = np.unique(texels)
         self._compute(j, want[~done[want]])
         return rad, avis, ex
 
@@ -736,6 +720,23 @@ def _lookup_level(frame: CpmFrame, level: int, idx: np.ndarray, w: np.ndarray,
     return np.divide(rad, s[:, None], out=np.zeros_like(rad), where=s[:, None] > 0), s
 
 
+def footprint_level(scene: RenderScene, cam: PinholeCamera, mesh: int, prim: np.ndarray,
+                    p: np.ndarray, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Mip level λ (unclipped, finest = 0) of eye-ray hits on M_i from the ray differential:
+    the pixel's footprint on the hit triangle (screen-space derivatives, seed 000 §4.2; the
+    footprint of the pixel, not of the sample, as texture hardware does under multi-sampling),
+    mapped into the atlas by the triangle's uv density. Used by the cpm and btf modes.
+
+    prim (k,) hit triangles of M_{mesh+1}; p (k, 3) hit points; o, d (k, 3) their eye rays"""
+    t = np.linalg.norm(p - o, axis=1)
+    cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", scene.lod_face_normals[mesh][prim], d)),
+                       1e-3)
+    cos_p = np.clip(d @ cam.forward, 1e-3, 1.0)
+    area_world = (t * cam.pixel_angle) ** 2 * cos_p ** 3 / cos_t
+    ratio = scene.lod_uv_ratio[mesh][prim]
+    return 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(scene.n0)
+
+
 def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
                  d: np.ndarray, *, lod_bias: float = 0.0, local_light_ratio: float = 8.0
                  ) -> dict[str, Any]:
@@ -759,18 +760,8 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
         _, p1, b1 = scene.lods[0].closest_points(p[inexact])
         w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
         uv[inexact] = np.einsum("nk,nkj->nj", w1, c1[p1])
-    # ray differential: the pixel's footprint on M_i (screen-space derivatives, seed 000
-    # §4.2; the footprint of the pixel, not of the sample, as texture hardware does under
-    # multi-sampling), mapped into the atlas by the triangle's uv density
-    t = np.linalg.norm(p - o[idx], axis=1)
-    cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", scene.lod_face_normals[i][prim],
-                                        d[idx])), 1e-3)
-    cos_p = np.clip(d[idx] @ cam.forward, 1e-3, 1.0)
-    area_world = (t * cam.pixel_angle) ** 2 * cos_p ** 3 / cos_t
-    ratio = scene.lod_uv_ratio[i][prim]
-    lam = 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(scene.n0)
-    lam += lod_bias
-    s0 = 1.0 / (scene.n0 * np.sqrt(ratio))  # world size of a finest texel
+    lam = footprint_level(scene, cam, i, prim, p, o[idx], d[idx]) + lod_bias
+    s0 = 1.0 / (scene.n0 * np.sqrt(scene.lod_uv_ratio[i][prim]))  # world size of a finest texel
     for light in scene.lights:  # local lights: keep ωi about constant across a texel
         if light.kind != "distant":
             _, _, dist = light_at(light, p)

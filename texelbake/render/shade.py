@@ -57,6 +57,29 @@ def light_at(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
                         f"{light.kind!r}")
 
 
+def lit_points(light: Light, p: np.ndarray, ng: np.ndarray, candidates: np.ndarray,
+               occluder: RayCaster | None, ray_eps: float, ns: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The points one light reaches: among `candidates` (n,) bool, those whose geometric
+    (and, when given, shading) normal faces the light above TOL.grazing_cos, with some
+    irradiance, and whose shadow ray (from p + ray_eps n_g, up to the light) is unoccluded.
+
+    returns : (indices (k,) int64, wi (n, 3), E (n, 3) of every point, shadow rays cast)"""
+    g = TOL.grazing_cos
+    wi, e, tmax = light_at(light, p)
+    live = candidates & (np.einsum("ij,ij->i", ng, wi) > g) & (e.max(axis=1) > 0)
+    if ns is not None:
+        live &= np.einsum("ij,ij->i", ns, wi) > g
+    idx = np.flatnonzero(live)
+    rays = 0
+    if idx.size and occluder is not None:
+        origins = p[idx] + ray_eps * ng[idx]
+        tm = tmax[idx] if np.isfinite(tmax[idx]).any() else np.inf
+        rays = int(idx.size)
+        idx = idx[~occluder.occluded(origins, wi[idx], tmax=tm)]
+    return idx, wi, e, rays
+
+
 def direct_radiance(
     points: np.ndarray,
     geom_normals: np.ndarray,
@@ -91,22 +114,13 @@ def direct_radiance(
     view_ok = (np.einsum("ij,ij->i", ng, wo) > g) & (np.einsum("ij,ij->i", ns, wo) > g)
     frames = tangent_frames(ns)  # (n, 3, 3) rows (t, b, n)
     for light in lights:  # a loop over the few lights
-        wi, e, tmax = light_at(light, p)
-        cos_s = np.einsum("ij,ij->i", ns, wi)
-        live = view_ok & (np.einsum("ij,ij->i", ng, wi) > g) & (cos_s > g) & (e.max(axis=1) > 0)
-        idx = np.flatnonzero(live)
-        if idx.size == 0:
-            continue
-        if occluder is not None:
-            origins = p[idx] + ray_eps * ng[idx]
-            tm = tmax[idx] if np.isfinite(tmax[idx]).any() else np.inf
-            lit = ~occluder.occluded(origins, wi[idx], tmax=tm)
-            rays += idx.size
-            idx = idx[lit]
+        idx, wi, e, r = lit_points(light, p, ng, view_ok, occluder, ray_eps, ns)
+        rays += r
         if idx.size == 0:
             continue
         fr = frames[idx]
         wi_l = np.einsum("nij,nj->ni", fr, wi[idx])
         wo_l = np.einsum("nij,nj->ni", fr, wo[idx])
-        out[idx] += e[idx] * brdf(idx, wi_l, wo_l) * cos_s[idx, None]
+        cos_s = np.einsum("ij,ij->i", ns[idx], wi[idx])
+        out[idx] += e[idx] * brdf(idx, wi_l, wo_l) * cos_s[:, None]
     return out, rays
