@@ -30,6 +30,12 @@ class BakeSettings(BaseModel):
         description="Move M1..Mn outward until they cover M_org's outline (each face's plane to "
         "its farthest sample outside); false: the seed's QEM meshes as they are.",
     )
+    m1_method: Literal["auto", "qem", "wrap"] = Field(
+        "auto",
+        description="How M1 is made: 'qem' simplifies M_org (the seed); 'wrap' simplifies a "
+        "connected surface about a texel outside M_org (assets of many separate parts); "
+        "'auto' wraps when QEM would keep fewer than 16 faces per part.",
+    )
     m1_faces: int = Field(
         0, ge=0, description="Target faces of M1; 0 = simplify_ratio x the original face count."
     )

@@ -185,3 +185,74 @@ def test_enclose_never_folds_a_face(tmp_path):
         a0, a1 = m.areas(), moved.areas()
         cos = np.einsum("ij,ij->i", m.face_normals(), moved.face_normals())
         assert cos.min() >= 0.5 and (a1 >= 0.2 * a0).all()
+
+
+def _blocks_on_a_plane():
+    """A 4 x 3 grid of separate unit-ish boxes 0.1 apart on nothing: 12 parts, like the
+    wall scene's blocks."""
+    from geometry_meshes import box
+
+    vs, fs = [], []
+    for i in range(4):
+        for j in range(3):
+            v, f = box((1.1 * i, 1.1 * j, 0.0), (1.1 * i + 1.0, 1.1 * j + 1.0, 0.3))
+            fs.append(f + sum(len(x) for x in vs))
+            vs.append(v)
+    return np.concatenate(vs), np.concatenate(fs)
+
+
+def test_wrap_joins_separate_parts_into_one_enclosing_surface():
+    """QEM never joins parts; the wrap is one connected surface `offset` outside all of
+    them: every sample of the blocks lies inside it, at a distance close to the offset
+    (marching cubes on a grid of offset / 2: the level set is found to within about a
+    cell), and the 0.1 gaps are bridged at offset 0.1."""
+    from texelbake.geometry.hierarchy import n_parts, needs_wrap, wrap
+    from texelbake.geometry.mesh import face_components
+
+    v, f = _blocks_on_a_plane()
+    assert n_parts(v, f) == 12
+    assert needs_wrap(12, 100) and not needs_wrap(12, 12 * 16)
+    w = wrap(v, f, 0.1)
+    assert face_components(w.faces, w.num_vertices).max() == 0  # one part
+    pts = sample_surface(v, f, 20000, seed=2).positions
+    d = _outside(w, pts)
+    assert (d < 0).all()  # every sample inside the wrap
+    dist = np.linalg.norm(RayCaster(w.vertices, w.faces).closest_points(pts)[0] - pts, axis=1)
+    # the closest sheet is about one offset away (the tops' and sides' samples: at 0.1 from
+    # the wrap up to the grid's error; samples in the gaps are closer to neither sheet)
+    assert np.median(dist) == pytest.approx(0.1, abs=0.03)
+    with pytest.raises(SettingsError, match="offset"):
+        wrap(v, f, 0.0)
+
+
+def test_enclose_tighten_pulls_a_wrap_back_onto_the_samples():
+    """`tighten` moves faces whose samples all lie inside them inward to the outermost
+    sample: a box whose top is 0.2 above the unit box the samples cover comes back onto it
+    (the top's vertices by exactly 0.2, straight down; the bottom's stay); without `tighten`
+    nothing moves."""
+    from geometry_meshes import box
+
+    from texelbake.geometry.hierarchy import enclose
+
+    tall = Mesh(*box((0.0, 0.0, 0.0), (1.0, 1.0, 1.2)))
+    v, f = box()
+    pts = sample_surface(v, f, 5000, seed=3).positions
+    same, step0 = enclose(tall, pts)
+    assert step0 <= 1e-12 and np.allclose(same.vertices, tall.vertices, atol=1e-12)
+    tight, step = enclose(tall, pts, tighten=True)
+    x = tight.vertices - tall.vertices
+    up = tall.vertices[:, 2] > 0.5
+    np.testing.assert_allclose(x[up], np.tile([0.0, 0.0, -0.2], (up.sum(), 1)), atol=1e-9)
+    np.testing.assert_allclose(x[~up], 0.0, atol=1e-12)
+    assert step == pytest.approx(0.2)
+
+
+def test_simplify_hierarchy_from_a_wrap_has_one_part():
+    from texelbake.geometry.hierarchy import n_parts
+
+    v, f = _blocks_on_a_plane()
+    plain = simplify_hierarchy(v, f, 1, target_faces=60)[0]
+    wrapped = simplify_hierarchy(v, f, 2, target_faces=60, wrap_offset=0.1)
+    assert n_parts(plain.vertices, plain.faces) == 12
+    assert [n_parts(m.vertices, m.faces) for m in wrapped] == [1, 1]
+    assert wrapped[0].num_faces <= 60 * 1.5

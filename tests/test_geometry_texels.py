@@ -217,3 +217,33 @@ def test_texel_surface_points_lie_on_m1_at_their_uv(sphere):
     assert dist.max() < 1e-9 * m1.bbox_diag
     np.testing.assert_allclose(uv, texel_centers_uv(n)[valid], atol=1e-9)
     np.testing.assert_allclose(np.linalg.norm(nrm[valid], axis=1), 1.0)
+
+
+def test_own_side_rule_sends_samples_to_the_sheet_they_face():
+    """M1 as a slab's two sheets, the front at z = 1 (normal +z) and the back at z = -0.5
+    (normal -z), around samples on the plane z = 0 facing +z: the closest point is on the
+    back sheet, behind the samples' surface; with their normals they go to the front sheet,
+    straight above (the hit of a ray along the normal), and without them to the back."""
+    from geometry_meshes import box
+
+    v, f = box((-2.0, -2.0, -0.5), (3.0, 3.0, 1.0))  # sides 2 away from the samples
+    m1 = Mesh(v, f)
+    atlas = build_atlas(m1, 32)
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([0.1 + 0.8 * rng.random((500, 2)), np.zeros(500)])
+    nrm = np.tile([0.0, 0.0, 1.0], (500, 1))
+    plain = assign_texels(pts, m1, atlas, 1)
+    own = assign_texels(pts, m1, atlas, 1, normals=nrm)
+    fn = m1.face_normals()
+    assert (fn[plain.prim, 2] < -0.99).all()  # closest: the back sheet
+    assert (fn[own.prim, 2] > 0.99).all()  # own side: the front sheet
+    tri = m1.vertices[m1.faces[own.prim]]
+    hit = np.einsum("nk,nkj->nj", own.bary, tri)
+    # Embree's float32 barycentrics on a box 5 units wide: ~5 x 6e-8 per coordinate
+    np.testing.assert_allclose(hit, pts + [0.0, 0.0, 1.0], atol=2e-6)
+    np.testing.assert_allclose(own.distance, 1.0, atol=2e-6)
+    # samples facing the back sheet keep their closest point
+    back = assign_texels(pts, m1, atlas, 1, normals=-nrm)
+    assert np.array_equal(back.prim, plain.prim)
+    with pytest.raises(ShapeError, match="normals"):
+        assign_texels(pts, m1, atlas, 1, normals=nrm[:3])

@@ -27,8 +27,8 @@ from texelbake import cpm, directions
 from texelbake.errors import StageError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.atlas import build_atlas, map_into_atlas
-from texelbake.geometry.hierarchy import enclose, simplify_hierarchy
-from texelbake.geometry.mesh import Mesh
+from texelbake.geometry.hierarchy import enclose, n_parts, needs_wrap, simplify_hierarchy
+from texelbake.geometry.mesh import Mesh, bbox_diagonal
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import sample_surface
 from texelbake.geometry.texels import assign_texels, texel_frames
@@ -166,13 +166,15 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
         face_material=asset.face_material,
     )
+    wrap_offset = m1_wrap_offset(asset.points, asset.faces, target, s)
     for attempt in range(4):  # a few halvings of M1 until its charts fit one page
         meshes = simplify_hierarchy(
             asset.points, asset.faces, s.mesh_levels, s.simplify_ratio, target_faces=target,
+            wrap_offset=wrap_offset,
         )
         if s.enclose_meshes:  # every M_i covers M_org's outline (geometry.hierarchy.enclose)
             probe = samples.positions[:: max(1, samples.positions.shape[0] // 200_000)]
-            meshes = [enclose(m, probe)[0] for m in meshes]
+            meshes = [enclose(m, probe, tighten=wrap_offset is not None)[0] for m in meshes]
         try:
             atlas = _build_atlas_fitting(meshes[0], n)
             break
@@ -182,8 +184,9 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
             if s.m1_faces or attempt == 3 or target // 2 < 8:
                 raise
             target //= 2
-    assignment = assign_texels(samples.positions, atlas.mesh, atlas, ctx.n_levels)
     gnrm = asset.face_normals()[samples.face]
+    assignment = assign_texels(samples.positions, atlas.mesh, atlas, ctx.n_levels,
+                               normals=gnrm)
     out: dict[str, np.ndarray] = {
         "sample_pos": samples.positions,
         "sample_nrm": samples.normals,
@@ -199,6 +202,7 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
         "m1_vertices": atlas.mesh.vertices,
         "m1_faces": atlas.mesh.faces,
         "m1_corner_uvs": atlas.corner_uvs,
+        "m1_wrap_offset": np.array(wrap_offset or 0.0),
     }
     for level in range(ctx.n_levels):
         frames, valid = texel_frames(
@@ -211,6 +215,19 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
         out[f"m{i}_faces"] = mesh.faces
         out[f"m{i}_corner_uvs"], out[f"m{i}_one_chart"] = map_into_atlas(mesh, atlas.mesh, atlas)
     return ctx.store.write_arrays(key, out)
+
+
+def m1_wrap_offset(points: np.ndarray, faces: np.ndarray, target: int,
+                   settings: BakeSettings) -> float | None:
+    """The offset of M1's wrap (`geometry.hierarchy.wrap`), None for the seed's QEM of M_org:
+    settings.m1_method 'wrap', or 'auto' on an asset of many parts (`needs_wrap`). The
+    offset is about a finest texel (bounding-box diagonal / N): detail below a texel lives
+    in the maps, and parts closer than two texels merge into one sheet."""
+    if settings.m1_method == "qem":
+        return None
+    if settings.m1_method == "auto" and not needs_wrap(n_parts(points, faces), target):
+        return None
+    return bbox_diagonal(points) / settings.atlas_resolution
 
 
 def m1_target_faces(n_faces: int, settings: BakeSettings) -> int:

@@ -9,7 +9,7 @@ import numpy as np
 import pymeshlab
 
 from texelbake.errors import SettingsError, StageError
-from texelbake.geometry.mesh import Mesh, compact, weld
+from texelbake.geometry.mesh import Mesh, compact, face_components, weld
 
 #: a level below this many faces is not a useful LOD mesh; simplification stops with an error
 MIN_FACES = 4
@@ -18,6 +18,12 @@ BOUNDARY_FALLBACK = 1.5
 #: boundary quadric weight of the unlocked redo (meshlab's boundaryweight; > 1 keeps borders
 #: in place). On the small wall's M1: Hausdorff 0.033 at 10 vs 0.046 at 1 (bbox diag ~1.8).
 BOUNDARY_WEIGHT = 10.0
+#: `wrap` is used for M1 when QEM would leave fewer faces than this per connected part
+#: (`needs_wrap`): the full wall's ~200 blocks at 1023 faces kept 1-6 faces each (441 parts,
+#: half of them slanted slivers) and its 128² atlas mapped rays to the wrong blocks
+FACES_PER_PART = 16
+#: the wrap's marching-cubes grid: at most this many cells along the longest side
+WRAP_MAX_CELLS = 400
 
 
 def _collapse(mesh: Mesh, target: int, level: int, preserve_boundary: bool) -> pymeshlab.MeshSet:
@@ -86,6 +92,7 @@ def simplify_hierarchy(
     n_levels: int,
     ratio: float = 0.25,
     target_faces: int | None = None,
+    wrap_offset: float | None = None,
 ) -> list[Mesh]:
     """Meshes M1..Mn, each simplified from the previous one by quadric edge collapse.
 
@@ -94,7 +101,8 @@ def simplify_hierarchy(
     ceil(ratio * f(i)). Boundaries and normals are preserved (pymeshlab's preserveboundary,
     preservenormal; planarquadric keeps flat regions well shaped); when locked boundaries
     keep a level above BOUNDARY_FALLBACK x its target (many small open pieces), that level
-    is redone with boundaries unlocked.
+    is redone with boundaries unlocked. With `wrap_offset`, M1 is simplified from
+    `wrap(M_org, wrap_offset)` instead of M_org (assets of many parts, `needs_wrap`).
 
     vertices : (n, 3) float64; faces : (f, 3) int64
     returns : list of n_levels Mesh
@@ -117,6 +125,8 @@ def simplify_hierarchy(
             f"(expected >= {MIN_FACES})"
         )
     levels: list[Mesh] = []
+    if wrap_offset is not None:
+        current = wrap(current.vertices, current.faces, wrap_offset)
     for level in range(1, int(n_levels) + 1):  # a loop over a handful of levels
         if level == 1 and target_faces is not None:
             target = int(target_faces)
@@ -147,7 +157,99 @@ def simplify_hierarchy(
     return levels
 
 
-def enclose(mesh: Mesh, points: np.ndarray) -> tuple[Mesh, float]:
+def n_parts(vertices: object, faces: object) -> int:
+    """Connected parts of a mesh after welding (`weld`): what QEM simplifies separately."""
+    welded, _, _ = weld(vertices, faces)
+    labels = face_components(welded.faces, welded.num_vertices)
+    return int(labels.max()) + 1 if labels.size else 0
+
+
+def needs_wrap(parts: int, target_faces: int) -> bool:
+    """Whether M1 should be a wrap: QEM collapses edges and never joins parts, so an asset of
+    many separate parts (blocks on a wall, scales, leaves) keeps a few faces per part and its
+    atlas a chart per face; with fewer than FACES_PER_PART faces per part, wrap instead."""
+    return parts * FACES_PER_PART > int(target_faces)
+
+
+def wrap(vertices: object, faces: object, offset: float) -> Mesh:
+    """One connected surface around M_org at distance `offset`: the `offset` level set of
+    M_org's unsigned distance field, by marching cubes (pymeshlab's uniform mesh resampling,
+    `absdist`). Parts closer than 2 x offset merge into one sheet, so a wall of blocks
+    becomes a slab whose front sheet lies `offset` above the blocks; the decimation that
+    follows (`simplify_hierarchy`, QEM) has one connected surface to work on, and the atlas
+    a few large charts (a departure from seed 000, which simplifies M_org itself;
+    docs/decisions.md). Thin parts get two sheets, one per side; `assign_texels` keeps each
+    sample on the sheet on its own side.
+
+    offset : > 0, world units (the stage uses about a finest texel); the grid cell is
+        offset / 2, coarsened to at most WRAP_MAX_CELLS along the longest side
+    raises SettingsError for offset <= 0, StageError when the filter fails or returns
+    fewer than MIN_FACES faces"""
+    off = float(offset)
+    if not off > 0.0:
+        raise SettingsError(f"wrap offset must be > 0, got {offset}")
+    welded, _, _ = weld(vertices, faces)
+    extent = float(np.ptp(welded.vertices, axis=0).max()) + 2.0 * off
+    cell = max(0.5 * off, extent / WRAP_MAX_CELLS)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(welded.vertices),
+                               face_matrix=np.ascontiguousarray(welded.faces, dtype=np.int32)))
+    try:
+        ms.apply_filter("generate_resampled_uniform_mesh",
+                        cellsize=pymeshlab.PureValue(cell), offset=pymeshlab.PureValue(off),
+                        absdist=True, mergeclosevert=True)
+        ms.apply_filter("meshing_remove_unreferenced_vertices")
+    except (pymeshlab.PyMeshLabException, ValueError) as exc:  # pragma: no cover - defensive
+        raise StageError(f"geometry: wrapping M_org at offset {off:g} failed: {exc}") from exc
+    out = ms.current_mesh()
+    v = np.asarray(out.vertex_matrix(), dtype=np.float64)
+    f = np.asarray(out.face_matrix(), dtype=np.int64)
+    if f.shape[0] < MIN_FACES or not np.isfinite(v).all():
+        raise StageError(f"geometry: wrapping M_org at offset {off:g} gave {f.shape[0]} faces "
+                         f"(expected >= {MIN_FACES}, finite)")
+    mesh, _ = compact(Mesh(v, f[~Mesh(v, f).degenerate_faces()]))
+    return _outer_sheets(mesh)
+
+
+def _outer_sheets(mesh: Mesh) -> Mesh:
+    """The parts of a marching-cubes surface that no other part encloses. The level set of
+    an unsigned distance also runs *inside* closed parts thicker than twice the offset (12
+    inner boxes in 12 unit boxes); those are never seen and would take atlas space. A part is
+    inside another when a ray from its extreme vertex (largest x, going +x) crosses the
+    other parts an odd number of times (the surface is closed: a padded grid)."""
+    from texelbake.geometry.raycast import RayCaster
+
+    labels = face_components(mesh.faces, mesh.num_vertices)
+    n = int(labels.max()) + 1
+    if n == 1:
+        return mesh
+    vert_label = np.full(mesh.num_vertices, -1)
+    vert_label[mesh.faces.ravel()] = np.repeat(labels, 3)
+    order = np.lexsort((mesh.vertices[:, 0], vert_label))  # by part, then x
+    last = np.flatnonzero(np.r_[vert_label[order][1:] != vert_label[order][:-1], True])
+    ext = order[last][vert_label[order][last] >= 0]  # one extreme vertex per part
+    part = vert_label[ext]
+    eps = 1e-6 * max(float(np.ptp(mesh.vertices, axis=0).max()), 1e-300)
+    o = mesh.vertices[ext] + [eps, 0.0, 0.0]
+    d = np.tile([1.0, 0.0, 0.0], (ext.size, 1))
+    crossings = np.zeros(ext.size, np.int64)
+    live = np.arange(ext.size)
+    caster = RayCaster(mesh.vertices, mesh.faces)
+    for _ in range(4 * n + 8):  # a loop over successive crossings, all rays at once
+        if live.size == 0:
+            break
+        hits = caster.cast(o[live], d[live])
+        hit = hits.hit
+        crossings[live[hit]] += labels[hits.prim[hit]] != part[live[hit]]
+        o[live[hit], 0] += hits.t[hit] + eps
+        live = live[hit]
+    inner = set(part[crossings % 2 == 1].tolist())
+    keep = ~np.isin(labels, list(inner))
+    out, _ = compact(Mesh(mesh.vertices, mesh.faces[keep]))
+    return out
+
+
+def enclose(mesh: Mesh, points: np.ndarray, *, tighten: bool = False) -> tuple[Mesh, float]:
     """`mesh` moved outward until it covers `points` (dense samples of M_org), face by face.
 
     A QEM mesh cuts through fine relief (ridges, bumps), so its silhouette lies inside M_org's
@@ -160,6 +262,10 @@ def enclose(mesh: Mesh, points: np.ndarray) -> tuple[Mesh, float]:
     region x = o n, at a crease each side keeps its own offset, so a flat cap stays where it
     is while the ridged side beside it moves out). Vertices of faces that would fold stay put.
 
+    With `tighten`, a face whose closest samples all lie inside it moves *in* to the
+    outermost of them (o_f < 0): a wrap (`wrap`) lies an offset outside M_org, and its
+    silhouette and parallax shrink back to M_org's.
+
     points : (m, 3) float64; returns (the moved mesh, the largest vertex displacement)"""
     from texelbake.geometry.raycast import RayCaster
 
@@ -169,9 +275,10 @@ def enclose(mesh: Mesh, points: np.ndarray) -> tuple[Mesh, float]:
     cp, prim, _ = RayCaster(mesh.vertices, mesh.faces).closest_points(pts)
     fn = mesh.face_normals()
     d = np.einsum("ij,ij->i", pts - cp, fn[prim])
-    o = np.zeros(mesh.num_faces)
+    o = np.full(mesh.num_faces, -np.inf if tighten else 0.0)
     np.maximum.at(o, prim, d)
-    if not (o > 0).any():
+    o[~np.isfinite(o)] = 0.0  # faces no sample is closest to stay put
+    if not (o != 0).any():
         return mesh, 0.0
     area = mesh.areas()
     nn = area[:, None, None] * fn[:, :, None] * fn[:, None, :]  # (f, 3, 3)
@@ -191,7 +298,7 @@ def enclose(mesh: Mesh, points: np.ndarray) -> tuple[Mesh, float]:
     inv = np.where(w > 0.1 * w[:, -1:], 1.0 / np.where(w > 0, w, 1.0), 0.0)
     x = np.einsum("nij,nj,nkj,nk->ni", v, inv, v, b_vec)
     length = np.linalg.norm(x, axis=1, keepdims=True)
-    cap = float(o.max())
+    cap = float(np.abs(o).max())
     x = np.where(length > cap, x * (cap / np.maximum(length, 1e-300)), x)
     # QEM leaves slivers whose planes disagree with their neighbours'; where a face would fold
     # (turn by more than 60 degrees or keep less than a fifth of its area) its vertices stay

@@ -12,6 +12,7 @@ col = floor(u N), flat index row * N + col.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,13 +137,22 @@ def assign_texels(
     n_levels: int,
     *,
     caster: RayCaster | None = None,
+    normals: object = None,
 ) -> TexelAssignment:
-    """Assign every sample to its texel at every mip level by exact closest point on M1.
+    """Assign every sample to its texel at every mip level by exact closest point on M1
+    (seed 000 §4.1: "based on Euclidean distances").
+
+    With `normals`, a sample whose closest point lies behind its own surface (more than
+    BEHIND_DEG from its normal) takes instead the point of M1 that a ray from it along its
+    normal hits, when there is one: where M1 has a sheet on each side of a thin part (a wrap,
+    `geometry.hierarchy.wrap`) the mortar between a wall's blocks is nearer the back sheet
+    but is seen through the front one (a departure from the seed; docs/decisions.md).
 
     sample_positions : (m, 3) float64 points on M_org
     m1 : M1 (same faces as atlas.mesh); atlas : from build_atlas
     n_levels : L >= 1; N must be divisible by 2^(L-1) so every level has whole texels
     caster : a RayCaster over atlas.mesh to reuse (built when None)
+    normals : None, or (m, 3) the samples' geometric normals (outward; need not be unit)
     returns : TexelAssignment
     """
     pts = check_points(sample_positions, "sample_positions")
@@ -166,6 +176,11 @@ def assign_texels(
     else:
         closest, prim, bary2 = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2))
     bary = np.column_stack([1.0 - bary2[:, 0] - bary2[:, 1], bary2])  # (m, 3)
+    if normals is not None and m:
+        nrm = check_points(normals, "normals")
+        if nrm.shape[0] != m:
+            raise ShapeError(f"normals must be ({m}, 3) like sample_positions, got {nrm.shape}")
+        closest, prim, bary = _own_side(pts, nrm, closest, prim, bary, caster)
     uv = np.einsum("mk,mkd->md", bary, atlas.corner_uvs[prim])  # (m, 2)
     row, col = uv_to_texel(uv, n)
     orders = []
@@ -188,6 +203,34 @@ def assign_texels(
         orders=tuple(orders),
         offsets=tuple(offsets),
     )
+
+
+#: a closest point further than this from a sample's normal lies behind its surface
+BEHIND_DEG = 120.0
+
+
+def _own_side(pts: np.ndarray, nrm: np.ndarray, closest: np.ndarray, prim: np.ndarray,
+              bary: np.ndarray, caster: RayCaster
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`assign_texels`' own-side rule: samples whose closest point on M1 is behind them take
+    the hit of a ray along their normal instead (where that ray hits M1)."""
+    n = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    delta = closest - pts
+    dist = np.linalg.norm(delta, axis=1)
+    behind = np.einsum("ij,ij->i", delta, n) < math.cos(math.radians(BEHIND_DEG)) * dist
+    idx = np.flatnonzero(behind & (dist > 0))
+    if idx.size == 0:
+        return closest, prim, bary
+    hits = caster.cast(pts[idx], n[idx])
+    ok = np.flatnonzero(hits.hit)
+    if ok.size == 0:
+        return closest, prim, bary
+    sel = idx[ok]
+    closest, prim, bary = closest.copy(), prim.copy(), bary.copy()
+    closest[sel] = pts[sel] + hits.t[ok, None] * n[sel]
+    prim[sel] = hits.prim[ok]
+    bary[sel] = hits.bary3()[ok]
+    return closest, prim, bary
 
 
 def texel_surface_points(
