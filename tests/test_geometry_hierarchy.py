@@ -211,7 +211,8 @@ def test_wrap_joins_separate_parts_into_one_enclosing_surface():
 
     v, f = _blocks_on_a_plane()
     assert n_parts(v, f) == 12
-    assert needs_wrap(12, 100) and not needs_wrap(12, 12 * 16)
+    assert needs_wrap(12, 100) and not needs_wrap(12, 12 * 16) and not needs_wrap(1, 8)
+    assert not needs_wrap(2, 8)  # a plane and an occluder: QEM
     w = wrap(v, f, 0.1)
     assert face_components(w.faces, w.num_vertices).max() == 0  # one part
     pts = sample_surface(v, f, 20000, seed=2).positions

@@ -270,3 +270,29 @@ def test_diagnostic_colours_and_density(baked_plane):
     cam = cam_mod.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), 12, 12, fov_deg=20.0)
     img = api.density_on_model(scene, cam)
     assert img.shape == (12, 12, 3) and img.max() > 0  # the plane fills the view
+
+
+def test_cpm_looks_up_each_sample_at_its_own_footprint(baked_plane):
+    """footprint='sample': each of the spp eye rays of a pixel reads the maps at a 1/spp
+    share of the pixel's footprint, ½ log2 spp levels finer (at least the finest level);
+    which samples fall back to M_org is still decided by the pixel's footprint. At 1 spp
+    the two agree exactly."""
+    from texelbake.render import render
+
+    kw = {"width": 32, "height": 32, "camera": 8.0, "seed": 1}
+    px1 = render(baked_plane, "cpm", spp=1, footprint="pixel", **kw)
+    s1 = render(baked_plane, "cpm", spp=1, footprint="sample", **kw)
+    assert np.array_equal(px1.image, s1.image)
+    # at 2 spp the samples read half a level finer; from this distance the plane's pixels
+    # sit at λ 0-1.07 (16 x 16 atlas), so most read level 0.5 finer and a few clip at 0
+    px = render(baked_plane, "cpm", spp=2, footprint="pixel", **kw)
+    s = render(baked_plane, "cpm", spp=2, footprint="sample", **kw)
+    lp, ls = px.extras["level"], s.extras["level"]
+    deep = np.isfinite(lp) & (lp >= 0.55)  # every sample of the pixel at λ >= 0.5
+    assert deep.sum() >= 8
+    np.testing.assert_allclose(ls[deep], lp[deep] - 0.5, atol=1e-5)
+    shallow = np.isfinite(lp) & (lp <= 0.45)
+    assert (ls[shallow] == 0.0).all()
+    assert s.extras["fallback_fraction"] == px.extras["fallback_fraction"]
+    with pytest.raises(SettingsError, match="footprint"):
+        render(baked_plane, "cpm", spp=1, footprint="texel", **kw)

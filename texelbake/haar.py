@@ -25,6 +25,7 @@ look-ups per point, vectorized over all query points; no inverse transform.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -58,6 +59,14 @@ class HaarCoeffs:
     @property
     def n_maps(self) -> int:
         return int(self.offsets.shape[0] - 1)
+
+    @functools.cached_property
+    def sorted_keys(self) -> np.ndarray:
+        """(nnz,) int64 global keys map * res² + index, ascending (maps ascend with the CSR
+        offsets, indices within a map): what `eval_haar_point` searches. Built once per
+        table; the renderer evaluates a_vis every frame."""
+        map_of = np.repeat(np.arange(self.n_maps, dtype=np.int64), np.diff(self.offsets))
+        return map_of * (self.res * self.res) + self.indices.astype(np.int64)
 
     @property
     def nnz(self) -> int:
@@ -219,9 +228,7 @@ def eval_haar_point(coeffs: HaarCoeffs, map_index: np.ndarray, iu: np.ndarray,
         # small tables: gather from the dense coefficient array (same values, ~3x faster)
         vals = _dense_coeffs(coeffs).ravel()[query]
         return np.sum(vals * basis, axis=1)
-    # Global sorted keys: maps ascend with the CSR offsets, indices ascend within a map.
-    map_of = np.repeat(np.arange(coeffs.n_maps, dtype=np.int64), np.diff(coeffs.offsets))
-    keys = map_of * n_coef + coeffs.indices.astype(np.int64)  # (nnz,)
+    keys = coeffs.sorted_keys  # (nnz,)
     pos_c = np.minimum(np.searchsorted(keys, query), keys.shape[0] - 1)
     found = keys[pos_c] == query
     vals = np.where(found, coeffs.values[pos_c].astype(np.float64), 0.0)

@@ -22,6 +22,9 @@ BOUNDARY_WEIGHT = 10.0
 #: (`needs_wrap`): the full wall's ~200 blocks at 1023 faces kept 1-6 faces each (441 parts,
 #: half of them slanted slivers) and its 128² atlas mapped rays to the wrong blocks
 FACES_PER_PART = 16
+#: ... and only for assets of at least this many parts (a plane and the quad that shadows
+#: it simplify well enough separately)
+WRAP_MIN_PARTS = 8
 #: the wrap's marching-cubes grid: at most this many cells along the longest side
 WRAP_MAX_CELLS = 400
 
@@ -167,8 +170,9 @@ def n_parts(vertices: object, faces: object) -> int:
 def needs_wrap(parts: int, target_faces: int) -> bool:
     """Whether M1 should be a wrap: QEM collapses edges and never joins parts, so an asset of
     many separate parts (blocks on a wall, scales, leaves) keeps a few faces per part and its
-    atlas a chart per face; with fewer than FACES_PER_PART faces per part, wrap instead."""
-    return parts * FACES_PER_PART > int(target_faces)
+    atlas a chart per face; with WRAP_MIN_PARTS parts or more and fewer than FACES_PER_PART
+    faces per part, wrap instead (a small target on a few parts is what QEM is for)."""
+    return parts >= WRAP_MIN_PARTS and parts * FACES_PER_PART > int(target_faces)
 
 
 def wrap(vertices: object, faces: object, offset: float) -> Mesh:

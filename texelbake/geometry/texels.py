@@ -218,7 +218,9 @@ def _own_side(pts: np.ndarray, nrm: np.ndarray, closest: np.ndarray, prim: np.nd
     delta = closest - pts
     dist = np.linalg.norm(delta, axis=1)
     behind = np.einsum("ij,ij->i", delta, n) < math.cos(math.radians(BEHIND_DEG)) * dist
-    idx = np.flatnonzero(behind & (dist > 0))
+    # a sample on M1 itself (M1 = M_org where it is not simplified) has no side to be on
+    far = dist > TOL.ray_offset * caster.bbox_diag
+    idx = np.flatnonzero(behind & far)
     if idx.size == 0:
         return closest, prim, bary
     hits = caster.cast(pts[idx], n[idx])
