@@ -58,8 +58,9 @@ def render(baked_root: str | Path, mode: str, *, width: int, height: int, spp: i
     camera : None (the asset's camera, else auto-framed), a `camera.PinholeCamera`, a
         `model.Camera`, or a number (auto-frame at that distance factor)
     out_dir : when given, writes `<mode>.exr` (linear float) and `<mode>.png` (sRGB)
-    kw : mode options (cpm: lod_bias, local_light_ratio, max_error_px; equal-time:
-        budget_seconds; btf: lod_bias, interpolate)
+    kw : mode options (cpm: lod_bias, local_light_ratio, max_error_px, filtering,
+        footprint "sample"|"pixel", coverage; equal-time: budget_seconds; btf: lod_bias,
+        interpolate)
     returns : RenderResult (image (h, w, 3) float32, seconds, rays_cast, spp)
     """
     scene = load_scene(baked_root)

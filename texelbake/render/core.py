@@ -14,8 +14,11 @@ Modes (all read the baked USD through `texelbake.payload.read_baked` and the cop
   the sum is already the radiance; cos_i on the shading normal, cos_o on the geometric normal,
   as `texelbake.stages.fit_level` built R). The mesh M_i is picked per frame by projected size
   (`choose_mesh`), the texel and mip level j per eye ray from its ray differential (pixel
-  footprint → atlas footprint), trilinear across texels and levels; where j < 0 (the
-  viewer is closer than the finest level) the ray falls back to M_org.
+  footprint → atlas footprint, each of the spp stratified eye rays at its 1/spp share of
+  it: `footprint`), trilinear across texels and levels; where the pixel's footprint is
+  below the finest level (the viewer is closer) the ray falls back to M_org. The outline is
+  M_org's: an eye ray that hits M_i (which encloses M_org) but misses M_org sees the
+  background (`coverage`, one any-hit ray per hit).
   *Per-frame texel radiance.* Seed 000 §3.1 assumes a distant viewer and distant lights per
   texel: ωo is one direction per texel. texelbake takes it from the texel's weighted
   characteristic-point centroid toward the camera position, and per light ωi from each point
@@ -25,9 +28,10 @@ Modes (all read the baked USD through `texelbake.payload.read_baked` and the cop
   and one a_vis look-up per texel), and the eye rays only fetch and blend texel radiances —
   the hint of the issue, carried to the view term. The cost per pixel is then an eye ray on
   M_i, which is what makes CPM many times faster than multi-sampling M_org.
-  Inter-object shadows: the seed tests a shadow ray on the *other* objects' M_i; a baked asset
-  renders alone here, so there is no such test (intra-object shadowing is V(x̂k, ωi) on
-  M_org). Local lights (§4.2): the mip level is also capped so that the distance to each point
+  Inter-object shadows: the seed tests a shadow ray on the other objects' M_i; here every
+  characteristic point's shadow ray is cast against the whole M_org (all objects of the
+  asset), which covers both that test and intra-object shadowing V(x̂k, ωi) (docs/decisions.md).
+  Local lights (§4.2): the mip level is also capped so that the distance to each point
   light is at least `local_light_ratio` texel sizes (ωi about constant across the texel).
 - ``normalmap`` — the baseline studios bake today: M1 with the baked albedo and tangent-space
   normal maps, multi-sampled, the material's BRDF with its Lambertian part replaced by the
