@@ -185,8 +185,11 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
                 raise
             target //= 2
     gnrm = asset.face_normals()[samples.face]
+    # a wrap has a sheet on each side of thin parts: samples take the one they are seen
+    # through (the bent-normal rule); QEM meshes keep the seed's closest point
+    occluder = RayCaster(asset.points, asset.faces) if wrap_offset is not None else None
     assignment = assign_texels(samples.positions, atlas.mesh, atlas, ctx.n_levels,
-                               normals=gnrm)
+                               normals=gnrm, occluder=occluder)
     out: dict[str, np.ndarray] = {
         "sample_pos": samples.positions,
         "sample_nrm": samples.normals,

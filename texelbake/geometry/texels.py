@@ -138,6 +138,7 @@ def assign_texels(
     *,
     caster: RayCaster | None = None,
     normals: object = None,
+    occluder: RayCaster | None = None,
 ) -> TexelAssignment:
     """Assign every sample to its texel at every mip level by exact closest point on M1
     (seed 000 §4.1: "based on Euclidean distances").
@@ -147,12 +148,18 @@ def assign_texels(
     normal hits, when there is one: where M1 has a sheet on each side of a thin part (a wrap,
     `geometry.hierarchy.wrap`) the mortar between a wall's blocks is nearer the back sheet
     but is seen through the front one (a departure from the seed; docs/decisions.md).
+    With `occluder` (M_org) as well, a sample whose closest M1 face does not face its own way
+    (normals more than FACING_DEG apart: the side walls of the gaps between the blocks, 90°
+    from both sheets) takes the point of M1 that a ray along its *bent normal* hits, the mean
+    of the BENT_RAYS hemisphere directions in which M_org does not occlude it: the way out
+    through which it is seen.
 
     sample_positions : (m, 3) float64 points on M_org
     m1 : M1 (same faces as atlas.mesh); atlas : from build_atlas
     n_levels : L >= 1; N must be divisible by 2^(L-1) so every level has whole texels
     caster : a RayCaster over atlas.mesh to reuse (built when None)
     normals : None, or (m, 3) the samples' geometric normals (outward; need not be unit)
+    occluder : None, or a RayCaster over M_org (the bent-normal rule; needs `normals`)
     returns : TexelAssignment
     """
     pts = check_points(sample_positions, "sample_positions")
@@ -181,6 +188,9 @@ def assign_texels(
         if nrm.shape[0] != m:
             raise ShapeError(f"normals must be ({m}, 3) like sample_positions, got {nrm.shape}")
         closest, prim, bary = _own_side(pts, nrm, closest, prim, bary, caster)
+        if occluder is not None:
+            closest, prim, bary = _bent_side(pts, nrm, closest, prim, bary, caster, occluder,
+                                             m1.face_normals())
     uv = np.einsum("mk,mkd->md", bary, atlas.corner_uvs[prim])  # (m, 2)
     row, col = uv_to_texel(uv, n)
     orders = []
@@ -232,6 +242,46 @@ def _own_side(pts: np.ndarray, nrm: np.ndarray, closest: np.ndarray, prim: np.nd
     closest[sel] = pts[sel] + hits.t[ok, None] * n[sel]
     prim[sel] = hits.prim[ok]
     bary[sel] = hits.bary3()[ok]
+    return closest, prim, bary
+
+
+#: a closest M1 face whose normal is further than this from a sample's faces another way
+FACING_DEG = 60.0
+#: hemisphere directions per sample for its bent normal
+BENT_RAYS = 16
+
+
+def _bent_side(pts: np.ndarray, nrm: np.ndarray, closest: np.ndarray, prim: np.ndarray,
+               bary: np.ndarray, caster: RayCaster, occluder: RayCaster,
+               face_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`assign_texels`' bent-normal rule (see there), all candidates' rays in one batch."""
+    from texelbake.directions import hemisphere_directions
+    from texelbake.frames import tangent_frames
+
+    n = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    facing = np.einsum("ij,ij->i", face_normals[prim], n)
+    idx = np.flatnonzero(facing < math.cos(math.radians(FACING_DEG)))
+    if idx.size == 0:
+        return closest, prim, bary
+    local = hemisphere_directions(BENT_RAYS, seed=0)  # (K, 3)
+    frames = tangent_frames(n[idx])  # (c, 3, 3)
+    dirs = np.einsum("kj,cjl->ckl", local, frames).reshape(-1, 3)  # (c K, 3) world
+    eps = TOL.ray_offset * occluder.bbox_diag
+    origins = np.repeat(pts[idx] + eps * n[idx], BENT_RAYS, axis=0)
+    free = ~occluder.occluded(origins, dirs).reshape(idx.size, BENT_RAYS)
+    bent = np.einsum("ck,ckj->cj", free.astype(np.float64), dirs.reshape(idx.size, BENT_RAYS, 3))
+    length = np.linalg.norm(bent, axis=1)
+    ok = free.any(axis=1) & (length > 1e-9)
+    idx, bent = idx[ok], bent[ok] / length[ok, None]
+    if idx.size == 0:
+        return closest, prim, bary
+    hits = caster.cast(pts[idx], bent)
+    got = np.flatnonzero(hits.hit)
+    sel = idx[got]
+    closest, prim, bary = closest.copy(), prim.copy(), bary.copy()
+    closest[sel] = pts[sel] + hits.t[got, None] * bent[got]
+    prim[sel] = hits.prim[got]
+    bary[sel] = hits.bary3()[got]
     return closest, prim, bary
 
 
