@@ -247,3 +247,43 @@ def test_own_side_rule_sends_samples_to_the_sheet_they_face():
     assert np.array_equal(back.prim, plain.prim)
     with pytest.raises(ShapeError, match="normals"):
         assign_texels(pts, m1, atlas, 1, normals=nrm[:3])
+
+
+def test_bent_normal_rule_sends_a_gap_wall_to_the_sheet_it_is_seen_through():
+    """Two blocks 0.2 apart on a plane, inside a slab M1 (front sheet z = 1, back z = -0.1):
+    samples low on a block's side wall facing the gap are nearest the back sheet, 90° from
+    their normal (the own-side rule does not move them). Seen only through the gap's opening
+    above, with M_org as occluder they go to the front sheet; samples on the blocks' tops
+    stay where they were."""
+    from geometry_meshes import box
+
+    from texelbake.geometry.raycast import RayCaster
+
+    v, f = box((-2.0, -2.0, -0.1), (3.0, 3.0, 1.0))
+    m1 = Mesh(v, f)
+    atlas = build_atlas(m1, 32)
+    parts = [box((0.0, 0.0, 0.0), (1.0, 1.0, 0.9)), box((1.2, 0.0, 0.0), (2.2, 1.0, 0.9)),
+             plane_grid(2, 2, size=4.0)]
+    verts, faces, base = [], [], 0
+    for pv, pf in parts:
+        verts.append(pv)
+        faces.append(pf + base)
+        base += len(pv)
+    org = RayCaster(np.concatenate(verts), np.concatenate(faces))
+    rng = np.random.default_rng(7)
+    k = 300
+    wall = np.column_stack([np.ones(k), 0.3 + 0.4 * rng.random(k), 0.02 + 0.05 * rng.random(k)])
+    top = np.column_stack([0.2 + 0.6 * rng.random((k, 2)), np.full(k, 0.9)])
+    pts = np.concatenate([wall, top])
+    nrm = np.concatenate([np.tile([1.0, 0.0, 0.0], (k, 1)), np.tile([0.0, 0.0, 1.0], (k, 1))])
+    own = assign_texels(pts, m1, atlas, 1, normals=nrm)
+    bent = assign_texels(pts, m1, atlas, 1, normals=nrm, occluder=org)
+    fn = m1.face_normals()
+    assert (fn[own.prim[:k], 2] < -0.99).all()  # the gap wall: the back sheet, 90° away
+    assert (fn[bent.prim[:k], 2] > 0.99).all()  # seen through the opening: the front sheet
+    assert np.array_equal(bent.prim[k:], own.prim[k:])  # the tops face the front already
+    # the front-sheet point lies above the gap (between the blocks, x in [1, 1.2] give or take
+    # the slope of the bent normal over the 0.93 climb)
+    tri = m1.vertices[m1.faces[bent.prim[:k]]]
+    hit = np.einsum("nk,nkj->nj", bent.bary[:k], tri)
+    assert (hit[:, 0] > 1.0).all() and np.median(hit[:, 0]) < 1.6
