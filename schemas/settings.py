@@ -34,7 +34,7 @@ class BakeSettings(BaseModel):
         "auto",
         description="How M1 is made: 'qem' simplifies M_org (the seed); 'wrap' simplifies a "
         "connected surface about a texel outside M_org (assets of many separate parts); "
-        "'auto' wraps when QEM would keep fewer than 16 faces per part.",
+        "'auto' wraps assets of 8 or more parts when QEM would keep fewer than 16 faces per part.",
     )
     m1_faces: int = Field(
         0, ge=0, description="Target faces of M1; 0 = simplify_ratio x the original face count."
