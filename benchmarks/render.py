@@ -24,33 +24,33 @@ the object small in a 512² frame; the JSON records the fraction of pixels it co
 The bar (issue 4): cpm at 4 eye rays per pixel at least 20x faster than the reference, with a
 lower error than equal-time and than normalmap.
 
-Measured 2026-11-21, second session (benchmarks/results/render_<scene>_512.json; one run per
+Measured 2026-11-21, third session (benchmarks/results/render_<scene>_512.json; one run per
 scene on an otherwise idle 2-core machine; `--scene-size full --atlas 128 --quality high --btf`,
 the cylinder with `--m1-faces 192`, a smooth M1 as the seed's Fig. 1 where the ridges live in
-the maps; 512², `lod` camera, reference gt at 1024 spp; coarse meshes enclosing M_org):
+the maps; 512², `lod` camera, reference gt at 1024 spp; coarse meshes enclosing M_org, the
+wall's M1 a wrap, per-sample footprints, outline from M_org; modes timed warm):
 
 | scene    | object px | reference s | cpm@4 s | speed-up | cpm@4 | equal-time (spp) | normalmap@4 | btf@4 | gt@4  |
 |----------|----------:|------------:|--------:|---------:|------:|-----------------:|------------:|------:|------:|
-| cylinder |       598 |        45.7 |   0.248 |     184x | 44.79 |      43.20 (4)   |       36.74 | 38.21 | 43.20 |
-| wall     |       859 |        49.8 |   0.323 |     154x | 43.94 |      46.46 (6)   |       41.78 | 44.62 | 44.27 |
-| bolt     |      1048 |        48.5 |   0.290 |     167x | 49.87 |      49.42 (6)   |       41.42 | 28.21 | 47.68 |
-| cloisonne|      1126 |        47.6 |   0.261 |     182x | 59.44 |      45.51 (4)   |       44.79 | 48.41 | 45.51 |
+| cylinder |       598 |        48.8 |   0.249 |     196x | 46.20 |      43.20 (4)   |       36.74 | 38.20 | 43.20 |
+| wall     |      2362 |        48.9 |   0.319 |     153x | 44.59 |      44.50 (6)   |       35.89 | 40.77 | 41.57 |
+| bolt     |      1048 |        50.0 |   0.262 |     191x | 48.65 |      47.68 (4)   |       41.42 | 28.16 | 47.68 |
+| cloisonne|      1126 |        49.1 |   0.261 |     188x | 59.94 |      45.51 (4)   |       44.79 | 48.41 | 45.51 |
 
-(PSNR in dB over the whole frame; object px: pixels the reference covers.) The bar holds on the
-cloisonné (by 13.9 dB: gold borders with a sharp lobe under a sphere light, gt very noisy), the
-cylinder (by 1.6 dB) and the bolt (by 0.45 dB: equal-time got 6 spp in this run, 4 in an
-earlier one, 47.68 dB; the margin is within run-to-run timing noise): sub-pixel ridges and bumps whose masking, shadowing and (bolt) sharp
-metallic lobe the maps carry, while gt at 4 spp is noisy and the normal map misses them (grey
-where gt shows the ridges' blue/yellow split). It fails on the wall: its detail (mortar rows
-2-3 pixels apart) is at the scale of the texels these views use (mip levels 1-2), so the maps
-blur it while gt resolves it with few samples. cpm levels off (cylinder cpm@16 45.4 dB against
-gt@16 52.3): its error is bias (fits, a_vis table, texel filter), not noise. btf on the bolt is
-11x too bright: its lobe (the fit wants alpha ~1900) is far narrower than the 32 x 32 direction
-grid (~20 degrees), and nearest-pair look-ups snap near-mirror directions onto sampled mirror
-pairs; such BRDFs would need f̄ averaged over each direction cell.
+(PSNR in dB over the whole frame; object px: pixels the reference covers.) The bar holds on
+all four. The margins depend on equal-time's eye-ray count, which timing sets (4 spp while
+cpm's frame is under 1.5x gt@4's): the wall's cpm frame is 1.53x, equal-time got 6 spp and the
+margin is 0.09 dB (3.0 dB over gt@4); the bolt's is 1.31x, and at 6 spp gt (~49.4 dB) would
+beat it. cpm levels off (wall cpm@16 45.7 dB against gt@16 50.4): its error is bias (fits,
+a_vis table, texel filter), not noise. The per-sample footprint (default) gains the wall 1.8
+dB and costs the cylinder and the bolt 1.5-1.8 (their finest-level fits are noisier);
+`footprint="pixel"` is the other choice. btf on the bolt is 11x too bright: its lobe is far
+narrower than the 32 x 32 direction grid.
 
-Earlier (first session, small scenes, 64² bakes, M1 inside M_org) cpm beat equal-time only on the
-cloisonné; the M1 rim (6-8 % darker images) and per-frame cost were the main causes, both fixed.
+Before this session the wall failed (43.9 against 46.5 dB): its QEM M1 was 441 slivers and
+mapped eye rays to the wrong blocks (docs/decisions.md: the wrap, own-side and bent-normal
+assignment, coverage from M_org, warm timings). The wall's lod view moved closer with its
+new atlas (2362 object pixels instead of 859), so its earlier dB are not comparable.
 """
 
 from __future__ import annotations
