@@ -187,7 +187,7 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
     gnrm = asset.face_normals()[samples.face]
     # a wrap has a sheet on each side of thin parts: samples take the one they are seen
     # through (the bent-normal rule); QEM meshes keep the seed's closest point
-    occluder = RayCaster(asset.points, asset.faces) if wrap_offset is not None else None
+    occluder = ctx.caster() if wrap_offset is not None else None
     assignment = assign_texels(samples.positions, atlas.mesh, atlas, ctx.n_levels,
                                normals=gnrm, occluder=occluder)
     out: dict[str, np.ndarray] = {

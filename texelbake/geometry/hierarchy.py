@@ -192,12 +192,13 @@ def wrap(vertices: object, faces: object, offset: float) -> Mesh:
     off = float(offset)
     if not off > 0.0:
         raise SettingsError(f"wrap offset must be > 0, got {offset}")
-    welded, _, _ = weld(vertices, faces)
-    extent = float(np.ptp(welded.vertices, axis=0).max()) + 2.0 * off
+    # an unsigned distance needs no welding: a triangle soup gives the same field
+    org = Mesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
+    extent = float(np.ptp(org.vertices, axis=0).max()) + 2.0 * off
     cell = max(0.5 * off, extent / WRAP_MAX_CELLS)
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(welded.vertices),
-                               face_matrix=np.ascontiguousarray(welded.faces, dtype=np.int32)))
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(org.vertices),
+                               face_matrix=np.ascontiguousarray(org.faces, dtype=np.int32)))
     try:
         ms.apply_filter("generate_resampled_uniform_mesh",
                         cellsize=pymeshlab.PureValue(cell), offset=pymeshlab.PureValue(off),

@@ -187,6 +187,7 @@ def assign_texels(
         nrm = check_points(normals, "normals")
         if nrm.shape[0] != m:
             raise ShapeError(f"normals must be ({m}, 3) like sample_positions, got {nrm.shape}")
+        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
         closest, prim, bary = _own_side(pts, nrm, closest, prim, bary, caster)
         if occluder is not None:
             closest, prim, bary = _bent_side(pts, nrm, closest, prim, bary, caster, occluder,
@@ -219,30 +220,35 @@ def assign_texels(
 BEHIND_DEG = 120.0
 
 
-def _own_side(pts: np.ndarray, nrm: np.ndarray, closest: np.ndarray, prim: np.ndarray,
+def _take_hits(pts: np.ndarray, idx: np.ndarray, dirs: np.ndarray, closest: np.ndarray,
+               prim: np.ndarray, bary: np.ndarray, caster: RayCaster
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Samples `idx` take the point of M1 that a ray from them along `dirs` (one per sample,
+    unit) hits, where it hits; the others keep theirs. Returns new arrays."""
+    if idx.size == 0:
+        return closest, prim, bary
+    hits = caster.cast(pts[idx], dirs)
+    got = np.flatnonzero(hits.hit)
+    sel = idx[got]
+    closest, prim, bary = closest.copy(), prim.copy(), bary.copy()
+    closest[sel] = pts[sel] + hits.t[got, None] * dirs[got]
+    prim[sel] = hits.prim[got]
+    bary[sel] = hits.bary3()[got]
+    return closest, prim, bary
+
+
+def _own_side(pts: np.ndarray, n: np.ndarray, closest: np.ndarray, prim: np.ndarray,
               bary: np.ndarray, caster: RayCaster
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`assign_texels`' own-side rule: samples whose closest point on M1 is behind them take
-    the hit of a ray along their normal instead (where that ray hits M1)."""
-    n = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    the hit of a ray along their (unit) normal `n` instead (where that ray hits M1)."""
     delta = closest - pts
     dist = np.linalg.norm(delta, axis=1)
     behind = np.einsum("ij,ij->i", delta, n) < math.cos(math.radians(BEHIND_DEG)) * dist
     # a sample on M1 itself (M1 = M_org where it is not simplified) has no side to be on
     far = dist > TOL.ray_offset * caster.bbox_diag
     idx = np.flatnonzero(behind & far)
-    if idx.size == 0:
-        return closest, prim, bary
-    hits = caster.cast(pts[idx], n[idx])
-    ok = np.flatnonzero(hits.hit)
-    if ok.size == 0:
-        return closest, prim, bary
-    sel = idx[ok]
-    closest, prim, bary = closest.copy(), prim.copy(), bary.copy()
-    closest[sel] = pts[sel] + hits.t[ok, None] * n[sel]
-    prim[sel] = hits.prim[ok]
-    bary[sel] = hits.bary3()[ok]
-    return closest, prim, bary
+    return _take_hits(pts, idx, n[idx], closest, prim, bary, caster)
 
 
 #: a closest M1 face whose normal is further than this from a sample's faces another way
@@ -251,14 +257,15 @@ FACING_DEG = 60.0
 BENT_RAYS = 16
 
 
-def _bent_side(pts: np.ndarray, nrm: np.ndarray, closest: np.ndarray, prim: np.ndarray,
+def _bent_side(pts: np.ndarray, n: np.ndarray, closest: np.ndarray, prim: np.ndarray,
                bary: np.ndarray, caster: RayCaster, occluder: RayCaster,
                face_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`assign_texels`' bent-normal rule (see there), all candidates' rays in one batch."""
+    """`assign_texels`' bent-normal rule (see there; `n` unit normals), all candidates' rays
+    in one batch."""
     from texelbake.directions import hemisphere_directions
     from texelbake.frames import tangent_frames
+    from texelbake.geometry.raycast import offset_origins
 
-    n = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
     facing = np.einsum("ij,ij->i", face_normals[prim], n)
     idx = np.flatnonzero(facing < math.cos(math.radians(FACING_DEG)))
     if idx.size == 0:
@@ -266,23 +273,13 @@ def _bent_side(pts: np.ndarray, nrm: np.ndarray, closest: np.ndarray, prim: np.n
     local = hemisphere_directions(BENT_RAYS, seed=0)  # (K, 3)
     frames = tangent_frames(n[idx])  # (c, 3, 3)
     dirs = np.einsum("kj,cjl->ckl", local, frames).reshape(-1, 3)  # (c K, 3) world
-    eps = TOL.ray_offset * occluder.bbox_diag
-    origins = np.repeat(pts[idx] + eps * n[idx], BENT_RAYS, axis=0)
-    free = ~occluder.occluded(origins, dirs).reshape(idx.size, BENT_RAYS)
+    origins = offset_origins(pts[idx], n[idx], bbox_diag=occluder.bbox_diag)
+    free = ~occluder.occluded(np.repeat(origins, BENT_RAYS, axis=0), dirs
+                              ).reshape(idx.size, BENT_RAYS)
     bent = np.einsum("ck,ckj->cj", free.astype(np.float64), dirs.reshape(idx.size, BENT_RAYS, 3))
     length = np.linalg.norm(bent, axis=1)
     ok = free.any(axis=1) & (length > 1e-9)
-    idx, bent = idx[ok], bent[ok] / length[ok, None]
-    if idx.size == 0:
-        return closest, prim, bary
-    hits = caster.cast(pts[idx], bent)
-    got = np.flatnonzero(hits.hit)
-    sel = idx[got]
-    closest, prim, bary = closest.copy(), prim.copy(), bary.copy()
-    closest[sel] = pts[sel] + hits.t[got, None] * bent[got]
-    prim[sel] = hits.prim[got]
-    bary[sel] = hits.bary3()[got]
-    return closest, prim, bary
+    return _take_hits(pts, idx[ok], bent[ok] / length[ok, None], closest, prim, bary, caster)
 
 
 def texel_surface_points(

@@ -165,9 +165,7 @@ class RenderScene(OrgScene):
         for j in range(len(self.baked.levels)):
             self.points(j)
         for table in self._tables:
-            haar = getattr(table, "haar", None)
-            if haar is not None and haar.nnz:
-                _ = haar.sorted_keys
+            _ = table.haar.sorted_keys
         self.setup_seconds = time.perf_counter() - t0
 
     def avis_table(self, level: int):
@@ -719,10 +717,8 @@ def _lookup_level(frame: CpmFrame, level: int, idx: np.ndarray, w: np.ndarray,
         pixel integrates radiance over the visible projected area, and a_vis is exactly that
         per texel; a masked texel adds nothing instead of darkening its neighbours, and the
         a_vis -> 0 limit needs no special case); "radiance" — plain bilinear of L (what a
-        texture unit does).
+        texture unit does); checked by `_check_cpm_options`.
     returns : (radiance (n, 3), weight sum (n,) — 0 where no texel around uv exists)"""
-    if filtering not in ("projected", "radiance"):
-        raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
     radiance, avis, exists = frame.level(level, idx)
     w = w * exists[idx]
     s = w.sum(axis=1)
@@ -752,9 +748,18 @@ def footprint_level(scene: RenderScene, cam: PinholeCamera, mesh: int, prim: np.
     return 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(scene.n0)
 
 
+def _check_cpm_options(filtering: str, footprint: str) -> None:
+    """The cpm mode's string options, checked before any ray is cast."""
+    if filtering not in ("projected", "radiance"):
+        raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
+    if footprint not in ("sample", "pixel"):
+        raise SettingsError(f"field 'footprint': 'sample' or 'pixel', got {footprint!r}")
+
+
 def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
                  d: np.ndarray, *, lod_bias: float = 0.0, local_light_ratio: float = 8.0,
-                 spp: int = 1, footprint: str = "sample") -> dict[str, Any]:
+                 spp: int = 1, footprint: str = "sample", coverage: bool = True
+                 ) -> dict[str, Any]:
     """First half of `shade_cpm`: eye rays against M_i, atlas uv, mip level λ of every hit;
     the texels the look-ups will read are requested from `frame` (computed in one batch by
     `CpmFrame.flush`).
@@ -765,9 +770,14 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
         rest, as texture look-ups under supersampling do; "pixel" — every sample at the
         pixel's footprint (the level a single-sample renderer would use: under
         supersampling it blurs twice; on the full wall at 4 spp it cost 0.7 dB). Either
-        way M_org is used where the *pixel's* footprint is below the finest level."""
-    if footprint not in ("sample", "pixel"):
-        raise SettingsError(f"field 'footprint': 'sample' or 'pixel', got {footprint!r}")
+        way M_org is used where the *pixel's* footprint is below the finest level.
+    coverage : an eye ray that hits M_i but misses M_org sees the background (one any-hit
+        ray against M_org per hit; applied in `_cpm_finish`). M_i lies a little outside M_org
+        (it encloses it, and a wrap is rounded at its rim), and without this test the rim it
+        adds around the outline shows the full radiance of the sliver of surface inside its
+        texels (the full wall: 8 % too much light, 43 % of its error at the outline). The
+        texels still give the radiance: the test only decides whether the ray is covered,
+        which is what M_org's outline does in gt."""
     i = frame.mesh
     mesh = scene.baked.meshes[i]
     hits = scene.lods[i].cast(o, d)
@@ -794,9 +804,10 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
                                                      1e-300)))
     n_lv = frame.n_levels
     use = lam >= 0.0
-    # coverage (see `_cpm_finish`): does the eye ray meet M_org at all (any hit)
-    covered = scene.org.occluded(o[idx], d[idx])
-    h["rays"] += idx.size
+    covered = None
+    if coverage:  # does the eye ray meet M_org at all (any hit)
+        covered = scene.org.occluded(o[idx], d[idx])
+        h["rays"] += idx.size
     if footprint == "sample":
         lam = lam - 0.5 * math.log2(max(int(spp), 1))
     lam_c = np.clip(lam, 0.0, n_lv - 1.0)
@@ -816,18 +827,11 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
 
 
 def _cpm_finish(scene: RenderScene, frame: CpmFrame, o: np.ndarray, d: np.ndarray,
-                h: dict[str, Any], filtering: str = "projected", coverage: bool = True
+                h: dict[str, Any], filtering: str = "projected"
                 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Second half of `shade_cpm`: trilinear look-ups of the texel radiance, M_org where the
-    maps do not apply. returns (radiance (n, 3), level (n,), rays cast)
-
-    coverage : an eye ray that hits M_i but misses M_org sees the background (one any-hit
-        ray against M_org per hit, in `_cpm_prepare`). M_i lies a little outside M_org (it
-        encloses it, and a wrap is rounded at its rim), and without this test the rim it adds
-        around the outline shows the full radiance of the sliver of surface inside its
-        texels (the full wall: 8 % too much light, 43 % of its error at the outline). The
-        texels still give the radiance: the test only decides whether the ray is
-        covered, which is what M_org's outline does in gt."""
+    maps do not apply; rays that miss M_org are background when `_cpm_prepare` tested
+    coverage. returns (radiance (n, 3), level (n,), rays cast)"""
     n, idx, rays = h["n"], h["idx"], h["rays"]
     out = np.zeros((n, 3))
     level = np.full(n, np.nan)
@@ -843,7 +847,7 @@ def _cpm_finish(scene: RenderScene, frame: CpmFrame, o: np.ndarray, d: np.ndarra
         wsum[sel] += weight
     ok = use & (wsum > 0)
     out[idx[ok]] = rad[ok] / wsum[ok, None]
-    if coverage:
+    if h["covered"] is not None:
         out[idx[ok & ~h["covered"]]] = 0.0
     level[idx[ok]] = lam_c[ok]
     # closer than the finest level (or no texel there): multi-sample M_org
@@ -865,20 +869,18 @@ def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.nda
     returns : (radiance (n, 3), level (n,) float64 — the fractional mip level used, -1 where
         M_org was used, NaN for misses; rays cast)
     """
+    _check_cpm_options(filtering, footprint)
     h = _cpm_prepare(scene, frame, cam, o, d, lod_bias=lod_bias,
-                     local_light_ratio=local_light_ratio, spp=spp, footprint=footprint)
+                     local_light_ratio=local_light_ratio, spp=spp, footprint=footprint,
+                     coverage=coverage)
     frame.flush()
-    return _cpm_finish(scene, frame, o, d, h, filtering, coverage)
+    return _cpm_finish(scene, frame, o, d, h, filtering)
 
 
 def _render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):
     max_error_px = kw.pop("max_error_px", 1.0)
     filtering = kw.pop("filtering", "projected")
-    coverage = bool(kw.pop("coverage", True))
-    if filtering not in ("projected", "radiance"):  # before any ray is cast
-        raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
-    if kw.get("footprint", "sample") not in ("sample", "pixel"):
-        raise SettingsError(f"field 'footprint': 'sample' or 'pixel', got {kw['footprint']!r}")
+    _check_cpm_options(filtering, kw.get("footprint", "sample"))
     frame = cpm_frame(scene, cam, max_error_px)
     n_pix = cam.height * cam.width
     acc = np.zeros((n_pix, 3))
@@ -898,8 +900,7 @@ def _render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **k
         rad = np.zeros_like(o)
         lvl = np.full(o.shape[0], np.nan)
         for sl, h in prepared:
-            rad[sl], lvl[sl], r = _cpm_finish(scene, frame, o[sl], d[sl], h, filtering,
-                                              coverage)
+            rad[sl], lvl[sl], r = _cpm_finish(scene, frame, o[sl], d[sl], h, filtering)
             rays += r
         acc += rad.reshape(-1, n_pix, 3).sum(axis=0)
         lv = lvl.reshape(-1, n_pix)
