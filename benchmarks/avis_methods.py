@@ -2,7 +2,7 @@
 
 Three measurements, time and error side by side (DESIGN.md "Measuring"):
 
-1. Method choice (texelbake.avis module docstring). On a finite bumpy height field (flat texel
+1. Method choice (texelbake.cpm.avis module docstring). On a finite bumpy height field (flat texel
    frames) and on a bumpy sphere (curved: every texel frame differs; the maps are in world
    directions, so both methods are directly comparable), a_vis of every texel at every cube
    direction by
@@ -42,7 +42,7 @@ from avis_scenes import (  # noqa: E402
     uv_sphere,
 )
 
-from texelbake.avis import (  # noqa: E402
+from texelbake.cpm.avis import (  # noqa: E402
     AvisLevel,
     avis_cube_maps,
     avis_from_visibility,
@@ -54,8 +54,8 @@ from texelbake.avis import (  # noqa: E402
     default_eps,
     visible_fraction,
 )
+from texelbake.cpm.haar import compress_haar, decompress_haar, eval_haar_point  # noqa: E402
 from texelbake.geometry.raycast import RayCaster  # noqa: E402
-from texelbake.haar import compress_haar, decompress_haar, eval_haar_point  # noqa: E402
 
 
 class CountingCaster:

@@ -21,8 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from schemas.settings import BakeSettings
-from texelbake import avis as avis_mod
 from texelbake import stages
+from texelbake.cpm import avis as avis_mod
+from texelbake.cpm.avis.table import avis_table_from
+from texelbake.cpm.level import texel_ids
 from texelbake.payload import read_baked
 from texelbake.pipeline import bake
 from texelbake.scenes import write_scene
@@ -36,10 +38,10 @@ def avis_reference_error(root: Path, ctx: stages.StageContext, n_texels: int = 2
     with rays from the same samples, on a random sample of occupied finest texels."""
     baked = read_baked(root)
     level = baked.levels[0]
-    table = stages.avis_table_from(level)
+    table = avis_table_from(level)
     geo = ctx.geometry()
     n = ctx.settings.atlas_resolution
-    tex = stages.texel_ids(geo, n, 0)
+    tex = texel_ids(geo, n, 0)
     occupied = np.flatnonzero(np.bincount(tex, minlength=n * n))
     rng = np.random.default_rng(seed)
     pick = np.sort(rng.choice(occupied, size=min(n_texels, occupied.size), replace=False))

@@ -6,7 +6,7 @@ pairs (uniform over the upper hemisphere, seeded) the benchmark reports, median 
 - every model (lambert, phong, preview, ggx_conductor, cellular, merl nearest / trilinear):
   seconds and million evaluations per second; for MERL beside its mean relative error against
   the analytic BRDF the table was tabulated from (speed against error);
-- the preview kernel's block size (`brdf._CHUNK`) sweep, which justifies the default;
+- the preview kernel's block size (`brdf.analytic.CHUNK`) sweep, which justifies the default;
 - numpy against the same UsdPreviewSurface formulas in torch (CPU, whole arrays), with the
   largest absolute difference between the two.
 
@@ -24,6 +24,7 @@ import time
 import numpy as np
 
 from texelbake import brdf
+from texelbake.brdf import analytic as brdf_analytic
 
 
 def _pairs(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -108,15 +109,15 @@ def run(n: int, repeats: int) -> dict:
 
     print("\npreview block size sweep")
     sweep = {}
-    default = brdf._CHUNK
+    default = brdf_analytic.CHUNK
     try:
         for chunk in (1 << 12, 1 << 14, 1 << 15, 1 << 16, 1 << 18, 1 << 22):
-            brdf._CHUNK = chunk
+            brdf_analytic.CHUNK = chunk
             sec = _time(lambda: brdf.preview_surface(preview, wi, wo), repeats)
             sweep[str(chunk)] = sec
             print(f"  chunk {chunk:8d}: {sec:.3f} s")
     finally:
-        brdf._CHUNK = default
+        brdf_analytic.CHUNK = default
     result["preview_chunk_seconds"] = sweep
 
     try:

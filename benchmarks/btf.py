@@ -94,12 +94,14 @@ def bake_scene_btf(name: str, atlas: int, workdir: Path) -> Path:
     """Bake test scene `name` through the pipeline's ingest, geometry and CPM stages with
     btf=True and collect the finest level's f_r tables into `<workdir>/<name><atlas>.npz`
     (keys btf, dirs_i, dirs_o, covered). Tiles already in the artifact store are reused, so an
-    interrupted run resumes. Reads the CPM level arrays through `stages._level_key` until the
+    interrupted run resumes. Reads the CPM level arrays through `texelbake.stages.cpm.level_key` until the
     pipeline's own BTF stage (`stages.run_btf`) is wired.
     """
     from schemas.settings import BakeSettings
     from texelbake import pipeline, scenes, stages
     from texelbake.btf.stage import btf_from_texels
+    from texelbake.cpm.level import direction_sets
+    from texelbake.stages.cpm import level_key
 
     folder = workdir / f"{name}{atlas}"
     folder.mkdir(parents=True, exist_ok=True)
@@ -113,12 +115,12 @@ def bake_scene_btf(name: str, atlas: int, workdir: Path) -> Path:
     ids, fbar, valid = [], [], []
     for tile in range(pipeline.n_tiles(s)):  # one CPM shard per tile
         pipeline.run_shard(work, asset, s, "cpm", tile)
-        arrays = ctx.store.read_arrays(stages._level_key(ctx, 0, tile))
+        arrays = ctx.store.read_arrays(level_key(ctx, 0, tile))
         ids.append(arrays["texel"])
         fbar.append(arrays["fbar"])
         valid.append(arrays["valid"])
     ids_all, fbar_all, ok = np.concatenate(ids), np.concatenate(fbar), np.concatenate(valid)
-    dirs = stages.direction_sets(s)
+    dirs = direction_sets(s)
     n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
     dirs_i = np.repeat(dirs["dirs_i"], n_o, axis=0)  # the CPM grid's row = i * n_o + o
     dirs_o = np.tile(dirs["dirs_o"], (n_i, 1))

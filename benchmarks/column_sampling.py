@@ -68,7 +68,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from texelbake.column_sampling import (  # noqa: E402
+from texelbake.cpm.column_sampling import (  # noqa: E402
     column_probabilities,
     eckart_young_error,
     energy_rank,
@@ -81,21 +81,19 @@ from texelbake.column_sampling import (  # noqa: E402
     top_singular,
     uniform_probabilities,
 )
-from texelbake.cpm import (  # noqa: E402
-    LUMA_709,
-    avis_floor,
-    avis_on_grid,
-    evaluate_fit,
-    filtered_reflectance,
-    fit_texel,
-    reflectance_matrix,
-    reflectance_pairs,
-)
-from texelbake.directions import (  # noqa: E402
+from texelbake.cpm.directions import (  # noqa: E402
     balanced_pairs,
     heldout_pairs,
     hemisphere_directions,
     product_pairs,
+)
+from texelbake.cpm.fit import LUMA_709, evaluate_fit, fit_texel  # noqa: E402
+from texelbake.cpm.matrix import (  # noqa: E402
+    avis_floor,
+    avis_on_grid,
+    filtered_reflectance,
+    reflectance_matrix,
+    reflectance_pairs,
 )
 
 METHODS = ("seed+clamp", "seed+nnls", "leverage", "uniform", "pivqr", "eq7+nnls")

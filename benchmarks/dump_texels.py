@@ -19,23 +19,25 @@ import numpy as np
 
 from schemas.settings import BakeSettings
 from texelbake import stages
+from texelbake.cpm.level import brdf_grid, direction_sets, texel_ids, visibility_cos, world_dirs
 from texelbake.scenes import write_scene
 
 
 def texel_matrices(ctx: stages.StageContext, texel: int, dirs_i: np.ndarray,
                    dirs_o: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """R (n_i n_o, m, 3) and a_vis rows (n_i n_o,) of one finest texel on a product grid."""
-    geo = ctx.geometry()
+    src = ctx.fit_inputs()
+    geo = src.geo
     n = ctx.settings.atlas_resolution
     frames = geo["frames_L0"]
-    samples = np.flatnonzero(stages.texel_ids(geo, n, 0) == texel)
+    samples = np.flatnonzero(texel_ids(geo, n, 0) == texel)
     tex = np.full(len(samples), texel)
-    vi = stages._visibility_cos(ctx, geo, samples, stages._world_dirs(frames, tex, dirs_i))
-    vo = stages._visibility_cos(ctx, geo, samples, stages._world_dirs(frames, tex, dirs_o),
+    vi = visibility_cos(src, samples, world_dirs(frames, tex, dirs_i))
+    vo = visibility_cos(src, samples, world_dirs(frames, tex, dirs_o),
                                 "geometric")
     live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)
-    f = stages._brdf_grid(ctx, geo, samples, stages._world_dirs(frames, tex, dirs_i),
-                          stages._world_dirs(frames, tex, dirs_o), live)
+    f = brdf_grid(src, samples, world_dirs(frames, tex, dirs_i),
+                          world_dirs(frames, tex, dirs_o), live)
     area = geo["sample_area"][samples]
     R = (f * (vi.T[:, None, :, None] * vo.T[None, :, :, None])
          * area[None, None, :, None]).reshape(len(dirs_i) * len(dirs_o), -1, 3)
@@ -63,11 +65,11 @@ def main() -> None:
     stages.run_ingest(ctx)
     stages.run_geometry(ctx)
     geo = ctx.geometry()
-    counts = np.bincount(stages.texel_ids(geo, args.atlas, 0), minlength=args.atlas ** 2)
+    counts = np.bincount(texel_ids(geo, args.atlas, 0), minlength=args.atlas ** 2)
     occupied = np.flatnonzero(counts >= 8)
     rng = np.random.default_rng(args.seed)
     picks = np.sort(rng.choice(occupied, size=min(args.texels, occupied.size), replace=False))
-    dirs = stages.direction_sets(settings)
+    dirs = direction_sets(settings)
     out = {}
     for t, texel in enumerate(picks):  # a handful of texels
         R, avis, area = texel_matrices(ctx, int(texel), dirs["dirs_i"], dirs["dirs_o"])

@@ -40,7 +40,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from texelbake.stack import free_port, stack_down, stack_up, worker_command  # noqa: E402
+from services.stack import free_port, stack_down, stack_up, worker_command  # noqa: E402
 
 SETTINGS = {
     "atlas_resolution": 64,

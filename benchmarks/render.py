@@ -69,8 +69,9 @@ if str(ROOT) not in sys.path:
 
 from schemas.settings import BakeSettings  # noqa: E402
 from texelbake.pipeline import bake  # noqa: E402
-from texelbake.render.api import _write_json, compare_modes, write_report_plot  # noqa: E402
-from texelbake.render.core import MODES, load_scene, render_frame, resolve_camera  # noqa: E402
+from texelbake.render.frame import MODES, render_frame  # noqa: E402
+from texelbake.render.report import _write_json, compare_modes, write_report_plot  # noqa: E402
+from texelbake.render.scene import load_scene, resolve_camera  # noqa: E402
 from texelbake.scenes import write_scene  # noqa: E402
 
 #: bake settings of the benchmark besides the atlas and ε: what bakes a small scene in a few
@@ -146,7 +147,7 @@ def main(argv: list[str] | None = None) -> dict:
         sc = load_scene(bake_scene(args.scene, work, args.atlas, eps, **bake_kw))
         for s in (1, args.spp, 16):
             r = render_frame(sc, "cpm", cam, s, 0)
-            from texelbake.render.api import _entry
+            from texelbake.render.report import _entry
 
             report["sweep"].append(_entry(r, ref.image, eps))
     report["scene"] = args.scene

@@ -1,4 +1,4 @@
-"""Visible projected area a_vis (texelbake.avis): cube maps, rays vs closed form, the height-field
+"""Visible projected area a_vis (texelbake.cpm.avis): cube maps, rays vs closed form, the height-field
 acceptance (c), the a_vis -> 0 limit, hierarchy additivity and the compressed look-up table."""
 
 import numpy as np
@@ -13,7 +13,7 @@ from avis_scenes import (
     uv_sphere,
 )
 
-from texelbake.avis import (
+from texelbake.cpm.avis import (
     AvisLevel,
     AvisTable,
     avis_cube_maps,

@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 
 from texelbake import brdf, model
+from texelbake.brdf import cellular_shader as brdf_cellular
+from texelbake.brdf import merl as brdf_merl
 from texelbake.errors import AssetError, SettingsError, ShapeError
 
 N_MC = 200_000  # Monte Carlo samples per view direction
@@ -421,7 +423,7 @@ def test_merl_lookup_vs_analytic(merl_file):
     # the 3 axes, so |error| <~ 0.5 * sum over axes of the largest change between adjacent
     # bins around it. Measured from the table itself (no assumed Lipschitz constant), x2 slack
     # for the curvature of f within a bin.
-    th, td, pd = brdf._merl_angles(wi, wo)
+    th, td, pd = brdf_merl._merl_angles(wi, wo)
     ih = np.clip((np.sqrt(th / (np.pi / 2)) * 90).astype(int), 0, 89)
     i_d = np.clip((td / (np.pi / 2) * 90).astype(int), 0, 89)
     ip = np.clip((pd / np.pi * 180).astype(int), 0, 179)
@@ -472,7 +474,7 @@ def test_worley_against_brute_force():
     ii, jj = np.meshgrid(np.arange(-8, 8), np.arange(-8, 8), indexing="ij")
     ii, jj = ii.ravel(), jj.ravel()
     sd = np.full(ii.shape, 4)
-    fx, fy = brdf._feature_points(ii, jj, sd)
+    fx, fy = brdf_cellular._feature_points(ii, jj, sd)
     assert np.all((fx >= ii) & (fx < ii + 1) & (fy >= jj) & (fy < jj + 1))
     d = np.hypot(pts[:, None, 0] - fx[None], pts[:, None, 1] - fy[None])  # (3000, 256)
     order = np.sort(d, axis=1)

@@ -3,7 +3,7 @@ import itertools
 import numpy as np
 import pytest
 
-from texelbake.column_sampling import (
+from texelbake.cpm.column_sampling import (
     column_probabilities,
     eckart_young_error,
     energy_rank,

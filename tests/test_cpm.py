@@ -5,21 +5,23 @@ import mpmath
 import numpy as np
 import pytest
 
-from texelbake.column_sampling import fit_weights
-from texelbake.cpm import (
+from texelbake.cpm.column_sampling import fit_weights
+from texelbake.cpm.directions import heldout_pairs, hemisphere_directions, product_pairs
+from texelbake.cpm.fit import (
     TexelFit,
-    avis_floor,
-    avis_on_grid,
     channel_correlation,
     evaluate_fit,
-    filtered_reflectance,
     fit_texel,
     reconstruct,
+)
+from texelbake.cpm.matrix import (
+    avis_floor,
+    avis_on_grid,
+    filtered_reflectance,
     reflectance_matrix,
     reflectance_pairs,
     snr_db,
 )
-from texelbake.directions import heldout_pairs, hemisphere_directions, product_pairs
 from texelbake.errors import NumericalError, SettingsError, ShapeError
 from texelbake.tol import TOL
 
@@ -472,7 +474,7 @@ def test_channel_correlation_matches_numpy(rng):
 def test_weights_past_float32_range_are_dropped_not_stored_as_inf():
     """NNLS weights 1/scale of a vanishing column: past float32 they would be stored as inf and
     poison the next level's R with inf x 0 = NaN (the small bolt at 32²); they become 0."""
-    from texelbake.cpm import _storable_weights
+    from texelbake.cpm.fit import _storable_weights
 
     w = np.array([[0.5, 2.0], [1e39, 3.0], [np.nan, 1.0], [-1e300, np.inf]])
     out = _storable_weights(w)

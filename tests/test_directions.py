@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from texelbake.directions import (
+from texelbake.cpm.directions import (
     balanced_pairs,
     heldout_pairs,
     hemisphere_directions,

@@ -1,12 +1,12 @@
-"""Haar compression (texelbake.haar): round trip, Parseval optimality, point evaluation."""
+"""Haar compression (texelbake.cpm.haar): round trip, Parseval optimality, point evaluation."""
 
 import math
 
 import numpy as np
 import pytest
 
+from texelbake.cpm.haar import compress_haar, decompress_haar, eval_haar_point, haar_point_terms
 from texelbake.errors import NumericalError, SettingsError, ShapeError
-from texelbake.haar import compress_haar, decompress_haar, eval_haar_point, haar_point_terms
 
 
 def _smooth_maps(rng, shape, res):

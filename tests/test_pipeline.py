@@ -13,13 +13,13 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
 from schemas.settings import BakeSettings
 from texelbake import brdf
+from texelbake.cpm.avis.table import avis_table_from
 from texelbake.frames import tangent_frames
 from texelbake.geometry.raycast import RayCaster
 from texelbake.payload import read_baked
 from texelbake.pipeline import bake, plan_bake
 from texelbake.scene import load_asset
 from texelbake.scenes import write_scene
-from texelbake.stages import avis_table_from
 
 SMALL = {"atlas_resolution": 16, "shard_texels": 8, "samples_per_texel": 8, "n_light_dirs": 12,
          "n_view_dirs": 12, "n_heldout": 16, "c_max": 12, "n_trials": 2, "mesh_levels": 1}

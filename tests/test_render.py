@@ -12,7 +12,8 @@ from _render_helpers import RHO, distant, icosphere, model, quad, write_plane_us
 from texelbake import metrics
 from texelbake.errors import SettingsError
 from texelbake.render import camera as cam_mod
-from texelbake.render.core import OrgScene, render_model, shade_org
+from texelbake.render.gt import render_model, shade_org
+from texelbake.render.scene import OrgScene
 
 LIGHT = np.array([0.3, 0.2, 0.9]) / np.linalg.norm([0.3, 0.2, 0.9])
 E = 3.0
@@ -195,7 +196,7 @@ def test_normalmap_and_equal_time_on_a_flat_plane(baked_plane, tmp_path):
 def test_previews_and_report(baked_plane, tmp_path, monkeypatch):
     import json
 
-    from texelbake.render import api
+    from texelbake.render import report as api
 
     monkeypatch.setitem(api.PREVIEW_SIZES, "tiny", {
         "px": 24, "ref_spp": 16, "gt_sweep": (1, 4), "cpm_sweep": (1,), "spp": 4})
@@ -222,7 +223,7 @@ def test_previews_and_report(baked_plane, tmp_path, monkeypatch):
 
 
 def test_well_stratified_is_the_largest_balanced_count():
-    from texelbake.render.core import well_stratified
+    from texelbake.render.tracer import well_stratified
 
     def balanced(m):
         nx, ny = cam_mod.strata(m)
@@ -252,8 +253,8 @@ def test_render_report_writes_the_modes_asked_for(baked_plane, tmp_path):
 def test_diagnostic_colours_and_density(baked_plane):
     from matplotlib import colormaps
 
-    from texelbake.render import api
-    from texelbake.render.core import load_scene
+    from texelbake.render import diagnostics as api
+    from texelbake.render.scene import load_scene
 
     lv = np.array([[np.nan, -1.0], [0.0, 1.5]])
     c = api.level_colours(lv, n_levels=3)

@@ -39,7 +39,7 @@ def baked_shadow(tmp_path_factory) -> Path:
 def test_cpm_carries_the_shadow_of_another_object(baked_shadow):
     from texelbake.render import render
     from texelbake.render.camera import eye_rays
-    from texelbake.render.core import load_scene, resolve_camera
+    from texelbake.render.scene import load_scene, resolve_camera
 
     # the asset's top view moved back until a finest texel spans 0.7 pixel: every plane
     # pixel takes the CPM path
@@ -80,7 +80,8 @@ def test_cpm_carries_the_shadow_of_another_object(baked_shadow):
 def test_texel_radiance_of_a_subset_equals_the_full_level(baked_shadow):
     """The cpm mode computes Eq. 12 only for the texels a frame looks up; each texel's value
     must not depend on which others are computed with it."""
-    from texelbake.render.core import load_scene, resolve_camera, texel_radiance
+    from texelbake.render.cpm import texel_radiance
+    from texelbake.render.scene import load_scene, resolve_camera
 
     scene = load_scene(baked_shadow)
     cam = resolve_camera(scene, "lod", 32, 32)

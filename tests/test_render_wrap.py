@@ -25,7 +25,7 @@ def baked_wall(tmp_path_factory) -> Path:
 
 def test_the_wall_gets_one_wrapped_m1(baked_wall):
     from texelbake.geometry.hierarchy import n_parts
-    from texelbake.render.core import load_scene
+    from texelbake.render.scene import load_scene
 
     scene = load_scene(baked_wall)
     m1 = scene.baked.meshes[0]
@@ -44,7 +44,8 @@ def test_cpm_takes_its_outline_from_m_org(baked_wall):
     them), and the image's total light comes closer to gt's."""
     from texelbake.render import camera as cam_mod
     from texelbake.render.camera import eye_rays, sample_offsets
-    from texelbake.render.core import load_scene, render_frame
+    from texelbake.render.frame import render_frame
+    from texelbake.render.scene import load_scene
 
     scene = load_scene(baked_wall)
     cam = cam_mod.auto_frame(scene.asset.bounds, 48, 32, distance=1.2)

@@ -168,9 +168,9 @@ def test_cylinder_is_closed_with_the_closed_form_volume(written):
     (mesh,) = _meshes(stage)
     pts, counts, idx = _mesh_arrays(mesh)
     p = scenes.SCENE_PARAMS["cylinder"]["full"]
-    n, r0 = p["ridges"], scenes._CYLINDER["radius"]
-    height = scenes._CYLINDER["height"]
-    h = r0 * (math.pi / n) * math.tan(math.radians(scenes._CYLINDER["ridge_slope_deg"]))
+    n, r0 = p["ridges"], scenes.params.CYLINDER["radius"]
+    height = scenes.params.CYLINDER["height"]
+    h = r0 * (math.pi / n) * math.tan(math.radians(scenes.params.CYLINDER["ridge_slope_deg"]))
     # a star prism: 2n triangles (centre, valley, peak) of area r0 (r0 + h) sin(pi/n) / 2
     truth = height * n * r0 * (r0 + h) * math.sin(math.pi / n)
     # float32 points: relative error ~1e-7 per coordinate, 1e-5 leaves room for the sum
@@ -212,8 +212,8 @@ def test_bolt_lattice_of_diamond_bumps(written):
     shaft = next(m for m in _meshes(stage) if m.GetPrim().GetName() == "Shaft")
     pts, _, _ = _mesh_arrays(shaft)
     p = scenes.SCENE_PARAMS["bolt"]["small"]
-    r = scenes._BOLT["radius"]
-    bump = scenes._BOLT["bump_ratio"] * 2 * math.pi * r / p["around"]
+    r = scenes.params.BOLT["radius"]
+    bump = scenes.params.BOLT["bump_ratio"] * 2 * math.pi * r / p["around"]
     rad = np.hypot(pts[:, 0], pts[:, 2])
     # one apex per cell, every other lattice point on the shaft, the cap centre on the axis
     assert np.sum(np.isclose(rad, r + bump, atol=1e-6)) == p["around"] * p["along"]
@@ -236,7 +236,7 @@ def test_cloisonne_material_convention(written):
     # closed, outward-facing blob
     pts, counts, idx = _mesh_arrays(mesh)
     assert _signed_volume(pts, _fan(counts, idx)) > 0.9 * 4 / 3 * math.pi * np.prod(
-        scenes._CLOISONNE_SCALE)
+        scenes.params.CLOISONNE_SCALE)
 
 
 def test_textures_exist_beside_the_layer_and_read(written):

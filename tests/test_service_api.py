@@ -11,8 +11,8 @@ import httpx
 import pytest
 
 from services.config import Settings
+from services.stack import free_port, stack_down, stack_up
 from tests.svc_util import dir_listing, make_zip, usda
-from texelbake.stack import free_port, stack_down, stack_up
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(120)]
 

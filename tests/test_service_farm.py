@@ -19,9 +19,9 @@ from sqlalchemy import select
 
 from schemas.settings import BakeSettings
 from services.db import Shard, session_factory
+from services.stack import free_port, stack_down, stack_up
 from tests.svc_util import CHEAP_SETTINGS, assert_same_bake, fresh_postgres
 from texelbake.client import submit
-from texelbake.stack import free_port, stack_down, stack_up
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(300)]
 TOKEN = "farm-token-0123456789abcdef"

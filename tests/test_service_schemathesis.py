@@ -11,8 +11,8 @@ from pathlib import Path
 import httpx
 import pytest
 
+from services.stack import free_port, stack_down, stack_up
 from tests.svc_util import usda
-from texelbake.stack import free_port, stack_down, stack_up
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(300)]
 TOKEN = "schemathesis-token-0123456789"

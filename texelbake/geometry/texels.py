@@ -262,7 +262,7 @@ def _bent_side(pts: np.ndarray, n: np.ndarray, closest: np.ndarray, prim: np.nda
                face_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`assign_texels`' bent-normal rule (see there; `n` unit normals), all candidates' rays
     in one batch."""
-    from texelbake.directions import hemisphere_directions
+    from texelbake.cpm.directions import hemisphere_directions
     from texelbake.frames import tangent_frames
     from texelbake.geometry.raycast import offset_origins
 

@@ -1,14 +1,19 @@
-"""The renderer (issue 4): baked USD -> images, and the speed-against-error report.
+"""The renderer (seed 000 §4.2, §5): baked USD -> images, and the speed-against-error report.
 
     render(baked_root, mode, *, width, height, spp, camera=None, out_dir=None, seed=0)
     render_previews(baked_root, out_dir, *, size="small")
     render_report(baked_root, out_dir, *, modes=..., width, height, spp, ref_spp, camera)
     write_report_plot(report_dir)
 
-See `texelbake.render.core` for the modes and `texelbake.render.api` for the report.
+Modules: `frame` (the modes and `render_frame`), `tracer` (the wavefront loop), `camera`,
+`scene` (a baked asset ready to render), one module per mode (`gt`, `cpm`, `btf`,
+`normalmap`), `shade` (direct light), `diagnostics` (mip-level and density images),
+`images` (EXR/PNG), `report` (previews, the report and its plot).
 """
 
-from texelbake.render.api import (
+from texelbake.render.camera import PinholeCamera, auto_frame, from_usd, look_at
+from texelbake.render.frame import EXTRA_MODES, MODES, render_frame
+from texelbake.render.report import (
     PREVIEW_SIZES,
     compare_modes,
     render,
@@ -16,15 +21,8 @@ from texelbake.render.api import (
     render_report,
     write_report_plot,
 )
-from texelbake.render.camera import PinholeCamera, auto_frame, from_usd, look_at
-from texelbake.render.core import (
-    EXTRA_MODES,
-    MODES,
-    RenderResult,
-    RenderScene,
-    load_scene,
-    render_frame,
-)
+from texelbake.render.scene import RenderScene, load_scene
+from texelbake.render.tracer import RenderResult
 
 __all__ = [
     "EXTRA_MODES", "MODES", "PREVIEW_SIZES", "PinholeCamera", "RenderResult", "RenderScene", "auto_frame",

@@ -7,7 +7,7 @@ Radiance toward ωo of a surface point with geometric normal n_g and shading nor
 
 with the BRDF evaluated in the shading frame `frames.tangent_frames(n_s)` (as the bake does),
 and zero wherever ωi or ωo lies below the geometric or the shading horizon (cosine below
-TOL.grazing_cos), exactly the support `texelbake.stages._visibility_cos` gives the bake, so
+TOL.grazing_cos), exactly the support `texelbake.cpm.level.visibility_cos` gives the bake, so
 that the ground truth and the baked reflectance describe the same function. Surfaces are
 one-sided (seen from behind they are black), as in the bake.
 

@@ -1,6 +1,6 @@
-"""Public entry points of the renderer: `render`, `render_previews`, `write_report_plot`, and
-the diagnostic images (mip level colour-coded, seed 000 Fig. 9; characteristic-point density
-over the atlas and on the model, its Fig. 8).
+"""Public entry points of the renderer: `render`, `render_previews`, `render_report`,
+`compare_modes` and `write_report_plot` (the diagnostic images are in
+`texelbake.render.diagnostics`).
 
 `render_report.json` (written by `render_previews` and by `benchmarks/render.py`)::
 
@@ -26,17 +26,17 @@ import numpy as np
 from texelbake import metrics
 from texelbake.errors import SettingsError, StageError
 from texelbake.render import camera as cam_mod
-from texelbake.render.core import (
-    EXTRA_MODES,
-    MODES,
-    RenderResult,
-    RenderScene,
-    has_btf_maps,
-    load_scene,
-    render_frame,
-    resolve_camera,
+from texelbake.render.btf import has_btf_maps
+from texelbake.render.diagnostics import (
+    density_atlas,
+    density_colours,
+    density_on_model,
+    level_colours,
 )
+from texelbake.render.frame import EXTRA_MODES, MODES, render_frame
 from texelbake.render.images import write_exr, write_png
+from texelbake.render.scene import RenderScene, load_scene, resolve_camera
+from texelbake.render.tracer import RenderResult
 
 #: preview sizes: (pixels per side, reference spp, gt sweep spp, cpm sweep spp, spp of the
 #: compared images)
@@ -76,73 +76,6 @@ def render(baked_root: str | Path, mode: str, *, width: int, height: int, spp: i
 # --------------------------------------------------------------------------- diagnostics
 
 
-def level_colours(level: np.ndarray, n_levels: int) -> np.ndarray:
-    """Mip level image -> colours (seed 000 Fig. 9): level j gets colour j of a qualitative
-    map, fractional levels blend the two neighbours, -1 (M_org fallback) is white, NaN
-    (background) black.
-
-    level : (h, w) float; returns (h, w, 3) float64 in [0, 1]
-    """
-    from matplotlib import colormaps
-
-    lv = np.asarray(level, dtype=np.float64)
-    pal = np.asarray(colormaps["tab10"](np.arange(10)))[:, :3]
-    out = np.zeros(lv.shape + (3,))
-    ok = np.isfinite(lv) & (lv >= 0)
-    x = np.clip(np.where(ok, lv, 0.0), 0.0, max(n_levels - 1, 0))
-    j0 = np.floor(x).astype(np.int64)
-    j1 = np.minimum(j0 + 1, max(n_levels - 1, 0))
-    f = (x - j0)[..., None]
-    col = (1 - f) * pal[j0 % 10] + f * pal[j1 % 10]
-    out[ok] = col[ok]
-    out[lv == -1.0] = 1.0
-    return out
-
-
-def density_atlas(scene: RenderScene, level: int = 0) -> np.ndarray:
-    """Characteristic points per texel of one level as an (n_l, n_l) int64 image (row 0 is the
-    top of the atlas, v = 1)."""
-    lv = scene.baked.levels[level]
-    counts = np.diff(lv["texel_offsets"])
-    n_l = int(round(math.sqrt(counts.shape[0])))
-    return counts.reshape(n_l, n_l).astype(np.int64)
-
-
-def density_colours(counts: np.ndarray, vmax: float | None = None) -> np.ndarray:
-    """Counts -> viridis colours, zero counts dark grey. (h, w) -> (h, w, 3) float64."""
-    from matplotlib import colormaps
-
-    c = np.asarray(counts, dtype=np.float64)
-    vmax = float(c.max()) if vmax is None else float(vmax)
-    rgb = colormaps["viridis"](np.clip(c / max(vmax, 1.0), 0.0, 1.0))[..., :3]
-    rgb[c <= 0] = 0.15
-    return rgb
-
-
-def density_on_model(scene: RenderScene, cam: cam_mod.PinholeCamera, level: int = 0,
-                     seed: int = 0) -> np.ndarray:
-    """M1 coloured by the characteristic-point count of the texel under each pixel (nearest
-    texel of `level`), shaded by |n·v| so the shape reads (seed 000 Fig. 8).
-    returns (h, w, 3) float64 in [0, 1] (background black)"""
-    counts = density_atlas(scene, level)
-    n_l = counts.shape[0]
-    m = scene.baked.meshes[0]
-    off = cam_mod.sample_offsets(1, cam.width * cam.height, seed)
-    o, d = cam_mod.eye_rays(cam, off)
-    hits = scene.lods[0].cast(o, d)
-    out = np.zeros((o.shape[0], 3))
-    idx = np.flatnonzero(hits.hit)
-    if idx.size:
-        prim = hits.prim[idx]
-        uv = np.einsum("nk,nkj->nj", hits.bary3()[idx], m.corner_uvs[prim])
-        x = np.clip(np.floor(uv[:, 0] * n_l), 0, n_l - 1).astype(np.int64)
-        y = np.clip(np.floor((1.0 - uv[:, 1]) * n_l), 0, n_l - 1).astype(np.int64)
-        col = density_colours(counts, counts.max())[y, x]
-        shade = np.abs(np.einsum("ij,ij->i", scene.lod_face_normals[0][prim], d[idx]))
-        out[idx] = col * (0.35 + 0.65 * shade[:, None])
-    return out.reshape(cam.height, cam.width, 3)
-
-
 def _upscale(img: np.ndarray, min_px: int = 256) -> np.ndarray:
     k = max(1, int(math.ceil(min_px / max(img.shape[:2]))))
     return np.repeat(np.repeat(img, k, axis=0), k, axis=1)
@@ -180,7 +113,7 @@ def render_previews(baked_root: str | Path, out_dir: str | Path, *, size: str = 
     Two views: "near" — the asset's camera (what a user looks at; where the finest texels
     are larger than a pixel the cpm mode falls back to M_org, and mip_levels.png shows it in
     white); "far" — the same view moved back until a finest texel spans about a pixel
-    (`core.lod_camera`), where the characteristic point maps are used; its files carry the
+    (`scene.lod_camera`), where the characteristic point maps are used; its files carry the
     prefix `far_`. Writes into out_dir, per view: gt_reference, gt, cpm, normalmap,
     equal-time, and btf when the bake wrote BTF maps (.exr linear, .png sRGB); diff_<mode>.png (ΔE*ab against the reference);
     mip_levels.png; and cp_density_atlas.png, cp_density_model.png, render_report.json,

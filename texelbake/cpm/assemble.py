@@ -1,0 +1,98 @@
+"""One CPM level as the payload's dense per-texel arrays (CSR points, weights, statistics,
+the compressed a_vis table) and its report entry (percentiles, a_vis compression error)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from texelbake.cpm import avis as avis_mod
+from texelbake.cpm.avis.table import avis_table_arrays
+from texelbake.cpm.haar import decompress_haar
+
+
+def percentiles(x: np.ndarray) -> dict[str, float]:
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {"n": 0}
+    return {"n": int(x.size), "mean": float(x.mean()), "p5": float(np.percentile(x, 5)),
+            "p50": float(np.median(x)), "p95": float(np.percentile(x, 95)),
+            "min": float(x.min()), "max": float(x.max())}
+
+
+def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_keep_fraction: float,
+                   level: int, data: dict[str, np.ndarray],
+                   avis_level: avis_mod.AvisLevel) -> tuple[dict[str, np.ndarray], dict]:
+    """One CPM level as dense per-texel payload arrays, and its report entry.
+
+    geo : the geometry stage's arrays; data : the level's fit (`texelbake.cpm.level`, sorted
+    by texel); avis_level : its a_vis maps (`texelbake.cpm.avis.levels`).
+    """
+    n_l = atlas_resolution >> level
+    n_tex = n_l * n_l
+    counts = np.zeros(n_tex, np.int64)
+    counts[data["texel"]] = np.diff(data["offsets"])
+    # data is sorted by texel id, so its points are already in dense-CSR order
+    pts = data["point_sample"]
+
+    def dense(name: str, fill, dtype) -> np.ndarray:
+        out = np.full(n_tex, fill, dtype=dtype)
+        out[data["texel"]] = data[name]
+        return out
+
+    frames = geo[f"frames_L{level}"]
+    table = avis_mod.compress_level(avis_level, frames, avis_keep_fraction)
+    arrays = {
+        "texel_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        "point_sample": pts.astype(np.int64),
+        "point_position": geo["sample_pos"][pts].astype(np.float32),
+        "point_normal": geo["sample_nrm"][pts].astype(np.float32),
+        "point_geom_normal": geo["sample_gnrm"][pts].astype(np.float32),
+        "point_material": geo["sample_mat"][pts].astype(np.int32),
+        "point_uv": geo["sample_uv"][pts].astype(np.float32),
+        "point_weight": data["point_weight"].astype(np.float32),
+        "texel_k": dense("k", 0, np.int32),
+        "texel_c": dense("c", 0, np.int32),
+        "texel_snr_insample": dense("snr_in", np.nan, np.float32),
+        "texel_snr_heldout": dense("snr_ho", np.nan, np.float32),
+        "texel_valid": dense("valid", False, bool),
+        "texel_mode": dense("mode", 0, np.uint8),
+        "frames": frames.astype(np.float64),
+    }
+    arrays.update(avis_table_arrays(table))
+    # a_vis compression error (relative L2 over the ray-based maps, the seed's measure)
+    err = 0.0
+    if len(avis_level.ray_texels):
+        table_maps = decompress_haar(table.haar).reshape(-1, 6, avis_level.res, avis_level.res)
+        frac = avis_level.bounded[avis_level.ray_texels]
+        ref = avis_level.ray_maps.copy()
+        if frac.any():
+            unocc = avis_mod.closed_form_maps(avis_level.cf, avis_level.res,
+                                              avis_level.ray_texels[frac])
+            ref[frac] = avis_mod.visible_fraction(ref[frac], unocc)
+        err = float(np.linalg.norm(table_maps - ref)) / max(float(np.linalg.norm(ref)), 1e-300)
+    valid = data["valid"]
+    report = {
+        "level": level,
+        "resolution": n_l,
+        "texels": n_tex,
+        "texels_with_samples": int(len(data["texel"]) - np.sum(np.isnan(data["snr_in"]))),
+        "texels_valid": int(valid.sum()),
+        "k": percentiles(data["k"][valid]),
+        "c": percentiles(data["c"][valid]),
+        "snr_insample_db": percentiles(data["snr_in"][valid]),
+        "snr_heldout_db": percentiles(data["snr_ho"][valid]),
+        "per_channel_texels": int(np.sum(data["mode"][valid] == 1)),
+        "points": int(len(pts)),
+        "rays": int(data["rays"].sum()) if "rays" in data else 0,
+        "bytes": int(sum(a.nbytes for a in arrays.values())),
+        "avis": {
+            "closed_form_texels": int(avis_level.closed.sum()),
+            "ray_texels": int(len(avis_level.ray_texels)),
+            "kept_fraction": float(table.haar.kept_fraction),
+            "rel_error": err,
+        },
+    }
+    return arrays, report

@@ -1,0 +1,374 @@
+"""``cpm``: characteristic point maps, Eq. 12 of seed 000 (see `texelbake.render.frame`),
+per-frame texel radiance, trilinear look-ups at each eye ray's footprint, the outline from
+M_org, and the fall-back to M_org closer than the finest level."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from texelbake import brdf as brdf_mod
+from texelbake.errors import SettingsError
+from texelbake.geometry.texels import bilinear_texels
+from texelbake.render.camera import PinholeCamera
+from texelbake.render.gt import shade_org
+from texelbake.render.scene import RenderScene, m1_arrays
+from texelbake.render.shade import direct_radiance, light_at
+from texelbake.render.tracer import eye_passes, ray_slices
+from texelbake.tol import TOL
+
+
+def choose_mesh(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0) -> int:
+    """Index i (0 = M1) of the coarsest M_i whose distance to M_org (vertex Hausdorff
+    estimate) projects to at most `max_error_px` pixels at the bounding box's nearest point;
+    M1 when none does (seed 000 §4.2: level chosen by projected size)."""
+    lo, hi = scene.asset.bounds
+    centre = 0.5 * (lo + hi)
+    radius = 0.5 * float(np.linalg.norm(hi - lo))
+    dist = max(float(np.linalg.norm(centre - cam.position)) - radius, 1e-9 * scene.diag)
+    for i in range(len(scene.lods) - 1, 0, -1):
+        if scene.lod_error[i] / (dist * cam.pixel_angle) <= max_error_px:
+            return i
+    return 0
+
+
+def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray,
+                   texels: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Eq. 12 for the texels of one level (all, or the ids in `texels`), for this frame
+    (module docstring). Each texel's value depends only on its own points, so computing a
+    subset gives the same values as computing all.
+
+    cam_pos : (3,) float64; texels : (t,) int64 distinct texel ids, None = every texel
+    returns : (radiance (t, 3) float64, a_vis (t,) float64 toward the camera (0 where
+        invalid: the a_vis -> 0 limit), exists (t,) bool — the texel has characteristic
+        points, rays cast)
+    """
+    lv = scene.baked.levels[level]
+    offsets = lv["texel_offsets"]
+    if texels is None:
+        texels = np.arange(offsets.shape[0] - 1)
+    texels = np.asarray(texels, dtype=np.int64)
+    n_tex = texels.shape[0]
+    counts = offsets[texels + 1] - offsets[texels]
+    exists = counts > 0
+    radiance = np.zeros((n_tex, 3))
+    avis = np.zeros(n_tex)
+    n_pts = int(counts.sum())
+    if n_pts == 0:
+        return radiance, avis, exists, 0
+    tex = np.repeat(np.arange(n_tex), counts)  # (P,) local texel of each point
+    # the points of the chosen texels: each texel's CSR range, concatenated
+    first = np.cumsum(counts) - counts
+    pt = offsets[texels][tex] + (np.arange(n_pts) - first[tex])
+    cp = scene.points(level)
+    pos, ng, ns, w = cp["position"][pt], cp["geom_normal"][pt], cp["normal"][pt], cp["weight"][pt]
+    # one view direction per texel: weighted centroid -> camera
+    ws = np.abs(w).sum(axis=1)
+    ws = np.where(np.bincount(tex, ws, n_tex)[tex] > 0, ws, 1.0)
+    wsum = np.bincount(tex, ws, n_tex)
+    cen = np.stack([np.bincount(tex, ws * pos[:, c], n_tex) for c in range(3)], axis=1)
+    cen = np.divide(cen, wsum[:, None], out=np.zeros_like(cen), where=wsum[:, None] > 0)
+    wo_tex = np.asarray(cam_pos[None, :] - cen, dtype=np.float64)
+    wo_tex = wo_tex / np.maximum(np.linalg.norm(wo_tex, axis=1, keepdims=True), 1e-300)
+    wo = wo_tex[tex]
+    g = TOL.grazing_cos
+    cos_go = np.einsum("ij,ij->i", ng, wo)
+    view = (cos_go > g) & (np.einsum("ij,ij->i", ns, wo) > g)
+    rays = 0
+    vi = np.flatnonzero(view)
+    if vi.size:  # V(x̂k, ωo): a ray from the point toward the camera
+        tmax = np.linalg.norm(cam_pos[None, :] - pos[vi], axis=1)
+        occ = scene.org.occluded(pos[vi] + scene.ray_eps * ng[vi], wo[vi], tmax=tmax)
+        rays += vi.size
+        view[vi[occ]] = False
+    mat, uv = cp["material"][pt], cp["uv"][pt]
+
+    def brdf(sel: np.ndarray, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
+        return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi_l, wo_l, uv[sel])
+
+    # Σ_l E_l V_i f_r cos_i (the shading of `direct_radiance`, at the points, toward ωo),
+    # for the points that see the camera (the others add nothing)
+    lit = np.zeros((n_pts, 3))
+    seen = np.flatnonzero(view)
+    if seen.size:
+        lit[seen], r = direct_radiance(pos[seen], ng[seen], ns[seen], wo[seen], scene.lights,
+                                       lambda sel, wi_l, wo_l: brdf(seen[sel], wi_l, wo_l),
+                                       scene.org, scene.ray_eps)
+        rays += r
+    contrib = np.where(view[:, None], lit * w * cos_go[:, None], 0.0)  # (P, 3)
+    num = np.stack([np.bincount(tex, contrib[:, c], n_tex) for c in range(3)], axis=1)
+    live = np.flatnonzero(exists)
+    frames = lv["frames"][texels[live]]
+    wo_local = np.einsum("nij,nj->ni", frames, wo_tex[live])
+    a, valid = scene.avis_table(level).evaluate(texels[live], wo_local)
+    radiance[live] = np.where(valid[:, None], num[live] / np.where(valid, a, 1.0)[:, None], 0.0)
+    avis[live] = np.where(valid, a, 0.0)
+    return radiance, avis, exists, rays
+
+
+class CpmFrame:
+    """Per-frame data of the cpm mode: the texel radiance of each level, computed the first
+    time a sample needs that texel (a frame touches the texels it sees, on the levels its
+    footprints select: far views only coarse levels, and never the back of the object)."""
+
+    def __init__(self, scene: RenderScene, cam: PinholeCamera, mesh: int) -> None:
+        self.scene = scene
+        self.cam_pos = np.asarray(cam.position, dtype=np.float64)
+        self.mesh = mesh
+        self.n_levels = len(scene.baked.levels)
+        # per level: radiance, a_vis, exists, computed, requested
+        self._levels: dict[int, tuple[np.ndarray, ...]] = {}
+        self.rays = 0
+
+    def _arrays(self, j: int) -> tuple[np.ndarray, ...]:
+        if j not in self._levels:
+            n = self.scene.baked.levels[j]["texel_offsets"].shape[0] - 1
+            self._levels[j] = (np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool),
+                               np.zeros(n, bool), np.zeros(n, bool))
+        return self._levels[j]
+
+    def request(self, j: int, texels: np.ndarray) -> None:
+        """Mark texels (ids, any shape) of level j as needed by the next `flush`."""
+        self._arrays(j)[4][np.asarray(texels).ravel()] = True
+
+    def flush(self) -> None:
+        """Compute every requested texel not yet computed: one `texel_radiance` call per
+        level (each call has a fixed cost; a frame's look-ups would otherwise make dozens)."""
+        for j in sorted(self._levels):
+            wanted, done = self._levels[j][4], self._levels[j][3]
+            self._compute(j, np.flatnonzero(wanted & ~done))
+
+    def _compute(self, j: int, todo: np.ndarray) -> None:
+        if todo.size:
+            rad, avis, ex, done, _ = self._arrays(j)
+            r, a, e, n_rays = texel_radiance(self.scene, j, self.cam_pos, todo)
+            rad[todo], avis[todo], ex[todo], done[todo] = r, a, e, True
+            self.rays += n_rays
+
+    def level(self, j: int, texels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(radiance (n_j², 3), a_vis (n_j²,), exists (n_j²,) bool) of level j, computed
+        for `texels` (ids, any shape) if not yet; other entries may be unset."""
+        rad, avis, ex, done, _ = self._arrays(j)
+        want = np.unique(texels)
+        self._compute(j, want[~done[want]])
+        return rad, avis, ex
+
+
+def cpm_frame(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0) -> CpmFrame:
+    """The per-frame state of the cpm mode (mesh M_i chosen, texel radiance on demand)."""
+    return CpmFrame(scene, cam, choose_mesh(scene, cam, max_error_px))
+
+
+def _lookup_level(frame: CpmFrame, level: int, idx: np.ndarray, w: np.ndarray,
+                  filtering: str = "projected") -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear texel radiance at one level; weights of texels without points are dropped.
+
+    idx, w : (n, 4) the bilinear texels and weights (`geometry.texels.bilinear_texels`)
+    filtering : "projected" — each texel weighted by its bilinear weight times its visible
+        projected area a_vis toward the viewer, L = Σ w a L / Σ w a = Σ w num / Σ w a (the
+        pixel integrates radiance over the visible projected area, and a_vis is exactly that
+        per texel; a masked texel adds nothing instead of darkening its neighbours, and the
+        a_vis -> 0 limit needs no special case); "radiance" — plain bilinear of L (what a
+        texture unit does); checked by `_check_cpm_options`.
+    returns : (radiance (n, 3), weight sum (n,) — 0 where no texel around uv exists)"""
+    radiance, avis, exists = frame.level(level, idx)
+    w = w * exists[idx]
+    s = w.sum(axis=1)
+    if filtering == "projected":
+        wa = w * avis[idx]
+        sa = wa.sum(axis=1)
+        rad = np.einsum("nk,nkc->nc", wa, radiance[idx])
+        return np.divide(rad, sa[:, None], out=np.zeros_like(rad), where=sa[:, None] > 0), s
+    rad = np.einsum("nk,nkc->nc", w, radiance[idx])
+    return np.divide(rad, s[:, None], out=np.zeros_like(rad), where=s[:, None] > 0), s
+
+
+def footprint_level(scene: RenderScene, cam: PinholeCamera, mesh: int, prim: np.ndarray,
+                    p: np.ndarray, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Mip level λ (unclipped, finest = 0) of eye-ray hits on M_i from the ray differential:
+    the pixel's footprint on the hit triangle (screen-space derivatives, seed 000 §4.2; the
+    footprint of the pixel, not of the sample, as texture hardware does under multi-sampling),
+    mapped into the atlas by the triangle's uv density. Used by the cpm and btf modes.
+
+    prim (k,) hit triangles of M_{mesh+1}; p (k, 3) hit points; o, d (k, 3) their eye rays"""
+    t = np.linalg.norm(p - o, axis=1)
+    cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", scene.lod_face_normals[mesh][prim], d)),
+                       1e-3)
+    cos_p = np.clip(d @ cam.forward, 1e-3, 1.0)
+    area_world = (t * cam.pixel_angle) ** 2 * cos_p ** 3 / cos_t
+    ratio = scene.lod_uv_ratio[mesh][prim]
+    return 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(scene.n0)
+
+
+def _check_cpm_options(filtering: str, footprint: str) -> None:
+    """The cpm mode's string options, checked before any ray is cast."""
+    if filtering not in ("projected", "radiance"):
+        raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
+    if footprint not in ("sample", "pixel"):
+        raise SettingsError(f"field 'footprint': 'sample' or 'pixel', got {footprint!r}")
+
+
+def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
+                 d: np.ndarray, *, lod_bias: float = 0.0, local_light_ratio: float = 8.0,
+                 spp: int = 1, footprint: str = "sample", coverage: bool = True
+                 ) -> dict[str, Any]:
+    """First half of `shade_cpm`: eye rays against M_i, atlas uv, mip level λ of every hit;
+    the texels the look-ups will read are requested from `frame` (computed in one batch by
+    `CpmFrame.flush`).
+
+    footprint : "sample" (default) — each of the `spp` stratified eye rays of a pixel looks
+        up the maps at its own footprint, a 1/spp share of the pixel's (λ lower by
+        ½ log2 spp, at least the finest level), and the box filter over the samples does the
+        rest, as texture look-ups under supersampling do; "pixel" — every sample at the
+        pixel's footprint (the level a single-sample renderer would use: under
+        supersampling it blurs twice; on the full wall at 4 spp it cost 0.7 dB). Either
+        way M_org is used where the *pixel's* footprint is below the finest level.
+    coverage : an eye ray that hits M_i but misses M_org sees the background (one any-hit
+        ray against M_org per hit; applied in `_cpm_finish`). M_i lies a little outside M_org
+        (it encloses it, and a wrap is rounded at its rim), and without this test the rim it
+        adds around the outline shows the full radiance of the sliver of surface inside its
+        texels (the full wall: 8 % too much light, 43 % of its error at the outline). The
+        texels still give the radiance: the test only decides whether the ray is covered,
+        which is what M_org's outline does in gt."""
+    i = frame.mesh
+    mesh = scene.baked.meshes[i]
+    hits = scene.lods[i].cast(o, d)
+    idx = np.flatnonzero(hits.hit)
+    h: dict[str, Any] = {"n": o.shape[0], "idx": idx, "rays": o.shape[0]}
+    if idx.size == 0:
+        return h
+    prim = hits.prim[idx]
+    b = hits.bary3()[idx]
+    p = np.einsum("nk,nkj->nj", b, mesh.vertices[mesh.faces[prim]])
+    uv = np.einsum("nk,nkj->nj", b, mesh.corner_uvs[prim])
+    inexact = ~scene.lod_uv_exact[i][prim]
+    if inexact.any():  # the exact composite map: closest point on M1, its atlas uv
+        v1, f1, c1 = m1_arrays(scene)
+        _, p1, b1 = scene.lods[0].closest_points(p[inexact])
+        w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
+        uv[inexact] = np.einsum("nk,nkj->nj", w1, c1[p1])
+    lam = footprint_level(scene, cam, i, prim, p, o[idx], d[idx]) + lod_bias
+    s0 = 1.0 / (scene.n0 * np.sqrt(scene.lod_uv_ratio[i][prim]))  # world size of a finest texel
+    for light in scene.lights:  # local lights: keep ωi about constant across a texel
+        if light.kind != "distant":
+            _, _, dist = light_at(light, p)
+            lam = np.minimum(lam, np.log2(np.maximum(dist / (local_light_ratio * s0),
+                                                     1e-300)))
+    n_lv = frame.n_levels
+    use = lam >= 0.0
+    covered = None
+    if coverage:  # does the eye ray meet M_org at all (any hit)
+        covered = scene.org.occluded(o[idx], d[idx])
+        h["rays"] += idx.size
+    if footprint == "sample":
+        lam = lam - 0.5 * math.log2(max(int(spp), 1))
+    lam_c = np.clip(lam, 0.0, n_lv - 1.0)
+    j0 = np.floor(lam_c).astype(np.int64)
+    fr = lam_c - j0
+    # per level, the samples reading it (weight 1 - fr at j0, fr at j0 + 1) and their texels
+    reads = []
+    for j in range(n_lv):  # a loop over the few levels; each sample touches two
+        for sel, up in ((np.flatnonzero(use & (j0 == j)), False),
+                        (np.flatnonzero(use & (j0 + 1 == j) & (fr > 0)), True)):
+            if sel.size:
+                tex, w = bilinear_texels(uv[sel], max(scene.n0 >> j, 1))
+                frame.request(j, tex)
+                reads.append((j, sel, up, tex, w))
+    h.update(use=use, lam_c=lam_c, fr=fr, reads=reads, covered=covered)
+    return h
+
+
+def _cpm_finish(scene: RenderScene, frame: CpmFrame, o: np.ndarray, d: np.ndarray,
+                h: dict[str, Any], filtering: str = "projected"
+                ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Second half of `shade_cpm`: trilinear look-ups of the texel radiance, M_org where the
+    maps do not apply; rays that miss M_org are background when `_cpm_prepare` tested
+    coverage. returns (radiance (n, 3), level (n,), rays cast)"""
+    n, idx, rays = h["n"], h["idx"], h["rays"]
+    out = np.zeros((n, 3))
+    level = np.full(n, np.nan)
+    if idx.size == 0:
+        return out, level, rays
+    use, lam_c, fr = h["use"], h["lam_c"], h["fr"]
+    rad = np.zeros((idx.size, 3))
+    wsum = np.zeros(idx.size)
+    for j, sel, up, tex, w in h["reads"]:
+        r, s = _lookup_level(frame, j, tex, w, filtering)
+        weight = (fr[sel] if up else 1.0 - fr[sel]) * (s > 0)
+        rad[sel] += weight[:, None] * r
+        wsum[sel] += weight
+    ok = use & (wsum > 0)
+    out[idx[ok]] = rad[ok] / wsum[ok, None]
+    if h["covered"] is not None:
+        out[idx[ok & ~h["covered"]]] = 0.0
+    level[idx[ok]] = lam_c[ok]
+    # closer than the finest level (or no texel there): multi-sample M_org
+    fb = idx[~ok]
+    if fb.size:
+        out[fb], r_fb = shade_org(scene, o[fb], d[fb])
+        rays += r_fb
+        level[fb] = -1.0
+    return out, level, rays
+
+
+def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
+              d: np.ndarray, spp: int, *, lod_bias: float = 0.0,
+              local_light_ratio: float = 8.0, filtering: str = "projected",
+              footprint: str = "sample", coverage: bool = True
+              ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Radiance along eye rays from the characteristic point maps (module docstring).
+
+    returns : (radiance (n, 3), level (n,) float64 — the fractional mip level used, -1 where
+        M_org was used, NaN for misses; rays cast)
+    """
+    _check_cpm_options(filtering, footprint)
+    h = _cpm_prepare(scene, frame, cam, o, d, lod_bias=lod_bias,
+                     local_light_ratio=local_light_ratio, spp=spp, footprint=footprint,
+                     coverage=coverage)
+    frame.flush()
+    return _cpm_finish(scene, frame, o, d, h, filtering)
+
+
+def render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):
+    max_error_px = kw.pop("max_error_px", 1.0)
+    filtering = kw.pop("filtering", "projected")
+    _check_cpm_options(filtering, kw.get("footprint", "sample"))
+    frame = cpm_frame(scene, cam, max_error_px)
+    n_pix = cam.height * cam.width
+    acc = np.zeros((n_pix, 3))
+    lvl_sum = np.zeros(n_pix)
+    lvl_cnt = np.zeros(n_pix)
+    fallback = 0
+    rays = 0
+    # two phases, so that the texel radiance of the whole frame is computed in one batch per
+    # level (`CpmFrame.flush`): every eye ray first, then every look-up
+    passes = []
+    for _, o, d in eye_passes(cam, spp, seed):
+        passes.append((o, d, [(sl, _cpm_prepare(scene, frame, cam, o[sl], d[sl], spp=spp,
+                                                **kw))
+                              for sl in ray_slices(o.shape[0])]))
+    frame.flush()
+    for o, d, prepared in passes:
+        rad = np.zeros_like(o)
+        lvl = np.full(o.shape[0], np.nan)
+        for sl, h in prepared:
+            rad[sl], lvl[sl], r = _cpm_finish(scene, frame, o[sl], d[sl], h, filtering)
+            rays += r
+        acc += rad.reshape(-1, n_pix, 3).sum(axis=0)
+        lv = lvl.reshape(-1, n_pix)
+        hit = np.isfinite(lv)
+        lvl_sum += np.where(hit, lv, 0.0).sum(axis=0)
+        lvl_cnt += hit.sum(axis=0)
+        fallback += int(np.sum(lv == -1.0))
+    rays += frame.rays
+    level_img = np.divide(lvl_sum, lvl_cnt, out=np.full(n_pix, np.nan), where=lvl_cnt > 0)
+    extras = {
+        "level": level_img.reshape(cam.height, cam.width).astype(np.float32),
+        "mesh": f"M{frame.mesh + 1}",
+        "fallback_fraction": fallback / max(float(lvl_cnt.sum()), 1.0),
+        "frame_rays": frame.rays,
+    }
+    return (acc / spp).reshape(cam.height, cam.width, 3), rays, extras

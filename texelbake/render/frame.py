@@ -1,0 +1,119 @@
+"""The renderer: a wavefront ray tracer over open3d/Embree and its modes (seed 000 §4.2, §5).
+
+Every mode traces all eye rays of a pass at once (`camera.eye_rays`), shades the hits with
+whole-array numpy and sums the samples of each pixel with a box filter; loops run over sample
+passes, lights, levels and materials only.
+
+Modes (all read the baked USD through `texelbake.payload.read_baked` and the copied source):
+
+- ``gt`` — M_org, stratified eye rays, direct light with shadow rays against M_org
+  (`shade.direct_radiance`).
+- ``cpm`` — characteristic point maps, Eq. 12 of seed 000:
+  f̄_r(p; ωi, ωo) = 1/a_vis(p, ωo) Σ_k V(x̂k, ωi) V(x̂k, ωo) f_r(x̂k, ωi, ωo) (n_k·ωi)⁺
+  (n_gk·ωo)⁺ w_k, radiance L = Σ_l E_l f̄_r (the weights w_k include α_k and ΔA, so E_l times
+  the sum is already the radiance; cos_i on the shading normal, cos_o on the geometric normal,
+  as `texelbake.cpm.level.fit_level` built R). The mesh M_i is picked per frame by projected size
+  (`choose_mesh`), the texel and mip level j per eye ray from its ray differential (pixel
+  footprint → atlas footprint, each of the spp stratified eye rays at its 1/spp share of
+  it: `footprint`), trilinear across texels and levels; where the pixel's footprint is
+  below the finest level (the viewer is closer) the ray falls back to M_org. The outline is
+  M_org's: an eye ray that hits M_i (which encloses M_org) but misses M_org sees the
+  background (`coverage`, one any-hit ray per hit).
+  *Per-frame texel radiance.* Seed 000 §3.1 assumes a distant viewer and distant lights per
+  texel: ωo is one direction per texel. texelbake takes it from the texel's weighted
+  characteristic-point centroid toward the camera position, and per light ωi from each point
+  (exact for point lights). With that, Eq. 12 for every texel of every level depends on the
+  frame but not on the pixel: it is evaluated once per frame for all texels (one shadow ray
+  per point and light, one view ray per point toward the camera, a segment sum over the CSR
+  and one a_vis look-up per texel), and the eye rays only fetch and blend texel radiances —
+  the hint of the issue, carried to the view term. The cost per pixel is then an eye ray on
+  M_i, which is what makes CPM many times faster than multi-sampling M_org.
+  Inter-object shadows: the seed tests a shadow ray on the other objects' M_i; here every
+  characteristic point's shadow ray is cast against the whole M_org (all objects of the
+  asset), which covers both that test and intra-object shadowing V(x̂k, ωi) (docs/decisions.md).
+  Local lights (§4.2): the mip level is also capped so that the distance to each point
+  light is at least `local_light_ratio` texel sizes (ωi about constant across the texel).
+- ``normalmap`` — the baseline studios bake today: M1 with the baked albedo and tangent-space
+  normal maps, multi-sampled, the material's BRDF with its Lambertian part replaced by the
+  albedo map (`normalmap_brdf`), shadows on M1.
+- ``btf`` — the real-time target (seed 001 §3.4): M1 with the baked BTF maps
+  (`btf_eigen.exr`, `btf_weights.exr`, `btf_lut.exr`, `btf_pairs.exr` beside the baked USD,
+  written when `BakeSettings.btf` is on). Per light L = E_l V(p, ωi) f̄(ωi, ωo) with f̄ from
+  `texelbake.btf.btf_lookup` (Eq. 7 of seed 001, continuous LOD): f̄ is the filtered
+  reflectance of seed 000 Eq. 7, (Σ f V V cos_i cos_o ΔA)/a_vis, which already carries both
+  cosines, so it is multiplied by the irradiance E_l only. ωi, ωo are expressed in the texel
+  frame of the finest texel under the hit (`levels[0]["frames"]`, rows t, b, n), shadows are
+  traced on M1 (as ``normalmap``), and λ comes from the pixel footprint exactly as in ``cpm``
+  (clamped to [0, λ_max] by the look-up). Not in `MODES` (previews and reports iterate MODES
+  and most bakes carry no BTF maps); `render_frame` accepts it through `EXTRA_MODES`.
+- ``equal-time`` — M_org with as many eye rays per pixel as fit in the time budget (by
+  default the time of the ``cpm`` image at the given spp, measured in this call).
+
+Timing: `RenderResult.seconds` counts the rendering of one frame (rays, shading, per-frame
+precomputation), not reading the USD files and building the ray-tracing structures and the
+maps' float64 arrays and search keys, which a renderer does once per scene
+(`RenderScene.setup_seconds`). `report.compare_modes` times each mode's second frame (a warm
+renderer, as a previewer between frames).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from texelbake.errors import SettingsError
+from texelbake.render import camera as cam_mod
+from texelbake.render.btf import render_btf
+from texelbake.render.camera import PinholeCamera
+from texelbake.render.cpm import render_cpm
+from texelbake.render.gt import render_org
+from texelbake.render.normalmap import render_normalmap
+from texelbake.render.scene import RenderScene
+from texelbake.render.tracer import RenderResult, well_stratified
+
+MODES = ("gt", "cpm", "normalmap", "equal-time")
+#: modes `render_frame` accepts beyond MODES (they need optional bake outputs)
+EXTRA_MODES = ("btf",)
+
+
+def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, seed: int = 0,
+                 *, budget_seconds: float | None = None, **kw) -> RenderResult:
+    """Render one image of `scene` (already loaded) in `mode` (see module docstring)."""
+    if mode not in MODES + EXTRA_MODES:
+        raise SettingsError(f"field 'mode': expected one of {MODES + EXTRA_MODES}, got "
+                            f"{mode!r}")
+    spp = int(spp)
+    cam_mod.strata(spp)  # validates spp
+    extras: dict[str, Any] = {}
+    t0 = time.perf_counter()
+    if mode == "gt":
+        img, rays = render_org(scene, cam, spp, seed)
+    elif mode == "normalmap":
+        img, rays = render_normalmap(scene, cam, spp, seed)
+    elif mode == "cpm":
+        img, rays, extras = render_cpm(scene, cam, spp, seed, **kw)
+    elif mode == "btf":
+        if not isinstance(scene, RenderScene):
+            raise SettingsError("field 'mode': 'btf' needs a baked asset (RenderScene)")
+        img, rays = render_btf(scene, cam, spp, seed, **kw)
+    else:  # equal-time
+        if budget_seconds is None:
+            budget_seconds = render_frame(scene, "cpm", cam, spp, seed, **kw).seconds
+        # pilot at the cpm image's spp measures the cost of an eye ray per pixel on M_org
+        # (one sample per pixel under-estimates it: fixed costs per pass dominate)
+        t1 = time.perf_counter()
+        img, rays = render_org(scene, cam, spp, seed)
+        pilot = time.perf_counter() - t1
+        n_eq = well_stratified(max(1, int(budget_seconds / max(pilot / spp, 1e-9))))
+        extras = {"budget_seconds": float(budget_seconds), "pilot_seconds": pilot,
+                  "pilot_spp": spp}
+        t0 = time.perf_counter()
+        if n_eq != spp:
+            img, rays = render_org(scene, cam, n_eq, seed)
+        else:
+            t0 -= pilot
+        spp = n_eq
+    seconds = time.perf_counter() - t0
+    return RenderResult(img.astype(np.float32), seconds, int(rays), spp, mode, extras)

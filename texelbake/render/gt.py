@@ -1,0 +1,57 @@
+"""``gt``: M_org, stratified eye rays, direct light with shadow rays against M_org."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from texelbake import brdf as brdf_mod
+from texelbake.model import AssetModel
+from texelbake.render import camera as cam_mod
+from texelbake.render.camera import PinholeCamera
+from texelbake.render.scene import OrgScene
+from texelbake.render.shade import direct_radiance
+from texelbake.render.tracer import RenderResult, accumulate
+
+
+def shade_org(scene: OrgScene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, int]:
+    """Radiance along eye rays traced against M_org. o, d : (n, 3); returns ((n, 3), rays)."""
+    a = scene.asset
+    hits = scene.org.cast(o, d)
+    rays = o.shape[0]
+    out = np.zeros((o.shape[0], 3))
+    idx = np.flatnonzero(hits.hit)
+    if idx.size == 0:
+        return out, rays
+    prim = hits.prim[idx]
+    b = hits.bary3()[idx]  # (k, 3)
+    p = np.einsum("nk,nkj->nj", b, a.points[a.faces[prim]])
+    ns = np.einsum("nk,nkj->nj", b, a.corner_normals[prim])
+    ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
+    uv = np.einsum("nk,nkj->nj", b, a.corner_uvs[prim])
+    mat = a.face_material[prim]
+
+    def brdf(sel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi, wo, uv[sel])
+
+    rad, shadow = direct_radiance(p, scene.org_face_normals[prim], ns, -d[idx], scene.lights,
+                                  brdf, scene.org, scene.ray_eps)
+    out[idx] = rad
+    return out, rays + shadow
+
+
+def render_org(scene: OrgScene, cam: PinholeCamera, spp: int, seed: int
+                ) -> tuple[np.ndarray, int]:
+    return accumulate(cam, spp, seed, lambda o, d: shade_org(scene, o, d))
+
+
+def render_model(asset: AssetModel, cam: PinholeCamera, spp: int, seed: int = 0
+                 ) -> RenderResult:
+    """`gt` of an AssetModel directly (no bake): M_org, direct light, shadows."""
+    scene = OrgScene(asset)
+    cam_mod.strata(int(spp))
+    t0 = time.perf_counter()
+    img, rays = render_org(scene, cam, int(spp), seed)
+    return RenderResult(img.astype(np.float32), time.perf_counter() - t0, int(rays), int(spp),
+                        "gt")

@@ -1,0 +1,231 @@
+"""A baked asset ready to render (`RenderScene`: the baked arrays read through
+`texelbake.payload`, M_org and every M_i with their ray casters), and the cameras a frame can
+be seen from (`resolve_camera`, `lod_camera`)."""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from texelbake.cpm.avis.table import AvisTable, avis_table_from
+from texelbake.errors import SettingsError, ShapeError, StageError
+from texelbake.geometry.raycast import RayCaster
+from texelbake.geometry.texels import uv_to_texel
+from texelbake.model import AssetModel, Camera
+from texelbake.render import camera as cam_mod
+from texelbake.render.camera import PinholeCamera
+from texelbake.tol import TOL
+
+
+class OrgScene:
+    """M_org ready to render: an AssetModel with its ray caster (what `gt` traces). Also
+    usable without a bake (`render_model`)."""
+
+    def __init__(self, asset: AssetModel) -> None:
+        self.asset = asset
+        self.materials = asset.materials
+        self.lights = asset.lights
+        self.org = RayCaster(asset.points, asset.faces)
+        self.org_face_normals = asset.face_normals()
+        self.diag = self.org.bbox_diag
+        self.ray_eps = TOL.ray_offset * self.diag
+
+    def default_camera(self, width: int, height: int) -> PinholeCamera:
+        if self.asset.cameras:
+            return cam_mod.from_usd(self.asset.cameras[0], width, height)
+        return cam_mod.auto_frame(self.asset.bounds, width, height)
+
+
+class RenderScene(OrgScene):
+    """A baked asset ready to render: the baked arrays, M_org with its materials and lights,
+    and ray casters over M_org and every M_i (built once)."""
+
+    def __init__(self, baked_root: str | Path) -> None:
+        from texelbake.payload import read_baked
+        from texelbake.scene import load_asset
+
+        t0 = time.perf_counter()
+        self.root = Path(baked_root)
+        self.baked = read_baked(self.root)
+        if not self.baked.source_layer:
+            raise StageError(f"baked asset {self.root} names no source layer")
+        if not self.baked.meshes:
+            raise StageError(f"baked asset {self.root} has no LOD meshes")
+        if not self.baked.levels:
+            raise StageError(f"baked asset {self.root} has no CPM levels")
+        super().__init__(load_asset(self.baked.source_layer))
+        self.lods = [RayCaster(m.vertices, m.faces) for m in self.baked.meshes]
+        self.lod_face_normals = [_face_normals(m.vertices, m.faces) for m in self.baked.meshes]
+        self.n0 = int(round(math.sqrt(len(self.baked.levels[0]["texel_offsets"]) - 1)))
+        self.lod_uv_ratio, self.lod_uv_exact = zip(
+            *(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0)
+              for i, m in enumerate(self.baked.meshes)),
+            strict=True)
+        self.lod_error = [_hausdorff(self.org, c, self.asset.points, m.vertices)
+                          for c, m in zip(self.lods, self.baked.meshes, strict=True)]
+        self._tables = [_avis_table(lv) for lv in self.baked.levels]
+        self._points: dict[int, dict[str, np.ndarray]] = {}
+        self._nm: dict[str, np.ndarray] | None = None
+        self._btf: Any = None
+        # the per-scene layout of the maps, like the ray-tracing structures: float64 points of
+        # every level and the a_vis tables' search keys (0.13 s of the full wall's first cpm
+        # frame when left to it)
+        for j in range(len(self.baked.levels)):
+            self.points(j)
+        for table in self._tables:
+            _ = table.haar.sorted_keys
+        self.setup_seconds = time.perf_counter() - t0
+
+    def avis_table(self, level: int):
+        """The level's a_vis table (texelbake.cpm.avis.AvisTable), rebuilt once at load."""
+        return self._tables[level]
+
+    def points(self, level: int) -> dict[str, np.ndarray]:
+        """The level's characteristic points in float64, unit normals (converted once):
+        position, geom_normal, normal (P, 3); weight (P, 3); material (P,) int64; uv (P, 2)."""
+        if level not in self._points:
+            lv = self.baked.levels[level]
+            ng = lv["point_geom_normal"].astype(np.float64)
+            ns = lv["point_normal"].astype(np.float64)
+            ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-300)
+            ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
+            self._points[level] = {
+                "position": lv["point_position"].astype(np.float64), "geom_normal": ng,
+                "normal": ns, "weight": lv["point_weight"].astype(np.float64),
+                "material": lv["point_material"].astype(np.int64),
+                "uv": lv["point_uv"].astype(np.float64)}
+        return self._points[level]
+
+
+def _avis_table(level: dict[str, np.ndarray]):
+    """The level's AvisTable through `avis_table_from` (the payload contract). Bakes
+    written before the flat `avis:<name>` layout stored the dataclass fields nested
+    (`avis:cf:offsets`, `avis:haar:values`, ...): those are renamed and read the same way."""
+    try:
+        return avis_table_from(level)
+    except ShapeError:
+        if "avis:cf:offsets" not in level:
+            raise
+    old = {k[5:].replace(":", "_"): v for k, v in level.items() if k.startswith("avis:")}
+    old["meta"] = np.array([int(old["res"]), int(old.get("haar_res", old["res"]))], np.int64)
+    return AvisTable.from_arrays(old)
+
+
+def _face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    tri = v[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+
+
+def _uv_ratio(v: np.ndarray, f: np.ndarray, cuv: np.ndarray, first: bool = False
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle of M_i: atlas uv area per world area (f,), and whether its interpolated
+    uvs can be trusted (f,) bool. Triangles of a coarse M_i whose corners map into different
+    charts (their uv density is far from the atlas' median) are looked up by closest point on
+    M1 instead (the exact composite map T(T_i(·)) of seed 000 §4.1)."""
+    tri = v[f]
+    if first:  # M1 carries the atlas itself: its interpolated uvs are exact
+        a_w0 = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
+                                    axis=1)
+        d1, d2 = cuv[:, 1] - cuv[:, 0], cuv[:, 2] - cuv[:, 0]
+        a_uv0 = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+        r = np.divide(a_uv0, a_w0, out=np.zeros_like(a_w0), where=a_w0 > 0)
+        med0 = float(np.median(r[r > 0])) if np.any(r > 0) else 1.0
+        return np.where(r > 0, r, med0), np.ones(len(f), bool)
+    a_w = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    d1, d2 = cuv[:, 1] - cuv[:, 0], cuv[:, 2] - cuv[:, 0]
+    a_uv = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    ok = a_w > 0
+    ratio = np.divide(a_uv, a_w, out=np.zeros_like(a_w), where=ok)
+    med = float(np.median(ratio[ok & (ratio > 0)])) if np.any(ok & (ratio > 0)) else 1.0
+    exact = ok & (ratio > 0.25 * med) & (ratio < 4.0 * med)
+    return np.where(exact, ratio, med), exact
+
+
+def _hausdorff(org: RayCaster, lod: RayCaster, org_points: np.ndarray,
+               lod_points: np.ndarray) -> float:
+    """Symmetric vertex-to-surface distance between M_org and M_i (an estimate of their
+    Hausdorff distance from the vertices of each side)."""
+    a, _, _ = org.closest_points(lod_points)
+    b, _, _ = lod.closest_points(org_points)
+    return float(max(np.linalg.norm(a - lod_points, axis=1).max(initial=0.0),
+                     np.linalg.norm(b - org_points, axis=1).max(initial=0.0)))
+
+
+@functools.lru_cache(maxsize=2)
+def _scene_cached(path: str, mtime_ns: int) -> RenderScene:
+    return RenderScene(path)
+
+
+def load_scene(baked_root: str | Path) -> RenderScene:
+    """A RenderScene, cached per file (path and modification time)."""
+    p = Path(baked_root).resolve()
+    if not p.is_file():
+        raise StageError(f"baked USD {p} does not exist")
+    return _scene_cached(str(p), p.stat().st_mtime_ns)
+
+
+def texel_size(scene: RenderScene) -> float:
+    """World size of a finest CPM texel on M1 (median over M1's triangles)."""
+    return 1.0 / (scene.n0 * math.sqrt(float(np.median(scene.lod_uv_ratio[0]))))
+
+
+def lod_camera(scene: RenderScene, width: int, height: int, texel_px: float = 0.7
+               ) -> PinholeCamera:
+    """The asset's camera (else auto-framed) moved back along its axis until a finest CPM
+    texel at the bounding box centre projects to `texel_px` pixels — the distance from which
+    the characteristic point maps apply (closer, the renderer falls back to M_org); never
+    moved closer than the asset's camera."""
+    cam = scene.default_camera(width, height)
+    centre = scene.asset.bounds.mean(axis=0)
+    depth = float(np.dot(centre - cam.position, cam.forward))
+    far = texel_size(scene) / (texel_px * cam.pixel_angle)
+    return cam_mod.dolly(cam, centre, far) if far > depth else cam
+
+
+def resolve_camera(scene: OrgScene, camera: object, width: int, height: int) -> PinholeCamera:
+    """camera : None (the asset's, else auto-framed), "lod" (`lod_camera`), a PinholeCamera,
+    a model.Camera, or a number = auto-frame distance factor (`camera.auto_frame`)."""
+    if camera is None:
+        return scene.default_camera(width, height)
+    if isinstance(camera, str):
+        if camera != "lod" or not isinstance(scene, RenderScene):
+            raise SettingsError(f"field 'camera': the only named camera is 'lod', got "
+                                f"{camera!r}")
+        return lod_camera(scene, width, height)
+    if isinstance(camera, PinholeCamera):
+        if (camera.width, camera.height) != (width, height):
+            return PinholeCamera(camera.position, camera.rotation, camera.tan_half_x, width,
+                                 height)
+        return camera
+    if isinstance(camera, Camera):
+        return cam_mod.from_usd(camera, width, height)
+    if isinstance(camera, (int, float)):
+        return cam_mod.auto_frame(scene.asset.bounds, width, height, distance=float(camera))
+    raise SettingsError(f"field 'camera': expected None, PinholeCamera, Camera or a distance, "
+                        f"got {type(camera).__name__}")
+
+
+def m1_arrays(scene: RenderScene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    m = scene.baked.meshes[0]
+    return m.vertices, m.faces, m.corner_uvs
+
+
+def hit_m1(scene: RenderScene, o: np.ndarray, d: np.ndarray):
+    """Eye rays against M1: (idx (k,) rays that hit, prim (k,), p (k, 3), uv (k, 2) atlas uv,
+    row (k,), col (k,) finest texel under the hit)."""
+    v, f, cuv = m1_arrays(scene)
+    hits = scene.lods[0].cast(o, d)
+    idx = np.flatnonzero(hits.hit)
+    prim = hits.prim[idx]
+    b = hits.bary3()[idx]
+    p = np.einsum("nk,nkj->nj", b, v[f[prim]])
+    uv = np.einsum("nk,nkj->nj", b, cuv[prim])
+    row, col = uv_to_texel(uv, scene.n0)
+    return idx, prim, p, uv, row, col

@@ -1,0 +1,44 @@
+"""USD ingest: a USD asset (`.usda` / `.usdc` / `.usd` / `.usdz`) -> one immutable AssetModel.
+
+Public entry points:
+
+- `check_asset_paths(path) -> list[str]`: walks every layer of the asset *as Sdf layers*, before
+  any stage is composed, and rejects asset paths that are absolute, URLs, escape the asset's
+  folder (or its `.usdz` package) or name files that do not exist. Also used by the upload
+  service.
+- `load_asset(path, *, time_code=None) -> AssetModel`: flattens transforms, fan-triangulates
+  n-gons, reads normals (authored or computed), UVs, material bindings (GeomSubsets included),
+  UsdPreviewSurface and texelbake shader networks with their textures, UsdLux distant and
+  sphere lights, cameras and time-sampled points.
+- `describe(asset) -> str`: the report `texelbake inspect FILE` prints.
+
+The AssetModel fields are documented in `texelbake.model`. This module is pure I/O: nothing
+here is from the seeds' equations; the reflectance it hands on is what seed 000 Eq. 1 calls
+f_r(x, wi, wo) per sample (a material per face, textures per corner UV).
+
+Modules: `paths` (asset-path safety), `load` (load_asset), `meshes`, `materials`, `lights`
+(lights and cameras), `files` (textures and MERL tables, .usdz members), `values` (USD value
+helpers, the sRGB decode), `describe`.
+
+USD conventions used throughout: USD matrices act on *row* vectors (`p_world = p @ M`,
+`M = XformCache.GetLocalToWorldTransform(prim)`); AssetModel stores points in that world space
+and cameras as column-vector matrices (`M.T`).
+"""
+
+
+from texelbake.scene.describe import describe
+from texelbake.scene.load import load_asset
+from texelbake.scene.materials import DEFAULT_MATERIAL, TEXELBAKE_DEFAULTS
+from texelbake.scene.paths import USD_EXTENSIONS, check_asset_paths
+from texelbake.scene.values import AssetWarning, srgb_to_linear
+
+__all__ = [
+    "DEFAULT_MATERIAL",
+    "TEXELBAKE_DEFAULTS",
+    "USD_EXTENSIONS",
+    "AssetWarning",
+    "check_asset_paths",
+    "describe",
+    "load_asset",
+    "srgb_to_linear",
+]

@@ -1,0 +1,313 @@
+"""Materials: UsdPreviewSurface and texelbake shader networks (with their textures) -> Material,
+and the material of every face (bindings, GeomSubsets)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from texelbake.errors import AssetError, AssetPathError
+from texelbake.model import (
+    PREVIEW_DEFAULTS,
+    SHADER_MEASURED,
+    SHADER_MODELS,
+    SHADER_PREVIEW,
+    Material,
+    Texture,
+)
+from texelbake.scene.files import load_image, load_merl
+from texelbake.scene.values import coerce_like, default_param, srgb_to_linear, warn
+from texelbake.shaderdefs import SHADER_INPUTS
+
+#: defaults for unauthored inputs of texelbake's own shader ids: the Sdr definitions'
+#: defaults (texelbake.shaderdefs.SHADER_INPUTS), colours as tuples
+TEXELBAKE_DEFAULTS: dict[str, dict[str, Any]] = {
+    sid: {name: ("" if type_name == "asset" else default)
+          for name, type_name, default in inputs}
+    for sid, inputs in SHADER_INPUTS.items()
+}
+
+#: the fallback for faces with no bound material: grey Lambert, path ""
+def _readonly(params: dict[str, Any]) -> dict[str, Any]:
+    """Arrays in material params made read-only (Materials are shared, immutable values)."""
+    for value in params.values():
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False
+    return params
+
+
+DEFAULT_MATERIAL = Material(path="", model="lambert",
+                            params=_readonly({"diffuseColor": np.full(3, 0.18)}))
+
+# UsdUVTexture output name -> channels of the canonical RGBA image
+_TEXTURE_OUTPUT_CHANNELS = {
+    "rgb": (0, 1, 2),
+    "rgba": (0, 1, 2, 3),
+    "r": (0,),
+    "g": (1,),
+    "b": (2,),
+    "a": (3,),
+}
+_WRAP_MODES = ("black", "clamp", "repeat", "mirror")
+
+
+class MaterialReader:
+    """Reads UsdShade materials into model.Material, caching textures per load."""
+
+    def __init__(self, time: Any, warns: list[str]):
+        self.time = time
+        self.warns = warns
+        self._images: dict[str, tuple[np.ndarray, bool, str]] = {}
+
+    # ---- network helpers -------------------------------------------------------------------
+    @staticmethod
+    def _source(inp_or_out: Any) -> Any:
+        """The attribute that produces this input's / output's value (through node graphs)."""
+        attrs = inp_or_out.GetValueProducingAttributes()
+        return attrs[0] if attrs else None
+
+    @staticmethod
+    def _shader_id(prim: Any) -> str | None:
+        from pxr import UsdShade
+
+        shader = UsdShade.Shader(prim)
+        if not shader:
+            return None
+        sid = shader.GetShaderId()
+        return str(sid) if sid else None
+
+    def _surface(self, material: Any, context: str) -> tuple[Any, str | None] | None:
+        """(shader prim, shader id) feeding the material's surface output for a context."""
+        out = material.GetSurfaceOutput(context) if context else material.GetSurfaceOutput()
+        if not out or not out.HasConnectedSource():
+            return None
+        src = self._source(out)
+        if src is None:
+            return None
+        prim = src.GetPrim()
+        return prim, self._shader_id(prim)
+
+    # ---- entry -----------------------------------------------------------------------------
+    def read(self, material: Any) -> Material:
+        mat_path = str(material.GetPath())
+        found = self._surface(material, "texelbake")
+        if found is not None:
+            prim, sid = found
+            if sid is not None and sid in SHADER_MODELS:
+                return self._read_shader(mat_path, prim, sid)
+            warn(self.warns,
+                  f"material {mat_path}: unsupported shader id {sid!r} on "
+                  f"outputs:texelbake:surface (shader {prim.GetPath()}); using outputs:surface")
+        found = self._surface(material, "")
+        if found is None:
+            warn(self.warns, f"material {mat_path}: no surface shader connected; "
+                              "using UsdPreviewSurface defaults")
+            return self._constant_preview(mat_path, None)
+        prim, sid = found
+        if sid is not None and sid in SHADER_MODELS:
+            return self._read_shader(mat_path, prim, sid)
+        warn(self.warns,
+              f"material {mat_path}: unsupported shader network (shader {prim.GetPath()}, id "
+              f"{sid!r}); falling back to its constant values")
+        return self._constant_preview(mat_path, prim)
+
+    def _constant_preview(self, mat_path: str, prim: Any) -> Material:
+        """UsdPreviewSurface defaults overlaid by a foreign shader's constant preview inputs."""
+        from pxr import UsdShade
+
+        params = {k: default_param(v) for k, v in PREVIEW_DEFAULTS.items()}
+        if prim is not None:
+            shader = UsdShade.Shader(prim)
+            for name, default in PREVIEW_DEFAULTS.items():
+                inp = shader.GetInput(name) if shader else None
+                if inp and inp.GetAttr().HasAuthoredValue():
+                    value = inp.GetAttr().Get(self.time)
+                    if value is not None:
+                        params[name] = coerce_like(value, default)
+        return Material(path=mat_path, model="preview", params=_readonly(params))
+
+    def _read_shader(self, mat_path: str, prim: Any, sid: str) -> Material:
+        from pxr import UsdShade
+
+        shader = UsdShade.Shader(prim)
+        defaults = PREVIEW_DEFAULTS if sid == SHADER_PREVIEW else TEXELBAKE_DEFAULTS[sid]
+        params: dict[str, Any] = {}
+        textures: dict[str, Texture] = {}
+        for name, default in defaults.items():
+            params[name] = default_param(default)
+            inp = shader.GetInput(name)
+            if not inp:
+                continue
+            own = inp.GetAttr().Get(self.time) if inp.GetAttr().HasAuthoredValue() else None
+            if own is not None:
+                params[name] = coerce_like(own, default)
+            src = self._source(inp)
+            if src is None:
+                continue
+            if UsdShade.Output.IsOutput(src):
+                src_prim = src.GetPrim()
+                src_id = self._shader_id(src_prim)
+                if src_id == "UsdUVTexture":
+                    out_name = UsdShade.Output(src).GetBaseName()
+                    texture = self._read_texture(src_prim, out_name, mat_path)
+                    if texture is not None:
+                        textures[name] = texture
+                else:
+                    warn(self.warns,
+                          f"material {mat_path}: input {name} of shader {prim.GetPath()} is "
+                          f"driven by an unsupported node {src_prim.GetPath()} (id {src_id!r}); "
+                          "using its constant value")
+            else:  # a value from an interface input (material or node graph)
+                value = src.Get(self.time)
+                if value is not None:
+                    params[name] = coerce_like(value, default)
+        if sid == SHADER_MEASURED:
+            file_inp = shader.GetInput("file")
+            src = self._source(file_inp) if file_inp else None
+            asset = src.Get(self.time) if src is not None and not src.GetName().startswith(
+                "outputs:") else None
+            resolved = asset.resolvedPath if asset is not None else ""
+            if not resolved:
+                shown = asset.path if asset is not None else ""
+                raise AssetPathError(
+                    f"measured BRDF file '{shown}' of material {mat_path} does not resolve",
+                    path=shown, prim=str(prim.GetPath()))
+            params["file"] = resolved
+            params["table"] = load_merl(resolved, str(prim.GetPath()))
+        return Material(path=mat_path, model=SHADER_MODELS[sid], params=_readonly(params),
+                        textures=textures)
+
+    def _input_value(self, shader: Any, name: str, default: Any) -> Any:
+        inp = shader.GetInput(name)
+        if not inp:
+            return default
+        src = self._source(inp)
+        if src is None or src.GetName().startswith("outputs:"):
+            return default
+        value = src.Get(self.time)
+        return default if value is None else value
+
+    def _read_texture(self, prim: Any, out_name: str, mat_path: str) -> Texture | None:
+        """The Texture a UsdUVTexture output provides; None (with a warning) for UDIM sets."""
+        from pxr import UsdShade
+
+        shader = UsdShade.Shader(prim)
+        prim_path = str(prim.GetPath())
+        asset = self._input_value(shader, "file", None)
+        if asset is None or not asset.path:
+            raise AssetPathError(f"UsdUVTexture of material {mat_path} has no file",
+                                 path="", prim=prim_path)
+        if "<UDIM>" in asset.path:
+            warn(self.warns, f"material {mat_path}: UDIM texture '{asset.path}' of {prim_path} "
+                              "is not supported; using the input's constant value")
+            return None
+        resolved = asset.resolvedPath
+        if not resolved:
+            raise AssetPathError(
+                f"texture '{asset.path}' of material {mat_path} does not resolve (missing file)",
+                path=asset.path, prim=prim_path)
+        if resolved not in self._images:
+            self._images[resolved] = load_image(resolved, prim_path)
+        pixels, is_8bit, wrapmodes = self._images[resolved]
+        h, w, c = pixels.shape
+        # canonical RGBA per the UsdUVTexture spec: grey -> (g, g, g, 1), grey+alpha -> (g, g, g, a)
+        if c == 1:
+            rgba = np.concatenate([np.repeat(pixels, 3, axis=2), np.ones((h, w, 1), np.float32)], 2)
+        elif c == 2:
+            rgba = np.concatenate([np.repeat(pixels[..., :1], 3, axis=2), pixels[..., 1:2]], 2)
+        elif c == 3:
+            rgba = np.concatenate([pixels, np.ones((h, w, 1), np.float32)], 2)
+        else:
+            rgba = pixels[..., :4]
+        color_space = str(self._input_value(shader, "sourceColorSpace", "auto"))
+        if color_space == "sRGB" or (color_space == "auto" and is_8bit):
+            rgba = np.concatenate([srgb_to_linear(rgba[..., :3]), rgba[..., 3:]], axis=2)
+        channels = _TEXTURE_OUTPUT_CHANNELS.get(out_name)
+        if channels is None:
+            warn(self.warns, f"material {mat_path}: unknown UsdUVTexture output "
+                              f"'{out_name}' of {prim_path}; using rgb")
+            channels = _TEXTURE_OUTPUT_CHANNELS["rgb"]
+        sel = list(channels)
+        scale4 = np.asarray(self._input_value(shader, "scale", (1.0, 1.0, 1.0, 1.0)), np.float64)
+        bias4 = np.asarray(self._input_value(shader, "bias", (0.0, 0.0, 0.0, 0.0)), np.float64)
+        # scale/bias follow the selected channels, padded with identity values to 4
+        scale = tuple(float(x) for x in np.concatenate([scale4[sel], np.ones(4 - len(sel))]))
+        bias = tuple(float(x) for x in np.concatenate([bias4[sel], np.zeros(4 - len(sel))]))
+        meta_wraps = [m.strip() for m in wrapmodes.split(",")] if wrapmodes else []
+        wraps = []
+        for axis, key in enumerate(("wrapS", "wrapT")):
+            mode = str(self._input_value(shader, key, "useMetadata"))
+            if mode == "useMetadata":
+                # the file's own wrap metadata when present; otherwise "black" (spec fallback)
+                mode = meta_wraps[axis] if axis < len(meta_wraps) else "black"
+                mode = {"periodic": "repeat"}.get(mode, mode)
+            if mode not in _WRAP_MODES:
+                warn(self.warns, f"material {mat_path}: unknown {key} '{mode}' on {prim_path}; "
+                                  "using repeat")
+                mode = "repeat"
+            wraps.append(mode)
+        st_primvar = "st"
+        st_inp = shader.GetInput("st")
+        src = self._source(st_inp) if st_inp else None
+        if src is not None and UsdShade.Output.IsOutput(src):
+            reader = UsdShade.Shader(src.GetPrim())
+            rid = self._shader_id(src.GetPrim())
+            if rid is not None and rid.startswith("UsdPrimvarReader"):
+                st_primvar = str(self._input_value(reader, "varname", "st")) or "st"
+            else:
+                warn(self.warns, f"material {mat_path}: st of {prim_path} is driven by an "
+                                  f"unsupported node {src.GetPrim().GetPath()} (id {rid!r}); "
+                                  "using primvar st")
+        pixels_out = np.ascontiguousarray(rgba[..., sel], dtype=np.float32)  # (h, w, len(sel))
+        pixels_out.flags.writeable = False
+        return Texture(
+            path=resolved,
+            pixels=pixels_out,
+            wrap_s=wraps[0],
+            wrap_t=wraps[1],
+            scale=scale,  # type: ignore[arg-type]
+            bias=bias,  # type: ignore[arg-type]
+            source_color_space=color_space,
+            st_primvar=st_primvar,
+        )
+
+
+def _bound(prim: Any, warns: list[str]) -> Any:
+    from pxr import UsdShade
+
+    material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+    if material:
+        return material
+    rel = prim.GetRelationship("material:binding")
+    if rel and rel.GetTargets() and not prim.HasAPI(UsdShade.MaterialBindingAPI):
+        warn(warns, f"prim {prim.GetPath()}: material:binding is authored but "
+                     "MaterialBindingAPI is not applied, so USD ignores it")
+    return None
+
+
+def face_materials(prim: Any, n_faces: int, time: Any, index_of: Any, warns: list[str],
+                    source: str) -> np.ndarray:
+    """(F,) int32 material index per source polygon: GeomSubsets (familyName materialBind),
+    then the mesh's own binding (or the default material) for faces no subset covers."""
+    from pxr import UsdGeom, UsdShade
+
+    path = str(prim.GetPath())
+    face_mat = np.full(n_faces, -1, dtype=np.int32)  # -1: not (yet) bound by a subset
+    for subset in UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets():
+        sub_path = str(subset.GetPath())
+        if subset.GetElementTypeAttr().Get() != UsdGeom.Tokens.face:
+            warn(warns, f"subset {sub_path}: elementType is not face; ignored")
+            continue
+        idx = np.asarray(subset.GetIndicesAttr().Get(time) or [], dtype=np.int64)
+        bad = (idx < 0) | (idx >= n_faces)
+        if bad.any():
+            first = int(idx[np.flatnonzero(bad)[0]])
+            raise AssetError(f"GeomSubset {sub_path}: face index {first} is out of range for "
+                             f"{n_faces} faces of mesh {path}", path=source, prim=sub_path)
+        if idx.size:
+            face_mat[idx] = index_of(_bound(subset.GetPrim(), warns))
+    rest = face_mat < 0
+    if rest.any():  # only materials some face uses enter the list
+        face_mat[rest] = index_of(_bound(prim, warns))
+    return face_mat

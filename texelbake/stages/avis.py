@@ -1,0 +1,97 @@
+"""The avis stages: a_vis cube maps of every level inside one tile (`run_avis_tile`), then the
+levels coarser than a tile (`run_avis_top`); the science is `texelbake.cpm.avis`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from texelbake.cpm import avis as avis_mod
+from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
+from texelbake.tol import TOL
+
+
+def _avis_level_arrays(level: avis_mod.AvisLevel, prefix: str) -> dict[str, np.ndarray]:
+    return {f"{prefix}{k}": v for k, v in avis_mod.level_to_arrays(level).items()}
+
+
+def _avis_level_from(data: dict[str, np.ndarray], prefix: str) -> avis_mod.AvisLevel:
+    return avis_mod.level_from_arrays(
+        {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)}
+    )
+
+
+def _avis_key(ctx: StageContext, tile: int | None) -> str:
+    fields = GEOMETRY_FIELDS + ("avis_resolution",)
+    name = f"tile{tile:05d}-s{ctx.settings.shard_texels}.npz" if tile is not None else "top.npz"
+    return ctx.key("avis", name, fields)
+
+
+def run_avis_tile(ctx: StageContext, shard: int) -> str:
+    """a_vis cube maps of every level inside one tile (seed 000 §3.4): closed form where it is
+    provably exact, rays elsewhere; coarser levels by exact additivity over children."""
+    key = _avis_key(ctx, shard)
+    if ctx.store.exists(key):
+        return key
+    s = ctx.settings
+    geo = ctx.geometry()
+    n, side = s.atlas_resolution, s.shard_texels
+    tr, tc = divmod(shard, n // side)
+    row, col = geo["sample_row"], geo["sample_col"]
+    inside = (row // side == tr) & (col // side == tc)
+    idx = np.nonzero(inside)[0]
+    local = (row[idx] - tr * side) * side + (col[idx] - tc * side)
+    caster = ctx.caster()
+    rays0 = caster.rays_cast
+    level = avis_mod.avis_level(
+        geo["sample_pos"][idx], geo["sample_gnrm"][idx], geo["sample_area"][idx], local, side,
+        s.avis_resolution, caster.occluded, ctx.asset().points,
+        ray_eps=TOL.ray_offset * caster.bbox_diag,
+    )
+    out = _avis_level_arrays(level, "L00_")
+    out["rays"] = np.array([caster.rays_cast - rays0], np.int64)
+    for lvl in range(1, ctx.tile_levels):
+        level = avis_mod.coarsen_level(level)
+        out.update(_avis_level_arrays(level, f"L{lvl:02d}_"))
+    return ctx.store.write_arrays(key, out)
+
+
+def avis_rays(ctx: StageContext) -> int:
+    """Rays the a_vis tiles cast (closed-form texels cast none)."""
+    per_row = ctx.settings.atlas_resolution // ctx.settings.shard_texels
+    return int(sum(int(ctx.store.read_arrays(_avis_key(ctx, t)).get("rays", np.zeros(1)).sum())
+                   for t in range(per_row * per_row)))
+
+
+def run_avis_top(ctx: StageContext, shard: int = 0) -> str:
+    """Levels coarser than a tile: the tiles' coarsest maps placed side by side, then summed."""
+    key = _avis_key(ctx, None)
+    if ctx.store.exists(key):
+        return key
+    s = ctx.settings
+    per_row = s.atlas_resolution // s.shard_texels
+    top = f"L{ctx.tile_levels - 1:02d}_"
+    parts = [_avis_level_from(ctx.store.read_arrays(_avis_key(ctx, t)), top)
+             for t in range(per_row * per_row)]
+    level = avis_mod.stack_tiles(parts, per_row)
+    out = {}
+    for lvl in range(ctx.tile_levels, ctx.n_levels):
+        level = avis_mod.coarsen_level(level)
+        out.update(_avis_level_arrays(level, f"L{lvl:02d}_"))
+    return ctx.store.write_arrays(key, out)
+
+
+def avis_levels(ctx: StageContext) -> list[avis_mod.AvisLevel]:
+    """Every level's a_vis over the whole atlas (tiles assembled)."""
+    s = ctx.settings
+    n, side = s.atlas_resolution, s.shard_texels
+    per_row = n // side
+    tiles = [ctx.store.read_arrays(_avis_key(ctx, t)) for t in range(per_row * per_row)]
+    top = ctx.store.read_arrays(_avis_key(ctx, None)) if ctx.tile_levels < ctx.n_levels else {}
+    levels = []
+    for lvl in range(ctx.n_levels):
+        if lvl < ctx.tile_levels:
+            parts = [_avis_level_from(d, f"L{lvl:02d}_") for d in tiles]
+            levels.append(avis_mod.stack_tiles(parts, per_row))
+        else:
+            levels.append(_avis_level_from(top, f"L{lvl:02d}_"))
+    return levels

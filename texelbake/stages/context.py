@@ -1,0 +1,110 @@
+"""What every stage shares: where a bake's artifacts live and what they are derived from
+(`StageContext`), the content-derived artifact keys, and per-process caches of the asset, the
+geometry arrays and the ray caster over M_org."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from schemas.settings import BakeSettings
+from texelbake.cpm.level import FitInputs
+from texelbake.errors import StageError
+from texelbake.geometry.raycast import RayCaster
+from texelbake.model import AssetModel
+from texelbake.store import ArtifactStore, file_sha256
+
+#: settings that change no stage output (farm layout and optional downstream stages)
+LAYOUT_ONLY = {"shard_texels", "previews"}
+GEOMETRY_FIELDS = (
+    "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",
+)
+_TAG_LIGHT, _TAG_VIEW, _TAG_HELD_I, _TAG_HELD_O = 0x11, 0x22, 0x33, 0x44
+
+
+@dataclass(frozen=True)
+class StageContext:
+    """Where a bake's artifacts live and what they are derived from."""
+
+    store: ArtifactStore
+    asset_path: Path
+    settings: BakeSettings
+    asset_hash: str
+
+    @classmethod
+    def create(cls, workdir: Path, asset_path: Path, settings: BakeSettings) -> StageContext:
+        asset_path = Path(asset_path).resolve()
+        if not asset_path.is_file():
+            raise StageError(f"asset file {asset_path} does not exist")
+        return cls(ArtifactStore(Path(workdir) / "artifacts"), asset_path, settings,
+                   _asset_digest(str(asset_path), asset_path.stat().st_mtime_ns))
+
+    @property
+    def n_levels(self) -> int:
+        return int(self.settings.atlas_resolution).bit_length()  # log2 N + 1
+
+    @property
+    def tile_levels(self) -> int:
+        """Levels 0..tile_levels-1 live inside one shard's tile."""
+        return int(self.settings.shard_texels).bit_length()
+
+    def key(self, stage: str, name: str, fields: tuple[str, ...] | None = None) -> str:
+        if fields is None:
+            fields = tuple(sorted(set(BakeSettings.model_fields) - LAYOUT_ONLY))
+        return f"{self.asset_hash[:16]}/{stage}-{self.settings.digest(*fields)}/{name}"
+
+    def geometry_key(self) -> str:
+        return self.key("geometry", "geometry.npz", GEOMETRY_FIELDS)
+
+    def asset(self) -> AssetModel:
+        return _load_asset_cached(str(self.asset_path), self.asset_hash)
+
+    def geometry(self) -> dict[str, np.ndarray]:
+        return _read_cached(str(self.store.root), self.geometry_key())
+
+    def caster(self) -> RayCaster:
+        a = self.asset()
+        return _caster_cached(self.asset_hash, a.points, a.faces)
+
+    def fit_inputs(self) -> FitInputs:
+        """What `texelbake.cpm.level` reads to fit a level."""
+        return FitInputs(self.settings, self.geometry(), self.caster(), self.asset().materials)
+
+
+@functools.lru_cache(maxsize=8)
+def _asset_digest(path: str, mtime_ns: int) -> str:
+    # The root layer's bytes plus every file it references (textures, sublayers): a texture
+    # edit must change the key.
+    h = hashlib.sha256(file_sha256(path).encode())
+    from texelbake.scene import check_asset_paths
+
+    for dep in sorted(check_asset_paths(path)):
+        if Path(dep).resolve() != Path(path).resolve():
+            h.update(file_sha256(dep).encode())
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=2)
+def _load_asset_cached(path: str, digest: str) -> AssetModel:
+    from texelbake.scene import load_asset
+
+    return load_asset(path)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_cached(root: str, key: str) -> dict[str, np.ndarray]:
+    return ArtifactStore(root).read_arrays(key)
+
+
+_CASTERS: dict[str, RayCaster] = {}
+
+
+def _caster_cached(digest: str, points: np.ndarray, faces: np.ndarray) -> RayCaster:
+    if digest not in _CASTERS:
+        _CASTERS.clear()
+        _CASTERS[digest] = RayCaster(points, faces)
+    return _CASTERS[digest]

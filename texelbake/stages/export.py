@@ -1,0 +1,116 @@
+"""The export stage: the baked USD bundle (root layer, payload, maps) and report.json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from texelbake.cpm.assemble import assemble_level
+from texelbake.cpm.level import direction_sets, texel_ids
+from texelbake.stages.avis import avis_levels, avis_rays
+from texelbake.stages.btf import export_btf
+from texelbake.stages.context import StageContext
+from texelbake.stages.cpm import cpm_levels
+
+
+def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = None,
+              plan=None) -> Path:
+    """Write the baked USD bundle and report.json into out_dir (the export stage)."""
+    from texelbake import payload
+    from texelbake.normalmap import bake_preview_maps, face_tangent_space
+    from texelbake.scene import check_asset_paths
+
+    s = ctx.settings
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    geo = ctx.geometry()
+    asset = ctx.asset()
+    cpm_lv = cpm_levels(ctx)
+    avis_lv = avis_levels(ctx)
+    levels, level_reports = [], []
+    for lvl in range(ctx.n_levels):
+        arrays, rep = assemble_level(geo, s.atlas_resolution, s.avis_keep_fraction, lvl, cpm_lv[lvl],
+                                   avis_lv[lvl])
+        levels.append(arrays)
+        level_reports.append(rep)
+    dirs = direction_sets(s)
+    m1_frames = face_tangent_space(geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"])
+    albedo, normal, _ = bake_preview_maps(
+        s.atlas_resolution, texel_ids(geo, s.atlas_resolution, 0), geo["sample_area"],
+        geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, m1_frames,
+        geo["sample_m1_prim"],
+    )
+    meshes = [payload.LodMesh(geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"])]
+    i = 2
+    while f"m{i}_vertices" in geo:
+        meshes.append(payload.LodMesh(geo[f"m{i}_vertices"], geo[f"m{i}_faces"],
+                                      geo[f"m{i}_corner_uvs"]))
+        i += 1
+    name = ctx.asset_path.stem
+    skipped = list(plan.skipped) if plan is not None else []
+    report = {
+        "texelbake_version": __import__("texelbake").__version__,
+        "source": ctx.asset_path.name,
+        "source_hash": ctx.asset_hash,
+        "settings": s.model_dump(),
+        "levels": level_reports,
+        "samples": int(len(geo["sample_area"])),
+        "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
+        "surface_area": float(geo["sample_area"].sum()),
+        "skipped": [{"stage": a, "reason": b} for a, b in skipped],
+        "stage_seconds": dict(stage_seconds or {}),
+    }
+    l0 = level_reports[0]
+    metadata = {
+        "version": report["texelbake_version"],
+        "source_hash": ctx.asset_hash,
+        "settings": s.model_dump(),
+        "materials": [m.path for m in asset.materials],
+        "errors": {
+            "snr_insample_db_mean": l0["snr_insample_db"].get("mean"),
+            "snr_heldout_db_mean": l0["snr_heldout_db"].get("mean"),
+            "snr_heldout_db_p5": l0["snr_heldout_db"].get("p5"),
+            "avis_rel_error": l0["avis"]["rel_error"],
+        },
+    }
+    baked = payload.BakedAsset(
+        name=name, levels=levels,
+        arrays={"dirs_i": dirs["dirs_i"], "dirs_o": dirs["dirs_o"],
+                "heldout_i": dirs["held_i"], "heldout_o": dirs["held_o"],
+                "material_model": np.array(
+                    [["lambert", "preview", "phong", "merl", "cellular"].index(m.model)
+                     for m in asset.materials], np.int32)},
+        meshes=meshes, albedo=albedo, normal=normal, metadata=metadata,
+    )
+    author_extra = None
+    if s.btf:
+        author_extra = export_btf(ctx, out_dir, report)
+    source_copy = payload.copy_source(
+        ctx.asset_path, check_asset_paths(ctx.asset_path), out_dir / "source"
+    )
+    root = payload.write_baked_asset(out_dir, source_copy, baked, list(asset.mesh_paths),
+                                     author_extra=author_extra)
+    payload.atomic_json(out_dir / "report.json", report)
+    return root
+
+
+def update_report_seconds(out_dir: Path, seconds: dict[str, float]) -> None:
+    from texelbake import payload
+
+    path = Path(out_dir) / "report.json"
+    report = json.loads(path.read_text())
+    report["stage_seconds"] = {k: round(v, 3) for k, v in seconds.items()}
+    report["total_seconds"] = round(sum(seconds.values()), 3)
+    payload.atomic_json(path, report)
+
+
+def run_export(ctx: StageContext, shard: int = 0) -> str:
+    """The farm's export: write the bundle under the store (`result/`) and return its key."""
+    key = ctx.key("export", "result")
+    out = ctx.store.path(key)
+    if (out / "report.json").is_file():
+        return key
+    export_to(ctx, out)
+    return key
