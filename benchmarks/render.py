@@ -56,12 +56,11 @@ new atlas (2362 object pixels instead of 859), so its earlier dB are not compara
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
 from pathlib import Path
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -70,12 +69,17 @@ if str(ROOT) not in sys.path:
 from schemas.settings import BakeSettings  # noqa: E402
 from texelbake.pipeline import bake  # noqa: E402
 from texelbake.render.frame import MODES, render_frame  # noqa: E402
-from texelbake.render.report import _write_json, compare_modes, write_report_plot  # noqa: E402
+from texelbake.render.report import (  # noqa: E402
+    _entry,
+    _write_json,
+    compare_modes,
+    write_report_plot,
+)
 from texelbake.render.scene import load_scene, resolve_camera  # noqa: E402
 from texelbake.scenes import write_scene  # noqa: E402
 
-#: bake settings of the benchmark besides the atlas and ε: what bakes a small scene in a few
-#: minutes here (`--quality high`: 32 x 32 directions, c_max 32, 6 x 32² a_vis cells)
+#: `--quality`: labelled non-default bake settings (a second row, never the headline): what
+#: earlier sessions used to bake a small scene in a few minutes here
 QUALITY = {
     "fast": {"samples_per_texel": 16, "n_light_dirs": 16, "n_view_dirs": 16, "n_heldout": 16,
              "c_max": 16},
@@ -84,22 +88,52 @@ QUALITY = {
 }
 
 
-def bake_scene(scene: str, work: Path, atlas: int, eps_db: float, *, size: str = "small",
-               quality: str = "fast", m1_faces: int = 0, btf: bool = False) -> Path:
+def bench_settings(*, atlas: int | None = None, eps_db: float | None = None,
+                   quality: str | None = None, m1_faces: int | None = None,
+                   btf: bool = False) -> tuple[BakeSettings, list[str]]:
+    """`texelbake bake`'s defaults (BakeSettings()) with only what was asked changed, and the
+    list of what departs from the defaults (empty: the headline row). `btf` is not counted: it
+    adds the btf mode's maps and changes nothing the other modes read."""
+    over: dict = {}
+    if atlas is not None:
+        over["atlas_resolution"] = atlas
+        over["shard_texels"] = min(atlas, BakeSettings().shard_texels)
+    if eps_db is not None:
+        over["eps_db"] = eps_db
+    if quality is not None:
+        over.update(QUALITY[quality])
+    if m1_faces is not None:
+        over["m1_faces"] = m1_faces
+    defaults = BakeSettings().model_dump()
+    changed = sorted(k for k, v in over.items() if defaults[k] != v and k != "shard_texels")
+    return BakeSettings(**{**over, "btf": btf}), changed
+
+
+def bake_scene(scene: str, work: Path, settings: BakeSettings, *, size: str = "small") -> Path:
     src = write_scene(scene, work / "src" / f"{scene}_{size}.usda", size)
-    settings = BakeSettings(atlas_resolution=atlas, shard_texels=min(atlas, 16), mesh_levels=2,
-                            eps_db=eps_db, m1_faces=m1_faces, btf=btf, **QUALITY[quality])
-    out = work / (f"baked_{size}_a{atlas}_e{eps_db:g}_{quality}" + (f"_m{m1_faces}" if m1_faces
-                                                                     else "")
-                  + ("_btf" if btf else ""))
+    key = hashlib.sha256(settings.model_dump_json().encode()).hexdigest()[:10]
+    out = work / f"baked_{size}_{key}"
     root = out / f"{scene}_{size}_baked.usda"
     if root.is_file():
         return root
     t0 = time.perf_counter()
     root = bake(src, out, settings, progress=False, jobs=2)
-    print(f"baked {scene} ({size}, atlas {atlas}, eps {eps_db:g} dB, {quality}, M1 "
-          f"{m1_faces or 'default'} faces) in {time.perf_counter() - t0:.0f} s", flush=True)
+    print(f"baked {scene} ({size}, atlas {settings.atlas_resolution}, eps "
+          f"{settings.eps_db:g} dB) in {time.perf_counter() - t0:.0f} s", flush=True)
     return root
+
+
+def _table(report: dict, ref_s: float) -> None:
+    """Time beside error: object PSNR, object pixels, ΔE*ab, FLIP; whole-frame PSNR last."""
+    print(f"\n{'mode':<14}{'spp':>7}{'seconds':>9}{'speed-up':>9}{'PSNR obj':>9}{'obj px':>7}"
+          f"{'dE mean':>8}{'dE p95':>8}{'FLIP':>7}{'PSNR frame':>11}")
+    print(f"{'reference':<14}{report['reference']['spp']:>7}{ref_s:>9.2f}{1.0:>9.1f}")
+    for e in sorted(report["sweep"], key=lambda e: (e["mode"], e.get("eps_db", 0), e["spp"])):
+        label = e["mode"] + (f"@{e['eps_db']:g}" if "eps_db" in e else "")
+        spp = f"{e['mean_spp']:.2f}" if "mean_spp" in e else str(e["spp"])
+        print(f"{label:<14}{spp:>7}{e['seconds']:>9.3f}{ref_s / e['seconds']:>9.1f}"
+              f"{e['psnr_db_object']:>9.2f}{e['object_pixels']:>7}{e['delta_e_mean']:>8.2f}"
+              f"{e['delta_e_p95']:>8.2f}{e['flip_mean']:>7.4f}{e['psnr_db']:>11.2f}")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -109,32 +143,37 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--spp", type=int, default=4)
-    ap.add_argument("--atlas", type=int, default=64)
-    ap.add_argument("--eps", default="30", help="comma-separated ε (dB) of the cpm bakes")
+    ap.add_argument("--atlas", type=int, default=None,
+                    help="finest texels per side (default: the bake's default)")
+    ap.add_argument("--eps", default="", help="comma-separated ε (dB) of the cpm bakes "
+                    "(default: the bake's default; further values: one more bake each)")
     ap.add_argument("--baked", type=Path, default=None)
     ap.add_argument("--camera", choices=("lod", "asset"), default="lod")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--scene-size", choices=("small", "full"), default="small")
-    ap.add_argument("--quality", choices=sorted(QUALITY), default="fast")
-    ap.add_argument("--m1-faces", type=int, default=0,
-                    help="faces of M1 (0: the bake's rule); a smooth M1 leaves the detail to "
-                         "the maps, as the seed's cylinder")
+    ap.add_argument("--quality", choices=sorted(QUALITY), default=None,
+                    help="labelled non-default sampling settings (a second row, not defaults)")
+    ap.add_argument("--m1-faces", type=int, default=None,
+                    help="faces of M1 (default: the bake's rule); non-default, labelled")
     ap.add_argument("--btf", action="store_true", help="bake BTF maps and add the btf mode")
     ap.add_argument("--work", type=Path, default=Path("bench_out/render"))
     args = ap.parse_args(argv)
 
-    eps_list = [float(e) for e in args.eps.split(",") if e]
+    eps_list = [float(e) for e in args.eps.split(",") if e] or [None]
     work = args.work / args.scene
     out = args.out or work / f"images_{args.size}"
     out.mkdir(parents=True, exist_ok=True)
-    bake_kw = {"size": args.scene_size, "quality": args.quality, "m1_faces": args.m1_faces,
-               "btf": args.btf}
-    root = args.baked or bake_scene(args.scene, work, args.atlas, eps_list[0], **bake_kw)
+    knobs = {"atlas": args.atlas, "quality": args.quality, "m1_faces": args.m1_faces,
+             "btf": args.btf}
+    settings, changed = bench_settings(eps_db=eps_list[0], **knobs)
+    root = args.baked or bake_scene(args.scene, work, settings, size=args.scene_size)
     scene = load_scene(root)
     cam = resolve_camera(scene, "lod" if args.camera == "lod" else None, args.size, args.size)
     print(f"{args.scene}: {args.size}x{args.size}, camera {args.camera} at "
           f"{cam.position.round(2).tolist()}, mesh faces M_org {scene.asset.num_faces}, "
-          f"M1 {scene.lods[0].num_faces}", flush=True)
+          f"M1 {scene.lods[0].num_faces}; bake settings: "
+          f"{'texelbake bake defaults' if not changed else 'NON-DEFAULT ' + ', '.join(changed)}",
+          flush=True)
     t0 = time.perf_counter()
     ref = render_frame(scene, "gt", cam, args.ref_spp, seed=1000)
     print(f"reference gt at {args.ref_spp} spp: {ref.seconds:.1f} s "
@@ -144,36 +183,47 @@ def main(argv: list[str] | None = None) -> dict:
     report = compare_modes(scene, cam, spp=args.spp, ref_spp=args.ref_spp, gt_sweep=gt_sweep,
                            cpm_sweep=(1, 4, 16), out_dir=out, reference=ref, modes=modes)
     for eps in eps_list[1:]:  # further ε: one bake each, cpm at the same spp
-        sc = load_scene(bake_scene(args.scene, work, args.atlas, eps, **bake_kw))
+        sc = load_scene(bake_scene(args.scene, work, bench_settings(eps_db=eps, **knobs)[0],
+                                   size=args.scene_size))
         for s in (1, args.spp, 16):
-            r = render_frame(sc, "cpm", cam, s, 0)
-            from texelbake.render.report import _entry
-
-            report["sweep"].append(_entry(r, ref.image, eps))
+            report["sweep"].append(_entry(render_frame(sc, "cpm", cam, s, 0), ref, eps))
     report["scene"] = args.scene
     report["camera"] = args.camera
     report["atlas"] = scene.n0
-    report["bake"] = {**bake_kw, "m1_faces_actual": int(scene.lods[0].num_faces),
+    report["bake_settings"] = json.loads(settings.model_dump_json())
+    report["bake_settings_non_default"] = changed
+    report["bake"] = {"size": args.scene_size, "m1_faces_actual": int(scene.lods[0].num_faces),
                       "org_faces": int(scene.asset.num_faces)}
-    report["object_pixels"] = int(np.sum(ref.image.max(axis=2) > 0))
     ref_s = ref.seconds
-    modes = report["modes"]
-    cpm, eq, nm = modes["cpm"], modes["equal-time"], modes["normalmap"]
+    m = report["modes"]
+    cpm, eq, nm = m["cpm"], m["equal-time"], m["normalmap"]
+    ratio = report["equal_time"]["ratio"]
     bar = {
         "cpm_speedup_over_reference": ref_s / cpm["seconds"],
         "speedup_at_least_20x": ref_s / cpm["seconds"] >= 20.0,
-        "cpm_error_below_equal_time": cpm["psnr_db"] > eq["psnr_db"],
-        "cpm_error_below_normalmap": cpm["psnr_db"] > nm["psnr_db"],
+        "equal_time_ratio": ratio,
+        "equal_time_within_5_percent": 0.95 <= ratio <= 1.05,
+        "cpm_error_below_equal_time": cpm["psnr_db_object"] > eq["psnr_db_object"],
+        "cpm_error_below_normalmap": cpm["psnr_db_object"] > nm["psnr_db_object"],
     }
     report["bar"] = bar
-    print(f"\n{'mode':<12}{'spp':>6}{'seconds':>10}{'speed-up':>10}{'PSNR dB':>9}"
-          f"{'SNR dB':>8}")
-    print(f"{'reference':<12}{ref.spp:>6}{ref_s:>10.2f}{1.0:>10.1f}{'':>9}{'':>8}")
-    for e in sorted(report["sweep"], key=lambda e: (e["mode"], e.get("eps_db", 0), e["spp"])):
-        label = e["mode"] + (f"@{e['eps_db']:g}" if "eps_db" in e else "")
-        print(f"{label:<12}{e['spp']:>6}{e['seconds']:>10.3f}{ref_s / e['seconds']:>10.1f}"
-              f"{e['psnr_db']:>9.2f}{e['snr_db']:>8.2f}")
-    print(f"\ncoverage {report['coverage']:.3%} of the pixels; bar: {json.dumps(bar)}")
+    _table(report, ref_s)
+    co = report["crossover"]
+    print(f"\nequal-time: {report['equal_time']['equal_time_seconds']:.3f} s against cpm's "
+          f"{report['equal_time']['cpm_seconds']:.3f} s (ratio {ratio:.3f}, "
+          f"{'within' if bar['equal_time_within_5_percent'] else 'NOT within'} ±5 %), "
+          f"{report['equal_time']['mean_spp']:.2f} samples per pixel on average")
+    if co["gt_spp"] is None:
+        print(f"crossover: no gt entry of the sweep beats cpm@{co['cpm_spp']} "
+              f"({co['cpm_psnr_db_object']:.2f} dB over the object): beyond the sweep")
+    else:
+        print(f"crossover: gt@{co['gt_spp']} ({co['gt_psnr_db_object']:.2f} dB, "
+              f"{co['gt_seconds']:.3f} s = {co['seconds_ratio']:.2f}x cpm's time) is the "
+              f"cheapest gt that beats cpm@{co['cpm_spp']} ({co['cpm_psnr_db_object']:.2f} dB)")
+    for claim, key in (("cpm beats equal-time over the object", "cpm_error_below_equal_time"),
+                       ("cpm beats normalmap over the object", "cpm_error_below_normalmap")):
+        print(f"{claim}: {'holds' if bar[key] else 'DOES NOT HOLD'}")
+    print(f"object: {report['object_pixels']} pixels ({report['coverage']:.3%} of the frame)")
     args.json.parent.mkdir(parents=True, exist_ok=True)
     _write_json(args.json, report)
     _write_json(out / "render_report.json", report)

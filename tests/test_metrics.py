@@ -68,3 +68,44 @@ def test_difference_map_png(tmp_path):
     # clipped at vmax = 10: the last two pixels get the same colour, the first the darkest
     np.testing.assert_array_equal(px[1, 0], px[1, 1])
     assert px[0, 0].sum() < px[0, 1].sum() < px[1, 0].sum()
+
+
+def test_object_mask_is_the_dilated_union_by_brute_force():
+    rng = np.random.default_rng(4)
+    a = rng.random((12, 15)) > 0.93
+    b = rng.random((12, 15)) > 0.93
+    got = metrics.object_mask(a.astype(float), b)
+    u = a | b
+    want = np.zeros_like(u)
+    for i, j in zip(*np.nonzero(u), strict=True):  # brute force: every 3 x 3 neighbourhood
+        want[max(i - 1, 0):i + 2, max(j - 1, 0):j + 2] = True
+    np.testing.assert_array_equal(got, want)
+    with pytest.raises(ShapeError):
+        metrics.object_mask(a, b[:, :3])
+
+
+def test_object_errors_by_hand_and_the_black_frame_no_longer_helps():
+    """PSNR over the object's pixels uses only those pixels (by hand: peak 2, RMSE 0.1 over the
+    four object pixels -> 20 log10(20)); the same error over a frame 25x larger reads 14 dB
+    better over the frame (10 log10 25), which is what the reports no longer headline."""
+    ref = np.zeros((10, 10, 3))
+    ref[4:6, 4:6] = 2.0
+    img = ref.copy()
+    img[4:6, 4:6] += 0.1
+    mask = np.zeros((10, 10), bool)
+    mask[4:6, 4:6] = True
+    e = metrics.object_errors(img, ref, mask)
+    assert e["object_pixels"] == 4
+    assert e["psnr_db_object"] == pytest.approx(20 * np.log10(2.0 / 0.1), abs=1e-9)
+    assert metrics.psnr_db(img, ref) - e["psnr_db_object"] == pytest.approx(
+        10 * np.log10(25.0), abs=1e-9)
+    de = metrics.difference_map(img, ref)[mask]
+    assert e["delta_e_mean"] == pytest.approx(de.mean()) and e["delta_e_p95"] > 0
+    # FLIP: 0 for identical images, larger for larger errors, within [0, 1]
+    assert metrics.object_errors(ref, ref, mask)["flip_mean"] == 0.0
+    worse = ref.copy()
+    worse[4:6, 4:6] = 0.5
+    assert 0.0 < e["flip_mean"] < metrics.object_errors(worse, ref, mask)["flip_mean"] <= 1.0
+    # nothing to compare: NaN, never a division error
+    empty = metrics.object_errors(img, ref, np.zeros((10, 10), bool))
+    assert empty["object_pixels"] == 0 and np.isnan(empty["psnr_db_object"])

@@ -1,9 +1,13 @@
 """Image error metrics against a reference (DESIGN.md "Measuring"): RMSE, PSNR and SNR in dB,
-and a perceptual difference map (CIE ΔE*ab per pixel) written as an image.
+a perceptual difference map (CIE ΔE*ab per pixel) written as an image, NVIDIA's FLIP, and
+the errors over the object's pixels (`object_mask`, `object_errors`).
 
 Conventions (stated once, used by every report):
 - images are linear radiance, (h, w, 3) (or any shape that matches the reference);
-- RMSE is over every pixel and channel;
+- RMSE is over every pixel and channel given; the reports measure over the *object's*
+  pixels (`object_mask`: where the reference or the image saw the object, dilated by one
+  pixel) — over a whole frame the exactly-black background lifts PSNR by 20-30 dB when the
+  object covers 1 % of it (issue 19); whole-frame PSNR stays in the reports, labelled;
 - PSNR uses the peak of the *reference* (its largest value over pixels and channels), so a
   brighter scene does not look better; PSNR = 20 log10(peak / RMSE);
 - SNR = 10 log10(Σ ref² / Σ (img - ref)²), the energy ratio seed 000 uses for its ε (§3.3);
@@ -97,10 +101,7 @@ def difference_map(image: object, reference: object, white: float | None = None)
     if ref.ndim != 3 or ref.shape[2] != 3:
         raise ShapeError(f"difference_map needs (h, w, 3) images, got {ref.shape}")
     if white is None:
-        lum = ref @ _RGB_TO_XYZ[1]
-        lum = lum[lum > 0]
-        white = float(np.percentile(lum, 99.5)) if lum.size else 1.0
-        white = white if white > 0 else 1.0
+        white = _white(ref)
     return np.linalg.norm(linear_to_lab(img, white) - linear_to_lab(ref, white), axis=-1)
 
 
@@ -115,3 +116,73 @@ def write_difference_map(path: str | Path, dmap: object, vmax: float = 10.0) -> 
         raise ShapeError(f"dmap must be (h, w), got {d.shape}")
     rgb = colormaps["magma"](np.clip(d / float(vmax), 0.0, 1.0))[..., :3]
     return write_png(path, rgb, srgb=False)
+
+
+def _white(reference: np.ndarray) -> float:
+    """The exposure a viewer would pick: the 99.5th percentile luminance of the reference's
+    non-black pixels (1 for an all-black reference)."""
+    lum = reference @ _RGB_TO_XYZ[1]
+    lum = lum[lum > 0]
+    white = float(np.percentile(lum, 99.5)) if lum.size else 1.0
+    return white if white > 0 else 1.0
+
+
+def object_mask(*coverages: object) -> np.ndarray:
+    """Pixels where the object is: the union of the given coverage maps ((h, w), > 0 where
+    an eye ray saw the object; e.g. the reference's and the compared image's), dilated by one
+    pixel (3 x 3) so that a silhouette one image has and the other lacks is counted.
+    returns (h, w) bool"""
+    from scipy.ndimage import binary_dilation
+
+    if not coverages:
+        raise ShapeError("object_mask needs at least one coverage map")
+    maps = [np.asarray(c) for c in coverages]
+    if any(m.ndim != 2 or m.shape != maps[0].shape for m in maps):
+        raise ShapeError(f"coverage maps must be (h, w) of one shape, got "
+                         f"{[m.shape for m in maps]}")
+    union = np.logical_or.reduce([m > 0 for m in maps])
+    return binary_dilation(union, structure=np.ones((3, 3), dtype=bool))
+
+
+def flip_map(image: object, reference: object, white: float | None = None) -> np.ndarray:
+    """NVIDIA FLIP error per pixel (the `flip-evaluator` package, LDR-FLIP, 67 pixels per
+    degree) of the two linear images exposed by the same white (default: as
+    `difference_map`) and clipped to [0, 1]. returns (h, w) float in [0, 1]"""
+    import flip_evaluator
+
+    img, ref = _pair(image, reference)
+    if ref.ndim != 3 or ref.shape[2] != 3:
+        raise ShapeError(f"flip_map needs (h, w, 3) images, got {ref.shape}")
+    w = _white(ref) if white is None else float(white)
+    a = np.clip(ref / w, 0.0, 1.0).astype(np.float32)
+    b = np.clip(img / w, 0.0, 1.0).astype(np.float32)
+    fmap, _, _ = flip_evaluator.evaluate(a, b, "LDR", inputsRGB=False, applyMagma=False,
+                                         computeMeanError=False)
+    return np.asarray(fmap, dtype=np.float64).reshape(ref.shape[:2])
+
+
+def object_errors(image: object, reference: object, mask: object) -> dict[str, float | int]:
+    """Errors of `image` against `reference` where the object is (`object_mask`), and FLIP.
+
+    returns {"object_pixels", "psnr_db_object" (peak: the reference's over those pixels),
+    "delta_e_mean", "delta_e_p95" (CIE ΔE*ab over those pixels, `difference_map`'s
+    exposure), "flip_mean" (over the frame, as FLIP is defined), "flip_mean_object"}; with
+    no object pixels the per-object figures are NaN (there is nothing to compare).
+    """
+    img, ref = _pair(image, reference)
+    m = np.asarray(mask, dtype=bool)
+    if m.shape != ref.shape[:2]:
+        raise ShapeError(f"mask {m.shape} does not match the image {ref.shape[:2]}")
+    white = _white(ref)
+    fmap = flip_map(img, ref, white)
+    out: dict[str, float | int] = {"object_pixels": int(m.sum()),
+                                   "flip_mean": float(fmap.mean())}
+    if not m.any():
+        return {**out, "psnr_db_object": float("nan"), "delta_e_mean": float("nan"),
+                "delta_e_p95": float("nan"), "flip_mean_object": float("nan")}
+    peak = float(ref[m].max())
+    de = difference_map(img, ref, white)[m]
+    out.update(psnr_db_object=psnr_db(img[m], ref[m], peak) if peak > 0 else float("nan"),
+               delta_e_mean=float(de.mean()), delta_e_p95=float(np.percentile(de, 95)),
+               flip_mean_object=float(fmap[m].mean()))
+    return out

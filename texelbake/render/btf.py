@@ -44,10 +44,12 @@ def btf_maps(scene: RenderScene):
 
 
 def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarray,
-              *, lod_bias: float = 0.0, interpolate: bool = False) -> tuple[np.ndarray, int]:
+              *, lod_bias: float = 0.0, interpolate: bool = False
+              ) -> tuple[np.ndarray, int, np.ndarray]:
     """Radiance along eye rays traced against M1 with the BTF maps (module docstring).
 
-    o, d : (n, 3) float64 eye rays; returns (radiance (n, 3) float64, rays cast)
+    o, d : (n, 3) float64 eye rays; returns (radiance (n, 3) float64, rays cast, hit (n,)
+    bool)
     """
     from texelbake.btf import btf_lookup_texels
 
@@ -56,8 +58,10 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
     rays = o.shape[0]
     out = np.zeros((o.shape[0], 3))
     idx, prim, p, _, row, col = hit_m1(scene, o, d)
+    hit = np.zeros(o.shape[0], dtype=bool)
+    hit[idx] = True
     if idx.size == 0:
-        return out, rays
+        return out, rays, hit
     n = scene.n0
     frames = scene.baked.levels[0]["frames"][row * n + col].astype(np.float64)  # (k, 3, 3)
     ng = scene.lod_face_normals[0][prim]
@@ -78,7 +82,7 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
         # demo's cylinder at 16²); reflectance is not negative, so neither is the radiance
         fbar = np.maximum(fbar, 0.0)
         out[idx[live]] += e[live] * fbar  # f̄ carries cos_i cos_o already: E_l only
-    return out, rays
+    return out, rays, hit
 
 
 def render_btf(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):

@@ -145,10 +145,25 @@ def eye_rays(cam: PinholeCamera, offsets: np.ndarray) -> tuple[np.ndarray, np.nd
     off = np.asarray(offsets, dtype=np.float64)
     if off.ndim != 3 or off.shape[1:] != (h * w, 2):
         raise ShapeError(f"offsets must be (k, {h * w}, 2), got {off.shape}")
-    rows, cols = np.divmod(np.arange(h * w), w)
-    x = (2.0 * (cols[None, :] + off[..., 0]) / w - 1.0) * cam.tan_half_x
-    y = (1.0 - 2.0 * (rows[None, :] + off[..., 1]) / h) * cam.tan_half_y
-    d_cam = np.stack([x, y, -np.ones_like(x)], axis=-1).reshape(-1, 3)
+    pix = np.broadcast_to(np.arange(h * w), off.shape[:2])
+    return eye_rays_at(cam, pix.reshape(-1), off.reshape(-1, 2))
+
+
+def eye_rays_at(cam: PinholeCamera, pixels: np.ndarray, offsets: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Eye rays through sub-pixel positions of given pixels.
+
+    pixels : (n,) int row-major pixel indices; offsets : (n, 2) float64 positions in [0, 1)²
+    returns : (origins (n, 3), dirs (n, 3) unit) float64
+    """
+    w = cam.width
+    off = np.asarray(offsets, dtype=np.float64)
+    rows, cols = np.divmod(np.asarray(pixels, dtype=np.int64), w)
+    if off.shape != (rows.size, 2):
+        raise ShapeError(f"offsets must be ({rows.size}, 2), got {off.shape}")
+    x = (2.0 * (cols + off[:, 0]) / w - 1.0) * cam.tan_half_x
+    y = (1.0 - 2.0 * (rows + off[:, 1]) / cam.height) * cam.tan_half_y
+    d_cam = np.stack([x, y, -np.ones_like(x)], axis=-1)
     d = d_cam @ cam.rotation.T
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return np.broadcast_to(cam.position, d.shape).copy(), d

@@ -283,15 +283,17 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
 
 def _cpm_finish(scene: RenderScene, frame: CpmFrame, o: np.ndarray, d: np.ndarray,
                 h: dict[str, Any], filtering: str = "projected"
-                ) -> tuple[np.ndarray, np.ndarray, int]:
+                ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     """Second half of `shade_cpm`: trilinear look-ups of the texel radiance, M_org where the
     maps do not apply; rays that miss M_org are background when `_cpm_prepare` tested
-    coverage. returns (radiance (n, 3), level (n,), rays cast)"""
+    coverage. returns (radiance (n, 3), level (n,), rays cast, hit (n,) bool: the ray sees
+    the object)"""
     n, idx, rays = h["n"], h["idx"], h["rays"]
     out = np.zeros((n, 3))
     level = np.full(n, np.nan)
+    hit = np.zeros(n, dtype=bool)
     if idx.size == 0:
-        return out, level, rays
+        return out, level, rays, hit
     use, lam_c, fr = h["use"], h["lam_c"], h["fr"]
     rad = np.zeros((idx.size, 3))
     wsum = np.zeros(idx.size)
@@ -302,27 +304,29 @@ def _cpm_finish(scene: RenderScene, frame: CpmFrame, o: np.ndarray, d: np.ndarra
         wsum[sel] += weight
     ok = use & (wsum > 0)
     out[idx[ok]] = rad[ok] / wsum[ok, None]
+    hit[idx[ok]] = True
     if h["covered"] is not None:
         out[idx[ok & ~h["covered"]]] = 0.0
+        hit[idx[ok & ~h["covered"]]] = False
     level[idx[ok]] = lam_c[ok]
     # closer than the finest level (or no texel there): multi-sample M_org
     fb = idx[~ok]
     if fb.size:
-        out[fb], r_fb = shade_org(scene, o[fb], d[fb])
+        out[fb], r_fb, hit[fb] = shade_org(scene, o[fb], d[fb])
         rays += r_fb
         level[fb] = -1.0
-    return out, level, rays
+    return out, level, rays, hit
 
 
 def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
               d: np.ndarray, spp: int, *, lod_bias: float = 0.0,
               local_light_ratio: float = 8.0, filtering: str = "projected",
               footprint: str = "sample", coverage: bool = True
-              ) -> tuple[np.ndarray, np.ndarray, int]:
+              ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     """Radiance along eye rays from the characteristic point maps (module docstring).
 
     returns : (radiance (n, 3), level (n,) float64 — the fractional mip level used, -1 where
-        M_org was used, NaN for misses; rays cast)
+        M_org was used, NaN for misses; rays cast; hit (n,) bool — the ray sees the object)
     """
     _check_cpm_options(filtering, footprint)
     h = _cpm_prepare(scene, frame, cam, o, d, lod_bias=lod_bias,
@@ -341,6 +345,7 @@ def render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw
     acc = np.zeros((n_pix, 3))
     lvl_sum = np.zeros(n_pix)
     lvl_cnt = np.zeros(n_pix)
+    cov = np.zeros(n_pix)
     fallback = 0
     rays = 0
     # two phases, so that the texel radiance of the whole frame is computed in one batch per
@@ -354,10 +359,12 @@ def render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw
     for o, d, prepared in passes:
         rad = np.zeros_like(o)
         lvl = np.full(o.shape[0], np.nan)
+        hit = np.zeros(o.shape[0], dtype=bool)
         for sl, h in prepared:
-            rad[sl], lvl[sl], r = _cpm_finish(scene, frame, o[sl], d[sl], h, filtering)
+            rad[sl], lvl[sl], r, hit[sl] = _cpm_finish(scene, frame, o[sl], d[sl], h, filtering)
             rays += r
         acc += rad.reshape(-1, n_pix, 3).sum(axis=0)
+        cov += hit.reshape(-1, n_pix).sum(axis=0)
         lv = lvl.reshape(-1, n_pix)
         hit = np.isfinite(lv)
         lvl_sum += np.where(hit, lv, 0.0).sum(axis=0)
@@ -371,4 +378,5 @@ def render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw
         "fallback_fraction": fallback / max(float(lvl_cnt.sum()), 1.0),
         "frame_rays": frame.rays,
     }
-    return (acc / spp).reshape(cam.height, cam.width, 3), rays, extras
+    return ((acc / spp).reshape(cam.height, cam.width, 3), rays,
+            (cov / spp).reshape(cam.height, cam.width), extras)

@@ -46,8 +46,13 @@ Modes (all read the baked USD through `texelbake.payload.read_baked` and the cop
   traced on M1 (as ``normalmap``), and λ comes from the pixel footprint exactly as in ``cpm``
   (clamped to [0, λ_max] by the look-up). Not in `MODES` (previews and reports iterate MODES
   and most bakes carry no BTF maps); `render_frame` accepts it through `EXTRA_MODES`.
-- ``equal-time`` — M_org with as many eye rays per pixel as fit in the time budget (by
-  default the time of the ``cpm`` image at the given spp, measured in this call).
+- ``equal-time`` — M_org shaded as ``gt`` for exactly the time budget (by default the time
+  of the ``cpm`` image at the given spp, measured in this call): `tracer.progressive` adds
+  samples in chunks of ~1 % of the budget until the next would not fit, so its measured time
+  lands within a few percent of the budget whatever a sample costs (the sample count per
+  pixel need not be a square, nor the same in every pixel: `extras["mean_spp"]`). Before
+  2026-11-25 it rendered a stratified count floored from a pilot's cost, which gave 0.70-0.75
+  of cpm's time on three of four scenes (issue 19).
 
 Timing: `RenderResult.seconds` counts the rendering of one frame (rays, shading, per-frame
 precomputation), not reading the USD files and building the ray-tracing structures and the
@@ -68,10 +73,10 @@ from texelbake.render import camera as cam_mod
 from texelbake.render.btf import render_btf
 from texelbake.render.camera import PinholeCamera
 from texelbake.render.cpm import render_cpm
-from texelbake.render.gt import render_org
+from texelbake.render.gt import render_org, shade_org
 from texelbake.render.normalmap import render_normalmap
 from texelbake.render.scene import RenderScene
-from texelbake.render.tracer import RenderResult, well_stratified
+from texelbake.render.tracer import RenderResult, progressive
 
 MODES = ("gt", "cpm", "normalmap", "equal-time")
 #: modes `render_frame` accepts beyond MODES (they need optional bake outputs)
@@ -89,31 +94,25 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
     extras: dict[str, Any] = {}
     t0 = time.perf_counter()
     if mode == "gt":
-        img, rays = render_org(scene, cam, spp, seed)
+        img, rays, cov = render_org(scene, cam, spp, seed)
     elif mode == "normalmap":
-        img, rays = render_normalmap(scene, cam, spp, seed)
+        img, rays, cov = render_normalmap(scene, cam, spp, seed)
     elif mode == "cpm":
-        img, rays, extras = render_cpm(scene, cam, spp, seed, **kw)
+        img, rays, cov, extras = render_cpm(scene, cam, spp, seed, **kw)
     elif mode == "btf":
         if not isinstance(scene, RenderScene):
             raise SettingsError("field 'mode': 'btf' needs a baked asset (RenderScene)")
-        img, rays = render_btf(scene, cam, spp, seed, **kw)
+        img, rays, cov = render_btf(scene, cam, spp, seed, **kw)
     else:  # equal-time
         if budget_seconds is None:
             budget_seconds = render_frame(scene, "cpm", cam, spp, seed, **kw).seconds
-        # pilot at the cpm image's spp measures the cost of an eye ray per pixel on M_org
-        # (one sample per pixel under-estimates it: fixed costs per pass dominate)
-        t1 = time.perf_counter()
-        img, rays = render_org(scene, cam, spp, seed)
-        pilot = time.perf_counter() - t1
-        n_eq = well_stratified(max(1, int(budget_seconds / max(pilot / spp, 1e-9))))
-        extras = {"budget_seconds": float(budget_seconds), "pilot_seconds": pilot,
-                  "pilot_spp": spp}
-        t0 = time.perf_counter()
-        if n_eq != spp:
-            img, rays = render_org(scene, cam, n_eq, seed)
-        else:
-            t0 -= pilot
-        spp = n_eq
+        if not budget_seconds >= 0:  # 0: the first pass only (one sample per pixel)
+            raise SettingsError(f"field 'budget_seconds': must be >= 0, got {budget_seconds}")
+        img, rays, cov, mean_spp, seconds = progressive(
+            cam, seed, lambda o, d: shade_org(scene, o, d), float(budget_seconds))
+        extras = {"budget_seconds": float(budget_seconds), "mean_spp": float(mean_spp)}
+        return RenderResult(img.astype(np.float32), seconds, int(rays), int(mean_spp), mode,
+                            extras, cov.astype(np.float32))
     seconds = time.perf_counter() - t0
-    return RenderResult(img.astype(np.float32), seconds, int(rays), spp, mode, extras)
+    return RenderResult(img.astype(np.float32), seconds, int(rays), spp, mode, extras,
+                        cov.astype(np.float32))

@@ -15,15 +15,17 @@ from texelbake.render.shade import direct_radiance
 from texelbake.render.tracer import RenderResult, accumulate
 
 
-def shade_org(scene: OrgScene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, int]:
-    """Radiance along eye rays traced against M_org. o, d : (n, 3); returns ((n, 3), rays)."""
+def shade_org(scene: OrgScene, o: np.ndarray, d: np.ndarray
+              ) -> tuple[np.ndarray, int, np.ndarray]:
+    """Radiance along eye rays traced against M_org. o, d : (n, 3); returns ((n, 3), rays,
+    hit (n,) bool: the ray met the object)."""
     a = scene.asset
     hits = scene.org.cast(o, d)
     rays = o.shape[0]
     out = np.zeros((o.shape[0], 3))
     idx = np.flatnonzero(hits.hit)
     if idx.size == 0:
-        return out, rays
+        return out, rays, hits.hit
     prim = hits.prim[idx]
     b = hits.bary3()[idx]  # (k, 3)
     p = np.einsum("nk,nkj->nj", b, a.points[a.faces[prim]])
@@ -38,11 +40,11 @@ def shade_org(scene: OrgScene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray
     rad, shadow = direct_radiance(p, scene.org_face_normals[prim], ns, -d[idx], scene.lights,
                                   brdf, scene.org, scene.ray_eps)
     out[idx] = rad
-    return out, rays + shadow
+    return out, rays + shadow, hits.hit
 
 
 def render_org(scene: OrgScene, cam: PinholeCamera, spp: int, seed: int
-                ) -> tuple[np.ndarray, int]:
+               ) -> tuple[np.ndarray, int, np.ndarray]:
     return accumulate(cam, spp, seed, lambda o, d: shade_org(scene, o, d))
 
 
@@ -52,6 +54,6 @@ def render_model(asset: AssetModel, cam: PinholeCamera, spp: int, seed: int = 0
     scene = OrgScene(asset)
     cam_mod.strata(int(spp))
     t0 = time.perf_counter()
-    img, rays = render_org(scene, cam, int(spp), seed)
+    img, rays, cov = render_org(scene, cam, int(spp), seed)
     return RenderResult(img.astype(np.float32), time.perf_counter() - t0, int(rays), int(spp),
-                        "gt")
+                        "gt", coverage=cov)

@@ -77,15 +77,19 @@ def normalmap_brdf(scene: RenderScene, texel: np.ndarray, albedo: np.ndarray):
     return brdf
 
 
-def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, int]:
-    """Radiance along eye rays traced against M1 with the baked normal and albedo maps."""
+def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray
+                    ) -> tuple[np.ndarray, int, np.ndarray]:
+    """Radiance along eye rays traced against M1 with the baked normal and albedo maps;
+    returns (radiance (n, 3), rays cast, hit (n,) bool)."""
     nm = _normalmap_tables(scene)
     caster = scene.lods[0]
     rays = o.shape[0]
     out = np.zeros((o.shape[0], 3))
     idx, prim, p, uv, row, col = hit_m1(scene, o, d)
+    hit = np.zeros(o.shape[0], dtype=bool)
+    hit[idx] = True
     if idx.size == 0:
-        return out, rays
+        return out, rays, hit
     albedo = _bilinear_map(scene.baked.albedo, uv)
     local = _bilinear_map(scene.baked.normal, uv)
     ns = np.einsum("nji,nj->ni", nm["frames"][prim], local)  # tangent space -> world
@@ -94,7 +98,7 @@ def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray) -> tuple[n
     rad, shadow = direct_radiance(p, scene.lod_face_normals[0][prim], ns, -d[idx], scene.lights,
                                   normalmap_brdf(scene, texel, albedo), caster, scene.ray_eps)
     out[idx] = rad
-    return out, rays + shadow
+    return out, rays + shadow, hit
 
 
 def render_normalmap(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int):

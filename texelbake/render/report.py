@@ -5,13 +5,18 @@
 `render_report.json` (written by `render_previews` and by `benchmarks/render.py`)::
 
     {"scene": name, "width": w, "height": h, "reference": {"mode": "gt", "spp": n, ...},
-     "modes": {mode: {"seconds", "rays_cast", "spp", "rmse", "psnr_db", "snr_db",
-                      "files": [...], ...}},
-     "sweep": [{"mode", "spp", "eps_db", "seconds", "rays_cast", "rmse", "psnr_db",
-                "snr_db"}, ...]}
+     "modes": {mode: {"seconds", "rays_cast", "spp", "psnr_db_object", "object_pixels",
+                      "delta_e_mean", "delta_e_p95", "flip_mean", "flip_mean_object",
+                      "rmse", "psnr_db", "snr_db", "files": [...], ...}},
+     "equal_time": {"cpm_seconds", "equal_time_seconds", "ratio", "mean_spp"},
+     "crossover": {...} (see `crossover`),
+     "sweep": [{"mode", "spp", "eps_db", "seconds", ... the same errors}, ...]}
 
-Errors are against the reference `gt` image (more eye rays per pixel than any other entry);
-PSNR uses the reference's peak (`texelbake.metrics`).
+Errors are against the reference `gt` image (more eye rays per pixel than any other entry).
+`psnr_db_object`, ΔE*ab and `flip_mean_object` are over the object's pixels (the union of
+the reference's and the entry's coverage, dilated by one pixel: `metrics.object_mask`);
+`rmse`, `psnr_db` and `snr_db` are over the whole frame (labelled so in every table: the
+black background lifts them); `flip_mean` is FLIP over the frame, as FLIP is defined.
 """
 
 from __future__ import annotations
@@ -84,19 +89,52 @@ def _upscale(img: np.ndarray, min_px: int = 256) -> np.ndarray:
 # --------------------------------------------------------------------------- previews, report
 
 
-def _errors(img: np.ndarray, ref: np.ndarray) -> dict[str, float]:
-    return {"rmse": metrics.rmse(img, ref), "psnr_db": metrics.psnr_db(img, ref),
-            "snr_db": metrics.snr_db(img, ref)}
+def _errors(res: RenderResult, ref: RenderResult) -> dict[str, float | int]:
+    img, ref_img = res.image, ref.image
+    covs = [c for c in (ref.coverage, res.coverage) if c is not None]
+    mask = (metrics.object_mask(*covs) if covs
+            else metrics.object_mask(ref_img.max(axis=2) > 0))
+    return {**metrics.object_errors(img, ref_img, mask), "rmse": metrics.rmse(img, ref_img),
+            "psnr_db": metrics.psnr_db(img, ref_img), "snr_db": metrics.snr_db(img, ref_img)}
 
 
-def _entry(res: RenderResult, ref: np.ndarray | None, eps_db: float | None) -> dict[str, Any]:
+def _entry(res: RenderResult, ref: RenderResult | None, eps_db: float | None
+           ) -> dict[str, Any]:
     e: dict[str, Any] = {"mode": res.mode, "spp": res.spp, "seconds": round(res.seconds, 4),
                          "rays_cast": res.rays_cast}
+    if "mean_spp" in res.extras:
+        e["mean_spp"] = round(res.extras["mean_spp"], 3)
+        e["budget_seconds"] = round(res.extras["budget_seconds"], 4)
     if eps_db is not None and res.mode == "cpm":
         e["eps_db"] = eps_db
     if ref is not None:
-        e.update(_errors(res.image, ref))
+        e.update(_errors(res, ref))
     return e
+
+
+def crossover(sweep: list[dict[str, Any]], spp: int) -> dict[str, Any]:
+    """Where brute force starts to beat cpm: the cheapest `gt` entry of the sweep whose
+    object PSNR exceeds cpm's at `spp` (cpm's error is mostly bias, which more eye rays do
+    not remove, so past some budget gt wins). Returns {"cpm_spp", "cpm_seconds",
+    "cpm_psnr_db_object", "gt_spp", "gt_seconds", "gt_psnr_db_object", "seconds_ratio"};
+    the gt fields are None when no gt entry of the sweep beats cpm ("beyond the sweep")."""
+    cpm = [e for e in sweep if e["mode"] == "cpm" and e["spp"] == spp]
+    gts = sorted((e for e in sweep if e["mode"] == "gt" and "psnr_db_object" in e),
+                 key=lambda e: e["seconds"])
+    if not cpm or "psnr_db_object" not in cpm[0]:
+        raise StageError(f"crossover needs cpm at {spp} spp in the sweep")
+    c = cpm[0]
+    out: dict[str, Any] = {"cpm_spp": spp, "cpm_seconds": c["seconds"],
+                           "cpm_psnr_db_object": c["psnr_db_object"], "gt_spp": None,
+                           "gt_seconds": None, "gt_psnr_db_object": None,
+                           "seconds_ratio": None}
+    for g in gts:
+        if g["psnr_db_object"] > c["psnr_db_object"]:
+            out.update(gt_spp=g["spp"], gt_seconds=g["seconds"],
+                       gt_psnr_db_object=g["psnr_db_object"],
+                       seconds_ratio=round(g["seconds"] / max(c["seconds"], 1e-12), 3))
+            break
+    return out
 
 
 def _eps_db(scene: RenderScene) -> float | None:
@@ -195,7 +233,8 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
     eps_db = _eps_db(scene)
     report: dict[str, Any] = {
         "width": cam.width, "height": cam.height, "camera_position": cam.position.tolist(),
-        "coverage": float(np.mean(ref.image.max(axis=2) > 0)),
+        "coverage": float(np.mean(_ref_coverage(ref))),
+        "object_pixels": int(np.sum(_ref_coverage(ref))),
         "reference": {"mode": "gt", "spp": ref.spp, "seconds": round(ref.seconds, 4),
                       "rays_cast": ref.rays_cast},
         "modes": {}, "sweep": [],
@@ -217,7 +256,7 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
             render_frame(scene, mode, cam, spp, seed, **mode_kw)
             res = render_frame(scene, mode, cam, spp, seed, **mode_kw)
         results[mode] = res
-        entry = _entry(res, ref_img, eps_db)
+        entry = _entry(res, ref, eps_db)
         if mode == "cpm":
             entry["mesh"] = res.extras.get("mesh")
             entry["fallback_fraction"] = res.extras.get("fallback_fraction")
@@ -227,7 +266,6 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
             dmap = metrics.difference_map(res.image, ref_img)
             files.append(str(metrics.write_difference_map(
                 out_dir / f"{prefix}diff_{mode}.png", dmap)))
-            entry["delta_e_mean"] = float(dmap.mean())
             if mode == "cpm":
                 files.append(str(write_png(
                     out_dir / f"{prefix}mip_levels.png",
@@ -237,13 +275,29 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
         report["sweep"].append({k: v for k, v in entry.items() if k != "files"})
     for s in gt_sweep:
         if s != spp or "gt" not in results:
-            report["sweep"].append(_entry(render_frame(scene, "gt", cam, s, seed), ref_img,
+            report["sweep"].append(_entry(render_frame(scene, "gt", cam, s, seed), ref,
                                           eps_db))
     for s in cpm_sweep:
         if s != spp or "cpm" not in results:
             report["sweep"].append(_entry(render_frame(scene, "cpm", cam, s, seed, **kw),
-                                          ref_img, eps_db))
+                                          ref, eps_db))
+    if "cpm" in results and "equal-time" in results:
+        eq = results["equal-time"]
+        report["equal_time"] = {
+            "cpm_seconds": round(results["cpm"].seconds, 4),
+            "equal_time_seconds": round(eq.seconds, 4),
+            "ratio": round(eq.seconds / max(results["cpm"].seconds, 1e-12), 4),
+            "mean_spp": round(eq.extras["mean_spp"], 3)}
+    if "cpm" in results and any(e["mode"] == "gt" for e in report["sweep"]):
+        report["crossover"] = crossover(report["sweep"], spp)
     return report
+
+
+def _ref_coverage(ref: RenderResult) -> np.ndarray:
+    """(h, w) bool: pixels where the reference saw the object."""
+    if ref.coverage is not None:
+        return ref.coverage > 0
+    return ref.image.max(axis=2) > 0
 
 
 def _write_json(path: Path, obj: Any) -> None:
@@ -265,8 +319,9 @@ def _finite(obj: Any) -> Any:
 
 def write_report_plot(report_dir: str | Path) -> Path:
     """Speed against error (matplotlib PNG `speed_error.png` beside `render_report.json`):
-    PSNR (dB) against seconds per frame, one curve per (mode, ε) of the sweep, each point
-    labelled with its eye rays per pixel."""
+    PSNR over the object's pixels (dB) against seconds per frame, one curve per (mode, ε)
+    of the sweep, each point labelled with its eye rays per pixel (reports written before
+    the object PSNR existed are drawn with their whole-frame PSNR, and the axis says so)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -278,10 +333,13 @@ def write_report_plot(report_dir: str | Path) -> Path:
         raise StageError(f"no render_report.json in {d}")
     report = json.loads(path.read_text())
     groups: dict[str, list[dict[str, Any]]] = {}
+    has_object = any("psnr_db_object" in e for e in report.get("sweep", []))
+    metric = "psnr_db_object" if has_object else "psnr_db"
     views = [("", report)] + ([("far: ", report["far"])] if "far" in report else [])
     for label, view in views:
         for e in view.get("sweep", []):
-            if not (isinstance(e.get("psnr_db"), (int, float)) and e.get("seconds", 0) > 0):
+            v = e.get(metric)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and e.get("seconds", 0) > 0):
                 continue
             key = label + e["mode"] + (f" (ε = {e['eps_db']:g} dB)" if "eps_db" in e else "")
             groups.setdefault(key, []).append(e)
@@ -291,15 +349,16 @@ def write_report_plot(report_dir: str | Path) -> Path:
         pts = sorted(groups[key], key=lambda e: e["seconds"])
         mode = pts[0]["mode"]
         xs = [e["seconds"] for e in pts]
-        ys = [e["psnr_db"] for e in pts]
+        ys = [e[metric] for e in pts]
         ax.plot(xs, ys, marker=markers.get(mode, "x"), label=key,
                 linestyle="-" if len(pts) > 1 else "none")
         for e in pts:
-            ax.annotate(str(e["spp"]), (e["seconds"], e["psnr_db"]), fontsize=7,
+            ax.annotate(str(e.get("mean_spp", e["spp"])), (e["seconds"], e[metric]), fontsize=7,
                         xytext=(3, 3), textcoords="offset points")
     ax.set_xscale("log")
     ax.set_xlabel("seconds per frame")
-    ax.set_ylabel("PSNR against gt (dB)")
+    ax.set_ylabel("PSNR against gt over the object (dB)" if has_object
+                  else "PSNR against gt, whole frame (dB)")
     ref = report.get("reference", {})
     ax.set_title(f"{report.get('scene', '')} {report.get('width', '')}×"
                  f"{report.get('height', '')}, reference gt at {ref.get('spp', '?')} spp")

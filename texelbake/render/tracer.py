@@ -1,8 +1,10 @@
 """The wavefront loop: passes of stratified eye rays over every pixel, slices that bound
-memory, the box filter (`accumulate`), and the result of a frame (`RenderResult`)."""
+memory, the box filter (`accumulate`), rendering to a time budget (`progressive`), and the
+result of a frame (`RenderResult`)."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,7 +26,10 @@ class RenderResult:
     rays_cast : every ray traced (eye, shadow, view and fallback rays)
     spp : eye rays per pixel
     extras : per-mode diagnostics (cpm: `level` (h, w) float32 mean mip level of the samples,
-        -1 where M_org was used, NaN on background; `mesh` the M_i used; fallback fraction)
+        -1 where M_org was used, NaN on background; `mesh` the M_i used; fallback fraction;
+        equal-time: `mean_spp`, `budget_seconds`)
+    coverage : (h, w) float32 fraction of each pixel's eye rays that saw the object (what
+        `texelbake.metrics.object_mask` measures errors over)
     """
 
     image: np.ndarray
@@ -33,6 +38,7 @@ class RenderResult:
     spp: int
     mode: str = ""
     extras: dict[str, Any] = field(default_factory=dict)
+    coverage: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- wavefront loop
@@ -67,15 +73,87 @@ def well_stratified(n: int) -> int:
     return 1
 
 
-def accumulate(cam: PinholeCamera, spp: int, seed: int, shade) -> tuple[np.ndarray, int]:
-    """Box-filtered image of `shade(o, d) -> (radiance (n, 3), rays)` over the stratified eye
-    rays of every pass, in slices (no loop per pixel)."""
-    acc = np.zeros((cam.height * cam.width, 3))
+def accumulate(cam: PinholeCamera, spp: int, seed: int, shade
+               ) -> tuple[np.ndarray, int, np.ndarray]:
+    """Box-filtered image of `shade(o, d) -> (radiance (n, 3), rays, hit (n,) bool)` over the
+    stratified eye rays of every pass, in slices (no loop per pixel).
+    returns (image (h, w, 3), rays cast, coverage (h, w): fraction of eye rays that hit)"""
+    n_pix = cam.height * cam.width
+    acc = np.zeros((n_pix, 3))
+    cov = np.zeros(n_pix)
     rays = 0
     for _, o, d in eye_passes(cam, spp, seed):
         rad = np.zeros_like(o)
+        hit = np.zeros(o.shape[0], dtype=bool)
         for sl in ray_slices(o.shape[0]):
-            rad[sl], r = shade(o[sl], d[sl])
+            rad[sl], r, hit[sl] = shade(o[sl], d[sl])
             rays += r
-        acc += rad.reshape(-1, cam.height * cam.width, 3).sum(axis=0)
-    return (acc / spp).reshape(cam.height, cam.width, 3), rays
+        acc += rad.reshape(-1, n_pix, 3).sum(axis=0)
+        cov += hit.reshape(-1, n_pix).sum(axis=0)
+    return ((acc / spp).reshape(cam.height, cam.width, 3), rays,
+            (cov / spp).reshape(cam.height, cam.width))
+
+
+# --------------------------------------------------------------------------- time budget
+
+#: Roberts' R2 sequence (the plastic number's reciprocal powers): a low-discrepancy sequence
+#: in [0, 1)² whose every prefix is well spread, so a pixel may stop after any number of
+#: samples — which a stratified grid (`camera.strata`, fixed spp) cannot offer.
+R2 = np.array([0.7548776662466927, 0.5698402909980532])
+
+#: each further chunk of a time-budgeted frame takes this fraction of the time left (by the
+#: measured cost per sample), so the chunks shrink geometrically toward the budget: few
+#: chunks (Python overhead per chunk), and an estimate's error only ever spends part of
+#: what is left
+BUDGET_STEP = 0.8
+#: samples of the smallest chunk; below it the frame stops (per-call overhead would dominate)
+MIN_CHUNK_RAYS = 512
+
+
+def progressive(cam: PinholeCamera, seed: int, shade, budget_seconds: float
+                ) -> tuple[np.ndarray, int, np.ndarray, float, float]:
+    """Render until `budget_seconds` of wall time are spent: every pixel gets one sample, then
+    further samples are added in chunks of pixels (a seeded random order of the pixels, so a
+    partial pass is spread over the image), each `BUDGET_STEP` of the time left at the
+    measured cost per sample (at most a pass), until less than `MIN_CHUNK_RAYS` samples'
+    time is left. Each pixel's sample k sits at R2[k] shifted by a per-pixel random
+    offset (Cranley–Patterson rotation), so every pixel's samples are well spread whatever
+    their count; the pixel's value is the mean of its samples.
+
+    The first pass (one sample per pixel) is always rendered, even when it alone exceeds the
+    budget; the caller reports the measured time, not the budget.
+    returns (image (h, w, 3), rays cast, coverage (h, w), mean samples per pixel, seconds)
+    """
+    t0 = time.perf_counter()
+    n_pix = cam.width * cam.height
+    rng = np.random.default_rng([int(seed), 0x52])
+    shift = rng.random((n_pix, 2))
+    order = rng.permutation(n_pix)
+    acc = np.zeros((n_pix, 3))
+    cov = np.zeros(n_pix)
+    count = np.zeros(n_pix, dtype=np.int64)
+    rays = 0
+    done = 0  # samples traced so far over all pixels (sample k of pixel order[i]: k*n_pix + i)
+    chunk = n_pix  # the first chunk is the whole first pass
+    while True:
+        g = np.arange(done, done + chunk)
+        k, pix = np.divmod(g, n_pix)
+        pix = order[pix]
+        off = (shift[pix] + k[:, None] * R2) % 1.0
+        o, d = cam_mod.eye_rays_at(cam, pix, off)
+        for sl in ray_slices(o.shape[0]):  # a chunk holds each pixel at most once
+            rad, r, hit = shade(o[sl], d[sl])
+            acc[pix[sl]] += rad
+            cov[pix[sl]] += hit
+            rays += r
+        count[pix] += 1
+        done += chunk
+        elapsed = time.perf_counter() - t0
+        per_sample = elapsed / done
+        left = budget_seconds - elapsed
+        chunk = int(min(BUDGET_STEP * left / per_sample, n_pix))
+        if chunk < MIN_CHUNK_RAYS:
+            break
+    img = (acc / count[:, None]).reshape(cam.height, cam.width, 3)
+    return (img, rays, (cov / count).reshape(cam.height, cam.width), done / n_pix,
+            time.perf_counter() - t0)
