@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlparse
 
+from texelbake.atomic import atomic_write_bytes
 from texelbake.errors import SettingsError, StageError
 
 #: queue family -> queues (the same split as docker-compose.yml and workers.celeryconfig)
@@ -154,9 +155,8 @@ class Stack:
             "commands": self.commands,
             "env": {k: v for k, v in self.env.items() if k.startswith("TEXELBAKE_")},
         }
-        tmp = self.workdir / ".stack.json.tmp"
-        tmp.write_text(json.dumps(state, indent=2, sort_keys=True))
-        os.replace(tmp, self.workdir / "stack.json")
+        atomic_write_bytes(self.workdir / "stack.json",
+                           json.dumps(state, indent=2, sort_keys=True).encode())
 
 
 def _wait_gone(pid: int | None, timeout: float) -> None:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 from services import storage
+from texelbake.atomic import replace
 
 KINDS = {".usda": "usda", ".usdc": "usdc", ".usd": "usdc", ".usdz": "usdz", ".zip": "zip"}
 LAYER_SUFFIXES = (".usd", ".usda", ".usdc")
@@ -247,7 +248,7 @@ def stage_upload(chunks, filename: str, root: Path, settings) -> Staged:  # noqa
             raw.unlink()
         else:
             root_rel = safe_name(filename, kind)
-            os.replace(raw, bundle / root_rel)
+            replace(raw, bundle / root_rel, mode=None)
             files = [root_rel]
         problems = run_validator(bundle, root_rel, settings.validate_timeout)
         if problems:

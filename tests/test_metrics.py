@@ -59,7 +59,7 @@ def test_lab_and_delta_e_by_hand():
 
 
 def test_difference_map_png(tmp_path):
-    from texelbake.render.images import read_image
+    from texelbake.imageio import read_image
 
     d = np.array([[0.0, 5.0], [10.0, 20.0]])
     p = metrics.write_difference_map(tmp_path / "d.png", d)

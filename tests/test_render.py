@@ -218,7 +218,7 @@ def test_previews_and_report(baked_plane, tmp_path, monkeypatch):
     # radiance is the plane's)
     from scipy.ndimage import binary_erosion
 
-    from texelbake.render.images import read_image
+    from texelbake.imageio import read_image
 
     assert rep["far"]["modes"]["cpm"]["fallback_fraction"] < 0.5
     far_gt, far_cpm = (read_image(tmp_path / f"far_{m}.exr") for m in ("gt", "cpm"))

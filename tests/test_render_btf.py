@@ -80,7 +80,7 @@ def test_render_report_accepts_btf_and_measures_it_against_gt(baked_btf_plane, t
     assert (out / "btf.exr").is_file() and (out / "diff_btf.png").is_file()
     assert btf["seconds"] > 0 and btf["rays_cast"] > 0
     # The reported error is the error of the written images ...
-    from texelbake.render.images import read_image as read_exr
+    from texelbake.imageio import read_image as read_exr
 
     ref = read_exr(out / "gt_reference.exr")
     assert btf["psnr_db"] == pytest.approx(metrics.psnr_db(read_exr(out / "btf.exr"), ref),

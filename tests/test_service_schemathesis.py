@@ -12,7 +12,7 @@ import httpx
 import pytest
 
 from services.stack import free_port, stack_down, stack_up
-from tests.svc_util import usda
+from tests.svc_util import backend_missing, usda
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(300)]
 TOKEN = "schemathesis-token-0123456789"
@@ -21,7 +21,7 @@ TOKEN = "schemathesis-token-0123456789"
 def test_openapi_no_server_errors(tmp_path):
     exe = shutil.which("schemathesis", path=str(Path(sys.executable).parent))
     if exe is None:
-        pytest.skip("schemathesis is not installed in this environment")
+        backend_missing("schemathesis is not installed in this environment")
     stack = stack_up(
         tmp_path / "stack",
         redis_url=f"redis://127.0.0.1:{free_port()}/0",

@@ -19,22 +19,16 @@ from typing import Any
 
 import httpx
 
+from texelbake.archive import zip_bytes
+from texelbake.atomic import atomic_write_bytes
 from texelbake.errors import AssetError, StageError
 
 API = "/api/v1"
-_EPOCH = (1980, 1, 1, 0, 0, 0)
 TERMINAL = ("succeeded", "failed", "cancelled")
 
 
 def _zip_files(files: list[tuple[str, Path]]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for arc, path in sorted(files):
-            info = zipfile.ZipInfo(arc, date_time=_EPOCH)
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info.external_attr = 0o644 << 16
-            zf.writestr(info, path.read_bytes())
-    return buf.getvalue()
+    return zip_bytes((arc, path.read_bytes()) for arc, path in files)
 
 
 def package(path: str | Path) -> tuple[str, bytes]:
@@ -143,10 +137,7 @@ def safe_extract(data: bytes, out_dir: Path) -> list[Path]:
                 if info.is_dir():
                     continue
                 raise StageError(f"result member escapes the output folder: {info.filename}")
-            target.parent.mkdir(parents=True, exist_ok=True)
-            tmp = target.with_name(f".{target.name}.part")
-            tmp.write_bytes(zf.read(info))
-            os.replace(tmp, target)
+            atomic_write_bytes(target, zf.read(info))
             written.append(target)
     return written
 

@@ -109,7 +109,7 @@ def write_difference_map(path: str | Path, dmap: object, vmax: float = 10.0) -> 
     """Write a ΔE map as a colour-mapped PNG (magma, 0 .. vmax ΔE). Returns the path."""
     from matplotlib import colormaps
 
-    from texelbake.render.images import write_png
+    from texelbake.imageio import write_png
 
     d = np.asarray(dmap, dtype=np.float64)
     if d.ndim != 2:

@@ -221,12 +221,12 @@ class AssetModel:
 
     def face_areas(self) -> np.ndarray:
         """(f,) float64 triangle areas."""
-        tri = self.points[self.faces]  # (f, 3, 3)
-        return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        from texelbake.geometry.mesh import triangle_areas
+
+        return triangle_areas(self.points, self.faces)
 
     def face_normals(self) -> np.ndarray:
         """(f, 3) float64 unit geometric normals (zero for degenerate faces)."""
-        tri = self.points[self.faces]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        length = np.linalg.norm(n, axis=1, keepdims=True)
-        return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+        from texelbake.geometry.mesh import face_normals
+
+        return face_normals(self.points, self.faces)

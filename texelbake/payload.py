@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,8 +30,8 @@ from typing import Any
 import numpy as np
 from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
 
+from texelbake.atomic import atomic_write_bytes, replace
 from texelbake.errors import AssetError, ShapeError
-from texelbake.store import atomic_write_bytes
 
 SHADER_CPM = "texelbake:cpm"
 _NS = "texelbake:"
@@ -183,31 +182,13 @@ def _commit_stage(stage: Usd.Stage, path: Path) -> None:
     tmp = layer.realPath
     if not layer.Save():
         raise AssetError("could not write USD layer", path=str(path))
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    replace(tmp, path)
 
 
 def _write_png(path: Path, rgb: np.ndarray, srgb: bool) -> None:
-    import OpenImageIO as oiio
+    from texelbake.imageio import write_png
 
-    x = np.clip(np.asarray(rgb, dtype=np.float64), 0.0, 1.0)
-    if srgb:
-        x = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    px = np.round(x * 255.0).astype(np.uint8)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
-    os.close(fd)
-    try:
-        out = oiio.ImageOutput.create(tmp)
-        if out is None:
-            raise AssetError("OpenImageIO cannot write PNG", path=str(path))
-        out.open(tmp, oiio.ImageSpec(px.shape[1], px.shape[0], 3, "uint8"))
-        out.write_image(px)
-        out.close()
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    write_png(path, rgb, srgb=srgb)
 
 
 def copy_source(source_layer: Path, dependencies: list[str], dest: Path) -> Path:
@@ -397,18 +378,12 @@ def read_baked(path: str | Path) -> BakedAsset:
 
 
 def _read_png(path: Path, srgb: bool) -> np.ndarray:
-    import OpenImageIO as oiio
+    from texelbake.imageio import read_pixels, srgb_to_linear
 
     if not path.is_file():
         return np.zeros((0, 0, 3), np.float32)
-    buf = oiio.ImageBuf(str(path))
-    pixels = buf.get_pixels(oiio.FLOAT)
-    if pixels is None:
-        raise AssetError("cannot read image", path=str(path))
-    px = np.asarray(pixels)[..., :3].astype(np.float64)
+    px = read_pixels(path)[0][..., :3].astype(np.float64)
     if srgb:
-        from texelbake.scene import srgb_to_linear
-
         px = srgb_to_linear(px.astype(np.float32)).astype(np.float64)
     return px
 

@@ -11,18 +11,15 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
-import tempfile
-import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from texelbake.archive import zip_bytes
+from texelbake.atomic import atomic_write_bytes
 from texelbake.errors import StageError
-
-_EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
 def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -34,38 +31,17 @@ def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write `data` to `path` via a temporary file in the same folder and an atomic rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
-
-
 def npz_bytes(arrays: Mapping[str, Any]) -> bytes:
     """Deterministic `.npz` bytes (sorted keys, fixed timestamps, no compression)."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
-        for name in sorted(arrays):
-            arr = np.asanyarray(arrays[name])
-            if arr.dtype == object:
-                raise StageError(f"artifact array {name!r} has dtype object; store plain arrays")
-            member = io.BytesIO()
-            np.lib.format.write_array(member, arr, allow_pickle=False)
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
-            zf.writestr(info, member.getvalue())
-    return buf.getvalue()
+    members = []
+    for name in arrays:
+        arr = np.asanyarray(arrays[name])
+        if arr.dtype == object:
+            raise StageError(f"artifact array {name!r} has dtype object; store plain arrays")
+        member = io.BytesIO()
+        np.lib.format.write_array(member, arr, allow_pickle=False)
+        members.append((f"{name}.npy", member.getvalue()))
+    return zip_bytes(members, deflate=False, mode=None)
 
 
 class ArtifactStore:

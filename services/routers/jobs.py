@@ -5,10 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import re
 import uuid
-import zipfile
 from collections import defaultdict
 from pathlib import Path
 
@@ -34,6 +32,8 @@ from services.broker import broker_run_id, celery_sender
 from services.db import Asset, Event, Job, Shard, Stage
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.routers.assets import ASSET_NOT_FOUND
+from texelbake.archive import zip_folder
+from texelbake.atomic import atomic_write_bytes
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -42,7 +42,6 @@ JOB_NOT_FINISHED = "job has not succeeded"
 PREVIEW_NOT_FOUND = "preview not found"
 REPORT_NOT_FOUND = "report not found"
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
-_EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
 def _own_job(session: Session, job_id: str, tenant: str) -> Job:
@@ -311,19 +310,7 @@ def build_result_zip(out_dir: Path, dest: Path) -> Path:
     """Zip the baked bundle deterministically (sorted names, fixed times), atomically."""
     if dest.is_file():
         return dest
-    tmp = dest.with_name(f".{dest.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    files = sorted(p for p in out_dir.rglob("*") if p.is_file() and not p.name.startswith("."))
-    files = [
-        p for p in files if not any(part.startswith(".") for part in p.relative_to(out_dir).parts)
-    ]
-    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for p in files:
-            info = zipfile.ZipInfo(p.relative_to(out_dir).as_posix(), date_time=_EPOCH)
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info.external_attr = 0o644 << 16
-            zf.writestr(info, p.read_bytes())
-    os.replace(tmp, dest)
-    return dest
+    return atomic_write_bytes(dest, zip_folder(out_dir))
 
 
 @router.get(

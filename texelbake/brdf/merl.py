@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import functools
 import os
-import tempfile
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
+from texelbake.atomic import atomic_write_bytes
 from texelbake.brdf.common import CHUNK, as_dirs, valid_pairs
 from texelbake.errors import AssetError, ShapeError
 from texelbake.tol import TOL
@@ -34,18 +34,7 @@ def write_merl(path: str | os.PathLike[str], table: Any) -> None:
         raise ShapeError(f"MERL table must be (3, n_th, n_td, n_pd), got {tab.shape}")
     dims = np.asarray(tab.shape[1:], dtype="<i4")
     data = np.ascontiguousarray(tab / MERL_SCALE[:, None, None, None], dtype="<f8")
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".merl-", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(dims.tobytes())
-            f.write(data.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_bytes(os.fspath(path), dims.tobytes() + data.tobytes())
 
 
 def read_merl(path: str | os.PathLike[str]) -> np.ndarray:

@@ -27,11 +27,11 @@ import os
 from pathlib import Path
 
 import numpy as np
-import OpenImageIO as oiio
 
 from texelbake.btf.compress import MEAN_MODELS, BTFMaps
 from texelbake.btf.lut import DirectionLUT, build_lut
 from texelbake.errors import AssetError
+from texelbake.imageio import ImageInfo, read_pixels, write_pixels
 
 FORMAT_VERSION = 1
 META_KEY = "texelbake:btf"
@@ -48,48 +48,26 @@ def channel_names(n_components: tuple[int, int, int]) -> list[str]:
 
 def _write_exr(path: Path, pixels: np.ndarray, names: list[str], meta: str | None = None,
                half: bool = False) -> None:
-    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
-    h, w, c = pixels.shape
-    spec = oiio.ImageSpec(w, h, c, oiio.HALF if half else oiio.FLOAT)
-    spec.channelnames = tuple(names)
-    spec.attribute("compression", "zip")
+    attrs: dict[str, str] = {"compression": "zip"}
     if meta is not None:
-        spec.attribute(META_KEY, meta)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}.exr")
-    out = oiio.ImageOutput.create(str(tmp))
-    if out is None or not out.open(str(tmp), spec):
-        raise AssetError(f"cannot open EXR for writing: {oiio.geterror()}", path=str(path))
-    ok = out.write_image(pixels)
-    err = out.geterror()
-    out.close()
-    if not ok:
-        tmp.unlink(missing_ok=True)
-        raise AssetError(f"cannot write EXR: {err}", path=str(path))
-    os.replace(tmp, path)
+        attrs[META_KEY] = meta
+    write_pixels(path, np.asarray(pixels, dtype=np.float32), "half" if half else "float",
+                 channel_names=names, attributes=attrs)
 
 
-def read_float_pixels(path: str | Path) -> tuple[np.ndarray, oiio.ImageSpec]:
-    """Any image OpenImageIO reads, as (h, w, c) float32 pixels and its spec; AssetError naming
-    the file when it cannot be opened or read."""
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise AssetError(f"cannot open image: {oiio.geterror()}", path=str(path))
-    spec = inp.spec()
-    pixels = inp.read_image(oiio.FLOAT)
-    inp.close()
-    if pixels is None:
-        raise AssetError("cannot read image pixels", path=str(path))
-    return (np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels),
-            spec)
+def read_float_pixels(path: str | Path) -> tuple[np.ndarray, ImageInfo]:
+    """Any image OpenImageIO reads, as (h, w, c) float32 pixels and its `ImageInfo`;
+    AssetError naming the file when it cannot be opened or read."""
+    return read_pixels(path)
 
 
 def _read_exr(path: Path, names: list[str]) -> tuple[np.ndarray, str | None]:
-    pixels, spec = read_float_pixels(path)
-    have = list(spec.channelnames)
+    pixels, info = read_float_pixels(path)
+    have = list(info.channel_names)
     missing = [n for n in names if n not in have]
     if missing:
         raise AssetError(f"EXR lacks channels {missing} (has {have})", path=str(path))
-    meta = spec.getattribute(META_KEY)
+    meta = info.attributes.get(META_KEY)
     return pixels[:, :, [have.index(n) for n in names]], meta
 
 
@@ -151,13 +129,9 @@ def read_btf_maps(folder: str | os.PathLike, stem: str = "btf") -> BTFMaps:
     eigen_path = folder / f"{stem}_eigen.exr"
     if not eigen_path.exists():
         raise AssetError("BTF eigen map not found", path=str(eigen_path))
-    inp = oiio.ImageInput.open(str(eigen_path))
-    if inp is None:
-        raise AssetError(f"cannot open EXR: {oiio.geterror()}", path=str(eigen_path))
-    raw = inp.spec().getattribute(META_KEY)
-    inp.close()
+    raw = read_float_pixels(eigen_path)[1].attributes.get(META_KEY)
     try:
-        meta = json.loads(raw)
+        meta = json.loads(raw if isinstance(raw, str) else "")
         version = int(meta["version"])
     except (TypeError, ValueError, KeyError) as exc:
         raise AssetError(f"missing or bad '{META_KEY}' metadata ({exc})",

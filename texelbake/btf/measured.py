@@ -25,12 +25,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import OpenImageIO as oiio
 
 from texelbake.btf.lut import dirs_from_degrees
 from texelbake.btf.maps_io import read_float_pixels
 from texelbake.errors import AssetError, AssetPathError
-from texelbake.scene import srgb_to_linear
+from texelbake.imageio import srgb_to_linear
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".hdr")
 DIRECTION_FILES = ("directions.json", "directions.csv")
@@ -117,13 +116,12 @@ def read_directions_file(path: str | os.PathLike) -> dict[str, tuple[float, floa
 
 def read_image_rgb(path: str | os.PathLike, *, srgb: str = "auto") -> np.ndarray:
     """One image as (h, w, 3) float32 linear RGB. srgb : "auto" | "yes" | "no"."""
-    px, spec = read_float_pixels(Path(path))
-    if spec.nchannels >= 3:
+    px, info = read_float_pixels(Path(path))
+    if px.shape[2] >= 3:
         px = px[:, :, :3]
     else:
         px = np.repeat(px[:, :, :1], 3, axis=2)
-    is_float = spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE)
-    decode = srgb == "yes" or (srgb == "auto" and not is_float)
+    decode = srgb == "yes" or (srgb == "auto" and not info.is_float)
     return srgb_to_linear(px) if decode else np.ascontiguousarray(px)
 
 

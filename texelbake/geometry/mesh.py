@@ -62,6 +62,16 @@ def triangle_areas(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
+def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(f, 3) float64 unit geometric normals of the triangles `points[faces]`, counter-
+    clockwise winding, zero rows for degenerate triangles (no NaN). The one face-normal
+    function of texelbake (model, meshes, renderer, a_vis)."""
+    tri = points[faces]  # (f, 3, 3)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+
+
 def bbox_diagonal(points: np.ndarray) -> float:
     """Length of the bounding-box diagonal of (n, 3) points (0.0 when empty)."""
     if points.shape[0] == 0:
@@ -115,10 +125,7 @@ class Mesh:
 
     def face_normals(self) -> np.ndarray:
         """(f, 3) float64 unit geometric normals (zero rows for degenerate faces)."""
-        tri = self.triangles()
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        length = np.linalg.norm(n, axis=1, keepdims=True)
-        return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+        return face_normals(self.vertices, self.faces)
 
     def degenerate_faces(self, eps: float = TOL.zero_area) -> np.ndarray:
         """(f,) bool: faces whose area is below eps * bbox_diag**2 or that repeat a vertex."""

@@ -15,7 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from texelbake.errors import ShapeError
-from texelbake.geometry.mesh import bbox_diagonal, check_faces, check_points, triangle_areas
+from texelbake.geometry.mesh import (
+    bbox_diagonal,
+    check_faces,
+    check_points,
+    face_normals,
+    triangle_areas,
+)
 from texelbake.tol import TOL
 
 # fractional part of the golden ratio: the Kronecker (Fibonacci-lattice) step of the
@@ -192,10 +198,7 @@ def sample_surface(
         + bary[:, 1:2] * pts[corner[:, 1]]
         + bary[:, 2:3] * pts[corner[:, 2]]
     )
-    tri = pts[fcs]  # (f, 3, 3)
-    face_geo = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (f, 3)
-    face_len = np.linalg.norm(face_geo, axis=1, keepdims=True)
-    face_geo = np.divide(face_geo, face_len, out=np.zeros_like(face_geo), where=face_len > 0)
+    face_geo = face_normals(pts, fcs)  # (f, 3)
     geo = face_geo[face]  # sampled faces are nondegenerate, so these are unit
     if corner_normals is None:
         normals = geo

@@ -29,7 +29,9 @@ from typing import Any
 import numpy as np
 
 from texelbake import metrics
+from texelbake.atomic import atomic_path
 from texelbake.errors import SettingsError, StageError
+from texelbake.imageio import write_exr, write_png
 from texelbake.render import camera as cam_mod
 from texelbake.render.btf import has_btf_maps
 from texelbake.render.diagnostics import (
@@ -39,7 +41,6 @@ from texelbake.render.diagnostics import (
     level_colours,
 )
 from texelbake.render.frame import EXTRA_MODES, MODES, render_frame
-from texelbake.render.images import write_exr, write_png
 from texelbake.render.scene import RenderScene, load_scene, resolve_camera
 from texelbake.render.tracer import RenderResult
 
@@ -366,8 +367,7 @@ def write_report_plot(report_dir: str | Path) -> Path:
     ax.legend(fontsize=8)
     fig.tight_layout()
     out = d / "speed_error.png"
-    tmp = d / ".speed_error.tmp.png"
-    fig.savefig(tmp)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp)
     plt.close(fig)
-    tmp.replace(out)
     return out

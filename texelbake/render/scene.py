@@ -14,6 +14,7 @@ import numpy as np
 
 from texelbake.cpm.avis.table import AvisTable, avis_table_from
 from texelbake.errors import SettingsError, ShapeError, StageError
+from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.texels import uv_to_texel
 from texelbake.model import AssetModel, Camera
@@ -60,7 +61,7 @@ class RenderScene(OrgScene):
             raise StageError(f"baked asset {self.root} has no CPM levels")
         super().__init__(load_asset(self.baked.source_layer))
         self.lods = [RayCaster(m.vertices, m.faces) for m in self.baked.meshes]
-        self.lod_face_normals = [_face_normals(m.vertices, m.faces) for m in self.baked.meshes]
+        self.lod_face_normals = [face_normals(m.vertices, m.faces) for m in self.baked.meshes]
         self.n0 = int(round(math.sqrt(len(self.baked.levels[0]["texel_offsets"]) - 1)))
         self.lod_uv_ratio, self.lod_uv_exact = zip(
             *(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0)
@@ -114,13 +115,6 @@ def _avis_table(level: dict[str, np.ndarray]):
     old = {k[5:].replace(":", "_"): v for k, v in level.items() if k.startswith("avis:")}
     old["meta"] = np.array([int(old["res"]), int(old.get("haar_res", old["res"]))], np.int64)
     return AvisTable.from_arrays(old)
-
-
-def _face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    tri = v[f]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
 
 def _uv_ratio(v: np.ndarray, f: np.ndarray, cuv: np.ndarray, first: bool = False

@@ -26,11 +26,12 @@ and cameras as column-vector matrices (`M.T`).
 """
 
 
+from texelbake.imageio import srgb_to_linear
 from texelbake.scene.describe import describe
 from texelbake.scene.load import load_asset
 from texelbake.scene.materials import DEFAULT_MATERIAL, TEXELBAKE_DEFAULTS
 from texelbake.scene.paths import USD_EXTENSIONS, check_asset_paths
-from texelbake.scene.values import AssetWarning, srgb_to_linear
+from texelbake.scene.values import AssetWarning
 
 __all__ = [
     "DEFAULT_MATERIAL",

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from texelbake.errors import AssetError, AssetPathError
+from texelbake.imageio import read_pixels
 
 
 def _read_resolved_bytes(resolved: str, prim: str) -> bytes:
@@ -31,27 +32,11 @@ def load_image(resolved: str, prim: str) -> tuple[np.ndarray, bool, str]:
     returns : pixels (h, w, c) float32 (row 0 = top), whether the file stores 8-bit channels,
         the file's "wrapmodes" metadata ("" when absent)
     """
-    import OpenImageIO as oiio
     from pxr import Ar
 
     def read(filename: str) -> tuple[np.ndarray, bool, str]:
-        inp = oiio.ImageInput.open(filename)
-        if inp is None:
-            raise AssetError(f"cannot read texture '{resolved}': {oiio.geterror()}",
-                             path=resolved, prim=prim)
-        try:
-            spec = inp.spec()
-            is_8bit = spec.format.basetype in (oiio.UINT8, oiio.INT8)
-            wrapmodes = str(spec.get_string_attribute("wrapmodes", ""))
-            pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-        finally:
-            inp.close()
-        if pixels is None:
-            raise AssetError(f"cannot decode texture '{resolved}': {oiio.geterror()}",
-                             path=resolved, prim=prim)
-        pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width,
-                                                              spec.nchannels)
-        return pixels, is_8bit, wrapmodes
+        pixels, info = read_pixels(filename, prim=prim)
+        return pixels, info.is_8bit, str(info.attributes.get("wrapmodes", "") or "")
 
     if Ar.IsPackageRelativePath(resolved):
         data = _read_resolved_bytes(resolved, prim)

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from texelbake.errors import AssetError, AssetPathError
+from texelbake.imageio import srgb_to_linear
 from texelbake.model import (
     PREVIEW_DEFAULTS,
     SHADER_MEASURED,
@@ -17,7 +18,7 @@ from texelbake.model import (
     Texture,
 )
 from texelbake.scene.files import load_image, load_merl
-from texelbake.scene.values import coerce_like, default_param, srgb_to_linear, warn
+from texelbake.scene.values import coerce_like, default_param, warn
 from texelbake.shaderdefs import SHADER_INPUTS
 
 #: defaults for unauthored inputs of texelbake's own shader ids: the Sdr definitions'

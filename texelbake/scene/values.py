@@ -72,18 +72,3 @@ def default_param(default: Any) -> Any:
     return np.asarray(default, dtype=np.float64) if isinstance(default, tuple) else default
 
 
-def srgb_to_linear(values: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding, elementwise.
-
-    values : (...) float32 encoded in [0, 1]
-    returns : (...) float32 linear
-
-    Hand-written rather than OpenImageIO's colorconvert: the exact piecewise formula does not
-    depend on which OCIO config OIIO finds, and it is three lines.
-    """
-    v = np.asarray(values, dtype=np.float32)
-    return np.where(
-        v <= np.float32(0.04045),
-        v / np.float32(12.92),
-        np.power((np.maximum(v, 0.0) + np.float32(0.055)) / np.float32(1.055), np.float32(2.4)),
-    ).astype(np.float32)

@@ -4,18 +4,17 @@ with its textures (`write_scene`)."""
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
-import OpenImageIO as oiio
 from pxr import Gf, Kind, Sdf, Sdr, Usd, UsdGeom, UsdLux, UsdShade, Vt
 
+from texelbake.atomic import atomic_path
 from texelbake.errors import SettingsError
+from texelbake.imageio import write_png
 from texelbake.model import SHADER_PREVIEW
 from texelbake.scenes.bolt import build_bolt
 from texelbake.scenes.cloisonne import build_cloisonne
@@ -204,30 +203,6 @@ def build_stage(name: str, size: str = "small") -> tuple[Usd.Stage, dict[str, np
     return stage, {tex_files[role]: spec.textures[role] for role in tex_files}
 
 
-def _atomic_target(final: Path) -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".tmp{final.suffix}",
-                               dir=final.parent)
-    os.close(fd)
-    os.chmod(tmp, 0o644)  # mkstemp makes 0600; these are shared, read-only assets
-    return Path(tmp)
-
-
-def _write_png(path: Path, pixels: np.ndarray) -> None:
-    tmp = _atomic_target(path)
-    try:
-        h, w, c = pixels.shape
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None or not out.open(str(tmp), oiio.ImageSpec(w, h, c, "uint8")):
-            raise OSError(f"cannot write {path}: {oiio.geterror()}")
-        ok = out.write_image(np.ascontiguousarray(pixels))
-        out.close()
-        if not ok:
-            raise OSError(f"cannot write {path}: {out.geterror()}")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def write_scene(name: str, path: str | Path, size: str = "small") -> Path:
     """Write test scene `name` at `size` to `path` (.usda, .usdc or .usd) and its PNG
     textures beside it; return the layer's path.
@@ -246,14 +221,10 @@ def write_scene(name: str, path: str | Path, size: str = "small") -> Path:
     stage, textures = build_stage(name, size)
     path.parent.mkdir(parents=True, exist_ok=True)
     for file_name in sorted(textures):  # textures first: the layer must resolve them
-        _write_png(path.parent / file_name, textures[file_name])
-    tmp = _atomic_target(path)
-    try:
+        write_png(path.parent / file_name, textures[file_name])
+    with atomic_path(path) as tmp:
         if not stage.GetRootLayer().Export(str(tmp)):
             raise OSError(f"cannot write {path}")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

@@ -89,6 +89,6 @@ def vertex_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
 
 def to_srgb8(linear: np.ndarray) -> np.ndarray:
     """(h, w, 3) float linear [0, 1] -> uint8 sRGB (the PNG is tagged sRGB)."""
-    c = np.clip(linear, 0.0, 1.0)
-    srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
-    return np.round(srgb * 255.0).astype(np.uint8)
+    from texelbake.imageio import to_uint8
+
+    return to_uint8(linear)

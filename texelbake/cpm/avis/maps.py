@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 from texelbake.cpm.avis.cube import OccludedFn, check_res, cube_directions
 from texelbake.errors import NumericalError, SettingsError, ShapeError
 from texelbake.frames import tangent_frames
+from texelbake.geometry.mesh import face_normals
 from texelbake.tol import TOL
 
 # --------------------------------------------------------------------------------------------
@@ -87,10 +88,7 @@ def geometric_normals(points: np.ndarray, faces: np.ndarray,
         raise ShapeError(f"points (v, 3) and faces (f, 3) expected, got {pts.shape}, {fcs.shape}")
     if fid.size and (fid.min() < 0 or fid.max() >= fcs.shape[0]):
         raise ShapeError(f"face_of_sample must be in [0, {fcs.shape[0]})")
-    tri = pts[fcs[fid]]  # (m, 3, 3)
-    cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(cr, axis=1, keepdims=True)
-    return np.divide(cr, length, out=np.zeros_like(cr), where=length > 0)
+    return face_normals(pts, fcs[fid])
 
 
 def _area_matrix(tex: np.ndarray, areas: np.ndarray, n_texels: int) -> sp.csr_matrix:

@@ -1,0 +1,40 @@
+"""Deterministic zip archives, one way: members sorted by name, a fixed timestamp, fixed
+permissions — the same files give the same bytes (uploads, results, `.npz` artifacts)."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from collections.abc import Iterable
+from pathlib import Path
+
+#: the timestamp of every member (zip's epoch: 1980-01-01)
+EPOCH = (1980, 1, 1, 0, 0, 0)
+
+
+def zip_bytes(members: Iterable[tuple[str, bytes]], *, deflate: bool = True,
+              mode: int | None = 0o644) -> bytes:
+    """The zip of (name, data) members, sorted by name. deflate : ZIP_DEFLATED, else STORED
+    (`.npz` files are stored); mode : Unix permissions recorded per member (None: none)."""
+    compression = zipfile.ZIP_DEFLATED if deflate else zipfile.ZIP_STORED
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=compression) as zf:
+        for name, data in sorted(members, key=lambda m: m[0]):
+            info = zipfile.ZipInfo(name, date_time=EPOCH)
+            info.compress_type = compression
+            if mode is not None:
+                info.external_attr = mode << 16
+            zf.writestr(info, data)
+    return buf.getvalue()
+
+
+def zip_folder(folder: Path, *, skip_hidden: bool = True) -> bytes:
+    """`zip_bytes` of every file under `folder` (names relative to it, POSIX separators);
+    files or folders whose name starts with "." are left out when `skip_hidden`."""
+    folder = Path(folder)
+    files = []
+    for p in folder.rglob("*"):
+        rel = p.relative_to(folder)
+        if p.is_file() and not (skip_hidden and any(s.startswith(".") for s in rel.parts)):
+            files.append((rel.as_posix(), p.read_bytes()))
+    return zip_bytes(files)
