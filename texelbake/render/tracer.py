@@ -127,33 +127,43 @@ def progressive(cam: PinholeCamera, seed: int, shade, budget_seconds: float
     t0 = time.perf_counter()
     n_pix = cam.width * cam.height
     rng = np.random.default_rng([int(seed), 0x52])
+    # a partial pass covers whole rows in a random order: spread over the image, and
+    # neighbouring eye rays stay neighbours (coherent traversal). Everything below is kept
+    # in that order (position i holds pixel order[i]), so a chunk is a slice, not a gather.
+    order = (rng.permutation(cam.height)[:, None] * cam.width
+             + np.arange(cam.width)[None, :]).reshape(-1)
     shift = rng.random((n_pix, 2))
-    order = rng.permutation(n_pix)
     acc = np.zeros((n_pix, 3))
     cov = np.zeros(n_pix)
-    count = np.zeros(n_pix, dtype=np.int64)
     rays = 0
-    done = 0  # samples traced so far over all pixels (sample k of pixel order[i]: k*n_pix + i)
+    k, pos = 0, 0  # the next sample is sample k of the pixel at position pos
     chunk = n_pix  # the first chunk is the whole first pass
     while True:
-        g = np.arange(done, done + chunk)
-        k, pix = np.divmod(g, n_pix)
-        pix = order[pix]
-        off = (shift[pix] + k[:, None] * R2) % 1.0
-        o, d = cam_mod.eye_rays_at(cam, pix, off)
-        for sl in ray_slices(o.shape[0]):  # a chunk holds each pixel at most once
-            rad, r, hit = shade(o[sl], d[sl])
-            acc[pix[sl]] += rad
-            cov[pix[sl]] += hit
+        sl = slice(pos, min(pos + chunk, n_pix))  # within one pass
+        off = shift[sl] + k * R2
+        off -= np.floor(off)
+        o, d = cam_mod.eye_rays_at(cam, order[sl], off)
+        for part in ray_slices(o.shape[0]):
+            rad, r, hit = shade(o[part], d[part])
+            at = slice(sl.start + part.start, sl.start + part.stop)
+            acc[at] += rad
+            cov[at] += hit
             rays += r
-        count[pix] += 1
-        done += chunk
+        pos = sl.stop
+        if pos == n_pix:
+            k, pos = k + 1, 0
+        done = k * n_pix + pos
         elapsed = time.perf_counter() - t0
         per_sample = elapsed / done
-        left = budget_seconds - elapsed
-        chunk = int(min(BUDGET_STEP * left / per_sample, n_pix))
+        chunk = int(min(BUDGET_STEP * (budget_seconds - elapsed) / per_sample, n_pix))
         if chunk < MIN_CHUNK_RAYS:
             break
-    img = (acc / count[:, None]).reshape(cam.height, cam.width, 3)
-    return (img, rays, (cov / count).reshape(cam.height, cam.width), done / n_pix,
+    count = np.full(n_pix, float(k))
+    count[:pos] += 1.0
+    img = np.empty((n_pix, 3))
+    img[order] = acc / count[:, None]
+    coverage = np.empty(n_pix)
+    coverage[order] = cov / count
+    return (img.reshape(cam.height, cam.width, 3), rays,
+            coverage.reshape(cam.height, cam.width), done / n_pix,
             time.perf_counter() - t0)
