@@ -40,8 +40,8 @@ bench: setup
 	$(PY) benchmarks/avis_methods.py --json bench_out/avis_methods.json
 	$(PY) benchmarks/bake.py --scene cylinder --size full --json bench_out/bake.json
 	$(PY) benchmarks/btf.py --synthetic --json bench_out/btf.json
-	$(PY) benchmarks/render.py --scene cylinder --scene-size full --atlas 128 --quality high \
-		--m1-faces 192 --btf --json bench_out/render_cylinder.json
+	$(PY) benchmarks/render.py --scene cylinder --scene-size full --btf \
+		--json bench_out/render_cylinder.json
 
 scenes: setup
 	$(VENV)/bin/texelbake scenes all -o build/scenes --size small

@@ -57,9 +57,7 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
     caster = scene.lods[0]
     rays = o.shape[0]
     out = np.zeros((o.shape[0], 3))
-    idx, prim, p, _, row, col = hit_m1(scene, o, d)
-    hit = np.zeros(o.shape[0], dtype=bool)
-    hit[idx] = True
+    hit, idx, prim, p, _, row, col = hit_m1(scene, o, d)
     if idx.size == 0:
         return out, rays, hit
     n = scene.n0

@@ -85,9 +85,7 @@ def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray
     caster = scene.lods[0]
     rays = o.shape[0]
     out = np.zeros((o.shape[0], 3))
-    idx, prim, p, uv, row, col = hit_m1(scene, o, d)
-    hit = np.zeros(o.shape[0], dtype=bool)
-    hit[idx] = True
+    hit, idx, prim, p, uv, row, col = hit_m1(scene, o, d)
     if idx.size == 0:
         return out, rays, hit
     albedo = _bilinear_map(scene.baked.albedo, uv)

@@ -212,8 +212,8 @@ def m1_arrays(scene: RenderScene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def hit_m1(scene: RenderScene, o: np.ndarray, d: np.ndarray):
-    """Eye rays against M1: (idx (k,) rays that hit, prim (k,), p (k, 3), uv (k, 2) atlas uv,
-    row (k,), col (k,) finest texel under the hit)."""
+    """Eye rays against M1: (hit (n,) bool, idx (k,) rays that hit, prim (k,), p (k, 3),
+    uv (k, 2) atlas uv, row (k,), col (k,) finest texel under the hit)."""
     v, f, cuv = m1_arrays(scene)
     hits = scene.lods[0].cast(o, d)
     idx = np.flatnonzero(hits.hit)
@@ -222,4 +222,4 @@ def hit_m1(scene: RenderScene, o: np.ndarray, d: np.ndarray):
     p = np.einsum("nk,nkj->nj", b, v[f[prim]])
     uv = np.einsum("nk,nkj->nj", b, cuv[prim])
     row, col = uv_to_texel(uv, scene.n0)
-    return idx, prim, p, uv, row, col
+    return hits.hit, idx, prim, p, uv, row, col
