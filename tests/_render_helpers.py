@@ -141,3 +141,12 @@ def write_plane_usd(path: Path, rho=RHO, light_dir=(0.3, 0.2, 0.9), intensity=3.
     UsdGeom.Xformable(cam).AddTransformOp().Set(Gf.Matrix4d(cm.tolist()))
     stage.GetRootLayer().Save()
     return path
+
+
+def psnr_object(res, ref) -> float:
+    """PSNR of RenderResult `res` against `ref` over the object's pixels (the union of both
+    coverages, dilated by a pixel: what the reports measure), the reference's peak."""
+    from texelbake import metrics
+
+    mask = metrics.object_mask(ref.coverage, res.coverage)
+    return metrics.psnr_db(res.image[mask], ref.image[mask], float(ref.image[mask].max()))
