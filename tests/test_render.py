@@ -347,3 +347,6 @@ def test_progressive_renders_any_sample_count_unbiased():
     assert errn > err1 + 3.0  # more samples, less noise (≥ 2x the samples: ≥ 3 dB)
     # silhouette coverage agrees with the reference's within a sampling tolerance
     assert abs(cov.sum() - ref.coverage.sum()) < 0.05 * ref.coverage.sum()
+    # a frame of fewer pixels than the smallest chunk still gets more than one pass
+    tiny = cam_mod.look_at((0.0, 0.0, 3.5), (0.0, 0.0, 0.0), 8, 8, fov_deg=40.0)
+    assert progressive(tiny, 0, shade, 0.2)[3] > 2.0

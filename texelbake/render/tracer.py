@@ -113,10 +113,10 @@ MIN_CHUNK_RAYS = 512
 def progressive(cam: PinholeCamera, seed: int, shade, budget_seconds: float
                 ) -> tuple[np.ndarray, int, np.ndarray, float, float]:
     """Render until `budget_seconds` of wall time are spent: every pixel gets one sample, then
-    further samples are added in chunks of pixels (a seeded random order of the pixels, so a
+    further samples are added in chunks of pixels (whole rows in a seeded random order, so a
     partial pass is spread over the image), each `BUDGET_STEP` of the time left at the
     measured cost per sample (at most a pass), until less than `MIN_CHUNK_RAYS` samples'
-    time is left. Each pixel's sample k sits at R2[k] shifted by a per-pixel random
+    time (or a pass's, for frames smaller than that) is left. Each pixel's sample k sits at R2[k] shifted by a per-pixel random
     offset (Cranley–Patterson rotation), so every pixel's samples are well spread whatever
     their count; the pixel's value is the mean of its samples.
 
@@ -156,7 +156,7 @@ def progressive(cam: PinholeCamera, seed: int, shade, budget_seconds: float
         elapsed = time.perf_counter() - t0
         per_sample = elapsed / done
         chunk = int(min(BUDGET_STEP * (budget_seconds - elapsed) / per_sample, n_pix))
-        if chunk < MIN_CHUNK_RAYS:
+        if chunk < min(MIN_CHUNK_RAYS, n_pix):
             break
     count = np.full(n_pix, float(k))
     count[:pos] += 1.0
