@@ -232,12 +232,19 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
         adds around the outline shows the full radiance of the sliver of surface inside its
         texels (the full wall: 8 % too much light, 43 % of its error at the outline). The
         texels still give the radiance: the test only decides whether the ray is covered,
-        which is what M_org's outline does in gt."""
+        which is what M_org's outline does in gt. The other way round, an eye ray that misses
+        M_i but meets M_org (an open surface's edge under the rim of an enclosing M_i: 473 of
+        a grazing view's 6,720 object pixels on a bumpy open field) is shaded from M_org
+        (`_outline_misses`; `_cpm_finish` treats it as a fallback ray)."""
     i = frame.mesh
     mesh = scene.baked.meshes[i]
     hits = scene.lods[i].cast(o, d)
     idx = np.flatnonzero(hits.hit)
-    h: dict[str, Any] = {"n": o.shape[0], "idx": idx, "rays": o.shape[0]}
+    h: dict[str, Any] = {"n": o.shape[0], "idx": idx, "rays": o.shape[0],
+                         "outline": np.zeros(0, np.int64)}
+    if coverage:  # the other half of M_org's outline: rays that miss M_i but meet M_org
+        h["outline"], traced = _outline_misses(scene, cam, d, hits.hit)
+        h["rays"] += traced
     if idx.size == 0:
         return h
     prim = hits.prim[idx]
@@ -292,6 +299,11 @@ def _cpm_finish(scene: RenderScene, frame: CpmFrame, o: np.ndarray, d: np.ndarra
     out = np.zeros((n, 3))
     level = np.full(n, np.nan)
     hit = np.zeros(n, dtype=bool)
+    edge = h["outline"]
+    if edge.size:  # missed M_i, met M_org: shaded from M_org
+        out[edge], r_edge, hit[edge] = shade_org(scene, o[edge], d[edge])
+        rays += r_edge
+        level[edge] = -1.0
     if idx.size == 0:
         return out, level, rays, hit
     use, lam_c, fr = h["use"], h["lam_c"], h["fr"]
@@ -316,6 +328,25 @@ def _cpm_finish(scene: RenderScene, frame: CpmFrame, o: np.ndarray, d: np.ndarra
         rays += r_fb
         level[fb] = -1.0
     return out, level, rays, hit
+
+
+def _outline_misses(scene: RenderScene, cam: PinholeCamera, d: np.ndarray,
+                    hit_mi: np.ndarray) -> tuple[np.ndarray, int]:
+    """(indices of the eye rays that miss M_i but meet M_org, rays traced). Eye rays start at
+    the camera, so a ray can meet M_org only if it passes within M_org's bounding sphere
+    (one mat-vec over the directions); only those are traced, one any-hit ray each. Measured
+    on the full wall at 512², 4 spp: a per-ray slab test cost 0.1-0.2 s per frame, this
+    ~3 ms."""
+    lo, hi = np.asarray(scene.asset.bounds, dtype=np.float64)
+    centre = 0.5 * (lo + hi)
+    radius = 0.5 * float(np.linalg.norm(hi - lo)) + scene.ray_eps
+    v = centre - cam.position
+    t = d @ v  # distance along each unit direction to the point nearest the centre
+    near = np.flatnonzero(~hit_mi & (float(v @ v) - t * t <= radius * radius) & (t > -radius))
+    if near.size == 0:
+        return near, 0
+    o = np.broadcast_to(cam.position, (near.size, 3))
+    return near[scene.org.occluded(o, d[near])], int(near.size)
 
 
 def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
