@@ -350,3 +350,32 @@ def test_progressive_renders_any_sample_count_unbiased():
     # a frame of fewer pixels than the smallest chunk still gets more than one pass
     tiny = cam_mod.look_at((0.0, 0.0, 3.5), (0.0, 0.0, 0.0), 8, 8, fov_deg=40.0)
     assert progressive(tiny, 0, shade, 0.2)[3] > 2.0
+
+
+def test_a_lightless_asset_is_lit_by_the_default_rig():
+    """Studios ship assets without lights (the Teapot): the renderer lights them with a key and
+    a fill from the viewer's side, and says so, instead of rendering black."""
+    from texelbake.scene.lights import DEFAULT_KEY_IRRADIANCE, default_light_rig
+
+    v, f = icosphere(2)
+    asset = model(v, f)  # no lights
+    scene = OrgScene(asset)
+    assert scene.default_lights
+    assert [light.path for light in scene.lights] == ["/texelbake:defaultRig/Key",
+                                                      "/texelbake:defaultRig/Fill"]
+    cam = cam_mod.look_at((0.0, 0.0, 3.5), (0.0, 0.0, 0.0), 24, 24, fov_deg=40.0)
+    img = render_model(asset, cam, spp=1).image
+    assert img.max() > 0.0
+    # both lights come from the viewer's side, the key from above (+Y up), unit directions
+    view = np.array([0.0, 0.0, 1.0])
+    key, fill = default_light_rig(view, "Y")
+    for light in (key, fill):
+        assert abs(np.linalg.norm(light.direction) - 1.0) < 1e-12 and light.kind == "distant"
+        assert light.direction @ view > 0.3
+    assert key.direction[1] > 0.3 and np.allclose(key.radiance_scale, DEFAULT_KEY_IRRADIANCE)
+    assert default_light_rig(view, "Z")[0].direction[2] > 0.3  # Z-up: the key is above in Z
+    with pytest.raises(Exception, match="view direction"):
+        default_light_rig(np.zeros(3))
+    # an asset with lights keeps them
+    lit = OrgScene(model(v, f, lights=[distant(LIGHT, E)]))
+    assert not lit.default_lights and len(lit.lights) == 1

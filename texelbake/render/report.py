@@ -95,8 +95,10 @@ def _errors(res: RenderResult, ref: RenderResult) -> dict[str, float | int]:
     covs = [c for c in (ref.coverage, res.coverage) if c is not None]
     mask = (metrics.object_mask(*covs) if covs
             else metrics.object_mask(ref_img.max(axis=2) > 0))
+    lit = float(ref_img.max()) > 0.0  # an all-black reference has no PSNR/SNR: NaN, noted
     return {**metrics.object_errors(img, ref_img, mask), "rmse": metrics.rmse(img, ref_img),
-            "psnr_db": metrics.psnr_db(img, ref_img), "snr_db": metrics.snr_db(img, ref_img)}
+            "psnr_db": metrics.psnr_db(img, ref_img) if lit else float("nan"),
+            "snr_db": metrics.snr_db(img, ref_img) if lit else float("nan")}
 
 
 def _entry(res: RenderResult, ref: RenderResult | None, eps_db: float | None
@@ -239,6 +241,9 @@ def compare_modes(scene: RenderScene, cam: cam_mod.PinholeCamera, *, spp: int, r
         "reference": {"mode": "gt", "spp": ref.spp, "seconds": round(ref.seconds, 4),
                       "rays_cast": ref.rays_cast},
         "modes": {}, "sweep": [],
+        # which lights lit the frames: the asset's, or the default rig when it has none
+        "lights": [light.path for light in scene.lights],
+        "default_lights": bool(getattr(scene, "default_lights", False)),
     }
     if out_dir is not None:
         write_exr(out_dir / f"{prefix}gt_reference.exr", ref_img)

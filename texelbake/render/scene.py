@@ -31,6 +31,15 @@ class OrgScene:
         self.asset = asset
         self.materials = asset.materials
         self.lights = asset.lights
+        #: True when the asset has no lights and the renderer lights it with
+        #: `scene.lights.default_light_rig` (reports name the rig's lights)
+        self.default_lights = not asset.lights
+        if self.default_lights:
+            from texelbake.scene.lights import default_light_rig
+
+            centre = np.asarray(asset.bounds, dtype=np.float64).mean(axis=0)
+            view = self.default_camera(64, 64).position - centre
+            self.lights = default_light_rig(view, asset.up_axis)
         self.org = RayCaster(asset.points, asset.faces)
         self.org_face_normals = asset.face_normals()
         self.diag = self.org.bbox_diag

@@ -74,3 +74,41 @@ def read_camera(prim: Any, time: Any, xcache: Any, warns: list[str]) -> Camera:
         vertical_aperture=float(cam.GetVerticalApertureAttr().Get(time)),
         clipping=np.asarray(cam.GetClippingRangeAttr().Get(time), dtype=np.float64),
     )
+
+
+#: irradiance of the default rig's key and fill lights (normal incidence): the key as the
+#: generated scenes' suns, the fill a third of it so that the key's shadows stay readable
+DEFAULT_KEY_IRRADIANCE = 3.0
+DEFAULT_FILL_IRRADIANCE = 1.0
+
+
+def default_light_rig(view_dir: np.ndarray, up_axis: str = "Y") -> tuple[Light, Light]:
+    """The lights a render uses when the asset has none (a studio's "lightless" asset is lit
+    by its look-dev scene): a key distant light from above and to one side of the viewer and
+    a fill from the other side, both white; named `/texelbake:defaultRig/Key` and `/Fill`
+    so that reports say which lights they used.
+
+    view_dir : (3,) direction from the object toward the viewer (the camera);
+    up_axis : the stage's up axis ("Y" or "Z")
+    """
+    v = np.asarray(view_dir, dtype=np.float64)
+    norm = float(np.linalg.norm(v))
+    if not np.isfinite(norm) or norm == 0.0:
+        raise AssetError("default light rig: the view direction is zero or not finite")
+    v = v / norm
+    up = np.array([0.0, 0.0, 1.0]) if str(up_axis).upper() == "Z" else np.array([0.0, 1.0, 0.0])
+    side = np.cross(up, v)
+    if float(np.linalg.norm(side)) < 1e-6:  # looking straight down the up axis
+        side = np.cross(np.array([1.0, 0.0, 0.0]), v)
+    side /= np.linalg.norm(side)
+    key = v + 0.8 * up + 0.6 * side
+    fill = v + 0.2 * up - 0.9 * side
+    white = np.ones(3)
+    return (
+        Light(path="/texelbake:defaultRig/Key", kind="distant",
+              direction=key / np.linalg.norm(key), position=np.zeros(3), radius=0.0,
+              radiance_scale=DEFAULT_KEY_IRRADIANCE * white),
+        Light(path="/texelbake:defaultRig/Fill", kind="distant",
+              direction=fill / np.linalg.norm(fill), position=np.zeros(3), radius=0.0,
+              radiance_scale=DEFAULT_FILL_IRRADIANCE * white),
+    )
