@@ -776,3 +776,15 @@ def test_empty_inputs():
     assert brdf.preview_surface({}, e, e).shape == (0, 3)
     assert brdf.cellular({}, np.zeros((0, 2)), e, e).shape == (0, 3)
     assert brdf.merl_lookup(np.zeros((3, 2, 2, 2)), e, e).shape == (0, 3)
+
+
+def test_used_rows_is_numpys_unique_inverse():
+    from texelbake.brdf.evaluate import _used_rows
+
+    rng = np.random.default_rng(5)
+    for m, n in ((1, 5), (7, 40), (300, 1000), (50, 0)):
+        rows = rng.integers(0, m, n)
+        used, local = _used_rows(rows, m)
+        want_used, want_local = np.unique(rows, return_inverse=True)
+        np.testing.assert_array_equal(used, want_used)
+        np.testing.assert_array_equal(local, want_local)

@@ -164,6 +164,16 @@ def evaluate(
     return cellular_shade(border, color, finite, bc, br, wi, wo, eps)
 
 
+def _used_rows(rows: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted distinct values of rows, index of each row's value in them): np.unique's
+    (values, inverse) for indices into m rows, in O(len(rows) + m) without sorting."""
+    seen = np.zeros(m, dtype=bool)
+    seen[rows] = True
+    used = np.flatnonzero(seen)
+    position = np.cumsum(seen) - 1
+    return used, position[rows]
+
+
 def _rows_index(sample_index: Any, n: int, uv: np.ndarray | None) -> np.ndarray | None:
     if sample_index is None:
         return None
@@ -302,17 +312,21 @@ def evaluate_by_face(
         raise ShapeError(
             f"material_index must lie in [0, {len(materials) - 1}], got [{lo}, {hi}]"
         )
-    order = np.argsort(idx, kind="stable")
-    bounds = np.flatnonzero(np.diff(idx[order])) + 1
-    for group in np.split(order, bounds):  # one group per material present
-        mat = materials[int(idx[group[0]])]
+    # one group per material present, entries in ascending order (what a stable sort by
+    # material gives, without sorting n entries: a mask per material, O(n) each; a bake
+    # spent 3 s of 46 in that argsort)
+    present = np.flatnonzero(np.bincount(idx, minlength=hi + 1))
+    for m_i in present:  # a loop over the few materials
+        group = np.flatnonzero(idx == m_i) if present.size > 1 else np.arange(n)
+        mat = materials[int(m_i)]
         if rows is None:
             out[group] = evaluate(
                 mat, wi[group], wo[group], None if uv_a is None else uv_a[group], eps=eps
             )
             continue
-        # only the samples this material uses: resolve inputs on them, then gather
-        used, local = np.unique(rows[group], return_inverse=True)
+        # only the samples this material uses: resolve inputs on them, then gather (what
+        # np.unique(..., return_inverse=True) gives, by a presence mask instead of a sort)
+        used, local = _used_rows(rows[group], uv_a.shape[0] if uv_a is not None else 0)
         out[group] = evaluate(
             mat, wi[group], wo[group], None if uv_a is None else uv_a[used],
             sample_index=local, eps=eps,
