@@ -4,7 +4,7 @@ VENV  := .venv
 PY    := $(VENV)/bin/python
 PIP   := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libgl1 libegl1 libopengl0 libx11-6 libudev1 libidn2-0 libgmp10 libgomp1 redis-server
+APT_PACKAGES := libusb-1.0-0 libgl1 libegl1 libopengl0 libx11-6 libudev1 libidn2-0 libgmp10 libgomp1 redis-server docker-compose
 
 .PHONY: setup demo test test-fast lint bench scenes clean
 

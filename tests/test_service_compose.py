@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.svc_util import backend_missing
 from workers.celeryconfig import QUEUE_FAMILIES, QUEUES
 
 pytestmark = pytest.mark.service
@@ -27,7 +28,9 @@ def compose_cmd() -> list[str]:
         return [docker, "compose"]
     if shutil.which("docker-compose"):
         return [shutil.which("docker-compose")]  # type: ignore[list-item]
-    pytest.skip("neither `docker compose` nor `docker-compose` is installed")
+    # Debian's docker-compose package checks the file without an engine; `make setup` and
+    # .ci/run install it, so under CI=true its absence fails
+    backend_missing("neither `docker compose` nor `docker-compose` is installed")
 
 
 def run_config(env_extra: dict[str, str], *args: str) -> subprocess.CompletedProcess:
