@@ -68,7 +68,8 @@ def test_btf_mode_needs_btf_maps(tmp_path):
         render(root, "btf", width=8, height=8, spp=1, camera=2.0)
 
 
-def test_render_report_accepts_btf_and_measures_it_against_gt(baked_btf_plane, tmp_path):
+def test_render_report_accepts_btf_and_measures_it_against_gt(baked_btf_plane, tmp_path,
+                                                              capsys):
     """`texelbake render BAKED --modes gt,btf` (issue 5 item 6): the btf image is written and
     its error against the reference gt is in render_report.json."""
     import json
@@ -82,6 +83,11 @@ def test_render_report_accepts_btf_and_measures_it_against_gt(baked_btf_plane, t
     assert rc == 0
     report = json.loads((out / "render_report.json").read_text())
     assert set(report["modes"]) == {"gt", "btf"}
+    # the command prints the table of time beside error over the object's pixels
+    printed = capsys.readouterr().out
+    assert "PSNR obj" in printed and "lights: the asset's" in printed
+    line = next(ln for ln in printed.splitlines() if ln.startswith("btf "))
+    assert f"{report['modes']['btf']['psnr_db_object']:.2f}" in line
     btf = report["modes"]["btf"]
     assert (out / "btf.exr").is_file() and (out / "diff_btf.png").is_file()
     assert btf["seconds"] > 0 and btf["rays_cast"] > 0

@@ -127,8 +127,29 @@ def cmd_render(args: argparse.Namespace) -> int:
     report = render_report(Path(args.file), out, modes=args.modes, width=args.width,
                            height=args.height, spp=args.spp, ref_spp=args.ref_spp,
                            camera=_camera_arg(args.camera))
+    _print_render_table(json.loads(report.read_text()))
     print(report)
     return 0
+
+
+def _print_render_table(rep: dict) -> None:
+    """Time beside error per mode, over the object's pixels (the report's own figures)."""
+    def num(v: object, fmt: str) -> str:
+        return format(v, fmt) if isinstance(v, int | float) else str(v)
+
+    lights = "default rig (the asset has none)" if rep.get("default_lights") else "the asset's"
+    print(f"reference gt at {rep['reference']['spp']} spp, {rep['width']}x{rep['height']}; "
+          f"object {rep.get('object_pixels', '?')} pixels; lights: {lights}")
+    print(f"{'mode':<12}{'spp':>7}{'seconds':>9}{'PSNR obj':>10}{'dE mean':>9}{'FLIP obj':>10}")
+    for mode, e in rep["modes"].items():
+        spp = num(e.get("mean_spp", e["spp"]), ".2f" if "mean_spp" in e else "d")
+        print(f"{mode:<12}{spp:>7}{num(e['seconds'], '.3f'):>9}"
+              f"{num(e.get('psnr_db_object'), '.2f'):>10}{num(e.get('delta_e_mean'), '.2f'):>9}"
+              f"{num(e.get('flip_mean_object'), '.3f'):>10}")
+    if "equal_time" in rep:
+        et = rep["equal_time"]
+        print(f"equal-time: {et['equal_time_seconds']:.3f} s for cpm's {et['cpm_seconds']:.3f} s "
+              f"(ratio {et['ratio']:.3f})")
 
 
 def _camera_arg(value: str | None):
