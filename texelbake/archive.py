@@ -13,13 +13,14 @@ EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
 def zip_bytes(members: Iterable[tuple[str, bytes]], *, deflate: bool = True,
-              mode: int | None = 0o644) -> bytes:
-    """The zip of (name, data) members, sorted by name. deflate : ZIP_DEFLATED, else STORED
-    (`.npz` files are stored); mode : Unix permissions recorded per member (None: none)."""
+              mode: int | None = 0o644, sort: bool = True) -> bytes:
+    """The zip of (name, data) members, sorted by name unless `sort` is False (the caller's
+    order, itself deterministic). deflate : ZIP_DEFLATED, else STORED (`.npz` files are
+    stored); mode : Unix permissions recorded per member (None: none)."""
     compression = zipfile.ZIP_DEFLATED if deflate else zipfile.ZIP_STORED
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=compression) as zf:
-        for name, data in sorted(members, key=lambda m: m[0]):
+        for name, data in sorted(members, key=lambda m: m[0]) if sort else members:
             info = zipfile.ZipInfo(name, date_time=EPOCH)
             info.compress_type = compression
             if mode is not None:

@@ -34,14 +34,14 @@ def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
 def npz_bytes(arrays: Mapping[str, Any]) -> bytes:
     """Deterministic `.npz` bytes (sorted keys, fixed timestamps, no compression)."""
     members = []
-    for name in arrays:
+    for name in sorted(arrays):  # by array name, as `.npz` artifacts always were
         arr = np.asanyarray(arrays[name])
         if arr.dtype == object:
             raise StageError(f"artifact array {name!r} has dtype object; store plain arrays")
         member = io.BytesIO()
         np.lib.format.write_array(member, arr, allow_pickle=False)
         members.append((f"{name}.npy", member.getvalue()))
-    return zip_bytes(members, deflate=False, mode=None)
+    return zip_bytes(members, deflate=False, mode=None, sort=False)
 
 
 class ArtifactStore:
