@@ -188,7 +188,11 @@ def test_normalmap_and_equal_time_on_a_flat_plane(baked_plane, tmp_path):
     assert psnr_object(nm, gt) >= 40.0
     assert (tmp_path / "normalmap.exr").is_file() and (tmp_path / "normalmap.png").is_file()
     eq = render(baked_plane, "equal-time", **kw, budget_seconds=0.0)
-    assert eq.spp == 1  # no budget: the one-sample pilot image
+    assert eq.spp == 1  # no budget: the first pass only, one sample per pixel
+    assert eq.extras["mean_spp"] == 1.0 and eq.coverage is not None
+    for bad in (-1.0, float("nan")):  # a budget that is not a time is refused, named
+        with pytest.raises(SettingsError, match="budget_seconds"):
+            render(baked_plane, "equal-time", **kw, budget_seconds=bad)
     with pytest.raises(SettingsError):
         render(baked_plane, "nope", **kw)
 
