@@ -216,8 +216,21 @@ def test_payload_round_trip_and_report(cylinder_bake):
     vs = prim.GetVariantSets().GetVariantSet("LOD")
     assert vs.GetVariantNames() == [f"LOD{i}" for i in range(settings.mesh_levels + 1)]
     assert not stage.GetPrimAtPath(prim.GetPath().AppendPath("Baked/CPM")).IsValid()
+    # the asset as authored by default (clients without a variant picker), and an
+    # extentsHint that holds with payloads unloaded and covers whichever LOD is selected
+    assert vs.GetVariantSelection() == "LOD0"
+    hint = np.asarray(UsdGeom.ModelAPI(prim).GetExtentsHint(), dtype=np.float64)
+    assert hint.shape == (2, 3)
     stage.Load()
     assert stage.GetPrimAtPath(prim.GetPath().AppendPath("Baked/CPM/L00")).IsValid()
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), [UsdGeom.Tokens.default_])
+    for v in vs.GetVariantNames():
+        vs.SetVariantSelection(v)
+        cache.Clear()
+        box = cache.ComputeUntransformedBound(prim).ComputeAlignedRange()
+        assert not box.IsEmpty(), v
+        assert np.all(np.asarray(box.GetMin()) >= hint[0] - 1e-6), v
+        assert np.all(np.asarray(box.GetMax()) <= hint[1] + 1e-6), v
 
 
 def test_written_arrays_are_identical_when_read_back(tmp_path):

@@ -281,10 +281,38 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
                 img.CreateVisibilityAttr(
                     UsdGeom.Tokens.inherited if v == 0 else UsdGeom.Tokens.invisible
                 )
-    vset.SetVariantSelection("LOD1" if n_lod else "LOD0")
+    # the asset as authored by default: a client without a variant picker (Blender's
+    # importer) shows the original, not a LOD it did not ask for
+    vset.SetVariantSelection("LOD0")
     stage.GetRootLayer().customLayerData = {"texelbake": _plain_json(baked.metadata)}
+    if n_lod:  # with payloads unloaded, clients size the asset by this: every LOD inside it
+        lo, hi = _lod_extent(stage, root.GetPrim(), vset, n_lod)
+        UsdGeom.ModelAPI(root.GetPrim()).SetExtentsHint(
+            Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+        vset.SetVariantSelection("LOD0")
     _commit_stage(stage, root_file)
     return root_file
+
+
+def _lod_extent(stage: Usd.Stage, prim: Usd.Prim, vset: Usd.VariantSet, n_lod: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The union of `prim`'s untransformed bounds under every LOD variant (the original and
+    each M_i), default purpose: what `extentsHint` must cover whichever LOD is selected."""
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), [UsdGeom.Tokens.default_],
+                              useExtentsHint=False)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for v in range(n_lod + 1):  # a loop over the few LODs
+        vset.SetVariantSelection(f"LOD{v}")
+        cache.Clear()
+        box = cache.ComputeUntransformedBound(prim).ComputeAlignedRange()
+        if not box.IsEmpty():
+            lo = np.minimum(lo, np.asarray(box.GetMin(), dtype=np.float64))
+            hi = np.maximum(hi, np.asarray(box.GetMax(), dtype=np.float64))
+    if not np.all(np.isfinite(lo) & np.isfinite(hi)):
+        raise AssetError("the baked asset has no bounds under any LOD (empty meshes?)",
+                         path=str(prim.GetPath()))
+    return lo, hi
 
 
 def _plain_json(obj: Any) -> Any:
