@@ -1,4 +1,4 @@
-"""`texelbake` command line: scenes, inspect, bake, demo, render, report, submit, stack.
+"""`texelbake` command line: scenes, inspect, bake, demo, render, export, report, submit, stack.
 
 Heavy modules are imported inside each command so `texelbake --help` is instant.
 """
@@ -161,6 +161,13 @@ def _camera_arg(value: str | None):
         raise TexelbakeError(f"--camera must be 'lod' or a distance, got {value!r}") from exc
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from texelbake.lodexport import export_lod
+
+    print(export_lod(Path(args.file), args.lod, Path(args.output)))
+    return 0
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from texelbake.render import write_report_plot
 
@@ -239,6 +246,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", default=None,
                    help="the asset's camera (default), 'lod', or an auto-frame distance")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("export", help="write one LOD of a baked USD as a self-contained file "
+                       "(for tools without variant support)")
+    p.add_argument("file")
+    p.add_argument("--lod", type=int, required=True, help="0 = the asset as authored, 1..n")
+    p.add_argument("-o", "--output", required=True, help="FILE.usdc, .usda or .usdz")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("report", help="draw the speed-against-error plot of a render folder")
     p.add_argument("dir")

@@ -1,0 +1,97 @@
+"""`texelbake export BAKED --lod N -o FILE` (issue 22): one LOD as a self-contained file for
+tools without variant support, checked in a process that never imports texelbake."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+CHECK = r"""
+import json, sys
+from pxr import Usd, UsdGeom, UsdShade, UsdValidation
+st = Usd.Stage.Open(sys.argv[1])
+meshes = [p for p in st.Traverse() if p.IsA(UsdGeom.Mesh)]
+out = {"meshes": [m.GetPath().pathString for m in meshes],
+       "points": [[list(map(float, v)) for v in UsdGeom.Mesh(m).GetPointsAttr().Get()]
+                  for m in meshes],
+       "files": [], "baked_scope": bool(st.GetPrimAtPath("/Cylinder/Baked"))}
+for m in meshes:
+    mat, _ = UsdShade.MaterialBindingAPI(m).ComputeBoundMaterial()
+    out.setdefault("materials", []).append(mat.GetPath().pathString if mat else None)
+    for p in Usd.PrimRange(mat.GetPrim()) if mat else []:
+        sh = UsdShade.Shader(p)
+        if sh and sh.GetIdAttr().Get() == "UsdUVTexture":
+            f = sh.GetInput("file").Get()
+            out["files"].append(bool(f.resolvedPath))
+ctx = UsdValidation.ValidationContext(
+    list(UsdValidation.ValidationRegistry().GetAllValidatorMetadata()), True)
+out["errors"] = [e.GetName() for e in ctx.Validate(st)
+                 if e.GetType() == UsdValidation.ValidationErrorType.Error]
+print(json.dumps(out))
+"""
+
+
+def _inspect(path):
+    r = subprocess.run([sys.executable, "-c", CHECK, str(path)], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    from schemas.settings import BakeSettings
+    from texelbake.pipeline import bake
+    from texelbake.scenes import write_scene
+
+    d = tmp_path_factory.mktemp("lods")
+    src = write_scene("cylinder", d / "cylinder.usda", "small")
+    settings = BakeSettings(samples_per_texel=4, n_light_dirs=4, n_view_dirs=4, n_heldout=4,
+                            c_max=4, mesh_levels=2)
+    return bake(src, d / "out", settings, progress=False)
+
+
+@pytest.mark.parametrize("suffix", [".usdc", ".usdz"])
+def test_one_lod_exports_self_contained_and_stock_valid(baked, tmp_path, suffix):
+    from texelbake.lodexport import export_lod
+    from texelbake.payload import read_baked
+
+    lods = read_baked(baked).meshes
+    for n in (1, 2):
+        out = export_lod(baked, n, tmp_path / f"lod{n}{suffix}")
+        got = _inspect(out)
+        # only that LOD's mesh, with its points, bound to the preview material whose
+        # textures resolve next to (or inside) the file; 0 errors from stock validation
+        assert got["meshes"] == [f"/Cylinder/Baked/LOD{n}"]
+        np.testing.assert_allclose(np.asarray(got["points"][0]), lods[n - 1].vertices,
+                                   atol=1e-6)
+        assert got["materials"] == ["/Cylinder/Baked/Looks/BakedPreview"]
+        assert got["files"] == [True, True]
+        assert got["errors"] == []
+    if suffix == ".usdc":
+        (tmp_path / "lod1_maps" / "cylinder_albedo.png").unlink()  # not self-contained now
+        assert _inspect(tmp_path / "lod1.usdc")["files"] == [False, True]
+
+
+def test_lod0_is_the_asset_as_authored(baked, tmp_path):
+    from texelbake.lodexport import export_lod
+
+    got = _inspect(export_lod(baked, 0, tmp_path / "lod0.usda"))
+    assert got["meshes"] == ["/Cylinder/Geom/RidgedCylinder"] and not got["baked_scope"]
+
+
+def test_bad_requests_name_the_field_and_write_nothing(baked, tmp_path):
+    from texelbake.errors import AssetError, SettingsError
+    from texelbake.lodexport import export_lod
+
+    with pytest.raises(SettingsError, match="'lod'"):
+        export_lod(baked, 3, tmp_path / "x.usdc")
+    with pytest.raises(SettingsError, match="'output'"):
+        export_lod(baked, 1, tmp_path / "x.obj")
+    with pytest.raises(AssetError, match="LOD variant set"):
+        export_lod(baked.parent / "source" / "cylinder.usda", 1, tmp_path / "x.usdc")
+    assert list(tmp_path.iterdir()) == []
