@@ -17,9 +17,12 @@ def replace(src: str | Path, dst: str | Path, *, mode: int | None = 0o644) -> Pa
     """Flush `src` to disk and rename it over `dst` (same file system), then flush the
     folder's entry. mode : permissions to give `src` first (mkstemp makes 0600), or None."""
     src, dst = Path(src), Path(dst)
-    if src.is_file():
-        with open(src, "rb+") as f:
-            os.fsync(f.fileno())
+    if src.is_file():  # fsync through a read-only descriptor (works for 0444 files too)
+        fd = os.open(src, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
     if mode is not None:
         os.chmod(src, mode)
     os.replace(src, dst)
