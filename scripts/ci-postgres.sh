@@ -3,7 +3,7 @@
 # tests' user cannot log in, and create the `test` database the tests connect to. Idempotent:
 # on a machine where all of that holds it changes nothing.
 set -euo pipefail
-ver="$(ls /etc/postgresql 2>/dev/null | sort -V | tail -1)"
+ver="$(ls /etc/postgresql 2>/dev/null | sort -V | tail -1 || true)"
 if [ -z "$ver" ]; then
   echo "ci-postgres: no PostgreSQL cluster under /etc/postgresql (is the postgresql package installed?)" >&2
   exit 1
@@ -12,7 +12,7 @@ if ! pg_isready -h 127.0.0.1 -q; then
   pg_ctlcluster --skip-systemctl-redirect "$ver" main start
   for _ in $(seq 30); do pg_isready -h 127.0.0.1 -q && break; sleep 1; done
 fi
-q() { psql -h 127.0.0.1 -U postgres -d postgres -v ON_ERROR_STOP=1 -qtAc "$1"; }
+q() { psql -w -h 127.0.0.1 -U postgres -d postgres -v ON_ERROR_STOP=1 -qtAc "$1"; }
 if ! q "SELECT 1" >/dev/null 2>&1; then
   hba="/etc/postgresql/$ver/main/pg_hba.conf"
   echo "ci-postgres: trust auth for 127.0.0.1 and ::1 in $hba (a CI machine's own cluster)"
