@@ -284,3 +284,30 @@ def test_plan_lists_stages_and_skips(tmp_path):
     assert names == ["ingest", "geometry", "cpm", "cpm_top", "avis", "avis_top", "export"]
     assert plan.stage("cpm").n_shards == 4
     assert {s for s, _ in plan.skipped} >= {"btf", "render"}
+
+
+def test_report_flags_texels_whose_avis_table_is_off(cylinder_bake):
+    """Issue 11: the report counts, per level, the texels whose compressed a_vis table is more
+    than the tolerance from the uncompressed maps, and the bake's warnings name those levels."""
+    from texelbake.cpm.assemble import AVIS_TEXEL_TOLERANCE, texel_rel_errors
+
+    _, root, _ = cylinder_bake
+    report = json.loads((root.parent / "report.json").read_text())
+    flagged = [lv["level"] for lv in report["levels"] if lv["avis"]["texels_above_tolerance"]]
+    for lv in report["levels"]:
+        a = lv["avis"]
+        assert a["tolerance"] == AVIS_TEXEL_TOLERANCE
+        assert 0 <= a["texels_above_tolerance"] <= a["ray_texels"]
+    assert [int(w.split()[1].rstrip(":")) for w in report["warnings"]] == flagged
+    # the per-texel measure against a loop over texels (brute force)
+    rng = np.random.default_rng(2)
+    ref = rng.random((5, 6, 4, 4))
+    ref[3] = 0.0
+    table = ref + 0.01 * rng.standard_normal(ref.shape)
+    table[4] = ref[4]
+    got = texel_rel_errors(table, ref)
+    for t in range(5):
+        d, r = np.linalg.norm(table[t] - ref[t]), np.linalg.norm(ref[t])
+        want = d / r if r > 0 else (np.inf if d > 0 else 0.0)
+        assert got[t] == pytest.approx(want)
+    assert got[4] == 0.0 and got[3] == np.inf

@@ -81,6 +81,8 @@ def _print_summary(root: Path) -> None:
               f"{lv['avis']['rel_error']:>8.3f}")
     for s in report.get("skipped", []):
         print(f"skipped {s['stage']}: {s['reason']}")
+    for w in report.get("warnings", []):
+        print(f"warning: {w}")
 
 
 def cmd_bake(args: argparse.Namespace) -> int:

@@ -22,6 +22,20 @@ def percentiles(x: np.ndarray) -> dict[str, float]:
             "min": float(x.min()), "max": float(x.max())}
 
 
+#: a texel's compressed a_vis table may differ from its uncompressed maps by this relative L2
+#: (over its six faces) before the bake report flags it (issue 11's per-texel bound)
+AVIS_TEXEL_TOLERANCE = 0.02
+
+
+def texel_rel_errors(table_maps: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Relative L2 error per texel, ||table - ref|| / ||ref|| over each texel's (6, res, res)
+    maps (0 where both are zero). table_maps, ref : (n, 6, res, res); returns (n,)."""
+    n = ref.shape[0]
+    diff = np.linalg.norm((table_maps - ref).reshape(n, -1), axis=1)
+    norm = np.linalg.norm(ref.reshape(n, -1), axis=1)
+    return np.divide(diff, norm, out=np.where(diff > 0, np.inf, 0.0), where=norm > 0)
+
+
 def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_keep_fraction: float,
                    level: int, data: dict[str, np.ndarray],
                    avis_level: avis_mod.AvisLevel) -> tuple[dict[str, np.ndarray], dict]:
@@ -62,8 +76,10 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "frames": frames.astype(np.float64),
     }
     arrays.update(avis_table_arrays(table))
-    # a_vis compression error (relative L2 over the ray-based maps, the seed's measure)
+    # a_vis compression error (relative L2 over the ray-based maps, the seed's measure), and
+    # per texel against AVIS_TEXEL_TOLERANCE (the texels the report flags)
     err = 0.0
+    per_texel = np.zeros(0)
     if len(avis_level.ray_texels):
         table_maps = decompress_haar(table.haar).reshape(-1, 6, avis_level.res, avis_level.res)
         frac = avis_level.bounded[avis_level.ray_texels]
@@ -73,6 +89,7 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
                                               avis_level.ray_texels[frac])
             ref[frac] = avis_mod.visible_fraction(ref[frac], unocc)
         err = float(np.linalg.norm(table_maps - ref)) / max(float(np.linalg.norm(ref)), 1e-300)
+        per_texel = texel_rel_errors(table_maps, ref)
     valid = data["valid"]
     report = {
         "level": level,
@@ -93,6 +110,9 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
             "ray_texels": int(len(avis_level.ray_texels)),
             "kept_fraction": float(table.haar.kept_fraction),
             "rel_error": err,
+            "texel_rel_error": percentiles(per_texel),
+            "tolerance": AVIS_TEXEL_TOLERANCE,
+            "texels_above_tolerance": int(np.sum(per_texel > AVIS_TEXEL_TOLERANCE)),
         },
     }
     return arrays, report

@@ -61,6 +61,11 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "surface_area": float(geo["sample_area"].sum()),
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "stage_seconds": dict(stage_seconds or {}),
+        "warnings": [
+            f"level {r['level']}: {r['avis']['texels_above_tolerance']} of "
+            f"{r['avis']['ray_texels']} ray-traced texels have a compressed a_vis table more "
+            f"than {r['avis']['tolerance']:.0%} (relative L2) from their uncompressed maps"
+            for r in level_reports if r["avis"].get("texels_above_tolerance")],
     }
     l0 = level_reports[0]
     metadata = {
