@@ -48,7 +48,7 @@ Modes (all read the baked USD through `texelbake.payload.read_baked` and the cop
   and most bakes carry no BTF maps); `render_frame` accepts it through `EXTRA_MODES`.
 - ``equal-time`` — M_org shaded as ``gt`` for exactly the time budget (by default the time
   of the ``cpm`` image at the given spp, measured in this call): `tracer.progressive` adds
-  samples in chunks, each 80 % of the time left at the measured cost per sample, so its
+  samples in chunks, each half the time left at the measured cost per sample, so its
   measured time lands within a few percent of the budget whatever a sample costs (the sample count per
   pixel need not be a square, nor the same in every pixel: `extras["mean_spp"]`). Before
   2026-11-25 it rendered a stratified count floored from a pilot's cost, which gave 0.70-0.75
