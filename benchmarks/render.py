@@ -26,26 +26,27 @@ lower error than equal-time and than normalmap.
 
 Measured 2026-11-25 (benchmarks/results/render_cylinder_small_512.json and
 render_<scene>_full_512.json; `texelbake bake` defaults — a 16² atlas — with `--btf`; 512²,
-`lod` camera, reference gt at 1024 spp; one run per scene on a machine shared with three other
-engineers' tests, so seconds are loaded; ratios are from one run). PSNR and FLIP over the
+`lod` camera, reference gt at 1024 spp; one run per scene on the 2-core machine while other
+work ran, so compare ratios from one run, not seconds across runs). PSNR and FLIP over the
 object's pixels (the union of the reference's and the mode's coverage, dilated by a pixel):
 
 | scene          | obj px | cpm@4 s | eq-time s (ratio, spp) | cpm@4 | equal-time | normalmap@4 | btf@4 | gt@4  | FLIP cpm / eq | crossover  |
 |----------------|-------:|--------:|-----------------------:|------:|-----------:|------------:|------:|------:|--------------:|-----------:|
-| cylinder small |     32 |   0.497 |   0.503 (1.012, 5.71)  | 21.82 |      18.06 |       16.06 | 19.70 | 18.48 | 0.182 / 0.083 | gt@16, 1.5x |
-| cylinder full  |     36 |   0.319 |   0.328 (1.026, 6.82)  | 23.53 |      20.69 |       16.53 | 26.58 | 19.94 | 0.123 / 0.193 | gt@16, 3.1x |
-| wall full      |     48 |   0.219 |   0.227 (1.036, 3.89)  | 27.27 |      19.27 |       13.56 | 17.67 | 17.88 | 0.076 / 0.268 | gt@64, 24x |
-| bolt full      |     24 |   0.305 |   0.312 (1.024, 6.43)  | 12.66 |      18.08 |       11.96 | -6.94 | 12.67 | 0.326 / 0.162 | gt@4, 0.6x |
-| cloisonne full |     32 |   0.203 |   0.208 (1.025, 4.61)  | 22.17 |      22.00 |       20.73 | 24.98 | 22.17 | 0.304 / 0.242 | gt@16, 4.1x |
+| cylinder small |     32 |   0.221 |  0.230 (1.041, 4.97) | 21.82 |      18.42 |       16.06 | 19.70 | 18.48 | 0.182 / 0.094 | gt@16, 3.3x |
+| cylinder full  |     36 |   0.297 |  0.302 (1.016, 7.50) | 23.53 |      21.44 |       16.53 | 26.58 | 19.94 | 0.123 / 0.205 | gt@16, 2.6x |
+| wall full      |     48 |   0.237 |  0.243 (1.024, 5.50) | 27.27 |      22.77 |       13.56 | 17.67 | 17.88 | 0.076 / 0.204 | gt@64, 13.0x |
+| bolt full      |     24 |   0.227 |  0.232 (1.022, 5.48) | 12.67 |      16.70 |       11.96 | -6.94 | 12.67 | 0.305 / 0.145 | gt@256, 47.8x |
+| cloisonne full |     32 |   0.213 |  0.217 (1.022, 4.58) | 22.17 |      22.00 |       20.73 | 24.98 | 22.17 | 0.304 / 0.242 | gt@16, 3.4x |
 
 (dB over the object; obj px: the object mask of the cpm comparison; crossover: the cheapest gt
 of the sweep that beats cpm@4, and its time over cpm's.) Equal time is within ±5 % on all
-five (1.012–1.036). cpm beats equal-time on four of five and normalmap on all five by object
-PSNR; it does not on the bolt: at the `lod` view of a 16² bake every bolt and cloisonne eye ray
-falls back to M_org (fallback 100 %: the pixel footprint is below the finest level there),
-so cpm there *is* gt@4 plus the look-ups' cost, and equal-time spends that cost on 6.4 spp. By
-FLIP over the object cpm is worse than equal-time on the small cylinder, the bolt and the
-cloisonne. At defaults the object covers 8–24 pixels of the 512² frame: these are figures on a
+five (1.016–1.041). cpm beats equal-time on four of five and normalmap on all five by object
+PSNR; it does not on the bolt: every bolt and cloisonne eye ray falls back to M_org (fallback
+100 %) because their sphere light (3.3–3.5 away) is closer than the local-light rule's 8
+finest texels of a 16² atlas (0.6–0.66 each), so cpm there *is* gt@4 plus the look-ups'
+cost, and equal-time spends that cost on 5.5 spp (on the cloisonne the two tie). By FLIP over
+the object cpm is worse than equal-time on the small cylinder, the bolt and the cloisonne.
+At defaults the object covers 8–24 pixels of the 512² frame: these are figures on a
 handful of pixels, and the 16² default atlas is what issue 15 (throughput) must raise. The
 previous table (2026-11-21: 128² bakes with tuned sampling and, for the cylinder, a 192-face
 M1; PSNR over the whole frame; equal-time in 0.70–0.75 of cpm's time) is in git history.
