@@ -367,6 +367,9 @@ def test_a_lightless_asset_is_lit_by_the_default_rig():
     assert scene.default_lights
     assert [light.path for light in scene.lights] == ["/texelbake:defaultRig/Key",
                                                       "/texelbake:defaultRig/Fill"]
+    from texelbake.render.scene import describe_camera
+
+    assert describe_camera(scene, None) == "auto-framed (the asset has none)"  # no camera
     cam = cam_mod.look_at((0.0, 0.0, 3.5), (0.0, 0.0, 0.0), 24, 24, fov_deg=40.0)
     img = render_model(asset, cam, spp=1).image
     assert img.max() > 0.0

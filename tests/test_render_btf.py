@@ -86,6 +86,7 @@ def test_render_report_accepts_btf_and_measures_it_against_gt(baked_btf_plane, t
     # the command prints the table of time beside error over the object's pixels
     printed = capsys.readouterr().out
     assert "PSNR obj" in printed and "lights: the asset's" in printed
+    assert "camera: auto-framed at 2x" in printed and report["camera"].startswith("auto-framed")
     line = next(ln for ln in printed.splitlines() if ln.startswith("btf "))
     assert f"{report['modes']['btf']['psnr_db_object']:.2f}" in line
     btf = report["modes"]["btf"]

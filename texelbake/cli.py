@@ -141,7 +141,8 @@ def _print_render_table(rep: dict) -> None:
 
     lights = "default rig (the asset has none)" if rep.get("default_lights") else "the asset's"
     print(f"reference gt at {rep['reference']['spp']} spp, {rep['width']}x{rep['height']}; "
-          f"object {rep.get('object_pixels', '?')} pixels; lights: {lights}")
+          f"object {rep.get('object_pixels', '?')} pixels; lights: {lights}; camera: "
+          f"{rep.get('camera', '?')}")
     print(f"{'mode':<12}{'spp':>7}{'seconds':>9}{'PSNR obj':>10}{'dE mean':>9}{'FLIP obj':>10}")
     for mode, e in rep["modes"].items():
         spp = num(e.get("mean_spp", e["spp"]), ".2f" if "mean_spp" in e else "d")

@@ -41,7 +41,7 @@ from texelbake.render.diagnostics import (
     level_colours,
 )
 from texelbake.render.frame import EXTRA_MODES, MODES, render_frame
-from texelbake.render.scene import RenderScene, load_scene, resolve_camera
+from texelbake.render.scene import RenderScene, describe_camera, load_scene, resolve_camera
 from texelbake.render.tracer import RenderResult
 
 #: preview sizes: (pixels per side, reference spp, gt sweep spp, cpm sweep spp, spp of the
@@ -174,7 +174,9 @@ def render_previews(baked_root: str | Path, out_dir: str | Path, *, size: str = 
             "cpm_sweep": cfg["cpm_sweep"], "seed": seed}
     modes = MODES + (("btf",) if has_btf_maps(scene) else ())
     report = compare_modes(scene, near, out_dir=out, modes=modes, **opts)
+    report["camera"] = describe_camera(scene, None)
     report["far"] = compare_modes(scene, far, out_dir=out, prefix="far_", modes=modes, **opts)
+    report["far"]["camera"] = describe_camera(scene, "lod")
     report["scene"] = scene.baked.name
     report["size"] = size
     files = [Path(f) for view in (report, report["far"]) for m in view["modes"].values()
@@ -214,6 +216,7 @@ def render_report(baked_root: str | Path, out_dir: str | Path, *,
     report = compare_modes(scene, cam, spp=spp, ref_spp=ref_spp, gt_sweep=gt_sweep,
                            cpm_sweep=cpm_sweep, seed=seed, out_dir=out, modes=modes)
     report["scene"] = scene.baked.name
+    report["camera"] = describe_camera(scene, camera)
     path = out / "render_report.json"
     _write_json(path, report)
     write_report_plot(out)

@@ -192,6 +192,20 @@ def lod_camera(scene: RenderScene, width: int, height: int, texel_px: float = 0.
     return cam_mod.dolly(cam, centre, far) if far > depth else cam
 
 
+def describe_camera(scene: OrgScene, camera: object) -> str:
+    """What `resolve_camera(scene, camera, ...)` looks through, in words for reports: the
+    asset's camera (its prim path), the auto-framed view when the asset has none, the `lod`
+    view, or a given camera."""
+    if camera is None:
+        cams = scene.asset.cameras
+        return f"the asset's camera {cams[0].path}" if cams else "auto-framed (the asset has none)"
+    if isinstance(camera, str):
+        return "lod: the default view moved back until a finest texel spans ~0.7 pixel"
+    if isinstance(camera, (int, float)):
+        return f"auto-framed at {float(camera):g}x the fitting distance"
+    return "given by the caller"
+
+
 def resolve_camera(scene: OrgScene, camera: object, width: int, height: int) -> PinholeCamera:
     """camera : None (the asset's, else auto-framed), "lod" (`lod_camera`), a PinholeCamera,
     a model.Camera, or a number = auto-frame distance factor (`camera.auto_frame`)."""
