@@ -42,6 +42,7 @@ bench: setup
 	$(PY) benchmarks/btf.py --synthetic --json bench_out/btf.json
 	$(PY) benchmarks/render.py --scene cylinder --scene-size full --btf \
 		--json bench_out/render_cylinder.json
+	$(PY) benchmarks/fuzz_uploads.py --examples 1000 --json bench_out/fuzz_uploads.json
 
 scenes: setup
 	$(VENV)/bin/texelbake scenes all -o build/scenes --size small

@@ -138,6 +138,15 @@ def test_settings_are_validated(a):
     assert r.status_code == 422 and "power of two" in r.text
     r = a.post("/jobs", json={"asset_id": aid, "settings": {"no_such_knob": 1}})
     assert r.status_code == 422 and "no_such_knob" in r.text
+    # NaN and Infinity (JSON extensions a client may send) are refused as 422 naming the
+    # field; the error body stays valid JSON (it answered 500 before: the echoed input
+    # could not be encoded; found by benchmarks/fuzz_uploads.py)
+    for bad in ('{"eps_db": NaN}', '{"eps_db": Infinity}', '{"n_trials": -Infinity}'):
+        r = a.post("/jobs", content=f'{{"asset_id": "{aid}", "settings": {bad}}}',
+                   headers={"Content-Type": "application/json"})
+        assert r.status_code == 422, (bad, r.status_code, r.text)
+        field = bad.split('"')[1]
+        assert any(field in e["loc"] for e in r.json()["detail"]), r.text
 
 
 def test_cancel_keeps_state_and_events_stream_ends(a):
