@@ -117,7 +117,10 @@ def progressive(cam: PinholeCamera, seed: int, shade, budget_seconds: float
     further samples are added in chunks of pixels (whole rows in a seeded random order, so a
     partial pass is spread over the image), each `BUDGET_STEP` of the time left at the
     measured cost per sample (at most a pass), until less than `MIN_CHUNK_RAYS` samples'
-    time (or a pass's, for frames smaller than that) is left. Each pixel's sample k sits at R2[k] shifted by a per-pixel random
+    time (a quarter pass's, for frames smaller than that) is left. On frames of a few hundred
+    pixels the per-call overhead makes the time only approximate (a 24² preview stopped at
+    0.4 of its budget with a whole-pass threshold); the benchmark frames (512²) land within
+    ±5 %. Each pixel's sample k sits at R2[k] shifted by a per-pixel random
     offset (Cranley–Patterson rotation), so every pixel's samples are well spread whatever
     their count; the pixel's value is the mean of its samples.
 
@@ -157,7 +160,7 @@ def progressive(cam: PinholeCamera, seed: int, shade, budget_seconds: float
         elapsed = time.perf_counter() - t0
         per_sample = elapsed / done
         chunk = int(min(BUDGET_STEP * (budget_seconds - elapsed) / per_sample, n_pix))
-        if chunk < min(MIN_CHUNK_RAYS, n_pix):
+        if chunk < min(MIN_CHUNK_RAYS, max(n_pix // 4, 1)):
             break
     count = np.full(n_pix, float(k))
     count[:pos] += 1.0
