@@ -16,7 +16,7 @@ from celery import Celery
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
-from services import ledger
+from services import errors, ledger
 from services.auth import ensure_tokens
 from services.broker import broker_run_id, celery_sender
 from services.config import API_V1, Settings, get_settings
@@ -31,7 +31,9 @@ log = logging.getLogger("texelbake.api")
 
 
 def custom_generate_unique_id(route: APIRoute) -> str:
-    """Stable operation ids: `<tag>-<handler name>` (e.g. `jobs-read_job`)."""
+    """Names of generated body models (`Body_<tag>-<handler>`). Operation ids are given on each
+    route (`operation_id=`), so a handler's rename does not rename a generated client's
+    function; `tests/test_api_contract.py` checks that every route has one."""
     return f"{route.tags[0]}-{route.name}"
 
 
@@ -90,6 +92,7 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     app.state.celery = celery
     for r in (utils.router, assets.router, jobs.router):
         app.include_router(r, prefix=API_V1)
+    errors.install(app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
     return app
 
