@@ -122,3 +122,20 @@ def test_handlers_answer_in_the_error_model(app):
         assert r.status_code == 404 and r.json()["code"] == "not_found"
         r = c.post("/api/v1/assets", headers=auth, files={"file": ("x.txt", b"hello")})
         assert r.status_code == 415 and r.json()["code"] == "unsupported_file_type"
+
+
+def test_octet_stream_alias_is_honoured_on_accept():
+    from starlette.requests import Request
+
+    from services.routers.jobs import _media_type
+
+    def req(accept: str | None) -> Request:
+        headers = [] if accept is None else [(b"accept", accept.encode())]
+        return Request({"type": "http", "method": "GET", "headers": headers})
+
+    assert _media_type(req(None), "application/zip") == "application/zip"
+    assert _media_type(req("*/*"), "image/png") == "image/png"
+    assert _media_type(req("application/octet-stream"), "image/png") == "application/octet-stream"
+    assert _media_type(req("application/zip, application/octet-stream"), "application/zip") == (
+        "application/zip"
+    )

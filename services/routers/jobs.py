@@ -52,6 +52,8 @@ BINARY = {"type": "string", "format": "binary"}
 #: the real media type first; `application/octet-stream` is the generic alias a client may ask
 #: for (`Accept`) and the one generic generators know how to download
 OCTET = "application/octet-stream"
+#: media types of preview files by suffix (not guessed: `mimetypes` differs between machines)
+PREVIEW_TYPES = {".png": "image/png", ".exr": "image/x-exr", ".json": "application/json"}
 
 
 def _own_job(session: Session, job_id: str, tenant: str) -> Job:
@@ -388,8 +390,14 @@ def read_job_result(
     operation_id="read_job_preview",
     responses={
         200: {
-            "content": {"image/png": {"schema": BINARY}, OCTET: {"schema": BINARY}},
-            "description": "The preview image (PNG).",
+            "content": {
+                "image/png": {"schema": BINARY},
+                "image/x-exr": {"schema": BINARY},
+                OCTET: {"schema": BINARY},
+                "application/json": {"schema": {"type": "object"}},
+            },
+            "description": "A preview: an sRGB `.png`, a linear `.exr`, or the render "
+            "report `.json`; the media type follows the name.",
         },
         **errors(
             401, (404, "`job_not_found`, or `preview_not_found`: no such preview."), 422
@@ -404,13 +412,14 @@ def read_job_preview(
     tenant: CurrentTenant,
     settings: SettingsDep,
 ) -> FileResponse:
-    """One preview image of a finished job (names are listed in the job's `previews`)."""
+    """One preview file of a finished job (names are listed in the job's `previews`)."""
     job = _own_job(session, job_id, tenant)
     folder = storage.job_out(settings.artifact_root, job.id) / "previews"
     path = folder / name
     if not _NAME.match(name) or not path.is_file() or path.is_symlink():
         raise ApiError(status.HTTP_404_NOT_FOUND, PREVIEW_NOT_FOUND, ErrorCode.PREVIEW_NOT_FOUND)
-    return FileResponse(path, media_type=_media_type(request, "image/png"))
+    native = PREVIEW_TYPES.get(path.suffix.lower(), OCTET)
+    return FileResponse(path, media_type=_media_type(request, native))
 
 
 @router.get(
