@@ -6,12 +6,14 @@ import time
 from collections.abc import AsyncIterator
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Query, Request, status
+from fastapi import Depends, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
+from schemas.common import ErrorCode
 from services.auth import tenant_by_digest, token_digest
 from services.config import Settings
+from services.errors import ApiError
 
 NOT_AUTHENTICATED = "not authenticated"
 INVALID_TOKEN = "invalid token"
@@ -68,8 +70,11 @@ async def get_current_tenant(
     creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> str:
     if creds is None or not creds.credentials:
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED, NOT_AUTHENTICATED, headers={"WWW-Authenticate": "Bearer"}
+        raise ApiError(
+            status.HTTP_401_UNAUTHORIZED,
+            NOT_AUTHENTICATED,
+            ErrorCode.NOT_AUTHENTICATED,
+            headers={"WWW-Authenticate": "Bearer"},
         )
     st: Settings = request.app.state.settings
     cache: TokenCache = request.app.state.token_cache
@@ -80,8 +85,11 @@ async def get_current_tenant(
         if tenant is not None:
             cache.put(digest, tenant)
     if tenant is None:
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED, INVALID_TOKEN, headers={"WWW-Authenticate": "Bearer"}
+        raise ApiError(
+            status.HTTP_401_UNAUTHORIZED,
+            INVALID_TOKEN,
+            ErrorCode.INVALID_TOKEN,
+            headers={"WWW-Authenticate": "Bearer"},
         )
     return tenant
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+from schemas.common import ErrorCode
 from services.uploads import TOO_LARGE
 
 #: multipart framing and form fields around the file
@@ -62,7 +63,9 @@ class BodyLimit:
 
 
 async def _too_large(send, cap: int) -> None:  # noqa: ANN001
-    body = json.dumps({"detail": f"{TOO_LARGE} {cap} bytes: request body"}).encode()
+    body = json.dumps(
+        {"detail": f"{TOO_LARGE} {cap} bytes: request body", "code": ErrorCode.UPLOAD_TOO_LARGE.value}
+    ).encode()
     await send(
         {
             "type": "http.response.start",

@@ -8,20 +8,15 @@ pxr in a child process (`services.validate`). A background thread sweeps the sha
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from contextlib import asynccontextmanager
 from datetime import timedelta
-from typing import Any
 
 from celery import Celery
-from fastapi import FastAPI, Request
-from fastapi.encoders import jsonable_encoder
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
-from services import ledger
+from services import errors, ledger
 from services.auth import ensure_tokens
 from services.broker import broker_run_id, celery_sender
 from services.config import API_V1, Settings, get_settings
@@ -36,7 +31,9 @@ log = logging.getLogger("texelbake.api")
 
 
 def custom_generate_unique_id(route: APIRoute) -> str:
-    """Stable operation ids: `<tag>-<handler name>` (e.g. `jobs-read_job`)."""
+    """Names of generated body models (`Body_<tag>-<handler>`). Operation ids are given on each
+    route (`operation_id=`), so a handler's rename does not rename a generated client's
+    function; `tests/test_api_contract.py` checks that every route has one."""
     return f"{route.tags[0]}-{route.name}"
 
 
@@ -59,26 +56,6 @@ def _sweeper(app: FastAPI, stop: threading.Event) -> None:
                 log.info("sweeper re-sent %d messages", n)
         except Exception as exc:  # noqa: BLE001 - keep sweeping; the next tick retries
             log.warning("sweep failed: %r", exc)
-
-
-def _json_safe(obj: Any) -> Any:
-    """JSON has no NaN or Infinity: such floats (echoed back as the offending `input` of a
-    validation error) become their string names."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return str(obj)
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_json_safe(v) for v in obj]
-    return obj
-
-
-async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
-    """FastAPI's 422 body ({"detail": [errors]}), made encodable: its default handler answered
-    500 when a field's bad value was NaN or Infinity (found by benchmarks/fuzz_uploads.py)."""
-    errors = exc.errors() if isinstance(exc, RequestValidationError) else []
-    return JSONResponse(status_code=422,
-                        content={"detail": _json_safe(jsonable_encoder(errors))})
 
 
 def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> FastAPI:
@@ -115,7 +92,7 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     app.state.celery = celery
     for r in (utils.router, assets.router, jobs.router):
         app.include_router(r, prefix=API_V1)
-    app.add_exception_handler(RequestValidationError, _validation_error)
+    errors.install(app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
     return app
 

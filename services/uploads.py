@@ -21,6 +21,7 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from schemas.common import ErrorCode
 from services import storage
 from texelbake.atomic import replace
 
@@ -42,13 +43,34 @@ NO_ROOT = "bundle has no root layer"
 VALIDATE_FAILED = "asset could not be checked"
 
 
+#: `detail` prefix -> the stable `code` of the error body
+CODES: dict[str, ErrorCode] = {
+    UNSUPPORTED: ErrorCode.UNSUPPORTED_FILE_TYPE,
+    TOO_LARGE: ErrorCode.UPLOAD_TOO_LARGE,
+    BOMB_SIZE: ErrorCode.BUNDLE_TOO_LARGE,
+    BOMB_RATIO: ErrorCode.COMPRESSION_RATIO,
+    LYING: ErrorCode.MEMBER_SIZE_MISMATCH,
+    TOO_MANY: ErrorCode.TOO_MANY_MEMBERS,
+    BAD_ZIP: ErrorCode.BAD_ZIP,
+    BAD_MEMBER: ErrorCode.BAD_MEMBER_PATH,
+    LINK_MEMBER: ErrorCode.LINK_MEMBER,
+    NO_ROOT: ErrorCode.NO_ROOT_LAYER,
+    VALIDATE_FAILED: ErrorCode.ASSET_CHECK_FAILED,
+}
+
+
 class UploadRejected(Exception):
-    """A 4xx for the client; `detail` names the offending path."""
+    """A 4xx for the client; `detail` names the offending path. `code` follows from the
+    detail's prefix; the pxr checker's own findings are `invalid_asset`."""
 
     def __init__(self, status: int, detail: str):
         super().__init__(detail)
         self.status = status
         self.detail = detail
+        self.code = next(
+            (c for prefix, c in CODES.items() if detail.startswith(prefix)),
+            ErrorCode.INVALID_ASSET,
+        )
 
 
 @dataclass(frozen=True)

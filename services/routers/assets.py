@@ -3,21 +3,36 @@
 from __future__ import annotations
 
 import hashlib
+from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Request, Response, UploadFile, status
+from fastapi import APIRouter, File, Request, Response, UploadFile, status
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
 from schemas.asset import AssetPublic, AssetsPublic
+from schemas.common import ErrorCode
 from services import uploads
 from services.db import Asset
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
+from services.errors import ApiError, errors
 
 router = APIRouter(prefix="/assets", tags=["assets"])
 
 ASSET_NOT_FOUND = "asset not found"
 NO_FILE = "no file in the upload"
+
+ASSET_404 = (404, "`asset_not_found`: no such asset for this tenant.")
+
+#: the multipart file part, declared as binary (`type: string, format: binary`): OpenAPI 3.1's
+#: `contentMediaType` alone makes generated clients send a string instead of the file
+UploadPart = Annotated[
+    UploadFile,
+    File(
+        description="The USD file (.usda/.usdc/.usd), a .usdz, or a .zip bundle.",
+        json_schema_extra={"format": "binary"},
+    ),
+]
 
 
 def asset_id_for(tenant: str, sha256: str) -> str:
@@ -34,15 +49,31 @@ def _chunks(upload: UploadFile):
     "",
     response_model=AssetPublic,
     status_code=status.HTTP_201_CREATED,
+    operation_id="create_asset",
     responses={
         200: {"model": AssetPublic, "description": "The same bytes were uploaded before."},
-        413: {"description": "Too large, or a zip bomb (size or ratio cap)."},
-        415: {"description": "Not .usda/.usdc/.usd/.usdz/.zip."},
-        422: {"description": "Hostile or broken content; `detail` names the path."},
+        **errors(
+            400,
+            401,
+            (
+                413,
+                "Too large (`upload_too_large`), or a zip bomb: `bundle_too_large`, "
+                "`compression_ratio_too_high`, `too_many_members`, "
+                "`bundle_member_size_mismatch`.",
+            ),
+            (415, "Not .usda/.usdc/.usd/.usdz/.zip (`unsupported_file_type`)."),
+            (
+                422,
+                "Hostile or broken content, `detail` names the path: `invalid_asset`, "
+                "`asset_check_failed`, `bad_zip`, `bad_member_path`, `link_member`, "
+                "`no_root_layer`, `no_file`; or a request that does not validate "
+                "(`validation_error`).",
+            ),
+        ),
     },
 )
 async def create_asset(
-    file: UploadFile,
+    file: UploadPart,
     request: Request,
     response: Response,
     tenant: CurrentTenant,
@@ -51,7 +82,7 @@ async def create_asset(
 ) -> AssetPublic:
     """Upload a USD file, a .usdz, or a .zip bundle with its textures."""
     if not file.filename:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, NO_FILE)
+        raise ApiError(status.HTTP_422_UNPROCESSABLE_CONTENT, NO_FILE, ErrorCode.NO_FILE)
     root = settings.artifact_root
     try:
         staged = await run_in_threadpool(
@@ -59,7 +90,7 @@ async def create_asset(
         )
         folder = await run_in_threadpool(uploads.commit_staged, staged, root)
     except uploads.UploadRejected as exc:
-        raise HTTPException(exc.status, exc.detail) from exc
+        raise ApiError(exc.status, exc.detail, exc.code) from exc
     meta = uploads.read_meta(folder)
     aid = asset_id_for(tenant, staged.sha256)
     with writer.begin() as s:
@@ -87,7 +118,9 @@ async def create_asset(
     return AssetPublic.model_validate(asset)
 
 
-@router.get("", response_model=AssetsPublic)
+@router.get(
+    "", response_model=AssetsPublic, operation_id="list_assets", responses=errors(401, 422)
+)
 def read_assets(
     session: SessionDep, tenant: CurrentTenant, skip: SkipQ = 0, limit: LimitQ = 100
 ) -> AssetsPublic:
@@ -98,10 +131,15 @@ def read_assets(
     return AssetsPublic(data=[AssetPublic.model_validate(a) for a in rows], count=count)
 
 
-@router.get("/{asset_id}", response_model=AssetPublic)
+@router.get(
+    "/{asset_id}",
+    response_model=AssetPublic,
+    operation_id="read_asset",
+    responses=errors(401, ASSET_404, 422),
+)
 def read_asset(asset_id: str, session: SessionDep, tenant: CurrentTenant) -> AssetPublic:
     """One asset of this tenant."""
     asset = session.get(Asset, asset_id)
     if asset is None or asset.tenant != tenant:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, ASSET_NOT_FOUND)
+        raise ApiError(status.HTTP_404_NOT_FOUND, ASSET_NOT_FOUND, ErrorCode.ASSET_NOT_FOUND)
     return AssetPublic.model_validate(asset)

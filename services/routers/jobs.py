@@ -10,12 +10,13 @@ import uuid
 from collections import defaultdict
 from pathlib import Path
 
-from fastapi import APIRouter, Header, HTTPException, Request, Response, status
+from fastapi import APIRouter, Header, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from schemas.common import ErrorCode
 from schemas.job import (
     TERMINAL_JOB_STATES,
     JobCreate,
@@ -31,7 +32,8 @@ from services import ledger, storage
 from services.broker import broker_run_id, celery_sender
 from services.db import Asset, Event, Job, Shard, Stage
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
-from services.routers.assets import ASSET_NOT_FOUND
+from services.errors import ApiError, errors
+from services.routers.assets import ASSET_404, ASSET_NOT_FOUND
 from texelbake.archive import zip_folder
 from texelbake.atomic import atomic_write_bytes
 
@@ -43,11 +45,21 @@ PREVIEW_NOT_FOUND = "preview not found"
 REPORT_NOT_FOUND = "report not found"
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
 
+JOB_404 = (404, "`job_not_found`: no such job for this tenant.")
+JOB_409 = (409, "`job_not_finished`: the job has not succeeded (yet).")
+#: a binary body: generators give the caller the bytes
+BINARY = {"type": "string", "format": "binary"}
+#: the real media type first; `application/octet-stream` is the generic alias a client may ask
+#: for (`Accept`) and the one generic generators know how to download
+OCTET = "application/octet-stream"
+#: media types of preview files by suffix (not guessed: `mimetypes` differs between machines)
+PREVIEW_TYPES = {".png": "image/png", ".exr": "image/x-exr", ".json": "application/json"}
+
 
 def _own_job(session: Session, job_id: str, tenant: str) -> Job:
     job = session.get(Job, job_id)
     if job is None or job.tenant != tenant:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, JOB_NOT_FOUND)
+        raise ApiError(status.HTTP_404_NOT_FOUND, JOB_NOT_FOUND, ErrorCode.JOB_NOT_FOUND)
     return job
 
 
@@ -117,7 +129,13 @@ def job_public(session: Session, job: Job, root: Path) -> JobPublic:
     )
 
 
-@router.post("", response_model=JobPublic, status_code=status.HTTP_201_CREATED)
+@router.post(
+    "",
+    response_model=JobPublic,
+    status_code=status.HTTP_201_CREATED,
+    operation_id="create_job",
+    responses=errors(401, ASSET_404, 413, 422),
+)
 def create_job(
     body: JobCreate,
     request: Request,
@@ -129,7 +147,7 @@ def create_job(
     """Create a bake job for one of this tenant's assets; its stages are planned by a worker."""
     asset = session.get(Asset, body.asset_id)
     if asset is None or asset.tenant != tenant:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, ASSET_NOT_FOUND)
+        raise ApiError(status.HTTP_404_NOT_FOUND, ASSET_NOT_FOUND, ErrorCode.ASSET_NOT_FOUND)
     job_id = uuid.uuid4().hex
     send = ledger.create_job(writer, job_id, tenant, asset.id, body.settings.model_dump_json())
     try:  # a broker outage is not the client's problem: the sweeper sends it later
@@ -145,7 +163,7 @@ def create_job(
         return job_public(s, s.get(Job, job_id), settings.artifact_root)
 
 
-@router.get("", response_model=JobsPublic)
+@router.get("", response_model=JobsPublic, operation_id="list_jobs", responses=errors(401, 422))
 def read_jobs(
     session: SessionDep, tenant: CurrentTenant, skip: SkipQ = 0, limit: LimitQ = 100
 ) -> JobsPublic:
@@ -210,7 +228,12 @@ class JobCache:
         self._d[key] = body
 
 
-@router.get("/{job_id}", response_model=JobPublic)
+@router.get(
+    "/{job_id}",
+    response_model=JobPublic,
+    operation_id="read_job",
+    responses=errors(401, JOB_404, 422),
+)
 async def read_job(
     job_id: str,
     request: Request,
@@ -246,7 +269,14 @@ def _events_after(reader, job_id: str, after: int) -> tuple[list[Event], str | N
 @router.get(
     "/{job_id}/events",
     response_class=StreamingResponse,
-    responses={200: {"content": {"text/event-stream": {}}, "description": "Server-sent events."}},
+    operation_id="read_job_events",
+    responses={
+        200: {
+            "content": {"text/event-stream": {"schema": {"type": "string"}}},
+            "description": "Server-sent events.",
+        },
+        **errors(401, JOB_404, 422),
+    },
 )
 def read_job_events(
     job_id: str,
@@ -303,7 +333,17 @@ def read_job_events(
 
 def _require_done(job: Job) -> None:
     if job.state != "succeeded":
-        raise HTTPException(status.HTTP_409_CONFLICT, f"{JOB_NOT_FINISHED} (state {job.state})")
+        raise ApiError(
+            status.HTTP_409_CONFLICT,
+            f"{JOB_NOT_FINISHED} (state {job.state})",
+            ErrorCode.JOB_NOT_FINISHED,
+        )
+
+
+def _media_type(request: Request, native: str) -> str:
+    """`native`, unless the client asks for `application/octet-stream` and not for it."""
+    accept = request.headers.get("accept", "")
+    return OCTET if OCTET in accept and native not in accept else native
 
 
 def build_result_zip(out_dir: Path, dest: Path) -> Path:
@@ -316,10 +356,21 @@ def build_result_zip(out_dir: Path, dest: Path) -> Path:
 @router.get(
     "/{job_id}/result",
     response_class=FileResponse,
-    responses={200: {"content": {"application/zip": {}}, "description": "The baked USD bundle."}},
+    operation_id="read_job_result",
+    responses={
+        200: {
+            "content": {"application/zip": {"schema": BINARY}, OCTET: {"schema": BINARY}},
+            "description": "The baked USD bundle (a zip).",
+        },
+        **errors(401, JOB_404, JOB_409, 422),
+    },
 )
 def read_job_result(
-    job_id: str, session: SessionDep, tenant: CurrentTenant, settings: SettingsDep
+    job_id: str,
+    request: Request,
+    session: SessionDep,
+    tenant: CurrentTenant,
+    settings: SettingsDep,
 ) -> FileResponse:
     """The baked USD bundle (root layer, payload, maps, report) as a zip."""
     job = _own_job(session, job_id, tenant)
@@ -328,27 +379,65 @@ def read_job_result(
     dest = build_result_zip(
         storage.job_out(root, job.id), storage.job_dir(root, job.id) / "result.zip"
     )
-    return FileResponse(dest, media_type="application/zip", filename=f"{job.id}.zip")
+    return FileResponse(
+        dest, media_type=_media_type(request, "application/zip"), filename=f"{job.id}.zip"
+    )
 
 
 @router.get(
     "/{job_id}/previews/{name}",
     response_class=FileResponse,
-    responses={200: {"content": {"image/png": {}}}},
+    operation_id="read_job_preview",
+    responses={
+        200: {
+            "content": {
+                "image/png": {"schema": BINARY},
+                "image/x-exr": {"schema": BINARY},
+                OCTET: {"schema": BINARY},
+                "application/json": {"schema": {"type": "object"}},
+            },
+            "description": "A preview: an sRGB `.png`, a linear `.exr`, or the render "
+            "report `.json`; the media type follows the name.",
+        },
+        **errors(
+            401, (404, "`job_not_found`, or `preview_not_found`: no such preview."), 422
+        ),
+    },
 )
 def read_job_preview(
-    job_id: str, name: str, session: SessionDep, tenant: CurrentTenant, settings: SettingsDep
+    job_id: str,
+    name: str,
+    request: Request,
+    session: SessionDep,
+    tenant: CurrentTenant,
+    settings: SettingsDep,
 ) -> FileResponse:
-    """One preview image of a finished job (names are listed in the job's `previews`)."""
+    """One preview file of a finished job (names are listed in the job's `previews`)."""
     job = _own_job(session, job_id, tenant)
     folder = storage.job_out(settings.artifact_root, job.id) / "previews"
     path = folder / name
     if not _NAME.match(name) or not path.is_file() or path.is_symlink():
-        raise HTTPException(status.HTTP_404_NOT_FOUND, PREVIEW_NOT_FOUND)
-    return FileResponse(path)
+        raise ApiError(status.HTTP_404_NOT_FOUND, PREVIEW_NOT_FOUND, ErrorCode.PREVIEW_NOT_FOUND)
+    native = PREVIEW_TYPES.get(path.suffix.lower(), OCTET)
+    return FileResponse(path, media_type=_media_type(request, native))
 
 
-@router.get("/{job_id}/report")
+@router.get(
+    "/{job_id}/report",
+    operation_id="read_job_report",
+    responses={
+        200: {
+            "content": {"application/json": {"schema": {"type": "object"}}},
+            "description": "The bake report (`report.json` of the result bundle).",
+        },
+        **errors(
+            401,
+            (404, "`job_not_found`, or `report_not_found`: the bundle has no report."),
+            JOB_409,
+            422,
+        ),
+    },
+)
 def read_job_report(
     job_id: str, session: SessionDep, tenant: CurrentTenant, settings: SettingsDep
 ) -> JSONResponse:
@@ -357,11 +446,17 @@ def read_job_report(
     _require_done(job)
     path = storage.job_out(settings.artifact_root, job.id) / "report.json"
     if not path.is_file():
-        raise HTTPException(status.HTTP_404_NOT_FOUND, REPORT_NOT_FOUND)
+        raise ApiError(status.HTTP_404_NOT_FOUND, REPORT_NOT_FOUND, ErrorCode.REPORT_NOT_FOUND)
     return JSONResponse(json.loads(path.read_text()))
 
 
-@router.delete("/{job_id}", response_model=JobPublic, status_code=status.HTTP_202_ACCEPTED)
+@router.delete(
+    "/{job_id}",
+    response_model=JobPublic,
+    status_code=status.HTTP_202_ACCEPTED,
+    operation_id="cancel_job",
+    responses=errors(401, JOB_404, 422),
+)
 def delete_job(
     job_id: str,
     request: Request,

@@ -12,7 +12,12 @@ from services.deps import SessionDep, SettingsDep
 router = APIRouter(prefix="/utils", tags=["utils"])
 
 
-@router.get("/health-check/", response_model=HealthCheck)
+@router.get(
+    "/health-check/",
+    response_model=HealthCheck,
+    operation_id="health_check",
+    responses={503: {"model": HealthCheck, "description": "The database is not reachable."}},
+)
 def health_check(session: SessionDep, settings: SettingsDep, response: Response) -> HealthCheck:
     """Database and broker reachability; 503 when the database is down."""
     try:
