@@ -63,11 +63,25 @@ class BakeSettings(BaseModel):
         description="children: coarse texels select from their children's weighted points; "
         "dense: from all dense samples, as the seed.",
     )
+    fit_method: Literal["batched", "per_texel"] = Field(
+        "batched",
+        description="batched: R, Grams and eigendecompositions for many texels at once "
+        "(issue 15); per_texel: one texel at a time on R itself (the seed's loop).",
+    )
+    closed_form: bool = Field(
+        True, description="A texel whose R is numerically rank 1 gets its point in closed form, "
+        "without draws or trials (batched fit only).",
+    )
     # visible projected area (seed 000 §3.4)
     avis_resolution: int = Field(16, ge=2, le=256, description="Cube-map face resolution.")
     avis_keep_fraction: float = Field(0.06, gt=0.0, le=1.0, description="Haar coefficients kept.")
     # farm
     shard_texels: int = Field(8, ge=1, le=4096, description="Tile side (finest texels) of a shard.")
+    worker_memory_mb: int = Field(
+        1024, ge=64, le=1 << 20,
+        description="Working-memory bound of one worker's CPM fit (MiB): texels and samples are "
+        "processed in chunks that fit, whatever the atlas size; the result does not depend on it.",
+    )
     # optional stages
     btf: bool = Field(False, description="Run the BTF stage (real-time target).")
     previews: bool = Field(False, description="Render previews after export.")

@@ -20,6 +20,7 @@ class Tolerances:
     const_channel_var: float = 1e-10  # variance / sum x^2 below this: a constant colour channel
     # visible projected area
     avis_floor: float = 1e-9          # relative to texel area: a_vis below is "fully masked"
+    rank1_rel: float = 1e-10          # energy outside the top eigenvalue: R is rank 1 (closed form)
     # directions
     grazing_cos: float = 1e-6         # n.w below this counts as below the horizon
     # brdf

@@ -36,6 +36,19 @@ def texel_rel_errors(table_maps: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.divide(diff, norm, out=np.where(diff > 0, np.inf, 0.0), where=norm > 0)
 
 
+def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
+    """Texels the batched fit did not fit by draws and trials (issue 15), with their held-out
+    SNR: "rank1" (closed form), "per_texel" (fitted by `fit.fit_texel`). Empty for the
+    per-texel path, which records no skip."""
+    if "skip" not in data:
+        return {}
+    skip = data["skip"][valid]
+    ho = data["snr_ho"][valid]
+    return {name: {"texels": int(np.sum(skip == code)),
+                   "snr_heldout_db": percentiles(ho[skip == code])}
+            for code, name in ((1, "rank1"), (2, "per_texel"))}
+
+
 def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_keep_fraction: float,
                    level: int, data: dict[str, np.ndarray],
                    avis_level: avis_mod.AvisLevel) -> tuple[dict[str, np.ndarray], dict]:
@@ -102,6 +115,7 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "snr_insample_db": percentiles(data["snr_in"][valid]),
         "snr_heldout_db": percentiles(data["snr_ho"][valid]),
         "per_channel_texels": int(np.sum(data["mode"][valid] == 1)),
+        "skips": _skips(data, valid),
         "points": int(len(pts)),
         "rays": int(data["rays"].sum()) if "rays" in data else 0,
         "bytes": int(sum(a.nbytes for a in arrays.values())),

@@ -19,7 +19,7 @@ from texelbake.model import AssetModel
 from texelbake.store import ArtifactStore, file_sha256
 
 #: settings that change no stage output (farm layout and optional downstream stages)
-LAYOUT_ONLY = {"shard_texels", "previews"}
+LAYOUT_ONLY = {"shard_texels", "previews", "worker_memory_mb"}
 GEOMETRY_FIELDS = (
     "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",
 )

@@ -8,11 +8,11 @@ import numpy as np
 
 from texelbake.cpm.level import (
     concat_levels,
-    fit_level,
     level_candidates,
     sort_by_texel,
     tile_texels,
 )
+from texelbake.cpm.level_batched import fit_level
 from texelbake.stages.context import StageContext
 
 

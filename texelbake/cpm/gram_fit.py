@@ -1,0 +1,371 @@
+"""Characteristic points of one texel from its Gram matrices (seed 000 §3.3, §4.1; DMM06 Table 2),
+the algorithm of `texelbake.cpm.fit.fit_texel` (rows="eq7") moved to m x m space so that the
+expensive parts run batched over many texels (`texelbake.cpm.level_batched`).
+
+Everything the fit needs from the d x m matrix F = diag(1/a_vis) R (rows with a_vis <= eps are
+zero) is a Gram matrix (d = N_i N_o rows, m samples, d >> m):
+
+- Table 2's probabilities need the top right singular vectors and the singular values of the
+  selection matrix S (luminance S = F lw, or one channel): eigh(S^T S), exactly the Gram route
+  of `column_sampling.svd_float64` with its floor on unresolved singular values;
+- the trials solve min ||F_c[:, C] a - F_c 1|| (Eq. 10-11, NNLS); with G_c = F_c^T F_c =
+  D V diag(lam) V^T D (D = column norms) that residual equals ||A a - t||^2 + rest with
+  A = diag(sqrt lam) V^T D, t = diag(1/sqrt lam) V^T D^-1 G_c 1 and rest = 1^T G_c 1 - t^T t,
+  the reduced system `fit._Fitter._reduce` forms from F itself (same algebra, the products
+  M^T t replaced by G 1);
+- the SNR signal of Eq. 7 is sum_c 1^T G_c 1.
+
+The Grams (one GEMM per matrix) and the eigendecompositions (torch.linalg.eigh over stacks of
+equal-size matrices, so a texel's result never depends on which texels share its batch) are
+computed by the caller; here, per texel, only the m-sized work remains: probabilities, the
+bisection on c with its trials (NNLS on r x c systems, r <= m), and the reported in-sample SNR,
+recomputed in d space from F with the stored float32 weights as `fit_texel` does.
+
+Closed form (issue 15, "model only what a texel needs"): when every selection matrix is
+numerically rank 1 (lam_2 <= TOL.rank1_rel lam_1 for S and every channel: coplanar,
+unoccluded, single-material samples, or any texel whose samples all see the same reflectance up
+to scale), one column spans span(R) and Eq. 10's weights are the 1-column least squares
+alpha_c = (G_c 1)_j / (G_c)_jj for the column j of largest energy; no draws, no trials.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from texelbake.cpm.column_sampling import (
+    column_probabilities,
+    energy_rank,
+    fit_weights,
+    sample_columns,
+)
+from texelbake.cpm.fit import LUMA_709, TexelFit, _empty_fit, _storable_weights
+from texelbake.cpm.matrix import snr_db
+from texelbake.tol import TOL
+
+EPS64 = float(np.finfo(np.float64).eps)
+
+
+def batched_eigh(mats: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """eigh of many symmetric matrices: stacked by size, one torch.linalg.eigh per size.
+
+    mats : list of (m_i, m_i) float64; returns [(lam (m_i,) ascending, V (m_i, m_i))] in order.
+    torch's batched CPU eigh runs LAPACK on each matrix of the stack, so a matrix's result is the
+    same whichever matrices share its stack (checked by tests/test_gram_fit.py)."""
+    out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(mats)
+    by_size: dict[int, list[int]] = {}
+    for i, g in enumerate(mats):  # loop over matrices: bucket by size only
+        by_size.setdefault(g.shape[0], []).append(i)
+    for m, idx in by_size.items():  # loop over distinct sizes
+        if m == 0:
+            for i in idx:
+                out[i] = (np.zeros(0), np.zeros((0, 0)))
+            continue
+        stack = torch.as_tensor(np.stack([mats[i] for i in idx]))
+        lam, vec = torch.linalg.eigh(stack)
+        lam_np, vec_np = lam.numpy(), vec.numpy()
+        for j, i in enumerate(idx):
+            out[i] = (lam_np[j], vec_np[j])
+    return out  # type: ignore[return-value]
+
+
+def correlation_from_sums(sx: np.ndarray, sxx: np.ndarray, n: int) -> float:
+    """`fit.channel_correlation` from the entries' sums: sx (ch,) = sum x, sxx (ch, ch) = sum
+    x x^T over the n = d m entries of R (same one-pass formula and constant-channel rule)."""
+    ch = sx.shape[0]
+    if ch < 2 or n < 2:
+        return 1.0
+    mu = sx / n
+    cov = sxx - n * np.outer(mu, mu)
+    var = np.diag(cov)
+    ok = var > TOL.const_channel_var * np.diag(sxx)
+    sd = np.where(ok, np.sqrt(np.where(ok, var, 1.0)), 1.0)
+    corr = np.ones((ch, ch))
+    both = ok[:, None] & ok[None, :]
+    corr[both] = (cov / np.outer(sd, sd))[both]
+    return float(np.clip(corr.min(), -1.0, 1.0))
+
+
+def normalised_gram(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(G / (norms norms^T), scale): the Gram of unit-scaled columns (zero columns stay zero)."""
+    norms = np.sqrt(np.maximum(np.diag(G), 0.0))
+    scale = np.where(norms > 0, norms, 1.0)
+    return G / np.outer(scale, scale), scale
+
+
+def reduced_system(
+    G: np.ndarray, eig_n: tuple[np.ndarray, np.ndarray], scale: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """`fit._Fitter._reduce` for one channel from its Gram: (A (r, m), t (r,), rest)."""
+    lam, V = eig_n
+    m = G.shape[0]
+    keep = lam > max(float(lam[-1]), 0.0) * m * EPS64
+    sq = np.sqrt(lam[keep])
+    Vk = V[:, keep]
+    A = (sq[:, None] * Vk.T) * scale[None, :]
+    g1 = G.sum(axis=1)  # M^T M 1 = M^T target
+    tq = (Vk.T @ (g1 / scale)) / sq
+    tt = float(g1.sum())
+    return A, tq, max(tt - float(tq @ tq), 0.0)
+
+
+def spectrum(eig: tuple[np.ndarray, np.ndarray], rcond: float = TOL.svd_rcond
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Singular values s (descending, unresolved ones 0) and Vt of S from eigh(S^T S), as
+    `column_sampling.svd_float64`'s Gram route."""
+    lam, V = eig
+    m = lam.shape[0]
+    lam = np.clip(lam[::-1], 0.0, None)
+    Vt = np.ascontiguousarray(V[:, ::-1].T)
+    s = np.sqrt(lam)
+    floor = max(rcond, float(np.sqrt(m * EPS64))) * float(s[0])
+    return np.where(s > floor, s, 0.0), Vt
+
+
+def needs_full_svd(s: np.ndarray, k: int, m: int) -> bool:
+    """`column_sampling.top_singular`'s Davis–Kahan test: the Gram route cannot resolve span(V_k)."""
+    if not 0 < k <= s.size:
+        return False
+    gap = s[k - 1] ** 2 - (s[k] ** 2 if k < s.size else 0.0)
+    return bool(gap * TOL.gram_subspace <= m * EPS64 * s[0] ** 2)
+
+
+@dataclass
+class GroupInput:
+    """One selection group of a texel: its selection Gram's eigh and the channels it fits."""
+
+    sel_eig: tuple[np.ndarray, np.ndarray]
+    sel_diag: np.ndarray  # (m,) exact column energies of S
+    sel_total: float  # ||S||_F^2
+    chans: np.ndarray  # channel indices fitted by this group
+
+
+def _bisect(
+    p: np.ndarray, k: int, red: list[tuple], signal: float, *, eps_db: float, c_max: int,
+    n_trials: int, weights: str, rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """`fit._Fitter._select_direct`'s bisection on [k, c_max] with n_trials draws per probe, in
+    the reduced space. returns (columns, alpha (c, ch_g), capped)."""
+    cache: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+
+    def best_of_trials(c: int) -> tuple[np.ndarray, np.ndarray, float]:
+        if c not in cache:
+            best: tuple[np.ndarray, np.ndarray, float] | None = None
+            seen: set[bytes] = set()
+            for _ in range(n_trials):  # loop over a handful of randomized trials
+                local = sample_columns(p, c, rng)
+                key = local.tobytes()
+                if key in seen:
+                    continue
+                seen.add(key)
+                alpha = np.zeros((local.size, len(red)))
+                noise = 0.0
+                for g, (A, t, rest) in enumerate(red):  # loop over <= 3 channels
+                    C = A[:, local]
+                    alpha[:, g] = fit_weights(C, t, weights)  # type: ignore[arg-type]
+                    r = C @ alpha[:, g] - t
+                    noise += float(r @ r) + rest
+                snr = math.inf if noise <= 0.0 else (
+                    -math.inf if signal <= 0.0 else 10.0 * math.log10(signal / noise))
+                if best is None or snr > best[2]:
+                    best = (local, alpha, snr)
+            assert best is not None
+            cache[c] = best
+        return cache[c]
+
+    capped = c_max < k
+    lo, hi = (c_max, c_max) if capped else (k, c_max)
+    while lo < hi:  # seed 000 §4.1: bisection with the median as the probe
+        mid = (lo + hi) // 2
+        if best_of_trials(mid)[2] >= eps_db:
+            hi = mid
+        else:
+            lo = mid + 1
+    cols, alpha, _ = best_of_trials(lo)
+    return cols, alpha, capped
+
+
+def fit_texel_gram(
+    F: np.ndarray,
+    valid: np.ndarray,
+    Gc: list[np.ndarray],
+    groups: list[GroupInput],
+    chan_eig: list[tuple[np.ndarray, np.ndarray]],
+    *,
+    mode: str,
+    corr: float,
+    psi: float,
+    eps_db: float,
+    c_max: int,
+    n_trials: int,
+    weights: str,
+    seed: int,
+    closed_form: bool,
+) -> tuple[TexelFit | None, str]:
+    """One texel's fit from its Grams; returns (TexelFit, skip) with skip "" or "rank1", or
+    (None, "full_svd") when the Gram route cannot resolve span(V_k) (`top_singular` redoes a
+    full SVD then; the caller fits that texel with `fit.fit_texel`).
+
+    F : (ch, m, d) float64, F = diag(1/a_vis) R transposed per channel (invalid rows zero);
+    valid : (d,) bool rows with a_vis above the floor; Gc : ch Grams F_c F_c^T (m, m);
+    groups : the selection groups (one in luminance mode, one per channel otherwise);
+    chan_eig : eigh of each channel's normalised Gram (`normalised_gram`).
+    Caller handles m = 0, no valid row, all-zero R and non-finite input (`fit_texel`'s cases).
+    """
+    ch, m, _ = F.shape
+    rng = np.random.default_rng(seed)
+    reds, scales = [], []
+    for c in range(ch):  # loop over <= 3 channels
+        Gn_scale = np.sqrt(np.maximum(np.diag(Gc[c]), 0.0))
+        scales.append(np.where(Gn_scale > 0, Gn_scale, 1.0))
+        reds.append(reduced_system(Gc[c], chan_eig[c], scales[c]))
+    specs = []
+    for gi in groups:  # loop over <= ch groups
+        s, Vt = spectrum(gi.sel_eig)
+        k = energy_rank(s, psi, gi.sel_total)
+        if needs_full_svd(s, k, m):
+            return None, "full_svd"
+        specs.append((s, Vt, k))
+    skip = ""
+    if closed_form and all(_rank1(gi.sel_eig) for gi in groups) and all(
+        _rank1(e) for e in chan_eig
+    ):
+        skip = "rank1"
+    fits = []
+    for gi, (s, Vt, k) in zip(groups, specs, strict=True):  # loop over <= ch groups
+        chans = gi.chans
+        if k == 0:
+            fits.append((np.zeros(0, np.int64), np.zeros((0, len(chans))), 0, False))
+            continue
+        if skip:
+            j = int(np.argmax(gi.sel_diag))
+            alpha = np.array([[_one_column_weight(Gc[c], j) for c in chans]])
+            fits.append((np.array([j], np.int64), alpha, k, False))
+            continue
+        p = column_probabilities(np.zeros((0, 0)), s, Vt, k, col_energy=gi.sel_diag)
+        signal = float(sum(Gc[c].sum() for c in chans))
+        cols, alpha, capped = _bisect(
+            p, k, [reds[c] for c in chans], signal, eps_db=eps_db, c_max=c_max,
+            n_trials=n_trials, weights=weights, rng=rng,
+        )
+        fits.append((cols, alpha, k, capped))
+    return _merge(F, valid, fits, groups, mode=mode, corr=corr, eps_db=eps_db,
+                  c_max=c_max), skip
+
+
+def _rank1(eig: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Numerically rank 1: the energy outside the top eigenvalue is <= TOL.rank1_rel of the
+    total (1e-10: 100 dB below the signal, far under any eps_db a bake asks for)."""
+    lam = np.clip(eig[0], 0.0, None)
+    total = float(lam.sum())
+    return lam.size < 2 or total <= 0.0 or float(lam[:-1].sum()) <= TOL.rank1_rel * total
+
+
+def _one_column_weight(G: np.ndarray, j: int) -> float:
+    """min_a>=0 ||a F_j - F 1||: a = max(F_j . F 1, 0) / ||F_j||^2 = (G 1)_j / G_jj."""
+    gjj = float(G[j, j])
+    return max(float(G[j].sum()), 0.0) / gjj if gjj > 0.0 else 0.0
+
+
+def _merge(F, valid, fits, groups, *, mode, corr, eps_db, c_max) -> TexelFit:
+    """`fit_texel`'s merge: union of the groups' columns, float32 weights, points with a zero
+    weight everywhere dropped, the in-sample SNR of Eq. 7 recomputed in d space."""
+    ch = F.shape[0]
+    columns = np.unique(np.concatenate([f[0] for f in fits])).astype(np.int64)
+    w64 = np.zeros((columns.size, ch), dtype=np.float64)
+    for (cols, alpha, _, _), gi in zip(fits, groups, strict=True):  # loop over <= ch groups
+        pos = np.searchsorted(columns, cols)
+        w64[np.ix_(pos, gi.chans)] = alpha
+    w32 = _storable_weights(w64)
+    live = np.any(w32 != 0.0, axis=1)
+    columns, w32 = columns[live], w32[live]
+    w = w32.astype(np.float64)
+    approx = np.stack([w[:, c] @ F[c, columns] for c in range(ch)], axis=1)  # (d, ch)
+    ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F
+    snr = snr_db(ref, approx, valid)
+    capped = any(f[3] for f in fits)
+    reasons = []
+    if capped:
+        reasons.append(f"c_max={c_max} < k: c capped")
+    if snr < eps_db:
+        reasons.append(f"eps {eps_db} dB not reached (SNR {snr:.2f} dB)")
+    return TexelFit(
+        columns=columns, weights=w32, k=max(f[2] for f in fits), c=int(columns.size),
+        snr_db_insample=snr, colour_mode=mode, valid=True, reason="; ".join(reasons),
+        channel_correlation=corr,
+        k_channels=np.array([f[2] for f in fits], dtype=np.int64),
+        c_channels=np.array([int(np.count_nonzero(np.any(f[1] != 0.0, axis=1))) for f in fits],
+                            dtype=np.int64),
+        c_capped=capped, eps_reached=bool(snr >= eps_db),
+    )
+
+
+def fit_many(
+    Fs: list[np.ndarray],
+    valids: list[np.ndarray],
+    corrs: list[float],
+    seeds: list[int],
+    *,
+    psi: float,
+    eps_db: float,
+    c_max: int,
+    n_trials: int,
+    weights: str,
+    colour: str,
+    decorrelation_threshold: float,
+    closed_form: bool,
+) -> list[tuple[TexelFit | None, str]]:
+    """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
+    `fit_texel_gram` per texel. Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous
+    blocks); valids[t] : (d,) bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
+    Texels must have m >= 1, d >= 2 m, a valid row and a nonzero R (`fit_texel`'s cases)."""
+    plans = []
+    mats: list[np.ndarray] = []
+    for F, corr in zip(Fs, corrs, strict=True):  # loop over texels: Grams (GEMMs)
+        ch = F.shape[0]
+        mode = "per_channel" if (ch > 1 and corr < decorrelation_threshold) else "luminance"
+        if colour != "auto":
+            mode = colour
+        if ch == 1:
+            mode = "luminance"
+        Gc = [F[c] @ F[c].T for c in range(ch)]
+        groups = select_groups(F, Gc, mode)
+        plans.append((mode, Gc, groups, len(mats)))
+        mats += [g for g, _ in groups] + [normalised_gram(g)[0] for g in Gc]
+    eigs = batched_eigh(mats)
+    out = []
+    for F, valid, corr, seed, (mode, Gc, groups, first) in zip(
+        Fs, valids, corrs, seeds, plans, strict=True
+    ):  # loop over texels: the m-sized work
+        ng, ch = len(groups), F.shape[0]
+        ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
+                for j, (g, chans) in enumerate(groups)]
+        out.append(fit_texel_gram(
+            F, valid, Gc, ginp, eigs[first + ng:first + ng + ch], mode=mode, corr=corr,
+            psi=psi, eps_db=eps_db, c_max=c_max, n_trials=n_trials, weights=weights, seed=seed,
+            closed_form=closed_form,
+        ))
+    return out
+
+
+def select_groups(
+    F: np.ndarray, Gc: list[np.ndarray], mode: str
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The selection matrices' Grams and channels: [(G_S (m, m), chans)]. Luminance: S = F lw
+    (one GEMM more); per channel: S = F_c, whose Gram is G_c."""
+    ch = F.shape[0]
+    if mode == "luminance":
+        lw = LUMA_709 if ch == 3 else np.full(ch, 1.0 / ch)
+        S = np.tensordot(lw, F, axes=(0, 0))  # (m, d)
+        return [(S @ S.T, np.arange(ch))]
+    return [(Gc[c], np.array([c])) for c in range(ch)]
+
+
+__all__ = [
+    "GroupInput", "batched_eigh", "correlation_from_sums", "fit_many", "fit_texel_gram",
+    "needs_full_svd",
+    "normalised_gram", "select_groups", "spectrum", "_empty_fit",
+]

@@ -1,0 +1,347 @@
+"""One CPM level fitted in batches of texels (issue 15): R for a whole chunk of texels from one
+BRDF evaluation, the Gram matrices and their eigendecompositions stacked
+(`texelbake.cpm.gram_fit`), the held-out SNR against brute-force Eq. 7 for the chunk from one
+evaluation per sample batch. Same science and the same per-texel seeds (settings.seed, level,
+texel) as the per-texel loop `texelbake.cpm.level._fit_level` (BakeSettings.fit_method =
+"per_texel", kept as the seed's variant); a texel's result does not depend on which texels share
+its chunk (per-texel GEMMs on contiguous blocks, eigh stacked by size), so neither the farm's
+tiling nor the memory bound changes it.
+
+Memory per worker is bounded by BakeSettings.worker_memory_mb: texels are taken in chunks whose
+R (d x candidates x 3 with its temporaries) fits, and the dense samples of a chunk (a_vis and
+the held-out truth) in sub-batches that fit; a coarse texel with millions of samples (the top
+level of a large atlas) is streamed the same way. One texel's own R (d x m) is the only thing
+not split; with the default hierarchy m <= 4 c_max.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from threadpoolctl import threadpool_limits
+
+from texelbake.cpm import level as level_mod
+from texelbake.cpm.brdf_product import brdf_product
+from texelbake.cpm.fit import TexelFit, _empty_fit, fit_texel
+from texelbake.cpm.gram_fit import correlation_from_sums, fit_many
+from texelbake.cpm.level import (
+    FitInputs,
+    PointSet,
+    direction_sets,
+    texel_ids,
+    texel_seed,
+    visibility_cos,
+    world_dirs,
+)
+from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
+from texelbake.errors import NumericalError
+from texelbake.tol import TOL
+
+#: bytes held per (candidate, row, channel) entry while R is built and fitted: the BRDF grid
+#: with its gathers, R, F and F's per-channel copy (measured peak / entries on the cylinder)
+BYTES_PER_R_ENTRY = 8 * 12
+#: bytes per (dense sample, held-out pair, channel) in the held-out pass
+BYTES_PER_HELD_ENTRY = 8 * 12
+
+SKIP_CODES = {"": 0, "rank1": 1, "per_texel": 2}
+
+
+def chunk_bounds(sizes: np.ndarray, cap: int) -> list[tuple[int, int]]:
+    """Consecutive ranges [a, b) of items whose summed sizes stay <= cap (an item larger than
+    cap gets a range of its own)."""
+    out, a, acc = [], 0, 0
+    for i, sz in enumerate(sizes.tolist()):  # loop over texels: O(1) each
+        if i > a and acc + sz > cap:
+            out.append((a, i))
+            a, acc = i, 0
+        acc += sz
+    if a < len(sizes):
+        out.append((a, len(sizes)))
+    return out
+
+
+def _segment_sum(values: np.ndarray, seg: np.ndarray, n_seg: int, axis: int) -> np.ndarray:
+    """Sum `values` along `axis` over runs of equal, ascending segment ids seg -> n_seg rows."""
+    shape = list(values.shape)
+    shape[axis] = n_seg
+    out = np.zeros(shape, dtype=np.float64)
+    if seg.size == 0:
+        return out
+    starts = np.flatnonzero(np.r_[True, seg[1:] != seg[:-1]])
+    sums = np.add.reduceat(values, starts, axis=axis)
+    idx: list[slice | np.ndarray] = [slice(None)] * values.ndim
+    idx[axis] = seg[starts]
+    out[tuple(idx)] = sums
+    return out
+
+
+def fit_level(
+    src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet
+) -> dict[str, np.ndarray]:
+    """One level's fit by BakeSettings.fit_method: "batched" (here) or "per_texel"
+    (`texelbake.cpm.level.fit_level`, the seed's loop). Same arrays either way."""
+    if src.settings.fit_method == "per_texel":
+        return level_mod.fit_level(src, level, texels, candidates)
+    # one BLAS / torch thread: parallelism comes from worker processes (see level.fit_level)
+    torch.set_num_threads(1)
+    rays0 = src.caster.rays_cast
+    with threadpool_limits(limits=1):
+        out = fit_level_batched(src, level, texels, candidates)
+    out["rays"] = np.array([src.caster.rays_cast - rays0], np.int64)
+    return out
+
+
+def fit_level_batched(
+    src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet
+) -> dict[str, np.ndarray]:
+    """`texelbake.cpm.level.fit_level`'s arrays (and `skip` (t,) int8: 0 full fit, 1 rank-1
+    closed form, 2 fitted by the per-texel path) for `texels`, in memory-bounded chunks."""
+    s = src.settings
+    geo = src.geo
+    dirs = direction_sets(s)
+    frames = geo[f"frames_L{level}"]
+    n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
+    d = n_i * n_o
+    budget = int(s.worker_memory_mb) * 2**20
+    tex_of_sample = texel_ids(geo, s.atlas_resolution, level)
+    # dense samples and candidates of every texel, grouped by texel (position in `texels`)
+    pos_all = _positions(texels, tex_of_sample)
+    samp_all = np.flatnonzero(pos_all >= 0)
+    samp_all = samp_all[np.argsort(pos_all[samp_all], kind="stable")]
+    seg_all = pos_all[samp_all]
+    pos_c = _positions(texels, candidates.texel)
+    order_c = np.argsort(pos_c, kind="stable")
+    order_c = order_c[pos_c[order_c] >= 0]
+    seg_c = pos_c[order_c]
+    n_t = len(texels)
+    n_cand = np.bincount(seg_c, minlength=n_t)
+    n_dense = np.bincount(seg_all, minlength=n_t)
+    cb_all = np.r_[0, np.cumsum(n_dense)]
+    cb_c = np.r_[0, np.cumsum(n_cand)]
+
+    res = _Results(n_t, d if s.btf else 0)
+    cap = max(budget // (BYTES_PER_R_ENTRY * d * 3), 1)
+    for a, b in chunk_bounds(n_cand, cap):  # loop over memory-bounded chunks of texels
+        dense = samp_all[cb_all[a]:cb_all[b]]
+        dseg = seg_all[cb_all[a]:cb_all[b]] - a
+        rows = order_c[cb_c[a]:cb_c[b]]
+        avis_o, area = _avis(src, frames, texels[a:b], dense, dseg, b - a, dirs, budget)
+        fits = _fit_chunk(src, level, texels[a:b], candidates.take(rows), seg_c[cb_c[a]:cb_c[b]] - a,
+                          n_cand[a:b], n_dense[a:b], avis_o, area, dirs, res, a)
+        if len(dirs["held_i"]):
+            _heldout(src, frames, texels[a:b], dense, dseg, candidates.take(rows), fits, dirs,
+                     area, budget, res, a)
+    return res.arrays(texels)
+
+
+def _positions(texels: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Position of each id in `texels` (any order, unique), -1 when absent."""
+    order = np.argsort(texels, kind="stable")
+    srt = texels[order]
+    i = np.clip(np.searchsorted(srt, ids), 0, max(len(srt) - 1, 0))
+    hit = (srt[i] == ids) if len(srt) else np.zeros(len(ids), bool)
+    return np.where(hit, order[i] if len(srt) else 0, -1)
+
+
+def _avis(src, frames, texels, dense, dseg, n_t, dirs, budget):
+    """a_vis(w_o) per texel (Eq. 3 on all dense samples) and texel areas, in sample batches."""
+    n_o = len(dirs["dirs_o"])
+    tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
+    area_all = src.geo["sample_area"][dense]
+    step = max(budget // (8 * 16 * n_o), 1)
+    avis = np.zeros((n_t, n_o))
+    for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
+        sl = slice(s0, s0 + step)
+        vc = visibility_cos(src, dense[sl], world_dirs(frames, tex_l[sl], dirs["dirs_o"]),
+                            "geometric")
+        avis += _segment_sum(vc * area_all[sl, None], dseg[sl], n_t, 0)
+    area = _segment_sum(area_all, dseg, n_t, 0)
+    return avis, area
+
+
+class _Results:
+    def __init__(self, n_t: int, d_btf: int):
+        self.pts: list[list[np.ndarray]] = [[] for _ in range(n_t)]
+        self.w: list[list[np.ndarray]] = [[] for _ in range(n_t)]
+        self.k = np.zeros(n_t)
+        self.c = np.zeros(n_t)
+        self.snr_in = np.full(n_t, np.nan)
+        self.snr_ho = np.full(n_t, np.nan)
+        self.mode = np.zeros(n_t, np.int8)
+        self.valid = np.zeros(n_t, bool)
+        self.skip = np.zeros(n_t, np.int8)
+        self.fbar = np.zeros((n_t, d_btf, 3), np.float32) if d_btf else None
+
+    def arrays(self, texels: np.ndarray) -> dict[str, np.ndarray]:
+        counts = [sum(len(p) for p in ps) for ps in self.pts]
+        flat_p = [p for ps in self.pts for p in ps]
+        flat_w = [w for ws in self.w for w in ws]
+        out = {
+            "texel": texels.astype(np.int64),
+            "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
+            "point_sample": np.concatenate(flat_p).astype(np.int64) if flat_p
+            else np.zeros(0, np.int64),
+            "point_weight": (np.concatenate(flat_w) if flat_w else np.zeros((0, 3))
+                             ).astype(np.float32),
+            "k": self.k.astype(np.int32), "c": self.c.astype(np.int32),
+            "snr_in": self.snr_in.astype(np.float32), "snr_ho": self.snr_ho.astype(np.float32),
+            "mode": self.mode, "valid": self.valid, "skip": self.skip,
+        }
+        if self.fbar is not None:
+            out["fbar"] = self.fbar
+        return out
+
+
+def _build_R(src, frames, cset: PointSet, dirs) -> np.ndarray:
+    """Eq. 9's matrix for every candidate of the chunk, channel-major: (3, P, d) with row
+    i * n_o + o, one BRDF evaluation for the chunk."""
+    vi = visibility_cos(src, cset.sample, world_dirs(frames, cset.texel, dirs["dirs_i"]))
+    vo = visibility_cos(src, cset.sample, world_dirs(frames, cset.texel, dirs["dirs_o"]),
+                        "geometric")
+    live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)  # (n_i, n_o, P)
+    f = brdf_product(src.geo, src.materials, cset.sample,
+                     world_dirs(frames, cset.texel, dirs["dirs_i"]),
+                     world_dirs(frames, cset.texel, dirs["dirs_o"]), live)  # (3, P, n_i, n_o)
+    f *= vi[None, :, :, None]
+    f *= vo[None, :, None, :]
+    f *= cset.weight.T[:, :, None, None]
+    return f.reshape(3, len(cset.sample), len(dirs["dirs_i"]) * len(dirs["dirs_o"]))
+
+
+def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, dirs, res, base
+               ) -> list[TexelFit | None]:
+    s = src.settings
+    n_i = len(dirs["dirs_i"])
+    n_t = len(texels)
+    Rt = _build_R(src, src.geo[f"frames_L{level}"], cset, dirs)  # (3, P, d)
+    d = Rt.shape[2]
+    if not np.all(np.isfinite(Rt)):
+        bad = np.unique(cset.texel[np.any(~np.isfinite(Rt), axis=(0, 2))])
+        raise NumericalError(f"R of level {level} texels {bad[:8].tolist()} has non-finite entries")
+    eps = np.array([avis_floor(a) for a in area])
+    avis_rows = np.tile(avis_o, (1, n_i))  # (t, d): row i * n_o + o
+    valid = np.isfinite(avis_rows) & (avis_rows > eps[:, None])
+    inv = np.where(valid, 1.0 / np.where(valid, avis_rows, 1.0), 0.0)  # (t, d)
+    bounds = np.r_[0, np.cumsum(n_cand)]
+    # F = diag(1/a_vis) R per channel, (3, P, d): a texel's columns are a contiguous block;
+    # the channel sums of R for `channel_correlation` from the same blocks (one 3 x 3 GEMM)
+    Ft = np.empty_like(Rt)
+    sx = np.zeros((n_t, 3))
+    sxx = np.zeros((n_t, 3, 3))
+    for t in range(n_t):  # loop over texels: a few whole-block operations each
+        a, b = bounds[t], bounds[t + 1]
+        X = Rt[:, a:b].reshape(3, -1)
+        sx[t], sxx[t] = X.sum(axis=1), X @ X.T
+        np.multiply(Rt[:, a:b], inv[t][None, None, :], out=Ft[:, a:b])
+        if res.fbar is not None:
+            fb, _ = filtered_reflectance(Rt[:, a:b].sum(axis=1).T, avis_rows[t], eps[t])
+            res.fbar[base + t] = fb
+    # texels for the Gram path (the others are fit_texel's special cases or too wide)
+    gram, corrs = [], []
+    for t in range(n_t):  # loop over texels: classification only
+        m = bounds[t + 1] - bounds[t]
+        if m == 0 or n_dense[t] == 0:
+            continue
+        if valid[t].any() and float(np.trace(sxx[t])) > TOL.energy_floor \
+                and m <= s.n_batch and d >= 2 * m:
+            gram.append(t)
+            corrs.append(correlation_from_sums(sx[t], sxx[t], d * m))
+    seeds = [texel_seed(s.seed, level, int(texels[t])) for t in range(n_t)]
+    done = dict(zip(gram, fit_many(
+        [Ft[:, bounds[t]:bounds[t + 1]] for t in gram], [valid[t] for t in gram], corrs,
+        [seeds[t] for t in gram], psi=s.psi, eps_db=s.eps_db, c_max=s.c_max,
+        n_trials=s.n_trials, weights=s.weights, colour=s.colour,
+        decorrelation_threshold=s.decorrelation_threshold, closed_form=s.closed_form,
+    ), strict=True))
+    fits: list[TexelFit | None] = [None] * n_t
+    for t in range(n_t):  # loop over texels
+        a, b = bounds[t], bounds[t + 1]
+        if b == a or n_dense[t] == 0:
+            continue
+        fit, skip = done.get(t, (None, "per_texel"))
+        if fit is None:  # fit_texel's special cases, wide texels, Gram route unresolved
+            fit = fit_texel(Rt[:, a:b].transpose(2, 1, 0), avis_rows[t],
+                            texel_area=float(area[t]), seed=seeds[t], psi=s.psi,
+                            eps_db=s.eps_db, c_max=s.c_max, n_trials=s.n_trials,
+                            weights=s.weights, colour=s.colour,
+                            decorrelation_threshold=s.decorrelation_threshold, n_batch=s.n_batch)
+            skip = "per_texel" if (t in done or too_wide(b - a, d, s)) else ""
+        fits[t] = fit
+        _store(res, base + t, fit, cset.take(np.arange(a, b)), SKIP_CODES[skip])
+    return fits
+
+
+def too_wide(m: int, d: int, s) -> bool:
+    """A texel too wide for the Gram path (m > n_batch or d < 2 m) goes to `fit_texel`."""
+    return m > s.n_batch or d < 2 * m
+
+
+def _store(res: _Results, i: int, fit: TexelFit, cset: PointSet, skip: int) -> None:
+    w_eff = fit.weights.astype(np.float64) * cset.weight[fit.columns]
+    res.pts[i] = [cset.sample[fit.columns]]
+    res.w[i] = [w_eff]
+    res.k[i], res.c[i] = fit.k, fit.c
+    res.snr_in[i] = fit.snr_db_insample
+    res.mode[i] = 1 if fit.colour_mode == "per_channel" else 0
+    res.valid[i] = fit.valid
+    res.skip[i] = skip
+
+
+def _heldout(src, frames, texels, dense, dseg, cset, fits, dirs, area, budget, res, base):
+    """Held-out SNR of every fitted texel of the chunk: brute-force Eq. 7 over all its dense
+    samples against its characteristic points, on the held-out product grid (`heldout_snr`)."""
+    n_t = len(texels)
+    h_i, h_o = len(dirs["held_i"]), len(dirs["held_o"])
+    tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
+    # the points of each texel as positions in `dense` (a point is one of its texel's samples)
+    pt_pos, pt_seg, pt_w = [], [], []
+    for t, fit in enumerate(fits):  # loop over texels
+        if fit is None or not fit.valid or fit.c == 0:
+            continue
+        i = base + t
+        smp = res.pts[i][0]
+        lo = np.searchsorted(dseg, t)
+        hi = np.searchsorted(dseg, t, side="right")
+        p = lo + np.searchsorted(dense[lo:hi], smp)
+        pt_pos.append(p)
+        pt_seg.append(np.full(len(p), t))
+        pt_w.append(res.w[i][0])
+    pos = np.concatenate(pt_pos) if pt_pos else np.zeros(0, np.int64)
+    pseg = np.concatenate(pt_seg) if pt_seg else np.zeros(0, np.int64)
+    pw = np.concatenate(pt_w) if pt_w else np.zeros((0, 3))
+    order = np.argsort(pos, kind="stable")
+    pos, pseg, pw = pos[order], pseg[order], pw[order]
+    ref = np.zeros((n_t, h_i, h_o, 3))
+    apx = np.zeros((n_t, h_i, h_o, 3))
+    avis_h = np.zeros((n_t, h_o))
+    area_all = src.geo["sample_area"][dense]
+    step = max(budget // (BYTES_PER_HELD_ENTRY * h_i * h_o * 3), 1)
+    for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
+        sl = slice(s0, s0 + step)
+        smp, seg = dense[sl], dseg[sl]
+        vi = visibility_cos(src, smp, world_dirs(frames, tex_l[sl], dirs["held_i"]))
+        vo = visibility_cos(src, smp, world_dirs(frames, tex_l[sl], dirs["held_o"]), "geometric")
+        live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)
+        f = brdf_product(src.geo, src.materials, smp,
+                         world_dirs(frames, tex_l[sl], dirs["held_i"]),
+                         world_dirs(frames, tex_l[sl], dirs["held_o"]), live)  # (h_i, h_o, p, 3)
+        f *= vi[None, :, :, None]
+        f *= vo[None, :, None, :]  # (3, p, h_i, h_o)
+        avis_h += _segment_sum(vo * area_all[sl, None], seg, n_t, 0)
+        a_, b_ = np.searchsorted(pos, [s0, s0 + len(smp)])
+        if b_ > a_:
+            apx += _segment_sum(f[:, pos[a_:b_] - s0] * pw.T[:, a_:b_, None, None], pseg[a_:b_],
+                                n_t, 1).transpose(1, 2, 3, 0)
+        ref += _segment_sum(f * area_all[sl][None, :, None, None], seg, n_t, 1
+                            ).transpose(1, 2, 3, 0)
+    for t, fit in enumerate(fits):  # loop over texels: one SNR each
+        if fit is None or not fit.valid:
+            continue
+        eps = avis_floor(float(area[t]))
+        rows = np.tile(avis_h[t], h_i)
+        f_ref, ok = filtered_reflectance(ref[t].reshape(-1, 3), rows, eps)
+        f_apx, _ = filtered_reflectance(apx[t].reshape(-1, 3), rows, eps)
+        res.snr_ho[base + t] = float(snr_db(f_ref, f_apx, ok))
+
+
+__all__ = ["chunk_bounds", "fit_level_batched", "_empty_fit"]
