@@ -105,6 +105,92 @@ def run_one(scene: Path, settings: BakeSettings, out: Path, with_avis_ref: bool)
     return result
 
 
+def _uptime() -> str:
+    try:
+        return Path("/proc/loadavg").read_text().split(" ")[0]
+    except OSError:
+        return "?"
+
+
+def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> dict:
+    """One bake by the texelbake tree at `tree` in a fresh process (`_bake_child.py`): total
+    wall seconds, per-level fit timings and held-out SNRs, report.json, load before/after."""
+    import os
+    import subprocess
+    import sys
+
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    timings = out / "fit_timings.jsonl"
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    load0 = _uptime()
+    proc = subprocess.run(
+        [sys.executable, str(Path(__file__).with_name("_bake_child.py")), str(scene),
+         str(out / "bake"), json.dumps(settings), str(timings), str(jobs)],
+        env=env, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise SystemExit(f"bake by {tree} failed:\n{proc.stderr[-3000:]}")
+    total = json.loads(proc.stdout.strip().splitlines()[-1])["total_seconds"]
+    recs = [json.loads(line) for line in timings.read_text().splitlines()]
+    report = json.loads((out / "bake" / "report.json").read_text())
+    levels = []
+    for lv in sorted({r["level"] for r in recs}):
+        rs = [r for r in recs if r["level"] == lv]
+        ho = np.array([x for r in rs for x in r["snr_ho"]], dtype=np.float64)
+        ho = ho[np.isfinite(ho)]
+        n = sum(r["texels"] for r in rs)
+        wall, cpu = sum(r["wall"] for r in rs), sum(r["cpu"] for r in rs)
+        levels.append({"level": lv, "texels": n, "fit_wall_seconds": wall, "fit_cpu_seconds": cpu,
+                       "texels_per_second": n / max(wall, 1e-9),
+                       "texels_per_cpu_second": n / max(cpu, 1e-9),
+                       "heldout_db_median": float(np.median(ho)) if ho.size else None,
+                       "heldout_db_p5": float(np.percentile(ho, 5)) if ho.size else None})
+    return {"tree": str(tree), "total_seconds": total, "load_before": load0,
+            "load_after": _uptime(), "stage_seconds": report.get("stage_seconds"),
+            "estimate": report.get("estimate"), "levels": levels}
+
+
+def compare(args: argparse.Namespace) -> None:
+    """This tree against an older one (`--against`, e.g. a worktree of c15cea2), back to back
+    in one session on the same scene and settings: texels/s per level (fitted texels over the
+    wall seconds of the cpm stage's `fit_level` calls, summed over worker processes) and
+    held-out SNR median and p5 per level, their ratios, the machine load, the cost model's
+    prediction against the measured total."""
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-bench-"))
+    scene = write_scene(args.scene, work / f"{args.scene}_{args.size}.usda", args.size)
+    atlas = args.atlas or BakeSettings().atlas_resolution
+    settings = {"atlas_resolution": atlas, "shard_texels": min(BakeSettings().shard_texels, atlas)}
+    here = Path(__file__).resolve().parents[1]
+    old = run_child(args.against.resolve(), scene, work / "old", settings, JOBS)
+    new = run_child(here, scene, work / "new", settings, JOBS)
+    print(f"\n{args.scene} ({args.size}) {atlas}x{atlas}, {JOBS} processes; load (1-min) "
+          f"old {old['load_before']}->{old['load_after']}, new {new['load_before']}->"
+          f"{new['load_after']} on 2 cores")
+    print(f"total seconds: old {old['total_seconds']:.1f}, new {new['total_seconds']:.1f} "
+          f"({old['total_seconds'] / new['total_seconds']:.2f}x)")
+    est = new.get("estimate") or {}
+    if est:
+        print(f"cost model: predicted {est['seconds']:.1f} s, measured {new['total_seconds']:.1f}"
+              f" s ({est['seconds'] / new['total_seconds']:.2f}x)")
+    print(f"{'lvl':>3} {'texels':>6} {'old tex/s':>9} {'new tex/s':>9} {'ratio':>6} "
+          f"{'cpu ratio':>9} {'old med':>7} {'new med':>7} {'old p5':>7} {'new p5':>7}")
+    for a, b in zip(old["levels"], new["levels"], strict=False):
+        def f(x):
+            return float("nan") if x is None else x
+        print(f"{a['level']:>3} {b['texels']:>6} {a['texels_per_second']:>9.2f} "
+              f"{b['texels_per_second']:>9.2f} "
+              f"{b['texels_per_second'] / a['texels_per_second']:>6.2f} "
+              f"{b['texels_per_cpu_second'] / a['texels_per_cpu_second']:>9.2f} "
+              f"{f(a['heldout_db_median']):>7.2f} {f(b['heldout_db_median']):>7.2f} "
+              f"{f(a['heldout_db_p5']):>7.2f} {f(b['heldout_db_p5']):>7.2f}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"scene": args.scene, "size": args.size, "atlas": atlas,
+                                         "jobs": JOBS, "old": old, "new": new}, indent=2))
+        print(f"wrote {args.json}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="cylinder")
@@ -118,7 +204,13 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--compare-hierarchy", action="store_true",
                     help="also bake with hierarchy='dense' (the seed) and print both per level")
+    ap.add_argument("--against", type=Path, default=None,
+                    help="an older texelbake tree (e.g. `git worktree add /work/wt-c15 c15cea2`):"
+                    " bake with both back to back and print texels/s and held-out SNR per level")
     args = ap.parse_args()
+    if args.against is not None:
+        compare(args)
+        return
     work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-bench-"))
     scene = write_scene(args.scene, work / f"{args.scene}_{args.size}.usda", args.size)
     base: dict = {}

@@ -60,6 +60,18 @@ class SkippedStage(BaseModel):
     reason: str
 
 
+class JobEstimate(BaseModel):
+    """The cost model's prediction of a bake (`texelbake.costmodel.estimate`): from the
+    settings (texel count, samples per texel, direction pairs) and the worker count, before
+    the geometry exists (atlas fill assumed)."""
+
+    seconds: float = Field(description="Predicted wall seconds of the whole bake.")
+    workers: int = Field(description="Worker processes the prediction assumes.")
+    cpm_seconds: float = Field(description="Predicted CPU seconds of the CPM fit, all levels.")
+    eta: datetime | None = Field(
+        None, description="started_at + seconds while the job runs; null before it starts.")
+
+
 class JobPublic(BaseModel):
     id: str
     asset_id: str
@@ -74,6 +86,7 @@ class JobPublic(BaseModel):
     finished_at: datetime | None = None
     seconds: float | None = None
     previews: list[str] = Field(default_factory=list, description="Names under .../previews/.")
+    estimate: JobEstimate | None = Field(None, description="Predicted time (issue 15).")
 
 
 class JobSummary(BaseModel):

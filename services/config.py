@@ -53,6 +53,9 @@ class Settings(BaseSettings):
         60.0, gt=0, description="A running shard silent this long is re-queued (worker gone)."
     )
     sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
+    estimate_workers: int = Field(
+        2, ge=1, description="Worker processes the cost model assumes for a job's estimate."
+    )
 
     @model_validator(mode="after")
     def _refuse_placeholder(self) -> Settings:

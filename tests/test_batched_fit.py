@@ -62,6 +62,22 @@ def test_gram_fit_of_many_texels_equals_fit_texel(decorrelate):
         assert abs(fit.snr_db_insample - ref.snr_db_insample) < 1e-6
 
 
+@pytest.mark.parametrize("decorrelate", [False, True])
+def test_split_of_a_wide_texel_equals_fit_texel_batches(decorrelate):
+    """A texel wider than n_batch: fit_many's split (Grams of <= n_batch columns) against
+    fit_texel's batches on R with the same n_batch (`fit._Fitter.select`)."""
+    rng = np.random.default_rng(8)
+    R, avis = _texel(rng, 400, 90, 10, decorrelate)
+    F, valid = _F(R, avis)
+    (fit, skip), = fit_many([F], [valid], [channel_correlation(R)], [21], closed_form=True,
+                            n_batch=32, **KW)
+    ref = fit_texel(R, avis, seed=21, texel_area=1.0, n_batch=32, **KW)
+    assert skip == "split"
+    np.testing.assert_array_equal(fit.columns, ref.columns)
+    np.testing.assert_allclose(fit.weights, ref.weights, rtol=1e-5, atol=0)
+    assert abs(fit.snr_db_insample - ref.snr_db_insample) < 1e-6
+
+
 def test_batched_eigh_does_not_depend_on_the_stack():
     """A texel's eigendecomposition is the same alone or stacked with others (farm tiling and
     the memory bound regroup texels)."""

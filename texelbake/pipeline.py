@@ -157,6 +157,7 @@ def bake(
     ctx = stages.StageContext.create(workdir, asset_path, settings)
     seconds: dict[str, float] = {}
     root: Path | None = None
+    est: dict | None = None
     for sp in plan.stages:
         t0 = time.perf_counter()
         if sp.name == "export":
@@ -166,21 +167,50 @@ def bake(
                 if progress:
                     print(f"preview: {p}")
         elif jobs > 1 and sp.n_shards > 1:
-            _run_parallel(workdir, asset_path, settings, sp, jobs, progress)
+            _run_parallel(workdir, asset_path, settings, sp, jobs, progress, est)
         else:
             bar = tqdm(range(sp.n_shards), desc=f"{sp.name:<9}", unit="shard",
                        disable=not progress, leave=True)
+            if est is not None and sp.name in ("cpm", "avis"):
+                bar.set_postfix_str(f"model {est['stage_seconds'][sp.name]:.0f} s")
             for shard in bar:
                 _RUNNERS[sp.name](ctx, shard)
         seconds[sp.name] = time.perf_counter() - t0
+        if sp.name == "geometry":
+            est = bake_estimate(ctx, jobs, elapsed=sum(seconds.values()))
+            if progress:
+                print(f"estimate: {est['seconds']:.0f} s on {est['workers']} worker(s) "
+                      f"(cpm {est['stage_seconds']['cpm']:.0f} s, avis "
+                      f"{est['stage_seconds']['avis']:.0f} s), ETA {est['eta']}")
     if root is None:
         raise StageError("the plan has no export stage")
-    stages.update_report_seconds(out_dir, seconds)
+    stages.update_report_seconds(out_dir, seconds, est)
     return root
 
 
+def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> dict:
+    """The cost model's prediction (`texelbake.costmodel`) from the placed samples: total
+    seconds, the cpm and avis stages' wall seconds on `jobs` workers, and the ETA (UTC) of the
+    bake given the `elapsed` seconds so far."""
+    from datetime import UTC, datetime, timedelta
+
+    from texelbake import costmodel
+
+    s = ctx.settings
+    geo = ctx.geometry()
+    e = costmodel.estimate(s, jobs, costmodel.sample_counts(geo, s.atlas_resolution),
+                           ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials))
+    w = max(int(jobs), 1)
+    remaining = max(e.seconds - elapsed, 0.0)
+    eta = datetime.now(UTC) + timedelta(seconds=remaining)
+    return {"seconds": round(e.seconds, 1), "workers": w,
+            "stage_seconds": {"cpm": round(e.cpm_seconds / w, 1),
+                              "avis": round(e.avis_seconds / w, 1)},
+            "per_level": e.per_level, "eta": eta.strftime("%H:%M:%S UTC")}
+
+
 def _run_parallel(workdir: Path, asset_path: Path, settings: BakeSettings, sp: StagePlan,
-                  jobs: int, progress: bool) -> None:
+                  jobs: int, progress: bool, est: dict | None = None) -> None:
     """The shards of one stage on `jobs` fresh processes (spawn: no fork after Embree and BLAS
     have started threads)."""
     import multiprocessing as mp
@@ -196,6 +226,8 @@ def _run_parallel(workdir: Path, asset_path: Path, settings: BakeSettings, sp: S
             for shard in range(sp.n_shards)
         ]
         bar = tqdm(total=sp.n_shards, desc=f"{sp.name:<9}", unit="shard", disable=not progress)
+        if est is not None and sp.name in ("cpm", "avis"):
+            bar.set_postfix_str(f"model {est['stage_seconds'][sp.name]:.0f} s")
         for fut in as_completed(futures):
             fut.result()
             bar.update(1)

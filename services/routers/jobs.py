@@ -20,6 +20,7 @@ from schemas.common import ErrorCode
 from schemas.job import (
     TERMINAL_JOB_STATES,
     JobCreate,
+    JobEstimate,
     JobPublic,
     JobsPublic,
     JobSummary,
@@ -34,6 +35,7 @@ from services.db import Asset, Event, Job, Shard, Stage
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
 from services.routers.assets import ASSET_404, ASSET_NOT_FOUND
+from texelbake import costmodel
 from texelbake.archive import zip_folder
 from texelbake.atomic import atomic_write_bytes
 
@@ -71,7 +73,17 @@ def _progress(done: int, total: int) -> float:
     return done / total if total else 0.0
 
 
-def job_public(session: Session, job: Job, root: Path) -> JobPublic:
+def job_estimate(job: Job, settings: BakeSettings, workers: int) -> JobEstimate:
+    """The core cost model's prediction for a job (thin: `texelbake.costmodel.estimate`)."""
+    from datetime import timedelta
+
+    e = costmodel.estimate(settings, workers)
+    eta = job.started_at + timedelta(seconds=e.seconds) if job.started_at is not None else None
+    return JobEstimate(seconds=round(e.seconds, 1), workers=e.workers,
+                       cpm_seconds=round(e.cpm_seconds, 1), eta=eta)
+
+
+def job_public(session: Session, job: Job, root: Path, workers: int = 2) -> JobPublic:
     stages = session.scalars(
         select(Stage).where(Stage.job_id == job.id).order_by(Stage.position)
     ).all()
@@ -112,11 +124,12 @@ def job_public(session: Session, job: Job, root: Path) -> JobPublic:
         if previews_dir.is_dir()
         else []
     )
+    settings = BakeSettings.model_validate_json(job.settings_json)
     return JobPublic(
         id=job.id,
         asset_id=job.asset_id,
         state=job.state,
-        settings=BakeSettings.model_validate_json(job.settings_json),
+        settings=settings,
         progress=_progress(done, total),
         stages=out_stages,
         skipped=[SkippedStage(stage=a, reason=b) for a, b in json.loads(job.skipped_json or "[]")],
@@ -126,6 +139,7 @@ def job_public(session: Session, job: Job, root: Path) -> JobPublic:
         finished_at=job.finished_at,
         seconds=_seconds(job.created_at, job.finished_at),
         previews=previews,
+        estimate=job_estimate(job, settings, workers),
     )
 
 
@@ -160,7 +174,8 @@ def create_job(
     except Exception:  # noqa: BLE001
         pass
     with writer() as s:
-        return job_public(s, s.get(Job, job_id), settings.artifact_root)
+        return job_public(s, s.get(Job, job_id), settings.artifact_root,
+                          settings.estimate_workers)
 
 
 @router.get("", response_model=JobsPublic, operation_id="list_jobs", responses=errors(401, 422))
@@ -249,7 +264,8 @@ async def read_job(
     key = (job.id, int(seq), job.state)
     body = cache.get(key)
     if body is None:
-        body = job_public(session, job, settings.artifact_root).model_dump_json().encode()
+        body = job_public(session, job, settings.artifact_root,
+                          settings.estimate_workers).model_dump_json().encode()
         cache.put(key, body)
     return Response(content=body, media_type="application/json")
 
@@ -475,4 +491,5 @@ def delete_job(
         except Exception:  # noqa: BLE001 - broker down: workers skip cancelled shards anyway
             pass
     with writer() as s:
-        return job_public(s, s.get(Job, job_id), settings.artifact_root)
+        return job_public(s, s.get(Job, job_id), settings.artifact_root,
+                          settings.estimate_workers)

@@ -97,19 +97,23 @@ def normalised_gram(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def reduced_system(
-    G: np.ndarray, eig_n: tuple[np.ndarray, np.ndarray], scale: np.ndarray
+    G: np.ndarray, eig_n: tuple[np.ndarray, np.ndarray], scale: np.ndarray,
+    b: np.ndarray | None = None, tt: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """`fit._Fitter._reduce` for one channel from its Gram: (A (r, m), t (r,), rest)."""
+    """`fit._Fitter._reduce` for one channel from its Gram: (A (r, m), t (r,), rest).
+
+    b : (m,) M^T target and tt = ||target||^2; default target = M 1 (b = G 1, tt = 1^T G 1)."""
     lam, V = eig_n
     m = G.shape[0]
     keep = lam > max(float(lam[-1]), 0.0) * m * EPS64
     sq = np.sqrt(lam[keep])
     Vk = V[:, keep]
     A = (sq[:, None] * Vk.T) * scale[None, :]
-    g1 = G.sum(axis=1)  # M^T M 1 = M^T target
-    tq = (Vk.T @ (g1 / scale)) / sq
-    tt = float(g1.sum())
-    return A, tq, max(tt - float(tq @ tq), 0.0)
+    if b is None:
+        b = G.sum(axis=1)  # M^T M 1 = M^T target
+    t2 = float(b.sum()) if tt is None else float(tt)
+    tq = (Vk.T @ (b / scale)) / sq
+    return A, tq, max(t2 - float(tq @ tq), 0.0)
 
 
 def spectrum(eig: tuple[np.ndarray, np.ndarray], rcond: float = TOL.svd_rcond
@@ -317,15 +321,20 @@ def fit_many(
     colour: str,
     decorrelation_threshold: float,
     closed_form: bool,
+    n_batch: int | None = None,
 ) -> list[tuple[TexelFit | None, str]]:
     """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
     `fit_texel_gram` per texel. Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous
     blocks); valids[t] : (d,) bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
-    Texels must have m >= 1, d >= 2 m, a valid row and a nonzero R (`fit_texel`'s cases)."""
-    plans = []
+    Texels must have m >= 1, d >= 2 min(m, n_batch), a valid row and a nonzero R
+    (`fit_texel`'s cases); texels wider than n_batch columns go through `fit_split`."""
+    plans: list[tuple | None] = []
     mats: list[np.ndarray] = []
     for F, corr in zip(Fs, corrs, strict=True):  # loop over texels: Grams (GEMMs)
         ch = F.shape[0]
+        if n_batch is not None and F.shape[1] > n_batch:
+            plans.append(None)
+            continue
         mode = "per_channel" if (ch > 1 and corr < decorrelation_threshold) else "luminance"
         if colour != "auto":
             mode = colour
@@ -336,10 +345,17 @@ def fit_many(
         plans.append((mode, Gc, groups, len(mats)))
         mats += [g for g, _ in groups] + [normalised_gram(g)[0] for g in Gc]
     eigs = batched_eigh(mats)
-    out = []
-    for F, valid, corr, seed, (mode, Gc, groups, first) in zip(
+    out: list[tuple[TexelFit | None, str]] = []
+    for F, valid, corr, seed, plan in zip(
         Fs, valids, corrs, seeds, plans, strict=True
     ):  # loop over texels: the m-sized work
+        if plan is None:
+            out.append(fit_split(
+                F, valid, corr, seed, n_batch=int(n_batch or 0), psi=psi, eps_db=eps_db,
+                c_max=c_max, n_trials=n_trials, weights=weights, colour=colour,
+                decorrelation_threshold=decorrelation_threshold))
+            continue
+        mode, Gc, groups, first = plan
         ng, ch = len(groups), F.shape[0]
         ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
                 for j, (g, chans) in enumerate(groups)]
@@ -349,6 +365,85 @@ def fit_many(
             closed_form=closed_form,
         ))
     return out
+
+
+def fit_split(
+    F: np.ndarray, valid: np.ndarray, corr: float, seed: int, *, n_batch: int, psi: float,
+    eps_db: float, c_max: int, n_trials: int, weights: str, colour: str,
+    decorrelation_threshold: float,
+) -> tuple[TexelFit | None, str]:
+    """A texel wider than n_batch columns: `fit._Fitter.select`'s batches (contiguous batches
+    of n_batch columns fitted on their partial sums with c_max capped at n_batch // 2, the union
+    of their points fitted against the full sum), every step from Grams of <= n_batch columns:
+    Gram work m n_batch d instead of m^2 d. Same draws as `fit_texel` with the same n_batch.
+    Returns (None, "full_svd") when a step needs the full SVD (see `fit_texel_gram`)."""
+    ch, m, _ = F.shape
+    mode = "per_channel" if (ch > 1 and corr < decorrelation_threshold) else "luminance"
+    if colour != "auto":
+        mode = colour
+    if ch == 1:
+        mode = "luminance"
+    rng = np.random.default_rng(seed)
+    if mode == "luminance":
+        lw = LUMA_709 if ch == 3 else np.full(ch, 1.0 / ch)
+        sel_rows = [(np.tensordot(lw, F, axes=(0, 0)), np.arange(ch))]
+    else:
+        sel_rows = [(F[c], np.array([c])) for c in range(ch)]
+    kw = {"psi": psi, "eps_db": eps_db, "n_trials": n_trials, "weights": weights, "rng": rng}
+    fits = []
+    for S, chans in sel_rows:  # loop over <= ch groups
+        def select(cand: np.ndarray, cm: int, S=S, chans=chans) -> tuple | None:
+            targets = [F[c, cand].sum(axis=0) for c in chans]  # (d,) per channel
+            if cand.size > n_batch:
+                c_batch = min(c_max, n_batch // 2)
+                pools = []
+                for b0 in range(0, cand.size, n_batch):  # loop over column batches
+                    got = select(cand[b0:b0 + n_batch], c_batch)
+                    if got is None:
+                        return None
+                    pools.append(got[0])
+                pool = np.unique(np.concatenate(pools)).astype(np.int64)
+                if pool.size > n_batch:
+                    got = select(pool, c_batch)
+                    if got is None:
+                        return None
+                    pool = got[0]
+                cand = pool
+            return _select_direct(F, S, chans, cand, targets, c_max=cm, **kw)
+        got = select(np.arange(m, dtype=np.int64), c_max)
+        if got is None:
+            return None, "full_svd"
+        fits.append(got)
+    groups = [GroupInput((np.zeros(0), np.zeros((0, 0))), np.zeros(0), 0.0, chans)
+              for _, chans in sel_rows]
+    return _merge(F, valid, fits, groups, mode=mode, corr=corr, eps_db=eps_db,
+                  c_max=c_max), "split"
+
+
+def _select_direct(F, S, chans, cand, targets, *, c_max, psi, eps_db, n_trials, weights, rng):
+    """`fit._Fitter._select_direct` on columns cand against the given targets, from Grams."""
+    Sc = S[cand]
+    G_sel = Sc @ Sc.T
+    eig_sel = batched_eigh([G_sel])[0]
+    s, Vt = spectrum(eig_sel)
+    k = energy_rank(s, psi, float(np.trace(G_sel)))
+    if needs_full_svd(s, k, cand.size):
+        return None
+    if k == 0:
+        return (np.zeros(0, np.int64), np.zeros((0, len(chans))), 0, False)
+    p = column_probabilities(np.zeros((0, 0)), s, Vt, k, col_energy=np.diag(G_sel).copy())
+    red = []
+    signal = 0.0
+    for c, tgt in zip(chans, targets, strict=True):  # loop over <= 3 channels
+        M = F[c, cand]
+        G = M @ M.T
+        Gn, scale = normalised_gram(G)
+        tt = float(tgt @ tgt)
+        signal += tt
+        red.append(reduced_system(G, batched_eigh([Gn])[0], scale, M @ tgt, tt))
+    cols, alpha, capped = _bisect(p, k, red, signal, eps_db=eps_db, c_max=c_max,
+                                  n_trials=n_trials, weights=weights, rng=rng)
+    return (cand[cols], alpha, k, capped)
 
 
 def select_groups(

@@ -43,7 +43,7 @@ BYTES_PER_R_ENTRY = 8 * 12
 #: bytes per (dense sample, held-out pair, channel) in the held-out pass
 BYTES_PER_HELD_ENTRY = 8 * 12
 
-SKIP_CODES = {"": 0, "rank1": 1, "per_texel": 2}
+SKIP_CODES = {"": 0, "split": 0, "rank1": 1, "per_texel": 2}
 
 
 def chunk_bounds(sizes: np.ndarray, cap: int) -> list[tuple[int, int]]:
@@ -243,7 +243,7 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         if m == 0 or n_dense[t] == 0:
             continue
         if valid[t].any() and float(np.trace(sxx[t])) > TOL.energy_floor \
-                and m <= s.n_batch and d >= 2 * m:
+                and d >= 2 * min(m, s.n_batch):
             gram.append(t)
             corrs.append(correlation_from_sums(sx[t], sxx[t], d * m))
     seeds = [texel_seed(s.seed, level, int(texels[t])) for t in range(n_t)]
@@ -252,6 +252,7 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         [seeds[t] for t in gram], psi=s.psi, eps_db=s.eps_db, c_max=s.c_max,
         n_trials=s.n_trials, weights=s.weights, colour=s.colour,
         decorrelation_threshold=s.decorrelation_threshold, closed_form=s.closed_form,
+        n_batch=s.n_batch,
     ), strict=True))
     fits: list[TexelFit | None] = [None] * n_t
     for t in range(n_t):  # loop over texels
@@ -272,8 +273,8 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
 
 
 def too_wide(m: int, d: int, s) -> bool:
-    """A texel too wide for the Gram path (m > n_batch or d < 2 m) goes to `fit_texel`."""
-    return m > s.n_batch or d < 2 * m
+    """A texel too wide for the Gram path (d < 2 min(m, n_batch)) goes to `fit_texel`."""
+    return d < 2 * min(m, s.n_batch)
 
 
 def _store(res: _Results, i: int, fit: TexelFit, cset: PointSet, skip: int) -> None:

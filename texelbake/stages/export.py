@@ -101,13 +101,17 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     return root
 
 
-def update_report_seconds(out_dir: Path, seconds: dict[str, float]) -> None:
+def update_report_seconds(out_dir: Path, seconds: dict[str, float],
+                          estimate: dict | None = None) -> None:
+    """Stage seconds (and the cost model's prediction, `texelbake.costmodel`) into report.json."""
     from texelbake import payload
 
     path = Path(out_dir) / "report.json"
     report = json.loads(path.read_text())
     report["stage_seconds"] = {k: round(v, 3) for k, v in seconds.items()}
     report["total_seconds"] = round(sum(seconds.values()), 3)
+    if estimate is not None:
+        report["estimate"] = estimate
     payload.atomic_json(path, report)
 
 

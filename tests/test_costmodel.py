@@ -1,0 +1,54 @@
+"""The cost model (issue 15): the O(log N) prediction before the geometry against the same
+model on an explicit per-texel sample histogram, its scaling laws, and the bake's report and
+the job API carrying it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from schemas.settings import BakeSettings
+from texelbake import costmodel
+
+
+def test_uniform_prediction_equals_the_histogram_of_an_even_fill():
+    """Second method: level_sizes pools an explicit (N, N) histogram of spt samples on every
+    texel of a full atlas level by level; the O(log N) path assumes the same."""
+    n, spt = 32, 64
+    s = BakeSettings(atlas_resolution=n, samples_per_texel=spt)
+    counts = np.full((n, n), spt)
+    fill = costmodel.DEFAULT_FILL
+    try:
+        costmodel.DEFAULT_FILL = 1.0
+        a = costmodel.estimate(s, 2)
+    finally:
+        costmodel.DEFAULT_FILL = fill
+    b = costmodel.estimate(s, 2, counts)
+    assert a.texels == b.texels == sum((n >> k) ** 2 for k in range(6))
+    assert a.cpm_seconds == pytest.approx(b.cpm_seconds, rel=1e-9)
+    for x, y in zip(a.per_level, b.per_level, strict=True):
+        assert x["seconds"] == pytest.approx(y["seconds"], rel=1e-9)
+
+
+def test_scaling_laws():
+    s = BakeSettings(atlas_resolution=64)
+    one, two = costmodel.estimate(s, 1), costmodel.estimate(s, 2)
+    assert two.cpm_seconds == one.cpm_seconds
+    assert two.seconds < one.seconds
+    # four times the direction pairs: R, Grams scale with d, the held-out truth does not
+    s4 = BakeSettings(atlas_resolution=64, n_light_dirs=128, n_view_dirs=128)
+    r = costmodel.estimate(s4, 1).cpm_seconds / one.cpm_seconds
+    assert 2.5 < r < 4.0
+    # GGX materials cost more than Lambert / Phong
+    assert costmodel.estimate(s, 1, ggx_fraction=1.0).cpm_seconds > \
+        costmodel.estimate(s, 1, ggx_fraction=0.0).cpm_seconds
+    # a 4096^2 atlas is predicted without an N x N array (fast) and scales ~N^2
+    big = costmodel.estimate(BakeSettings(atlas_resolution=4096), 2)
+    small = costmodel.estimate(BakeSettings(atlas_resolution=2048), 2)
+    assert 3.0 < big.cpm_seconds / small.cpm_seconds < 5.0
+
+
+def test_sample_counts_histogram():
+    geo = {"sample_row": np.array([0, 0, 1, 3]), "sample_col": np.array([0, 0, 2, 3])}
+    c = costmodel.sample_counts(geo, 4)
+    assert c.shape == (4, 4) and c[0, 0] == 2 and c[1, 2] == 1 and c[3, 3] == 1 and c.sum() == 4

@@ -1,0 +1,173 @@
+"""A bake's cost model (issue 15): its time predicted from the texel count, the samples per
+texel, the direction pairs and the worker count, before the CPM stages run.
+
+The CPM fit of a texel with m candidate columns on d = N_i N_o direction pairs costs (batched
+fit, `texelbake.cpm.level_batched`):
+
+    r_entry m d    building R (BRDF evaluation, visibility products, F = R / a_vis)
+    gram m^2 d     the Gram matrices (4 per texel in luminance mode)
+    eigh m^3       their eigendecompositions
+    held n H       the held-out truth over its n dense samples on H held-out pairs
+    texel          draws, bisection and NNLS on the reduced r x c systems
+
+Level 0's m are the dense samples per texel (known exactly once the geometry stage has placed
+them: `sample_counts`; before that spt per occupied texel with an assumed atlas fill); a coarser
+texel selects among its children's points, m = sum over its children of min(c_L, m_child) with
+c_L the typical points per texel of a level (C_LEVEL, measured). The a_vis and geometry stages
+scale with the dense samples. Shards spread over the workers; every worker process pays the
+imports once. Coefficients are seconds measured on this project's 2-core machine
+(benchmarks/bake.py compares prediction and outcome); `Coefficients` can be re-fitted for
+another machine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from schemas.settings import BakeSettings
+
+#: occupied fraction of the atlas' finest texels when the geometry is not known yet (measured:
+#: cylinder 0.37, bolt 0.4 at 32^2)
+DEFAULT_FILL = 0.4
+
+
+@dataclass(frozen=True)
+class Coefficients:
+    """Seconds per unit, fitted (NNLS, relative residuals) to 32 (scene, tile, level) CPU
+    timings of `fit_level` on the full cylinder (Lambert + Phong) and bolt (GGX) at 32^2: the
+    prediction is within 0.7-1.3x per point and 0.99x summed. The eigh term fitted to 0 (the
+    m^3 work is absorbed by the Gram term at these sizes) and is kept at 0."""
+
+    r_entry: float = 6.1e-8  # s per (candidate, direction pair), Lambert / Phong
+    gram: float = 1.84e-10  # s per m^2 d
+    eigh: float = 0.0  # s per m^3
+    held: float = 9.5e-8  # s per (dense sample, held-out pair), Lambert / Phong
+    texel: float = 5.0e-4  # s per fitted texel
+    brdf_ggx: float = 1.75  # R and held-out cost of a GGX (preview, merl, cellular) material
+    avis: float = 4.0e-5  # s per dense sample (a_vis maps and compression)
+    geometry: float = 2.0e-5  # s per dense sample (sampling, texel assignment)
+    process: float = 5.0  # s per worker process (imports of pxr, open3d, torch, scipy)
+    fixed: float = 2.0  # s (ingest, plan, export)
+
+
+#: typical characteristic points per texel at level L (children hierarchy), capped by c_max:
+#: measured means 25, 26, 35, 55, 85 at levels 0-4 (cylinder, 32^2, eps 30 dB)
+C_LEVEL = (25.0, 26.0, 35.0, 55.0, 85.0)
+
+
+@dataclass
+class Estimate:
+    """Predicted seconds of a bake: total wall time on `workers` processes and its parts."""
+
+    seconds: float
+    workers: int
+    cpm_seconds: float  # CPU seconds of the CPM fit (all levels), before dividing by workers
+    avis_seconds: float
+    geometry_seconds: float
+    texels: int  # texels with samples, all levels
+    per_level: list[dict] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _pool2(a: np.ndarray) -> np.ndarray:
+    n = a.shape[0] // 2
+    return a.reshape(n, 2, n, 2).sum(axis=(1, 3))
+
+
+def level_sizes(counts: np.ndarray, c_max: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(m (t,), n_dense (t,)) of the texels with samples at every level, from the finest
+    level's dense sample counts (N, N)."""
+    out = []
+    m = counts.astype(np.float64)
+    dense = counts.astype(np.float64)
+    level = 0
+    while True:
+        keep = dense > 0
+        out.append((m[keep], dense[keep]))
+        if dense.shape[0] == 1:
+            return out
+        c_l = min(float(c_max), C_LEVEL[min(level, len(C_LEVEL) - 1)])
+        m = _pool2(np.minimum(m, c_l))
+        dense = _pool2(dense)
+        level += 1
+
+
+def _uniform_sizes(n: int, spt: int, c_max: int) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """`level_sizes` of DEFAULT_FILL n^2 texels with spt samples each, in O(log n): at level L,
+    t_L = max(t_0 / 4^L, 1) texels share the samples evenly (m, dense, multiplicity t_L)."""
+    t = max(DEFAULT_FILL * n * n, 1.0)
+    m, dense = float(spt), float(spt)
+    out = []
+    for level in range(int(n).bit_length()):
+        out.append((np.full(1, m), np.full(1, dense), t))
+        t_next = max(t / 4.0, 1.0)
+        c_l = min(float(c_max), C_LEVEL[min(level, len(C_LEVEL) - 1)])
+        m = min(m, c_l) * t / t_next
+        dense = dense * t / t_next
+        t = t_next
+    return out
+
+
+def estimate(
+    settings: BakeSettings,
+    workers: int = 1,
+    sample_counts: np.ndarray | None = None,
+    coef: Coefficients | None = None,
+    ggx_fraction: float = 0.5,
+) -> Estimate:
+    """Predict a bake's seconds.
+
+    settings : the bake's settings; workers : processes running shards (>= 1)
+    ggx_fraction : fraction of the samples on materials costlier than Lambert / Phong
+        (`ggx_fraction_of`); 0.5 when the asset is not known
+    sample_counts : (N, N) int dense samples per finest texel (the geometry stage's
+        `sample_row`/`sample_col` histogram, `sample_counts`); None: spt on DEFAULT_FILL of
+        the atlas, spread evenly (a prediction before the geometry exists; O(log N) work)
+    """
+    coef = coef or Coefficients()
+    s = settings
+    n = s.atlas_resolution
+    workers = max(int(workers), 1)
+    sizes = ([(m, dn, 1.0) for m, dn in level_sizes(
+        np.asarray(sample_counts, dtype=np.float64).reshape(n, n), s.c_max)]
+        if sample_counts is not None else _uniform_sizes(n, s.samples_per_texel, s.c_max))
+    d = s.n_light_dirs * s.n_view_dirs
+    n_h = int(round(np.sqrt(s.n_heldout))) ** 2 if s.n_heldout else 0
+    brdf = 1.0 + (coef.brdf_ggx - 1.0) * float(np.clip(ggx_fraction, 0.0, 1.0))
+    per_level = []
+    cpm = 0.0
+    texels = 0
+    for level, (m, dense, mult) in enumerate(sizes):
+        sec = mult * float(brdf * coef.r_entry * (m * d).sum() + coef.gram * (m * m * d).sum()
+                           + coef.eigh * (m ** 3).sum() + brdf * coef.held * (dense * n_h).sum()
+                           + coef.texel * m.size)
+        n_tex = int(round(mult * m.size))
+        per_level.append({"level": level, "texels": n_tex, "seconds": sec})
+        cpm += sec
+        texels += n_tex
+    total_samples = float(sizes[0][1].sum() * sizes[0][2])
+    avis = coef.avis * total_samples * (s.avis_resolution / 16.0) ** 2
+    geom = coef.geometry * total_samples
+    seconds = coef.fixed + geom + coef.process * (1 if workers == 1 else 2) \
+        + (cpm + avis) / workers
+    return Estimate(seconds=seconds, workers=workers, cpm_seconds=cpm, avis_seconds=avis,
+                    geometry_seconds=geom, texels=texels, per_level=per_level)
+
+
+def sample_counts(geo, n: int) -> np.ndarray:
+    """(n, n) dense samples per finest texel from the geometry stage's arrays."""
+    flat = geo["sample_row"].astype(np.int64) * n + geo["sample_col"].astype(np.int64)
+    return np.bincount(flat, minlength=n * n).reshape(n, n)
+
+
+def ggx_fraction_of(geo, materials) -> float:
+    """Fraction of the dense samples whose material is not Lambert or Phong."""
+    mat = np.asarray(geo["sample_mat"], dtype=np.int64)
+    if mat.size == 0:
+        return 0.0
+    costly = np.array([m.model not in ("lambert", "phong") for m in materials], dtype=bool)
+    return float(costly[mat].mean()) if costly.size else 0.0
