@@ -185,3 +185,29 @@ def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):
         lb.BYTES_PER_R_ENTRY = old
     for k in got:
         np.testing.assert_array_equal(tiny[k], got[k], err_msg=k)
+
+
+def test_reduced_system_cholesky_and_eigh_against_the_residual():
+    """The trials' reduced least squares: pivoted Cholesky (batched path) and the
+    eigendecomposition (per-texel algebra) both reproduce ||M a - target||^2 for any a, with
+    duplicate, collinear and zero columns (one facet's samples)."""
+    from texelbake.cpm.gram_fit import normalised_gram, reduced_system, reduced_system_eigh
+
+    rng = np.random.default_rng(2)
+    M = rng.random((500, 12)) @ rng.random((12, 30))  # rank 12
+    M[:, 5] = M[:, 3] * 2.5  # collinear
+    M[:, 7] = 0.0  # zero column
+    M[:, 9] = M[:, 2]  # duplicate
+    G = M.T @ M
+    _, scale = normalised_gram(G)
+    for target in (M.sum(axis=1), rng.random(500)):
+        b, tt = M.T @ target, float(target @ target)
+        A1, t1, r1 = reduced_system(G, scale, b, tt)
+        A2, t2, r2 = reduced_system_eigh(G, batched_eigh([G / np.outer(scale, scale)])[0],
+                                         scale, b, tt)
+        assert A1.shape[0] <= 13
+        for a in (np.zeros(30), rng.random(30), rng.random(30) * 10):
+            exact = float(np.sum((M @ a - target) ** 2))
+            for A, t, r in ((A1, t1, r1), (A2, t2, r2)):
+                assert float(np.sum((A @ a - t) ** 2)) + r == pytest.approx(exact, rel=1e-7,
+                                                                             abs=1e-9 * tt)
