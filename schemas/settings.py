@@ -78,7 +78,7 @@ class BakeSettings(BaseModel):
     # farm
     shard_texels: int = Field(8, ge=1, le=4096, description="Tile side (finest texels) of a shard.")
     worker_memory_mb: int = Field(
-        1024, ge=64, le=1 << 20,
+        512, ge=64, le=1 << 20,
         description="Working-memory bound of one worker's CPM fit (MiB): texels and samples are "
         "processed in chunks that fit, whatever the atlas size; the result does not depend on it.",
     )

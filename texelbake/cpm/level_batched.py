@@ -37,9 +37,12 @@ from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
 from texelbake.errors import NumericalError
 from texelbake.tol import TOL
 
-#: bytes held per (candidate, row, channel) entry while R is built and fitted: the BRDF grid
-#: with its gathers, R, F and F's per-channel copy (measured peak / entries on the cylinder)
-BYTES_PER_R_ENTRY = 8 * 12
+#: bytes held per (candidate, row, channel) entry while a chunk is fitted: R and F (float64)
+#: and the luminance selection matrix
+BYTES_PER_R_ENTRY = 8 * 3
+#: bytes of temporaries per (sample, direction pair) while the BRDF is evaluated (local
+#: directions, the model's intermediates, f): a sample batch uses a quarter of the budget
+BYTES_PER_EVAL_ENTRY = 8 * 40
 #: bytes per (dense sample, held-out pair, channel) in the held-out pass
 BYTES_PER_HELD_ENTRY = 8 * 12
 
@@ -127,7 +130,7 @@ def fit_level_batched(
         rows = order_c[cb_c[a]:cb_c[b]]
         avis_o, area = _avis(src, frames, texels[a:b], dense, dseg, b - a, dirs, budget)
         fits = _fit_chunk(src, level, texels[a:b], candidates.take(rows), seg_c[cb_c[a]:cb_c[b]] - a,
-                          n_cand[a:b], n_dense[a:b], avis_o, area, dirs, res, a)
+                          n_cand[a:b], n_dense[a:b], avis_o, area, dirs, res, a, budget)
         if len(dirs["held_i"]):
             _heldout(src, frames, texels[a:b], dense, dseg, candidates.take(rows), fits, dirs,
                      area, budget, res, a)
@@ -192,28 +195,34 @@ class _Results:
         return out
 
 
-def _build_R(src, frames, cset: PointSet, dirs) -> np.ndarray:
+def _build_R(src, frames, cset: PointSet, dirs, budget: int) -> np.ndarray:
     """Eq. 9's matrix for every candidate of the chunk, channel-major: (3, P, d) with row
-    i * n_o + o, one BRDF evaluation for the chunk."""
-    vi = visibility_cos(src, cset.sample, world_dirs(frames, cset.texel, dirs["dirs_i"]))
-    vo = visibility_cos(src, cset.sample, world_dirs(frames, cset.texel, dirs["dirs_o"]),
-                        "geometric")
-    live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)  # (n_i, n_o, P)
-    f = brdf_product(src.geo, src.materials, cset.sample,
-                     world_dirs(frames, cset.texel, dirs["dirs_i"]),
-                     world_dirs(frames, cset.texel, dirs["dirs_o"]), live)  # (3, P, n_i, n_o)
-    f *= vi[None, :, :, None]
-    f *= vo[None, :, None, :]
-    f *= cset.weight.T[:, :, None, None]
-    return f.reshape(3, len(cset.sample), len(dirs["dirs_i"]) * len(dirs["dirs_o"]))
+    i * n_o + o. The BRDF is evaluated on sample batches whose temporaries fit a quarter of
+    the budget (a sample's entries are independent), so only R itself scales with P."""
+    n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
+    P = len(cset.sample)
+    Rt = np.empty((3, P, n_i * n_o))
+    step = max(budget // 4 // (BYTES_PER_EVAL_ENTRY * n_i * n_o), 1)
+    for s0 in range(0, P, step):  # loop over sample batches (memory bound)
+        part = cset.take(np.arange(s0, min(s0 + step, P)))
+        wi = world_dirs(frames, part.texel, dirs["dirs_i"])
+        wo = world_dirs(frames, part.texel, dirs["dirs_o"])
+        vi = visibility_cos(src, part.sample, wi)
+        vo = visibility_cos(src, part.sample, wo, "geometric")
+        live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)  # (n_i, n_o, p)
+        f = brdf_product(src.geo, src.materials, part.sample, wi, wo, live)  # (3, p, n_i, n_o)
+        f *= (vi[None, :, :] * part.weight.T[:, :, None])[..., None]
+        f *= vo[None, :, None, :]
+        Rt[:, s0:s0 + len(part.sample)] = f.reshape(3, len(part.sample), -1)
+    return Rt
 
 
-def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, dirs, res, base
-               ) -> list[TexelFit | None]:
+def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, dirs, res, base,
+               budget) -> list[TexelFit | None]:
     s = src.settings
     n_i = len(dirs["dirs_i"])
     n_t = len(texels)
-    Rt = _build_R(src, src.geo[f"frames_L{level}"], cset, dirs)  # (3, P, d)
+    Rt = _build_R(src, src.geo[f"frames_L{level}"], cset, dirs, budget)  # (3, P, d)
     d = Rt.shape[2]
     if not np.all(np.isfinite(Rt)):
         bad = np.unique(cset.texel[np.any(~np.isfinite(Rt), axis=(0, 2))])
