@@ -52,3 +52,21 @@ def test_sample_counts_histogram():
     geo = {"sample_row": np.array([0, 0, 1, 3]), "sample_col": np.array([0, 0, 2, 3])}
     c = costmodel.sample_counts(geo, 4)
     assert c.shape == (4, 4) and c[0, 0] == 2 and c[1, 2] == 1 and c[3, 3] == 1 and c.sum() == 4
+
+
+def test_job_status_carries_the_core_estimate():
+    """The job API's estimate is the core function's (thin): same seconds, ETA = start +
+    seconds once the job started, none before."""
+    from datetime import UTC, datetime, timedelta
+    from types import SimpleNamespace
+
+    from services.routers.jobs import job_estimate
+
+    s = BakeSettings(atlas_resolution=64)
+    core = costmodel.estimate(s, 3)
+    queued = job_estimate(SimpleNamespace(started_at=None), s, 3)
+    assert queued.seconds == pytest.approx(core.seconds, abs=0.05) and queued.eta is None
+    assert queued.workers == 3
+    t0 = datetime(2026, 11, 25, 9, 0, tzinfo=UTC)
+    running = job_estimate(SimpleNamespace(started_at=t0), s, 3)
+    assert running.eta == t0 + timedelta(seconds=core.seconds)
