@@ -35,6 +35,10 @@ def test_scaling_laws():
     one, two = costmodel.estimate(s, 1), costmodel.estimate(s, 2)
     assert two.cpm_seconds == one.cpm_seconds
     assert two.seconds < one.seconds
+    # a loaded machine: 10 other runnable processes on 2 cores stretch 2 workers 6x
+    loaded = costmodel.estimate(s, 2, load=10.0, cores=2)
+    assert loaded.stretch == pytest.approx(6.0) and loaded.seconds == pytest.approx(6 * two.seconds)
+    assert costmodel.estimate(s, 2, load=0.0, cores=2).seconds == pytest.approx(two.seconds)
     # four times the direction pairs: R, Grams scale with d, the held-out truth does not
     s4 = BakeSettings(atlas_resolution=64, n_light_dirs=128, n_view_dirs=128)
     r = costmodel.estimate(s4, 1).cpm_seconds / one.cpm_seconds

@@ -67,6 +67,7 @@ class Estimate:
     avis_seconds: float
     geometry_seconds: float
     texels: int  # texels with samples, all levels
+    stretch: float = 1.0  # wall / CPU slowdown from the machine's other load (>= 1)
     per_level: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -118,12 +119,18 @@ def estimate(
     sample_counts: np.ndarray | None = None,
     coef: Coefficients | None = None,
     ggx_fraction: float = 0.5,
+    load: float = 0.0,
+    cores: int | None = None,
 ) -> Estimate:
     """Predict a bake's seconds.
 
     settings : the bake's settings; workers : processes running shards (>= 1)
     ggx_fraction : fraction of the samples on materials costlier than Lambert / Phong
         (`ggx_fraction_of`); 0.5 when the asset is not known
+    load, cores : other runnable processes on the machine (the 1-min load average without the
+        bake's own) and its cores; when load + workers > cores each process gets
+        cores / (load + workers) of a core and every term is stretched accordingly (default:
+        a quiet machine)
     sample_counts : (N, N) int dense samples per finest texel (the geometry stage's
         `sample_row`/`sample_col` histogram, `sample_counts`); None: spt on DEFAULT_FILL of
         the atlas, spread evenly (a prediction before the geometry exists; O(log N) work)
@@ -152,10 +159,13 @@ def estimate(
     total_samples = float(sizes[0][1].sum() * sizes[0][2])
     avis = coef.avis * total_samples * (s.avis_resolution / 16.0) ** 2
     geom = coef.geometry * total_samples
+    par = min(workers, cores or workers)
     seconds = coef.fixed + geom + coef.process * (1 if workers == 1 else 2) \
-        + (cpm + avis) / workers
-    return Estimate(seconds=seconds, workers=workers, cpm_seconds=cpm, avis_seconds=avis,
-                    geometry_seconds=geom, texels=texels, per_level=per_level)
+        + (cpm + avis) / par
+    stretch = max(1.0, (max(load, 0.0) + par) / cores) if cores else 1.0
+    return Estimate(seconds=seconds * stretch, workers=workers, cpm_seconds=cpm,
+                    avis_seconds=avis, geometry_seconds=geom, texels=texels,
+                    per_level=per_level, stretch=stretch)
 
 
 def sample_counts(geo, n: int) -> np.ndarray:

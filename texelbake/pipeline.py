@@ -192,20 +192,25 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
     """The cost model's prediction (`texelbake.costmodel`) from the placed samples: total
     seconds, the cpm and avis stages' wall seconds on `jobs` workers, and the ETA (UTC) of the
     bake given the `elapsed` seconds so far."""
+    import os
     from datetime import UTC, datetime, timedelta
 
     from texelbake import costmodel
 
     s = ctx.settings
     geo = ctx.geometry()
+    cores = os.cpu_count() or 1
+    other = max(os.getloadavg()[0] - 1.0, 0.0)  # runnable processes besides this one
     e = costmodel.estimate(s, jobs, costmodel.sample_counts(geo, s.atlas_resolution),
-                           ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials))
+                           ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
+                           load=other, cores=cores)
     w = max(int(jobs), 1)
     remaining = max(e.seconds - elapsed, 0.0)
     eta = datetime.now(UTC) + timedelta(seconds=remaining)
-    return {"seconds": round(e.seconds, 1), "workers": w,
-            "stage_seconds": {"cpm": round(e.cpm_seconds / w, 1),
-                              "avis": round(e.avis_seconds / w, 1)},
+    return {"seconds": round(e.seconds, 1), "workers": w, "load": round(other, 2),
+            "cores": cores,
+            "stage_seconds": {"cpm": round(e.cpm_seconds / w * e.stretch, 1),
+                              "avis": round(e.avis_seconds / w * e.stretch, 1)},
             "per_level": e.per_level, "eta": eta.strftime("%H:%M:%S UTC")}
 
 
