@@ -151,6 +151,11 @@ def test_brdf_product_equals_brdf_grid_on_live_entries(small_scene):
     ref = brdf_grid(src, cands.sample, wi, wo, live)  # (A, B, p, 3)
     got = brdf_product(src.geo, src.materials, cands.sample, wi, wo, live)  # (3, p, A, B)
     np.testing.assert_array_equal(got.transpose(2, 3, 1, 0), ref)
+    # a sparse live mask (occluded samples): the gathered path, equal on live entries
+    sparse = live & (np.random.default_rng(0).random(live.shape) < 0.3)
+    got = brdf_product(src.geo, src.materials, cands.sample, wi, wo, sparse)
+    ref = brdf_grid(src, cands.sample, wi, wo, sparse)
+    np.testing.assert_array_equal(got.transpose(2, 3, 1, 0)[sparse], ref[sparse])
 
 
 def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):

@@ -10,7 +10,9 @@ they save (profile: 21-23 % of a bake). Here, per material (a loop over the few 
   the sample alone: rho per sample from one evaluation at normal incidence (textures sampled
   once per sample), then broadcast over (w_i, w_o): A + B + p work instead of A B p;
 - any other model: `brdf.evaluate` on every (w_i, w_o, sample) entry of the material's samples
-  (dense, no gather), textures once per sample through sample_index.
+  (dense, no gather), textures once per sample through sample_index; when fewer than
+  DENSE_FRACTION of the entries are live (occluded samples, e.g. a bolt's threads) only the
+  live ones, gathered.
 
 Entries that are not live are multiplied by a zero visibility-cosine product afterwards; a
 non-finite value at a live entry is an error (NumericalError naming the material), a non-finite
@@ -27,6 +29,17 @@ from texelbake import brdf as brdf_mod
 from texelbake.errors import NumericalError
 from texelbake.frames import tangent_frames
 from texelbake.tol import TOL
+
+#: below this fraction of live entries a material's samples are evaluated on the live entries
+#: only (gathered, as `level.brdf_grid`); above it densely (no gather / scatter)
+DENSE_FRACTION = 0.6
+
+
+def _check_finite(f: np.ndarray, material) -> None:
+    if not np.all(np.isfinite(f)):
+        raise NumericalError(
+            f"material {material.path!r}: BRDF not finite at a visible direction pair"
+        )
 
 
 def brdf_product(
@@ -70,6 +83,15 @@ def brdf_product(
             for c in range(3):  # loop over colour channels
                 out[c, sel] = ok * rho_pi[:, c, None, None]
             continue
+        lv = live[:, :, sel].transpose(2, 0, 1)  # (n_s, A, B)
+        if float(lv.mean()) < DENSE_FRACTION:  # mostly dead (occluded): gather the live ones
+            j, ia, ib = np.nonzero(lv)
+            f_live = brdf_mod.evaluate(material, wi_loc[ia, sel[j]], wo_loc[ib, sel[j]],
+                                       uv[sel], sample_index=j)
+            _check_finite(f_live, material)
+            for c in range(3):  # loop over colour channels
+                out[c, sel[j], ia, ib] = f_live[:, c]
+            continue
         wi = np.broadcast_to(wi_loc[:, sel, :].transpose(1, 0, 2)[:, :, None, :],
                              (n_s, A, B, 3)).reshape(-1, 3)
         wo = np.broadcast_to(wo_loc[:, sel, :].transpose(1, 0, 2)[:, None, :, :],
@@ -78,10 +100,7 @@ def brdf_product(
         f = brdf_mod.evaluate(material, wi, wo, uv[sel], sample_index=idx).reshape(n_s, A, B, 3)
         bad = ~np.isfinite(f)
         if bad.any():
-            if np.any(bad & live[:, :, sel].transpose(2, 0, 1)[..., None]):
-                raise NumericalError(
-                    f"material {material.path!r}: BRDF not finite at a visible direction pair"
-                )
+            _check_finite(np.where(lv[..., None], f, 0.0), material)
             f[bad] = 0.0
         out[:, sel] = f.transpose(3, 0, 1, 2)
     return out
