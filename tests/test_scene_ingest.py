@@ -460,6 +460,7 @@ def test_lights_directions_and_radiance(tmp_path):
     sun.CreateIntensityAttr(3.0)
     sun.CreateExposureAttr(2.0)
     sun.CreateColorAttr(Gf.Vec3f(1, 0.5, 0.25))
+    sun.CreateNormalizeAttr(True)  # UsdLux: the intensity is the irradiance
     grp = UsdGeom.Xform.Define(stage, "/Root/G")
     grp.AddScaleOp().Set(Gf.Vec3f(2, 2, 2))
     bulb = UsdLux.SphereLight.Define(stage, "/Root/G/Bulb")

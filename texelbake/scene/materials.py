@@ -19,7 +19,7 @@ from texelbake.model import (
 )
 from texelbake.scene.files import load_image, load_merl
 from texelbake.scene.values import coerce_like, default_param, warn
-from texelbake.shaderdefs import SHADER_INPUTS
+from texelbake.shaderdefs import SHADER_INPUTS, shader_id
 
 #: defaults for unauthored inputs of texelbake's own shader ids: the Sdr definitions'
 #: defaults (texelbake.shaderdefs.SHADER_INPUTS), colours as tuples
@@ -75,8 +75,7 @@ class MaterialReader:
         shader = UsdShade.Shader(prim)
         if not shader:
             return None
-        sid = shader.GetShaderId()
-        return str(sid) if sid else None
+        return shader_id(shader)
 
     def _surface(self, material: Any, context: str) -> tuple[Any, str | None] | None:
         """(shader prim, shader id) feeding the material's surface output for a context."""
