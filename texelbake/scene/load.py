@@ -86,14 +86,22 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
     reader = MaterialReader(time, warns)
 
     materials: list[Material] = []
-    index_by_path: dict[str, int] = {}
+    read_by_path: dict[str, Material] = {}
+    index_by_key: dict[tuple[str, bytes], int] = {}
 
-    def index_of(material: Any) -> int:
-        key = str(material.GetPath()) if material else ""
-        if key not in index_by_path:
-            index_by_path[key] = len(materials)
-            materials.append(reader.read(material) if material else DEFAULT_MATERIAL)
-        return index_by_path[key]
+    def index_of(material: Any, prim: Any, faces: np.ndarray) -> np.ndarray:
+        path = str(material.GetPath()) if material else ""
+        if path not in read_by_path:
+            read_by_path[path] = reader.read(material) if material else DEFAULT_MATERIAL
+        variants, group = reader.specialize(read_by_path[path], prim, faces)
+        index = np.empty(len(variants), dtype=np.int32)
+        for i, (value_key, mat) in enumerate(variants):  # one per distinct primvar value
+            key = (path, value_key)
+            if key not in index_by_key:
+                index_by_key[key] = len(materials)
+                materials.append(mat)
+            index[i] = index_by_key[key]
+        return index[group]
 
     mesh_prims: list[Any] = []
     lights: list[Light] = []

@@ -209,6 +209,12 @@ def read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | No
     bad_polygons = int((counts < 3).sum())
     if bad_polygons:
         warn(warns, f"mesh {path}: dropped {bad_polygons} polygon(s) with fewer than 3 vertices")
+    scheme = str(mesh.GetSubdivisionSchemeAttr().Get(time) or "none")
+    if scheme != "none":
+        # no well-kept Python library refines USD's subdivision schemes (OpenSubdiv has no
+        # wheel on PyPI); the cage is what texelbake bakes, and the report says so
+        warn(warns, f"mesh {path}: subdivisionScheme is {scheme!r} (UsdGeom's fallback when "
+                    "unauthored); baked as its control cage, not refined")
     tri_fv, tri_face = _fan(counts)  # (T, 3), (T,)
     holes = np.asarray(mesh.GetHoleIndicesAttr().Get(time) or [], dtype=np.int64)
     if holes.size:
