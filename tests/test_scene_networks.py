@@ -174,3 +174,23 @@ def test_materialx_standard_surface_maps_to_preview_surface(tmp_path):
     assert tex.params["ior"] == pytest.approx(1.33) and tex.params["roughness"] == 0.2
     text = " ".join(asset.warnings)
     assert "sheen" in text and "base_color is driven by a node" in text
+
+
+def test_a_texture_reads_the_uv_set_it_names(tmp_path):
+    from tests._scene_helpers import preview_material, write_png
+
+    write_png(tmp_path / "t.png", np.zeros((2, 2, 3), np.uint8))
+    stage = new_stage(tmp_path / "a.usda")
+    m = grid_mesh(stage, "/Root/A", 1, 1)
+    api = UsdGeom.PrimvarsAPI(m)
+    st = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], np.float32)
+    api.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
+        Vt.Vec2fArray.FromNumpy(st))
+    api.CreatePrimvar("lightmap", Sdf.ValueTypeNames.TexCoord2fArray,
+                      UsdGeom.Tokens.vertex).Set(Vt.Vec2fArray.FromNumpy(st * 0.5 + 0.25))
+    bind(m, preview_material(stage, "/Root/Looks/M", texture="./t.png", varname="lightmap"))
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    # the texture names primvars:lightmap, so the mesh carries that set, not st
+    assert asset.corner_uvs.min() >= 0.25 - 1e-6 and asset.corner_uvs.max() <= 0.75 + 1e-6
+    assert not any("UV" in w for w in asset.warnings)
