@@ -36,7 +36,7 @@ export function Farm() {
           {farm.workers.length === 0 ? (
             <p class="muted">No worker answered Celery's inspection.</p>
           ) : (
-            <table class="table compact" data-testid="workers">
+            <table class="table compact workers" data-testid="workers">
               <thead>
                 <tr>
                   <th>Worker</th>

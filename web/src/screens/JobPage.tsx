@@ -15,41 +15,48 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
   const [busy, setBusy] = useState(false);
   const timer = useRef<number | null>(null);
 
-  async function load() {
+  async function load(): Promise<JobPublic | null> {
     const { data, error: err, response } = await api.GET("/api/v1/jobs/{job_id}", {
       params: { path: { job_id: id } },
     });
     if (err || !data) {
       setError(errorText(err, response.status));
-      return;
+      return null;
     }
     setError(null);
     setJob(data);
+    return data;
   }
 
   useEffect(() => {
     setJob(null);
-    void load();
-    // live: the job's events; each (debounced) re-reads the job, which the API caches per
-    // event sequence number
-    let finished = false;
-    const close = openEvents(`/api/v1/jobs/${id}/events`, {
-      done: () => finished,
-      onMessage: (m) => {
-        try {
-          const ev = JSON.parse(m.data);
-          if (ev.kind === "job" && TERMINAL.has(ev.data?.state)) finished = true;
-        } catch {
-          /* a malformed event changes nothing */
-        }
-        if (timer.current === null)
-          timer.current = window.setTimeout(() => {
-            timer.current = null;
-            void load();
-          }, 250);
-      },
-    });
+    let close = () => {};
+    let alive = true;
+    (async () => {
+      const first = await load();
+      if (!alive || !first || TERMINAL.has(first.state)) return;
+      // live: the job's events; each (debounced) re-reads the job, which the API caches per
+      // event sequence number
+      let finished = false;
+      close = openEvents(`/api/v1/jobs/${id}/events`, {
+        done: () => finished,
+        onMessage: (m) => {
+          try {
+            const ev = JSON.parse(m.data);
+            if (ev.kind === "job" && TERMINAL.has(ev.data?.state)) finished = true;
+          } catch {
+            /* a malformed event changes nothing */
+          }
+          if (timer.current === null)
+            timer.current = window.setTimeout(() => {
+              timer.current = null;
+              void load();
+            }, 250);
+        },
+      });
+    })();
     return () => {
+      alive = false;
       close();
       if (timer.current !== null) clearTimeout(timer.current);
       timer.current = null;
@@ -87,7 +94,16 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
     }
   }
 
-  if (error) return <ErrorBox>{error}</ErrorBox>;
+  if (error)
+    return (
+      <section>
+        <h2>
+          Job <span class="mono">{id.slice(0, 12)}</span>
+        </h2>
+        <ErrorBox>{error}</ErrorBox>
+        <a href="#/jobs">‹ All jobs</a>
+      </section>
+    );
   if (!job) return <p class="muted">Loading…</p>;
   const terminal = TERMINAL.has(job.state);
   const hasPreviews = (job.previews ?? []).length > 0;
@@ -178,9 +194,21 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
               </>
             )}
           </div>
+          <div class="card settings">
+            <h3>Settings</h3>
+            <dl class="kv small" data-testid="settings">
+              {Object.entries(job.settings).map(([k, v]) => (
+                <>
+                  <dt>{k}</dt>
+                  <dd class="mono">{String(v)}</dd>
+                </>
+              ))}
+            </dl>
+          </div>
           <div class="card stages">
             <h3>Stages</h3>
             {job.stages.length === 0 && <p class="muted">Not planned yet (waiting for the ingest worker).</p>}
+            {job.stages.length > 0 && (
             <table class="table compact" data-testid="stages">
               <thead>
                 <tr>
@@ -210,17 +238,7 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
                 ))}
               </tbody>
             </table>
-          </div>
-          <div class="card settings">
-            <h3>Settings</h3>
-            <dl class="kv small" data-testid="settings">
-              {Object.entries(job.settings).map(([k, v]) => (
-                <>
-                  <dt>{k}</dt>
-                  <dd class="mono">{String(v)}</dd>
-                </>
-              ))}
-            </dl>
+            )}
           </div>
         </div>
       )}

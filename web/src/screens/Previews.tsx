@@ -20,6 +20,8 @@ export function Previews({ job }: { job: JobPublic }) {
   const wanted = [...modes.map((m) => `${prefix}${m}.png`), ...diags];
   const { urls, error } = useBlobUrls(job.id, wanted);
   const [view, setView] = useState<View>(IDENTITY);
+  // the diagnostics zoom together too, apart from the renders (the atlas is another space)
+  const [diagView, setDiagView] = useState<View>(IDENTITY);
   const [a, setA] = useState("gt_reference");
   const [b, setB] = useState("cpm");
   const [compare, setCompare] = useState<"swipe" | "difference">("swipe");
@@ -121,7 +123,7 @@ export function Previews({ job }: { job: JobPublic }) {
           <div class="preview-grid">
             {diags.map((d) => (
               <figure class="preview" data-testid="diagnostic">
-                <ZoomPanView view={view} onView={setView}>
+                <ZoomPanView view={diagView} onView={setDiagView}>
                   {urls[d] && <img src={urls[d]} alt={d} draggable={false} />}
                 </ZoomPanView>
                 <figcaption>{d.replace(/\.png$/, "").replace(/_/g, " ")}</figcaption>

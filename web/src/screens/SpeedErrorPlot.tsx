@@ -69,6 +69,7 @@ export function SpeedErrorPlot({ job }: { job: JobPublic }) {
   const [viewName, setViewName] = useState<"near" | "far">("near");
   const [metric, setMetric] = useState("psnr_db_object");
   const [hover, setHover] = useState<SweepEntry | null>(null);
+  const [at, setAt] = useState<{ x: number; y: number }>({ x: 0, y: 0 });
 
   useEffect(() => {
     (async () => {
@@ -127,12 +128,13 @@ export function SpeedErrorPlot({ job }: { job: JobPublic }) {
         </span>
       </div>
       <div class="plot-wrap">
+        <div class="plot-area">
         <svg viewBox={`0 0 ${W} ${H}`} width={W} height={H} role="img" aria-label="speed against error">
           {logTicks(x0, x1).map((t) => (
             <g>
               <line x1={sx(t)} x2={sx(t)} y1={M.t} y2={H - M.b} class="grid" />
               <text x={sx(t)} y={H - M.b + 16} class="tick" text-anchor="middle">
-                {t < 0.01 ? t.toExponential(0) : t}
+                {t < 0.001 ? t.toExponential(0) : String(+t.toPrecision(3))}
               </text>
             </g>
           ))}
@@ -162,19 +164,20 @@ export function SpeedErrorPlot({ job }: { job: JobPublic }) {
               stroke="#fff"
               data-testid="plot-point"
               data-mode={p.e.mode}
-              onMouseEnter={() => setHover(p.e)}
+              onMouseEnter={() => {
+                setHover(p.e);
+                setAt({ x: sx(p.x), y: sy(p.y) });
+              }}
               onMouseLeave={() => setHover(null)}
             />
           ))}
         </svg>
-        <div class="legend">
-          {modes.map((m) => (
-            <span>
-              <i style={{ background: colour(m) }} /> {m}
-            </span>
-          ))}
-        </div>
-        <div class="tooltip" data-testid="plot-tooltip" hidden={!hover}>
+        <div
+          class="tooltip"
+          data-testid="plot-tooltip"
+          hidden={!hover}
+          style={{ left: `${(at.x / W) * 100}%`, top: `${(at.y / H) * 100}%` }}
+        >
           {hover && (
             <>
               <strong>{hover.mode}</strong> · {hover.spp} spp · {Number(hover.seconds).toFixed(4)} s ·{" "}
@@ -182,6 +185,14 @@ export function SpeedErrorPlot({ job }: { job: JobPublic }) {
               {metric !== "psnr_db_object" && num(hover[metric]) !== null && ` · ${metric} ${(hover[metric] as number).toFixed(4)}`}
             </>
           )}
+        </div>
+        </div>
+        <div class="legend">
+          {modes.map((m) => (
+            <span>
+              <i style={{ background: colour(m) }} /> {m}
+            </span>
+          ))}
         </div>
       </div>
     </div>

@@ -1,0 +1,323 @@
+"""The dashboard in a real browser (Playwright driving Debian's Chromium) against a real stack
+(redis-server, uvicorn serving web/dist and /api/v1, Celery workers), the way a person uses it:
+log in (a wrong token first), drop the small cylinder on the upload form and set its settings
+in the generated fields, watch the job's shards reach done, open the previews (synchronised
+zoom, swipe, difference), hover the speed-against-error plot, download the result, cancel a
+second job, look at the farm; another tenant's job is neither listed nor readable. No console
+error beyond the expected 401/404 answers. Screenshots go to build/browser-screenshots/."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import shutil
+import time
+import zipfile
+from pathlib import Path
+
+import httpx
+import pytest
+
+from services.stack import free_port, stack_down, stack_up
+from tests.svc_util import CHEAP_SETTINGS, backend_missing
+from workers.celeryconfig import QUEUE_FAMILIES
+
+pytestmark = [pytest.mark.browser, pytest.mark.service, pytest.mark.timeout(900)]
+TOKEN_A = "browser-token-a-0123456789"
+TOKEN_B = "browser-token-b-0123456789"
+REPO = Path(__file__).resolve().parents[1]
+SHOTS = REPO / "build" / "browser-screenshots"
+#: a bake of the small cylinder in well under a minute of worker time, with previews
+SETTINGS = {**CHEAP_SETTINGS, "previews": True}
+
+
+@pytest.fixture(scope="module")
+def chromium_path() -> str:
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        backend_missing("Debian's chromium is not installed (make setup installs it)")
+    return exe
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    if not (REPO / "web" / "dist" / "index.html").is_file():
+        backend_missing("web/dist is not built (make setup runs npm ci && npm run build)")
+    work = tmp_path_factory.mktemp("stack")
+    st = stack_up(
+        work,
+        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        tokens={TOKEN_A: "studio-a", TOKEN_B: "studio-b"},
+        workers={"prep": 1, "numeric": 1, "render": 1},
+        environment="test",
+        extra_env={"TEXELBAKE_SSE_MAX_SECONDS": "20"},
+    )
+    try:
+        yield st
+    finally:
+        stack_down(work)
+
+
+@pytest.fixture(scope="module")
+def cylinder(tmp_path_factory) -> Path:
+    from texelbake.scenes import write_scene
+
+    return write_scene("cylinder", tmp_path_factory.mktemp("scene") / "cylinder.usda", "small")
+
+
+@pytest.fixture(scope="module")
+def browser(chromium_path):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=chromium_path, args=["--no-sandbox"])
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+class Console:
+    """Console errors and uncaught page errors, less the ones a step expects."""
+
+    def __init__(self, page):  # noqa: ANN001
+        self.errors: list[str] = []
+        self.allowed: list[re.Pattern] = []
+        page.on("console", lambda m: m.type == "error" and self.errors.append(self._fmt(m)))
+        page.on("pageerror", lambda e: self.errors.append(f"pageerror: {e}"))
+
+    @staticmethod
+    def _fmt(m) -> str:  # noqa: ANN001
+        loc = m.location or {}
+        return f"{m.text} @ {loc.get('url', '')}"
+
+    def allow(self, pattern: str) -> None:
+        self.allowed.append(re.compile(pattern))
+
+    def unexpected(self) -> list[str]:
+        return [e for e in self.errors if not any(p.search(e) for p in self.allowed)]
+
+
+def shot(page, name: str) -> Path:  # noqa: ANN001
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    path = SHOTS / f"{name}.png"
+    page.screenshot(path=str(path), full_page=True)
+    return path
+
+
+def api(stack, token: str) -> httpx.Client:  # noqa: ANN001
+    return httpx.Client(
+        base_url=stack.api_url, headers={"Authorization": f"Bearer {token}"}, timeout=60
+    )
+
+
+def drop_file(page, selector: str, name: str, text: str) -> None:  # noqa: ANN001
+    """Drop a file on an element as a person dragging it from the desktop would."""
+    dt = page.evaluate_handle(
+        "([name, text]) => { const dt = new DataTransfer();"
+        " dt.items.add(new File([text], name, {type: 'application/octet-stream'}));"
+        " return dt; }",
+        [name, text],
+    )
+    page.dispatch_event(selector, "dragover", {"dataTransfer": dt})
+    page.dispatch_event(selector, "drop", {"dataTransfer": dt})
+
+
+def fill_settings(page, settings: dict) -> None:  # noqa: ANN001
+    for key, value in settings.items():
+        field = page.locator(f"#setting-{key}")
+        if isinstance(value, bool):
+            field.set_checked(value)
+        else:
+            field.fill(str(value))
+
+
+def upload_and_bake(page, cylinder: Path, settings: dict, screenshot: str = "") -> str:  # noqa: ANN001
+    page.click("text=New bake")
+    page.wait_for_selector("[data-testid=settings-form]")
+    drop_file(page, "[data-testid=dropzone]", cylinder.name, cylinder.read_text())
+    assert page.inner_text("[data-testid=file-name]") == cylinder.name
+    fill_settings(page, settings)
+    if screenshot:
+        shot(page, screenshot)
+    page.click("[data-testid=submit]")
+    page.wait_for_selector("[data-testid=job-page]", timeout=120_000)
+    return page.get_attribute("[data-testid=job-page]", "data-job-id")
+
+
+def test_dashboard_end_to_end(stack, browser, cylinder):
+    ctx = browser.new_context(viewport={"width": 1280, "height": 900}, accept_downloads=True)
+    page = ctx.new_page()
+    console = Console(page)
+    page.set_default_timeout(30_000)
+
+    # --- another tenant's job, made through the API: studio-a must never see it
+    with api(stack, TOKEN_B) as b:
+        aid = b.post(
+            "/api/v1/assets", files={"file": (cylinder.name, cylinder.read_bytes())}
+        ).json()["id"]
+        other = b.post("/api/v1/jobs", json={"asset_id": aid, "settings": CHEAP_SETTINGS}).json()
+        b.delete(f"/api/v1/jobs/{other['id']}")
+
+    # --- login: a wrong token is refused with the API's message, the right one lets us in
+    page.goto(stack.api_url + "/")
+    page.wait_for_selector("#token")
+    shot(page, "01-login")
+    console.allow(r"status of 401 .*@ .*/api/v1/jobs\?limit=1")
+    page.fill("#token", "not-a-token")
+    page.click("button[type=submit]")
+    assert "invalid token" in page.inner_text("[data-testid=login-error]")
+    page.fill("#token", TOKEN_A)
+    page.click("button[type=submit]")
+    page.wait_for_selector("[data-testid=no-jobs]")
+
+    # --- upload form: fields generated from the BakeSettings schema, defaults and descriptions
+    page.click("text=New bake")
+    page.wait_for_selector("[data-testid=settings-form]")
+    schema = httpx.get(stack.api_url + "/api/v1/openapi.json").json()
+    props = schema["components"]["schemas"]["BakeSettings"]["properties"]
+    assert page.locator("[data-testid=settings-form] .field").count() == len(props)
+    res = page.locator("[data-field=atlas_resolution]")
+    assert props["atlas_resolution"]["description"] in res.inner_text()
+    assert f"default {props['atlas_resolution']['default']}" in res.inner_text()
+    assert page.input_value("#setting-atlas_resolution") == str(
+        props["atlas_resolution"]["default"]
+    )
+    assert page.locator("#setting-weights option").all_inner_texts() == props["weights"]["enum"]
+
+    job_id = upload_and_bake(page, cylinder, SETTINGS, "02-upload-form")
+    shot(page, "03-job-queued")
+
+    # --- live progress: the page follows the events stream to done
+    t0 = time.monotonic()
+    page.wait_for_selector("[data-testid=shard-grid] .shard", timeout=180_000)
+    saw_partial = False
+    while True:
+        state = page.get_attribute("[data-testid=job-page]", "data-state")
+        if state in ("succeeded", "failed", "cancelled"):
+            break
+        assert time.monotonic() - t0 < 600, "the job did not finish in 10 minutes"
+        cells = page.locator(".shard").evaluate_all("els => els.map(e => e.dataset.state)")
+        if not saw_partial and "done" in cells and set(cells) != {"done"}:
+            saw_partial = True
+            shot(page, "04-job-running")
+        time.sleep(0.5)
+    assert state == "succeeded", page.inner_text("[data-testid=job-page]")
+    cells = page.locator(".shard").evaluate_all("els => els.map(e => e.dataset.state)")
+    assert cells and set(cells) == {"done"}
+    stages = page.locator("[data-testid=stage-row]").evaluate_all(
+        "els => els.map(e => [e.dataset.stage, e.dataset.state])"
+    )
+    assert {"ingest", "geometry", "cpm", "avis", "export", "render"} <= {s for s, _ in stages}
+    assert all(st == "done" for _, st in stages), stages
+    assert page.get_attribute("[role=progressbar]", "aria-valuenow") == "100"
+    assert "atlas_resolution" in page.inner_text("[data-testid=settings]")
+    shot(page, "05-job-done")
+
+    # --- download: the result zip, through the page
+    with page.expect_download() as dl:
+        page.click("[data-testid=download]")
+    with zipfile.ZipFile(io.BytesIO(Path(dl.value.path()).read_bytes())) as zf:
+        assert "report.json" in zf.namelist()
+
+    # --- previews: every mode side by side; zoom moves all panels together
+    page.click("[data-testid=tab-previews]")
+    page.wait_for_function(
+        "document.querySelectorAll('[data-testid=preview] img').length >= 5 && "
+        "[...document.querySelectorAll('[data-testid=preview] img')]"
+        ".every(i => i.complete && i.naturalWidth > 0)"
+    )
+    modes = page.locator("[data-testid=preview]").evaluate_all(
+        "els => els.map(e => e.dataset.mode)"
+    )
+    assert {"gt_reference", "gt", "cpm", "normalmap", "equal-time"} <= set(modes), modes
+    first = page.locator("[data-testid=preview] .zoompan").first
+    box = first.bounding_box()
+    page.mouse.move(box["x"] + box["width"] * 0.5, box["y"] + box["height"] * 0.4)
+    for _ in range(3):
+        page.mouse.wheel(0, -100)
+        page.wait_for_timeout(50)
+    renders = page.locator(
+        "[data-testid=preview] .zoompan-inner, [data-testid=compare-view] .zoompan-inner"
+    ).evaluate_all("els => els.map(e => e.style.transform)")
+    assert len(renders) >= 6 and len(set(renders)) == 1, renders
+    assert "scale(1.953" in renders[0], renders
+    # the diagnostics (the atlas is another space) keep their own view
+    diags = page.locator("[data-testid=diagnostic] .zoompan-inner").evaluate_all(
+        "els => els.map(e => e.style.transform)"
+    )
+    assert diags and set(diags) == {"translate(0%, 0%) scale(1)"}, diags
+    shot(page, "06-previews-zoomed")
+    page.dblclick("[data-testid=preview] .zoompan >> nth=0")
+    shot(page, "07-previews-swipe")
+    page.check("[data-testid=compare-difference]")
+    # cpm against the reference: a bake is never exact, so the difference is not all black
+    nonzero = page.wait_for_function(
+        "() => { const c = document.querySelector('[data-testid=diff-canvas]');"
+        " if (!c || !c.width) return false;"
+        " const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+        " let n = 0; for (let i = 0; i < d.length; i += 4) n += (d[i] + d[i+1] + d[i+2]) > 0;"
+        " return n; }"
+    ).json_value()
+    assert nonzero > 0
+    shot(page, "08-previews-difference")
+
+    # --- the plot: one point per finite sweep entry; hover names mode, spp, seconds, dB
+    with api(stack, TOKEN_A) as a:
+        report = a.get(f"/api/v1/jobs/{job_id}/previews/render_report.json").json()
+    finite = [
+        e for e in report["sweep"]
+        if isinstance(e.get("psnr_db_object"), float | int) and e["seconds"] > 0
+    ]  # fmt: skip
+    page.click("[data-testid=tab-plot]")
+    page.wait_for_selector("[data-testid=plot-point]")
+    assert page.locator("[data-testid=plot-point]").count() == len(finite)
+    cpm = next(e for e in finite if e["mode"] == "cpm")
+    idx = finite.index(cpm)
+    page.locator("[data-testid=plot-point]").nth(idx).hover()
+    tip = page.inner_text("[data-testid=plot-tooltip]")
+    assert tip.startswith("cpm") and f"{cpm['spp']} spp" in tip, tip
+    assert f"{cpm['seconds']:.4f} s" in tip and f"{cpm['psnr_db_object']:.2f} dB" in tip, tip
+    shot(page, "09-plot-hover")
+
+    # --- a second job, cancelled from its page before it finishes
+    second = upload_and_bake(page, cylinder, {})
+    assert second != job_id
+    page.click("[data-testid=cancel]")
+    page.wait_for_selector("[data-testid=job-page][data-state=cancelled]")
+    assert page.is_disabled("[data-testid=cancel]") and page.is_disabled("[data-testid=download]")
+    shot(page, "10-job-cancelled")
+
+    # --- the list: ours with live states, filters; never the other tenant's job
+    page.click("text=Jobs")
+    page.wait_for_selector(f"[data-testid=job-row][data-job-id='{second}']")
+    rows = page.locator("[data-testid=job-row]").evaluate_all(
+        "els => els.map(e => [e.dataset.jobId, e.dataset.state])"
+    )
+    assert dict(rows) == {job_id: "succeeded", second: "cancelled"}, rows
+    assert other["id"] not in page.content()
+    page.select_option("[data-testid=filter-state]", "cancelled")
+    page.wait_for_function("document.querySelectorAll('[data-testid=job-row]').length === 1")
+    assert page.get_attribute("[data-testid=job-row]", "data-job-id") == second
+    page.select_option("[data-testid=filter-state]", "")
+    page.wait_for_function("document.querySelectorAll('[data-testid=job-row]').length === 2")
+    shot(page, "11-jobs-list")
+    # another tenant's job by its address: the API's 404, shown as such
+    console.allow(rf"status of 404 .*@ .*/api/v1/jobs/{other['id']}")
+    page.goto(f"{stack.api_url}/#/jobs/{other['id']}")
+    page.wait_for_selector(".error-box")
+    assert "job not found" in page.inner_text(".error-box")
+    shot(page, "12-other-tenant-404")
+
+    # --- the farm: the three workers, their queues, the queue table
+    page.goto(f"{stack.api_url}/#/farm")
+    page.wait_for_selector("[data-testid=worker-row]", timeout=30_000)
+    page.wait_for_function("document.querySelectorAll('[data-testid=worker-row]').length >= 3")
+    workers = page.inner_text("[data-testid=workers]")
+    for family, queues in QUEUE_FAMILIES.items():
+        assert re.search(rf"{family}\S*@\S+\t{', '.join(sorted(queues))}\t", workers), workers
+    assert page.locator("[data-testid=queue-row]").count() == 7
+    shot(page, "13-farm")
+
+    assert console.unexpected() == [], json.dumps(console.errors, indent=1)
+    ctx.close()
