@@ -57,6 +57,7 @@ bench: setup
 	$(PY) benchmarks/render.py --scene cylinder --scene-size full --btf \
 		--json bench_out/render_cylinder.json
 	$(PY) benchmarks/fuzz_uploads.py --examples 1000 --json bench_out/fuzz_uploads.json
+	$(PY) benchmarks/dashboard.py --json bench_out/dashboard.json
 
 scenes: setup
 	$(VENV)/bin/texelbake scenes all -o build/scenes --size small

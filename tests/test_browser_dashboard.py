@@ -301,6 +301,15 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     assert page.get_attribute("[data-testid=job-row]", "data-job-id") == second
     page.select_option("[data-testid=filter-state]", "")
     page.wait_for_function("document.querySelectorAll('[data-testid=job-row]').length === 2")
+    # live list: a job started elsewhere (the API) appears and runs to done on the open page,
+    # through the tenant's one events stream (no reload, no polling)
+    with api(stack, TOKEN_A) as a:
+        aid = a.get(f"/api/v1/jobs/{job_id}").json()["asset_id"]
+        third = a.post("/api/v1/jobs", json={"asset_id": aid, "settings": CHEAP_SETTINGS}).json()
+    row = f"[data-testid=job-row][data-job-id='{third['id']}']"
+    page.wait_for_selector(row, timeout=30_000)
+    page.wait_for_selector(f"{row}[data-state=succeeded]", timeout=300_000)
+    assert page.get_attribute(f"{row} [role=progressbar]", "aria-valuenow") == "100"
     shot(page, "11-jobs-list")
     # another tenant's job by its address: the API's 404, shown as such
     console.allow(rf"status of 404 .*@ .*/api/v1/jobs/{other['id']}")

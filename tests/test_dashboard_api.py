@@ -161,3 +161,42 @@ def test_farm_events_stream_a_snapshot(tmp_path, dist):
     assert blocks and blocks[0].startswith("id: 1\nevent: farm\ndata: ")
     snap = json.loads(blocks[0].split("data: ", 1)[1])
     assert {q["name"] for q in snap["queues"]} >= {"ingest", "cpm", "render"}
+
+
+def sse_blocks(text: str) -> list[dict]:
+    out = []
+    for block in (b for b in text.split("\n\n") if b.strip()):
+        fields = dict(line.split(": ", 1) for line in block.splitlines() if ": " in line)
+        out.append(
+            {"id": fields.get("id"), "event": fields["event"], "data": json.loads(fields["data"])}
+        )
+    return out
+
+
+def test_tenant_events_stream_only_this_tenants_jobs(tmp_path, dist):
+    app = make_app(tmp_path / "art", dist)
+    app.state.settings.sse_max_seconds = 0.3
+    with TestClient(app) as c:
+        mine = add_job(app, "studio-a", add_asset(app, "studio-a"), plan=True)
+        theirs = add_job(app, "studio-b", add_asset(app, "studio-b"), plan=True)
+        with c.stream("GET", "/api/v1/events", headers={**A, "Last-Event-ID": "0"}) as r:
+            assert r.status_code == 200
+            got = sse_blocks("".join(r.iter_text()))
+        assert got[0]["event"] == "ready" and got[0]["id"] == "0"
+        evs = got[1:]
+        assert evs and {e["data"]["job_id"] for e in evs} == {mine}
+        assert [e["event"] for e in evs][:2] == ["job", "job"]  # queued, then running
+        seqs = [int(e["id"]) for e in evs]
+        assert seqs == sorted(seqs)
+        # resuming after the last one sent: nothing old again; without Last-Event-ID the
+        # stream starts now (the client re-reads its list on `ready`)
+        with c.stream("GET", "/api/v1/events", headers={**A, "Last-Event-ID": str(seqs[-1])}) as r:
+            assert [b["event"] for b in sse_blocks("".join(r.iter_text()))] == ["ready"]
+        with c.stream("GET", "/api/v1/events", headers=B) as r:
+            blocks = sse_blocks("".join(r.iter_text()))
+        assert [b["event"] for b in blocks] == ["ready"]
+        assert int(blocks[0]["id"]) >= max(seqs)
+        with c.stream("GET", "/api/v1/events", headers={**B, "Last-Event-ID": "0"}) as r:
+            ids = {b["data"]["job_id"] for b in sse_blocks("".join(r.iter_text()))[1:]}
+        assert ids == {theirs}
+        assert c.get("/api/v1/events").status_code == 401

@@ -1,7 +1,7 @@
 // Jobs: this tenant's jobs, a page at a time (server-side paging and filters), with live
-// state and progress from each unfinished job's events stream.
+// state and progress from the tenant's events stream.
 import { useEffect, useRef, useState } from "preact/hooks";
-import { api, errorText, TERMINAL, type JobState, type JobSummary } from "../api/client";
+import { api, errorText, type JobState, type JobSummary } from "../api/client";
 import { openEvents } from "../api/sse";
 import {
   ErrorBox,
@@ -52,32 +52,29 @@ export function JobsList() {
     };
   }, [page, state, asset, reload]);
 
-  // live: one events stream per unfinished job on this page; any event refreshes the page
+  // live: one stream of all of this tenant's job events (a browser holds at most six
+  // connections per host, so not one per job); `ready` and every event re-read the page
   // (debounced), so state and progress follow the ledger without polling
-  const live = (jobs ?? []).filter((j) => !TERMINAL.has(j.state)).map((j) => j.id);
-  const liveKey = live.join(",");
-  useEffect(() => {
-    const closers = live.map((id) => {
-      let finished = false;
-      return openEvents(`/api/v1/jobs/${id}/events`, {
-        done: () => finished,
-        onMessage: (m) => {
-          try {
-            const ev = JSON.parse(m.data);
-            if (ev.kind === "job" && TERMINAL.has(ev.data?.state)) finished = true;
-          } catch {
-            /* a malformed event changes nothing */
-          }
+  useEffect(
+    () =>
+      openEvents("/api/v1/events", {
+        onMessage: () => {
           if (pending.current === null)
             pending.current = window.setTimeout(() => {
               pending.current = null;
               setReload((n) => n + 1);
             }, 300);
         },
-      });
-    });
-    return () => closers.forEach((c) => c());
-  }, [liveKey]);
+      }),
+    [],
+  );
+  useEffect(
+    () => () => {
+      if (pending.current !== null) clearTimeout(pending.current);
+      pending.current = null;
+    },
+    [],
+  );
 
   const pages = Math.max(1, Math.ceil(count / PAGE_SIZE));
   return (
