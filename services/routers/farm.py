@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import threading
+import time
 
 import redis
 from fastapi import APIRouter, Request
@@ -46,16 +48,20 @@ def queue_lengths(redis_url: str) -> dict[str, int] | None:
 
 
 def inspect_workers(celery) -> list[WorkerPublic]:  # noqa: ANN001
-    """Workers that answer Celery's inspection within `INSPECT_TIMEOUT`."""
+    """Workers that answer Celery's inspection within `INSPECT_TIMEOUT`: the first broadcast
+    waits the whole timeout (it cannot know how many workers there are), the next two return
+    as soon as that many workers replied."""
     try:
-        insp = celery.control.inspect(timeout=INSPECT_TIMEOUT)
-        queues = insp.active_queues() or {}
+        queues = celery.control.inspect(timeout=INSPECT_TIMEOUT).active_queues() or {}
+        if not queues:
+            return []
+        insp = celery.control.inspect(timeout=INSPECT_TIMEOUT, limit=len(queues))
         active = insp.active() or {}
         stats = insp.stats() or {}
     except Exception:  # noqa: BLE001 - broker down: no workers can be seen
         return []
     out = []
-    for name in sorted(set(queues) | set(active)):
+    for name in sorted(queues):
         pool = (stats.get(name) or {}).get("pool") or {}
         conc = pool.get("max-concurrency")
         out.append(
@@ -67,6 +73,27 @@ def inspect_workers(celery) -> list[WorkerPublic]:  # noqa: ANN001
             )
         )
     return out
+
+
+class WorkerCache:
+    """The last inspection, kept `ttl` seconds: every farm view and stream of every tenant
+    shares one broadcast per `ttl` (an inspection takes `INSPECT_TIMEOUT`)."""
+
+    def __init__(self, ttl: float = FARM_EVENT_INTERVAL):
+        self.ttl = ttl
+        self._lock = threading.Lock()
+        self._at = -float("inf")
+        self._workers: list[WorkerPublic] = []
+
+    def get(self, celery) -> list[WorkerPublic]:  # noqa: ANN001
+        with self._lock:
+            if time.monotonic() - self._at > self.ttl:
+                self._workers = inspect_workers(celery)
+                self._at = time.monotonic()
+            return list(self._workers)
+
+
+_workers = WorkerCache()
 
 
 def farm_snapshot(reader: sessionmaker, celery, redis_url: str, tenant: str) -> FarmPublic:  # noqa: ANN001
@@ -110,7 +137,7 @@ def farm_snapshot(reader: sessionmaker, celery, redis_url: str, tenant: str) -> 
     ]
     return FarmPublic(
         broker=lengths is not None,
-        workers=inspect_workers(celery) if lengths is not None else [],
+        workers=_workers.get(celery) if lengths is not None else [],
         queues=queues,
         current=current,
         at=utcnow(),
