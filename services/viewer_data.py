@@ -7,7 +7,8 @@ Run as a subprocess by the API (`python -m services.viewer_data BAKED_ROOT OUT_D
 
 * `manifest.json` — atlas size, the LOD meshes (vertex counts, bounds), the texel arrays'
   layout, the a_vis polar grid, the BTF layout when the bake has BTF maps;
-* `lod<i>.bin` — M_i unindexed, float32 per corner: position (3), face normal (3), atlas uv (2);
+* `lod<i>.bin` — M_i unindexed, float32 per corner: position (3), atlas uv (2), then the
+  face's tangent space (`normalmap.face_tangent_space`): normal (3), tangent (3), bitangent (3);
 * `texels.json` — per finest texel (row-major, row 0 at v = 1): characteristic points, rank k,
   held-out and in-sample SNR (dB; null where undefined), valid;
 * `avis.bin` — float32 (N*N, n_theta, n_phi): a_vis / texel area of every finest texel over a
@@ -33,6 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
+#: floats per corner of `lod<i>.bin`: position 3, atlas uv 2, face normal 3, tangent 3,
+#: bitangent 3 (the normal map's tangent space, `texelbake.normalmap.face_tangent_space`)
+CORNER_FLOATS = 14
 #: the a_vis polar grid: theta from the normal (cell centres over [0, 90) degrees), phi
 AVIS_THETA = 9
 AVIS_PHI = 24
@@ -58,6 +62,7 @@ def polar_dirs(n_theta: int = AVIS_THETA, n_phi: int = AVIS_PHI) -> np.ndarray:
 
 def extract(baked_root: Path, out: Path) -> dict:
     from texelbake.cpm.avis.table import avis_table_from
+    from texelbake.normalmap import face_tangent_space
     from texelbake.payload import read_baked
 
     baked = read_baked(baked_root)
@@ -67,12 +72,12 @@ def extract(baked_root: Path, out: Path) -> dict:
     lods = []
     for i, m in enumerate(baked.meshes):
         tri = m.vertices[m.faces]  # (f, 3, 3)
-        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
+        tbn = face_tangent_space(m.vertices, m.faces, m.corner_uvs)  # rows (t, b, n)
+        per_face = np.concatenate([tbn[:, 2], tbn[:, 0], tbn[:, 1]], axis=1)  # n, t, b
         corner = np.concatenate(
-            [tri, np.repeat(fn[:, None], 3, axis=1), m.corner_uvs], axis=2
-        )  # (f, 3, 8)
-        _f32(out / f"lod{i + 1}.bin", corner.reshape(-1, 8))
+            [tri[:, :, :], m.corner_uvs, np.repeat(per_face[:, None], 3, axis=1)], axis=2
+        )  # (f, 3, 14): position, uv, normal, tangent, bitangent
+        _f32(out / f"lod{i + 1}.bin", corner.reshape(-1, CORNER_FLOATS))
         lo, hi = m.vertices.min(axis=0), m.vertices.max(axis=0)
         lods.append({"file": f"lod{i + 1}.bin", "faces": int(m.faces.shape[0]),
                      "vertices": int(m.faces.shape[0] * 3),

@@ -28,8 +28,13 @@ TOKEN_A = "browser-token-a-0123456789"
 TOKEN_B = "browser-token-b-0123456789"
 REPO = Path(__file__).resolve().parents[1]
 SHOTS = REPO / "build" / "browser-screenshots"
-#: a bake of the small cylinder in well under a minute of worker time, with previews
-SETTINGS = {**CHEAP_SETTINGS, "previews": True}
+#: a bake of the small cylinder in about a minute of worker time, with previews and BTF maps
+SETTINGS = {**CHEAP_SETTINGS, "previews": True, "btf": True}
+#: the decode check: GL float32 against the CPU's float64 on the same float32 maps; a texel
+#: sums at most L x C = 4 x 12 products, so the difference is float32 rounding (~1e-7
+#: relative; measured below 1e-6): 1e-5 absolute plus 1e-4 relative leaves room, and a wrong
+#: texel, level, pair or channel is off by far more (the maps' values are 1e-2 .. 1)
+DECODE_ATOL, DECODE_RTOL = 1e-5, 1e-4
 
 
 @pytest.fixture(scope="module")
@@ -280,13 +285,16 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     assert f"{cpm['seconds']:.4f} s" in tip and f"{cpm['psnr_db_object']:.2f} dB" in tip, tip
     shot(page, "09-plot-hover")
 
+    check_inspector(page, stack, job_id)
+    check_viewer(page, stack, job_id)
+
     # --- a second job, cancelled from its page before it finishes
     second = upload_and_bake(page, cylinder, {})
     assert second != job_id
     page.click("[data-testid=cancel]")
     page.wait_for_selector("[data-testid=job-page][data-state=cancelled]")
     assert page.is_disabled("[data-testid=cancel]") and page.is_disabled("[data-testid=download]")
-    shot(page, "10-job-cancelled")
+    shot(page, "16-job-cancelled")
 
     # --- the list: ours with live states, filters; never the other tenant's job
     page.click("text=Jobs")
@@ -310,13 +318,13 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     page.wait_for_selector(row, timeout=30_000)
     page.wait_for_selector(f"{row}[data-state=succeeded]", timeout=300_000)
     assert page.get_attribute(f"{row} [role=progressbar]", "aria-valuenow") == "100"
-    shot(page, "11-jobs-list")
+    shot(page, "13-jobs-list")
     # another tenant's job by its address: the API's 404, shown as such
     console.allow(rf"status of 404 .*@ .*/api/v1/jobs/{other['id']}")
     page.goto(f"{stack.api_url}/#/jobs/{other['id']}")
     page.wait_for_selector(".error-box")
     assert "job not found" in page.inner_text(".error-box")
-    shot(page, "12-other-tenant-404")
+    shot(page, "14-other-tenant-404")
 
     # --- the farm: the three workers, their queues, the queue table
     page.goto(f"{stack.api_url}/#/farm")
@@ -326,7 +334,105 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     for family, queues in QUEUE_FAMILIES.items():
         assert re.search(rf"{family}\S*@\S+\t{', '.join(sorted(queues))}\t", workers), workers
     assert page.locator("[data-testid=queue-row]").count() == 7
-    shot(page, "13-farm")
+    shot(page, "15-farm")
 
     assert console.unexpected() == [], json.dumps(console.errors, indent=1)
     ctx.close()
+
+
+def check_inspector(page, stack, job_id: str) -> None:  # noqa: ANN001
+    """Click a texel of the atlas: its numbers are the baked ones, its a_vis plot the grid."""
+    import numpy as np
+
+    page.click("[data-testid=tab-inspector]")
+    page.wait_for_selector("[data-testid=atlas]", timeout=120_000)
+    with api(stack, TOKEN_A) as a:
+        man = a.get(f"/api/v1/jobs/{job_id}/viewer").json()
+        tex = a.get(f"/api/v1/jobs/{job_id}/viewer/texels.json").json()
+        avis = np.frombuffer(a.get(f"/api/v1/jobs/{job_id}/viewer/avis.bin").content, "<f4")
+    n = man["atlas"]
+    # the texel with the most points: click its centre
+    t = int(np.argmax(tex["points"]))
+    row, col = divmod(t, n)
+    box = page.locator("[data-testid=atlas]").bounding_box()
+    page.mouse.click(
+        box["x"] + (col + 0.5) / n * box["width"], box["y"] + (row + 0.5) / n * box["height"]
+    )
+    info = page.locator("[data-testid=texel-info]")
+    assert info.get_attribute("data-row") == str(row) and info.get_attribute("data-col") == str(col)
+    assert page.inner_text("[data-testid=texel-points]") == str(tex["points"][t])
+    snr = tex["snr_heldout_db"][t]
+    assert page.inner_text("[data-testid=texel-snr]") == ("—" if snr is None else f"{snr:.2f} dB")
+    cells = page.locator("[data-testid=avis-polar] path").evaluate_all(
+        "els => els.map(e => Number(e.dataset.value))"
+    )
+    k = man["avis"]["n_theta"] * man["avis"]["n_phi"]
+    np.testing.assert_allclose(cells, avis[t * k : (t + 1) * k], rtol=1e-6)
+    assert max(cells) > 0
+    shot(page, "10-texel-inspector")
+
+
+def canvas_coverage(page) -> float:  # noqa: ANN001
+    """Fraction of the viewer canvas not at the clear colour."""
+    return page.evaluate(
+        "() => { const g = document.querySelector('[data-testid=viewer-canvas]');"
+        " const c = document.createElement('canvas'); c.width = g.width; c.height = g.height;"
+        " const x = c.getContext('2d'); x.drawImage(g, 0, 0);"
+        " const d = x.getImageData(0, 0, c.width, c.height).data; let n = 0;"
+        " for (let i = 0; i < d.length; i += 4)"
+        "   n += Math.abs(d[i] - 15) + Math.abs(d[i+1] - 18) + Math.abs(d[i+2] - 23) > 6;"
+        " return n / (c.width * c.height); }"
+    )
+
+
+def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
+    """The WebGL2 viewer draws the asset with the BTF maps and with the fallback; its BTF
+    decode (the fragment shader, Eq. 7) matches the CPU's `btf_lookup_texels` on the same
+    maps at every texel for several direction pairs and λ."""
+    import numpy as np
+
+    from texelbake.btf import btf_lookup_texels, read_btf_maps
+
+    page.click("[data-testid=tab-viewer]")
+    page.wait_for_selector("[data-testid=viewer][data-ready='1']", timeout=120_000)
+    assert "BTF:" in page.inner_text("[data-testid=viewer-status]")
+    page.wait_for_timeout(300)
+    btf_cover = canvas_coverage(page)
+    assert btf_cover > 0.05, btf_cover
+    shot(page, "11-viewer-btf")
+
+    out = Path(stack.env["TEXELBAKE_ARTIFACT_ROOT"]) / "jobs" / job_id / "out"
+    maps = read_btf_maps(out, "btf")
+    n = maps.shape[0]
+    rows, cols = np.divmod(np.arange(n * n), n)
+    rng = np.random.default_rng(7)
+    worst = 0.0
+    for lam in (0.0, 0.6, 1.5, float(maps.top_level)):
+        for _ in range(3):
+            th = rng.uniform(0.05, 1.3, 2)
+            ph = rng.uniform(0, 2 * np.pi, 2)
+            w = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], 1)
+            w = w.astype(np.float32).astype(np.float64)  # what the shader gets
+            gl = np.array(page.evaluate("a => window.texelbakeDecode(a[0], a[1], a[2])",
+                                        [w[0].tolist(), w[1].tolist(), lam]))  # fmt: skip
+            gl = gl.reshape(n * n, 4)[:, :3]
+            cpu = btf_lookup_texels(maps, rows, cols, np.repeat(w[:1], n * n, 0),
+                                    np.repeat(w[1:], n * n, 0), np.full(n * n, lam))  # fmt: skip
+            assert np.abs(cpu).max() > 1e-3  # a lit, non-trivial pair
+            err = np.abs(gl - cpu)
+            assert np.all(err <= DECODE_ATOL + DECODE_RTOL * np.abs(cpu)), (lam, err.max())
+            worst = max(worst, float(err.max()))
+    print(f"GL decode vs CPU btf_lookup_texels: max abs difference {worst:.3g}")
+
+    page.select_option("[data-testid=viewer-mode]", "preview")
+    page.wait_for_timeout(300)
+    assert canvas_coverage(page) > 0.05
+    shot(page, "12-viewer-fallback")
+    page.select_option("[data-testid=viewer-mode]", "btf")
+    page.check("[data-testid=viewer-spin]")
+    page.wait_for_function(
+        "/[0-9.]+ fps/.test(document.querySelector('[data-testid=viewer-hud]').textContent)"
+        " && parseFloat(document.querySelector('[data-testid=viewer-hud]').textContent) > 0",
+        timeout=15_000,
+    )
+    page.uncheck("[data-testid=viewer-spin]")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from _render_helpers import write_plane_usd
 
-from services.viewer_data import AVIS_PHI, AVIS_THETA, extract, polar_dirs
+from services.viewer_data import AVIS_PHI, AVIS_THETA, CORNER_FLOATS, extract, polar_dirs
 
 
 @pytest.fixture(scope="module")
@@ -45,11 +45,19 @@ def test_meshes_and_texels_are_the_baked_ones(baked, out):
     man = json.loads((out / "manifest.json").read_text())
     assert man["atlas"] == 16 and len(man["lods"]) == len(b.meshes)
     for lod, m in zip(man["lods"], b.meshes, strict=True):
-        corners = f32(out / lod["file"], (-1, 8))
+        corners = f32(out / lod["file"], (-1, CORNER_FLOATS))
         assert corners.shape[0] == lod["vertices"] == 3 * m.faces.shape[0]
         np.testing.assert_allclose(corners[:, :3], m.vertices[m.faces].reshape(-1, 3), atol=1e-6)
-        np.testing.assert_allclose(corners[:, 6:8], m.corner_uvs.reshape(-1, 2), atol=1e-6)
-        np.testing.assert_allclose(np.linalg.norm(corners[:, 3:6], axis=1), 1.0, atol=1e-5)
+        np.testing.assert_allclose(corners[:, 3:5], m.corner_uvs.reshape(-1, 2), atol=1e-6)
+        # the face normal (from the positions, independently), then an orthonormal t, b
+        tri = m.vertices[m.faces]
+        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+        np.testing.assert_allclose(corners[:, 5:8], np.repeat(fn, 3, axis=0), atol=1e-5)
+        t, bt = corners[:, 8:11], corners[:, 11:14]
+        np.testing.assert_allclose(np.sum(t * corners[:, 5:8], axis=1), 0.0, atol=1e-5)
+        np.testing.assert_allclose(np.abs(np.sum(np.cross(t, bt) * corners[:, 5:8], axis=1)), 1.0,
+                                   atol=1e-5)  # fmt: skip
     tex = json.loads((out / "texels.json").read_text())
     lvl = b.levels[0]
     assert tex["points"] == np.diff(lvl["texel_offsets"]).tolist()

@@ -6,7 +6,9 @@ import { openEvents } from "../api/sse";
 import { ErrorBox, fmtSeconds, fmtTime, ProgressBar, StateBadge } from "../components/common";
 import { ShardGrid } from "../components/ShardGrid";
 import { Previews } from "./Previews";
+import { Inspector } from "./Inspector";
 import { SpeedErrorPlot } from "./SpeedErrorPlot";
+import { Viewer } from "./Viewer";
 
 export function JobPage({ id, tab }: { id: string; tab: string }) {
   const [job, setJob] = useState<JobPublic | null>(null);
@@ -113,7 +115,7 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
         {label}
       </a>
     ) : (
-      <span class="tab disabled" title="no previews: bake with previews on">
+      <span class="tab disabled" title="not available for this job yet">
         {label}
       </span>
     );
@@ -147,11 +149,17 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
         {tabLink("overview", "Overview")}
         {tabLink("previews", "Previews", hasPreviews)}
         {tabLink("plot", "Speed vs error", hasPreviews)}
+        {tabLink("inspector", "Texel inspector", job.state === "succeeded")}
+        {tabLink("viewer", "3-D viewer", job.state === "succeeded")}
       </nav>
       {tab === "previews" && hasPreviews ? (
         <Previews job={job} />
       ) : tab === "plot" && hasPreviews ? (
         <SpeedErrorPlot job={job} />
+      ) : tab === "inspector" && job.state === "succeeded" ? (
+        <Inspector job={job} />
+      ) : tab === "viewer" && job.state === "succeeded" ? (
+        <Viewer job={job} />
       ) : (
         <div class="job-grid">
           <div class="card">
