@@ -12,6 +12,11 @@ dashboard's page size; the server pages) in the DOM, `performance.now()` in the 
 median of `--runs` fresh pages is `job_list_first_render_seconds` (bar: <= 1 s). Beside it
 the API's own time for one page of 50 and for 1,000 rows at once (what an unpaged list
 would fetch), and a check that every rendered row is this tenant's.
+
+Then (unless `--no-viewer`) the WebGL2 viewer's frames per second: the small cylinder baked
+with BTF maps by the stack's workers, its viewer tab opened, continuous rotation for
+`--viewer-seconds`, the HUD's fps (frames counted per second of `requestAnimationFrame`)
+averaged. Headless Chromium renders WebGL in software (SwiftShader) here: reported, no bar.
 """
 
 from __future__ import annotations
@@ -39,6 +44,10 @@ from services.stack import free_port, stack_down, stack_up  # noqa: E402
 TOKEN = "bench-dashboard-token-0123456789"
 OTHER = "bench-dashboard-other-0123456789"
 PAGE_SIZE = 50  # web/src/screens/JobsList.tsx PAGE_SIZE
+#: the small cylinder's cheap bake (as tests/svc_util.CHEAP_SETTINGS) with BTF maps
+VIEWER_BAKE = {"atlas_resolution": 32, "shard_texels": 16, "n_light_dirs": 8, "n_view_dirs": 8,
+               "samples_per_texel": 8, "n_heldout": 8, "c_max": 8, "n_trials": 1,
+               "avis_resolution": 4, "btf": True}  # fmt: skip
 BAR_SECONDS = 1.0
 #: a small bake's plan: (stage, queue, shards)
 PLAN = [("ingest", "ingest", 1), ("geometry", "geometry", 1), ("cpm", "cpm", 4),
@@ -119,6 +128,58 @@ def first_render(api_url: str, chromium: str, runs: int) -> list[dict]:
     return out
 
 
+def bake_cylinder(client: httpx.Client, work: Path) -> str:
+    """Upload the small cylinder, bake it with BTF maps, wait for success; the job id."""
+    from texelbake.scenes import write_scene
+
+    usd = write_scene("cylinder", work / "cylinder.usda", "small")
+    aid = client.post("/api/v1/assets", files={"file": (usd.name, usd.read_bytes())}).json()["id"]
+    job = client.post("/api/v1/jobs", json={"asset_id": aid, "settings": VIEWER_BAKE}).json()
+    deadline = time.monotonic() + 600
+    while job["state"] not in ("succeeded", "failed", "cancelled"):
+        if time.monotonic() > deadline:
+            sys.exit(f"the viewer's bake did not finish in 10 minutes: {job['state']}")
+        time.sleep(1.0)
+        job = client.get(f"/api/v1/jobs/{job['id']}").json()
+    if job["state"] != "succeeded":
+        sys.exit(f"the viewer's bake {job['state']}: {job.get('error')}")
+    return job["id"]
+
+
+def viewer_fps(api_url: str, chromium: str, job_id: str, seconds: float) -> dict:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+        try:
+            ctx = browser.new_context(viewport={"width": 1280, "height": 900})
+            ctx.add_init_script(f"sessionStorage.setItem('texelbake.token', {TOKEN!r})")
+            page = ctx.new_page()
+            page.goto(f"{api_url}/#/jobs/{job_id}/viewer")
+            page.wait_for_selector("[data-testid=viewer][data-ready='1']", timeout=120_000)
+            renderer = page.evaluate(
+                "() => { const g = document.querySelector('[data-testid=viewer-canvas]')"
+                ".getContext('webgl2'); const e = g.getExtension('WEBGL_debug_renderer_info');"
+                " return e ? g.getParameter(e.UNMASKED_RENDERER_WEBGL) : g.getParameter(g.RENDERER); }"
+            )
+            page.check("[data-testid=viewer-spin]")
+            page.wait_for_timeout(1500)  # warm-up: shader compile, first frames
+            readings = []
+            t_end = time.monotonic() + seconds
+            while time.monotonic() < t_end:
+                page.wait_for_timeout(1000)
+                hud = page.inner_text("[data-testid=viewer-hud]")
+                readings.append(float(hud.split(" fps")[0]))
+            size = page.evaluate(
+                "() => { const c = document.querySelector('[data-testid=viewer-canvas]');"
+                " return [c.width, c.height]; }"
+            )
+        finally:
+            browser.close()
+    return {"fps": statistics.mean(readings), "readings": readings, "renderer": renderer,
+            "canvas": size}  # fmt: skip
+
+
 def api_seconds(client: httpx.Client, query: str, repeat: int = 5) -> tuple[float, int]:
     best = float("inf")
     rows = 0
@@ -136,6 +197,8 @@ def main() -> int:
     ap.add_argument("--json", required=True, help="write the results here")
     ap.add_argument("--jobs", type=int, default=1000, help="jobs of the measured tenant")
     ap.add_argument("--runs", type=int, default=5, help="fresh page loads")
+    ap.add_argument("--no-viewer", action="store_true", help="skip the WebGL viewer's fps")
+    ap.add_argument("--viewer-seconds", type=float, default=5.0)
     args = ap.parse_args()
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
@@ -152,8 +215,9 @@ def main() -> int:
         fill(db_url, "bench", args.jobs)
         fill(db_url, "other", args.jobs)
         fill_s = time.perf_counter() - t
+        workers = {} if args.no_viewer else {"prep": 1, "numeric": 1, "render": 1}
         stack = stack_up(work / "stack", redis_url=f"redis://127.0.0.1:{free_port()}/0",
-                         workers={}, tokens={TOKEN: "bench", OTHER: "other"},
+                         workers=workers, tokens={TOKEN: "bench", OTHER: "other"},
                          environment="test", artifact_root=art)  # fmt: skip
         try:
             with httpx.Client(base_url=stack.api_url, timeout=60,
@@ -162,6 +226,12 @@ def main() -> int:
                 all_s, all_rows = api_seconds(c, "limit=1000")
                 mine = {j["id"] for j in c.get("/api/v1/jobs?limit=1000").json()["data"]}
             runs = first_render(stack.api_url, chromium, args.runs)
+            viewer = None
+            if not args.no_viewer:
+                with httpx.Client(base_url=stack.api_url, timeout=60,
+                                  headers={"Authorization": f"Bearer {TOKEN}"}) as c:  # fmt: skip
+                    job_id = bake_cylinder(c, work)
+                viewer = viewer_fps(stack.api_url, chromium, job_id, args.viewer_seconds)
         finally:
             stack_down(work / "stack")
 
@@ -186,6 +256,10 @@ def main() -> int:
         "foreign_rows_rendered": foreign,
         "console_errors": errors,
         "fill_seconds": round(fill_s, 2),
+        "viewer_fps": None if viewer is None else round(viewer["fps"], 2),
+        "viewer_fps_readings": None if viewer is None else viewer["readings"],
+        "viewer_renderer": None if viewer is None else viewer["renderer"],
+        "viewer_canvas": None if viewer is None else viewer["canvas"],
     }
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
@@ -197,6 +271,10 @@ def main() -> int:
     print(f"{'API GET /jobs?limit=50 (best of 5)':<44} {page_s:>9.3f} {page_rows:>6} "
           f"{'console errors: ' + str(len(errors)):>28}")
     print(f"{'API GET /jobs?limit=1000 (best of 5)':<44} {all_s:>9.3f} {all_rows:>6} {'':>28}")
+    if viewer is not None:
+        w, h = viewer["canvas"]
+        print(f"WebGL2 viewer, small cylinder BTF, {w}x{h}: {viewer['fps']:.1f} fps "
+              f"(no bar; renderer: {viewer['renderer']})")
     return 0 if median <= BAR_SECONDS and not foreign and not errors else 1
 
 
