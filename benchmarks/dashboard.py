@@ -22,6 +22,7 @@ averaged. Headless Chromium renders WebGL in software (SwiftShader) here: report
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import shutil
 import statistics
@@ -29,6 +30,7 @@ import sys
 import tempfile
 import time
 import uuid
+import zipfile
 from datetime import timedelta
 from pathlib import Path
 
@@ -132,8 +134,16 @@ def bake_cylinder(client: httpx.Client, work: Path) -> str:
     """Upload the small cylinder, bake it with BTF maps, wait for success; the job id."""
     from texelbake.scenes import write_scene
 
-    usd = write_scene("cylinder", work / "cylinder.usda", "small")
-    aid = client.post("/api/v1/assets", files={"file": (usd.name, usd.read_bytes())}).json()["id"]
+    folder = work / "scene"
+    write_scene("cylinder", folder / "cylinder.usda", "small")
+    buf = io.BytesIO()  # the layer and the files the writer put beside it, as a bundle
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+        for p in sorted(folder.iterdir()):
+            zf.writestr(p.name, p.read_bytes())
+    r = client.post("/api/v1/assets", files={"file": ("cylinder.zip", buf.getvalue())})
+    if r.status_code not in (200, 201):
+        sys.exit(f"upload of the cylinder: {r.status_code} {r.text}")
+    aid = r.json()["id"]
     job = client.post("/api/v1/jobs", json={"asset_id": aid, "settings": VIEWER_BAKE}).json()
     deadline = time.monotonic() + 600
     while job["state"] not in ("succeeded", "failed", "cancelled"):

@@ -8,6 +8,7 @@ error beyond the expected 401/404 answers. Screenshots go to build/browser-scree
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import re
@@ -20,7 +21,7 @@ import httpx
 import pytest
 
 from services.stack import free_port, stack_down, stack_up
-from tests.svc_util import CHEAP_SETTINGS, backend_missing
+from tests.svc_util import CHEAP_SETTINGS, backend_missing, make_zip
 from workers.celeryconfig import QUEUE_FAMILIES
 
 pytestmark = [pytest.mark.browser, pytest.mark.service, pytest.mark.timeout(900)]
@@ -66,9 +67,16 @@ def stack(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def cylinder(tmp_path_factory) -> Path:
+    """The small cylinder as a studio ships it: a .zip of its layer and the files beside it
+    (the scene writer puts texelbake_shaders.usda next to the layer)."""
     from texelbake.scenes import write_scene
 
-    return write_scene("cylinder", tmp_path_factory.mktemp("scene") / "cylinder.usda", "small")
+    folder = tmp_path_factory.mktemp("scene")
+    write_scene("cylinder", folder / "cylinder.usda", "small")
+    members = {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+    out = tmp_path_factory.mktemp("upload") / "cylinder.zip"
+    out.write_bytes(make_zip(members))
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -116,13 +124,14 @@ def api(stack, token: str) -> httpx.Client:  # noqa: ANN001
     )
 
 
-def drop_file(page, selector: str, name: str, text: str) -> None:  # noqa: ANN001
+def drop_file(page, selector: str, name: str, data: bytes) -> None:  # noqa: ANN001
     """Drop a file on an element as a person dragging it from the desktop would."""
     dt = page.evaluate_handle(
-        "([name, text]) => { const dt = new DataTransfer();"
-        " dt.items.add(new File([text], name, {type: 'application/octet-stream'}));"
+        "([name, b64]) => { const dt = new DataTransfer();"
+        " const bytes = Uint8Array.from(atob(b64), c => c.charCodeAt(0));"
+        " dt.items.add(new File([bytes], name, {type: 'application/zip'}));"
         " return dt; }",
-        [name, text],
+        [name, base64.b64encode(data).decode()],
     )
     page.dispatch_event(selector, "dragover", {"dataTransfer": dt})
     page.dispatch_event(selector, "drop", {"dataTransfer": dt})
@@ -140,7 +149,7 @@ def fill_settings(page, settings: dict) -> None:  # noqa: ANN001
 def upload_and_bake(page, cylinder: Path, settings: dict, screenshot: str = "") -> str:  # noqa: ANN001
     page.click("text=New bake")
     page.wait_for_selector("[data-testid=settings-form]")
-    drop_file(page, "[data-testid=dropzone]", cylinder.name, cylinder.read_text())
+    drop_file(page, "[data-testid=dropzone]", cylinder.name, cylinder.read_bytes())
     assert page.inner_text("[data-testid=file-name]") == cylinder.name
     fill_settings(page, settings)
     if screenshot:
@@ -158,10 +167,11 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
 
     # --- another tenant's job, made through the API: studio-a must never see it
     with api(stack, TOKEN_B) as b:
-        aid = b.post(
-            "/api/v1/assets", files={"file": (cylinder.name, cylinder.read_bytes())}
-        ).json()["id"]
-        other = b.post("/api/v1/jobs", json={"asset_id": aid, "settings": CHEAP_SETTINGS}).json()
+        r = b.post("/api/v1/assets", files={"file": (cylinder.name, cylinder.read_bytes())})
+        assert r.status_code in (200, 201), r.text
+        r = b.post("/api/v1/jobs", json={"asset_id": r.json()["id"], "settings": CHEAP_SETTINGS})
+        assert r.status_code == 201, r.text
+        other = r.json()
         b.delete(f"/api/v1/jobs/{other['id']}")
 
     # --- login: a wrong token is refused with the API's message, the right one lets us in
