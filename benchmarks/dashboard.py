@@ -225,9 +225,9 @@ def main() -> int:
         fill(db_url, "bench", args.jobs)
         fill(db_url, "other", args.jobs)
         fill_s = time.perf_counter() - t
-        workers = {} if args.no_viewer else {"prep": 1, "numeric": 1, "render": 1}
+        # the list on an API alone (workers booting beside it would be measured too)
         stack = stack_up(work / "stack", redis_url=f"redis://127.0.0.1:{free_port()}/0",
-                         workers=workers, tokens={TOKEN: "bench", OTHER: "other"},
+                         workers={}, tokens={TOKEN: "bench", OTHER: "other"},
                          environment="test", artifact_root=art)  # fmt: skip
         try:
             with httpx.Client(base_url=stack.api_url, timeout=60,
@@ -236,14 +236,21 @@ def main() -> int:
                 all_s, all_rows = api_seconds(c, "limit=1000")
                 mine = {j["id"] for j in c.get("/api/v1/jobs?limit=1000").json()["data"]}
             runs = first_render(stack.api_url, chromium, args.runs)
-            viewer = None
-            if not args.no_viewer:
+        finally:
+            stack_down(work / "stack")
+        viewer = None
+        if not args.no_viewer:  # then the whole stack, to bake the cylinder with BTF maps
+            stack = stack_up(work / "stack2", redis_url=f"redis://127.0.0.1:{free_port()}/0",
+                             workers={"prep": 1, "numeric": 1, "render": 1},
+                             tokens={TOKEN: "bench", OTHER: "other"}, environment="test",
+                             artifact_root=art)  # fmt: skip
+            try:
                 with httpx.Client(base_url=stack.api_url, timeout=60,
                                   headers={"Authorization": f"Bearer {TOKEN}"}) as c:  # fmt: skip
                     job_id = bake_cylinder(c, work)
                 viewer = viewer_fps(stack.api_url, chromium, job_id, args.viewer_seconds)
-        finally:
-            stack_down(work / "stack")
+            finally:
+                stack_down(work / "stack2")
 
     secs = [r["seconds"] for r in runs]
     foreign = sum(1 for r in runs for i in r["ids"] if i not in mine)
