@@ -433,6 +433,7 @@ def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
             assert np.all(err <= DECODE_ATOL + DECODE_RTOL * np.abs(cpu)), (lam, err.max())
             worst = max(worst, float(err.max()))
     print(f"GL decode vs CPU btf_lookup_texels: max abs difference {worst:.3g}")
+    check_view_against_cpu(page, out, maps)
 
     page.select_option("[data-testid=viewer-mode]", "preview")
     page.wait_for_timeout(300)
@@ -446,3 +447,47 @@ def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
         timeout=15_000,
     )
     page.uncheck("[data-testid=viewer-spin]")
+
+
+#: the view check: pixels whose GL value is within 1e-4 + 1e-3 relative of the CPU's; the
+#: rest sit where float32 (GL) and float64 (CPU) put a direction in neighbouring cells of the
+#: nearest-direction table, or a uv on the other side of a texel edge (a different sampled
+#: pair or texel: a jump, not noise)
+VIEW_ATOL, VIEW_RTOL, VIEW_MIN_AGREE = 1e-4, 1e-3, 0.98
+
+
+def check_view_against_cpu(page, out: Path, maps) -> None:  # noqa: ANN001
+    """The viewer's frame, shaded on the CPU: for every covered pixel of the GL's view (its
+    atlas uv, λ and view direction read back from float framebuffers), the CPU takes the
+    texel (`texel_of_uv`), its frame from the baked USD, the light and view directions in
+    that frame, and evaluates `btf_lookup_texels` (clamped at 0, as the renderer does)."""
+    import numpy as np
+
+    from texelbake.btf import btf_lookup_texels
+    from texelbake.btf.render import texel_of_uv
+    from texelbake.payload import read_baked
+
+    w, h = 160, 120
+    cap = page.evaluate(f"() => window.texelbakeCapture({w}, {h})")
+    f = np.array(cap["f"]).reshape(-1, 4)
+    uvl = np.array(cap["uvl"]).reshape(-1, 4)
+    wo = np.array(cap["wo"]).reshape(-1, 4)[:, :3]
+    cov = f[:, 3] > 0.5
+    assert cov.sum() > 0.1 * w * h, cov.sum()
+    frames = read_baked(next(out.glob("*_baked.usda"))).levels[0]["frames"]
+    rows, cols = texel_of_uv(uvl[cov, :2], maps.shape)
+    fr = frames[rows * maps.shape[1] + cols]
+    wi = np.asarray(cap["light"], np.float64)
+    wi /= np.linalg.norm(wi)
+    wo_c = wo[cov] / np.linalg.norm(wo[cov], axis=1, keepdims=True)
+    wi_l = np.einsum("nij,j->ni", fr, wi)
+    wo_l = np.einsum("nij,nj->ni", fr, wo_c)
+    cpu = np.maximum(btf_lookup_texels(maps, rows, cols, wi_l, wo_l, uvl[cov, 2]), 0.0)
+    gl = f[cov, :3]
+    assert cpu.max() > 1e-2  # the view is lit
+    agree = np.all(np.abs(gl - cpu) <= VIEW_ATOL + VIEW_RTOL * np.abs(cpu), axis=1)
+    print(
+        f"GL view vs CPU at {int(cov.sum())} pixels: {agree.mean():.4f} agree, median abs "
+        f"difference {np.median(np.abs(gl - cpu)):.3g}"
+    )
+    assert agree.mean() >= VIEW_MIN_AGREE, agree.mean()

@@ -12,6 +12,8 @@ declare global {
   interface Window {
     /** The decode check (tests, benchmarks/dashboard.py): f of every atlas texel. */
     texelbakeDecode?: (wi: number[], wo: number[], lambda: number) => number[];
+    /** The view check (tests): the current view's f, (u, v, λ) and wo at w x h pixels. */
+    texelbakeCapture?: (w: number, h: number) => { f: number[]; uvl: number[]; wo: number[]; eye: number[]; light: number[] };
   }
 }
 
@@ -64,6 +66,11 @@ export function Viewer({ job }: { job: JobPublic }) {
         const r = new BakeRenderer(canvas.current, { manifest: m, lods, frames, albedo, normal, btf });
         renderer.current = r;
         window.texelbakeDecode = (wi, wo, lambda) => Array.from(r.decode(wi, wo, lambda));
+        window.texelbakeCapture = (w, h) => {
+          const c = r.capture(viewRef.current, w, h);
+          r.draw(viewRef.current);
+          return { f: Array.from(c.f), uvl: Array.from(c.uvl), wo: Array.from(c.wo), eye: c.eye, light: c.light };
+        };
         if (!r.hasBtf) setView((v) => ({ ...v, mode: "preview" }));
         setStatus(
           r.hasBtf
@@ -78,6 +85,7 @@ export function Viewer({ job }: { job: JobPublic }) {
     return () => {
       alive = false;
       delete window.texelbakeDecode;
+      delete window.texelbakeCapture;
     };
   }, [job.id]);
 

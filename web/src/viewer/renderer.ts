@@ -164,18 +164,21 @@ export class BakeRenderer {
     return Math.max(0, Math.min(this.meshes.length - 1, Math.floor(Math.log2(Math.max(distance, 1e-6) / 4)) + 1));
   }
 
-  draw(v: ViewState): void {
+  draw(v: ViewState, pass = 0, size?: [number, number]): void {
     const gl = this.gl;
     const c = this.canvas;
-    gl.viewport(0, 0, c.width, c.height);
-    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-    gl.clearColor(0.06, 0.07, 0.09, 1);
-    gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+    const [w, h] = size ?? [c.width, c.height];
+    gl.viewport(0, 0, w, h);
+    if (pass === 0) gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    if (pass === 0) {
+      gl.clearColor(0.06, 0.07, 0.09, 1);
+      gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+    }
     gl.enable(gl.DEPTH_TEST);
     const dir = fromAngles(v.azimuth, v.elevation);
     const dist = v.distance * this.radius;
     const eye = [0, 1, 2].map((i) => this.center[i] + dir[i] * dist);
-    const proj = perspective((35 * Math.PI) / 180, c.width / c.height, dist / 100, dist + 4 * this.radius);
+    const proj = perspective((35 * Math.PI) / 180, w / h, dist / 100, dist + 4 * this.radius);
     const vp = multiply(proj, lookAt(eye, this.center, [0, 1, 0]));
     const btf = v.mode === "btf" && this.btfProg !== null;
     const prog = btf ? this.btfProg! : this.previewProg;
@@ -197,13 +200,49 @@ export class BakeRenderer {
     if (btf) {
       gl.uniform3fv(u("uEye"), eye);
       gl.uniform1f(u("u_lambda_bias"), v.lambdaBias);
-      gl.uniform1i(u("uDecode"), 0);
+      gl.uniform1i(u("uDecode"), pass);
     }
     this.lastLod = this.lodFor(v.distance);
     const mesh = this.meshes[this.lastLod];
     gl.bindVertexArray(mesh.vao);
     gl.drawArrays(gl.TRIANGLES, 0, mesh.count);
     gl.bindVertexArray(null);
+  }
+
+  /** The view check: the BTF view drawn at w x h into a float framebuffer three times: f
+   * (linear RGB after max(., 0), before the light and exposure), (u, v, λ), and wo (world);
+   * each (w*h*4) floats from the bottom row; the eye and the light direction used. */
+  capture(v: ViewState, w: number, h: number): { f: Float32Array; uvl: Float32Array; wo: Float32Array; eye: number[]; light: number[] } {
+    const gl = this.gl;
+    if (!this.btfProg) throw new Error("this bake has no BTF maps");
+    if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("EXT_color_buffer_float is not available");
+    const target = gl.createTexture()!;
+    gl.bindTexture(gl.TEXTURE_2D, target);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, w, h, 0, gl.RGBA, gl.FLOAT, null);
+    const depth = gl.createRenderbuffer()!;
+    gl.bindRenderbuffer(gl.RENDERBUFFER, depth);
+    gl.renderbufferStorage(gl.RENDERBUFFER, gl.DEPTH_COMPONENT24, w, h);
+    const fbo = gl.createFramebuffer()!;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, target, 0);
+    gl.framebufferRenderbuffer(gl.FRAMEBUFFER, gl.DEPTH_ATTACHMENT, gl.RENDERBUFFER, depth);
+    const out: Float32Array[] = [];
+    for (const pass of [2, 3, 4]) {
+      gl.clearColor(0, 0, 0, 0);
+      gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+      this.draw({ ...v, mode: "btf" }, pass, [w, h]);
+      const px = new Float32Array(w * h * 4);
+      gl.readPixels(0, 0, w, h, gl.RGBA, gl.FLOAT, px);
+      out.push(px);
+    }
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    gl.deleteFramebuffer(fbo);
+    gl.deleteRenderbuffer(depth);
+    gl.deleteTexture(target);
+    const dir = fromAngles(v.azimuth, v.elevation);
+    const dist = v.distance * this.radius;
+    const eye = [0, 1, 2].map((i) => this.center[i] + dir[i] * dist);
+    return { f: out[0], uvl: out[1], wo: out[2], eye, light: fromAngles(v.lightAzimuth, v.lightElevation) };
   }
 
   /** The decode check: f (linear RGB, unclamped) of every finest texel at one pair of texel-

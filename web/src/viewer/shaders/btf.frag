@@ -42,7 +42,8 @@ uniform vec3 uLightDir;            // world, towards the light
 uniform float uIrradiance;
 uniform float uExposure;
 uniform float u_lambda_bias;       // λ bias, added to the footprint's λ
-uniform int uDecode;               // 1: the decode check (one fragment per texel, raw f)
+uniform int uDecode;               // 1: the decode check (one fragment per texel, raw f);
+                                   // 2, 3, 4: the view check: f, (u, v, λ), wo (world)
 uniform vec3 uWiLocal;             // decode check: directions in the texel frame
 uniform vec3 uWoLocal;
 uniform float u_lambda;            // decode check: λ
@@ -128,6 +129,9 @@ void main() {
   float footprint = max(length(dFdx(st)), length(dFdy(st)));
   float lambda = log2(max(footprint, 1e-6)) + u_lambda_bias;
   vec3 f = max(uRgbFromYcbcr * btfYcc(row, col, wiL, woL, lambda), 0.0);  // f carries cos_i cos_o
+  if (uDecode == 2) { fragColor = vec4(f, 1.0); return; }
+  if (uDecode == 3) { fragColor = vec4(vUv, lambda, 1.0); return; }
+  if (uDecode == 4) { fragColor = vec4(wo, 1.0); return; }
   vec3 radiance = uIrradiance * f * uExposure;
   fragColor = vec4(pow(clamp(radiance, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
 }
