@@ -21,7 +21,7 @@ import httpx
 import pytest
 
 from services.stack import free_port, stack_down, stack_up
-from tests.svc_util import CHEAP_SETTINGS, backend_missing, make_zip
+from tests.svc_util import CHEAP_SETTINGS, backend_missing, make_zip, usda
 from workers.celeryconfig import QUEUE_FAMILIES
 
 pytestmark = [pytest.mark.browser, pytest.mark.service, pytest.mark.timeout(900)]
@@ -200,8 +200,18 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     )
     assert page.locator("#setting-weights option").all_inner_texts() == props["weights"]["enum"]
 
-    job_id = upload_and_bake(page, cylinder, SETTINGS, "02-upload-form")
-    shot(page, "03-job-queued")
+    # a rejected upload: the API's message, with the file it names set off
+    console.allow(r"status of 422 .*@ .*/api/v1/assets")
+    bad = usda(header="    subLayers = [@./missing_layer.usda@]")
+    drop_file(page, "[data-testid=dropzone]", "broken.usda", bad)
+    page.click("[data-testid=submit]")
+    page.wait_for_selector("[data-testid=upload-error]")
+    named = page.locator("[data-testid=error-named]").all_inner_texts()
+    assert any("missing_layer.usda" in t for t in named), named
+    shot(page, "02-upload-rejected")
+
+    job_id = upload_and_bake(page, cylinder, SETTINGS, "03-upload-form")
+    shot(page, "04-job-queued")
 
     # --- live progress: the page follows the events stream to done
     t0 = time.monotonic()
@@ -215,7 +225,7 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
         cells = page.locator(".shard").evaluate_all("els => els.map(e => e.dataset.state)")
         if not saw_partial and "done" in cells and set(cells) != {"done"}:
             saw_partial = True
-            shot(page, "04-job-running")
+            shot(page, "05-job-running")
         time.sleep(0.5)
     assert state == "succeeded", page.inner_text("[data-testid=job-page]")
     cells = page.locator(".shard").evaluate_all("els => els.map(e => e.dataset.state)")
@@ -227,7 +237,7 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     assert all(st == "done" for _, st in stages), stages
     assert page.get_attribute("[role=progressbar]", "aria-valuenow") == "100"
     assert "atlas_resolution" in page.inner_text("[data-testid=settings]")
-    shot(page, "05-job-done")
+    shot(page, "06-job-done")
 
     # --- download: the result zip, through the page
     with page.expect_download() as dl:
@@ -262,9 +272,9 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
         "els => els.map(e => e.style.transform)"
     )
     assert diags and set(diags) == {"translate(0%, 0%) scale(1)"}, diags
-    shot(page, "06-previews-zoomed")
+    shot(page, "07-previews-zoomed")
     page.dblclick("[data-testid=preview] .zoompan >> nth=0")
-    shot(page, "07-previews-swipe")
+    shot(page, "08-previews-swipe")
     page.check("[data-testid=compare-difference]")
     # cpm against the reference: a bake is never exact, so the difference is not all black
     nonzero = page.wait_for_function(
@@ -275,7 +285,7 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
         " return n; }"
     ).json_value()
     assert nonzero > 0
-    shot(page, "08-previews-difference")
+    shot(page, "09-previews-difference")
 
     # --- the plot: one point per finite sweep entry; hover names mode, spp, seconds, dB
     with api(stack, TOKEN_A) as a:
@@ -293,7 +303,7 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     tip = page.inner_text("[data-testid=plot-tooltip]")
     assert tip.startswith("cpm") and f"{cpm['spp']} spp" in tip, tip
     assert f"{cpm['seconds']:.4f} s" in tip and f"{cpm['psnr_db_object']:.2f} dB" in tip, tip
-    shot(page, "09-plot-hover")
+    shot(page, "10-plot-hover")
 
     check_inspector(page, stack, job_id)
     check_viewer(page, stack, job_id)
@@ -304,7 +314,7 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     page.click("[data-testid=cancel]")
     page.wait_for_selector("[data-testid=job-page][data-state=cancelled]")
     assert page.is_disabled("[data-testid=cancel]") and page.is_disabled("[data-testid=download]")
-    shot(page, "16-job-cancelled")
+    shot(page, "14-job-cancelled")
 
     # --- the list: ours with live states, filters; never the other tenant's job
     page.click("text=Jobs")
@@ -328,13 +338,13 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     page.wait_for_selector(row, timeout=30_000)
     page.wait_for_selector(f"{row}[data-state=succeeded]", timeout=300_000)
     assert page.get_attribute(f"{row} [role=progressbar]", "aria-valuenow") == "100"
-    shot(page, "13-jobs-list")
+    shot(page, "15-jobs-list")
     # another tenant's job by its address: the API's 404, shown as such
     console.allow(rf"status of 404 .*@ .*/api/v1/jobs/{other['id']}")
     page.goto(f"{stack.api_url}/#/jobs/{other['id']}")
     page.wait_for_selector(".error-box")
     assert "job not found" in page.inner_text(".error-box")
-    shot(page, "14-other-tenant-404")
+    shot(page, "16-other-tenant-404")
 
     # --- the farm: the three workers, their queues, the queue table
     page.goto(f"{stack.api_url}/#/farm")
@@ -344,7 +354,7 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     for family, queues in QUEUE_FAMILIES.items():
         assert re.search(rf"{family}\S*@\S+\t{', '.join(sorted(queues))}\t", workers), workers
     assert page.locator("[data-testid=queue-row]").count() == 7
-    shot(page, "15-farm")
+    shot(page, "17-farm")
 
     assert console.unexpected() == [], json.dumps(console.errors, indent=1)
     ctx.close()
@@ -379,7 +389,7 @@ def check_inspector(page, stack, job_id: str) -> None:  # noqa: ANN001
     k = man["avis"]["n_theta"] * man["avis"]["n_phi"]
     np.testing.assert_allclose(cells, avis[t * k : (t + 1) * k], rtol=1e-6)
     assert max(cells) > 0
-    shot(page, "10-texel-inspector")
+    shot(page, "11-texel-inspector")
 
 
 def canvas_coverage(page) -> float:  # noqa: ANN001
@@ -409,7 +419,7 @@ def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
     page.wait_for_timeout(300)
     btf_cover = canvas_coverage(page)
     assert btf_cover > 0.05, btf_cover
-    shot(page, "11-viewer-btf")
+    shot(page, "12-viewer-btf")
 
     out = Path(stack.env["TEXELBAKE_ARTIFACT_ROOT"]) / "jobs" / job_id / "out"
     maps = read_btf_maps(out, "btf")
@@ -438,7 +448,7 @@ def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
     page.select_option("[data-testid=viewer-mode]", "preview")
     page.wait_for_timeout(300)
     assert canvas_coverage(page) > 0.05
-    shot(page, "12-viewer-fallback")
+    shot(page, "13-viewer-fallback")
     page.select_option("[data-testid=viewer-mode]", "btf")
     page.check("[data-testid=viewer-spin]")
     page.wait_for_function(

@@ -43,3 +43,24 @@ export function ErrorBox({ children }: { children: ComponentChildren }) {
     </div>
   );
 }
+
+/** Prim paths (/World/Box) and file names (x.usda, tex/a.png) an error names. */
+const NAMED = /(\/[A-Za-z_][\w]*(?:\/[\w.:]+)*|[\w./-]+\.(?:usda|usdc|usd|usdz|zip|png|exr|jpg|tx))/g;
+
+/** An error message with the prims and files it names set off, so they can be copied. */
+export function ErrorText({ text }: { text: string }) {
+  const parts = text.split(NAMED);
+  return (
+    <span>
+      {parts.map((p, i) =>
+        i % 2 === 1 ? (
+          <code class="named" data-testid="error-named">
+            {p}
+          </code>
+        ) : (
+          p
+        ),
+      )}
+    </span>
+  );
+}

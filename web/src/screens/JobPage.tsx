@@ -3,7 +3,7 @@
 import { useEffect, useRef, useState } from "preact/hooks";
 import { api, errorText, fetchBlob, TERMINAL, type JobPublic } from "../api/client";
 import { openEvents } from "../api/sse";
-import { ErrorBox, fmtSeconds, fmtTime, ProgressBar, StateBadge } from "../components/common";
+import { ErrorBox, ErrorText, fmtSeconds, fmtTime, ProgressBar, StateBadge } from "../components/common";
 import { ShardGrid } from "../components/ShardGrid";
 import { Previews } from "./Previews";
 import { Inspector } from "./Inspector";
@@ -178,7 +178,7 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
             </dl>
             {job.error && (
               <ErrorBox>
-                <strong>Error:</strong> {job.error}
+                <strong>Error:</strong> <ErrorText text={job.error} />
               </ErrorBox>
             )}
             {shardErrors.map((e) => (
@@ -186,7 +186,7 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
                 <strong>
                   {e.stage}/{e.shard}:
                 </strong>{" "}
-                {e.error}
+                <ErrorText text={e.error} />
               </ErrorBox>
             ))}
             {(job.skipped ?? []).length > 0 && (

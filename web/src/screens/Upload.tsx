@@ -2,7 +2,7 @@
 // generated from the served BakeSettings schema), upload, create the job, open its page.
 import { useEffect, useState } from "preact/hooks";
 import { api, errorText } from "../api/client";
-import { ErrorBox } from "../components/common";
+import { ErrorBox, ErrorText } from "../components/common";
 import { initialValues, type ObjectSchema, SettingsForm, toSettings, type Values } from "../components/SettingsForm";
 
 const ACCEPT = ".usda,.usdc,.usd,.usdz,.zip";
@@ -104,7 +104,13 @@ export function Upload() {
             <SettingsForm schema={schema} values={values} onChange={setValues} />
           </details>
         )}
-        {error && <ErrorBox>{error}</ErrorBox>}
+        {error && (
+          <ErrorBox>
+            <span data-testid="upload-error">
+              <ErrorText text={error} />
+            </span>
+          </ErrorBox>
+        )}
         <div class="actions">
           <button class="btn primary" type="submit" data-testid="submit" disabled={!file || !schema || busy !== null}>
             {busy ?? "Upload and bake"}
