@@ -392,17 +392,23 @@ def check_inspector(page, stack, job_id: str) -> None:  # noqa: ANN001
     shot(page, "11-texel-inspector")
 
 
-def canvas_coverage(page) -> float:  # noqa: ANN001
-    """Fraction of the viewer canvas not at the clear colour."""
-    return page.evaluate(
-        "() => { const g = document.querySelector('[data-testid=viewer-canvas]');"
-        " const c = document.createElement('canvas'); c.width = g.width; c.height = g.height;"
-        " const x = c.getContext('2d'); x.drawImage(g, 0, 0);"
-        " const d = x.getImageData(0, 0, c.width, c.height).data; let n = 0;"
-        " for (let i = 0; i < d.length; i += 4)"
-        "   n += Math.abs(d[i] - 15) + Math.abs(d[i+1] - 18) + Math.abs(d[i+2] - 23) > 6;"
-        " return n / (c.width * c.height); }"
-    )
+def canvas_coverage(page, at_least: float = 0.05, timeout: float = 30.0) -> float:  # noqa: ANN001
+    """Fraction of the viewer canvas not at the clear colour, polled until it reaches
+    `at_least` (software GL draws a frame in a few hundred ms on a loaded machine)."""
+    t_end = time.monotonic() + timeout
+    while True:
+        cover = page.evaluate(
+            "() => { const g = document.querySelector('[data-testid=viewer-canvas]');"
+            " const c = document.createElement('canvas'); c.width = g.width;"
+            " c.height = g.height; const x = c.getContext('2d'); x.drawImage(g, 0, 0);"
+            " const d = x.getImageData(0, 0, c.width, c.height).data; let n = 0;"
+            " for (let i = 0; i < d.length; i += 4)"
+            "   n += Math.abs(d[i] - 15) + Math.abs(d[i+1] - 18) + Math.abs(d[i+2] - 23) > 6;"
+            " return n / (c.width * c.height); }"
+        )
+        if cover >= at_least or time.monotonic() > t_end:
+            return cover
+        time.sleep(0.25)
 
 
 def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
@@ -416,7 +422,6 @@ def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
     page.click("[data-testid=tab-viewer]")
     page.wait_for_selector("[data-testid=viewer][data-ready='1']", timeout=120_000)
     assert "BTF:" in page.inner_text("[data-testid=viewer-status]")
-    page.wait_for_timeout(300)
     btf_cover = canvas_coverage(page)
     assert btf_cover > 0.05, btf_cover
     shot(page, "12-viewer-btf")
@@ -445,8 +450,11 @@ def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
     print(f"GL decode vs CPU btf_lookup_texels: max abs difference {worst:.3g}")
     check_view_against_cpu(page, out, maps)
 
+    # the fallback draws a different image of the same asset
+    url = "() => document.querySelector('[data-testid=viewer-canvas]').toDataURL()"
+    before = page.evaluate(url)
     page.select_option("[data-testid=viewer-mode]", "preview")
-    page.wait_for_timeout(300)
+    page.wait_for_function(f"u => ({url})() !== u", arg=before, timeout=30_000)
     assert canvas_coverage(page) > 0.05
     shot(page, "13-viewer-fallback")
     page.select_option("[data-testid=viewer-mode]", "btf")
