@@ -458,6 +458,17 @@ def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
     assert canvas_coverage(page) > 0.05
     shot(page, "13-viewer-fallback")
     page.select_option("[data-testid=viewer-mode]", "btf")
+    # the LOD mesh follows the distance: M1 near, the coarser M2 from 8 radii on
+    hud = "[data-testid=viewer-hud]"
+    assert "LOD M1" in page.inner_text(hud)
+    box = page.locator("[data-testid=viewer-canvas]").bounding_box()
+    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    for _ in range(8):  # x 1.15 each: 3.2 -> 9.8 radii
+        page.mouse.wheel(0, 100)
+        page.wait_for_timeout(60)
+    page.wait_for_function(f"document.querySelector('{hud}').textContent.includes('LOD M2')")
+    assert canvas_coverage(page, 0.005) > 0.005
+    shot(page, "13b-viewer-far-lod2")
     page.check("[data-testid=viewer-spin]")
     page.wait_for_function(
         "/[0-9.]+ fps/.test(document.querySelector('[data-testid=viewer-hud]').textContent)"
