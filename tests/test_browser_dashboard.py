@@ -469,6 +469,9 @@ def check_viewer(page, stack, job_id: str) -> None:  # noqa: ANN001
     page.wait_for_function(f"document.querySelector('{hud}').textContent.includes('LOD M2')")
     assert canvas_coverage(page, 0.005) > 0.005
     shot(page, "13b-viewer-far-lod2")
+    page.select_option("[data-testid=viewer-lod]", "0")  # M1 at any distance, when asked
+    page.wait_for_function(f"document.querySelector('{hud}').textContent.includes('LOD M1')")
+    page.select_option("[data-testid=viewer-lod]", "-1")
     page.check("[data-testid=viewer-spin]")
     page.wait_for_function(
         "/[0-9.]+ fps/.test(document.querySelector('[data-testid=viewer-hud]').textContent)"

@@ -26,6 +26,7 @@ const INITIAL: ViewState = {
   exposure: 1.0,
   lambdaBias: 0,
   mode: "btf",
+  lod: -1,
 };
 
 export function Viewer({ job }: { job: JobPublic }) {
@@ -100,6 +101,7 @@ export function Viewer({ job }: { job: JobPublic }) {
       if (!r) return;
       if (spin) viewRef.current = { ...viewRef.current, azimuth: viewRef.current.azimuth + 0.01 };
       r.draw(viewRef.current);
+      if (!spin) setLod(r.lastLod);
       frames += 1;
       const now = performance.now();
       if (now - t0 >= 1000) {
@@ -111,7 +113,6 @@ export function Viewer({ job }: { job: JobPublic }) {
       if (spin) raf = requestAnimationFrame(tick);
     };
     raf = requestAnimationFrame(tick);
-    if (!spin) setLod(renderer.current?.lodFor(view.distance) ?? 0);
     return () => cancelAnimationFrame(raf);
   }, [ready, spin, view]);
 
@@ -173,6 +174,19 @@ export function Viewer({ job }: { job: JobPublic }) {
               <option value="preview">UsdPreviewSurface (albedo + normal map)</option>
             </select>
           </label>
+          <label>
+            LOD mesh{" "}
+            <select data-testid="viewer-lod" value={String(view.lod)} onChange={(e) => set({ lod: +(e.target as HTMLSelectElement).value })}>
+              <option value="-1">by distance</option>
+              {Array.from({ length: renderer.current?.lodCount ?? 0 }, (_, i) => (
+                <option value={String(i)}>M{i + 1}</option>
+              ))}
+            </select>
+          </label>
+          <p class="muted small">
+            The BTF lives on M1's atlas and texel frames; coarser meshes look it up through
+            their transferred uvs, so faces far from M1 can fall below a texel's horizon (black).
+          </p>
           {slider("Light azimuth", "lightAzimuth", -3.14, 3.14, 0.01)}
           {slider("Light elevation", "lightElevation", 0.05, 1.55, 0.01)}
           {slider("Exposure", "exposure", 0.1, 4, 0.05)}

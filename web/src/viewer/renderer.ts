@@ -22,6 +22,8 @@ export interface ViewState {
   exposure: number;
   lambdaBias: number;
   mode: "btf" | "preview";
+  /** -1: the LOD mesh by distance (`lodFor`); else the index of M_(i+1) */
+  lod: number;
 }
 
 export interface Inputs {
@@ -66,6 +68,10 @@ export class BakeRenderer {
     for (let i = 0; i < n * n; i++) for (let r = 0; r < 3; r++) for (let c = 0; c < 3; c++) fr[(r * n * n + i) * 3 + c] = inp.frames[i * 9 + r * 3 + c];
     this.tex.frames = floatArrayTexture(gl, n, n, 3, 3, fr);
     if (inp.btf && inp.manifest.btf) this.setupBtf();
+  }
+
+  get lodCount(): number {
+    return this.meshes.length;
   }
 
   get hasBtf(): boolean {
@@ -202,7 +208,7 @@ export class BakeRenderer {
       gl.uniform1f(u("u_lambda_bias"), v.lambdaBias);
       gl.uniform1i(u("uDecode"), pass);
     }
-    this.lastLod = this.lodFor(v.distance);
+    this.lastLod = v.lod >= 0 ? Math.min(v.lod, this.meshes.length - 1) : this.lodFor(v.distance);
     const mesh = this.meshes[this.lastLod];
     gl.bindVertexArray(mesh.vao);
     gl.drawArrays(gl.TRIANGLES, 0, mesh.count);
