@@ -35,7 +35,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from texelbake import brdf
-from texelbake.brdf.albedo import cosine_hemisphere
 from texelbake.errors import ShapeError
 from texelbake.model import Material
 from texelbake.normalmap import dilate
@@ -58,6 +57,9 @@ class FilterTol:
     min_nbar: float = 1e-3
     #: largest slope variance per axis a filtered lobe may take (= max slope²)
     max_var: float = 100.0
+    #: variances below this are float32 rounding of the maps (a mean of unit normals or of
+    #: zero slopes stored in float32), treated as 0: a flat texel shades as `normalmap`
+    var_floor: float = 1e-6
     #: AO rays per sample (cosine-weighted, stratified, rotated per sample)
     ao_rays: int = 32
 
@@ -79,13 +81,16 @@ def slopes(local_normals: np.ndarray, *, min_cos: float = FILTER_TOL.min_cos) ->
     return -u[:, :2] / np.maximum(u[:, 2:3], min_cos)
 
 
-def hemisphere_pattern(n_rays: int) -> np.ndarray:
-    """(n_rays, 2) stratified points of [0, 1)² (a k × (n_rays / k) grid, k = ⌊√n_rays⌋,
-    the rest as a 1-D stratification), the base pattern every sample rotates."""
-    k = max(int(np.sqrt(n_rays)), 1)
-    j = np.arange(n_rays)
-    cols = -(-n_rays // k)
-    return np.column_stack([((j // cols) + 0.5) / k, ((j % cols) + 0.5) / cols])
+def _radical_inverse(j: np.ndarray) -> np.ndarray:
+    """Van der Corput radical inverse in base 2 of non-negative integers j, (n,) float64."""
+    j = np.asarray(j, dtype=np.uint64)
+    out = np.zeros(j.shape)
+    scale = 0.5
+    for _ in range(32):  # bits of a 32-bit index
+        out += (j & np.uint64(1)) * scale
+        j = j >> np.uint64(1)
+        scale *= 0.5
+    return out
 
 
 def ambient_occlusion(points: np.ndarray, normals: np.ndarray,
@@ -93,8 +98,10 @@ def ambient_occlusion(points: np.ndarray, normals: np.ndarray,
                       n_rays: int = FILTER_TOL.ao_rays, seed: int = 0, ray_eps: float = 0.0,
                       batch: int = 1 << 20) -> np.ndarray:
     """AO = (1/π) ∫ V (n·ω) dω per point, the cosine-weighted Monte Carlo estimate
-    1 − (occluded rays) / n_rays with a stratified pattern (`hemisphere_pattern`) rotated by
-    a seeded random angle about each point's normal (no structured banding across points).
+    1 − (occluded rays) / n_rays. Directions: a Hammersley set (u₀ = (j + ξ) / n_rays
+    stratified, u₁ the radical inverse of j), with a seeded random offset ξ of the strata and
+    a random rotation about the normal per point (Cranley–Patterson: unbiased, no structured
+    banding across points), mapped to the cosine-weighted hemisphere (r = √u₀, φ = 2π u₁).
 
     points, normals : (m, 3) float64 (normals unit, the side the rays leave from)
     occluded : the ray caster's any-hit test, (k, 3) origins, (k, 3) dirs -> (k,) bool
@@ -109,19 +116,23 @@ def ambient_occlusion(points: np.ndarray, normals: np.ndarray,
         return np.zeros(0)
     from texelbake.frames import tangent_frames
 
-    base = cosine_hemisphere(hemisphere_pattern(n_rays))  # (r, 3) local
-    rot = np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi, m)  # (m,)
+    j = np.arange(n_rays)
+    u1 = _radical_inverse(j)  # (r,)
+    rng = np.random.default_rng(seed)
+    xi = rng.uniform(0.0, 1.0, m)
+    rot = rng.uniform(0.0, 2.0 * np.pi, m)
     frames = tangent_frames(nrm)  # (m, 3, 3) rows t, b, n
     hits = np.zeros(m)
     per = max(1, batch // n_rays)
     for lo in range(0, m, per):  # a loop over big batches of points (n_rays each)
         hi = min(lo + per, m)
-        c, s = np.cos(rot[lo:hi])[:, None], np.sin(rot[lo:hi])[:, None]
-        lx = c * base[None, :, 0] - s * base[None, :, 1]  # (b, r)
-        ly = s * base[None, :, 0] + c * base[None, :, 1]
+        u0 = (j[None, :] + xi[lo:hi, None]) / n_rays  # (b, r)
+        r = np.sqrt(u0)
+        phi = 2.0 * np.pi * u1[None, :] + rot[lo:hi, None]
+        lx, ly, lz = r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - u0, 0.0))
         fr = frames[lo:hi]
         d = (lx[..., None] * fr[:, None, 0] + ly[..., None] * fr[:, None, 1]
-             + base[None, :, 2, None] * fr[:, None, 2])  # (b, r, 3)
+             + lz[..., None] * fr[:, None, 2])  # (b, r, 3)
         o = np.repeat(p[lo:hi] + ray_eps * nrm[lo:hi], n_rays, axis=0)
         occ = occluded(o, d.reshape(-1, 3)).reshape(hi - lo, n_rays)
         hits[lo:hi] = occ.sum(axis=1)
@@ -239,6 +250,8 @@ def slope_covariance(m1: np.ndarray, m2: np.ndarray, *, max_var: float = FILTER_
     vx, vy = vx / norm, vy / norm
     l1 = np.clip(np.nan_to_num(l1, nan=0.0), 0.0, max_var)
     l2 = np.clip(np.nan_to_num(l2, nan=0.0), 0.0, max_var)
+    l1 = np.where(l1 < FILTER_TOL.var_floor, 0.0, l1)
+    l2 = np.where(l2 < FILTER_TOL.var_floor, 0.0, l2)
     cov = np.empty((m1.shape[0], 2, 2))
     cov[:, 0, 0] = l1 * vx * vx + l2 * vy * vy
     cov[:, 1, 1] = l1 * vy * vy + l2 * vx * vx
@@ -252,7 +265,8 @@ def toksvig_variance(nbar_length: np.ndarray, *, min_nbar: float = FILTER_TOL.mi
     (normals that cancel, |n̄| → 0, give the bounded σ² ≤ max_var, never NaN); (n,) float64."""
     ln = np.clip(np.nan_to_num(np.asarray(nbar_length, dtype=np.float64), nan=0.0),
                  min_nbar, 1.0)
-    return np.minimum((1.0 - ln) / ln, max_var)
+    var = np.minimum((1.0 - ln) / ln, max_var)
+    return np.where(var < FILTER_TOL.var_floor, 0.0, var)
 
 
 def fallback_roughness(alpha2: np.ndarray, cov: np.ndarray) -> np.ndarray:
