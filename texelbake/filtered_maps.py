@@ -119,8 +119,8 @@ def ambient_occlusion(points: np.ndarray, normals: np.ndarray,
     j = np.arange(n_rays)
     u1 = _radical_inverse(j)  # (r,)
     rng = np.random.default_rng(seed)
-    xi = rng.uniform(0.0, 1.0, m)
-    rot = rng.uniform(0.0, 2.0 * np.pi, m)
+    xi = np.asarray(rng.uniform(0.0, 1.0, size=m))
+    rot = np.asarray(rng.uniform(0.0, 2.0 * np.pi, size=m))
     frames = tangent_frames(nrm)  # (m, 3, 3) rows t, b, n
     hits = np.zeros(m)
     per = max(1, batch // n_rays)

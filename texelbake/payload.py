@@ -486,7 +486,7 @@ def read_filtered_maps(folder: Path, name: str) -> list[np.ndarray]:
     from texelbake.filtered_maps import CHANNELS
     from texelbake.imageio import read_pixels
 
-    out = []
+    out: list[np.ndarray] = []
     while (f := Path(folder) / f"{name}_filtered_L{len(out):02d}.exr").is_file():
         px, info = read_pixels(f)
         names = list(info.channel_names)  # EXR stores channels sorted by name: reorder

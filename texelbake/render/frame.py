@@ -90,7 +90,7 @@ from texelbake.render.tracer import RenderResult, progressive
 MODES = ("gt", "cpm", "normalmap", "equal-time")
 #: the filtered-normal-map baselines studios ship (issue 21): mode -> (renderer, keyword
 #: arguments); they need the filtered maps of a bake (`texelbake.filtered_maps`)
-FILTERED_MODES = {
+FILTERED_MODES: dict[str, tuple[Any, dict[str, Any]]] = {
     "toksvig": (render_toksvig, {}), "toksvig+ao": (render_toksvig, {"ao": True}),
     "leadr": (render_leadr, {}), "leadr+ao": (render_leadr, {"ao": True}),
     "preview-surface": (render_preview_surface, {}),
