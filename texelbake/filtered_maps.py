@@ -57,9 +57,6 @@ class FilterTol:
     min_nbar: float = 1e-3
     #: largest slope variance per axis a filtered lobe may take (= max slope²)
     max_var: float = 100.0
-    #: variances below this are float32 rounding of the maps (a mean of unit normals or of
-    #: zero slopes stored in float32), treated as 0: a flat texel shades as `normalmap`
-    var_floor: float = 1e-6
     #: AO rays per sample (cosine-weighted, stratified, rotated per sample)
     ao_rays: int = 32
 
@@ -250,8 +247,6 @@ def slope_covariance(m1: np.ndarray, m2: np.ndarray, *, max_var: float = FILTER_
     vx, vy = vx / norm, vy / norm
     l1 = np.clip(np.nan_to_num(l1, nan=0.0), 0.0, max_var)
     l2 = np.clip(np.nan_to_num(l2, nan=0.0), 0.0, max_var)
-    l1 = np.where(l1 < FILTER_TOL.var_floor, 0.0, l1)
-    l2 = np.where(l2 < FILTER_TOL.var_floor, 0.0, l2)
     cov = np.empty((m1.shape[0], 2, 2))
     cov[:, 0, 0] = l1 * vx * vx + l2 * vy * vy
     cov[:, 1, 1] = l1 * vy * vy + l2 * vx * vx
@@ -265,8 +260,7 @@ def toksvig_variance(nbar_length: np.ndarray, *, min_nbar: float = FILTER_TOL.mi
     (normals that cancel, |n̄| → 0, give the bounded σ² ≤ max_var, never NaN); (n,) float64."""
     ln = np.clip(np.nan_to_num(np.asarray(nbar_length, dtype=np.float64), nan=0.0),
                  min_nbar, 1.0)
-    var = np.minimum((1.0 - ln) / ln, max_var)
-    return np.where(var < FILTER_TOL.var_floor, 0.0, var)
+    return np.minimum((1.0 - ln) / ln, max_var)
 
 
 def fallback_roughness(alpha2: np.ndarray, cov: np.ndarray) -> np.ndarray:
