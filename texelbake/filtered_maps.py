@@ -2,11 +2,11 @@
 geometry stage's samples and their texel assignment (the same `texel_ids` as the CPM levels),
 
 - the mean tangent-space normal *before* renormalisation, n̄ = Σ ΔA n / Σ ΔA, whose length
-  gives Toksvig's factor (Toksvig 2005, "Mipmapping normal maps", Eq. 3: for a Gaussian
+  gives Toksvig's factor (Toksvig 2005, "Mipmapping normal maps", §"Estimating Normal Variation": for a Gaussian
   spread of normals of angular variance σ², |n̄| = 1 / (1 + σ²), so σ² = (1 − |n̄|) / |n̄|);
 - the first and second moments of the slopes (x̃, ỹ) = (−n_x / n_z, −n_y / n_z), E[x̃], E[ỹ],
-  E[x̃²], E[ỹ²], E[x̃ỹ] (Olano & Baker 2010, LEAN mapping, §3, Eqs. 4–6 — the "B" and "M"
-  maps; Dupuy et al. 2013, LEADR mapping, §4.1, Eqs. 11–12). Moments are linear, so the
+  E[x̃²], E[ỹ²], E[x̃ỹ] (Olano & Baker 2010, LEAN mapping: the "B" and "M" maps; Dupuy et al.
+  2013, LEADR mapping: the same five moments of the displaced surface). Moments are linear, so the
   coarser levels are exact area-weighted means of the same samples, and trilinear filtering
   at render time stays exact;
 - ambient occlusion, AO = (1/π) ∫ V(x, ω) (n·ω) dω, by cosine-weighted hemisphere rays
@@ -65,7 +65,7 @@ FILTER_TOL = FilterTol()
 
 
 def slopes(local_normals: np.ndarray, *, min_cos: float = FILTER_TOL.min_cos) -> np.ndarray:
-    """Slopes (x̃, ỹ) = (−n_x, −n_y) / max(n_z, min_cos) of tangent-space normals (LEAN §3;
+    """Slopes (x̃, ỹ) = (−n_x, −n_y) / max(n_z, min_cos) of tangent-space normals (LEAN;
     a height field h has n ∝ (−h_x, −h_y, 1), so these are its slopes).
 
     local_normals : (m, 3) float64 (need not be unit); returns (m, 2) float64
@@ -222,7 +222,7 @@ def bake_filtered_levels(resolution: int, n_levels: int, texels: Sequence[np.nda
 
 def slope_covariance(m1: np.ndarray, m2: np.ndarray, *, max_var: float = FILTER_TOL.max_var
                      ) -> np.ndarray:
-    """Σ = M − E[s] E[s]ᵀ from filtered moments (LEAN Eq. 7; LEADR Eq. 13), projected onto the
+    """Σ = M − E[s] E[s]ᵀ from filtered moments (LEAN and LEADR: Σ = M − B Bᵀ), projected onto the
     positive semi-definite cone with eigenvalues at most `max_var`: filtering in float16 or
     float32 (and the EXR round trip) can leave E[x̃²] − E[x̃]² slightly negative or the 2×2
     determinant below 0; clamping the eigenvalues of the symmetric 2×2 (closed form) to
@@ -256,7 +256,7 @@ def slope_covariance(m1: np.ndarray, m2: np.ndarray, *, max_var: float = FILTER_
 
 def toksvig_variance(nbar_length: np.ndarray, *, min_nbar: float = FILTER_TOL.min_nbar,
                      max_var: float = FILTER_TOL.max_var) -> np.ndarray:
-    """σ² = (1 − |n̄|) / |n̄| (Toksvig 2005, Eq. 3 inverted), |n̄| clamped to [min_nbar, 1]
+    """σ² = (1 − |n̄|) / |n̄| (Toksvig 2005, |n̄| = 1 / (1 + σ²) inverted), |n̄| clamped to [min_nbar, 1]
     (normals that cancel, |n̄| → 0, give the bounded σ² ≤ max_var, never NaN); (n,) float64."""
     ln = np.clip(np.nan_to_num(np.asarray(nbar_length, dtype=np.float64), nan=0.0),
                  min_nbar, 1.0)

@@ -7,16 +7,16 @@ x̄ the mean slope, per axis the Beckmann/GGX slope variance of roughness α is 
 
 | family (`Material.model`) | toksvig                                    | leadr                                          |
 |---------------------------|--------------------------------------------|------------------------------------------------|
-| lambert                   | albedo/π at n̄/|n̄| (no lobe to widen)      | albedo/π at the mean-slope normal n_μ           |
-| phong (modified Phong, s) | s' = s / (1 + s σ²) (Toksvig Eq. 5: s f_t) | s' = 2/α'² − 2, α'² = 2/(s+2) + tr Σ, at n_μ   |
-| preview (UsdPreviewSurface| roughness' = (α² + 2σ²)^¼                  | GGX slope distribution of LEADR's Eq. 13 form: |
+| lambert                   | albedo/π at n̄/|n̄| (no lobe to widen)      | albedo/π, cosine n̄·ωi (= E[n·ωi])            |
+| phong (modified Phong, s) | s' = s / (1 + s σ²) (Toksvig: s f_t)       | s' = 2/α'² − 2, α'² = 2/(s+2) + tr Σ, at n_μ   |
+| preview (UsdPreviewSurface| roughness' = (α² + 2σ²)^¼                  | GGX slope distribution, LEADR's two moments:   |
 |   GGX + Schlick)          |                                            | sheared to x̄, covariance A = α² I + 2Σ        |
 |                           |                                            | (`preview_leadr`), Smith masking along the     |
 |                           |                                            | projected roughness                           |
 | cellular, merl            | the material at n̄/|n̄| (tabulated or      | the material at n_μ (same)                     |
 |                           | procedural lobes: no roughness to widen)   |                                                |
 
-LEADR's paper builds a Beckmann lobe from the moments (its Eqs. 13–16: the slope distribution
+LEADR's paper builds a Beckmann lobe from the moments (the slope distribution
 P22 a Gaussian of mean x̄ and covariance Σ + α²/2 I, Smith's Λ of that Gaussian along the
 projected direction, with the mean slope shifting cot θ). No material of this project has a
 Beckmann lobe: keeping each family's own distribution makes every mode reduce exactly to the
@@ -26,9 +26,9 @@ the GGX slope distribution (an elliptical Student-t, Walter et al. 2007 Eq. 33 i
 takes the same two moments: the mean shifts it, the covariance adds in the variance-matched
 convention A = α² I + 2Σ (Beckmann variance α²/2 per axis, the usual GGX ↔ Beckmann mapping).
 Masking keeps the material's Schlick–Smith form G1 = z/(z(1 − k) + k), with k = α_o / 2,
-α_o² = uᵀ A u the roughness projected on the direction's azimuth u (LEADR §4.3: Smith's Λ
+α_o² = uᵀ A u the roughness projected on the direction's azimuth u (LEADR, after Smith: Λ
 depends only on the slope distribution projected on the azimuth), and z the cosine to the
-mean-slope normal (the sheared distribution's mean facet, LEADR Eq. 16's cot θ − x̄_u).
+mean-slope normal (the sheared distribution's mean facet, LEADR's cot θ − x̄_u in Λ).
 """
 
 from __future__ import annotations
@@ -68,7 +68,8 @@ def widen_material(material: model.Material, var_axis: np.ndarray) -> model.Mate
 
 
 def toksvig_phong_exponent(s: float | np.ndarray, nbar_length: np.ndarray) -> np.ndarray:
-    """Toksvig's exponent s' = f_t s, f_t = |n̄| / (|n̄| + s (1 − |n̄|)) (Toksvig 2005, Eq. 5);
+    """Toksvig's exponent s' = f_t s, f_t = |n̄| / (|n̄| + s (1 − |n̄|)) (Toksvig 2005,
+    §"Eliminating Aliasing of Specular Highlights");
     (n,) float64, 0 <= s' <= s, |n̄| clipped to [0, 1]."""
     ln = np.clip(np.nan_to_num(np.asarray(nbar_length, dtype=np.float64), nan=0.0), 0.0, 1.0)
     s = np.asarray(s, dtype=np.float64)

@@ -3,17 +3,17 @@ from the baked slope moments.
 
 Per eye ray the moments E[x̃], E[ỹ], E[x̃²], E[ỹ²], E[x̃ỹ] are filtered trilinearly at the
 pixel footprint (`render.filtered.lookup_filtered`, the level chosen as ``cpm`` chooses it;
-linear filtering of moments is exact, LEAN §3.2), giving the mean slope x̄ and the
-covariance Σ = M − x̄x̄ᵀ (LEAN Eq. 7; LEADR Eq. 13), projected onto the PSD cone with
+linear filtering of moments is exact, LEAN's point), giving the mean slope x̄ and the
+covariance Σ = M − x̄x̄ᵀ (LEAN; LEADR), projected onto the PSD cone with
 eigenvalues in [0, `FILTER_TOL.max_var`] (`filtered_maps.slope_covariance`: float32 maps and
 filtering can leave it indefinite). The mean-slope normal n_μ ∝ (−x̄, −ȳ, 1) is the shading
 normal of the diffuse term, whose cosine is that of the mean normal before renormalisation,
-E[n·ωi] = n̄·ωi (a stated alternative to LEADR §5's diffuse fit: exact for a normal-mapped
+E[n·ωi] = n̄·ωi (a stated alternative to LEADR's diffuse treatment: exact for a normal-mapped
 Lambertian texel where no normal faces away from the light, and for a displaced one seen from
 above). What each BRDF family maps to is the table of `brdf.widened`:
 UsdPreviewSurface keeps its GGX lobe, sheared to x̄ and widened to A = α² I + 2Σ, with Smith
 masking along the projected roughness (`brdf.widened.preview_leadr`), weighted by the
-macro-surface cosine (the microfacet BRDF of the M1 surface, LEADR Eq. 2); its diffuse term
+macro-surface cosine (the microfacet BRDF of the M1 surface, the microfacet model LEADR renders); its diffuse term
 and every other family are evaluated at n_μ (Phong widened to α'² = 2/(s+2) + tr Σ), weighted
 by n_μ·ωi. The material's Lambertian part is replaced by the albedo map as in ``normalmap``;
 ``+ao`` multiplies the albedo term by the baked AO. With x̄ = 0 and Σ = 0 the mode is

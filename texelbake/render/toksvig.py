@@ -5,10 +5,10 @@ anti-aliasing" of normal maps.
 Per eye ray the filtered maps are looked up trilinearly at the pixel footprint
 (`render.filtered.lookup_filtered`, the level chosen as ``cpm`` chooses it): the mean normal
 n̄ before renormalisation shades along n̂ = n̄ / |n̄|, and its length gives the variance of
-the normals the filter averaged, σ² = (1 − |n̄|) / |n̄| (Toksvig Eq. 3 inverted; |n̄| clamped
+the normals the filter averaged, σ² = (1 − |n̄|) / |n̄| (Toksvig's |n̄| = 1 / (1 + σ²) inverted; |n̄| clamped
 to `FILTER_TOL.min_nbar`: normals that cancel give a bounded, widest lobe, never NaN, and n̂
 falls back to the macro normal when |n̄| = 0). Per family (`brdf.widened`): Phong's exponent
-becomes s f_t, f_t = |n̄| / (|n̄| + s (1 − |n̄|)) (Toksvig Eq. 5); UsdPreviewSurface's
+becomes s f_t, f_t = |n̄| / (|n̄| + s (1 − |n̄|)) (Toksvig, §"Eliminating Aliasing of Specular Highlights"); UsdPreviewSurface's
 roughness becomes (α² + 2σ²)^¼ (Toksvig's σ² is Phong's 1/s, α² = 2/s); Lambert, measured and
 cellular materials are evaluated at n̂ unwidened. As ``normalmap``, the material's
 Lambertian part is replaced by the albedo map, f = max(f_mat − kd/π + albedo/π, 0); with
