@@ -150,11 +150,16 @@ def _cheap_bar(report: dict, scene_name: str, atlas: int) -> None:
         return
     e = cheap[best]
     fb = cpm.get("fallback_fraction") or 0.0
-    why = (f"cpm drew {fb:.0%} of its samples from M_org (no texel of the {atlas}² maps "
-           "applies), so it is gt at its spp plus the look-ups" if fb > 0.5 else
-           f"cpm's error is its bias (fit, a_vis table, texel filter) on {report['object_pixels']}"
-           " object pixels; the filtered maps' mean normal, moments and albedo carry this "
-           "surface's appearance as well (little shadowing or masking for the CPM to add)")
+    c16 = [x for x in report["sweep"] if x["mode"] == "cpm" and x["spp"] == 16]
+    if fb > 0.5:
+        why = (f"cpm drew {fb:.0%} of its samples from M_org (no texel of the {atlas}² maps "
+               "applies), so it is gt at its spp plus the look-ups")
+    else:
+        why = (f"cpm's error is bias, not noise (cpm@16: "
+               f"{c16[0]['psnr_db_object']:.2f} dB)" if c16 else "cpm's error is bias")
+        why += (f"; ΔE*ab mean {e['delta_e_mean']:.2f} against cpm's {cpm['delta_e_mean']:.2f}"
+                f", FLIP {e['flip_mean']:.5f} against {cpm['flip_mean']:.5f}, over "
+                f"{report['object_pixels']} object pixels")
     line = (f"{scene_name}: {best} ({e['psnr_db_object']:.2f} dB, "
             f"{e['seconds'] / cpm['seconds']:.2f}x cpm's time) beats cpm "
             f"({cpm['psnr_db_object']:.2f} dB) over the object — {why}")
