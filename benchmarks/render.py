@@ -65,7 +65,7 @@ maps: object PSNR in dB, time as a multiple of cpm@4's; every mode at 4 eye rays
 No filtered normal map ties or beats cpm on any scene. Where cpm uses its maps (cylinders,
 wall) it leads every filtered baseline by 4.6–8.3 dB; leadr is the best of them on the
 cylinders and the wall (the mean normal before renormalisation carries the diffuse darkening
-of the grooves: +5.4 dB over normalmap on the wall). The AO map helps toksvig (+0.9 to +1.7 dB)
+of the grooves: +5.4 dB over normalmap on the wall). The AO map helps toksvig on the cylinders and the wall (+0.9 to +1.7 dB)
 but hurts leadr, whose diffuse already carries that darkening (-0.8 dB cylinders, -5.5 dB
 wall): this renderer traces direct shadows, and AO multiplied into a direct term counts
 occlusion twice. On the bolt every widened lobe is 4.7-6.6x too bright (object mean radiance
@@ -73,7 +73,7 @@ occlusion twice. On the bolt every widened lobe is 4.7-6.6x too bright (object m
 slope variance (tr Σ median 3.8) that widens the sharp metal lobe to roughness ~1, and no
 shadowing or masking of the bumps dims it — the failure CPM exists for (there cpm falls back
 to M_org, the local-light rule at a 16² atlas, and the bar's note names equal-time). On the
-cloisonne every mode is within 2 dB (its mostly Lambertian cells leave little for masking to
+cloisonne every filtered mode is within 2.1 dB of cpm (its mostly Lambertian cells leave little for masking to
 add; cpm falls back to M_org there too). The notes of the JSON name the scenes where cpm is
 not the best mode within twice its time (cylinder full: btf; bolt: equal-time; cloisonne: btf)
 with the measured reason.
