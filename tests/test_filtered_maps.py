@@ -168,3 +168,20 @@ def test_shapes_are_checked(bad):
 
     with pytest.raises(ShapeError):
         slopes(np.zeros(bad))
+
+
+def test_filtered_map_with_wrong_channels_is_refused_naming_the_file(tmp_path):
+    """A filtered map whose channels are not `CHANNELS` (a foreign or truncated EXR) is an
+    AssetError naming the file, not a silently misread map; absent maps read as none."""
+    from texelbake.errors import AssetError
+    from texelbake.imageio import write_pixels
+    from texelbake.payload import read_filtered_maps
+
+    assert read_filtered_maps(tmp_path, "a") == []
+    good = np.random.default_rng(0).uniform(size=(4, 4, len(CHANNELS))).astype(np.float32)
+    write_pixels(tmp_path / "a_filtered_L00.exr", good, "float", channel_names=CHANNELS)
+    back = read_filtered_maps(tmp_path, "a")
+    assert len(back) == 1 and np.array_equal(back[0], good)  # channel order restored
+    write_pixels(tmp_path / "a_filtered_L01.exr", good[..., :3], "float")
+    with pytest.raises(AssetError, match="a_filtered_L01.exr"):
+        read_filtered_maps(tmp_path, "a")
