@@ -39,8 +39,9 @@ from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
 
 from texelbake.atomic import atomic_write_bytes, replace
 from texelbake.errors import AssetError, ShapeError
+from texelbake.model import SHADER_CPM
+from texelbake.shaderdefs import author_shader, write_definitions
 
-SHADER_CPM = "texelbake:cpm"
 _NS = "texelbake:"
 
 _DTYPES: dict[str, tuple[Any, Any]] = {
@@ -187,8 +188,7 @@ def _author_preview_material(
         out = tex.CreateOutput(out_name, out_type)
         surf.CreateInput(name, in_type).ConnectToSource(out)
     mat.CreateSurfaceOutput().ConnectToSource(surf.CreateOutput("surface", Sdf.ValueTypeNames.Token))
-    cpm = UsdShade.Shader.Define(stage, f"{path}/CPM")
-    cpm.CreateIdAttr(SHADER_CPM)
+    cpm = author_shader(stage, f"{path}/CPM", SHADER_CPM)
     cpm.GetPrim().CreateRelationship(f"{_NS}levels", custom=True).SetTargets([Sdf.Path(cpm_scope)])
     mat.CreateSurfaceOutput("texelbake").ConnectToSource(
         cpm.CreateOutput("surface", Sdf.ValueTypeNames.Token)
@@ -289,6 +289,7 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     mpu = UsdGeom.GetStageMetersPerUnit(src_stage)
 
     files = _write_maps(out_dir, baked)
+    write_definitions(out_dir)  # the CPM and BTF shaders name it (texelbake.shaderdefs)
 
     # ---- payload layer (crate)
     payload_file = f"{name}_payload.usdc"
