@@ -76,6 +76,33 @@ def test_flat_plane_filtered_modes_equal_normalmap(specular_plane):
             np.testing.assert_allclose(res.image, nm.image, rtol=0, atol=1e-6, err_msg=mode)
 
 
+def test_filtered_modes_pick_the_mip_level_as_cpm_does(specular_plane):
+    """The filtered maps' level comes from the pixel footprint exactly as cpm's: per pixel,
+    the mean λ of `lookup_filtered` over the same eye rays equals cpm's level image (the
+    plane from 8x the fitting distance, 1 and 4 eye rays per pixel: fractional levels)."""
+    from texelbake.render.filtered import lookup_filtered
+    from texelbake.render.frame import render_frame
+    from texelbake.render.scene import hit_m1, load_scene, resolve_camera
+    from texelbake.render.tracer import eye_passes
+
+    scene = load_scene(specular_plane)
+    cam = resolve_camera(scene, 8.0, 48, 48)
+    for spp in (1, 4):
+        cpm = render_frame(scene, "cpm", cam, spp, 1)
+        n_pix = cam.width * cam.height
+        lam_sum, count = np.zeros(n_pix), np.zeros(n_pix)
+        for _, o, d in eye_passes(cam, spp, 1):
+            _, idx, prim, p, uv, _, _ = hit_m1(scene, o, d)
+            _, lam = lookup_filtered(scene, cam, spp, prim, p, o[idx], d[idx], uv)
+            np.add.at(lam_sum, idx % n_pix, lam)
+            np.add.at(count, idx % n_pix, 1.0)
+        full = (count == spp) & (cpm.coverage.ravel() == 1.0)
+        assert full.sum() >= 8
+        level = cpm.extras["level"].ravel()[full]
+        assert level.mean() > 0.2  # not the finest level's clamp
+        np.testing.assert_allclose(lam_sum[full] / spp, level, atol=1e-6)
+
+
 def test_preview_surface_reproduces_the_plane_material(specular_plane, tmp_path):
     """The fallback of a flat UsdPreviewSurface plane carries its colour and roughness (8-bit
     textures) and normal (8-bit, (0, 0, 1) -> (0.0039, 0.0039, 1)): its preview-surface image
