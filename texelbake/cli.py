@@ -240,7 +240,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render a baked USD")
     p.add_argument("file")
     p.add_argument("--modes", default="gt,cpm,normalmap,equal-time",
-                   help="comma-separated: gt, cpm, normalmap, equal-time, btf (bakes with btf on)")
+                   help="comma-separated: gt, cpm, normalmap, equal-time, btf (bakes with btf on), "
+                   "toksvig, toksvig+ao, leadr, leadr+ao, preview-surface (the filtered baselines)")
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=256)
