@@ -275,7 +275,8 @@ def identity_table(res_keeps, k=64, n_side=16, n_dirs=300):
     (bilinear, theta <= 75 deg), worst over every level, for the seed's plain per-face Haar
     table and for the table with texelbake's per-level sum correction. Storage: Haar
     coefficients at 16-bit index + float32 value, plus the correction maps (one (6, res, res)
-    float32 map per group and level), over the dense float32 cube maps of every level."""
+    float16 map per group present in a level), over the dense float32 cube maps of every
+    level."""
     from texelbake.cpm.assemble import texel_rel_errors
     from texelbake.cpm.avis import coarsen_level
 
@@ -311,7 +312,7 @@ def identity_table(res_keeps, k=64, n_side=16, n_dirs=300):
                         nt = lv.n_side ** 2
                         tab = compress_level(lv, np.broadcast_to(np.eye(3), (nt, 3, 3)).copy(),
                                              keep, correct_sum=corr)
-                        nbytes += 6.0 * tab.haar.nnz + 4.0 * tab.correction.size
+                        nbytes += 6.0 * tab.haar.nnz + tab.correction.nbytes
                         tot = sum(tab.evaluate(np.full(n_dirs, t), w)[0] for t in range(nt))
                         e = float(np.max(np.abs(tot - cos_t) / cos_t))
                         if e > worst:

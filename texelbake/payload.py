@@ -18,8 +18,8 @@ A baked asset is a folder:
     report.json              what the bake measured
 
 Array attributes live in the `texelbake:` namespace, flattened, each with an int[] companion
-`<name>:shape`; the dtype maps one-to-one onto a USD value type (float32 -> float[], float64 ->
-double[], int32 -> int[], int64 -> int64[], uint8 -> uchar[], bool -> bool[]), so `read_baked`
+`<name>:shape`; the dtype maps one-to-one onto a USD value type (float16 -> half[],
+float32 -> float[], float64 -> double[], int32 -> int[], int64 -> int64[], uint8 -> uchar[], bool -> bool[]), so `read_baked`
 returns arrays identical to what was written. `read_baked` is the only way the renderer gets
 baked data.
 """
@@ -46,6 +46,7 @@ _NS = "texelbake:"
 
 _DTYPES: dict[str, tuple[Any, Any]] = {
     # numpy dtype name -> (Sdf value type, Vt array class)
+    "float16": (Sdf.ValueTypeNames.HalfArray, Vt.HalfArray),
     "float32": (Sdf.ValueTypeNames.FloatArray, Vt.FloatArray),
     "float64": (Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray),
     "int32": (Sdf.ValueTypeNames.IntArray, Vt.IntArray),
@@ -54,7 +55,8 @@ _DTYPES: dict[str, tuple[Any, Any]] = {
     "bool": (Sdf.ValueTypeNames.BoolArray, Vt.BoolArray),
 }
 _FROM_USD = {
-    "float[]": np.float32, "double[]": np.float64, "int[]": np.int32, "int64[]": np.int64,
+    "half[]": np.float16, "float[]": np.float32, "double[]": np.float64, "int[]": np.int32,
+    "int64[]": np.int64,
     "uchar[]": np.uint8, "bool[]": np.bool_,
 }
 

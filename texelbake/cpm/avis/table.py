@@ -35,9 +35,10 @@ class AvisTable:
         at each tap direction), interpolated, then min(., U(w)) with U exact at w: the
         horizon is exact and compression only touches the smoother masking fraction
         (about 4x lower error at the seed's kept fraction, benchmarks/avis_methods.py)
-    correction : (2, 6, res, res) float32 sum-preserving corrections (`sum_correction`) of
-        the bounded texels' visible fractions [0] and the direct texels' a_vis [1], or (0,)
-        when the table has none (the seed's plain Haar table, or a bake from before it)
+    correction : (k, 6, res, res) float16 sum-preserving corrections (`sum_correction`),
+        one per group present in the level, (0,) when the table has none (the seed's plain
+        Haar table, or a bake from before it); correction_groups : (k,) uint8, which group
+        each map corrects: 0 the bounded texels' visible fractions, 1 the direct texels' a_vis
     """
 
     res: int
@@ -48,7 +49,8 @@ class AvisTable:
     cf: ClosedForm
     ray_row: np.ndarray
     haar: HaarCoeffs
-    correction: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    correction: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float16))
+    correction_groups: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
 
     @property
     def n_texels(self) -> int:
@@ -63,6 +65,7 @@ class AvisTable:
             "cf_normals": self.cf.normals, "cf_areas": self.cf.areas, "ray_row": self.ray_row,
             "haar_offsets": self.haar.offsets, "haar_indices": self.haar.indices,
             "haar_values": self.haar.values, "correction": self.correction,
+            "correction_groups": self.correction_groups,
         }
 
     @classmethod
@@ -85,13 +88,15 @@ class AvisTable:
         cf = ClosedForm(np.asarray(arrays["cf_offsets"], np.int64),
                         np.asarray(arrays["cf_normals"], np.float64),
                         np.asarray(arrays["cf_areas"], np.float64))
-        corr = np.asarray(arrays.get("correction", np.zeros(0)), np.float32)
-        if corr.size and corr.shape != (2, 6, res, res):
-            raise ShapeError(f"correction must be (2, 6, {res}, {res}), got {corr.shape}")
+        corr = np.asarray(arrays.get("correction", np.zeros(0)), np.float16)
+        groups = np.asarray(arrays.get("correction_groups", np.zeros(0)), np.uint8).reshape(-1)
+        if corr.size and corr.shape != (groups.shape[0], 6, res, res):
+            raise ShapeError(f"correction must be ({groups.shape[0]}, 6, {res}, {res}) for "
+                             f"correction_groups {groups.tolist()}, got {corr.shape}")
         return cls(res, np.asarray(arrays["frames"], np.float64),
                    np.asarray(arrays["texel_area"], np.float64),
                    np.asarray(arrays["closed"], bool), np.asarray(arrays["bounded"], bool), cf,
-                   ray_row, haar, corr)
+                   ray_row, haar, corr, groups)
 
     def evaluate(self, texels: np.ndarray, dirs_texel: np.ndarray, *,
                  interp: str = "bilinear",
@@ -216,17 +221,19 @@ class AvisTable:
         """A bounded texel's visible fraction at cube pixels: the Haar value clipped to
         [0, 1], then the level's sum correction (`sum_correction`) at those pixels."""
         f = np.clip(raw, 0.0, 1.0)
-        if self.correction.size == 0:
+        k = np.flatnonzero(self.correction_groups == 0)
+        if k.size == 0:
             return f
-        return apply_correction(f, self.correction[0, face, iv, iu], bounded=True)
+        return apply_correction(f, self.correction[k[0], face, iv, iu], bounded=True)
 
     def _direct(self, raw: np.ndarray, face: np.ndarray, iu: np.ndarray, iv: np.ndarray
                 ) -> np.ndarray:
         """A direct (unbounded) ray texel's a_vis at cube pixels: >= 0, then corrected."""
         a = np.maximum(raw, 0.0)
-        if self.correction.size == 0:
+        k = np.flatnonzero(self.correction_groups == 1)
+        if k.size == 0:
             return a
-        return apply_correction(a, self.correction[1, face, iv, iu], bounded=False)
+        return apply_correction(a, self.correction[k[0], face, iv, iu], bounded=False)
 
     def _bilinear_in_face(self, rows: np.ndarray, face: np.ndarray, fu: np.ndarray,
                           fv: np.ndarray, bounded: np.ndarray) -> np.ndarray:
@@ -316,7 +323,7 @@ def sum_correction(exact: np.ndarray, approx: np.ndarray, weight: np.ndarray,
 
     exact, approx : (n, 6, res, res) X and its reconstruction (F~ clipped to [0, 1], a~ >= 0)
     weight : (n, 6, res, res) U (bounded) or ones; bounded : which rule
-    returns : (6, res, res) float32: g (bounded) or m (direct)
+    returns : (6, res, res) float32: g (bounded) or m (direct), stored as float16
     """
     x = np.asarray(exact, np.float64)
     a = np.asarray(approx, np.float64)
@@ -374,19 +381,24 @@ def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float, *
         unocc = closed_form_maps(level.cf, level.res, level.ray_texels[frac])
         maps[frac] = visible_fraction(maps[frac], unocc)
     haar = compress_haar(maps, keep_fraction)
-    correction = np.zeros(0, np.float32)
+    maps_c: list[np.ndarray] = []
+    groups: list[int] = []
     if correct_sum and level.ray_texels.shape[0]:
         approx = decompress_haar(haar)  # (n_ray, 6, res, res)
-        correction = np.zeros((2, 6, level.res, level.res), np.float32)
         if frac.any():
-            correction[0] = sum_correction(maps[frac], np.clip(approx[frac], 0.0, 1.0), unocc,
-                                           bounded=True)
+            groups.append(0)
+            maps_c.append(sum_correction(maps[frac], np.clip(approx[frac], 0.0, 1.0), unocc,
+                                         bounded=True))
         if (~frac).any():
             direct = maps[~frac]
-            correction[1] = sum_correction(direct, np.maximum(approx[~frac], 0.0),
-                                           np.ones_like(direct), bounded=False)
+            groups.append(1)
+            maps_c.append(sum_correction(direct, np.maximum(approx[~frac], 0.0),
+                                         np.ones_like(direct), bounded=False))
+    # float16: g and m are in [-8, 8] and [-1, 1]; 11 bits move F^exp(g) by < 1e-3 relative
+    correction = (np.stack(maps_c).astype(np.float16) if maps_c
+                  else np.zeros(0, np.float16))
     return AvisTable(level.res, frames, level.texel_area, level.closed, level.bounded, level.cf,
-                     ray_row, haar, correction)
+                     ray_row, haar, correction, np.asarray(groups, np.uint8))
 
 
 def avis_table_arrays(table: AvisTable) -> dict[str, np.ndarray]:
