@@ -136,3 +136,45 @@ def test_deformed_modes_and_errors(baked_cylinder):
     # twisting the rest scene moves the object's pixels: gt differs from the rest's gt
     rest = render_frame(scene, "gt", cam, 1)
     assert np.abs(render_deformed(d, "gt", cam, 1).image - rest.image).max() > 0.01
+
+
+def test_warp_at_time_follows_the_time_samples():
+    from _render_helpers import icosphere, model
+
+    from texelbake.render.deformed_report import warp_at_time
+
+    v, f = icosphere(1)
+    rest = model(v, f)
+    q = _rotation(np.array([0.0, 0.0, 1.0]), 0.5)
+    frames = np.stack([v, v @ q.T + [1.0, 0.0, 0.0]])
+    animated = dataclasses.replace(rest, time_codes=np.array([0.0, 10.0]),
+                                   points_over_time=frames)
+    w = warp_at_time(animated, 10.0)
+    np.testing.assert_allclose(w.positions(v), frames[1], atol=1e-9)
+    np.testing.assert_allclose(w.jacobian(v[:5]), np.broadcast_to(q, (5, 3, 3)), atol=1e-9)
+    half = warp_at_time(animated, 5.0).positions(v)  # linear between the two samples
+    np.testing.assert_allclose(half, 0.5 * (frames[0] + frames[1]), atol=1e-9)
+    np.testing.assert_allclose(warp_at_time(animated, 99.0).positions(v), frames[1], atol=1e-9)
+    # a single time sample: the asset does not deform
+    single = dataclasses.replace(rest, time_codes=np.array([3.0]), points_over_time=v[None])
+    np.testing.assert_array_equal(warp_at_time(single, 7.0).positions(v), v)
+    with pytest.raises(SettingsError, match="time"):
+        warp_at_time(animated, float("nan"))
+
+
+def test_cli_render_with_a_warp(baked_cylinder, tmp_path, capsys):
+    import json
+
+    from texelbake.cli import main
+
+    out = tmp_path / "tw"
+    assert main(["render", str(baked_cylinder), "--warp", "bend:angle=60", "-o", str(out),
+                 "--width", "32", "--height", "32", "--ref-spp", "4", "--camera", "lod"]) == 0
+    rep = json.loads((out / "deformed_report.json").read_text())
+    assert rep["warp"] == "bend:angle=60"
+    assert set(rep["modes"]) == {"gt", "cpm", "cpm-naive", "normalmap"}
+    assert all(np.isfinite(e["seconds"]) for e in rep["modes"].values())
+    assert (out / "cpm.png").is_file() and (out / "reference.exr").is_file()
+    assert "cpm-naive" in capsys.readouterr().out
+    assert main(["render", str(baked_cylinder), "--warp", "twist:angel=3", "-o", str(out)]) == 2
+    assert "field 'warp.angel'" in capsys.readouterr().err
