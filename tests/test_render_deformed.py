@@ -178,3 +178,42 @@ def test_cli_render_with_a_warp(baked_cylinder, tmp_path, capsys):
     assert "cpm-naive" in capsys.readouterr().out
     assert main(["render", str(baked_cylinder), "--warp", "twist:angel=3", "-o", str(out)]) == 2
     assert "field 'warp.angel'" in capsys.readouterr().err
+
+
+def test_impostor_primvars_round_trip_through_the_payload(baked_cylinder):
+    from pxr import Usd, UsdGeom
+
+    from texelbake.deform import impostor as imp
+    from texelbake.payload import IMPOSTOR_PRIMVARS, read_baked
+    from texelbake.render.deformed import lod_impostor
+
+    baked = read_baked(baked_cylinder)
+    assert len(baked.meshes) >= 2
+    for i, m in enumerate(baked.meshes):
+        assert sorted(m.impostor) == sorted(IMPOSTOR_PRIMVARS)
+        assert all(a.shape == (len(m.vertices), 3) for a in m.impostor.values())
+        np.testing.assert_array_equal(m.impostor["p0"], m.vertices)  # both float32 on disk
+        # what was written is the parameterization of the mesh read back, up to float32
+        # storage and ties between quarter turns of equal angle (same minimal angle, u0 a
+        # quarter turn of the recomputed one)
+        again = imp.impostor_params(m.vertices, m.faces, m.corner_uvs)
+        a_st = imp.rotation_angle(imp.rodrigues_to_matrix(m.impostor["r0"]))
+        a_re = imp.rotation_angle(imp.rodrigues_to_matrix(again.r0))
+        np.testing.assert_allclose(a_st, a_re, atol=1e-5)
+        dot = np.abs(np.einsum("ij,ij->i", m.impostor["u0"], again.u0))
+        assert (np.minimum(dot, np.abs(1.0 - dot)) < 1e-5).all()
+        frames = imp.decode_frames(m.impostor["r0"], m.impostor["u0"], m.impostor["v0"])
+        n0 = imp.vertex_normals(m.vertices, m.faces)
+        live = np.linalg.norm(n0, axis=1) > 0
+        np.testing.assert_allclose(frames[live, :, 2], n0[live], atol=1e-5)
+        angle = np.degrees(imp.rotation_angle(imp.rodrigues_to_matrix(m.impostor["r0"])))
+        assert angle.max() <= imp.MAX_ANGLE_DEG
+        # the renderer takes the stored arrays
+        scene = load_scene(baked_cylinder)
+        np.testing.assert_array_equal(lod_impostor(scene, i).r0, m.impostor["r0"])
+    # a plain pxr reader sees vertex-interpolated float3[] primvars on the LOD meshes
+    stage = Usd.Stage.Open(str(baked_cylinder))
+    lod1 = [p for p in stage.Traverse() if p.GetName() == "LOD1" and p.IsA(UsdGeom.Mesh)][0]
+    pv = UsdGeom.PrimvarsAPI(lod1).GetPrimvar("texelbake:r0")
+    assert pv and pv.GetInterpolation() == UsdGeom.Tokens.vertex
+    assert str(pv.GetTypeName()) == "float3[]"

@@ -115,11 +115,14 @@ def deform_scene(scene: RenderScene, warp: Warp, *, jacobian: str = "exact") -> 
     d._nm = None  # the normal map's tangent frames follow the deformed M1
     d._btf = None
     # the impostor parameterization of M1 and its deformed tangents (Eq. 6 / exact J)
+    # (u0, v0) are R0's first two columns, decoded from r0 (orthonormal to rounding whatever
+    # precision r0 was stored at), so that a rigid motion Q gives L = R0 R0ᵀ Qᵀ = Qᵀ exactly
     prm = lod_impostor(scene, 0)
-    u, v = deformed_tangents(warp, prm.p0, prm.u0, prm.v0, jacobian)
+    frames0 = decode_frames(prm.r0, prm.u0, prm.v0)
+    u, v = deformed_tangents(warp, prm.p0, frames0[:, :, 0], frames0[:, :, 1], jacobian)
     d.warp = warp  # type: ignore[attr-defined]
     d.rest = scene  # type: ignore[attr-defined]
-    d.m1_frames0 = decode_frames(prm.r0, prm.u0, prm.v0)  # type: ignore[attr-defined]
+    d.m1_frames0 = frames0  # type: ignore[attr-defined]
     d.m1_uv = (u, v)  # type: ignore[attr-defined]
     d.deformed_levels = {}  # type: ignore[attr-defined]
     d.setup_seconds = time.perf_counter() - t0
