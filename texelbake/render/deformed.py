@@ -13,9 +13,16 @@ characteristic points follow Ψ (`deform_scene`), and the modes of a deformed fr
   seed 000 is evaluated with the rest points, normals, weights and a_vis tables. L of a texel
   comes from the impostor parameterization of M1 (Table 1): the rest centroid's closest
   point on M1, R0 and the deformed (u, v) = J (u0, v0) of the triangle's vertices
-  interpolated there (`texelbake.deform.lookup`). Visibility (shadow and view rays) is traced
-  from the deformed points against the deformed M_org, so shadows one part casts on another
-  after the deformation are seen (inter-object shadows on the deformed geometry). Eye rays
+  interpolated there (`texelbake.deform.lookup`). Shadow rays are traced from the deformed
+  points toward the lights against the deformed M_org, so shadows one part casts on another
+  after the deformation are seen (inter-object shadows on the deformed geometry). The view
+  term V(x̂k, ωo) is traced at rest (rest point, rest-frame direction, rest M_org): Eq. 12
+  divides by a_vis, the rest texel's visible projected area toward ωo from the baked table,
+  and only a numerator with the same masking keeps the ratio a weighted mean of the points'
+  radiance. Traced on the deformed M_org instead, a deformation that opens a masked groove
+  (a twist, a bend's outer side) gave visible points where the table's a_vis was ~1e-11, and
+  texel radiances up to 1e7 (the twisted cylinder's cpm image at −3 dB). Masking by other
+  parts after the deformation is left to the eye rays, which meet the deformed M_i. Eye rays
   are traced against the deformed M_i; the atlas uv of a hit is unchanged by Ψ, the mip
   level follows the deformed triangle's uv density.
 - ``cpm-naive`` — the same with L = I: the rest tables looked up with the deformed world's
@@ -42,7 +49,7 @@ from texelbake.deform.lookup import (
     lookup_rotation,
     rest_frames_at,
 )
-from texelbake.deform.warps import Warp
+from texelbake.deform.warps import MeshWarp, Warp
 from texelbake.errors import SettingsError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.mesh import face_normals
@@ -88,14 +95,29 @@ def lod_impostor(scene: RenderScene, i: int) -> ImpostorParams:
     return impostor_params(mesh.vertices, mesh.faces, mesh.corner_uvs)
 
 
-def deform_scene(scene: RenderScene, warp: Warp, *, jacobian: str = "exact") -> RenderScene:
+def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
+                 jacobian: str = "exact") -> RenderScene:
     """A copy of `scene` whose M_org and M_i are warped by Ψ (module docstring); the baked
-    tables stay at rest. jacobian : "exact" (the warp's) or "central" (Eq. 6) for (u, v)."""
+    tables stay at rest.
+
+    follow : "mesh" (default) — Ψ moves M_org's vertices (what a deformer does to an asset:
+        the surface between them stays flat), and everything else (M_i, the characteristic
+        points, the Jacobians of the look-up) follows the deformed M_org
+        (`deform.warps.MeshWarp`: closest rest triangle, barycentrics, normal offset; its
+        affine Jacobian); "warp" — Ψ itself everywhere, which matches the deformed M_org only
+        where M_org is tessellated finely against Ψ's curvature (the small cylinder has 2
+        rings along its axis: bent by Ψ its M_org is a flat chord while the characteristic
+        points lie on the arc, and its cpm image lost 10–16 dB to that alone).
+    jacobian : "exact" (the warp's) or "central" (Eq. 6) for (u, v)."""
+    if follow not in ("mesh", "warp"):
+        raise SettingsError(f"field 'follow': 'mesh' or 'warp', got {follow!r}")
     t0 = time.perf_counter()
     d = copy.copy(scene)
     a = scene.asset
-    jac_v = warp.jacobian(a.points)
+    jac_v = warp.jacobian(a.points)  # shading normals: Ψ's own Jacobian at the vertices
     pts = warp.positions(a.points)
+    if follow == "mesh":
+        warp = MeshWarp(a.points, pts, a.faces, name=warp.name, scale=warp.scale)
     corner = deform_normals(jac_v[a.faces.reshape(-1)],
                             a.corner_normals.reshape(-1, 3)).reshape(a.corner_normals.shape)
     d.asset = dataclasses.replace(a, points=pts, corner_normals=corner)
@@ -208,9 +230,10 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     view = (cos_go > g) & (np.einsum("ij,ij->i", ns, wo) > g)
     rays = 0
     vi = np.flatnonzero(view)
-    if vi.size:  # V(x̂k, ωo) on the deformed geometry
+    if vi.size:  # V(x̂k, ωo) at rest, along the rest-frame direction (docstring)
         tmax = np.linalg.norm(cam_pos[None, :] - pos_d[vi], axis=1)
-        occ = d.org.occluded(pos_d[vi] + d.ray_eps * ng_d[vi], wo_d[vi], tmax=tmax)
+        occ = rest.org.occluded(cp["position"][pt][vi] + rest.ray_eps * ng[vi], wo[vi],
+                                tmax=tmax)
         rays += vi.size
         view[vi[occ]] = False
     mat, uv = cp["material"][pt], cp["uv"][pt]
