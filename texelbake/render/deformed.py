@@ -224,7 +224,7 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     cen = np.divide(cen, wsum[:, None], out=np.zeros_like(cen), where=wsum[:, None] > 0)
     wo_d_tex = _unit(cam_pos[None, :] - cen)
     wo_tex = np.einsum("nij,nj->ni", lrot, wo_d_tex)  # rest frame (Eq. 10)
-    wo, wo_d = wo_tex[tex], wo_d_tex[tex]
+    wo = wo_tex[tex]
     g = TOL.grazing_cos
     cos_go = np.einsum("ij,ij->i", ng, wo)
     view = (cos_go > g) & (np.einsum("ij,ij->i", ns, wo) > g)
