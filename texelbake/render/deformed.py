@@ -25,6 +25,9 @@ characteristic points follow Ψ (`deform_scene`), and the modes of a deformed fr
   parts after the deformation is left to the eye rays, which meet the deformed M_i. Eye rays
   are traced against the deformed M_i; the atlas uv of a hit is unchanged by Ψ, the mip
   level follows the deformed triangle's uv density.
+  Option `lookup="texel"`: the texel itself as the impostor point, R0 its baked frame and
+  (u, v) = J (t, b) at its centroid (no interpolation across M1's coarse triangles; see
+  `LOOKUPS`, measured beside the default in `benchmarks/deform.py` as ``cpm-texel``).
 - ``cpm-naive`` — the same with L = I: the rest tables looked up with the deformed world's
   directions (what L buys).
 - ``normalmap`` — the studio baseline on the deformed M1: its tangent frame rebuilt from the
@@ -185,16 +188,34 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
         lrot[live], _ = lookup_rotation(r0, interpolate(u, faces, prim, bary),
                                         interpolate(v, faces, prim, bary),
                                         fallback_normal=d.lod_face_normals[0][prim])
-    out["lookup"] = lrot
+    out["lookup:vertex"] = lrot
+    # the texel as the impostor point (seed 002 §4.2 allows point-sampled impostors): R0 the
+    # texel's own frame (rows t, b, n), (u, v) = J (t, b) at the texel's centroid
+    frames = rest.baked.levels[level]["frames"].astype(np.float64)
+    r0_tex = np.transpose(frames, (0, 2, 1))  # columns (t, b, n)
+    lrot_t = np.broadcast_to(np.eye(3), (n_tex, 3, 3)).copy()
+    if live.any():
+        jc = warp.jacobian(cen[live])
+        lrot_t[live], _ = lookup_rotation(
+            r0_tex[live], np.einsum("nij,nj->ni", jc, frames[live, 0]),
+            np.einsum("nij,nj->ni", jc, frames[live, 1]),
+            fallback_normal=deform_normals(jc, frames[live, 2]))
+    out["lookup:texel"] = lrot_t
     cache[level] = out
     return out
 
 
+#: where the look-up rotation L of a texel comes from: "texel" (the texel as the impostor
+#: point: R0 its baked frame, J at its centroid), "vertex" (Table 1 on M1's vertices, from the
+#: payload, interpolated at the centroid's closest point), "none" (L = I, ``cpm-naive``)
+LOOKUPS = ("texel", "vertex", "none")
+
+
 def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
-                            texels: np.ndarray, naive: bool = False
+                            texels: np.ndarray, lookup: str = "vertex"
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Eq. 12 of seed 000 for texels of one level of a deformed scene (module docstring);
-    the same contract as `render.cpm.texel_radiance`. naive : L = I (``cpm-naive``)."""
+    the same contract as `render.cpm.texel_radiance`. lookup : one of LOOKUPS."""
     rest: RenderScene = d.rest  # type: ignore[attr-defined]
     lv = rest.baked.levels[level]
     offsets = lv["texel_offsets"]
@@ -214,8 +235,8 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     geo = _level_geometry(d, level)
     ng, ns, w = cp["geom_normal"][pt], cp["normal"][pt], cp["weight"][pt]
     pos_d, ng_d = geo["position"][pt], geo["geom_normal"][pt]
-    lrot = (np.broadcast_to(np.eye(3), (n_tex, 3, 3)) if naive
-            else geo["lookup"][texels])  # (t, 3, 3) deformed world -> rest world
+    lrot = (np.broadcast_to(np.eye(3), (n_tex, 3, 3)) if lookup == "none"
+            else geo[f"lookup:{lookup}"][texels])  # (t, 3, 3) deformed world -> rest world
     # one view direction per texel: deformed weighted centroid -> camera
     ws = np.abs(w).sum(axis=1)
     ws = np.where(np.bincount(tex, ws, n_tex)[tex] > 0, ws, 1.0)
@@ -275,15 +296,17 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
 class DeformedCpmFrame(CpmFrame):
     """`render.cpm.CpmFrame` whose texel radiance is `deformed_texel_radiance`."""
 
-    def __init__(self, scene: RenderScene, cam: PinholeCamera, mesh: int, naive: bool) -> None:
+    def __init__(self, scene: RenderScene, cam: PinholeCamera, mesh: int, lookup: str) -> None:
+        if lookup not in LOOKUPS:
+            raise SettingsError(f"field 'lookup': one of {LOOKUPS}, got {lookup!r}")
         super().__init__(scene, cam, mesh)
-        self.naive = naive
+        self.lookup = lookup
 
     def _compute(self, j: int, todo: np.ndarray) -> None:
         if todo.size:
             rad, avis, ex, done, _ = self._arrays(j)
             r, a, e, n_rays = deformed_texel_radiance(self.scene, j, self.cam_pos, todo,
-                                                      self.naive)
+                                                      self.lookup)
             rad[todo], avis[todo], ex[todo], done[todo] = r, a, e, True
             self.rays += n_rays
 
@@ -305,8 +328,9 @@ def render_deformed(d: RenderScene, mode: str, cam: PinholeCamera, spp: int, see
     elif mode == "normalmap":
         img, rays, cov = render_normalmap(d, cam, spp, seed)
     elif mode in ("cpm", "cpm-naive"):
+        lookup = kw.pop("lookup", "vertex")
         frame = DeformedCpmFrame(d, cam, choose_mesh(d, cam, kw.pop("max_error_px", 1.0)),
-                                 naive=mode == "cpm-naive")
+                                 lookup="none" if mode == "cpm-naive" else lookup)
         img, rays, cov, extras = render_cpm(d, cam, spp, seed, frame=frame, **kw)
     else:  # equal-time
         if budget_seconds is None:
