@@ -2,8 +2,11 @@
 acceptance; seed 002 §4).
 
     .venv/bin/python benchmarks/deform.py --json out.json
-        [--scenes cylinder,bolt] [--scene-size small|full] [--atlas 32] [--size 512]
+        [--scenes cylinder,bolt,arm] [--scene-size small|full] [--atlas 32] [--size 512]
         [--ref-spp 1024] [--spp 4] [--warp SPEC ...] [--work DIR]
+
+The `arm` (texelbake.scenes.arm) is deformed by its own UsdSkel animation at time codes 12
+and 24 (bent 45° and 90°) instead of the procedural warps.
 
 Bakes each scene (texelbake.scenes at `--scene-size`, `--atlas` finest texels per side, the
 other settings at their defaults) unless already baked under `--work`, then per warp
@@ -55,17 +58,25 @@ from texelbake.deform.warps import AffineWarp, parse_warp  # noqa: E402
 from texelbake.pipeline import bake  # noqa: E402
 from texelbake.render.camera import PinholeCamera  # noqa: E402
 from texelbake.render.deformed import deform_scene, render_deformed  # noqa: E402
+from texelbake.render.deformed_report import warp_at_time  # noqa: E402
 from texelbake.render.scene import load_scene, lod_camera  # noqa: E402
 from texelbake.scenes import write_scene  # noqa: E402
 
 WARPS = ("bend:angle=90", "twist:angle=90", "stretch:x=1,y=2,z=1")
 RIGID = "rigid:angle=40,axis=x,tx=0.5,ty=-0.3,tz=0.2"
+#: the arm's own animation (texelbake.scenes.arm): bent 45° at time 12, 90° at 24
+ARM_TIMES = ("time:12", "time:24")
 MODES = ("cpm", "cpm-texel", "cpm-naive", "normalmap", "gt")
 
 
 def bake_scene(scene: str, work: Path, atlas: int, size: str) -> Path:
     settings = BakeSettings(atlas_resolution=atlas)
-    src = write_scene(scene, work / "src" / f"{scene}_{size}.usda", size)
+    if scene == "arm":  # the skinned cylinder: its own animation, not a procedural warp
+        from texelbake.scenes.arm import write_arm
+
+        src = write_arm(work / "src" / f"arm_{size}.usda", size)
+    else:
+        src = write_scene(scene, work / "src" / f"{scene}_{size}.usda", size)
     key = hashlib.sha256(settings.model_dump_json().encode()).hexdigest()[:10]
     out = work / f"baked_{scene}_{size}_{key}"
     root = out / f"{scene}_{size}_baked.usda"
@@ -184,8 +195,11 @@ def main(argv: list[str] | None = None) -> dict:
                               cam0.height)
         cases.append({**_case(scene_name, d, cam_r, args.spp, args.ref_spp, render_deformed),
                       "warp": RIGID})
-        for spec in warps:
-            d = deform_scene(scene, parse_warp(spec, scene.asset.bounds))
+        specs = ARM_TIMES if scene_name == "arm" else warps
+        for spec in specs:
+            psi = (warp_at_time(scene.asset, float(spec.split(":")[1]))
+                   if spec.startswith("time:") else parse_warp(spec, scene.asset.bounds))
+            d = deform_scene(scene, psi)
             cam = lod_camera(d, args.size, args.size)
             cases.append({**_case(scene_name, d, cam, args.spp, args.ref_spp,
                                   render_deformed), "warp": spec})
