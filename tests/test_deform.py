@@ -310,3 +310,22 @@ def test_shapes_and_errors():
                           np.zeros((1, 3)), method="forward")
     prm = imp.impostor_params(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
     assert prm.r0.shape == (0, 3)
+
+
+def test_interpolation_across_mixed_quarter_turns():
+    from texelbake.deform.lookup import align_quarter_turns
+
+    # three corners with the same frame up to quarter turns: their plain average is degenerate
+    u0 = np.array([[1.0, 0, 0], [0, 1.0, 0], [-1.0, 0, 0]])[None]
+    v0 = np.array([[0, 1.0, 0], [-1.0, 0, 0], [0, -1.0, 0]])[None]
+    q = _random_rotation(9)
+    u, v = u0 @ q.T, v0 @ q.T
+    bary = np.array([[0.3, 0.3, 0.4]])
+    assert np.linalg.norm(np.einsum("nk,nkj->nj", bary, u0)) < 0.5
+    a0, b0, a, b = align_quarter_turns(u0, v0, u, v)
+    np.testing.assert_allclose(a0[0], np.tile([1.0, 0, 0], (3, 1)), atol=1e-15)
+    r0 = rest_frames_at(np.einsum("nk,nkj->nj", bary, a0), np.einsum("nk,nkj->nj", bary, b0))
+    lrot, valid = lookup_rotation(r0, np.einsum("nk,nkj->nj", bary, a),
+                                  np.einsum("nk,nkj->nj", bary, b))
+    assert valid.all()
+    np.testing.assert_allclose(lrot[0], q.T, atol=1e-12)

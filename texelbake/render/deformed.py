@@ -47,8 +47,8 @@ import numpy as np
 from texelbake import brdf as brdf_mod
 from texelbake.deform.impostor import ImpostorParams, decode_frames, impostor_params
 from texelbake.deform.lookup import (
+    align_quarter_turns,
     deformed_tangents,
-    interpolate,
     lookup_rotation,
     rest_frames_at,
 )
@@ -180,13 +180,17 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
     if live.any():
         _, prim, b2 = rest.lods[0].closest_points(cen[live])
         bary = np.column_stack([1.0 - b2[:, 0] - b2[:, 1], b2])
-        faces = rest.baked.meshes[0].faces
+        corners = rest.baked.meshes[0].faces[prim]  # (k, 3)
         f0 = d.m1_frames0  # type: ignore[attr-defined]
         u, v = d.m1_uv  # type: ignore[attr-defined]
-        r0 = rest_frames_at(interpolate(f0[:, :, 0], faces, prim, bary),
-                            interpolate(f0[:, :, 1], faces, prim, bary))
-        lrot[live], _ = lookup_rotation(r0, interpolate(u, faces, prim, bary),
-                                        interpolate(v, faces, prim, bary),
+        cu0, cv0, cu, cv = align_quarter_turns(f0[corners, :, 0], f0[corners, :, 1],
+                                               u[corners], v[corners])
+
+        def interp(x: np.ndarray) -> np.ndarray:
+            return np.einsum("nk,nkj->nj", bary, x)
+
+        r0 = rest_frames_at(interp(cu0), interp(cv0))
+        lrot[live], _ = lookup_rotation(r0, interp(cu), interp(cv),
                                         fallback_normal=d.lod_face_normals[0][prim])
     out["lookup:vertex"] = lrot
     # the texel as the impostor point (seed 002 §4.2 allows point-sampled impostors): R0 the
