@@ -63,11 +63,14 @@ _FROM_USD = {
 
 @dataclass
 class LodMesh:
-    """M_i with its atlas uvs. vertices (n, 3) float64, faces (f, 3) int64, corner_uvs (f, 3, 2)."""
+    """M_i with its atlas uvs. vertices (n, 3) float64, faces (f, 3) int64, corner_uvs (f, 3, 2);
+    impostor: the local impostor parameterization of seed 002 Table 1 (`IMPOSTOR_PRIMVARS`,
+    each (n, 3) float64 per vertex; empty when the bake wrote none)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     corner_uvs: np.ndarray
+    impostor: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass
@@ -138,7 +141,37 @@ def _author_mesh(stage: Usd.Stage, path: str, mesh: LodMesh) -> UsdGeom.Mesh:
     )
     st.Set(Vt.Vec2fArray.FromNumpy(
         np.ascontiguousarray(mesh.corner_uvs.reshape(-1, 2), dtype=np.float32)))
+    _author_impostor(geom, mesh.impostor)
     return geom
+
+
+#: the impostor parameterization's primvars (seed 002 Table 1): `primvars:texelbake:<name>`,
+#: float3[] per vertex: p0 rest position, r0 Rodrigues vector of R0, u0 and v0 rest tangents
+IMPOSTOR_PRIMVARS = ("p0", "r0", "u0", "v0")
+
+
+def _author_impostor(geom: UsdGeom.Mesh, impostor: dict[str, np.ndarray]) -> None:
+    api = UsdGeom.PrimvarsAPI(geom)
+    for name in IMPOSTOR_PRIMVARS if impostor else ():
+        pv = api.CreatePrimvar(f"{_NS}{name}", Sdf.ValueTypeNames.Float3Array,
+                               UsdGeom.Tokens.vertex)
+        pv.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(impostor[name], dtype=np.float32)))
+
+
+def _read_impostor(geom: UsdGeom.Mesh, n_points: int) -> dict[str, np.ndarray]:
+    api = UsdGeom.PrimvarsAPI(geom)
+    out: dict[str, np.ndarray] = {}
+    for name in IMPOSTOR_PRIMVARS:
+        pv = api.GetPrimvar(f"{_NS}{name}")
+        value = pv.Get() if pv else None
+        if value is None:
+            return {}
+        arr = np.array(value, dtype=np.float32).astype(np.float64).reshape(-1, 3)
+        if arr.shape[0] != n_points:
+            raise AssetError(f"primvar {_NS}{name} has {arr.shape[0]} values for "
+                             f"{n_points} points", prim=str(geom.GetPath()))
+        out[name] = arr
+    return out
 
 
 def _author_preview_material(
@@ -462,7 +495,7 @@ def read_baked(path: str | Path) -> BakedAsset:
         f = np.array(geom.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
         st = UsdGeom.PrimvarsAPI(geom).GetPrimvar("st").Get()
         uv = np.array(st, dtype=np.float32).astype(np.float64).reshape(-1, 3, 2)
-        meshes.append(LodMesh(v, f, uv))
+        meshes.append(LodMesh(v, f, uv, _read_impostor(geom, len(v))))
         i += 1
     meta = dict(stage.GetRootLayer().customLayerData.get("texelbake", {}))
     name = path.name.removesuffix("_baked.usda")

@@ -51,6 +51,10 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         meshes.append(payload.LodMesh(geo[f"m{i}_vertices"], geo[f"m{i}_faces"],
                                       geo[f"m{i}_corner_uvs"]))
         i += 1
+    from texelbake.deform.impostor import impostor_params
+
+    for m in meshes:  # seed 002 Table 1 on every vertex of M1..Mn
+        m.impostor = impostor_params(m.vertices, m.faces, m.corner_uvs).as_arrays()
     name = ctx.asset_path.stem
     skipped = list(plan.skipped) if plan is not None else []
     report = {
