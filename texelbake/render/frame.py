@@ -79,8 +79,9 @@ from texelbake.render.scene import RenderScene
 from texelbake.render.tracer import RenderResult, progressive
 
 MODES = ("gt", "cpm", "normalmap", "equal-time")
-#: modes `render_frame` accepts beyond MODES (they need optional bake outputs)
-EXTRA_MODES = ("btf",)
+#: modes `render_frame` accepts beyond MODES (they need optional bake outputs; ``srf``: a
+#: reflectance field captured beside the bake, `texelbake.srf.mode`)
+EXTRA_MODES = ("btf", "srf")
 
 
 def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, seed: int = 0,
@@ -103,6 +104,10 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
         if not isinstance(scene, RenderScene):
             raise SettingsError("field 'mode': 'btf' needs a baked asset (RenderScene)")
         img, rays, cov = render_btf(scene, cam, spp, seed, **kw)
+    elif mode == "srf":  # seed 002 §3, §5 (texelbake.srf)
+        from texelbake.srf.mode import render_srf_mode
+
+        img, rays, cov, extras = render_srf_mode(scene, cam, **kw)
     else:  # equal-time
         if budget_seconds is None:
             budget_seconds = render_frame(scene, "cpm", cam, spp, seed, **kw).seconds
