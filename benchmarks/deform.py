@@ -2,15 +2,20 @@
 acceptance; seed 002 §4).
 
     .venv/bin/python benchmarks/deform.py --json out.json
-        [--scenes cylinder,bolt] [--scene-size small|full] [--atlas 32] [--size 512]
+        [--scenes cylinder,bolt,arm] [--scene-size small|full] [--atlas 32] [--size 512]
         [--ref-spp 1024] [--spp 4] [--warp SPEC ...] [--work DIR]
+
+The `arm` (texelbake.scenes.arm) is deformed by its own UsdSkel animation at time codes 12
+and 24 (bent 45° and 90°) instead of the procedural warps.
 
 Bakes each scene (texelbake.scenes at `--scene-size`, `--atlas` finest texels per side, the
 other settings at their defaults) unless already baked under `--work`, then per warp
 (default: bend 90°, twist 90° and the 1:2 anisotropic stretch along the axis, plus a rigid
 motion) renders the reference `gt` of the deformed M_org at `--ref-spp` eye rays per pixel
 and each mode at `--spp`: `cpm` (through the look-up rotation L, Eq. 10), `cpm-naive` (no L)
-and `normalmap` (tangent frame carried by the deformed M1), and `gt` at `--spp` for scale.
+and `normalmap` (tangent frame carried by the deformed M1), and `gt` at `--spp` for scale;
+`cpm-texel` is cpm with L from each texel's own frame and J at its centroid instead of the
+Table 1 parameterization of M1's vertices (`render.deformed.LOOKUPS`).
 Each mode's second frame is timed (a warm renderer). PSNR over the object's pixels
 (`metrics.object_errors`). Camera: the `lod` view of the *deformed* object (the asset's
 camera moved back along its axis until a finest texel spans ~0.7 pixel).
@@ -53,17 +58,25 @@ from texelbake.deform.warps import AffineWarp, parse_warp  # noqa: E402
 from texelbake.pipeline import bake  # noqa: E402
 from texelbake.render.camera import PinholeCamera  # noqa: E402
 from texelbake.render.deformed import deform_scene, render_deformed  # noqa: E402
+from texelbake.render.deformed_report import warp_at_time  # noqa: E402
 from texelbake.render.scene import load_scene, lod_camera  # noqa: E402
 from texelbake.scenes import write_scene  # noqa: E402
 
 WARPS = ("bend:angle=90", "twist:angle=90", "stretch:x=1,y=2,z=1")
 RIGID = "rigid:angle=40,axis=x,tx=0.5,ty=-0.3,tz=0.2"
-MODES = ("cpm", "cpm-naive", "normalmap", "gt")
+#: the arm's own animation (texelbake.scenes.arm): bent 45° at time 12, 90° at 24
+ARM_TIMES = ("time:12", "time:24")
+MODES = ("cpm", "cpm-texel", "cpm-naive", "normalmap", "gt")
 
 
 def bake_scene(scene: str, work: Path, atlas: int, size: str) -> Path:
     settings = BakeSettings(atlas_resolution=atlas)
-    src = write_scene(scene, work / "src" / f"{scene}_{size}.usda", size)
+    if scene == "arm":  # the skinned cylinder: its own animation, not a procedural warp
+        from texelbake.scenes.arm import write_arm
+
+        src = write_arm(work / "src" / f"arm_{size}.usda", size)
+    else:
+        src = write_scene(scene, work / "src" / f"{scene}_{size}.usda", size)
     key = hashlib.sha256(settings.model_dump_json().encode()).hexdigest()[:10]
     out = work / f"baked_{scene}_{size}_{key}"
     root = out / f"{scene}_{size}_baked.usda"
@@ -93,7 +106,9 @@ def _case(scene_name: str, d, cam, spp: int, ref_spp: int, render_fn) -> dict:
     ref_s = time.perf_counter() - t0
     modes = {}
     for mode in MODES:  # a loop over the few modes
-        res = _timed(lambda m=mode: render_fn(d, m, cam, spp, 0))
+        kw = {"lookup": "texel"} if mode == "cpm-texel" else {}
+        res = _timed(lambda m=mode, kw=kw: render_fn(d, m.replace("-texel", ""), cam, spp, 0,
+                                                     **kw))
         entry = {"seconds": round(res.seconds, 4), "spp": spp, **_errors(res, ref)}
         if "fallback_fraction" in res.extras:
             entry["fallback_fraction"] = round(float(res.extras["fallback_fraction"]), 4)
@@ -180,8 +195,11 @@ def main(argv: list[str] | None = None) -> dict:
                               cam0.height)
         cases.append({**_case(scene_name, d, cam_r, args.spp, args.ref_spp, render_deformed),
                       "warp": RIGID})
-        for spec in warps:
-            d = deform_scene(scene, parse_warp(spec, scene.asset.bounds))
+        specs = ARM_TIMES if scene_name == "arm" else warps
+        for spec in specs:
+            psi = (warp_at_time(scene.asset, float(spec.split(":")[1]))
+                   if spec.startswith("time:") else parse_warp(spec, scene.asset.bounds))
+            d = deform_scene(scene, psi)
             cam = lod_camera(d, args.size, args.size)
             cases.append({**_case(scene_name, d, cam, args.spp, args.ref_spp,
                                   render_deformed), "warp": spec})

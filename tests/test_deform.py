@@ -101,9 +101,12 @@ def test_mesh_warp_triangle_jacobian_is_the_affine_map_in_plane():
     q = _random_rotation()
     jac, _ = triangle_jacobians(v, v @ q.T, f)
     np.testing.assert_allclose(jac, np.broadcast_to(q, jac.shape), atol=1e-12)
-    mw = MeshWarp(v, v @ q.T + 1.0, f)
-    pts = 0.9 * v[:10]  # inside, bound by closest point and normal offset
-    np.testing.assert_allclose(mw.positions(pts), pts @ q.T + 1.0, atol=1e-6)
+    mw = MeshWarp(v, 1.5 * v @ q.T + 1.0, f)  # a similarity: reproduced exactly
+    # inside, and outside where the closest point is a corner or an edge (the M_i vertices)
+    pts = np.concatenate([0.9 * v[:10], 1.3 * v[:10], 1.2 * (v[f[:5, 0]] + v[f[:5, 1]]) / 2])
+    np.testing.assert_allclose(mw.positions(pts), 1.5 * pts @ q.T + 1.0, atol=1e-9)
+    np.testing.assert_allclose(mw.jacobian(pts), np.broadcast_to(1.5 * q, (25, 3, 3)),
+                               atol=1e-9)
     with pytest.raises(ShapeError):
         MeshWarp(v, v[:-1], f)
 

@@ -81,6 +81,9 @@ def test_rigid_motion_equals_the_inversely_moved_view(baked_cylinder, camera):
     got = render_deformed(moved, "cpm", cam, 4, seed=3)
     assert ref.image.max() > 0.05 and (ref.coverage > 0).sum() >= 20
     assert psnr_object(got, ref) >= 60.0
+    # the same with L from each texel's own frame (the texel as impostor point)
+    assert psnr_object(render_deformed(moved, "cpm", cam, 4, seed=3, lookup="texel"),
+                       ref) >= 60.0
     if camera == "lod":  # the maps are used: without L they are read with the moved
         assert got.extras["fallback_fraction"] < 0.1  # world's directions, not the same
         naive = render_deformed(moved, "cpm-naive", cam, 4, seed=3)
@@ -129,6 +132,8 @@ def test_deformed_modes_and_errors(baked_cylinder):
     cam = resolve_camera(scene, "lod", 32, 32)
     with pytest.raises(SettingsError, match="mode"):
         render_deformed(d, "btf", cam, 1)
+    with pytest.raises(SettingsError, match="lookup"):
+        render_deformed(d, "cpm", cam, 1, lookup="polar")
     with pytest.raises(SettingsError, match="deform_scene"):
         render_deformed(scene, "cpm", cam, 1)
     res = render_deformed(d, "equal-time", cam, 1, budget_seconds=0.0)

@@ -55,6 +55,11 @@ def cmd_scenes(args: argparse.Namespace) -> int:
 
     names = SCENE_NAMES if args.name == "all" else (args.name,)
     out = Path(args.output)
+    if args.name == "arm":  # the skinned cylinder of seed 002 (texelbake.scenes.arm)
+        from texelbake.scenes.arm import write_arm
+
+        print(write_arm(out, args.size))
+        return 0
     for name in names:
         path = out / f"{name}_{args.size}.usda" if args.name == "all" else out
         print(write_scene(name, path, args.size))
@@ -242,7 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("scenes", help="write a generated test scene as USD")
-    p.add_argument("name", choices=["cylinder", "wall", "bolt", "cloisonne", "all"])
+    p.add_argument("name", choices=["cylinder", "wall", "bolt", "cloisonne", "all", "arm"])
     p.add_argument("-o", "--output", required=True, help="FILE.usda (or a folder with 'all')")
     p.add_argument("--size", choices=["small", "full"], default="small")
     p.set_defaults(func=cmd_scenes)

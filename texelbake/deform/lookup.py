@@ -10,6 +10,12 @@ and b̄ is the bisector of whichever of u, v is non-zero, projected onto its pla
 default tangent of `frames.tangent_frames`); where no fallback normal is given (or it is
 zero) the frame is R0 itself, i.e. L = I: directions are looked up unrotated, as `cpm-naive`
 does. `valid` reports which points took Eqs. 7–9; no NaN is produced anywhere.
+
+Folds. Where a fallback normal is given and u × v points against it, Ψ reverses the
+orientation at the point (det J < 0: a bend whose centre of curvature lies inside the
+impostor, so that M_i's vertices outside M_org are carried past it): the same fallback
+applies. Without it, L turned such frames by ~180° (the 90° bend of the cylinder: 9 dB
+against cpm-naive's 26 dB).
 """
 
 from __future__ import annotations
@@ -59,6 +65,7 @@ def orthogonalize(u: np.ndarray, v: np.ndarray, fallback_normal: np.ndarray | No
     b = uh + vh
     if fallback_normal is not None:
         fb, lf = _unit(_vec(fallback_normal, "fallback_normal"))
+        valid &= ~(np.einsum("ij,ij->i", nbar, fb) < 0.0)  # a fold: u × v against the surface
         nbar = np.where(valid[:, None], nbar, fb)
         has = valid | (lf > 0)
         # the bisector projected onto the fallback plane; if that vanishes, a default tangent

@@ -171,16 +171,18 @@ class AxisWarp(Warp):
 # --------------------------------------------------------------------------- from the asset
 
 
-def bind_to_mesh(points: np.ndarray, rest_vertices: np.ndarray, faces: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def bind_to_mesh(points: np.ndarray, rest_vertices: np.ndarray, faces: np.ndarray,
+                 caster: object = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest rest triangle of each point: (prim (n,) int64, bary (n, 3) float64,
-    normal offset (n,) float64 along the triangle's unit normal)."""
+    normal offset (n,) float64 along the triangle's unit normal). caster : a RayCaster of
+    the rest mesh to reuse (built when None)."""
     from texelbake.geometry.raycast import RayCaster
 
     p = _points(points)
     v = _points(rest_vertices, "rest_vertices")
     f = np.asarray(faces, dtype=np.int64)
-    cp, prim, b2 = RayCaster(v, f).closest_points(p)
+    rc = caster if caster is not None else RayCaster(v, f)
+    cp, prim, b2 = rc.closest_points(p)  # type: ignore[attr-defined]
     bary = np.column_stack([1.0 - b2[:, 0] - b2[:, 1], b2])
     nrm, _ = _unit(_face_normals(v, f)[prim])
     return prim, bary, np.einsum("ij,ij->i", p - cp, nrm)
@@ -199,14 +201,20 @@ def _unit(x: np.ndarray, eps: float = 1e-300) -> tuple[np.ndarray, np.ndarray]:
 def triangle_jacobians(rest: np.ndarray, deformed: np.ndarray, faces: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Per-triangle affine deformation gradient: J [e1 e2 n] = [e1' e2' n'] with edges
-    e1 = p1 − p0, e2 = p2 − p0 and unit normals n, n' (no change across the surface).
+    e1 = p1 − p0, e2 = p2 − p0, n the unit rest normal and n' the deformed unit normal times
+    sqrt(area' / area) (as deformation transfer scales it: exact for similarities, so a
+    uniform scale s gives J = s I and a rigid motion J = Q).
 
     returns (J (f, 3, 3) float64, valid (f,) bool — rest triangle not degenerate; J = I
     where invalid)"""
     f = np.asarray(faces, dtype=np.int64)
     r, d = _points(rest, "rest")[f], _points(deformed, "deformed")[f]
     n0, ok0 = _unit(np.cross(r[:, 1] - r[:, 0], r[:, 2] - r[:, 0]))
-    n1, _ = _unit(np.cross(d[:, 1] - d[:, 0], d[:, 2] - d[:, 0]))
+    c0 = np.linalg.norm(np.cross(r[:, 1] - r[:, 0], r[:, 2] - r[:, 0]), axis=1)
+    c1 = np.cross(d[:, 1] - d[:, 0], d[:, 2] - d[:, 0])
+    scale = np.sqrt(np.linalg.norm(c1, axis=1) * c0)
+    n1 = np.divide(c1, scale[:, None], out=np.zeros_like(c1),
+                   where=(scale > 0)[:, None])  # unit · sqrt(area ratio); 0 if collapsed
     src = np.stack([r[:, 1] - r[:, 0], r[:, 2] - r[:, 0], n0], axis=2)  # columns
     dst = np.stack([d[:, 1] - d[:, 0], d[:, 2] - d[:, 0], n1], axis=2)
     det = np.linalg.det(src)
@@ -220,7 +228,10 @@ def triangle_jacobians(rest: np.ndarray, deformed: np.ndarray, faces: np.ndarray
 @dataclass
 class MeshWarp(Warp):
     """Time-sampled points: a mesh at rest and deformed; any point follows its closest rest
-    triangle (barycentrics, normal offset along the deformed unit normal)."""
+    triangle's affine map: p' = q0' + J (p − q0) with q0, q0' the triangle's first corner at
+    rest and deformed and J its `triangle_jacobians` (barycentrics in the plane, the normal
+    offset along the deformed normal; the full offset, also where the closest point is on an
+    edge or corner, so that affine warps are reproduced exactly)."""
 
     rest: np.ndarray
     deformed: np.ndarray
@@ -232,16 +243,20 @@ class MeshWarp(Warp):
         if np.shape(self.rest) != np.shape(self.deformed):
             raise ShapeError(f"deformed points {np.shape(self.deformed)} must match the rest "
                              f"points {np.shape(self.rest)}")
+        from texelbake.geometry.raycast import RayCaster
+
         self._jac, _ = triangle_jacobians(self.rest, self.deformed, self.faces)
-        self._nrm, _ = _unit(_face_normals(np.asarray(self.deformed), self.faces))
+        self._caster = RayCaster(self.rest, self.faces)
 
     def positions(self, points: np.ndarray) -> np.ndarray:
-        prim, bary, off = bind_to_mesh(points, self.rest, self.faces)
-        tri = np.asarray(self.deformed)[np.asarray(self.faces)[prim]]
-        return np.einsum("nk,nkj->nj", bary, tri) + off[:, None] * self._nrm[prim]
+        p = _points(points)
+        prim, _, _ = bind_to_mesh(p, self.rest, self.faces, self._caster)
+        corner = np.asarray(self.faces)[prim, 0]
+        q0, q1 = np.asarray(self.rest)[corner], np.asarray(self.deformed)[corner]
+        return q1 + np.einsum("nij,nj->ni", self._jac[prim], p - q0)
 
     def jacobian(self, points: np.ndarray) -> np.ndarray:
-        prim, _, _ = bind_to_mesh(points, self.rest, self.faces)
+        prim, _, _ = bind_to_mesh(points, self.rest, self.faces, self._caster)
         return self._jac[prim].copy()
 
 

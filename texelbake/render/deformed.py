@@ -13,11 +13,21 @@ characteristic points follow Ψ (`deform_scene`), and the modes of a deformed fr
   seed 000 is evaluated with the rest points, normals, weights and a_vis tables. L of a texel
   comes from the impostor parameterization of M1 (Table 1): the rest centroid's closest
   point on M1, R0 and the deformed (u, v) = J (u0, v0) of the triangle's vertices
-  interpolated there (`texelbake.deform.lookup`). Visibility (shadow and view rays) is traced
-  from the deformed points against the deformed M_org, so shadows one part casts on another
-  after the deformation are seen (inter-object shadows on the deformed geometry). Eye rays
+  interpolated there (`texelbake.deform.lookup`). Shadow rays are traced from the deformed
+  points toward the lights against the deformed M_org, so shadows one part casts on another
+  after the deformation are seen (inter-object shadows on the deformed geometry). The view
+  term V(x̂k, ωo) is traced at rest (rest point, rest-frame direction, rest M_org): Eq. 12
+  divides by a_vis, the rest texel's visible projected area toward ωo from the baked table,
+  and only a numerator with the same masking keeps the ratio a weighted mean of the points'
+  radiance. Traced on the deformed M_org instead, a deformation that opens a masked groove
+  (a twist, a bend's outer side) gave visible points where the table's a_vis was ~1e-11, and
+  texel radiances up to 1e7 (the twisted cylinder's cpm image at −3 dB). Masking by other
+  parts after the deformation is left to the eye rays, which meet the deformed M_i. Eye rays
   are traced against the deformed M_i; the atlas uv of a hit is unchanged by Ψ, the mip
   level follows the deformed triangle's uv density.
+  Option `lookup="texel"`: the texel itself as the impostor point, R0 its baked frame and
+  (u, v) = J (t, b) at its centroid (no interpolation across M1's coarse triangles; see
+  `LOOKUPS`, measured beside the default in `benchmarks/deform.py` as ``cpm-texel``).
 - ``cpm-naive`` — the same with L = I: the rest tables looked up with the deformed world's
   directions (what L buys).
 - ``normalmap`` — the studio baseline on the deformed M1: its tangent frame rebuilt from the
@@ -44,7 +54,7 @@ from texelbake.deform.lookup import (
     lookup_rotation,
     rest_frames_at,
 )
-from texelbake.deform.warps import Warp
+from texelbake.deform.warps import MeshWarp, Warp
 from texelbake.errors import SettingsError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.mesh import face_normals
@@ -90,14 +100,29 @@ def lod_impostor(scene: RenderScene, i: int) -> ImpostorParams:
     return impostor_params(mesh.vertices, mesh.faces, mesh.corner_uvs)
 
 
-def deform_scene(scene: RenderScene, warp: Warp, *, jacobian: str = "exact") -> RenderScene:
+def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
+                 jacobian: str = "exact") -> RenderScene:
     """A copy of `scene` whose M_org and M_i are warped by Ψ (module docstring); the baked
-    tables stay at rest. jacobian : "exact" (the warp's) or "central" (Eq. 6) for (u, v)."""
+    tables stay at rest.
+
+    follow : "mesh" (default) — Ψ moves M_org's vertices (what a deformer does to an asset:
+        the surface between them stays flat), and everything else (M_i, the characteristic
+        points, the Jacobians of the look-up) follows the deformed M_org
+        (`deform.warps.MeshWarp`: closest rest triangle, barycentrics, normal offset; its
+        affine Jacobian); "warp" — Ψ itself everywhere, which matches the deformed M_org only
+        where M_org is tessellated finely against Ψ's curvature (the small cylinder has 2
+        rings along its axis: bent by Ψ its M_org is a flat chord while the characteristic
+        points lie on the arc, and its cpm image lost 10–16 dB to that alone).
+    jacobian : "exact" (the warp's) or "central" (Eq. 6) for (u, v)."""
+    if follow not in ("mesh", "warp"):
+        raise SettingsError(f"field 'follow': 'mesh' or 'warp', got {follow!r}")
     t0 = time.perf_counter()
     d = copy.copy(scene)
     a = scene.asset
-    jac_v = warp.jacobian(a.points)
+    jac_v = warp.jacobian(a.points)  # shading normals: Ψ's own Jacobian at the vertices
     pts = warp.positions(a.points)
+    if follow == "mesh":
+        warp = MeshWarp(a.points, pts, a.faces, name=warp.name, scale=warp.scale)
     corner = deform_normals(jac_v[a.faces.reshape(-1)],
                             a.corner_normals.reshape(-1, 3)).reshape(a.corner_normals.shape)
     d.asset = dataclasses.replace(a, points=pts, corner_normals=corner)
@@ -165,16 +190,34 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
         lrot[live], _ = lookup_rotation(r0, interpolate(u, faces, prim, bary),
                                         interpolate(v, faces, prim, bary),
                                         fallback_normal=d.lod_face_normals[0][prim])
-    out["lookup"] = lrot
+    out["lookup:vertex"] = lrot
+    # the texel as the impostor point (seed 002 §4.2 allows point-sampled impostors): R0 the
+    # texel's own frame (rows t, b, n), (u, v) = J (t, b) at the texel's centroid
+    frames = rest.baked.levels[level]["frames"].astype(np.float64)
+    r0_tex = np.transpose(frames, (0, 2, 1))  # columns (t, b, n)
+    lrot_t = np.broadcast_to(np.eye(3), (n_tex, 3, 3)).copy()
+    if live.any():
+        jc = warp.jacobian(cen[live])
+        lrot_t[live], _ = lookup_rotation(
+            r0_tex[live], np.einsum("nij,nj->ni", jc, frames[live, 0]),
+            np.einsum("nij,nj->ni", jc, frames[live, 1]),
+            fallback_normal=deform_normals(jc, frames[live, 2]))
+    out["lookup:texel"] = lrot_t
     cache[level] = out
     return out
 
 
+#: where the look-up rotation L of a texel comes from: "texel" (the texel as the impostor
+#: point: R0 its baked frame, J at its centroid), "vertex" (Table 1 on M1's vertices, from the
+#: payload, interpolated at the centroid's closest point), "none" (L = I, ``cpm-naive``)
+LOOKUPS = ("texel", "vertex", "none")
+
+
 def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
-                            texels: np.ndarray, naive: bool = False
+                            texels: np.ndarray, lookup: str = "vertex"
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Eq. 12 of seed 000 for texels of one level of a deformed scene (module docstring);
-    the same contract as `render.cpm.texel_radiance`. naive : L = I (``cpm-naive``)."""
+    the same contract as `render.cpm.texel_radiance`. lookup : one of LOOKUPS."""
     rest: RenderScene = d.rest  # type: ignore[attr-defined]
     lv = rest.baked.levels[level]
     offsets = lv["texel_offsets"]
@@ -194,8 +237,8 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     geo = _level_geometry(d, level)
     ng, ns, w = cp["geom_normal"][pt], cp["normal"][pt], cp["weight"][pt]
     pos_d, ng_d = geo["position"][pt], geo["geom_normal"][pt]
-    lrot = (np.broadcast_to(np.eye(3), (n_tex, 3, 3)) if naive
-            else geo["lookup"][texels])  # (t, 3, 3) deformed world -> rest world
+    lrot = (np.broadcast_to(np.eye(3), (n_tex, 3, 3)) if lookup == "none"
+            else geo[f"lookup:{lookup}"][texels])  # (t, 3, 3) deformed world -> rest world
     # one view direction per texel: deformed weighted centroid -> camera
     ws = np.abs(w).sum(axis=1)
     ws = np.where(np.bincount(tex, ws, n_tex)[tex] > 0, ws, 1.0)
@@ -204,15 +247,16 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     cen = np.divide(cen, wsum[:, None], out=np.zeros_like(cen), where=wsum[:, None] > 0)
     wo_d_tex = _unit(cam_pos[None, :] - cen)
     wo_tex = np.einsum("nij,nj->ni", lrot, wo_d_tex)  # rest frame (Eq. 10)
-    wo, wo_d = wo_tex[tex], wo_d_tex[tex]
+    wo = wo_tex[tex]
     g = TOL.grazing_cos
     cos_go = np.einsum("ij,ij->i", ng, wo)
     view = (cos_go > g) & (np.einsum("ij,ij->i", ns, wo) > g)
     rays = 0
     vi = np.flatnonzero(view)
-    if vi.size:  # V(x̂k, ωo) on the deformed geometry
+    if vi.size:  # V(x̂k, ωo) at rest, along the rest-frame direction (docstring)
         tmax = np.linalg.norm(cam_pos[None, :] - pos_d[vi], axis=1)
-        occ = d.org.occluded(pos_d[vi] + d.ray_eps * ng_d[vi], wo_d[vi], tmax=tmax)
+        occ = rest.org.occluded(cp["position"][pt][vi] + rest.ray_eps * ng[vi], wo[vi],
+                                tmax=tmax)
         rays += vi.size
         view[vi[occ]] = False
     mat, uv = cp["material"][pt], cp["uv"][pt]
@@ -254,15 +298,17 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
 class DeformedCpmFrame(CpmFrame):
     """`render.cpm.CpmFrame` whose texel radiance is `deformed_texel_radiance`."""
 
-    def __init__(self, scene: RenderScene, cam: PinholeCamera, mesh: int, naive: bool) -> None:
+    def __init__(self, scene: RenderScene, cam: PinholeCamera, mesh: int, lookup: str) -> None:
+        if lookup not in LOOKUPS:
+            raise SettingsError(f"field 'lookup': one of {LOOKUPS}, got {lookup!r}")
         super().__init__(scene, cam, mesh)
-        self.naive = naive
+        self.lookup = lookup
 
     def _compute(self, j: int, todo: np.ndarray) -> None:
         if todo.size:
             rad, avis, ex, done, _ = self._arrays(j)
             r, a, e, n_rays = deformed_texel_radiance(self.scene, j, self.cam_pos, todo,
-                                                      self.naive)
+                                                      self.lookup)
             rad[todo], avis[todo], ex[todo], done[todo] = r, a, e, True
             self.rays += n_rays
 
@@ -284,8 +330,9 @@ def render_deformed(d: RenderScene, mode: str, cam: PinholeCamera, spp: int, see
     elif mode == "normalmap":
         img, rays, cov = render_normalmap(d, cam, spp, seed)
     elif mode in ("cpm", "cpm-naive"):
+        lookup = kw.pop("lookup", "vertex")
         frame = DeformedCpmFrame(d, cam, choose_mesh(d, cam, kw.pop("max_error_px", 1.0)),
-                                 naive=mode == "cpm-naive")
+                                 lookup="none" if mode == "cpm-naive" else lookup)
         img, rays, cov, extras = render_cpm(d, cam, spp, seed, frame=frame, **kw)
     elif mode in ("srf", "srf-naive"):  # the reflectance field through L, or without it
         from texelbake.srf.mode import render_srf_mode
