@@ -137,3 +137,22 @@ def test_orders_and_cache_errors(rand_store):
     ops0 = build_ops(ci, np.array([[1.0], [0.0]]), np.full((2, 1, 2), 4.0),
                      np.zeros((1, 2, 1), np.int64), np.ones((1, 2, 1)), np.ones((1, 2, 3)))
     assert len(ops0) == 1 and ops0.target[0] == 0
+
+
+def test_environment_map_as_lights_conserves_energy_and_places_a_sun():
+    from texelbake.srf.environment import environment_lights, latlong_directions
+
+    lights = environment_lights(np.full((32, 64, 3), 0.5), 40)
+    total = np.sum([lt.radiance_scale for lt in lights], axis=0)
+    np.testing.assert_allclose(total, 4 * np.pi * 0.5, rtol=2e-3)  # Σ L ΔΩ = 4π L
+    assert len(lights) == 40
+    env = np.zeros((32, 64, 3))
+    env[5, 20] = 100.0  # one bright pixel: all its energy in the nearest light
+    d, dw = latlong_directions(32, 64)
+    sun = d[5 * 64 + 20]
+    lights = environment_lights(env, 40)
+    assert len(lights) == 1
+    np.testing.assert_allclose(lights[0].radiance_scale, 100.0 * dw[5 * 64 + 20])
+    assert float(lights[0].direction @ sun) > 0.8
+    with pytest.raises(SettingsError, match="up"):
+        environment_lights(env, 4, up="X")

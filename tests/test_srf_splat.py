@@ -97,3 +97,18 @@ def test_sorted_and_naive_frames_are_bit_identical(sphere_field):
     assert np.array_equal(a.image, b.image)
     assert a.extras["block_reads"] * 10 <= b.extras["block_reads"]
     assert a.image.max() > 0.05
+
+
+def test_points_no_capture_camera_sees_stay_black(tmp_path):
+    # two capture cameras in front (+z): the back of the sphere was never seen
+    bounds = np.array([[-1.0, -1, -1], [1, 1, 1]])
+    cams = [cam_mod.auto_frame(bounds, 16, 16, view_from=d) for d in ((0.2, 0, 1), (-0.2, 0, 1))]
+    store = capture(sphere_asset(1), tmp_path / "front", cameras=cams, n_lights=2, spp=1)
+    pts, faces = icosphere(1)
+    surf = surfels_from_mesh(1.03 * pts, faces)
+    back = cam_mod.auto_frame(bounds, 16, 16, view_from=(0.0, 0.3, -1.0))
+    res = render_srf(store, surf, back, [unit_light(store.light_dirs[0], 0)])
+    assert res.extras["no_camera_fraction"] > 0.3
+    assert np.isfinite(res.image).all()
+    seen = render_srf(store, surf, cams[0], [unit_light(store.light_dirs[0], 0)])
+    assert seen.extras["no_camera_fraction"] == 0.0
