@@ -19,12 +19,18 @@ enclosing mesh, as a visual hull carved from every direction), sampled into surf
 2. *error beside time*: the same frame against the deformed M_org's `gt` (PSNR over the
    object's pixels), through L (`srf`) and without it (`srf-naive`);
 3. *capture views*: a capture camera under a capture light against its captured image
-   (the acceptance: ≥ 40 dB).
+   (the acceptance: ≥ 40 dB);
+4. with `--sweep`: held-out PSNR against the number of cameras and lights — a second
+   capture (`--sweep-cameras` × `--sweep-lights` at 32²) is cut into subsets (every k-th
+   camera and light of the spirals, `store.subset`) and each renders the undeformed asset
+   from a view and under a directional light that no capture has, against `gt`
+   (`srf_sweep.png` beside the JSON).
 
 JSON: {"settings", "store": {"blocks", "block_bytes", "store_bytes", "cap_bytes"},
 "sorted": {"seconds", "block_reads", "peak_bytes", "identical", "runs"}, "naive": {...},
 "operations", "overhead_bytes", "ratios": {"block_reads", "seconds"}, "errors": {...},
-"capture_views": [...], "claims": [{"claim", "holds", "why"}]}.
+"capture_views": [...], "sweep": [{"cameras", "lights", "psnr_db_object", "seconds"}],
+"claims": [{"claim", "holds", "why"}]}.
 """
 
 from __future__ import annotations
@@ -58,7 +64,7 @@ from texelbake.scenes import write_scene  # noqa: E402
 from texelbake.srf.cache import shade  # noqa: E402
 from texelbake.srf.capture import capture, unit_light  # noqa: E402
 from texelbake.srf.frame import VIS_OFFSET, frame_ops, render_srf, splat_surfels  # noqa: E402
-from texelbake.srf.store import SrfStore, open_store  # noqa: E402
+from texelbake.srf.store import SrfStore, open_store, subset  # noqa: E402
 from texelbake.srf.surfels import surfels_from_mesh  # noqa: E402
 
 
@@ -87,6 +93,51 @@ def point_lights(bounds: np.ndarray, power: float) -> list[Light]:
             for i, (s, col) in enumerate(zip(spots, cols, strict=True))]
 
 
+def sweep(asset, work: Path, n_cams: int, n_lights: int, json_path: Path) -> list[dict]:
+    """Held-out PSNR against rig size (module docstring, 4)."""
+    big_dir = work / f"sweep_{n_cams}x{n_lights}_32"
+    big = (open_store(big_dir) if (big_dir / "srf.json").is_file() else
+           capture(asset, big_dir, n_cameras=n_cams, n_lights=n_lights, size=32, spp=4))
+    hv, hf = hull_impostor(asset.points)
+    surf = surfels_from_mesh(hv, hf)
+    bounds = asset.bounds
+    cam = cam_mod.auto_frame(bounds, 48, 48, view_from=(0.42, 0.31, 0.85))
+    ld = np.array([0.45, 0.75, 0.48])
+    light = unit_light(ld / np.linalg.norm(ld), 0)
+    ref = render_model(dataclasses.replace(asset, lights=(light,)), cam, 16, seed=1)
+    rows = []
+    for nc in sorted({max(n_cams // 8, 3), n_cams // 4, n_cams // 2, n_cams}):
+        for nl in sorted({max(n_lights // 4, 3), n_lights // 2, n_lights}):
+            cams = list(range(0, n_cams, n_cams // nc))[:nc]
+            lts = list(range(0, n_lights, n_lights // nl))[:nl]
+            sub = subset(big, cams, lts, work / f"sub_{nc}x{nl}")
+            res = render_srf(sub, surf, cam, [light])
+            e = metrics.object_errors(res.image, ref.image,
+                                      metrics.object_mask(ref.coverage, res.coverage))
+            rows.append({"cameras": len(cams), "lights": len(lts), "seconds": res.seconds,
+                         "psnr_db_object": e["psnr_db_object"]})
+            print(f"sweep {len(cams)} cameras x {len(lts)} lights: "
+                  f"{e['psnr_db_object']:.2f} dB, {res.seconds:.2f} s", flush=True)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for nl in sorted({r["lights"] for r in rows}):
+        pts = [(r["cameras"], r["psnr_db_object"]) for r in rows if r["lights"] == nl]
+        ax.plot(*zip(*pts, strict=True), marker="o", label=f"{nl} lights")
+    ax.set_xscale("log")
+    ax.set_xlabel("capture cameras")
+    ax.set_ylabel("PSNR over the object (dB)")
+    ax.set_title("held-out view and light against gt")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(json_path.with_name("srf_sweep.png"), dpi=100)
+    plt.close(fig)
+    return rows
+
+
 def _measured(fn):
     tracemalloc.start()
     tracemalloc.reset_peak()
@@ -108,8 +159,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--ref-spp", type=int, default=16)
     ap.add_argument("--warp", default="twist:angle=60")
     ap.add_argument("--work", type=Path, default=Path("bench_out/srf_work"))
+    ap.add_argument("--sweep", action="store_true")
+    ap.add_argument("--sweep-cameras", type=int, default=48)
+    ap.add_argument("--sweep-lights", type=int, default=24)
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
     src = args.work / f"{args.scene}.usda"
     if not src.is_file():
         write_scene(args.scene, src, size="small")
@@ -175,6 +230,9 @@ def main(argv: list[str] | None = None) -> dict:
         views.append({"camera": c, "light": j,
                       "psnr_db": metrics.psnr_db(res.image, store.image(c, j))})
 
+    rows = (sweep(asset, args.work, args.sweep_cameras, args.sweep_lights, args.json)
+            if args.sweep else [])
+
     rr = runs["naive"]["block_reads"] / max(runs["sorted"]["block_reads"], 1)
     tr = runs["naive"]["seconds"] / max(runs["sorted"]["seconds"], 1e-12)
     claims = [
@@ -204,7 +262,7 @@ def main(argv: list[str] | None = None) -> dict:
               "operations": n_ops, "shading_points": int(pix.size), "overhead_bytes": overhead,
               "sorted": runs["sorted"], "naive": runs["naive"],
               "ratios": {"block_reads": rr, "seconds": tr}, "errors": errors,
-              "capture_views": views, "claims": claims}
+              "capture_views": views, "sweep": rows, "claims": claims}
     print(f"\nSRF {store.n_cameras} cameras x {store.n_lights} lights = {blocks} blocks of "
           f"{store.block_nbytes()} B ({store_bytes} B on disk); cache 3 blocks = {cap} B; "
           f"{n_ops} shading operations on {pix.size} pixels ({args.warp}, 3 point lights)")

@@ -180,3 +180,13 @@ def test_import_measured_names_the_bad_file_or_field(tmp_path):
     (tmp_path / "bad3.json").write_text(json.dumps(dict(desc, cameras=cams)))
     with pytest.raises(SettingsError, match=r"cameras\[0\].*width"):
         import_measured(tmp_path / "bad3.json", tmp_path / "o3")
+
+
+def test_subset_store_keeps_the_chosen_blocks(small_capture, tmp_path):
+    from texelbake.srf.store import subset
+
+    sub = subset(small_capture, [2, 0], [1], tmp_path / "sub")
+    assert (sub.n_cameras, sub.n_lights) == (2, 1)
+    np.testing.assert_array_equal(sub.image(0, 0), small_capture.image(2, 1))
+    np.testing.assert_array_equal(sub.image(1, 0), small_capture.image(0, 1))
+    np.testing.assert_allclose(sub.cameras[0].position, small_capture.cameras[2].position)

@@ -214,6 +214,23 @@ class SrfWriter:
         return open_store(self.path)
 
 
+def subset(store: SrfStore, cameras: list[int], lights: list[int], out: str | Path
+           ) -> SrfStore:
+    """A store of some of `store`'s cameras and lights (renumbered in the given order), its
+    blocks copied file by file (a sweep over rig sizes, a shard of a rig)."""
+    w = SrfWriter(out, [store.cameras[c] for c in cameras], store.light_dirs[list(lights)],
+                  encoding=store.encoding, tile=store.tile, components=store.components,
+                  source=str(store.path))
+    for i, c in enumerate(cameras):  # a loop over files
+        for k, j in enumerate(lights):
+            with atomic_path(block_file(w.path, i, k)) as tmp:
+                tmp.write_bytes(store.block_path(c, j).read_bytes())
+            w._written.add((i, k))
+    return w.close({"stats": store.meta.get("stats", {}),
+                    "subset_of": {"store": str(store.path), "cameras": list(map(int, cameras)),
+                                  "lights": list(map(int, lights))}})
+
+
 def open_store(path: str | Path) -> SrfStore:
     """Open a store folder (reads `srf.json` only). AssetError naming the file when it is
     missing or malformed."""
