@@ -41,6 +41,8 @@ def test_srf_mode_needs_a_capture_then_renders(baked_cylinder, capsys):
     assert res.mode == "srf" and res.image.shape == (24, 24, 3)
     assert res.coverage.sum() > 20 and res.image.max() > 0
     assert res.extras["block_reads"] <= 16 * 6
+    hull = render_frame(scene, "srf", cam, 1, impostor="hull")  # the carved visual hull
+    assert hull.coverage.sum() > 20 and np.isfinite(hull.image).all()
 
 
 def test_cli_renders_srf_undeformed_and_under_a_warp(baked_cylinder, tmp_path, capsys):

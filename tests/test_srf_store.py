@@ -157,11 +157,18 @@ def _measured_rig(tmp_path, n_cams=2, n_lights=2):
 
 
 def test_import_measured_reads_hdr_and_ldr(tmp_path):
-    _, truth = _measured_rig(tmp_path)
+    desc, truth = _measured_rig(tmp_path)
+    mask = np.zeros((10, 10, 1))
+    mask[2:7, 3:8] = 1.0
+    write_exr(tmp_path / "m.exr", np.repeat(mask, 3, axis=2))
+    desc = dict(desc, masks=["m.exr", "m.exr"], bounds=[[-1, -1, -1], [1, 1, 1]])
+    (tmp_path / "rig.json").write_text(json.dumps(desc))
     st = import_measured(tmp_path / "rig.json", tmp_path / "store")
     assert (st.n_cameras, st.n_lights) == (2, 2)
     for (c, j), ref in truth.items():
         np.testing.assert_allclose(st.image(c, j), ref, rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(st.silhouette(1), mask[:, :, 0])
+    assert st.meta["bounds"] == [[-1, -1, -1], [1, 1, 1]]
 
 
 def test_import_measured_names_the_bad_file_or_field(tmp_path):

@@ -70,6 +70,10 @@ def capture(asset: AssetModel, out: str | Path, *, n_cameras: int = DEFAULT_CAME
     lights = [unit_light(d, j) for j, d in enumerate(writer.light_dirs)]
     for c, cam in enumerate(writer.cameras):  # a loop over images, each rendered whole
         for j, light in enumerate(lights):
-            img, _ = capture_image(scene, cam, light, spp, seed)
+            img, cov = capture_image(scene, cam, light, spp, seed)
             writer.write(c, j, img)
-    return writer.close({"capture": {"renderer": "gt", "spp": int(spp), "seed": int(seed)}})
+            if j == 0:  # coverage does not depend on the light
+                writer.write_silhouette(c, cov)
+    bounds = np.asarray(asset.bounds, dtype=np.float64)
+    return writer.close({"capture": {"renderer": "gt", "spp": int(spp), "seed": int(seed)},
+                         "bounds": bounds.tolist()})

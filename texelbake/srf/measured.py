@@ -9,8 +9,11 @@ light), HDR (EXR, float) or LDR (PNG, 8-bit sRGB, decoded to linear), read throu
      "lights": [[x, y, z], ...]            directions toward each light (or {"direction": ...})
      "images": [["cam0/l00.exr", ...], ...]  per camera, one path per light, relative to the
                                            JSON's folder
-     "irradiance": 1.0}                    optional: the capture lights' irradiance; pixels
+     "irradiance": 1.0,                    optional: the capture lights' irradiance; pixels
                                            are divided by it (reflectance per unit irradiance)
+     "masks": ["cam0/mask.png", ...],      optional: per camera, the object's coverage (first
+                                           channel, 0..1) for the visual hull (`srf.hull`)
+     "bounds": [[x, y, z], [x, y, z]]}     optional: a box around the object (carving region)
 
 Cameras are pinholes with square pixels and the principal point at the image centre (the
 renderer's camera model); a rig needing lens distortion must be undistorted first. Every
@@ -95,4 +98,25 @@ def import_measured(rig_json: str | Path, out: str | Path, *, encoding: str = "r
             if not p.is_file():
                 raise AssetError(f"images[{c}][{j}] does not exist", path=str(p))
             writer.write(c, j, read_reflectance(p, cams[c].width, cams[c].height, irr))
-    return writer.close()
+    masks = desc.get("masks")
+    if masks is not None:
+        if not isinstance(masks, list) or len(masks) != len(cams):
+            raise SettingsError(f"{where}: field 'masks' must name one image per camera "
+                                f"({len(cams)})")
+        for c, name in enumerate(masks):
+            p = rig.parent / str(name)
+            if not p.is_file():
+                raise AssetError(f"masks[{c}] does not exist", path=str(p))
+            px, info = read_pixels(p)
+            if px.shape[:2] != (cams[c].height, cams[c].width):
+                raise AssetError(f"mask is {px.shape[1]} x {px.shape[0]}, the camera says "
+                                 f"{cams[c].width} x {cams[c].height}", path=str(p))
+            writer.write_silhouette(c, np.clip(px[:, :, 0], 0.0, 1.0))
+    extra = {}
+    if "bounds" in desc:
+        b = np.asarray(desc["bounds"], dtype=np.float64)
+        if b.shape != (2, 3) or not np.isfinite(b).all() or np.any(b[1] < b[0]):
+            raise SettingsError(f"{where}: field 'bounds' must be [[min x, y, z], [max x, y, "
+                                f"z]], got {desc['bounds']!r}")
+        extra["bounds"] = b.tolist()
+    return writer.close(extra)

@@ -122,6 +122,20 @@ class SrfStore:
         except ShapeError as e:
             raise AssetError(str(e), path=str(p)) from None
 
+    def silhouette(self, camera: int) -> np.ndarray:
+        """(h, w) float32 fraction of each pixel the object covers, seen by `camera`
+        (`silhouettes/c0000.npy`; written by captures and by imports given masks).
+        AssetError naming the file when the store has none."""
+        p = self.path / "silhouettes" / f"c{int(camera):04d}.npy"
+        try:
+            sil = np.load(p, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise AssetError(f"no silhouette ({e})", path=str(p)) from None
+        if sil.shape != (self.height, self.width):
+            raise AssetError(f"silhouette must be ({self.height}, {self.width}), got "
+                             f"{sil.shape}", path=str(p))
+        return sil
+
     def image(self, camera: int, light: int) -> np.ndarray:
         """The whole (h, w, 3) float64 reflectance image of one block (tests, previews)."""
         blk = self.read_block(camera, light)
@@ -185,6 +199,17 @@ class SrfWriter:
         with atomic_path(target) as tmp, open(tmp, "wb") as fh:
             np.save(fh, np.ascontiguousarray(data), allow_pickle=False)
         self._written.add((int(camera), int(light)))
+        return target
+
+    def write_silhouette(self, camera: int, coverage: object) -> Path:
+        """The object's coverage (h, w) in [0, 1] seen by one camera (for the visual hull)."""
+        cov = np.asarray(coverage, dtype=np.float32)
+        if cov.shape != (self.height, self.width) or not np.isfinite(cov).all():
+            raise ShapeError(f"silhouette of camera {camera} must be finite "
+                             f"({self.height}, {self.width}), got {cov.shape}")
+        target = self.path / "silhouettes" / f"c{int(camera):04d}.npy"
+        with atomic_path(target) as tmp, open(tmp, "wb") as fh:
+            np.save(fh, np.clip(cov, 0.0, 1.0), allow_pickle=False)
         return target
 
     def close(self, extra: dict[str, Any] | None = None) -> SrfStore:
