@@ -11,7 +11,7 @@ shard of the rig (the farm's unit), the rest of the rig's blocks being another s
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -66,14 +66,26 @@ def capture(asset: AssetModel, out: str | Path, *, n_cameras: int = DEFAULT_CAME
                                                                               np.float64)
     writer = SrfWriter(out, list(cameras), dirs, encoding=encoding, tile=tile,
                        components=components, source=str(asset.source))
-    scene = OrgScene(asset)
-    lights = [unit_light(d, j) for j, d in enumerate(writer.light_dirs)]
-    for c, cam in enumerate(writer.cameras):  # a loop over images, each rendered whole
-        for j, light in enumerate(lights):
-            img, cov = capture_image(scene, cam, light, spp, seed)
-            writer.write(c, j, img)
-            if j == 0:  # coverage does not depend on the light
-                writer.write_silhouette(c, cov)
+    capture_cameras(asset, writer, range(len(writer.cameras)), spp, seed)
     bounds = np.asarray(asset.bounds, dtype=np.float64)
     return writer.close({"capture": {"renderer": "gt", "spp": int(spp), "seed": int(seed)},
                          "bounds": bounds.tolist()})
+
+
+def capture_cameras(asset: AssetModel, writer: SrfWriter, cameras: Iterable[int], spp: int,
+                    seed: int) -> int:
+    """Render and write the blocks (every light) and silhouette of the given cameras of the
+    writer's rig — one shard of a capture; `writer.close()` once every shard is done.
+    Returns the images written."""
+    scene = OrgScene(asset)
+    lights = [unit_light(d, j) for j, d in enumerate(writer.light_dirs)]
+    n = 0
+    for c in cameras:  # a loop over images, each rendered whole
+        cam = writer.cameras[int(c)]
+        for j, light in enumerate(lights):
+            img, cov = capture_image(scene, cam, light, spp, seed)
+            writer.write(int(c), j, img)
+            if j == 0:  # coverage does not depend on the light
+                writer.write_silhouette(int(c), cov)
+            n += 1
+    return n

@@ -214,8 +214,10 @@ class SrfWriter:
 
     def close(self, extra: dict[str, Any] | None = None) -> SrfStore:
         """Check every block was written, write `srf.json`, return the opened store."""
-        missing = [(c, lt) for c in range(len(self.cameras)) for lt in range(len(self.light_dirs))
-                   if (c, lt) not in self._written]
+        grid = [(c, lt) for c in range(len(self.cameras)) for lt in range(len(self.light_dirs))]
+        # blocks written by this writer or already on disk (other shards of a capture)
+        missing = [k for k in grid
+                   if k not in self._written and not block_file(self.path, *k).is_file()]
         if missing:
             raise SettingsError(f"store {self.path}: {len(missing)} blocks not written, first "
                                 f"(camera, light) = {missing[0]}")
@@ -223,7 +225,7 @@ class SrfWriter:
         stored = (raw_floats if self.encoding == "raw"
                   else pca.block_floats(self.height, self.width, self.tile, self.components))
         stats: dict[str, Any] = {"compression_ratio": raw_floats / stored}
-        if self.encoding == "pca":
+        if self.encoding == "pca" and len(self._written) == len(grid):  # all seen here
             stats["pca_snr_db"] = (math.inf if self._sq_err == 0 else
                                    10.0 * math.log10(max(self._sq_ref, 1e-300) / self._sq_err))
         meta = {"format": FORMAT, "version": VERSION, "width": self.width,
