@@ -156,3 +156,15 @@ def test_environment_map_as_lights_conserves_energy_and_places_a_sun():
     assert float(lights[0].direction @ sun) > 0.8
     with pytest.raises(SettingsError, match="up"):
         environment_lights(env, 4, up="X")
+
+
+def test_camera_weights_do_not_depend_on_the_batch_size(monkeypatch):
+    import texelbake.srf.ulr as ulr_mod
+
+    cams = sphere_cameras(np.array([[-1.0, -1, -1], [1, 1, 1]]), 20, 16)
+    rng = np.random.default_rng(8)
+    p, v = 0.3 * rng.normal(size=(500, 3)), rng.normal(size=(500, 3))
+    whole = camera_weights(cams, p, v, 3, None, 1e-3)
+    monkeypatch.setattr(ulr_mod, "PAIR_BATCH", 20 * 37)  # 14 batches
+    parts = camera_weights(cams, p, v, 3, None, 1e-3)
+    assert all(np.array_equal(a, b) for a, b in zip(whole, parts, strict=True))

@@ -151,3 +151,14 @@ def test_a_singular_warp_renders_without_nan(sphere_field):
                              view_from=(1.0, 0.2, 0.3))
     res = render_srf(store, surf, cam, [unit_light(store.light_dirs[0], 0)], warp=warp)
     assert np.isfinite(res.image).all()
+
+
+def test_splat_does_not_depend_on_the_pair_chunk(monkeypatch):
+    import texelbake.srf.splat as splat_mod
+
+    s = _plane_surfels()
+    whole = splat_surfels(s, CAM)
+    monkeypatch.setattr(splat_mod, "PAIR_CHUNK", 500)
+    parts = splat_surfels(s, CAM)
+    assert np.array_equal(whole.covered, parts.covered)
+    np.testing.assert_array_equal(whole.p_rest, parts.p_rest)

@@ -42,8 +42,8 @@ SIGMA_PIXEL = 0.5
 MAX_RADIUS_PX = 48.0
 #: ε-z-buffer tolerance, in footprint radii of the nearest fragment's surfel
 DEPTH_TOL = 1.0
-#: (surfel, pixel) pairs processed at once (bounds memory: ~300 B per pair)
-PAIR_CHUNK = 1 << 20
+#: (surfel, pixel) pairs processed at once (bounds memory: ~300 B per pair, ~80 MB)
+PAIR_CHUNK = 1 << 18
 
 
 @dataclass

@@ -37,6 +37,8 @@ EXACT_ANGLE = 1e-9
 #: cameras tested for visibility per point beyond the k + 1 ULR needs (occluded ones are
 #: replaced by the next candidates)
 EXTRA_CANDIDATES = 3
+#: (point, camera) pairs evaluated at once (bounds memory: ~200 B per pair)
+PAIR_BATCH = 1 << 20
 
 
 def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -111,6 +113,20 @@ def project_all(cameras: Sequence[PinholeCamera], points: np.ndarray
 def camera_weights(cameras: Sequence[PinholeCamera], points: np.ndarray,
                    view_dirs: np.ndarray, k: int, occluder: RayCaster | None,
                    vis_offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`_camera_weights` over batches of points (at most PAIR_BATCH point-camera pairs)."""
+    p = np.asarray(points, dtype=np.float64)
+    step = max(1, PAIR_BATCH // max(len(cameras), 1))
+    if p.ndim != 2 or p.shape[0] <= step:
+        return _camera_weights(cameras, p, view_dirs, k, occluder, vis_offset)
+    vd = np.asarray(view_dirs, dtype=np.float64)
+    parts = [_camera_weights(cameras, p[a:a + step], vd[a:a + step], k, occluder, vis_offset)
+             for a in range(0, p.shape[0], step)]  # a loop over batches of points
+    return tuple(np.concatenate(x) for x in zip(*parts, strict=True))  # type: ignore[return-value]
+
+
+def _camera_weights(cameras: Sequence[PinholeCamera], points: np.ndarray,
+                    view_dirs: np.ndarray, k: int, occluder: RayCaster | None,
+                    vis_offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """ULR over capture cameras for points in the acquisition frame.
 
     points : (n, 3) rest-frame surface points; view_dirs : (n, 3) unit desired directions
