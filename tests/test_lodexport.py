@@ -82,6 +82,18 @@ def test_lod0_is_the_asset_as_authored(baked, tmp_path):
 
     got = _inspect(export_lod(baked, 0, tmp_path / "lod0.usda"))
     assert got["meshes"] == ["/Cylinder/Geom/RidgedCylinder"] and not got["baked_scope"]
+    # the source's texelbake shaders keep their definitions (copied beside the file)
+    assert got["errors"] == []
+    for suffix in (".usdz", ".usdc"):
+        assert _inspect(export_lod(baked, 0, tmp_path / f"lod0{suffix}"))["errors"] == []
+
+
+def test_baked_result_passes_stock_validation(baked):
+    # the root (LOD0 selected), its payload with the CPM shader, and every LOD variant, in a
+    # process that never imported texelbake (issue 11, item 5)
+    got = _inspect(baked)
+    assert got["errors"] == []
+    assert (baked.parent / "texelbake_shaders.usda").is_file()
 
 
 def test_bad_requests_name_the_field_and_write_nothing(baked, tmp_path):

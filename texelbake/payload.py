@@ -32,8 +32,9 @@ from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
 
 from texelbake.atomic import atomic_write_bytes, replace
 from texelbake.errors import AssetError, ShapeError
+from texelbake.model import SHADER_CPM
+from texelbake.shaderdefs import author_shader, write_definitions
 
-SHADER_CPM = "texelbake:cpm"
 _NS = "texelbake:"
 
 _DTYPES: dict[str, tuple[Any, Any]] = {
@@ -189,8 +190,7 @@ def _author_preview_material(
         ty = Sdf.ValueTypeNames.Color3f if name == "diffuseColor" else Sdf.ValueTypeNames.Normal3f
         surf.CreateInput(name, ty).ConnectToSource(out)
     mat.CreateSurfaceOutput().ConnectToSource(surf.CreateOutput("surface", Sdf.ValueTypeNames.Token))
-    cpm = UsdShade.Shader.Define(stage, f"{path}/CPM")
-    cpm.CreateIdAttr(SHADER_CPM)
+    cpm = author_shader(stage, f"{path}/CPM", SHADER_CPM)
     cpm.GetPrim().CreateRelationship(f"{_NS}levels", custom=True).SetTargets([Sdf.Path(cpm_scope)])
     mat.CreateSurfaceOutput("texelbake").ConnectToSource(
         cpm.CreateOutput("surface", Sdf.ValueTypeNames.Token)
@@ -257,6 +257,7 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     normal_file = f"{name}_normal.png"
     _write_png(out_dir / albedo_file, baked.albedo, srgb=True)
     _write_png(out_dir / normal_file, 0.5 * (baked.normal + 1.0), srgb=False)
+    write_definitions(out_dir)  # the CPM and BTF shaders name it (texelbake.shaderdefs)
 
     # ---- payload layer (crate)
     payload_file = f"{name}_payload.usdc"
