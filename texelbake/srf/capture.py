@@ -4,8 +4,9 @@ light, shadow rays against M_org) from N cameras on a sphere, once per direction
 unit irradiance among M on a sphere — so a pixel holds the reflectance value SRF(p, l, v)
 of the field (radiance per unit irradiance), written block by block to a store.
 
-The loop runs over images (camera × light), each rendered whole-array; `cameras` selects a
-shard of the rig (the farm's unit), the rest of the rig's blocks being another shard's.
+The loop runs over images (camera × light), each rendered whole-array. `capture_cameras`
+writes the blocks and silhouettes of some cameras of a rig (the farm's shard,
+`texelbake.stages.srf`); `capture` runs every camera and closes the store.
 """
 
 from __future__ import annotations
