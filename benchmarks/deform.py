@@ -29,6 +29,13 @@ The bar (issue 12): cpm through L beats cpm-naive and normalmap on every case, i
 than the reference, and on rigid motion matches the undeformed error within 0.5 dB. Every
 claim is printed as holding or not, with the cases where it fails.
 
+Measured 2026-11-25 (`--scenes cylinder,bolt --atlas 32 --size 512 --ref-spp 256`, small
+scenes; `benchmarks/results/deform_512.json`; the table and its reading are in
+docs/deformation.md): cpm 26–70x faster than the reference and equal to the undeformed
+error on rigid motion (holds); cpm beats cpm-naive and normalmap on every case (does not
+hold: the cylinder's 90° bend loses to both, its 1:2 stretch ties cpm-naive and loses to
+normalmap, the bolt's twist ties cpm-naive).
+
 JSON: {"settings", "cases": [{"scene", "warp", "object_pixels", "reference": {"seconds",
 "spp"}, "modes": {mode: {"seconds", "psnr_db", "spp", "fallback_fraction"?}}}],
 "claims": [{"claim", "holds", "why"}]}.

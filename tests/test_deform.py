@@ -310,3 +310,53 @@ def test_shapes_and_errors():
                           np.zeros((1, 3)), method="forward")
     prm = imp.impostor_params(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
     assert prm.r0.shape == (0, 3)
+
+
+def test_interpolation_across_mixed_quarter_turns():
+    from texelbake.deform.lookup import align_quarter_turns
+
+    # three corners with the same frame up to quarter turns: their plain average is degenerate
+    u0 = np.array([[1.0, 0, 0], [0, 1.0, 0], [-1.0, 0, 0]])[None]
+    v0 = np.array([[0, 1.0, 0], [-1.0, 0, 0], [0, -1.0, 0]])[None]
+    q = _random_rotation(9)
+    u, v = u0 @ q.T, v0 @ q.T
+    bary = np.array([[0.3, 0.3, 0.4]])
+    assert np.linalg.norm(np.einsum("nk,nkj->nj", bary, u0)) < 0.5
+    a0, b0, a, b = align_quarter_turns(u0, v0, u, v)
+    np.testing.assert_allclose(a0[0], np.tile([1.0, 0, 0], (3, 1)), atol=1e-15)
+    r0 = rest_frames_at(np.einsum("nk,nkj->nj", bary, a0), np.einsum("nk,nkj->nj", bary, b0))
+    lrot, valid = lookup_rotation(r0, np.einsum("nk,nkj->nj", bary, a),
+                                  np.einsum("nk,nkj->nj", bary, b))
+    assert valid.all()
+    np.testing.assert_allclose(lrot[0], q.T, atol=1e-12)
+
+
+def test_subdivide_keeps_the_surface_and_the_atlas():
+    from texelbake.deform.refine import refine_levels, subdivide
+
+    v, f = icosphere(1)
+    rng = np.random.default_rng(12)
+    cuv = rng.random((len(f), 3, 2))
+    v2, f2, c2, (x2,), parent = subdivide(v, f, cuv, (v[:, :2],))
+    n_edges = len(np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]],
+                                                    f[:, [2, 0]]]), axis=1), axis=0))
+    assert len(v2) == len(v) + n_edges and len(f2) == 4 * len(f)  # midpoints shared
+    np.testing.assert_array_equal(v2[: len(v)], v)
+    np.testing.assert_allclose(x2, v2[:, :2], atol=1e-15)  # per-vertex arrays interpolated
+    # each child's corners lie on its parent's plane, with the parent's linear uv map there
+    tri = v[f[parent]]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    for k in range(3):
+        q = v2[f2[:, k]] - tri[:, 0]
+        gram = np.einsum("nij,nkj->nik", np.stack([e1, e2], 1), np.stack([e1, e2], 1))
+        rhs = np.stack([np.einsum("ij,ij->i", q, e1), np.einsum("ij,ij->i", q, e2)], 1)
+        st = np.linalg.solve(gram, rhs[..., None])[..., 0]  # (n, 2) coordinates in the plane
+        np.testing.assert_allclose(tri[:, 0] + st[:, :1] * e1 + st[:, 1:] * e2,
+                                   v2[f2[:, k]], atol=1e-12)
+        c = cuv[parent]
+        uv = c[:, 0] + st[:, :1] * (c[:, 1] - c[:, 0]) + st[:, 1:] * (c[:, 2] - c[:, 0])
+        np.testing.assert_allclose(c2[:, k], uv, atol=1e-12)
+    longest = np.linalg.norm(v[f[:, 1]] - v[f[:, 0]], axis=1).max()
+    assert refine_levels(v, f, longest * 1.01) == 0
+    assert refine_levels(v, f, longest / 3.0) == 2
+    assert refine_levels(v, f, longest / 1e9) == 4

@@ -222,3 +222,15 @@ def test_impostor_primvars_round_trip_through_the_payload(baked_cylinder):
     pv = UsdGeom.PrimvarsAPI(lod1).GetPrimvar("texelbake:r0")
     assert pv and pv.GetInterpolation() == UsdGeom.Tokens.vertex
     assert str(pv.GetTypeName()) == "float3[]"
+
+
+def test_refined_lods_follow_a_bend(baked_cylinder):
+    # the small cylinder's M1 keeps no edge loop along its axis: deformed vertex by vertex it
+    # stays a chord of the bent M_org; refined it follows it
+    scene = load_scene(baked_cylinder)
+    bend = parse_warp("bend:angle=90", scene.asset.bounds)
+    chord = deform_scene(scene, bend, refine=0)
+    refined = deform_scene(scene, bend)
+    assert refined.lod_error[0] <= 1.5 * scene.lod_error[0]
+    assert chord.lod_error[0] > 1.5 * refined.lod_error[0]
+    assert len(refined.baked.meshes[0].faces) > len(scene.baked.meshes[0].faces)

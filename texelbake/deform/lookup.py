@@ -128,3 +128,28 @@ def interpolate(values: np.ndarray, faces: np.ndarray, prim: np.ndarray, bary: n
     f = np.asarray(faces, dtype=np.int64)[np.asarray(prim, dtype=np.int64)]
     return np.einsum("nk,nkj->nj", np.asarray(bary, dtype=np.float64),
                      np.asarray(values, dtype=np.float64)[f])
+
+
+def align_quarter_turns(u0: np.ndarray, v0: np.ndarray, u: np.ndarray, v: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-vertex frames of one triangle made consistent before they are interpolated.
+
+    Each vertex chose (u0, v0) among the four quarter turns about its normal (the choice that
+    keeps its Rodrigues angle small, `impostor`), so neighbours may disagree by 90° or 180°
+    and their average can vanish. Corners 1 and 2 are turned, (u0, v0) → (v0, −u0) and the
+    same for (u, v), by the quarter turn that best aligns their u0 with corner 0's; L of a
+    vertex does not depend on the turn (Eq. 9 commutes with it).
+
+    all arguments (n, 3, 3): [point, corner, xyz]; returns the four arrays turned"""
+    u0, v0, u, v = (np.array(x, dtype=np.float64) for x in (u0, v0, u, v))
+    ref = u0[:, 0]
+    for c in (1, 2):
+        cands = [(u0[:, c], v0[:, c], u[:, c], v[:, c]),
+                 (v0[:, c], -u0[:, c], v[:, c], -u[:, c]),
+                 (-u0[:, c], -v0[:, c], -u[:, c], -v[:, c]),
+                 (-v0[:, c], u0[:, c], -v[:, c], u[:, c])]
+        score = np.stack([np.einsum("ij,ij->i", k[0], ref) for k in cands], axis=1)
+        best = np.argmax(score, axis=1)
+        for arr, j in ((u0, 0), (v0, 1), (u, 2), (v, 3)):
+            arr[:, c] = np.choose(best[:, None], [k[j] for k in cands])
+    return u0, v0, u, v

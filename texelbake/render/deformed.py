@@ -49,16 +49,18 @@ import numpy as np
 from texelbake import brdf as brdf_mod
 from texelbake.deform.impostor import ImpostorParams, decode_frames, impostor_params
 from texelbake.deform.lookup import (
+    align_quarter_turns,
     deformed_tangents,
-    interpolate,
     lookup_rotation,
     rest_frames_at,
 )
+from texelbake.deform.refine import refine_levels, subdivide
 from texelbake.deform.warps import MeshWarp, Warp
 from texelbake.errors import SettingsError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.raycast import RayCaster
+from texelbake.payload import LodMesh
 from texelbake.render import camera as cam_mod
 from texelbake.render.camera import PinholeCamera
 from texelbake.render.cpm import CpmFrame, choose_mesh, render_cpm
@@ -100,8 +102,37 @@ def lod_impostor(scene: RenderScene, i: int) -> ImpostorParams:
     return impostor_params(mesh.vertices, mesh.faces, mesh.corner_uvs)
 
 
+def _refined_lods(scene: RenderScene, refine: float
+                  ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], list[np.ndarray],
+                             np.ndarray]:
+    """The rest LOD meshes refined (`deform.refine`) until no edge is longer than
+    diag / refine (0: unrefined): [(vertices, faces, corner_uvs)], the uv-exact flag of each
+    refined face, and R0 (n, 3, 3) of the refined M1's vertices: the stored parameterization
+    on M1's own vertices, a new one (`impostor_params` of the refined mesh) on the added."""
+    out, exact = [], []
+    frames0 = np.zeros((0, 3, 3))
+    for i, m in enumerate(scene.baked.meshes):
+        v, f, cuv = m.vertices, m.faces, m.corner_uvs
+        ex = np.asarray(scene.lod_uv_exact[i])
+        k = refine_levels(v, f, scene.diag / refine) if refine > 0 else 0
+        for _ in range(k):  # a loop over the few subdivision levels
+            v, f, cuv, _, parent = subdivide(v, f, cuv)
+            ex = ex[parent]
+        out.append((v, f, cuv))
+        exact.append(ex)
+        if i == 0:
+            prm = lod_impostor(scene, 0)
+            frames0 = decode_frames(prm.r0, prm.u0, prm.v0)
+            if k:
+                added = impostor_params(v, f, cuv)
+                fr = decode_frames(added.r0, added.u0, added.v0)
+                fr[: frames0.shape[0]] = frames0
+                frames0 = fr
+    return out, exact, frames0
+
+
 def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
-                 jacobian: str = "exact") -> RenderScene:
+                 jacobian: str = "exact", refine: float = 16.0) -> RenderScene:
     """A copy of `scene` whose M_org and M_i are warped by Ψ (module docstring); the baked
     tables stay at rest.
 
@@ -113,7 +144,9 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
         where M_org is tessellated finely against Ψ's curvature (the small cylinder has 2
         rings along its axis: bent by Ψ its M_org is a flat chord while the characteristic
         points lie on the arc, and its cpm image lost 10–16 dB to that alone).
-    jacobian : "exact" (the warp's) or "central" (Eq. 6) for (u, v)."""
+    jacobian : "exact" (the warp's) or "central" (Eq. 6) for (u, v).
+    refine : the LOD meshes are subdivided until no rest edge exceeds diag / refine, so that
+        they can follow Ψ (`deform.refine`; 0: as baked)."""
     if follow not in ("mesh", "warp"):
         raise SettingsError(f"field 'follow': 'mesh' or 'warp', got {follow!r}")
     t0 = time.perf_counter()
@@ -130,9 +163,10 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     d.org_face_normals = d.asset.face_normals()
     # diag and ray_eps stay the rest scene's: a length of the object, not of its axis-aligned
     # box, which a rotation changes (a rigidly moved asset must render as the unmoved one)
-    meshes = [dataclasses.replace(m, vertices=warp.positions(m.vertices))
-              for m in scene.baked.meshes]
+    rest_lods, exact, frames0 = _refined_lods(scene, refine)
+    meshes = [LodMesh(warp.positions(v), f, cuv) for v, f, cuv in rest_lods]
     d.baked = dataclasses.replace(scene.baked, meshes=meshes)
+    d.lod_uv_exact = tuple(exact)
     d.lods = [RayCaster(m.vertices, m.faces) for m in meshes]
     d.lod_face_normals = [face_normals(m.vertices, m.faces) for m in meshes]
     d.lod_uv_ratio = tuple(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0)[0]
@@ -144,11 +178,11 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     # the impostor parameterization of M1 and its deformed tangents (Eq. 6 / exact J)
     # (u0, v0) are R0's first two columns, decoded from r0 (orthonormal to rounding whatever
     # precision r0 was stored at), so that a rigid motion Q gives L = R0 R0ᵀ Qᵀ = Qᵀ exactly
-    prm = lod_impostor(scene, 0)
-    frames0 = decode_frames(prm.r0, prm.u0, prm.v0)
-    u, v = deformed_tangents(warp, prm.p0, frames0[:, :, 0], frames0[:, :, 1], jacobian)
+    m1_rest, m1_faces, _ = rest_lods[0]
+    u, v = deformed_tangents(warp, m1_rest, frames0[:, :, 0], frames0[:, :, 1], jacobian)
     d.warp = warp  # type: ignore[attr-defined]
     d.rest = scene  # type: ignore[attr-defined]
+    d.m1_rest = (RayCaster(m1_rest, m1_faces), m1_faces)  # type: ignore[attr-defined]
     d.m1_frames0 = frames0  # type: ignore[attr-defined]
     d.m1_uv = (u, v)  # type: ignore[attr-defined]
     d.deformed_levels = {}  # type: ignore[attr-defined]
@@ -180,15 +214,20 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
     cen = np.divide(cen, wsum[:, None], out=np.zeros_like(cen), where=live[:, None])
     lrot = np.broadcast_to(np.eye(3), (n_tex, 3, 3)).copy()
     if live.any():
-        _, prim, b2 = rest.lods[0].closest_points(cen[live])
+        m1_caster, m1_faces = d.m1_rest  # type: ignore[attr-defined]
+        _, prim, b2 = m1_caster.closest_points(cen[live])
         bary = np.column_stack([1.0 - b2[:, 0] - b2[:, 1], b2])
-        faces = rest.baked.meshes[0].faces
+        corners = m1_faces[prim]  # (k, 3)
         f0 = d.m1_frames0  # type: ignore[attr-defined]
         u, v = d.m1_uv  # type: ignore[attr-defined]
-        r0 = rest_frames_at(interpolate(f0[:, :, 0], faces, prim, bary),
-                            interpolate(f0[:, :, 1], faces, prim, bary))
-        lrot[live], _ = lookup_rotation(r0, interpolate(u, faces, prim, bary),
-                                        interpolate(v, faces, prim, bary),
+        cu0, cv0, cu, cv = align_quarter_turns(f0[corners, :, 0], f0[corners, :, 1],
+                                               u[corners], v[corners])
+
+        def interp(x: np.ndarray) -> np.ndarray:
+            return np.einsum("nk,nkj->nj", bary, x)
+
+        r0 = rest_frames_at(interp(cu0), interp(cv0))
+        lrot[live], _ = lookup_rotation(r0, interp(cu), interp(cv),
                                         fallback_normal=d.lod_face_normals[0][prim])
     out["lookup:vertex"] = lrot
     # the texel as the impostor point (seed 002 §4.2 allows point-sampled impostors): R0 the
