@@ -2,11 +2,12 @@
 against naive order, and the field's error against gt.
 
     .venv/bin/python benchmarks/srf.py --json out.json [--scene cylinder] [--cameras 24]
-        [--lights 12] [--capture-size 48] [--size 64] [--warp twist:angle=60] [--work DIR]
+        [--lights 12] [--capture-size 48] [--capture-spp 16] [--size 64]
+        [--warp twist:angle=60] [--work DIR] [--sweep]
 
 Captures the scene's M_org (texelbake.scenes, small) with `gt` from `--cameras` cameras on a
-sphere × `--lights` directional lights at `--capture-size`² (raw blocks: one `.npy` per
-image), unless already captured under `--work`. The impostor is the convex hull of M_org (an
+sphere × `--lights` directional lights at `--capture-size`² and `--capture-spp` eye rays per
+pixel (raw blocks: one `.npy` per image), unless already captured under `--work`. The impostor is the convex hull of M_org (an
 enclosing mesh, as a visual hull carved from every direction), sampled into surfels. Then:
 
 1. *sorted vs naive*: one frame of the warped asset (`--warp`) at `--size`² from a view
@@ -93,11 +94,12 @@ def point_lights(bounds: np.ndarray, power: float) -> list[Light]:
             for i, (s, col) in enumerate(zip(spots, cols, strict=True))]
 
 
-def sweep(asset, work: Path, n_cams: int, n_lights: int, json_path: Path) -> list[dict]:
+def sweep(asset, work: Path, n_cams: int, n_lights: int, json_path: Path, spp: int
+          ) -> list[dict]:
     """Held-out PSNR against rig size (module docstring, 4)."""
-    big_dir = work / f"sweep_{n_cams}x{n_lights}_32"
+    big_dir = work / f"sweep_{n_cams}x{n_lights}_32_{spp}"
     big = (open_store(big_dir) if (big_dir / "srf.json").is_file() else
-           capture(asset, big_dir, n_cameras=n_cams, n_lights=n_lights, size=32, spp=4))
+           capture(asset, big_dir, n_cameras=n_cams, n_lights=n_lights, size=32, spp=spp))
     hv, hf = hull_impostor(asset.points)
     surf = surfels_from_mesh(hv, hf)
     bounds = asset.bounds
@@ -110,7 +112,7 @@ def sweep(asset, work: Path, n_cams: int, n_lights: int, json_path: Path) -> lis
         for nl in sorted({max(n_lights // 4, 3), n_lights // 2, n_lights}):
             cams = list(range(0, n_cams, n_cams // nc))[:nc]
             lts = list(range(0, n_lights, n_lights // nl))[:nl]
-            sub = subset(big, cams, lts, work / f"sub_{nc}x{nl}")
+            sub = subset(big, cams, lts, work / f"sub_{nc}x{nl}_{spp}")
             res = render_srf(sub, surf, cam, [light])
             e = metrics.object_errors(res.image, ref.image,
                                       metrics.object_mask(ref.coverage, res.coverage))
@@ -155,6 +157,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--cameras", type=int, default=24)
     ap.add_argument("--lights", type=int, default=12)
     ap.add_argument("--capture-size", type=int, default=48)
+    ap.add_argument("--capture-spp", type=int, default=16)
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--ref-spp", type=int, default=16)
     ap.add_argument("--warp", default="twist:angle=60")
@@ -169,12 +172,12 @@ def main(argv: list[str] | None = None) -> dict:
     if not src.is_file():
         write_scene(args.scene, src, size="small")
     asset = load_asset(src)
-    key = f"{args.scene}_{args.cameras}x{args.lights}_{args.capture_size}"
+    key = f"{args.scene}_{args.cameras}x{args.lights}_{args.capture_size}_{args.capture_spp}"
     store_dir = args.work / key
     t0 = time.perf_counter()
     store: SrfStore = (open_store(store_dir) if (store_dir / "srf.json").is_file() else
                        capture(asset, store_dir, n_cameras=args.cameras, n_lights=args.lights,
-                               size=args.capture_size, spp=4))
+                               size=args.capture_size, spp=args.capture_spp))
     capture_s = time.perf_counter() - t0
     print(f"capture {store.n_cameras} x {store.n_lights} at {store.width}²: {capture_s:.1f} s "
           f"(0 if reused)", flush=True)
@@ -230,7 +233,8 @@ def main(argv: list[str] | None = None) -> dict:
         views.append({"camera": c, "light": j,
                       "psnr_db": metrics.psnr_db(res.image, store.image(c, j))})
 
-    rows = (sweep(asset, args.work, args.sweep_cameras, args.sweep_lights, args.json)
+    rows = (sweep(asset, args.work, args.sweep_cameras, args.sweep_lights, args.json,
+                  args.capture_spp)
             if args.sweep else [])
 
     rr = runs["naive"]["block_reads"] / max(runs["sorted"]["block_reads"], 1)

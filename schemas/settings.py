@@ -79,7 +79,7 @@ class BakeSettings(BaseModel):
     srf_lights: int = Field(44, ge=1, le=1024, description="Directional capture lights on a "
                             "sphere (seed 002: 44-60).")
     srf_size: int = Field(48, ge=2, le=4096, description="Capture image side (pixels).")
-    srf_spp: int = Field(4, ge=1, le=4096, description="Eye rays per pixel of a capture image.")
+    srf_spp: int = Field(16, ge=1, le=4096, description="Eye rays per pixel of a capture image.")
     srf_shard_cameras: int = Field(24, ge=1, le=4096, description="Cameras per srf shard.")
 
     @model_validator(mode="after")

@@ -162,3 +162,18 @@ def test_splat_does_not_depend_on_the_pair_chunk(monkeypatch):
     parts = splat_surfels(s, CAM)
     assert np.array_equal(whole.covered, parts.covered)
     np.testing.assert_array_equal(whole.p_rest, parts.p_rest)
+
+
+def test_splat_depth_stays_on_the_surface_at_grazing_angles():
+    # kernel-only fragments of grazing surfels (at the silhouette) must not win the z-test
+    # with a hit far along their plane
+    pts, faces = icosphere(3)
+    s = surfels_from_mesh(pts, faces)
+    cam = cam_mod.look_at((0.0, 0.4, 3.2), (0.0, 0.0, 0.0), 96, 96)
+    g = splat_surfels(s, cam)
+    o, d = cam_mod.eye_rays_at(cam, np.arange(96 * 96), np.full((96 * 96, 2), 0.5))
+    hits = RayCaster(pts, faces).cast(o, d)
+    both = g.covered & hits.hit
+    err = np.abs(np.linalg.norm(g.p_star - cam.position, axis=1) - hits.t)[both]
+    assert both.sum() > 2000
+    assert err.max() <= np.max(np.maximum(s.su, s.sv))

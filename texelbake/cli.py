@@ -298,7 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", type=int, default=216)
     p.add_argument("--lights", type=int, default=44)
     p.add_argument("--size", type=int, default=48, help="capture image size (pixels)")
-    p.add_argument("--spp", type=int, default=4)
+    p.add_argument("--spp", type=int, default=16, help="eye rays per pixel of a capture image")
     p.add_argument("--encoding", choices=["raw", "pca"], default="raw")
     p.set_defaults(func=cmd_srf_capture)
 

@@ -28,6 +28,7 @@ from texelbake.srf.rig import (
     DEFAULT_CAMERAS,
     DEFAULT_LIGHTS,
     DEFAULT_SIZE,
+    DEFAULT_SPP,
     sphere_cameras,
     sphere_directions,
 )
@@ -52,7 +53,7 @@ def capture_image(scene: OrgScene, cam: PinholeCamera, light: Light, spp: int, s
 
 
 def capture(asset: AssetModel, out: str | Path, *, n_cameras: int = DEFAULT_CAMERAS,
-            n_lights: int = DEFAULT_LIGHTS, size: int = DEFAULT_SIZE, spp: int = 4,
+            n_lights: int = DEFAULT_LIGHTS, size: int = DEFAULT_SIZE, spp: int = DEFAULT_SPP,
             seed: int = 0, fov_deg: float = 30.0, encoding: str = "raw", tile: int = 4,
             components: int = 6, cameras: Sequence[PinholeCamera] | None = None,
             light_dirs: np.ndarray | None = None) -> SrfStore:

@@ -13,7 +13,10 @@ its elliptical footprint {c + a u + b v : a² + b² ≤ 1}. Per frame:
    (exact, not the screen-affine approximation), at depth z;
 3. a pair is a fragment where (a, b) lies in the footprint (a² + b² ≤ 1) or within the
    kernel's 2σ (xᵀ C⁻¹ x ≤ 4: the prefilter keeps sub-pixel splats visible); back-facing
-   surfels (ray · (u × v) ≥ 0) make none;
+   surfels (ray · (u × v) ≥ 0) make none. A kernel-only fragment (outside the footprint)
+   is used only in pixels no footprint covers, and its ray-plane hit — which may lie far
+   along a grazing plane and win the z-test with a wrong depth — is pulled back to
+   `KERNEL_REACH` footprint radii;
 4. visibility is an ε-z-buffer: per pixel the fragments within `DEPTH_TOL` footprint radii
    (of the nearest fragment's surfel) behind the nearest are blended, normalised by their
    summed weights: the deformed point, the rest point (the surfel's rest centre + a u_rest
@@ -40,6 +43,8 @@ SIGMA_PIXEL = 0.5
 #: a splat's screen bounding box is clipped to this radius (pixels): a surfel right at the
 #: camera would otherwise cover the frame with pairs
 MAX_RADIUS_PX = 48.0
+#: a kernel-only fragment's hit stays on its ray up to this many footprint radii
+KERNEL_REACH = 2.0
 #: ε-z-buffer tolerance, in footprint radii of the nearest fragment's surfel
 DEPTH_TOL = 1.0
 #: (surfel, pixel) pairs processed at once (bounds memory: ~300 B per pair, ~80 MB)
@@ -180,16 +185,32 @@ def splat(cam: PinholeCamera, centers: object, u: object, v: object, *,
         if not keep.any():
             continue
         kk = np.flatnonzero(keep)
-        depth = t[kk] * np.einsum("ij,j->i", d[kk], cam.forward)
-        frags.append((iy[kk] * w + ix[kk], depth, sid[kk], a[kk], b[kk], hit[kk],
-                      np.exp(-0.5 * m2[kk])))
+        aa, bb, hh = a[kk], b[kk], hit[kk]
+        # a fragment kept by the kernel only (outside the footprint): its ray-plane hit can
+        # lie far along a grazing plane; beyond KERNEL_REACH footprint radii it stands at
+        # that radius instead (on the pixel's ray within it: exact captures at silhouettes)
+        r = np.sqrt(aa * aa + bb * bb)
+        far = r > KERNEL_REACH
+        scale = np.where(far, KERNEL_REACH / np.maximum(r, 1e-300), 1.0)
+        aa, bb = aa * scale, bb * scale
+        s_k = sid[kk]
+        hh = np.where(far[:, None], c[s_k] + aa[:, None] * u[s_k] + bb[:, None] * v[s_k], hh)
+        depth = (hh - cam.position) @ cam.forward
+        frags.append((iy[kk] * w + ix[kk], depth, s_k, aa, bb, hh, np.exp(-0.5 * m2[kk]),
+                      r <= 1.0))
     covered = np.zeros(npix, bool)
     p_star, p_rest = np.zeros((npix, 3)), np.zeros((npix, 3))
     lk = np.broadcast_to(np.eye(3), (npix, 3, 3)).copy()
     wsum = np.zeros(npix)
     if not frags:
         return SplatFrame(covered, p_star, p_rest, lk, wsum, 0)
-    pix, depth, sid, a, b, hit, wt = (np.concatenate(x) for x in zip(*frags, strict=True))
+    pix, depth, sid, a, b, hit, wt, inside = (np.concatenate(x)
+                                              for x in zip(*frags, strict=True))
+    # where some footprint covers the pixel centre, the kernel-only fragments are not needed
+    # (they fill sub-pixel splats and cracks): drop them there
+    has_inside = np.bincount(pix, inside, npix) > 0
+    use = inside | ~has_inside[pix]
+    pix, depth, sid, a, b, hit, wt = (x[use] for x in (pix, depth, sid, a, b, hit, wt))
     # ε-z-buffer: nearest depth per pixel, and the tolerance of that fragment's surfel
     order = np.lexsort((depth, pix))
     first = order[np.flatnonzero(np.r_[True, pix[order][1:] != pix[order][:-1]])]
