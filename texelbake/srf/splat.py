@@ -15,8 +15,8 @@ its elliptical footprint {c + a u + b v : a² + b² ≤ 1}. Per frame:
    kernel's 2σ (xᵀ C⁻¹ x ≤ 4: the prefilter keeps sub-pixel splats visible); back-facing
    surfels (ray · (u × v) ≥ 0) make none. A kernel-only fragment (outside the footprint)
    is used only in pixels no footprint covers, and its ray-plane hit — which may lie far
-   along a grazing plane and win the z-test with a wrong depth — is pulled back to
-   `KERNEL_REACH` footprint radii;
+   along a grazing plane — enters the z-test at the depth of its point `KERNEL_REACH`
+   footprint radii out (so it cannot win with a wrong depth; attributes stay on the ray);
 4. visibility is an ε-z-buffer: per pixel the fragments within `DEPTH_TOL` footprint radii
    (of the nearest fragment's surfel) behind the nearest are blended, normalised by their
    summed weights: the deformed point, the rest point (the surfel's rest centre + a u_rest
@@ -43,7 +43,7 @@ SIGMA_PIXEL = 0.5
 #: a splat's screen bounding box is clipped to this radius (pixels): a surfel right at the
 #: camera would otherwise cover the frame with pairs
 MAX_RADIUS_PX = 48.0
-#: a kernel-only fragment's hit stays on its ray up to this many footprint radii
+#: a kernel-only fragment is depth-tested at most this many footprint radii out
 KERNEL_REACH = 2.0
 #: ε-z-buffer tolerance, in footprint radii of the nearest fragment's surfel
 DEPTH_TOL = 1.0
@@ -187,15 +187,13 @@ def splat(cam: PinholeCamera, centers: object, u: object, v: object, *,
         kk = np.flatnonzero(keep)
         aa, bb, hh = a[kk], b[kk], hit[kk]
         # a fragment kept by the kernel only (outside the footprint): its ray-plane hit can
-        # lie far along a grazing plane; beyond KERNEL_REACH footprint radii it stands at
-        # that radius instead (on the pixel's ray within it: exact captures at silhouettes)
+        # lie far along a grazing plane; its z-test depth is that of the point at
+        # KERNEL_REACH footprint radii (the hit itself stays on the pixel's ray)
         r = np.sqrt(aa * aa + bb * bb)
-        far = r > KERNEL_REACH
-        scale = np.where(far, KERNEL_REACH / np.maximum(r, 1e-300), 1.0)
-        aa, bb = aa * scale, bb * scale
+        scale = np.minimum(1.0, KERNEL_REACH / np.maximum(r, 1e-300))
         s_k = sid[kk]
-        hh = np.where(far[:, None], c[s_k] + aa[:, None] * u[s_k] + bb[:, None] * v[s_k], hh)
-        depth = (hh - cam.position) @ cam.forward
+        near = c[s_k] + (scale * aa)[:, None] * u[s_k] + (scale * bb)[:, None] * v[s_k]
+        depth = (near - cam.position) @ cam.forward
         frags.append((iy[kk] * w + ix[kk], depth, s_k, aa, bb, hh, np.exp(-0.5 * m2[kk]),
                       r <= 1.0))
     covered = np.zeros(npix, bool)
