@@ -29,12 +29,12 @@ The bar (issue 12): cpm through L beats cpm-naive and normalmap on every case, i
 than the reference, and on rigid motion matches the undeformed error within 0.5 dB. Every
 claim is printed as holding or not, with the cases where it fails.
 
-Measured 2026-11-25 (`--scenes cylinder,bolt --atlas 32 --size 512 --ref-spp 256`, small
+Measured 2026-11-25 (`--scenes cylinder,bolt,arm --atlas 32 --size 512 --ref-spp 256`, small
 scenes; `benchmarks/results/deform_512.json`; the table and its reading are in
-docs/deformation.md): cpm 26–70x faster than the reference and equal to the undeformed
-error on rigid motion (holds); cpm beats cpm-naive and normalmap on every case (does not
-hold: the cylinder's 90° bend loses to both, its 1:2 stretch ties cpm-naive and loses to
-normalmap, the bolt's twist ties cpm-naive).
+docs/deformation.md): cpm 37–90x faster than the reference and equal to the
+undeformed error on rigid motion (holds); cpm beats cpm-naive and normalmap on every case
+(does not hold: it wins on the cylinder's bend and twist and on the arm at 45° and 90°, ties
+cpm-naive on the cylinder's stretch, loses on the bolt's bend and twist).
 
 JSON: {"settings", "cases": [{"scene", "warp", "object_pixels", "reference": {"seconds",
 "spp"}, "modes": {mode: {"seconds", "psnr_db", "spp", "fallback_fraction"?}}}],

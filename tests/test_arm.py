@@ -66,6 +66,13 @@ def test_lbs_jacobian_is_the_joint_rotation_on_rigid_segments(arm):
                                asset.points_over_time[-1], atol=1e-9)
 
 
+def test_arm_ships_the_shader_definitions_beside_it(arm):
+    from texelbake.shaderdefs import DEFINITIONS_FILE
+
+    path, _ = arm  # a stock pxr resolves the arm's texelbake shaders through this file
+    assert (path.parent / DEFINITIONS_FILE).is_file()
+
+
 def test_arm_errors(tmp_path):
     with pytest.raises(SettingsError, match="size"):
         write_arm(tmp_path / "a.usda", "huge")

@@ -277,7 +277,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file")
     p.add_argument("--modes", default=RENDER_MODES,
                    help="comma-separated: gt, cpm, normalmap, equal-time, btf (bakes with btf on), "
-                   "srf (after srf-capture)")
+                   "toksvig, toksvig+ao, leadr, leadr+ao, preview-surface (the filtered "
+                   "baselines); with --warp/--time also cpm-naive; srf (after srf-capture), "
+                   "with --warp/--time also srf-naive")
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=256)

@@ -140,6 +140,7 @@ def build_arm_stage(size: str = "small") -> tuple[Usd.Stage, dict[str, np.ndarra
 def write_arm(path: str | Path, size: str = "small") -> Path:
     """Write the arm to `path` (.usda/.usdc/.usd) with its textures beside it."""
     from texelbake.imageio import write_png
+    from texelbake.shaderdefs import write_definitions
 
     path = Path(path)
     if path.suffix not in (".usda", ".usdc", ".usd"):
@@ -148,6 +149,7 @@ def write_arm(path: str | Path, size: str = "small") -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     for name in sorted(textures):
         write_png(path.parent / name, textures[name])
+    write_definitions(path.parent)  # the texelbake shaders' definitions, as write_scene
     with atomic_path(path) as tmp:
         if not stage.GetRootLayer().Export(str(tmp)):
             raise OSError(f"cannot write {path}")

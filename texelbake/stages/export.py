@@ -13,6 +13,7 @@ from texelbake.stages.avis import avis_levels, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
+from texelbake.stages.filtered import fallback_maps, filtered_levels
 from texelbake.stages.srf import export_srf
 
 
@@ -43,6 +44,8 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, m1_frames,
         geo["sample_m1_prim"],
     )
+    filtered = filtered_levels(ctx)  # the filtered baseline maps of every level (issue 21)
+    fallback = fallback_maps(ctx, filtered)
     meshes = [payload.LodMesh(geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"])]
     i = 2
     while f"m{i}_vertices" in geo:
@@ -66,6 +69,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "surface_area": float(geo["sample_area"].sum()),
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "stage_seconds": dict(stage_seconds or {}),
+        "fallback_levels": fallback["levels"],
         "warnings": [
             f"level {r['level']}: {r['avis']['texels_above_tolerance']} of "
             f"{r['avis']['ray_texels']} ray-traced texels have a compressed a_vis table more "
@@ -93,6 +97,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
                     [["lambert", "preview", "phong", "merl", "cellular"].index(m.model)
                      for m in asset.materials], np.int32)},
         meshes=meshes, albedo=albedo, normal=normal, metadata=metadata,
+        filtered=filtered, fallback=fallback,
     )
     author_extra = None
     if s.btf:
