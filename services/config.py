@@ -56,6 +56,9 @@ class Settings(BaseSettings):
     estimate_workers: int = Field(
         2, ge=1, description="Worker processes the cost model assumes for a job's estimate."
     )
+    web_dist: Path | None = Field(
+        None, description="The dashboard's built bundle served at /; default <repo>/web/dist."
+    )
 
     @model_validator(mode="after")
     def _refuse_placeholder(self) -> Settings:

@@ -132,6 +132,7 @@ def write_plane_usd(path: Path, rho=RHO, light_dir=(0.3, 0.2, 0.9), intensity=3.
     m[0, :3], m[1, :3], m[2, :3] = x, y, z
     UsdGeom.Xformable(light).AddTransformOp().Set(Gf.Matrix4d(m.tolist()))
     light.CreateIntensityAttr(float(intensity))
+    light.CreateNormalizeAttr(True)  # UsdLux: the intensity is the irradiance
     cam = UsdGeom.Camera.Define(stage, "/Root/Camera")
     cam.CreateFocalLengthAttr(50.0)
     cam.CreateHorizontalApertureAttr(24.0)

@@ -9,6 +9,7 @@ from texelbake.btf.maps_io import SHADER_BTF, read_btf_maps
 from texelbake.btf.report import btf_errors
 from texelbake.btf.stage import author_btf_shader, bake_btf, btf_from_texels, fill_uncovered
 from texelbake.errors import ShapeError
+from texelbake.shaderdefs import shader_id
 
 
 def _grid(n=4):
@@ -54,7 +55,7 @@ def test_author_btf_shader_resolves_next_to_layer(tmp_path, rng):
     stage = Usd.Stage.CreateNew(str(layer))
     shader = author_btf_shader(stage, "/Looks/Baked", rep["files"], maps)
     stage.GetRootLayer().Save()
-    assert shader.GetIdAttr().Get() == SHADER_BTF
+    assert shader_id(shader) == SHADER_BTF
     mat = UsdShade.Material(stage.GetPrimAtPath("/Looks/Baked"))
     src = mat.GetSurfaceOutput("texelbake_btf").GetConnectedSources()[0][0].source
     assert src.GetPath() == shader.GetPrim().GetPath()

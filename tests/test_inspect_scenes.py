@@ -46,7 +46,10 @@ def test_scene_counts_and_describe(tmp_path, name, size):
     np.testing.assert_allclose(np.linalg.norm(asset.corner_normals, axis=2), 1.0, atol=1e-9)
 
     bundle = check_asset_paths(path)
-    assert bundle == sorted([str(path.resolve()), *textures])
+    # the layer, its textures and the texelbake shaders' definitions (texelbake.shaderdefs)
+    own = any(m.model != "preview" for m in asset.materials)  # a texelbake shader is authored
+    defs = [str((path.parent / "texelbake_shaders.usda").resolve())] if own else []
+    assert bundle == sorted([str(path.resolve()), *textures, *defs])
 
     text = describe(asset)
     assert f"meshes: {got['meshes']} ({got['faces']} triangles" in text

@@ -69,12 +69,15 @@ def test_one_lod_exports_self_contained_and_stock_valid(baked, tmp_path, suffix)
         assert got["meshes"] == [f"/Cylinder/Baked/LOD{n}"]
         np.testing.assert_allclose(np.asarray(got["points"][0]), lods[n - 1].vertices,
                                    atol=1e-6)
-        assert got["materials"] == ["/Cylinder/Baked/Looks/BakedPreview"]
-        assert got["files"] == [True, True]
+        # each LOD has its own fallback (issue 21): diffuseColor, normal, roughness widened
+        # for that LOD, occlusion
+        assert got["materials"] == ["/Cylinder/Baked/Looks/BakedPreview" if n == 1 else
+                                    f"/Cylinder/Baked/Looks/BakedPreview_LOD{n}"]
+        assert got["files"] == [True, True, True, True]
         assert got["errors"] == []
     if suffix == ".usdc":
-        (tmp_path / "lod1_maps" / "cylinder_albedo.png").unlink()  # not self-contained now
-        assert _inspect(tmp_path / "lod1.usdc")["files"] == [False, True]
+        (tmp_path / "lod1_maps" / "cylinder_basecolor.png").unlink()  # not self-contained now
+        assert _inspect(tmp_path / "lod1.usdc")["files"] == [False, True, True, True]
 
 
 def test_lod0_is_the_asset_as_authored(baked, tmp_path):
@@ -82,6 +85,18 @@ def test_lod0_is_the_asset_as_authored(baked, tmp_path):
 
     got = _inspect(export_lod(baked, 0, tmp_path / "lod0.usda"))
     assert got["meshes"] == ["/Cylinder/Geom/RidgedCylinder"] and not got["baked_scope"]
+    # the source's texelbake shaders keep their definitions (copied beside the file)
+    assert got["errors"] == []
+    for suffix in (".usdz", ".usdc"):
+        assert _inspect(export_lod(baked, 0, tmp_path / f"lod0{suffix}"))["errors"] == []
+
+
+def test_baked_result_passes_stock_validation(baked):
+    # the root (LOD0 selected), its payload with the CPM shader, and every LOD variant, in a
+    # process that never imported texelbake (issue 11, item 5)
+    got = _inspect(baked)
+    assert got["errors"] == []
+    assert (baked.parent / "texelbake_shaders.usda").is_file()
 
 
 def test_bad_requests_name_the_field_and_write_nothing(baked, tmp_path):

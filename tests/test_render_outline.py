@@ -36,6 +36,7 @@ def _write_field(path: Path, n: int = 24, amp: float = 0.04) -> Path:
     UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
     light = UsdLux.DistantLight.Define(stage, "/Root/Sun")
     light.CreateIntensityAttr(3.0)
+    light.CreateNormalizeAttr(True)  # UsdLux: the intensity is the irradiance
     UsdGeom.Xformable(light).AddRotateXYZOp().Set(Gf.Vec3f(20, 10, 0))
     stage.GetRootLayer().Save()
     return path

@@ -27,6 +27,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdUtils
 
 from texelbake.atomic import atomic_path
 from texelbake.errors import AssetError, SettingsError
+from texelbake.shaderdefs import SOURCE_TYPE
 
 SUFFIXES = (".usda", ".usdc", ".usdz")
 
@@ -95,7 +96,8 @@ def _prune(layer: Sdf.Layer, root: Sdf.Path, lod: int) -> None:
                 return
             if spec.typeName == "Shader" and spec.path.HasPrefix(baked):
                 ident = spec.attributes.get("info:id")
-                if ident is not None and str(ident.default).startswith("texelbake:"):
+                if spec.attributes.get(f"info:{SOURCE_TYPE}:sourceAsset") is not None or (
+                        ident is not None and str(ident.default).startswith("texelbake:")):
                     drop.append(spec.path)
                     return
             for child in spec.nameChildren:

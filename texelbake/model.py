@@ -32,6 +32,9 @@ SHADER_LAMBERT = "texelbake:lambert"
 SHADER_PHONG = "texelbake:phong"
 SHADER_MEASURED = "texelbake:measured"
 SHADER_CELLULAR = "texelbake:cellular"
+#: the baked material's shaders on texelbake's render contexts (texelbake.payload, texelbake.btf)
+SHADER_CPM = "texelbake:cpm"
+SHADER_BTF = "texelbake:btf_laplacian"
 
 #: shader id -> Material.model
 SHADER_MODELS: Mapping[str, str] = MappingProxyType(
@@ -117,8 +120,9 @@ class Light:
     kind : "distant" | "sphere"
     direction : (3,) float64, unit, world space, from the scene *toward* the light (distant)
     position : (3,) float64, world space (sphere)
-    radiance_scale : (3,) float64. distant: irradiance at normal incidence
-        (color * intensity * 2**exposure). sphere: radiant intensity in W/sr
+    radiance_scale : (3,) float64. distant: irradiance at normal incidence (UsdLux: luminance
+        color * intensity * 2**exposure, times the solid angle of `inputs:angle` unless
+        `inputs:normalize`; `texelbake.scene.lights.distant_irradiance_factor`). sphere: radiant intensity in W/sr
         (color * intensity * 2**exposure * pi * radius**2, or without the area term when
         radius == 0 / treatAsPoint), falling off as 1/d**2.
     """

@@ -1,25 +1,29 @@
 """Sdr shader definitions for texelbake's own shader ids, so USD knows their inputs.
 
-texelbake authors shaders whose `info:id` is one of its own ids (`texelbake:lambert`,
-`texelbake:phong`, `texelbake:measured`, `texelbake:cellular`; the table in
-`texelbake.model`). Without a definition in the Sdr registry, pxr's validator
-`usdShadeValidators:ShaderSdrCompliance` reports `MissingShaderIdInRegistry` for every such
-shader, and no tool can check the input types. `register_shader_definitions()` adds one
-definition per id to the process's Sdr registry; after it, the validator also checks that each
-authored input has the declared type (`MismatchedPropertyType`).
+texelbake authors shaders of its own (`texelbake:lambert`, `texelbake:phong`,
+`texelbake:measured`, `texelbake:cellular` in scenes — the table in `texelbake.model` — and
+`texelbake:cpm`, `texelbake:btf_laplacian` in baked results). A stock USD tool knows none of
+them: a shader whose `info:id` is not in its Sdr registry fails pxr's validator
+`usdShadeValidators:ShaderSdrCompliance` (`MissingShaderIdInRegistry`).
 
-How: the definitions are UsdShade.Shader prims in an anonymous USD layer built here from
-`SHADER_INPUTS` (the same convention as usd-core's own `usdShaders/shaderDefs.usda`), handed
-to `Sdr.Registry().AddDiscoveryResult` and parsed by usdShade's own `usda` parser plugin.
-The discovery result's identifier is the shader id; the definition prim is named with the
-colon replaced by an underscore (`texelbake_cellular`) because a colon is not allowed in a
-prim name, and the parser falls back to the result's sub-identifier for it (usd-core prints
-one harmless "Invalid prim name" warning per id when it first parses).
+How they are authored so that any tool accepts them (`author_shader`): the shader names its
+definition by *source asset* instead of by id — `info:implementationSource = "sourceAsset"`,
+`info:texelbake:sourceAsset = @./texelbake_shaders.usda@` and
+`info:texelbake:sourceAsset:subIdentifier = "texelbake_lambert"` — and the definitions file
+(`DEFINITIONS_FILE`, `write_definitions`) is written beside the layer. A stock pxr resolves the
+asset, parses it with usdShade's own `usda` shader-definition parser and checks every authored
+input against the declared type (`MismatchedPropertyType`), with no plug-in path, environment
+variable or texelbake import. (A `plugInfo.json` plug-in would need `PXR_PLUGINPATH_NAME` in
+every studio tool's environment; an id with a colon cannot be found by Sdr's file-system
+discovery either, since a definition's identifier comes from its file or prim name.)
+`shader_id` reads a shader's texelbake id back from either form; files written before this
+change, with `info:id = "texelbake:…"`, still read, and `register_shader_definitions()` adds
+the ids to a process's own registry so that they validate there too.
 
-Why in code and not a plug-in folder: the registration must work from an installed wheel
-without `PXR_PLUGINPATH_NAME` tricks; any process that validates texelbake assets (ingest,
-the upload check of the API, the tests) calls `register_shader_definitions()` first.
-It is idempotent and thread-safe.
+The definitions are UsdShade.Shader prims (the convention of usd-core's
+`usdShaders/shaderDefs.usda`), one per id, named with the colon replaced by an underscore
+(`texelbake_cellular`) because a colon is not allowed in a prim name. pxr prints one harmless
+"Invalid prim name" warning per id when it first parses them.
 """
 
 from __future__ import annotations
@@ -29,12 +33,23 @@ from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
 
-from pxr import Sdf, Sdr, Usd, UsdShade
+from pxr import Gf, Sdf, Sdr, Usd, UsdShade
 
-from texelbake.model import SHADER_CELLULAR, SHADER_LAMBERT, SHADER_MEASURED, SHADER_PHONG
+from texelbake.atomic import atomic_write_bytes
+from texelbake.errors import SettingsError
+from texelbake.model import (
+    SHADER_BTF,
+    SHADER_CELLULAR,
+    SHADER_CPM,
+    SHADER_LAMBERT,
+    SHADER_MEASURED,
+    SHADER_PHONG,
+)
 
-#: the source type under which texelbake's definitions are registered
+#: the source type under which texelbake's definitions are registered and authored
 SOURCE_TYPE = "texelbake"
+#: the definitions file written beside every layer that authors a texelbake shader
+DEFINITIONS_FILE = "texelbake_shaders.usda"
 
 #: shader id -> ((input name, Sdf type name, default), ...): names and types as in
 #: texelbake.model's table, defaults as texelbake.brdf's *_DEFAULTS (a test checks both)
@@ -62,6 +77,28 @@ SHADER_INPUTS: Mapping[str, tuple[tuple[str, str, object], ...]] = MappingProxyT
     }
 )
 
+#: the baked material's shaders (texelbake.payload's CPM marker, whose data is the
+#: `texelbake:levels` relationship, and texelbake.btf's Laplacian BTF): id -> inputs as above
+BAKED_SHADER_INPUTS: Mapping[str, tuple[tuple[str, str, object], ...]] = MappingProxyType(
+    {
+        SHADER_CPM: (),
+        SHADER_BTF: (
+            ("eigenMap", "asset", Sdf.AssetPath("")),
+            ("weightsMap", "asset", Sdf.AssetPath("")),
+            ("lutMap", "asset", Sdf.AssetPath("")),
+            ("pairsMap", "asset", Sdf.AssetPath("")),
+            ("topLevel", "int", 0),
+            ("numComponents", "int3", Gf.Vec3i(8, 2, 2)),
+            ("meanModels", "token[]", []),
+            ("resolution", "int2", Gf.Vec2i(0, 0)),
+        ),
+    }
+)
+
+#: every texelbake shader id -> its inputs
+ALL_SHADER_INPUTS: Mapping[str, tuple[tuple[str, str, object], ...]] = MappingProxyType(
+    {**SHADER_INPUTS, **BAKED_SHADER_INPUTS})
+
 _LOCK = threading.Lock()
 _LAYER: list[Sdf.Layer] = []  # keeps the anonymous definitions layer alive for the parser
 
@@ -71,26 +108,90 @@ def definition_prim_name(shader_id: str) -> str:
     return shader_id.replace(":", "_")
 
 
-def build_definitions_layer() -> Sdf.Layer:
+_ID_OF_PRIM_NAME: Mapping[str, str] = MappingProxyType(
+    {definition_prim_name(sid): sid for sid in ALL_SHADER_INPUTS})
+
+
+def build_definitions_layer(source_asset: str = f"./{DEFINITIONS_FILE}") -> Sdf.Layer:
     """An anonymous layer with one UsdShade.Shader definition prim per texelbake shader id.
 
-    Each prim carries `info:id`, `info:implementationSource = "sourceAsset"`, an
-    `info:texelbake:sourceAsset` pointing at `texelbake/model.py` (where the shader table and
-    the models' meaning are documented), its typed inputs with defaults and a token
-    `outputs:surface`.
+    source_asset : the implementation each definition names for the `texelbake` source type:
+        the definitions file itself (relative) when written to disk, an absolute path for
+        the in-process registry (an anonymous layer cannot anchor a relative path)
+
+    Each prim carries `info:id` (the texelbake id), `sdrMetadata` role "surface", its typed
+    inputs with defaults and a token `outputs:surface`. Prims are sorted by name; the layer's
+    text (`definitions_text`) is the same on every machine.
     """
     layer = Sdf.Layer.CreateAnonymous("texelbake_shaderDefs.usda")
     stage = Usd.Stage.Open(layer)
-    impl = Path(__file__).with_name("model.py").resolve()
-    for shader_id in sorted(SHADER_INPUTS):
-        shader = UsdShade.Shader.Define(stage, f"/{definition_prim_name(shader_id)}")
-        shader.CreateIdAttr(shader_id)
-        shader.SetSourceAsset(Sdf.AssetPath(str(impl)), SOURCE_TYPE)
+    for sid in sorted(ALL_SHADER_INPUTS):  # (Usd-level Define is not safe in a ChangeBlock)
+        shader = UsdShade.Shader.Define(stage, f"/{definition_prim_name(sid)}")
+        shader.CreateIdAttr(sid)
+        # usdShade's parser takes a definition's implementation from its source asset for
+        # the source type; without one the node it returns has no inputs. The definitions
+        # file names itself (relative, so the file is the same on every machine).
+        shader.SetSourceAsset(Sdf.AssetPath(source_asset), SOURCE_TYPE)
         shader.SetSdrMetadataByKey("role", "surface")
-        for name, type_name, default in SHADER_INPUTS[shader_id]:
+        for name, type_name, default in ALL_SHADER_INPUTS[sid]:
             shader.CreateInput(name, Sdf.ValueTypeNames.Find(type_name)).Set(default)
         shader.CreateOutput("surface", Sdf.ValueTypeNames.Token)
+    layer.documentation = ("texelbake's shader definitions (texelbake.shaderdefs): texelbake "
+                           "shaders name one of these prims as their source asset")
     return layer
+
+
+def definitions_text() -> str:
+    """The usda text of the definitions file (deterministic)."""
+    return build_definitions_layer().ExportToString()
+
+
+def write_definitions(folder: str | Path) -> Path:
+    """Write `DEFINITIONS_FILE` into `folder` (atomically; unchanged bytes when it exists);
+    return its path."""
+    path = Path(folder) / DEFINITIONS_FILE
+    data = definitions_text().encode()
+    if not (path.is_file() and path.read_bytes() == data):
+        atomic_write_bytes(path, data)
+    return path
+
+
+def author_shader(stage: Usd.Stage, path: str, shader_id: str) -> UsdShade.Shader:
+    """Define a texelbake shader at `path` that names its definition by source asset
+    (`./texelbake_shaders.usda`, relative to the layer being authored; the file is written
+    beside that layer when it is on disk, else by the caller with `write_definitions`). Raises SettingsError for an id texelbake does not define."""
+    if shader_id not in ALL_SHADER_INPUTS:
+        raise SettingsError(f"field 'shader_id': {shader_id!r} is not a texelbake shader id "
+                            f"(expected one of {sorted(ALL_SHADER_INPUTS)})")
+    shader = UsdShade.Shader.Define(stage, path)
+    layer = stage.GetEditTarget().GetLayer()
+    if layer.realPath:  # a layer on disk: its definitions beside it (in-memory: the caller's)
+        write_definitions(Path(layer.realPath).parent)
+    shader.SetSourceAsset(Sdf.AssetPath(f"./{DEFINITIONS_FILE}"), SOURCE_TYPE)
+    shader.SetSourceAssetSubIdentifier(definition_prim_name(shader_id), SOURCE_TYPE)
+    return shader
+
+
+def shader_id(shader: UsdShade.Shader) -> str | None:
+    """A shader's id: `info:id` when authored, else the texelbake id its `texelbake` source
+    asset names (`author_shader`); None when it has neither."""
+    sid = shader.GetShaderId()
+    if sid:
+        return str(sid)
+    if shader.GetImplementationSource() == UsdShade.Tokens.sourceAsset:
+        sub = shader.GetSourceAssetSubIdentifier(SOURCE_TYPE)
+        if sub:
+            return _ID_OF_PRIM_NAME.get(str(sub), str(sub))
+    return None
+
+
+def input_type(shader_id: str, input_name: str) -> Sdf.ValueTypeName:
+    """The Sdf type texelbake's definition declares for an input of a texelbake shader;
+    raises SettingsError naming the input when there is none."""
+    for name, type_name, _ in ALL_SHADER_INPUTS.get(shader_id, ()):
+        if name == input_name:
+            return Sdf.ValueTypeNames.Find(type_name)
+    raise SettingsError(f"shader {shader_id!r} has no input {input_name!r}")
 
 
 def register_shader_definitions() -> None:
@@ -98,18 +199,19 @@ def register_shader_definitions() -> None:
 
     Raises nothing on a second call. After it,
     `Sdr.Registry().GetShaderNodeByIdentifier("texelbake:cellular")` is a node whose inputs are
-    `SHADER_INPUTS["texelbake:cellular"]`.
+    `SHADER_INPUTS["texelbake:cellular"]`. Needed only to validate files that name the ids by
+    `info:id` (written before `author_shader`); files written now validate anywhere.
     """
     with _LOCK:
         if _LAYER:
             return
-        layer = build_definitions_layer()
+        layer = build_definitions_layer(str(Path(__file__).with_name("model.py").resolve()))
         _LAYER.append(layer)
         registry = Sdr.Registry()
-        for shader_id in sorted(SHADER_INPUTS):
-            name = definition_prim_name(shader_id)
+        for sid in sorted(ALL_SHADER_INPUTS):
+            name = definition_prim_name(sid)
             result = Sdr.NodeDiscoveryResult(
-                shader_id,  # identifier: what `info:id` says
+                sid,  # identifier: what `info:id` says
                 Sdr.Version().GetAsDefault(),
                 name,  # name
                 SOURCE_TYPE,  # family

@@ -32,12 +32,11 @@ from texelbake.btf.compress import MEAN_MODELS, BTFMaps
 from texelbake.btf.lut import DirectionLUT, build_lut
 from texelbake.errors import AssetError
 from texelbake.imageio import ImageInfo, read_pixels, write_pixels
+from texelbake.model import SHADER_BTF  # noqa: F401  (re-exported: the BTF material's shader id)
 
 FORMAT_VERSION = 1
 META_KEY = "texelbake:btf"
 PARTS = ("eigen", "weights", "lut", "pairs")
-#: texelbake's shader id for the Laplacian BTF material (its inputs are the four files above)
-SHADER_BTF = "texelbake:btf_laplacian"
 
 
 def channel_names(n_components: tuple[int, int, int]) -> list[str]:

@@ -17,6 +17,7 @@ from texelbake.btf.compress import BTFMaps, BTFSettings
 from texelbake.btf.maps_io import PARTS, SHADER_BTF, write_btf_maps
 from texelbake.btf.report import btf_report
 from texelbake.errors import ShapeError
+from texelbake.shaderdefs import author_shader
 
 
 def btf_from_texels(
@@ -126,8 +127,7 @@ def author_btf_shader(stage, material_path: str, files: dict[str, str], maps: BT
     if missing:
         raise ShapeError(f"files lacks BTF parts {missing} (expected {list(PARTS)})")
     mat = UsdShade.Material.Define(stage, material_path)
-    shader = UsdShade.Shader.Define(stage, f"{material_path}/LaplacianBTF")
-    shader.CreateIdAttr(SHADER_BTF)
+    shader = author_shader(stage, f"{material_path}/LaplacianBTF", SHADER_BTF)
     for part in PARTS:
         shader.CreateInput(f"{part}Map", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(files[part]))
     shader.CreateInput("topLevel", Sdf.ValueTypeNames.Int).Set(int(maps.top_level))

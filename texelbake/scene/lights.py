@@ -28,17 +28,21 @@ def read_light(prim: Any, time: Any, xcache: Any, warns: list[str]) -> Light | N
         warn(warns, f"light {path}: unsupported light type {prim.GetTypeName()}; ignored")
         return None
     api = UsdLux.LightAPI(prim)
-    intensity = float(api.GetIntensityAttr().Get(time))
-    exposure = float(api.GetExposureAttr().Get(time))
-    color = np.asarray(api.GetColorAttr().Get(time), dtype=np.float64)
-    if api.GetEnableColorTemperatureAttr().Get(time):
-        temp = float(api.GetColorTemperatureAttr().Get(time))
-        color = color * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(temp), dtype=np.float64)
-    scale = color * intensity * 2.0 ** exposure
+    normalize = bool(api.GetNormalizeAttr().Get(time))
+    scale = light_luminance(
+        float(api.GetIntensityAttr().Get(time)), float(api.GetExposureAttr().Get(time)),
+        api.GetColorAttr().Get(time),
+        float(api.GetColorTemperatureAttr().Get(time))
+        if api.GetEnableColorTemperatureAttr().Get(time) else None)
     world = usd_matrix(xcache.GetLocalToWorldTransform(prim))
     lin = world[:3, :3]
     position = world[3, :3].copy()
     if kind == "distant":
+        angle = float(light.GetAngleAttr().Get(time))
+        if angle > HARD_SHADOW_ANGLE_DEGREES:
+            warn(warns, f"light {path}: inputs:angle {angle:g} degrees; texelbake renders "
+                        "its shadows as from one direction (hard edges)")
+        scale = scale * distant_irradiance_factor(angle, normalize)
         toward = np.array([0.0, 0.0, 1.0]) @ lin  # the light shines along its local -Z
         norm = float(np.linalg.norm(toward))
         if not np.isfinite(norm) or norm == 0.0:
@@ -49,13 +53,53 @@ def read_light(prim: Any, time: Any, xcache: Any, warns: list[str]) -> Light | N
     treat_as_point = bool(light.GetTreatAsPointAttr().Get(time))
     if treat_as_point or radius == 0.0:
         radiance = scale
-    elif api.GetNormalizeAttr().Get(time):
+    elif normalize:
         # normalize divides the radiance by the surface area 4 pi r^2: pi r^2 / (4 pi r^2)
         radiance = scale * 0.25
     else:
         radiance = scale * np.pi * radius ** 2
     return Light(path=path, kind=kind, direction=np.zeros(3), position=position,
                  radius=0.0 if treat_as_point else radius, radiance_scale=radiance)
+
+
+#: distant lights wider than this (degrees) get a warning: texelbake shades them as one
+#: direction, so their penumbrae are missing
+HARD_SHADOW_ANGLE_DEGREES = 2.0
+
+
+def light_luminance(intensity: float, exposure: float, color, temperature: float | None
+                    ) -> np.ndarray:
+    """UsdLux LightAPI: L = color * intensity * 2**exposure, times the D65-normalised
+    blackbody colour of `temperature` (K) when colour temperature is enabled (None: off).
+
+    returns : (3,) float64 linear RGB luminance
+    """
+    from pxr import UsdLux
+
+    lum = np.asarray(color, dtype=np.float64) * float(intensity) * 2.0 ** float(exposure)
+    if temperature is not None:
+        lum = lum * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(float(temperature)),
+                               dtype=np.float64)
+    return lum
+
+
+def distant_irradiance_factor(angle_degrees: float, normalize: bool) -> float:
+    """Irradiance at normal incidence per unit luminance of a UsdLux DistantLight.
+
+    Normalized (`inputs:normalize` on), the light's luminance is divided by its solid angle,
+    so its intensity is the irradiance itself: factor 1. Otherwise the disk of angular
+    diameter θ (`inputs:angle`, clipped to [0, 360)) has solid angle
+    ω = 2π (1 − cos(θ/2)) and delivers E = L ω (the sun's 0.53° gives ω = 6.72e-5 sr, so
+    UsdLux's fallback intensity 50000 is an irradiance of 3.36). θ = 0 is a delta light with
+    no solid angle; it is read as normalized (factor 1), which is the limit of L ω with the
+    power held fixed.
+    """
+    if normalize:
+        return 1.0
+    theta = np.radians(min(max(float(angle_degrees), 0.0), 360.0 - 1e-9))
+    if theta == 0.0:
+        return 1.0
+    return float(2.0 * np.pi * (1.0 - np.cos(0.5 * theta)))
 
 
 def read_camera(prim: Any, time: Any, xcache: Any, warns: list[str]) -> Camera:

@@ -18,8 +18,10 @@ from texelbake.model import (
     Texture,
 )
 from texelbake.scene.files import load_image, load_merl
+from texelbake.scene.mtlx import MTLX_SURFACES, preview_params
+from texelbake.scene.primvars import READER_WIDTH, face_values, group_faces
 from texelbake.scene.values import coerce_like, default_param, warn
-from texelbake.shaderdefs import SHADER_INPUTS
+from texelbake.shaderdefs import SHADER_INPUTS, shader_id
 
 #: defaults for unauthored inputs of texelbake's own shader ids: the Sdr definitions'
 #: defaults (texelbake.shaderdefs.SHADER_INPUTS), colours as tuples
@@ -60,6 +62,55 @@ class MaterialReader:
         self.time = time
         self.warns = warns
         self._images: dict[str, tuple[np.ndarray, bool, str]] = {}
+        #: material path -> {input name: (primvar name, width, fallback (width,))} for inputs
+        #: driven by a UsdPrimvarReader (texelbake.scene.primvars)
+        self.primvar_inputs: dict[str, dict[str, tuple[str, int, np.ndarray]]] = {}
+
+    def specialize(self, material: Material, prim: Any, faces: np.ndarray
+                   ) -> tuple[list[tuple[bytes, Material]], np.ndarray]:
+        """The material as faces `faces` of mesh `prim` see it: its primvar-driven inputs
+        evaluated on the mesh (texelbake.scene.primvars).
+
+        returns : ([(key, Material) per distinct value; key b"" when nothing is driven],
+                   (len(faces),) int64 index into that list per face)
+        """
+        inputs = self.primvar_inputs.get(material.path)
+        faces = np.asarray(faces, dtype=np.int64)
+        if not inputs:
+            return [(b"", material)], np.zeros(faces.shape[0], np.int64)
+        names = sorted(inputs)
+        cols = []
+        for name in names:
+            varname, width, fallback = inputs[name]
+            vals, interp = face_values(prim, varname, width, self.time)
+            if vals is None:
+                vals = np.broadcast_to(fallback, (int(faces.max(initial=-1)) + 1, width))
+            elif interp in ("vertex", "varying", "faceVarying"):
+                warn(self.warns, f"material {material.path} on mesh {prim.GetPath()}: primvar "
+                                 f"{varname} ({interp}) drives input {name}; texelbake's "
+                                 "inputs are per face, so each face takes its corners' mean")
+            cols.append(vals[faces])
+        distinct, group = group_faces(np.concatenate(cols, axis=1), self.warns,
+                                      f"material {material.path} on mesh {prim.GetPath()}")
+        out = []
+        for row in distinct:
+            params = dict(material.params)
+            at = 0
+            for name in names:
+                width = inputs[name][1]
+                part = row[at:at + width]
+                at += width
+                current = params[name]
+                if isinstance(current, np.ndarray):
+                    params[name] = np.resize(part, current.shape).astype(np.float64)
+                elif isinstance(current, int) and not isinstance(current, bool):
+                    params[name] = int(part[0])
+                else:
+                    params[name] = float(part[0])
+            key = np.ascontiguousarray(row, dtype=np.float64).tobytes()
+            out.append((key, Material(path=material.path, model=material.model,
+                                      params=_readonly(params), textures=material.textures)))
+        return out, group
 
     # ---- network helpers -------------------------------------------------------------------
     @staticmethod
@@ -75,8 +126,7 @@ class MaterialReader:
         shader = UsdShade.Shader(prim)
         if not shader:
             return None
-        sid = shader.GetShaderId()
-        return str(sid) if sid else None
+        return shader_id(shader)
 
     def _surface(self, material: Any, context: str) -> tuple[Any, str | None] | None:
         """(shader prim, shader id) feeding the material's surface output for a context."""
@@ -101,6 +151,10 @@ class MaterialReader:
                   f"material {mat_path}: unsupported shader id {sid!r} on "
                   f"outputs:texelbake:surface (shader {prim.GetPath()}); using outputs:surface")
         found = self._surface(material, "")
+        if found is None or found[1] not in SHADER_MODELS:
+            mtlx = self._surface(material, "mtlx")
+            if mtlx is not None and mtlx[1] in MTLX_SURFACES:
+                return self._read_mtlx(mat_path, *mtlx)
         if found is None:
             warn(self.warns, f"material {mat_path}: no surface shader connected; "
                               "using UsdPreviewSurface defaults")
@@ -108,10 +162,40 @@ class MaterialReader:
         prim, sid = found
         if sid is not None and sid in SHADER_MODELS:
             return self._read_shader(mat_path, prim, sid)
+        if sid in MTLX_SURFACES:
+            return self._read_mtlx(mat_path, prim, sid)
         warn(self.warns,
               f"material {mat_path}: unsupported shader network (shader {prim.GetPath()}, id "
               f"{sid!r}); falling back to its constant values")
         return self._constant_preview(mat_path, prim)
+
+    def _read_mtlx(self, mat_path: str, prim: Any, sid: str | None) -> Material:
+        """A MaterialX surface shader as UsdPreviewSurface parameters (texelbake.scene.mtlx)."""
+        from pxr import UsdShade
+
+        shader = UsdShade.Shader(prim)
+
+        def value(name: str) -> Any:
+            inp = shader.GetInput(name)
+            src = self._source(inp) if inp else None
+            if src is None or UsdShade.Output.IsOutput(src):
+                own = inp.GetAttr() if inp else None
+                return own.Get(self.time) if own is not None and own.HasAuthoredValue() else None
+            return src.Get(self.time)  # an interface input's value
+
+        def driven(name: str) -> bool:
+            inp = shader.GetInput(name)
+            src = self._source(inp) if inp else None
+            return src is not None and UsdShade.Output.IsOutput(src)
+
+        def lost(text: str) -> None:
+            warn(self.warns, f"material {mat_path}: MaterialX shader {prim.GetPath()} "
+                             f"({sid}): {text}")
+
+        params = {k: default_param(v) for k, v in PREVIEW_DEFAULTS.items()}
+        for name, v in preview_params(str(sid), value, driven, lost).items():
+            params[name] = coerce_like(v, PREVIEW_DEFAULTS[name])
+        return Material(path=mat_path, model="preview", params=_readonly(params))
 
     def _constant_preview(self, mat_path: str, prim: Any) -> Material:
         """UsdPreviewSurface defaults overlaid by a foreign shader's constant preview inputs."""
@@ -154,6 +238,14 @@ class MaterialReader:
                     texture = self._read_texture(src_prim, out_name, mat_path)
                     if texture is not None:
                         textures[name] = texture
+                elif src_id in READER_WIDTH:  # evaluated on the bound gprim (`specialize`)
+                    reader = UsdShade.Shader(src_prim)
+                    width = READER_WIDTH[src_id]
+                    varname = str(self._input_value(reader, "varname", "") or "")
+                    fallback = self._input_value(reader, "fallback", None)
+                    fb = (np.zeros(width) if fallback is None else
+                          np.resize(np.asarray(fallback, np.float64).reshape(-1), width))
+                    self.primvar_inputs.setdefault(mat_path, {})[name] = (varname, width, fb)
                 else:
                     warn(self.warns,
                           f"material {mat_path}: input {name} of shader {prim.GetPath()} is "
@@ -290,7 +382,10 @@ def _bound(prim: Any, warns: list[str]) -> Any:
 def face_materials(prim: Any, n_faces: int, time: Any, index_of: Any, warns: list[str],
                     source: str) -> np.ndarray:
     """(F,) int32 material index per source polygon: GeomSubsets (familyName materialBind),
-    then the mesh's own binding (or the default material) for faces no subset covers."""
+    then the mesh's own binding (or the default material) for faces no subset covers.
+
+    index_of(material prim or None, mesh prim, face indices (n,)) -> (n,) int material index
+    of each of those faces (a material with primvar-driven inputs differs per face)."""
     from pxr import UsdGeom, UsdShade
 
     path = str(prim.GetPath())
@@ -307,8 +402,8 @@ def face_materials(prim: Any, n_faces: int, time: Any, index_of: Any, warns: lis
             raise AssetError(f"GeomSubset {sub_path}: face index {first} is out of range for "
                              f"{n_faces} faces of mesh {path}", path=source, prim=sub_path)
         if idx.size:
-            face_mat[idx] = index_of(_bound(subset.GetPrim(), warns))
-    rest = face_mat < 0
-    if rest.any():  # only materials some face uses enter the list
-        face_mat[rest] = index_of(_bound(prim, warns))
+            face_mat[idx] = index_of(_bound(subset.GetPrim(), warns), prim, idx)
+    rest = np.flatnonzero(face_mat < 0)
+    if rest.size:  # only materials some face uses enter the list
+        face_mat[rest] = index_of(_bound(prim, warns), prim, rest)
     return face_mat

@@ -45,9 +45,11 @@ referenced by a relative path (`./wall_small_albedo.png`), so both sizes of one 
 share a folder. Everything is seeded (`SEEDS`); rewriting a scene gives identical bytes.
 Files are written atomically (temp file in the same folder, then rename).
 
-texelbake's shader ids are unknown to a bare pxr: `texelbake.shaderdefs.
-register_shader_definitions()` (called when this module is imported) adds them to the Sdr
-registry, after which pxr's validators pass with no error on every scene.
+texelbake's shaders name their definition by source asset: `texelbake_shaders.usda`, written
+beside the layer (`texelbake.shaderdefs`), so a stock pxr that never imported texelbake
+validates every scene with no error. Lights author `inputs:normalize` and, for distant lights,
+`inputs:angle` explicitly (a distant light's intensity is then its irradiance at normal
+incidence, the UsdLux rule for a normalized distant light).
 
 Modules: `params` (the parameter table, `expected_counts`), `spec` (scene descriptions as
 arrays), one module per scene (`cylinder`, `wall`, `bolt`, `cloisonne`), `author` (USD

@@ -28,7 +28,16 @@ from texelbake.scenes.params import (
 )
 from texelbake.scenes.spec import LightSpec, MaterialSpec, MeshSpec, unit
 from texelbake.scenes.wall import build_wall
-from texelbake.shaderdefs import register_shader_definitions
+from texelbake.shaderdefs import (
+    ALL_SHADER_INPUTS,
+    author_shader,
+    input_type,
+    write_definitions,
+)
+
+#: the angular diameter the scenes' distant lights author (the Sun's, UsdLux's fallback);
+#: the renderer treats distant lights as directions (hard shadows)
+DISTANT_ANGLE_DEGREES = 0.53
 
 _BUILDERS = MappingProxyType(
     {"cylinder": build_cylinder, "wall": build_wall, "bolt": build_bolt, "cloisonne": build_cloisonne}
@@ -36,7 +45,10 @@ _BUILDERS = MappingProxyType(
 
 
 def _sdf_type(shader_id: str, input_name: str) -> Sdf.ValueTypeName:
-    """The Sdf type Sdr declares for an input (so the validator's type check agrees)."""
+    """The Sdf type the shader's definition declares for an input (so the validator's type
+    check agrees): texelbake's own definitions for its ids, Sdr's for UsdPreviewSurface."""
+    if shader_id in ALL_SHADER_INPUTS:
+        return input_type(shader_id, input_name)
     node = Sdr.Registry().GetShaderNodeByIdentifier(shader_id)
     prop = node.GetShaderInput(input_name) if node else None
     if prop is None:
@@ -74,8 +86,7 @@ def _author_material(stage: Usd.Stage, path: str, spec: MaterialSpec,
         preview.CreateInput(input_name, _sdf_type(SHADER_PREVIEW, input_name)).ConnectToSource(
             tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
     if spec.texelbake_id is not None:
-        own = UsdShade.Shader.Define(stage, f"{path}/TexelbakeSurface")
-        own.CreateIdAttr(spec.texelbake_id)
+        own = author_shader(stage, f"{path}/TexelbakeSurface", spec.texelbake_id)
         _set_inputs(own, spec.texelbake_id, spec.texelbake_inputs)
         material.CreateSurfaceOutput("texelbake").ConnectToSource(
             own.CreateOutput("surface", Sdf.ValueTypeNames.Token))
@@ -158,6 +169,12 @@ def _author_light(stage: Usd.Stage, path: str, spec: LightSpec, centre: np.ndarr
             UsdGeom.Boundable(light), Usd.TimeCode.Default()))
     light.CreateIntensityAttr(spec.intensity)
     light.CreateColorAttr(Gf.Vec3f(*spec.color))
+    # UsdLux units, authored explicitly (a reader must not depend on fallbacks): a normalized
+    # distant light's intensity is its irradiance at normal incidence; a sphere light's is
+    # its luminance (not divided by its area)
+    light.CreateNormalizeAttr(spec.kind == "distant")
+    if spec.kind == "distant":
+        light.CreateAngleAttr(DISTANT_ANGLE_DEGREES)
 
 
 def build_stage(name: str, size: str = "small") -> tuple[Usd.Stage, dict[str, np.ndarray]]:
@@ -167,7 +184,6 @@ def build_stage(name: str, size: str = "small") -> tuple[Usd.Stage, dict[str, np
     SettingsError for an unknown name or size.
     """
     check_scene(name, size)
-    register_shader_definitions()
     spec = _BUILDERS[name](SCENE_PARAMS[name][size], np.random.default_rng(SEEDS[name]))
     tex_files = {role: f"{name}_{size}_{role}.png" for role in sorted(spec.textures)}
 
@@ -222,10 +238,8 @@ def write_scene(name: str, path: str | Path, size: str = "small") -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     for file_name in sorted(textures):  # textures first: the layer must resolve them
         write_png(path.parent / file_name, textures[file_name])
+    write_definitions(path.parent)  # the texelbake shaders' definitions (texelbake.shaderdefs)
     with atomic_path(path) as tmp:
         if not stage.GetRootLayer().Export(str(tmp)):
             raise OSError(f"cannot write {path}")
     return path
-
-
-register_shader_definitions()

@@ -13,6 +13,8 @@ from texelbake.stages.avis import avis_levels, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
+from texelbake.stages.filtered import fallback_maps, filtered_levels
+from texelbake.stages.srf import export_srf
 
 
 def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = None,
@@ -42,12 +44,18 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, m1_frames,
         geo["sample_m1_prim"],
     )
+    filtered = filtered_levels(ctx)  # the filtered baseline maps of every level (issue 21)
+    fallback = fallback_maps(ctx, filtered)
     meshes = [payload.LodMesh(geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"])]
     i = 2
     while f"m{i}_vertices" in geo:
         meshes.append(payload.LodMesh(geo[f"m{i}_vertices"], geo[f"m{i}_faces"],
                                       geo[f"m{i}_corner_uvs"]))
         i += 1
+    from texelbake.deform.impostor import impostor_params
+
+    for m in meshes:  # seed 002 Table 1 on every vertex of M1..Mn
+        m.impostor = impostor_params(m.vertices, m.faces, m.corner_uvs).as_arrays()
     name = ctx.asset_path.stem
     skipped = list(plan.skipped) if plan is not None else []
     report = {
@@ -61,6 +69,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "surface_area": float(geo["sample_area"].sum()),
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "stage_seconds": dict(stage_seconds or {}),
+        "fallback_levels": fallback["levels"],
         "warnings": [
             f"level {r['level']}: {r['avis']['texels_above_tolerance']} of "
             f"{r['avis']['ray_texels']} ray-traced texels have a compressed a_vis table more "
@@ -88,10 +97,13 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
                     [["lambert", "preview", "phong", "merl", "cellular"].index(m.model)
                      for m in asset.materials], np.int32)},
         meshes=meshes, albedo=albedo, normal=normal, metadata=metadata,
+        filtered=filtered, fallback=fallback,
     )
     author_extra = None
     if s.btf:
         author_extra = export_btf(ctx, out_dir, report)
+    if s.srf:
+        export_srf(ctx, out_dir, report)
     source_copy = payload.copy_source(
         ctx.asset_path, check_asset_paths(ctx.asset_path), out_dir / "source"
     )

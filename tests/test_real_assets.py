@@ -1,0 +1,99 @@
+"""Assets as studios ship them (issue 11, item 4): the Teapot (layered, variants, payload,
+primvar-reader colour, no lights, no camera) and BoxAnimated.usdz (a package with time-sampled
+transforms), from `../shared/assets/`, bake end to end, pass stock validation and preview lit
+in every mode. Nothing here is tuned to these files: expected values are read from the asset
+with pxr in the test, and the checks are the ones any asset must pass."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.test_usd_interop import stock_errors
+
+ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"
+CASES = {"teapot": ASSETS / "Teapot" / "Teapot.usd", "box": ASSETS / "BoxAnimated.usdz"}
+
+
+def _asset(name: str) -> Path:
+    path = CASES[name]
+    if not path.is_file():
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"{path} is missing (shared/ must sit beside the clone)")
+        pytest.skip(f"{path} is not here")
+    return path
+
+
+@pytest.fixture(scope="module", params=sorted(CASES))
+def baked(request, tmp_path_factory):
+    from schemas.settings import BakeSettings
+    from texelbake.pipeline import bake
+
+    src = _asset(request.param)
+    out = tmp_path_factory.mktemp(request.param)
+    settings = BakeSettings(samples_per_texel=8, n_light_dirs=8, n_view_dirs=8, n_heldout=16,
+                            c_max=8, previews=True)
+    return request.param, src, bake(src, out / "baked", settings, progress=False)
+
+
+def test_bakes_and_passes_stock_validation(baked):
+    _, _, root = baked
+    assert stock_errors(root) == {str(root): []}
+
+
+def test_previews_of_every_mode_are_lit(baked):
+    from texelbake.imageio import read_image
+
+    _, _, root = baked
+    previews = root.parent / "previews"
+    report = json.loads((previews / "render_report.json").read_text())
+    ref = read_image(previews / "gt_reference.exr")[..., :3]
+    lit = ref.sum(axis=2) > 0
+    assert lit.mean() > 0.01, "the reference shows nothing"
+    assert report.get("default_lights")  # lightless assets: the default rig, named
+    for mode in ("gt", "cpm", "normalmap", "equal-time"):
+        img = read_image(previews / f"{mode}.exr")[..., :3]
+        assert np.isfinite(img).all(), mode
+    for mode in ("gt", "cpm", "equal-time"):  # modes whose outline is M_org's
+        img = read_image(previews / f"{mode}.exr")[..., :3]
+        assert (img.sum(axis=2)[lit] > 0).mean() > 0.9, mode
+
+
+@pytest.mark.xfail(strict=True, reason="issue 22: at the default 16² atlas, M1 is sized by "
+                   "the atlas, not by a geometric error bound, and misses most of the object")
+def test_lod_modes_cover_the_object(baked):
+    from texelbake.imageio import read_image
+
+    name, _, root = baked
+    if name != "teapot":
+        pytest.skip("measured on the Teapot")
+    previews = root.parent / "previews"
+    lit = read_image(previews / "gt_reference.exr")[..., :3].sum(axis=2) > 0
+    img = read_image(previews / "normalmap.exr")[..., :3]
+    assert (img.sum(axis=2)[lit] > 0).mean() > 0.9
+
+
+def test_teapot_colour_comes_from_its_display_color_primvar(baked):
+    name, src, root = baked
+    if name != "teapot":
+        pytest.skip("the Teapot's material reads displayColor")
+    from pxr import Usd, UsdGeom, UsdShade
+
+    from texelbake.payload import read_baked
+
+    stage = Usd.Stage.Open(str(src))
+    meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)
+              and UsdGeom.Imageable(p).ComputeVisibility() != UsdGeom.Tokens.invisible]
+    mat, _ = UsdShade.MaterialBindingAPI(meshes[0]).ComputeBoundMaterial()
+    assert mat, "the Teapot binds a material"
+    color = np.asarray(UsdGeom.PrimvarsAPI(meshes[0]).FindPrimvarWithInheritance(
+        "displayColor").ComputeFlattened()[0], dtype=np.float64)
+    albedo = read_baked(root).albedo  # (N, N, 3) linear, texels outside charts are dilated
+    covered = albedo.reshape(-1, 3)
+    covered = covered[covered.sum(axis=1) > 0]
+    # every baked texel carries the primvar's colour (one material, one constant value)
+    np.testing.assert_allclose(np.median(covered, axis=0), color, atol=0.02)
