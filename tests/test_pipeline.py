@@ -201,7 +201,14 @@ def test_payload_round_trip_and_report(cylinder_bake):
     report = json.loads((root.parent / "report.json").read_text())
     n_levels = settings.atlas_resolution.bit_length()
     assert len(baked.levels) == len(report["levels"]) == n_levels
-    assert len(baked.meshes) == settings.mesh_levels
+    # the LOD chain (issue 22): as many LODs as the report lists, each within its bound
+    # (pymeshlab's two-sided Hausdorff distance), and a reason when the chain stopped early
+    lods = report["lods"]["levels"]
+    assert 1 <= len(baked.meshes) == len(lods) <= settings.mesh_levels
+    for mesh, lod in zip(baked.meshes, lods, strict=True):
+        assert lod["triangles"] == mesh.faces.shape[0]
+        assert lod["hausdorff"] <= lod["bound"] and lod["within_bound"]
+    assert (len(lods) < settings.mesh_levels) == bool(report["lods"]["stopped"])
     for lvl, level in enumerate(baked.levels):
         n_l = settings.atlas_resolution >> lvl
         assert level["texel_offsets"].shape == (n_l * n_l + 1,)
@@ -214,7 +221,7 @@ def test_payload_round_trip_and_report(cylinder_bake):
     stage = Usd.Stage.Open(str(root), Usd.Stage.LoadNone)
     prim = stage.GetDefaultPrim()
     vs = prim.GetVariantSets().GetVariantSet("LOD")
-    assert vs.GetVariantNames() == [f"LOD{i}" for i in range(settings.mesh_levels + 1)]
+    assert vs.GetVariantNames() == [f"LOD{i}" for i in range(len(baked.meshes) + 1)]
     assert not stage.GetPrimAtPath(prim.GetPath().AppendPath("Baked/CPM")).IsValid()
     # the asset as authored by default (clients without a variant picker), and an
     # extentsHint that holds with payloads unloaded and covers whichever LOD is selected

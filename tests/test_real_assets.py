@@ -63,8 +63,6 @@ def test_previews_of_every_mode_are_lit(baked):
         assert (img.sum(axis=2)[lit] > 0).mean() > 0.9, mode
 
 
-@pytest.mark.xfail(strict=True, reason="issue 22: at the default 16² atlas, M1 is sized by "
-                   "the atlas, not by a geometric error bound, and misses most of the object")
 def test_lod_modes_cover_the_object(baked):
     from texelbake.imageio import read_image
 

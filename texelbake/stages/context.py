@@ -22,6 +22,7 @@ from texelbake.store import ArtifactStore, file_sha256
 LAYOUT_ONLY = {"shard_texels", "previews"}
 GEOMETRY_FIELDS = (
     "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",
+    "enclose_meshes", "m1_method", "lod_mode", "lod_switch_px", "lod_error_px",
 )
 _TAG_LIGHT, _TAG_VIEW, _TAG_HELD_I, _TAG_HELD_O = 0x11, 0x22, 0x33, 0x44
 

@@ -9,6 +9,7 @@ import numpy as np
 
 from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
+from texelbake.geometry.build import lod_meshes, lod_report
 from texelbake.stages.avis import avis_levels, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
@@ -36,18 +37,28 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         levels.append(arrays)
         level_reports.append(rep)
     dirs = direction_sets(s)
-    m1_frames = face_tangent_space(geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"])
+    meshes = [payload.LodMesh(v, f, uv) for v, f, uv in lod_meshes(geo)]
+    # the normal map is in the tangent frames of the mesh that carries it, LOD1 (whose faces
+    # are M_T's unless LOD1 is too fine for the atlas: then each sample's closest LOD1 face)
+    if bool(geo["lod_exact"]):
+        frames_mesh, sample_prim = meshes[0], geo["sample_m1_prim"]
+    else:
+        from texelbake.geometry.raycast import RayCaster
+
+        frames_mesh = meshes[0]
+        _, sample_prim, _ = RayCaster(frames_mesh.vertices, frames_mesh.faces).closest_points(
+            geo["sample_pos"])
+    lod1_frames = face_tangent_space(frames_mesh.vertices, frames_mesh.faces,
+                                     frames_mesh.corner_uvs)
     albedo, normal, _ = bake_preview_maps(
         s.atlas_resolution, texel_ids(geo, s.atlas_resolution, 0), geo["sample_area"],
-        geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, m1_frames,
-        geo["sample_m1_prim"],
+        geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, lod1_frames,
+        sample_prim,
     )
-    meshes = [payload.LodMesh(geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"])]
-    i = 2
-    while f"m{i}_vertices" in geo:
-        meshes.append(payload.LodMesh(geo[f"m{i}_vertices"], geo[f"m{i}_faces"],
-                                      geo[f"m{i}_corner_uvs"]))
-        i += 1
+    extra_arrays = {}
+    if not bool(geo["lod_exact"]):  # the CPM's atlas mesh M_T is not LOD1: the renderer needs it
+        extra_arrays = {"atlas_vertices": geo["m1_vertices"], "atlas_faces": geo["m1_faces"],
+                        "atlas_corner_uvs": geo["m1_corner_uvs"]}
     name = ctx.asset_path.stem
     skipped = list(plan.skipped) if plan is not None else []
     report = {
@@ -59,6 +70,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "samples": int(len(geo["sample_area"])),
         "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
         "surface_area": float(geo["sample_area"].sum()),
+        "lods": lod_report(geo),
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "stage_seconds": dict(stage_seconds or {}),
         "warnings": [
@@ -86,7 +98,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
                 "heldout_i": dirs["held_i"], "heldout_o": dirs["held_o"],
                 "material_model": np.array(
                     [["lambert", "preview", "phong", "merl", "cellular"].index(m.model)
-                     for m in asset.materials], np.int32)},
+                     for m in asset.materials], np.int32), **extra_arrays},
         meshes=meshes, albedo=albedo, normal=normal, metadata=metadata,
     )
     author_extra = None
