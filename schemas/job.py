@@ -74,6 +74,12 @@ class JobPublic(BaseModel):
     finished_at: datetime | None = None
     seconds: float | None = None
     previews: list[str] = Field(default_factory=list, description="Names under .../previews/.")
+    outcome: Literal["completed", "completed with warnings"] | None = Field(
+        None, description="A succeeded job's quality gate (texelbake.quality): 'completed with "
+        "warnings' when the bake missed a target, listed in `warnings`; null before success.")
+    warnings: list[str] = Field(
+        default_factory=list, description="Each missed quality target, naming the LOD or CPM "
+        "level (the same list `texelbake bake` prints when it exits with status 3).")
 
 
 class JobSummary(BaseModel):

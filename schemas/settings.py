@@ -12,6 +12,11 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+#: quality-gate defaults (texelbake.quality; measured in docs/decisions.md, 2026-11-25)
+GATE_SNR_MEDIAN_DB = 10.0
+GATE_SNR_P5_DB = -10.0
+GATE_AVIS_REL_ERROR = 0.25
+
 
 class BakeSettings(BaseModel):
     """Settings of one bake. Field docs cite the seed each knob comes from."""
@@ -86,6 +91,19 @@ class BakeSettings(BaseModel):
     # visible projected area (seed 000 §3.4)
     avis_resolution: int = Field(16, ge=2, le=256, description="Cube-map face resolution.")
     avis_keep_fraction: float = Field(0.06, gt=0.0, le=1.0, description="Haar coefficients kept.")
+    # quality gate (issue 22, item 2; texelbake.quality): targets, not inputs of any stage
+    gate_snr_median_db: float = Field(
+        GATE_SNR_MEDIAN_DB, ge=-200.0, le=200.0,
+        description="Each CPM level's held-out SNR median (dB) must reach this.",
+    )
+    gate_snr_p5_db: float = Field(
+        GATE_SNR_P5_DB, ge=-200.0, le=200.0,
+        description="Each CPM level's held-out SNR 5th percentile (dB) must reach this.",
+    )
+    gate_avis_rel_error: float = Field(
+        GATE_AVIS_REL_ERROR, gt=0.0, le=10.0,
+        description="Each CPM level's a_vis relative L2 error (compressed) must stay below this.",
+    )
     # farm
     shard_texels: int = Field(8, ge=1, le=4096, description="Tile side (finest texels) of a shard.")
     # optional stages

@@ -95,3 +95,23 @@ def test_teapot_colour_comes_from_its_display_color_primvar(baked):
     covered = covered[covered.sum(axis=1) > 0]
     # every baked texel carries the primvar's colour (one material, one constant value)
     np.testing.assert_allclose(np.median(covered, axis=0), color, atol=0.02)
+
+
+def test_lods_keep_the_shape_within_their_bounds(baked):
+    # issue 22: each LOD within error_px pixels at its switch size of M_org (the report's
+    # pymeshlab distance), so its bounding box is within that bound of M_org's; a LOD1 too
+    # fine for the 16² atlas is mapped into an atlas mesh stored beside the CPM arrays
+    from texelbake.payload import read_baked
+    from texelbake.scene import load_asset
+
+    _, src, root = baked
+    report = json.loads((root.parent / "report.json").read_text())
+    asset = load_asset(src)
+    lo, hi = asset.points.min(axis=0), asset.points.max(axis=0)
+    data = read_baked(root)
+    for mesh, lod in zip(data.meshes, report["lods"]["levels"], strict=True):
+        assert lod["within_bound"] and lod["hausdorff"] <= lod["bound"]
+        assert np.abs(mesh.vertices.min(axis=0) - lo).max() <= lod["bound"]
+        assert np.abs(mesh.vertices.max(axis=0) - hi).max() <= lod["bound"]
+    separate = not report["lods"]["atlas_mesh"]["is_lod1"]
+    assert separate == ("atlas_vertices" in data.arrays)

@@ -19,7 +19,8 @@ from texelbake.model import AssetModel
 from texelbake.store import ArtifactStore, file_sha256
 
 #: settings that change no stage output (farm layout and optional downstream stages)
-LAYOUT_ONLY = {"shard_texels", "previews"}
+LAYOUT_ONLY = {"shard_texels", "previews", "gate_snr_median_db", "gate_snr_p5_db",
+               "gate_avis_rel_error"}  # the gate's targets are re-checked on every export
 GEOMETRY_FIELDS = (
     "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",
     "enclose_meshes", "m1_method", "lod_mode", "lod_switch_px", "lod_error_px",

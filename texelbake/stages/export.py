@@ -10,6 +10,7 @@ import numpy as np
 from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
 from texelbake.geometry.build import lod_meshes, lod_report
+from texelbake.quality import quality_gate
 from texelbake.stages.avis import avis_levels, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
@@ -109,6 +110,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     )
     root = payload.write_baked_asset(out_dir, source_copy, baked, list(asset.mesh_paths),
                                      author_extra=author_extra)
+    report["quality"] = quality_gate(report, s)
     payload.atomic_json(out_dir / "report.json", report)
     return root
 
@@ -127,7 +129,12 @@ def run_export(ctx: StageContext, shard: int = 0) -> str:
     """The farm's export: write the bundle under the store (`result/`) and return its key."""
     key = ctx.key("export", "result")
     out = ctx.store.path(key)
-    if (out / "report.json").is_file():
+    if (out / "report.json").is_file():  # the same bake: only the gate's targets may differ
+        from texelbake import payload
+
+        report = json.loads((out / "report.json").read_text())
+        report["quality"] = quality_gate(report, ctx.settings)
+        payload.atomic_json(out / "report.json", report)
         return key
     export_to(ctx, out)
     return key
