@@ -115,3 +115,74 @@ def test_lods_keep_the_shape_within_their_bounds(baked):
         assert np.abs(mesh.vertices.max(axis=0) - hi).max() <= lod["bound"]
     separate = not report["lods"]["atlas_mesh"]["is_lod1"]
     assert separate == ("atlas_vertices" in data.arrays)
+
+
+def _visible_meshes(stage) -> list[str]:
+    from pxr import Usd, UsdGeom
+
+    return sorted(str(p.GetPath()) for p in stage.Traverse(Usd.TraverseInstanceProxies())
+                  if p.IsA(UsdGeom.Mesh)
+                  and UsdGeom.Imageable(p).ComputeVisibility() != UsdGeom.Tokens.invisible)
+
+
+def test_payloads_unloaded_show_the_proxy_and_loaded_hide_it(baked):
+    # issue 22, item 3: the coarsest LOD, purpose proxy, outside the payload
+    from pxr import Usd, UsdGeom
+
+    from texelbake.payload import read_baked
+
+    _, src, root = baked
+    unloaded = Usd.Stage.Open(str(root), Usd.Stage.LoadNone)
+    top = unloaded.GetDefaultPrim().GetPath()
+    proxy = unloaded.GetPrimAtPath(top.AppendPath("Proxy"))
+    source = Usd.Stage.Open(str(src), Usd.Stage.LoadNone)
+    if source.GetDefaultPrim().HasPayload():
+        # the source's root is a payload (the Teapot): so is the baked root, nothing below it
+        # is traversed unloaded; clients size it by its extentsHint (test_pipeline: every LOD)
+        assert not unloaded.GetDefaultPrim().IsLoaded() and not _visible_meshes(unloaded)
+        assert UsdGeom.ModelAPI(unloaded.GetDefaultPrim()).GetExtentsHint()
+        return
+    assert proxy.IsA(UsdGeom.Mesh)
+    assert UsdGeom.Imageable(proxy).ComputePurpose() == UsdGeom.Tokens.proxy
+    assert str(proxy.GetPath()) in _visible_meshes(unloaded)
+    points = np.asarray(UsdGeom.Mesh(proxy).GetPointsAttr().Get(), dtype=np.float64)
+    np.testing.assert_allclose(points, read_baked(root).meshes[-1].vertices, atol=1e-6)
+    # loaded, a renderer (default and render purposes) sees the original (LOD0), no proxy
+    loaded = Usd.Stage.Open(str(root), Usd.Stage.LoadAll)
+    rendered = [p for p in _visible_meshes(loaded) if UsdGeom.Imageable(
+        loaded.GetPrimAtPath(p)).ComputePurpose() != UsdGeom.Tokens.proxy]
+    assert rendered and not any("/Baked/" in p or p.endswith("/Proxy") for p in rendered)
+
+
+def test_another_asset_variant_never_shows_the_bake(baked):
+    name, src, root = baked
+    from pxr import Usd
+
+    opened = Usd.Stage.Open(str(root))
+    selections = opened.GetRootLayer().customLayerData["texelbake"]["variantSelections"]
+    source = Usd.Stage.Open(str(src))
+    want = {str(p.GetPath()): {n: p.GetVariantSets().GetVariantSet(n).GetVariantSelection()
+                               for n in p.GetVariantSets().GetNames()}
+            for p in source.TraverseAll() if p.GetVariantSets().GetNames()}
+    assert selections == want  # recorded as the bake read them
+    if name != "teapot":
+        assert want == {}
+        return
+    stage = Usd.Stage.Open(str(root))
+    top = stage.GetDefaultPrim()
+    lod = top.GetVariantSets().GetVariantSet("LOD")
+    lod.SetVariantSelection("LOD1")
+    assert [p for p in _visible_meshes(stage) if "/Baked/" in p] == [
+        f"{top.GetPath()}/Baked/LOD1"]
+    assert f"{top.GetPath()}/Geometry" not in _visible_meshes(stage)
+    model = top.GetVariantSets().GetVariantSet("modelVariant")
+    assert model.GetVariantSelection() == want[str(top.GetPath())]["modelVariant"]
+    baked_for = model.GetVariantSelection()
+    for other in model.GetVariantNames():
+        if other == baked_for:
+            continue
+        model.SetVariantSelection(other)
+        visible = _visible_meshes(stage)
+        # the other variant as authored: its own meshes, no baked LOD, whatever LOD says
+        assert not any("/Baked" in p or p.endswith("/Proxy") for p in visible), (other, visible)
+        assert f"{top.GetPath()}/Geometry" in visible, (other, visible)

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
 
+from texelbake import bakedvariants
 from texelbake.atomic import atomic_write_bytes, replace
 from texelbake.errors import AssetError, ShapeError
 from texelbake.model import SHADER_CPM
@@ -285,7 +286,19 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     # the asset as authored by default: a client without a variant picker (Blender's
     # importer) shows the original, not a LOD it did not ask for
     vset.SetVariantSelection("LOD0")
-    stage.GetRootLayer().customLayerData = {"texelbake": _plain_json(baked.metadata)}
+    # issue 22 (texelbake.bakedvariants): a proxy outside the payload, the asset variant
+    # selections the bake was made for, and other asset variants shown as authored
+    selections = bakedvariants.source_variant_selections(source_copy)
+    if n_lod:
+        bakedvariants.author_proxy(stage, root_name, baked.meshes[-1].vertices,
+                                   baked.meshes[-1].faces)
+        bakedvariants.author_variant_guard(
+            stage, root.GetPrim(), selections.get(str(default_root), {}),
+            bakedvariants.variant_names(source_copy, str(default_root)),
+            [Sdf.Path(f"/{root_name}").AppendPath(Sdf.Path(mp).MakeRelativePath(default_root))
+             for mp in original_mesh_paths])
+    stage.GetRootLayer().customLayerData = {"texelbake": _plain_json(
+        {**baked.metadata, "variantSelections": selections})}
     if n_lod:  # with payloads unloaded, clients size the asset by this: every LOD inside it
         lo, hi = _lod_extent(stage, root.GetPrim(), vset, n_lod)
         UsdGeom.ModelAPI(root.GetPrim()).SetExtentsHint(
