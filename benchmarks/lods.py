@@ -33,7 +33,7 @@ FAST = {"samples_per_texel": 8, "n_light_dirs": 8, "n_view_dirs": 8, "n_heldout"
 
 def run(asset: str, src: Path, out: Path, settings: BakeSettings) -> list[dict]:
     t0 = time.perf_counter()
-    root = bake(src, out, settings, progress=False)
+    root = bake(src, out, settings, progress=False, workdir=out.with_name(out.name + "_work"))
     total = time.perf_counter() - t0
     report = json.loads((root.parent / "report.json").read_text())
     lods = report["lods"]

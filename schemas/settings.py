@@ -13,9 +13,9 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 #: quality-gate defaults (texelbake.quality; measured in docs/decisions.md, 2026-11-25)
-GATE_SNR_MEDIAN_DB = 10.0
-GATE_SNR_P5_DB = -10.0
-GATE_AVIS_REL_ERROR = 0.25
+GATE_SNR_MEDIAN_DB = 0.0
+GATE_SNR_P5_DB = -6.0
+GATE_AVIS_REL_ERROR = 0.15
 
 
 class BakeSettings(BaseModel):

@@ -105,5 +105,37 @@ def test_bad_requests_name_the_field_and_write_nothing(baked, tmp_path):
     with pytest.raises(SettingsError, match="'output'"):
         export_lod(baked, 1, tmp_path / "x.obj")
     with pytest.raises(AssetError, match="LOD variant set"):
-        export_lod(baked.parent / "source" / "cylinder.usda", 1, tmp_path / "x.usdc")
+        export_lod(baked.parent.parent / "cylinder.usda", 1, tmp_path / "x.usdc")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_output_folder_holds_the_result_only(baked, tmp_path):
+    # issue 22, item 4: root, payload, maps, report (and the shader definitions the layers
+    # name); the artifact store lives elsewhere and the source is referenced where it lies
+    from pxr import Usd
+
+    names = sorted(p.name for p in baked.parent.iterdir())
+    assert names == ["cylinder_albedo.png", "cylinder_baked.usda", "cylinder_normal.png",
+                     "cylinder_payload.usdc", "report.json", "texelbake_shaders.usda"]
+    stage = Usd.Stage.Open(str(baked))
+    refs = stage.GetRootLayer().GetPrimAtPath("/Cylinder").referenceList.prependedItems
+    assert [r.assetPath for r in refs] == ["./../cylinder.usda"]
+
+
+def test_packed_usdz_carries_the_source_and_passes_stock_validation(baked, tmp_path):
+    import shutil
+
+    from texelbake.payload import pack_usdz
+
+    # a copy of the result beside a copy of its source, so the package is written there
+    (tmp_path / "out").mkdir()
+    for f in baked.parent.iterdir():
+        shutil.copyfile(f, tmp_path / "out" / f.name)
+    shutil.copyfile(baked.parent.parent / "cylinder.usda", tmp_path / "cylinder.usda")
+    shutil.copyfile(baked.parent.parent / "texelbake_shaders.usda",
+                    tmp_path / "texelbake_shaders.usda")
+    packed = pack_usdz(tmp_path / "out" / baked.name)
+    (tmp_path / "cylinder.usda").unlink()  # the package alone
+    got = _inspect(packed)
+    assert "/Cylinder/Geom/RidgedCylinder" in got["meshes"]  # LOD0, from the packed source
+    assert got["errors"] == []

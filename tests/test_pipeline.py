@@ -17,7 +17,7 @@ from texelbake.cpm.avis.table import avis_table_from
 from texelbake.frames import tangent_frames
 from texelbake.geometry.raycast import RayCaster
 from texelbake.payload import read_baked
-from texelbake.pipeline import bake, plan_bake
+from texelbake.pipeline import bake, default_workdir, plan_bake
 from texelbake.scene import load_asset
 from texelbake.scenes import write_scene
 
@@ -143,7 +143,10 @@ def test_reported_snr_matches_brute_force(cylinder_bake):
     asset = load_asset(src)
     caster = RayCaster(asset.points, asset.faces)
     level = baked.levels[0]
-    geo = np.load(next((root.parent / ".work").rglob("geometry.npz")))
+    from texelbake.stages import StageContext
+
+    ctx = StageContext.create(default_workdir(), src, settings)
+    geo = ctx.geometry()
     n = settings.atlas_resolution
     tex0 = geo["sample_row"] * n + geo["sample_col"]
     wi_t, wo_t = baked.arrays["dirs_i"], baked.arrays["dirs_o"]

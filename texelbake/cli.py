@@ -98,8 +98,13 @@ def cmd_bake(args: argparse.Namespace) -> int:
 
     settings = _settings(args)
     root = bake(Path(args.file), Path(args.output), settings, progress=not args.quiet,
-                jobs=args.jobs)
+                jobs=args.jobs, workdir=Path(args.workdir) if args.workdir else None,
+                source="copy" if args.copy_source else "reference")
     _print_summary(root)
+    if args.usdz:
+        from texelbake.payload import pack_usdz
+
+        print(f"packed: {pack_usdz(root)}")
     return _quality_status(root, args.accept_below_target)
 
 
@@ -249,6 +254,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1,
                    help="processes for the sharded stages (default: all cores)")
+    p.add_argument("--workdir", default=None,
+                   help="artifact store (default $TEXELBAKE_WORKDIR or ~/.cache/texelbake); "
+                        "the output folder holds the result only")
+    p.add_argument("--copy-source", action="store_true",
+                   help="copy the source and its files into OUTPUT/source (default: reference "
+                        "the source where it lies)")
+    p.add_argument("--usdz", action="store_true",
+                   help="also pack the result with its source into OUTPUT/<name>_baked.usdz")
     p.add_argument("--accept-below-target", action="store_true",
                    help="exit 0 even when the bake misses a quality target (exit status 3 "
                         "otherwise, naming each LOD or CPM level that missed)")

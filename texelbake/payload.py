@@ -204,6 +204,21 @@ def copy_source(source_layer: Path, dependencies: list[str], dest: Path) -> Path
     return dest / Path(source_layer).resolve().relative_to(src_root)
 
 
+def pack_usdz(root_layer: Path) -> Path:
+    """The baked result with everything it references (the source where it lies, payload,
+    maps, shader definitions) in one `<root stem>.usdz` beside it (UsdUtils' packager,
+    which rewrites the asset paths into the package). Returns the package path."""
+    from pxr import UsdUtils
+
+    root_layer = Path(root_layer)
+    out = root_layer.with_suffix(".usdz")
+    tmp = out.with_name(f".{out.stem}.tmp.usdz")
+    if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(root_layer)), str(tmp)):
+        raise AssetError("could not pack the baked result into a .usdz", path=str(out))
+    replace(tmp, out)
+    return out
+
+
 def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
                       original_mesh_paths: list[str], *,
                       author_extra: Callable[[Usd.Stage], None] | None = None) -> Path:

@@ -201,28 +201,32 @@ def _within(cand, bound: float) -> bool:
 
 def _search(ev: _Evaluator, prev: Mesh, bound: float, level: int):
     """The smallest collapse of `prev` within `bound`: (mesh, d_lo, d_ol, enclosed) or None
-    when not even KEEP_FRACTION of prev's faces stays within it."""
-    hi = max(MIN_FACES, math.floor(KEEP_FRACTION * prev.num_faces))
+    when no collapse to at most KEEP_FRACTION of prev's faces stays within it. A collapse with
+    locked boundaries may stop above its target (`hierarchy._decimate` redoes it unlocked only
+    past 1.5x), so the targets are bisected and the result judged by its actual faces."""
+    keep = math.floor(KEEP_FRACTION * prev.num_faces)
+    hi = max(MIN_FACES, keep)
     if hi >= prev.num_faces:
         return None
     best = ev.collapse(prev, hi, level, bound)
-    # a collapse with locked boundaries may stop above its target: it must still reduce
-    if not _within(best, bound) or best[0].num_faces > hi:
+    if not _within(best, bound):
         return None
     lo = MIN_FACES
     low = ev.collapse(prev, lo, level, bound)
     if _within(low, bound):
-        return low
+        best, hi = low, lo
     while hi / lo > SEARCH_RATIO:  # a bisection over the face count (log space), ~8 steps
         mid = int(round(math.sqrt(hi * lo)))
         if mid in (hi, lo):
             break
         cand = ev.collapse(prev, mid, level, bound)
         if _within(cand, bound):
-            hi, best = mid, cand
+            hi = mid
+            if cand[0].num_faces < best[0].num_faces:
+                best = cand
         else:
             lo = mid
-    return best
+    return best if best[0].num_faces <= keep else None
 
 
 def _parts(mesh: Mesh) -> int:

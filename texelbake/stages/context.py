@@ -19,7 +19,9 @@ from texelbake.model import AssetModel
 from texelbake.store import ArtifactStore, file_sha256
 
 #: settings that change no stage output (farm layout and optional downstream stages)
-LAYOUT_ONLY = {"shard_texels", "previews", "gate_snr_median_db", "gate_snr_p5_db",
+#: (shard_texels changes no result but does name the tile artifacts: it is part of their key,
+#: so bakes of one asset with different tilings can share a store, issue 22's default store)
+LAYOUT_ONLY = {"previews", "gate_snr_median_db", "gate_snr_p5_db",
                "gate_avis_rel_error"}  # the gate's targets are re-checked on every export
 GEOMETRY_FIELDS = (
     "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",

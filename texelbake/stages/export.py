@@ -18,8 +18,14 @@ from texelbake.stages.cpm import cpm_levels
 
 
 def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = None,
-              plan=None) -> Path:
-    """Write the baked USD bundle and report.json into out_dir (the export stage)."""
+              plan=None, source: str = "copy") -> Path:
+    """Write the baked USD bundle and report.json into out_dir (the export stage).
+    source : "copy" (the source and its files under out_dir/source: the farm's downloadable
+    result) or "reference" (the source referenced where it lies, issue 22)."""
+    if source not in ("copy", "reference"):
+        from texelbake.errors import SettingsError
+
+        raise SettingsError(f"field 'source': expected 'copy' or 'reference', got {source!r}")
     from texelbake import payload
     from texelbake.normalmap import bake_preview_maps, face_tangent_space
     from texelbake.scene import check_asset_paths
@@ -105,9 +111,12 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     author_extra = None
     if s.btf:
         author_extra = export_btf(ctx, out_dir, report)
-    source_copy = payload.copy_source(
-        ctx.asset_path, check_asset_paths(ctx.asset_path), out_dir / "source"
-    )
+    if source == "copy":
+        source_copy = payload.copy_source(
+            ctx.asset_path, check_asset_paths(ctx.asset_path), out_dir / "source"
+        )
+    else:
+        source_copy = ctx.asset_path
     root = payload.write_baked_asset(out_dir, source_copy, baked, list(asset.mesh_paths),
                                      author_extra=author_extra)
     report["quality"] = quality_gate(report, s)
