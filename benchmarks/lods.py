@@ -48,6 +48,7 @@ def run(asset: str, src: Path, out: Path, settings: BakeSettings) -> list[dict]:
             "bake_seconds": round(total, 3),
             "atlas_is_lod1": lods.get("atlas_mesh", {}).get("is_lod1"),
             "stopped": lods.get("stopped", ""),
+            "quality_missed": report.get("quality", {}).get("missed", []),
         })
     return rows
 
@@ -89,6 +90,9 @@ def main() -> None:
     for r in rows:
         if r["lod"] == 1 and r["stopped"]:
             print(f"{r['asset']}: {r['stopped']}")
+        if r["lod"] == 1:
+            missed = r["quality_missed"]
+            print(f"{r['asset']}: quality gate {'missed: ' + '; '.join(missed) if missed else 'passed'}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"mode": args.mode, "fast": args.fast,

@@ -186,3 +186,36 @@ def test_another_asset_variant_never_shows_the_bake(baked):
         # the other variant as authored: its own meshes, no baked LOD, whatever LOD says
         assert not any("/Baked" in p or p.endswith("/Proxy") for p in visible), (other, visible)
         assert f"{top.GetPath()}/Geometry" in visible, (other, visible)
+
+
+def test_lod_faces_across_atlas_seams_take_the_atlas_mesh_uv(baked):
+    # issue 22, UV seams across the chain: a LOD face whose corners map into different charts
+    # of the atlas (on the atlas mesh M_T) cannot interpolate its corner uvs; the renderer
+    # looks its hits up on M_T instead. Checked against a brute-force closest point over
+    # every M_T triangle (numpy, not Embree).
+    from texelbake.geometry.closest import closest_point_on_triangles
+    from texelbake.render import camera as cam_mod
+    from texelbake.render.camera import eye_rays, sample_offsets
+    from texelbake.render.scene import hit_m1, load_scene
+
+    name, _, root = baked
+    scene = load_scene(root)
+    if not scene.atlas_separate:
+        pytest.skip(f"{name}: LOD1 is the atlas mesh, every face exact")
+    cam = cam_mod.auto_frame(scene.asset.bounds, 48, 48)
+    o, d = eye_rays(cam, sample_offsets(1, cam.width * cam.height, 0, 0, 1))
+    _, _, prim, p, uv, _, _ = hit_m1(scene, o, d)
+    inexact = ~scene.lod_uv_exact[0][prim]
+    assert inexact.any() and (~inexact).any()
+    v, f, cuv = scene.atlas_arrays
+    pts, got = p[inexact][:200], uv[inexact][:200]
+    n, k = len(pts), len(f)  # M_T is small: every (point, triangle) pair at once
+    q = np.repeat(pts, k, axis=0)
+    a, b, c = (np.tile(v[f][:, j], (n, 1)) for j in range(3))
+    cp, bary = closest_point_on_triangles(q, a, b, c)
+    dist = np.linalg.norm(cp - q, axis=1).reshape(n, k)
+    uvs = np.einsum("nk,nkj->nj", bary, np.tile(cuv, (n, 1, 1))).reshape(n, k, 2)
+    # the uv of a closest triangle (ties: a point on an edge between two charts has two)
+    tie = dist <= dist.min(axis=1, keepdims=True) * (1 + 1e-6) + 1e-9
+    match = (np.abs(uvs - got[:, None, :]).max(axis=2) < 1e-5) & tie
+    assert match.any(axis=1).all()
