@@ -188,3 +188,29 @@ def test_generated_scenes_author_light_units_explicitly(scenes):
             if prim.IsA(UsdLux.DistantLight):
                 assert UsdLux.DistantLight(prim).GetAngleAttr().HasAuthoredValue()
                 assert api.GetNormalizeAttr().Get() is True
+
+
+def test_up_axis_and_units_reach_every_output(tmp_path):
+    """A Z-up asset in centimetres keeps upAxis and metersPerUnit in the baked root, its payload
+    and a one-LOD export (read back by stock pxr)."""
+    from pxr import UsdGeom
+
+    from schemas.settings import BakeSettings
+    from texelbake.lodexport import export_lod
+    from texelbake.pipeline import bake
+    from texelbake.scenes import write_scene
+
+    src = write_scene("cylinder", tmp_path / "src" / "cyl.usda", "small")
+    stage = Usd.Stage.Open(str(src))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.GetRootLayer().Save()
+    settings = BakeSettings(samples_per_texel=4, n_light_dirs=4, n_view_dirs=4, n_heldout=4,
+                            c_max=4, mesh_levels=2)
+    root = bake(src, tmp_path / "out", settings, progress=False)
+    lod1 = export_lod(root, 1, tmp_path / "lod1.usdc")
+    payload = next(root.parent.glob("*_payload.usdc"))
+    for path in (root, payload, lod1):
+        st = Usd.Stage.Open(str(path))
+        assert UsdGeom.GetStageUpAxis(st) == UsdGeom.Tokens.z, path
+        assert UsdGeom.GetStageMetersPerUnit(st) == pytest.approx(0.01), path

@@ -16,6 +16,7 @@ from texelbake.model import (
     Light,
     Material,
 )
+from texelbake.scene.instancers import instancer_meshes
 from texelbake.scene.lights import read_camera, read_light
 from texelbake.scene.materials import DEFAULT_MATERIAL, MaterialReader, face_materials
 from texelbake.scene.meshes import (
@@ -104,15 +105,16 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
         return index[group]
 
     mesh_prims: list[Any] = []
+    instancers: list[Any] = []
     lights: list[Light] = []
     cameras: list[Camera] = []
     prims = iter(Usd.PrimRange(stage.GetPseudoRoot(),
                                Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
     for prim in prims:
         if prim.IsA(UsdGeom.PointInstancer):
-            warn(warns, f"point instancer {prim.GetPath()}: not supported; its prototypes "
-                         "and instances are skipped")
-            prims.PruneChildren()
+            if is_rendered(prim, time):
+                instancers.append(prim)
+            prims.PruneChildren()  # prototypes are read per instance (scene.instancers)
         elif prim.IsA(UsdGeom.Mesh):
             if is_rendered(prim, time):
                 mesh_prims.append(prim)
@@ -127,21 +129,31 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
         elif prim.IsA(UsdGeom.Gprim) and is_rendered(prim, time):
             warn(warns, f"prim {prim.GetPath()}: {prim.GetTypeName()} is not a UsdGeom.Mesh; "
                          "ignored")
-    if not mesh_prims:
+    if not mesh_prims and not instancers:
         raise AssetError("the asset has no UsdGeom.Mesh prim (nothing to bake)", path=source,
                          prim=str(stage.GetDefaultPrim().GetPath()) if stage.GetDefaultPrim()
                          else "/")
 
     skins = skinning_queries(stage, warns)
-    meshes: list[MeshData] = []
-    for prim in mesh_prims:
+
+    def read_one(prim: Any) -> MeshData:
         n_faces = len(UsdGeom.Mesh(prim).GetFaceVertexCountsAttr().Get(time) or [])
         face_mat = face_materials(prim, n_faces, time, index_of, warns, source)
         uv_names = sorted({
             tex.st_primvar for i in np.unique(face_mat).tolist()
             for tex in materials[i].textures.values()})
-        meshes.append(read_mesh(prim, time, xcache, face_mat, uv_names, warns, source,
-                                 skins.get(str(prim.GetPath()))))
+        return read_mesh(prim, time, xcache, face_mat, uv_names, warns, source,
+                         skins.get(str(prim.GetPath())))
+
+    meshes: list[MeshData] = [read_one(prim) for prim in mesh_prims]
+    timed: list[Any] = list(mesh_prims)  # None: an instanced copy, static (scene.instancers)
+    for prim in instancers:
+        copies = instancer_meshes(prim, time, xcache, read_one, warns)
+        meshes += copies
+        timed += [None] * len(copies)
+    if not meshes:
+        raise AssetError("the asset's point instancers show no mesh (nothing to bake)",
+                         path=source, prim=str(instancers[0].GetPath()))
 
     # ---- assemble, computing missing normals, dropping degenerate triangles ----------------
     all_points = np.concatenate([m.points for m in meshes], axis=0)  # (n, 3)
@@ -179,7 +191,7 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
             f"mesh(es) {', '.join(m.path for m in meshes)}", path=source, prim=meshes[0].path)
 
     # materials used only by dropped faces stay in the list: indices are stable per binding
-    time_codes, points_over_time = _time_samples(mesh_prims, meshes, skins, source)
+    time_codes, points_over_time = _time_samples(timed, meshes, skins, source)
     return AssetModel(
         source=source,
         points=all_points,
@@ -208,7 +220,7 @@ def _is_light(prim: Any) -> bool:
     return bool(prim.HasAPI(UsdLux.LightAPI))
 
 
-def _time_samples(mesh_prims: list[Any], meshes: list[MeshData],
+def _time_samples(mesh_prims: list[Any | None], meshes: list[MeshData],
                   skins: dict[str, tuple[Any, Any]], source: str) -> tuple[np.ndarray, np.ndarray]:
     """Union of the time samples of every mesh's points, of its (ancestors') transforms and,
     for skinned meshes, of the skeleton's animation, skinning primvars and transforms.
@@ -230,6 +242,9 @@ def _time_samples(mesh_prims: list[Any], meshes: list[MeshData],
 
     varying: list[bool] = []  # per mesh: do its world points change at all?
     for prim in mesh_prims:
+        if prim is None:  # an instanced copy: static
+            varying.append(False)
+            continue
         mesh_times = list(UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples())
         skin = skins.get(str(prim.GetPath()))
         if skin is None:

@@ -18,6 +18,7 @@ from texelbake.model import (
     Texture,
 )
 from texelbake.scene.files import load_image, load_merl
+from texelbake.scene.mtlx import MTLX_SURFACES, preview_params
 from texelbake.scene.primvars import READER_WIDTH, face_values, group_faces
 from texelbake.scene.values import coerce_like, default_param, warn
 from texelbake.shaderdefs import SHADER_INPUTS, shader_id
@@ -150,6 +151,10 @@ class MaterialReader:
                   f"material {mat_path}: unsupported shader id {sid!r} on "
                   f"outputs:texelbake:surface (shader {prim.GetPath()}); using outputs:surface")
         found = self._surface(material, "")
+        if found is None or found[1] not in SHADER_MODELS:
+            mtlx = self._surface(material, "mtlx")
+            if mtlx is not None and mtlx[1] in MTLX_SURFACES:
+                return self._read_mtlx(mat_path, *mtlx)
         if found is None:
             warn(self.warns, f"material {mat_path}: no surface shader connected; "
                               "using UsdPreviewSurface defaults")
@@ -157,10 +162,40 @@ class MaterialReader:
         prim, sid = found
         if sid is not None and sid in SHADER_MODELS:
             return self._read_shader(mat_path, prim, sid)
+        if sid in MTLX_SURFACES:
+            return self._read_mtlx(mat_path, prim, sid)
         warn(self.warns,
               f"material {mat_path}: unsupported shader network (shader {prim.GetPath()}, id "
               f"{sid!r}); falling back to its constant values")
         return self._constant_preview(mat_path, prim)
+
+    def _read_mtlx(self, mat_path: str, prim: Any, sid: str | None) -> Material:
+        """A MaterialX surface shader as UsdPreviewSurface parameters (texelbake.scene.mtlx)."""
+        from pxr import UsdShade
+
+        shader = UsdShade.Shader(prim)
+
+        def value(name: str) -> Any:
+            inp = shader.GetInput(name)
+            src = self._source(inp) if inp else None
+            if src is None or UsdShade.Output.IsOutput(src):
+                own = inp.GetAttr() if inp else None
+                return own.Get(self.time) if own is not None and own.HasAuthoredValue() else None
+            return src.Get(self.time)  # an interface input's value
+
+        def driven(name: str) -> bool:
+            inp = shader.GetInput(name)
+            src = self._source(inp) if inp else None
+            return src is not None and UsdShade.Output.IsOutput(src)
+
+        def lost(text: str) -> None:
+            warn(self.warns, f"material {mat_path}: MaterialX shader {prim.GetPath()} "
+                             f"({sid}): {text}")
+
+        params = {k: default_param(v) for k, v in PREVIEW_DEFAULTS.items()}
+        for name, v in preview_params(str(sid), value, driven, lost).items():
+            params[name] = coerce_like(v, PREVIEW_DEFAULTS[name])
+        return Material(path=mat_path, model="preview", params=_readonly(params))
 
     def _constant_preview(self, mat_path: str, prim: Any) -> Material:
         """UsdPreviewSurface defaults overlaid by a foreign shader's constant preview inputs."""

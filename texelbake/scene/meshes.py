@@ -267,8 +267,13 @@ def read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | No
                 computed = area_weighted_normals(points_w, tri_vid)  # (T, 3, 3)
                 corner_normals = np.where(ok, corner_normals, computed)
 
-    # UVs: primvars:st, else the primvar the material's textures read, else any texCoord2f
-    names = ["st", *[n for n in uv_names if n != "st"]]
+    # UVs: the primvar the mesh's textures read (one set per mesh: texelbake carries one UV
+    # set per face; textures reading different sets on one mesh all use the first, warned),
+    # else primvars:st, else any texCoord2f
+    if len(uv_names) > 1:
+        warn(warns, f"mesh {path}: its textures read UV sets {uv_names}; texelbake carries "
+                    f"one set per mesh and uses primvars:{uv_names[0]} for all of them")
+    names = [*uv_names[:1], *(["st"] if "st" not in uv_names[:1] else [])]
     candidates = [pv_api.GetPrimvar(n) for n in names]
     chosen = next((pv for pv in candidates if pv and pv.HasAuthoredValue()), None)
     if chosen is None:
@@ -290,7 +295,7 @@ def read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | No
                          f"values) does not match the topology; ignoring UVs")
         else:
             corner_uvs, has_uvs = expanded, True
-            if chosen.GetPrimvarName() != "st":
+            if chosen.GetPrimvarName() not in ("st", *uv_names[:1]):
                 warn(warns, f"mesh {path}: no primvars:st; using primvars:"
                              f"{chosen.GetPrimvarName()} as UVs")
 

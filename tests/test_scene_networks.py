@@ -1,4 +1,5 @@
-"""Material inputs driven by UsdPrimvarReader nodes are evaluated on the bound mesh
+"""Shading networks as studios author them: material inputs driven by UsdPrimvarReader nodes
+are evaluated on the bound mesh; MaterialX surface shaders are read as UsdPreviewSurface
 (issue 11, item 4; texelbake.scene.primvars). Expected values are computed here from the
 authored arrays, not through texelbake."""
 
@@ -126,3 +127,70 @@ def test_subdivision_mesh_is_baked_as_its_cage_with_a_warning(tmp_path):
     with pytest.warns(UserWarning, match="catmullClark.*control cage"):
         asset = load_asset(tmp_path / "a.usda")
     assert asset.num_faces == 2  # the cage's triangles
+
+
+# ---- MaterialX surface shaders (texelbake.scene.mtlx) ---------------------------------------
+
+
+def _mtlx_material(stage, path, inputs, *, universal=False, driven=None):
+    mat = UsdShade.Material.Define(stage, path)
+    sh = UsdShade.Shader.Define(stage, f"{path}/SR")
+    sh.CreateIdAttr("ND_standard_surface_surfaceshader")
+    for name, (type_name, value) in inputs.items():
+        sh.CreateInput(name, type_name).Set(value)
+    if driven is not None:
+        node = UsdShade.Shader.Define(stage, f"{path}/Image")
+        node.CreateIdAttr("ND_image_color3")
+        out = node.CreateOutput("out", Sdf.ValueTypeNames.Color3f)
+        sh.CreateInput(driven, Sdf.ValueTypeNames.Color3f).ConnectToSource(out)
+    surf = sh.CreateOutput("out", Sdf.ValueTypeNames.Token)
+    mat.CreateSurfaceOutput("mtlx").ConnectToSource(surf)
+    if universal:
+        mat.CreateSurfaceOutput().ConnectToSource(surf)
+    return mat
+
+
+def test_materialx_standard_surface_maps_to_preview_surface(tmp_path):
+    f, c3 = Sdf.ValueTypeNames.Float, Sdf.ValueTypeNames.Color3f
+    stage = new_stage(tmp_path / "a.usda")
+    a = grid_mesh(stage, "/Root/A", 1, 1)
+    b = grid_mesh(stage, "/Root/B", 1, 1, z=1.0)
+    bind(a, _mtlx_material(stage, "/Root/Looks/Metal", {
+        "base": (f, 0.5), "base_color": (c3, (1.0, 0.5, 0.25)), "metalness": (f, 1.0),
+        "specular_roughness": (f, 0.3), "opacity": (c3, (0.5, 0.5, 1.0)),
+        "sheen": (f, 0.2)}))
+    bind(b, _mtlx_material(stage, "/Root/Looks/Tex", {"specular_IOR": (f, 1.33)},
+                           universal=True, driven="base_color"))
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    by = {m.path: m for m in asset.materials}
+    metal = by["/Root/Looks/Metal"]
+    assert metal.model == "preview"
+    np.testing.assert_allclose(metal.params["diffuseColor"], [0.5, 0.25, 0.125])
+    assert metal.params["metallic"] == 1.0 and metal.params["roughness"] == pytest.approx(0.3)
+    assert metal.params["opacity"] == pytest.approx(2.0 / 3.0)
+    tex = by["/Root/Looks/Tex"]  # unauthored inputs: the Standard Surface defaults
+    np.testing.assert_allclose(tex.params["diffuseColor"], [0.8, 0.8, 0.8])
+    assert tex.params["ior"] == pytest.approx(1.33) and tex.params["roughness"] == 0.2
+    text = " ".join(asset.warnings)
+    assert "sheen" in text and "base_color is driven by a node" in text
+
+
+def test_a_texture_reads_the_uv_set_it_names(tmp_path):
+    from tests._scene_helpers import preview_material, write_png
+
+    write_png(tmp_path / "t.png", np.zeros((2, 2, 3), np.uint8))
+    stage = new_stage(tmp_path / "a.usda")
+    m = grid_mesh(stage, "/Root/A", 1, 1)
+    api = UsdGeom.PrimvarsAPI(m)
+    st = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], np.float32)
+    api.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
+        Vt.Vec2fArray.FromNumpy(st))
+    api.CreatePrimvar("lightmap", Sdf.ValueTypeNames.TexCoord2fArray,
+                      UsdGeom.Tokens.vertex).Set(Vt.Vec2fArray.FromNumpy(st * 0.5 + 0.25))
+    bind(m, preview_material(stage, "/Root/Looks/M", texture="./t.png", varname="lightmap"))
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    # the texture names primvars:lightmap, so the mesh carries that set, not st
+    assert asset.corner_uvs.min() >= 0.25 - 1e-6 and asset.corner_uvs.max() <= 0.75 + 1e-6
+    assert not any("UV" in w for w in asset.warnings)
