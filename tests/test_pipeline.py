@@ -212,6 +212,16 @@ def test_payload_round_trip_and_report(cylinder_bake):
         assert lod["triangles"] == mesh.faces.shape[0]
         assert lod["hausdorff"] <= lod["bound"] and lod["within_bound"]
     assert (len(lods) < settings.mesh_levels) == bool(report["lods"]["stopped"])
+    # the atlas a finest texel of which is one pixel at LOD1's switch size: from M_org's area
+    # (numpy over its triangles) and diagonal, 40 % of the page covered by charts
+    asset = load_asset(src)
+    tri = asset.points[asset.faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
+                                axis=1).sum()
+    diag = np.linalg.norm(np.ptp(asset.points, axis=0))
+    need = lods[0]["switch_px"] * np.sqrt(area / 0.4) / diag
+    want = 2 ** int(np.ceil(np.log2(need)))
+    assert report["lods"]["atlas_mesh"]["atlas_resolution_for_lod1"] == want
     for lvl, level in enumerate(baked.levels):
         n_l = settings.atlas_resolution >> lvl
         assert level["texel_offsets"].shape == (n_l * n_l + 1,)

@@ -6,6 +6,7 @@ samples on M_org, their texel assignment and the texel frames of every mip level
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 
@@ -69,7 +70,10 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
         else:
             lod_exact = False
     report["atlas_mesh"] = {"triangles": int(atlas.mesh.num_faces), "is_lod1": bool(lod_exact),
-                            "atlas_resolution": int(n)}
+                            "atlas_resolution": int(n),
+                            "atlas_resolution_for_lod1": _resolution_needed(
+                                float(samples.area.sum()), bbox_diagonal(asset.points),
+                                report["levels"][0].get("switch_px"))}
     if not lod_exact:
         report["notes"] = [*report.get("notes", []), (
             f"LOD1 ({lods[0].num_faces} triangles) does not fit a {n}x{n} atlas: the CPM "
@@ -116,6 +120,20 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
         out[f"lod{i}_corner_uvs"] = uvs
         out[f"lod{i}_one_chart"] = one
     return out
+
+
+#: fraction of the page xatlas' charts cover (geometry.atlas: ~40-45 % measured)
+CHART_COVER = 0.4
+
+
+def _resolution_needed(area: float, diag: float, switch_px: float | None) -> int | None:
+    """The atlas side at which a finest texel is at most one pixel where LOD1 switches in
+    (its diagonal covers switch_px pixels): N >= switch_px sqrt(area / CHART_COVER) / diag,
+    rounded up to a power of two. Reported, not applied: atlas_resolution stays a setting."""
+    if not switch_px or not diag > 0 or not area > 0:
+        return None
+    need = float(switch_px) * math.sqrt(area / CHART_COVER) / diag
+    return int(2 ** math.ceil(math.log2(max(need, 2.0))))
 
 
 def lod_report(geo: dict[str, np.ndarray]) -> dict:
