@@ -4,11 +4,16 @@ VENV  := .venv
 PY    := $(VENV)/bin/python
 PIP   := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libgl1 libegl1 libopengl0 libx11-6 libudev1 libidn2-0 libgmp10 libgomp1 redis-server docker-compose
+APT_PACKAGES := libusb-1.0-0 libgl1 libegl1 libopengl0 libx11-6 libudev1 libidn2-0 libgmp10 libgomp1 redis-server docker-compose \
+	chromium chromium-driver
+#: the dashboard's sources: a change rebuilds web/dist (and a schema change regenerates its client)
+WEB_SRC := web/package.json web/package-lock.json web/index.html web/vite.config.ts web/tsconfig.json \
+	$(shell find web/src -type f ! -name schema.d.ts 2>/dev/null) $(shell find services schemas -name '*.py' 2>/dev/null)
+WEB_STAMP := web/dist/.built
 
 .PHONY: setup demo test test-fast lint bench scenes clean
 
-setup: $(STAMP)
+setup: $(STAMP) $(WEB_STAMP)
 
 # Re-runs only when pyproject.toml changes: a second `make setup` does nothing.
 $(STAMP): pyproject.toml scripts/apt-deps.sh
@@ -17,6 +22,15 @@ $(STAMP): pyproject.toml scripts/apt-deps.sh
 	$(PIP) install -q torch==2.13.0
 	$(PIP) install -q -e '.[dev]'
 	touch $(STAMP)
+
+# The dashboard (web/): npm ci from the lockfile, the typed client generated from the API's
+# OpenAPI schema, type-checked and bundled into web/dist, which the API serves at /.
+# Node and npm: the machine's (nodesource), else Debian's.
+$(WEB_STAMP): $(STAMP) $(WEB_SRC)
+	command -v npm >/dev/null || bash scripts/apt-deps.sh nodejs npm
+	$(PY) scripts/export_openapi.py web/openapi.json
+	cd web && npm ci --no-audit --no-fund && npm run build
+	touch $(WEB_STAMP)
 
 demo: setup
 	$(VENV)/bin/texelbake demo --out demo_out
@@ -43,10 +57,11 @@ bench: setup
 	$(PY) benchmarks/render.py --scene cylinder --scene-size full --btf \
 		--json bench_out/render_cylinder.json
 	$(PY) benchmarks/fuzz_uploads.py --examples 1000 --json bench_out/fuzz_uploads.json
+	$(PY) benchmarks/dashboard.py --json bench_out/dashboard.json
 
 scenes: setup
 	$(VENV)/bin/texelbake scenes all -o build/scenes --size small
 	$(VENV)/bin/texelbake scenes all -o build/scenes --size full
 
 clean:
-	rm -rf $(VENV) demo_out bench_out build
+	rm -rf $(VENV) demo_out bench_out build web/dist web/node_modules

@@ -17,6 +17,9 @@ Three measurements, time and error side by side (DESIGN.md "Measuring"):
    (the seed keeps 4-6.5 %).
 3. Closed form: rays and time with and without the exact unoccluded-texel skip on a scene
    with a mix (ground + plate) and on the sphere.
+4. Identity: storage against error of the table the renderer reads, the seed's plain Haar
+   table against texelbake's sum-corrected one, on a bumpy field and V-grooves at every level
+   (`identity_table`; the seed's 4-6.5 % storage marked).
 
     .venv/bin/python benchmarks/avis_methods.py --json avis.json [--quick] [--haar-res 64]
 """
@@ -39,6 +42,7 @@ from avis_scenes import (  # noqa: E402
     sample_faces,
     texel_of_latlong,
     texel_of_xy,
+    tile3x3,
     uv_sphere,
 )
 
@@ -264,6 +268,72 @@ def closed_form_table(res):
     return out
 
 
+def identity_table(res_keeps, k=64, n_side=16, n_dirs=300):
+    """Storage against error of the table the renderer reads (issue 11): per-texel relative L2
+    of a_vis at the cube pixels against the uncompressed maps (level 0: median, p95, max), and
+    the height-field identity sum_texels a_vis = cos(theta) through `AvisTable.evaluate`
+    (bilinear, theta <= 75 deg), worst over every level, for the seed's plain per-face Haar
+    table and for the table with texelbake's per-level sum correction. Storage: Haar
+    coefficients at 16-bit index + float32 value, plus the correction maps (one (6, res, res)
+    float16 map per group present in a level), over the dense float32 cube maps of every
+    level."""
+    from texelbake.cpm.assemble import texel_rel_errors
+    from texelbake.cpm.avis import coarsen_level
+
+    period = 1.0 / 8
+    fields = {"bumpy": periodic_height(0.05, seed=1),
+              "v-grooves": lambda x, y: 0.06 * np.abs((x / period) % 1.0 - 0.5)}
+    rng = np.random.default_rng(3)
+    cos_t = rng.uniform(np.cos(np.radians(75)), 1.0, n_dirs)
+    phi = rng.uniform(0, 2 * np.pi, n_dirs)
+    sin_t = np.sqrt(1 - cos_t ** 2)
+    w = np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
+    print("\n[identity] storage against error of the compressed table (seed: 4-6.5 % stored)")
+    print(f"{'field':>10} {'res':>4} {'keep':>6} {'table':>10} {'storage':>8} {'':>6} "
+          f"{'L0 med':>7} {'p95':>7} {'max':>7} {'identity max':>13} {'worst level':>11} "
+          f"{'s':>6}")
+    out = []
+    for fname, h in fields.items():
+        pts, faces = grid_mesh(k, h)
+        tp, tf = tile3x3(pts, faces)
+        pos, nrm, ar, _ = sample_faces(pts, faces, 2, seed=2)
+        for res, keeps in res_keeps:
+            lvl = avis_level(pos, nrm, ar, texel_of_xy(pos, n_side), n_side, res,
+                             RayCaster(tp, tf).occluded, tp, max_terms=1024)
+            levels = [lvl]
+            while levels[-1].n_side > 1:
+                levels.append(coarsen_level(levels[-1]))
+            dense = sum(lv.n_side ** 2 for lv in levels) * 6 * res * res * 4.0
+            for keep in keeps:
+                for label, corr in (("seed", False), ("corrected", True)):
+                    t0 = time.perf_counter()
+                    nbytes, worst, worst_lv, per0 = 0.0, 0.0, 0, np.zeros(1)
+                    for li, lv in enumerate(levels):
+                        nt = lv.n_side ** 2
+                        tab = compress_level(lv, np.broadcast_to(np.eye(3), (nt, 3, 3)).copy(),
+                                             keep, correct_sum=corr)
+                        nbytes += 6.0 * tab.haar.nnz + tab.correction.nbytes
+                        tot = sum(tab.evaluate(np.full(n_dirs, t), w)[0] for t in range(nt))
+                        e = float(np.max(np.abs(tot - cos_t) / cos_t))
+                        if e > worst:
+                            worst, worst_lv = e, li
+                        if li == 0:
+                            per0 = texel_rel_errors(tab.ray_texel_maps(), lv.ray_maps)
+                    dt = time.perf_counter() - t0
+                    st = nbytes / dense
+                    mark = "*seed*" if 0.04 <= st <= 0.065 else ""
+                    row = {"field": fname, "res": res, "keep": keep, "table": label,
+                           "storage": st, "texel_median": float(np.median(per0)),
+                           "texel_p95": float(np.percentile(per0, 95)),
+                           "texel_max": float(per0.max()), "identity_max": worst,
+                           "identity_worst_level": worst_lv, "seconds": dt}
+                    out.append(row)
+                    print(f"{fname:>10} {res:>4} {keep:>6.3f} {label:>10} {st:>8.2%} {mark:>6} "
+                          f"{row['texel_median']:>7.2%} {row['texel_p95']:>7.2%} "
+                          f"{row['texel_max']:>7.2%} {worst:>13.2%} {worst_lv:>11} {dt:>6.1f}")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", type=Path)
@@ -284,6 +354,9 @@ def main() -> None:
                                  (0.02, 0.04, 0.065, 0.1, 0.2, 1.0))
     results["lookup"] = lookup_table(16, (1.0, 0.065, 0.04))
     results["closed_form"] = closed_form_table(8)
+    results["identity"] = identity_table(
+        [(16, (0.02, 0.04, 0.06))] if quick else [(16, (0.02, 0.04, 0.06, 0.1)),
+                                                    (32, (0.015, 0.025, 0.04))])
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 

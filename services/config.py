@@ -53,6 +53,9 @@ class Settings(BaseSettings):
         60.0, gt=0, description="A running shard silent this long is re-queued (worker gone)."
     )
     sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
+    web_dist: Path | None = Field(
+        None, description="The dashboard's built bundle served at /; default <repo>/web/dist."
+    )
 
     @model_validator(mode="after")
     def _refuse_placeholder(self) -> Settings:

@@ -11,19 +11,23 @@ import logging
 import threading
 from contextlib import asynccontextmanager
 from datetime import timedelta
+from pathlib import Path
 
 from celery import Celery
-from fastapi import FastAPI
+from fastapi import FastAPI, status
 from fastapi.routing import APIRoute
+from fastapi.staticfiles import StaticFiles
 
+from schemas.common import ErrorCode
 from services import errors, ledger
 from services.auth import ensure_tokens
 from services.broker import broker_run_id, celery_sender
 from services.config import API_V1, Settings, get_settings
 from services.db import session_factory
 from services.deps import TokenCache
+from services.errors import ApiError
 from services.limits import BodyLimit
-from services.routers import assets, jobs, utils
+from services.routers import assets, events, farm, jobs, utils, viewer
 from services.routers.jobs import JobCache
 from workers.celeryconfig import celery_config
 
@@ -58,6 +62,27 @@ def _sweeper(app: FastAPI, stop: threading.Event) -> None:
             log.warning("sweep failed: %r", exc)
 
 
+#: the dashboard's built bundle (`web/`, built by `make setup`: npm ci && npm run build)
+WEB_DIST = Path(__file__).resolve().parents[1] / "web" / "dist"
+DASHBOARD_NOT_BUILT = "the dashboard is not built: run `make setup` (npm ci && npm run build in web/)"
+
+
+def mount_dashboard(app: FastAPI, dist: Path) -> None:
+    """Serve the dashboard at `/` (same origin as `/api/v1`), mounted after the API routes so
+    they match first. Without a build, `/` answers a 503 naming the missing build."""
+    if (dist / "index.html").is_file():
+        app.mount("/", StaticFiles(directory=dist, html=True), name="dashboard")
+        return
+
+    @app.get("/", include_in_schema=False, tags=["dashboard"], operation_id="dashboard")
+    def dashboard_not_built() -> None:
+        raise ApiError(
+            status.HTTP_503_SERVICE_UNAVAILABLE,
+            f"{DASHBOARD_NOT_BUILT} ({dist} has no index.html)",
+            ErrorCode.SERVICE_UNAVAILABLE,
+        )
+
+
 def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> FastAPI:
     settings = settings or get_settings()
     settings.artifact_root.mkdir(parents=True, exist_ok=True)
@@ -90,8 +115,9 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     celery = Celery("texelbake")
     celery.conf.update(celery_config(settings))
     app.state.celery = celery
-    for r in (utils.router, assets.router, jobs.router):
+    for r in (utils.router, assets.router, jobs.router, viewer.router, events.router, farm.router):
         app.include_router(r, prefix=API_V1)
+    mount_dashboard(app, settings.web_dist or WEB_DIST)
     errors.install(app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
     return app

@@ -26,6 +26,11 @@ OPERATION_IDS = {
     ("get", "/api/v1/jobs/{job_id}/result"): "read_job_result",
     ("get", "/api/v1/jobs/{job_id}/previews/{name}"): "read_job_preview",
     ("get", "/api/v1/jobs/{job_id}/report"): "read_job_report",
+    ("get", "/api/v1/jobs/{job_id}/viewer"): "read_job_viewer",
+    ("get", "/api/v1/jobs/{job_id}/viewer/{name}"): "read_job_viewer_file",
+    ("get", "/api/v1/events"): "read_events",
+    ("get", "/api/v1/farm"): "read_farm",
+    ("get", "/api/v1/farm/events"): "read_farm_events",
 }
 
 

@@ -359,7 +359,7 @@ def test_unsupported_surface_shader_falls_back_to_constants(tmp_path):
     mesh = grid_mesh(stage, "/Root/m", 1, 1)
     mat = UsdShade.Material.Define(stage, "/Root/Looks/X")
     sh = UsdShade.Shader.Define(stage, "/Root/Looks/X/Std")
-    sh.CreateIdAttr("ND_standard_surface_surfaceshader")
+    sh.CreateIdAttr("StudioX_surface")  # a shader texelbake does not know (MaterialX is read)
     sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set((0.1, 0.2, 0.3))
     sh.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(1.0)
     sh.CreateInput("base_color", Sdf.ValueTypeNames.Color3f).Set((1, 1, 1))  # not a preview input

@@ -69,12 +69,15 @@ def test_one_lod_exports_self_contained_and_stock_valid(baked, tmp_path, suffix)
         assert got["meshes"] == [f"/Cylinder/Baked/LOD{n}"]
         np.testing.assert_allclose(np.asarray(got["points"][0]), lods[n - 1].vertices,
                                    atol=1e-6)
-        assert got["materials"] == ["/Cylinder/Baked/Looks/BakedPreview"]
-        assert got["files"] == [True, True]
+        # each LOD has its own fallback (issue 21): diffuseColor, normal, roughness widened
+        # for that LOD, occlusion
+        assert got["materials"] == ["/Cylinder/Baked/Looks/BakedPreview" if n == 1 else
+                                    f"/Cylinder/Baked/Looks/BakedPreview_LOD{n}"]
+        assert got["files"] == [True, True, True, True]
         assert got["errors"] == []
     if suffix == ".usdc":
-        (tmp_path / "lod1_maps" / "cylinder_albedo.png").unlink()  # not self-contained now
-        assert _inspect(tmp_path / "lod1.usdc")["files"] == [False, True]
+        (tmp_path / "lod1_maps" / "cylinder_basecolor.png").unlink()  # not self-contained now
+        assert _inspect(tmp_path / "lod1.usdc")["files"] == [False, True, True, True]
 
 
 def test_lod0_is_the_asset_as_authored(baked, tmp_path):

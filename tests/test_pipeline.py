@@ -259,6 +259,7 @@ def test_written_arrays_are_identical_when_read_back(tmp_path):
 
     rng = np.random.default_rng(0)
     arrays = {
+        "f16": rng.random(5).astype(np.float16),
         "f32": rng.random((7, 3)).astype(np.float32), "f64": rng.random(5),
         "i32": rng.integers(-5, 5, 9).astype(np.int32), "i64": rng.integers(0, 2**40, 4),
         "u8": rng.integers(0, 255, 6).astype(np.uint8), "b": rng.random(4) > 0.5,

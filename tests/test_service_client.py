@@ -126,11 +126,15 @@ def assert_error(resp, status: int, code: str):
 def test_bake_through_the_generated_client(client, cylinder):
     JobPublic, ErrorPublic = m("models").JobPublic, m("models").ErrorPublic
 
-    r = upload(client, "cylinder.usda", cylinder.read_bytes())
+    # the scene's texelbake shaders name texelbake_shaders.usda beside it: a bundle of both
+    bundle = make_zip({"cylinder.usda": cylinder.read_bytes(),
+                       "texelbake_shaders.usda":
+                           (cylinder.parent / "texelbake_shaders.usda").read_bytes()})
+    r = upload(client, "cylinder.zip", bundle)
     assert r.status_code == 201, r.content
     asset = r.parsed
     assert asset.root_layer == "cylinder.usda" and len(asset.sha256) == 64
-    again = upload(client, "cylinder.usda", cylinder.read_bytes())
+    again = upload(client, "cylinder.zip", bundle)
     assert again.status_code == 200 and again.parsed.id == asset.id
 
     r = create_job(client, asset.id, {**CHEAP_SETTINGS, "previews": True})

@@ -21,7 +21,7 @@ from schemas.settings import BakeSettings
 from services.db import Shard, session_factory
 from services.stack import free_port, stack_down, stack_up
 from tests.svc_util import CHEAP_SETTINGS, assert_same_bake, fresh_postgres
-from texelbake.client import submit
+from texelbake.client import package, submit  # package: the layer and the files it uses
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(300)]
 TOKEN = "farm-token-0123456789abcdef"
@@ -80,9 +80,7 @@ def ledger_rows(stack, job_id: str) -> list[Shard]:
 
 def start_job(stack, cylinder: Path) -> str:
     with httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=60) as c:
-        aid = c.post("/assets", files={"file": ("cylinder.usda", cylinder.read_bytes())}).json()[
-            "id"
-        ]
+        aid = c.post("/assets", files={"file": package(cylinder)}).json()["id"]
         r = c.post("/jobs", json={"asset_id": aid, "settings": CHEAP_SETTINGS})
         assert r.status_code == 201, r.text
         return r.json()["id"]
@@ -289,9 +287,7 @@ def test_renderer_worker_writes_previews(cylinder, tmp_path):
     previews from the written USD; they are listed on the job and served by the API."""
     with farm(tmp_path / "stack", workers={"prep": 1, "numeric": 1, "render": 1}) as stack:
         with httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=60) as c:
-            aid = c.post(
-                "/assets", files={"file": ("cylinder.usda", cylinder.read_bytes())}
-            ).json()["id"]
+            aid = c.post("/assets", files={"file": package(cylinder)}).json()["id"]
             r = c.post(
                 "/jobs", json={"asset_id": aid, "settings": {**CHEAP_SETTINGS, "previews": True}}
             )

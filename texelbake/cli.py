@@ -56,6 +56,11 @@ def cmd_scenes(args: argparse.Namespace) -> int:
 
     names = SCENE_NAMES if args.name == "all" else (args.name,)
     out = Path(args.output)
+    if args.name == "arm":  # the skinned cylinder of seed 002 (texelbake.scenes.arm)
+        from texelbake.scenes.arm import write_arm
+
+        print(write_arm(out, args.size))
+        return 0
     for name in names:
         path = out / f"{name}_{args.size}.usda" if args.name == "all" else out
         print(write_scene(name, path, args.size))
@@ -150,10 +155,27 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+#: the render command's default modes (an undeformed frame)
+RENDER_MODES = "gt,cpm,normalmap,equal-time"
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     from texelbake.render import render_report
 
     out = Path(args.output) if args.output else Path(args.file).parent / "render"
+    if args.warp is not None or args.time is not None:  # a deformed frame (seed 002 §4)
+        from texelbake.render.deformed_report import render_deformed_report
+
+        modes = "gt,cpm,cpm-naive,normalmap" if args.modes == RENDER_MODES else args.modes
+        report = render_deformed_report(
+            Path(args.file), out, warp=args.warp, time=args.time, modes=modes,
+            width=args.width, height=args.height, spp=args.spp, ref_spp=args.ref_spp,
+            camera=_camera_arg(args.camera))
+        rep = json.loads(report.read_text())
+        print(f"warp: {rep['warp']}")
+        _print_render_table(rep)
+        print(report)
+        return 0
     report = render_report(Path(args.file), out, modes=args.modes, width=args.width,
                            height=args.height, spp=args.spp, ref_spp=args.ref_spp,
                            camera=_camera_arg(args.camera))
@@ -239,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("scenes", help="write a generated test scene as USD")
-    p.add_argument("name", choices=["cylinder", "wall", "bolt", "cloisonne", "all"])
+    p.add_argument("name", choices=["cylinder", "wall", "bolt", "cloisonne", "all", "arm"])
     p.add_argument("-o", "--output", required=True, help="FILE.usda (or a folder with 'all')")
     p.add_argument("--size", choices=["small", "full"], default="small")
     p.set_defaults(func=cmd_scenes)
@@ -278,8 +300,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("render", help="render a baked USD")
     p.add_argument("file")
-    p.add_argument("--modes", default="gt,cpm,normalmap,equal-time",
-                   help="comma-separated: gt, cpm, normalmap, equal-time, btf (bakes with btf on)")
+    p.add_argument("--modes", default=RENDER_MODES,
+                   help="comma-separated: gt, cpm, normalmap, equal-time, btf (bakes with btf on), "
+                   "toksvig, toksvig+ao, leadr, leadr+ao, preview-surface (the filtered "
+                   "baselines); with --warp/--time also cpm-naive")
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=256)
@@ -287,6 +311,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ref-spp", type=int, default=256, help="eye rays per pixel of the reference")
     p.add_argument("--camera", default=None,
                    help="the asset's camera (default), 'lod', or an auto-frame distance")
+    p.add_argument("--warp", default=None, help="render deformed by a procedural warp, e.g. "
+                   "twist:angle=90, bend:angle=90, stretch:x=1,y=2,z=1, sine:amplitude=0.1 "
+                   "(modes gt, cpm, cpm-naive, normalmap, equal-time)")
+    p.add_argument("--time", type=float, default=None,
+                   help="render deformed by the asset's own animation at this time code")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("export", help="write one LOD of a baked USD as a self-contained file "

@@ -7,12 +7,19 @@ A baked asset is a folder:
                              per CPM level holding its arrays, the preview material
     source/...               a copy of the source asset and the files it references
     <name>_albedo.png, <name>_normal.png
-                             UsdPreviewSurface fallback maps baked onto M1
+                             the baseline's albedo and normal maps baked onto M1
+    <name>_filtered_L<ll>.exr
+                             the filtered maps of each mip level (`texelbake.filtered_maps`:
+                             mean normal, LEADR moments, AO, albedo, base colour, α²)
+    <name>_basecolor.png, <name>_occlusion.png, <name>_roughness_lod<i>.png
+                             the UsdPreviewSurface fallback of each LOD i (with the normal map):
+                             material /Baked/Looks/BakedPreview for LOD1, BakedPreview_LOD<i>
+                             for the others
     report.json              what the bake measured
 
 Array attributes live in the `texelbake:` namespace, flattened, each with an int[] companion
-`<name>:shape`; the dtype maps one-to-one onto a USD value type (float32 -> float[], float64 ->
-double[], int32 -> int[], int64 -> int64[], uint8 -> uchar[], bool -> bool[]), so `read_baked`
+`<name>:shape`; the dtype maps one-to-one onto a USD value type (float16 -> half[],
+float32 -> float[], float64 -> double[], int32 -> int[], int64 -> int64[], uint8 -> uchar[], bool -> bool[]), so `read_baked`
 returns arrays identical to what was written. `read_baked` is the only way the renderer gets
 baked data.
 """
@@ -40,6 +47,7 @@ _NS = "texelbake:"
 
 _DTYPES: dict[str, tuple[Any, Any]] = {
     # numpy dtype name -> (Sdf value type, Vt array class)
+    "float16": (Sdf.ValueTypeNames.HalfArray, Vt.HalfArray),
     "float32": (Sdf.ValueTypeNames.FloatArray, Vt.FloatArray),
     "float64": (Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray),
     "int32": (Sdf.ValueTypeNames.IntArray, Vt.IntArray),
@@ -48,18 +56,22 @@ _DTYPES: dict[str, tuple[Any, Any]] = {
     "bool": (Sdf.ValueTypeNames.BoolArray, Vt.BoolArray),
 }
 _FROM_USD = {
-    "float[]": np.float32, "double[]": np.float64, "int[]": np.int32, "int64[]": np.int64,
+    "half[]": np.float16, "float[]": np.float32, "double[]": np.float64, "int[]": np.int32,
+    "int64[]": np.int64,
     "uchar[]": np.uint8, "bool[]": np.bool_,
 }
 
 
 @dataclass
 class LodMesh:
-    """M_i with its atlas uvs. vertices (n, 3) float64, faces (f, 3) int64, corner_uvs (f, 3, 2)."""
+    """M_i with its atlas uvs. vertices (n, 3) float64, faces (f, 3) int64, corner_uvs (f, 3, 2);
+    impostor: the local impostor parameterization of seed 002 Table 1 (`IMPOSTOR_PRIMVARS`,
+    each (n, 3) float64 per vertex; empty when the bake wrote none)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     corner_uvs: np.ndarray
+    impostor: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass
@@ -72,6 +84,11 @@ class BakedAsset:
     meshes : M1..Mn
     albedo, normal : (N, N, 3) float32 preview maps over M1's atlas (normal in [-1, 1])
     metadata : JSON-able dict written to customLayerData["texelbake"]
+    filtered : per level an (N_l, N_l, C) float32 filtered map (`filtered_maps.CHANNELS`)
+    fallback : the UsdPreviewSurface fallback: "base" (N, N, 3) diffuseColor, "occlusion"
+        (N, N), "roughness" a list of (n_i, n_i) maps, one per LOD, and "constants" (inputs
+        carried from the source material); empty: the albedo/normal material of old bakes.
+        `read_baked` returns each LOD's material as authored, under "materials".
     """
 
     name: str
@@ -83,6 +100,8 @@ class BakedAsset:
     metadata: dict[str, Any] = field(default_factory=dict)
     source_layer: str = ""
     root_layer: str = ""
+    filtered: list[np.ndarray] = field(default_factory=list)
+    fallback: dict[str, Any] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------- writing
@@ -123,14 +142,48 @@ def _author_mesh(stage: Usd.Stage, path: str, mesh: LodMesh) -> UsdGeom.Mesh:
     )
     st.Set(Vt.Vec2fArray.FromNumpy(
         np.ascontiguousarray(mesh.corner_uvs.reshape(-1, 2), dtype=np.float32)))
+    _author_impostor(geom, mesh.impostor)
     return geom
 
 
+#: the impostor parameterization's primvars (seed 002 Table 1): `primvars:texelbake:<name>`,
+#: float3[] per vertex: p0 rest position, r0 Rodrigues vector of R0, u0 and v0 rest tangents
+IMPOSTOR_PRIMVARS = ("p0", "r0", "u0", "v0")
+
+
+def _author_impostor(geom: UsdGeom.Mesh, impostor: dict[str, np.ndarray]) -> None:
+    api = UsdGeom.PrimvarsAPI(geom)
+    for name in IMPOSTOR_PRIMVARS if impostor else ():
+        pv = api.CreatePrimvar(f"{_NS}{name}", Sdf.ValueTypeNames.Float3Array,
+                               UsdGeom.Tokens.vertex)
+        pv.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(impostor[name], dtype=np.float32)))
+
+
+def _read_impostor(geom: UsdGeom.Mesh, n_points: int) -> dict[str, np.ndarray]:
+    api = UsdGeom.PrimvarsAPI(geom)
+    out: dict[str, np.ndarray] = {}
+    for name in IMPOSTOR_PRIMVARS:
+        pv = api.GetPrimvar(f"{_NS}{name}")
+        value = pv.Get() if pv else None
+        if value is None:
+            return {}
+        arr = np.array(value, dtype=np.float32).astype(np.float64).reshape(-1, 3)
+        if arr.shape[0] != n_points:
+            raise AssetError(f"primvar {_NS}{name} has {arr.shape[0]} values for "
+                             f"{n_points} points", prim=str(geom.GetPath()))
+        out[name] = arr
+    return out
+
+
 def _author_preview_material(
-    stage: Usd.Stage, path: str, albedo_file: str, normal_file: str, cpm_scope: str
+    stage: Usd.Stage, path: str, albedo_file: str, normal_file: str, cpm_scope: str,
+    roughness_file: str | None = None, occlusion_file: str | None = None,
+    constants: dict[str, Any] | None = None,
 ) -> UsdShade.Material:
-    """UsdPreviewSurface with the baked albedo and normal maps (what any viewer shows), and
-    texelbake's CPM shader on the `texelbake` render context."""
+    """UsdPreviewSurface with the baked maps (what any viewer shows): diffuseColor and normal,
+    and when given roughness and occlusion (single-channel) textures and constant inputs
+    carried from the source material; texelbake's CPM shader on the `texelbake` render
+    context."""
     mat = UsdShade.Material.Define(stage, path)
     reader = UsdShade.Shader.Define(stage, f"{path}/stReader")
     reader.CreateIdAttr("UsdPrimvarReader_float2")
@@ -138,12 +191,26 @@ def _author_preview_material(
     st_out = reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
     surf = UsdShade.Shader.Define(stage, f"{path}/PreviewSurface")
     surf.CreateIdAttr("UsdPreviewSurface")
-    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
-    for name, file, cs, out_name, out_type, scale, bias in (
-        ("diffuseColor", albedo_file, "sRGB", "rgb", Sdf.ValueTypeNames.Float3, None, None),
+    if roughness_file is None:
+        surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
+    for name, value in sorted((constants or {}).items()):
+        if name in _COLOR3_INPUTS:
+            surf.CreateInput(name, Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*map(float, value)))
+        elif name == "useSpecularWorkflow":
+            surf.CreateInput(name, Sdf.ValueTypeNames.Int).Set(int(value))
+        else:
+            surf.CreateInput(name, Sdf.ValueTypeNames.Float).Set(float(value))
+    textures = [
+        ("diffuseColor", albedo_file, "sRGB", "rgb", Sdf.ValueTypeNames.Float3,
+         Sdf.ValueTypeNames.Color3f, None, None),
         ("normal", normal_file, "raw", "rgb", Sdf.ValueTypeNames.Float3,
-         (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0)),
-    ):
+         Sdf.ValueTypeNames.Normal3f, (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0)),
+    ]
+    for name, file in (("roughness", roughness_file), ("occlusion", occlusion_file)):
+        if file is not None:
+            textures.append((name, file, "raw", "r", Sdf.ValueTypeNames.Float,
+                             Sdf.ValueTypeNames.Float, None, None))
+    for name, file, cs, out_name, out_type, in_type, scale, bias in textures:
         tex = UsdShade.Shader.Define(stage, f"{path}/{name}Texture")
         tex.CreateIdAttr("UsdUVTexture")
         tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(file))
@@ -155,8 +222,7 @@ def _author_preview_material(
             tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*bias))
         tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(st_out)
         out = tex.CreateOutput(out_name, out_type)
-        ty = Sdf.ValueTypeNames.Color3f if name == "diffuseColor" else Sdf.ValueTypeNames.Normal3f
-        surf.CreateInput(name, ty).ConnectToSource(out)
+        surf.CreateInput(name, in_type).ConnectToSource(out)
     mat.CreateSurfaceOutput().ConnectToSource(surf.CreateOutput("surface", Sdf.ValueTypeNames.Token))
     cpm = author_shader(stage, f"{path}/CPM", SHADER_CPM)
     cpm.GetPrim().CreateRelationship(f"{_NS}levels", custom=True).SetTargets([Sdf.Path(cpm_scope)])
@@ -164,6 +230,43 @@ def _author_preview_material(
         cpm.CreateOutput("surface", Sdf.ValueTypeNames.Token)
     )
     return mat
+
+
+_COLOR3_INPUTS = ("diffuseColor", "specularColor", "emissiveColor")
+
+
+def fallback_material_path(lod: int) -> str:
+    """The payload path of LOD `lod`'s (1-based) UsdPreviewSurface fallback material."""
+    return "/Baked/Looks/BakedPreview" if lod == 1 else f"/Baked/Looks/BakedPreview_LOD{lod}"
+
+
+def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
+    """Write every map file of the bundle; returns the file names the materials use."""
+    from texelbake.filtered_maps import CHANNELS
+    from texelbake.imageio import write_pixels
+
+    name = baked.name
+    files: dict[str, Any] = {"albedo": f"{name}_albedo.png", "normal": f"{name}_normal.png"}
+    _write_png(out_dir / files["albedo"], baked.albedo, srgb=True)
+    _write_png(out_dir / files["normal"], 0.5 * (baked.normal + 1.0), srgb=False)
+    for lvl, img in enumerate(baked.filtered):
+        if img.ndim != 3 or img.shape[2] != len(CHANNELS):
+            raise ShapeError(f"filtered map of level {lvl}: expected (n, n, {len(CHANNELS)}), "
+                             f"got {img.shape}")
+        write_pixels(out_dir / f"{name}_filtered_L{lvl:02d}.exr", img.astype(np.float32),
+                     "float", channel_names=CHANNELS)
+    fb = baked.fallback
+    if fb:
+        files["base"] = f"{name}_basecolor.png"
+        files["occlusion"] = f"{name}_occlusion.png"
+        _write_png(out_dir / files["base"], fb["base"], srgb=True)
+        _write_png(out_dir / files["occlusion"], np.asarray(fb["occlusion"])[..., None],
+                   srgb=False)
+        files["roughness"] = []
+        for i, r in enumerate(fb["roughness"], start=1):
+            files["roughness"].append(f"{name}_roughness_lod{i}.png")
+            _write_png(out_dir / files["roughness"][-1], np.asarray(r)[..., None], srgb=False)
+    return files
 
 
 def _new_stage(path: Path) -> Usd.Stage:
@@ -236,10 +339,7 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     up_axis = UsdGeom.GetStageUpAxis(src_stage)
     mpu = UsdGeom.GetStageMetersPerUnit(src_stage)
 
-    albedo_file = f"{name}_albedo.png"
-    normal_file = f"{name}_normal.png"
-    _write_png(out_dir / albedo_file, baked.albedo, srgb=True)
-    _write_png(out_dir / normal_file, 0.5 * (baked.normal + 1.0), srgb=False)
+    files = _write_maps(out_dir, baked)
     write_definitions(out_dir)  # the CPM and BTF shaders name it (texelbake.shaderdefs)
 
     # ---- payload layer (crate)
@@ -256,10 +356,16 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
         scope = UsdGeom.Scope.Define(pstage, f"/Baked/CPM/L{lvl:02d}")
         _author_arrays(scope.GetPrim(), arrays)
     UsdGeom.Scope.Define(pstage, "/Baked/Looks")
-    mat = _author_preview_material(
-        pstage, "/Baked/Looks/BakedPreview", f"./{albedo_file}", f"./{normal_file}", "/Baked/CPM"
-    )
     for i, mesh in enumerate(baked.meshes, start=1):
+        if baked.fallback:  # one fallback per LOD: its roughness is widened for that LOD
+            mat = _author_preview_material(
+                pstage, fallback_material_path(i), f"./{files['base']}", f"./{files['normal']}",
+                "/Baked/CPM", f"./{files['roughness'][i - 1]}", f"./{files['occlusion']}",
+                baked.fallback.get("constants"))
+        elif i == 1:
+            mat = _author_preview_material(
+                pstage, fallback_material_path(1), f"./{files['albedo']}",
+                f"./{files['normal']}", "/Baked/CPM")
         geom = _author_mesh(pstage, f"/Baked/LOD{i}", mesh)
         UsdShade.MaterialBindingAPI.Apply(geom.GetPrim()).Bind(mat)
     if author_extra is not None:
@@ -417,7 +523,7 @@ def read_baked(path: str | Path) -> BakedAsset:
         f = np.array(geom.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
         st = UsdGeom.PrimvarsAPI(geom).GetPrimvar("st").Get()
         uv = np.array(st, dtype=np.float32).astype(np.float64).reshape(-1, 3, 2)
-        meshes.append(LodMesh(v, f, uv))
+        meshes.append(LodMesh(v, f, uv, _read_impostor(geom, len(v))))
         i += 1
     meta = dict(stage.GetRootLayer().customLayerData.get("texelbake", {}))
     name = path.name.removesuffix("_baked.usda")
@@ -430,8 +536,76 @@ def read_baked(path: str | Path) -> BakedAsset:
         if items:
             source = str((path.parent / items[0].assetPath).resolve())
             break
+    filtered = read_filtered_maps(path.parent, name)
+    fallback = {"materials": [_read_preview_material(stage, baked_path.AppendChild(f"LOD{i}"))
+                              for i in range(1, len(meshes) + 1)]}
     return BakedAsset(name, levels, arrays, meshes, albedo.astype(np.float32),
-                      normal.astype(np.float32), meta, source, str(path))
+                      normal.astype(np.float32), meta, source, str(path), filtered, fallback)
+
+
+def read_filtered_maps(folder: Path, name: str) -> list[np.ndarray]:
+    """The filtered maps `<name>_filtered_L<ll>.exr` of every level (empty list when the bake
+    wrote none: bakes before issue 21). AssetError naming the file when its channels are not
+    `filtered_maps.CHANNELS`."""
+    from texelbake.filtered_maps import CHANNELS
+    from texelbake.imageio import read_pixels
+
+    out: list[np.ndarray] = []
+    while (f := Path(folder) / f"{name}_filtered_L{len(out):02d}.exr").is_file():
+        px, info = read_pixels(f)
+        names = list(info.channel_names)  # EXR stores channels sorted by name: reorder
+        if sorted(names) != sorted(CHANNELS):
+            raise AssetError(f"filtered map channels {names}, expected {list(CHANNELS)}",
+                             path=str(f))
+        out.append(px[..., [names.index(c) for c in CHANNELS]])
+    return out
+
+
+def _read_preview_material(stage: Usd.Stage, mesh_path: Sdf.Path) -> dict[str, Any]:
+    """The UsdPreviewSurface bound to a LOD mesh, as authored: {"path", "constants": input ->
+    value, "textures": input -> (h, w, c) float64 texel values after the UsdUVTexture's colour
+    space, scale and bias, the component its output names}. Empty dict when none is bound."""
+    from texelbake.imageio import read_pixels, srgb_to_linear
+
+    prim = stage.GetPrimAtPath(mesh_path)
+    if not prim:
+        return {}
+    mat, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+    if not mat:
+        return {}
+    surf = mat.ComputeSurfaceSource()[0]
+    if not surf or surf.GetIdAttr().Get() != "UsdPreviewSurface":
+        return {}
+    consts: dict[str, Any] = {}
+    texs: dict[str, np.ndarray] = {}
+    for inp in surf.GetInputs():
+        name = inp.GetBaseName()
+        src = inp.GetConnectedSources()[0]
+        if not src:
+            v = inp.Get()
+            consts[name] = np.asarray(v, dtype=np.float64) if v is not None else None
+            continue
+        tex = UsdShade.Shader(src[0].source.GetPrim())
+        if tex.GetIdAttr().Get() != "UsdUVTexture":
+            raise AssetError(f"input {name} is connected to {tex.GetIdAttr().Get()}, not a "
+                             "UsdUVTexture", prim=str(tex.GetPath()))
+        file = tex.GetInput("file").Get()
+        fpath = file.resolvedPath if file is not None else ""
+        if not fpath:
+            raise AssetError("texture file does not resolve", prim=str(tex.GetPath()))
+        px = read_pixels(fpath, prim=str(tex.GetPath()))[0].astype(np.float64)
+        cs = tex.GetInput("sourceColorSpace")
+        if cs and cs.Get() == "sRGB":
+            px[..., :3] = srgb_to_linear(px[..., :3].astype(np.float32)).astype(np.float64)
+        c = px.shape[2]
+        for key, default in (("scale", 1.0), ("bias", 0.0)):
+            attr = tex.GetInput(key)
+            vec = np.asarray(attr.Get(), dtype=np.float64)[:c] if attr and attr.Get() is not None \
+                else np.full(c, default)
+            px = px * vec if key == "scale" else px + vec
+        comp = {"r": [0], "g": [1], "b": [2], "a": [3], "rgb": [0, 1, 2]}[src[0].sourceName]
+        texs[name] = px[..., comp]
+    return {"path": str(mat.GetPath()), "constants": consts, "textures": texs}
 
 
 def _read_png(path: Path, srgb: bool) -> np.ndarray:

@@ -75,7 +75,9 @@ def plan_bake(asset_path: Path, settings: BakeSettings) -> Plan:
     else:
         skipped.append(("render", "previews not requested (settings.previews is false)"))
     skipped.append(
-        ("srf", "impostor parameterization is not part of this version (seed 002 not implemented)")
+        ("srf", "deformed previews are not part of the farm yet (the impostor "
+                "parameterization is on every LOD mesh; `texelbake render --warp` renders "
+                "deformed frames)")
     )
     return Plan(tuple(plan), tuple(skipped))
 

@@ -9,8 +9,9 @@ import re
 import uuid
 from collections import defaultdict
 from pathlib import Path
+from typing import Annotated
 
-from fastapi import APIRouter, Header, Request, Response, status
+from fastapi import APIRouter, Header, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from sqlalchemy import func, select
@@ -22,6 +23,7 @@ from schemas.job import (
     JobCreate,
     JobPublic,
     JobsPublic,
+    JobState,
     JobSummary,
     ShardPublic,
     SkippedStage,
@@ -43,6 +45,7 @@ JOB_NOT_FOUND = "job not found"
 JOB_NOT_FINISHED = "job has not succeeded"
 PREVIEW_NOT_FOUND = "preview not found"
 REPORT_NOT_FOUND = "report not found"
+AssetIdQ = Annotated[str | None, Query(min_length=1, max_length=64)]
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
 
 JOB_404 = (404, "`job_not_found`: no such job for this tenant.")
@@ -177,10 +180,20 @@ def create_job(
 
 @router.get("", response_model=JobsPublic, operation_id="list_jobs", responses=errors(401, 422))
 def read_jobs(
-    session: SessionDep, tenant: CurrentTenant, skip: SkipQ = 0, limit: LimitQ = 100
+    session: SessionDep,
+    tenant: CurrentTenant,
+    skip: SkipQ = 0,
+    limit: LimitQ = 100,
+    state: JobState | None = None,
+    asset_id: AssetIdQ = None,
 ) -> JobsPublic:
-    """This tenant's jobs, newest first."""
+    """This tenant's jobs, newest first; `state` and `asset_id` filter (`count` counts the
+    filtered jobs)."""
     q = select(Job).where(Job.tenant == tenant)
+    if state is not None:
+        q = q.where(Job.state == state)
+    if asset_id is not None:
+        q = q.where(Job.asset_id == asset_id)
     count = session.scalar(select(func.count()).select_from(q.subquery())) or 0
     jobs = session.scalars(
         q.order_by(Job.created_at.desc(), Job.id).offset(skip).limit(limit)

@@ -9,7 +9,6 @@ import numpy as np
 
 from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.avis.table import avis_table_arrays
-from texelbake.cpm.haar import decompress_haar
 
 
 def percentiles(x: np.ndarray) -> dict[str, float]:
@@ -76,18 +75,15 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "frames": frames.astype(np.float64),
     }
     arrays.update(avis_table_arrays(table))
-    # a_vis compression error (relative L2 over the ray-based maps, the seed's measure), and
-    # per texel against AVIS_TEXEL_TOLERANCE (the texels the report flags)
+    # a_vis compression error against the uncompressed maps, relative L2 over the ray-based
+    # texels' cube pixels, of a_vis as the renderer reads it (U times the corrected fraction
+    # for bounded texels): the whole level and per texel against AVIS_TEXEL_TOLERANCE (the
+    # texels the report flags)
     err = 0.0
     per_texel = np.zeros(0)
     if len(avis_level.ray_texels):
-        table_maps = decompress_haar(table.haar).reshape(-1, 6, avis_level.res, avis_level.res)
-        frac = avis_level.bounded[avis_level.ray_texels]
-        ref = avis_level.ray_maps.copy()
-        if frac.any():
-            unocc = avis_mod.closed_form_maps(avis_level.cf, avis_level.res,
-                                              avis_level.ray_texels[frac])
-            ref[frac] = avis_mod.visible_fraction(ref[frac], unocc)
+        table_maps = table.ray_texel_maps()
+        ref = avis_level.ray_maps
         err = float(np.linalg.norm(table_maps - ref)) / max(float(np.linalg.norm(ref)), 1e-300)
         per_texel = texel_rel_errors(table_maps, ref)
     valid = data["valid"]

@@ -7,7 +7,8 @@
 
 Modules: `frame` (the modes and `render_frame`), `tracer` (the wavefront loop), `camera`,
 `scene` (a baked asset ready to render), one module per mode (`gt`, `cpm`, `btf`,
-`normalmap`), `shade` (direct light), `diagnostics` (mip-level and density images),
+`normalmap`, `toksvig`, `leadr`, `preview_surface`; `filtered`: the filtered maps' look-ups),
+`shade` (direct light), `diagnostics` (mip-level and density images),
 `images` (EXR/PNG), `report` (previews, the report and its plot).
 """
 

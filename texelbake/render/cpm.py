@@ -368,7 +368,8 @@ def render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw
     max_error_px = kw.pop("max_error_px", 1.0)
     filtering = kw.pop("filtering", "projected")
     _check_cpm_options(filtering, kw.get("footprint", "sample"))
-    frame = cpm_frame(scene, cam, max_error_px)
+    # a caller's CpmFrame (the deformed modes: `texelbake.render.deformed`) or this frame's
+    frame = kw.pop("frame", None) or cpm_frame(scene, cam, max_error_px)
     n_pix = cam.height * cam.width
     acc = np.zeros((n_pix, 3))
     lvl_sum = np.zeros(n_pix)

@@ -46,6 +46,12 @@ Modes (all read the baked USD through `texelbake.payload.read_baked` and the cop
   traced on M1 (as ``normalmap``), and λ comes from the pixel footprint exactly as in ``cpm``
   (clamped to [0, λ_max] by the look-up). Not in `MODES` (previews and reports iterate MODES
   and most bakes carry no BTF maps); `render_frame` accepts it through `EXTRA_MODES`.
+- ``toksvig``, ``leadr`` (each also ``+ao``), ``preview-surface`` — the filtered baselines
+  studios ship (issue 21): the mip-mapped normal map with Toksvig's widened lobe
+  (`render.toksvig`), LEAN/LEADR from the baked slope moments (`render.leadr`), the baked AO
+  multiplied into the albedo term, and each LOD's UsdPreviewSurface fallback evaluated as
+  authored (`render.preview_surface`); the level from the pixel footprint as ``cpm``. In
+  `EXTRA_MODES` (bakes before issue 21 have no filtered maps).
 - ``equal-time`` — M_org shaded as ``gt`` for exactly the time budget (by default the time
   of the ``cpm`` image at the given spp, measured in this call): `tracer.progressive` adds
   samples in chunks, each half the time left at the measured cost per sample, so its
@@ -74,13 +80,23 @@ from texelbake.render.btf import render_btf
 from texelbake.render.camera import PinholeCamera
 from texelbake.render.cpm import render_cpm
 from texelbake.render.gt import render_org, shade_org
+from texelbake.render.leadr import render_leadr
 from texelbake.render.normalmap import render_normalmap
+from texelbake.render.preview_surface import render_preview_surface
 from texelbake.render.scene import RenderScene
+from texelbake.render.toksvig import render_toksvig
 from texelbake.render.tracer import RenderResult, progressive
 
 MODES = ("gt", "cpm", "normalmap", "equal-time")
+#: the filtered-normal-map baselines studios ship (issue 21): mode -> (renderer, keyword
+#: arguments); they need the filtered maps of a bake (`texelbake.filtered_maps`)
+FILTERED_MODES: dict[str, tuple[Any, dict[str, Any]]] = {
+    "toksvig": (render_toksvig, {}), "toksvig+ao": (render_toksvig, {"ao": True}),
+    "leadr": (render_leadr, {}), "leadr+ao": (render_leadr, {"ao": True}),
+    "preview-surface": (render_preview_surface, {}),
+}
 #: modes `render_frame` accepts beyond MODES (they need optional bake outputs)
-EXTRA_MODES = ("btf",)
+EXTRA_MODES = ("btf",) + tuple(FILTERED_MODES)
 
 
 def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, seed: int = 0,
@@ -99,6 +115,11 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
         img, rays, cov = render_normalmap(scene, cam, spp, seed)
     elif mode == "cpm":
         img, rays, cov, extras = render_cpm(scene, cam, spp, seed, **kw)
+    elif mode in FILTERED_MODES:
+        if not isinstance(scene, RenderScene):
+            raise SettingsError(f"field 'mode': {mode!r} needs a baked asset (RenderScene)")
+        fn, mode_kw = FILTERED_MODES[mode]
+        img, rays, cov = fn(scene, cam, spp, seed, **mode_kw)
     elif mode == "btf":
         if not isinstance(scene, RenderScene):
             raise SettingsError("field 'mode': 'btf' needs a baked asset (RenderScene)")

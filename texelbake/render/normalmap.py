@@ -58,6 +58,24 @@ def _bilinear_map(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.einsum("nk,nkc->nc", w, flat[idx])
 
 
+def baseline_maps(scene: RenderScene) -> tuple[np.ndarray, np.ndarray]:
+    """The albedo and tangent-space normal maps (N, N, 3) the mode reads: the float maps of
+    the finest filtered level when the bake wrote them (the renormalised mean normal and the
+    albedo, the same area-weighted means as the 8-bit PNGs, without their quantisation: the
+    filtered modes read the same floats, so with zero variance they equal this mode exactly),
+    else the PNGs of the USD fallback (bakes before issue 21)."""
+    if not scene.baked.filtered:
+        return scene.baked.albedo, scene.baked.normal
+    from texelbake.filtered_maps import FIELDS
+
+    top = scene.baked.filtered[0].astype(np.float64)
+    nbar = top[..., FIELDS["nbar"]]
+    length = np.linalg.norm(nbar, axis=2, keepdims=True)
+    normal = np.divide(nbar, length, out=np.zeros_like(nbar) + [0.0, 0.0, 1.0],
+                       where=length > 0)
+    return top[..., FIELDS["albedo"]], normal
+
+
 def normalmap_brdf(scene: RenderScene, texel: np.ndarray, albedo: np.ndarray):
     """The baseline's BRDF at hits on M1: the texel's material (nearest texel of the material
     map) with its Lambertian part replaced by the albedo map,
@@ -88,8 +106,9 @@ def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray
     hit, idx, prim, p, uv, row, col = hit_m1(scene, o, d)
     if idx.size == 0:
         return out, rays, hit
-    albedo = _bilinear_map(scene.baked.albedo, uv)
-    local = _bilinear_map(scene.baked.normal, uv)
+    albedo_map, normal_map = baseline_maps(scene)
+    albedo = _bilinear_map(albedo_map, uv)
+    local = _bilinear_map(normal_map, uv)
     ns = np.einsum("nji,nj->ni", nm["frames"][prim], local)  # tangent space -> world
     ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
     texel = row * scene.n0 + col

@@ -81,7 +81,7 @@ class RenderScene(OrgScene):
                                  arr["atlas_faces"].astype(np.int64),
                                  arr["atlas_corner_uvs"].astype(np.float64))
             self.atlas_caster = RayCaster(self.atlas_arrays[0], self.atlas_arrays[1])
-        else:
+        else:  # `atlas_uv` reads LOD1 itself
             m0 = self.baked.meshes[0]
             self.atlas_arrays = (m0.vertices, m0.faces, m0.corner_uvs)
             self.atlas_caster = self.lods[0]
@@ -267,7 +267,11 @@ def hit_m1(scene: RenderScene, o: np.ndarray, d: np.ndarray):
 def atlas_uv(scene: RenderScene, p: np.ndarray) -> np.ndarray:
     """The exact composite map T(T_i(·)) of seed 000 §4.1: the atlas uv of the closest point
     on the atlas mesh (LOD1, or the separate M_T) to points p (n, 3) on any LOD."""
-    _, f1, c1 = scene.atlas_arrays
-    _, p1, b1 = scene.atlas_caster.closest_points(p)
+    if scene.atlas_separate:
+        _, f1, c1 = scene.atlas_arrays
+        caster = scene.atlas_caster
+    else:  # LOD1 (scene.lods[0]: a deformed frame replaces it with the warped LOD1)
+        c1, caster = scene.baked.meshes[0].corner_uvs, scene.lods[0]
+    _, p1, b1 = caster.closest_points(p)
     w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
     return np.einsum("nk,nkj->nj", w1, c1[p1])

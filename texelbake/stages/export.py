@@ -15,6 +15,7 @@ from texelbake.stages.avis import avis_levels, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
+from texelbake.stages.filtered import fallback_maps, filtered_levels
 
 
 def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = None,
@@ -66,6 +67,12 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     if not bool(geo["lod_exact"]):  # the CPM's atlas mesh M_T is not LOD1: the renderer needs it
         extra_arrays = {"atlas_vertices": geo["m1_vertices"], "atlas_faces": geo["m1_faces"],
                         "atlas_corner_uvs": geo["m1_corner_uvs"]}
+    filtered = filtered_levels(ctx)  # the filtered baseline maps of every level (issue 21)
+    fallback = fallback_maps(ctx, filtered)
+    from texelbake.deform.impostor import impostor_params
+
+    for m in meshes:  # seed 002 Table 1 on every vertex of M1..Mn
+        m.impostor = impostor_params(m.vertices, m.faces, m.corner_uvs).as_arrays()
     name = ctx.asset_path.stem
     skipped = list(plan.skipped) if plan is not None else []
     report = {
@@ -80,6 +87,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "lods": lod_report(geo),
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "stage_seconds": dict(stage_seconds or {}),
+        "fallback_levels": fallback["levels"],
         "warnings": [
             f"level {r['level']}: {r['avis']['texels_above_tolerance']} of "
             f"{r['avis']['ray_texels']} ray-traced texels have a compressed a_vis table more "
@@ -107,6 +115,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
                     [["lambert", "preview", "phong", "merl", "cellular"].index(m.model)
                      for m in asset.materials], np.int32), **extra_arrays},
         meshes=meshes, albedo=albedo, normal=normal, metadata=metadata,
+        filtered=filtered, fallback=fallback,
     )
     author_extra = None
     if s.btf:

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from texelbake.cpm.avis.closed_form import ClosedForm, closed_form_maps, eval_closed_form
 from texelbake.cpm.avis.cube import FACE_BASIS, dirs_to_cube
 from texelbake.cpm.avis.levels import AvisLevel
-from texelbake.cpm.haar import HaarCoeffs, compress_haar, eval_haar_point
+from texelbake.cpm.haar import HaarCoeffs, compress_haar, decompress_haar, eval_haar_point
 from texelbake.errors import SettingsError, ShapeError
 from texelbake.frames import to_world
 from texelbake.tol import TOL
@@ -35,6 +35,10 @@ class AvisTable:
         at each tap direction), interpolated, then min(., U(w)) with U exact at w: the
         horizon is exact and compression only touches the smoother masking fraction
         (about 4x lower error at the seed's kept fraction, benchmarks/avis_methods.py)
+    correction : (k, 6, res, res) float16 sum-preserving corrections (`sum_correction`),
+        one per group present in the level, (0,) when the table has none (the seed's plain
+        Haar table, or a bake from before it); correction_groups : (k,) uint8, which group
+        each map corrects: 0 the bounded texels' visible fractions, 1 the direct texels' a_vis
     """
 
     res: int
@@ -45,6 +49,8 @@ class AvisTable:
     cf: ClosedForm
     ray_row: np.ndarray
     haar: HaarCoeffs
+    correction: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float16))
+    correction_groups: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
 
     @property
     def n_texels(self) -> int:
@@ -58,7 +64,8 @@ class AvisTable:
             "bounded": self.bounded, "cf_offsets": self.cf.offsets,
             "cf_normals": self.cf.normals, "cf_areas": self.cf.areas, "ray_row": self.ray_row,
             "haar_offsets": self.haar.offsets, "haar_indices": self.haar.indices,
-            "haar_values": self.haar.values,
+            "haar_values": self.haar.values, "correction": self.correction,
+            "correction_groups": self.correction_groups,
         }
 
     @classmethod
@@ -81,10 +88,15 @@ class AvisTable:
         cf = ClosedForm(np.asarray(arrays["cf_offsets"], np.int64),
                         np.asarray(arrays["cf_normals"], np.float64),
                         np.asarray(arrays["cf_areas"], np.float64))
+        corr = np.asarray(arrays.get("correction", np.zeros(0)), np.float16)
+        groups = np.asarray(arrays.get("correction_groups", np.zeros(0)), np.uint8).reshape(-1)
+        if corr.size and corr.shape != (groups.shape[0], 6, res, res):
+            raise ShapeError(f"correction must be ({groups.shape[0]}, 6, {res}, {res}) for "
+                             f"correction_groups {groups.tolist()}, got {corr.shape}")
         return cls(res, np.asarray(arrays["frames"], np.float64),
                    np.asarray(arrays["texel_area"], np.float64),
                    np.asarray(arrays["closed"], bool), np.asarray(arrays["bounded"], bool), cf,
-                   ray_row, haar)
+                   ray_row, haar, corr, groups)
 
     def evaluate(self, texels: np.ndarray, dirs_texel: np.ndarray, *,
                  interp: str = "bilinear",
@@ -137,10 +149,10 @@ class AvisTable:
         res = self.res
         face, iu, iv, fu, fv = dirs_to_cube(w, res)
         if interp == "nearest":
-            val = eval_haar_point(self.haar, rows * 6 + face, iu, iv)
+            val = self._pixels(eval_haar_point(self.haar, rows * 6 + face, iu, iv), face, iu,
+                               iv, bounded)
             if bounded.any():
-                val[bounded] = (np.clip(val[bounded], 0.0, 1.0)
-                                * eval_closed_form(self.cf, texels[bounded], w[bounded]))
+                val[bounded] *= eval_closed_form(self.cf, texels[bounded], w[bounded])
             return val
         # Seamless bilinear: the four taps are texel centres of the face's plane extended by
         # one texel. A tap inside the face is read directly; a tap beyond an edge is turned
@@ -155,8 +167,11 @@ class AvisTable:
         r4 = np.tile(rows, 4)
         taps = np.empty(tu.shape[0], dtype=np.float64)
         inside = (tu >= 0) & (tu <= res - 1) & (tv >= 0) & (tv <= res - 1)
-        taps[inside] = eval_haar_point(self.haar, r4[inside] * 6 + f4[inside],
-                                       tu[inside].astype(np.int64), tv[inside].astype(np.int64))
+        b4 = np.tile(bounded, 4)
+        iu_in, iv_in = tu[inside].astype(np.int64), tv[inside].astype(np.int64)
+        taps[inside] = self._pixels(
+            eval_haar_point(self.haar, r4[inside] * 6 + f4[inside], iu_in, iv_in),
+            f4[inside], iu_in, iv_in, b4[inside])
         sc = 2.0 * (tu + 0.5) / res - 1.0
         tc = 2.0 * (tv + 0.5) / res - 1.0
         basis = FACE_BASIS[f4]  # (4n, 3, 3)
@@ -164,18 +179,66 @@ class AvisTable:
         out = ~inside
         if out.any():
             tf, _, _, tfu, tfv = dirs_to_cube(tap_dirs[out], res)
-            taps[out] = self._bilinear_in_face(r4[out], tf, tfu, tfv)
-        b4 = np.tile(bounded, 4)
-        if b4.any():  # F at the taps times U exactly at the tap directions
+            taps[out] = self._bilinear_in_face(r4[out], tf, tfu, tfv, b4[out])
+        if b4.any():  # F at the taps (in [0, 1]) times U exactly at the tap directions
             td = tap_dirs[b4] / np.linalg.norm(tap_dirs[b4], axis=1, keepdims=True)
-            taps[b4] = np.clip(taps[b4], 0.0, 1.0) * eval_closed_form(
-                self.cf, np.tile(texels, 4)[b4], td)
+            taps[b4] = taps[b4] * eval_closed_form(self.cf, np.tile(texels, 4)[b4], td)
         wts = np.concatenate([(1 - au) * (1 - av), au * (1 - av), (1 - au) * av, au * av])
         return np.sum((taps * wts).reshape(4, -1), axis=0)
 
+    def ray_texel_maps(self) -> np.ndarray:
+        """(n_ray, 6, res, res) float64 a_vis of the ray-based texels at the cube pixels as
+        this table reconstructs them (bounded texels: U times the corrected fraction): what a
+        nearest look-up returns there. For measuring the table against its uncompressed maps;
+        a full inverse transform, not for rendering."""
+        res = self.res
+        rec = decompress_haar(self.haar).reshape(-1, 6, res, res)
+        rows = np.flatnonzero(self.ray_row >= 0)
+        texels = rows[np.argsort(self.ray_row[rows])]  # texel of each ray row
+        bnd = self.bounded[texels]
+        face, iv, iu = np.meshgrid(np.arange(6), np.arange(res), np.arange(res), indexing="ij")
+        n = rec.shape[0]
+        face_k, iu_k, iv_k = (np.broadcast_to(a.ravel(), (n, a.size)).ravel()
+                              for a in (face, iu, iv))
+        rec = self._pixels(rec.reshape(-1), face_k, iu_k, iv_k,
+                           np.repeat(bnd, face.size)).reshape(n, 6, res, res)
+        if bnd.any():
+            rec[bnd] *= closed_form_maps(self.cf, res, texels[bnd])
+        return rec
+
+    def _pixels(self, raw: np.ndarray, face: np.ndarray, iu: np.ndarray, iv: np.ndarray,
+                bounded: np.ndarray) -> np.ndarray:
+        """Table values at cube pixels: bounded texels' corrected fractions (`_fraction`),
+        the other ray texels' corrected a_vis (`_direct`). All arrays (k,)."""
+        out = np.empty(raw.shape[0], dtype=np.float64)
+        out[bounded] = self._fraction(raw[bounded], face[bounded], iu[bounded], iv[bounded])
+        d = ~bounded
+        out[d] = self._direct(raw[d], face[d], iu[d], iv[d])
+        return out
+
+    def _fraction(self, raw: np.ndarray, face: np.ndarray, iu: np.ndarray, iv: np.ndarray
+                  ) -> np.ndarray:
+        """A bounded texel's visible fraction at cube pixels: the Haar value clipped to
+        [0, 1], then the level's sum correction (`sum_correction`) at those pixels."""
+        f = np.clip(raw, 0.0, 1.0)
+        k = np.flatnonzero(self.correction_groups == 0)
+        if k.size == 0:
+            return f
+        return apply_correction(f, self.correction[k[0], face, iv, iu], bounded=True)
+
+    def _direct(self, raw: np.ndarray, face: np.ndarray, iu: np.ndarray, iv: np.ndarray
+                ) -> np.ndarray:
+        """A direct (unbounded) ray texel's a_vis at cube pixels: >= 0, then corrected."""
+        a = np.maximum(raw, 0.0)
+        k = np.flatnonzero(self.correction_groups == 1)
+        if k.size == 0:
+            return a
+        return apply_correction(a, self.correction[k[0], face, iv, iu], bounded=False)
+
     def _bilinear_in_face(self, rows: np.ndarray, face: np.ndarray, fu: np.ndarray,
-                          fv: np.ndarray) -> np.ndarray:
-        """Bilinear look-up with coordinates clamped to the face's texel centres."""
+                          fv: np.ndarray, bounded: np.ndarray) -> np.ndarray:
+        """Bilinear look-up with coordinates clamped to the face's texel centres (bounded
+        rows: of their corrected fractions)."""
         res = self.res
         fu = np.clip(fu, 0.0, res - 1.0)
         fv = np.clip(fv, 0.0, res - 1.0)
@@ -184,8 +247,9 @@ class AvisTable:
         u1, v1 = np.minimum(u0 + 1, res - 1), np.minimum(v0 + 1, res - 1)
         au, av = fu - u0, fv - v0
         mi = np.tile(rows * 6 + face, 4)
-        taps = eval_haar_point(self.haar, mi, np.concatenate([u0, u1, u0, u1]),
-                               np.concatenate([v0, v0, v1, v1])).reshape(4, -1)
+        pu, pv = np.concatenate([u0, u1, u0, u1]), np.concatenate([v0, v0, v1, v1])
+        taps = self._pixels(eval_haar_point(self.haar, mi, pu, pv), np.tile(face, 4), pu, pv,
+                            np.tile(bounded, 4)).reshape(4, -1)
         wts = np.stack([(1 - au) * (1 - av), au * (1 - av), (1 - au) * av, au * av])
         return np.sum(taps * wts, axis=0)
 
@@ -230,11 +294,80 @@ def visible_fraction(maps: np.ndarray, unoccluded: np.ndarray) -> np.ndarray:
     return f
 
 
-def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float) -> AvisTable:
+#: bisection steps of the bounded texels' exponent (log-gamma in [-8, 8]: 16 / 2^30 = 1.5e-8)
+_GAMMA_STEPS = 30
+_LOG_GAMMA_MAX = 8.0
+
+
+def sum_correction(exact: np.ndarray, approx: np.ndarray, weight: np.ndarray,
+                   bounded: bool) -> np.ndarray:
+    """Per-direction correction that restores a level's total a_vis after compression.
+
+    Truncating every texel's Haar table drops similar coefficients in similar texels (a
+    height field's texels all mask alike), so their errors add up instead of cancelling:
+    measured, the total over a level's texels was off by 5-10 % where each texel was off by
+    2-5 % (benchmarks/avis_methods.py). One scalar per cube pixel puts the group's missing
+    total back:
+
+    * bounded texels (the table holds F = a_vis / U in [0, 1]): F~ -> F~^gamma with
+      gamma = exp(g), g solved by bisection so that sum_t U_t F~_t^gamma = sum_t U_t F_t. The
+      power keeps 0 at 0 (a fully masked direction stays masked), 1 at 1 and F in [0, 1],
+      and spans every total between the fully visible texels' and all non-zero texels' U;
+      a target outside that range gets the nearest end (g = -+8).
+    * direct texels (the table holds a_vis itself, W = 1): a~ (1 + m) with
+      m = sum_t (a_t - a~_t) / sum_t a~_t, clipped to [-1, 1] (0 stays 0).
+
+    Either way the group's total is exact at every cube pixel, so the identity
+    sum_texels a_vis = A cos(theta) of a height field survives compression up to the bilinear
+    look-up's own interpolation error.
+
+    exact, approx : (n, 6, res, res) X and its reconstruction (F~ clipped to [0, 1], a~ >= 0)
+    weight : (n, 6, res, res) U (bounded) or ones; bounded : which rule
+    returns : (6, res, res) float32: g (bounded) or m (direct), stored as float16
+    """
+    x = np.asarray(exact, np.float64)
+    a = np.asarray(approx, np.float64)
+    u = np.asarray(weight, np.float64)
+    if not (x.shape == a.shape == u.shape) or x.ndim != 4 or x.shape[1] != 6:
+        raise ShapeError(f"exact, approx, weight must share a (n, 6, res, res) shape, got "
+                         f"{x.shape}, {a.shape}, {u.shape}")
+    target = np.sum(u * x, axis=0)  # (6, res, res)
+    if not bounded:
+        have = np.sum(u * a, axis=0)
+        m = np.divide(target - have, have, out=np.zeros_like(have), where=have > 0)
+        return np.clip(m, -1.0, 1.0).astype(np.float32)
+    # sum_t U_t F~_t^exp(g) decreases in g: bisection on [-8, 8], vectorized over pixels
+    logf = np.log(np.where(a > 0, a, 1.0))  # (n, 6, res, res); F~ = 0 terms masked below
+    pos = a > 0
+    lo = np.full(target.shape, -_LOG_GAMMA_MAX)
+    hi = np.full(target.shape, _LOG_GAMMA_MAX)
+    for _ in range(_GAMMA_STEPS):  # a loop over bisection steps, each over all pixels
+        mid = 0.5 * (lo + hi)
+        total = np.sum(np.where(pos, u * np.exp(np.exp(mid) * logf), 0.0), axis=0)
+        too_big = total > target
+        lo = np.where(too_big, mid, lo)
+        hi = np.where(too_big, hi, mid)
+    return (0.5 * (lo + hi)).astype(np.float32)
+
+
+def apply_correction(values: np.ndarray, c: np.ndarray, bounded: bool) -> np.ndarray:
+    """`sum_correction`'s rule at cube pixels: the corrected F from F~ in [0, 1] and g
+    (bounded), or the corrected a_vis from a~ >= 0 and m (direct)."""
+    v = np.asarray(values, np.float64)
+    c = np.asarray(c, np.float64)
+    if bounded:
+        return np.where(v > 0, np.exp(np.exp(c) * np.log(np.where(v > 0, v, 1.0))), 0.0)
+    return v * (1.0 + c)
+
+
+def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float, *,
+                   correct_sum: bool = True) -> AvisTable:
     """AvisTable of a level: closed-form terms as they are, Haar for the ray-based texels.
 
     frames : (N*N, 3, 3) float64 texel frames of this level (rows t, b, n)
     keep_fraction : Haar coefficients kept per cube face (texelbake.haar.compress_haar)
+    correct_sum : store the level's `sum_correction` (default); False is the seed's plain
+        per-face Haar table
     """
     n = level.n_side * level.n_side
     frames = np.asarray(frames, dtype=np.float64)
@@ -248,8 +381,24 @@ def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float) -
         unocc = closed_form_maps(level.cf, level.res, level.ray_texels[frac])
         maps[frac] = visible_fraction(maps[frac], unocc)
     haar = compress_haar(maps, keep_fraction)
+    maps_c: list[np.ndarray] = []
+    groups: list[int] = []
+    if correct_sum and level.ray_texels.shape[0]:
+        approx = decompress_haar(haar)  # (n_ray, 6, res, res)
+        if frac.any():
+            groups.append(0)
+            maps_c.append(sum_correction(maps[frac], np.clip(approx[frac], 0.0, 1.0), unocc,
+                                         bounded=True))
+        if (~frac).any():
+            direct = maps[~frac]
+            groups.append(1)
+            maps_c.append(sum_correction(direct, np.maximum(approx[~frac], 0.0),
+                                         np.ones_like(direct), bounded=False))
+    # float16: g and m are in [-8, 8] and [-1, 1]; 11 bits move F^exp(g) by < 1e-3 relative
+    correction = (np.stack(maps_c).astype(np.float16) if maps_c
+                  else np.zeros(0, np.float16))
     return AvisTable(level.res, frames, level.texel_area, level.closed, level.bounded, level.cf,
-                     ray_row, haar)
+                     ray_row, haar, correction, np.asarray(groups, np.uint8))
 
 
 def avis_table_arrays(table: AvisTable) -> dict[str, np.ndarray]:

@@ -1,0 +1,102 @@
+"""`/events`: the server-sent events of all of this tenant's jobs on one stream (the job list
+follows every job with one connection: a browser holds at most six per host, so a stream per
+job would starve the page's other requests)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+from fastapi import APIRouter, Header, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import StreamingResponse
+from sqlalchemy import func, select
+from sqlalchemy.orm import sessionmaker
+
+from services.db import Event, Job
+from services.deps import CurrentTenant
+from services.errors import errors
+
+router = APIRouter(prefix="/events", tags=["events"])
+
+#: most events sent per read of the database
+BATCH = 500
+
+
+def tenant_events_after(reader: sessionmaker, tenant: str, after: int) -> list[Event]:
+    with reader() as s:
+        return list(
+            s.scalars(
+                select(Event)
+                .join(Job, Job.id == Event.job_id)
+                .where(Job.tenant == tenant, Event.seq > after)
+                .order_by(Event.seq)
+                .limit(BATCH)
+            ).all()
+        )
+
+
+def last_seq(reader: sessionmaker) -> int:
+    with reader() as s:
+        return int(s.scalar(select(func.max(Event.seq))) or 0)
+
+
+@router.get(
+    "",
+    response_class=StreamingResponse,
+    operation_id="read_events",
+    responses={
+        200: {
+            "content": {"text/event-stream": {"schema": {"type": "string"}}},
+            "description": "Server-sent events of this tenant's jobs.",
+        },
+        **errors(401, 422),
+    },
+)
+def read_events(
+    request: Request, tenant: CurrentTenant, last_event_id: str | None = Header(None)
+) -> StreamingResponse:
+    """Events of all of this tenant's jobs (`event: job|stage|shard`, `data: JobEvent JSON`,
+    `id: seq`), from now on, or after `Last-Event-ID` when given. The stream opens with
+    `event: ready` (its `id` the sequence number it starts after): a client that read the
+    job list before has missed nothing once it re-reads the list on `ready`. It ends after
+    `sse_max_seconds` (reconnect with `Last-Event-ID`)."""
+    reader = request.app.state.reader
+    max_seconds = request.app.state.settings.sse_max_seconds
+    try:
+        given = int(last_event_id) if last_event_id else None
+    except ValueError:
+        given = None
+
+    async def stream():
+        after = given if given is not None else await run_in_threadpool(last_seq, reader)
+        yield f"id: {after}\nevent: ready\ndata: {json.dumps({'after': after})}\n\n"
+        loop = asyncio.get_running_loop()
+        t_end = loop.time() + max_seconds
+        idle = 0.0
+        while True:
+            rows = await run_in_threadpool(tenant_events_after, reader, tenant, after)
+            for ev in rows:
+                after = ev.seq
+                payload = {
+                    "seq": ev.seq,
+                    "job_id": ev.job_id,
+                    "kind": ev.kind,
+                    "data": json.loads(ev.data_json),
+                    "at": ev.at.isoformat(),
+                }
+                yield f"id: {ev.seq}\nevent: {ev.kind}\ndata: {json.dumps(payload)}\n\n"
+            if rows:
+                idle = 0.0
+                continue
+            if await request.is_disconnected() or loop.time() > t_end:
+                return
+            await asyncio.sleep(0.25)
+            idle += 0.25
+            if idle >= 15.0:
+                idle = 0.0
+                yield ": keep-alive\n\n"
+
+    return StreamingResponse(
+        stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
+    )

@@ -1,0 +1,127 @@
+// New bake: drop (or pick) a USD file, .usdz or .zip bundle, set the bake settings (fields
+// generated from the served BakeSettings schema), upload, create the job, open its page.
+import { useEffect, useState } from "preact/hooks";
+import { api, errorText } from "../api/client";
+import { ErrorBox, ErrorText } from "../components/common";
+import { initialValues, type ObjectSchema, SettingsForm, toSettings, type Values } from "../components/SettingsForm";
+
+const ACCEPT = ".usda,.usdc,.usd,.usdz,.zip";
+
+export function Upload() {
+  const [schema, setSchema] = useState<ObjectSchema | null>(null);
+  const [values, setValues] = useState<Values>({});
+  const [file, setFile] = useState<File | null>(null);
+  const [over, setOver] = useState(false);
+  const [busy, setBusy] = useState<string | null>(null);
+  const [error, setError] = useState<string | null>(null);
+
+  useEffect(() => {
+    (async () => {
+      const r = await fetch("/api/v1/openapi.json");
+      if (!r.ok) {
+        setError(`cannot read the API schema: HTTP ${r.status}`);
+        return;
+      }
+      const spec = await r.json();
+      const s = spec?.components?.schemas?.BakeSettings as ObjectSchema | undefined;
+      if (!s?.properties) {
+        setError("the API schema has no BakeSettings");
+        return;
+      }
+      setSchema(s);
+      setValues(initialValues(s));
+    })();
+  }, []);
+
+  async function submit(e: Event) {
+    e.preventDefault();
+    if (!file || !schema) return;
+    setError(null);
+    setBusy("Uploading and checking the asset…");
+    const up = await api.POST("/api/v1/assets", {
+      body: { file: file as unknown as string },
+      bodySerializer: (body) => {
+        const fd = new FormData();
+        fd.append("file", body.file as unknown as Blob, file.name);
+        return fd;
+      },
+    });
+    if (up.error || !up.data) {
+      setBusy(null);
+      setError(`Upload of ${file.name}: ${errorText(up.error, up.response.status)}`);
+      return;
+    }
+    setBusy("Creating the job…");
+    const job = await api.POST("/api/v1/jobs", {
+      body: { asset_id: up.data.id, settings: toSettings(schema, values) as never },
+    });
+    setBusy(null);
+    if (job.error || !job.data) {
+      setError(`Settings: ${errorText(job.error, job.response.status)}`);
+      return;
+    }
+    location.hash = `#/jobs/${job.data.id}`;
+  }
+
+  return (
+    <section>
+      <h2>New bake</h2>
+      <form onSubmit={submit} class="upload">
+        <label
+          class={over ? "dropzone over" : "dropzone"}
+          data-testid="dropzone"
+          onDragOver={(e) => {
+            e.preventDefault();
+            setOver(true);
+          }}
+          onDragLeave={() => setOver(false)}
+          onDrop={(e) => {
+            e.preventDefault();
+            setOver(false);
+            const f = e.dataTransfer?.files?.[0];
+            if (f) setFile(f);
+          }}
+        >
+          <input
+            type="file"
+            accept={ACCEPT}
+            data-testid="file-input"
+            onChange={(e) => setFile((e.target as HTMLInputElement).files?.[0] ?? null)}
+          />
+          {file ? (
+            <span>
+              <strong data-testid="file-name">{file.name}</strong> ({(file.size / 1024).toFixed(1)} KiB) — drop another to replace
+            </span>
+          ) : (
+            <span>Drop a USD file (.usda/.usdc/.usd), a .usdz or a .zip bundle here, or click to choose</span>
+          )}
+        </label>
+        {schema && (
+          <details open class="card">
+            <summary>
+              <strong>Bake settings</strong> <span class="muted small">(changed fields are highlighted)</span>
+            </summary>
+            <SettingsForm schema={schema} values={values} onChange={setValues} />
+          </details>
+        )}
+        {error && (
+          <ErrorBox>
+            <span data-testid="upload-error">
+              <ErrorText text={error} />
+            </span>
+          </ErrorBox>
+        )}
+        <div class="actions">
+          <button class="btn primary" type="submit" data-testid="submit" disabled={!file || !schema || busy !== null}>
+            {busy ?? "Upload and bake"}
+          </button>
+          {schema && (
+            <button class="btn" type="button" onClick={() => setValues(initialValues(schema))}>
+              Reset to defaults
+            </button>
+          )}
+        </div>
+      </form>
+    </section>
+  );
+}
