@@ -15,7 +15,7 @@ from texelbake.stages.avis import avis_levels, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
-from texelbake.stages.filtered import fallback_maps, filtered_levels
+from texelbake.stages.filtered import fallback_maps, filtered_levels, lod1_frames
 
 
 def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = None,
@@ -28,7 +28,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
 
         raise SettingsError(f"field 'source': expected 'copy' or 'reference', got {source!r}")
     from texelbake import payload
-    from texelbake.normalmap import bake_preview_maps, face_tangent_space
+    from texelbake.normalmap import bake_preview_maps
     from texelbake.scene import check_asset_paths
 
     s = ctx.settings
@@ -46,21 +46,11 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         level_reports.append(rep)
     dirs = direction_sets(s)
     meshes = [payload.LodMesh(v, f, uv) for v, f, uv in lod_meshes(geo)]
-    # the normal map is in the tangent frames of the mesh that carries it, LOD1 (whose faces
-    # are M_T's unless LOD1 is too fine for the atlas: then each sample's closest LOD1 face)
-    if bool(geo["lod_exact"]):
-        frames_mesh, sample_prim = meshes[0], geo["sample_m1_prim"]
-    else:
-        from texelbake.geometry.raycast import RayCaster
-
-        frames_mesh = meshes[0]
-        _, sample_prim, _ = RayCaster(frames_mesh.vertices, frames_mesh.faces).closest_points(
-            geo["sample_pos"])
-    lod1_frames = face_tangent_space(frames_mesh.vertices, frames_mesh.faces,
-                                     frames_mesh.corner_uvs)
+    # the normal map is in the tangent frames of the mesh that carries it, LOD1
+    frames1, sample_prim = lod1_frames(geo)
     albedo, normal, _ = bake_preview_maps(
         s.atlas_resolution, texel_ids(geo, s.atlas_resolution, 0), geo["sample_area"],
-        geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, lod1_frames,
+        geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, frames1,
         sample_prim,
     )
     extra_arrays = {}
