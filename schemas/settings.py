@@ -109,6 +109,16 @@ class BakeSettings(BaseModel):
     # optional stages
     btf: bool = Field(False, description="Run the BTF stage (real-time target).")
     previews: bool = Field(False, description="Render previews after export.")
+    # surface reflectance field (seed 002 §3, §5): captured with gt, sharded by camera
+    srf: bool = Field(False, description="Capture a surface reflectance field of M_org beside "
+                      "the bake (render mode srf).")
+    srf_cameras: int = Field(216, ge=1, le=4096, description="Capture cameras on a sphere "
+                             "(seed 002: 216-432).")
+    srf_lights: int = Field(44, ge=1, le=1024, description="Directional capture lights on a "
+                            "sphere (seed 002: 44-60).")
+    srf_size: int = Field(48, ge=2, le=4096, description="Capture image side (pixels).")
+    srf_spp: int = Field(16, ge=1, le=4096, description="Eye rays per pixel of a capture image.")
+    srf_shard_cameras: int = Field(24, ge=1, le=4096, description="Cameras per srf shard.")
 
     @model_validator(mode="after")
     def _check(self) -> BakeSettings:

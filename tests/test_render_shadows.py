@@ -68,8 +68,10 @@ def test_cpm_carries_the_shadow_of_another_object(baked_shadow):
     # occluder's masking of nearby directions leaks (measured with 16^2 cells per face and
     # 6 % of the coefficients: mean +0.4 %, max +6.1 % at one pixel when each eye ray reads
     # the finest level (footprint="sample"), +3.9 % when the pixel's footprint blends in
-    # level 1; with 4^2 cells, +8 % and +19 %).
-    np.testing.assert_allclose(y_cpm[lit], y_gt[lit], rtol=0.07)
+    # level 1; with 4^2 cells, +8 % and +19 %). The level's sum correction (a_vis summed over
+    # the level's texels exact per direction) moves part of the occluder texels' error onto
+    # their partly masked neighbours: max +7.6 % at one of the 99 pixels, mean unchanged.
+    np.testing.assert_allclose(y_cpm[lit], y_gt[lit], rtol=0.08)
     assert abs(float(np.mean(y_cpm[lit] / y_gt[lit])) - 1.0) <= 0.01
     # the shadow's edges are blurred by the texel filter, nothing else differs much
     assert psnr_object(cpm, gt) >= 25.0

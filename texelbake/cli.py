@@ -1,4 +1,5 @@
-"""`texelbake` command line: scenes, inspect, bake, demo, render, export, report, submit, stack.
+"""`texelbake` command line: scenes, inspect, bake, demo, render, srf-capture, export, report,
+submit, stack.
 
 Heavy modules are imported inside each command so `texelbake --help` is instant.
 Exit status: 0 done, 2 error (texelbake.errors), 3 `bake` finished below a quality target
@@ -214,6 +215,19 @@ def _camera_arg(value: str | None):
         raise TexelbakeError(f"--camera must be 'lod' or a distance, got {value!r}") from exc
 
 
+def cmd_srf_capture(args: argparse.Namespace) -> int:
+    from texelbake.render.scene import load_scene
+    from texelbake.srf.mode import capture_beside
+
+    t0 = time.perf_counter()
+    store = capture_beside(load_scene(Path(args.file)), n_cameras=args.cameras,
+                           n_lights=args.lights, size=args.size, spp=args.spp,
+                           encoding=args.encoding)
+    print(f"{store.n_cameras} cameras x {store.n_lights} lights at {store.width}x"
+          f"{store.height} ({store.encoding}) in {time.perf_counter() - t0:.1f} s: {store.path}")
+    return 0
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     from texelbake.lodexport import export_lod
 
@@ -303,7 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--modes", default=RENDER_MODES,
                    help="comma-separated: gt, cpm, normalmap, equal-time, btf (bakes with btf on), "
                    "toksvig, toksvig+ao, leadr, leadr+ao, preview-surface (the filtered "
-                   "baselines); with --warp/--time also cpm-naive")
+                   "baselines); with --warp/--time also cpm-naive; srf (after srf-capture), "
+                   "with --warp/--time also srf-naive")
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=256)
@@ -317,6 +332,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--time", type=float, default=None,
                    help="render deformed by the asset's own animation at this time code")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("srf-capture", help="capture a reflectance field of a baked asset's "
+                       "M_org beside it (for --modes srf)")
+    p.add_argument("file")
+    p.add_argument("--cameras", type=int, default=216)
+    p.add_argument("--lights", type=int, default=44)
+    p.add_argument("--size", type=int, default=48, help="capture image size (pixels)")
+    p.add_argument("--spp", type=int, default=16, help="eye rays per pixel of a capture image")
+    p.add_argument("--encoding", choices=["raw", "pca"], default="raw")
+    p.set_defaults(func=cmd_srf_capture)
 
     p = sub.add_parser("export", help="write one LOD of a baked USD as a self-contained file "
                        "(for tools without variant support)")

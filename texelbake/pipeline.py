@@ -20,6 +20,7 @@ from pathlib import Path
 from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.errors import SettingsError, StageError
+from texelbake.stages.srf import n_srf_shards
 
 
 @dataclass(frozen=True)
@@ -68,17 +69,22 @@ def plan_bake(asset_path: Path, settings: BakeSettings) -> Plan:
         plan.append(StagePlan("btf", "btf", 1, cpm_deps))
     else:
         skipped.append(("btf", "no real-time target requested (settings.btf is false)"))
-    export_deps = cpm_deps + avis_deps + (("btf",) if settings.btf else ())
+    if settings.srf:  # seed 002 §3: captured with gt, sharded by camera (render workers)
+        plan.append(StagePlan("srf", "render", n_srf_shards(settings), ("ingest",)))
+        plan.append(StagePlan("srf_top", "render", 1, ("srf",)))
+    export_deps = (cpm_deps + avis_deps + (("btf",) if settings.btf else ())
+                   + (("srf_top",) if settings.srf else ()))
     plan.append(StagePlan("export", "export", 1, export_deps))
     if settings.previews:
         plan.append(StagePlan("render", "render", 1, ("export",)))
     else:
         skipped.append(("render", "previews not requested (settings.previews is false)"))
-    skipped.append(
-        ("srf", "deformed previews are not part of the farm yet (the impostor "
-                "parameterization is on every LOD mesh; `texelbake render --warp` renders "
-                "deformed frames)")
-    )
+    if not settings.srf:
+        skipped.append(
+            ("srf", "no reflectance field requested (settings.srf is false; the impostor "
+                    "parameterization is on every LOD mesh, `texelbake render --warp` renders "
+                    "deformed frames)")
+        )
     return Plan(tuple(plan), tuple(skipped))
 
 
@@ -92,6 +98,8 @@ _RUNNERS: dict[str, Callable[[stages.StageContext, int], str]] = {
     "avis": stages.run_avis_tile,
     "avis_top": stages.run_avis_top,
     "btf": stages.run_btf,
+    "srf": stages.run_srf_shard,
+    "srf_top": stages.run_srf_top,
     "export": stages.run_export,
 }
 

@@ -33,6 +33,8 @@ characteristic points follow Ψ (`deform_scene`), and the modes of a deformed fr
 - ``normalmap`` — the studio baseline on the deformed M1: its tangent frame rebuilt from the
   deformed triangles and the atlas uvs (what a game engine's skinned tangent space does).
 - ``equal-time`` — the deformed M_org shaded as ``gt`` for cpm's time.
+- ``srf`` / ``srf-naive`` — the captured reflectance field through L / without it
+  (`texelbake.srf.mode`).
 """
 
 from __future__ import annotations
@@ -69,7 +71,7 @@ from texelbake.render.shade import light_at
 from texelbake.render.tracer import RenderResult, progressive
 from texelbake.tol import TOL
 
-DEFORMED_MODES = ("gt", "cpm", "cpm-naive", "normalmap", "equal-time")
+DEFORMED_MODES = ("gt", "cpm", "cpm-naive", "normalmap", "equal-time", "srf", "srf-naive")
 
 
 def cofactor(jac: np.ndarray) -> np.ndarray:
@@ -375,6 +377,11 @@ def render_deformed(d: RenderScene, mode: str, cam: PinholeCamera, spp: int, see
         frame = DeformedCpmFrame(d, cam, choose_mesh(d, cam, kw.pop("max_error_px", 1.0)),
                                  lookup="none" if mode == "cpm-naive" else lookup)
         img, rays, cov, extras = render_cpm(d, cam, spp, seed, frame=frame, **kw)
+    elif mode in ("srf", "srf-naive"):  # the reflectance field through L, or without it
+        from texelbake.srf.mode import render_srf_mode
+
+        img, rays, cov, extras = render_srf_mode(d.rest, cam, warp=d.warp,  # type: ignore[attr-defined]
+                                                 use_lookup=mode == "srf", **kw)
     else:  # equal-time
         if budget_seconds is None:
             budget_seconds = render_deformed(d, "cpm", cam, spp, seed, **kw).seconds

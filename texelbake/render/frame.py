@@ -95,8 +95,9 @@ FILTERED_MODES: dict[str, tuple[Any, dict[str, Any]]] = {
     "leadr": (render_leadr, {}), "leadr+ao": (render_leadr, {"ao": True}),
     "preview-surface": (render_preview_surface, {}),
 }
-#: modes `render_frame` accepts beyond MODES (they need optional bake outputs)
-EXTRA_MODES = ("btf",) + tuple(FILTERED_MODES)
+#: modes `render_frame` accepts beyond MODES (they need optional bake outputs; ``srf``: a
+#: reflectance field captured beside the bake, `texelbake.srf.mode`)
+EXTRA_MODES = ("btf", "srf") + tuple(FILTERED_MODES)
 
 
 def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, seed: int = 0,
@@ -124,6 +125,10 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
         if not isinstance(scene, RenderScene):
             raise SettingsError("field 'mode': 'btf' needs a baked asset (RenderScene)")
         img, rays, cov = render_btf(scene, cam, spp, seed, **kw)
+    elif mode == "srf":  # seed 002 §3, §5 (texelbake.srf)
+        from texelbake.srf.mode import render_srf_mode
+
+        img, rays, cov, extras = render_srf_mode(scene, cam, **kw)
     else:  # equal-time
         if budget_seconds is None:
             budget_seconds = render_frame(scene, "cpm", cam, spp, seed, **kw).seconds

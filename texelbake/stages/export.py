@@ -16,6 +16,7 @@ from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
 from texelbake.stages.filtered import fallback_maps, filtered_levels, lod1_frames
+from texelbake.stages.srf import export_srf
 
 
 def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = None,
@@ -110,6 +111,8 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     author_extra = None
     if s.btf:
         author_extra = export_btf(ctx, out_dir, report)
+    if s.srf:
+        export_srf(ctx, out_dir, report)
     if source == "copy":
         source_copy = payload.copy_source(
             ctx.asset_path, check_asset_paths(ctx.asset_path), out_dir / "source"
