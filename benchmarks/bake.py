@@ -120,7 +120,7 @@ def run_one(scene: Path, settings: BakeSettings, out: Path, with_avis_ref: bool)
     if out.exists():
         shutil.rmtree(out)
     t0 = time.perf_counter()
-    root = bake(scene, out, settings, progress=False, jobs=JOBS)
+    root = bake(scene, out, settings, progress=False, jobs=JOBS, workdir=out / ".work")
     total = time.perf_counter() - t0
     report = json.loads((out / "report.json").read_text())
     rays = report["rays"]["cpm"] + report["rays"]["avis"]  # counted in every process

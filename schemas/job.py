@@ -87,6 +87,12 @@ class JobPublic(BaseModel):
     seconds: float | None = None
     previews: list[str] = Field(default_factory=list, description="Names under .../previews/.")
     estimate: JobEstimate | None = Field(None, description="Predicted time (issue 15).")
+    outcome: Literal["completed", "completed with warnings"] | None = Field(
+        None, description="A succeeded job's quality gate (texelbake.quality): 'completed with "
+        "warnings' when the bake missed a target, listed in `warnings`; null before success.")
+    warnings: list[str] = Field(
+        default_factory=list, description="Each missed quality target, naming the LOD or CPM "
+        "level (the same list `texelbake bake` prints when it exits with status 3).")
 
 
 class JobSummary(BaseModel):

@@ -12,6 +12,11 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+#: quality-gate defaults (texelbake.quality; measured in docs/decisions.md, 2026-11-25)
+GATE_SNR_MEDIAN_DB = 0.0
+GATE_SNR_P5_DB = -6.0
+GATE_AVIS_REL_ERROR = 0.15
+
 
 class BakeSettings(BaseModel):
     """Settings of one bake. Field docs cite the seed each knob comes from."""
@@ -23,7 +28,27 @@ class BakeSettings(BaseModel):
     atlas_resolution: int = Field(
         16, ge=2, le=4096, description="Finest CPM level: N x N texels over M1's atlas (power of two)."
     )
-    mesh_levels: int = Field(2, ge=1, le=8, description="Simplified meshes M1..Mn (QEM).")
+    lod_mode: Literal["error", "atlas"] = Field(
+        "error",
+        description="'error': each LOD is the smallest QEM mesh within lod_error_px pixels of "
+        "M_org at its switch size (lod_switch_px), independent of the atlas; 'atlas': the "
+        "pre-issue-22 chain (M1 capped by the atlas, then simplify_ratio per level).",
+    )
+    lod_switch_px: tuple[float, ...] = Field(
+        (256.0, 64.0),
+        description="Screen size (pixels covered by the bounding-box diagonal) at which LOD1, "
+        "LOD2, ... switch in; decreasing. 'error' mode: one LOD per entry up to mesh_levels "
+        "(fewer when a level would not reduce the triangle count meaningfully).",
+    )
+    lod_error_px: float = Field(
+        1.0, gt=0.0, le=64.0,
+        description="Largest deviation (two-sided Hausdorff distance to M_org) a LOD may show, "
+        "in pixels at its switch size.",
+    )
+    mesh_levels: int = Field(
+        2, ge=1, le=8, description="Simplified meshes M1..Mn: 'atlas' mode's count, 'error' "
+        "mode's most (the first mesh_levels switch sizes).",
+    )
     simplify_ratio: float = Field(0.25, gt=0.0, lt=1.0, description="Face ratio M_{i+1}/M_i.")
     enclose_meshes: bool = Field(
         True,
@@ -75,6 +100,19 @@ class BakeSettings(BaseModel):
     # visible projected area (seed 000 §3.4)
     avis_resolution: int = Field(16, ge=2, le=256, description="Cube-map face resolution.")
     avis_keep_fraction: float = Field(0.06, gt=0.0, le=1.0, description="Haar coefficients kept.")
+    # quality gate (issue 22, item 2; texelbake.quality): targets, not inputs of any stage
+    gate_snr_median_db: float = Field(
+        GATE_SNR_MEDIAN_DB, ge=-200.0, le=200.0,
+        description="Each CPM level's held-out SNR median (dB) must reach this.",
+    )
+    gate_snr_p5_db: float = Field(
+        GATE_SNR_P5_DB, ge=-200.0, le=200.0,
+        description="Each CPM level's held-out SNR 5th percentile (dB) must reach this.",
+    )
+    gate_avis_rel_error: float = Field(
+        GATE_AVIS_REL_ERROR, gt=0.0, le=10.0,
+        description="Each CPM level's a_vis relative L2 error (compressed) must stay below this.",
+    )
     # farm
     shard_texels: int = Field(8, ge=1, le=4096, description="Tile side (finest texels) of a shard.")
     worker_memory_mb: int = Field(
@@ -102,6 +140,10 @@ class BakeSettings(BaseModel):
             v = getattr(self, name)
             if v & (v - 1):
                 raise ValueError(f"{name} must be a power of two, got {v}")
+        px = self.lod_switch_px
+        if not px or len(px) > 8 or any(not p > 0 for p in px) or any(
+                b >= a for a, b in zip(px, px[1:], strict=False)):
+            raise ValueError(f"lod_switch_px must be 1 to 8 decreasing positive sizes, got {px}")
         if self.shard_texels > self.atlas_resolution:
             raise ValueError(
                 f"shard_texels ({self.shard_texels}) must not exceed atlas_resolution "

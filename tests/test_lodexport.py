@@ -51,7 +51,7 @@ def baked(tmp_path_factory):
     d = tmp_path_factory.mktemp("lods")
     src = write_scene("cylinder", d / "cylinder.usda", "small")
     settings = BakeSettings(samples_per_texel=4, n_light_dirs=4, n_view_dirs=4, n_heldout=4,
-                            c_max=4, mesh_levels=2)
+                            c_max=4, lod_switch_px=(32.0, 8.0))  # two LODs (issue 22)
     return bake(src, d / "out", settings, progress=False)
 
 
@@ -108,5 +108,41 @@ def test_bad_requests_name_the_field_and_write_nothing(baked, tmp_path):
     with pytest.raises(SettingsError, match="'output'"):
         export_lod(baked, 1, tmp_path / "x.obj")
     with pytest.raises(AssetError, match="LOD variant set"):
-        export_lod(baked.parent / "source" / "cylinder.usda", 1, tmp_path / "x.usdc")
+        export_lod(baked.parent.parent / "cylinder.usda", 1, tmp_path / "x.usdc")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_output_folder_holds_the_result_only(baked, tmp_path):
+    # issue 22, item 4: root, payload, maps, report (and the shader definitions the layers
+    # name); the artifact store lives elsewhere and the source is referenced where it lies
+    from pxr import Usd
+
+    entries = sorted(baked.parent.iterdir())
+    assert all(p.is_file() for p in entries), entries  # no .work/, no source/
+    names = [p.name for p in entries]
+    maps = [n for n in names if n.startswith("cylinder_") and n.endswith((".png", ".exr"))]
+    assert sorted(set(names) - set(maps)) == [
+        "cylinder_baked.usda", "cylinder_payload.usdc", "report.json", "texelbake_shaders.usda"]
+    assert "cylinder_albedo.png" in maps
+    stage = Usd.Stage.Open(str(baked))
+    refs = stage.GetRootLayer().GetPrimAtPath("/Cylinder").referenceList.prependedItems
+    assert [r.assetPath for r in refs] == ["./../cylinder.usda"]
+
+
+def test_packed_usdz_carries_the_source_and_passes_stock_validation(baked, tmp_path):
+    import shutil
+
+    from texelbake.payload import pack_usdz
+
+    # a copy of the result beside a copy of its source, so the package is written there
+    (tmp_path / "out").mkdir()
+    for f in baked.parent.iterdir():
+        shutil.copyfile(f, tmp_path / "out" / f.name)
+    shutil.copyfile(baked.parent.parent / "cylinder.usda", tmp_path / "cylinder.usda")
+    shutil.copyfile(baked.parent.parent / "texelbake_shaders.usda",
+                    tmp_path / "texelbake_shaders.usda")
+    packed = pack_usdz(tmp_path / "out" / baked.name)
+    (tmp_path / "cylinder.usda").unlink()  # the package alone
+    got = _inspect(packed)
+    assert "/Cylinder/Geom/RidgedCylinder" in got["meshes"]  # LOD0, from the packed source
+    assert got["errors"] == []

@@ -17,7 +17,7 @@ from texelbake.cpm.avis.table import avis_table_from
 from texelbake.frames import tangent_frames
 from texelbake.geometry.raycast import RayCaster
 from texelbake.payload import read_baked
-from texelbake.pipeline import bake, plan_bake
+from texelbake.pipeline import bake, default_workdir, plan_bake
 from texelbake.scene import load_asset
 from texelbake.scenes import write_scene
 
@@ -143,7 +143,10 @@ def test_reported_snr_matches_brute_force(cylinder_bake):
     asset = load_asset(src)
     caster = RayCaster(asset.points, asset.faces)
     level = baked.levels[0]
-    geo = np.load(next((root.parent / ".work").rglob("geometry.npz")))
+    from texelbake.stages import StageContext
+
+    ctx = StageContext.create(default_workdir(), src, settings)
+    geo = ctx.geometry()
     n = settings.atlas_resolution
     tex0 = geo["sample_row"] * n + geo["sample_col"]
     wi_t, wo_t = baked.arrays["dirs_i"], baked.arrays["dirs_o"]
@@ -201,7 +204,24 @@ def test_payload_round_trip_and_report(cylinder_bake):
     report = json.loads((root.parent / "report.json").read_text())
     n_levels = settings.atlas_resolution.bit_length()
     assert len(baked.levels) == len(report["levels"]) == n_levels
-    assert len(baked.meshes) == settings.mesh_levels
+    # the LOD chain (issue 22): as many LODs as the report lists, each within its bound
+    # (pymeshlab's two-sided Hausdorff distance), and a reason when the chain stopped early
+    lods = report["lods"]["levels"]
+    assert 1 <= len(baked.meshes) == len(lods) <= settings.mesh_levels
+    for mesh, lod in zip(baked.meshes, lods, strict=True):
+        assert lod["triangles"] == mesh.faces.shape[0]
+        assert lod["hausdorff"] <= lod["bound"] and lod["within_bound"]
+    assert (len(lods) < settings.mesh_levels) == bool(report["lods"]["stopped"])
+    # the atlas a finest texel of which is one pixel at LOD1's switch size: from M_org's area
+    # (numpy over its triangles) and diagonal, 40 % of the page covered by charts
+    asset = load_asset(src)
+    tri = asset.points[asset.faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
+                                axis=1).sum()
+    diag = np.linalg.norm(np.ptp(asset.points, axis=0))
+    need = lods[0]["switch_px"] * np.sqrt(area / 0.4) / diag
+    want = 2 ** int(np.ceil(np.log2(need)))
+    assert report["lods"]["atlas_mesh"]["atlas_resolution_for_lod1"] == want
     for lvl, level in enumerate(baked.levels):
         n_l = settings.atlas_resolution >> lvl
         assert level["texel_offsets"].shape == (n_l * n_l + 1,)
@@ -214,7 +234,7 @@ def test_payload_round_trip_and_report(cylinder_bake):
     stage = Usd.Stage.Open(str(root), Usd.Stage.LoadNone)
     prim = stage.GetDefaultPrim()
     vs = prim.GetVariantSets().GetVariantSet("LOD")
-    assert vs.GetVariantNames() == [f"LOD{i}" for i in range(settings.mesh_levels + 1)]
+    assert vs.GetVariantNames() == [f"LOD{i}" for i in range(len(baked.meshes) + 1)]
     assert not stage.GetPrimAtPath(prim.GetPath().AppendPath("Baked/CPM")).IsValid()
     # the asset as authored by default (clients without a variant picker), and an
     # extentsHint that holds with payloads unloaded and covers whichever LOD is selected

@@ -29,7 +29,8 @@ def baked_cylinder(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("cyl")
     src = write_scene("cylinder", d / "cylinder.usda", size="small")
     settings = BakeSettings(atlas_resolution=32, samples_per_texel=8, n_light_dirs=8,
-                            n_view_dirs=8, n_heldout=4, c_max=8, avis_resolution=4)
+                            n_view_dirs=8, n_heldout=4, c_max=8, avis_resolution=4,
+                            lod_mode="atlas")  # the enclosed atlas-sized chain (issue 22)
     return bake(src, d / "baked", settings, progress=False)
 
 

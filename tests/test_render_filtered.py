@@ -277,7 +277,8 @@ def test_fallback_materials_pass_stock_validation(tmp_path):
     from texelbake.scenes import write_scene
 
     src = write_scene("cylinder", tmp_path / "cylinder.usda", "small")
-    root = _bake(src, tmp_path / "out", mesh_levels=2, atlas_resolution=16, shard_texels=8)
+    root = _bake(src, tmp_path / "out", mesh_levels=2, atlas_resolution=16, shard_texels=8,
+                 lod_switch_px=(32.0, 8.0))  # two LODs by error (issue 22)
     got = _check(root)
     assert not got["texelbake_imported"]
     assert got["errors"] == []

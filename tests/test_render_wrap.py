@@ -19,7 +19,8 @@ def baked_wall(tmp_path_factory) -> Path:
     src = write_scene("wall", d / "wall_small.usda", "small")
     settings = BakeSettings(atlas_resolution=32, shard_texels=16, samples_per_texel=8,
                             n_light_dirs=8, n_view_dirs=8, n_heldout=4, c_max=8,
-                            avis_resolution=8, mesh_levels=1)
+                            avis_resolution=8, mesh_levels=1,
+                            lod_mode="atlas")  # the atlas-sized M1 (issue 22 keeps it)
     return bake(src, d / "baked", settings, progress=False)
 
 

@@ -169,6 +169,10 @@ def test_end_to_end(db, cylinder, reference, tmp_path):
             assert_ledger_clean(stack, job_id)
             r = httpx.get(f"{stack.api_url}/api/v1/jobs/{job_id}/report", headers=AUTH)
             assert r.status_code == 200 and "stage_seconds" in r.json()
+            # the quality gate (issue 22): the job says what `texelbake bake` would print
+            missed = r.json()["quality"]["missed"]
+            assert job["warnings"] == missed
+            assert job["outcome"] == ("completed with warnings" if missed else "completed")
     finally:
         if ctx:
             ctx.__exit__(None, None, None)

@@ -2,6 +2,8 @@
 submit, stack.
 
 Heavy modules are imported inside each command so `texelbake --help` is instant.
+Exit status: 0 done, 2 error (texelbake.errors), 3 `bake` finished below a quality target
+(texelbake.quality; `--accept-below-target` makes it 0).
 """
 
 from __future__ import annotations
@@ -89,6 +91,12 @@ def _print_summary(root: Path) -> None:
         print(f"skipped {s['stage']}: {s['reason']}")
     for w in report.get("warnings", []):
         print(f"warning: {w}")
+    for i, lod in enumerate(report.get("lods", {}).get("levels", []), start=1):
+        bound = "" if lod.get("bound") is None else f" (bound {lod['bound_rel']:.4f})"
+        print(f"LOD{i}: {lod['triangles']} triangles, Hausdorff / diagonal "
+              f"{lod['hausdorff_rel']:.4f}{bound}, {lod['method']}")
+    if report.get("lods", {}).get("stopped"):
+        print(f"LOD chain: {report['lods']['stopped']}")
 
 
 def cmd_bake(args: argparse.Namespace) -> int:
@@ -96,9 +104,29 @@ def cmd_bake(args: argparse.Namespace) -> int:
 
     settings = _settings(args)
     root = bake(Path(args.file), Path(args.output), settings, progress=not args.quiet,
-                jobs=args.jobs)
+                jobs=args.jobs, workdir=Path(args.workdir) if args.workdir else None,
+                source="copy" if args.copy_source else "reference")
     _print_summary(root)
-    return 0
+    if args.usdz:
+        from texelbake.payload import pack_usdz
+
+        print(f"packed: {pack_usdz(root)}")
+    return _quality_status(root, args.accept_below_target)
+
+
+def _quality_status(root: Path, accept: bool) -> int:
+    """0, or QUALITY_EXIT naming every missed target on stderr (texelbake.quality) unless
+    the caller accepts a below-target bake on purpose."""
+    from texelbake.quality import QUALITY_EXIT
+
+    quality = json.loads((root.parent / "report.json").read_text()).get("quality", {})
+    missed = quality.get("missed", [])
+    if not missed:
+        return 0
+    word = "accepted (--accept-below-target)" if accept else "missed"
+    for m in missed:
+        print(f"texelbake: quality target {word}: {m}", file=sys.stderr)
+    return 0 if accept else QUALITY_EXIT
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -262,6 +290,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1,
                    help="processes for the sharded stages (default: all cores)")
+    p.add_argument("--workdir", default=None,
+                   help="artifact store (default $TEXELBAKE_WORKDIR or ~/.cache/texelbake); "
+                        "the output folder holds the result only")
+    p.add_argument("--copy-source", action="store_true",
+                   help="copy the source and its files into OUTPUT/source (default: reference "
+                        "the source where it lies)")
+    p.add_argument("--usdz", action="store_true",
+                   help="also pack the result with its source into OUTPUT/<name>_baked.usdz")
+    p.add_argument("--accept-below-target", action="store_true",
+                   help="exit 0 even when the bake misses a quality target (exit status 3 "
+                        "otherwise, naming each LOD or CPM level that missed)")
     _add_settings_args(p)
     p.set_defaults(func=cmd_bake)
 

@@ -6,7 +6,8 @@ glTF converters, game-engine importers) have no variant picker and, importing ev
 would stack the LODs on each other. The export selects LOD N, flattens the composed stage into
 one layer and keeps only what that LOD shows:
 
-- LOD0 is the asset as authored: the `Baked` scope (LOD meshes, CPM arrays) is dropped.
+- LOD0 is the asset as authored: the `Baked` scope (LOD meshes, CPM arrays) and the `Proxy` are
+  dropped (every export drops the proxy).
 - LOD N >= 1: every prim the variant hid (the original meshes, the other LODs) is dropped, as
   are the CPM arrays, texelbake's own shaders inside `Baked` (the CPM and BTF render-context
   shaders, which only texelbake reads) with the material outputs that lead to them, and
@@ -83,7 +84,10 @@ def export_lod(baked_root: str | Path, lod: int, out: str | Path) -> Path:
 def _prune(layer: Sdf.Layer, root: Sdf.Path, lod: int) -> None:
     """Drop what LOD `lod` does not show (module docstring), in place."""
     baked = root.AppendChild("Baked")
-    drop: list[Sdf.Path] = []
+    # the proxy (texelbake.bakedvariants) is for a stage with payloads unloaded: one LOD is
+    # the whole file here
+    drop: list[Sdf.Path] = [root.AppendChild("Proxy")] if layer.GetPrimAtPath(
+        root.AppendChild("Proxy")) else []
     if lod == 0:
         drop.append(baked)
     else:

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
 
+from texelbake import bakedvariants
 from texelbake.atomic import atomic_write_bytes, replace
 from texelbake.errors import AssetError, ShapeError
 from texelbake.model import SHADER_CPM
@@ -306,6 +307,21 @@ def copy_source(source_layer: Path, dependencies: list[str], dest: Path) -> Path
     return dest / Path(source_layer).resolve().relative_to(src_root)
 
 
+def pack_usdz(root_layer: Path) -> Path:
+    """The baked result with everything it references (the source where it lies, payload,
+    maps, shader definitions) in one `<root stem>.usdz` beside it (UsdUtils' packager,
+    which rewrites the asset paths into the package). Returns the package path."""
+    from pxr import UsdUtils
+
+    root_layer = Path(root_layer)
+    out = root_layer.with_suffix(".usdz")
+    tmp = out.with_name(f".{out.stem}.tmp.usdz")
+    if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(root_layer)), str(tmp)):
+        raise AssetError("could not pack the baked result into a .usdz", path=str(out))
+    replace(tmp, out)
+    return out
+
+
 def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
                       original_mesh_paths: list[str], *,
                       author_extra: Callable[[Usd.Stage], None] | None = None) -> Path:
@@ -391,7 +407,19 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     # the asset as authored by default: a client without a variant picker (Blender's
     # importer) shows the original, not a LOD it did not ask for
     vset.SetVariantSelection("LOD0")
-    stage.GetRootLayer().customLayerData = {"texelbake": _plain_json(baked.metadata)}
+    # issue 22 (texelbake.bakedvariants): a proxy outside the payload, the asset variant
+    # selections the bake was made for, and other asset variants shown as authored
+    selections = bakedvariants.source_variant_selections(source_copy)
+    if n_lod:
+        bakedvariants.author_proxy(stage, root_name, baked.meshes[-1].vertices,
+                                   baked.meshes[-1].faces)
+        bakedvariants.author_variant_guard(
+            stage, root.GetPrim(), selections.get(str(default_root), {}),
+            bakedvariants.variant_names(source_copy, str(default_root)),
+            [Sdf.Path(f"/{root_name}").AppendPath(Sdf.Path(mp).MakeRelativePath(default_root))
+             for mp in original_mesh_paths])
+    stage.GetRootLayer().customLayerData = {"texelbake": _plain_json(
+        {**baked.metadata, "variantSelections": selections})}
     if n_lod:  # with payloads unloaded, clients size the asset by this: every LOD inside it
         lo, hi = _lod_extent(stage, root.GetPrim(), vset, n_lod)
         UsdGeom.ModelAPI(root.GetPrim()).SetExtentsHint(

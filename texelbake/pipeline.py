@@ -11,6 +11,7 @@ S x S tile (S = settings.shard_texels) and every coarser level's texels inside i
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -135,6 +136,17 @@ def finalize(workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: P
     return root
 
 
+def default_workdir() -> Path:
+    """Where local bakes keep their artifact store: $TEXELBAKE_WORKDIR, else
+    $XDG_CACHE_HOME/texelbake (~/.cache/texelbake). Artifacts are named by the asset's content
+    hash and the settings that made them, so bakes of different assets share it safely."""
+    env = os.environ.get("TEXELBAKE_WORKDIR")
+    if env:
+        return Path(env)
+    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(cache) / "texelbake"
+
+
 def _run_in_subprocess(workdir: str, asset_path: str, settings_json: str, stage: str,
                        shard: int) -> str:
     return run_shard(Path(workdir), Path(asset_path),
@@ -149,11 +161,15 @@ def bake(
     workdir: Path | None = None,
     progress: bool = True,
     jobs: int = 1,
+    source: str = "reference",
 ) -> Path:
     """Run every planned stage and shard on this machine (no broker, no server) and write the
     baked USD to `out_dir`.
 
-    Returns the root layer path. `workdir` holds the artifact store (default out_dir/.work).
+    Returns the root layer path. `workdir` holds the artifact store (default
+    `default_workdir()`, outside out_dir: the output holds the result only, issue 22).
+    source : "reference" (the baked root references the source where it lies, by a relative
+        path) or "copy" (copied into out_dir/source: a folder that travels alone).
     jobs : processes for the sharded stages (cpm, avis); 1 runs everything in this process.
         The result does not depend on it (per-texel seeds, content-derived artifacts).
     """
@@ -162,7 +178,7 @@ def bake(
     settings = settings or BakeSettings()
     asset_path = Path(asset_path)
     out_dir = Path(out_dir)
-    workdir = Path(workdir) if workdir is not None else out_dir / ".work"
+    workdir = Path(workdir) if workdir is not None else default_workdir()
     plan = plan_bake(asset_path, settings)
     ctx = stages.StageContext.create(workdir, asset_path, settings)
     seconds: dict[str, float] = {}
@@ -171,7 +187,7 @@ def bake(
     for sp in plan.stages:
         t0 = time.perf_counter()
         if sp.name == "export":
-            root = stages.export_to(ctx, out_dir, plan=plan)
+            root = stages.export_to(ctx, out_dir, plan=plan, source=source)
         elif sp.name == "render":
             for p in stages.run_render(ctx, 0, out_dir=out_dir):
                 if progress:

@@ -128,6 +128,7 @@ def job_public(session: Session, job: Job, root: Path, workers: int = 2) -> JobP
         else []
     )
     settings = BakeSettings.model_validate_json(job.settings_json)
+    outcome, warnings = _quality(storage.job_out(root, job.id), job.state)
     return JobPublic(
         id=job.id,
         asset_id=job.asset_id,
@@ -143,7 +144,18 @@ def job_public(session: Session, job: Job, root: Path, workers: int = 2) -> JobP
         seconds=_seconds(job.created_at, job.finished_at),
         previews=previews,
         estimate=job_estimate(job, settings, workers),
+        outcome=outcome,
+        warnings=warnings,
     )
+
+
+def _quality(out: Path, state: str) -> tuple[str | None, list[str]]:
+    """A succeeded job's quality gate from its report.json (texelbake.quality)."""
+    report = out / "report.json"
+    if state != "succeeded" or not report.is_file():
+        return None, []
+    missed = list(json.loads(report.read_text()).get("quality", {}).get("missed", []))
+    return ("completed with warnings" if missed else "completed"), missed
 
 
 @router.post(

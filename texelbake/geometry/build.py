@@ -1,9 +1,12 @@
-"""The geometry stage's science in one call (DESIGN.md "Geometry"): the mesh hierarchy M1..Mn
-(QEM, or a wrap for assets of many parts), enclosing M_org's outline, the UV atlas on M1 (M1
-halved until its charts fit one page), dense samples on M_org, their texel assignment and the
-texel frames of every mip level."""
+"""The geometry stage's science in one call (DESIGN.md "Geometry"): the LOD chain (each LOD
+within its error bound at its switch size, `geometry.lodchain`, or the atlas-sized QEM/wrap
+hierarchy), enclosing M_org's outline, the UV atlas on LOD1 or on an atlas-sized M_T, dense
+samples on M_org, their texel assignment and the texel frames of every mip level."""
 
 from __future__ import annotations
+
+import json
+import math
 
 import numpy as np
 
@@ -11,7 +14,8 @@ from schemas.settings import BakeSettings
 from texelbake.errors import StageError
 from texelbake.geometry.atlas import build_atlas, map_into_atlas
 from texelbake.geometry.hierarchy import enclose, n_parts, needs_wrap, simplify_hierarchy
-from texelbake.geometry.mesh import Mesh, bbox_diagonal
+from texelbake.geometry.lodchain import build_lod_chain, hausdorff
+from texelbake.geometry.mesh import Mesh, bbox_diagonal, compact, weld
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import sample_surface
 from texelbake.geometry.texels import assign_texels, texel_frames
@@ -20,39 +24,61 @@ from texelbake.model import AssetModel
 
 def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
                    n_levels: int) -> dict[str, np.ndarray]:
-    """The geometry stage's arrays: M1..Mn, M1's atlas, dense samples on M_org with their
-    texel (row, col) at the finest level, and the texel frames of every mip level.
+    """The geometry stage's arrays: the LOD meshes, the atlas mesh M_T (the CPM's domain),
+    dense samples on M_org with their texel (row, col) at the finest level, and the texel
+    frames of every mip level.
+
+    LODs (settings.lod_mode): 'error' sizes each LOD by its geometric error bound at its
+    switch size (`geometry.lodchain`); the atlas is built on LOD1 when its charts fit one
+    N x N page, else on the atlas-capped M1 of the 'atlas' mode, into which every LOD is mapped
+    by closest point. 'atlas' (before issue 22): M1 capped by the atlas is LOD1 and M_T.
 
     asset : M_org; caster : a ray caster over M_org (the bent-normal rule on wraps);
-    n_levels : mip levels (log2 N + 1). returns : sample_* (m, ...) arrays, m1_* and m{i}_*
-    meshes with corner uvs, frames_L{l} (N_l^2, 3, 3) and frames_valid_L{l}.
+    n_levels : mip levels (log2 N + 1). returns : sample_* (m, ...) arrays, m1_* (M_T with
+    corner uvs), lod{i}_* (LOD i: vertices, faces, corner_uvs, one_chart), lod_exact (LOD1 is
+    M_T), lod_report (JSON), frames_L{l} (N_l^2, 3, 3) and frames_valid_L{l}.
     """
     s = settings
     n = s.atlas_resolution
-    target = m1_target_faces(asset.num_faces, s)
     samples = sample_surface(
         asset.points, asset.faces, n * n * s.samples_per_texel, s.seed,
         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
         face_material=asset.face_material,
     )
-    wrap_offset = m1_wrap_offset(asset.points, asset.faces, target, s)
-    for attempt in range(4):  # a few halvings of M1 until its charts fit one page
-        meshes = simplify_hierarchy(
-            asset.points, asset.faces, s.mesh_levels, s.simplify_ratio, target_faces=target,
-            wrap_offset=wrap_offset,
+    probe = samples.positions[:: max(1, samples.positions.shape[0] // 200_000)]
+    atlas = None
+    wrap_offset = None
+    lod_exact = True
+    if s.lod_mode == "error":
+        chain = build_lod_chain(
+            asset.points, asset.faces, s.lod_switch_px[: s.mesh_levels], s.lod_error_px,
+            enclose_meshes=s.enclose_meshes,
+            probe=samples.positions[:: max(1, samples.positions.shape[0] // 20_000)],
+            seed=s.seed,
         )
-        if s.enclose_meshes:  # every M_i covers M_org's outline (geometry.hierarchy.enclose)
-            probe = samples.positions[:: max(1, samples.positions.shape[0] // 200_000)]
-            meshes = [enclose(m, probe, tighten=wrap_offset is not None)[0] for m in meshes]
+        lods = [lv.mesh for lv in chain.levels]
         try:
-            atlas = _build_atlas_fitting(meshes[0], n)
-            break
+            atlas = _build_atlas_fitting(lods[0], n)
         except StageError:
-            # xatlas makes about one chart per M1 face on assets of separate parts (the wall's
-            # blocks); fewer faces means fewer charts. An explicit m1_faces is not second-guessed.
-            if s.m1_faces or attempt == 3 or target // 2 < 8:
-                raise
-            target //= 2
+            atlas = None
+        report = chain.report()
+    if atlas is None:
+        atlas, wrap_offset, meshes = _atlas_chain(asset, s, probe)
+        if s.lod_mode == "atlas":
+            lods = meshes
+            report = _measured_report(asset, lods, s.seed)
+        else:
+            lod_exact = False
+    report["atlas_mesh"] = {"triangles": int(atlas.mesh.num_faces), "is_lod1": bool(lod_exact),
+                            "atlas_resolution": int(n),
+                            "atlas_resolution_for_lod1": _resolution_needed(
+                                float(samples.area.sum()), bbox_diagonal(asset.points),
+                                report["levels"][0].get("switch_px"))}
+    if not lod_exact:
+        report["notes"] = [*report.get("notes", []), (
+            f"LOD1 ({lods[0].num_faces} triangles) does not fit a {n}x{n} atlas: the CPM "
+            f"maps are built on a {atlas.mesh.num_faces}-triangle M_T and every LOD is mapped "
+            f"into them by closest point")]
     gnrm = asset.face_normals()[samples.face]
     # a wrap has a sheet on each side of thin parts: samples take the one they are seen
     # through (the bent-normal rule); QEM meshes keep the seed's closest point
@@ -75,6 +101,8 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
         "m1_faces": atlas.mesh.faces,
         "m1_corner_uvs": atlas.corner_uvs,
         "m1_wrap_offset": np.array(wrap_offset or 0.0),
+        "lod_exact": np.array(lod_exact),
+        "lod_report": np.array(json.dumps(report, sort_keys=True)),
     }
     for level in range(n_levels):
         frames, valid = texel_frames(
@@ -82,11 +110,87 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
         )
         out[f"frames_L{level}"] = frames
         out[f"frames_valid_L{level}"] = valid
-    for i, mesh in enumerate(meshes[1:], start=2):
-        out[f"m{i}_vertices"] = mesh.vertices
-        out[f"m{i}_faces"] = mesh.faces
-        out[f"m{i}_corner_uvs"], out[f"m{i}_one_chart"] = map_into_atlas(mesh, atlas.mesh, atlas)
+    for i, mesh in enumerate(lods, start=1):
+        if i == 1 and lod_exact:
+            mesh, uvs, one = atlas.mesh, atlas.corner_uvs, np.ones(atlas.mesh.num_faces, bool)
+        else:
+            uvs, one = map_into_atlas(mesh, atlas.mesh, atlas)
+        out[f"lod{i}_vertices"] = mesh.vertices
+        out[f"lod{i}_faces"] = mesh.faces
+        out[f"lod{i}_corner_uvs"] = uvs
+        out[f"lod{i}_one_chart"] = one
     return out
+
+
+#: fraction of the page xatlas' charts cover (geometry.atlas: ~40-45 % measured)
+CHART_COVER = 0.4
+
+
+def _resolution_needed(area: float, diag: float, switch_px: float | None) -> int | None:
+    """The atlas side at which a finest texel is at most one pixel where LOD1 switches in
+    (its diagonal covers switch_px pixels): N >= switch_px sqrt(area / CHART_COVER) / diag,
+    rounded up to a power of two. Reported, not applied: atlas_resolution stays a setting."""
+    if not switch_px or not diag > 0 or not area > 0:
+        return None
+    need = float(switch_px) * math.sqrt(area / CHART_COVER) / diag
+    return int(2 ** math.ceil(math.log2(max(need, 2.0))))
+
+
+def lod_report(geo: dict[str, np.ndarray]) -> dict:
+    """The geometry stage's LOD report (`build_geometry`): per LOD triangles, switch size,
+    bound and two-sided Hausdorff distance to M_org, why the chain stopped, the atlas mesh."""
+    return json.loads(str(geo["lod_report"])) if "lod_report" in geo else {}
+
+
+def lod_meshes(geo: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(vertices, faces, corner_uvs) of LOD1, LOD2, ... as the geometry stage wrote them."""
+    out = []
+    i = 1
+    while f"lod{i}_vertices" in geo:
+        out.append((geo[f"lod{i}_vertices"], geo[f"lod{i}_faces"], geo[f"lod{i}_corner_uvs"]))
+        i += 1
+    return out
+
+
+def _measured_report(asset: AssetModel, meshes: list[Mesh], seed: int) -> dict:
+    """The 'atlas' mode's chain measured like the 'error' mode's (no switch sizes, no bound)."""
+    welded, _, _ = weld(asset.points, asset.faces)
+    org, _ = compact(Mesh(welded.vertices, welded.faces[~welded.degenerate_faces()]))
+    diag = bbox_diagonal(org.vertices)
+    levels = []
+    for m in meshes:
+        d_lo, d_ol = hausdorff(m, org, seed=seed)
+        levels.append({"triangles": int(m.num_faces), "switch_px": None, "bound": None,
+                       "bound_rel": None, "hausdorff": max(d_lo, d_ol),
+                       "hausdorff_rel": max(d_lo, d_ol) / diag, "hausdorff_lod_to_org": d_lo,
+                       "hausdorff_org_to_lod": d_ol, "within_bound": None, "method": "atlas",
+                       "enclosed": None, "note": "sized by the atlas (lod_mode 'atlas')"})
+    return {"diag": diag, "levels": levels, "stopped": "", "notes": []}
+
+
+def _atlas_chain(asset: AssetModel, s: BakeSettings, probe: np.ndarray):
+    """M1..Mn sized by the atlas (lod_mode 'atlas', and M_T when LOD1 does not fit): M1 is
+    halved until its charts fit one N x N page. returns (atlas on M1, wrap offset, meshes)."""
+    n = s.atlas_resolution
+    target = m1_target_faces(asset.num_faces, s)
+    wrap_offset = m1_wrap_offset(asset.points, asset.faces, target, s)
+    levels = s.mesh_levels if s.lod_mode == "atlas" else 1
+    for attempt in range(4):  # a few halvings of M1 until its charts fit one page
+        meshes = simplify_hierarchy(
+            asset.points, asset.faces, levels, s.simplify_ratio, target_faces=target,
+            wrap_offset=wrap_offset,
+        )
+        if s.enclose_meshes:  # every M_i covers M_org's outline (geometry.hierarchy.enclose)
+            meshes = [enclose(m, probe, tighten=wrap_offset is not None)[0] for m in meshes]
+        try:
+            return _build_atlas_fitting(meshes[0], n), wrap_offset, meshes
+        except StageError:
+            # xatlas makes about one chart per M1 face on assets of separate parts (the wall's
+            # blocks); fewer faces means fewer charts. An explicit m1_faces is not second-guessed.
+            if s.m1_faces or attempt == 3 or target // 2 < 8:
+                raise
+            target //= 2
+    raise StageError("geometry: no atlas mesh fits")  # pragma: no cover - the loop returns
 
 
 def m1_wrap_offset(points: np.ndarray, faces: np.ndarray, target: int,

@@ -175,7 +175,8 @@ def needs_wrap(parts: int, target_faces: int) -> bool:
     return parts >= WRAP_MIN_PARTS and parts * FACES_PER_PART > int(target_faces)
 
 
-def wrap(vertices: object, faces: object, offset: float) -> Mesh:
+def wrap(vertices: object, faces: object, offset: float, max_cells: int = WRAP_MAX_CELLS
+         ) -> Mesh:
     """One connected surface around M_org at distance `offset`: the `offset` level set of
     M_org's unsigned distance field, by marching cubes (pymeshlab's uniform mesh resampling,
     `absdist`). Parts closer than 2 x offset merge into one sheet, so a wall of blocks
@@ -186,7 +187,7 @@ def wrap(vertices: object, faces: object, offset: float) -> Mesh:
     sample on the sheet on its own side.
 
     offset : > 0, world units (the stage uses about a finest texel); the grid cell is
-        offset / 2, coarsened to at most WRAP_MAX_CELLS along the longest side
+        offset / 2, coarsened to at most `max_cells` (WRAP_MAX_CELLS) along the longest side
     raises SettingsError for offset <= 0, StageError when the filter fails or returns
     fewer than MIN_FACES faces"""
     off = float(offset)
@@ -195,7 +196,7 @@ def wrap(vertices: object, faces: object, offset: float) -> Mesh:
     # an unsigned distance needs no welding: a triangle soup gives the same field
     org = Mesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
     extent = float(np.ptp(org.vertices, axis=0).max()) + 2.0 * off
-    cell = max(0.5 * off, extent / WRAP_MAX_CELLS)
+    cell = max(0.5 * off, extent / int(max_cells))
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(org.vertices),
                                face_matrix=np.ascontiguousarray(org.faces, dtype=np.int32)))

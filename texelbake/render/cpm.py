@@ -14,7 +14,7 @@ from texelbake.errors import SettingsError
 from texelbake.geometry.texels import bilinear_texels
 from texelbake.render.camera import PinholeCamera
 from texelbake.render.gt import shade_org
-from texelbake.render.scene import RenderScene, m1_arrays
+from texelbake.render.scene import RenderScene, atlas_uv
 from texelbake.render.shade import direct_radiance, light_at
 from texelbake.render.tracer import eye_passes, ray_slices
 from texelbake.tol import TOL
@@ -253,10 +253,7 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
     uv = np.einsum("nk,nkj->nj", b, mesh.corner_uvs[prim])
     inexact = ~scene.lod_uv_exact[i][prim]
     if inexact.any():  # the exact composite map: closest point on M1, its atlas uv
-        v1, f1, c1 = m1_arrays(scene)
-        _, p1, b1 = scene.lods[0].closest_points(p[inexact])
-        w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
-        uv[inexact] = np.einsum("nk,nkj->nj", w1, c1[p1])
+        uv[inexact] = atlas_uv(scene, p[inexact])
     lam = footprint_level(scene, cam, i, prim, p, o[idx], d[idx]) + lod_bias
     s0 = 1.0 / (scene.n0 * np.sqrt(scene.lod_uv_ratio[i][prim]))  # world size of a finest texel
     for light in scene.lights:  # local lights: keep ωi about constant across a texel

@@ -168,6 +168,10 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     d.baked = dataclasses.replace(scene.baked, meshes=meshes)
     d.lod_uv_exact = tuple(exact)
     d.lods = [RayCaster(m.vertices, m.faces) for m in meshes]
+    if scene.atlas_separate:  # the CPM's atlas mesh (issue 22) follows the warp too
+        av, af, ac = scene.atlas_arrays
+        d.atlas_arrays = (warp.positions(av), af, ac)
+        d.atlas_caster = RayCaster(d.atlas_arrays[0], af)
     d.lod_face_normals = [face_normals(m.vertices, m.faces) for m in meshes]
     d.lod_uv_ratio = tuple(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0)[0]
                            for i, m in enumerate(meshes))

@@ -72,8 +72,21 @@ class RenderScene(OrgScene):
         self.lods = [RayCaster(m.vertices, m.faces) for m in self.baked.meshes]
         self.lod_face_normals = [face_normals(m.vertices, m.faces) for m in self.baked.meshes]
         self.n0 = int(round(math.sqrt(len(self.baked.levels[0]["texel_offsets"]) - 1)))
+        # the atlas mesh M_T: LOD1 itself, or (LOD1 too fine for the atlas, issue 22) the
+        # mesh the CPM maps are built on, stored beside them; LODs are mapped into it
+        arr = self.baked.arrays
+        self.atlas_separate = "atlas_vertices" in arr
+        if self.atlas_separate:
+            self.atlas_arrays = (arr["atlas_vertices"].astype(np.float64),
+                                 arr["atlas_faces"].astype(np.int64),
+                                 arr["atlas_corner_uvs"].astype(np.float64))
+            self.atlas_caster = RayCaster(self.atlas_arrays[0], self.atlas_arrays[1])
+        else:  # `atlas_uv` reads LOD1 itself
+            m0 = self.baked.meshes[0]
+            self.atlas_arrays = (m0.vertices, m0.faces, m0.corner_uvs)
+            self.atlas_caster = self.lods[0]
         self.lod_uv_ratio, self.lod_uv_exact = zip(
-            *(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0)
+            *(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0 and not self.atlas_separate)
               for i, m in enumerate(self.baked.meshes)),
             strict=True)
         self.lod_error = [_hausdorff(self.org, c, self.asset.points, m.vertices)
@@ -244,5 +257,21 @@ def hit_m1(scene: RenderScene, o: np.ndarray, d: np.ndarray):
     b = hits.bary3()[idx]
     p = np.einsum("nk,nkj->nj", b, v[f[prim]])
     uv = np.einsum("nk,nkj->nj", b, cuv[prim])
+    inexact = ~scene.lod_uv_exact[0][prim]
+    if inexact.any():
+        uv[inexact] = atlas_uv(scene, p[inexact])
     row, col = uv_to_texel(uv, scene.n0)
     return hits.hit, idx, prim, p, uv, row, col
+
+
+def atlas_uv(scene: RenderScene, p: np.ndarray) -> np.ndarray:
+    """The exact composite map T(T_i(·)) of seed 000 §4.1: the atlas uv of the closest point
+    on the atlas mesh (LOD1, or the separate M_T) to points p (n, 3) on any LOD."""
+    if scene.atlas_separate:
+        _, f1, c1 = scene.atlas_arrays
+        caster = scene.atlas_caster
+    else:  # LOD1 (scene.lods[0]: a deformed frame replaces it with the warped LOD1)
+        c1, caster = scene.baked.meshes[0].corner_uvs, scene.lods[0]
+    _, p1, b1 = caster.closest_points(p)
+    w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
+    return np.einsum("nk,nkj->nj", w1, c1[p1])

@@ -21,7 +21,7 @@ def _avis_level_from(data: dict[str, np.ndarray], prefix: str) -> avis_mod.AvisL
 
 
 def _avis_key(ctx: StageContext, tile: int | None) -> str:
-    fields = GEOMETRY_FIELDS + ("avis_resolution",)
+    fields = GEOMETRY_FIELDS + ("avis_resolution", "shard_texels")  # tiles named by layout
     name = f"tile{tile:05d}-s{ctx.settings.shard_texels}.npz" if tile is not None else "top.npz"
     return ctx.key("avis", name, fields)
 

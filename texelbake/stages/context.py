@@ -19,9 +19,14 @@ from texelbake.model import AssetModel
 from texelbake.store import ArtifactStore, file_sha256
 
 #: settings that change no stage output (farm layout and optional downstream stages)
-LAYOUT_ONLY = {"shard_texels", "previews", "worker_memory_mb"}
+#: (shard_texels changes no result but does name the tile artifacts: it is part of their key,
+#: so bakes of one asset with different tilings can share a store, issue 22's default store;
+#: worker_memory_mb changes how a worker chunks its texels, never a result, issue 15)
+LAYOUT_ONLY = {"previews", "worker_memory_mb", "gate_snr_median_db", "gate_snr_p5_db",
+               "gate_avis_rel_error"}  # the gate's targets are re-checked on every export
 GEOMETRY_FIELDS = (
     "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",
+    "enclose_meshes", "m1_method", "lod_mode", "lod_switch_px", "lod_error_px",
 )
 _TAG_LIGHT, _TAG_VIEW, _TAG_HELD_I, _TAG_HELD_O = 0x11, 0x22, 0x33, 0x44
 

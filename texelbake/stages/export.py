@@ -9,19 +9,27 @@ import numpy as np
 
 from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
+from texelbake.geometry.build import lod_meshes, lod_report
+from texelbake.quality import quality_gate
 from texelbake.stages.avis import avis_levels, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
-from texelbake.stages.filtered import fallback_maps, filtered_levels
+from texelbake.stages.filtered import fallback_maps, filtered_levels, lod1_frames
 from texelbake.stages.srf import export_srf
 
 
 def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = None,
-              plan=None) -> Path:
-    """Write the baked USD bundle and report.json into out_dir (the export stage)."""
+              plan=None, source: str = "copy") -> Path:
+    """Write the baked USD bundle and report.json into out_dir (the export stage).
+    source : "copy" (the source and its files under out_dir/source: the farm's downloadable
+    result) or "reference" (the source referenced where it lies, issue 22)."""
+    if source not in ("copy", "reference"):
+        from texelbake.errors import SettingsError
+
+        raise SettingsError(f"field 'source': expected 'copy' or 'reference', got {source!r}")
     from texelbake import payload
-    from texelbake.normalmap import bake_preview_maps, face_tangent_space
+    from texelbake.normalmap import bake_preview_maps
     from texelbake.scene import check_asset_paths
 
     s = ctx.settings
@@ -38,20 +46,20 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         levels.append(arrays)
         level_reports.append(rep)
     dirs = direction_sets(s)
-    m1_frames = face_tangent_space(geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"])
+    meshes = [payload.LodMesh(v, f, uv) for v, f, uv in lod_meshes(geo)]
+    # the normal map is in the tangent frames of the mesh that carries it, LOD1
+    frames1, sample_prim = lod1_frames(geo)
     albedo, normal, _ = bake_preview_maps(
         s.atlas_resolution, texel_ids(geo, s.atlas_resolution, 0), geo["sample_area"],
-        geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, m1_frames,
-        geo["sample_m1_prim"],
+        geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, frames1,
+        sample_prim,
     )
+    extra_arrays = {}
+    if not bool(geo["lod_exact"]):  # the CPM's atlas mesh M_T is not LOD1: the renderer needs it
+        extra_arrays = {"atlas_vertices": geo["m1_vertices"], "atlas_faces": geo["m1_faces"],
+                        "atlas_corner_uvs": geo["m1_corner_uvs"]}
     filtered = filtered_levels(ctx)  # the filtered baseline maps of every level (issue 21)
     fallback = fallback_maps(ctx, filtered)
-    meshes = [payload.LodMesh(geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"])]
-    i = 2
-    while f"m{i}_vertices" in geo:
-        meshes.append(payload.LodMesh(geo[f"m{i}_vertices"], geo[f"m{i}_faces"],
-                                      geo[f"m{i}_corner_uvs"]))
-        i += 1
     from texelbake.deform.impostor import impostor_params
 
     for m in meshes:  # seed 002 Table 1 on every vertex of M1..Mn
@@ -67,6 +75,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "samples": int(len(geo["sample_area"])),
         "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
         "surface_area": float(geo["sample_area"].sum()),
+        "lods": lod_report(geo),
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "stage_seconds": dict(stage_seconds or {}),
         "fallback_levels": fallback["levels"],
@@ -95,7 +104,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
                 "heldout_i": dirs["held_i"], "heldout_o": dirs["held_o"],
                 "material_model": np.array(
                     [["lambert", "preview", "phong", "merl", "cellular"].index(m.model)
-                     for m in asset.materials], np.int32)},
+                     for m in asset.materials], np.int32), **extra_arrays},
         meshes=meshes, albedo=albedo, normal=normal, metadata=metadata,
         filtered=filtered, fallback=fallback,
     )
@@ -104,11 +113,15 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         author_extra = export_btf(ctx, out_dir, report)
     if s.srf:
         export_srf(ctx, out_dir, report)
-    source_copy = payload.copy_source(
-        ctx.asset_path, check_asset_paths(ctx.asset_path), out_dir / "source"
-    )
+    if source == "copy":
+        source_copy = payload.copy_source(
+            ctx.asset_path, check_asset_paths(ctx.asset_path), out_dir / "source"
+        )
+    else:
+        source_copy = ctx.asset_path
     root = payload.write_baked_asset(out_dir, source_copy, baked, list(asset.mesh_paths),
                                      author_extra=author_extra)
+    report["quality"] = quality_gate(report, s)
     payload.atomic_json(out_dir / "report.json", report)
     return root
 
@@ -131,7 +144,12 @@ def run_export(ctx: StageContext, shard: int = 0) -> str:
     """The farm's export: write the bundle under the store (`result/`) and return its key."""
     key = ctx.key("export", "result")
     out = ctx.store.path(key)
-    if (out / "report.json").is_file():
+    if (out / "report.json").is_file():  # the same bake: only the gate's targets may differ
+        from texelbake import payload
+
+        report = json.loads((out / "report.json").read_text())
+        report["quality"] = quality_gate(report, ctx.settings)
+        payload.atomic_json(out / "report.json", report)
         return key
     export_to(ctx, out)
     return key

@@ -32,8 +32,8 @@ def run_filtered(ctx: StageContext, shard: int = 0) -> str:
     geo = ctx.geometry()
     asset = ctx.asset()
     caster = ctx.caster()
-    frames = face_tangent_space(geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"])
-    local = np.einsum("mij,mj->mi", frames[geo["sample_m1_prim"]], geo["sample_nrm"])
+    frames, prim = lod1_frames(geo)
+    local = np.einsum("mij,mj->mi", frames[prim], geo["sample_nrm"])
     ao = ambient_occlusion(geo["sample_pos"], geo["sample_gnrm"], caster.occluded,
                            seed=s.seed, ray_eps=TOL.ray_offset * caster.bbox_diag)
     albedo, base, alpha2 = material_base(asset.materials, geo["sample_mat"], geo["sample_uv"])
@@ -41,6 +41,22 @@ def run_filtered(ctx: StageContext, shard: int = 0) -> str:
     maps = bake_filtered_levels(s.atlas_resolution, ctx.n_levels, texels, geo["sample_area"],
                                 local, ao, albedo, base, alpha2)
     return ctx.store.write_arrays(key, {f"L{lvl:02d}": m for lvl, m in enumerate(maps)})
+
+
+def lod1_frames(geo: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The tangent frames of LOD1's faces (from its atlas uvs) and each sample's LOD1 face:
+    the maps a viewer applies to LOD1 are in LOD1's frames. LOD1 is the atlas mesh M_T (the
+    samples' `sample_m1_prim`) unless it was too fine for the atlas (issue 22): then each
+    sample takes its closest LOD1 face."""
+    from texelbake.geometry.build import lod_meshes
+    from texelbake.geometry.raycast import RayCaster
+
+    v, f, uv = lod_meshes(geo)[0]
+    if bool(geo["lod_exact"]):
+        prim = geo["sample_m1_prim"]
+    else:
+        _, prim, _ = RayCaster(v, f).closest_points(geo["sample_pos"])
+    return face_tangent_space(v, f, uv), prim
 
 
 def filtered_levels(ctx: StageContext) -> list[np.ndarray]:
@@ -61,6 +77,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
         lod_levels,
         slope_covariance,
     )
+    from texelbake.geometry.build import lod_meshes
     from texelbake.geometry.raycast import RayCaster
 
     geo = ctx.geometry()
@@ -75,14 +92,12 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     ratio = float(np.median(a_uv[ok] / a_w[ok])) if ok.any() else 1.0
     texel = 1.0 / (n * np.sqrt(ratio))  # world size of a finest texel on M1
     errors = [0.0]
-    i = 2
-    while f"m{i}_vertices" in geo:  # a loop over the few LODs
-        lod = RayCaster(geo[f"m{i}_vertices"], geo[f"m{i}_faces"])
-        a, _, _ = ctx.caster().closest_points(geo[f"m{i}_vertices"])
+    for v, f, _ in lod_meshes(geo)[1:]:  # a loop over the few LODs (issue 22's lod{i} keys)
+        lod = RayCaster(v, f)
+        a, _, _ = ctx.caster().closest_points(v)
         b, _, _ = lod.closest_points(asset.points)
-        errors.append(float(max(np.linalg.norm(a - geo[f"m{i}_vertices"], axis=1).max(),
+        errors.append(float(max(np.linalg.norm(a - v, axis=1).max(),
                                 np.linalg.norm(b - asset.points, axis=1).max())))
-        i += 1
     rough = []
     for lvl in lod_levels(errors, texel, len(maps)):
         m = maps[lvl].reshape(-1, maps[lvl].shape[2]).astype(np.float64)

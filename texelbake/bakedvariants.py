@@ -1,0 +1,104 @@
+"""What a baked asset shows when it is not opened the way it was baked (issue 22, item 3):
+with payloads unloaded (a proxy), and under another asset variant (the selections the bake was
+made for, and a guard).
+
+- Proxy: `<root>/Proxy`, the coarsest LOD with `purpose = proxy`, defined in the root layer
+  outside the payload prim (`Baked`; prims below an unloaded payload are not traversed), so a
+  stage opened with payloads unloaded shows the asset. Its purpose keeps it out of renders
+  (render/default purposes); a viewport that draws proxies (usdview's default) draws it beside
+  the selected LOD, as with any proxy whose render geometry is not purpose `render`. When the
+  source's default prim carries a payload itself (the Teapot), the baked root inherits it and is
+  itself unloaded: no prim below it is traversed, and clients have its `extentsHint` (every LOD).
+- Asset variants: the bake is made for the source's composed variant selections, recorded in
+  `customLayerData["texelbake"]["variantSelections"]` ({prim path: {set: variant}}). For every
+  variant set on the asset's default prim, each *other* variant gets, in the root layer, a
+  variant of the same name (selections apply to every site of a set) whose opinions deactivate
+  `Baked` and `Proxy` and show the original meshes again; these sets are placed before `LOD` so they are
+  stronger. Selecting another asset variant shows that variant as authored, never a bake of a
+  different one ("leave it at its original"; baking each combination would multiply the bake
+  by the number of combinations: 12 for the Teapot). Variant sets below the default prim are
+  recorded, not guarded (their variants cannot reach `Baked`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+
+from texelbake.errors import AssetError
+
+
+def source_variant_selections(source_layer: Path) -> dict[str, dict[str, str]]:
+    """{prim path: {variant set: selection}} of every prim with variant sets, payloads loaded
+    (the stage the bake read)."""
+    stage = Usd.Stage.Open(str(source_layer), Usd.Stage.LoadAll)
+    if stage is None:
+        raise AssetError("cannot open the source to read its variant selections",
+                         path=str(source_layer))
+    out: dict[str, dict[str, str]] = {}
+    for prim in stage.TraverseAll():
+        vsets = prim.GetVariantSets()
+        names = vsets.GetNames()
+        if names:
+            out[str(prim.GetPath())] = {n: vsets.GetVariantSet(n).GetVariantSelection()
+                                        for n in sorted(names)}
+    return out
+
+
+def variant_names(source_layer: Path, prim_path: str) -> dict[str, list[str]]:
+    """Every variant of every set on one prim of the source."""
+    stage = Usd.Stage.Open(str(source_layer), Usd.Stage.LoadAll)
+    prim = stage.GetPrimAtPath(prim_path) if stage is not None else None
+    if not prim:
+        return {}
+    vsets = prim.GetVariantSets()
+    return {n: list(vsets.GetVariantSet(n).GetVariantNames()) for n in sorted(vsets.GetNames())}
+
+
+def author_proxy(stage: Usd.Stage, root_name: str, vertices: np.ndarray, faces: np.ndarray
+                 ) -> UsdGeom.Mesh:
+    """The proxy mesh in the root layer, beside the `Baked` scope that holds the payload."""
+    path = f"/{root_name}/Proxy"
+    geom = UsdGeom.Mesh.Define(stage, path)
+    v = np.ascontiguousarray(vertices, dtype=np.float32)
+    f = np.ascontiguousarray(faces, dtype=np.int32)
+    geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(v))
+    geom.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(f)))
+    geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(f.reshape(-1)))
+    geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+    geom.CreatePurposeAttr(UsdGeom.Tokens.proxy)
+    return geom
+
+
+def author_variant_guard(stage: Usd.Stage, root: Usd.Prim, baked_for: dict[str, str],
+                         names: dict[str, list[str]], original_targets: list[Sdf.Path]) -> int:
+    """For every variant of the default prim's sets other than the one baked, deactivate
+    `Baked` and show the original meshes (module docstring). Returns the variants guarded."""
+    guarded = 0
+    for set_name in sorted(names):
+        others = [n for n in names[set_name] if n != baked_for.get(set_name)]
+        if not others:
+            continue
+        vset = root.GetVariantSets().AddVariantSet(set_name)
+        for name in others:  # a loop over the few variants of one set
+            vset.AddVariant(name)
+            vset.SetVariantSelection(name)
+            with vset.GetVariantEditContext():
+                for baked in ("Baked", "Proxy"):
+                    stage.OverridePrim(root.GetPath().AppendChild(baked)).SetActive(False)
+                for target in original_targets:
+                    UsdGeom.Imageable(stage.OverridePrim(target)).CreateVisibilityAttr(
+                        UsdGeom.Tokens.inherited)
+            guarded += 1
+        # the selection stays the source's: only a client's explicit choice switches it
+        vset.ClearVariantSelection()
+    if guarded:  # earlier variant sets are stronger: the guards before `LOD`
+        spec = stage.GetRootLayer().GetPrimAtPath(root.GetPath())
+        items = list(spec.variantSetNameList.prependedItems)
+        first = [n for n in items if n in names]
+        spec.variantSetNameList.prependedItems = first + [n for n in items if n not in names]
+    return guarded
