@@ -36,6 +36,13 @@ export function toSettings(schema: ObjectSchema, values: Values): Record<string,
     let parsed: unknown = v;
     if (p.type === "integer") parsed = Number.parseInt(String(v), 10);
     else if (p.type === "number") parsed = Number.parseFloat(String(v));
+    else if (p.type === "array") {
+      // a list of numbers typed as "256,64"; anything unparsable goes as typed (the API names it)
+      const items = String(v).split(",").map((x) => x.trim()).filter((x) => x !== "").map(Number);
+      parsed = items.some((x) => Number.isNaN(x)) ? v : items;
+      if (JSON.stringify(parsed) !== JSON.stringify(p.default)) out[k] = parsed;
+      continue;
+    }
     if (parsed !== p.default && !(typeof parsed === "number" && Number.isNaN(parsed))) out[k] = parsed;
     else if (typeof parsed === "number" && Number.isNaN(parsed)) out[k] = v; // the API names it
   }
