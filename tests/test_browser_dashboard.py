@@ -30,7 +30,9 @@ TOKEN_B = "browser-token-b-0123456789"
 REPO = Path(__file__).resolve().parents[1]
 SHOTS = REPO / "build" / "browser-screenshots"
 #: a bake of the small cylinder in about a minute of worker time, with previews and BTF maps
-SETTINGS = {**CHEAP_SETTINGS, "previews": True, "btf": True}
+#: two LODs (switch sizes 32 and 8 px: the small cylinder's chain keeps M1 and M2), so the
+#: viewer's distance switch is exercised; typed as the form takes a list
+SETTINGS = {**CHEAP_SETTINGS, "previews": True, "btf": True, "lod_switch_px": "32,8"}
 #: the decode check: GL float32 against the CPU's float64 on the same float32 maps; a texel
 #: sums at most L x C = 4 x 12 products, so the difference is float32 rounding (~1e-7
 #: relative; measured below 1e-6): 1e-5 absolute plus 1e-4 relative leaves room, and a wrong
