@@ -1,7 +1,9 @@
 """One timed bake for benchmarks/bake.py, run in its own process with PYTHONPATH pointing at the
 texelbake tree under test (this one, or an older commit's worktree).
 
-    python benchmarks/_bake_child.py SCENE.usda OUT SETTINGS_JSON TIMINGS.jsonl JOBS
+    python benchmarks/_bake_child.py SCENE.usda OUT SETTINGS_JSON TIMINGS.jsonl JOBS [--json PATH]
+
+(--json: the bake's total seconds also written as JSON to PATH, as the parent reads it.)
 
 Wraps the cpm stage's `fit_level` so that every call appends one JSON line to TIMINGS.jsonl:
 level, texels fitted (valid), wall and CPU seconds of the call, and the held-out SNR of each
@@ -54,6 +56,7 @@ if __name__ == "__main__":
     from texelbake.pipeline import bake
 
     scene, out, settings_json, timings, jobs = sys.argv[1:6]
+    summary = sys.argv[7] if len(sys.argv) > 7 and sys.argv[6] == "--json" else None
     os.environ["TEXELBAKE_FIT_TIMINGS"] = timings
     _install()  # this process runs the single-shard stages (cpm_top) itself
     fields = json.loads(settings_json)
@@ -61,4 +64,7 @@ if __name__ == "__main__":
     settings = BakeSettings(**{k: v for k, v in fields.items() if k in known})
     t0 = time.perf_counter()
     bake(Path(scene), Path(out), settings, progress=False, jobs=int(jobs))
-    print(json.dumps({"total_seconds": time.perf_counter() - t0}))
+    result = json.dumps({"total_seconds": time.perf_counter() - t0})
+    print(result)
+    if summary is not None:
+        Path(summary).write_text(result)

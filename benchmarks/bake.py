@@ -173,11 +173,12 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
     load0 = _uptime()
     proc = subprocess.run(
         [sys.executable, str(Path(__file__).with_name("_bake_child.py")), str(scene),
-         str(out / "bake"), json.dumps(settings), str(timings), str(jobs)],
+         str(out / "bake"), json.dumps(settings), str(timings), str(jobs),
+         "--json", str(out / "bake_total.json")],
         env=env, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise SystemExit(f"bake by {tree} failed:\n{proc.stderr[-3000:]}")
-    total = json.loads(proc.stdout.strip().splitlines()[-1])["total_seconds"]
+    total = json.loads((out / "bake_total.json").read_text())["total_seconds"]
     recs = [json.loads(line) for line in timings.read_text().splitlines()]
     report = json.loads((out / "bake" / "report.json").read_text())
     levels = []
