@@ -14,6 +14,7 @@ WEB_STAMP := web/dist/.built
 .PHONY: setup demo test test-fast lint bench scenes clean
 
 setup: $(STAMP) $(WEB_STAMP)
+	@bash scripts/dcc-venv.sh >/dev/null  # Blender (bpy) for the dcc tests, cached in ~/.cache/texelbake
 
 # Re-runs only when pyproject.toml changes: a second `make setup` does nothing.
 $(STAMP): pyproject.toml scripts/apt-deps.sh
