@@ -46,7 +46,8 @@ def sweep_once(app: FastAPI) -> int:
     run_id = broker_run_id(st.redis_url)
     if run_id is None:
         return 0
-    sends = ledger.sweep(app.state.writer, run_id, timedelta(seconds=st.heartbeat_timeout))
+    sends = ledger.sweep(app.state.writer, run_id, timedelta(seconds=st.heartbeat_timeout),
+                         policy=ledger.policy_from(st))
     if not sends:
         return 0
     return ledger.dispatch(app.state.writer, sends, celery_sender(app.state.celery), run_id)
@@ -110,6 +111,7 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     app.state.settings = settings
     app.state.writer = session_factory(settings.db_url)
     app.state.reader = session_factory(settings.db_url, readonly=True)
+    app.state.inline = session_factory(settings.db_url, role="inline")  # event-loop reads
     app.state.token_cache = TokenCache()
     app.state.job_cache = JobCache()
     celery = Celery("texelbake")
