@@ -58,9 +58,13 @@ class Settings(BaseSettings):
     sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
     # scheduling (issue 16): the shard ledger admits ready shards to the broker
     queue_backlog: int = Field(
-        2, ge=0, description="Admitted shards per queue waiting unstarted in the broker; the "
+        2, ge=0, description="Admitted shards per queue group waiting unstarted in the broker; the "
         "rest wait in the ledger, which admits by job priority (Redis queues are FIFO). "
         "0: no limit (every ready shard is sent at once and priority has no effect).")
+    queue_groups: dict[str, list[str]] | None = Field(
+        None, description="Queues served by the same workers, sharing one backlog and one "
+        "priority order (JSON: group -> queues); default the worker families "
+        "(prep: ingest, geometry, export; numeric: cpm, avis, btf; render: render).")
     tenant_max_running_shards: int = Field(
         0, ge=0, description="Shards one tenant may have admitted or running at once, over "
         "all queues; 0: no limit. Below the farm's worker count, another tenant's job always "

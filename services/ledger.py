@@ -51,11 +51,13 @@ class Policy:
     """How the ledger admits ready (`queued`) shards to the broker (issue 16, item 2).
 
     A ready shard waits in the ledger until it is admitted: then it gets its task id and is
-    sent. Admission takes, per queue, the ready shards of the highest job priority first
-    (then the oldest job, then shard order; at equal priority the tenant with fewer shards in
-    flight first), as long as
-    - `queue_backlog`: fewer than this many admitted shards of the queue wait unstarted in
-      the broker (the broker's own order is FIFO, so a short backlog is what makes priority
+    sent. Admission takes, per queue group (`groups`: the queues one kind of worker serves;
+    a queue in no group is a group of its own), the ready shards of the highest job priority
+    first (then the oldest job, then shard order; at equal priority the tenant with fewer
+    shards in flight first), as long as
+    - `queue_backlog`: fewer than this many admitted shards of the group wait unstarted in
+      the broker (the broker's own order is FIFO, and a worker serving several queues takes
+      from whichever has a message, so a short backlog per group is what makes priority
       count; a worker's start frees a slot and admits the next shard at once), and
     - `tenant_max_running`: the tenant has fewer than this many shards admitted or running
       (`tenant_limits` overrides it per tenant): one tenant's batch cannot take every worker.
@@ -65,9 +67,16 @@ class Policy:
     queue_backlog: int = 0
     tenant_max_running: int = 0
     tenant_limits: tuple[tuple[str, int], ...] = ()
+    groups: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
     def tenant_cap(self, tenant: str) -> int:
         return dict(self.tenant_limits).get(tenant, self.tenant_max_running)
+
+    def group_of(self, queue: str) -> str:
+        for name, queues in self.groups:
+            if queue in queues:
+                return name
+        return queue
 
 
 #: the farm before issue 16: every ready shard is sent at once (tests of the transitions)
@@ -80,10 +89,14 @@ Sender = Callable[[str, tuple, str, str], None]
 
 def policy_from(settings: Any) -> Policy:
     """The admission policy of the service settings (`services.config.Settings`)."""
+    from services.stack import QUEUE_FAMILIES
+
+    groups = settings.queue_groups if settings.queue_groups is not None else QUEUE_FAMILIES
     return Policy(
         queue_backlog=int(settings.queue_backlog),
         tenant_max_running=int(settings.tenant_max_running_shards),
         tenant_limits=tuple(sorted((str(k), int(v)) for k, v in settings.tenant_shard_limits.items())),
+        groups=tuple(sorted((str(k), tuple(v)) for k, v in groups.items())),
     )
 
 
@@ -251,31 +264,34 @@ def _admit(s: Session, policy: Policy, now: datetime | None = None) -> list[Send
             .group_by(Shard.queue)
         ).all()
     )
-    by_queue: dict[str, dict[str, int]] = {}
-    for q, tenant, n in pairs:
-        by_queue.setdefault(q, {})[tenant] = int(n)
+    by_group: dict[str, dict[str, list[str]]] = {}  # group -> tenant -> its ready queues
+    for q, tenant, _n in pairs:
+        by_group.setdefault(policy.group_of(q), {}).setdefault(tenant, []).append(q)
+    waiting: dict[str, int] = {}
+    for q, n in backlog.items():
+        waiting[policy.group_of(q)] = waiting.get(policy.group_of(q), 0) + int(n)
     inf = 1 << 30
     sends: list[Send] = []
-    for q in sorted(by_queue):
-        free = (policy.queue_backlog - backlog.get(q, 0)) if policy.queue_backlog else inf
+    for g in sorted(by_group):
+        free = (policy.queue_backlog - waiting.get(g, 0)) if policy.queue_backlog else inf
         if free <= 0:
             continue
-        # each tenant's best ready shards of this queue, best first (at most what could go)
+        # each tenant's best ready shards of this group, best first (at most what could go)
         heads: dict[str, list] = {}
-        for tenant, n in by_queue[q].items():
+        for tenant, queues in by_group[g].items():
             cap = policy.tenant_cap(tenant)
             room = (cap - held.get(tenant, 0)) if cap else inf
-            take = min(free, room, n)
+            take = min(free, room)
             if take <= 0:
                 continue
             heads[tenant] = list(reversed(s.execute(
-                select(Shard.id, Shard.job_id, Shard.stage, Shard.shard, Job.priority,
-                       Job.created_at)
+                select(Shard.id, Shard.job_id, Shard.stage, Shard.shard, Shard.queue,
+                       Job.priority, Job.created_at)
                 .select_from(Shard).join(Job, Job.id == Shard.job_id)
-                .where(running, Job.tenant == tenant, Shard.queue == q,
+                .where(running, Job.tenant == tenant, Shard.queue.in_(queues),
                        Shard.state == "queued", Shard.task_id.is_(None))
                 .order_by(Job.priority.desc(), Job.created_at, Job.id, Shard.id)
-                .limit(take)
+                .limit(min(take, 10_000))
             ).all()))
         while free > 0:
             best = None
@@ -283,14 +299,14 @@ def _admit(s: Session, policy: Policy, now: datetime | None = None) -> list[Send
                 cap = policy.tenant_cap(tenant)
                 if not rows or (cap and held.get(tenant, 0) >= cap):
                     continue
-                rid, jid, _st, _k, prio, created = rows[-1]
+                rid, jid, _st, _k, _q, prio, created = rows[-1]
                 key = (-int(prio), held.get(tenant, 0), created, jid, rid)
                 if best is None or key < best[0]:
                     best = (key, tenant)
             if best is None:
                 break
             tenant = best[1]
-            rid, jid, st, k, _p, _c = heads[tenant].pop()
+            rid, jid, st, k, q, _p, _c = heads[tenant].pop()
             send = Send(RUN_SHARD_TASK, (jid, st, k), q, rid, jid)
             tid = new_task_id(send)
             if not _rowcount(s.execute(

@@ -309,3 +309,23 @@ def test_sweep_admits_what_a_failed_job_freed(sm):
     ledger.fail_job(sm, "f1", "boom")
     again = ledger.sweep(sm, "r1", timedelta(seconds=60), policy=policy)
     assert [(s.args[0], s.args[2]) for s in again] == [("f2", 0)]
+
+
+def test_priority_spans_the_queues_of_a_group(sm):
+    """Workers that serve several queues take from whichever has a message, so the backlog and
+    the priority order are per queue group: with cpm and export in one group, a high-priority
+    job's second cpm shard goes before a low-priority job's export; with a backlog per queue
+    the export slips in between."""
+    def order(policy, tag):
+        farm = Farm(sm, policy, {f"lo{tag}": "t1", f"hi{tag}": "t2"})
+        farm.send(new_tenant_job(sm, f"lo{tag}", "t1", 10,
+                                 [("a", "cpm", 1, ()), ("b", "export", 1, ("a",))], policy))
+        farm.send(new_tenant_job(sm, f"hi{tag}", "t2", 90,
+                                 [("a", "cpm", 2, ()), ("b", "export", 1, ("a",))], policy))
+        farm.drain()
+        return [f"{j[:2]} {st}{k}" for j, st, k in farm.started]
+
+    grouped = ledger.Policy(queue_backlog=1, groups=(("all", ("cpm", "export")),))
+    assert order(grouped, "g") == ["lo a0", "hi a0", "hi a1", "lo b0", "hi b0"]
+    assert order(ledger.Policy(queue_backlog=1), "q") == [
+        "lo a0", "hi a0", "lo b0", "hi a1", "hi b0"]
