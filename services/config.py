@@ -72,6 +72,9 @@ class Settings(BaseSettings):
     tenant_shard_limits: dict[str, int] = Field(
         default_factory=dict, description="Per-tenant overrides of tenant_max_running_shards "
         "(JSON: tenant -> limit; 0: no limit).")
+    status_cache_seconds: float = Field(
+        0.05, ge=0, description="A job's status version (state, newest event) is re-read from "
+        "the database at most this often per API process; 0: on every read.")
     estimate_workers: int = Field(
         2, ge=1, description="Worker processes the cost model assumes for a job's estimate."
     )

@@ -28,7 +28,7 @@ from services.deps import TokenCache
 from services.errors import ApiError
 from services.limits import BodyLimit, ServerTiming
 from services.routers import assets, events, farm, jobs, utils, viewer
-from services.routers.jobs import JobCache
+from services.routers.jobs import JobCache, VersionCache
 from workers.celeryconfig import celery_config
 
 log = logging.getLogger("texelbake.api")
@@ -114,6 +114,7 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     app.state.inline = session_factory(settings.db_url, role="inline")  # event-loop reads
     app.state.token_cache = TokenCache()
     app.state.job_cache = JobCache()
+    app.state.version_cache = VersionCache(settings.status_cache_seconds)
     celery = Celery("texelbake")
     celery.conf.update(celery_config(settings))
     app.state.celery = celery

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import re
+import time
 import uuid
 from collections import defaultdict
 from functools import lru_cache
@@ -285,6 +286,32 @@ class JobCache:
         self._d[key] = body
 
 
+class VersionCache:
+    """job id -> (tenant, state, newest event seq) for `ttl` seconds: 50 clients polling one
+    job share one database read per `ttl` (a status may be that much older than the ledger;
+    this process's own create and cancel drop the entry)."""
+
+    def __init__(self, ttl: float, size: int = 4096):
+        self.ttl, self.size = ttl, size
+        self._d: dict[str, tuple[tuple, float]] = {}
+
+    def get(self, job_id: str) -> tuple | None:
+        hit = self._d.get(job_id)
+        if hit is None or hit[1] < time.monotonic():
+            return None
+        return hit[0]
+
+    def put(self, job_id: str, row: tuple) -> None:
+        if self.ttl <= 0:
+            return
+        if len(self._d) >= self.size:
+            self._d.clear()
+        self._d[job_id] = (row, time.monotonic() + self.ttl)
+
+    def drop(self, job_id: str) -> None:
+        self._d.pop(job_id, None)
+
+
 @router.get(
     "/{job_id}",
     response_model=JobPublic,
@@ -295,7 +322,12 @@ async def read_job(job_id: str, request: Request, tenant: CurrentTenant) -> Resp
     """State, per-stage and per-shard progress, timings and errors of one job."""
     # on the event loop: one indexed query (owner, state, newest event) answers a cache hit
     # with no thread-pool hop; a miss builds the status in a worker thread
-    row = retry_disconnect(lambda: _job_version(request.app.state.inline, job_id))
+    versions: VersionCache = request.app.state.version_cache
+    row = versions.get(job_id)
+    if row is None:
+        row = retry_disconnect(lambda: _job_version(request.app.state.inline, job_id))
+        if row is not None:
+            versions.put(job_id, tuple(row))
     if row is None or row[0] != tenant:
         raise ApiError(status.HTTP_404_NOT_FOUND, JOB_NOT_FOUND, ErrorCode.JOB_NOT_FOUND)
     cache: JobCache = request.app.state.job_cache
@@ -529,6 +561,7 @@ def delete_job(
     """Cancel a job: queued shards are dropped, running ones revoked; its state is kept."""
     _own_job(session, job_id, tenant)
     task_ids = ledger.cancel_job(writer, job_id)
+    request.app.state.version_cache.drop(job_id)
     if task_ids:
         try:
             # SIGKILL: a pool child deep in numpy/torch did not act on SIGTERM (measured)
