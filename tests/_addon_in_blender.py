@@ -1,0 +1,168 @@
+"""Runs inside Blender (headless bpy, tests/dcc_util.run_blender) for tests/test_addon.py:
+install the add-on's extension zip, open a generated scene, submit it with the add-on's
+operator to a real stack, drive the add-on's timer until the job is done, import LOD1 (and all
+LODs), render the imported LOD, then submit with a wrong token. Prints one JSON line.
+
+Arguments after `--`: ZIP SCENE SERVER TOKEN OUT_DIR SETTINGS_JSON
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+ZIP, SCENE, SERVER, TOKEN, OUT, SETTINGS = sys.argv[sys.argv.index("--") + 1:][:6]
+OUT_DIR = Path(OUT)
+TERMINAL = ("done", "error", "failed", "cancelled")
+
+
+def drive(mod, props, timeout: float) -> float:
+    """Call the add-on's timer callback until the submission ends; returns the seconds taken.
+
+    Blender's timers (bpy.app.timers) fire from the window manager's event loop, which does
+    not run in background mode (no windows): nothing would ever call `poll_step` here. So this
+    loop stands in for Blender's timer and calls it every half second, as Blender would in the
+    UI; the HTTP meanwhile runs in the add-on's own background thread (time.sleep releases the
+    GIL to it)."""
+    t0 = time.monotonic()
+    seen = []
+    while True:
+        nxt = mod.poll_step()
+        if props.state and (not seen or seen[-1] != props.state):
+            seen.append(props.state)
+        if props.state in TERMINAL and nxt is None:
+            return time.monotonic() - t0
+        if time.monotonic() - t0 > timeout:
+            raise SystemExit(f"the job did not finish in {timeout} s: {props.state} "
+                             f"{props.message} (states {seen})")
+        time.sleep(mod.TICK_SECONDS)
+
+
+def mesh_info(obj) -> dict:
+    me = obj.data
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3).astype(np.float64)
+    mw = np.array(obj.matrix_world, np.float64)  # (4, 4)
+    world = co @ mw[:3, :3].T + mw[:3, 3]  # (n, 3)
+    mats = []
+    for mat in me.materials:
+        entry = {"name": mat.name, "base_color_image": None, "images": []}
+        if mat.use_nodes:
+            for node in mat.node_tree.nodes:
+                if node.bl_idname == "ShaderNodeTexImage" and node.image is not None:
+                    entry["images"].append(bpy.path.abspath(node.image.filepath))
+                if node.bl_idname == "ShaderNodeBsdfPrincipled":
+                    links = node.inputs["Base Color"].links
+                    if links and links[0].from_node.bl_idname == "ShaderNodeTexImage":
+                        img = links[0].from_node.image
+                        entry["base_color_image"] = bpy.path.abspath(img.filepath)
+                        entry["base_color_size"] = list(img.size)
+        mats.append(entry)
+    return {"name": obj.name, "n_vertices": len(me.vertices), "n_faces": len(me.polygons),
+            "face_sizes": sorted({len(p.vertices) for p in me.polygons}),
+            "world_min": world.min(axis=0).tolist(), "world_max": world.max(axis=0).tolist(),
+            "materials": mats}
+
+
+def render(objects, path: Path) -> None:
+    """Cycles on the CPU (headless bpy has no GPU context for EEVEE/Workbench, nor for the UI)."""
+    lo = np.min([o["world_min"] for o in objects], axis=0)
+    hi = np.max([o["world_max"] for o in objects], axis=0)
+    centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    scene = bpy.context.scene
+    cam = bpy.data.objects.new("TestCamera", bpy.data.cameras.new("TestCamera"))
+    scene.collection.objects.link(cam)
+    cam.location = centre + np.array([0.9, -1.6, 0.8]) * size
+    direction = centre - np.array(cam.location)
+    cam.rotation_euler = __import__("mathutils").Vector(direction).to_track_quat(
+        "-Z", "Y").to_euler()
+    scene.camera = cam
+    sun = bpy.data.objects.new("TestSun", bpy.data.lights.new("TestSun", "SUN"))
+    sun.data.energy = 3.0
+    sun.rotation_euler = (0.6, 0.2, 0.8)
+    scene.collection.objects.link(sun)
+    if scene.world is None:
+        scene.world = bpy.data.worlds.new("TestWorld")
+    scene.world.color = (0.05, 0.05, 0.06)
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = 16
+    scene.render.resolution_x, scene.render.resolution_y = 320, 240
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+
+
+def main() -> None:
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    r = bpy.ops.extensions.package_install_files(filepath=ZIP, repo="user_default",
+                                                 enable_on_install=True)
+    assert "FINISHED" in r, r
+    mod = sys.modules["bl_ext.user_default.texelbake_submit"]
+    prefs = bpy.context.preferences.addons["bl_ext.user_default.texelbake_submit"].preferences
+    prefs.server_url, prefs.token = SERVER, TOKEN
+    prefs.result_dir = str(OUT_DIR / "results")
+
+    # the artist's scene: a generated texelbake scene, opened with Blender's USD importer
+    assert "FINISHED" in bpy.ops.wm.usd_import(filepath=SCENE)
+    scene = bpy.context.scene
+    props = scene.texelbake
+    out: dict = {"addon_module": mod.__name__}
+
+    # nothing selected: refused before any upload, with a message
+    bpy.ops.object.select_all(action="DESELECT")
+    props.source = "SELECTED"
+    try:
+        bpy.ops.texelbake.submit()
+        out["empty_selection"] = "accepted"
+    except RuntimeError as e:  # an operator's ERROR report raises in background mode
+        out["empty_selection"] = str(e)
+
+    for obj in scene.objects:
+        obj.select_set(obj.type in ("MESH", "LIGHT", "CAMERA"))
+    settings = json.loads(SETTINGS)
+    props.atlas_resolution = str(settings.pop("atlas_resolution"))
+    props.extra_settings = json.dumps(settings)
+    props.import_lod, props.import_mode, props.auto_import = 1, "ONE", True
+    assert "FINISHED" in bpy.ops.texelbake.submit()
+    out["bake_seconds"] = drive(mod, props, timeout=400)
+    out["state"], out["message"], out["error"] = props.state, props.message, props.error
+    out["job_id"], out["result_root"], out["lods"] = props.job_id, props.result_root, props.lods
+    if props.state != "done":
+        print(json.dumps(out))
+        return
+
+    coll = next(c for c in bpy.data.collections if c.name.endswith(" LOD1"))
+    out["lod1"] = [mesh_info(o) for o in coll.all_objects if o.type == "MESH"]
+    out["lod1_collection"] = coll.name
+    out["lod1_other_objects"] = sorted(o.type for o in coll.all_objects if o.type != "MESH")
+    render(out["lod1"], OUT_DIR / "addon_lod1.png")
+
+    # every LOD, switchable: only the shown one is visible
+    coll.hide_viewport = coll.hide_render = True
+    assert "FINISHED" in bpy.ops.texelbake.import_lod(mode="ALL", lod=1)
+    parent = bpy.data.collections[props.lod_collection]
+    shown = {}
+    for lod in range(len(parent.children)):
+        props.shown_lod = lod
+        shown[lod] = sorted(c["texelbake_lod"] for c in parent.children if not c.hide_viewport
+                            and not c.hide_render)
+    out["all_lods"] = {"children": sorted(c.name for c in parent.children), "shown": shown,
+                       "meshes": {c.name: sum(o.type == "MESH" for o in c.all_objects)
+                                  for c in parent.children}}
+
+    # a wrong token: the server's words in the panel's error and the info report
+    prefs.token = "not-the-token"
+    assert "FINISHED" in bpy.ops.texelbake.submit()
+    drive(mod, props, timeout=60)
+    out["wrong_token"] = {"state": props.state, "error": props.error, "message": props.message}
+    bpy.ops.wm.save_as_mainfile(filepath=str(OUT_DIR / "addon_scene.blend"))
+    print(json.dumps(out))
+
+
+main()
