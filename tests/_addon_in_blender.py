@@ -53,7 +53,7 @@ def mesh_info(obj) -> dict:
     mats = []
     for mat in me.materials:
         entry = {"name": mat.name, "base_color_image": None, "images": []}
-        if mat.use_nodes:
+        if mat.node_tree is not None:
             for node in mat.node_tree.nodes:
                 if node.bl_idname == "ShaderNodeTexImage" and node.image is not None:
                     entry["images"].append(bpy.path.abspath(node.image.filepath))
@@ -82,6 +82,7 @@ def render(objects, path: Path) -> None:
     direction = centre - np.array(cam.location)
     cam.rotation_euler = __import__("mathutils").Vector(direction).to_track_quat(
         "-Z", "Y").to_euler()
+    cam.data.clip_start, cam.data.clip_end = size * 0.01, size * 100
     scene.camera = cam
     sun = bpy.data.objects.new("TestSun", bpy.data.lights.new("TestSun", "SUN"))
     sun.data.energy = 3.0
@@ -108,8 +109,10 @@ def main() -> None:
     prefs.server_url, prefs.token = SERVER, TOKEN
     prefs.result_dir = str(OUT_DIR / "results")
 
-    # the artist's scene: a generated texelbake scene, opened with Blender's USD importer
-    assert "FINISHED" in bpy.ops.wm.usd_import(filepath=SCENE)
+    # the artist's scene: a generated texelbake scene, opened with Blender's USD importer at
+    # its size in scene units (2), not in metres (2 cm: at that size the farm's LOD chain keeps
+    # the original mesh as LOD1: docs/decisions.md, 2026-11-25, the add-on's test scene)
+    assert "FINISHED" in bpy.ops.wm.usd_import(filepath=SCENE, apply_unit_conversion_scale=False)
     scene = bpy.context.scene
     props = scene.texelbake
     out: dict = {"addon_module": mod.__name__}
@@ -154,13 +157,17 @@ def main() -> None:
                             and not c.hide_render)
     out["all_lods"] = {"children": sorted(c.name for c in parent.children), "shown": shown,
                        "meshes": {c.name: sum(o.type == "MESH" for o in c.all_objects)
-                                  for c in parent.children}}
+                                  for c in parent.children},
+                       "faces": {c["texelbake_lod"]: sum(len(o.data.polygons) for o in
+                                                         c.all_objects if o.type == "MESH")
+                                 for c in parent.children}}
 
     # a wrong token: the server's words in the panel's error and the info report
     prefs.token = "not-the-token"
     assert "FINISHED" in bpy.ops.texelbake.submit()
     drive(mod, props, timeout=60)
     out["wrong_token"] = {"state": props.state, "error": props.error, "message": props.message}
+    # the scene with the imports, to open in Blender and look at the panel there
     bpy.ops.wm.save_as_mainfile(filepath=str(OUT_DIR / "addon_scene.blend"))
     print(json.dumps(out))
 

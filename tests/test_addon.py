@@ -258,13 +258,15 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
     from pxr import Usd
 
     lod_layer = root.with_name(f"{root.stem}_LOD1.usda")
-    sel = Usd.Stage.Open(str(lod_layer)).GetDefaultPrim().GetVariantSets()
-    assert sel.GetVariantSelection("LOD") == "LOD1"
+    lod_stage = Usd.Stage.Open(str(lod_layer))
+    assert lod_stage.GetDefaultPrim().GetVariantSets().GetVariantSelection("LOD") == "LOD1"
 
     n_lods = len(res["lods"].split(","))
     all_lods = res["all_lods"]
     assert len(all_lods["children"]) == n_lods and all(all_lods["meshes"].values()), all_lods
     assert all_lods["shown"] == {str(i): [i] for i in range(n_lods)}, all_lods
+    # LOD1 is a simplification of what Blender sent (LOD0: the scene as exported)
+    assert all_lods["faces"]["1"] < all_lods["faces"]["0"], all_lods["faces"]
 
     wrong = res["wrong_token"]
     assert wrong["state"] == "error" and wrong["error"].startswith("invalid token"), wrong

@@ -226,6 +226,16 @@ class TEXELBAKE_OT_report(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def _report(message: str, level: str) -> None:
+    """A report in Blender's status bar and info log from the timer (no operator is running
+    there, so it goes through TEXELBAKE_OT_report). Called from Python, an ERROR report also
+    raises RuntimeError carrying the same words: caught, the report is made."""
+    try:
+        bpy.ops.texelbake.report(message=message, level=level)
+    except RuntimeError:
+        pass
+
+
 def _redraw() -> None:
     wm = bpy.context.window_manager
     for window in wm.windows if wm else []:
@@ -235,9 +245,10 @@ def _redraw() -> None:
 
 
 def _popup(message: str) -> None:
-    """The server's words in a popup where there is a window (none in background mode)."""
+    """The server's words in a popup where there is a UI (not in background mode: its window
+    manager still lists a window, and drawing a popup there crashes Blender 5.0.1)."""
     wm = bpy.context.window_manager
-    if wm is None or not wm.windows:
+    if bpy.app.background or wm is None or not wm.windows:
         return
 
     def draw(menu: Any, _context: Any) -> None:
@@ -269,16 +280,16 @@ def poll_step() -> float | None:
         if snap["phase"] == "done":
             props.result_root, props.lods = snap["root"], ",".join(snap["lods"])
             props.import_lod = min(props.import_lod, len(snap["lods"]) - 1)
-            bpy.ops.texelbake.report(message=f"texelbake: {snap['message']}", level="INFO")
+            _report(f"texelbake: {snap['message']}", "INFO")
             if props.auto_import:
                 try:
                     import_result(scene, props.import_lod, props.import_mode)
                 except (client.ApiError, RuntimeError) as e:
                     props.error = str(e)
-                    bpy.ops.texelbake.report(message=f"texelbake: {e}", level="ERROR")
+                    _report(f"texelbake: {e}", "ERROR")
         else:
             props.error = snap["error"]
-            bpy.ops.texelbake.report(message=f"texelbake: {snap['error']}", level="ERROR")
+            _report(f"texelbake: {snap['error']}", "ERROR")
             _popup(snap["error"])
     _redraw()
     return TICK_SECONDS if _active else None
