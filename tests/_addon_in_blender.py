@@ -3,7 +3,7 @@ install the add-on's extension zip, open a generated scene, submit it with the a
 operator to a real stack, drive the add-on's timer until the job is done, import LOD1 (and all
 LODs), render the imported LOD, then submit with a wrong token. Prints one JSON line.
 
-Arguments after `--`: ZIP SCENE SERVER TOKEN OUT_DIR SETTINGS_JSON
+Arguments after `--`: ZIP SCENE SERVER TOKEN OUT_DIR SETTINGS_JSON SHOTS_DIR
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-ZIP, SCENE, SERVER, TOKEN, OUT, SETTINGS = sys.argv[sys.argv.index("--") + 1:][:6]
+ZIP, SCENE, SERVER, TOKEN, OUT, SETTINGS, SHOTS = sys.argv[sys.argv.index("--") + 1:][:7]
 OUT_DIR = Path(OUT)
 TERMINAL = ("done", "error", "failed", "cancelled")
 
@@ -144,7 +144,7 @@ def main() -> None:
     out["lod1"] = [mesh_info(o) for o in coll.all_objects if o.type == "MESH"]
     out["lod1_collection"] = coll.name
     out["lod1_other_objects"] = sorted(o.type for o in coll.all_objects if o.type != "MESH")
-    render(out["lod1"], OUT_DIR / "addon_lod1.png")
+    render(out["lod1"], Path(SHOTS) / "addon_lod1.png")
 
     # every LOD, switchable: only the shown one is visible
     coll.hide_viewport = coll.hide_render = True

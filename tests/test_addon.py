@@ -24,6 +24,8 @@ from tests.svc_util import usda
 
 ROOT = Path(__file__).resolve().parent.parent
 ADDON = ROOT / "blender" / "texelbake_submit"
+#: the render of the imported LOD1 (headless Blender draws no UI: no panel screenshot)
+SHOTS = ROOT / "build" / "addon-screenshots"
 TOKEN = "addon-token-0123456789abcdef"
 #: a bake of seconds: a 16² atlas in one cpm tile, few directions and samples
 TINY = {"atlas_resolution": 16, "shard_texels": 16, "n_light_dirs": 8, "n_view_dirs": 8,
@@ -222,8 +224,10 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
     scene = write_scene("cylinder", out / "scene" / "cylinder.usda", "small")
     # Blender's user folders (the installed extension) in the test's output, not in $HOME
     monkeypatch.setenv("BLENDER_USER_RESOURCES", str(out / "blender_user"))
+    (SHOTS / "addon_lod1.png").unlink(missing_ok=True)
     res = run_blender(ROOT / "tests" / "_addon_in_blender.py", str(ext_zip), str(scene),
-                      stack.api_url, TOKEN, str(out), json.dumps(TINY), timeout=800)
+                      stack.api_url, TOKEN, str(out), json.dumps(TINY), str(SHOTS),
+                      timeout=800)
     print(json.dumps({k: v for k, v in res.items() if k != "lod1"}, indent=1))
     assert res["addon_module"] == "bl_ext.user_default.texelbake_submit"
     assert "Nothing selected" in res["empty_selection"], res["empty_selection"]
@@ -252,7 +256,7 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
     print(f"LOD1 bounds: worst |blender - usd| = {worst:.2e} (tol {BOUNDS_TOL}); "
           f"stage up={frame['up']} metersPerUnit={frame['mpu']}; bake+import "
           f"{res['bake_seconds']:.1f} s")
-    assert (out / "addon_lod1.png").stat().st_size > 1000
+    assert (SHOTS / "addon_lod1.png").stat().st_size > 1000
 
     # the layer the add-on imported selects LOD1 (pxr composes it)
     from pxr import Usd
