@@ -21,25 +21,32 @@ OUT_DIR = Path(OUT)
 TERMINAL = ("done", "error", "failed", "cancelled")
 
 
-def drive(mod, props, timeout: float) -> float:
-    """Call the add-on's timer callback until the submission ends; returns the seconds taken.
+def drive(mod, props, timeout: float) -> dict:
+    """Call the add-on's timer callback until the submission ends; returns what the panel
+    showed on the way (distinct (state, progress) pairs), the seconds taken and the longest
+    tick before the end (main-thread time: the UI's stall).
 
     Blender's timers (bpy.app.timers) fire from the window manager's event loop, which does
-    not run in background mode (no windows): nothing would ever call `poll_step` here. So this
-    loop stands in for Blender's timer and calls it every half second, as Blender would in the
-    UI; the HTTP meanwhile runs in the add-on's own background thread (time.sleep releases the
-    GIL to it)."""
+    not run in background mode (no windows are drawn): nothing would ever call `poll_step`
+    here. So this loop stands in for Blender's timer and calls it every TICK_SECONDS, as
+    Blender does in the UI; the HTTP meanwhile runs in the add-on's own background thread
+    (time.sleep releases the GIL to it)."""
     t0 = time.monotonic()
-    seen = []
+    seen: list = []
+    longest = 0.0
     while True:
+        t = time.monotonic()
         nxt = mod.poll_step()
-        if props.state and (not seen or seen[-1] != props.state):
-            seen.append(props.state)
+        dt = time.monotonic() - t
+        shown = [props.state, round(props.progress, 3)]
+        if props.state and (not seen or seen[-1] != shown):
+            seen.append(shown)
         if props.state in TERMINAL and nxt is None:
-            return time.monotonic() - t0
+            return {"seconds": time.monotonic() - t0, "seen": seen, "longest_tick_s": longest}
+        longest = max(longest, dt)
         if time.monotonic() - t0 > timeout:
             raise SystemExit(f"the job did not finish in {timeout} s: {props.state} "
-                             f"{props.message} (states {seen})")
+                             f"{props.message} (seen {seen})")
         time.sleep(mod.TICK_SECONDS)
 
 
@@ -132,8 +139,10 @@ def main() -> None:
     props.atlas_resolution = str(settings.pop("atlas_resolution"))
     props.extra_settings = json.dumps(settings)
     props.import_lod, props.import_mode, props.auto_import = 1, "ONE", True
+    t = time.monotonic()
     assert "FINISHED" in bpy.ops.texelbake.submit()
-    out["bake_seconds"] = drive(mod, props, timeout=400)
+    out["submit_op_s"] = time.monotonic() - t  # export + zip; the upload is the thread's
+    out["drive"] = drive(mod, props, timeout=400)
     out["state"], out["message"], out["error"] = props.state, props.message, props.error
     out["job_id"], out["result_root"], out["lods"] = props.job_id, props.result_root, props.lods
     if props.state != "done":
@@ -161,6 +170,17 @@ def main() -> None:
                        "faces": {c["texelbake_lod"]: sum(len(o.data.polygons) for o in
                                                          c.all_objects if o.type == "MESH")
                                  for c in parent.children}}
+
+    # cancel: a second submission cancelled from the panel while it runs
+    prefs.token = TOKEN
+    props.auto_import = False
+    assert "FINISHED" in bpy.ops.texelbake.submit()
+    while not props.job_id:  # the thread has created the job
+        mod.poll_step()
+        time.sleep(0.1)
+    assert "FINISHED" in bpy.ops.texelbake.cancel()
+    drive(mod, props, timeout=60)
+    out["cancelled"] = {"state": props.state, "error": props.error}
 
     # a wrong token: the server's words in the panel's error and the info report
     prefs.token = "not-the-token"

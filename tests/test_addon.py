@@ -232,6 +232,13 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
     assert res["addon_module"] == "bl_ext.user_default.texelbake_submit"
     assert "Nothing selected" in res["empty_selection"], res["empty_selection"]
     assert res["state"] == "done", res
+    # the UI did not wait on the farm: the operator returned after the export, each timer
+    # tick copied a snapshot (bounds generous for 2 shared cores), the panel showed progress
+    drive = res["drive"]
+    assert res["submit_op_s"] < 5.0 and drive["longest_tick_s"] < 0.25, drive
+    assert drive["seconds"] > 2 * drive["longest_tick_s"], drive
+    states = [s for s, _ in drive["seen"]]
+    assert states[0] == "uploading" and states[-1] == "done" and "running" in states, drive
     assert res["lods"].split(",")[:2] == ["LOD0", "LOD1"], res["lods"]
 
     root = Path(res["result_root"])
@@ -255,7 +262,8 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
             g["materials"][0]["base_color_image"]) == e["diffuse"], (g, e)
     print(f"LOD1 bounds: worst |blender - usd| = {worst:.2e} (tol {BOUNDS_TOL}); "
           f"stage up={frame['up']} metersPerUnit={frame['mpu']}; bake+import "
-          f"{res['bake_seconds']:.1f} s")
+          f"{res['drive']['seconds']:.1f} s, submit operator {res['submit_op_s']:.2f} s, "
+          f"longest timer tick {res['drive']['longest_tick_s'] * 1e3:.1f} ms")
     assert (SHOTS / "addon_lod1.png").stat().st_size > 1000
 
     # the layer the add-on imported selects LOD1 (pxr composes it)
@@ -271,6 +279,9 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
     assert all_lods["shown"] == {str(i): [i] for i in range(n_lods)}, all_lods
     # LOD1 is a simplification of what Blender sent (LOD0: the scene as exported)
     assert all_lods["faces"]["1"] < all_lods["faces"]["0"], all_lods["faces"]
+
+    assert res["cancelled"]["state"] == "cancelled", res["cancelled"]
+    assert "cancelled" in res["cancelled"]["error"], res["cancelled"]
 
     wrong = res["wrong_token"]
     assert wrong["state"] == "error" and wrong["error"].startswith("invalid token"), wrong
