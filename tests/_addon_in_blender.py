@@ -50,6 +50,43 @@ def drive(mod, props, timeout: float) -> dict:
         time.sleep(mod.TICK_SECONDS)
 
 
+class PanelText:
+    """Stands in for the UILayout Blender hands a panel's draw() (headless Blender has none:
+    no window is drawn), recording what would be shown as text lines, and failing like
+    Blender on a property the data does not have or an operator that is not registered."""
+
+    def __init__(self, lines: list, depth: int = 0):
+        self.lines, self.depth = lines, depth
+
+    def _sub(self, *_a, **_k) -> PanelText:
+        return PanelText(self.lines, self.depth + 1)
+
+    row = column = box = _sub
+
+    def label(self, text: str = "", icon: str = "NONE") -> None:
+        self.lines.append("  " * self.depth + (f"[{icon}] " if icon != "NONE" else "") + text)
+
+    def prop(self, data, name: str, text: str | None = None, **_k) -> None:
+        if name not in data.bl_rna.properties:
+            raise AttributeError(f"panel draws a missing property {name!r}")
+        value = getattr(data, name)
+        label = text if text is not None else data.bl_rna.properties[name].name
+        self.lines.append("  " * self.depth + f"{label}: {value}")
+
+    def operator(self, idname: str, text: str | None = None, **_k) -> None:
+        group, name = idname.split(".")
+        op = getattr(getattr(bpy.ops, group), name)
+        op.get_rna_type()  # raises KeyError when not registered
+        self.lines.append("  " * self.depth + f"<{text if text is not None else idname}>")
+
+
+def panel_text(mod) -> list:
+    lines: list = []
+    panel = mod.VIEW3D_PT_texelbake
+    panel.draw(type("P", (), {"layout": PanelText(lines)})(), bpy.context)
+    return lines
+
+
 def mesh_info(obj) -> dict:
     me = obj.data
     co = np.empty(len(me.vertices) * 3, np.float32)
@@ -149,6 +186,8 @@ def main() -> None:
         print(json.dumps(out))
         return
 
+    out["panel_done"] = panel_text(mod)
+    (Path(SHOTS) / "addon_panel_done.txt").write_text("\n".join(out["panel_done"]) + "\n")
     coll = next(c for c in bpy.data.collections if c.name.endswith(" LOD1"))
     out["lod1"] = [mesh_info(o) for o in coll.all_objects if o.type == "MESH"]
     out["lod1_collection"] = coll.name
@@ -186,7 +225,10 @@ def main() -> None:
     prefs.token = "not-the-token"
     assert "FINISHED" in bpy.ops.texelbake.submit()
     drive(mod, props, timeout=60)
-    out["wrong_token"] = {"state": props.state, "error": props.error, "message": props.message}
+    out["wrong_token"] = {"state": props.state, "error": props.error, "message": props.message,
+                          "panel": panel_text(mod)}
+    (Path(SHOTS) / "addon_panel_wrong_token.txt").write_text("\n".join(out["wrong_token"][
+        "panel"]) + "\n")
     # the scene with the imports, to open in Blender and look at the panel there
     bpy.ops.wm.save_as_mainfile(filepath=str(OUT_DIR / "addon_scene.blend"))
     print(json.dumps(out))

@@ -286,3 +286,7 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
     wrong = res["wrong_token"]
     assert wrong["state"] == "error" and wrong["error"].startswith("invalid token"), wrong
     assert "HTTP 401" in wrong["error"] and "invalid_token" in wrong["error"], wrong
+    # what the panel draws (as text: headless Blender draws no UI), saved beside the render
+    assert any(line.strip().startswith("[ERROR] invalid token") for line in wrong["panel"]), \
+        wrong["panel"]
+    assert any("completed" in line for line in res["panel_done"]), res["panel_done"]

@@ -435,12 +435,13 @@ class VIEW3D_PT_texelbake(bpy.types.Panel):
         row.operator(TEXELBAKE_OT_cancel.bl_idname, icon="CANCEL", text="")
         if props.state:
             box = layout.box()
-            box.label(text=props.message, icon="ERROR" if props.error else "INFO")
+            if props.error:  # the server's words, wrapped to the sidebar's width
+                for i, line in enumerate(_wrap(props.error, 48)):
+                    box.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
+            else:
+                box.label(text=props.message, icon="INFO")
             if props.state not in ("done", "error", "failed", "cancelled"):
                 box.prop(props, "progress", text=props.state, slider=True)
-            if props.error:
-                for line in _wrap(props.error, 48):
-                    box.label(text=line)
         col = layout.column(align=True)
         col.prop(props, "auto_import")
         col.prop(props, "import_lod")
