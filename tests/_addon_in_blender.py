@@ -1,9 +1,11 @@
 """Runs inside Blender (headless bpy, tests/dcc_util.run_blender) for tests/test_addon.py:
 install the add-on's extension zip, open a generated scene, submit it with the add-on's
 operator to a real stack, drive the add-on's timer until the job is done, import LOD1 (and all
-LODs), render the imported LOD, then submit with a wrong token. Prints one JSON line.
+LODs), render the imported LOD, then submit with a wrong token; last, import LOD1 of BAKED_ROOT
+(a bake of the generated Y-up, centimetre scene as uploaded, not through Blender) with the
+add-on's import. Prints one JSON line.
 
-Arguments after `--`: ZIP SCENE SERVER TOKEN OUT_DIR SETTINGS_JSON SHOTS_DIR
+Arguments after `--`: ZIP SCENE SERVER TOKEN OUT_DIR SETTINGS_JSON SHOTS_DIR BAKED_ROOT
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-ZIP, SCENE, SERVER, TOKEN, OUT, SETTINGS, SHOTS = sys.argv[sys.argv.index("--") + 1:][:7]
+ZIP, SCENE, SERVER, TOKEN, OUT, SETTINGS, SHOTS, BAKED_ROOT = sys.argv[
+    sys.argv.index("--") + 1:][:8]
 OUT_DIR = Path(OUT)
 TERMINAL = ("done", "error", "failed", "cancelled")
 
@@ -229,6 +232,12 @@ def main() -> None:
                           "panel": panel_text(mod)}
     (Path(SHOTS) / "addon_panel_wrong_token.txt").write_text("\n".join(out["wrong_token"][
         "panel"]) + "\n")
+    # a bake of the scene as texelbake generated it (Y-up, metersPerUnit 0.01): Blender's
+    # importer turns it Z-up and scales it to metres
+    props.result_root = BAKED_ROOT
+    coll = mod.import_result(scene, 1, "ONE")
+    out["yup_lod1"] = [mesh_info(o) for o in coll.all_objects if o.type == "MESH"]
+
     # the scene with the imports, to open in Blender and look at the panel there
     bpy.ops.wm.save_as_mainfile(filepath=str(OUT_DIR / "addon_scene.blend"))
     print(json.dumps(out))

@@ -214,38 +214,12 @@ def usd_lod_meshes(root: Path, lod: int) -> tuple[list[dict], dict]:
     return meshes, {"up": up, "mpu": mpu}
 
 
-@pytest.mark.dcc
-@pytest.mark.service
-@pytest.mark.timeout(900)
-def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
-    from texelbake.scenes import write_scene
-
-    out = tmp_path_factory.mktemp("addon_out")
-    scene = write_scene("cylinder", out / "scene" / "cylinder.usda", "small")
-    # Blender's user folders (the installed extension) in the test's output, not in $HOME
-    monkeypatch.setenv("BLENDER_USER_RESOURCES", str(out / "blender_user"))
-    (SHOTS / "addon_lod1.png").unlink(missing_ok=True)
-    res = run_blender(ROOT / "tests" / "_addon_in_blender.py", str(ext_zip), str(scene),
-                      stack.api_url, TOKEN, str(out), json.dumps(TINY), str(SHOTS),
-                      timeout=800)
-    print(json.dumps({k: v for k, v in res.items() if k != "lod1"}, indent=1))
-    assert res["addon_module"] == "bl_ext.user_default.texelbake_submit"
-    assert "Nothing selected" in res["empty_selection"], res["empty_selection"]
-    assert res["state"] == "done", res
-    # the UI did not wait on the farm: the operator returned after the export, each timer
-    # tick copied a snapshot (bounds generous for 2 shared cores), the panel showed progress
-    drive = res["drive"]
-    assert res["submit_op_s"] < 5.0 and drive["longest_tick_s"] < 0.25, drive
-    assert drive["seconds"] > 2 * drive["longest_tick_s"], drive
-    states = [s for s, _ in drive["seen"]]
-    assert states[0] == "uploading" and states[-1] == "done" and "running" in states, drive
-    assert res["lods"].split(",")[:2] == ["LOD0", "LOD1"], res["lods"]
-
-    root = Path(res["result_root"])
-    expected, frame = usd_lod_meshes(root, 1)
-    got = res["lod1"]
+def compare_lod(got: list[dict], root: Path, lod: int) -> tuple[float, dict]:
+    """Blender's imported meshes (`got`, from the Blender script) against the baked USD's
+    LOD `lod`: counts, world bounds to BOUNDS_TOL, material and its base-colour texture.
+    Returns the worst bound difference and the stage frame."""
+    expected, frame = usd_lod_meshes(root, lod)
     assert expected and len(got) == len(expected), (got, expected)
-    assert res["lod1_other_objects"] == ["EMPTY"] * len(res["lod1_other_objects"])
     # meshes pair up by prim name (Blender names an object after its prim)
     by_name = {Path(e["path"]).name: e for e in expected}
     worst = 0.0
@@ -260,10 +234,60 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
         assert [m["name"].split(".")[0] for m in g["materials"]] == [e["material"]], g
         assert e["diffuse"] is not None and os.path.realpath(
             g["materials"][0]["base_color_image"]) == e["diffuse"], (g, e)
+    return worst, frame
+
+
+@pytest.mark.dcc
+@pytest.mark.service
+@pytest.mark.timeout(900)
+def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
+    from texelbake.client import package
+    from texelbake.scenes import write_scene
+
+    out = tmp_path_factory.mktemp("addon_out")
+    scene = write_scene("cylinder", out / "scene" / "cylinder.usda", "small")
+    # the add-on's client module from this venv: the generated scene as texelbake wrote it
+    # (Y-up, centimetres; bundled with its texelbake_shaders.usda), baked through a
+    # Submission thread; Blender imports its LOD1 at the end of its run
+    client = load_client()
+    name, data = package(scene)
+    sub = client.Submission(client.Client(stack.api_url, TOKEN), name, data, dict(TINY),
+                            out / "direct", poll_seconds=0.5).start()
+    sub.join(timeout=400)
+    direct = sub.snapshot()
+    assert direct["phase"] == "done", direct
+    assert name == "cylinder.zip" and direct["lods"][:2] == ["LOD0", "LOD1"], (name, direct)
+
+    # Blender's user folders (the installed extension) in the test's output, not in $HOME
+    monkeypatch.setenv("BLENDER_USER_RESOURCES", str(out / "blender_user"))
+    (SHOTS / "addon_lod1.png").unlink(missing_ok=True)
+    res = run_blender(ROOT / "tests" / "_addon_in_blender.py", str(ext_zip), str(scene),
+                      stack.api_url, TOKEN, str(out), json.dumps(TINY), str(SHOTS),
+                      direct["root"], timeout=800)
+    print(json.dumps({k: v for k, v in res.items() if k not in ("lod1", "yup_lod1")}, indent=1))
+    assert res["addon_module"] == "bl_ext.user_default.texelbake_submit"
+    assert "Nothing selected" in res["empty_selection"], res["empty_selection"]
+    assert res["state"] == "done", res
+    # the UI did not wait on the farm: the operator returned after the export, each timer
+    # tick copied a snapshot (bounds generous for 2 shared cores), the panel showed progress
+    drive = res["drive"]
+    assert res["submit_op_s"] < 5.0 and drive["longest_tick_s"] < 0.25, drive
+    assert drive["seconds"] > 2 * drive["longest_tick_s"], drive
+    states = [s for s, _ in drive["seen"]]
+    assert states[0] == "uploading" and states[-1] == "done" and "running" in states, drive
+    assert res["lods"].split(",")[:2] == ["LOD0", "LOD1"], res["lods"]
+
+    root = Path(res["result_root"])
+    worst, frame = compare_lod(res["lod1"], root, 1)
+    assert res["lod1_other_objects"] == ["EMPTY"] * len(res["lod1_other_objects"])
     print(f"LOD1 bounds: worst |blender - usd| = {worst:.2e} (tol {BOUNDS_TOL}); "
           f"stage up={frame['up']} metersPerUnit={frame['mpu']}; bake+import "
           f"{res['drive']['seconds']:.1f} s, submit operator {res['submit_op_s']:.2f} s, "
           f"longest timer tick {res['drive']['longest_tick_s'] * 1e3:.1f} ms")
+    worst, frame = compare_lod(res["yup_lod1"], Path(direct["root"]), 1)
+    assert (frame["up"], frame["mpu"]) == ("Y", 0.01), frame
+    print(f"LOD1 of the Y-up centimetre bake: worst |blender - usd| = {worst:.2e} "
+          f"(tol {BOUNDS_TOL})")
     assert (SHOTS / "addon_lod1.png").stat().st_size > 1000
 
     # the layer the add-on imported selects LOD1 (pxr composes it)
