@@ -53,6 +53,7 @@ def ext_zip(tmp_path_factory) -> Path:
     return Path(r.stdout.strip())
 
 
+@pytest.mark.dcc
 def test_extension_zip(ext_zip, tmp_path):
     """The build is deterministic and holds the manifest and both modules; Blender's own
     extension validator (bl_pkg's blender_ext.py, run by the bpy virtualenv) accepts it."""

@@ -265,8 +265,8 @@ def poll_step() -> float | None:
     for scene_name, sub in list(_active.items()):
         scene = bpy.data.scenes.get(scene_name)
         snap = sub.snapshot()
-        if scene is None:
-            sub.cancel()
+        if scene is None:  # the scene was deleted: stop following its job
+            sub.detach()
             del _active[scene_name]
             continue
         props = scene.texelbake
@@ -468,18 +468,28 @@ CLASSES = (TEXELBAKE_AP_preferences, TexelbakeSceneProps, TEXELBAKE_OT_submit,
            TEXELBAKE_OT_cancel, TEXELBAKE_OT_report, TEXELBAKE_OT_import, VIEW3D_PT_texelbake)
 
 
+@bpy.app.handlers.persistent
+def _forget_submissions(*_args: Any) -> None:
+    """Another .blend is loading: its scenes are not the ones that submitted. The jobs keep
+    running on the farm; this Blender stops following them."""
+    for sub in _active.values():
+        sub.detach()
+    _active.clear()
+
+
 def register() -> None:
     for cls in CLASSES:
         bpy.utils.register_class(cls)
     bpy.types.Scene.texelbake = PointerProperty(type=TexelbakeSceneProps)
+    bpy.app.handlers.load_pre.append(_forget_submissions)
 
 
 def unregister() -> None:
+    if _forget_submissions in bpy.app.handlers.load_pre:
+        bpy.app.handlers.load_pre.remove(_forget_submissions)
     if bpy.app.timers.is_registered(poll_step):
         bpy.app.timers.unregister(poll_step)
-    for sub in _active.values():
-        sub.cancel()
-    _active.clear()
+    _forget_submissions()
     del bpy.types.Scene.texelbake
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

@@ -249,6 +249,7 @@ class Submission:
         self.settings, self.out_dir, self.poll_seconds = settings, Path(out_dir), poll_seconds
         self._lock = threading.Lock()
         self._cancel = threading.Event()
+        self._detached = threading.Event()
         self._state: dict[str, Any] = {
             "phase": "uploading", "progress": 0.0, "message": f"uploading {filename}",
             "job_id": "", "asset_id": "", "root": "", "lods": [], "error": "",
@@ -269,7 +270,13 @@ class Submission:
         return self.snapshot()["phase"] in ("done", "failed", "cancelled", "error")
 
     def cancel(self) -> None:
+        """Ask the thread to cancel the job on the server (at its next poll)."""
         self._cancel.set()
+
+    def detach(self) -> None:
+        """Stop following the job (it keeps running on the farm): the thread ends at its next
+        poll without cancelling or downloading."""
+        self._detached.set()
 
     def join(self, timeout: float | None = None) -> None:
         self._thread.join(timeout)
@@ -297,6 +304,10 @@ class Submission:
             if self._cancel.wait(self.poll_seconds):
                 job = self.client.cancel(job_id)
                 break
+            if self._detached.is_set():
+                self._set(phase="cancelled", error=f"job {job_id[:8]} no longer followed",
+                          error_code="detached", message=f"job {job_id[:8]} no longer followed")
+                return
             job = self.client.job(job_id)
             running = [s["name"] for s in job.get("stages", [])
                        if s.get("state") in ("queued", "running")]
