@@ -173,6 +173,14 @@ def test_client_against_the_server(stack):
         client.Client(f"http://127.0.0.1:{free_port()}", TOKEN, timeout=5).job("x")
     assert e.value.code == "unreachable" and "cannot reach" in str(e.value)
 
+    # a Submission whose upload the server rejects ends in "error" with the server's words
+    sub = client.Submission(api, "broken.usda", b"#usda 1.0\n(\n def def def {{{", {},
+                            "unused").start()
+    sub.join(timeout=60)
+    snap = sub.snapshot()
+    assert (snap["phase"], snap["error_code"]) == ("error", "invalid_asset"), snap
+    assert "broken.usda" in snap["error"] and "HTTP 422" in snap["error"], snap
+
 
 def usd_lod_meshes(root: Path, lod: int) -> tuple[list[dict], dict]:
     """Each mesh the baked root shows under variant LOD<lod> (the proxy excluded), read with
