@@ -281,10 +281,14 @@ def poll_step() -> float | None:
             props.result_root, props.lods = snap["root"], ",".join(snap["lods"])
             props.import_lod = min(props.import_lod, len(snap["lods"]) - 1)
             _report(f"texelbake: {snap['message']}", "INFO")
-            if props.auto_import:
+            if props.auto_import and scene != bpy.context.scene:
+                # the importer writes into the context's view layer: not another scene's
+                _report(f"texelbake: the bake of scene {scene.name!r} is done; import it "
+                        "from the panel there", "WARNING")
+            elif props.auto_import:
                 try:
                     import_result(scene, props.import_lod, props.import_mode)
-                except (client.ApiError, RuntimeError) as e:
+                except Exception as e:  # noqa: BLE001 - a raising timer is unregistered
                     props.error = str(e)
                     _report(f"texelbake: {e}", "ERROR")
         else:
@@ -315,7 +319,7 @@ def _prune_empties(new: list[bpy.types.Object]) -> None:
             while o is not None:
                 keep.add(o.name)
                 o = o.parent
-    for obj in sorted(new, key=lambda o: -len(o.name_full)):
+    for obj in new:
         if obj.type == "EMPTY" and obj.name not in keep:
             bpy.data.objects.remove(obj, do_unlink=True)
 
