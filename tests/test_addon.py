@@ -36,6 +36,25 @@ TINY = {"atlas_resolution": 16, "shard_texels": 16, "n_light_dirs": 8, "n_view_d
 BOUNDS_TOL = 1e-5
 
 
+#: stock validation of a layer the add-on wrote, in a process that never imports texelbake
+VALIDATE = r"""
+import json, sys
+from pxr import Usd, UsdValidation
+st = Usd.Stage.Open(sys.argv[1])
+ctx = UsdValidation.ValidationContext(
+    list(UsdValidation.ValidationRegistry().GetAllValidatorMetadata()), True)
+print(json.dumps([f"{e.GetName()}: {e.GetMessage()}" for e in ctx.Validate(st)
+                  if e.GetType() == UsdValidation.ValidationErrorType.Error]))
+"""
+
+
+def stock_errors(layer: Path) -> list[str]:
+    r = subprocess.run([sys.executable, "-c", VALIDATE, str(layer)], capture_output=True,
+                       text=True, timeout=120, cwd=str(layer.parent))
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
 def load_client():
     """The add-on's HTTP module, imported by file path (it has no bpy import)."""
     spec = importlib.util.spec_from_file_location("texelbake_submit_client", ADDON / "client.py")
@@ -305,6 +324,9 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
     lod_layer = root.with_name(f"{root.stem}_LOD1.usda")
     lod_stage = Usd.Stage.Open(str(lod_layer))
     assert lod_stage.GetDefaultPrim().GetVariantSets().GetVariantSelection("LOD") == "LOD1"
+    # the layers the add-on wrote pass stock validation (the Z-up metre and Y-up cm results)
+    yup_layer = Path(direct["root"]).with_name(f"{Path(direct['root']).stem}_LOD1.usda")
+    assert stock_errors(lod_layer) == [] and stock_errors(yup_layer) == []
 
     n_lods = len(res["lods"].split(","))
     all_lods = res["all_lods"]
