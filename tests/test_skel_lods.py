@@ -227,3 +227,83 @@ def test_skinning_that_is_not_one_blend_falls_back_to_time_samples(tmp_path):
         asset = load_asset(str(tmp_path / "arm.usda"))
     assert asset.skin is None
     assert asset.has_deformation
+
+
+# --------------------------------------------------------------------------- animated previews
+
+
+def test_animated_preview_of_the_arm_and_its_error_plot(baked_arm, tmp_path):
+    import OpenImageIO as oiio
+
+    from texelbake.render.deformed_anim import render_animation
+
+    runs = []
+    for k in range(2):  # reruns: images byte-identical (the JSON's seconds are timings)
+        out = tmp_path / f"run{k}"
+        path = render_animation(baked_arm, out, frames=3, spp=1, ref_spp=4)
+        runs.append({p.name: p.read_bytes() for p in sorted(out.iterdir())
+                     if p.suffix != ".json"})
+    assert runs[0] == runs[1]
+    assert sorted(runs[0]) == ["animation.gif", "error_per_frame.png"]
+    rep = json.loads(path.read_text())
+    assert rep["tiles"] == ["reference", "cpm", "cpm-naive", "normalmap"]
+    assert [f["time"] for f in rep["frames"]] == [0.0, 12.0, 24.0]
+    for f in rep["frames"]:
+        assert f["object_pixels"] > 0
+        assert all(np.isfinite(f["modes"][m]["psnr_db_object"]) for m in rep["tiles"][1:])
+    inp = oiio.ImageInput.open(str(path.parent / "animation.gif"))
+    spec = inp.spec()
+    n = 0
+    while inp.seek_subimage(n, 0):
+        n += 1
+    inp.close()
+    assert n == 3
+    z, w = rep["zoom"], rep["width"]
+    assert (spec.width, spec.height) == (4 * z * w + 3 * 2, z * rep["height"])
+
+
+def test_warp_sweep_runs_from_identity_to_the_spec():
+    from texelbake.deform.warps import parse_warp
+    from texelbake.errors import SettingsError
+    from texelbake.render.deformed_anim import sweep_spec
+
+    rng = np.random.default_rng(3)
+    pts = rng.random((50, 3))
+    bounds = np.stack([pts.min(0), pts.max(0)])
+    for spec in ("bend:angle=90", "twist:angle=90,axis=x", "stretch:x=1,y=2,z=1",
+                 "rigid:angle=40,axis=x,tx=0.5", "sine:amplitude=0.2", "scale:s=3"):
+        zero = parse_warp(sweep_spec(spec, 0.0), bounds).positions(pts)
+        full = parse_warp(sweep_spec(spec, 1.0), bounds).positions(pts)
+        np.testing.assert_allclose(zero, pts, atol=1e-12)
+        np.testing.assert_allclose(full, parse_warp(spec, bounds).positions(pts), atol=1e-12)
+    half = parse_warp(sweep_spec("twist:angle=90", 0.5), bounds)
+    np.testing.assert_allclose(half.positions(pts),
+                               parse_warp("twist:angle=45", bounds).positions(pts), atol=1e-12)
+    with pytest.raises(SettingsError, match="amount"):
+        sweep_spec("bend:angle=90", 1.5)
+
+
+def test_write_animation_frames_and_errors(tmp_path):
+    import OpenImageIO as oiio
+
+    from texelbake.errors import ShapeError
+    from texelbake.imageio import write_animation
+
+    frames = [np.full((6, 5, 3), k / 3.0) for k in range(4)]
+    p = write_animation(tmp_path / "a.gif", frames, fps=4.0)
+    inp = oiio.ImageInput.open(str(p))
+    got = []
+    k = 0
+    while inp.seek_subimage(k, 0):
+        got.append(inp.read_image("uint8")[0, 0, :3])
+        k += 1
+    inp.close()
+    assert k == 4
+    # flat frames: the palette holds the exact sRGB-encoded grey
+    from texelbake.imageio import to_uint8
+
+    assert [int(g[0]) for g in got] == [int(to_uint8(np.full(3, j / 3.0))[0]) for j in range(4)]
+    with pytest.raises(ShapeError, match="gif"):
+        write_animation(tmp_path / "a.png", frames)
+    with pytest.raises(ShapeError, match="size"):
+        write_animation(tmp_path / "b.gif", [frames[0], np.zeros((3, 3, 3))])
