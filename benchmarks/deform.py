@@ -15,7 +15,9 @@ motion) renders the reference `gt` of the deformed M_org at `--ref-spp` eye rays
 and each mode at `--spp`: `cpm` (through the look-up rotation L, Eq. 10), `cpm-naive` (no L)
 and `normalmap` (tangent frame carried by the deformed M1), and `gt` at `--spp` for scale;
 `cpm-texel` is cpm with L from each texel's own frame and J at its centroid instead of the
-Table 1 parameterization of M1's vertices (`render.deformed.LOOKUPS`).
+Table 1 parameterization of M1's vertices, `cpm-point` with each characteristic point's BRDF
+directions through its own L (its shading frame and the deformed M_org's Jacobian at the
+point: the seed's limit where the impostor is the surface) (`render.deformed.LOOKUPS`).
 Each mode's second frame is timed (a warm renderer). PSNR over the object's pixels
 (`metrics.object_errors`). Camera: the `lod` view of the *deformed* object (the asset's
 camera moved back along its axis until a finest texel spans ~0.7 pixel).
@@ -73,7 +75,7 @@ WARPS = ("bend:angle=90", "twist:angle=90", "stretch:x=1,y=2,z=1")
 RIGID = "rigid:angle=40,axis=x,tx=0.5,ty=-0.3,tz=0.2"
 #: the arm's own animation (texelbake.scenes.arm): bent 45° at time 12, 90° at 24
 ARM_TIMES = ("time:12", "time:24")
-MODES = ("cpm", "cpm-texel", "cpm-naive", "normalmap", "gt")
+MODES = ("cpm", "cpm-texel", "cpm-point", "cpm-naive", "normalmap", "gt")
 
 
 def bake_scene(scene: str, work: Path, atlas: int, size: str) -> Path:
@@ -113,9 +115,10 @@ def _case(scene_name: str, d, cam, spp: int, ref_spp: int, render_fn) -> dict:
     ref_s = time.perf_counter() - t0
     modes = {}
     for mode in MODES:  # a loop over the few modes
-        kw = {"lookup": "texel"} if mode == "cpm-texel" else {}
-        res = _timed(lambda m=mode, kw=kw: render_fn(d, m.replace("-texel", ""), cam, spp, 0,
-                                                     **kw))
+        kw = ({"lookup": "texel"} if mode == "cpm-texel" else
+              {"lookup": "point"} if mode == "cpm-point" else {})
+        res = _timed(lambda m=mode, kw=kw: render_fn(
+            d, m.replace("-texel", "").replace("-point", ""), cam, spp, 0, **kw))
         entry = {"seconds": round(res.seconds, 4), "spp": spp, **_errors(res, ref)}
         if "fallback_fraction" in res.extras:
             entry["fallback_fraction"] = round(float(res.extras["fallback_fraction"]), 4)

@@ -262,14 +262,24 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
             np.einsum("nij,nj->ni", jc, frames[live, 1]),
             fallback_normal=deform_normals(jc, frames[live, 2]))
     out["lookup:texel"] = lrot_t
+    # each characteristic point as its own impostor point (the seed's limit where the impostor
+    # is the surface, §4.4): R0 its shading frame, (u, v) = J (t, b) with J the deformed
+    # M_org's own affine map at the point (per point, not per texel)
+    fr = tangent_frames(cp["normal"])  # rows (t, b, n)
+    out["lookup:point"], _ = lookup_rotation(
+        np.transpose(fr, (0, 2, 1)), np.einsum("nij,nj->ni", jac, fr[:, 0]),
+        np.einsum("nij,nj->ni", jac, fr[:, 1]), fallback_normal=out["geom_normal"])
     cache[level] = out
     return out
 
 
 #: where the look-up rotation L of a texel comes from: "texel" (the texel as the impostor
 #: point: R0 its baked frame, J at its centroid), "vertex" (Table 1 on M1's vertices, from the
-#: payload, interpolated at the centroid's closest point), "none" (L = I, ``cpm-naive``)
-LOOKUPS = ("texel", "vertex", "none")
+#: payload, interpolated at the centroid's closest point), "none" (L = I, ``cpm-naive``),
+#: "point" (a diagnostic: each characteristic point's BRDF directions through its own L — its
+#: shading frame carried by the deformed M_org's Jacobian at the point —, the texel's view
+#: direction, view term and a_vis through "vertex"; `benchmarks/deform.py` ``cpm-point``)
+LOOKUPS = ("texel", "vertex", "none", "point")
 
 
 def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
@@ -297,7 +307,9 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     ng, ns, w = cp["geom_normal"][pt], cp["normal"][pt], cp["weight"][pt]
     pos_d, ng_d = geo["position"][pt], geo["geom_normal"][pt]
     lrot = (np.broadcast_to(np.eye(3), (n_tex, 3, 3)) if lookup == "none"
+            else geo["lookup:vertex"][texels] if lookup == "point"
             else geo[f"lookup:{lookup}"][texels])  # (t, 3, 3) deformed world -> rest world
+    lpt = geo["lookup:point"][pt] if lookup == "point" else None  # (k, 3, 3) per point
     # one view direction per texel: deformed weighted centroid -> camera
     ws = np.abs(w).sum(axis=1)
     ws = np.where(np.bincount(tex, ws, n_tex)[tex] > 0, ws, 1.0)
@@ -325,7 +337,7 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
         frames = tangent_frames(ns[seen])
         for light in d.lights:  # a loop over the few lights
             wi_d, e, tmax = light_at(light, pos_d[seen])  # Eq. 11: 1/d² from Ψ(x̂k)
-            wi = np.einsum("nij,nj->ni", lrot[tex[seen]], wi_d)
+            wi = np.einsum("nij,nj->ni", lrot[tex[seen]] if lpt is None else lpt[seen], wi_d)
             cos_s = np.einsum("ij,ij->i", ns[seen], wi)
             ok = (np.einsum("ij,ij->i", ng[seen], wi) > g) & (cos_s > g) & (e.max(axis=1) > 0)
             idx = np.flatnonzero(ok)
@@ -340,7 +352,9 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
                 continue
             fr = frames[idx]
             wi_l = np.einsum("nij,nj->ni", fr, wi[idx])
-            wo_l = np.einsum("nij,nj->ni", fr, wo[seen[idx]])
+            wo_b = (wo[seen[idx]] if lpt is None else np.einsum(
+                "nij,nj->ni", lpt[seen[idx]], wo_d_tex[tex[seen[idx]]]))
+            wo_l = np.einsum("nij,nj->ni", fr, wo_b)
             f = brdf_mod.evaluate_by_face(d.materials, mat[seen[idx]], wi_l, wo_l,
                                           uv[seen[idx]])
             lit[seen[idx]] += e[idx] * f * cos_s[idx, None]
