@@ -4,12 +4,11 @@ noise), cpm (through L), cpm-naive, cpm-texel, cpm-point and gt at `--spp`, each
 the object, PSNR after a Gaussian blur of 1 and 2 pixels (a highlight one pixel off is then
 not counted twice), and the light it shows against the reference's (flux ratio). Options: the
 metal's roughness overridden at render time (`--roughness`: gt and cpm both evaluate the true
-BRDF, so a wider lobe asks whether L or the lobe's sharpness decides), shadow rays off
-(`--no-shadows`: every shadow ray of gt and cpm unoccluded).
+BRDF, so a wider lobe asks whether L or the lobe's sharpness decides).
 
     .venv/bin/python benchmarks/deform_diagnose.py BAKED_ROOT --json out.json
         [--warps "bend:angle=90;twist:angle=90"] [--ref-spp 128] [--spp 4] [--size 512]
-        [--roughness R] [--no-shadows]
+        [--roughness R]
 
 BAKED_ROOT: e.g. the bolt baked by benchmarks/deform.py (`--work DIR`). Camera: the `lod` view
 of the deformed object, as the benchmark. Numbers of 2026-11-25 are in docs/deformation.md.
@@ -41,19 +40,6 @@ MODES = (("cpm", "cpm", {}), ("cpm-naive", "cpm-naive", {}),
          ("gt", "gt", {}))
 
 
-class _Unoccluded:
-    """A ray caster whose shadow rays are never blocked (eye rays as the wrapped one)."""
-
-    def __init__(self, rc):
-        self.rc = rc
-
-    def __getattr__(self, k):
-        return getattr(self.rc, k)
-
-    def occluded(self, o, d, tmax=np.inf):
-        return np.zeros(len(o), bool)
-
-
 def _psnr(img, ref, mask, blur: float = 0.0) -> float:
     a, b = img.astype(np.float64), ref.astype(np.float64)
     if blur:
@@ -71,7 +57,6 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--roughness", type=float, default=None)
-    ap.add_argument("--no-shadows", action="store_true")
     args = ap.parse_args(argv)
     scene = load_scene(args.baked)
     if args.roughness is not None:
@@ -83,8 +68,6 @@ def main(argv: list[str] | None = None) -> dict:
     for spec in [w for w in args.warps.split(";") if w]:
         t0 = time.perf_counter()
         d = deform_scene(scene, parse_warp(spec, scene.asset.bounds))
-        if args.no_shadows:
-            d.org = _Unoccluded(d.org)
         cam = lod_camera(d, args.size, args.size)
         ref = render_deformed(d, "gt", cam, args.ref_spp, 1)
         ref2 = render_deformed(d, "gt", cam, args.ref_spp, 2)
