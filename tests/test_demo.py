@@ -57,3 +57,24 @@ def test_demo_writes_previews_of_every_mode_next_to_the_bake(tmp_path, capsys):
               "mip_levels.png", "far_mip_levels.png"):
         assert (prev / f).is_file(), f
     assert "previews:" in capsys.readouterr().out
+
+
+def test_demo_writes_the_arms_animation_beside_its_stills(tmp_path, capsys):
+    """`make demo` bakes the skinned arm too (issue 12): its previews folder holds the stills
+    and the animation of its UsdSkel bend (GIF, error per frame plot, JSON)."""
+    from texelbake.cli import main
+
+    out = tmp_path / "demo"
+    rc = main(["demo", "--out", str(out), "--scenes", "arm",
+               "--set", "atlas_resolution=16", "--set", "samples_per_texel=4",
+               "--set", "n_light_dirs=8", "--set", "n_view_dirs=8", "--set", "n_heldout=4",
+               "--set", "c_max=8", "--set", "btf=false"])
+    assert rc == 0
+    prev = out / "arm" / "previews"
+    for f in ("render_report.json", "cpm.png", "animation.gif", "error_per_frame.png"):
+        assert (prev / f).is_file(), f
+    rep = json.loads((prev / "animation.json").read_text())
+    assert rep["source"] == "time" and len(rep["frames"]) == 9
+    assert rep["frames"][-1]["time"] == 24.0
+    text = capsys.readouterr().out
+    assert "animation:" in text and "time 24" in text

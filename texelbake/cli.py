@@ -30,6 +30,10 @@ DEMO_SETTINGS = {
 }
 
 
+#: frames of the arm's animated preview in `texelbake demo` (time codes 0, 3, ..., 24)
+DEMO_FRAMES = 9
+
+
 def _settings(args: argparse.Namespace, base: dict | None = None):
     from pydantic import ValidationError
 
@@ -139,7 +143,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     names = args.scenes.split(",")
     for name in names:
         t0 = time.perf_counter()
-        scene = write_scene(name, out / "scenes" / f"{name}_small.usda", "small")
+        if name == "arm":  # skinned (UsdSkel): its LODs are bound to the skeleton
+            from texelbake.scenes.arm import write_arm
+
+            scene = write_arm(out / "scenes" / "arm_small.usda", "small")
+        else:
+            scene = write_scene(name, out / "scenes" / f"{name}_small.usda", "small")
         root = bake(scene, out / name, settings, progress=True, jobs=os.cpu_count() or 1)
         print(f"\n== {name} ({time.perf_counter() - t0:.1f} s)")
         _print_summary(root)
@@ -152,6 +161,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
                 files = render_previews(root, out / name / "previews", size="small")
                 print(f"previews: {out / name / 'previews'} ({len(files)} files: gt, cpm, "
                       f"normalmap, equal-time, btf, differences, mip levels, point density)")
+                if name == "arm":  # its animation, beside the stills
+                    from texelbake.render.deformed_anim import render_animation
+
+                    anim = render_animation(root, out / name / "previews", frames=DEMO_FRAMES)
+                    print("animation tiles, left to right: reference gt, cpm (through L), "
+                          "cpm-naive (L = I), normalmap (tangent frame on the deformed M1)")
+                    _print_animation(json.loads(anim.read_text()))
+                    print(f"animation: {anim.parent / 'animation.gif'}, "
+                          f"{anim.parent / 'error_per_frame.png'}")
     print(f"\nresults in {out.resolve()}")
     return 0
 
@@ -164,6 +182,21 @@ def cmd_render(args: argparse.Namespace) -> int:
     from texelbake.render import render_report
 
     out = Path(args.output) if args.output else Path(args.file).parent / "render"
+    if args.animate:  # an animated preview (seed 002 §4; texelbake.render.deformed_anim)
+        from texelbake.render.deformed_anim import ANIM_MODES, render_animation
+
+        if args.time is not None:
+            from texelbake.errors import SettingsError
+
+            raise SettingsError("fields 'animate' and 'time': an animation spans the asset's "
+                                "time codes; give --animate alone or with --warp")
+        anim_modes = ANIM_MODES if args.modes == RENDER_MODES else tuple(
+            m.strip() for m in args.modes.split(",") if m.strip() and m.strip() != "gt")
+        path = render_animation(Path(args.file), out, warp=args.warp, frames=args.animate,
+                                modes=anim_modes, spp=args.spp, ref_spp=args.ref_spp)
+        _print_animation(json.loads(path.read_text()))
+        print(path)
+        return 0
     if args.warp is not None or args.time is not None:  # a deformed frame (seed 002 §4)
         from texelbake.render.deformed_report import render_deformed_report
 
@@ -183,6 +216,18 @@ def cmd_render(args: argparse.Namespace) -> int:
     _print_render_table(json.loads(report.read_text()))
     print(report)
     return 0
+
+
+def _print_animation(rep: dict) -> None:
+    """Per frame, PSNR over the object's pixels (dB) and seconds of each mode."""
+    modes = rep["tiles"][1:]
+    print(f"{rep['scene']}: {len(rep['frames'])} frames {rep['width']}x{rep['height']}, "
+          f"reference gt at {rep['ref_spp']} spp, modes at {rep['spp']} spp; PSNR obj (dB) / s")
+    print(f"{'frame':<28}{'obj px':>7}" + "".join(f"{m:>20}" for m in modes))
+    for f in rep["frames"]:
+        cells = "".join(f"{f['modes'][m].get('psnr_db_object', float('nan')):>12.2f}"
+                        f"{f['modes'][m]['seconds']:>8.3f}" for m in modes)
+        print(f"{f['label'][:27]:<28}{f['object_pixels']:>7}{cells}")
 
 
 def _print_render_table(rep: dict) -> None:
@@ -306,8 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="bake generated scenes in one process")
     p.add_argument("--out", default="demo_out")
-    p.add_argument("--scenes", default="cylinder,wall,bolt,cloisonne",
-                   help="comma-separated scene names (default: the four test scenes)")
+    p.add_argument("--scenes", default="cylinder,wall,bolt,cloisonne,arm",
+                   help="comma-separated scene names (default: the four test scenes and the "
+                        "skinned arm, whose previews include its animation)")
     p.add_argument("--no-previews", dest="previews", action="store_false")
     _add_settings_args(p)
     p.set_defaults(func=cmd_demo)
@@ -331,6 +377,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "(modes gt, cpm, cpm-naive, normalmap, equal-time)")
     p.add_argument("--time", type=float, default=None,
                    help="render deformed by the asset's own animation at this time code")
+    p.add_argument("--animate", type=int, default=0, metavar="FRAMES",
+                   help="an animated preview of FRAMES frames (the asset's animation, or a "
+                        "sweep of --warp from the identity): animation.gif, "
+                        "error_per_frame.png, animation.json")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("srf-capture", help="capture a reflectance field of a baked asset's "

@@ -145,6 +145,48 @@ def write_png(path: str | Path, image: object, *, srgb: bool = True,
     return write_pixels(path, to_uint8(_check(arr), srgb=srgb, exposure=exposure), "uint8")
 
 
+def write_animation(path: str | Path, frames: Sequence[object], *, fps: float = 8.0,
+                    srgb: bool = True, exposure: float = 1.0) -> Path:
+    """An animated GIF (looping) of linear frames, each (h, w, 3) float of one size (or uint8
+    already encoded), one GIF subimage per frame through OIIO's GIF writer (256 colours per
+    frame: a preview, not a measurement). Returns the path."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if path.suffix.lower() != ".gif":
+        raise ShapeError(f"{path}: an animation is written as .gif")
+    if not frames or not fps > 0:
+        raise ShapeError(f"{path}: need at least one frame and fps > 0, got {len(frames)} "
+                         f"frames at {fps} fps")
+    px = [np.asarray(f) if np.asarray(f).dtype == np.uint8
+          else to_uint8(_check(f), srgb=srgb, exposure=exposure) for f in frames]
+    px = [np.ascontiguousarray(p[..., :3] if p.shape[2] >= 3 else np.repeat(p, 3, 2))
+          for p in px]
+    if len({p.shape for p in px}) != 1:
+        raise ShapeError(f"{path}: frames differ in size: {sorted({p.shape for p in px})}")
+    h, w, _ = px[0].shape
+    specs = []
+    for _ in px:
+        spec = oiio.ImageSpec(w, h, 3, "uint8")
+        spec.attribute("FramesPerSecond", oiio.TypeRational, (int(round(fps * 1000)), 1000))
+        spec.attribute("gif:LoopCount", 0)  # loop forever
+        specs.append(spec)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), specs):
+            raise AssetError(f"cannot write animation: {oiio.geterror()}", path=str(path))
+        ok = True
+        for k, p in enumerate(px):  # a loop over frames
+            if k:
+                ok = ok and out.open(str(tmp), specs[k], "AppendSubimage")
+            ok = ok and out.write_image(p)
+        err = out.geterror()
+        out.close()
+        if not ok:
+            raise AssetError(f"cannot write animation: {err}", path=str(path))
+    return path
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """(h, w, c) float32 pixels of an image file (no colour conversion)."""
     return read_pixels(path)[0]

@@ -153,6 +153,30 @@ class Camera:
 
 
 @dataclass(frozen=True, eq=False)
+class SkinData:
+    """UsdSkel linear-blend skinning of the whole asset by one skeleton, as a map from the
+    rest points (`AssetModel.points`) to the points at each time code (seed 002: the LOD meshes
+    get skin bindings transferred from these weights, `texelbake.deform.skinbind`).
+
+    skeleton : path of the UsdSkel.Skeleton prim (in the source's namespace)
+    joints : joint names, the skeleton's order (joint indices refer to it)
+    weights : (n, j) float64 per vertex of `points`, each row sums to 1
+    transforms : (t, j, 4, 4) float64 per time code of `AssetModel.time_codes`, column-vector
+        convention, world rest -> world deformed: p'(t) = Σ_j w_j (A_j(t) p), p homogeneous
+        (UsdSkel's skinning transforms with the skeleton's world transform and the rest pose
+        folded in: A_j = (W(r)⁻¹ C⁻¹ S_j(t) W(t))ᵀ, C the common skinning transform at rest)
+    bind : (4, 4) float64 row-vector convention, world rest -> skeleton bind space
+        ((C W(r))⁻¹): the geomBindTransform of a mesh whose points are rest-world points
+    """
+
+    skeleton: str
+    joints: tuple[str, ...]
+    weights: np.ndarray
+    transforms: np.ndarray
+    bind: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class AssetModel:
     """All meshes of an asset, flattened into one triangle soup with per-face attributes.
 
@@ -166,6 +190,8 @@ class AssetModel:
     face_mesh : (f,) int32 index into `mesh_paths`
     time_codes : (t,) float64, empty when the points are not time-sampled
     points_over_time : (t, n, 3) float64, world-space points at each time code
+    skin : the UsdSkel skinning that produced `points_over_time`, when one skeleton skins every
+        mesh by linear blending (None otherwise: the points are only time samples)
     dropped_faces : number of zero-area / degenerate faces removed at ingest
     warnings : human-readable warnings, each naming a prim path
     """
@@ -188,6 +214,7 @@ class AssetModel:
     points_over_time: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
     dropped_faces: int = 0
     warnings: tuple[str, ...] = ()
+    skin: SkinData | None = None
 
     def __post_init__(self) -> None:
         for name, dtype in (

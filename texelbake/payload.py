@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
+from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
 from texelbake import bakedvariants
 from texelbake.atomic import atomic_write_bytes, replace
@@ -70,12 +70,20 @@ _FROM_USD = {
 class LodMesh:
     """M_i with its atlas uvs. vertices (n, 3) float64, faces (f, 3) int64, corner_uvs (f, 3, 2);
     impostor: the local impostor parameterization of seed 002 Table 1 (`IMPOSTOR_PRIMVARS`,
-    each (n, 3) float64 per vertex; empty when the bake wrote none)."""
+    each (n, 3) float64 per vertex; empty when the bake wrote none).
+    skin: the UsdSkel binding transferred from M_org (`texelbake.deform.skinbind`):
+    "indices" (n, k) int32 and "weights" (n, k) float32 per vertex, "bind" (4, 4) float64
+    the geomBindTransform (row-vector convention); empty when the asset is not skinned.
+    time_codes, points_over_time: (t,) and (t, n, 3) float64 time samples of the vertices
+    (an animated asset without one skeleton); empty otherwise."""
 
     vertices: np.ndarray
     faces: np.ndarray
     corner_uvs: np.ndarray
     impostor: dict[str, np.ndarray] = field(default_factory=dict)
+    skin: dict[str, np.ndarray] = field(default_factory=dict)
+    time_codes: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    points_over_time: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
 
 
 @dataclass
@@ -106,6 +114,8 @@ class BakedAsset:
     root_layer: str = ""
     filtered: list[np.ndarray] = field(default_factory=list)
     fallback: dict[str, Any] = field(default_factory=dict)
+    #: the UsdSkel.Skeleton the LOD meshes are bound to (source namespace; "" when unskinned)
+    skeleton: str = ""
 
 
 # --------------------------------------------------------------------------- writing
@@ -147,7 +157,32 @@ def _author_mesh(stage: Usd.Stage, path: str, mesh: LodMesh) -> UsdGeom.Mesh:
     st.Set(Vt.Vec2fArray.FromNumpy(
         np.ascontiguousarray(mesh.corner_uvs.reshape(-1, 2), dtype=np.float32)))
     _author_impostor(geom, mesh.impostor)
+    _author_animation(geom, mesh)
     return geom
+
+
+def _author_animation(geom: UsdGeom.Mesh, mesh: LodMesh) -> None:
+    """The LOD follows M_org (`texelbake.deform.skinbind`): UsdSkel influences (the skeleton
+    relationship is authored in the root layer, where the skeleton's path is in namespace) or
+    time samples of its points."""
+    if mesh.skin:
+        api = UsdSkel.BindingAPI.Apply(geom.GetPrim())
+        idx = np.ascontiguousarray(mesh.skin["indices"], dtype=np.int32)
+        wgt = np.ascontiguousarray(mesh.skin["weights"], dtype=np.float32)
+        k = int(idx.shape[1])
+        api.CreateJointIndicesPrimvar(False, k).Set(Vt.IntArray.FromNumpy(idx.reshape(-1)))
+        api.CreateJointWeightsPrimvar(False, k).Set(Vt.FloatArray.FromNumpy(wgt.reshape(-1)))
+        api.CreateGeomBindTransformAttr(Gf.Matrix4d(np.asarray(mesh.skin["bind"],
+                                                               np.float64).tolist()))
+    if mesh.time_codes.shape[0] > 1:
+        attr = geom.GetPointsAttr()
+        ext = geom.GetExtentAttr()
+        for t, pts in zip(mesh.time_codes.tolist(), mesh.points_over_time, strict=True):
+            p32 = np.ascontiguousarray(pts, dtype=np.float32)
+            attr.Set(Vt.Vec3fArray.FromNumpy(p32), Usd.TimeCode(t))
+            lo, hi = p32.min(axis=0), p32.max(axis=0)
+            ext.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]),
+                    Usd.TimeCode(t))
 
 
 #: the impostor parameterization's primvars (seed 002 Table 1): `primvars:texelbake:<name>`,
@@ -287,7 +322,13 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     UsdGeom.SetStageUpAxis(pstage, up_axis)
     UsdGeom.SetStageMetersPerUnit(pstage, mpu)
     # (no Sdf.ChangeBlock here: Usd-level Define/CreateAttribute are not safe inside one)
-    baked_root = UsdGeom.Scope.Define(pstage, "/Baked")
+    skinned = any(m.skin for m in baked.meshes)
+    if skinned and not baked.skeleton:
+        raise AssetError("skinned LOD meshes but no skeleton path (BakedAsset.skeleton)",
+                         path=str(out_dir))
+    # a skinned asset's LODs live under their own SkelRoot (UsdSkel skins only prims below one);
+    # the skeleton they bind to stays the source's, in its SkelRoot
+    baked_root = (UsdSkel.Root if skinned else UsdGeom.Scope).Define(pstage, "/Baked")
     pstage.SetDefaultPrim(baked_root.GetPrim())
     cpm_scope = UsdGeom.Scope.Define(pstage, "/Baked/CPM")
     _author_arrays(cpm_scope.GetPrim(), baked.arrays)
@@ -321,11 +362,24 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     stage.SetDefaultPrim(root.GetPrim())
     Usd.ModelAPI(root.GetPrim()).SetKind(Kind.Tokens.component)
     root.GetPrim().GetReferences().AddReference(f"./{rel_source}")
-    baked_prim = UsdGeom.Scope.Define(stage, f"/{root_name}/Baked").GetPrim()
+    baked_prim = (UsdSkel.Root if skinned else UsdGeom.Scope).Define(
+        stage, f"/{root_name}/Baked").GetPrim()
     baked_prim.GetPayloads().AddPayload(f"./{payload_file}")
+    default_root = Sdf.Path(default.GetPath()) if default else Sdf.Path(f"/{root_name}")
+    if skinned:  # the skeleton relationship, in the root layer's namespace
+        skel = Sdf.Path(f"/{root_name}").AppendPath(
+            Sdf.Path(baked.skeleton).MakeRelativePath(default_root))
+        for i, m in enumerate(baked.meshes, start=1):
+            if m.skin:
+                over = stage.OverridePrim(f"/{root_name}/Baked/LOD{i}")
+                UsdSkel.BindingAPI.Apply(over).CreateSkeletonRel().SetTargets([skel])
+    if src_stage.HasAuthoredTimeCodeRange():  # a viewer plays the animation over the same range
+        stage.SetStartTimeCode(src_stage.GetStartTimeCode())
+        stage.SetEndTimeCode(src_stage.GetEndTimeCode())
+        stage.SetTimeCodesPerSecond(src_stage.GetTimeCodesPerSecond())
+
     vset = root.GetPrim().GetVariantSets().AddVariantSet("LOD")
     n_lod = len(baked.meshes)
-    default_root = Sdf.Path(default.GetPath()) if default else Sdf.Path(f"/{root_name}")
     for v in range(n_lod + 1):
         vname = f"LOD{v}"
         vset.AddVariant(vname)
@@ -452,6 +506,7 @@ def read_baked(path: str | Path) -> BakedAsset:
     for child in sorted(cpm.GetChildren(), key=lambda p: p.GetName()):
         levels.append(_read_arrays(child))
     meshes = []
+    skeleton = ""
     i = 1
     while True:
         prim = stage.GetPrimAtPath(baked_path.AppendChild(f"LOD{i}"))
@@ -462,7 +517,9 @@ def read_baked(path: str | Path) -> BakedAsset:
         f = np.array(geom.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
         st = UsdGeom.PrimvarsAPI(geom).GetPrimvar("st").Get()
         uv = np.array(st, dtype=np.float32).astype(np.float64).reshape(-1, 3, 2)
-        meshes.append(LodMesh(v, f, uv, _read_impostor(geom, len(v))))
+        mesh = LodMesh(v, f, uv, _read_impostor(geom, len(v)))
+        skeleton = _read_animation(geom, mesh, skeleton)
+        meshes.append(mesh)
         i += 1
     meta = dict(stage.GetRootLayer().customLayerData.get("texelbake", {}))
     name = path.name.removesuffix("_baked.usda")
@@ -479,7 +536,40 @@ def read_baked(path: str | Path) -> BakedAsset:
     fallback = {"materials": [read_preview_material(stage, baked_path.AppendChild(f"LOD{i}"))
                               for i in range(1, len(meshes) + 1)]}
     return BakedAsset(name, levels, arrays, meshes, albedo.astype(np.float32),
-                      normal.astype(np.float32), meta, source, str(path), filtered, fallback)
+                      normal.astype(np.float32), meta, source, str(path), filtered, fallback,
+                      skeleton)
+
+
+def _read_animation(geom: UsdGeom.Mesh, mesh: LodMesh, skeleton: str) -> str:
+    """Fill mesh.skin / mesh.time_codes from the LOD prim (`_author_animation`); returns the
+    bound skeleton's path on the baked stage (or `skeleton` unchanged when unskinned)."""
+    prim = geom.GetPrim()
+    n = mesh.vertices.shape[0]
+    if prim.HasAPI(UsdSkel.BindingAPI):
+        api = UsdSkel.BindingAPI(prim)
+        ipv, wpv = api.GetJointIndicesPrimvar(), api.GetJointWeightsPrimvar()
+        k = int(ipv.GetElementSize()) if ipv else 0
+        idx = np.array(ipv.Get() if ipv else [], dtype=np.int32)
+        wgt = np.array(wpv.Get() if wpv else [], dtype=np.float32)
+        if k <= 0 or idx.shape[0] != n * k or wgt.shape[0] != n * k:
+            raise AssetError(f"primvars:skel:jointIndices/jointWeights hold {idx.shape[0]} / "
+                             f"{wgt.shape[0]} values for {n} points (element size {k})",
+                             prim=str(prim.GetPath()))
+        bind = api.GetGeomBindTransformAttr().Get()
+        targets = api.GetSkeletonRel().GetTargets()
+        if not targets:
+            raise AssetError("skinned LOD has no skel:skeleton target", prim=str(prim.GetPath()))
+        mesh.skin = {"indices": idx.reshape(n, k), "weights": wgt.reshape(n, k),
+                     "bind": np.array(bind if bind is not None else Gf.Matrix4d(1.0),
+                                      dtype=np.float64).reshape(4, 4)}
+        skeleton = str(targets[0])
+    times = geom.GetPointsAttr().GetTimeSamples()
+    if len(times) > 1:
+        mesh.time_codes = np.asarray(times, dtype=np.float64)
+        mesh.points_over_time = np.stack([
+            np.array(geom.GetPointsAttr().Get(Usd.TimeCode(t)), dtype=np.float32)
+            .astype(np.float64).reshape(n, 3) for t in times])
+    return skeleton
 
 
 def read_filtered_maps(folder: Path, name: str) -> list[np.ndarray]:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -258,6 +258,16 @@ class MeshWarp(Warp):
     def jacobian(self, points: np.ndarray) -> np.ndarray:
         prim, _, _ = bind_to_mesh(points, self.rest, self.faces, self._caster)
         return self._jac[prim].copy()
+
+
+@dataclass
+class SkinnedMeshWarp(MeshWarp):
+    """A skinned asset's time samples at one time (`MeshWarp`) with its skin's rest → deformed
+    joint transforms at that time, `transforms` (j, 4, 4) float64 (`model.SkinData`): the
+    deformed frame moves M_org and the characteristic points by the samples, and LOD meshes
+    bound to the skeleton by their own weights (`render.deformed.deform_scene`)."""
+
+    transforms: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
 
 def transfer_weights(points: np.ndarray, rest_vertices: np.ndarray, faces: np.ndarray,

@@ -55,7 +55,8 @@ from texelbake.deform.lookup import (
     rest_frames_at,
 )
 from texelbake.deform.refine import refine_levels, subdivide
-from texelbake.deform.warps import MeshWarp, Warp
+from texelbake.deform.skinbind import dense_weights
+from texelbake.deform.warps import MeshWarp, SkinWarp, Warp
 from texelbake.errors import SettingsError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.mesh import face_normals
@@ -102,24 +103,30 @@ def lod_impostor(scene: RenderScene, i: int) -> ImpostorParams:
     return impostor_params(mesh.vertices, mesh.faces, mesh.corner_uvs)
 
 
-def _refined_lods(scene: RenderScene, refine: float
+def _refined_lods(scene: RenderScene, refine: float, n_joints: int = 0
                   ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], list[np.ndarray],
-                             np.ndarray]:
+                             np.ndarray, list[np.ndarray | None]]:
     """The rest LOD meshes refined (`deform.refine`) until no edge is longer than
     diag / refine (0: unrefined): [(vertices, faces, corner_uvs)], the uv-exact flag of each
-    refined face, and R0 (n, 3, 3) of the refined M1's vertices: the stored parameterization
-    on M1's own vertices, a new one (`impostor_params` of the refined mesh) on the added."""
-    out, exact = [], []
+    refined face, R0 (n, 3, 3) of the refined M1's vertices (the stored parameterization on
+    M1's own vertices, a new one — `impostor_params` of the refined mesh — on the added), and
+    per LOD its dense skin weights (n, n_joints) from the payload's binding, the added
+    vertices' the mean of their edge's ends (None: no binding, or n_joints = 0)."""
+    out, exact, weights = [], [], []
     frames0 = np.zeros((0, 3, 3))
     for i, m in enumerate(scene.baked.meshes):
         v, f, cuv = m.vertices, m.faces, m.corner_uvs
         ex = np.asarray(scene.lod_uv_exact[i])
+        w = (dense_weights(m.skin["indices"], m.skin["weights"], n_joints)
+             if n_joints and m.skin else None)
         k = refine_levels(v, f, scene.diag / refine) if refine > 0 else 0
         for _ in range(k):  # a loop over the few subdivision levels
-            v, f, cuv, _, parent = subdivide(v, f, cuv)
+            v, f, cuv, extra, parent = subdivide(v, f, cuv, () if w is None else (w,))
             ex = ex[parent]
+            w = extra[0] if w is not None else None
         out.append((v, f, cuv))
         exact.append(ex)
+        weights.append(w)
         if i == 0:
             prm = lod_impostor(scene, 0)
             frames0 = decode_frames(prm.r0, prm.u0, prm.v0)
@@ -128,7 +135,7 @@ def _refined_lods(scene: RenderScene, refine: float
                 fr = decode_frames(added.r0, added.u0, added.v0)
                 fr[: frames0.shape[0]] = frames0
                 frames0 = fr
-    return out, exact, frames0
+    return out, exact, frames0, weights
 
 
 def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
@@ -150,6 +157,10 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     if follow not in ("mesh", "warp"):
         raise SettingsError(f"field 'follow': 'mesh' or 'warp', got {follow!r}")
     t0 = time.perf_counter()
+    # the asset's own skinning (`warp_at_time` of a skinned asset): LOD meshes with a UsdSkel
+    # binding in the payload follow it with their own weights, as UsdSkel animates them
+    skin_xf = getattr(warp, "transforms", None)
+    n_joints = 0 if skin_xf is None else int(np.shape(skin_xf)[0])
     d = copy.copy(scene)
     a = scene.asset
     jac_v = warp.jacobian(a.points)  # shading normals: Ψ's own Jacobian at the vertices
@@ -163,8 +174,13 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     d.org_face_normals = d.asset.face_normals()
     # diag and ray_eps stay the rest scene's: a length of the object, not of its axis-aligned
     # box, which a rotation changes (a rigidly moved asset must render as the unmoved one)
-    rest_lods, exact, frames0 = _refined_lods(scene, refine)
-    meshes = [LodMesh(warp.positions(v), f, cuv) for v, f, cuv in rest_lods]
+    rest_lods, exact, frames0, lod_w = _refined_lods(scene, refine, n_joints)
+    lod_warps: list[Warp] = [
+        warp if w is None else SkinWarp(np.asarray(skin_xf), v, f, w, name=warp.name,
+                                        scale=warp.scale)
+        for (v, f, _), w in zip(rest_lods, lod_w, strict=True)]
+    meshes = [LodMesh(lw.positions(v), f, cuv)
+              for (v, f, cuv), lw in zip(rest_lods, lod_warps, strict=True)]
     d.baked = dataclasses.replace(scene.baked, meshes=meshes)
     d.lod_uv_exact = tuple(exact)
     d.lods = [RayCaster(m.vertices, m.faces) for m in meshes]
@@ -183,7 +199,7 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     # (u0, v0) are R0's first two columns, decoded from r0 (orthonormal to rounding whatever
     # precision r0 was stored at), so that a rigid motion Q gives L = R0 R0ᵀ Qᵀ = Qᵀ exactly
     m1_rest, m1_faces, _ = rest_lods[0]
-    u, v = deformed_tangents(warp, m1_rest, frames0[:, :, 0], frames0[:, :, 1], jacobian)
+    u, v = deformed_tangents(lod_warps[0], m1_rest, frames0[:, :, 0], frames0[:, :, 1], jacobian)
     d.warp = warp  # type: ignore[attr-defined]
     d.rest = scene  # type: ignore[attr-defined]
     d.m1_rest = (RayCaster(m1_rest, m1_faces), m1_faces)  # type: ignore[attr-defined]
@@ -246,14 +262,24 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
             np.einsum("nij,nj->ni", jc, frames[live, 1]),
             fallback_normal=deform_normals(jc, frames[live, 2]))
     out["lookup:texel"] = lrot_t
+    # each characteristic point as its own impostor point (the seed's limit where the impostor
+    # is the surface, §4.4): R0 its shading frame, (u, v) = J (t, b) with J the deformed
+    # M_org's own affine map at the point (per point, not per texel)
+    fr = tangent_frames(cp["normal"])  # rows (t, b, n)
+    out["lookup:point"], _ = lookup_rotation(
+        np.transpose(fr, (0, 2, 1)), np.einsum("nij,nj->ni", jac, fr[:, 0]),
+        np.einsum("nij,nj->ni", jac, fr[:, 1]), fallback_normal=out["geom_normal"])
     cache[level] = out
     return out
 
 
 #: where the look-up rotation L of a texel comes from: "texel" (the texel as the impostor
 #: point: R0 its baked frame, J at its centroid), "vertex" (Table 1 on M1's vertices, from the
-#: payload, interpolated at the centroid's closest point), "none" (L = I, ``cpm-naive``)
-LOOKUPS = ("texel", "vertex", "none")
+#: payload, interpolated at the centroid's closest point), "none" (L = I, ``cpm-naive``),
+#: "point" (a diagnostic: each characteristic point's BRDF directions through its own L — its
+#: shading frame carried by the deformed M_org's Jacobian at the point —, the texel's view
+#: direction, view term and a_vis through "vertex"; `benchmarks/deform.py` ``cpm-point``)
+LOOKUPS = ("texel", "vertex", "none", "point")
 
 
 def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
@@ -281,7 +307,9 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     ng, ns, w = cp["geom_normal"][pt], cp["normal"][pt], cp["weight"][pt]
     pos_d, ng_d = geo["position"][pt], geo["geom_normal"][pt]
     lrot = (np.broadcast_to(np.eye(3), (n_tex, 3, 3)) if lookup == "none"
+            else geo["lookup:vertex"][texels] if lookup == "point"
             else geo[f"lookup:{lookup}"][texels])  # (t, 3, 3) deformed world -> rest world
+    lpt = geo["lookup:point"][pt] if lookup == "point" else None  # (k, 3, 3) per point
     # one view direction per texel: deformed weighted centroid -> camera
     ws = np.abs(w).sum(axis=1)
     ws = np.where(np.bincount(tex, ws, n_tex)[tex] > 0, ws, 1.0)
@@ -309,7 +337,7 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
         frames = tangent_frames(ns[seen])
         for light in d.lights:  # a loop over the few lights
             wi_d, e, tmax = light_at(light, pos_d[seen])  # Eq. 11: 1/d² from Ψ(x̂k)
-            wi = np.einsum("nij,nj->ni", lrot[tex[seen]], wi_d)
+            wi = np.einsum("nij,nj->ni", lrot[tex[seen]] if lpt is None else lpt[seen], wi_d)
             cos_s = np.einsum("ij,ij->i", ns[seen], wi)
             ok = (np.einsum("ij,ij->i", ng[seen], wi) > g) & (cos_s > g) & (e.max(axis=1) > 0)
             idx = np.flatnonzero(ok)
@@ -324,7 +352,9 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
                 continue
             fr = frames[idx]
             wi_l = np.einsum("nij,nj->ni", fr, wi[idx])
-            wo_l = np.einsum("nij,nj->ni", fr, wo[seen[idx]])
+            wo_b = (wo[seen[idx]] if lpt is None else np.einsum(
+                "nij,nj->ni", lpt[seen[idx]], wo_d_tex[tex[seen[idx]]]))
+            wo_l = np.einsum("nij,nj->ni", fr, wo_b)
             f = brdf_mod.evaluate_by_face(d.materials, mat[seen[idx]], wi_l, wo_l,
                                           uv[seen[idx]])
             lit[seen[idx]] += e[idx] * f * cos_s[idx, None]

@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from texelbake.deform.warps import AffineWarp, MeshWarp, Warp, parse_warp
+from texelbake.deform.skinbind import transforms_at
+from texelbake.deform.warps import AffineWarp, MeshWarp, SkinnedMeshWarp, Warp, parse_warp
 from texelbake.errors import SettingsError
 from texelbake.imageio import write_exr, write_png
 from texelbake.model import AssetModel
@@ -41,6 +42,10 @@ def warp_at_time(asset: AssetModel, time: float) -> Warp:
     k = int(np.clip(np.searchsorted(codes, t, side="right") - 1, 0, codes.shape[0] - 2))
     a = (t - codes[k]) / (codes[k + 1] - codes[k])
     pts = (1.0 - a) * asset.points_over_time[k] + a * asset.points_over_time[k + 1]
+    if asset.skin is not None:  # the LODs bound to the skeleton follow its transforms
+        return SkinnedMeshWarp(asset.points, pts, asset.faces, name=f"time:{time:g}",
+                               scale=asset.bbox_diag,
+                               transforms=transforms_at(asset.skin, codes, t))
     return MeshWarp(asset.points, pts, asset.faces, name=f"time:{time:g}",
                     scale=asset.bbox_diag)
 

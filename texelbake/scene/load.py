@@ -30,6 +30,7 @@ from texelbake.scene.meshes import (
     world_points,
 )
 from texelbake.scene.paths import check_asset_paths
+from texelbake.scene.skin import skin_data
 from texelbake.scene.values import first_line, warn
 from texelbake.tol import TOL
 
@@ -192,6 +193,8 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
 
     # materials used only by dropped faces stay in the list: indices are stable per binding
     time_codes, points_over_time = _time_samples(timed, meshes, skins, source)
+    skin = skin_data(timed, [m.points.shape[0] for m in meshes], skins, time, time_codes,
+                     all_points, points_over_time, warns)
     return AssetModel(
         source=source,
         points=all_points,
@@ -211,6 +214,7 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
         points_over_time=points_over_time,
         dropped_faces=int(dropped),
         warnings=tuple(warns),
+        skin=skin,
     )
 
 

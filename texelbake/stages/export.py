@@ -19,6 +19,27 @@ from texelbake.stages.filtered import fallback_maps, filtered_levels, lod1_frame
 from texelbake.stages.srf import export_srf
 
 
+def lod_animation(asset, meshes) -> str:
+    """The LOD meshes follow M_org (`texelbake.deform.skinbind`): skin bindings transferred
+    from a skinned asset, else time samples of an animated one. The LOD vertices are taken as
+    the payload will store them (float32), so that the renderer, which reads them back,
+    deforms the same points. Returns the skeleton's path ("" when unskinned)."""
+    from texelbake.deform.skinbind import lod_skin, lod_time_samples
+
+    if asset.skin is not None:
+        for m in meshes:
+            v32 = m.vertices.astype(np.float32).astype(np.float64)
+            idx, wgt = lod_skin(asset.skin, asset.points, asset.faces, v32)
+            m.skin = {"indices": idx, "weights": wgt, "bind": asset.skin.bind}
+        return asset.skin.skeleton
+    if asset.has_deformation:
+        for m in meshes:
+            v32 = m.vertices.astype(np.float32).astype(np.float64)
+            m.time_codes = np.asarray(asset.time_codes, dtype=np.float64)
+            m.points_over_time = lod_time_samples(asset, v32)
+    return ""
+
+
 def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = None,
               plan=None, source: str = "copy") -> Path:
     """Write the baked USD bundle and report.json into out_dir (the export stage).
@@ -64,6 +85,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
 
     for m in meshes:  # seed 002 Table 1 on every vertex of M1..Mn
         m.impostor = impostor_params(m.vertices, m.faces, m.corner_uvs).as_arrays()
+    skeleton = lod_animation(asset, meshes)
     name = ctx.asset_path.stem
     skipped = list(plan.skipped) if plan is not None else []
     report = {
@@ -76,6 +98,9 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
         "surface_area": float(geo["sample_area"].sum()),
         "lods": lod_report(geo),
+        # how the LOD meshes follow M_org's animation (texelbake.deform.skinbind)
+        "lod_animation": ("usdskel" if skeleton else "time_samples" if asset.has_deformation
+                          else "static"),
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "stage_seconds": dict(stage_seconds or {}),
         "fallback_levels": fallback["levels"],
@@ -106,7 +131,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
                     [["lambert", "preview", "phong", "merl", "cellular"].index(m.model)
                      for m in asset.materials], np.int32), **extra_arrays},
         meshes=meshes, albedo=albedo, normal=normal, metadata=metadata,
-        filtered=filtered, fallback=fallback,
+        filtered=filtered, fallback=fallback, skeleton=skeleton,
     )
     author_extra = None
     if s.btf:
