@@ -288,6 +288,7 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
 
     # Blender's user folders (the installed extension) in the test's output, not in $HOME
     monkeypatch.setenv("BLENDER_USER_RESOURCES", str(out / "blender_user"))
+    SHOTS.mkdir(parents=True, exist_ok=True)  # build/ is not in a clean clone
     (SHOTS / "addon_lod1.png").unlink(missing_ok=True)
     res = run_blender(ROOT / "tests" / "_addon_in_blender.py", str(ext_zip), str(scene),
                       stack.api_url, TOKEN, str(out), json.dumps(TINY), str(SHOTS),
