@@ -226,7 +226,7 @@ def _build_R(src, frames, cset: PointSet, dirs, budget: int, inv_o: np.ndarray |
         f *= (vi[None, :, :] * part.weight.T[:, :, None])[..., None]
         f *= vo[None, :, None, :]
         f2 = f.reshape(3, p, -1)
-        if fused:
+        if inv_o is not None and seg is not None:
             s1[s0:s0 + p] = f2.sum(axis=2).T
             s2[s0:s0 + p] = np.matmul(f2.transpose(1, 0, 2), f2.transpose(1, 2, 0))
             f *= inv_o[seg[s0:s0 + p]][None, :, None, :]
