@@ -26,7 +26,7 @@ import numpy as np
 
 from schemas.settings import BakeSettings
 from texelbake import stages
-from texelbake.cpm.level import concat_levels, level_candidates, tile_texels
+from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
 from texelbake.cpm.level_batched import fit_level
 
 
@@ -70,6 +70,11 @@ BREAKDOWN = (
 )
 
 
+#: per-level sums recorded for the cost model's calibration: candidates on cheap (Lambert /
+#: Phong) and costly materials, m^2, m^3, dense samples on cheap / costly materials, texels
+FEATURES = ("m_cheap", "m_costly", "m2", "m3", "dense_cheap", "dense_costly", "texels")
+
+
 def install_breakdown() -> dict[str, list[float]]:
     """Wrap the BREAKDOWN functions with process-time accumulators (CPU seconds, calls)."""
     import importlib
@@ -104,10 +109,30 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
     tiles = list(range(n_tiles)) if tiles is None else tiles
     per_level: dict[int, list] = {}
 
+    tex_l = {lv: texel_ids(src.geo, s.atlas_resolution, lv) for lv in range(ctx.n_levels)}
+    costly = np.array([m.model not in ("lambert", "phong") for m in src.materials], bool)
+    mat = np.asarray(src.geo["sample_mat"], np.int64)
+    feats: dict[int, np.ndarray] = {}
+
     def timed(level, texels, cands):
         c0 = time.process_time()
         out = fit_level(src, level, texels, cands)
         per_level.setdefault(level, []).append((time.process_time() - c0, out))
+        # the cost model's sizes of this call (texelbake.costmodel): per texel m candidates
+        # and n dense samples, split by material cost (Lambert / Phong vs the rest)
+        pos = np.searchsorted(np.sort(texels), cands.texel)
+        m = np.bincount(pos, minlength=len(texels)).astype(float)
+        mg = np.bincount(pos, weights=costly[mat[cands.sample]].astype(float),
+                         minlength=len(texels))
+        dense_sel = np.isin(tex_l[level], texels)
+        dpos = np.searchsorted(np.sort(texels), tex_l[level][dense_sel])
+        nd = np.bincount(dpos, minlength=len(texels)).astype(float)
+        ndg = np.bincount(dpos, weights=costly[mat[dense_sel]].astype(float),
+                          minlength=len(texels))
+        has = nd > 0
+        f = np.array([(m - mg).sum(), mg.sum(), (m * m).sum(), (m ** 3).sum(),
+                      (nd - ndg).sum(), ndg.sum(), float(has.sum())])
+        feats[level] = feats.get(level, 0) + f
         return out
 
     tops = []
@@ -143,6 +168,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
             "skip_counts": {str(int(k)): int(n) for k, n in
                             zip(*np.unique(skip, return_counts=True), strict=True)},
             "digest": digest(data),
+            "sizes": dict(zip(FEATURES, feats[level].tolist(), strict=True)),
         })
     return {"scene": scene, "size": size, "settings": json.loads(settings.model_dump_json()),
             "tiles": tiles, "levels": levels,
