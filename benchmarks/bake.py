@@ -231,11 +231,79 @@ def compare(args: argparse.Namespace) -> None:
               f"{b['texels_per_cpu_second'] / a['texels_per_cpu_second']:>9.2f} "
               f"{f(a['heldout_db_median']):>7.2f} {f(b['heldout_db_median']):>7.2f} "
               f"{f(a['heldout_db_p5']):>7.2f} {f(b['heldout_db_p5']):>7.2f}")
+    bars = print_bars(args.scene, atlas, old, new)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"scene": args.scene, "size": args.size, "atlas": atlas,
-                                         "jobs": JOBS, "old": old, "new": new}, indent=2))
+                                         "jobs": JOBS, "old": old, "new": new, "bars": bars},
+                                        indent=2))
         print(f"wrote {args.json}")
+
+
+def print_bars(scene: str, atlas: int, old: dict, new: dict) -> dict:
+    """Issue 15's bars for one comparison, each printed PASS or FAIL with its numbers: 10x
+    texels per CPU second of the fit on every level, held-out SNR median and p5 no lower (0.05 dB
+    of rounding allowed), the wall-time bars that apply to this scene and size, and the cost
+    model within +-30 % (fit CPU seconds, per level and summed; total wall seconds with the
+    load-adjusted estimate)."""
+    out: dict = {}
+    lv_old = {lv["level"]: lv for lv in old["levels"]}
+    speed, snr = [], []
+    for b in new["levels"]:
+        a = lv_old.get(b["level"])
+        if a is None:
+            continue
+        speed.append(b["texels_per_cpu_second"] / a["texels_per_cpu_second"])
+        for q in ("heldout_db_median", "heldout_db_p5"):
+            if a[q] is not None and b[q] is not None:
+                snr.append((b["level"], q, a[q], b[q]))
+    worst = min(speed) if speed else float("nan")
+    out["speedup_10x_every_level"] = {"min_cpu_ratio": worst, "pass": worst >= 10.0}
+    drops = [(lv, q, a, b) for lv, q, a, b in snr if b < a - 0.05]
+    out["heldout_no_lower"] = {"drops": drops, "pass": not drops}
+    total_old = sum(lv["fit_cpu_seconds"] for lv in old["levels"])
+    total_new = sum(lv["fit_cpu_seconds"] for lv in new["levels"])
+    print(f"fit CPU seconds, all levels: old {total_old:.1f}, new {total_new:.1f} "
+          f"({total_old / max(total_new, 1e-9):.2f}x)")
+    print(f"{'PASS' if worst >= 10 else 'FAIL'}  >= 10x texels per CPU second on every level: "
+          f"lowest {worst:.2f}x")
+    print(f"{'PASS' if not drops else 'FAIL'}  held-out SNR median and p5 no lower on every level"
+          + ("" if not drops else ": " + "; ".join(
+              f"L{lv} {q.split('_')[-1]} {a:.2f} -> {b:.2f}" for lv, q, a, b in drops)))
+    if scene == "cylinder" and atlas == 32:
+        ok = new["total_seconds"] <= 60.0
+        out["cylinder_32_60s"] = {"seconds": new["total_seconds"], "pass": ok}
+        print(f"{'PASS' if ok else 'FAIL'}  full cylinder 32^2 <= 60 s: {new['total_seconds']:.1f} s"
+              f" wall (1-min load {new['load_before']} -> {new['load_after']} on 2 cores)")
+    if scene == "bolt" and atlas == 128:
+        ok = new["total_seconds"] <= 900.0
+        out["bolt_128_15min"] = {"seconds": new["total_seconds"], "pass": ok}
+        print(f"{'PASS' if ok else 'FAIL'}  bolt 128^2 <= 15 min: {new['total_seconds']:.1f} s")
+    est = new.get("estimate") or {}
+    if est:
+        pl = {lv["level"]: lv["seconds"] for lv in est.get("per_level", [])}
+        ratios = []
+        print("cost model, fit CPU seconds per level (predicted / measured):")
+        for b in new["levels"]:
+            if b["level"] in pl:
+                r = pl[b["level"]] / max(b["fit_cpu_seconds"], 1e-9)
+                ratios.append(r)
+                print(f"  L{b['level']}: {pl[b['level']]:8.2f} / {b['fit_cpu_seconds']:8.2f} = "
+                      f"{r:.2f}")
+        cpu_pred = sum(pl.values())
+        r_cpu = cpu_pred / max(total_new, 1e-9)
+        r_wall = est["seconds"] / max(new["total_seconds"], 1e-9)
+        out["costmodel_30pct"] = {"fit_cpu_predicted": cpu_pred, "fit_cpu_measured": total_new,
+                                  "fit_cpu_ratio": r_cpu, "wall_predicted": est["seconds"],
+                                  "wall_measured": new["total_seconds"], "wall_ratio": r_wall,
+                                  "load_at_estimate": est.get("load"),
+                                  "pass": abs(r_cpu - 1) <= 0.3 and abs(r_wall - 1) <= 0.3}
+        print(f"{'PASS' if abs(r_cpu - 1) <= 0.3 else 'FAIL'}  cost model, fit CPU summed: "
+              f"predicted {cpu_pred:.1f} s, measured {total_new:.1f} s ({r_cpu:.2f}x)")
+        print(f"{'PASS' if abs(r_wall - 1) <= 0.3 else 'FAIL'}  cost model, total wall on {JOBS} "
+              f"workers: predicted {est['seconds']:.1f} s (load {est.get('load')} at the "
+              f"estimate), measured {new['total_seconds']:.1f} s ({r_wall:.2f}x)")
+    return out
 
 
 def main() -> None:
@@ -254,7 +322,13 @@ def main() -> None:
     ap.add_argument("--against", type=Path, default=None,
                     help="an older texelbake tree (e.g. `git worktree add /work/wt-c15 c15cea2`):"
                     " bake with both back to back and print texels/s and held-out SNR per level")
+    ap.add_argument("--bars", type=Path, default=None,
+                    help="print the bars of a comparison JSON written by --against, and exit")
     args = ap.parse_args()
+    if args.bars is not None:
+        r = json.loads(args.bars.read_text())
+        print_bars(r["scene"], r["atlas"], r["old"], r["new"])
+        return
     if args.against is not None:
         compare(args)
         return
