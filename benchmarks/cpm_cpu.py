@@ -170,8 +170,10 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
             "digest": digest(data),
             "sizes": dict(zip(FEATURES, feats[level].tolist(), strict=True)),
         })
+    from texelbake.cpm import gram_fit
+
     return {"scene": scene, "size": size, "settings": json.loads(settings.model_dump_json()),
-            "tiles": tiles, "levels": levels,
+            "tiles": tiles, "levels": levels, "trial_counts": dict(gram_fit.COUNTS),
             "cpu_seconds": sum(lv["cpu_seconds"] for lv in levels)}
 
 
@@ -187,6 +189,7 @@ def stages_asset(scene: str, size: str, work: Path) -> Path:
 def print_table(res: dict) -> None:
     print(f"{res['scene']} ({res['size']}) {res['settings']['atlas_resolution']}^2, "
           f"CPU seconds of fit_level (process time), total {res['cpu_seconds']:.2f} s")
+    print(f"trials: {res['trial_counts']}")
     print(f"{'lvl':>3} {'texels':>6} {'cpu s':>8} {'tex/cpu s':>9} {'ho med':>7} {'ho p5':>7} "
           f"{'c':>6}  skips            digest")
     for lv in res["levels"]:
