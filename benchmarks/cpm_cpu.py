@@ -172,8 +172,9 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         })
     from texelbake.cpm import gram_fit
 
+    counts = dict(getattr(gram_fit, "COUNTS", {}))  # absent before issue 15's second pass
     return {"scene": scene, "size": size, "settings": json.loads(settings.model_dump_json()),
-            "tiles": tiles, "levels": levels, "trial_counts": dict(gram_fit.COUNTS),
+            "tiles": tiles, "levels": levels, "trial_counts": counts,
             "cpu_seconds": sum(lv["cpu_seconds"] for lv in levels)}
 
 
