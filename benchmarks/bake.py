@@ -54,6 +54,26 @@ and lower on some by up to 0.9 dB (cylinder L2 p5 8.74 -> 7.85, L3 median 17.32 
 bolt L1 p5 0.22 -> 0.20, L4 median 5.42 -> 5.37). Cost model (load-adjusted with the 1-min
 load at the estimate): bolt predicted 163.1 s, measured 130.4 s (1.25x); cylinder predicted
 127.8 s, measured 36.8 s (3.5x: the load of 4 at the estimate fell during the bake).
+
+Second pass (2026-11-25, issue 15; F built in R's pass, BRDF kernels on the direction grid; the
+results are byte-identical to main's), cylinder full 32^2 against c15cea2 in one run, 1-min load
+old 19.1 -> 20.8, new 20.8 -> 12.0 (so wall ratios mean nothing; `--bars` on
+results/bake_compare_cylinder_32_pass2.json prints the bars):
+
+      lvl texels  cpu x  c15 med  new med  c15 p5  new p5
+        0    378   3.42    24.93    24.84   11.92   11.93
+        1    151   2.64    23.15    23.14   12.25   12.45
+        2     60   2.13    19.79    19.97    9.51   10.49
+        3     16   1.81    18.11    15.89    8.04   11.90
+        4      4   1.84    12.40    11.30   10.51    9.52
+        5      1   1.43    11.55    10.85   11.55   10.85
+    fit CPU seconds, all levels: c15cea2 205.9, this 69.7 (2.95x). FAIL 10x (lowest 1.43x);
+    FAIL held-out no lower (L3 median -2.2 dB, L4/L5 -0.7..-1.1 dB: the batched fit's ties,
+    unchanged by this pass); FAIL 60 s (291 s wall at load 12-21). Cost model with the
+    recalibrated coefficients on this bake's sample counts: fit CPU per level 0.86-1.13x,
+    summed 71.3 against 69.7 s (1.02x); the bake itself ran the previous coefficients (0.80x
+    summed) and its wall estimate (load 17 at the estimate) was 1.39x. The bolt's comparison
+    was stopped unfinished (its c15 bake alone ran > 40 min at load 20-40).
 """
 
 from __future__ import annotations
