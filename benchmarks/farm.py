@@ -18,6 +18,17 @@ Method (one run, ratios only):
   reported too; across runs it carries that load noise (it can even come out negative).
 - status latency: 50 concurrent clients (one connection each) poll `GET /jobs/{id}` of the
   finished job every `--poll` seconds for `--seconds`; p50/p99 of all request latencies.
+- 4 cpm workers (issue 15, item 6): oversubscribes the 2 cores (two workers per CPU), so the
+  figure that matters is speed-up per core: t_farm[1] / t_farm[n] / min(n, cores).
+- the N-machine prediction (issue 15, item 6): `texelbake.costmodel.simulate_farm`, a
+  discrete-event simulation of N workers draining the shard queue over one shared artifact
+  store, fed with this run's measured per-shard durations (1-worker run), per-shard artifact
+  bytes written, the geometry arrays each worker reads once and the farm's overhead per shard.
+  It is first checked against the real 1/2/4-worker runs (cores = 2), then predicts the cpm
+  stage of a 1024^2 atlas (4,096 shards of 16^2 texels, durations and bytes resampled from the
+  measured shards, seeded; geometry bytes scaled with the atlas area; cpm_top, the serial
+  shard of the levels coarser than a tile, from the calibrated cost model) on 8, 32 and 128
+  workers with one core each, for a 1 GbE and a 10 GbE store.
 Bars (issue 6): speedup >= 1.7, overhead <= 10 % of stage time, p99 <= 50 ms.
 """
 
@@ -115,7 +126,9 @@ def farm_run(asset: Path, work: Path, n_workers: int) -> dict:
     try:
         time.sleep(8.0)  # pool children finish their warm imports before the job starts
         with httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=120) as c:
-            aid = c.post("/assets", files={"file": (asset.name, asset.read_bytes())}).json()["id"]
+            from texelbake.client import package  # the layer and the files it uses (shaders)
+
+            aid = c.post("/assets", files={"file": package(asset)}).json()["id"]
             job_id = c.post("/jobs", json={"asset_id": aid, "settings": SETTINGS}).json()["id"]
         j = wait_job(
             stack.api_url,
@@ -129,6 +142,7 @@ def farm_run(asset: Path, work: Path, n_workers: int) -> dict:
         j = wait_job(stack.api_url, job_id, lambda j: j["state"] == "succeeded")
         result = {
             "load_average": os.getloadavg(),
+            "artifact_bytes": artifact_bytes(work),
             "stage_seconds": cpm["seconds"],
             "n_shards": cpm["n_shards"],
             "shard_seconds": [sh["seconds"] for sh in cpm["shards"]],
@@ -139,6 +153,64 @@ def farm_run(asset: Path, work: Path, n_workers: int) -> dict:
         return result
     finally:
         stack_down(work)
+
+
+def artifact_bytes(work: Path) -> dict:
+    """Bytes the cpm shards wrote (per tile, all its levels), the top tile level's files (what
+    cpm_top reads) and the geometry arrays (read once per worker process)."""
+    per_tile: dict[int, int] = {}
+    top_level = max((int(p.name[1:3]) for p in work.rglob("L*-tile*.npz")), default=0)
+    top_bytes = 0
+    for p in work.rglob("L*-tile*.npz"):  # loop over a few hundred files
+        tile = int(p.name.split("-tile")[1].split("-")[0])
+        per_tile[tile] = per_tile.get(tile, 0) + p.stat().st_size
+        if int(p.name[1:3]) == top_level:
+            top_bytes += p.stat().st_size
+    geo = sum(p.stat().st_size for p in work.rglob("geometry.npz"))
+    return {"per_tile": [per_tile[k] for k in sorted(per_tile)], "top_level_bytes": top_bytes,
+            "geometry_bytes": geo}
+
+
+def predict_farm(f1: dict, runs: dict[int, dict], n_shards: int, overhead: float,
+                 atlas: int = 1024, counts: tuple[int, ...] = (8, 32, 128)) -> dict:
+    """`costmodel.simulate_farm` checked against the real runs, then the 1024^2 prediction."""
+    from schemas.settings import BakeSettings
+    from texelbake import costmodel
+
+    dur = np.asarray(f1["shard_seconds"], dtype=np.float64)
+    ab = f1["artifact_bytes"]
+    wb = np.asarray(ab["per_tile"], dtype=np.float64)
+    if wb.size != dur.size:  # tiles and ledger shards disagree: spread the bytes evenly
+        wb = np.full(dur.size, wb.sum() / max(dur.size, 1))
+    zero = np.zeros(dur.size)
+    check = {}
+    for n, run in runs.items():
+        sim = costmodel.simulate_farm(dur, zero, wb, n, bandwidth=1.25e9, overhead=overhead,
+                                      startup_bytes=ab["geometry_bytes"], cores=os.cpu_count())
+        check[n] = {"measured_s": run["stage_seconds"], "simulated_s": sim.seconds,
+                    "ratio": sim.seconds / run["stage_seconds"]}
+    s = BakeSettings(**{**SETTINGS, "atlas_resolution": atlas})
+    tile_levels = int(s.shard_texels).bit_length()
+    est = costmodel.estimate(s, 1)
+    top = sum(lv["seconds"] for lv in est.per_level[tile_levels:])
+    S = (atlas // s.shard_texels) ** 2
+    rng = np.random.default_rng(0)
+    pick = rng.integers(0, dur.size, S)
+    scale = (atlas / SETTINGS["atlas_resolution"]) ** 2
+    pred: dict = {"atlas": atlas, "shards": S, "cpm_top_seconds_model": top, "by_bandwidth": {}}
+    for name, bw in (("1GbE", 1.25e8), ("10GbE", 1.25e9)):
+        rows = {}
+        for n in (1, *counts):
+            sim = costmodel.simulate_farm(
+                dur[pick], np.zeros(S), wb[pick], n, bandwidth=bw, overhead=overhead,
+                startup_bytes=ab["geometry_bytes"] * scale, serial_seconds=top,
+                serial_read_bytes=ab["top_level_bytes"] / max(n_shards, 1) * S)
+            rows[n] = sim.to_dict()
+        for n in counts:
+            rows[n]["speedup_vs_1"] = rows[1]["seconds"] / rows[n]["seconds"]
+            rows[n]["efficiency"] = rows[n]["speedup_vs_1"] / n
+        pred["by_bandwidth"][name] = rows
+    return {"check": check, "prediction": pred}
 
 
 async def _get(reader, writer, path: str, host: str) -> int:
@@ -214,13 +286,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"farm, 1 cpm worker:   {f1['stage_seconds']:8.2f} s")
         f2 = farm_run(asset, tmp / "farm2", 2)
         print(f"farm, 2 cpm workers:  {f2['stage_seconds']:8.2f} s")
+        f4 = farm_run(asset, tmp / "farm4", 4)
+        print(f"farm, 4 cpm workers:  {f4['stage_seconds']:8.2f} s  (2 per core)")
         n = f1["n_shards"]
         speedup = f1["stage_seconds"] / f2["stage_seconds"]
         busy = float(sum(f1["shard_seconds"]))
         overhead = (f1["stage_seconds"] - busy) / f1["stage_seconds"]
         overhead_vs_in = (f1["stage_seconds"] - t_in) / t_in
         lat = f1["latency"]
+        cores = os.cpu_count() or 1
+        per_core = {k: f1["stage_seconds"] / f["stage_seconds"] / min(k, cores)
+                    for k, f in ((1, f1), (2, f2), (4, f4))}
+        sim = predict_farm(f1, {1: f1, 2: f2, 4: f4}, n,
+                           max((f1["stage_seconds"] - busy) / n, 0.0))
         out = {
+            "farm_stage_s_4_workers": f4["stage_seconds"],
+            "speedup_4_workers": f1["stage_seconds"] / f4["stage_seconds"],
+            "speedup_per_core": per_core,
+            "artifact_bytes": f1["artifact_bytes"],
+            "simulation": sim,
             "scene": f"cylinder/{args.size}",
             "settings": SETTINGS,
             "n_shards": n,
@@ -233,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
             "overhead_per_shard_s": (f1["stage_seconds"] - busy) / n,
             "overhead_fraction_vs_inprocess": overhead_vs_in,
             "farm_shard_busy_s_1_worker": busy,
-            "load_average": {"farm_1": f1["load_average"], "farm_2": f2["load_average"]},
+            "load_average": {"farm_1": f1["load_average"], "farm_2": f2["load_average"],
+                             "farm_4": f4["load_average"]},
             "status_p50_ms": lat["p50_ms"],
             "status_p99_ms": lat["p99_ms"],
             "status_latency": lat,
@@ -258,8 +343,22 @@ def main(argv: list[str] | None = None) -> int:
         f"{'status_p99_ms':<28}{lat['p99_ms']:>12.2f}  <= 50   ({lat['requests']} requests, "
         f"{lat['clients']} clients every {lat['poll_interval_s']} s)"
     )
+    print(f"{'workers':>7} {'stage s':>8} {'speed-up':>8} {'per core':>8} {'simulated s':>11}")
+    for k, f in ((1, f1), (2, f2), (4, f4)):
+        c = out["simulation"]["check"][k]
+        print(f"{k:>7} {f['stage_seconds']:>8.2f} {f1['stage_seconds'] / f['stage_seconds']:>8.2f}"
+              f" {out['speedup_per_core'][k]:>8.2f} {c['simulated_s']:>11.2f}")
+    pred = out["simulation"]["prediction"]
+    print(f"predicted cpm stage of a {pred['atlas']}^2 atlas ({pred['shards']} shards; cpm_top "
+          f"{pred['cpm_top_seconds_model']:.1f} s serial, cost model):")
+    for bw, rows in pred["by_bandwidth"].items():
+        for k in (8, 32, 128):
+            r = rows[k]
+            print(f"  {bw:<6} {k:>4} workers: {r['seconds']:9.1f} s  speed-up "
+                  f"{r['speedup_vs_1']:6.1f} (efficiency {r['efficiency']:.2f}), store busy "
+                  f"{r['store_busy_seconds']:.0f} s")
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(out, indent=2, sort_keys=True))
+    args.json.write_text(json.dumps(out, indent=2, sort_keys=True, default=str))
     return 0
 
 

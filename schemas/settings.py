@@ -93,6 +93,19 @@ class BakeSettings(BaseModel):
         description="batched: R, Grams and eigendecompositions for many texels at once "
         "(issue 15); per_texel: one texel at a time on R itself (the seed's loop).",
     )
+    trial_stop: Literal["all", "target"] = Field(
+        "all",
+        description="all: every one of n_trials draws per probed c, the best kept (the seed); "
+        "target: a probe stops drawing at the first draw that reaches eps_db (batched fit "
+        "only; issue 15).",
+    )
+    c_start: Literal["interval", "spectrum"] = Field(
+        "interval",
+        description="interval: the bisection on c probes the middle of [k, c_max] first (the "
+        "seed); spectrum: it probes first the smallest c whose Eckart-Young tail of the "
+        "selection matrix is eps_db below its energy, then brackets outward from it (batched "
+        "fit only; issue 15).",
+    )
     closed_form: bool = Field(
         False, description="A texel whose R is numerically rank 1 gets its point in closed form, "
         "without draws or trials (batched fit only). Off by default: measured, the one column it "

@@ -216,3 +216,47 @@ def test_reduced_system_cholesky_and_eigh_against_the_residual():
             for A, t, r in ((A1, t1, r1), (A2, t2, r2)):
                 assert float(np.sum((A @ a - t) ** 2)) + r == pytest.approx(exact, rel=1e-7,
                                                                              abs=1e-9 * tt)
+
+
+def test_spectrum_c_against_the_eckart_young_tail():
+    """spectrum_c is the smallest c whose best rank-c approximation (Eckart-Young: the energy of
+    the dropped singular values) is eps_db below the energy; checked against truncated SVDs."""
+    from texelbake.cpm.gram_fit import spectrum_c
+
+    rng = np.random.default_rng(4)
+    X = rng.random((200, 12)) @ np.diag(0.5 ** np.arange(12)) @ rng.random((12, 40))
+    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    total = float(np.sum(X * X))
+    for eps_db in (10.0, 20.0, 30.0, 45.0):
+        c = spectrum_c(s, total, eps_db)
+        err = [float(np.sum((X - (U[:, :j] * s[:j]) @ Vt[:j]) ** 2)) for j in (c - 1, c)]
+        assert 10 * np.log10(total / err[1]) >= eps_db - 1e-9
+        assert c == 1 or 10 * np.log10(total / err[0]) < eps_db
+
+
+@pytest.mark.parametrize("option", [{"trial_stop": "target"}, {"c_start": "spectrum"},
+                                    {"trial_stop": "target", "c_start": "spectrum"}])
+def test_trial_options_reach_the_target_with_fewer_draws(option):
+    """Early stop of trials and the spectrum's start of the bisection against the seed's
+    bisection on the same texels: every texel that reaches eps_db with the seed's search also
+    reaches it (the search still ends on the smallest c found to pass), with no more NNLS draws
+    in total."""
+    from texelbake.cpm import gram_fit
+
+    rng = np.random.default_rng(9)
+    texels = [_texel(rng, 300, m, r, dec) for m, r, dec in
+              ((40, 6, False), (25, 4, True), (60, 9, False), (60, 14, True), (50, 20, False))]
+    Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
+    corrs = [channel_correlation(R) for R, _ in texels]
+    seeds = [31, 32, 33, 34, 35]
+    kw = {**KW, "c_max": 40}
+    counts = []
+    fits = []
+    for opt in ({}, option):
+        gram_fit.COUNTS.update(probes=0, draws=0, draws_stopped=0)
+        fits.append(fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False, **kw, **opt))
+        counts.append(dict(gram_fit.COUNTS))
+    for (ref, _), (got, _) in zip(*fits, strict=True):
+        if ref.snr_db_insample >= kw["eps_db"]:
+            assert got.snr_db_insample >= kw["eps_db"] - 0.5  # float32 weights, d-space SNR
+    assert counts[1]["draws"] <= counts[0]["draws"]

@@ -74,3 +74,24 @@ def test_job_status_carries_the_core_estimate():
     t0 = datetime(2026, 11, 25, 9, 0, tzinfo=UTC)
     running = job_estimate(SimpleNamespace(started_at=t0), s, 3)
     assert running.eta == t0 + timedelta(seconds=core.seconds)
+
+
+def test_farm_simulation_against_closed_forms():
+    """Second method: with no transfers the simulation is list scheduling of equal shards,
+    ceil(S / n) rounds; with one worker and a store, every byte and second adds up; a slow store
+    makes many workers wait on it (time -> total bytes / bandwidth)."""
+    S = 37
+    dur = np.full(S, 2.0)
+    zero = np.zeros(S)
+    for n in (1, 2, 4, 8, 64):
+        r = costmodel.simulate_farm(dur, zero, zero, n, bandwidth=1.0)
+        assert r.seconds == pytest.approx(np.ceil(S / n) * 2.0)
+    r = costmodel.simulate_farm(dur, np.full(S, 10.0), np.full(S, 5.0), 1, bandwidth=5.0,
+                                overhead=0.5, startup_bytes=50.0, serial_seconds=3.0,
+                                serial_read_bytes=20.0)
+    assert r.seconds == pytest.approx(S * (2.0 + 0.5 + 3.0) + 50.0 / 5.0 + 3.0 + 4.0)
+    slow = costmodel.simulate_farm(dur, np.full(S, 100.0), zero, 32, bandwidth=10.0)
+    assert slow.seconds == pytest.approx(S * 10.0 + 2.0)
+    # oversubscribed: 4 workers on 2 cores stretch every shard 2x
+    over = costmodel.simulate_farm(dur, zero, zero, 4, bandwidth=1.0, cores=2)
+    assert over.seconds == pytest.approx(np.ceil(S / 4) * 4.0)

@@ -9,7 +9,12 @@ they save (profile: 21-23 % of a bake). Here, per material (a loop over the few 
 - Lambert: f = rho / pi wherever both local directions are above the horizon, a function of
   the sample alone: rho per sample from one evaluation at normal incidence (textures sampled
   once per sample), then broadcast over (w_i, w_o): A + B + p work instead of A B p;
-- any other model: `brdf.evaluate` on every (w_i, w_o, sample) entry of the material's samples
+- UsdPreviewSurface (`grid_kernel="product"`, the default): the model's formulas evaluated on
+  the (w_i, w_o) grid itself with per-sample parameters broadcast (`preview_grid`): the same
+  arithmetic in the same order as `brdf.analytic.preview_surface`, so equal to it bit for bit,
+  without forming (A B p, 3) direction rows or gathering and scattering live entries; every
+  entry is evaluated (dead ones are zeroed by the visibility product);
+- any other model (and preview with `grid_kernel="rows"`): `brdf.evaluate` on every (w_i, w_o, sample) entry of the material's samples
   (dense, no gather), textures once per sample through sample_index; when fewer than
   DENSE_FRACTION of the entries are live (occluded samples, e.g. a bolt's threads) only the
   live ones, gathered.
@@ -26,7 +31,10 @@ from collections.abc import Mapping
 import numpy as np
 
 from texelbake import brdf as brdf_mod
-from texelbake.errors import NumericalError
+from texelbake.brdf.analytic import _preview_params, _schlick_weight
+from texelbake.brdf.common import INV_PI, as_color, as_scalar
+from texelbake.brdf.evaluate import _PREVIEW_BRDF_INPUTS, _inputs
+from texelbake.errors import NumericalError, SettingsError
 from texelbake.frames import tangent_frames
 from texelbake.tol import TOL
 
@@ -49,6 +57,7 @@ def brdf_product(
     wi_world: np.ndarray,
     wo_world: np.ndarray,
     live: np.ndarray,
+    kernel: str = "product",
 ) -> np.ndarray:
     """f_r in each sample's shading frame on a product of direction sets.
 
@@ -83,6 +92,41 @@ def brdf_product(
             for c in range(3):  # loop over colour channels
                 out[c, sel] = ok * rho_pi[:, c, None, None]
             continue
+        if material.model == "preview" and kernel == "product":
+            prm = _preview_params(_inputs(material, _PREVIEW_BRDF_INPUTS, uv[sel], None), n_s)
+            for b0 in range(0, n_s, GRID_BLOCK):  # loop over sample blocks (cache-sized)
+                blk = sel[b0:b0 + GRID_BLOCK]
+                pb = {k: (v if v.shape[0] == 1 else v[b0:b0 + GRID_BLOCK]) for k, v in prm.items()}
+                fg = preview_grid(pb, wi_loc[:, blk].transpose(1, 0, 2),
+                                  wo_loc[:, blk].transpose(1, 0, 2), eps)  # (3, nb, A, B)
+                bad = ~np.isfinite(fg)
+                if bad.any():
+                    _check_finite(np.where(live[:, :, blk].transpose(2, 0, 1)[None], fg, 0.0),
+                                  material)
+                    fg[bad] = 0.0
+                out[:, blk] = fg
+            continue
+        if material.model == "phong" and kernel == "product":
+            prm = _inputs(material, ("diffuseColor", "specularColor", "exponent"), uv[sel], None)
+            kd = as_color(prm["diffuseColor"], n_s, "diffuseColor")
+            ks = as_color(prm["specularColor"], n_s, "specularColor")
+            ex = as_scalar(prm["exponent"], n_s, "exponent")
+            if np.any(ex < 0):
+                raise SettingsError(f"material {material.path!r}: phong exponent must be >= 0")
+            for b0 in range(0, n_s, GRID_BLOCK):  # loop over sample blocks (cache-sized)
+                blk = sel[b0:b0 + GRID_BLOCK]
+
+                def rows(v: np.ndarray, b0: int = b0) -> np.ndarray:
+                    return v if v.shape[0] == 1 else v[b0:b0 + GRID_BLOCK]
+                fg = phong_grid(rows(kd), rows(ks), rows(ex), wi_loc[:, blk].transpose(1, 0, 2),
+                                wo_loc[:, blk].transpose(1, 0, 2), eps)
+                bad = ~np.isfinite(fg)
+                if bad.any():
+                    _check_finite(np.where(live[:, :, blk].transpose(2, 0, 1)[None], fg, 0.0),
+                                  material)
+                    fg[bad] = 0.0
+                out[:, blk] = fg
+            continue
         lv = live[:, :, sel].transpose(2, 0, 1)  # (n_s, A, B)
         if float(lv.mean()) < DENSE_FRACTION:  # mostly dead (occluded): gather the live ones
             j, ia, ib = np.nonzero(lv)
@@ -103,4 +147,121 @@ def brdf_product(
             _check_finite(np.where(lv[..., None], f, 0.0), material)
             f[bad] = 0.0
         out[:, sel] = f.transpose(3, 0, 1, 2)
+    return out
+
+
+#: samples per block of `preview_grid` (64 x 64 pairs: temporaries of ~0.5 MB each)
+GRID_BLOCK = 16
+
+
+def preview_grid(p: dict[str, np.ndarray], wi: np.ndarray, wo: np.ndarray, eps: float
+                 ) -> np.ndarray:
+    """UsdPreviewSurface on the product grid: `brdf.analytic.preview_surface` (with
+    `_half_terms`, `_ggx_dv`, `_schlick_weight`) term by term, in the same order of operations,
+    with per-direction terms on (n, A) or (n, B) and per-sample parameters broadcast.
+
+    p : `_preview_params` arrays with leading dimension 1 or n; wi (n, A, 3), wo (n, B, 3) local
+    returns (3, n, A, B) float64, 0 where either direction is under the horizon (or not finite)
+    """
+    n, A, B = wi.shape[0], wi.shape[1], wo.shape[1]
+    zi = np.maximum(wi[:, :, 2], 0.0)[:, :, None]  # (n, A, 1)
+    zo = np.maximum(wo[:, :, 2], 0.0)[:, None, :]  # (n, 1, B)
+    c = wi[:, :, None, 0] * wo[:, None, :, 0]
+    c += wi[:, :, None, 1] * wo[:, None, :, 1]
+    c += wi[:, :, None, 2] * wo[:, None, :, 2]
+    c += 1.0
+    np.maximum(c, TOL.brdf_eps, out=c)
+    nh2 = zi + zo
+    nh2 *= nh2
+    nh2 /= 2.0 * c
+    np.minimum(nh2, 1.0, out=nh2)
+    c *= 0.5
+    cos_d = np.sqrt(c, out=c)
+    np.minimum(cos_d, 1.0, out=cos_d)
+    fres = _schlick_weight(cos_d)  # (n, A, B)
+
+    def col(v: np.ndarray) -> np.ndarray:  # (1 or n, 3) -> (3, 1 or n, 1, 1)
+        return v.T[:, :, None, None]
+
+    def sca(v: np.ndarray) -> np.ndarray:  # (1 or n,) -> (1 or n, 1, 1)
+        return v[:, None, None]
+
+    diffuse = p["diffuseColor"]
+    m = p["metallic"][:, None]
+    spec_wf = p["useSpecularWorkflow"][:, None] != 0.0
+    r = (1.0 - p["ior"]) / (1.0 + p["ior"])
+    r2 = (r * r)[:, None]
+    f0 = np.where(spec_wf, p["specularColor"], r2 * (1.0 - m) + diffuse * m)
+    f90 = np.where(spec_wf, 1.0, (1.0 - m) + diffuse * m)
+    dcol = np.where(spec_wf, diffuse, diffuse * (1.0 - m))
+    dv = _ggx_dv_grid(nh2, zi, zo, sca(p["alpha"]))
+    f0g, dfg, dpi = col(f0), col(f90 - f0), col(dcol * INV_PI)
+    out = np.empty((3, n, A, B))
+    for ch in range(3):  # loop over colour channels
+        fr = dfg[ch] * fres
+        fr += f0g[ch]  # f0 + (f90 - f0) w, as preview_surface (addition commutes exactly)
+        o = out[ch]
+        np.multiply(fr, dv, out=o)
+        np.subtract(1.0, fr, out=fr)
+        fr *= dpi[ch]
+        o += fr
+    cc = p["clearcoat"]
+    if np.any(cc > 0.0):
+        r2c = sca(r2[:, 0])
+        fc = (1.0 - r2c) * fres
+        fc += r2c
+        fc *= sca(cc)
+        fc *= _ggx_dv_grid(nh2, zi, zo, sca(p["alpha_c"]))
+        out += fc[None]
+    dead = _horizon_dead(wi, wo, eps)
+    if dead.any():
+        out[:, dead] = 0.0
+    return out
+
+
+def _ggx_dv_grid(nh2: np.ndarray, zi: np.ndarray, zo: np.ndarray, alpha: np.ndarray
+                 ) -> np.ndarray:
+    """`brdf.analytic._ggx_dv` with zi (n, A, 1), zo (n, 1, B), alpha (n or 1, 1, 1)."""
+    a2 = alpha * alpha
+    d = nh2 * (a2 - 1.0)
+    d += 1.0
+    d *= d
+    d *= np.pi
+    k = 0.5 * alpha
+    gi = zi * (1.0 - k)
+    gi += k
+    go = zo * (1.0 - k)
+    go += k
+    g = gi * go
+    g *= 4.0
+    d *= g
+    return a2 / d
+
+
+def _horizon_dead(wi: np.ndarray, wo: np.ndarray, eps: float) -> np.ndarray:
+    """(n, A, B) bool: `brdf.common.valid_pairs` negated on the grid."""
+    ok_i = (wi[:, :, 2] > eps) & np.isfinite(wi[:, :, 0] + wi[:, :, 1] + wi[:, :, 2])
+    ok_o = (wo[:, :, 2] > eps) & np.isfinite(wo[:, :, 0] + wo[:, :, 1] + wo[:, :, 2])
+    return ~(ok_i[:, :, None] & ok_o[:, None, :])
+
+
+def phong_grid(kd: np.ndarray, ks: np.ndarray, e: np.ndarray, wi: np.ndarray, wo: np.ndarray,
+               eps: float) -> np.ndarray:
+    """`brdf.analytic.phong` on the product grid, same operations in the same order.
+    kd, ks : (1 or n, 3); e : (1 or n,); wi (n, A, 3), wo (n, B, 3); returns (3, n, A, B)."""
+    n, A, B = wi.shape[0], wi.shape[1], wo.shape[1]
+    cos_a = wi[:, :, None, 2] * wo[:, None, :, 2]
+    cos_a -= wi[:, :, None, 0] * wo[:, None, :, 0]
+    cos_a -= wi[:, :, None, 1] * wo[:, None, :, 1]
+    np.maximum(cos_a, 0.0, out=cos_a)
+    ee = np.broadcast_to(e[:, None, None], cos_a.shape)
+    lobe = np.power(cos_a, ee)
+    lobe *= ((e + 2.0) * (0.5 * INV_PI))[:, None, None]
+    out = np.empty((3, n, A, B))
+    for ch in range(3):  # loop over colour channels
+        np.multiply(ks[:, ch, None, None], lobe, out=out[ch])
+        out[ch] += (kd[:, ch] * INV_PI)[:, None, None]
+    dead = _horizon_dead(wi, wo, eps)
+    if dead.any():
+        out[:, dead] = 0.0
     return out

@@ -182,24 +182,50 @@ class GroupInput:
     chans: np.ndarray  # channel indices fitted by this group
 
 
+#: counts of the trial work done by `_bisect` in this process (probes of c, NNLS draws solved,
+#: draws not solved because a probe stopped at the target); read by benchmarks/cpm_cpu.py
+COUNTS = {"probes": 0, "draws": 0, "draws_stopped": 0}
+
+
+def spectrum_c(s: np.ndarray, total: float, eps_db: float) -> int:
+    """Smallest c whose Eckart-Young tail sum_{r > c} s_r^2 is at most 10^(-eps_db/10) of the
+    selection matrix's energy `total`: the rank at which the best rank-c approximation of the
+    whole matrix reaches the target SNR (its row sums, the fitted target, usually need no more).
+    s : singular values, descending; returns len(s) when even the full spectrum does not."""
+    if total <= 0.0 or s.size == 0:
+        return 0
+    tail = total - np.cumsum(s * s)
+    ok = np.flatnonzero(tail <= total * 10.0 ** (-eps_db / 10.0))
+    return int(ok[0]) + 1 if ok.size else int(s.size)
+
+
 def _bisect(
     p: np.ndarray, k: int, red: list[tuple], signal: float, *, eps_db: float, c_max: int,
-    n_trials: int, weights: str, rng: np.random.Generator,
+    n_trials: int, weights: str, rng: np.random.Generator, trial_stop: str = "all",
+    c_hint: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """`fit._Fitter._select_direct`'s bisection on [k, c_max] with n_trials draws per probe, in
-    the reduced space. returns (columns, alpha (c, ch_g), capped)."""
+    the reduced space. returns (columns, alpha (c, ch_g), capped).
+
+    trial_stop "target": a probe stops drawing at the first draw whose SNR reaches eps_db (the
+    probe's answer is then known; the kept fit is that draw, not the best of n_trials).
+    c_hint (the spectrum's `spectrum_c`): the first probe is c_hint instead of the interval's
+    middle; when it passes, c_hint - 1, c_hint - 2, c_hint - 4, ... are probed until one fails
+    (when it fails, c_hint + 1, + 2, + 4, ...), and the bisection finishes inside that bracket."""
     cache: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
 
     def best_of_trials(c: int) -> tuple[np.ndarray, np.ndarray, float]:
         if c not in cache:
+            COUNTS["probes"] += 1
             best: tuple[np.ndarray, np.ndarray, float] | None = None
             seen: set[bytes] = set()
-            for _ in range(n_trials):  # loop over a handful of randomized trials
+            for trial in range(n_trials):  # loop over a handful of randomized trials
                 local = sample_columns(p, c, rng)
                 key = local.tobytes()
                 if key in seen:
                     continue
                 seen.add(key)
+                COUNTS["draws"] += 1
                 alpha = np.zeros((local.size, len(red)))
                 noise = 0.0
                 for g, (A, t, rest) in enumerate(red):  # loop over <= 3 channels
@@ -211,15 +237,43 @@ def _bisect(
                     -math.inf if signal <= 0.0 else 10.0 * math.log10(signal / noise))
                 if best is None or snr > best[2]:
                     best = (local, alpha, snr)
+                if trial_stop == "target" and snr >= eps_db:
+                    COUNTS["draws_stopped"] += n_trials - 1 - trial
+                    break
             assert best is not None
             cache[c] = best
         return cache[c]
 
+    def passes(c: int) -> bool:
+        return best_of_trials(c)[2] >= eps_db
+
     capped = c_max < k
     lo, hi = (c_max, c_max) if capped else (k, c_max)
+    if c_hint is not None and lo < hi:  # bracket the answer outward from the spectrum's c
+        c0 = min(max(int(c_hint), lo), hi)
+        step = 1
+        if passes(c0):
+            hi = c0
+            while lo < hi:  # loop over a few doubling steps down
+                probe = max(hi - step, lo)
+                if passes(probe):
+                    hi = probe
+                    step *= 2
+                else:
+                    lo = probe + 1
+                    break
+        else:
+            lo = c0 + 1
+            while lo < hi:  # loop over a few doubling steps up
+                probe = min(c0 + step, hi)
+                if passes(probe):
+                    hi = probe
+                    break
+                lo = probe + 1
+                step *= 2
     while lo < hi:  # seed 000 §4.1: bisection with the median as the probe
         mid = (lo + hi) // 2
-        if best_of_trials(mid)[2] >= eps_db:
+        if passes(mid):
             hi = mid
         else:
             lo = mid + 1
@@ -242,6 +296,8 @@ def fit_texel_gram(
     weights: str,
     seed: int,
     closed_form: bool,
+    trial_stop: str = "all",
+    c_start: str = "interval",
 ) -> tuple[TexelFit | None, str]:
     """One texel's fit from its Grams; returns (TexelFit, skip) with skip "" or "rank1", or
     (None, "full_svd") when the Gram route cannot resolve span(V_k) (`top_singular` redoes a
@@ -284,9 +340,10 @@ def fit_texel_gram(
             continue
         p = column_probabilities(np.zeros((0, 0)), s, Vt, k, col_energy=gi.sel_diag)
         signal = float(sum(Gc[c].sum() for c in chans))
+        hint = spectrum_c(s, gi.sel_total, eps_db) if c_start == "spectrum" else None
         cols, alpha, capped = _bisect(
             p, k, [reds[c] for c in chans], signal, eps_db=eps_db, c_max=c_max,
-            n_trials=n_trials, weights=weights, rng=rng,
+            n_trials=n_trials, weights=weights, rng=rng, trial_stop=trial_stop, c_hint=hint,
         )
         fits.append((cols, alpha, k, capped))
     return _merge(F, valid, fits, groups, mode=mode, corr=corr, eps_db=eps_db,
@@ -366,6 +423,8 @@ def fit_many(
     decorrelation_threshold: float,
     closed_form: bool,
     n_batch: int | None = None,
+    trial_stop: str = "all",
+    c_start: str = "interval",
 ) -> list[tuple[TexelFit | None, str]]:
     """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
     `fit_texel_gram` per texel. Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous
@@ -405,7 +464,7 @@ def fit_many(
         out.append(fit_texel_gram(
             F, valid, Gc, ginp, mode=mode, corr=corr,
             psi=psi, eps_db=eps_db, c_max=c_max, n_trials=n_trials, weights=weights, seed=seed,
-            closed_form=closed_form,
+            closed_form=closed_form, trial_stop=trial_stop, c_start=c_start,
         ))
     return out
 

@@ -195,16 +195,28 @@ class _Results:
         return out
 
 
-def _build_R(src, frames, cset: PointSet, dirs, budget: int) -> np.ndarray:
+def _build_R(src, frames, cset: PointSet, dirs, budget: int, inv_o: np.ndarray | None = None,
+             seg: np.ndarray | None = None):
     """Eq. 9's matrix for every candidate of the chunk, channel-major: (3, P, d) with row
     i * n_o + o. The BRDF is evaluated on sample batches whose temporaries fit a quarter of
-    the budget (a sample's entries are independent), so only R itself scales with P."""
+    the budget (a sample's entries are independent), so only R itself scales with P.
+
+    With inv_o (t, n_o) (1/a_vis(w_o) of each texel of the chunk, 0 on rows under the floor) and
+    seg (P,) (each candidate's texel in the chunk), returns F = diag(1/a_vis) R itself, written
+    in the same pass as R (no second P x d array, no second sweep), together with each
+    candidate's channel sums of R for `channel_correlation`: (F, s1 (P, 3) = sum over rows of R,
+    s2 (P, 3, 3) = R_j^T R_j over rows). Every entry and every per-candidate sum depends only on
+    that candidate, so neither the chunk nor the sample batch changes a texel's result."""
     n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
     P = len(cset.sample)
     Rt = np.empty((3, P, n_i * n_o))
+    fused = inv_o is not None
+    s1 = np.zeros((P, 3))
+    s2 = np.zeros((P, 3, 3))
     step = max(budget // 4 // (BYTES_PER_EVAL_ENTRY * n_i * n_o), 1)
     for s0 in range(0, P, step):  # loop over sample batches (memory bound)
         part = cset.take(np.arange(s0, min(s0 + step, P)))
+        p = len(part.sample)
         wi = world_dirs(frames, part.texel, dirs["dirs_i"])
         wo = world_dirs(frames, part.texel, dirs["dirs_o"])
         vi = visibility_cos(src, part.sample, wi)
@@ -213,7 +225,14 @@ def _build_R(src, frames, cset: PointSet, dirs, budget: int) -> np.ndarray:
         f = brdf_product(src.geo, src.materials, part.sample, wi, wo, live)  # (3, p, n_i, n_o)
         f *= (vi[None, :, :] * part.weight.T[:, :, None])[..., None]
         f *= vo[None, :, None, :]
-        Rt[:, s0:s0 + len(part.sample)] = f.reshape(3, len(part.sample), -1)
+        f2 = f.reshape(3, p, -1)
+        if inv_o is not None and seg is not None:
+            s1[s0:s0 + p] = f2.sum(axis=2).T
+            s2[s0:s0 + p] = np.matmul(f2.transpose(1, 0, 2), f2.transpose(1, 2, 0))
+            f *= inv_o[seg[s0:s0 + p]][None, :, None, :]
+        Rt[:, s0:s0 + p] = f2
+    if fused:
+        return Rt, s1, s2
     return Rt
 
 
@@ -222,29 +241,24 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
     s = src.settings
     n_i = len(dirs["dirs_i"])
     n_t = len(texels)
-    Rt = _build_R(src, src.geo[f"frames_L{level}"], cset, dirs, budget)  # (3, P, d)
-    d = Rt.shape[2]
-    if not np.all(np.isfinite(Rt)):
-        bad = np.unique(cset.texel[np.any(~np.isfinite(Rt), axis=(0, 2))])
-        raise NumericalError(f"R of level {level} texels {bad[:8].tolist()} has non-finite entries")
     eps = np.array([avis_floor(a) for a in area])
+    valid_o = np.isfinite(avis_o) & (avis_o > eps[:, None])  # (t, n_o)
+    inv_o = np.where(valid_o, 1.0 / np.where(valid_o, avis_o, 1.0), 0.0)
     avis_rows = np.tile(avis_o, (1, n_i))  # (t, d): row i * n_o + o
-    valid = np.isfinite(avis_rows) & (avis_rows > eps[:, None])
-    inv = np.where(valid, 1.0 / np.where(valid, avis_rows, 1.0), 0.0)  # (t, d)
+    valid = np.tile(valid_o, (1, n_i))
+    # F = diag(1/a_vis) R per channel, (3, P, d), built in one pass with R's channel sums;
+    # a texel's columns are a contiguous block
+    Ft, s1, s2 = _build_R(src, src.geo[f"frames_L{level}"], cset, dirs, budget, inv_o, cseg)
+    d = Ft.shape[2]
+    if not np.all(np.isfinite(Ft)):
+        bad = np.unique(cset.texel[np.any(~np.isfinite(Ft), axis=(0, 2))])
+        raise NumericalError(f"R of level {level} texels {bad[:8].tolist()} has non-finite entries")
     bounds = np.r_[0, np.cumsum(n_cand)]
-    # F = diag(1/a_vis) R per channel, (3, P, d): a texel's columns are a contiguous block;
-    # the channel sums of R for `channel_correlation` from the same blocks (one 3 x 3 GEMM)
-    Ft = np.empty_like(Rt)
-    sx = np.zeros((n_t, 3))
-    sxx = np.zeros((n_t, 3, 3))
-    for t in range(n_t):  # loop over texels: a few whole-block operations each
-        a, b = bounds[t], bounds[t + 1]
-        X = Rt[:, a:b].reshape(3, -1)
-        sx[t], sxx[t] = X.sum(axis=1), X @ X.T
-        np.multiply(Rt[:, a:b], inv[t][None, None, :], out=Ft[:, a:b])
-        if res.fbar is not None:
-            fb, _ = filtered_reflectance(Rt[:, a:b].sum(axis=1).T, avis_rows[t], eps[t])
-            res.fbar[base + t] = fb
+    sx = _segment_sum(s1, cseg, n_t, 0)
+    sxx = _segment_sum(s2, cseg, n_t, 0)
+    if res.fbar is not None:
+        for t in range(n_t):  # loop over texels: one row sum each
+            res.fbar[base + t] = Ft[:, bounds[t]:bounds[t + 1]].sum(axis=1).T
     # texels for the Gram path (the others are fit_texel's special cases or too wide)
     gram, corrs = [], []
     for t in range(n_t):  # loop over texels: classification only
@@ -261,7 +275,7 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         [seeds[t] for t in gram], psi=s.psi, eps_db=s.eps_db, c_max=s.c_max,
         n_trials=s.n_trials, weights=s.weights, colour=s.colour,
         decorrelation_threshold=s.decorrelation_threshold, closed_form=s.closed_form,
-        n_batch=s.n_batch,
+        n_batch=s.n_batch, trial_stop=s.trial_stop, c_start=s.c_start,
     ), strict=True))
     fits: list[TexelFit | None] = [None] * n_t
     for t in range(n_t):  # loop over texels
@@ -270,7 +284,11 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
             continue
         fit, skip = done.get(t, (None, "per_texel"))
         if fit is None:  # fit_texel's special cases, wide texels, Gram route unresolved
-            fit = fit_texel(Rt[:, a:b].transpose(2, 1, 0), avis_rows[t],
+            # the texel's R itself, rebuilt (F dropped its rows under the a_vis floor); every
+            # entry depends on its candidate only, so this is the R the chunk's F came from
+            Rt = _build_R(src, src.geo[f"frames_L{level}"], cset.take(np.arange(a, b)), dirs,
+                          budget)
+            fit = fit_texel(Rt.transpose(2, 1, 0), avis_rows[t],
                             texel_area=float(area[t]), seed=seeds[t], psi=s.psi,
                             eps_db=s.eps_db, c_max=s.c_max, n_trials=s.n_trials,
                             weights=s.weights, colour=s.colour,

@@ -1,0 +1,240 @@
+"""CPU seconds of the CPM fit, per level, in one process, beside the held-out SNR it reaches: the
+quick loop for issue 15's throughput work (the cpm stage without the farm, the a_vis stage or
+export; `benchmarks/bake.py` times the whole bake).
+
+    python benchmarks/cpm_cpu.py --scene cylinder --atlas 32 [--set KEY=VALUE ...] [--tiles 0,5]
+        [--json PATH]
+
+Ingest and geometry run once (untimed, cached in --workdir); then every tile's levels and the
+top levels are fitted in order, exactly as `run_cpm_tile` / `run_cpm_top` do, each `fit_level`
+call timed with `time.process_time()` (CPU seconds of this process: the machine is shared, so
+wall time is not comparable between runs). Prints per level: texels fitted, CPU seconds,
+texels per CPU second, held-out SNR median and p5, the skip counts (what the fit did not
+model fully) and a digest of the level's arrays (equal digests: byte-identical results).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from schemas.settings import BakeSettings
+from texelbake import stages
+from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
+from texelbake.cpm.level_batched import fit_level
+
+
+def _parse_set(items: list[str]) -> dict:
+    out: dict = {}
+    for it in items:
+        k, v = it.split("=", 1)
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out
+
+
+def digest(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        if k == "rays":
+            continue
+        a = np.ascontiguousarray(arrays[k])
+        h.update(k.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+    return h.hexdigest()[:16]
+
+
+#: (module, function) pairs timed by --breakdown (CPU seconds summed over calls; nested parts
+#: are included in their callers)
+BREAKDOWN = (
+    ("texelbake.cpm.level_batched", "_avis"),
+    ("texelbake.cpm.level_batched", "_fit_chunk"),
+    ("texelbake.cpm.level_batched", "_build_R"),
+    ("texelbake.cpm.level_batched", "brdf_product"),
+    ("texelbake.cpm.level_batched", "visibility_cos"),
+    ("texelbake.cpm.level_batched", "fit_many"),
+    ("texelbake.cpm.gram_fit", "select_groups"),
+    ("texelbake.cpm.gram_fit", "batched_eigh"),
+    ("texelbake.cpm.gram_fit", "fit_texel_gram"),
+    ("texelbake.cpm.gram_fit", "reduced_system"),
+    ("texelbake.cpm.gram_fit", "_bisect"),
+    ("texelbake.cpm.gram_fit", "_merge"),
+    ("texelbake.cpm.level_batched", "_heldout"),
+)
+
+
+#: per-level sums recorded for the cost model's calibration: candidates on cheap (Lambert /
+#: Phong) and costly materials, m^2, m^3, dense samples on cheap / costly materials, texels
+FEATURES = ("m_cheap", "m_costly", "m2", "m3", "dense_cheap", "dense_costly", "texels")
+
+
+def install_breakdown() -> dict[str, list[float]]:
+    """Wrap the BREAKDOWN functions with process-time accumulators (CPU seconds, calls)."""
+    import importlib
+
+    acc: dict[str, list[float]] = {}
+    for mod_name, fn in BREAKDOWN:
+        mod = importlib.import_module(mod_name)
+        inner = getattr(mod, fn)
+        key = fn if fn not in acc else f"{mod_name}.{fn}"
+        acc[key] = [0.0, 0]
+
+        def wrapped(*a, _inner=inner, _key=key, **k):
+            c0 = time.process_time()
+            try:
+                return _inner(*a, **k)
+            finally:
+                acc[_key][0] += time.process_time() - c0
+                acc[_key][1] += 1
+        setattr(mod, fn, wrapped)
+    return acc
+
+
+def run(scene: str, size: str, settings: BakeSettings, work: Path,
+        tiles: list[int] | None = None) -> dict:
+    asset = stages_asset(scene, size, work)
+    ctx = stages.StageContext.create(work / "store", asset, settings)
+    stages.run_ingest(ctx, 0)
+    stages.run_geometry(ctx, 0)
+    src = ctx.fit_inputs()
+    s = settings
+    n_tiles = (s.atlas_resolution // s.shard_texels) ** 2
+    tiles = list(range(n_tiles)) if tiles is None else tiles
+    per_level: dict[int, list] = {}
+
+    tex_l = {lv: texel_ids(src.geo, s.atlas_resolution, lv) for lv in range(ctx.n_levels)}
+    costly = np.array([m.model not in ("lambert", "phong") for m in src.materials], bool)
+    mat = np.asarray(src.geo["sample_mat"], np.int64)
+    feats: dict[int, np.ndarray] = {}
+
+    def timed(level, texels, cands):
+        c0 = time.process_time()
+        out = fit_level(src, level, texels, cands)
+        per_level.setdefault(level, []).append((time.process_time() - c0, out))
+        # the cost model's sizes of this call (texelbake.costmodel): per texel m candidates
+        # and n dense samples, split by material cost (Lambert / Phong vs the rest)
+        pos = np.searchsorted(np.sort(texels), cands.texel)
+        m = np.bincount(pos, minlength=len(texels)).astype(float)
+        mg = np.bincount(pos, weights=costly[mat[cands.sample]].astype(float),
+                         minlength=len(texels))
+        dense_sel = np.isin(tex_l[level], texels)
+        dpos = np.searchsorted(np.sort(texels), tex_l[level][dense_sel])
+        nd = np.bincount(dpos, minlength=len(texels)).astype(float)
+        ndg = np.bincount(dpos, weights=costly[mat[dense_sel]].astype(float),
+                          minlength=len(texels))
+        has = nd > 0
+        f = np.array([(m - mg).sum(), mg.sum(), (m * m).sum(), (m ** 3).sum(),
+                      (nd - ndg).sum(), ndg.sum(), float(has.sum())])
+        feats[level] = feats.get(level, 0) + f
+        return out
+
+    tops = []
+    for t in tiles:  # loop over tiles, as the farm's shards
+        children = None
+        for level in range(ctx.tile_levels):
+            texels = tile_texels(s.atlas_resolution, s.shard_texels, t, level)
+            cands = level_candidates(src, level, texels, children)
+            children = timed(level, texels, cands)
+        tops.append(children)
+    if len(tiles) == n_tiles:
+        children = concat_levels(tops)
+        for level in range(ctx.tile_levels, ctx.n_levels):
+            n_l = s.atlas_resolution >> level
+            texels = np.arange(n_l * n_l, dtype=np.int64)
+            cands = level_candidates(src, level, texels, children)
+            children = timed(level, texels, cands)
+    levels = []
+    for level in sorted(per_level):
+        runs = per_level[level]
+        cpu = sum(r[0] for r in runs)
+        data = concat_levels([r[1] for r in runs])
+        v = data["valid"]
+        ho = data["snr_ho"][v].astype(np.float64)
+        ho = ho[np.isfinite(ho)]
+        skip = data.get("skip", np.zeros(0, np.int8))[v]
+        levels.append({
+            "level": level, "texels": int(v.sum()), "cpu_seconds": cpu,
+            "texels_per_cpu_second": float(v.sum()) / max(cpu, 1e-9),
+            "heldout_db_median": float(np.median(ho)) if ho.size else None,
+            "heldout_db_p5": float(np.percentile(ho, 5)) if ho.size else None,
+            "c_mean": float(data["c"][v].mean()) if v.any() else None,
+            "skip_counts": {str(int(k)): int(n) for k, n in
+                            zip(*np.unique(skip, return_counts=True), strict=True)},
+            "digest": digest(data),
+            "sizes": dict(zip(FEATURES, feats[level].tolist(), strict=True)),
+        })
+    from texelbake.cpm import gram_fit
+
+    counts = dict(getattr(gram_fit, "COUNTS", {}))  # absent before issue 15's second pass
+    return {"scene": scene, "size": size, "settings": json.loads(settings.model_dump_json()),
+            "tiles": tiles, "levels": levels, "trial_counts": counts,
+            "cpu_seconds": sum(lv["cpu_seconds"] for lv in levels)}
+
+
+def stages_asset(scene: str, size: str, work: Path) -> Path:
+    from texelbake.scenes import write_scene
+
+    path = work / f"{scene}_{size}.usda"
+    if not path.exists():
+        write_scene(scene, path, size)
+    return path
+
+
+def print_table(res: dict) -> None:
+    print(f"{res['scene']} ({res['size']}) {res['settings']['atlas_resolution']}^2, "
+          f"CPU seconds of fit_level (process time), total {res['cpu_seconds']:.2f} s")
+    print(f"trials: {res['trial_counts']}")
+    print(f"{'lvl':>3} {'texels':>6} {'cpu s':>8} {'tex/cpu s':>9} {'ho med':>7} {'ho p5':>7} "
+          f"{'c':>6}  skips            digest")
+    for lv in res["levels"]:
+        def f(x):
+            return float("nan") if x is None else x
+        print(f"{lv['level']:>3} {lv['texels']:>6} {lv['cpu_seconds']:>8.2f} "
+              f"{lv['texels_per_cpu_second']:>9.2f} {f(lv['heldout_db_median']):>7.2f} "
+              f"{f(lv['heldout_db_p5']):>7.2f} {f(lv['c_mean']):>6.1f}  "
+              f"{json.dumps(lv['skip_counts']):<16} {lv['digest']}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="cylinder")
+    ap.add_argument("--size", default="full", choices=["small", "full"])
+    ap.add_argument("--atlas", type=int, default=32)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--tiles", default=None, help="comma-separated tile ids (default: all)")
+    ap.add_argument("--workdir", type=Path, default=None)
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--breakdown", action="store_true",
+                    help="also time the fit's parts (process time per function)")
+    args = ap.parse_args()
+    acc = install_breakdown() if args.breakdown else None
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-cpmcpu-"))
+    work.mkdir(parents=True, exist_ok=True)
+    fields = {"atlas_resolution": args.atlas,
+              "shard_texels": min(BakeSettings().shard_texels, args.atlas),
+              **_parse_set(args.set)}
+    settings = BakeSettings(**fields)
+    tiles = [int(x) for x in args.tiles.split(",")] if args.tiles else None
+    res = run(args.scene, args.size, settings, work, tiles)
+    print_table(res)
+    if acc is not None:
+        res["breakdown"] = {k: {"cpu_seconds": v[0], "calls": int(v[1])} for k, v in acc.items()}
+        print(f"{'part (CPU s, nested parts inside callers)':<44} {'cpu s':>8} {'share':>6} "
+              f"{'calls':>7}")
+        for k, v in acc.items():
+            print(f"{k:<44} {v[0]:>8.2f} {100 * v[0] / max(res['cpu_seconds'], 1e-9):>5.1f}% "
+                  f"{int(v[1]):>7}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()
