@@ -101,7 +101,14 @@ class BakeSettings(BaseModel):
     )
     # visible projected area (seed 000 §3.4)
     avis_resolution: int = Field(16, ge=2, le=256, description="Cube-map face resolution.")
-    avis_keep_fraction: float = Field(0.06, gt=0.0, le=1.0, description="Haar coefficients kept.")
+    avis_keep_fraction: float = Field(
+        0.03, gt=0.0, le=1.0, description="Haar coefficients kept, a fraction of the level's "
+        "dense cube pixels (4 bytes each with avis_selection='texel': 0.03 stores 4.0 % of the "
+        "dense float32 maps with the counts, scales and sum corrections).")
+    avis_selection: Literal["texel", "face"] = Field(
+        "texel", description="How the a_vis Haar coefficients are chosen: 'texel' spends one "
+        "budget per level so that every texel's relative error is about equal (U^2-weighted, "
+        "float16 values); 'face' is the seed's per-face top fraction with float32 values.")
     # quality gate (issue 22, item 2; texelbake.quality): targets, not inputs of any stage
     gate_snr_median_db: float = Field(
         GATE_SNR_MEDIAN_DB, ge=-200.0, le=200.0,
