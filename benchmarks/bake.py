@@ -252,6 +252,8 @@ def main() -> None:
                     help="finest texels per side (default: the bake's default)")
     ap.add_argument("--spt", type=int, default=None,
                     help="samples per finest texel (default: the bake's default)")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a BakeSettings field for the main bake (repeatable), e.g. eps_db=40")
     ap.add_argument("--sweep", action="store_true", help="also vary each main knob alone")
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--compare-hierarchy", action="store_true",
@@ -271,6 +273,12 @@ def main() -> None:
                     shard_texels=min(BakeSettings().shard_texels, args.atlas))
     if args.spt is not None:
         base["samples_per_texel"] = args.spt
+    for item in args.set:
+        key, _, value = item.partition("=")
+        try:
+            base[key] = json.loads(value)
+        except json.JSONDecodeError:
+            base[key] = value  # a string field, e.g. hierarchy=dense
     settings = BakeSettings(**base)
     defaults = BakeSettings().model_dump()
     changed = sorted(k for k, v in settings.model_dump().items()
