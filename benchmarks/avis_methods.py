@@ -26,17 +26,24 @@ Three measurements, time and error side by side (DESIGN.md "Measuring"):
     .venv/bin/python benchmarks/avis_methods.py --json avis.json [--quick] [--haar-res 64]
     .venv/bin/python benchmarks/avis_methods.py --identity-only --json avis_identity.json
 
-Measured 2026-11-25 (`--identity-only`; storage = bytes as the payload stores them: uint16
-counts and indices, float32 values ('face') or float16 values and a float32 scale per texel
-('texel'), the float16 sum-correction maps; over the dense float32 maps of every level):
+Measured 2026-11-25 (`--identity-only`; storage = bytes as the payload stores them
+(`AvisTable.stored_bytes`): uint16 counts two to a uint32, int32 index + float32 value ('face')
+or index and float16 value packed in one uint32 plus a float32 scale per texel ('texel'), the
+float16 sum-correction maps; over the dense float32 maps of every level). Worst texel of any
+level against the uncompressed maps; identity = worst |sum a_vis - cos| / cos over levels:
 
-    field      res keep   table      storage  L0 med   max all levels  identity max
-    bumpy       16 0.060  face+corr    8.74 %  2.1 %   3.8 %           0.8 %
-    bumpy       16 0.030  texel        3.99 %  2.0 %   3.2 %           (see the JSON)
-    bumpy       32 0.030  texel        3.80 %  0.6 %   1.3 %   PASS
-    v-grooves   16 0.060  face+corr    8.74 %          8.5 %
-    v-grooves   16 0.030  texel        3.99 %  0.4 %   1.2 %
-    v-grooves   32 0.030  texel        3.80 %  0.1 %   1.4 %   PASS
+    field      res keep   table      storage  L0 med  worst texel  identity  bar
+    bumpy       16 0.060  face+corr   11.4 %   2.1 %   3.8 %        0.9 %     FAIL
+    bumpy       16 0.030  texel        4.0 %   2.0 %   3.2 %        0.8 %     FAIL
+    bumpy       32 0.025  texel        3.3 %   0.9 %   1.6 %        0.2 %     PASS
+    bumpy       32 0.030  texel        3.8 %   0.6 %   1.3 %                  (tests)
+    v-grooves   16 0.060  face+corr   11.4 %           8.5 %        3.1 %     FAIL
+    v-grooves   16 0.030  texel        4.0 %   0.4 %   1.2 %        3.1 %     FAIL (look-up)
+    v-grooves   32 0.030  texel        3.8 %   0.1 %   1.4 %        1.2 %     FAIL (look-up, L0)
+
+(the V-grooves' level-0 identity is the bilinear look-up's, lossless tables have it too:
+docs/decisions.md). Rows measured with 6-byte face coefficients (before the uint32 packing; texel rows unchanged):
+results/avis_identity_partial.txt (the run was stopped at res 32 on the V-grooves).
 """
 
 from __future__ import annotations

@@ -71,26 +71,34 @@ class AvisTable:
         return int(self.closed.shape[0])
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """Named arrays (what the payload writer stores). The Haar table is stored compactly:
-        per-map counts and in-map indices as uint16 (uint32 beyond 256^2 coefficients), values
-        as float32, or as float16 relative to `haar_scale` (per ray texel, float32)."""
+        """Named arrays (what the payload writer stores). USD has no 16-bit integer arrays, so
+        the Haar table is packed into uint32: per-map coefficient counts two to a word
+        (uint16 each; the maps come six to a texel), and with `haar_scale` (float16 values)
+        each coefficient as one word, its in-map index in the low 16 bits and the float16
+        value's bits in the high 16 (`haar_packed`); without it (the seed's table) int32
+        indices and float32 values. meta[2] = 1 marks this layout (bakes before it: offsets).
+        Counts wider than 16 bits (res > 128) are stored one to a word."""
         n_coef = self.haar.res * self.haar.res
-        small = np.uint16 if n_coef <= 65535 else np.uint32
-        idx_t = np.uint16 if n_coef <= 65536 else np.uint32
-        if self.haar_scale.size:
-            values = quantize_values(self.haar.values, self._entry_scale())[0]
-        else:
-            values = self.haar.values
-        return {
-            "meta": np.array([self.res, self.haar.res], dtype=np.int64),
+        counts = np.diff(self.haar.offsets)
+        out = {
+            "meta": np.array([self.res, self.haar.res, 1], dtype=np.int64),
             "frames": self.frames, "texel_area": self.texel_area, "closed": self.closed,
             "bounded": self.bounded, "cf_offsets": self.cf.offsets,
             "cf_normals": self.cf.normals, "cf_areas": self.cf.areas, "ray_row": self.ray_row,
-            "haar_counts": np.diff(self.haar.offsets).astype(small),
-            "haar_indices": self.haar.indices.astype(idx_t),
-            "haar_values": values, "haar_scale": self.haar_scale, "correction": self.correction,
+            "haar_counts": (counts.astype(np.uint16).view(np.uint32)
+                            if n_coef <= 65535 and counts.size % 2 == 0
+                            else counts.astype(np.uint32)),
+            "haar_scale": self.haar_scale, "correction": self.correction,
             "correction_groups": self.correction_groups,
         }
+        if self.haar_scale.size:
+            q = quantize_values(self.haar.values, self._entry_scale())[0]
+            out["haar_packed"] = (self.haar.indices.astype(np.uint32)
+                                  | (q.view(np.uint16).astype(np.uint32) << 16))
+        else:
+            out["haar_indices"] = self.haar.indices.astype(np.int32)
+            out["haar_values"] = self.haar.values.astype(np.float32)
+        return out
 
     def _entry_scale(self) -> np.ndarray:
         """(nnz,) float32 scale of every stored Haar value (its texel's `haar_scale`)."""
@@ -102,39 +110,52 @@ class AvisTable:
         values, scales and the correction maps (the storage the benchmarks count)."""
         a = self.to_arrays()
         return int(sum(a[k].nbytes for k in ("haar_counts", "haar_indices", "haar_values",
-                                             "haar_scale", "correction")))
+                                             "haar_packed", "haar_scale", "correction")
+                       if k in a))
 
     @classmethod
     def from_arrays(cls, arrays) -> AvisTable:
         """Inverse of `to_arrays` (any mapping of name -> array)."""
         need = ("meta", "frames", "texel_area", "closed", "bounded", "cf_offsets", "cf_normals",
-                "cf_areas", "ray_row", "haar_indices", "haar_values")
+                "cf_areas", "ray_row")
         missing = [k for k in need if k not in arrays]
         if "haar_counts" not in arrays and "haar_offsets" not in arrays:
             missing.append("haar_counts")
+        if "haar_packed" not in arrays and ("haar_indices" not in arrays
+                                            or "haar_values" not in arrays):
+            missing.append("haar_packed (or haar_indices and haar_values)")
         if missing:
             raise ShapeError(f"a_vis table arrays are missing {missing}")
-        res = int(np.asarray(arrays["meta"])[0])
+        meta = np.asarray(arrays["meta"]).reshape(-1)
+        res = int(meta[0])
         ray_row = np.asarray(arrays["ray_row"], np.int64)
         n_ray = int(ray_row.max()) + 1 if ray_row.size else 0
-        if "haar_counts" in arrays:  # today's layout; bakes before it stored offsets
-            offsets = np.concatenate([[0], np.cumsum(np.asarray(arrays["haar_counts"],
-                                                                 np.int64))]).astype(np.int64)
-        else:
+        n_maps = n_ray * 6
+        if "haar_counts" in arrays:  # meta[2] = 1: uint16 pairs in uint32 words
+            raw = np.asarray(arrays["haar_counts"])
+            counts = (raw.astype(np.uint32).view(np.uint16) if raw.size * 2 == n_maps
+                      else raw).astype(np.int64)
+            offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        else:  # bakes before the packed layout
             offsets = np.asarray(arrays["haar_offsets"], np.int64)
         scale = np.asarray(arrays.get("haar_scale", np.zeros(0)), np.float32).reshape(-1)
-        values = np.asarray(arrays["haar_values"])
+        if "haar_packed" in arrays:
+            packed = np.asarray(arrays["haar_packed"]).astype(np.uint32)
+            indices = (packed & 0xFFFF).astype(np.int32)
+            values = (packed >> 16).astype(np.uint16).view(np.float16)
+        else:
+            indices = np.asarray(arrays["haar_indices"], np.int32)
+            values = np.asarray(arrays["haar_values"])
         if scale.size:
             if scale.shape[0] != n_ray:
                 raise ShapeError(f"haar_scale must have one entry per ray texel ({n_ray}), got "
                                  f"{scale.shape[0]}")
             maps = np.repeat(np.arange(offsets.shape[0] - 1), np.diff(offsets))
             values = dequantize_values(values, scale[maps // 6])
-        haar = HaarCoeffs(res, (n_ray, 6), offsets,
-                          np.asarray(arrays["haar_indices"], np.int32), values)
-        if haar.n_maps != n_ray * 6:
-            raise ShapeError(f"haar_offsets describe {haar.n_maps} maps, ray_row needs "
-                             f"{n_ray * 6}")
+        haar = HaarCoeffs(res, (n_ray, 6), offsets, indices, values)
+        if haar.n_maps != n_maps:
+            raise ShapeError(f"haar counts describe {haar.n_maps} maps, ray_row needs "
+                             f"{n_maps}")
         cf = ClosedForm(np.asarray(arrays["cf_offsets"], np.int64),
                         np.asarray(arrays["cf_normals"], np.float64),
                         np.asarray(arrays["cf_areas"], np.float64))
