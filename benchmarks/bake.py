@@ -161,7 +161,12 @@ def run_one(scene: Path, settings: BakeSettings, out: Path, with_avis_ref: bool)
         "levels": [{"level": lv["level"], "texels_valid": lv["texels_valid"],
                     "c_mean": lv["c"].get("mean"),
                     "insample_db": lv["snr_insample_db"].get("mean"),
-                    "heldout_db": lv["snr_heldout_db"].get("mean")} for lv in report["levels"]],
+                    "heldout_db": lv["snr_heldout_db"].get("mean"),
+                    "heldout_db_median": lv["snr_heldout_db"].get("p50"),
+                    "heldout_db_p5": lv["snr_heldout_db"].get("p5"),
+                    "c_median": lv["c"].get("p50"), "k_median": lv["k"].get("p50"),
+                    "avis_texels_above_tolerance": lv["avis"].get("texels_above_tolerance")}
+                   for lv in report["levels"]],
     }
     if with_avis_ref:
         ctx = stages.StageContext.create(out / ".work", scene, settings)
@@ -335,6 +340,8 @@ def main() -> None:
                     help="finest texels per side (default: the bake's default)")
     ap.add_argument("--spt", type=int, default=None,
                     help="samples per finest texel (default: the bake's default)")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a BakeSettings field for the main bake (repeatable), e.g. eps_db=40")
     ap.add_argument("--sweep", action="store_true", help="also vary each main knob alone")
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--compare-hierarchy", action="store_true",
@@ -360,6 +367,12 @@ def main() -> None:
                     shard_texels=min(BakeSettings().shard_texels, args.atlas))
     if args.spt is not None:
         base["samples_per_texel"] = args.spt
+    for item in args.set:
+        key, _, value = item.partition("=")
+        try:
+            base[key] = json.loads(value)
+        except json.JSONDecodeError:
+            base[key] = value  # a string field, e.g. hierarchy=dense
     settings = BakeSettings(**base)
     defaults = BakeSettings().model_dump()
     changed = sorted(k for k, v in settings.model_dump().items()
@@ -381,10 +394,16 @@ def main() -> None:
     print(f"a_vis: baked 6x{ref['baked_resolution']}^2 Haar vs 6x{ref['reference_resolution']}^2 "
           f"reference on {ref['texels']} texels: rel error mean {ref['rel_error_mean']:.3f} "
           f"(max {ref['rel_error_max']:.3f})")
-    print(f"{'level':>5} {'valid':>6} {'c':>6} {'in dB':>7} {'ho dB':>7}")
+    nan = float("nan")
+    print(f"{'level':>5} {'valid':>6} {'c':>6} {'k med':>6} {'in dB':>7} {'ho dB':>7} "
+          f"{'ho med':>7} {'ho p5':>7} {'bar (med >= 30 dB)':>19}")
     for lv in main_run["levels"]:
+        med = lv["heldout_db_median"]
         print(f"{lv['level']:>5} {lv['texels_valid']:>6} {lv['c_mean'] or 0:>6.1f} "
-              f"{lv['insample_db'] or float('nan'):>7.1f} {lv['heldout_db'] or float('nan'):>7.1f}")
+              f"{lv['k_median'] or 0:>6.1f} {lv['insample_db'] or nan:>7.1f} "
+              f"{lv['heldout_db'] or nan:>7.1f} {med if med is not None else nan:>7.1f} "
+              f"{lv['heldout_db_p5'] if lv['heldout_db_p5'] is not None else nan:>7.1f} "
+              f"{'PASS' if med is not None and med >= 30.0 else 'FAIL':>19}")
     out = {"scene": args.scene, "size": args.size, **main_run, "sweep": [],
            "bake_settings": json.loads(settings.model_dump_json()),
            "bake_settings_non_default": changed}

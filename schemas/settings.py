@@ -88,6 +88,13 @@ class BakeSettings(BaseModel):
         description="children: coarse texels select from their children's weighted points; "
         "dense: from all dense samples, as the seed.",
     )
+    coarse_target: Literal["dense", "children"] = Field(
+        "dense",
+        description="With hierarchy='children', what a coarse texel's point weights are fitted "
+        "to: 'dense' refits them by NNLS to the texel's Eq. 7 over all its dense samples "
+        "(texelbake.cpm.refit; measured: level 4 of the small cylinder 10.8 -> 22.9 dB held-out); "
+        "'children': the children's weighted sum, as the fit selects them (compounds errors).",
+    )
     fit_method: Literal["batched", "per_texel"] = Field(
         "batched",
         description="batched: R, Grams and eigendecompositions for many texels at once "
@@ -114,7 +121,14 @@ class BakeSettings(BaseModel):
     )
     # visible projected area (seed 000 §3.4)
     avis_resolution: int = Field(16, ge=2, le=256, description="Cube-map face resolution.")
-    avis_keep_fraction: float = Field(0.06, gt=0.0, le=1.0, description="Haar coefficients kept.")
+    avis_keep_fraction: float = Field(
+        0.03, gt=0.0, le=1.0, description="Haar coefficients kept, a fraction of the level's "
+        "dense cube pixels (4 bytes each with avis_selection='texel': 0.03 stores 4.0 % of the "
+        "dense float32 maps with the counts, scales and sum corrections).")
+    avis_selection: Literal["texel", "face"] = Field(
+        "texel", description="How the a_vis Haar coefficients are chosen: 'texel' spends one "
+        "budget per level so that every texel's relative error is about equal (U^2-weighted, "
+        "float16 values); 'face' is the seed's per-face top fraction with float32 values.")
     # quality gate (issue 22, item 2; texelbake.quality): targets, not inputs of any stage
     gate_snr_median_db: float = Field(
         GATE_SNR_MEDIAN_DB, ge=-200.0, le=200.0,

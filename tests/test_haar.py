@@ -126,3 +126,46 @@ def test_deterministic(rng):
     a, b = compress_haar(maps, 0.06), compress_haar(maps.copy(), 0.06)
     assert a.indices.tobytes() == b.indices.tobytes()
     assert a.values.tobytes() == b.values.tobytes()
+
+
+def test_budget_mask_equalises_relative_residuals(rng):
+    from texelbake.cpm.haar import budget_mask
+
+    # two groups, one with a heavy tail: the budget goes where the residual is larger
+    imp = np.vstack([np.sort(rng.uniform(0, 1, 50))[::-1] ** 4,
+                     np.sort(rng.uniform(0, 1, 50))[::-1] ** 0.5]) / 10.0
+    mask = budget_mask(imp, 40)
+    assert mask.sum() <= 40 and mask.sum(axis=1).min() >= 1
+    dropped = np.where(mask, 0.0, imp).sum(axis=1)
+    assert mask[1].sum() > mask[0].sum()
+    # one more coefficient for the worse group would not fit; the residuals are within the
+    # next coefficient of each other
+    assert abs(dropped[0] - dropped[1]) <= max(imp[0][~mask[0]].max(), imp[1][~mask[1]].max())
+    # kept entries are each group's largest
+    for g in range(2):
+        assert imp[g][mask[g]].min() >= imp[g][~mask[g]].max()
+
+
+def test_support_mean_matches_a_direct_average(rng):
+    from texelbake.cpm.haar import haar_support_mean
+
+    w = rng.uniform(0, 1, (2, 8, 8))
+    m = haar_support_mean(w)
+    np.testing.assert_allclose(m[:, 0, 0], w.mean(axis=(1, 2)))
+    # subband of side 2 (rows/cols 2:4): supports are 4x4 blocks
+    np.testing.assert_allclose(m[:, 3, 1], w[:, 4:8, 4:8].mean(axis=(1, 2)))  # 'da' (1, 1)
+    np.testing.assert_allclose(m[:, 0, 3], w[:, 0:4, 4:8].mean(axis=(1, 2)))  # 'ad' (0, 1)
+    # finest subband (side 4): 2x2 blocks
+    np.testing.assert_allclose(m[:, 6, 5], w[:, 4:6, 2:4].mean(axis=(1, 2)))  # 'dd' (2, 1)
+
+
+def test_float16_values_round_trip_exactly(rng):
+    from texelbake.cpm.haar import dequantize_values, quantize_values
+
+    v = rng.normal(0, 1, 1000) * 10.0 ** rng.uniform(-6, 0, 1000)
+    scale = np.full(1000, np.abs(v).max(), np.float32)
+    q, deq = quantize_values(v, scale)
+    np.testing.assert_allclose(deq, v, rtol=1e-3, atol=1e-3 * scale[0])
+    q2, deq2 = quantize_values(deq, scale)  # re-storing a read table changes nothing
+    np.testing.assert_array_equal(q2, q)
+    np.testing.assert_array_equal(dequantize_values(q2, scale), deq)

@@ -56,12 +56,13 @@ _DTYPES: dict[str, tuple[Any, Any]] = {
     "float64": (Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray),
     "int32": (Sdf.ValueTypeNames.IntArray, Vt.IntArray),
     "int64": (Sdf.ValueTypeNames.Int64Array, Vt.Int64Array),
+    "uint32": (Sdf.ValueTypeNames.UIntArray, Vt.UIntArray),
     "uint8": (Sdf.ValueTypeNames.UCharArray, Vt.UCharArray),
     "bool": (Sdf.ValueTypeNames.BoolArray, Vt.BoolArray),
 }
 _FROM_USD = {
     "half[]": np.float16, "float[]": np.float32, "double[]": np.float64, "int[]": np.int32,
-    "int64[]": np.int64,
+    "int64[]": np.int64, "uint[]": np.uint32,
     "uchar[]": np.uint8, "bool[]": np.bool_,
 }
 

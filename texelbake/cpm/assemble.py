@@ -50,7 +50,8 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
 
 def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_keep_fraction: float,
                    level: int, data: dict[str, np.ndarray],
-                   avis_level: avis_mod.AvisLevel) -> tuple[dict[str, np.ndarray], dict]:
+                   avis_level: avis_mod.AvisLevel, avis_selection: str = "texel",
+                   ) -> tuple[dict[str, np.ndarray], dict]:
     """One CPM level as dense per-texel payload arrays, and its report entry.
 
     geo : the geometry stage's arrays; data : the level's fit (`texelbake.cpm.level`, sorted
@@ -69,7 +70,8 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         return out
 
     frames = geo[f"frames_L{level}"]
-    table = avis_mod.compress_level(avis_level, frames, avis_keep_fraction)
+    table = avis_mod.compress_level(avis_level, frames, avis_keep_fraction,
+                                    selection=avis_selection)
     arrays = {
         "texel_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
         "point_sample": pts.astype(np.int64),

@@ -239,3 +239,134 @@ def eval_haar_point(coeffs: HaarCoeffs, map_index: np.ndarray, iu: np.ndarray,
     found = keys[pos_c] == query
     vals = np.where(found, coeffs.values[pos_c].astype(np.float64), 0.0)
     return np.sum(vals * basis, axis=1)
+
+
+# --------------------------------------------------------------------------------------------
+# budgeted selection across maps (issue 11): one coefficient budget per batch of maps, spent
+# where it lowers each group's *relative* error most evenly
+
+
+def haar_coefficients(face_maps: np.ndarray) -> np.ndarray:
+    """Full-depth orthonormal Haar coefficients of every map, Mallat layout.
+
+    face_maps : (..., res, res) float, res a power of two
+    returns : (..., res, res) float64 (approximation at [0, 0]; see the module docstring)
+    """
+    maps = np.asarray(face_maps, dtype=np.float64)
+    if maps.ndim < 2 or maps.shape[-1] != maps.shape[-2]:
+        raise ShapeError(f"face_maps must be (..., res, res), got {maps.shape}")
+    res = _check_res(maps.shape[-1], "face_maps.shape[-1]")
+    if not np.all(np.isfinite(maps)):
+        raise NumericalError("face_maps contains NaN or Inf; Haar compression needs finite maps")
+    flat = maps.reshape(-1, res, res)
+    if flat.shape[0] == 0 or res == 1:
+        return flat.reshape(maps.shape).copy()
+    levels = int(round(math.log2(res)))
+    coeffs = pywt.wavedec2(flat, _WAVELET, mode=_MODE, level=levels, axes=(-2, -1))
+    arr, _ = pywt.coeffs_to_array(coeffs, axes=(-2, -1))
+    return np.asarray(arr, np.float64).reshape(maps.shape)
+
+
+def haar_support_mean(weight: np.ndarray) -> np.ndarray:
+    """Mean of a per-pixel weight over the support of every Haar basis function (Mallat layout).
+
+    A Haar function's square is constant on its support, so for a coefficient c the error of
+    dropping it, measured with pixel weights w, is c^2 times this mean (cross terms aside).
+    weight : (..., res, res) float; returns (..., res, res) float64
+    """
+    w = np.asarray(weight, dtype=np.float64)
+    res = _check_res(w.shape[-1], "weight.shape[-1]")
+    lead = w.shape[:-2]
+    out = np.empty_like(w)
+    out[..., 0, 0] = w.mean(axis=(-2, -1))
+    s = 1
+    while s < res:  # loop over log2(res) subbands, each vectorized over every map
+        side = res // s  # support side of the subband's functions
+        b = w.reshape(*lead, s, side, s, side).mean(axis=(-3, -1))
+        out[..., s:2 * s, :s] = b
+        out[..., :s, s:2 * s] = b
+        out[..., s:2 * s, s:2 * s] = b
+        s *= 2
+    return out
+
+
+def budget_mask(importance: np.ndarray, budget: int, *, steps: int = 64) -> np.ndarray:
+    """Which coefficients to keep so that every group's relative residual is about equal.
+
+    importance : (g, n) float >= 0, the error each coefficient would add if dropped, divided
+        by its group's squared reference norm (a group: one texel's six faces)
+    budget : total coefficients to keep (>= g; every group keeps at least its largest one)
+    returns : (g, n) bool. Each group keeps its largest-importance coefficients until the sum
+        of the dropped ones is at most tau, with one tau for all groups, the smallest whose
+        count fits the budget (bisection on log tau). Equal residuals minimise the largest
+        per-group error for the count (the per-texel bar is on the worst texel), unlike one
+        magnitude threshold for all (which minimises the sum). Ties: lower index first.
+    """
+    imp = np.asarray(importance, dtype=np.float64)
+    if imp.ndim != 2:
+        raise ShapeError(f"importance must be (groups, coefficients), got {imp.shape}")
+    g, n = imp.shape
+    if g == 0 or n == 0:
+        return np.zeros(imp.shape, bool)
+    order = np.argsort(-imp, axis=1, kind="stable")
+    srt = np.take_along_axis(imp, order, axis=1)
+    # tail[:, i] = what is dropped when the first i are kept (i = 0..n-1); after all n: 0
+    tail = np.cumsum(srt[:, ::-1], axis=1)[:, ::-1]
+    nonzero = (srt > 0).sum(axis=1)
+
+    def counts(tau: float) -> np.ndarray:
+        return np.clip((tail > tau).sum(axis=1), 1, np.maximum(nonzero, 1))
+
+    hi = float(tail[:, 0].max()) if tail.size else 0.0
+    if counts(0.0).sum() <= budget or hi <= 0.0:
+        cnt = counts(0.0)
+    else:
+        lo_l, hi_l = math.log(max(hi, 1e-300) * 1e-30), math.log(hi)
+        for _ in range(steps):  # bisection on log tau, each step vectorized over all groups
+            mid = 0.5 * (lo_l + hi_l)
+            if counts(math.exp(mid)).sum() > budget:
+                lo_l = mid
+            else:
+                hi_l = mid
+        cnt = counts(math.exp(hi_l))
+    keep_sorted = np.arange(n)[None, :] < cnt[:, None]
+    mask = np.zeros((g, n), bool)
+    np.put_along_axis(mask, order, keep_sorted, axis=1)
+    return mask
+
+
+def quantize_values(values: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float16 storage of coefficients relative to a per-entry scale (float32).
+
+    values : (k,) float; scale : (k,) float > 0 (the group's largest |c|, so |c/scale| <= 1
+        and float16's 11-bit mantissa gives 5e-4 relative error per coefficient)
+    returns : (q (k,) float16, dequantized (k,) float32 = float32(q) * scale), the second is
+        exactly what `dequantize_values` returns from the stored pair
+    """
+    s = np.asarray(scale, np.float32)
+    q = (np.asarray(values, np.float64) / s).astype(np.float16)
+    return q, dequantize_values(q, s)
+
+
+def dequantize_values(q: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Inverse of `quantize_values` (float32)."""
+    return np.asarray(q, np.float16).astype(np.float32) * np.asarray(scale, np.float32)
+
+
+def coeffs_from_mask(coeffs: np.ndarray, mask: np.ndarray, values: np.ndarray | None = None
+                     ) -> HaarCoeffs:
+    """HaarCoeffs of the entries of `coeffs` (..., res, res) Mallat layout where `mask` holds;
+    `values` (same shape, float32) replaces the stored values (e.g. dequantized ones). Exact
+    zeros are not stored."""
+    arr = np.asarray(coeffs, np.float64)
+    res = _check_res(arr.shape[-1], "coeffs.shape[-1]")
+    batch_shape = tuple(int(s) for s in arr.shape[:-2])
+    vals_src = arr if values is None else np.asarray(values)
+    flat = arr.reshape(-1, res * res)
+    keep = np.asarray(mask, bool).reshape(flat.shape) & (flat != 0.0)
+    counts = keep.sum(axis=1)
+    offsets = np.zeros(flat.shape[0] + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    rows, cols = np.nonzero(keep)  # row-major: ascending indices within each map
+    vals = vals_src.reshape(flat.shape)[rows, cols].astype(np.float32)
+    return HaarCoeffs(res, batch_shape, offsets, cols.astype(np.int32), vals)

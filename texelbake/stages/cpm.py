@@ -13,6 +13,7 @@ from texelbake.cpm.level import (
     tile_texels,
 )
 from texelbake.cpm.level_batched import fit_level
+from texelbake.cpm.refit import refit_to_dense
 from texelbake.stages.context import StageContext
 
 
@@ -37,9 +38,19 @@ def run_cpm_tile(ctx: StageContext, shard: int) -> str:
             continue
         texels = tile_texels(s.atlas_resolution, s.shard_texels, shard, level)
         cands = level_candidates(ctx.fit_inputs(), level, texels, children)
-        children = fit_level(ctx.fit_inputs(), level, texels, cands)
+        children = refit_coarse(ctx, level, fit_level(ctx.fit_inputs(), level, texels, cands))
         ctx.store.write_arrays(key, children)
     return last
+
+
+def refit_coarse(ctx: StageContext, level: int, out: dict[str, np.ndarray]
+                 ) -> dict[str, np.ndarray]:
+    """A coarse level's fit with its weights refitted to the dense Eq. 7 when the settings ask
+    for it (`coarse_target="dense"` with `hierarchy="children"`; issue 11, item 3)."""
+    s = ctx.settings
+    if level == 0 or s.hierarchy != "children" or s.coarse_target != "dense":
+        return out
+    return refit_to_dense(ctx.fit_inputs(), level, out)
 
 
 def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
@@ -61,7 +72,7 @@ def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
         n_l = s.atlas_resolution >> level
         texels = np.arange(n_l * n_l, dtype=np.int64)
         cands = level_candidates(ctx.fit_inputs(), level, texels, children)
-        children = fit_level(ctx.fit_inputs(), level, texels, cands)
+        children = refit_coarse(ctx, level, fit_level(ctx.fit_inputs(), level, texels, cands))
         ctx.store.write_arrays(key, children)
     return last
 

@@ -63,7 +63,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     levels, level_reports = [], []
     for lvl in range(ctx.n_levels):
         arrays, rep = assemble_level(geo, s.atlas_resolution, s.avis_keep_fraction, lvl, cpm_lv[lvl],
-                                   avis_lv[lvl])
+                                   avis_lv[lvl], s.avis_selection)
         levels.append(arrays)
         level_reports.append(rep)
     dirs = direction_sets(s)

@@ -9,7 +9,18 @@ import numpy as np
 from texelbake.cpm.avis.closed_form import ClosedForm, closed_form_maps, eval_closed_form
 from texelbake.cpm.avis.cube import FACE_BASIS, dirs_to_cube
 from texelbake.cpm.avis.levels import AvisLevel
-from texelbake.cpm.haar import HaarCoeffs, compress_haar, decompress_haar, eval_haar_point
+from texelbake.cpm.haar import (
+    HaarCoeffs,
+    budget_mask,
+    coeffs_from_mask,
+    compress_haar,
+    decompress_haar,
+    dequantize_values,
+    eval_haar_point,
+    haar_coefficients,
+    haar_support_mean,
+    quantize_values,
+)
 from texelbake.errors import SettingsError, ShapeError
 from texelbake.frames import to_world
 from texelbake.tol import TOL
@@ -39,6 +50,8 @@ class AvisTable:
         one per group present in the level, (0,) when the table has none (the seed's plain
         Haar table, or a bake from before it); correction_groups : (k,) uint8, which group
         each map corrects: 0 the bounded texels' visible fractions, 1 the direct texels' a_vis
+    haar_scale : (n_ray,) float32, per ray texel, when the Haar values are stored as float16
+        relative to it (`selection="texel"`); (0,) for float32 values (the seed's table)
     """
 
     res: int
@@ -51,40 +64,98 @@ class AvisTable:
     haar: HaarCoeffs
     correction: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float16))
     correction_groups: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
+    haar_scale: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
 
     @property
     def n_texels(self) -> int:
         return int(self.closed.shape[0])
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """Named arrays (what the payload writer stores; float32 Haar values)."""
-        return {
-            "meta": np.array([self.res, self.haar.res], dtype=np.int64),
+        """Named arrays (what the payload writer stores). USD has no 16-bit integer arrays, so
+        the Haar table is packed into uint32: per-map coefficient counts two to a word
+        (uint16 each; the maps come six to a texel), and with `haar_scale` (float16 values)
+        each coefficient as one word, its in-map index in the low 16 bits and the float16
+        value's bits in the high 16 (`haar_packed`); without it (the seed's table) int32
+        indices and float32 values. meta[2] = 1 marks this layout (bakes before it: offsets).
+        Counts wider than 16 bits (res > 128) are stored one to a word."""
+        n_coef = self.haar.res * self.haar.res
+        counts = np.diff(self.haar.offsets)
+        out = {
+            "meta": np.array([self.res, self.haar.res, 1], dtype=np.int64),
             "frames": self.frames, "texel_area": self.texel_area, "closed": self.closed,
             "bounded": self.bounded, "cf_offsets": self.cf.offsets,
             "cf_normals": self.cf.normals, "cf_areas": self.cf.areas, "ray_row": self.ray_row,
-            "haar_offsets": self.haar.offsets, "haar_indices": self.haar.indices,
-            "haar_values": self.haar.values, "correction": self.correction,
+            "haar_counts": (counts.astype(np.uint16).view(np.uint32)
+                            if n_coef <= 65535 and counts.size % 2 == 0
+                            else counts.astype(np.uint32)),
+            "haar_scale": self.haar_scale, "correction": self.correction,
             "correction_groups": self.correction_groups,
         }
+        if self.haar_scale.size:
+            q = quantize_values(self.haar.values, self._entry_scale())[0]
+            out["haar_packed"] = (self.haar.indices.astype(np.uint32)
+                                  | (q.view(np.uint16).astype(np.uint32) << 16))
+        else:
+            out["haar_indices"] = self.haar.indices.astype(np.int32)
+            out["haar_values"] = self.haar.values.astype(np.float32)
+        return out
+
+    def _entry_scale(self) -> np.ndarray:
+        """(nnz,) float32 scale of every stored Haar value (its texel's `haar_scale`)."""
+        maps = np.repeat(np.arange(self.haar.n_maps), np.diff(self.haar.offsets))
+        return self.haar_scale[maps // 6]
+
+    def stored_bytes(self) -> int:
+        """Bytes of the compressed maps as `to_arrays` stores them: Haar counts, indices,
+        values, scales and the correction maps (the storage the benchmarks count)."""
+        a = self.to_arrays()
+        return int(sum(a[k].nbytes for k in ("haar_counts", "haar_indices", "haar_values",
+                                             "haar_packed", "haar_scale", "correction")
+                       if k in a))
 
     @classmethod
     def from_arrays(cls, arrays) -> AvisTable:
         """Inverse of `to_arrays` (any mapping of name -> array)."""
         need = ("meta", "frames", "texel_area", "closed", "bounded", "cf_offsets", "cf_normals",
-                "cf_areas", "ray_row", "haar_offsets", "haar_indices", "haar_values")
+                "cf_areas", "ray_row")
         missing = [k for k in need if k not in arrays]
+        if "haar_counts" not in arrays and "haar_offsets" not in arrays:
+            missing.append("haar_counts")
+        if "haar_packed" not in arrays and ("haar_indices" not in arrays
+                                            or "haar_values" not in arrays):
+            missing.append("haar_packed (or haar_indices and haar_values)")
         if missing:
             raise ShapeError(f"a_vis table arrays are missing {missing}")
-        res = int(np.asarray(arrays["meta"])[0])
+        meta = np.asarray(arrays["meta"]).reshape(-1)
+        res = int(meta[0])
         ray_row = np.asarray(arrays["ray_row"], np.int64)
         n_ray = int(ray_row.max()) + 1 if ray_row.size else 0
-        haar = HaarCoeffs(res, (n_ray, 6), np.asarray(arrays["haar_offsets"], np.int64),
-                          np.asarray(arrays["haar_indices"], np.int32),
-                          np.asarray(arrays["haar_values"]))
-        if haar.n_maps != n_ray * 6:
-            raise ShapeError(f"haar_offsets describe {haar.n_maps} maps, ray_row needs "
-                             f"{n_ray * 6}")
+        n_maps = n_ray * 6
+        if "haar_counts" in arrays:  # meta[2] = 1: uint16 pairs in uint32 words
+            raw = np.asarray(arrays["haar_counts"])
+            counts = (raw.astype(np.uint32).view(np.uint16) if raw.size * 2 == n_maps
+                      else raw).astype(np.int64)
+            offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        else:  # bakes before the packed layout
+            offsets = np.asarray(arrays["haar_offsets"], np.int64)
+        scale = np.asarray(arrays.get("haar_scale", np.zeros(0)), np.float32).reshape(-1)
+        if "haar_packed" in arrays:
+            packed = np.asarray(arrays["haar_packed"]).astype(np.uint32)
+            indices = (packed & 0xFFFF).astype(np.int32)
+            values = (packed >> 16).astype(np.uint16).view(np.float16)
+        else:
+            indices = np.asarray(arrays["haar_indices"], np.int32)
+            values = np.asarray(arrays["haar_values"])
+        if scale.size:
+            if scale.shape[0] != n_ray:
+                raise ShapeError(f"haar_scale must have one entry per ray texel ({n_ray}), got "
+                                 f"{scale.shape[0]}")
+            maps = np.repeat(np.arange(offsets.shape[0] - 1), np.diff(offsets))
+            values = dequantize_values(values, scale[maps // 6])
+        haar = HaarCoeffs(res, (n_ray, 6), offsets, indices, values)
+        if haar.n_maps != n_maps:
+            raise ShapeError(f"haar counts describe {haar.n_maps} maps, ray_row needs "
+                             f"{n_maps}")
         cf = ClosedForm(np.asarray(arrays["cf_offsets"], np.int64),
                         np.asarray(arrays["cf_normals"], np.float64),
                         np.asarray(arrays["cf_areas"], np.float64))
@@ -96,7 +167,7 @@ class AvisTable:
         return cls(res, np.asarray(arrays["frames"], np.float64),
                    np.asarray(arrays["texel_area"], np.float64),
                    np.asarray(arrays["closed"], bool), np.asarray(arrays["bounded"], bool), cf,
-                   ray_row, haar, corr, groups)
+                   ray_row, haar, corr, groups, scale)
 
     def evaluate(self, texels: np.ndarray, dirs_texel: np.ndarray, *,
                  interp: str = "bilinear",
@@ -361,34 +432,45 @@ def apply_correction(values: np.ndarray, c: np.ndarray, bounded: bool) -> np.nda
 
 
 def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float, *,
-                   correct_sum: bool = True) -> AvisTable:
+                   correct_sum: bool = True, selection: str = "texel") -> AvisTable:
     """AvisTable of a level: closed-form terms as they are, Haar for the ray-based texels.
 
     frames : (N*N, 3, 3) float64 texel frames of this level (rows t, b, n)
-    keep_fraction : Haar coefficients kept per cube face (texelbake.haar.compress_haar)
-    correct_sum : store the level's `sum_correction` (default); False is the seed's plain
-        per-face Haar table
+    keep_fraction : Haar coefficients kept, as a fraction of the ray texels' dense cube pixels
+    correct_sum : store the level's `sum_correction` (default); False is the seed's plain Haar
+        table
+    selection : "texel" (default, `select_texel_budget`): one budget for the level, spent so
+        that every texel's relative error of a_vis is about equal, each coefficient weighted by
+        the U^2 it is multiplied with, values float16 relative to a per-texel scale; "face":
+        the seed's per-face top fraction (`compress_haar`), float32 values
     """
     n = level.n_side * level.n_side
     frames = np.asarray(frames, dtype=np.float64)
     if frames.shape != (n, 3, 3):
         raise ShapeError(f"frames must be ({n}, 3, 3), got {frames.shape}")
+    if selection not in ("texel", "face"):
+        raise SettingsError(f"avis selection must be 'texel' or 'face', got {selection!r}")
     ray_row = np.full(n, -1, dtype=np.int64)
     ray_row[level.ray_texels] = np.arange(level.ray_texels.shape[0])
     maps = level.ray_maps.copy()  # (n_ray, 6, res, res)
     frac = level.bounded[level.ray_texels]
+    unocc = np.ones_like(maps)
     if frac.any():
-        unocc = closed_form_maps(level.cf, level.res, level.ray_texels[frac])
-        maps[frac] = visible_fraction(maps[frac], unocc)
-    haar = compress_haar(maps, keep_fraction)
+        unocc[frac] = closed_form_maps(level.cf, level.res, level.ray_texels[frac])
+        maps[frac] = visible_fraction(maps[frac], unocc[frac])
+    scale = np.zeros(0, np.float32)
+    if selection == "face":
+        haar = compress_haar(maps, keep_fraction)
+    else:
+        haar, scale = select_texel_budget(maps, unocc, level.ray_maps, keep_fraction)
     maps_c: list[np.ndarray] = []
     groups: list[int] = []
     if correct_sum and level.ray_texels.shape[0]:
         approx = decompress_haar(haar)  # (n_ray, 6, res, res)
         if frac.any():
             groups.append(0)
-            maps_c.append(sum_correction(maps[frac], np.clip(approx[frac], 0.0, 1.0), unocc,
-                                         bounded=True))
+            maps_c.append(sum_correction(maps[frac], np.clip(approx[frac], 0.0, 1.0),
+                                         unocc[frac], bounded=True))
         if (~frac).any():
             direct = maps[~frac]
             groups.append(1)
@@ -398,7 +480,46 @@ def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float, *
     correction = (np.stack(maps_c).astype(np.float16) if maps_c
                   else np.zeros(0, np.float16))
     return AvisTable(level.res, frames, level.texel_area, level.closed, level.bounded, level.cf,
-                     ray_row, haar, correction, np.asarray(groups, np.uint8))
+                     ray_row, haar, correction, np.asarray(groups, np.uint8), scale)
+
+
+def select_texel_budget(stored: np.ndarray, unoccluded: np.ndarray, avis: np.ndarray,
+                        keep_fraction: float) -> tuple[HaarCoeffs, np.ndarray]:
+    """Haar coefficients of a level's ray texels under one budget (issue 11, item 1).
+
+    stored : (n, 6, res, res) what the table holds (F for bounded texels, a_vis otherwise)
+    unoccluded : (n, 6, res, res) U for bounded texels, ones otherwise (a_vis = U F)
+    avis : (n, 6, res, res) the uncompressed a_vis (each texel's error is relative to it)
+    keep_fraction : budget = ceil(keep_fraction * n * 6 * res^2) coefficients for the level
+
+    Dropping a coefficient c costs about c^2 mean(U^2 over its support) of a_vis error (a Haar
+    function's square is flat on its support); divided by the texel's ||a_vis||^2 that is its
+    share of the texel's relative error. `budget_mask` keeps, per texel, the largest shares
+    until every texel's dropped sum is at most one common tau: the texels' relative errors are
+    about equal and the budget goes to the faces that matter (a height field's lower face,
+    below every horizon, keeps nothing; the seed's per-face quota spends 1/6 of it there).
+    Values are float16 relative to the texel's largest |c| (2 + 2 bytes per coefficient with a
+    uint16 index, against 4 + 2 for float32).
+
+    returns : (HaarCoeffs with float32 dequantized values, (n,) float32 scales)
+    """
+    n = stored.shape[0]
+    res = stored.shape[-1]
+    if n == 0:
+        return compress_haar(stored, 1.0), np.zeros(0, np.float32)
+    if not (0.0 < keep_fraction <= 1.0):
+        raise SettingsError(f"keep_fraction must be in (0, 1], got {keep_fraction!r}")
+    coef = haar_coefficients(stored)  # (n, 6, res, res)
+    cost = coef * coef * haar_support_mean(np.square(unoccluded))
+    norm2 = np.sum(np.square(avis).reshape(n, -1), axis=1)
+    share = cost.reshape(n, -1) / np.where(norm2 > 0, norm2, 1.0)[:, None]
+    budget = max(n, int(np.ceil(keep_fraction * n * 6 * res * res)))
+    mask = budget_mask(share, budget).reshape(coef.shape)
+    peak = np.max(np.abs(np.where(mask, coef, 0.0)).reshape(n, -1), axis=1)
+    scale = np.where(peak > 0, peak, 1.0).astype(np.float32)
+    deq = dequantize_values(quantize_values(coef.reshape(n, -1),
+                                            scale[:, None])[0], scale[:, None])
+    return coeffs_from_mask(coef, mask, deq.reshape(coef.shape)), scale
 
 
 def avis_table_arrays(table: AvisTable) -> dict[str, np.ndarray]:
