@@ -68,11 +68,11 @@ def test_job_status_carries_the_core_estimate():
 
     s = BakeSettings(atlas_resolution=64)
     core = costmodel.estimate(s, 3)
-    queued = job_estimate(SimpleNamespace(started_at=None), s, 3)
+    queued = job_estimate(SimpleNamespace(started_at=None, settings_json=s.model_dump_json()), s, 3)
     assert queued.seconds == pytest.approx(core.seconds, abs=0.05) and queued.eta is None
     assert queued.workers == 3
     t0 = datetime(2026, 11, 25, 9, 0, tzinfo=UTC)
-    running = job_estimate(SimpleNamespace(started_at=t0), s, 3)
+    running = job_estimate(SimpleNamespace(started_at=t0, settings_json=s.model_dump_json()), s, 3)
     assert running.eta == t0 + timedelta(seconds=core.seconds)
 
 
