@@ -259,19 +259,35 @@ def test_simplify_hierarchy_from_a_wrap_has_one_part():
     assert wrapped[0].num_faces <= 60 * 1.5
 
 
-@pytest.mark.parametrize("scale", [0.01, 100.0])
+@pytest.mark.parametrize("scale", [0.01, 0.1, 1000.0])
 def test_simplification_does_not_depend_on_the_asset_s_units(scale):
     """The same asset exported in metres instead of centimetres (a Blender export) must get
-    the same LOD meshes, scaled: meshlab's collapse is not scale-invariant on its own
-    (`hierarchy._unit_frame`). The second computation is the unscaled bake, scaled; the
-    tolerance is far below a texel (1e-6 of the diagonal) and far above rounding."""
+    LOD meshes as close to it, relative to its size, as at its own scale: meshlab's collapse
+    is not scale-invariant on its own (`hierarchy._unit_frame`; at 0.01x, without it, every
+    level was 2-3x further off). Bound: 1.3x the unscaled levels' distance (their spread
+    between scales inside the measured flat range was <= 1.2x)."""
     from geometry_meshes import bumpy_sphere
 
     v, f = bumpy_sphere(3)
+    org = Mesh(v, f)
     ref = simplify_hierarchy(v, f, n_levels=2, ratio=0.3)
     out = simplify_hierarchy(v * scale, f, n_levels=2, ratio=0.3)
-    diag = float(np.linalg.norm(np.ptp(v, axis=0)))
     for a, b in zip(ref, out, strict=True):
-        assert a.num_faces == b.num_faces
-        np.testing.assert_array_equal(a.faces, b.faces)
-        assert np.abs(b.vertices / scale - a.vertices).max() < 1e-6 * diag
+        b1 = Mesh(b.vertices / scale, b.faces)
+        assert abs(a.num_faces - b.num_faces) <= 4
+        d_ref = max(_one_sided(org, a), _one_sided(a, org))
+        d_out = max(_one_sided(org, b1), _one_sided(b1, org))
+        assert d_out <= 1.3 * d_ref, (scale, d_out, d_ref)
+
+
+def test_simplification_inside_the_measured_range_is_unscaled():
+    """Inside COLLAPSE_DIAG the collapse runs on the mesh as given, so bakes made before the
+    frame existed do not move; outside it the mesh is brought to the range's nearest end."""
+    from texelbake.geometry.hierarchy import COLLAPSE_DIAG, _unit_frame
+
+    v, _ = icosphere(1)  # diagonal 2 sqrt(3) ~ 3.46 x the radius
+    for r in (1.1, 10.0, 90.0):
+        assert _unit_frame(v * r) == (pytest.approx(np.zeros(3)), 1.0)
+    for r, end in ((0.01, COLLAPSE_DIAG[0]), (1000.0, COLLAPSE_DIAG[1])):
+        _, scale = _unit_frame(v * r)
+        assert np.linalg.norm(np.ptp(v * r, axis=0)) / scale == pytest.approx(end)

@@ -25,25 +25,30 @@ FACES_PER_PART = 16
 #: ... and only for assets of at least this many parts (a plane and the quad that shadows
 #: it simplify well enough separately)
 WRAP_MIN_PARTS = 8
-#: the bounding-box diagonal every quadric collapse runs at (`_unit_frame`). Measured on
-#: an icosphere and a bumpy sphere simplified at diagonals 0.035 ... 350: the two-sided
-#: distance is 2-4x worse at diagonals <= 0.35 and flat (within run-to-run noise) from 3.5 up;
-#: 4 sits in the flat part, near the generated scenes' own size
-COLLAPSE_DIAG = 4.0
+#: the bounding-box diagonals quadric collapse is run at (`_unit_frame`). Measured on an
+#: icosphere and a bumpy sphere simplified at diagonals 0.035 ... 350: the two-sided distance
+#: (relative to the diagonal) is 1.2-4x worse at diagonals <= 1 and flat, within run-to-run
+#: noise, from 3.5 to 350 (the largest measured)
+COLLAPSE_DIAG = (3.5, 350.0)
 #: the wrap's marching-cubes grid: at most this many cells along the longest side
 WRAP_MAX_CELLS = 400
 
 
 def _unit_frame(vertices: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centre and scale that map the mesh's bounding box to a diagonal of COLLAPSE_DIAG.
+    """Centre and scale that bring the mesh's bounding-box diagonal into COLLAPSE_DIAG.
     meshlab's quadric collapse is not scale-invariant (absolute epsilons in vcg's quadrics):
     the same 480 -> 200 collapse of a cylinder landed 1.2e-5 of the diagonal from the
     original at diagonal 3.8 but 4.0e-2 at diagonal 0.038 (a Blender export in metres), so
-    every collapse runs on the mesh scaled to that diagonal and is scaled back."""
+    a mesh outside the measured range is collapsed scaled to its nearest end and scaled back;
+    inside it the collapse runs as it is (scale 1: results do not move with the frame)."""
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     diag = float(np.linalg.norm(hi - lo))
-    scale = diag / COLLAPSE_DIAG if diag > 0.0 and math.isfinite(diag) else 1.0
-    return 0.5 * (lo + hi), scale
+    if not (diag > 0.0 and math.isfinite(diag)):
+        return np.zeros(3), 1.0
+    lo_d, hi_d = COLLAPSE_DIAG
+    if lo_d <= diag <= hi_d:
+        return np.zeros(3), 1.0
+    return 0.5 * (lo + hi), diag / (lo_d if diag < lo_d else hi_d)
 
 
 def _collapse(mesh: Mesh, target: int, level: int, preserve_boundary: bool) -> pymeshlab.MeshSet:
