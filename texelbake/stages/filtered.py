@@ -123,7 +123,8 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     """The filtered maps (CHANNELS) of every level of a res x res page on the atlas layout,
     from FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on M_org placed on M_T like the
     geometry stage's (`assign_texels`, the bent-normal rule on wraps), and the level-0 tangent-
-    space normal map (unit). Kept in the artifact store."""
+    space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
+    artifact store."""
     from texelbake.filtered_maps import CHANNELS, FIELDS
     from texelbake.geometry.atlas import Atlas
     from texelbake.geometry.mesh import Mesh
@@ -132,7 +133,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     from texelbake.geometry.texels import assign_texels
 
     n_levels = int(np.log2(res)) + 1
-    key = ctx.key("filtered", f"fallback-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
+    key = ctx.key("filtered", f"fallback-v3-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
                   f"-ao{FALLBACK_AO_RAYS}.npz", GEOMETRY_FIELDS)
     if ctx.store.exists(key):
         data = ctx.store.read_arrays(key)
@@ -172,6 +173,26 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
                                    alpha2, fill=False)[0]
         filled = np.bincount(texels[lvl], weights=smp.area, minlength=n_l * n_l) > 0
         maps.append(_nearest_fill(img, filled.reshape(n_l, n_l)).astype(np.float32))
+    # the base colour as seen from outside: a sample counts only when a ray from it along the
+    # normal of the LOD1 face it shows on leaves M_org (so a part enclosed by another, like
+    # BoxAnimated's inner box whose samples project onto the outer walls, does not tint what
+    # covers it); texels none of whose samples is seen keep the area mean
+    t0 = texels[0]
+    lod_n = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
+    lod_n /= np.maximum(np.linalg.norm(lod_n, axis=1, keepdims=True), 1e-300)
+    d = lod_n[prim]
+    eps = TOL.ray_offset * caster.bbox_diag
+    seen_s = ~caster.occluded(smp.positions + eps * d, d)
+    w = smp.area * seen_s
+    wsum = np.bincount(t0, weights=w, minlength=res * res)
+    seen = wsum > 1e-6 * np.bincount(t0, weights=smp.area, minlength=res * res).clip(1e-300)
+    base_seen = np.stack([np.bincount(t0, weights=w * base[:, c], minlength=res * res)
+                          for c in range(3)], axis=1) / np.where(seen, wsum, 1.0)[:, None]
+    filled0 = np.bincount(t0, weights=smp.area, minlength=res * res) > 0
+    top = maps[0].reshape(res * res, -1)
+    top[seen, FIELDS["base"]] = base_seen[seen]
+    maps[0] = _nearest_fill(np.where(filled0[:, None], top, 0.0).reshape(res, res, -1),
+                            filled0.reshape(res, res)).astype(np.float32)
     nbar = maps[0][..., FIELDS["nbar"]].astype(np.float64)
     normal = nbar / np.maximum(np.linalg.norm(nbar, axis=2, keepdims=True), 1e-12)
     assert maps[0].shape[2] == len(CHANNELS)
