@@ -32,8 +32,8 @@ At defaults (2026-11-25, benchmarks/results/lods.json; bake s on a 2-core machin
 
 All six PASS. Read with care: Blender cannot evaluate texelbake's cellular shader, so its
 "original" cloisonne is plain pink while the LOD's fallback shows the baked cells; most of
-BoxAnimated's 0.095 is the original's own dark triangles in Cycles (overlapping coplanar faces
-in the source: they stay with its normals cleared), which no LOD reproduces.
+BoxAnimated's 0.095 is the original's own dark triangles in Cycles, which no LOD reproduces
+(they stay with its custom normals cleared and flat shading: they come from its geometry).
 """
 
 from __future__ import annotations
