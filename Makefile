@@ -11,7 +11,7 @@ WEB_SRC := web/package.json web/package-lock.json web/index.html web/vite.config
 	$(shell find web/src -type f ! -name schema.d.ts 2>/dev/null) $(shell find services schemas -name '*.py' 2>/dev/null)
 WEB_STAMP := web/dist/.built
 
-.PHONY: setup demo test test-fast lint bench scenes clean
+.PHONY: setup demo test test-fast lint bench scenes addon clean
 
 setup: $(STAMP) $(WEB_STAMP)
 	@bash scripts/dcc-venv.sh >/dev/null  # Blender (bpy) for the dcc tests, cached in ~/.cache/texelbake
@@ -43,8 +43,13 @@ test-fast: setup
 	$(PY) -m pytest -q -x -m "not service and not browser and not slow"
 
 lint: setup
-	$(VENV)/bin/ruff check texelbake schemas workers services tests benchmarks
-	$(VENV)/bin/mypy texelbake
+	$(VENV)/bin/ruff check texelbake schemas workers services tests benchmarks blender scripts
+	$(VENV)/bin/mypy texelbake blender/texelbake_submit/client.py
+
+# The Blender add-on as an installable extension zip: build/texelbake_submit-<version>.zip
+# (Blender: Edit > Preferences > Get Extensions > Install from Disk).
+addon:
+	python3.11 scripts/build_addon.py -o build
 
 # Each benchmark prints a table (time beside error) and writes JSON; minutes, not for CI.
 bench: setup

@@ -18,6 +18,8 @@ from schemas.settings import BakeSettings
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 UnitState = Literal["pending", "queued", "running", "done", "failed", "cancelled"]
 TERMINAL_JOB_STATES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
+#: a job's priority when the request names none (0..100)
+DEFAULT_PRIORITY = 50
 
 
 class JobCreate(BaseModel):
@@ -27,6 +29,11 @@ class JobCreate(BaseModel):
 
     asset_id: str = Field(min_length=1, max_length=64)
     settings: BakeSettings = Field(default_factory=BakeSettings)
+    priority: int = Field(
+        DEFAULT_PRIORITY, ge=0, le=100,
+        description="0..100, higher first: the shard ledger sends a queue's ready shards to the "
+        "workers in priority order (then oldest job first), within the tenant's running-shard "
+        "limit. Not part of the bake: it does not change the result or its artifact keys.")
 
 
 class ShardPublic(BaseModel):
@@ -76,6 +83,7 @@ class JobPublic(BaseModel):
     id: str
     asset_id: str
     state: JobState
+    priority: int = Field(DEFAULT_PRIORITY, description="0..100, higher first (`JobCreate`).")
     settings: BakeSettings
     progress: float = Field(description="Fraction of all planned shards done, 0..1.")
     stages: list[StagePublic] = Field(description="Planned stages in execution order.")
@@ -101,6 +109,7 @@ class JobSummary(BaseModel):
     id: str
     asset_id: str
     state: JobState
+    priority: int = Field(DEFAULT_PRIORITY, description="0..100, higher first.")
     progress: float
     error: str | None = None
     created_at: datetime

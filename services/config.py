@@ -36,6 +36,9 @@ class Settings(BaseSettings):
     max_zip_ratio: float = Field(100.0, gt=1.0, description="Zip/usdz: unpacked/packed cap.")
     max_zip_members: int = Field(4096, ge=1)
     validate_timeout: float = Field(120.0, gt=0, description="Seconds for the pxr check.")
+    validate_concurrency: int | None = Field(
+        None, ge=1, description="Upload checks (pxr child processes) at once per API process; "
+        "more wait their turn. Default: the CPU count.")
     # farm
     visibility_timeout: int = Field(
         3600, ge=5, description="Redis redelivery of unacked messages; above the longest shard."
@@ -53,6 +56,25 @@ class Settings(BaseSettings):
         60.0, gt=0, description="A running shard silent this long is re-queued (worker gone)."
     )
     sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
+    # scheduling (issue 16): the shard ledger admits ready shards to the broker
+    queue_backlog: int = Field(
+        2, ge=0, description="Admitted shards per queue group waiting unstarted in the broker; the "
+        "rest wait in the ledger, which admits by job priority (Redis queues are FIFO). "
+        "0: no limit (every ready shard is sent at once and priority has no effect).")
+    queue_groups: dict[str, list[str]] | None = Field(
+        None, description="Queues served by the same workers, sharing one backlog and one "
+        "priority order (JSON: group -> queues); default the worker families "
+        "(prep: ingest, geometry, export; numeric: cpm, avis, btf; render: render).")
+    tenant_max_running_shards: int = Field(
+        0, ge=0, description="Shards one tenant may have admitted or running at once, over "
+        "all queues; 0: no limit. Below the farm's worker count, another tenant's job always "
+        "finds a worker.")
+    tenant_shard_limits: dict[str, int] = Field(
+        default_factory=dict, description="Per-tenant overrides of tenant_max_running_shards "
+        "(JSON: tenant -> limit; 0: no limit).")
+    status_cache_seconds: float = Field(
+        0.05, ge=0, description="A job's status version (state, newest event) is re-read from "
+        "the database at most this often per API process; 0: on every read.")
     estimate_workers: int = Field(
         2, ge=1, description="Worker processes the cost model assumes for a job's estimate."
     )

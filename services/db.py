@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TypeVar
 
 from sqlalchemy import (
     Boolean,
@@ -25,8 +27,16 @@ from sqlalchemy import (
     event,
 )
 from sqlalchemy.engine import Engine, make_url
-from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
+from sqlalchemy.exc import (
+    DBAPIError,
+    IntegrityError,
+    OperationalError,
+    ProgrammingError,
+)
+from sqlalchemy.exc import TimeoutError as SATimeoutError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+
+T = TypeVar("T")
 
 
 def utcnow() -> datetime:
@@ -65,6 +75,8 @@ class Job(Base):
     asset_id: Mapped[str] = mapped_column(ForeignKey("assets.id"))
     settings_json: Mapped[str] = mapped_column(Text)
     state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    #: 0..100, higher first: the ledger admits shards to the broker by priority (issue 16)
+    priority: Mapped[int] = mapped_column(Integer, default=50, server_default="50")
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     skipped_json: Mapped[str] = mapped_column(Text, default="[]")
     plan_sent: Mapped[bool] = mapped_column(Boolean, default=False)
@@ -121,6 +133,8 @@ class Shard(Base):
 
 class Event(Base):
     __tablename__ = "events"
+    # a job's newest event in one index probe (the status cache's version: `max(seq)`)
+    __table_args__ = (Index("ix_event_job_seq", "job_id", "seq"),)
     seq: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     job_id: Mapped[str] = mapped_column(String(64), index=True)
     kind: Mapped[str] = mapped_column(String(16))
@@ -128,18 +142,38 @@ class Event(Base):
     at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
 
 
-_engines: dict[tuple[str, bool], Engine] = {}
+_engines: dict[tuple[str, str], Engine] = {}
 _lock = threading.RLock()
 
+#: engine roles: `write` (ledger transitions; SQLite `BEGIN IMMEDIATE`), `read` (the API's
+#: reads in worker threads), `inline` (reads on the API's event loop: one at a time)
+ROLES = ("write", "read", "inline")
 
-def get_engine(url: str, *, readonly: bool = False) -> Engine:
-    """One engine per (URL, mode) per process; tables created on first use.
+#: PostgreSQL pools per role: (pool_size, max_overflow). The API runs sync routes in anyio's
+#: thread pool (40 threads); a route holds at most one read and one write connection, and the
+#: writes are short transactions, so 20 each cover it without taking half of a default server's
+#: `max_connections` (100) from one process. The inline role serves the event loop, which runs
+#: one query at a time: a pool of its own that thread-held connections can never exhaust.
+PG_POOLS = {"write": (5, 15), "read": (5, 15), "inline": (2, 2)}
+
+
+def get_engine(url: str, *, readonly: bool = False, role: str | None = None) -> Engine:
+    """One engine per (URL, role) per process; tables created on first use.
 
     SQLite: writers open `BEGIN IMMEDIATE` so a read-then-write transaction (the conditional
     ledger updates) waits for the lock instead of failing with a stale WAL snapshot; the
-    `readonly` engine (API reads) keeps deferred transactions so reads never queue on writers.
+    read roles keep deferred transactions so reads never queue on writers (WAL). The pool has
+    no upper bound (a SQLite connection is a file handle, not a server slot): a bounded pool
+    was exhausted by requests waiting for the write lock, and a read on the event loop then
+    blocked the whole API for the pool timeout (issue 16, benchmarks/load.py).
+    PostgreSQL: the read roles run in autocommit (each read is one statement: no BEGIN and no
+    ROLLBACK round trips); the inline role skips the pre-ping round trip too (its callers retry
+    once on a dropped connection: `retry_disconnect`).
     """
-    key = (url, readonly if url.startswith("sqlite") else False)
+    role = role or ("read" if readonly else "write")
+    if role not in ROLES:
+        raise ValueError(f"unknown engine role {role!r}; expected one of {ROLES}")
+    key = (url, role)
     with _lock:
         eng = _engines.get(key)
         if eng is not None:
@@ -149,9 +183,12 @@ def get_engine(url: str, *, readonly: bool = False) -> Engine:
             if db_file and db_file != ":memory:":  # a worker may start before the API
                 Path(db_file).parent.mkdir(parents=True, exist_ok=True)
             eng = create_engine(
-                url, connect_args={"timeout": 60, "check_same_thread": False}, pool_pre_ping=True
+                url,
+                connect_args={"timeout": 60, "check_same_thread": False},
+                pool_size=8,
+                max_overflow=-1,
             )
-            immediate = not readonly
+            immediate = role == "write"
 
             @event.listens_for(eng, "connect")
             def _sqlite_connect(dbapi_conn, _record):  # noqa: ANN001
@@ -166,8 +203,15 @@ def get_engine(url: str, *, readonly: bool = False) -> Engine:
             def _sqlite_begin(conn):  # noqa: ANN001
                 conn.exec_driver_sql("BEGIN IMMEDIATE" if immediate else "BEGIN")
         else:
-            eng = create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
-        if not readonly:
+            size, overflow = PG_POOLS[role]
+            kw: dict = {"pool_size": size, "max_overflow": overflow, "pool_timeout": 10}
+            if role == "write":
+                kw["pool_pre_ping"] = True
+            else:
+                kw["isolation_level"] = "AUTOCOMMIT"
+                kw["pool_pre_ping"] = role == "read"
+            eng = create_engine(url, **kw)
+        if role == "write":
             _create_tables(eng)
         else:
             get_engine(url)  # make sure the tables exist
@@ -175,11 +219,31 @@ def get_engine(url: str, *, readonly: bool = False) -> Engine:
         return eng
 
 
+#: columns and indexes added after a table's first release: (table, column, DDL type)
+_ADDED_COLUMNS = (("jobs", "priority", "INTEGER NOT NULL DEFAULT 50"),)
+_ADDED_INDEXES = (("ix_event_job_seq", "events", "job_id, seq"),)
+
+
+def _upgrade(eng: Engine) -> None:
+    """Bring a database made by an older texelbake up to date (`create_all` only makes
+    missing tables): add the columns and indexes of `_ADDED_*`, idempotently."""
+    from sqlalchemy import inspect
+
+    with eng.begin() as c:
+        insp = inspect(c)
+        for table, column, ddl in _ADDED_COLUMNS:
+            if column not in {col["name"] for col in insp.get_columns(table)}:
+                c.exec_driver_sql(f"ALTER TABLE {table} ADD COLUMN {column} {ddl}")
+        for name, table, cols in _ADDED_INDEXES:
+            c.exec_driver_sql(f"CREATE INDEX IF NOT EXISTS {name} ON {table} ({cols})")
+
+
 def _create_tables(eng: Engine, tries: int = 5) -> None:
     """create_all, tolerating a concurrent process creating the same tables first."""
     for i in range(tries):
         try:
             Base.metadata.create_all(eng)
+            _upgrade(eng)
             return
         except (IntegrityError, ProgrammingError, OperationalError):
             if i == tries - 1:
@@ -187,8 +251,26 @@ def _create_tables(eng: Engine, tries: int = 5) -> None:
             time.sleep(0.2 * (i + 1))
 
 
-def session_factory(url: str, *, readonly: bool = False) -> sessionmaker:
-    return sessionmaker(bind=get_engine(url, readonly=readonly), expire_on_commit=False)
+def session_factory(url: str, *, readonly: bool = False, role: str | None = None) -> sessionmaker:
+    return sessionmaker(bind=get_engine(url, readonly=readonly, role=role), expire_on_commit=False)
+
+
+def retry_disconnect(fn: Callable[[], T]) -> T:
+    """`fn()`, once more if the database dropped the connection (a restarted PostgreSQL: the
+    pool is invalidated on the first error, the retry gets a fresh connection)."""
+    try:
+        return fn()
+    except DBAPIError as exc:
+        if not exc.connection_invalidated:
+            raise
+        return fn()
+
+
+def is_locked(exc: BaseException) -> bool:
+    """SQLite's busy timeout ran out (`database is locked`), or a pool had no connection."""
+    return isinstance(exc, SATimeoutError) or (
+        isinstance(exc, OperationalError) and "database is locked" in str(exc)
+    )
 
 
 def dispose_engines() -> None:

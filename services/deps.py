@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from schemas.common import ErrorCode
 from services.auth import tenant_by_digest, token_digest
 from services.config import Settings
+from services.db import retry_disconnect
 from services.errors import ApiError
 
 NOT_AUTHENTICATED = "not authenticated"
@@ -81,7 +82,8 @@ async def get_current_tenant(
     digest = token_digest(st.secret_key, creds.credentials)
     tenant = cache.get(digest)
     if tenant is None:
-        tenant = tenant_by_digest(request.app.state.reader, digest)
+        inline = request.app.state.inline  # on the event loop: its own small pool
+        tenant = retry_disconnect(lambda: tenant_by_digest(inline, digest))
         if tenant is not None:
             cache.put(digest, tenant)
     if tenant is None:

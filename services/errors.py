@@ -17,6 +17,8 @@ from fastapi import FastAPI, HTTPException, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import TimeoutError as SATimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from schemas.common import ErrorCode, ErrorPublic
@@ -96,6 +98,25 @@ async def _validation_error(request: Request, exc: Exception) -> Response:
     )
 
 
+#: seconds a client should wait before retrying a request the database could not serve
+RETRY_AFTER_S = 1
+DB_BUSY = "the job database is busy; retry the request"
+
+
+async def _database_error(request: Request, exc: Exception) -> Response:
+    """The database could not serve the request now: SQLite's write lock was held past the
+    busy timeout, a pool had no free connection, or the server is unreachable (restarting).
+    A 503 with `Retry-After`; the driver's message ("database is locked") is logged, never
+    sent to the client."""
+    log.warning("database unavailable on %s %s: %s", request.method, request.url.path,
+                str(exc).splitlines()[0][:200])
+    return JSONResponse(
+        error_body(f"{DB_BUSY} after {RETRY_AFTER_S} s", ErrorCode.SERVICE_UNAVAILABLE),
+        status_code=503,
+        headers={"Retry-After": str(RETRY_AFTER_S)},
+    )
+
+
 async def _internal_error(request: Request, exc: Exception) -> Response:
     log.error("unhandled %s on %s %s", type(exc).__name__, request.method, request.url.path)
     return JSONResponse(
@@ -106,6 +127,8 @@ async def _internal_error(request: Request, exc: Exception) -> Response:
 def install(app: FastAPI) -> None:
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(OperationalError, _database_error)
+    app.add_exception_handler(SATimeoutError, _database_error)
     app.add_exception_handler(Exception, _internal_error)
 
 
@@ -115,6 +138,8 @@ STANDARD: dict[int, str] = {
     401: "No bearer token (`not_authenticated`) or an unknown one (`invalid_token`).",
     413: "The request body is larger than the upload cap (`upload_too_large`).",
     422: "The request does not validate (`validation_error`; `detail` lists the problems).",
+    503: "The job database is busy or restarting (`service_unavailable`); retry after the "
+    "`Retry-After` seconds.",
 }
 
 

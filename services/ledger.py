@@ -22,10 +22,10 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import func, select, update
+from sqlalchemy import func, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from schemas.job import TERMINAL_JOB_STATES
+from schemas.job import DEFAULT_PRIORITY, TERMINAL_JOB_STATES
 from services.db import Event, Job, Shard, Stage, utcnow
 
 RUN_SHARD_TASK = "workers.tasks.run_shard"
@@ -43,10 +43,77 @@ class Send:
     row_id: int | None  # shard row id; None for the plan task (tracked on the job row)
     job_id: str
     expect_task_id: str | None = None  # claim: send only if the row still has this task id
+    task_id: str | None = None  # admitted by the ledger under this id (claimed in its txn)
+
+
+@dataclass(frozen=True)
+class Policy:
+    """How the ledger admits ready (`queued`) shards to the broker (issue 16, item 2).
+
+    A ready shard waits in the ledger until it is admitted: then it gets its task id and is
+    sent. Admission takes, per queue group (`groups`: the queues one kind of worker serves;
+    a queue in no group is a group of its own), the ready shards of the highest job priority
+    first (then the oldest job, then shard order; at equal priority the tenant with fewer
+    shards in flight first), as long as
+    - `queue_backlog`: fewer than this many admitted shards of the group wait unstarted in
+      the broker (the broker's own order is FIFO, and a worker serving several queues takes
+      from whichever has a message, so a short backlog per group is what makes priority
+      count; a worker's start frees a slot and admits the next shard at once), and
+    - `tenant_max_running`: the tenant has fewer than this many shards admitted or running
+      (`tenant_limits` overrides it per tenant): one tenant's batch cannot take every worker.
+    0 means no limit; `Policy()` admits every ready shard at once (the farm before issue 16).
+    """
+
+    queue_backlog: int = 0
+    tenant_max_running: int = 0
+    tenant_limits: tuple[tuple[str, int], ...] = ()
+    groups: tuple[tuple[str, tuple[str, ...]], ...] = ()
+
+    def tenant_cap(self, tenant: str) -> int:
+        return dict(self.tenant_limits).get(tenant, self.tenant_max_running)
+
+    def group_of(self, queue: str) -> str:
+        for name, queues in self.groups:
+            if queue in queues:
+                return name
+        return queue
+
+
+#: the farm before issue 16: every ready shard is sent at once (tests of the transitions)
+NO_LIMITS = Policy()
 
 
 # a sender: (task name, args, queue, task id) -> None; raises when the broker is unreachable
 Sender = Callable[[str, tuple, str, str], None]
+
+
+def policy_from(settings: Any) -> Policy:
+    """The admission policy of the service settings (`services.config.Settings`)."""
+    from services.stack import QUEUE_FAMILIES
+
+    groups = settings.queue_groups if settings.queue_groups is not None else QUEUE_FAMILIES
+    return Policy(
+        queue_backlog=int(settings.queue_backlog),
+        tenant_max_running=int(settings.tenant_max_running_shards),
+        tenant_limits=tuple(sorted((str(k), int(v)) for k, v in settings.tenant_shard_limits.items())),
+        groups=tuple(sorted((str(k), tuple(v)) for k, v in groups.items())),
+    )
+
+
+def _serialize(s: Session) -> None:
+    """Admissions one at a time: PostgreSQL takes a transaction-scoped advisory lock first
+    thing (before any row lock, so it cannot deadlock with the job-row locks); SQLite's
+    writers are serialized by `BEGIN IMMEDIATE` already."""
+    if s.get_bind().dialect.name == "postgresql":
+        s.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": ADMISSION_LOCK})
+
+
+#: the advisory lock key of admissions (any constant shared by every process)
+ADMISSION_LOCK = 0x7E6E1B
+
+
+def _rowcount(result: Any) -> int:
+    return int(result.rowcount)
 
 
 def add_event(s: Session, job_id: str, kind: str, data: dict[str, Any]) -> None:
@@ -64,9 +131,9 @@ def _set_job_state(s: Session, job_id: str, new: str, expect: Iterable[str], **e
     values: dict[str, Any] = {"state": new, **extra}
     if new in TERMINAL_JOB_STATES:
         values["finished_at"] = now
-    n = s.execute(
+    n = _rowcount(s.execute(
         update(Job).where(Job.id == job_id, Job.state.in_(list(expect))).values(**values)
-    ).rowcount
+    ))
     if n:
         ev = {"state": new}
         if "error" in extra:
@@ -79,10 +146,16 @@ def _set_job_state(s: Session, job_id: str, new: str, expect: Iterable[str], **e
 
 
 def create_job(
-    sm: sessionmaker, job_id: str, tenant: str, asset_id: str, settings_json: str
+    sm: sessionmaker,
+    job_id: str,
+    tenant: str,
+    asset_id: str,
+    settings_json: str,
+    priority: int = DEFAULT_PRIORITY,
 ) -> Send:
     with sm.begin() as s:
-        s.add(Job(id=job_id, tenant=tenant, asset_id=asset_id, settings_json=settings_json))
+        s.add(Job(id=job_id, tenant=tenant, asset_id=asset_id, settings_json=settings_json,
+                  priority=int(priority)))
         s.flush()
         add_event(s, job_id, "job", {"state": "queued"})
     return Send(PLAN_JOB_TASK, (job_id,), PLAN_QUEUE, None, job_id)
@@ -93,12 +166,15 @@ def record_plan(
     job_id: str,
     stages: list[tuple[str, str, int, tuple[str, ...]]],
     skipped: list[tuple[str, str]],
+    policy: Policy = NO_LIMITS,
 ) -> list[Send]:
     """Insert the planned stages and their shard rows (once), start the job, queue ready stages.
 
     stages : [(name, queue, n_shards, depends_on)] in execution order.
+    Returns the shards admitted now (of any job: `Policy`).
     """
     with sm.begin() as s:
+        _serialize(s)
         job = _lock_job(s, job_id)
         if job is None or job.state != "queued":
             return []
@@ -121,36 +197,127 @@ def record_plan(
         _set_job_state(
             s, job_id, "running", ["queued"], started_at=utcnow(), skipped_json=json.dumps(skipped)
         )
-        return _promote_ready(s, job_id)
+        _promote_ready(s, job_id)
+        return _admit(s, policy)
 
 
-def _promote_ready(s: Session, job_id: str) -> list[Send]:
-    """Queue every pending stage whose dependencies are all done (conditional per stage)."""
+def _promote_ready(s: Session, job_id: str) -> int:
+    """Make every pending stage whose dependencies are all done ready (conditional per
+    stage): its shards become `queued`, to be admitted to the broker by `_admit`."""
     stages = s.scalars(select(Stage).where(Stage.job_id == job_id).order_by(Stage.position)).all()
     done = {st.name for st in stages if st.state == "done"}
-    sends: list[Send] = []
+    n = 0
     for st in stages:
         if st.state != "pending" or not set(json.loads(st.depends_on_json)) <= done:
             continue
-        won = s.execute(
+        won = _rowcount(s.execute(
             update(Stage)
             .where(Stage.id == st.id, Stage.state == "pending")
             .values(state="queued", started_at=utcnow())
-        ).rowcount
+        ))
         if not won:
             continue
-        s.execute(
+        n += _rowcount(s.execute(
             update(Shard)
             .where(Shard.job_id == job_id, Shard.stage == st.name, Shard.state == "pending")
-            .values(state="queued", sent=False)
-        )
+            .values(state="queued", sent=False, task_id=None)
+        ))
         add_event(s, job_id, "stage", {"stage": st.name, "state": "queued"})
-        rows = s.execute(
-            select(Shard.id, Shard.shard, Shard.queue)
-            .where(Shard.job_id == job_id, Shard.stage == st.name, Shard.state == "queued")
-            .order_by(Shard.shard)
+    return n
+
+
+# ---------------------------------------------------------------- admission
+
+#: shards a tenant holds: admitted (sent or being sent, not started) or running
+_ADMITTED = (Shard.state == "queued") & Shard.task_id.is_not(None)
+_HELD = (Shard.state == "running") | _ADMITTED
+
+
+def _admit(s: Session, policy: Policy, now: datetime | None = None) -> list[Send]:
+    """Admit ready shards to the broker under `policy` (see `Policy`): each admitted row gets
+    its task id in this transaction, and the caller sends the returned messages after the
+    commit (`dispatch`). Callers hold the admission lock (`_serialize`)."""
+    now = now or utcnow()
+    running = Job.state == "running"
+    ready = (
+        select(Shard.queue, Job.tenant, func.count())
+        .select_from(Shard).join(Job, Job.id == Shard.job_id)
+        .where(running, Shard.state == "queued", Shard.task_id.is_(None))
+        .group_by(Shard.queue, Job.tenant)
+    )
+    pairs = s.execute(ready).all()
+    if not pairs:
+        return []
+    held: dict[str, int] = dict(
+        s.execute(  # type: ignore[arg-type]
+            select(Job.tenant, func.count())
+            .select_from(Shard).join(Job, Job.id == Shard.job_id)
+            .where(running, _HELD)
+            .group_by(Job.tenant)
         ).all()
-        sends += [Send(RUN_SHARD_TASK, (job_id, st.name, k), q, rid, job_id) for rid, k, q in rows]
+    )
+    backlog: dict[str, int] = dict(
+        s.execute(  # type: ignore[arg-type]
+            select(Shard.queue, func.count())
+            .select_from(Shard).join(Job, Job.id == Shard.job_id)
+            .where(running, _ADMITTED)
+            .group_by(Shard.queue)
+        ).all()
+    )
+    by_group: dict[str, dict[str, list[str]]] = {}  # group -> tenant -> its ready queues
+    for q, tenant, _n in pairs:
+        by_group.setdefault(policy.group_of(q), {}).setdefault(tenant, []).append(q)
+    waiting: dict[str, int] = {}
+    for q, n in backlog.items():
+        waiting[policy.group_of(q)] = waiting.get(policy.group_of(q), 0) + int(n)
+    inf = 1 << 30
+    sends: list[Send] = []
+    for g in sorted(by_group):
+        free = (policy.queue_backlog - waiting.get(g, 0)) if policy.queue_backlog else inf
+        if free <= 0:
+            continue
+        # each tenant's best ready shards of this group, best first (at most what could go)
+        heads: dict[str, list] = {}
+        for tenant, queues in by_group[g].items():
+            cap = policy.tenant_cap(tenant)
+            room = (cap - held.get(tenant, 0)) if cap else inf
+            take = min(free, room)
+            if take <= 0:
+                continue
+            heads[tenant] = list(reversed(s.execute(
+                select(Shard.id, Shard.job_id, Shard.stage, Shard.shard, Shard.queue,
+                       Job.priority, Job.created_at)
+                .select_from(Shard).join(Job, Job.id == Shard.job_id)
+                .where(running, Job.tenant == tenant, Shard.queue.in_(queues),
+                       Shard.state == "queued", Shard.task_id.is_(None))
+                .order_by(Job.priority.desc(), Job.created_at, Job.id, Shard.id)
+                .limit(min(take, 10_000))
+            ).all()))
+        while free > 0:
+            best = None
+            for tenant, rows in heads.items():
+                cap = policy.tenant_cap(tenant)
+                if not rows or (cap and held.get(tenant, 0) >= cap):
+                    continue
+                rid, jid, _st, _k, _q, prio, created = rows[-1]
+                key = (-int(prio), held.get(tenant, 0), created, jid, rid)
+                if best is None or key < best[0]:
+                    best = (key, tenant)
+            if best is None:
+                break
+            tenant = best[1]
+            rid, jid, st, k, q, _p, _c = heads[tenant].pop()
+            send = Send(RUN_SHARD_TASK, (jid, st, k), q, rid, jid)
+            tid = new_task_id(send)
+            if not _rowcount(s.execute(
+                update(Shard)
+                .where(Shard.id == rid, Shard.state == "queued", Shard.task_id.is_(None))
+                .values(task_id=tid, sent=False, enqueued_at=now)
+            )):
+                continue
+            sends.append(Send(RUN_SHARD_TASK, (jid, st, k), q, rid, jid, task_id=tid))
+            held[tenant] = held.get(tenant, 0) + 1
+            free -= 1
     return sends
 
 
@@ -166,13 +333,14 @@ def new_task_id(send: Send) -> str:
 
 def dispatch(sm: sessionmaker, sends: list[Send], sender: Sender, run_id: str | None) -> int:
     """Send each message, then mark its row sent (only if it is still queued). Returns the count
-    sent; stops at the first broker failure (the sweeper re-sends the rest)."""
+    sent; stops at the first broker failure, and gives the rows not sent back to admission
+    (the sweeper admits them again)."""
     n = 0
-    for send in sends:
-        task_id = new_task_id(send)
-        if send.row_id is not None:
+    for i, send in enumerate(sends):
+        task_id = send.task_id or new_task_id(send)
+        if send.row_id is not None and send.task_id is None:
             with sm.begin() as s:  # record the id first so a cancel can revoke it
-                ok = s.execute(
+                ok = _rowcount(s.execute(
                     update(Shard)
                     .where(
                         Shard.id == send.row_id,
@@ -180,10 +348,14 @@ def dispatch(sm: sessionmaker, sends: list[Send], sender: Sender, run_id: str | 
                         Shard.task_id.is_not_distinct_from(send.expect_task_id),
                     )
                     .values(task_id=task_id)
-                ).rowcount
+                ))
             if not ok:
                 continue
-        sender(send.task, send.args, send.queue, task_id)
+        try:
+            sender(send.task, send.args, send.queue, task_id)
+        except Exception:
+            _unadmit(sm, [x.row_id for x in sends[i:] if x.row_id is not None])
+            raise
         with sm.begin() as s:
             if send.row_id is None:
                 s.execute(
@@ -201,6 +373,22 @@ def dispatch(sm: sessionmaker, sends: list[Send], sender: Sender, run_id: str | 
     return n
 
 
+def _unadmit(sm: sessionmaker, row_ids: list[int]) -> None:
+    """Rows whose message could not be sent go back to the ready set (best effort: if the
+    database is down too, the sweeper re-sends them after the lease)."""
+    if not row_ids:
+        return
+    try:
+        with sm.begin() as s:
+            s.execute(
+                update(Shard)
+                .where(Shard.id.in_(row_ids), Shard.state == "queued")
+                .values(task_id=None, sent=False)
+            )
+    except Exception:  # noqa: BLE001
+        pass
+
+
 # ---------------------------------------------------------------- worker side
 
 
@@ -208,6 +396,7 @@ def dispatch(sm: sessionmaker, sends: list[Send], sender: Sender, run_id: str | 
 class StartResult:
     action: str  # "run" | "done" | "inactive" | "exceeded"
     attempts: int = 0
+    sends: tuple[Send, ...] = ()  # admitted now that this shard left the broker's backlog
 
 
 def _shard_is(job_id: str, stage: str, shard: int) -> tuple:
@@ -216,11 +405,19 @@ def _shard_is(job_id: str, stage: str, shard: int) -> tuple:
 
 
 def start_shard(
-    sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str, max_attempts: int
+    sm: sessionmaker,
+    job_id: str,
+    stage: str,
+    shard: int,
+    worker: str,
+    max_attempts: int,
+    policy: Policy = NO_LIMITS,
 ) -> StartResult:
     """Claim a shard for this delivery. Counts the attempt; past `max_attempts` the shard and the
-    job fail (the redelivery cap for a shard that kills its worker)."""
+    job fail (the redelivery cap for a shard that kills its worker). A started shard frees a
+    slot of its queue's backlog: the shards admitted in its place come back in `sends`."""
     with sm.begin() as s:
+        _serialize(s)
         job = s.get(Job, job_id)
         row = s.scalar(
             select(Shard).where(*_shard_is(job_id, stage, shard))
@@ -272,21 +469,29 @@ def start_shard(
                 "worker": worker,
             },
         )
-        return StartResult("run", attempts)
+        return StartResult("run", attempts, tuple(_admit(s, policy, now)))
 
 
 def finish_shard(
-    sm: sessionmaker, job_id: str, stage: str, shard: int, artifact_key: str, seconds: float
+    sm: sessionmaker,
+    job_id: str,
+    stage: str,
+    shard: int,
+    artifact_key: str,
+    seconds: float,
+    policy: Policy = NO_LIMITS,
 ) -> list[Send]:
-    """Mark a shard done (once); if it was the stage's last, finish the stage (once) and queue
-    the stages that were waiting for it; if every stage is done, the job succeeds."""
+    """Mark a shard done (once); if it was the stage's last, finish the stage (once) and make
+    the stages that were waiting for it ready; if every stage is done, the job succeeds.
+    Returns the shards admitted now (`Policy`: this shard's slot is free)."""
     with sm.begin() as s:
+        _serialize(s)
         # serialize the finishes of one job: under READ COMMITTED two transactions finishing
         # the last two shards would each count the other's shard as not done, and nobody would
         # promote the next stage (test_concurrent_last_shards_promote_once caught this)
         if _lock_job(s, job_id) is None:
             return []
-        won = s.execute(
+        won = _rowcount(s.execute(
             update(Shard)
             .where(
                 *_shard_is(job_id, stage, shard),
@@ -300,7 +505,7 @@ def finish_shard(
                 artifact_key=str(artifact_key),
                 error=None,
             )
-        ).rowcount
+        ))
         if not won:
             return []
         add_event(
@@ -309,35 +514,41 @@ def finish_shard(
             "shard",
             {"stage": stage, "shard": shard, "state": "done", "seconds": round(float(seconds), 4)},
         )
-        left = s.scalar(
-            select(func.count())
-            .select_from(Shard)
-            .where(Shard.job_id == job_id, Shard.stage == stage, Shard.state != "done")
+        _after_finish(s, job_id, stage)
+        return _admit(s, policy)
+
+
+def _after_finish(s: Session, job_id: str, stage: str) -> None:
+    """A shard of `stage` is done: finish the stage if it was the last (once), then the job
+    or the stages that waited for it."""
+    left = s.scalar(
+        select(func.count())
+        .select_from(Shard)
+        .where(Shard.job_id == job_id, Shard.stage == stage, Shard.state != "done")
+    )
+    if left:
+        return
+    stage_won = _rowcount(s.execute(
+        update(Stage)
+        .where(
+            Stage.job_id == job_id, Stage.name == stage, Stage.state.in_(["queued", "running"])
         )
-        if left:
-            return []
-        stage_won = s.execute(
-            update(Stage)
-            .where(
-                Stage.job_id == job_id, Stage.name == stage, Stage.state.in_(["queued", "running"])
-            )
-            .values(state="done", finished_at=utcnow())
-        ).rowcount
-        if not stage_won:
-            return []
-        add_event(s, job_id, "stage", {"stage": stage, "state": "done"})
-        not_done = s.scalar(
-            select(func.count())
-            .select_from(Stage)
-            .where(Stage.job_id == job_id, Stage.state != "done")
-        )
-        if not not_done:
-            _set_job_state(s, job_id, "succeeded", ["running"])
-            return []
-        job = s.get(Job, job_id)
-        if job is None or job.state != "running":
-            return []
-        return _promote_ready(s, job_id)
+        .values(state="done", finished_at=utcnow())
+    ))
+    if not stage_won:
+        return
+    add_event(s, job_id, "stage", {"stage": stage, "state": "done"})
+    not_done = s.scalar(
+        select(func.count())
+        .select_from(Stage)
+        .where(Stage.job_id == job_id, Stage.state != "done")
+    )
+    if not not_done:
+        _set_job_state(s, job_id, "succeeded", ["running"])
+        return
+    job = s.get(Job, job_id)
+    if job is not None and job.state == "running":
+        _promote_ready(s, job_id)
 
 
 def _fail(s: Session, job_id: str, stage: str, shard: int, error: str) -> None:
@@ -374,7 +585,7 @@ def fail_job(sm: sessionmaker, job_id: str, error: str) -> None:
 def heartbeat(sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str) -> bool:
     """A running shard is alive (its worker still holds it). False when it no longer holds it."""
     with sm.begin() as s:
-        return bool(
+        return bool(_rowcount(
             s.execute(
                 update(Shard)
                 .where(
@@ -383,8 +594,8 @@ def heartbeat(sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str
                     Shard.worker == worker,
                 )
                 .values(heartbeat_at=utcnow())
-            ).rowcount
-        )
+            )
+        ))
 
 
 def stage_seconds(sm: sessionmaker, job_id: str) -> dict[str, float]:
@@ -405,14 +616,14 @@ def stage_seconds(sm: sessionmaker, job_id: str) -> dict[str, float]:
 def release_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: str) -> None:
     """A transient fault: the shard goes back to `queued` (sent) while Celery retries it."""
     with sm.begin() as s:
-        if s.execute(
+        if _rowcount(s.execute(
             update(Shard)
             .where(
                 *_shard_is(job_id, stage, shard),
                 Shard.state == "running",
             )
             .values(state="queued", error=error)
-        ).rowcount:
+        )):
             add_event(
                 s,
                 job_id,
@@ -448,14 +659,22 @@ def cancel_job(sm: sessionmaker, job_id: str) -> list[str]:
 
 
 def sweep(
-    sm: sessionmaker, run_id: str | None, lease: timedelta, now: datetime | None = None
+    sm: sessionmaker,
+    run_id: str | None,
+    lease: timedelta,
+    now: datetime | None = None,
+    policy: Policy = NO_LIMITS,
 ) -> list[Send]:
     """What to (re)send: unplanned jobs whose plan message was never sent or was lost with a
-    broker restart; queued shards likewise; running shards whose last heartbeat is older
-    than `lease` (their worker died with them)."""
+    broker restart; admitted shards whose message was lost with a broker restart, or whose
+    sender died before sending (admitted longer than `lease` ago, never sent); running shards
+    whose last heartbeat is older than `lease` (their worker died with them) go back to the
+    ready set; then the ready shards `policy` admits now (slots freed by failed or cancelled
+    jobs, by re-queued shards)."""
     now = now or utcnow()
     sends: list[Send] = []
     with sm.begin() as s:
+        _serialize(s)
         for job_id, sent, rid in s.execute(
             select(Job.id, Job.plan_sent, Job.broker_run_id).where(Job.state == "queued")
         ):
@@ -470,11 +689,11 @@ def sweep(
             )
         ).all()
         for rid, j, st, k in expired:
-            if s.execute(
+            if _rowcount(s.execute(
                 update(Shard)
                 .where(Shard.id == rid, Shard.state == "running")
-                .values(state="queued", sent=False)
-            ).rowcount:
+                .values(state="queued", sent=False, task_id=None)
+            )):
                 add_event(
                     s,
                     j,
@@ -486,11 +705,14 @@ def sweep(
             .where(
                 Shard.job_id.in_(active),
                 Shard.state == "queued",
-                (Shard.sent.is_(False)) | (Shard.broker_run_id.is_distinct_from(run_id)),
+                Shard.task_id.is_not(None),
+                (Shard.sent.is_(True) & Shard.broker_run_id.is_distinct_from(run_id))
+                | (Shard.sent.is_(False) & (Shard.enqueued_at < now - lease)),
             )
             .order_by(Shard.id)
         ).all()
         sends += [
             Send(RUN_SHARD_TASK, (j, st, k), q, rid, j, tid) for rid, j, st, k, q, tid in rows
         ]
+        sends += _admit(s, policy, now)
     return sends

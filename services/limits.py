@@ -4,6 +4,7 @@ before a route runs, so the upload cap must act on the raw byte stream, not in t
 from __future__ import annotations
 
 import json
+import time
 
 from schemas.common import ErrorCode
 from services.uploads import TOO_LARGE
@@ -74,3 +75,27 @@ async def _too_large(send, cap: int) -> None:  # noqa: ANN001
         }
     )
     await send({"type": "http.response.body", "body": body})
+
+
+class ServerTiming:
+    """`Server-Timing: app;dur=MS` on every response: the time from the app receiving the
+    request to its response headers, so a load test can tell the API's own latency from the
+    time a request waited in the client or in the kernel (benchmarks/load.py)."""
+
+    def __init__(self, app):  # noqa: ANN001
+        self.app = app
+
+    async def __call__(self, scope, receive, send):  # noqa: ANN001
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        t0 = time.perf_counter()
+
+        async def timed_send(message):
+            if message["type"] == "http.response.start":
+                ms = (time.perf_counter() - t0) * 1e3
+                headers = list(message.get("headers") or [])
+                headers.append((b"server-timing", f"app;dur={ms:.2f}".encode()))
+                message = {**message, "headers": headers}
+            await send(message)
+
+        return await self.app(scope, receive, timed_send)

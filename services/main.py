@@ -26,9 +26,9 @@ from services.config import API_V1, Settings, get_settings
 from services.db import session_factory
 from services.deps import TokenCache
 from services.errors import ApiError
-from services.limits import BodyLimit
+from services.limits import BodyLimit, ServerTiming
 from services.routers import assets, events, farm, jobs, utils, viewer
-from services.routers.jobs import JobCache
+from services.routers.jobs import JobCache, VersionCache
 from workers.celeryconfig import celery_config
 
 log = logging.getLogger("texelbake.api")
@@ -46,7 +46,8 @@ def sweep_once(app: FastAPI) -> int:
     run_id = broker_run_id(st.redis_url)
     if run_id is None:
         return 0
-    sends = ledger.sweep(app.state.writer, run_id, timedelta(seconds=st.heartbeat_timeout))
+    sends = ledger.sweep(app.state.writer, run_id, timedelta(seconds=st.heartbeat_timeout),
+                         policy=ledger.policy_from(st))
     if not sends:
         return 0
     return ledger.dispatch(app.state.writer, sends, celery_sender(app.state.celery), run_id)
@@ -110,8 +111,10 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     app.state.settings = settings
     app.state.writer = session_factory(settings.db_url)
     app.state.reader = session_factory(settings.db_url, readonly=True)
+    app.state.inline = session_factory(settings.db_url, role="inline")  # event-loop reads
     app.state.token_cache = TokenCache()
     app.state.job_cache = JobCache()
+    app.state.version_cache = VersionCache(settings.status_cache_seconds)
     celery = Celery("texelbake")
     celery.conf.update(celery_config(settings))
     app.state.celery = celery
@@ -120,6 +123,7 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     mount_dashboard(app, settings.web_dist or WEB_DIST)
     errors.install(app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
+    app.add_middleware(ServerTiming)  # outermost: times the whole app
     return app
 
 

@@ -17,6 +17,7 @@ import shutil
 import stat
 import subprocess
 import sys
+import threading
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -218,9 +219,33 @@ def stream_to_file(chunks, dest: Path, max_bytes: int, filename: str) -> tuple[s
     return h.hexdigest(), n
 
 
-def run_validator(bundle: Path, root_rel: str, timeout: float) -> list[tuple[str, str]]:
-    """`services.validate` in a child process (pxr stays out of the API)."""
+#: checks running at once per API process (`Settings.validate_concurrency`): 20 concurrent
+#: uploads used to start 20 pxr children on a 2-core machine, starving the event loop
+_checks: dict[int, threading.BoundedSemaphore] = {}
+_checks_lock = threading.Lock()
+#: the checker's niceness: status reads and the ledger come before an upload's pxr check
+VALIDATE_NICE = 10
+
+
+def _check_slots(n: int) -> threading.BoundedSemaphore:
+    with _checks_lock:
+        return _checks.setdefault(n, threading.BoundedSemaphore(n))
+
+
+def run_validator(
+    bundle: Path, root_rel: str, timeout: float, concurrency: int | None = None
+) -> list[tuple[str, str]]:
+    """`services.validate` in a child process (pxr stays out of the API), at most
+    `concurrency` (default: the CPU count) at once, at a lower CPU priority."""
+    with _check_slots(concurrency or os.cpu_count() or 1):
+        return _run_validator(bundle, root_rel, timeout)
+
+
+def _run_validator(bundle: Path, root_rel: str, timeout: float) -> list[tuple[str, str]]:
     cmd = [sys.executable, "-m", "services.validate", str(bundle), root_rel, str(int(timeout))]
+    nice = shutil.which("nice")
+    if nice:
+        cmd = [nice, "-n", str(VALIDATE_NICE), *cmd]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
         [str(Path(__file__).resolve().parents[1]), env.get("PYTHONPATH", "")]
@@ -272,7 +297,8 @@ def stage_upload(chunks, filename: str, root: Path, settings) -> Staged:  # noqa
             root_rel = safe_name(filename, kind)
             replace(raw, bundle / root_rel, mode=None)
             files = [root_rel]
-        problems = run_validator(bundle, root_rel, settings.validate_timeout)
+        problems = run_validator(bundle, root_rel, settings.validate_timeout,
+                                 getattr(settings, "validate_concurrency", None))
         if problems:
             shown = "; ".join(f"{reason}: {path}" for path, reason in problems[:5])
             more = f" (+{len(problems) - 5} more)" if len(problems) > 5 else ""

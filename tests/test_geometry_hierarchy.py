@@ -257,3 +257,21 @@ def test_simplify_hierarchy_from_a_wrap_has_one_part():
     assert n_parts(plain.vertices, plain.faces) == 12
     assert [n_parts(m.vertices, m.faces) for m in wrapped] == [1, 1]
     assert wrapped[0].num_faces <= 60 * 1.5
+
+
+@pytest.mark.parametrize("scale", [0.01, 100.0])
+def test_simplification_does_not_depend_on_the_asset_s_units(scale):
+    """The same asset exported in metres instead of centimetres (a Blender export) must get
+    the same LOD meshes, scaled: meshlab's collapse is not scale-invariant on its own
+    (`hierarchy._unit_frame`). The second computation is the unscaled bake, scaled; the
+    tolerance is far below a texel (1e-6 of the diagonal) and far above rounding."""
+    from geometry_meshes import bumpy_sphere
+
+    v, f = bumpy_sphere(3)
+    ref = simplify_hierarchy(v, f, n_levels=2, ratio=0.3)
+    out = simplify_hierarchy(v * scale, f, n_levels=2, ratio=0.3)
+    diag = float(np.linalg.norm(np.ptp(v, axis=0)))
+    for a, b in zip(ref, out, strict=True):
+        assert a.num_faces == b.num_faces
+        np.testing.assert_array_equal(a.faces, b.faces)
+        assert np.abs(b.vertices / scale - a.vertices).max() < 1e-6 * diag

@@ -198,3 +198,134 @@ def test_cancel_keeps_state_and_stops_work(sm):
     with sm() as s:
         assert s.get(Job, job).state == "cancelled"
         assert {r.state for r in s.scalars(select(Shard))} == {"cancelled"}
+
+
+# ---------------------------------------------------------------- admission (issue 16, item 2)
+
+
+def new_tenant_job(sm, job_id, tenant, priority, plan, policy):
+    """A planned job of `tenant` at `priority`; returns the sends its planning admitted."""
+    with sm.begin() as s:
+        if s.get(Asset, "a1") is None:
+            s.add(Asset(id="a1", tenant="t", sha256="0" * 64, filename="x.usda", kind="usda",
+                        root_layer="x.usda", size_bytes=1, n_files=1))
+    ledger.create_job(sm, job_id, tenant, "a1", "{}", priority=priority)
+    return ledger.record_plan(sm, job_id, plan, [], policy)
+
+
+class Farm:
+    """A broker and `workers` workers simulated over the real ledger: the broker is FIFO (as a
+    Redis list), a worker takes the oldest message, starts and finishes its shard; what the
+    ledger admits goes to the back of the broker. Records the order shards start in and the
+    most shards any tenant held at once."""
+
+    def __init__(self, sm, policy, tenants):
+        self.sm, self.policy, self.tenants = sm, policy, tenants
+        self.broker: list = []
+        self.started: list[tuple[str, str, int]] = []
+        self.running: list = []
+        self.peak: dict[str, int] = {}
+
+    def send(self, sends):
+        self.broker += list(sends)
+
+    def step(self, workers=1):
+        """Start up to `workers` shards, then finish the oldest running one."""
+        while self.broker and len(self.running) < workers:
+            m = self.broker.pop(0)
+            job, stage, k = m.args
+            r = ledger.start_shard(self.sm, job, stage, k, "w:1", 3, self.policy)
+            assert r.action == "run", (m.args, r)
+            self.send(r.sends)
+            self.started.append((job, stage, k))
+            self.running.append(m.args)
+            held: dict[str, int] = {}
+            for j, _s, _k in self.running:
+                held[self.tenants[j]] = held.get(self.tenants[j], 0) + 1
+            for t, n in held.items():
+                self.peak[t] = max(self.peak.get(t, 0), n)
+        if not self.running:
+            return False
+        job, stage, k = self.running.pop(0)
+        self.send(ledger.finish_shard(self.sm, job, stage, k, f"{stage}/{k}", 0.01, self.policy))
+        return True
+
+    def drain(self, workers=1):
+        while self.step(workers):
+            pass
+
+
+def test_priority_orders_the_queue(sm):
+    """A later job of higher priority overtakes an earlier one's waiting shards: with a
+    backlog of one message the broker's FIFO order no longer decides."""
+    policy = ledger.Policy(queue_backlog=1)
+    plan = [("s", "cpm", 3, ())]
+    farm = Farm(sm, policy, {"lo": "t1", "hi": "t2"})
+    farm.send(new_tenant_job(sm, "lo", "t1", 10, plan, policy))
+    farm.send(new_tenant_job(sm, "hi", "t2", 90, plan, policy))
+    assert [m.args[0] for m in farm.broker] == ["lo"]  # the backlog is full
+    farm.drain()
+    assert [j for j, _s, _k in farm.started] == ["lo", "hi", "hi", "hi", "lo", "lo"]
+    # without a backlog limit the broker's FIFO decides: the earlier job first
+    fifo = Farm(sm, ledger.NO_LIMITS, {"lo2": "t1", "hi2": "t2"})
+    fifo.send(new_tenant_job(sm, "lo2", "t1", 10, plan, ledger.NO_LIMITS))
+    fifo.send(new_tenant_job(sm, "hi2", "t2", 90, plan, ledger.NO_LIMITS))
+    fifo.drain()
+    assert [j for j, _s, _k in fifo.started] == ["lo2"] * 3 + ["hi2"] * 3
+
+
+def test_tenant_limit_and_equal_priority_alternate(sm):
+    """A tenant never holds more shards than its limit, whatever the worker count; another
+    tenant's single later job starts as soon as a slot frees, not after the batch."""
+    policy = ledger.Policy(queue_backlog=0, tenant_max_running=2)
+    plan = [("a", "cpm", 4, ()), ("b", "export", 1, ("a",))]
+    tenants = {f"batch{i}": "big" for i in range(3)} | {"single": "small"}
+    farm = Farm(sm, policy, tenants)
+    for i in range(3):
+        farm.send(new_tenant_job(sm, f"batch{i}", "big", 50, plan, policy))
+    assert len(farm.broker) == 2  # the limit, not the 12 ready shards
+    farm.send(new_tenant_job(sm, "single", "small", 50, plan, policy))
+    farm.drain(workers=4)
+    assert farm.peak == {"big": 2, "small": 2}
+    first = [k for k, (j, _s, _k) in enumerate(farm.started) if j == "single"][0]
+    assert first <= 2, farm.started  # started with the batch's first shards
+    with sm() as s:
+        assert {j.state for j in s.scalars(select(Job))} == {"succeeded"}
+    # at equal priority and no limit, the tenant holding fewer shards goes first
+    p2 = ledger.Policy(queue_backlog=1)
+    rr = Farm(sm, p2, {"bulk": "big", "one": "small"})
+    rr.send(new_tenant_job(sm, "bulk", "big", 50, [("a", "cpm", 5, ())], p2))
+    rr.send(new_tenant_job(sm, "one", "small", 50, [("a", "cpm", 1, ())], p2))
+    rr.drain()
+    assert [j for j, _s, _k in rr.started][:2] == ["bulk", "one"]
+
+
+def test_sweep_admits_what_a_failed_job_freed(sm):
+    """Slots held by a job that fails are given to ready shards by the sweeper."""
+    policy = ledger.Policy(queue_backlog=0, tenant_max_running=1)
+    plan = [("a", "cpm", 2, ())]
+    first = new_tenant_job(sm, "f1", "t", 50, plan, policy)
+    assert len(first) == 1 and new_tenant_job(sm, "f2", "t", 50, plan, policy) == []
+    ledger.fail_job(sm, "f1", "boom")
+    again = ledger.sweep(sm, "r1", timedelta(seconds=60), policy=policy)
+    assert [(s.args[0], s.args[2]) for s in again] == [("f2", 0)]
+
+
+def test_priority_spans_the_queues_of_a_group(sm):
+    """Workers that serve several queues take from whichever has a message, so the backlog and
+    the priority order are per queue group: with cpm and export in one group, a high-priority
+    job's second cpm shard goes before a low-priority job's export; with a backlog per queue
+    the export slips in between."""
+    def order(policy, tag):
+        farm = Farm(sm, policy, {f"lo{tag}": "t1", f"hi{tag}": "t2"})
+        farm.send(new_tenant_job(sm, f"lo{tag}", "t1", 10,
+                                 [("a", "cpm", 1, ()), ("b", "export", 1, ("a",))], policy))
+        farm.send(new_tenant_job(sm, f"hi{tag}", "t2", 90,
+                                 [("a", "cpm", 2, ()), ("b", "export", 1, ("a",))], policy))
+        farm.drain()
+        return [f"{j[:2]} {st}{k}" for j, st, k in farm.started]
+
+    grouped = ledger.Policy(queue_backlog=1, groups=(("all", ("cpm", "export")),))
+    assert order(grouped, "g") == ["lo a0", "hi a0", "hi a1", "lo b0", "hi b0"]
+    assert order(ledger.Policy(queue_backlog=1), "q") == [
+        "lo a0", "hi a0", "lo b0", "hi a1", "hi b0"]

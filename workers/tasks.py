@@ -103,7 +103,8 @@ def plan_job(self, job_id: str) -> None:
         _job, _asset, settings, asset_path = load_job(job_id)
         plan = pipeline.plan_bake(asset_path, settings)
         stages = [(sp.name, sp.queue, sp.n_shards, tuple(sp.depends_on)) for sp in plan.stages]
-        sends = ledger.record_plan(_sm(), job_id, stages, [list(x) for x in plan.skipped])
+        sends = ledger.record_plan(_sm(), job_id, stages, [list(x) for x in plan.skipped],
+                                   ledger.policy_from(get_settings()))
         _dispatch(sends)
     except TexelbakeError as exc:
         ledger.fail_job(_sm(), job_id, f"plan: {exc}")
@@ -179,9 +180,11 @@ def shard_body(
     st = get_settings()
     sm = _sm()
     try:
-        start = ledger.start_shard(sm, job_id, stage, shard, _worker_name(), st.max_attempts)
+        start = ledger.start_shard(sm, job_id, stage, shard, _worker_name(), st.max_attempts,
+                                   ledger.policy_from(st))
     except TRANSIENT as exc:
         raise retry(exc, _backoff(retries)) from exc
+    _dispatch(list(start.sends))  # shards admitted in this one's place in the broker
     if start.action != "run":
         log.info("shard %s/%s/%s not run: %s", job_id, stage, shard, start.action)
         return f"skipped:{start.action}"
@@ -221,7 +224,8 @@ def shard_body(
     seconds = time.perf_counter() - t0
     for i in range(st.max_retries + 1):  # recording the result must not lose the shard
         try:
-            sends = ledger.finish_shard(sm, job_id, stage, shard, key, seconds)
+            sends = ledger.finish_shard(sm, job_id, stage, shard, key, seconds,
+                                        ledger.policy_from(st))
             break
         except sqlalchemy.exc.OperationalError:
             if i == st.max_retries:

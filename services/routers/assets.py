@@ -92,6 +92,19 @@ async def create_asset(
     except uploads.UploadRejected as exc:
         raise ApiError(exc.status, exc.detail, exc.code) from exc
     meta = uploads.read_meta(folder)
+    asset, created = await run_in_threadpool(
+        _record_asset, writer, tenant, staged, file.filename or "", meta
+    )
+    if not created:
+        response.status_code = status.HTTP_200_OK
+    return asset
+
+
+def _record_asset(
+    writer, tenant: str, staged: uploads.Staged, filename: str, meta: dict  # noqa: ANN001
+) -> tuple[AssetPublic, bool]:
+    """Insert the asset row (or find the same bytes' row); in a worker thread, so a wait for
+    the database's write lock never blocks the event loop. Returns (asset, created)."""
     aid = asset_id_for(tenant, staged.sha256)
     with writer.begin() as s:
         existing = s.get(Asset, aid)
@@ -100,7 +113,7 @@ async def create_asset(
                 id=aid,
                 tenant=tenant,
                 sha256=staged.sha256,
-                filename=file.filename[:255],
+                filename=filename[:255],
                 kind=meta["kind"],
                 root_layer=meta["root_layer"],
                 size_bytes=staged.size_bytes,
@@ -113,9 +126,8 @@ async def create_asset(
                 s.rollback()
                 existing = s.get(Asset, aid)
         if existing is not None:
-            response.status_code = status.HTTP_200_OK
-            return AssetPublic.model_validate(existing)
-    return AssetPublic.model_validate(asset)
+            return AssetPublic.model_validate(existing), False
+    return AssetPublic.model_validate(asset), True
 
 
 @router.get(

@@ -6,8 +6,10 @@ from __future__ import annotations
 import asyncio
 import json
 import re
+import time
 import uuid
 from collections import defaultdict
+from functools import lru_cache
 from pathlib import Path
 from typing import Annotated
 
@@ -33,7 +35,7 @@ from schemas.job import (
 from schemas.settings import BakeSettings
 from services import ledger, storage
 from services.broker import broker_run_id, celery_sender
-from services.db import Asset, Event, Job, Shard, Stage
+from services.db import Asset, Event, Job, Shard, Stage, retry_disconnect
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
 from services.routers.assets import ASSET_404, ASSET_NOT_FOUND
@@ -76,11 +78,17 @@ def _progress(done: int, total: int) -> float:
     return done / total if total else 0.0
 
 
+@lru_cache(maxsize=1024)
+def _estimate(settings_json: str, workers: int) -> costmodel.Estimate:
+    """The cost model per (settings, workers): computed once, not on every status read."""
+    return costmodel.estimate(BakeSettings.model_validate_json(settings_json), workers)
+
+
 def job_estimate(job: Job, settings: BakeSettings, workers: int) -> JobEstimate:
     """The core cost model's prediction for a job (thin: `texelbake.costmodel.estimate`)."""
     from datetime import timedelta
 
-    e = costmodel.estimate(settings, workers)
+    e = _estimate(job.settings_json, workers)
     eta = job.started_at + timedelta(seconds=e.seconds) if job.started_at is not None else None
     return JobEstimate(seconds=round(e.seconds, 1), workers=e.workers,
                        cpm_seconds=round(e.cpm_seconds, 1), eta=eta)
@@ -133,6 +141,7 @@ def job_public(session: Session, job: Job, root: Path, workers: int = 2) -> JobP
         id=job.id,
         asset_id=job.asset_id,
         state=job.state,
+        priority=job.priority,
         settings=settings,
         progress=_progress(done, total),
         stages=out_stages,
@@ -177,8 +186,10 @@ def create_job(
     asset = session.get(Asset, body.asset_id)
     if asset is None or asset.tenant != tenant:
         raise ApiError(status.HTTP_404_NOT_FOUND, ASSET_NOT_FOUND, ErrorCode.ASSET_NOT_FOUND)
+    session.close()  # hold no read connection (nor, on SQLite, an old snapshot) from here on
     job_id = uuid.uuid4().hex
-    send = ledger.create_job(writer, job_id, tenant, asset.id, body.settings.model_dump_json())
+    send = ledger.create_job(writer, job_id, tenant, asset.id, body.settings.model_dump_json(),
+                             priority=body.priority)
     try:  # a broker outage is not the client's problem: the sweeper sends it later
         ledger.dispatch(
             writer,
@@ -188,9 +199,15 @@ def create_job(
         )
     except Exception:  # noqa: BLE001
         pass
-    with writer() as s:
-        return job_public(s, s.get(Job, job_id), settings.artifact_root,
-                          settings.estimate_workers)
+    return _read_public(request, job_id)
+
+
+def _read_public(request: Request, job_id: str) -> JobPublic:
+    """A job's status from a fresh read session: the response is built outside any write
+    transaction (it used to hold SQLite's write lock while it was built)."""
+    st = request.app.state.settings
+    with request.app.state.reader() as s:
+        return job_public(s, s.get(Job, job_id), st.artifact_root, st.estimate_workers)
 
 
 @router.get("", response_model=JobsPublic, operation_id="list_jobs", responses=errors(401, 422))
@@ -241,6 +258,7 @@ def read_jobs(
             id=j.id,
             asset_id=j.asset_id,
             state=j.state,
+            priority=j.priority,
             progress=_progress(int(dones.get(j.id, 0)), int(totals.get(j.id, 0) or 0)),
             error=j.error,
             created_at=j.created_at,
@@ -268,31 +286,65 @@ class JobCache:
         self._d[key] = body
 
 
+class VersionCache:
+    """job id -> (tenant, state, newest event seq) for `ttl` seconds: 50 clients polling one
+    job share one database read per `ttl` (a status may be that much older than the ledger;
+    this process's own create and cancel drop the entry)."""
+
+    def __init__(self, ttl: float, size: int = 4096):
+        self.ttl, self.size = ttl, size
+        self._d: dict[str, tuple[tuple, float]] = {}
+
+    def get(self, job_id: str) -> tuple | None:
+        hit = self._d.get(job_id)
+        if hit is None or hit[1] < time.monotonic():
+            return None
+        return hit[0]
+
+    def put(self, job_id: str, row: tuple) -> None:
+        if self.ttl <= 0:
+            return
+        if len(self._d) >= self.size:
+            self._d.clear()
+        self._d[job_id] = (row, time.monotonic() + self.ttl)
+
+    def drop(self, job_id: str) -> None:
+        self._d.pop(job_id, None)
+
+
 @router.get(
     "/{job_id}",
     response_model=JobPublic,
     operation_id="read_job",
     responses=errors(401, JOB_404, 422),
 )
-async def read_job(
-    job_id: str,
-    request: Request,
-    session: SessionDep,
-    tenant: CurrentTenant,
-    settings: SettingsDep,
-) -> Response:
+async def read_job(job_id: str, request: Request, tenant: CurrentTenant) -> Response:
     """State, per-stage and per-shard progress, timings and errors of one job."""
-    # async with inline reads: two indexed look-ups on a hit, no thread-pool hop
-    job = _own_job(session, job_id, tenant)
-    seq = session.scalar(select(func.max(Event.seq)).where(Event.job_id == job.id)) or 0
+    # on the event loop: one indexed query (owner, state, newest event) answers a cache hit
+    # with no thread-pool hop; a miss builds the status in a worker thread
+    versions: VersionCache = request.app.state.version_cache
+    row = versions.get(job_id)
+    if row is None:
+        row = retry_disconnect(lambda: _job_version(request.app.state.inline, job_id))
+        if row is not None:
+            versions.put(job_id, tuple(row))
+    if row is None or row[0] != tenant:
+        raise ApiError(status.HTTP_404_NOT_FOUND, JOB_NOT_FOUND, ErrorCode.JOB_NOT_FOUND)
     cache: JobCache = request.app.state.job_cache
-    key = (job.id, int(seq), job.state)
+    key = (job_id, int(row[2] or 0), str(row[1]))
     body = cache.get(key)
     if body is None:
-        body = job_public(session, job, settings.artifact_root,
-                          settings.estimate_workers).model_dump_json().encode()
+        body = await run_in_threadpool(
+            lambda: _read_public(request, job_id).model_dump_json().encode())
         cache.put(key, body)
     return Response(content=body, media_type="application/json")
+
+
+def _job_version(inline, job_id: str):  # noqa: ANN001, ANN202
+    """(tenant, state, newest event seq) of a job in one statement, or None."""
+    newest = select(func.max(Event.seq)).where(Event.job_id == job_id).scalar_subquery()
+    with inline() as s:
+        return s.execute(select(Job.tenant, Job.state, newest).where(Job.id == job_id)).first()
 
 
 def _events_after(reader, job_id: str, after: int) -> tuple[list[Event], str | None]:  # noqa: ANN001
@@ -509,12 +561,11 @@ def delete_job(
     """Cancel a job: queued shards are dropped, running ones revoked; its state is kept."""
     _own_job(session, job_id, tenant)
     task_ids = ledger.cancel_job(writer, job_id)
+    request.app.state.version_cache.drop(job_id)
     if task_ids:
         try:
             # SIGKILL: a pool child deep in numpy/torch did not act on SIGTERM (measured)
             request.app.state.celery.control.revoke(task_ids, terminate=True, signal="SIGKILL")
         except Exception:  # noqa: BLE001 - broker down: workers skip cancelled shards anyway
             pass
-    with writer() as s:
-        return job_public(s, s.get(Job, job_id), settings.artifact_root,
-                          settings.estimate_workers)
+    return _read_public(request, job_id)

@@ -14,6 +14,8 @@ export function Upload() {
   const [over, setOver] = useState(false);
   const [busy, setBusy] = useState<string | null>(null);
   const [error, setError] = useState<string | null>(null);
+  // the job's queue priority (0..100, higher first; JobCreate.priority): not a bake setting
+  const [priority, setPriority] = useState(50);
 
   useEffect(() => {
     (async () => {
@@ -53,7 +55,7 @@ export function Upload() {
     }
     setBusy("Creating the job…");
     const job = await api.POST("/api/v1/jobs", {
-      body: { asset_id: up.data.id, settings: toSettings(schema, values) as never },
+      body: { asset_id: up.data.id, priority, settings: toSettings(schema, values) as never },
     });
     setBusy(null);
     if (job.error || !job.data) {
@@ -104,6 +106,19 @@ export function Upload() {
             <SettingsForm schema={schema} values={values} onChange={setValues} />
           </details>
         )}
+        <label class="priority">
+          Priority{" "}
+          <input
+            type="number"
+            min={0}
+            max={100}
+            step={1}
+            value={priority}
+            data-testid="priority"
+            onInput={(e) => setPriority(Math.max(0, Math.min(100, Math.round(Number((e.target as HTMLInputElement).value) || 0))))}
+          />{" "}
+          <span class="muted small">0–100, higher first; does not change the result</span>
+        </label>
         {error && (
           <ErrorBox>
             <span data-testid="upload-error">
