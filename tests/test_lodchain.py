@@ -190,3 +190,31 @@ def test_bad_switch_sizes_are_named():
 
     with pytest.raises(ValidationError, match="lod_switch_px"):
         BakeSettings(lod_switch_px=(64.0, 64.0))
+
+
+def test_lod_corner_normals_keep_sharp_edges_sharp_and_smooth_surfaces_smooth():
+    # issue 22: a DCC shades a LOD with the normals it carries. A box (M_org's corner normals
+    # its face normals, sharp) onto a box LOD: every corner takes its own face's normal
+    # exactly; a fine sphere with radial (smooth) corner normals onto a coarser sphere: each
+    # corner's normal is the radial direction at its inset point (closed form), within the
+    # interpolation error of the fine mesh's normals (edge ~0.1 rad: cos error < 1e-2)
+    from tests.geometry_meshes import icosphere
+    from texelbake.geometry.lodchain import CORNER_INSET, transfer_corner_normals
+
+    v, f = box()
+    fn = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    got = transfer_corner_normals(v, f, np.repeat(fn[:, None], 3, axis=1),
+                                  RayCaster(v, f))
+    np.testing.assert_allclose(got, np.repeat(fn[:, None], 3, axis=1), atol=1e-9)
+
+    fine_v, fine_f = icosphere(4)
+    radial = fine_v[fine_f] / np.linalg.norm(fine_v[fine_f], axis=2, keepdims=True)
+    lod_v, lod_f = icosphere(2)
+    got = transfer_corner_normals(lod_v, lod_f, radial, RayCaster(fine_v, fine_f))
+    tri = lod_v[lod_f]
+    q = tri + CORNER_INSET * (tri.mean(axis=1, keepdims=True) - tri)
+    want = q / np.linalg.norm(q, axis=2, keepdims=True)
+    assert np.einsum("fkd,fkd->fk", got, want).min() > 0.99
+    # not the face normals: the three corners of a LOD face differ (smooth shading)
+    assert np.einsum("fkd,fkd->fk", got[:, :1], got[:, 1:]).min() < 0.999

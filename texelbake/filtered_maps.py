@@ -179,14 +179,16 @@ def base_alpha2(material: Material) -> float:
 
 def bake_filtered_levels(resolution: int, n_levels: int, texels: Sequence[np.ndarray],
                          area: np.ndarray, local_normals: np.ndarray, ao: np.ndarray,
-                         albedo: np.ndarray, base: np.ndarray, alpha2: np.ndarray
-                         ) -> list[np.ndarray]:
+                         albedo: np.ndarray, base: np.ndarray, alpha2: np.ndarray,
+                         *, fill: bool = True) -> list[np.ndarray]:
     """Every level's filtered map (module docstring), area-weighted over the samples of
     each texel, batched with `np.bincount` (no loop over texels or samples).
 
     texels : per level, (m,) int64 flat texel id of every sample (`cpm.level.texel_ids`)
     area : (m,) ΔA; local_normals : (m, 3) tangent-space normals; ao : (m,); albedo, base :
         (m, 3); alpha2 : (m,)
+    fill : dilate into empty texels (`normalmap.dilate`); False leaves them at the empty
+        values (nbar (0, 0, 1), AO 1, α² 1, the rest 0) for the caller to fill
     returns : per level ℓ an (N_ℓ, N_ℓ, len(CHANNELS)) float32 map
     """
     a = np.asarray(area, dtype=np.float64)
@@ -214,8 +216,9 @@ def bake_filtered_levels(resolution: int, n_levels: int, texels: Sequence[np.nda
         filled = wsum > 0
         mean = np.where(filled[:, None], acc / np.where(filled, wsum, 1.0)[:, None],
                         empty[None, :])
-        img = dilate(mean.reshape(n_l, n_l, -1), filled.reshape(n_l, n_l),
-                     iterations=max(8, n_l))
+        img = mean.reshape(n_l, n_l, -1)
+        if fill:
+            img = dilate(img, filled.reshape(n_l, n_l), iterations=max(8, n_l))
         out.append(img.astype(np.float32))
     return out
 

@@ -12,7 +12,9 @@ A baked asset is a folder:
                              the filtered maps of each mip level (`texelbake.filtered_maps`:
                              mean normal, LEADR moments, AO, albedo, base colour, α²)
     <name>_basecolor.png, <name>_occlusion.png, <name>_roughness_lod<i>.png
-                             the UsdPreviewSurface fallback of each LOD i (with the normal map):
+    [<name>_fallback_normal.png]
+                             the UsdPreviewSurface fallback of each LOD i (with the normal map,
+                             the fallback's own when its textures are finer than the atlas):
                              material /Baked/Looks/BakedPreview for LOD1, BakedPreview_LOD<i>
                              for the others
     report.json              what the bake measured
@@ -71,7 +73,9 @@ _FROM_USD = {
 class LodMesh:
     """M_i with its atlas uvs. vertices (n, 3) float64, faces (f, 3) int64, corner_uvs (f, 3, 2);
     impostor: the local impostor parameterization of seed 002 Table 1 (`IMPOSTOR_PRIMVARS`,
-    each (n, 3) float64 per vertex; empty when the bake wrote none).
+    each (n, 3) float64 per vertex; empty when the bake wrote none); corner_normals: (f, 3, 3)
+    shading normals per face corner, authored as faceVarying `normals` for other tools
+    (`lodchain.transfer_corner_normals`; None: none authored, as in bakes before it).
     skin: the UsdSkel binding transferred from M_org (`texelbake.deform.skinbind`):
     "indices" (n, k) int32 and "weights" (n, k) float32 per vertex, "bind" (4, 4) float64
     the geomBindTransform (row-vector convention); empty when the asset is not skinned.
@@ -82,6 +86,7 @@ class LodMesh:
     faces: np.ndarray
     corner_uvs: np.ndarray
     impostor: dict[str, np.ndarray] = field(default_factory=dict)
+    corner_normals: np.ndarray | None = None
     skin: dict[str, np.ndarray] = field(default_factory=dict)
     time_codes: np.ndarray = field(default_factory=lambda: np.zeros(0))
     points_over_time: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
@@ -98,9 +103,10 @@ class BakedAsset:
     albedo, normal : (N, N, 3) float32 preview maps over M1's atlas (normal in [-1, 1])
     metadata : JSON-able dict written to customLayerData["texelbake"]
     filtered : per level an (N_l, N_l, C) float32 filtered map (`filtered_maps.CHANNELS`)
-    fallback : the UsdPreviewSurface fallback: "base" (N, N, 3) diffuseColor, "occlusion"
-        (N, N), "roughness" a list of (n_i, n_i) maps, one per LOD, and "constants" (inputs
-        carried from the source material); empty: the albedo/normal material of old bakes.
+    fallback : the UsdPreviewSurface fallback: "base" (R, R, 3) diffuseColor, "occlusion"
+        (R, R), "roughness" a list of (n_i, n_i) maps, one per LOD, "constants" (inputs
+        carried from the source material) and, when R > N, "normal" (R, R, 3) its own normal
+        map (else it shares `normal`); R = `stages.filtered.fallback_resolution`; empty: the albedo/normal material of old bakes.
         `read_baked` returns each LOD's material as authored, under "materials".
     """
 
@@ -157,6 +163,10 @@ def _author_mesh(stage: Usd.Stage, path: str, mesh: LodMesh) -> UsdGeom.Mesh:
     )
     st.Set(Vt.Vec2fArray.FromNumpy(
         np.ascontiguousarray(mesh.corner_uvs.reshape(-1, 2), dtype=np.float32)))
+    if mesh.corner_normals is not None:
+        geom.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(
+            np.ascontiguousarray(mesh.corner_normals.reshape(-1, 3), dtype=np.float32)))
+        geom.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying)
     _author_impostor(geom, mesh.impostor)
     _author_animation(geom, mesh)
     return geom
@@ -238,6 +248,11 @@ def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
         _write_png(out_dir / files["occlusion"], np.asarray(fb["occlusion"])[..., None],
                    srgb=False)
         files["roughness"] = []
+        files["fallback_normal"] = files["normal"]
+        if fb.get("normal") is not None:  # the fallback's own, finer than the baseline's
+            files["fallback_normal"] = f"{name}_fallback_normal.png"
+            _write_png(out_dir / files["fallback_normal"], 0.5 * (np.asarray(fb["normal"]) + 1.0),
+                       srgb=False)
         for i, r in enumerate(fb["roughness"], start=1):
             files["roughness"].append(f"{name}_roughness_lod{i}.png")
             _write_png(out_dir / files["roughness"][-1], np.asarray(r)[..., None], srgb=False)
@@ -340,7 +355,8 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     for i, mesh in enumerate(baked.meshes, start=1):
         if baked.fallback:  # one fallback per LOD: its roughness is widened for that LOD
             mat = author_preview_material(
-                pstage, fallback_material_path(i), f"./{files['base']}", f"./{files['normal']}",
+                pstage, fallback_material_path(i), f"./{files['base']}",
+                f"./{files['fallback_normal']}",
                 "/Baked/CPM", f"./{files['roughness'][i - 1]}", f"./{files['occlusion']}",
                 baked.fallback.get("constants"))
         elif i == 1:
@@ -518,7 +534,10 @@ def read_baked(path: str | Path) -> BakedAsset:
         f = np.array(geom.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
         st = UsdGeom.PrimvarsAPI(geom).GetPrimvar("st").Get()
         uv = np.array(st, dtype=np.float32).astype(np.float64).reshape(-1, 3, 2)
-        mesh = LodMesh(v, f, uv, _read_impostor(geom, len(v)))
+        nrm = geom.GetNormalsAttr().Get()
+        cn = (np.array(nrm, dtype=np.float32).astype(np.float64).reshape(-1, 3, 3)
+              if nrm is not None and len(nrm) == 3 * len(f) else None)
+        mesh = LodMesh(v, f, uv, _read_impostor(geom, len(v)), cn)
         skeleton = _read_animation(geom, mesh, skeleton)
         meshes.append(mesh)
         i += 1

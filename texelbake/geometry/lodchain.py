@@ -318,3 +318,38 @@ def build_lod_chain(points: object, faces: object, switch_px: tuple[float, ...] 
                                      method, enclosed, note))
         prev = mesh
     return chain
+
+
+#: a LOD corner looks M_org's normal up this far into its own face (fraction of the way to
+#: the face's centroid): the side of a sharp edge the face is on, not the edge itself
+CORNER_INSET = 0.1
+
+
+def transfer_corner_normals(vertices: np.ndarray, faces: np.ndarray,
+                            org_faces_normals: np.ndarray, caster: RayCaster) -> np.ndarray:
+    """Shading normals for a LOD's face corners carried from M_org (issue 22: what a DCC shades
+    a LOD with). Each corner, moved CORNER_INSET of the way towards its face's centroid, takes
+    M_org's interpolated corner normal at the closest point (`caster` over M_org): sharp edges
+    stay sharp (the cylinder's ridges), smooth surfaces stay smooth (the Teapot), whatever
+    angle a crease threshold would pick. A normal facing away from the LOD face (a thin part's
+    other side) or not finite takes the LOD face's normal.
+
+    vertices (n, 3), faces (f, 3); org_faces_normals : (F, 3, 3) M_org's unit corner normals
+    (`AssetModel.corner_normals`); returns (f, 3, 3) float64 unit normals
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    tri = v[f]  # (f, 3, 3)
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn = fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    if not len(f):
+        return np.zeros((0, 3, 3))
+    q = tri + CORNER_INSET * (tri.mean(axis=1, keepdims=True) - tri)
+    _, prim, b2 = caster.closest_points(q.reshape(-1, 3))
+    bary = np.column_stack([1.0 - b2[:, 0] - b2[:, 1], b2])
+    n = np.einsum("mk,mkd->md", bary, np.asarray(org_faces_normals, dtype=np.float64)[prim])
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    face = np.repeat(fn, 3, axis=0)
+    bad = ~np.isfinite(n).all(axis=1) | (np.einsum("md,md->m", n, face) <= 0.0)
+    n[bad] = face[bad]
+    return n.reshape(-1, 3, 3)

@@ -10,6 +10,7 @@ import numpy as np
 from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
 from texelbake.geometry.build import lod_meshes, lod_report
+from texelbake.geometry.lodchain import transfer_corner_normals
 from texelbake.quality import quality_gate
 from texelbake.stages.avis import avis_levels, avis_rays
 from texelbake.stages.btf import export_btf
@@ -67,7 +68,9 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         levels.append(arrays)
         level_reports.append(rep)
     dirs = direction_sets(s)
-    meshes = [payload.LodMesh(v, f, uv) for v, f, uv in lod_meshes(geo)]
+    # shading normals from M_org for the tools that shade the LOD meshes themselves (issue 22)
+    meshes = [payload.LodMesh(v, f, uv, corner_normals=transfer_corner_normals(
+        v, f, asset.corner_normals, ctx.caster())) for v, f, uv in lod_meshes(geo)]
     # the normal map is in the tangent frames of the mesh that carries it, LOD1
     frames1, sample_prim = lod1_frames(geo)
     albedo, normal, _ = bake_preview_maps(
@@ -104,6 +107,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "stage_seconds": dict(stage_seconds or {}),
         "fallback_levels": fallback["levels"],
+        "fallback_resolution": fallback["resolution"],
         "warnings": [
             f"level {r['level']}: {r['avis']['texels_above_tolerance']} of "
             f"{r['avis']['ray_texels']} ray-traced texels have a compressed a_vis table more "

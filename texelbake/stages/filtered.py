@@ -65,11 +65,152 @@ def filtered_levels(ctx: StageContext) -> list[np.ndarray]:
     return [data[f"L{lvl:02d}"] for lvl in range(ctx.n_levels)]
 
 
+#: the fallback textures' largest side (texels): 512² RGB is what studios ship for a prop's
+#: LOD1; above it the samples and AO rays of the dense bake cost more than the CPM stage at
+#: the defaults (docs/decisions.md, 2026-11-25)
+FALLBACK_MAX_RESOLUTION = 512
+#: dense samples per texel of the fallback page (~2.5 per covered texel at 40 % coverage)
+FALLBACK_SAMPLES_PER_TEXEL = 1
+#: AO rays per dense sample (the texel averages ~2.5 samples: ~20 rays per texel)
+FALLBACK_AO_RAYS = 8
+_TAG_FALLBACK = 0x5F
+
+
+def _texel_size(geo: dict[str, np.ndarray], n: int) -> float:
+    """World size of one texel of an n x n page on the atlas mesh M_T (its median uv scale)."""
+    v1, f1, c1 = geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"]
+    tri = v1[f1]
+    a_w = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    d1, d2 = c1[:, 1] - c1[:, 0], c1[:, 2] - c1[:, 0]
+    a_uv = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    ok = (a_w > 0) & (a_uv > 0)
+    ratio = float(np.median(a_uv[ok] / a_w[ok])) if ok.any() else 1.0
+    return 1.0 / (n * np.sqrt(ratio))
+
+
+def fallback_resolution(ctx: StageContext) -> int:
+    """The fallback textures' side: a texel at most one pixel where LOD1 switches in (its
+    bounding-box diagonal covers lod_switch_px[0] pixels), measured on the atlas layout the
+    LODs' uvs map into, rounded up to a power of two and clamped to [atlas_resolution,
+    FALLBACK_MAX_RESOLUTION]. The LODs share the layout, so LOD1's need (the finest) sizes the
+    page; a viewer's mip-maps serve the coarser LODs. 'atlas' mode: the atlas resolution."""
+    from texelbake.geometry.mesh import bbox_diagonal
+
+    s = ctx.settings
+    n = s.atlas_resolution
+    if s.lod_mode != "error" or not s.lod_switch_px:
+        return n
+    geo = ctx.geometry()
+    pixel = bbox_diagonal(ctx.asset().points) / float(s.lod_switch_px[0])
+    need = n * _texel_size(geo, n) / pixel  # texels per side for a texel of one pixel
+    side = int(2 ** int(np.ceil(np.log2(max(need, 1.0)))))
+    return int(min(max(side, n), max(FALLBACK_MAX_RESOLUTION, n)))
+
+
+def _nearest_fill(img: np.ndarray, filled: np.ndarray) -> np.ndarray:
+    """Empty texels take the value of the nearest filled one (one Euclidean distance
+    transform: the chart padding and the page between charts, so a viewer's bilinear and mip
+    look-ups never blend in empty texels)."""
+    from scipy.ndimage import distance_transform_edt
+
+    if filled.all() or not filled.any():
+        return img
+    idx = distance_transform_edt(~filled, return_distances=False, return_indices=True)
+    return img[idx[0], idx[1]]
+
+
+def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """The filtered maps (CHANNELS) of every level of a res x res page on the atlas layout,
+    from FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on M_org placed on M_T like the
+    geometry stage's (`assign_texels`, the bent-normal rule on wraps), and the level-0 tangent-
+    space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
+    artifact store."""
+    from texelbake.filtered_maps import CHANNELS, FIELDS
+    from texelbake.geometry.atlas import Atlas
+    from texelbake.geometry.mesh import Mesh
+    from texelbake.geometry.raycast import RayCaster
+    from texelbake.geometry.sampling import sample_surface
+    from texelbake.geometry.texels import assign_texels
+
+    n_levels = int(np.log2(res)) + 1
+    key = ctx.key("filtered", f"fallback-v3-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
+                  f"-ao{FALLBACK_AO_RAYS}.npz", GEOMETRY_FIELDS)
+    if ctx.store.exists(key):
+        data = ctx.store.read_arrays(key)
+        return [data[f"L{lvl:02d}"] for lvl in range(n_levels)], data["normal"]
+    s = ctx.settings
+    geo = ctx.geometry()
+    asset = ctx.asset()
+    caster = ctx.caster()
+    smp = sample_surface(asset.points, asset.faces, res * res * FALLBACK_SAMPLES_PER_TEXEL,
+                         s.seed * 1000 + _TAG_FALLBACK, corner_normals=asset.corner_normals,
+                         corner_uvs=asset.corner_uvs, face_material=asset.face_material)
+    gnrm = asset.face_normals()[smp.face]
+    m_t = Mesh(geo["m1_vertices"], geo["m1_faces"])
+    atlas = Atlas(m_t, geo["m1_corner_uvs"], res, np.arange(m_t.num_vertices),
+                  np.zeros(m_t.num_faces, np.int64), 1)
+    wrapped = float(geo["m1_wrap_offset"]) > 0.0
+    asg = assign_texels(smp.positions, m_t, atlas, 1, normals=gnrm,
+                        occluder=caster if wrapped else None)
+    from texelbake.geometry.build import lod_meshes
+    from texelbake.normalmap import face_tangent_space
+
+    v, f, uv = lod_meshes(geo)[0]
+    frames = face_tangent_space(v, f, uv)
+    prim = asg.prim if bool(geo["lod_exact"]) else RayCaster(v, f).closest_points(
+        smp.positions)[1]
+    local = np.einsum("mij,mj->mi", frames[prim], smp.normals)
+    ao = ambient_occlusion(smp.positions, gnrm, caster.occluded, n_rays=FALLBACK_AO_RAYS,
+                           seed=s.seed, ray_eps=TOL.ray_offset * caster.bbox_diag)
+    albedo, base, alpha2 = material_base(asset.materials, smp.material.astype(np.int32), smp.uv)
+    texels = [(asg.row >> lvl) * (res >> lvl) + (asg.col >> lvl) for lvl in range(n_levels)]
+    # bake_filtered_levels fills empty texels by repeated 4-neighbour passes (fine at 16²);
+    # here one nearest-texel fill per level, so the filled flags are recomputed
+    maps = []
+    for lvl in range(n_levels):  # a loop over the few levels
+        n_l = res >> lvl
+        img = bake_filtered_levels(n_l, 1, [texels[lvl]], smp.area, local, ao, albedo, base,
+                                   alpha2, fill=False)[0]
+        filled = np.bincount(texels[lvl], weights=smp.area, minlength=n_l * n_l) > 0
+        maps.append(_nearest_fill(img, filled.reshape(n_l, n_l)).astype(np.float32))
+    # the base colour as seen from outside: a sample counts only when a ray from it along the
+    # normal of the LOD1 face it shows on leaves M_org (so a part enclosed by another, like
+    # BoxAnimated's inner box whose samples project onto the outer walls, does not tint what
+    # covers it); texels none of whose samples is seen keep the area mean
+    t0 = texels[0]
+    lod_n = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
+    lod_n /= np.maximum(np.linalg.norm(lod_n, axis=1, keepdims=True), 1e-300)
+    d = lod_n[prim]
+    eps = TOL.ray_offset * caster.bbox_diag
+    seen_s = ~caster.occluded(smp.positions + eps * d, d)
+    w = smp.area * seen_s
+    wsum = np.bincount(t0, weights=w, minlength=res * res)
+    seen = wsum > 1e-6 * np.bincount(t0, weights=smp.area, minlength=res * res).clip(1e-300)
+    base_seen = np.stack([np.bincount(t0, weights=w * base[:, c], minlength=res * res)
+                          for c in range(3)], axis=1) / np.where(seen, wsum, 1.0)[:, None]
+    filled0 = np.bincount(t0, weights=smp.area, minlength=res * res) > 0
+    top = maps[0].reshape(res * res, -1)
+    top[seen, FIELDS["base"]] = base_seen[seen]
+    maps[0] = _nearest_fill(np.where(filled0[:, None], top, 0.0).reshape(res, res, -1),
+                            filled0.reshape(res, res)).astype(np.float32)
+    nbar = maps[0][..., FIELDS["nbar"]].astype(np.float64)
+    normal = nbar / np.maximum(np.linalg.norm(nbar, axis=2, keepdims=True), 1e-12)
+    assert maps[0].shape[2] == len(CHANNELS)
+    ctx.store.write_arrays(key, {**{f"L{lvl:02d}": m for lvl, m in enumerate(maps)},
+                                 "normal": normal.astype(np.float32)})
+    return maps, normal.astype(np.float32)
+
+
 def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     """The UsdPreviewSurface fallback of every LOD (`payload.BakedAsset.fallback`): base
     colour and occlusion of level 0 (a viewer mip-maps them itself), and per LOD the roughness
     widened by the slope variance of the level where that LOD is shown
-    (`filtered_maps.lod_levels`; a viewer filters textures but widens no lobe)."""
+    (`filtered_maps.lod_levels`; a viewer filters textures but widens no lobe).
+
+    The textures' side is `fallback_resolution` (issue 22, item 1): when it is above the
+    atlas resolution the maps are baked from their own dense samples on the same layout
+    (`_dense_fallback_levels`) and the fallback gets its own normal map ("normal"); else
+    they are the filtered levels `maps` and the normal map is the baseline's."""
     from texelbake.filtered_maps import (
         FIELDS,
         dominant_constants,
@@ -82,15 +223,11 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
 
     geo = ctx.geometry()
     asset = ctx.asset()
-    n = ctx.settings.atlas_resolution
-    v1, f1, c1 = geo["m1_vertices"], geo["m1_faces"], geo["m1_corner_uvs"]
-    tri, uvt = v1[f1], c1
-    a_w = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    d1, d2 = uvt[:, 1] - uvt[:, 0], uvt[:, 2] - uvt[:, 0]
-    a_uv = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
-    ok = (a_w > 0) & (a_uv > 0)
-    ratio = float(np.median(a_uv[ok] / a_w[ok])) if ok.any() else 1.0
-    texel = 1.0 / (n * np.sqrt(ratio))  # world size of a finest texel on M1
+    res = fallback_resolution(ctx)
+    normal = None
+    if res > ctx.settings.atlas_resolution:
+        maps, normal = _dense_fallback_levels(ctx, res)
+    texel = _texel_size(geo, res)  # world size of a texel of the fallback page on M1
     errors = [0.0]
     for v, f, _ in lod_meshes(geo)[1:]:  # a loop over the few LODs (issue 22's lod{i} keys)
         lod = RayCaster(v, f)
@@ -105,7 +242,11 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
         r = fallback_roughness(m[:, FIELDS["alpha2"]][:, 0], cov)
         rough.append(r.reshape(maps[lvl].shape[:2]).astype(np.float32))
     top = maps[0]
-    return {"base": top[..., FIELDS["base"]], "occlusion": top[..., FIELDS["ao"]][..., 0],
-            "roughness": rough, "levels": lod_levels(errors, texel, len(maps)),
-            "constants": dominant_constants(asset.materials, geo["sample_mat"],
-                                            geo["sample_area"])}
+    out = {"base": top[..., FIELDS["base"]], "occlusion": top[..., FIELDS["ao"]][..., 0],
+           "roughness": rough, "levels": lod_levels(errors, texel, len(maps)),
+           "constants": dominant_constants(asset.materials, geo["sample_mat"],
+                                           geo["sample_area"]),
+           "resolution": int(res)}
+    if normal is not None:
+        out["normal"] = normal
+    return out

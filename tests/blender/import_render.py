@@ -1,0 +1,209 @@
+"""Runs inside Blender (headless `bpy`, scripts/dcc-venv.sh), only through
+`tests.dcc_util.run_blender`: import USD files with Blender's own importer at its defaults
+(`bpy.ops.wm.usd_import`), report what it made, and render each file from one camera and sun.
+
+    python import_render.py -- SPEC.json
+
+SPEC: {"files": [{"name", "path"}, ...], "out_dir", "resolution", "samples",
+"frame": null | [[xmin, ymin, zmin], [xmax, ymax, zmax]]}. Each file is imported into an empty
+scene. The camera and the sun are placed from `frame` (Blender world space; when null, from the
+first file's imported bounds), so every file is seen from the same view. Per file the last
+stdout line's JSON holds: the mesh objects (name, triangles, world-space bounds), the materials
+they use, the images those materials read (size, whether pixels loaded), the world bounds of
+all meshes, the render's PNG path and seconds.
+
+The render is Cycles on the CPU (the only engine that runs in headless bpy without a GPU
+context), a fixed seed, no denoiser, no adaptive sampling: the same file gives the same pixels.
+Lights and cameras the file carries are removed (so the original and a LOD are lit alike): one
+sun of 3 W/m² from over the camera's left shoulder plus a dim uniform world (0.05), the film
+transparent (alpha = coverage), the Standard view transform (8-bit sRGB PNG, RGBA).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Vector
+
+
+def _reset() -> None:
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+
+
+def _mesh_objects() -> list:
+    return [o for o in bpy.context.scene.objects if o.type == "MESH"]
+
+
+def _world_bounds(objs) -> tuple[list[float], list[float]] | None:
+    pts = []
+    for o in objs:
+        m = np.array(o.matrix_world)
+        corners = np.array([list(c) for c in o.bound_box], dtype=np.float64)
+        pts.append(corners @ m[:3, :3].T + m[:3, 3])
+    if not pts:
+        return None
+    allp = np.concatenate(pts)
+    return allp.min(axis=0).tolist(), allp.max(axis=0).tolist()
+
+
+def _exact_bounds(objs) -> tuple[list[float], list[float]] | None:
+    """World bounds from the evaluated vertices (bound_box is the local box, rotated)."""
+    deps = bpy.context.evaluated_depsgraph_get()
+    pts = []
+    for o in objs:
+        ev = o.evaluated_get(deps)
+        me = ev.to_mesh()
+        co = np.empty(len(me.vertices) * 3, dtype=np.float64)
+        me.vertices.foreach_get("co", co)
+        co = co.reshape(-1, 3)
+        m = np.array(ev.matrix_world)
+        pts.append(co @ m[:3, :3].T + m[:3, 3])
+        ev.to_mesh_clear()
+    if not pts or not sum(len(p) for p in pts):
+        return None
+    allp = np.concatenate(pts)
+    return allp.min(axis=0).tolist(), allp.max(axis=0).tolist()
+
+
+def _triangles(o) -> int:
+    me = o.data
+    me.calc_loop_triangles()
+    return len(me.loop_triangles)
+
+
+def _images_of(mat) -> list[dict]:
+    out = []
+    if not mat or not mat.use_nodes:
+        return out
+    for node in mat.node_tree.nodes:
+        if node.type == "TEX_IMAGE" and node.image is not None:
+            img = node.image
+            w, h = img.size
+            has = False
+            if w and h:
+                px = np.empty(w * h * img.channels, dtype=np.float32)
+                img.pixels.foreach_get(px)
+                has = bool(np.isfinite(px).all() and px.max() > px.min() or px.max() > 0)
+            out.append({"image": img.name, "file": img.filepath, "size": [w, h],
+                        "has_pixels": has, "packed": img.packed_file is not None})
+    return out
+
+
+def _describe() -> dict:
+    objs = _mesh_objects()
+    mats: dict[str, list] = {}
+    meshes = []
+    for o in objs:
+        used = [s.material.name for s in o.material_slots if s.material is not None]
+        for s in o.material_slots:
+            if s.material is not None and s.material.name not in mats:
+                mats[s.material.name] = _images_of(s.material)
+        meshes.append({"name": o.name, "triangles": _triangles(o), "materials": used,
+                       "bounds": _exact_bounds([o])})
+    return {"meshes": meshes, "materials": mats, "bounds": _exact_bounds(objs)}
+
+
+def _setup_view(frame, resolution: int, samples: int) -> None:
+    scene = bpy.context.scene
+    for o in list(scene.objects):
+        if o.type in ("LIGHT", "CAMERA"):
+            bpy.data.objects.remove(o, do_unlink=True)
+    lo, hi = np.asarray(frame[0]), np.asarray(frame[1])
+    center = (lo + hi) / 2
+    # camera: azimuth 30 deg, elevation 25 deg (Blender is Z-up), 40 deg field of view, at
+    # the distance where the frame box's 8 corners fit the image with a 5 % margin
+    az, el, fov = math.radians(30.0), math.radians(25.0), math.radians(40.0)
+    view = np.array([math.cos(el) * math.sin(az), -math.cos(el) * math.cos(az), math.sin(el)])
+    right = np.cross(-view, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, -view)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])]) - center
+    t = math.tan(fov / 2) / 1.05
+    d = float(np.max(corners @ view + np.maximum(np.abs(corners @ right),
+                                                 np.abs(corners @ up)) / t))
+    radius = float(np.linalg.norm(hi - lo) / 2) or 1.0
+    cam_data = bpy.data.cameras.new("DccCamera")
+    cam_data.angle = fov
+    cam_data.clip_start = max(d - 2 * radius, 1e-4) * 0.5
+    cam_data.clip_end = (d + 2 * radius) * 2
+    cam = bpy.data.objects.new("DccCamera", cam_data)
+    scene.collection.objects.link(cam)
+    cam.location = Vector((center + d * view).tolist())
+    cam.rotation_euler = Vector((-view).tolist()).to_track_quat("-Z", "Y").to_euler()
+    scene.camera = cam
+    sun_data = bpy.data.lights.new("DccSun", type="SUN")
+    sun_data.energy = 3.0
+    sun_data.angle = math.radians(2.0)
+    sun = bpy.data.objects.new("DccSun", sun_data)
+    scene.collection.objects.link(sun)
+    sdir = np.array([math.cos(math.radians(50)) * math.sin(az - math.radians(50)),
+                     -math.cos(math.radians(50)) * math.cos(az - math.radians(50)),
+                     math.sin(math.radians(50))])
+    sun.rotation_euler = Vector((-sdir).tolist()).to_track_quat("-Z", "Y").to_euler()
+    world = bpy.data.worlds.new("DccWorld")
+    world.use_nodes = True
+    bg = world.node_tree.nodes.get("Background")
+    bg.inputs["Color"].default_value = (0.05, 0.05, 0.05, 1.0)
+    bg.inputs["Strength"].default_value = 1.0
+    scene.world = world
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_adaptive_sampling = False
+    scene.cycles.use_denoising = False
+    scene.cycles.seed = 0
+    scene.cycles.max_bounces = 4
+    scene.render.film_transparent = True
+    scene.render.resolution_x = resolution
+    scene.render.resolution_y = resolution
+    scene.render.resolution_percentage = 100
+    scene.view_settings.view_transform = "Standard"
+    scene.view_settings.look = "None"
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGBA"
+    scene.render.image_settings.color_depth = "8"
+
+
+def main() -> None:
+    argv = sys.argv[sys.argv.index("--") + 1:]
+    spec = json.loads(Path(argv[0]).read_text())
+    out_dir = Path(spec["out_dir"])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frame = spec.get("frame")
+    results = []
+    for f in spec["files"]:
+        _reset()
+        t0 = time.perf_counter()
+        res = bpy.ops.wm.usd_import(filepath=str(f["path"]))
+        info = {"name": f["name"], "path": str(f["path"]), "import": sorted(res),
+                "import_seconds": time.perf_counter() - t0}
+        # the importer sets the frame range from the stage's start and end time codes and
+        # leaves the current frame at 1; texelbake bakes the earliest time (the start), so
+        # the render is made there (BoxAnimated's lid has moved by frame 1)
+        scene = bpy.context.scene
+        scene.frame_set(scene.frame_start)
+        info["frame_current"] = scene.frame_current
+        info.update(_describe())
+        if frame is None:
+            frame = info["bounds"]
+        png = out_dir / f"{f['name']}.png"
+        if spec.get("render", True) and info["bounds"] is not None:
+            _setup_view(frame, int(spec.get("resolution", 160)), int(spec.get("samples", 16)))
+            bpy.context.scene.render.filepath = str(png)
+            t0 = time.perf_counter()
+            bpy.ops.render.render(write_still=True)
+            info["render_seconds"] = time.perf_counter() - t0
+            info["png"] = str(png)
+        results.append(info)
+    print(json.dumps({"frame": frame, "files": results}))
+
+
+if __name__ == "__main__":
+    main()
