@@ -37,6 +37,7 @@ def drive(mod, props, timeout: float) -> dict:
     t0 = time.monotonic()
     seen: list = []
     longest = 0.0
+    panel_running: list = []  # what the panel draws the first time the job is running
     while True:
         t = time.monotonic()
         nxt = mod.poll_step()
@@ -44,8 +45,11 @@ def drive(mod, props, timeout: float) -> dict:
         shown = [props.state, round(props.progress, 3)]
         if props.state and (not seen or seen[-1] != shown):
             seen.append(shown)
+        if props.state == "running" and not panel_running:
+            panel_running = panel_text(mod)
         if props.state in TERMINAL and nxt is None:
-            return {"seconds": time.monotonic() - t0, "seen": seen, "longest_tick_s": longest}
+            return {"seconds": time.monotonic() - t0, "seen": seen, "longest_tick_s": longest,
+                    "panel_running": panel_running}
         longest = max(longest, dt)
         if time.monotonic() - t0 > timeout:
             raise SystemExit(f"the job did not finish in {timeout} s: {props.state} "
@@ -69,18 +73,23 @@ class PanelText:
     def label(self, text: str = "", icon: str = "NONE") -> None:
         self.lines.append("  " * self.depth + (f"[{icon}] " if icon != "NONE" else "") + text)
 
-    def prop(self, data, name: str, text: str | None = None, **_k) -> None:
+    def prop(self, data, name: str, text: str | None = None, slider: bool = False,
+             **_k) -> None:
         if name not in data.bl_rna.properties:
             raise AttributeError(f"panel draws a missing property {name!r}")
         value = getattr(data, name)
         label = text if text is not None else data.bl_rna.properties[name].name
-        self.lines.append("  " * self.depth + f"{label}: {value}")
+        shown = f"{100.0 * value:.0f}%" if slider else value  # a slider shows its fraction
+        self.lines.append("  " * self.depth + f"{label}: {shown}")
 
-    def operator(self, idname: str, text: str | None = None, **_k) -> None:
+    def operator(self, idname: str, text: str | None = None, icon: str = "NONE",
+                 **_k) -> None:
         group, name = idname.split(".")
         op = getattr(getattr(bpy.ops, group), name)
-        op.get_rna_type()  # raises KeyError when not registered
-        self.lines.append("  " * self.depth + f"<{text if text is not None else idname}>")
+        rna = op.get_rna_type()  # raises KeyError when not registered
+        shown = text if text is not None else rna.name  # Blender shows the operator's label
+        icon_tag = f"[{icon}] " if icon != "NONE" else ""
+        self.lines.append("  " * self.depth + f"<{icon_tag}{shown}>")
 
 
 def panel_text(mod) -> list:

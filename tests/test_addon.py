@@ -20,11 +20,13 @@ import pytest
 
 from services.stack import free_port, stack_down, stack_up
 from tests.dcc_util import bpy_python, run_blender
+from tests.panel_picture import draw_panel, parse_line
 from tests.svc_util import usda
 
 ROOT = Path(__file__).resolve().parent.parent
 ADDON = ROOT / "blender" / "texelbake_submit"
-#: the render of the imported LOD1 (headless Blender draws no UI: no panel screenshot)
+#: the render of the imported LOD1 and pictures of the panel (drawn from its layout calls:
+#: headless Blender draws no UI, tests/panel_picture.py)
 SHOTS = ROOT / "build" / "addon-screenshots"
 TOKEN = "addon-token-0123456789abcdef"
 #: a bake of seconds: a 16² atlas in one cpm tile, few directions and samples
@@ -346,3 +348,37 @@ def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
     assert any(line.strip().startswith("[ERROR] invalid token") for line in wrong["panel"]), \
         wrong["panel"]
     assert any("completed" in line for line in res["panel_done"]), res["panel_done"]
+    # the progress slider while the job ran, with the operator buttons by their labels
+    running = drive["panel_running"]
+    assert any(line.strip().startswith("running: ") and line.rstrip().endswith("%")
+               for line in running), running
+    assert any(line.strip() == "<[EXPORT] Bake on farm>" for line in running), running
+    # pictures of the three panels, drawn from their layout (no UI to screenshot headless)
+    caption = "drawn from VIEW3D_PT_texelbake.draw()'s layout calls in headless Blender 5.0.1"
+    for name, lines in (("running", running), ("done", res["panel_done"]),
+                        ("wrong_token", wrong["panel"])):
+        png = draw_panel(lines, SHOTS / f"addon_panel_{name}.png", caption=caption)
+        assert png.stat().st_size > 2000, png
+
+
+def test_panel_picture_reads_the_recorded_layout(tmp_path):
+    """The panel's recorded lines parse as Blender lays them out, and the picture shows them:
+    a slider's filled part grows with its fraction (no Blender needed)."""
+    assert parse_line("<[EXPORT] Bake on farm>") == {
+        "depth": 0, "icon": "EXPORT", "text": "Bake on farm", "value": None, "kind": "button"}
+    assert parse_line("  [ERROR] invalid token: HTTP 401")["kind"] == "label"
+    assert parse_line("  [ERROR] invalid token: HTTP 401")["depth"] == 1
+    assert parse_line("Atlas: 64") == {"depth": 0, "icon": None, "text": "Atlas",
+                                       "value": "64", "kind": "prop"}
+    assert parse_line("result: LOD0,LOD1")["value"] == "LOD0,LOD1"
+
+    from texelbake.imageio import read_pixels
+
+    blue = []
+    for pct in (10, 90):
+        png = draw_panel(["[INFO] baking", f"running: {pct}%", "<[CANCEL] >"],
+                         tmp_path / f"p{pct}.png", caption="test")
+        px = read_pixels(png)[0][..., :3].astype(np.float64)
+        # the slider's fill colour (#4772b3)
+        blue.append(int((np.abs(px - np.array([0x47, 0x72, 0xB3]) / 255.0).max(-1) < 0.02).sum()))
+    assert 0 < blue[0] and 5 * blue[0] < blue[1], blue
