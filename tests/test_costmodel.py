@@ -95,3 +95,22 @@ def test_farm_simulation_against_closed_forms():
     # oversubscribed: 4 workers on 2 cores stretch every shard 2x
     over = costmodel.simulate_farm(dur, zero, zero, 4, bandwidth=1.0, cores=2)
     assert over.seconds == pytest.approx(np.ceil(S / 4) * 4.0)
+
+
+def test_atlas_trade_prices_the_resolution_lod1_asks_for():
+    """The report's CPM atlas trade (issue 22): the same cost model at both resolutions, so a
+    4x larger atlas side costs more (about 16x the texels), an equal one the same."""
+    from texelbake.costmodel import atlas_trade, estimate
+
+    s = BakeSettings(atlas_resolution=16)
+    lod = {"atlas_mesh": {"atlas_resolution_for_lod1": 64, "cpm_max_px": 40.0}}
+    t = atlas_trade(s, lod)
+    assert t["resolution"] == 16 and t["for_lod1"] == 64 and t["max_px"] == 40.0
+    assert t["estimated_seconds"] == estimate(s).seconds
+    assert t["estimated_seconds_for_lod1"] == estimate(
+        BakeSettings(atlas_resolution=64)).seconds
+    # every term but the process start-up (7 s) scales with the texels, 16x here
+    assert t["estimated_seconds_for_lod1"] - 7.0 > 8 * (t["estimated_seconds"] - 7.0)
+    same = atlas_trade(s, {"atlas_mesh": {"atlas_resolution_for_lod1": 16}})
+    assert same["estimated_seconds_for_lod1"] == same["estimated_seconds"]
+    assert atlas_trade(s, {})["estimated_seconds_for_lod1"] is None

@@ -222,6 +222,13 @@ def test_payload_round_trip_and_report(cylinder_bake):
     need = lods[0]["switch_px"] * np.sqrt(area / 0.4) / diag
     want = 2 ** int(np.ceil(np.log2(need)))
     assert report["lods"]["atlas_mesh"]["atlas_resolution_for_lod1"] == want
+    # where the baked atlas serves: a finest texel is one pixel at max_px across (the same
+    # area and diagonal); what LOD1's atlas would cost, by the same cost model, costs more
+    cpm = report["cpm_atlas"]
+    n = settings.atlas_resolution
+    assert cpm["resolution"] == n and cpm["for_lod1"] == want
+    assert cpm["max_px"] == pytest.approx(n * diag / np.sqrt(area / 0.4), rel=1e-3)
+    assert (cpm["estimated_seconds_for_lod1"] > cpm["estimated_seconds"]) == (want > n)
     for lvl, level in enumerate(baked.levels):
         n_l = settings.atlas_resolution >> lvl
         assert level["texel_offsets"].shape == (n_l * n_l + 1,)

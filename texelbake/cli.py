@@ -79,6 +79,17 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _duration(seconds: float | None) -> str:
+    """Seconds as a person reads them: 45 s, 12 min, 9.3 h."""
+    if seconds is None:
+        return "?"
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
 def _print_summary(root: Path) -> None:
     report = json.loads((root.parent / "report.json").read_text())
     print(f"baked: {root}")
@@ -101,6 +112,15 @@ def _print_summary(root: Path) -> None:
               f"{lod['hausdorff_rel']:.4f}{bound}, {lod['method']}")
     if report.get("lods", {}).get("stopped"):
         print(f"LOD chain: {report['lods']['stopped']}")
+    cpm = report.get("cpm_atlas") or {}
+    if cpm.get("max_px"):
+        line = (f"CPM atlas {cpm['resolution']}²: its maps serve the asset up to "
+                f"{cpm['max_px']:.0f} px across (larger on screen: M_org)")
+        if cpm.get("for_lod1") and cpm["for_lod1"] > cpm["resolution"]:
+            line += (f"; to serve LOD1's switch size it would need {cpm['for_lod1']}² "
+                     f"(estimated {_duration(cpm['estimated_seconds_for_lod1'])} on one worker "
+                     f"against {_duration(cpm['estimated_seconds'])})")
+        print(line)
 
 
 def cmd_bake(args: argparse.Namespace) -> int:

@@ -176,6 +176,25 @@ def estimate(
                     per_level=per_level, stretch=stretch)
 
 
+def atlas_trade(settings: BakeSettings, lod_report: dict) -> dict:
+    """What the CPM atlas covers and what the atlas LOD1 asks for would cost (issue 22): the
+    baked resolution, the largest screen size it serves (`cpm_max_px`, the bbox diagonal in
+    pixels at which a finest texel is one pixel; larger on screen texelbake's renderer shades
+    from M_org), the resolution at which a finest texel is one pixel where LOD1 switches in,
+    and the cost model's one-worker seconds of both (uniform fill, a quiet machine: the same
+    prediction for either, so their ratio is the trade)."""
+    atlas = lod_report.get("atlas_mesh", {})
+    need = atlas.get("atlas_resolution_for_lod1")
+    n = settings.atlas_resolution
+    out = {"resolution": n, "max_px": atlas.get("cpm_max_px"), "for_lod1": need,
+           "estimated_seconds": estimate(settings).seconds, "estimated_seconds_for_lod1": None}
+    if need:
+        out["estimated_seconds_for_lod1"] = (
+            out["estimated_seconds"] if need == n
+            else estimate(settings.model_copy(update={"atlas_resolution": int(need)})).seconds)
+    return out
+
+
 def sample_counts(geo, n: int) -> np.ndarray:
     """(n, n) dense samples per finest texel from the geometry stage's arrays."""
     flat = geo["sample_row"].astype(np.int64) * n + geo["sample_col"].astype(np.int64)

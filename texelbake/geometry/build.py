@@ -73,7 +73,9 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
                             "atlas_resolution": int(n),
                             "atlas_resolution_for_lod1": _resolution_needed(
                                 float(samples.area.sum()), bbox_diagonal(asset.points),
-                                report["levels"][0].get("switch_px"))}
+                                report["levels"][0].get("switch_px")),
+                            "cpm_max_px": _cpm_max_px(float(samples.area.sum()),
+                                                      bbox_diagonal(asset.points), n)}
     if not lod_exact:
         report["notes"] = [*report.get("notes", []), (
             f"LOD1 ({lods[0].num_faces} triangles) does not fit a {n}x{n} atlas: the CPM "
@@ -134,6 +136,16 @@ def _resolution_needed(area: float, diag: float, switch_px: float | None) -> int
         return None
     need = float(switch_px) * math.sqrt(area / CHART_COVER) / diag
     return int(2 ** math.ceil(math.log2(max(need, 2.0))))
+
+
+def _cpm_max_px(area: float, diag: float, n: int) -> float | None:
+    """The inverse of `_resolution_needed`: the screen size (the diagonal in pixels) up to which
+    a finest texel of an n x n atlas is at most one pixel. Larger on screen, texelbake's
+    renderer shades from M_org (seed 000 §4.2: closer than the finest level, multi-sample the
+    original), so the atlas decides where the CPM maps are used, not whether a view is right."""
+    if not diag > 0 or not area > 0:
+        return None
+    return float(n) * diag / math.sqrt(area / CHART_COVER)
 
 
 def lod_report(geo: dict[str, np.ndarray]) -> dict:

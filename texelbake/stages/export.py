@@ -9,6 +9,7 @@ import numpy as np
 
 from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
+from texelbake.costmodel import atlas_trade
 from texelbake.geometry.build import lod_meshes, lod_report
 from texelbake.geometry.lodchain import transfer_corner_normals
 from texelbake.quality import quality_gate
@@ -101,6 +102,8 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
         "surface_area": float(geo["sample_area"].sum()),
         "lods": lod_report(geo),
+        # where the CPM maps apply, and what the atlas LOD1 asks for would cost (issue 22)
+        "cpm_atlas": atlas_trade(s, lod_report(geo)),
         # how the LOD meshes follow M_org's animation (texelbake.deform.skinbind)
         "lod_animation": ("usdskel" if skeleton else "time_samples" if asset.has_deformation
                           else "static"),
