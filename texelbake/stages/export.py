@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from texelbake.costmodel import atlas_trade
 from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
-from texelbake.costmodel import atlas_trade
 from texelbake.geometry.build import lod_meshes, lod_report
 from texelbake.geometry.lodchain import transfer_corner_normals
 from texelbake.quality import quality_gate
