@@ -121,8 +121,15 @@ def test_map_into_atlas_lands_near_the_corner(setup):
     assert (face >= 0).all()
     pos = np.einsum("nk,nkd->nd", w, m1.triangles()[face])
     closest, _, _ = RayCaster(m1.vertices, m1.faces).closest_points(corners)
-    # the uv -> position inverse is exact up to the float error of the barycentrics
-    np.testing.assert_allclose(pos, closest, atol=1e-9 * m1.bbox_diag)
+    # the uv -> position inverse is exact up to the float error of the barycentrics, but a
+    # closest point is unique only in its distance: Embree picks the triangle in float32, so
+    # where two triangles are equidistant to ~1e-7 of the scene (a corner over an M1 ridge)
+    # the map and this query may take different ones (measured: 2 of 450 corners, 3e-5 apart)
+    dist_map = np.linalg.norm(pos - corners, axis=1)
+    dist_closest = np.linalg.norm(closest - corners, axis=1)
+    np.testing.assert_allclose(dist_map, dist_closest, atol=1e-6 * m1.bbox_diag)
+    same = np.linalg.norm(pos - closest, axis=1) <= 1e-9 * m1.bbox_diag
+    assert same.mean() >= 0.98, same.mean()
 
 
 def test_bad_arguments():

@@ -54,8 +54,10 @@ def test_hausdorff_matches_an_independent_closest_point_computation():
     d = max(hausdorff(coarse, org))
     brute = _brute_hausdorff(coarse, org)
     # 20k samples vs 200k: the sparser set can only miss the farthest point by about its
-    # sample spacing (sqrt(area / 20k) ~ 0.02 on this unit sphere); both are exact distances
-    assert d <= brute + 1e-9
+    # sample spacing (sqrt(area / 20k) ~ 0.02 on this unit sphere); both are distances to a
+    # triangle that Embree and pymeshlab choose in float32, exact to ~1e-7 of the diagonal
+    # (measured: 4e-9 over on a 0.2 distance)
+    assert d <= brute + 1e-6 * bbox_diagonal(org.vertices)
     assert d >= brute - 0.02
 
 
