@@ -97,8 +97,9 @@ def draw_panel(lines: list[str], path: Path | str, *, caption: str,
                 ax.add_patch(Rectangle((0.5, row + 0.12), 0.46 * frac, 0.76, color="#4772b3"))
             ax.text(0.73, y, value if len(value) <= 30 else value[:29] + "\u2026",
                     color=_TEXT, ha="center", va="center", fontsize=7)
-        else:
-            ax.text(tx, y, it["text"], color=_TEXT, va="center", fontsize=8)
+        else:  # Blender clips a label at the sidebar's edge: so does the picture
+            text = it["text"] if len(it["text"]) <= 46 else it["text"][:45] + "\u2026"
+            ax.text(tx, y, text, color=_TEXT, va="center", fontsize=8)
         if it["kind"] != "button":
             _icon(ax, it["icon"], x + 0.03, y)
     ax.text(0.5, n - 0.5, caption, color="#9a9a9a", ha="center", va="center", fontsize=5.5,
