@@ -111,6 +111,10 @@ def test_atlas_trade_prices_the_resolution_lod1_asks_for():
         BakeSettings(atlas_resolution=64)).seconds
     # every term but the process start-up (7 s) scales with the texels, 16x here
     assert t["estimated_seconds_for_lod1"] - 7.0 > 8 * (t["estimated_seconds"] - 7.0)
+    assert t["cost_ratio"] == t["estimated_seconds_for_lod1"] / t["estimated_seconds"]
+    assert t["projected_seconds_for_lod1"] is None
+    projected = atlas_trade(s, lod, measured_seconds=50.0)["projected_seconds_for_lod1"]
+    assert projected == pytest.approx(50.0 * t["cost_ratio"])
     same = atlas_trade(s, {"atlas_mesh": {"atlas_resolution_for_lod1": 16}})
     assert same["estimated_seconds_for_lod1"] == same["estimated_seconds"]
     assert atlas_trade(s, {})["estimated_seconds_for_lod1"] is None

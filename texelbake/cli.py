@@ -117,9 +117,10 @@ def _print_summary(root: Path) -> None:
         line = (f"CPM atlas {cpm['resolution']}²: its maps serve the asset up to "
                 f"{cpm['max_px']:.0f} px across (larger on screen: M_org)")
         if cpm.get("for_lod1") and cpm["for_lod1"] > cpm["resolution"]:
-            line += (f"; to serve LOD1's switch size it would need {cpm['for_lod1']}² "
-                     f"(estimated {_duration(cpm['estimated_seconds_for_lod1'])} on one worker "
-                     f"against {_duration(cpm['estimated_seconds'])})")
+            line += (f"; to serve LOD1's switch size it would need {cpm['for_lod1']}², "
+                     f"{cpm['cost_ratio']:.0f}x this bake's cost by the cost model")
+            if cpm.get("projected_seconds_for_lod1"):
+                line += f" (~{_duration(cpm['projected_seconds_for_lod1'])})"
         print(line)
 
 

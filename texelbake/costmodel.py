@@ -176,22 +176,29 @@ def estimate(
                     per_level=per_level, stretch=stretch)
 
 
-def atlas_trade(settings: BakeSettings, lod_report: dict) -> dict:
+def atlas_trade(settings: BakeSettings, lod_report: dict,
+                measured_seconds: float | None = None) -> dict:
     """What the CPM atlas covers and what the atlas LOD1 asks for would cost (issue 22): the
-    baked resolution, the largest screen size it serves (`cpm_max_px`, the bbox diagonal in
-    pixels at which a finest texel is one pixel; larger on screen texelbake's renderer shades
-    from M_org), the resolution at which a finest texel is one pixel where LOD1 switches in,
-    and the cost model's one-worker seconds of both (uniform fill, a quiet machine: the same
-    prediction for either, so their ratio is the trade)."""
+    baked resolution, the largest screen size it serves (`max_px`, the bbox diagonal in pixels
+    at which a finest texel is one pixel; larger on screen texelbake's renderer shades from
+    M_org), the resolution at which a finest texel is one pixel where LOD1 switches in, the
+    cost model's one-worker seconds of both (uniform fill, a quiet machine) and their ratio;
+    with `measured_seconds` (this bake's stages), the projection measured x ratio. The ratio
+    of one model's two predictions is what is trusted here, not its absolute seconds."""
     atlas = lod_report.get("atlas_mesh", {})
     need = atlas.get("atlas_resolution_for_lod1")
     n = settings.atlas_resolution
+    est = estimate(settings).seconds
     out = {"resolution": n, "max_px": atlas.get("cpm_max_px"), "for_lod1": need,
-           "estimated_seconds": estimate(settings).seconds, "estimated_seconds_for_lod1": None}
+           "estimated_seconds": est, "estimated_seconds_for_lod1": None, "cost_ratio": None,
+           "projected_seconds_for_lod1": None}
     if need:
-        out["estimated_seconds_for_lod1"] = (
-            out["estimated_seconds"] if need == n
-            else estimate(settings.model_copy(update={"atlas_resolution": int(need)})).seconds)
+        est_need = est if need == n else estimate(
+            settings.model_copy(update={"atlas_resolution": int(need)})).seconds
+        out["estimated_seconds_for_lod1"] = est_need
+        out["cost_ratio"] = est_need / est
+        if measured_seconds:
+            out["projected_seconds_for_lod1"] = float(measured_seconds) * est_need / est
     return out
 
 

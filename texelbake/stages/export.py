@@ -103,7 +103,8 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "surface_area": float(geo["sample_area"].sum()),
         "lods": lod_report(geo),
         # where the CPM maps apply, and what the atlas LOD1 asks for would cost (issue 22)
-        "cpm_atlas": atlas_trade(s, lod_report(geo)),
+        "cpm_atlas": atlas_trade(s, lod_report(geo),
+                                 measured_seconds=sum((stage_seconds or {}).values()) or None),
         # how the LOD meshes follow M_org's animation (texelbake.deform.skinbind)
         "lod_animation": ("usdskel" if skeleton else "time_samples" if asset.has_deformation
                           else "static"),
