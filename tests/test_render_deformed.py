@@ -190,7 +190,8 @@ def test_impostor_primvars_round_trip_through_the_payload(baked_cylinder):
     from pxr import Usd, UsdGeom
 
     from texelbake.deform import impostor as imp
-    from texelbake.payload import IMPOSTOR_PRIMVARS, read_baked
+    from texelbake.lodmesh import IMPOSTOR_PRIMVARS
+    from texelbake.payload import read_baked
     from texelbake.render.deformed import lod_impostor
 
     baked = read_baked(baked_cylinder)

@@ -61,7 +61,7 @@ from texelbake.errors import SettingsError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.raycast import RayCaster
-from texelbake.payload import LodMesh
+from texelbake.lodmesh import LodMesh
 from texelbake.render import camera as cam_mod
 from texelbake.render.camera import PinholeCamera
 from texelbake.render.cpm import CpmFrame, choose_mesh, render_cpm

@@ -12,6 +12,7 @@ from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
 from texelbake.geometry.build import lod_meshes, lod_report
 from texelbake.geometry.lodchain import transfer_corner_normals
+from texelbake.lodmesh import LodMesh
 from texelbake.quality import quality_gate
 from texelbake.stages.avis import avis_levels, avis_rays
 from texelbake.stages.btf import export_btf
@@ -70,7 +71,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         level_reports.append(rep)
     dirs = direction_sets(s)
     # shading normals from M_org for the tools that shade the LOD meshes themselves (issue 22)
-    meshes = [payload.LodMesh(v, f, uv, corner_normals=transfer_corner_normals(
+    meshes = [LodMesh(v, f, uv, corner_normals=transfer_corner_normals(
         v, f, asset.corner_normals, ctx.caster())) for v, f, uv in lod_meshes(geo)]
     # the normal map is in the tangent frames of the mesh that carries it, LOD1
     frames1, sample_prim = lod1_frames(geo)
