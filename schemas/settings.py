@@ -97,12 +97,11 @@ class BakeSettings(BaseModel):
     )
     refit_validation: bool = Field(
         False,
-        description="With coarse_target='dense', accept a texel's refit only if weights refitted "
-        "on the even light directions of the grid beat the fit's on the odd ones (a "
-        "cross-validation on the training grid; the held-out pairs stay unseen). Off by "
-        "default: measured 2026-11-26 it keeps the cloisonne's level-3 held-out p5 at -1.9 dB "
-        "(-7.7 without) but refuses nearly every refit, so the full cylinder's coarse medians "
-        "fall 4-7 dB back to the children fit's (docs/decisions.md).",
+        description="With coarse_target='dense', accept a texel's refit only if it beats the "
+        "fit's weights in a 4-fold cross-validation over the grid's light directions (the "
+        "held-out pairs stay unseen). Off by default: measured 2026-11-26 it keeps the "
+        "cloisonne's level-3 held-out p5 at -1.9 dB (-7.7 without) but refuses most refits, so "
+        "the full cylinder's coarse medians fall 2-6 dB (docs/decisions.md).",
     )
     fit_method: Literal["batched", "per_texel"] = Field(
         "batched",

@@ -95,9 +95,10 @@ def test_refit_raises_the_held_out_median(two_levels):
     assert np.median(refit["snr_ho"][v]) >= np.median(fit["snr_ho"][v])
 
 
-def test_validation_fold_is_every_odd_light_direction():
-    fold = validation_fold(4, 3)  # rows i * 3 + o
-    assert fold.tolist() == [False] * 3 + [True] * 3 + [False] * 3 + [True] * 3
+def test_validation_fold_is_the_light_direction_mod_folds():
+    fold = validation_fold(4, 3, 2)  # rows i * 3 + o
+    assert fold.tolist() == [0] * 3 + [1] * 3 + [0] * 3 + [1] * 3
+    assert validation_fold(5, 1, 4).tolist() == [0, 1, 2, 3, 0]
 
 
 def _grid_problem(noise: bool):
@@ -105,8 +106,8 @@ def _grid_problem(noise: bool):
     other columns are one-hot on the training rows only (points that matter on the grid's
     even light directions and nowhere between them)."""
     n_i, n_o = 8, 4
-    fold = validation_fold(n_i, n_o)
-    train = np.flatnonzero(~fold)
+    fold = validation_fold(n_i, n_o, 2)
+    train = np.flatnonzero(fold == 0)
     d = n_i * n_o
     col = np.zeros((d, 1 + train.size))
     col[:, 0] = 1.0
@@ -135,7 +136,7 @@ def test_refit_guard_accepts_weights_that_hold_between_directions():
     old = np.zeros((A.shape[2], 3))
     old[0] = 0.5  # half the smooth term: wrong everywhere
     assert refit_generalizes(A, f, ok, old, fold)
-    assert refit_generalizes(A, f, ok, old, np.zeros_like(fold))  # nothing to validate on
+    assert refit_generalizes(A, f, ok, old, np.zeros_like(fold))  # one fold: no training rows
 
 
 def test_refit_without_validation_differs_only_where_it_was_refused(two_levels):

@@ -38,11 +38,15 @@ from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
 _BATCH = 256
 
 
-def validation_fold(n_i: int, n_o: int) -> np.ndarray:
-    """(n_i n_o,) bool: the rows (row = i n_o + o) of every odd light direction, the fold a refit
-    must generalize to. Whole light directions, not random rows, so the check asks what the
-    held-out pairs ask: do the weights hold between the grid's directions."""
-    return np.repeat(np.arange(n_i) % 2 == 1, n_o)
+#: light-direction folds of the refit's cross-validation (`refit_generalizes`)
+REFIT_FOLDS = 4
+
+
+def validation_fold(n_i: int, n_o: int, folds: int = 2) -> np.ndarray:
+    """(n_i n_o,) int: the fold of every row (row = i n_o + o): its light direction i mod
+    `folds`. Whole light directions, not random rows, so a fold asks what the held-out pairs
+    ask: do the weights hold between the grid's directions."""
+    return np.repeat(np.arange(n_i) % int(folds), n_o)
 
 
 def dense_nnls(A: np.ndarray, f_ref: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -60,8 +64,9 @@ def dense_nnls(A: np.ndarray, f_ref: np.ndarray, rows: np.ndarray) -> np.ndarray
 
 def refit_generalizes(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.ndarray,
                       fold: np.ndarray) -> bool:
-    """Accept a refit only if weights fitted on the rows outside `fold` reproduce the dense
-    Eq. 7 on the rows of `fold` better than the fit's weights `old_w` do.
+    """Accept a refit only if, in a cross-validation over the folds of `fold` (weights refitted
+    on the other folds' rows, scored on the fold's own rows, squared errors summed over every
+    fold), it reproduces the dense Eq. 7 better than the fit's weights `old_w` do.
 
     NNLS against the dense target raises the in-sample SNR by construction, but with as many
     candidate points as it has it can fit the grid's directions and miss between them (the
@@ -69,14 +74,19 @@ def refit_generalizes(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: n
     level 3 with the unguarded refit, while the medians rose). A cross-validation on the
     training grid decides, so the held-out pairs stay an unbiased measure.
     A : (3, d, c); f_ref : (d, 3); ok : (d,) rows with a_vis above its floor;
-    old_w : (c, 3); fold : (d,) bool (`validation_fold`)."""
-    train, val = ok & ~fold, ok & fold
-    if not val.any() or not train.any():
-        return True  # no rows to validate on: the in-sample rule alone
-    cv_w = dense_nnls(A, f_ref, train)
-    cv = np.einsum("kdc,ck->dk", A, cv_w)
+    old_w : (c, 3); fold : (d,) int fold per row (`validation_fold`)."""
     old = np.einsum("kdc,ck->dk", A, old_w)
-    return snr_db(f_ref, cv, val) > snr_db(f_ref, old, val)
+    err_cv = err_old = 0.0
+    scored = False
+    for k in np.unique(fold):  # loop over the folds (a handful)
+        val, train = ok & (fold == k), ok & (fold != k)
+        if not val.any() or not train.any():
+            continue
+        cv = np.einsum("kdc,ck->dk", A, dense_nnls(A, f_ref, train))
+        err_cv += float(np.sum((cv[val] - f_ref[val]) ** 2))
+        err_old += float(np.sum((old[val] - f_ref[val]) ** 2))
+        scored = True
+    return err_cv < err_old if scored else True  # nothing to validate on: in-sample alone
 
 
 def refit_to_dense(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -103,7 +113,7 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
     tex_of_sample = texel_ids(geo, s.atlas_resolution, level)
     budget = int(s.worker_memory_mb) * 2**20
     rays0 = src.caster.rays_cast
-    fold = validation_fold(n_i, n_o)
+    fold = validation_fold(n_i, n_o, REFIT_FOLDS)
     rejected = np.zeros(texels.shape[0], bool)  # refits the validation fold refused
     for t, texel in enumerate(texels):  # loop over texels: one dense target and NNLS each
         a, b = offsets[t], offsets[t + 1]
