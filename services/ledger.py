@@ -154,10 +154,16 @@ def create_job(
     priority: int = DEFAULT_PRIORITY,
 ) -> Send:
     with sm.begin() as s:
-        s.add(Job(id=job_id, tenant=tenant, asset_id=asset_id, settings_json=settings_json,
-                  priority=int(priority)))
-        s.flush()
-        add_event(s, job_id, "job", {"state": "queued"})
+        return add_job(s, job_id, tenant, asset_id, settings_json, priority)
+
+
+def add_job(s: Session, job_id: str, tenant: str, asset_id: str, settings_json: str,
+            priority: int = DEFAULT_PRIORITY) -> Send:
+    """`create_job` inside the caller's transaction (a batch adds all its jobs in one)."""
+    s.add(Job(id=job_id, tenant=tenant, asset_id=asset_id, settings_json=settings_json,
+              priority=int(priority)))
+    s.flush()
+    add_event(s, job_id, "job", {"state": "queued"})
     return Send(PLAN_JOB_TASK, (job_id,), PLAN_QUEUE, None, job_id)
 
 
