@@ -643,22 +643,21 @@ def release_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: 
 
 def cancel_job(sm: sessionmaker, job_id: str) -> list[str]:
     """Cancel a job that is not finished; returns the task ids to revoke. State rows are kept."""
+    return cancel_jobs(sm, [job_id])
+
+
+def cancel_jobs(sm: sessionmaker, job_ids: list[str]) -> list[str]:
+    """`cancel_job` of many jobs (a batch's) in one transaction."""
     with sm.begin() as s:
-        if not _set_job_state(s, job_id, "cancelled", ["queued", "running"]):
+        live = [j for j in job_ids if _set_job_state(s, j, "cancelled", ["queued", "running"])]
+        if not live:
             return []
-        ids = [
-            t
-            for t in s.scalars(
-                select(Shard.task_id).where(
-                    Shard.job_id == job_id, Shard.state.in_(["queued", "running"])
-                )
-            )
-            if t
-        ]
+        ids = [t for t in s.scalars(select(Shard.task_id).where(
+            Shard.job_id.in_(live), Shard.state.in_(["queued", "running"]))) if t]
         for model in (Shard, Stage):
             s.execute(
                 update(model)
-                .where(model.job_id == job_id, model.state.in_(["pending", "queued", "running"]))
+                .where(model.job_id.in_(live), model.state.in_(["pending", "queued", "running"]))
                 .values(state="cancelled")
             )
         return ids

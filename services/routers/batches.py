@@ -10,7 +10,7 @@ import uuid
 from datetime import datetime
 from typing import Any
 
-from fastapi import Request, status
+from fastapi import BackgroundTasks, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from fastapi.routing import APIRouter
@@ -165,7 +165,8 @@ def _item_specs(body: BatchCreate) -> list[JobSpec]:
     responses=errors(401, ITEM_404, 413, 422),
 )
 def create_batch(
-    body: BatchCreate, request: Request, session: SessionDep, tenant: CurrentTenant
+    body: BatchCreate, request: Request, session: SessionDep, tenant: CurrentTenant,
+    later: BackgroundTasks,
 ) -> BatchPublic:
     """Create a batch: one job per item, all or nothing (every item is checked first)."""
     specs = _item_specs(body)
@@ -174,7 +175,7 @@ def create_batch(
     session.close()  # hold no read connection (nor, on SQLite, an old snapshot) from here on
     batch = BatchSpec(uuid.uuid4().hex, body.name, body.settings.model_dump_json(),
                       body.priority)
-    create_jobs(request, tenant, specs, batch)
+    create_jobs(request, tenant, specs, batch, later)  # plan messages sent after the response
     return _read_public(request, batch.id)
 
 
@@ -214,9 +215,8 @@ def delete_batch(
     open_jobs = [r.id for r in _item_rows(session, [batch_id])
                  if r.state not in TERMINAL_JOB_STATES]
     session.close()
-    task_ids: list[str] = []
+    task_ids = ledger.cancel_jobs(request.app.state.writer, open_jobs)
     for job_id in open_jobs:
-        task_ids += ledger.cancel_job(request.app.state.writer, job_id)
         request.app.state.version_cache.drop(job_id)
     if task_ids:
         try:  # SIGKILL, as DELETE /jobs/{id}: a pool child deep in numpy ignores SIGTERM
