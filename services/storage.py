@@ -4,7 +4,7 @@
 <root>/work/<key>/artifacts/...        stage artifacts; key = hash(asset sha, settings)
 <root>/jobs/<job id>/out/...           the baked USD bundle, report.json, previews/
 <root>/jobs/<job id>/result.zip        the bundle as one download (built on first request)
-<root>/batches/<id>/result.zip         a finished batch as one download (built on first request)
+<root>/batches/<id>/result-<digest>.zip a finished batch as one download (per batch.json)
 <root>/tmp/                            staging of uploads (same filesystem: atomic renames)
 """
 

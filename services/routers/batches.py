@@ -4,10 +4,12 @@ Items are ordinary jobs made by the same path as `POST /jobs` (`services.submiss
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import uuid
 from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 from fastapi import BackgroundTasks, Request, status
@@ -233,25 +235,26 @@ def item_folder(index: int, n_items: int, filename: str) -> str:
     return f"{index:0{max(3, len(str(n_items - 1)))}d}_{stem}"
 
 
-def build_batch_zip(root, batch: BatchPublic, dest):  # noqa: ANN001, ANN201
+def build_batch_zip(root: Path, batch: BatchPublic) -> Path:
     """The finished batch as one deterministic zip: a folder per succeeded item holding its
     result bundle (the files of `/jobs/{id}/result`), and `batch.json` listing every item's
-    state, error and folder."""
-    if dest.is_file():
-        return dest
+    state, error and folder. Built once per content of `batch.json` (named by its digest: a
+    job that changes state later, e.g. resumed, gets a new archive, never a stale one)."""
     n = len(batch.items)
-    members: list[tuple[str, Any]] = []
-    manifest = []
-    for it in batch.items:
-        folder = item_folder(it.index, n, it.asset_name) if it.state == "succeeded" else None
-        if folder is not None:
-            members += folder_members(storage.job_out(root, it.job_id), folder + "/")
-        manifest.append({"index": it.index, "folder": folder, "asset_id": it.asset_id,
-                         "asset_name": it.asset_name, "job_id": it.job_id, "state": it.state,
-                         "error": it.error})
+    manifest = [{"index": it.index, "asset_id": it.asset_id, "asset_name": it.asset_name,
+                 "job_id": it.job_id, "state": it.state, "error": it.error,
+                 "folder": item_folder(it.index, n, it.asset_name)
+                 if it.state == "succeeded" else None} for it in batch.items]
     doc = {"batch": batch.id, "name": batch.name, "state": batch.state,
            "counts": batch.counts.model_dump(), "items": manifest}
-    members.append(("batch.json", (json.dumps(doc, indent=2, sort_keys=True) + "\n").encode()))
+    data = (json.dumps(doc, indent=2, sort_keys=True) + "\n").encode()
+    dest = storage.batch_dir(root, batch.id) / f"result-{hashlib.sha256(data).hexdigest()[:16]}.zip"
+    if dest.is_file():
+        return dest
+    members: list[tuple[str, Path | bytes]] = [("batch.json", data)]
+    for m in manifest:
+        if m["folder"] is not None:
+            members += folder_members(storage.job_out(root, m["job_id"]), m["folder"] + "/")
     return write_zip(dest, members)
 
 
@@ -281,7 +284,6 @@ def read_batch_result(
             f"{BATCH_NOT_FINISHED} ({finished} of {batch.counts.total} items finished)",
             ErrorCode.BATCH_NOT_FINISHED,
         )
-    root = settings.artifact_root
-    dest = build_batch_zip(root, batch, storage.batch_dir(root, batch_id) / "result.zip")
+    dest = build_batch_zip(settings.artifact_root, batch)
     return FileResponse(dest, media_type=_media_type(request, "application/zip"),
                         filename=f"batch-{batch_id}.zip")
