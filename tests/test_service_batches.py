@@ -252,3 +252,38 @@ def test_cli_manifest_end_to_end(stack, cylinder, tmp_path):
         p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120)
         assert p.returncode == 2 and "gone.usda" in p.stderr, p.stderr
         assert c.get("/batches").json()["count"] == n
+
+
+@pytest.mark.parametrize("doc,needle", [
+    ([], "JSON object"),
+    ({"items": []}, "non-empty list"),
+    ({"items": [{"path": "a.usda"}], "sttings": {}}, "unknown keys ['sttings']"),
+    ({"items": [{"path": "a.usda"}, {"file": "a.usda"}]}, "items[1] needs a string `path`"),
+    ({"items": [{"path": "a.usda", "prio": 1}]}, "items[0]: unknown keys ['prio']"),
+    ({"items": [{"path": "a.usda"}, {"path": "b.usda"}]}, "items[1]: "),
+])
+def test_manifest_shape_errors(tmp_path, doc, needle):
+    """A manifest's shape is checked before anything is uploaded (no server needed)."""
+    from texelbake.batch_client import load_manifest
+    from texelbake.errors import SettingsError
+
+    (tmp_path / "a.usda").write_bytes(NO_MESH)
+    m = tmp_path / "m.json"
+    m.write_text(json.dumps(doc))
+    with pytest.raises(SettingsError) as err:
+        load_manifest(m)
+    assert needle in str(err.value) and str(m) in str(err.value)
+
+
+def test_manifest_paths_resolve_against_its_folder(tmp_path):
+    from texelbake.batch_client import load_manifest
+
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "a.usda").write_bytes(NO_MESH)
+    m = tmp_path / "sub" / "m.json"
+    m.write_text(json.dumps({"settings": {"c_max": 8}, "priority": 7, "items": [
+        {"path": "a.usda", "priority": 9}, {"path": str(tmp_path / "sub" / "a.usda")}]}))
+    got = load_manifest(m)
+    assert got.paths == [tmp_path / "sub" / "a.usda"] * 2
+    assert got.body == {"settings": {"c_max": 8}, "priority": 7}
+    assert got.items == [{"priority": 9}, {}]
