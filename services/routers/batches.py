@@ -97,40 +97,66 @@ def batch_state(states: list[str]) -> str:
     return "failed" if "failed" in states else "cancelled"
 
 
-def _summaries(session: Session, batches: list[Batch]) -> list[tuple[dict, list[BatchItemPublic]]]:
-    """Per batch: the `BatchSummary` fields and its items."""
-    rows = _item_rows(session, [b.id for b in batches])
+def _summary(b: Batch, counts: dict[str, int], open_progress: float,
+             last_finished: datetime | None) -> dict[str, Any]:
+    """`BatchSummary` fields from item counts by state, the summed shard progress of the
+    unfinished items, and the newest finish of a finished item."""
+    total = sum(counts.values())
+    state = batch_state([st for st, n in counts.items() if n])
+    finished = sum(n for st, n in counts.items() if st in TERMINAL_JOB_STATES)
+    return {
+        "id": b.id, "name": b.name, "state": state, "priority": b.priority,
+        "counts": BatchCounts(total=total, **counts),
+        "progress": (finished + open_progress) / total if total else 0.0,
+        "created_at": b.created_at,
+        "finished_at": last_finished if state in TERMINAL_JOB_STATES else None,
+    }
+
+
+def _with_items(session: Session, batch: Batch) -> tuple[dict[str, Any], list[BatchItemPublic]]:
+    """One batch's `BatchSummary` fields and its items."""
+    rows = _item_rows(session, [batch.id])
     progress = _shard_progress(
         session, [r.id for r in rows if r.state not in TERMINAL_JOB_STATES])
-    by_batch: dict[str, list[BatchItemPublic]] = {b.id: [] for b in batches}
-    finished: dict[str, list[datetime]] = {b.id: [] for b in batches}
+    items = [BatchItemPublic(
+        index=r.position, asset_id=r.asset_id, asset_name=r.filename, job_id=r.id,
+        state=r.state, priority=r.priority, error=r.error,
+        progress=1.0 if r.state == "succeeded" else progress.get(r.id, 0.0)) for r in rows]
+    counts: dict[str, int] = {}
     for r in rows:
-        terminal = r.state in TERMINAL_JOB_STATES
-        by_batch[r.batch_id].append(BatchItemPublic(
-            index=r.position, asset_id=r.asset_id, asset_name=r.filename, job_id=r.id,
-            state=r.state, priority=r.priority, error=r.error,
-            progress=1.0 if r.state == "succeeded" else progress.get(r.id, 0.0)))
-        if terminal and r.finished_at is not None:
-            finished[r.batch_id].append(r.finished_at)
-    out = []
-    for b in batches:
-        items = by_batch[b.id]
-        states = [i.state for i in items]
-        counts = BatchCounts(total=len(items), **{s: states.count(s) for s in set(states)})
-        state = batch_state(states)
-        done = sum(1.0 if i.state in TERMINAL_JOB_STATES else i.progress for i in items)
-        out.append(({
-            "id": b.id, "name": b.name, "state": state, "priority": b.priority,
-            "counts": counts, "progress": done / len(items) if items else 0.0,
-            "created_at": b.created_at,
-            "finished_at": max(finished[b.id]) if state in TERMINAL_JOB_STATES
-            and finished[b.id] else None,
-        }, items))
-    return out
+        counts[r.state] = counts.get(r.state, 0) + 1
+    ends = [r.finished_at for r in rows
+            if r.state in TERMINAL_JOB_STATES and r.finished_at is not None]
+    return _summary(batch, counts, sum(progress.values()), max(ends, default=None)), items
+
+
+def _summaries(session: Session, batches: list[Batch]) -> list[BatchSummary]:
+    """Many batches' summaries from aggregates (no per-item rows but the unfinished)."""
+    ids = [b.id for b in batches]
+    if not ids:
+        return []
+    joined = select(BatchItem.batch_id).join(Job, Job.id == BatchItem.job_id).where(
+        BatchItem.batch_id.in_(ids))
+    counts: dict[str, dict[str, int]] = {i: {} for i in ids}
+    ends: dict[str, list[datetime]] = {i: [] for i in ids}
+    for bid, st, n, end in session.execute(
+            joined.add_columns(Job.state, func.count(), func.max(Job.finished_at))
+            .group_by(BatchItem.batch_id, Job.state)):
+        counts[bid][st] = int(n)
+        if st in TERMINAL_JOB_STATES and end is not None:
+            ends[bid].append(end)
+    open_jobs = session.execute(joined.add_columns(Job.id).where(
+        Job.state.not_in(list(TERMINAL_JOB_STATES)))).all()
+    progress = _shard_progress(session, [j for _, j in open_jobs])
+    open_sum: dict[str, float] = dict.fromkeys(ids, 0.0)
+    for bid, j in open_jobs:
+        open_sum[bid] += progress[j]
+    return [BatchSummary(**_summary(b, counts[b.id], open_sum[b.id], max(ends[b.id], default=None)))
+            for b in batches]
 
 
 def batch_public(session: Session, batch: Batch) -> BatchPublic:
-    ((fields, items),) = _summaries(session, [batch])
+    fields, items = _with_items(session, batch)
     return BatchPublic(**fields, settings=BakeSettings.model_validate_json(batch.settings_json),
                        items=items)
 
@@ -191,8 +217,7 @@ def read_batches(
     count = session.scalar(select(func.count()).select_from(q.subquery())) or 0
     batches = list(session.scalars(
         q.order_by(Batch.created_at.desc(), Batch.id).offset(skip).limit(limit)))
-    data = [BatchSummary(**fields) for fields, _ in _summaries(session, batches)]
-    return BatchesPublic(data=data, count=count)
+    return BatchesPublic(data=_summaries(session, batches), count=count)
 
 
 @router.get("/{batch_id}", response_model=BatchPublic, operation_id="read_batch",
