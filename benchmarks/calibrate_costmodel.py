@@ -2,7 +2,7 @@
 per-level CPU seconds of the CPM fit (`benchmarks/cpm_cpu.py --json`), and print prediction
 against measurement per (scene, level) and summed.
 
-    python benchmarks/calibrate_costmodel.py RUN.json [RUN.json ...]
+    python benchmarks/calibrate_costmodel.py RUN.json [RUN.json ...] [--scale-only]
 
 Each run's levels carry the sizes the model uses (candidates m and dense samples per texel on
 cheap (Lambert / Phong) and costly materials, m^2, texels); the direction pairs d and the
@@ -15,6 +15,7 @@ texelbake/costmodel.py; the table then shows the current model's prediction too.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -32,7 +33,8 @@ def design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
     for lv in run["levels"]:
         z = lv["sizes"]
         rows.append([z["m_cheap"] * d, z["m_costly"] * d, z["m2"] * d,
-                     z["dense_cheap"] * h, z["dense_costly"] * h, z["texels"]])
+                     z["dense_cheap"] * h, z["dense_costly"] * h, z["texels"],
+                     z.get("refit_cheap", 0.0) * d, z.get("refit_costly", 0.0) * d])
         y.append(lv["cpu_seconds"])
         names.append(f"{run['scene']} L{lv['level']}")
     return np.array(rows, float), np.array(y, float), names
@@ -40,26 +42,45 @@ def design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
 
 def predict(coef: Coefficients, X: np.ndarray) -> np.ndarray:
     return (coef.r_entry * X[:, 0] + coef.r_entry * coef.brdf_ggx * X[:, 1] + coef.gram * X[:, 2]
-            + coef.held * X[:, 3] + coef.held * coef.held_ggx * X[:, 4] + coef.texel * X[:, 5])
+            + coef.held * X[:, 3] + coef.held * coef.held_ggx * X[:, 4] + coef.texel * X[:, 5]
+            + coef.refit * X[:, 6] + coef.refit * coef.refit_ggx * X[:, 7])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--scale-only", action="store_true",
+                    help="keep the current fit terms' ratios: fit one factor on them and the "
+                         "dense refit's two terms (few runs: the full fit is underdetermined)")
     args = ap.parse_args()
     parts = [design(json.loads(p.read_text())) for p in args.runs]
     X = np.vstack([p[0] for p in parts])
     y = np.concatenate([p[1] for p in parts])
     names = [n for p in parts for n in p[2]]
     w = 1.0 / np.maximum(y, 1e-3)
-    scale = np.maximum(np.abs(X).max(axis=0), 1e-30)
-    sol, _ = scipy.optimize.nnls((X * w[:, None]) / scale, y * w)
-    c = sol / scale
-    r_entry = c[0] if c[0] > 0 else 1e-12
-    held = c[3] if c[3] > 0 else 1e-12
-    fitted = Coefficients(r_entry=float(c[0]), brdf_ggx=float(c[1] / r_entry), gram=float(c[2]),
-                          held=float(c[3]), held_ggx=float(c[4] / held), texel=float(c[5]))
     now = Coefficients()
+    if args.scale_only:
+        fit_terms = predict(dataclasses.replace(now, refit=0.0), X)
+        A = np.stack([fit_terms, X[:, 6], X[:, 7]], axis=1)
+        scale = np.maximum(np.abs(A).max(axis=0), 1e-30)
+        sol, _ = scipy.optimize.nnls((A * w[:, None]) / scale, y * w)
+        k, refit, refit_costly = sol / scale
+        print(f"fit terms x {k:.3f}")
+        fitted = dataclasses.replace(
+            now, r_entry=now.r_entry * k, gram=now.gram * k, eigh=now.eigh * k,
+            held=now.held * k, texel=now.texel * k, refit=float(refit),
+            refit_ggx=float(refit_costly / refit) if refit > 0 else 1.0)
+    else:
+        scale = np.maximum(np.abs(X).max(axis=0), 1e-30)
+        sol, _ = scipy.optimize.nnls((X * w[:, None]) / scale, y * w)
+        c = sol / scale
+        r_entry = c[0] if c[0] > 0 else 1e-12
+        held = c[3] if c[3] > 0 else 1e-12
+        refit = c[6] if c[6] > 0 else 1e-12
+        fitted = Coefficients(r_entry=float(c[0]), brdf_ggx=float(c[1] / r_entry),
+                              gram=float(c[2]), held=float(c[3]), held_ggx=float(c[4] / held),
+                              texel=float(c[5]), refit=float(c[6]),
+                              refit_ggx=float(c[7] / refit) if c[7] > 0 else 1.0)
     p_fit, p_now = predict(fitted, X), predict(now, X)
     print(f"{'level':<14} {'measured s':>10} {'fitted':>8} {'ratio':>6} {'current':>8} {'ratio':>6}")
     for n, a, b, e in zip(names, y, p_fit, p_now, strict=True):
@@ -72,7 +93,8 @@ def main() -> None:
               f"{p_now[sel].sum():.2f} ({p_now[sel].sum() / yy.sum():.2f}x)")
     print("Coefficients(" + ", ".join(
         f"{k}={getattr(fitted, k):.3g}" for k in ("r_entry", "brdf_ggx", "gram", "held",
-                                                    "held_ggx", "texel")) + ")")
+                                                    "held_ggx", "texel", "refit",
+                                                    "refit_ggx")) + ")")
 
 
 if __name__ == "__main__":

@@ -95,6 +95,15 @@ class BakeSettings(BaseModel):
         "(texelbake.cpm.refit; measured: level 4 of the small cylinder 10.8 -> 22.9 dB held-out); "
         "'children': the children's weighted sum, as the fit selects them (compounds errors).",
     )
+    refit_validation: bool = Field(
+        False,
+        description="With coarse_target='dense', accept a texel's refit only if weights refitted "
+        "on the even light directions of the grid beat the fit's on the odd ones (a "
+        "cross-validation on the training grid; the held-out pairs stay unseen). Off by "
+        "default: measured 2026-11-26 it keeps the cloisonne's level-3 held-out p5 at -1.9 dB "
+        "(-7.7 without) but refuses nearly every refit, so the full cylinder's coarse medians "
+        "fall 4-7 dB back to the children fit's (docs/decisions.md).",
+    )
     fit_method: Literal["batched", "per_texel"] = Field(
         "batched",
         description="batched: R, Grams and eigendecompositions for many texels at once "

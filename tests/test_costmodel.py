@@ -118,3 +118,24 @@ def test_atlas_trade_prices_the_resolution_lod1_asks_for():
     same = atlas_trade(s, {"atlas_mesh": {"atlas_resolution_for_lod1": 16}})
     assert same["estimated_seconds_for_lod1"] == same["estimated_seconds"]
     assert atlas_trade(s, {})["estimated_seconds_for_lod1"] is None
+
+
+def test_estimate_prices_the_coarse_levels_dense_refit():
+    """coarse_target="dense" refits every coarse level against all its dense samples: on the
+    uniform prediction each level >= 1 holds all 0.4 N^2 spt samples once, so the refit adds
+    refit x (levels - 1) x samples x d seconds (on one worker, Lambert / Phong), by hand."""
+    from texelbake.costmodel import DEFAULT_FILL, Coefficients, estimate
+
+    s = BakeSettings(atlas_resolution=32)
+    coef = Coefficients()
+    dense = estimate(s, ggx_fraction=0.0)
+    children = estimate(s.model_copy(update={"coarse_target": "children"}), ggx_fraction=0.0)
+    n_levels = s.atlas_resolution.bit_length()
+    samples = DEFAULT_FILL * s.atlas_resolution ** 2 * s.samples_per_texel
+    d = s.n_light_dirs * s.n_view_dirs
+    want = coef.refit * (n_levels - 1) * samples * d
+    assert dense.cpm_seconds - children.cpm_seconds == pytest.approx(want, rel=1e-9)
+    # a GGX asset pays the refit's material factor
+    g = estimate(s, ggx_fraction=1.0).cpm_seconds - estimate(
+        s.model_copy(update={"coarse_target": "children"}), ggx_fraction=1.0).cpm_seconds
+    assert g == pytest.approx(want * coef.refit_ggx, rel=1e-9)

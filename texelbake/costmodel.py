@@ -35,23 +35,27 @@ DEFAULT_FILL = 0.4
 
 @dataclass(frozen=True)
 class Coefficients:
-    """Seconds per unit, fitted (NNLS on relative residuals, `benchmarks/calibrate_costmodel.py`)
-    to the CPU seconds (`time.process_time()`) of every level's `fit_level` calls measured by
-    `benchmarks/cpm_cpu.py` after issue 15's second pass: the full cylinder at 32^2 (Lambert +
-    Phong, 6 levels) and two tiles of the bolt at 32^2 (GGX, 4 levels); the fitted model is
-    within 0.95-1.04x of every level and 0.99-1.00x summed. Measured on the 2-core machine
-    shared with ~6 other helpers (1-min load 30-45): CPU seconds there are ~1.8x those of a
-    quiet machine for the same code (cache and memory contention: the same fit took 44.6 CPU s
-    at load ~5 and 79.9 at load ~30), so on a quiet machine this model over-predicts by about
-    that much. The eigh term fitted to 0 (absorbed by the Gram and per-texel terms)."""
+    """Seconds per unit. First fitted (NNLS on relative residuals,
+    `benchmarks/calibrate_costmodel.py`) to the CPU seconds (`time.process_time()`) of every
+    level's `fit_level` calls measured by `benchmarks/cpm_cpu.py` after issue 15's second pass
+    (full cylinder at 32^2, two bolt tiles, 2026-11-25, load 30-45). Re-scaled 2026-11-26 with
+    `calibrate_costmodel.py --scale-only` on `cpm_cpu.py` runs that include the coarse levels'
+    dense refit (`coarse_target="dense"`, merged after that fit and 40 % of a bake): the full
+    cylinder and the full bolt at 16^2 (load 3-10): the fit terms x 1.82 (the first fit
+    under-predicted every level 0.10-0.56x), the refit's terms fitted beside them; every level
+    of both runs within 0.88-1.07x, the sums 0.98x and 1.00x; checked out of sample on the full
+    cylinder at 32^2 (266 CPU s, 130 of them the refit, load 7-10): 0.91-1.16x per level, 1.00x
+    summed. The eigh term fitted to 0 (absorbed by the Gram and per-texel terms)."""
 
-    r_entry: float = 6.53e-8  # s per (candidate, direction pair), Lambert / Phong
-    gram: float = 1.7e-10  # s per m^2 d
+    r_entry: float = 1.19e-7  # s per (candidate, direction pair), Lambert / Phong
+    gram: float = 3.09e-10  # s per m^2 d
     eigh: float = 0.0  # s per m^3
-    held: float = 1.85e-7  # s per (dense sample, held-out pair), Lambert / Phong (+ a_vis)
-    texel: float = 1.24e-2  # s per fitted texel
+    held: float = 3.37e-7  # s per (dense sample, held-out pair), Lambert / Phong (+ a_vis)
+    texel: float = 2.26e-2  # s per fitted texel
     brdf_ggx: float = 1.88  # R cost of a GGX (preview, merl, cellular) material, x r_entry
     held_ggx: float = 1.48  # held-out cost of such a material, x held
+    refit: float = 9.83e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
+    refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
     avis: float = 4.0e-5  # s per dense sample (a_vis maps and compression)
     geometry: float = 2.0e-5  # s per dense sample (sampling, texel assignment)
     process: float = 5.0  # s per worker process (imports of pxr, open3d, torch, scipy)
@@ -153,13 +157,18 @@ def estimate(
     g = float(np.clip(ggx_fraction, 0.0, 1.0))
     brdf = 1.0 + (coef.brdf_ggx - 1.0) * g
     brdf_h = 1.0 + (coef.held_ggx - 1.0) * g
+    # a coarse level's weights refitted to the dense Eq. 7 (texelbake.cpm.refit): R over every
+    # dense sample of the level once more
+    refits = s.hierarchy == "children" and s.coarse_target == "dense"
+    brdf_r = 1.0 + (coef.refit_ggx - 1.0) * g
     per_level = []
     cpm = 0.0
     texels = 0
     for level, (m, dense, mult) in enumerate(sizes):
+        refit = brdf_r * coef.refit * (dense * d).sum() if refits and level > 0 else 0.0
         sec = mult * float(brdf * coef.r_entry * (m * d).sum() + coef.gram * (m * m * d).sum()
                            + coef.eigh * (m ** 3).sum() + brdf_h * coef.held * (dense * n_h).sum()
-                           + coef.texel * m.size)
+                           + coef.texel * m.size + refit)
         n_tex = int(round(mult * m.size))
         per_level.append({"level": level, "texels": n_tex, "seconds": sec})
         cpm += sec

@@ -114,6 +114,9 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "snr_heldout_db": percentiles(data["snr_ho"][valid]),
         "per_channel_texels": int(np.sum(data["mode"][valid] == 1)),
         "skips": _skips(data, valid),
+        # coarse levels: texels whose dense refit the validation fold refused (cpm/refit.py)
+        "refit_rejected": int(np.sum(data["refit_rejected"][valid]))
+        if "refit_rejected" in data else 0,
         "points": int(len(pts)),
         "rays": int(data["rays"].sum()) if "rays" in data else 0,
         "bytes": int(sum(a.nbytes for a in arrays.values())),
