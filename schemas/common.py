@@ -38,6 +38,8 @@ class ErrorCode(StrEnum):
     PREVIEW_NOT_FOUND = "preview_not_found"
     REPORT_NOT_FOUND = "report_not_found"
     JOB_NOT_FINISHED = "job_not_finished"
+    BATCH_NOT_FOUND = "batch_not_found"
+    BATCH_NOT_FINISHED = "batch_not_finished"
     # uploads
     NO_FILE = "no_file"
     UNSUPPORTED_FILE_TYPE = "unsupported_file_type"

@@ -131,6 +131,30 @@ class Shard(Base):
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
 
 
+class Batch(Base):
+    """A batch (`POST /batches`): its defaults; its items are `BatchItem` rows, one job each."""
+
+    __tablename__ = "batches"
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    tenant: Mapped[str] = mapped_column(String(128), index=True)
+    name: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    settings_json: Mapped[str] = mapped_column(Text)  # the batch's default settings
+    priority: Mapped[int] = mapped_column(Integer, default=50)
+    n_items: Mapped[int] = mapped_column(Integer)
+    created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+
+
+class BatchItem(Base):
+    """Item `position` of a batch: the job made for it (job state is the item's state)."""
+
+    __tablename__ = "batch_items"
+    __table_args__ = (UniqueConstraint("batch_id", "position", name="uq_batch_item"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    batch_id: Mapped[str] = mapped_column(ForeignKey("batches.id"), index=True)
+    position: Mapped[int] = mapped_column(Integer)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id"), unique=True)
+
+
 class Event(Base):
     __tablename__ = "events"
     # a job's newest event in one index probe (the status cache's version: `max(seq)`)

@@ -154,10 +154,16 @@ def create_job(
     priority: int = DEFAULT_PRIORITY,
 ) -> Send:
     with sm.begin() as s:
-        s.add(Job(id=job_id, tenant=tenant, asset_id=asset_id, settings_json=settings_json,
-                  priority=int(priority)))
-        s.flush()
-        add_event(s, job_id, "job", {"state": "queued"})
+        return add_job(s, job_id, tenant, asset_id, settings_json, priority)
+
+
+def add_job(s: Session, job_id: str, tenant: str, asset_id: str, settings_json: str,
+            priority: int = DEFAULT_PRIORITY) -> Send:
+    """`create_job` inside the caller's transaction (a batch adds all its jobs in one)."""
+    s.add(Job(id=job_id, tenant=tenant, asset_id=asset_id, settings_json=settings_json,
+              priority=int(priority)))
+    s.flush()
+    add_event(s, job_id, "job", {"state": "queued"})
     return Send(PLAN_JOB_TASK, (job_id,), PLAN_QUEUE, None, job_id)
 
 
@@ -637,22 +643,21 @@ def release_shard(sm: sessionmaker, job_id: str, stage: str, shard: int, error: 
 
 def cancel_job(sm: sessionmaker, job_id: str) -> list[str]:
     """Cancel a job that is not finished; returns the task ids to revoke. State rows are kept."""
+    return cancel_jobs(sm, [job_id])
+
+
+def cancel_jobs(sm: sessionmaker, job_ids: list[str]) -> list[str]:
+    """`cancel_job` of many jobs (a batch's) in one transaction."""
     with sm.begin() as s:
-        if not _set_job_state(s, job_id, "cancelled", ["queued", "running"]):
+        live = [j for j in job_ids if _set_job_state(s, j, "cancelled", ["queued", "running"])]
+        if not live:
             return []
-        ids = [
-            t
-            for t in s.scalars(
-                select(Shard.task_id).where(
-                    Shard.job_id == job_id, Shard.state.in_(["queued", "running"])
-                )
-            )
-            if t
-        ]
+        ids = [t for t in s.scalars(select(Shard.task_id).where(
+            Shard.job_id.in_(live), Shard.state.in_(["queued", "running"]))) if t]
         for model in (Shard, Stage):
             s.execute(
                 update(model)
-                .where(model.job_id == job_id, model.state.in_(["pending", "queued", "running"]))
+                .where(model.job_id.in_(live), model.state.in_(["pending", "queued", "running"]))
                 .values(state="cancelled")
             )
         return ids

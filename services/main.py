@@ -27,7 +27,7 @@ from services.db import session_factory
 from services.deps import TokenCache
 from services.errors import ApiError
 from services.limits import BodyLimit, ServerTiming
-from services.routers import assets, events, farm, jobs, utils, viewer
+from services.routers import assets, batches, events, farm, jobs, utils, viewer
 from services.routers.jobs import JobCache, VersionCache
 from workers.celeryconfig import celery_config
 
@@ -118,7 +118,8 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     celery = Celery("texelbake")
     celery.conf.update(celery_config(settings))
     app.state.celery = celery
-    for r in (utils.router, assets.router, jobs.router, viewer.router, events.router, farm.router):
+    for r in (utils.router, assets.router, jobs.router, batches.router, viewer.router,
+              events.router, farm.router):
         app.include_router(r, prefix=API_V1)
     mount_dashboard(app, settings.web_dist or WEB_DIST)
     errors.install(app)

@@ -4,6 +4,7 @@
 <root>/work/<key>/artifacts/...        stage artifacts; key = hash(asset sha, settings)
 <root>/jobs/<job id>/out/...           the baked USD bundle, report.json, previews/
 <root>/jobs/<job id>/result.zip        the bundle as one download (built on first request)
+<root>/batches/<id>/result-<digest>.zip a finished batch as one download (per batch.json)
 <root>/tmp/                            staging of uploads (same filesystem: atomic renames)
 """
 
@@ -38,3 +39,7 @@ def job_dir(root: Path, job_id: str) -> Path:
 
 def job_out(root: Path, job_id: str) -> Path:
     return job_dir(root, job_id) / "out"
+
+
+def batch_dir(root: Path, batch_id: str) -> Path:
+    return Path(root) / "batches" / batch_id

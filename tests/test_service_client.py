@@ -233,3 +233,40 @@ def test_errors_parse_as_the_error_model(gen, stack, client):
     aid = upload(client, "cube.usda", usda()).parsed.id
     err = assert_error(create_job(client, aid, {"atlas_resolution": 12}), 422, "validation_error")
     assert isinstance(err.detail, list) and "power of two" in err.detail[0].msg
+
+
+def test_batch_through_the_generated_client(client):
+    """`/batches` through generated code: create (item settings override the batch's), read
+    until finished, list, the archive, cancel, and the declared errors."""
+    models = m("models")
+    aid = upload(client, "nomesh.usda", usda()).parsed.id  # uploads; fails in the plan stage
+    body = models.BatchCreate.from_dict({
+        "name": "gen", "settings": CHEAP_SETTINGS, "priority": 40,
+        "items": [{"asset_id": aid, "settings": {"samples_per_texel": 4}},
+                  {"asset_id": aid, "priority": 80}]})
+    r = m("api.batches.create_batch").sync_detailed(client=client, body=body)
+    assert r.status_code == 201, r.content
+    batch = r.parsed
+    assert isinstance(batch, models.BatchPublic) and batch.counts.total == 2
+    assert [i.priority for i in batch.items] == [40, 80]
+    deadline = time.monotonic() + 120
+    while str(batch.state) not in ("succeeded", "failed", "cancelled"):
+        assert time.monotonic() < deadline, batch.to_dict()
+        time.sleep(0.5)
+        batch = m("api.batches.read_batch").sync(client=client, batch_id=batch.id)
+    assert str(batch.state) == "failed" and batch.counts.failed == 2 and batch.progress == 1.0
+    assert all("no UsdGeom.Mesh" in i.error for i in batch.items)
+    listed = m("api.batches.list_batches").sync(client=client)
+    assert batch.id in [b.id for b in listed.data]
+    result = m("api.batches.read_batch_result").sync(client=client, batch_id=batch.id)
+    with zipfile.ZipFile(result.payload) as zf:
+        assert zf.namelist() == ["batch.json"]
+    again = m("api.batches.cancel_batch").sync(client=client, batch_id=batch.id)
+    assert isinstance(again, models.BatchPublic) and str(again.state) == "failed"
+    for op in ("read_batch", "cancel_batch", "read_batch_result"):
+        assert_error(m(f"api.batches.{op}").sync_detailed(client=client, batch_id="0" * 32),
+                     404, "batch_not_found")
+    bad = models.BatchCreate.from_dict({"items": [{"asset_id": "0" * 32}]})
+    err = assert_error(m("api.batches.create_batch").sync_detailed(client=client, body=bad),
+                       404, "asset_not_found")
+    assert "items[0].asset_id" in err.detail

@@ -50,7 +50,7 @@ def farm(workdir: Path, database_url: str | None = None, **kw):
         workdir,
         redis_url=f"redis://127.0.0.1:{free_port()}/0",
         database_url=database_url,
-        tokens={TOKEN: "farm"},
+        tokens=kw.pop("tokens", {TOKEN: "farm"}),
         workers=kw.pop("workers", {"prep": 1, "numeric": 1}),
         environment="test",
         extra_env={

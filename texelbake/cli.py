@@ -3,7 +3,8 @@ submit, stack.
 
 Heavy modules are imported inside each command so `texelbake --help` is instant.
 Exit status: 0 done, 2 error (texelbake.errors), 3 `bake` finished below a quality target
-(texelbake.quality; `--accept-below-target` makes it 0).
+(texelbake.quality; `--accept-below-target` makes it 0), 4 `submit --manifest`: the batch
+finished but some item failed or was cancelled (each is printed).
 """
 
 from __future__ import annotations
@@ -308,9 +309,35 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+#: `texelbake submit --manifest`: the batch finished, and some item failed or was cancelled
+EXIT_ITEMS_FAILED = 4
+
+
+def cmd_submit_manifest(args: argparse.Namespace) -> int:
+    from texelbake.batch_client import failed_items, load_manifest, submit_batch
+
+    if args.file or args.settings or args.set:
+        raise TexelbakeError("--manifest takes its files and settings from the manifest: "
+                             "give no FILE, --settings or --set with it")
+    paths = load_manifest(args.manifest).paths
+    batch = submit_batch(Path(args.manifest), server=args.server, token=args.token,
+                         out_dir=Path(args.output))
+    out = Path(args.output)
+    print(f"batch {batch['id']}: {batch['state']}; {batch['counts']['succeeded']} of "
+          f"{batch['counts']['total']} items succeeded; results in {out}")
+    bad = failed_items(batch, paths)
+    for line in bad:
+        print(f"texelbake: {line}", file=sys.stderr)
+    return EXIT_ITEMS_FAILED if bad else 0
+
+
 def cmd_submit(args: argparse.Namespace) -> int:
     from texelbake.client import submit
 
+    if args.manifest:
+        return cmd_submit_manifest(args)
+    if not args.file:
+        raise TexelbakeError("submit needs a FILE or --manifest FILE")
     settings = _settings(args)
     result = submit(Path(args.file), server=args.server, token=args.token,
                     out_dir=Path(args.output), settings=settings.model_dump())
@@ -425,8 +452,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("dir")
     p.set_defaults(func=cmd_report)
 
-    p = sub.add_parser("submit", help="upload an asset to a texelbake server and fetch the result")
-    p.add_argument("file")
+    p = sub.add_parser("submit", help="upload an asset (or a manifest's assets, as one batch) "
+                       "to a texelbake server and fetch the result")
+    p.add_argument("file", nargs="?")
+    p.add_argument("--manifest", help="JSON manifest of many assets (texelbake.batch_client); "
+                   f"exit status {EXIT_ITEMS_FAILED} when an item failed")
     p.add_argument("--server", required=True)
     p.add_argument("--token", required=True)
     p.add_argument("-o", "--output", default="result")

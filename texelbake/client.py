@@ -1,4 +1,5 @@
-"""`texelbake submit FILE --server URL`: upload, follow progress, download the baked bundle.
+"""`texelbake submit FILE --server URL`: upload, follow progress, download the baked bundle
+(`texelbake submit --manifest FILE`, many assets as one batch: `texelbake.batch_client`).
 
 Uses only httpx and the standard library (no server imports). A layer file that uses other
 files (textures, sublayers) is sent as a `.zip` bundle of exactly the files it uses (found with
@@ -142,6 +143,14 @@ def safe_extract(data: bytes, out_dir: Path) -> list[Path]:
     return written
 
 
+def upload(client: httpx.Client, path: str | Path, what: str = "") -> dict[str, Any]:
+    """`package` the file and `POST /assets` it; returns the asset (the server keeps one
+    copy per content hash: the same bytes give the same asset)."""
+    name, data = package(path)
+    label = f"{what}: upload {name}" if what else f"upload {name}"
+    return _check(client.post(f"{API}/assets", files={"file": (name, data)}), label).json()
+
+
 def submit(
     file: str | Path,
     server: str,
@@ -166,10 +175,7 @@ def submit(
     with httpx.Client(
         base_url=server.rstrip("/"), headers=headers, timeout=120.0, transport=transport
     ) as c:
-        name, data = package(file)
-        asset = _check(
-            c.post(f"{API}/assets", files={"file": (name, data)}), f"upload {name}"
-        ).json()
+        asset = upload(c, file)
         job = _check(
             c.post(f"{API}/jobs", json={"asset_id": asset["id"], "settings": settings or {}}),
             "create job",

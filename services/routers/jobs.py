@@ -7,7 +7,6 @@ import asyncio
 import json
 import re
 import time
-import uuid
 from collections import defaultdict
 from functools import lru_cache
 from pathlib import Path
@@ -34,11 +33,11 @@ from schemas.job import (
 )
 from schemas.settings import BakeSettings
 from services import ledger, storage
-from services.broker import broker_run_id, celery_sender
-from services.db import Asset, Event, Job, Shard, Stage, retry_disconnect
+from services.db import Event, Job, Shard, Stage, retry_disconnect
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
-from services.routers.assets import ASSET_404, ASSET_NOT_FOUND
+from services.routers.assets import ASSET_404
+from services.submission import JobSpec, create_jobs, own_asset
 from texelbake import costmodel
 from texelbake.archive import zip_folder
 from texelbake.atomic import atomic_write_bytes
@@ -178,27 +177,13 @@ def create_job(
     body: JobCreate,
     request: Request,
     session: SessionDep,
-    writer: WriterDep,
     tenant: CurrentTenant,
-    settings: SettingsDep,
 ) -> JobPublic:
     """Create a bake job for one of this tenant's assets; its stages are planned by a worker."""
-    asset = session.get(Asset, body.asset_id)
-    if asset is None or asset.tenant != tenant:
-        raise ApiError(status.HTTP_404_NOT_FOUND, ASSET_NOT_FOUND, ErrorCode.ASSET_NOT_FOUND)
+    asset = own_asset(session, tenant, body.asset_id)
     session.close()  # hold no read connection (nor, on SQLite, an old snapshot) from here on
-    job_id = uuid.uuid4().hex
-    send = ledger.create_job(writer, job_id, tenant, asset.id, body.settings.model_dump_json(),
-                             priority=body.priority)
-    try:  # a broker outage is not the client's problem: the sweeper sends it later
-        ledger.dispatch(
-            writer,
-            [send],
-            celery_sender(request.app.state.celery),
-            broker_run_id(settings.redis_url),
-        )
-    except Exception:  # noqa: BLE001
-        pass
+    spec = JobSpec(asset.id, body.settings.model_dump_json(), body.priority)
+    (job_id,) = create_jobs(request, tenant, [spec])
     return _read_public(request, job_id)
 
 
