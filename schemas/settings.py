@@ -88,12 +88,15 @@ class BakeSettings(BaseModel):
         description="children: coarse texels select from their children's weighted points; "
         "dense: from all dense samples, as the seed.",
     )
-    coarse_target: Literal["dense", "children"] = Field(
-        "dense",
+    coarse_target: Literal["children", "dense"] = Field(
+        "children",
         description="With hierarchy='children', what a coarse texel's point weights are fitted "
-        "to: 'dense' refits them by NNLS to the texel's Eq. 7 over all its dense samples "
-        "(texelbake.cpm.refit; measured: level 4 of the small cylinder 10.8 -> 22.9 dB held-out); "
-        "'children': the children's weighted sum, as the fit selects them (compounds errors).",
+        "to: 'children': the children's weighted sum, as the fit selects them (compounds "
+        "errors); 'dense' refits them by NNLS to the texel's Eq. 7 over all its dense samples "
+        "(texelbake.cpm.refit; measured: higher held-out medians at the coarse levels, e.g. the "
+        "full cylinder 16² L1-L4 23.7/22.0/16.8/11.2 -> 28.5/25.9/20.9/17.8 dB, but lower tails, "
+        "the cloisonne's L3 p5 -1.9 -> -7.7 dB, under the quality gate's floor, and twice the "
+        "fit's time; not the default since 2026-11-26, docs/decisions.md).",
     )
     refit_validation: bool = Field(
         False,

@@ -126,7 +126,7 @@ def test_estimate_prices_the_coarse_levels_dense_refit():
     refit x (levels - 1) x samples x d seconds (on one worker, Lambert / Phong), by hand."""
     from texelbake.costmodel import DEFAULT_FILL, Coefficients, estimate
 
-    s = BakeSettings(atlas_resolution=32)
+    s = BakeSettings(atlas_resolution=32, coarse_target="dense")
     coef = Coefficients()
     dense = estimate(s, ggx_fraction=0.0)
     children = estimate(s.model_copy(update={"coarse_target": "children"}), ggx_fraction=0.0)
