@@ -159,8 +159,10 @@ async def _poll(api: str, token: str, job_id: str, stop_at: float, poll: float,
 
 
 def _pollers(api: str, jobs: list[tuple[str, str]], start_at: float, stop_at: float,
-             poll: float, q) -> None:  # noqa: ANN001
+             poll: float, q, nice: int) -> None:  # noqa: ANN001
     """The pollers' process: one asyncio client per (token, job); puts the samples on `q`."""
+    if nice:
+        os.nice(nice)
     out: list[Sample] = []
 
     async def main() -> None:
@@ -168,7 +170,51 @@ def _pollers(api: str, jobs: list[tuple[str, str]], start_at: float, stop_at: fl
         await asyncio.gather(*(_poll(api, t, j, stop_at, poll, out) for t, j in jobs))
 
     asyncio.run(main())
-    q.put(out)
+    q.put(("polls", out))
+
+
+def _writers(api: str, tokens: list[str], assets: dict[str, str], uploads: int, submits: int,
+             start_at: float, seconds: float, q, nice: int) -> None:  # noqa: ANN001
+    """The writers' process: `uploads` threads each POST /assets once, `submits` threads each
+    POST /jobs once, all started at `start_at`; puts (endpoint, sample) pairs on `q`."""
+    if nice:
+        os.nice(nice)
+    out: list[tuple[str, Sample]] = []
+    lock = threading.Lock()
+
+    def call(endpoint: str, fn) -> None:  # noqa: ANN001
+        t0 = time.perf_counter()
+        try:
+            r = fn()
+        except httpx.HTTPError as exc:
+            sample: Sample = (None, None, None, False, type(exc).__name__)
+        else:
+            sample = (time.perf_counter() - t0, r.status_code, server_ms(r),
+                      "database is locked" in r.text, None)
+        with lock:
+            out.append((endpoint, sample))
+
+    def uploader(i: int) -> None:
+        with httpx.Client(base_url=api, headers={"Authorization": f"Bearer {tokens[i % 2]}"},
+                          timeout=180) as c:
+            call("POST /assets", lambda: c.post(
+                "/assets", files={"file": (f"load{i}.usda", layer(i))}))
+
+    def submitter(i: int) -> None:
+        token = tokens[i % 2]
+        with httpx.Client(base_url=api, headers={"Authorization": f"Bearer {token}"},
+                          timeout=60) as c:
+            call("POST /jobs", lambda: c.post(
+                "/jobs", json={"asset_id": assets[token], "settings": SETTINGS}))
+
+    threads = ([threading.Thread(target=uploader, args=(i,)) for i in range(uploads)]
+               + [threading.Thread(target=submitter, args=(i,)) for i in range(submits)])
+    time.sleep(max(0.0, start_at - time.time()))
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=seconds + 240)
+    q.put(("writes", out))
 
 
 def fresh_pg() -> tuple[str, object]:
@@ -189,7 +235,9 @@ def fresh_pg() -> tuple[str, object]:
     return PG_ADMIN.rsplit("/", 1)[0] + "/" + name, drop
 
 
-def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0) -> dict:
+def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0, *,
+        pollers: int = 50, uploads: int = 20, submits: int = 20, client_nice: int = 0,
+        api_workers: int = 1) -> dict:
     drop = None
     url = None
     if db == "postgresql":
@@ -197,7 +245,7 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0)
     stack_dir = work / f"stack-{db}"
     stack = stack_up(stack_dir, redis_url=f"redis://127.0.0.1:{free_port()}/0",
                      database_url=url, workers={}, tokens=TOKENS, environment="test",
-                     artifact_root=work / f"artifacts-{db}")
+                     artifact_root=work / f"artifacts-{db}", api_workers=api_workers)
     api = stack.api_url + "/api/v1"
     rec, base = Recorder(), Recorder()
     try:
@@ -220,37 +268,26 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0)
         load_before = os.getloadavg()
         ctx = mp.get_context("fork")  # before this process starts any thread
         q = ctx.Queue()
-        start_at = time.time() + 2.0  # the pollers' process imports and connects first
+        start_at = time.time() + 2.0  # the client processes import and connect first
         polls = ctx.Process(target=_pollers, args=(
-            api, [(tokens[i % 2], seed[tokens[i % 2]][1]) for i in range(50)], start_at,
-            start_at + seconds, poll, q))
+            api, [(tokens[i % 2], seed[tokens[i % 2]][1]) for i in range(pollers)], start_at,
+            start_at + seconds, poll, q, client_nice))
+        writes = ctx.Process(target=_writers, args=(
+            api, tokens, {t: seed[t][0] for t in tokens}, uploads, submits, start_at, seconds,
+            q, client_nice))
         polls.start()
-        time.sleep(max(0.0, start_at - time.time()))
-
-        def uploader(i: int) -> None:
-            token = tokens[i % 2]
-            with httpx.Client(base_url=api, headers={"Authorization": f"Bearer {token}"},
-                              timeout=120) as c:
-                rec.call("POST /assets", lambda: c.post(
-                    "/assets", files={"file": (f"load{i}.usda", layer(i))}))
-
-        def submitter(i: int) -> None:
-            token = tokens[i % 2]
-            with httpx.Client(base_url=api, headers={"Authorization": f"Bearer {token}"},
-                              timeout=60) as c:
-                rec.call("POST /jobs", lambda: c.post(
-                    "/jobs", json={"asset_id": seed[token][0], "settings": SETTINGS}))
-
-        threads = ([threading.Thread(target=uploader, args=(i,)) for i in range(20)]
-                   + [threading.Thread(target=submitter, args=(i,)) for i in range(20)])
+        writes.start()
         t0 = time.perf_counter()
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(timeout=seconds + 180)
-        for sample in q.get(timeout=seconds + 240):
-            rec.add(STATUS, *sample)
+        for _ in range(2):
+            kind, data = q.get(timeout=seconds + 300)
+            if kind == "polls":
+                for sample in data:
+                    rec.add(STATUS, *sample)
+            else:
+                for ep, sample in data:
+                    rec.add(ep, *sample)
         polls.join(timeout=30)
+        writes.join(timeout=30)
         wall = time.perf_counter() - t0
         load_after = os.getloadavg()
     finally:
@@ -264,6 +301,8 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0)
     lost = sum(v for k, v in rec.errors.items() if k.split(": ")[1][0].isalpha()
                and "database is locked" not in k)  # transport errors (timeouts, resets)
     return {"db": db, "wall_seconds": wall, "endpoints": endpoints,
+            "clients": {"pollers": pollers, "poll_seconds": poll, "uploads": uploads,
+                        "submits": submits, "nice": client_nice}, "api_workers": api_workers,
             "baseline_1_client": base.table().get(STATUS, {}),
             "loadavg_before": list(load_before), "loadavg_after": list(load_after),
             "cpus": os.cpu_count(), "errors": dict(rec.errors), "bar": {
@@ -284,17 +323,31 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--db", choices=("sqlite", "postgresql", "both"), default="both")
     ap.add_argument("--keep", type=Path, default=None,
                     help="run in this folder and keep it (stack logs) instead of a temporary one")
+    ap.add_argument("--pollers", type=int, default=50)
+    ap.add_argument("--uploads", type=int, default=20)
+    ap.add_argument("--submits", type=int, default=20)
+    ap.add_argument("--client-nice", type=int, default=0,
+                    help="run the client processes (pollers, uploaders, submitters) at this "
+                    "niceness, standing in for clients on other machines (reported)")
+    ap.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes")
     args = ap.parse_args(argv)
+    kw = dict(pollers=args.pollers, uploads=args.uploads, submits=args.submits,
+              client_nice=args.client_nice, api_workers=args.api_workers)
     dbs = ("sqlite", "postgresql") if args.db == "both" else (args.db,)
     if args.keep is not None:
         args.keep.mkdir(parents=True, exist_ok=True)
-        results = [run(db, args.seconds, args.poll, args.keep, args.baseline) for db in dbs]
+        results = [run(db, args.seconds, args.poll, args.keep, args.baseline, **kw) for db in dbs]
     else:
         with tempfile.TemporaryDirectory(prefix="texelbake-load-") as tmp:
-            results = [run(db, args.seconds, args.poll, Path(tmp), args.baseline) for db in dbs]
+            results = [run(db, args.seconds, args.poll, Path(tmp), args.baseline, **kw) for db in dbs]
     print(f"{'db':>10} {'endpoint':>22} {'n':>6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} "
           f"{'srv p50':>8} {'srv p99':>8}  codes")
     for r in results:
+        c = r["clients"]
+        print(f"{r['db']:>10} clients: {c['pollers']} pollers every {c['poll_seconds']} s, "
+              f"{c['uploads']} uploads, {c['submits']} submissions, client niceness "
+              f"{c['nice']}{' (stand-in for clients on other machines)' if c['nice'] else ''}"
+              f"; API workers {r['api_workers']}")
         rows = [("GET /jobs/{id} alone", r["baseline_1_client"]), *r["endpoints"].items()]
         for ep, e in rows:
             if not e:
