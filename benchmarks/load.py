@@ -331,8 +331,8 @@ def main(argv: list[str] | None = None) -> int:
                     "niceness, standing in for clients on other machines (reported)")
     ap.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes")
     args = ap.parse_args(argv)
-    kw = dict(pollers=args.pollers, uploads=args.uploads, submits=args.submits,
-              client_nice=args.client_nice, api_workers=args.api_workers)
+    kw = {"pollers": args.pollers, "uploads": args.uploads, "submits": args.submits,
+              "client_nice": args.client_nice, "api_workers": args.api_workers}
     dbs = ("sqlite", "postgresql") if args.db == "both" else (args.db,)
     if args.keep is not None:
         args.keep.mkdir(parents=True, exist_ok=True)
