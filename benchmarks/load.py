@@ -127,7 +127,7 @@ class Recorder:
 
 
 async def _poll(api: str, token: str, job_id: str, stop_at: float, poll: float,
-                out: list[Sample]) -> None:
+                out: list[Sample], delay: float = 0.0) -> None:
     """One polling client with its own keep-alive connection: GET the job until `stop_at`.
     A minimal HTTP/1.1 client on asyncio streams (status line, headers, Content-Length body):
     httpx spent about a millisecond of the client's CPU per request, which on a loaded 2-core
@@ -136,6 +136,7 @@ async def _poll(api: str, token: str, job_id: str, stop_at: float, poll: float,
     req = (f"GET {u.path}/jobs/{job_id} HTTP/1.1\r\nHost: {u.netloc}\r\n"
            f"Authorization: Bearer {token}\r\n\r\n").encode()
     reader, writer = await asyncio.open_connection(u.hostname, u.port)
+    await asyncio.sleep(delay)
     try:
         while time.time() < stop_at:
             t0 = time.perf_counter()
@@ -159,7 +160,7 @@ async def _poll(api: str, token: str, job_id: str, stop_at: float, poll: float,
 
 
 def _pollers(api: str, jobs: list[tuple[str, str]], start_at: float, stop_at: float,
-             poll: float, q, nice: int) -> None:  # noqa: ANN001
+             poll: float, q, nice: int, stagger: bool = False) -> None:  # noqa: ANN001
     """The pollers' process: one asyncio client per (token, job); puts the samples on `q`."""
     if nice:
         os.nice(nice)
@@ -167,10 +168,13 @@ def _pollers(api: str, jobs: list[tuple[str, str]], start_at: float, stop_at: fl
 
     async def main() -> None:
         await asyncio.sleep(max(0.0, start_at - time.time()))
-        await asyncio.gather(*(_poll(api, t, j, stop_at, poll, out) for t, j in jobs))
+        n = len(jobs)  # staggered: poller i starts i/n of a poll interval late
+        await asyncio.gather(*(_poll(api, t, j, stop_at, poll, out, poll * i / n if stagger
+                                     else 0.0) for i, (t, j) in enumerate(jobs)))
 
     asyncio.run(main())
-    q.put(("polls", out))
+    t = os.times()
+    q.put(("polls", (out, t.user + t.system)))
 
 
 def _writers(api: str, tokens: list[str], assets: dict[str, str], uploads: int, submits: int,
@@ -214,7 +218,31 @@ def _writers(api: str, tokens: list[str], assets: dict[str, str], uploads: int, 
         t.start()
     for t in threads:
         t.join(timeout=seconds + 240)
-    q.put(("writes", out))
+    t = os.times()
+    q.put(("writes", (out, t.user + t.system)))
+
+
+def _tree_cpu(pid: int) -> tuple[float, float]:
+    """CPU seconds of a process and its live descendants: (their own, their reaped children's,
+    e.g. the API's finished pxr checks)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    stats = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                f = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            stats[int(d.name)] = (int(f[1]), (int(f[11]) + int(f[12])) / tick,
+                                  (int(f[13]) + int(f[14])) / tick)
+    own = kids = 0.0
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        if p in stats:
+            own, kids = own + stats[p][1], kids + stats[p][2]
+        todo.extend(c for c, v in stats.items() if v[0] == p)
+    return own, kids
 
 
 def fresh_pg() -> tuple[str, object]:
@@ -237,7 +265,7 @@ def fresh_pg() -> tuple[str, object]:
 
 def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0, *,
         pollers: int = 50, uploads: int = 20, submits: int = 20, client_nice: int = 0,
-        api_workers: int = 1) -> dict:
+        api_workers: int = 1, stagger: bool = False) -> dict:
     drop = None
     url = None
     if db == "postgresql":
@@ -271,21 +299,26 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
         start_at = time.time() + 2.0  # the client processes import and connect first
         polls = ctx.Process(target=_pollers, args=(
             api, [(tokens[i % 2], seed[tokens[i % 2]][1]) for i in range(pollers)], start_at,
-            start_at + seconds, poll, q, client_nice))
+            start_at + seconds, poll, q, client_nice, stagger))
         writes = ctx.Process(target=_writers, args=(
             api, tokens, {t: seed[t][0] for t in tokens}, uploads, submits, start_at, seconds,
             q, client_nice))
         polls.start()
         writes.start()
         t0 = time.perf_counter()
+        api_cpu0 = _tree_cpu(stack.pids["api"])
+        cpu: dict[str, float] = {}
         for _ in range(2):
-            kind, data = q.get(timeout=seconds + 300)
+            kind, (data, cpu[kind]) = q.get(timeout=seconds + 300)
             if kind == "polls":
                 for sample in data:
                     rec.add(STATUS, *sample)
             else:
                 for ep, sample in data:
                     rec.add(ep, *sample)
+        api_cpu1 = _tree_cpu(stack.pids["api"])
+        cpu["api"] = api_cpu1[0] - api_cpu0[0]
+        cpu["api_children"] = api_cpu1[1] - api_cpu0[1]
         polls.join(timeout=30)
         writes.join(timeout=30)
         wall = time.perf_counter() - t0
@@ -302,8 +335,11 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
                and "database is locked" not in k)  # transport errors (timeouts, resets)
     return {"db": db, "wall_seconds": wall, "endpoints": endpoints,
             "clients": {"pollers": pollers, "poll_seconds": poll, "uploads": uploads,
-                        "submits": submits, "nice": client_nice}, "api_workers": api_workers,
+                        "submits": submits, "nice": client_nice,
+                        "staggered": stagger}, "api_workers": api_workers,
             "baseline_1_client": base.table().get(STATUS, {}),
+            "cpu_seconds": {"pollers": cpu["polls"], "writers": cpu["writes"],
+                            "api": cpu["api"], "api_children (upload checks)": cpu["api_children"]},
             "loadavg_before": list(load_before), "loadavg_after": list(load_after),
             "cpus": os.cpu_count(), "errors": dict(rec.errors), "bar": {
                 "status_p99_ms": status.get("p99_ms"),
@@ -329,9 +365,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--client-nice", type=int, default=0,
                     help="run the client processes (pollers, uploaders, submitters) at this "
                     "niceness, standing in for clients on other machines (reported)")
+    ap.add_argument("--stagger", action="store_true",
+                    help="spread the pollers' first reads over one poll interval (default: all "
+                    "50 start at once and stay roughly in step, the harder case)")
     ap.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes")
     args = ap.parse_args(argv)
-    kw = {"pollers": args.pollers, "uploads": args.uploads, "submits": args.submits,
+    kw = {"stagger": args.stagger, "pollers": args.pollers, "uploads": args.uploads, "submits": args.submits,
               "client_nice": args.client_nice, "api_workers": args.api_workers}
     dbs = ("sqlite", "postgresql") if args.db == "both" else (args.db,)
     if args.keep is not None:
@@ -347,7 +386,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{r['db']:>10} clients: {c['pollers']} pollers every {c['poll_seconds']} s, "
               f"{c['uploads']} uploads, {c['submits']} submissions, client niceness "
               f"{c['nice']}{' (stand-in for clients on other machines)' if c['nice'] else ''}"
+              f"{', pollers staggered' if c['staggered'] else ', pollers in step'}"
               f"; API workers {r['api_workers']}")
+        print(f"{r['db']:>10} CPU seconds: " + ", ".join(
+            f"{k} {v:.1f}" for k, v in r["cpu_seconds"].items()) + f" over {r['wall_seconds']:.1f} s")
         rows = [("GET /jobs/{id} alone", r["baseline_1_client"]), *r["endpoints"].items()]
         for ep, e in rows:
             if not e:
