@@ -38,6 +38,7 @@ from services.broker import broker_run_id, celery_sender
 from services.db import Asset, Event, Job, Shard, Stage, retry_disconnect
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
+from services.limits import cpu_slot
 from services.routers.assets import ASSET_404, ASSET_NOT_FOUND
 from texelbake import costmodel
 from texelbake.archive import zip_folder
@@ -183,6 +184,12 @@ def create_job(
     settings: SettingsDep,
 ) -> JobPublic:
     """Create a bake job for one of this tenant's assets; its stages are planned by a worker."""
+    with cpu_slot(settings.cpu_route_concurrency):
+        return _create_job(body, request, session, writer, tenant, settings)
+
+
+def _create_job(body: JobCreate, request: Request, session: Session, writer, tenant: str,  # noqa: ANN001
+                settings) -> JobPublic:  # noqa: ANN001
     asset = session.get(Asset, body.asset_id)
     if asset is None or asset.tenant != tenant:
         raise ApiError(status.HTTP_404_NOT_FOUND, ASSET_NOT_FOUND, ErrorCode.ASSET_NOT_FOUND)
