@@ -301,7 +301,7 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
         start_at = time.time() + 2.0  # the client processes import and connect first
         polls = ctx.Process(target=_pollers, args=(
             api, [(tokens[i % 2], seed[tokens[i % 2]][1]) for i in range(pollers)], start_at,
-            start_at + seconds, poll, q, client_nice, stagger))
+            start_at + seconds, poll, q, 0, stagger))
         writes = ctx.Process(target=_writers, args=(
             api, tokens, {t: seed[t][0] for t in tokens}, uploads, submits, start_at, seconds,
             q, client_nice))
@@ -365,8 +365,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--uploads", type=int, default=20)
     ap.add_argument("--submits", type=int, default=20)
     ap.add_argument("--client-nice", type=int, default=0,
-                    help="run the client processes (pollers, uploaders, submitters) at this "
-                    "niceness, standing in for clients on other machines (reported)")
+                    help="run the upload and submission clients (not the pollers, who measure) "
+                    "at this niceness, standing in for clients on other machines (reported)")
     ap.add_argument("--stagger", action="store_true",
                     help="spread the pollers' first reads over one poll interval (default: all "
                     "50 start at once and stay roughly in step, the harder case)")
@@ -386,7 +386,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in results:
         c = r["clients"]
         print(f"{r['db']:>10} clients: {c['pollers']} pollers every {c['poll_seconds']} s, "
-              f"{c['uploads']} uploads, {c['submits']} submissions, client niceness "
+              f"{c['uploads']} uploads, {c['submits']} submissions, their clients' niceness "
               f"{c['nice']}{' (stand-in for clients on other machines)' if c['nice'] else ''}"
               f"{', pollers staggered' if c['staggered'] else ', pollers in step'}"
               f"; API workers {r['api_workers']}")
