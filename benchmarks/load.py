@@ -127,7 +127,8 @@ class Recorder:
 
 
 async def _poll(api: str, token: str, job_id: str, stop_at: float, poll: float,
-                out: list[Sample], delay: float = 0.0) -> None:
+                out: list[Sample], delay: float = 0.0, sent_at: list[float] | None = None,
+                ) -> None:
     """One polling client with its own keep-alive connection: GET the job until `stop_at`.
     A minimal HTTP/1.1 client on asyncio streams (status line, headers, Content-Length body):
     httpx spent about a millisecond of the client's CPU per request, which on a loaded 2-core
@@ -154,6 +155,8 @@ async def _poll(api: str, token: str, job_id: str, stop_at: float, poll: float,
             v = headers.get("server-timing", "")
             srv = float(v.split("dur=")[1]) if "dur=" in v else None
             out.append((dt, int(lines[0].split()[1]), srv, b"database is locked" in body, None))
+            if sent_at is not None:  # aligned with `out`'s answered samples (no await between)
+                sent_at.append(time.time() - dt)
             await asyncio.sleep(poll)
     finally:
         writer.close()
@@ -165,20 +168,21 @@ def _pollers(api: str, jobs: list[tuple[str, str]], start_at: float, stop_at: fl
     if nice:
         os.nice(nice)
     out: list[Sample] = []
+    sent_at: list[float] = []
 
     async def main() -> None:
         await asyncio.sleep(max(0.0, start_at - time.time()))
         n = len(jobs)  # staggered: poller i starts i/n of a poll interval late
         await asyncio.gather(*(_poll(api, t, j, stop_at, poll, out, poll * i / n if stagger
-                                     else 0.0) for i, (t, j) in enumerate(jobs)))
+                                     else 0.0, sent_at) for i, (t, j) in enumerate(jobs)))
 
     asyncio.run(main())
     t = os.times()
-    q.put(("polls", (out, t.user + t.system)))
+    q.put(("polls", (out, t.user + t.system, sent_at)))
 
 
 def _writers(api: str, tokens: list[str], assets: dict[str, str], uploads: int, submits: int,
-             start_at: float, seconds: float, q, nice: int) -> None:  # noqa: ANN001
+             start_at: float, seconds: float, q, nice: int, ready) -> None:  # noqa: ANN001
     """The writers' process: `uploads` threads each POST /assets once, `submits` threads each
     POST /jobs once, all started at `start_at`; puts (endpoint, sample) pairs on `q`."""
     if nice:
@@ -198,10 +202,12 @@ def _writers(api: str, tokens: list[str], assets: dict[str, str], uploads: int, 
         with lock:
             out.append((endpoint, sample))
 
-    # the clients are built before the clock (an httpx.Client costs ~50 ms of CPU for its TLS
-    # context even on http; 40 of them at the start starved the pollers beside them)
+    # the clients are built before the clock, without a TLS context (the API is plain http on
+    # loopback): loading the CA bundle cost ~50 ms of CPU per client, 40 of them overran the
+    # start and competed with the pollers while the writes were timed
     clients = [httpx.Client(base_url=api, headers={"Authorization": f"Bearer {tokens[i % 2]}"},
-                            timeout=180) for i in range(uploads + submits)]
+                            timeout=180, verify=False) for i in range(uploads + submits)]
+    ready.set()
 
     def uploader(i: int) -> None:
         call("POST /assets", lambda: clients[i].post(
@@ -221,7 +227,7 @@ def _writers(api: str, tokens: list[str], assets: dict[str, str], uploads: int, 
     for c in clients:
         c.close()
     t = os.times()
-    q.put(("writes", (out, t.user + t.system)))
+    q.put(("writes", (out, t.user + t.system, [time.time()])))  # when the last write ended
 
 
 def _tree_cpu(pid: int) -> tuple[float, float]:
@@ -298,21 +304,26 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
         load_before = os.getloadavg()
         ctx = mp.get_context("fork")  # before this process starts any thread
         q = ctx.Queue()
-        start_at = time.time() + 2.0  # the client processes import and connect first
+        ready = ctx.Event()
+        start_at = time.time() + 4.0  # the client processes import and connect first
         polls = ctx.Process(target=_pollers, args=(
             api, [(tokens[i % 2], seed[tokens[i % 2]][1]) for i in range(pollers)], start_at,
             start_at + seconds, poll, q, 0, stagger))
         writes = ctx.Process(target=_writers, args=(
             api, tokens, {t: seed[t][0] for t in tokens}, uploads, submits, start_at, seconds,
-            q, client_nice))
+            q, client_nice, ready))
         polls.start()
         writes.start()
+        if not ready.wait(max(0.0, start_at - time.time())):
+            raise RuntimeError("the writers were not ready before the clock; raise the delay")
         t0 = time.perf_counter()
         api_cpu0 = _tree_cpu(stack.pids["api"])
         cpu: dict[str, float] = {}
+        marks: dict[str, list[float]] = {}
         for _ in range(2):
-            kind, (data, cpu[kind]) = q.get(timeout=seconds + 300)
+            kind, (data, cpu[kind], marks[kind]) = q.get(timeout=seconds + 300)
             if kind == "polls":
+                data_polls = data
                 for sample in data:
                     rec.add(STATUS, *sample)
             else:
@@ -330,6 +341,19 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
         if drop is not None:
             drop()
     endpoints = rec.table()
+    # the status reads sent while the writes were in flight, and those sent after the last
+    writes_end = marks["writes"][0]
+    lat = [x[0] for x in data_polls if x[0] is not None]
+    during = [d for a, d in zip(marks["polls"], lat, strict=True) if a < writes_end]
+    after = [d for a, d in zip(marks["polls"], lat, strict=True) if a >= writes_end]
+
+    def pct(v: list[float]) -> dict:
+        a = np.asarray(v) * 1e3
+        return {"n": int(a.size), "p50_ms": float(np.percentile(a, 50)) if a.size else None,
+                "p99_ms": float(np.percentile(a, 99)) if a.size else None}
+
+    status_split = {"writes_seconds": writes_end - start_at, "during_writes": pct(during),
+                    "after_writes": pct(after)}
     status = endpoints.get(STATUS, {})
     locked = sum(v for k, v in rec.errors.items() if "database is locked" in k)
     five = sum(v for k, v in rec.errors.items() if k.split(": ")[1].startswith("5"))
@@ -339,7 +363,7 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
             "clients": {"pollers": pollers, "poll_seconds": poll, "uploads": uploads,
                         "submits": submits, "nice": client_nice,
                         "staggered": stagger}, "api_workers": api_workers,
-            "baseline_1_client": base.table().get(STATUS, {}),
+            "baseline_1_client": base.table().get(STATUS, {}), "status_split": status_split,
             "cpu_seconds": {"pollers": cpu["polls"], "writers": cpu["writes"],
                             "api": cpu["api"], "api_children (upload checks)": cpu["api_children"]},
             "loadavg_before": list(load_before), "loadavg_after": list(load_after),
@@ -392,6 +416,12 @@ def main(argv: list[str] | None = None) -> int:
               f"; API workers {r['api_workers']}")
         print(f"{r['db']:>10} CPU seconds: " + ", ".join(
             f"{k} {v:.1f}" for k, v in r["cpu_seconds"].items()) + f" over {r['wall_seconds']:.1f} s")
+        sp = r["status_split"]
+        print(f"{r['db']:>10} status reads sent while the writes were in flight (first "
+              f"{sp['writes_seconds']:.1f} s): n {sp['during_writes']['n']} p50 "
+              f"{sp['during_writes']['p50_ms'] or 0:.1f} p99 {sp['during_writes']['p99_ms'] or 0:.1f}"
+              f" ms; after: n {sp['after_writes']['n']} p50 {sp['after_writes']['p50_ms'] or 0:.1f}"
+              f" p99 {sp['after_writes']['p99_ms'] or 0:.1f} ms")
         rows = [("GET /jobs/{id} alone", r["baseline_1_client"]), *r["endpoints"].items()]
         for ep, e in rows:
             if not e:
