@@ -21,7 +21,13 @@ table gives per endpoint the count, p50, p99 and max latency (client) and p50/p9
 status codes, errors by kind (transport errors, 5xx, and any body that says "database is
 locked", which must never reach a client), and the machine's load average before and after.
 Bar: status reads p99 <= 50 ms (client), no 5xx, no "database is locked", no request lost (a
-client timeout hides the server's late answer). Times are of a 2-core machine that also runs
+client timeout hides the server's late answer). Also reported: CPU seconds of the pollers, the
+writers, the API and the API's upload-check processes, and the status reads split into those
+sent while the writes were in flight and those sent after. Knobs (all reported in the table and
+the JSON): `--pollers/--uploads/--submits` (0 for attribution runs), `--api-workers`,
+`--client-nice N` (the upload and submission clients at nice N, standing in for clients on
+other machines; the pollers always run at the benchmark's own priority), `--stagger` (pollers'
+first reads spread over one interval instead of all in step). Times are of a 2-core machine that also runs
 the uploads' validation, so the status p99 is measured while the CPU is shared with 20 pxr
 checks, and with whatever else the machine runs (the load average says how much).
 """
@@ -437,7 +443,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['loadavg_before'][0]:.1f} -> {r['loadavg_after'][0]:.1f} on {r['cpus']} CPUs")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"runs": results}, indent=1))
+        command = "benchmarks/load.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        args.json.write_text(json.dumps({"command": command, "runs": results}, indent=1))
     return 0
 
 
