@@ -12,10 +12,12 @@ API closes its stdin (the API died or stopped).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import resource
 import select
+import signal
 import socket
 import sys
 from pathlib import Path
@@ -52,6 +54,17 @@ def main(argv: list[str]) -> int:
     except ImportError:  # pragma: no cover
         pass
     path = argv[0]
+    # a stop of the API's process group (SIGTERM) still removes the socket below
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    try:
+        return _serve(path)
+    finally:  # the socket and its private folder (services.uploads made it) go with the server
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+            os.rmdir(os.path.dirname(path))
+
+
+def _serve(path: str) -> int:
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as srv:
         srv.bind(path)
         srv.listen(64)

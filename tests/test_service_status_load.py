@@ -168,3 +168,40 @@ def test_broker_run_id_is_cheap_and_follows_a_restart(tmp_path):
     finally:
         proc.kill()
         proc.wait()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_check_server_leaves_nothing_behind_when_the_api_stops(tmp_path):
+    """The check server lives with its API process: a stack stop ends it and removes its
+    socket folder."""
+    stack = stack_up(tmp_path / "stack", redis_url=f"redis://127.0.0.1:{free_port()}/0",
+                     workers={}, tokens={TOK_A: "tenant-a"}, environment="test")
+    try:
+        with _client(stack, TOK_A) as a:
+            assert a.post("/assets", files={"file": ("cube.usda", usda())}).status_code == 201
+        servers = []
+        for d in Path("/proc").iterdir():
+            try:
+                cmd = (d / "cmdline").read_bytes().split(b"\0")
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            if b"services.checkserver" in cmd and ppid == stack.pids["api"]:
+                servers.append((int(d.name), Path(cmd[cmd.index(b"services.checkserver") + 1]
+                                                  .decode())))
+        assert len(servers) == 1, servers
+        pid, sock = servers[0]
+        assert sock.exists()
+    finally:
+        stack_down(tmp_path / "stack")
+    t0 = time.monotonic()
+    while _alive(pid):
+        assert time.monotonic() - t0 < 10, "the check server outlived its API"
+        time.sleep(0.1)
+    assert not sock.parent.exists()
