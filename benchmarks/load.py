@@ -21,7 +21,13 @@ table gives per endpoint the count, p50, p99 and max latency (client) and p50/p9
 status codes, errors by kind (transport errors, 5xx, and any body that says "database is
 locked", which must never reach a client), and the machine's load average before and after.
 Bar: status reads p99 <= 50 ms (client), no 5xx, no "database is locked", no request lost (a
-client timeout hides the server's late answer). Times are of a 2-core machine that also runs
+client timeout hides the server's late answer). Also reported: CPU seconds of the pollers, the
+writers, the API and the API's upload-check processes, and the status reads split into those
+sent while the writes were in flight and those sent after. Knobs (all reported in the table and
+the JSON): `--pollers/--uploads/--submits` (0 for attribution runs), `--api-workers`,
+`--client-nice N` (the upload and submission clients at nice N, standing in for clients on
+other machines; the pollers always run at the benchmark's own priority), `--stagger` (pollers'
+first reads spread over one interval instead of all in step). Times are of a 2-core machine that also runs
 the uploads' validation, so the status p99 is measured while the CPU is shared with 20 pxr
 checks, and with whatever else the machine runs (the load average says how much).
 """
@@ -127,7 +133,8 @@ class Recorder:
 
 
 async def _poll(api: str, token: str, job_id: str, stop_at: float, poll: float,
-                out: list[Sample]) -> None:
+                out: list[Sample], delay: float = 0.0, sent_at: list[float] | None = None,
+                ) -> None:
     """One polling client with its own keep-alive connection: GET the job until `stop_at`.
     A minimal HTTP/1.1 client on asyncio streams (status line, headers, Content-Length body):
     httpx spent about a millisecond of the client's CPU per request, which on a loaded 2-core
@@ -136,6 +143,7 @@ async def _poll(api: str, token: str, job_id: str, stop_at: float, poll: float,
     req = (f"GET {u.path}/jobs/{job_id} HTTP/1.1\r\nHost: {u.netloc}\r\n"
            f"Authorization: Bearer {token}\r\n\r\n").encode()
     reader, writer = await asyncio.open_connection(u.hostname, u.port)
+    await asyncio.sleep(delay)
     try:
         while time.time() < stop_at:
             t0 = time.perf_counter()
@@ -153,22 +161,102 @@ async def _poll(api: str, token: str, job_id: str, stop_at: float, poll: float,
             v = headers.get("server-timing", "")
             srv = float(v.split("dur=")[1]) if "dur=" in v else None
             out.append((dt, int(lines[0].split()[1]), srv, b"database is locked" in body, None))
+            if sent_at is not None:  # aligned with `out`'s answered samples (no await between)
+                sent_at.append(time.time() - dt)
             await asyncio.sleep(poll)
     finally:
         writer.close()
 
 
 def _pollers(api: str, jobs: list[tuple[str, str]], start_at: float, stop_at: float,
-             poll: float, q) -> None:  # noqa: ANN001
+             poll: float, q, nice: int, stagger: bool = False) -> None:  # noqa: ANN001
     """The pollers' process: one asyncio client per (token, job); puts the samples on `q`."""
+    if nice:
+        os.nice(nice)
     out: list[Sample] = []
+    sent_at: list[float] = []
 
     async def main() -> None:
         await asyncio.sleep(max(0.0, start_at - time.time()))
-        await asyncio.gather(*(_poll(api, t, j, stop_at, poll, out) for t, j in jobs))
+        n = len(jobs)  # staggered: poller i starts i/n of a poll interval late
+        await asyncio.gather(*(_poll(api, t, j, stop_at, poll, out, poll * i / n if stagger
+                                     else 0.0, sent_at) for i, (t, j) in enumerate(jobs)))
 
     asyncio.run(main())
-    q.put(out)
+    t = os.times()
+    q.put(("polls", (out, t.user + t.system, sent_at)))
+
+
+def _writers(api: str, tokens: list[str], assets: dict[str, str], uploads: int, submits: int,
+             start_at: float, seconds: float, q, nice: int, ready) -> None:  # noqa: ANN001
+    """The writers' process: `uploads` threads each POST /assets once, `submits` threads each
+    POST /jobs once, all started at `start_at`; puts (endpoint, sample) pairs on `q`."""
+    if nice:
+        os.nice(nice)
+    out: list[tuple[str, Sample]] = []
+    lock = threading.Lock()
+
+    def call(endpoint: str, fn) -> None:  # noqa: ANN001
+        t0 = time.perf_counter()
+        try:
+            r = fn()
+        except httpx.HTTPError as exc:
+            sample: Sample = (None, None, None, False, type(exc).__name__)
+        else:
+            sample = (time.perf_counter() - t0, r.status_code, server_ms(r),
+                      "database is locked" in r.text, None)
+        with lock:
+            out.append((endpoint, sample))
+
+    # the clients are built before the clock, without a TLS context (the API is plain http on
+    # loopback): loading the CA bundle cost ~50 ms of CPU per client, 40 of them overran the
+    # start and competed with the pollers while the writes were timed
+    clients = [httpx.Client(base_url=api, headers={"Authorization": f"Bearer {tokens[i % 2]}"},
+                            timeout=180, verify=False) for i in range(uploads + submits)]
+    ready.set()
+
+    def uploader(i: int) -> None:
+        call("POST /assets", lambda: clients[i].post(
+            "/assets", files={"file": (f"load{i}.usda", layer(i))}))
+
+    def submitter(i: int) -> None:
+        call("POST /jobs", lambda: clients[uploads + i].post(
+            "/jobs", json={"asset_id": assets[tokens[i % 2]], "settings": SETTINGS}))
+
+    threads = ([threading.Thread(target=uploader, args=(i,)) for i in range(uploads)]
+               + [threading.Thread(target=submitter, args=(i,)) for i in range(submits)])
+    time.sleep(max(0.0, start_at - time.time()))
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=seconds + 240)
+    for c in clients:
+        c.close()
+    t = os.times()
+    q.put(("writes", (out, t.user + t.system, [time.time()])))  # when the last write ended
+
+
+def _tree_cpu(pid: int) -> tuple[float, float]:
+    """CPU seconds of a process and its live descendants: (their own, their reaped children's,
+    e.g. the API's finished pxr checks)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    stats = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                f = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            stats[int(d.name)] = (int(f[1]), (int(f[11]) + int(f[12])) / tick,
+                                  (int(f[13]) + int(f[14])) / tick)
+    own = kids = 0.0
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        if p in stats:
+            own, kids = own + stats[p][1], kids + stats[p][2]
+        todo.extend(c for c, v in stats.items() if v[0] == p)
+    return own, kids
 
 
 def fresh_pg() -> tuple[str, object]:
@@ -189,7 +277,9 @@ def fresh_pg() -> tuple[str, object]:
     return PG_ADMIN.rsplit("/", 1)[0] + "/" + name, drop
 
 
-def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0) -> dict:
+def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0, *,
+        pollers: int = 50, uploads: int = 20, submits: int = 20, client_nice: int = 0,
+        api_workers: int = 1, stagger: bool = False) -> dict:
     drop = None
     url = None
     if db == "postgresql":
@@ -197,7 +287,7 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0)
     stack_dir = work / f"stack-{db}"
     stack = stack_up(stack_dir, redis_url=f"redis://127.0.0.1:{free_port()}/0",
                      database_url=url, workers={}, tokens=TOKENS, environment="test",
-                     artifact_root=work / f"artifacts-{db}")
+                     artifact_root=work / f"artifacts-{db}", api_workers=api_workers)
     api = stack.api_url + "/api/v1"
     rec, base = Recorder(), Recorder()
     try:
@@ -220,37 +310,36 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0)
         load_before = os.getloadavg()
         ctx = mp.get_context("fork")  # before this process starts any thread
         q = ctx.Queue()
-        start_at = time.time() + 2.0  # the pollers' process imports and connects first
+        ready = ctx.Event()
+        start_at = time.time() + 4.0  # the client processes import and connect first
         polls = ctx.Process(target=_pollers, args=(
-            api, [(tokens[i % 2], seed[tokens[i % 2]][1]) for i in range(50)], start_at,
-            start_at + seconds, poll, q))
+            api, [(tokens[i % 2], seed[tokens[i % 2]][1]) for i in range(pollers)], start_at,
+            start_at + seconds, poll, q, 0, stagger))
+        writes = ctx.Process(target=_writers, args=(
+            api, tokens, {t: seed[t][0] for t in tokens}, uploads, submits, start_at, seconds,
+            q, client_nice, ready))
         polls.start()
-        time.sleep(max(0.0, start_at - time.time()))
-
-        def uploader(i: int) -> None:
-            token = tokens[i % 2]
-            with httpx.Client(base_url=api, headers={"Authorization": f"Bearer {token}"},
-                              timeout=120) as c:
-                rec.call("POST /assets", lambda: c.post(
-                    "/assets", files={"file": (f"load{i}.usda", layer(i))}))
-
-        def submitter(i: int) -> None:
-            token = tokens[i % 2]
-            with httpx.Client(base_url=api, headers={"Authorization": f"Bearer {token}"},
-                              timeout=60) as c:
-                rec.call("POST /jobs", lambda: c.post(
-                    "/jobs", json={"asset_id": seed[token][0], "settings": SETTINGS}))
-
-        threads = ([threading.Thread(target=uploader, args=(i,)) for i in range(20)]
-                   + [threading.Thread(target=submitter, args=(i,)) for i in range(20)])
+        writes.start()
+        if not ready.wait(max(0.0, start_at - time.time())):
+            raise RuntimeError("the writers were not ready before the clock; raise the delay")
         t0 = time.perf_counter()
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(timeout=seconds + 180)
-        for sample in q.get(timeout=seconds + 240):
-            rec.add(STATUS, *sample)
+        api_cpu0 = _tree_cpu(stack.pids["api"])
+        cpu: dict[str, float] = {}
+        marks: dict[str, list[float]] = {}
+        for _ in range(2):
+            kind, (data, cpu[kind], marks[kind]) = q.get(timeout=seconds + 300)
+            if kind == "polls":
+                data_polls = data
+                for sample in data:
+                    rec.add(STATUS, *sample)
+            else:
+                for ep, sample in data:
+                    rec.add(ep, *sample)
+        api_cpu1 = _tree_cpu(stack.pids["api"])
+        cpu["api"] = api_cpu1[0] - api_cpu0[0]
+        cpu["api_children"] = api_cpu1[1] - api_cpu0[1]
         polls.join(timeout=30)
+        writes.join(timeout=30)
         wall = time.perf_counter() - t0
         load_after = os.getloadavg()
     finally:
@@ -258,13 +347,31 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0)
         if drop is not None:
             drop()
     endpoints = rec.table()
+    # the status reads sent while the writes were in flight, and those sent after the last
+    writes_end = marks["writes"][0]
+    lat = [x[0] for x in data_polls if x[0] is not None]
+    during = [d for a, d in zip(marks["polls"], lat, strict=True) if a < writes_end]
+    after = [d for a, d in zip(marks["polls"], lat, strict=True) if a >= writes_end]
+
+    def pct(v: list[float]) -> dict:
+        a = np.asarray(v) * 1e3
+        return {"n": int(a.size), "p50_ms": float(np.percentile(a, 50)) if a.size else None,
+                "p99_ms": float(np.percentile(a, 99)) if a.size else None}
+
+    status_split = {"writes_seconds": writes_end - start_at, "during_writes": pct(during),
+                    "after_writes": pct(after)}
     status = endpoints.get(STATUS, {})
     locked = sum(v for k, v in rec.errors.items() if "database is locked" in k)
     five = sum(v for k, v in rec.errors.items() if k.split(": ")[1].startswith("5"))
     lost = sum(v for k, v in rec.errors.items() if k.split(": ")[1][0].isalpha()
                and "database is locked" not in k)  # transport errors (timeouts, resets)
     return {"db": db, "wall_seconds": wall, "endpoints": endpoints,
-            "baseline_1_client": base.table().get(STATUS, {}),
+            "clients": {"pollers": pollers, "poll_seconds": poll, "uploads": uploads,
+                        "submits": submits, "nice": client_nice,
+                        "staggered": stagger}, "api_workers": api_workers,
+            "baseline_1_client": base.table().get(STATUS, {}), "status_split": status_split,
+            "cpu_seconds": {"pollers": cpu["polls"], "writers": cpu["writes"],
+                            "api": cpu["api"], "api_children (upload checks)": cpu["api_children"]},
             "loadavg_before": list(load_before), "loadavg_after": list(load_after),
             "cpus": os.cpu_count(), "errors": dict(rec.errors), "bar": {
                 "status_p99_ms": status.get("p99_ms"),
@@ -284,17 +391,43 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--db", choices=("sqlite", "postgresql", "both"), default="both")
     ap.add_argument("--keep", type=Path, default=None,
                     help="run in this folder and keep it (stack logs) instead of a temporary one")
+    ap.add_argument("--pollers", type=int, default=50)
+    ap.add_argument("--uploads", type=int, default=20)
+    ap.add_argument("--submits", type=int, default=20)
+    ap.add_argument("--client-nice", type=int, default=0,
+                    help="run the upload and submission clients (not the pollers, who measure) "
+                    "at this niceness, standing in for clients on other machines (reported)")
+    ap.add_argument("--stagger", action="store_true",
+                    help="spread the pollers' first reads over one poll interval (default: all "
+                    "50 start at once and stay roughly in step, the harder case)")
+    ap.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes")
     args = ap.parse_args(argv)
+    kw = {"stagger": args.stagger, "pollers": args.pollers, "uploads": args.uploads, "submits": args.submits,
+              "client_nice": args.client_nice, "api_workers": args.api_workers}
     dbs = ("sqlite", "postgresql") if args.db == "both" else (args.db,)
     if args.keep is not None:
         args.keep.mkdir(parents=True, exist_ok=True)
-        results = [run(db, args.seconds, args.poll, args.keep, args.baseline) for db in dbs]
+        results = [run(db, args.seconds, args.poll, args.keep, args.baseline, **kw) for db in dbs]
     else:
         with tempfile.TemporaryDirectory(prefix="texelbake-load-") as tmp:
-            results = [run(db, args.seconds, args.poll, Path(tmp), args.baseline) for db in dbs]
+            results = [run(db, args.seconds, args.poll, Path(tmp), args.baseline, **kw) for db in dbs]
     print(f"{'db':>10} {'endpoint':>22} {'n':>6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} "
           f"{'srv p50':>8} {'srv p99':>8}  codes")
     for r in results:
+        c = r["clients"]
+        print(f"{r['db']:>10} clients: {c['pollers']} pollers every {c['poll_seconds']} s, "
+              f"{c['uploads']} uploads, {c['submits']} submissions, their clients' niceness "
+              f"{c['nice']}{' (stand-in for clients on other machines)' if c['nice'] else ''}"
+              f"{', pollers staggered' if c['staggered'] else ', pollers in step'}"
+              f"; API workers {r['api_workers']}")
+        print(f"{r['db']:>10} CPU seconds: " + ", ".join(
+            f"{k} {v:.1f}" for k, v in r["cpu_seconds"].items()) + f" over {r['wall_seconds']:.1f} s")
+        sp = r["status_split"]
+        print(f"{r['db']:>10} status reads sent while the writes were in flight (first "
+              f"{sp['writes_seconds']:.1f} s): n {sp['during_writes']['n']} p50 "
+              f"{sp['during_writes']['p50_ms'] or 0:.1f} p99 {sp['during_writes']['p99_ms'] or 0:.1f}"
+              f" ms; after: n {sp['after_writes']['n']} p50 {sp['after_writes']['p50_ms'] or 0:.1f}"
+              f" p99 {sp['after_writes']['p99_ms'] or 0:.1f} ms")
         rows = [("GET /jobs/{id} alone", r["baseline_1_client"]), *r["endpoints"].items()]
         for ep, e in rows:
             if not e:
@@ -310,7 +443,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['loadavg_before'][0]:.1f} -> {r['loadavg_after'][0]:.1f} on {r['cpus']} CPUs")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"runs": results}, indent=1))
+        command = "benchmarks/load.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        args.json.write_text(json.dumps({"command": command, "runs": results}, indent=1))
     return 0
 
 

@@ -3,7 +3,9 @@ before a route runs, so the upload cap must act on the raw byte stream, not in t
 
 from __future__ import annotations
 
+import contextlib
 import json
+import threading
 import time
 
 from schemas.common import ErrorCode
@@ -99,3 +101,17 @@ class ServerTiming:
             await send(message)
 
         return await self.app(scope, receive, timed_send)
+
+
+_slots: dict[int, threading.BoundedSemaphore] = {}
+_slots_lock = threading.Lock()
+
+
+def cpu_slot(n: int):  # noqa: ANN201
+    """At most `n` threads of this process at once inside (0: no limit): a sync route that is
+    Python CPU work (POST /jobs: the ledger, pydantic) holds the GIL, and 20 of them at once
+    left the event loop one turn in 21 at the GIL, which every status read waited for."""
+    if n <= 0:
+        return contextlib.nullcontext()
+    with _slots_lock:
+        return _slots.setdefault(n, threading.BoundedSemaphore(n))

@@ -26,6 +26,7 @@ from services.config import API_V1, Settings, get_settings
 from services.db import session_factory
 from services.deps import TokenCache
 from services.errors import ApiError
+from services.fastpath import StatusFastPath
 from services.limits import BodyLimit, ServerTiming
 from services.routers import assets, batches, events, farm, jobs, utils, viewer
 from services.routers.jobs import JobCache, VersionCache
@@ -124,6 +125,8 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     mount_dashboard(app, settings.web_dist or WEB_DIST)
     errors.install(app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
+    if settings.status_fast_path:
+        app.add_middleware(StatusFastPath, state=app.state)  # cached status reads
     app.add_middleware(ServerTiming)  # outermost: times the whole app
     return app
 

@@ -1,9 +1,10 @@
 """Check an unpacked upload with pxr: every asset path resolves inside the bundle.
 
-Run as a subprocess by the API (`python -m services.validate BUNDLE_DIR ROOT_REL`), so that
-pxr is never imported into the API process and a hostile file that crashes or exhausts pxr
-takes down only this child (it runs under CPU and memory rlimits). Prints one JSON object:
-`{"problems": [[path, reason], ...]}` (empty list: accepted).
+The API runs `check_bundle` in a checker forked per upload from its warm check server
+(`services.checkserver`), so that pxr is never imported into the API process and a hostile
+file that crashes or exhausts pxr takes down only that checker (it runs under a CPU rlimit).
+`python -m services.validate BUNDLE_DIR ROOT_REL` does the same check in a fresh interpreter
+and prints one JSON object: `{"problems": [[path, reason], ...]}` (empty list: accepted).
 
 Reasons (stable strings; the API puts them in the 4xx `detail`):
 """

@@ -36,6 +36,7 @@ from services import ledger, storage
 from services.db import Event, Job, Shard, Stage, retry_disconnect
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
+from services.limits import cpu_slot
 from services.routers.assets import ASSET_404
 from services.submission import JobSpec, create_jobs, own_asset
 from texelbake import costmodel
@@ -178,8 +179,14 @@ def create_job(
     request: Request,
     session: SessionDep,
     tenant: CurrentTenant,
+    settings: SettingsDep,
 ) -> JobPublic:
     """Create a bake job for one of this tenant's assets; its stages are planned by a worker."""
+    with cpu_slot(settings.cpu_route_concurrency):  # its Python work, bounded per process
+        return _create_job(body, request, session, tenant)
+
+
+def _create_job(body: JobCreate, request: Request, session: Session, tenant: str) -> JobPublic:
     asset = own_asset(session, tenant, body.asset_id)
     session.close()  # hold no read connection (nor, on SQLite, an old snapshot) from here on
     spec = JobSpec(asset.id, body.settings.model_dump_json(), body.priority)
