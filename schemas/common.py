@@ -38,6 +38,7 @@ class ErrorCode(StrEnum):
     PREVIEW_NOT_FOUND = "preview_not_found"
     REPORT_NOT_FOUND = "report_not_found"
     JOB_NOT_FINISHED = "job_not_finished"
+    JOB_NOT_FAILED = "job_not_failed"
     # uploads
     NO_FILE = "no_file"
     UNSUPPORTED_FILE_TYPE = "unsupported_file_type"
