@@ -34,11 +34,11 @@ from schemas.job import (
 )
 from schemas.settings import BakeSettings
 from services import ledger, storage
-from services.resume import resume_job
 from services.broker import broker_run_id, celery_sender
 from services.db import Asset, Event, Job, Shard, Stage, retry_disconnect
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
+from services.resume import resume_job
 from services.routers.assets import ASSET_404, ASSET_NOT_FOUND
 from texelbake import costmodel
 from texelbake.archive import zip_folder
