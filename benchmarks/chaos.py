@@ -466,8 +466,24 @@ def make_scene(base: Path) -> tuple[Path, Path]:
     return cylinder, reference
 
 
+def summary(recs: list[dict]) -> dict:
+    return {
+        "trials": len(recs),
+        "passed": sum(r["passed"] for r in recs),
+        "failed_seeds": [r["seed"] for r in recs if not r["passed"]],
+        "failures": [{k: r.get(k) for k in ("trial", "seed", "fault", "reason")}
+                     for r in recs if not r["passed"]],
+        "seconds_mean": round(sum(r.get("seconds", 0) for r in recs) / max(1, len(recs)), 3),
+        "reruns": sum(r.get("reruns", 0) for r in recs),
+        # trials whose fault cost at least one shard a re-run (it hit work)
+        "hit": sum(1 for r in recs if r.get("reruns", 0) > 0),
+        "records": recs,
+    }
+
+
 def run(dbs: list[str], kinds: list[str], trials: int, seed: int, base: Path,
-        only: tuple[str, str, int] | None = None, log=print) -> dict:  # noqa: ANN001
+        only: tuple[str, str, int] | None = None, log=print,  # noqa: ANN001
+        on_trial=None) -> dict:  # noqa: ANN001
     cylinder, reference = make_scene(base)
     results: dict = {"seed": seed, "trials_per_kind": trials, "settings": CHEAP_SETTINGS,
                      "dbs": {}}
@@ -478,33 +494,22 @@ def run(dbs: list[str], kinds: list[str], trials: int, seed: int, base: Path,
             per: dict = {"baseline_seconds": round(f.baseline_seconds, 3), "kinds": {}}
             results["dbs"][db] = per
             log(f"{db}: uninterrupted job {f.baseline_seconds:.1f} s")
-            for kind in kinds:
-                if kind == "postgres" and db != "postgresql":
-                    continue
-                if only and only[1] != kind:
-                    continue
-                recs = []
-                for i in range(trials):
-                    if only and only[2] != i:
+            recs: dict[str, list[dict]] = {}
+            # round-robin over the kinds: a run stopped early has as many trials of each
+            for i in range(trials):
+                for kind in kinds:
+                    if kind == "postgres" and db != "postgresql":
+                        continue
+                    if only and (only[1] != kind or only[2] != i):
                         continue
                     rec = run_trial(f, db, kind, i, seed, base / "results")
-                    recs.append(rec)
+                    recs.setdefault(kind, []).append(rec)
                     log(f"  {db:10s} {kind:12s} #{i:<3d} seed {rec['seed']:>10d} "
                         f"{'pass' if rec['passed'] else 'FAIL'} {rec.get('seconds', '-')} s "
-                        f"{rec.get('fault', '')} {rec.get('reason', '')[:300]}")
-                per["kinds"][kind] = {
-                    "trials": len(recs),
-                    "passed": sum(r["passed"] for r in recs),
-                    "failed_seeds": [r["seed"] for r in recs if not r["passed"]],
-                    "failures": [{k: r.get(k) for k in ("trial", "seed", "fault", "reason")}
-                                 for r in recs if not r["passed"]],
-                    "seconds_mean": round(sum(r.get("seconds", 0) for r in recs)
-                                          / max(1, len(recs)), 3),
-                    "reruns": sum(r.get("reruns", 0) for r in recs),
-                    # trials whose fault cost at least one shard a re-run (it hit work)
-                    "hit": sum(1 for r in recs if r.get("reruns", 0) > 0),
-                    "records": recs,
-                }
+                        f"{rec.get('fault', '')} {rec.get('reason', '')[:300]}", flush=True)
+                    per["kinds"][kind] = summary(recs[kind])
+                    if on_trial:
+                        on_trial(results)
     return results
 
 
@@ -548,15 +553,18 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--trials must be in 1..200")
     base = Path(tempfile.mkdtemp(prefix="texelbake-chaos-"))
     os.chmod(base, 0o755)
+    def dump(results: dict) -> None:  # after every trial: a stopped run keeps what it did
+        if a.json:
+            a.json.parent.mkdir(parents=True, exist_ok=True)
+            a.json.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
+
     try:
-        results = run(dbs, kinds, trials, a.seed, base, only)
+        results = run(dbs, kinds, trials, a.seed, base, only, on_trial=dump)
     finally:
         if not a.keep:
             shutil.rmtree(base, ignore_errors=True)
     print(table(results))
-    if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
+    dump(results)
     bad = sum(k["trials"] - k["passed"] for p in results["dbs"].values()
               for k in p["kinds"].values())
     return 1 if bad else 0
