@@ -40,6 +40,7 @@ class ErrorCode(StrEnum):
     JOB_NOT_FINISHED = "job_not_finished"
     BATCH_NOT_FOUND = "batch_not_found"
     BATCH_NOT_FINISHED = "batch_not_finished"
+    JOB_NOT_FAILED = "job_not_failed"
     # uploads
     NO_FILE = "no_file"
     UNSUPPORTED_FILE_TYPE = "unsupported_file_type"

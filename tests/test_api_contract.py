@@ -22,6 +22,7 @@ OPERATION_IDS = {
     ("get", "/api/v1/jobs"): "list_jobs",
     ("get", "/api/v1/jobs/{job_id}"): "read_job",
     ("delete", "/api/v1/jobs/{job_id}"): "cancel_job",
+    ("post", "/api/v1/jobs/{job_id}/resume"): "resume_job",
     ("get", "/api/v1/jobs/{job_id}/events"): "read_job_events",
     ("get", "/api/v1/jobs/{job_id}/result"): "read_job_result",
     ("get", "/api/v1/jobs/{job_id}/previews/{name}"): "read_job_preview",

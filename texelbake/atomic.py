@@ -2,10 +2,18 @@
 renamed over the target (POSIX rename is atomic within a file system), and removed if
 anything fails — a reader sees the old file or the new one, never half of one, and a crash
 leaves no partial target. Every writer of texelbake, the service and the workers goes
-through `atomic_path` (or `atomic_write_bytes`, `replace`)."""
+through `atomic_path` (or `atomic_write_bytes`, `replace`).
+
+Test hook (the chaos suite, `benchmarks/chaos.py`): when the environment variable
+`TEXELBAKE_FAILPOINT_WRITES` names a control file and that file holds an errno name
+(`ENOSPC`, `EACCES`, ...) and optionally a path fragment, every atomic write to a path
+containing the fragment fails with that errno, as a full or read-only disk would: the
+temporary file is removed and the target is untouched. Unset (production), it costs one
+environment lookup per write."""
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from collections.abc import Iterator
@@ -39,6 +47,31 @@ def replace(src: str | Path, dst: str | Path, *, mode: int | None = 0o644) -> Pa
     return dst
 
 
+#: names the fault-injection control file (a test hook; see the module docstring)
+FAILPOINT_ENV = "TEXELBAKE_FAILPOINT_WRITES"
+
+
+def failpoint(path: str | Path) -> None:
+    """Raise the OSError the control file of `FAILPOINT_ENV` asks for on a write to `path`;
+    nothing when the variable is unset, the file is absent or empty, or the path does not
+    contain the fragment."""
+    control = os.environ.get(FAILPOINT_ENV)
+    if not control:
+        return
+    try:
+        words = Path(control).read_text().split()
+    except OSError:
+        return
+    if not words:
+        return
+    code = getattr(errno, words[0], None)
+    if not isinstance(code, int):
+        raise ValueError(f"{FAILPOINT_ENV} control file {control}: {words[0]!r} is no errno name")
+    if len(words) > 1 and words[1] not in str(path):
+        return
+    raise OSError(code, os.strerror(code), str(path))
+
+
 @contextmanager
 def atomic_path(path: str | Path, *, mode: int = 0o644) -> Iterator[Path]:
     """Yield a temporary path beside `path` (same suffix, so format-by-extension writers such
@@ -52,6 +85,7 @@ def atomic_path(path: str | Path, *, mode: int = 0o644) -> Iterator[Path]:
     tmp = Path(name)
     try:
         yield tmp
+        failpoint(path)
         replace(tmp, path, mode=mode)
     finally:
         tmp.unlink(missing_ok=True)

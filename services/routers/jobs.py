@@ -1,5 +1,5 @@
 """`/jobs`: create (plan on the ingest queue), list, read, events (SSE), result, previews,
-report, cancel. A tenant sees only its own jobs: anyone else's is a 404."""
+report, cancel, resume. A tenant sees only its own jobs: anyone else's is a 404."""
 
 from __future__ import annotations
 
@@ -33,10 +33,12 @@ from schemas.job import (
 )
 from schemas.settings import BakeSettings
 from services import ledger, storage
+from services.broker import broker_run_id, celery_sender
 from services.db import Event, Job, Shard, Stage, retry_disconnect
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
 from services.limits import cpu_slot
+from services.resume import resume_job
 from services.routers.assets import ASSET_404
 from services.submission import JobSpec, create_jobs, own_asset
 from texelbake import costmodel
@@ -54,6 +56,7 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}$")
 
 JOB_404 = (404, "`job_not_found`: no such job for this tenant.")
 JOB_409 = (409, "`job_not_finished`: the job has not succeeded (yet).")
+JOB_NOT_FAILED_409 = (409, "`job_not_failed`: only a failed job can be resumed.")
 #: a binary body: generators give the caller the bytes
 BINARY = {"type": "string", "format": "binary"}
 #: the real media type first; `application/octet-stream` is the generic alias a client may ask
@@ -560,4 +563,30 @@ def delete_job(
             request.app.state.celery.control.revoke(task_ids, terminate=True, signal="SIGKILL")
         except Exception:  # noqa: BLE001 - broker down: workers skip cancelled shards anyway
             pass
+    return _read_public(request, job_id)
+
+
+@router.post(
+    "/{job_id}/resume",
+    response_model=JobPublic,
+    status_code=status.HTTP_202_ACCEPTED,
+    operation_id="resume_job",
+    responses=errors(401, JOB_404, JOB_NOT_FAILED_409, 422),
+)
+def resume(job_id: str, request: Request, session: SessionDep, writer: WriterDep,
+           tenant: CurrentTenant, settings: SettingsDep) -> JobPublic:
+    """Resume a failed job once its cause is gone: its unfinished shards run again, done ones
+    are kept (`services.resume`)."""
+    state = _own_job(session, job_id, tenant).state
+    session.close()
+    sends = resume_job(writer, job_id, ledger.policy_from(settings))
+    if sends is None:
+        raise ApiError(status.HTTP_409_CONFLICT, f"job is {state}, not failed",
+                       ErrorCode.JOB_NOT_FAILED)
+    request.app.state.version_cache.drop(job_id)
+    try:  # a broker outage is not the client's problem: the sweeper sends them later
+        ledger.dispatch(writer, sends, celery_sender(request.app.state.celery),
+                        broker_run_id(settings.redis_url))
+    except Exception:  # noqa: BLE001
+        pass
     return _read_public(request, job_id)
