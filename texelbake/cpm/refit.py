@@ -93,7 +93,8 @@ def refit_to_dense(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> di
     """`out` of `fit_level` for `level` with every valid texel's point weights refitted to the
     dense Eq. 7 (see the module docstring); snr_in and snr_ho measured against it. A texel
     whose refit would not raise its in-sample SNR against the dense reference keeps its
-    weights. Returns a new dict (same keys)."""
+    weights, and so does one the validation guard refuses (`settings.refit_validation`,
+    `refit_generalizes`). Returns a new dict: the same keys plus `refit_rejected` (t,) bool."""
     with threadpool_limits(limits=1):  # small per-texel solves: see level.fit_level
         return _refit(src, level, out)
 
