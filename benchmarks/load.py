@@ -56,6 +56,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from services.stack import free_port, stack_down, stack_up  # noqa: E402
+from tests.svc_util import proc_cpu  # noqa: E402
 
 TOKENS = {"load-token-a-0123456789abcdef": "team-a", "load-token-b-0123456789abcdef": "team-b"}
 PG_ADMIN = "postgresql+psycopg2://postgres@127.0.0.1:5432/test"
@@ -239,16 +240,7 @@ def _writers(api: str, tokens: list[str], assets: dict[str, str], uploads: int, 
 def _tree_cpu(pid: int) -> tuple[float, float]:
     """CPU seconds of a process and its live descendants: (their own, their reaped children's,
     e.g. the API's finished pxr checks)."""
-    tick = os.sysconf("SC_CLK_TCK")
-    stats = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                f = (d / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            stats[int(d.name)] = (int(f[1]), (int(f[11]) + int(f[12])) / tick,
-                                  (int(f[13]) + int(f[14])) / tick)
+    stats = proc_cpu()
     own = kids = 0.0
     todo = [pid]
     while todo:

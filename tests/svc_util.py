@@ -8,6 +8,7 @@ import stat
 import uuid
 import zipfile
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 
@@ -145,3 +146,19 @@ def assert_same_bake(root_a, root_b) -> int:  # noqa: ANN001
     for name in maps:
         assert (da / name).read_bytes() == (db / name).read_bytes(), name
     return len(va)
+
+
+def proc_cpu() -> dict[int, tuple[int, float, float]]:
+    """Every live process from /proc: pid -> (parent pid, its own CPU seconds, the CPU seconds
+    of the children it reaped). Processes that end while being read are skipped."""
+    tick = os.sysconf("SC_CLK_TCK")
+    stats: dict[int, tuple[int, float, float]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                f = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            stats[int(d.name)] = (int(f[1]), (int(f[11]) + int(f[12])) / tick,
+                                  (int(f[13]) + int(f[14])) / tick)
+    return stats

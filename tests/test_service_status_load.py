@@ -15,7 +15,7 @@ from services import checkserver, uploads
 from services.db import session_factory
 from services.ledger import cancel_job
 from services.stack import free_port, stack_down, stack_up
-from tests.svc_util import usda
+from tests.svc_util import proc_cpu, usda
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(180)]
 
@@ -25,15 +25,7 @@ TOK_A, TOK_B = "token-status-a-0123456789", "token-status-b-0123456789"
 def _checks_cpu() -> float:
     """CPU seconds of this process's descendants: live ones, what they reaped, and what this
     process reaped (a checker run with `subprocess.run`)."""
-    tick = os.sysconf("SC_CLK_TCK")
-    stats = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                f = (d / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            stats[int(d.name)] = (int(f[1]), sum(int(x) for x in f[11:15]) / tick)
+    stats = {pid: (ppid, own + reaped) for pid, (ppid, own, reaped) in proc_cpu().items()}
     t = os.times()
     total, todo = t.children_user + t.children_system, [os.getpid()]
     while todo:
