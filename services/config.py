@@ -55,6 +55,15 @@ class Settings(BaseSettings):
     heartbeat_timeout: float = Field(
         60.0, gt=0, description="A running shard silent this long is re-queued (worker gone)."
     )
+    shard_time_limit: float | None = Field(
+        None, gt=0, description="A shard running longer than this is presumed stuck (a "
+        "heartbeat proves its process lives, not that it progresses): it stops beating, "
+        "records why, and Celery kills its pool child `shard_kill_grace` s later; the sweeper "
+        "re-queues it, up to max_attempts. With the grace it must stay below "
+        "visibility_timeout. Default: half the visibility_timeout (30 min).")
+    shard_kill_grace: float = Field(
+        10.0, gt=0, description="Seconds between a shard's time limit and Celery's hard kill "
+        "of its pool child (the time to record why).")
     sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
     # scheduling (issue 16): the shard ledger admits ready shards to the broker
     queue_backlog: int = Field(
@@ -102,6 +111,23 @@ class Settings(BaseSettings):
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.artifact_root / 'texelbake.db').resolve()}"
+
+    @model_validator(mode="after")
+    def _time_limit(self) -> Settings:
+        if self.shard_time_limit is None:
+            self.shard_time_limit = self.visibility_timeout / 2
+        if self.shard_time_limit + self.shard_kill_grace >= self.visibility_timeout:
+            raise ValueError(
+                f"shard_time_limit + shard_kill_grace ({self.shard_time_limit} + "
+                f"{self.shard_kill_grace} s) must stay below visibility_timeout "
+                f"({self.visibility_timeout} s): Redis would deliver a running shard again"
+            )
+        return self
+
+    @property
+    def task_hard_time_limit(self) -> float:
+        """Celery's hard limit on one task: the shard time limit and its grace."""
+        return self.shard_time_limit + self.shard_kill_grace
 
     @model_validator(mode="after")
     def _heartbeats(self) -> Settings:

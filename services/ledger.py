@@ -273,6 +273,7 @@ def start_shard(
             msg = (
                 f"shard {stage}/{shard} was lost {lost} times with its worker "
                 f"(max_attempts={max_attempts}); not redelivering it again"
+                + (f"; last: {row.error}" if row.error else "")
             )
             _fail(s, job_id, stage, shard, msg)
             return StartResult("exceeded", row.attempts)
@@ -436,6 +437,24 @@ def heartbeat(sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str
         ))
 
 
+def note_time_limit(sm: sessionmaker, job_id: str, stage: str, shard: int, worker: str,
+                    limit: float) -> bool:
+    """A running shard passed its time limit: record why on its row (the sweeper's re-queue and
+    the final failure name it) and in the events. False when this worker no longer holds it."""
+    error = f"exceeded the shard time limit of {limit:g} s on {worker} (presumed stuck)"
+    with sm.begin() as s:
+        ok = bool(_rowcount(s.execute(
+            update(Shard)
+            .where(*_shard_is(job_id, stage, shard), Shard.state == "running",
+                   Shard.worker == worker)
+            .values(error=error)
+        )))
+        if ok:
+            add_event(s, job_id, "shard", {"stage": stage, "shard": shard, "state": "running",
+                                           "error": error})
+        return ok
+
+
 def stage_seconds(sm: sessionmaker, job_id: str) -> dict[str, float]:
     """Wall time per finished stage of a job: first shard start to last shard finish."""
     with sm() as s:
@@ -501,13 +520,16 @@ def sweep(
     lease: timedelta,
     now: datetime | None = None,
     policy: Policy = NO_LIMITS,
+    max_attempts: int | None = None,
 ) -> list[Send]:
     """What to (re)send: unplanned jobs whose plan message was never sent or was lost with a
     broker restart; admitted shards whose message was lost with a broker restart, or whose
     sender died before sending (admitted longer than `lease` ago, never sent); running shards
-    whose last heartbeat is older than `lease` (their worker died with them) go back to the
-    ready set; then the ready shards `policy` admits now (slots freed by failed or cancelled
-    jobs, by re-queued shards)."""
+    whose last heartbeat is older than `lease` (their worker died with them, or they passed
+    their time limit and stopped beating) go back to the ready set, each counted as lost: the
+    `max_attempts`-th loss fails the shard and its job, naming the last recorded error; then the
+    ready shards `policy` admits now (slots freed by failed or cancelled jobs, by re-queued
+    shards)."""
     now = now or utcnow()
     sends: list[Send] = []
     with sm.begin() as s:
@@ -519,23 +541,30 @@ def sweep(
                 sends.append(Send(PLAN_JOB_TASK, (job_id,), PLAN_QUEUE, None, job_id))
         active = select(Job.id).where(Job.state == "running")
         expired = s.execute(
-            select(Shard.id, Shard.job_id, Shard.stage, Shard.shard).where(
+            select(Shard.id, Shard.job_id, Shard.stage, Shard.shard, Shard.lost, Shard.error)
+            .where(
                 Shard.job_id.in_(active),
                 Shard.state == "running",
                 func.coalesce(Shard.heartbeat_at, Shard.started_at) < now - lease,
             )
         ).all()
-        for rid, j, st, k in expired:
+        for rid, j, st, k, lost, err in expired:
+            lost += 1
+            reason = err or "lease expired"
+            if max_attempts is not None and lost >= max_attempts:
+                _fail(s, j, st, k, f"shard {st}/{k} was lost {lost} times "
+                                   f"(max_attempts={max_attempts}); last: {reason}")
+                continue
             if _rowcount(s.execute(
                 update(Shard)
                 .where(Shard.id == rid, Shard.state == "running")
-                .values(state="queued", sent=False, task_id=None)
+                .values(state="queued", sent=False, task_id=None, lost=lost)
             )):
                 add_event(
                     s,
                     j,
                     "shard",
-                    {"stage": st, "shard": k, "state": "queued", "reason": "lease expired"},
+                    {"stage": st, "shard": k, "state": "queued", "reason": reason},
                 )
         rows = s.execute(
             select(Shard.id, Shard.job_id, Shard.stage, Shard.shard, Shard.queue, Shard.task_id)

@@ -48,7 +48,7 @@ def sweep_once(app: FastAPI) -> int:
     if run_id is None:
         return 0
     sends = ledger.sweep(app.state.writer, run_id, timedelta(seconds=st.heartbeat_timeout),
-                         policy=ledger.policy_from(st))
+                         policy=ledger.policy_from(st), max_attempts=st.max_attempts)
     if not sends:
         return 0
     return ledger.dispatch(app.state.writer, sends, celery_sender(app.state.celery), run_id)

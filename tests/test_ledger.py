@@ -170,6 +170,34 @@ def test_sweep_resends_after_broker_restart_and_lease(sm):
     assert [(s.args[1], s.args[2]) for s in again] == [("ingest", 0)]
 
 
+def test_expired_leases_count_as_lost_and_fail_at_the_cap(sm):
+    """A shard whose heartbeats stopped (its worker died, or it passed its time limit) is lost
+    each time the sweeper re-queues it: without the count a shard that hangs on every delivery
+    would be re-queued for ever. The failure names the last error recorded on the row."""
+    job = new_job(sm)
+    ledger.dispatch(sm, ledger.record_plan(sm, job, PLAN, []), Recorder(), "r1")
+    lease = timedelta(seconds=60)
+    for k in (1, 2):
+        assert ledger.start_shard(sm, job, "ingest", 0, f"w:{k}", 3).action == "run"
+        assert ledger.note_time_limit(sm, job, "ingest", 0, f"w:{k}", 5.0)
+        assert not ledger.note_time_limit(sm, job, "ingest", 0, "w:other", 5.0)  # not its shard
+        later = utcnow() + timedelta(seconds=120)
+        again = ledger.sweep(sm, "r1", lease, now=later, max_attempts=3)
+        assert [(x.args[1], x.args[2]) for x in again] == [("ingest", 0)]
+        ledger.dispatch(sm, again, Recorder(), "r1")
+        with sm() as s:
+            row = s.scalar(select(Shard).where(Shard.job_id == job, Shard.stage == "ingest"))
+            assert (row.state, row.lost) == ("queued", k)
+    assert ledger.start_shard(sm, job, "ingest", 0, "w:3", 3).action == "run"
+    ledger.note_time_limit(sm, job, "ingest", 0, "w:3", 5.0)
+    assert ledger.sweep(sm, "r1", lease, now=utcnow() + timedelta(seconds=120),
+                        max_attempts=3) == []
+    with sm() as s:
+        j = s.get(Job, job)
+        assert j.state == "failed"
+        assert "lost 3 times" in j.error and "exceeded the shard time limit of 5 s" in j.error
+
+
 def test_send_failure_leaves_rows_for_the_sweeper(sm):
     job = new_job(sm)
     sends = ledger.record_plan(sm, job, PLAN, [])

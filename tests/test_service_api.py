@@ -364,6 +364,19 @@ def test_placeholder_secret_refused_outside_development():
         Settings(secret_key="s3cretvalue")  # type: ignore[call-arg]
 
 
+def test_shard_time_limit_must_stay_below_the_visibility_timeout():
+    """Redis hands an unacked message to another worker after `visibility_timeout`: a time
+    limit (plus its kill grace) at or above it would let a live shard run twice."""
+    base = {"secret_key": "changethis", "redis_url": "redis://x"}
+    assert Settings(**base).shard_time_limit == 1800  # half the default visibility timeout
+    with pytest.raises(ValueError, match="must stay below visibility_timeout"):
+        Settings(**base, visibility_timeout=600, shard_time_limit=595, shard_kill_grace=10)
+    st = Settings(**base, visibility_timeout=600, shard_time_limit=500, shard_kill_grace=10)
+    from workers.celeryconfig import celery_config
+
+    assert celery_config(st)["task_time_limit"] == 510
+
+
 def test_api_process_imports_neither_torch_nor_pxr(tmp_path):
     """The API enqueues by name and checks uploads in a child process: importing and building
     the app must not pull in the heavy core (torch, pxr, open3d)."""

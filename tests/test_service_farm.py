@@ -282,6 +282,39 @@ def test_kill_9_whole_worker_then_restart_it(cylinder, reference, tmp_path):
         assert_same_bake(root, reference)
 
 
+def test_stuck_shard_is_killed_at_its_time_limit(cylinder, reference, tmp_path):
+    """A shard that hangs while its heartbeats go on (the chaos suite's prep child stuck in
+    native code): past `shard_time_limit` it records why and stops beating, Celery's hard limit
+    kills its pool child, the sweeper re-queues it and the redelivery completes the job with the
+    in-process bake's bytes. One that hangs on every delivery fails the job at `max_attempts`,
+    naming the time limit, instead of holding the prep worker for ever."""
+    from services.db import Event
+
+    control = tmp_path / "hang"
+    with farm(tmp_path / "stack", TEXELBAKE_SHARD_TIME_LIMIT="3", TEXELBAKE_SHARD_KILL_GRACE="2",
+              TEXELBAKE_MAX_ATTEMPTS="2", TEXELBAKE_FAILPOINT_HANG=str(control)) as stack:
+        children = set(_child_pids(stack.pids["worker-prep-0"]))
+        control.write_text("geometry once\n")
+        job_id = start_job(stack, cylinder)
+        wait_for(stack, job_id, lambda j: j["state"] == "succeeded", timeout=120)
+        assert not control.exists()  # the hang happened
+        rows = assert_ledger_clean(stack, job_id)
+        geo = next(r for r in rows if r.stage == "geometry")
+        assert (geo.attempts, geo.lost) == (2, 1), (geo.attempts, geo.lost)
+        assert not children & set(_child_pids(stack.pids["worker-prep-0"]))  # it was killed
+        with session_factory(db_url(stack))() as s:
+            said = [e.data_json for e in s.scalars(select(Event).where(Event.job_id == job_id))]
+        assert any("exceeded the shard time limit of 3 s" in d for d in said), said
+        assert_same_bake(download(stack, job_id, tmp_path / "result"), reference)
+
+        control.write_text("geometry\n")  # hangs on every delivery
+        job_id = start_job(stack, cylinder)
+        with pytest.raises(AssertionError, match="ended failed") as err:
+            wait_for(stack, job_id, lambda j: j["state"] == "succeeded", timeout=120)
+        assert "lost 2 times" in str(err.value), err.value
+        assert "exceeded the shard time limit of 3 s" in str(err.value), err.value
+
+
 def test_renderer_worker_writes_previews(cylinder, tmp_path):
     """previews=true adds the render stage: the renderer worker renders the finished job's
     previews from the written USD; they are listed on the job and served by the API."""

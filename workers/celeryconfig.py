@@ -35,6 +35,10 @@ def celery_config(settings: Settings | None = None) -> dict:
         "task_acks_late": True,
         "task_reject_on_worker_lost": True,
         "worker_prefetch_multiplier": 1,
+        # a task past this is killed by its worker's parent process (SIGKILL of the pool child,
+        # so a hang in C code that holds the GIL is ended too); its message is acked and the
+        # ledger's sweeper re-queues the shard once its heartbeats are stale (ledger.sweep)
+        "task_time_limit": st.task_hard_time_limit,
         "broker_transport_options": {
             # unacked messages come back after this long: above the longest shard
             "visibility_timeout": st.visibility_timeout,

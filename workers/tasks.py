@@ -63,15 +63,52 @@ def _dispatch(sends: list[ledger.Send]) -> None:
 
 
 def _heartbeats(
-    sm, job_id: str, stage: str, shard: int, stop: threading.Event, interval: float
+    sm, job_id: str, stage: str, shard: int, stop: threading.Event, interval: float,
+    limit: float = float("inf"),
 ) -> None:  # noqa: ANN001
-    """While a shard runs: tell the ledger every `interval` s that this worker still holds it."""
+    """While a shard runs: tell the ledger every `interval` s that this worker still holds it,
+    for at most `limit` s. A heartbeat proves the process lives, not that it progresses (the
+    chaos suite found a pool child hung in native code, beating for ever): past the limit it
+    records why and stops beating, so the lease expires; Celery's hard time limit
+    (`task_time_limit`, the limit plus `shard_kill_grace`) kills the pool child."""
     me = _worker_name()
-    while not stop.wait(interval):
+    deadline = time.monotonic() + limit
+    while not stop.wait(max(0.0, min(interval, deadline - time.monotonic()))):
+        if time.monotonic() >= deadline:
+            log.error("shard %s/%s/%s passed its time limit of %g s; no more heartbeats",
+                      job_id, stage, shard, limit)
+            try:
+                ledger.note_time_limit(sm, job_id, stage, shard, me, limit)
+            except TRANSIENT as exc:
+                log.warning("could not record the time limit of %s/%s/%s: %r",
+                            job_id, stage, shard, exc)
+            return
         try:
             ledger.heartbeat(sm, job_id, stage, shard, me)
         except TRANSIENT as exc:  # a missed beat is not fatal; a silent worker is re-queued
             log.warning("heartbeat of %s/%s/%s failed: %r", job_id, stage, shard, exc)
+
+
+#: the hang failpoint (chaos suite and tests): a control file naming a stage, optionally
+#: followed by "once" (the file is removed as the hang starts, so the redelivery runs)
+HANG_FAILPOINT_ENV = "TEXELBAKE_FAILPOINT_HANG"
+
+
+def _hang_failpoint(stage: str) -> None:
+    control = os.environ.get(HANG_FAILPOINT_ENV)
+    if not control:
+        return
+    try:
+        words = Path(control).read_text().split()
+    except FileNotFoundError:
+        return
+    if not words or words[0] != stage:
+        return
+    if "once" in words[1:]:
+        Path(control).unlink(missing_ok=True)
+    log.error("failpoint %s: stage %s hangs", HANG_FAILPOINT_ENV, stage)
+    while True:  # until the time limit's kill
+        time.sleep(3600)
 
 
 def _backoff(retries: int) -> float:
@@ -123,6 +160,7 @@ def execute_shard(job_id: str, stage: str, shard: int) -> str:
     """The body of one shard: the core stage function for (stage, shard). Returns its key."""
     from texelbake import pipeline
 
+    _hang_failpoint(stage)
     job, asset, settings, asset_path = load_job(job_id)
     root = get_settings().artifact_root
     workdir = storage.work_dir(root, asset.sha256, settings.digest())
@@ -192,7 +230,7 @@ def shard_body(
     stop = threading.Event()
     beat = threading.Thread(
         target=_heartbeats,
-        args=(sm, job_id, stage, shard, stop, st.heartbeat_interval),
+        args=(sm, job_id, stage, shard, stop, st.heartbeat_interval, st.shard_time_limit),
         daemon=True,
     )
     beat.start()
