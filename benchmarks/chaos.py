@@ -19,7 +19,10 @@ one fault of its kind:
 - `enospc`, `eacces`: the artifact store's writes fail with that errno for a seeded while
   (`texelbake.atomic.failpoint`; shorter than the retry budget);
 - `disk_full`: ENOSPC that outlives the retry budget: the job must fail with an error naming
-  ENOSPC and the path; then the fault clears and `POST /jobs/{id}/resume` must complete it.
+  ENOSPC and the path; then the fault clears and `POST /jobs/{id}/resume` must complete it;
+- `hang`: the next shard to start hangs (`workers.tasks` hang failpoint) while its heartbeats
+  go on; the shard time limit (`SHARD_TIME_LIMIT` here) must end it and the redelivery complete
+  the job.
 
 Recovery is the stack's own (Celery redelivery, the API's sweeper, retries); the suite only
 restarts what it killed, as an operator would. A trial passes when the job succeeds; its
@@ -72,12 +75,16 @@ from tests.test_service_farm import (  # noqa: E402
 from texelbake.atomic import FAILPOINT_ENV  # noqa: E402
 
 KINDS = ("worker_child", "worker_whole", "api", "redis", "postgres", "enospc", "eacces",
-         "disk_full")
+         "disk_full", "hang")
 WORKERS = ("worker-prep-0", "worker-numeric-0")
 #: retries of a transient fault: 4, backoff capped at 2 s (0.5..2 s each, jittered, plus the
 #: shard's own run each time): a write fault of up to 3 s is survived, a permanent one fails
 #: the job within ~15 s
-FARM_ENV = {"TEXELBAKE_MAX_RETRIES": "4", "TEXELBAKE_RETRY_BACKOFF_MAX": "2"}
+#: the small cylinder's longest shard takes a few seconds: a 20 s limit ends a hang quickly
+SHARD_TIME_LIMIT = 20
+FARM_ENV = {"TEXELBAKE_MAX_RETRIES": "4", "TEXELBAKE_RETRY_BACKOFF_MAX": "2",
+            "TEXELBAKE_SHARD_TIME_LIMIT": str(SHARD_TIME_LIMIT),
+            "TEXELBAKE_SHARD_KILL_GRACE": "3"}
 PG_BIN = sorted(Path("/usr/lib/postgresql").glob("*/bin"))
 
 
@@ -205,6 +212,7 @@ class Farm:
                  cylinder: Path, reference: Path):
         self.stack, self.base, self.control, self.pg = stack, base, control, pg
         self.cylinder, self.reference = cylinder, reference
+        self.hang_control = control.with_name("hang")
         self.root = Path(stack.env["TEXELBAKE_ARTIFACT_ROOT"])
         self.http = httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=30)
         self.asset_id = self._call("post", "/assets", files={"file": _package(cylinder)})["id"]
@@ -256,6 +264,7 @@ class Farm:
     def revive(self) -> None:
         """Restart whatever is down (after a trial that failed mid-fault)."""
         self.control.unlink(missing_ok=True)
+        self.hang_control.unlink(missing_ok=True)
         if "redis" in self.stack.commands:
             self.stack.start("redis")
             self.stack.wait_redis()
@@ -344,6 +353,17 @@ def inject(f: Farm, kind: str, rng: random.Random, job_id: str) -> str:
         time.sleep(rng.uniform(0.0, 1.0))
         f._call("post", f"/jobs/{job_id}/resume")
         return f"disk full until the job failed ({err[:120]}), cleared, resumed"
+    if kind == "hang":
+        f.hang_control.write_text("* once\n")
+        deadline = time.monotonic() + 120
+        while f.hang_control.exists() and time.monotonic() < deadline:
+            if f.job(job_id)["state"] in ("succeeded", "failed"):
+                break
+            time.sleep(0.1)
+        if f.hang_control.exists():
+            f.hang_control.unlink(missing_ok=True)
+            return "hang armed too late: no shard started after it"
+        return f"the next shard to start hung (time limit {SHARD_TIME_LIMIT} s)"
     raise ValueError(kind)
 
 
@@ -441,7 +461,8 @@ def open_farm(db: str, base: Path, cylinder: Path, reference: Path):
             es.callback(pg.stop, "fast")
         control = base / "failpoint"
         stack = es.enter_context(farm(base / "stack", database_url=url, **FARM_ENV,
-                                      **{FAILPOINT_ENV: str(control)}))
+                                      **{FAILPOINT_ENV: str(control),
+                                         "TEXELBAKE_FAILPOINT_HANG": str(base / "hang")}))
         f = Farm(stack, base, control, pg, cylinder, reference)
         es.callback(f.http.close)
         # the uninterrupted run: the job's duration and the bytes of every artifact

@@ -89,8 +89,8 @@ def _heartbeats(
             log.warning("heartbeat of %s/%s/%s failed: %r", job_id, stage, shard, exc)
 
 
-#: the hang failpoint (chaos suite and tests): a control file naming a stage, optionally
-#: followed by "once" (the file is removed as the hang starts, so the redelivery runs)
+#: the hang failpoint (chaos suite and tests): a control file naming a stage ("*": any),
+#: optionally followed by "once" (the file is removed as the hang starts, so the redelivery runs)
 HANG_FAILPOINT_ENV = "TEXELBAKE_FAILPOINT_HANG"
 
 
@@ -102,10 +102,14 @@ def _hang_failpoint(stage: str) -> None:
         words = Path(control).read_text().split()
     except FileNotFoundError:
         return
-    if not words or words[0] != stage:
+    if not words or words[0] not in (stage, "*"):
         return
     if "once" in words[1:]:
-        Path(control).unlink(missing_ok=True)
+        try:
+            Path(control).unlink()
+        except FileNotFoundError:
+            return  # another shard took the one hang
+
     log.error("failpoint %s: stage %s hangs", HANG_FAILPOINT_ENV, stage)
     while True:  # until the time limit's kill
         time.sleep(3600)
