@@ -61,9 +61,10 @@ class Settings(BaseSettings):
         "records why, and Celery kills its pool child `shard_kill_grace` s later; the sweeper "
         "re-queues it, up to max_attempts. With the grace it must stay below "
         "visibility_timeout. Default: half the visibility_timeout (30 min).")
-    shard_kill_grace: float = Field(
-        10.0, gt=0, description="Seconds between a shard's time limit and Celery's hard kill "
-        "of its pool child (the time to record why).")
+    shard_kill_grace: float | None = Field(
+        None, gt=0, description="Seconds between a shard's time limit and Celery's hard kill "
+        "of its pool child (the time to record why); below heartbeat_timeout. Default: 10 s "
+        "or half the heartbeat_timeout if that is less.")
     sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
     # scheduling (issue 16): the shard ledger admits ready shards to the broker
     queue_backlog: int = Field(
@@ -116,11 +117,19 @@ class Settings(BaseSettings):
     def _time_limit(self) -> Settings:
         if self.shard_time_limit is None:
             self.shard_time_limit = self.visibility_timeout / 2
+        if self.shard_kill_grace is None:
+            self.shard_kill_grace = min(10.0, self.heartbeat_timeout / 2)
         if self.shard_time_limit + self.shard_kill_grace >= self.visibility_timeout:
             raise ValueError(
                 f"shard_time_limit + shard_kill_grace ({self.shard_time_limit} + "
                 f"{self.shard_kill_grace} s) must stay below visibility_timeout "
                 f"({self.visibility_timeout} s): Redis would deliver a running shard again"
+            )
+        if self.shard_kill_grace >= self.heartbeat_timeout:
+            raise ValueError(
+                f"shard_kill_grace ({self.shard_kill_grace} s) must stay below "
+                f"heartbeat_timeout ({self.heartbeat_timeout} s): the sweeper would re-queue a "
+                f"shard past its time limit before Celery killed it"
             )
         return self
 
