@@ -406,8 +406,8 @@ def run_trial(f: Farm, db: str, kind: str, i: int, seed: int, out: Path) -> dict
     try:
         job_id = f.submit()
         rec["job_id"] = job_id
-        # a full disk must strike while writes remain (the export is the last 10 % or so)
-        at = rng.uniform(0.05, 0.6 if kind == "disk_full" else 0.85) * f.baseline_seconds
+        # a full disk or a hang must strike while shards remain (the export is the last 10 %)
+        at = rng.uniform(0.05, 0.6 if kind in ("disk_full", "hang") else 0.85) * f.baseline_seconds
         time.sleep(max(0.0, at - (time.monotonic() - t0)))
         rec["fault_at_s"] = round(time.monotonic() - t0, 3)
         rec["fault"] = inject(f, kind, rng, job_id)
