@@ -72,6 +72,14 @@ from texelbake.render.shade import light_at
 from texelbake.render.tracer import RenderResult, progressive
 from texelbake.tol import TOL
 
+#: the Jacobian field the characteristic points, the LOD vertices and the look-up read when
+#: the frame follows the deformed M_org (`deform_scene(follow="mesh")`): "vertex" — Ψ's own
+#: Jacobian at M_org's vertices interpolated on its triangles, the field gt's shading normals
+#: cof(J) n come from; "triangle" — each M_org triangle's constant affine map (before
+#: 2026-11-27; a flat face of a coarse M_org then turns as one piece while gt shades it as the
+#: warped, curved surface)
+JACOBIAN_FIELDS = ("vertex", "triangle")
+
 DEFORMED_MODES = ("gt", "cpm", "cpm-naive", "normalmap", "equal-time", "srf", "srf-naive")
 
 
@@ -139,7 +147,8 @@ def _refined_lods(scene: RenderScene, refine: float, n_joints: int = 0
 
 
 def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
-                 jacobian: str = "exact", refine: float = 16.0) -> RenderScene:
+                 jacobian: str = "exact", refine: float = 16.0,
+                 jacobian_field: str = "vertex") -> RenderScene:
     """A copy of `scene` whose M_org and M_i are warped by Ψ (module docstring); the baked
     tables stay at rest.
 
@@ -156,6 +165,9 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
         they can follow Ψ (`deform.refine`; 0: as baked)."""
     if follow not in ("mesh", "warp"):
         raise SettingsError(f"field 'follow': 'mesh' or 'warp', got {follow!r}")
+    if jacobian_field not in JACOBIAN_FIELDS:
+        raise SettingsError(f"field 'jacobian_field': one of {JACOBIAN_FIELDS}, got "
+                            f"{jacobian_field!r}")
     t0 = time.perf_counter()
     # the asset's own skinning (`warp_at_time` of a skinned asset): LOD meshes with a UsdSkel
     # binding in the payload follow it with their own weights, as UsdSkel animates them
@@ -166,7 +178,8 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     jac_v = warp.jacobian(a.points)  # shading normals: Ψ's own Jacobian at the vertices
     pts = warp.positions(a.points)
     if follow == "mesh":
-        warp = MeshWarp(a.points, pts, a.faces, name=warp.name, scale=warp.scale)
+        warp = MeshWarp(a.points, pts, a.faces, name=warp.name, scale=warp.scale,
+                        vertex_jacobians=jac_v if jacobian_field == "vertex" else None)
     corner = deform_normals(jac_v[a.faces.reshape(-1)],
                             a.corner_normals.reshape(-1, 3)).reshape(a.corner_normals.shape)
     d.asset = dataclasses.replace(a, points=pts, corner_normals=corner)
