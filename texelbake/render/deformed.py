@@ -56,7 +56,7 @@ from texelbake.deform.lookup import (
 )
 from texelbake.deform.refine import refine_levels, subdivide
 from texelbake.deform.skinbind import dense_weights
-from texelbake.deform.warps import MeshWarp, SkinWarp, Warp
+from texelbake.deform.warps import MeshWarp, SkinWarp, Warp, transfer_weights
 from texelbake.errors import SettingsError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.mesh import face_normals
@@ -118,8 +118,13 @@ def _refined_lods(scene: RenderScene, refine: float, n_joints: int = 0
     diag / refine (0: unrefined): [(vertices, faces, corner_uvs)], the uv-exact flag of each
     refined face, R0 (n, 3, 3) of the refined M1's vertices (the stored parameterization on
     M1's own vertices, a new one — `impostor_params` of the refined mesh — on the added), and
-    per LOD its dense skin weights (n, n_joints) from the payload's binding, the added
-    vertices' the mean of their edge's ends (None: no binding, or n_joints = 0)."""
+    per LOD its dense skin weights (n, n_joints) from the payload's binding on the LOD's own
+    vertices and, on the added ones, transferred from M_org's skin as the payload's binding
+    was (`warps.transfer_weights`: closest point, barycentric blend, ≤ 4 influences) (None:
+    no binding, or n_joints = 0). The mean of an edge's ends' weights, used before
+    2026-11-27, put the added vertices of the arm's long M1 edges up to 0.38 (10 % of the
+    diagonal) off the bent M_org: linear blending of averaged weights is not the skinning of
+    the surface between two vertices whose weights differ."""
     out, exact, weights = [], [], []
     frames0 = np.zeros((0, 3, 3))
     for i, m in enumerate(scene.baked.meshes):
@@ -128,10 +133,15 @@ def _refined_lods(scene: RenderScene, refine: float, n_joints: int = 0
         w = (dense_weights(m.skin["indices"], m.skin["weights"], n_joints)
              if n_joints and m.skin else None)
         k = refine_levels(v, f, scene.diag / refine) if refine > 0 else 0
+        n_own = v.shape[0]
         for _ in range(k):  # a loop over the few subdivision levels
             v, f, cuv, extra, parent = subdivide(v, f, cuv, () if w is None else (w,))
             ex = ex[parent]
             w = extra[0] if w is not None else None
+        skin = scene.asset.skin
+        if w is not None and k and skin is not None and skin.weights.shape[1] == n_joints:
+            w[n_own:] = transfer_weights(v[n_own:], scene.asset.points, scene.asset.faces,
+                                         skin.weights)
         out.append((v, f, cuv))
         exact.append(ex)
         weights.append(w)
