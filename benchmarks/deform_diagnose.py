@@ -8,10 +8,11 @@ BRDF, so a wider lobe asks whether L or the lobe's sharpness decides).
 
     .venv/bin/python benchmarks/deform_diagnose.py BAKED_ROOT --json out.json
         [--warps "bend:angle=90;twist:angle=90"] [--ref-spp 128] [--spp 4] [--size 512]
-        [--roughness R]
+        [--roughness R] [--jacobian-field vertex|triangle]
 
 BAKED_ROOT: e.g. the bolt baked by benchmarks/deform.py (`--work DIR`). Camera: the `lod` view
-of the deformed object, as the benchmark. Numbers of 2026-11-25 are in docs/deformation.md.
+of the deformed object, as the benchmark. Numbers of 2026-11-25 (32² atlas, before the
+Jacobian field of 2026-11-27: `--jacobian-field triangle`) are in docs/deformation.md.
 """
 
 from __future__ import annotations
@@ -57,6 +58,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--roughness", type=float, default=None)
+    ap.add_argument("--jacobian-field", default="vertex",
+                    help="render.deformed.JACOBIAN_FIELDS: 'triangle' reproduces the figures "
+                         "of 2026-11-25 (before the fix of 2026-11-27)")
     args = ap.parse_args(argv)
     scene = load_scene(args.baked)
     if args.roughness is not None:
@@ -67,7 +71,8 @@ def main(argv: list[str] | None = None) -> dict:
     cases = {}
     for spec in [w for w in args.warps.split(";") if w]:
         t0 = time.perf_counter()
-        d = deform_scene(scene, parse_warp(spec, scene.asset.bounds))
+        d = deform_scene(scene, parse_warp(spec, scene.asset.bounds),
+                         jacobian_field=args.jacobian_field)
         cam = lod_camera(d, args.size, args.size)
         ref = render_deformed(d, "gt", cam, args.ref_spp, 1)
         ref2 = render_deformed(d, "gt", cam, args.ref_spp, 2)

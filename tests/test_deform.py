@@ -111,6 +111,26 @@ def test_mesh_warp_triangle_jacobian_is_the_affine_map_in_plane():
         MeshWarp(v, v[:-1], f)
 
 
+def test_mesh_warp_vertex_jacobians_are_interpolated():
+    # a twist's own Jacobian at the vertices, interpolated on the closest rest triangle: equal
+    # to it at the vertices and the barycentric mix inside (a coarse triangle's affine map is
+    # one constant J, the twist's varies across it); positions are the affine map's
+    v, f = icosphere(1)
+    tw = parse_warp("twist:angle=90", np.array([v.min(axis=0), v.max(axis=0)]))
+    jv = tw.jacobian(v)
+    mw = MeshWarp(v, tw.positions(v), f, vertex_jacobians=jv)
+    np.testing.assert_allclose(mw.jacobian(v), jv, atol=1e-12)
+    bary = np.array([0.2, 0.3, 0.5])
+    inside = np.einsum("k,nkj->nj", bary, v[f])
+    np.testing.assert_allclose(mw.jacobian(inside), np.einsum("k,nkij->nij", bary, jv[f]),
+                               atol=1e-9)
+    tri = MeshWarp(v, tw.positions(v), f)
+    np.testing.assert_allclose(mw.positions(inside), tri.positions(inside), atol=1e-12)
+    assert np.abs(tri.jacobian(v) - jv).max() > 0.05  # the constant per-triangle field
+    with pytest.raises(ShapeError, match="vertex_jacobians"):
+        MeshWarp(v, v, f, vertex_jacobians=jv[:-1])
+
+
 def test_skin_warp_jacobian_and_no_influence():
     v, f = icosphere(1)
     rng = np.random.default_rng(3)

@@ -236,3 +236,40 @@ def test_refined_lods_follow_a_bend(baked_cylinder):
     assert refined.lod_error[0] <= 1.5 * scene.lod_error[0]
     assert chord.lod_error[0] > 1.5 * refined.lod_error[0]
     assert len(refined.baked.meshes[0].faces) > len(scene.baked.meshes[0].faces)
+
+
+def _normal_angles_deg(d) -> np.ndarray:
+    """Per characteristic point of the finest level: the angle between the normal the
+    per-point look-up shades with (Lᵀ n_rest: the rest shading normal carried to the deformed
+    frame) and gt's shading normal at the point (the deformed M_org's corner normals,
+    cof(J) n, interpolated at the point's rest triangle)."""
+    from texelbake.deform.warps import bind_to_mesh
+    from texelbake.render.deformed import _level_geometry
+
+    rest = d.rest
+    cp = rest.points(0)
+    lpt = _level_geometry(d, 0)["lookup:point"]
+    n_cpm = np.einsum("nji,nj->ni", lpt, cp["normal"])  # Lᵀ n
+    prim, bary, _ = bind_to_mesh(cp["position"], rest.asset.points, rest.asset.faces)
+    n_gt = np.einsum("nk,nkj->nj", bary, d.asset.corner_normals[prim])
+    n_gt /= np.linalg.norm(n_gt, axis=1, keepdims=True)
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n_cpm, n_gt), -1.0, 1.0)))
+
+
+def test_deformed_jacobians_are_the_field_of_gts_normals(baked_cylinder):
+    # the characteristic points and the look-up read Ψ's Jacobian at M_org's vertices
+    # interpolated on its triangles, the field gt's shading normals come from; M_org
+    # triangles' constant affine maps (jacobian_field="triangle") turned each coarse flat
+    # face as one piece while gt shades it curved, and a sharp highlight then held 2.6-3.8x
+    # the reference's light (the 64² bolt twisted 90°, docs/deformation.md)
+    scene = load_scene(baked_cylinder)
+    twist = parse_warp("twist:angle=90", scene.asset.bounds)
+    d = deform_scene(scene, twist)
+    pts = scene.asset.points
+    np.testing.assert_allclose(d.warp.jacobian(pts), twist.jacobian(pts), atol=1e-9)
+    tri = deform_scene(scene, twist, jacobian_field="triangle")
+    assert np.abs(tri.warp.jacobian(pts) - twist.jacobian(pts)).max() > 0.05
+    a_vertex, a_tri = _normal_angles_deg(d), _normal_angles_deg(tri)
+    assert np.median(a_vertex) < 0.5 * np.median(a_tri)
+    with pytest.raises(SettingsError, match="jacobian_field"):
+        deform_scene(scene, twist, jacobian_field="face")

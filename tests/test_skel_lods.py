@@ -307,3 +307,34 @@ def test_write_animation_frames_and_errors(tmp_path):
         write_animation(tmp_path / "a.png", frames)
     with pytest.raises(ShapeError, match="size"):
         write_animation(tmp_path / "b.gif", [frames[0], np.zeros((3, 3, 3))])
+
+
+def test_refined_lods_follow_the_bent_m_org(baked_arm):
+    # the renderer refines the skinned LODs before deforming them; the added vertices take
+    # weights transferred from M_org, as the payload's own vertices did, so that each refined
+    # vertex moves as the M_org triangle it lies on (`MeshWarp`: the time samples). The mean
+    # of an edge's ends' weights (the construction before 2026-11-27, rebuilt here) put them
+    # up to 10 % of the diagonal off the bent M_org (the 64² arm bent 90°: 0.38 of 3.8):
+    # linear blending of averaged weights is not the skinning of the surface between two
+    # vertices whose weights differ. Here: M1's largest departure 0.27 against 0.58.
+    from texelbake.deform.refine import refine_levels, subdivide
+    from texelbake.deform.skinbind import dense_weights
+    from texelbake.deform.warps import SkinWarp
+    from texelbake.render.deformed import _refined_lods
+
+    scene = load_scene(baked_arm)
+    warp = warp_at_time(scene.asset, 24.0)
+    d = deform_scene(scene, warp)
+    n_joints = len(scene.asset.skin.joints)
+    (v, f, _), = _refined_lods(scene, 16.0, n_joints)[0][:1]
+    follow = d.warp.positions(v)  # each refined vertex carried by its M_org triangle
+    got = float(np.linalg.norm(d.baked.meshes[0].vertices - follow, axis=1).max())
+    m1 = scene.baked.meshes[0]
+    va, fa, ca = m1.vertices, m1.faces, m1.corner_uvs
+    wa = dense_weights(m1.skin["indices"], m1.skin["weights"], n_joints)
+    for _ in range(refine_levels(va, fa, scene.diag / 16.0)):
+        va, fa, ca, (wa,), _ = subdivide(va, fa, ca, (wa,))
+    np.testing.assert_allclose(va, v)
+    averaged = SkinWarp(np.asarray(warp.transforms), va, fa, wa).positions(va)
+    old = float(np.linalg.norm(averaged - follow, axis=1).max())
+    assert got < 0.6 * old, (got, old)

@@ -231,13 +231,20 @@ class MeshWarp(Warp):
     triangle's affine map: p' = q0' + J (p − q0) with q0, q0' the triangle's first corner at
     rest and deformed and J its `triangle_jacobians` (barycentrics in the plane, the normal
     offset along the deformed normal; the full offset, also where the closest point is on an
-    edge or corner, so that affine warps are reproduced exactly)."""
+    edge or corner, so that affine warps are reproduced exactly).
+
+    vertex_jacobians : (v, 3, 3) float64 or None — when given (a warp Ψ whose own Jacobian is
+    known at the rest vertices), `jacobian` is their barycentric interpolation on the closest
+    rest triangle instead of the triangle's constant affine map: the field the deformed
+    M_org's shading normals cof(J) n come from (`render.deformed.deform_scene`), continuous
+    across triangles. Positions are unchanged (the triangle's affine map)."""
 
     rest: np.ndarray
     deformed: np.ndarray
     faces: np.ndarray
     name: str = "mesh"
     scale: float = 1.0
+    vertex_jacobians: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if np.shape(self.rest) != np.shape(self.deformed):
@@ -247,6 +254,12 @@ class MeshWarp(Warp):
 
         self._jac, _ = triangle_jacobians(self.rest, self.deformed, self.faces)
         self._caster = RayCaster(self.rest, self.faces)
+        if self.vertex_jacobians is not None:
+            vj = np.asarray(self.vertex_jacobians, dtype=np.float64)
+            if vj.shape != (np.shape(self.rest)[0], 3, 3):
+                raise ShapeError(f"vertex_jacobians must be ({np.shape(self.rest)[0]}, 3, 3), "
+                                 f"got {vj.shape}")
+            self.vertex_jacobians = vj
 
     def positions(self, points: np.ndarray) -> np.ndarray:
         p = _points(points)
@@ -256,8 +269,11 @@ class MeshWarp(Warp):
         return q1 + np.einsum("nij,nj->ni", self._jac[prim], p - q0)
 
     def jacobian(self, points: np.ndarray) -> np.ndarray:
-        prim, _, _ = bind_to_mesh(points, self.rest, self.faces, self._caster)
-        return self._jac[prim].copy()
+        prim, bary, _ = bind_to_mesh(points, self.rest, self.faces, self._caster)
+        if self.vertex_jacobians is None:
+            return self._jac[prim].copy()
+        corners = np.asarray(self.faces, dtype=np.int64)[prim]  # (n, 3)
+        return np.einsum("nk,nkij->nij", bary, self.vertex_jacobians[corners])
 
 
 @dataclass

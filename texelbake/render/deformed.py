@@ -56,7 +56,7 @@ from texelbake.deform.lookup import (
 )
 from texelbake.deform.refine import refine_levels, subdivide
 from texelbake.deform.skinbind import dense_weights
-from texelbake.deform.warps import MeshWarp, SkinWarp, Warp
+from texelbake.deform.warps import MeshWarp, SkinWarp, Warp, transfer_weights
 from texelbake.errors import SettingsError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.mesh import face_normals
@@ -71,6 +71,14 @@ from texelbake.render.scene import RenderScene, _hausdorff, _uv_ratio
 from texelbake.render.shade import light_at
 from texelbake.render.tracer import RenderResult, progressive
 from texelbake.tol import TOL
+
+#: the Jacobian field the characteristic points, the LOD vertices and the look-up read when
+#: the frame follows the deformed M_org (`deform_scene(follow="mesh")`): "vertex" — Ψ's own
+#: Jacobian at M_org's vertices interpolated on its triangles, the field gt's shading normals
+#: cof(J) n come from; "triangle" — each M_org triangle's constant affine map (before
+#: 2026-11-27; a flat face of a coarse M_org then turns as one piece while gt shades it as the
+#: warped, curved surface)
+JACOBIAN_FIELDS = ("vertex", "triangle")
 
 DEFORMED_MODES = ("gt", "cpm", "cpm-naive", "normalmap", "equal-time", "srf", "srf-naive")
 
@@ -110,8 +118,13 @@ def _refined_lods(scene: RenderScene, refine: float, n_joints: int = 0
     diag / refine (0: unrefined): [(vertices, faces, corner_uvs)], the uv-exact flag of each
     refined face, R0 (n, 3, 3) of the refined M1's vertices (the stored parameterization on
     M1's own vertices, a new one — `impostor_params` of the refined mesh — on the added), and
-    per LOD its dense skin weights (n, n_joints) from the payload's binding, the added
-    vertices' the mean of their edge's ends (None: no binding, or n_joints = 0)."""
+    per LOD its dense skin weights (n, n_joints) from the payload's binding on the LOD's own
+    vertices and, on the added ones, transferred from M_org's skin as the payload's binding
+    was (`warps.transfer_weights`: closest point, barycentric blend, ≤ 4 influences) (None:
+    no binding, or n_joints = 0). The mean of an edge's ends' weights, used before
+    2026-11-27, put the added vertices of the arm's long M1 edges up to 0.38 (10 % of the
+    diagonal) off the bent M_org: linear blending of averaged weights is not the skinning of
+    the surface between two vertices whose weights differ."""
     out, exact, weights = [], [], []
     frames0 = np.zeros((0, 3, 3))
     for i, m in enumerate(scene.baked.meshes):
@@ -120,10 +133,15 @@ def _refined_lods(scene: RenderScene, refine: float, n_joints: int = 0
         w = (dense_weights(m.skin["indices"], m.skin["weights"], n_joints)
              if n_joints and m.skin else None)
         k = refine_levels(v, f, scene.diag / refine) if refine > 0 else 0
+        n_own = v.shape[0]
         for _ in range(k):  # a loop over the few subdivision levels
             v, f, cuv, extra, parent = subdivide(v, f, cuv, () if w is None else (w,))
             ex = ex[parent]
             w = extra[0] if w is not None else None
+        skin = scene.asset.skin
+        if w is not None and k and skin is not None and skin.weights.shape[1] == n_joints:
+            w[n_own:] = transfer_weights(v[n_own:], scene.asset.points, scene.asset.faces,
+                                         skin.weights)
         out.append((v, f, cuv))
         exact.append(ex)
         weights.append(w)
@@ -139,7 +157,8 @@ def _refined_lods(scene: RenderScene, refine: float, n_joints: int = 0
 
 
 def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
-                 jacobian: str = "exact", refine: float = 16.0) -> RenderScene:
+                 jacobian: str = "exact", refine: float = 16.0,
+                 jacobian_field: str = "vertex") -> RenderScene:
     """A copy of `scene` whose M_org and M_i are warped by Ψ (module docstring); the baked
     tables stay at rest.
 
@@ -156,6 +175,9 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
         they can follow Ψ (`deform.refine`; 0: as baked)."""
     if follow not in ("mesh", "warp"):
         raise SettingsError(f"field 'follow': 'mesh' or 'warp', got {follow!r}")
+    if jacobian_field not in JACOBIAN_FIELDS:
+        raise SettingsError(f"field 'jacobian_field': one of {JACOBIAN_FIELDS}, got "
+                            f"{jacobian_field!r}")
     t0 = time.perf_counter()
     # the asset's own skinning (`warp_at_time` of a skinned asset): LOD meshes with a UsdSkel
     # binding in the payload follow it with their own weights, as UsdSkel animates them
@@ -166,7 +188,8 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     jac_v = warp.jacobian(a.points)  # shading normals: Ψ's own Jacobian at the vertices
     pts = warp.positions(a.points)
     if follow == "mesh":
-        warp = MeshWarp(a.points, pts, a.faces, name=warp.name, scale=warp.scale)
+        warp = MeshWarp(a.points, pts, a.faces, name=warp.name, scale=warp.scale,
+                        vertex_jacobians=jac_v if jacobian_field == "vertex" else None)
     corner = deform_normals(jac_v[a.faces.reshape(-1)],
                             a.corner_normals.reshape(-1, 3)).reshape(a.corner_normals.shape)
     d.asset = dataclasses.replace(a, points=pts, corner_normals=corner)
