@@ -51,19 +51,26 @@ def replace(src: str | Path, dst: str | Path, *, mode: int | None = 0o644) -> Pa
 FAILPOINT_ENV = "TEXELBAKE_FAILPOINT_WRITES"
 
 
+def control_words(env: str) -> list[str]:
+    """The words of the fault-injection control file the environment variable `env` names;
+    [] when it is unset or the file is absent (the test hooks' one reader)."""
+    control = os.environ.get(env)
+    if not control:
+        return []
+    try:
+        return Path(control).read_text().split()
+    except OSError:
+        return []
+
+
 def failpoint(path: str | Path) -> None:
     """Raise the OSError the control file of `FAILPOINT_ENV` asks for on a write to `path`;
     nothing when the variable is unset, the file is absent or empty, or the path does not
     contain the fragment."""
-    control = os.environ.get(FAILPOINT_ENV)
-    if not control:
-        return
-    try:
-        words = Path(control).read_text().split()
-    except OSError:
-        return
+    words = control_words(FAILPOINT_ENV)
     if not words:
         return
+    control = os.environ[FAILPOINT_ENV]
     code = getattr(errno, words[0], None)
     if not isinstance(code, int):
         raise ValueError(f"{FAILPOINT_ENV} control file {control}: {words[0]!r} is no errno name")

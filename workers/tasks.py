@@ -28,6 +28,7 @@ from services import ledger, storage
 from services.broker import broker_run_id, celery_sender
 from services.config import get_settings
 from services.db import Asset, Job, session_factory
+from texelbake.atomic import control_words
 from texelbake.errors import TexelbakeError
 from workers.celery_app import app
 
@@ -95,21 +96,14 @@ HANG_FAILPOINT_ENV = "TEXELBAKE_FAILPOINT_HANG"
 
 
 def _hang_failpoint(stage: str) -> None:
-    control = os.environ.get(HANG_FAILPOINT_ENV)
-    if not control:
-        return
-    try:
-        words = Path(control).read_text().split()
-    except FileNotFoundError:
-        return
+    words = control_words(HANG_FAILPOINT_ENV)
     if not words or words[0] not in (stage, "*"):
         return
     if "once" in words[1:]:
         try:
-            Path(control).unlink()
+            Path(os.environ[HANG_FAILPOINT_ENV]).unlink()
         except FileNotFoundError:
             return  # another shard took the one hang
-
     log.error("failpoint %s: stage %s hangs", HANG_FAILPOINT_ENV, stage)
     while True:  # until the time limit's kill
         time.sleep(3600)
