@@ -290,7 +290,7 @@ def closed_form_table(res):
     return out
 
 
-def identity_table(res_keeps, k=64, n_side=16, n_dirs=300):
+def identity_table(res_keeps, k=64, n_side=16, n_dirs=300, tables=("seed", "face+corr", "texel")):
     """Storage against error of the table the renderer reads (issue 11): per-texel relative L2
     of a_vis at the cube pixels against the uncompressed maps (level 0: median, p95; the worst
     texel of any level), and the height-field identity sum_texels a_vis = cos(theta) through
@@ -316,7 +316,8 @@ def identity_table(res_keeps, k=64, n_side=16, n_dirs=300):
           f"{'L0 med':>7} {'p95':>7} {'max any':>8} {'identity max':>13} {'worst level':>11} "
           f"{'s':>6} {'bar':>5}")
     out = []
-    variants = (("seed", "face", False), ("face+corr", "face", True), ("texel", "texel", True))
+    variants = tuple(v for v in (("seed", "face", False), ("face+corr", "face", True),
+                                 ("texel", "texel", True)) if v[0] in tables)
     for fname, h in fields.items():
         pts, faces = grid_mesh(k, h)
         tp, tf = tile3x3(pts, faces)
@@ -373,10 +374,17 @@ def main() -> None:
                     "table (default 32, 16 with --quick; the seed uses 64)")
     ap.add_argument("--identity-only", action="store_true",
                     help="only the identity / storage table (issue 11, item 1)")
+    ap.add_argument("--res-keeps", default="16:0.03,0.06;32:0.025,0.03",
+                    help="the identity table's face resolutions and keep fractions, "
+                         "'RES:K,K;RES:K' (default %(default)s)")
+    ap.add_argument("--tables", default="seed,face+corr,texel",
+                    help="the identity table's variants (default %(default)s)")
     args = ap.parse_args()
     quick = args.quick
     if args.identity_only:
-        rows = identity_table([(16, (0.03, 0.06)), (32, (0.025, 0.03))])
+        res_keeps = [(int(r), tuple(float(k) for k in ks.split(",")))
+                     for r, ks in (part.split(":") for part in args.res_keeps.split(";"))]
+        rows = identity_table(res_keeps, tables=tuple(args.tables.split(",")))
         if args.json:
             args.json.write_text(json.dumps({"identity": rows}, indent=1))
         return

@@ -131,7 +131,10 @@ class BakeSettings(BaseModel):
         "object shadow test: cpm 23.8 dB against 25.3 dB).",
     )
     # visible projected area (seed 000 §3.4)
-    avis_resolution: int = Field(16, ge=2, le=256, description="Cube-map face resolution.")
+    avis_resolution: int = Field(
+        32, ge=2, le=256, description="Cube-map face resolution (32: every texel within 2 % of "
+        "its uncompressed maps at 3.8 % storage on height fields; 16 keeps too few "
+        "coefficients per texel, 3.2 %).")
     avis_keep_fraction: float = Field(
         0.03, gt=0.0, le=1.0, description="Haar coefficients kept, a fraction of the level's "
         "dense cube pixels (4 bytes each with avis_selection='texel': 0.03 stores 4.0 % of the "

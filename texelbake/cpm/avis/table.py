@@ -43,9 +43,9 @@ class AvisTable:
     haar : HaarCoeffs of the (n_ray, 6, res, res) world-direction cube maps: for a bounded
         ray texel the *visible fraction* F = a_vis / U (U the unoccluded projected area, its
         closed form; F in [0, 1]), otherwise a_vis itself. Look-up: U F at the taps (U exact
-        at each tap direction), interpolated, then min(., U(w)) with U exact at w: the
-        horizon is exact and compression only touches the smoother masking fraction
-        (about 4x lower error at the seed's kept fraction, benchmarks/avis_methods.py)
+        at each tap direction), interpolated (linear in the taps: sums over texels survive):
+        compression only touches the smoother masking fraction (about 4x lower error at the
+        seed's kept fraction, benchmarks/avis_methods.py)
     correction : (k, 6, res, res) float16 sum-preserving corrections (`sum_correction`),
         one per group present in the level, (0,) when the table has none (the seed's plain
         Haar table, or a bake from before it); correction_groups : (k,) uint8, which group
@@ -204,10 +204,15 @@ class AvisTable:
         rq = np.flatnonzero(~cl)
         if rq.size:
             bnd = self.bounded[t[rq]]
+            # No clamp to U(w) after the bilinear look-up: the look-up stays linear in the
+            # stored tap values, so sums over texels are kept (the height-field identity, a
+            # parent equal to its children, the renderer's a_vis-weighted pixel average). A
+            # wall's tap overshoot past its horizon (within one cube pixel) balances the
+            # undershoot of the wall it uncovers; clamping only the overshoot biased the
+            # V-grooves' identity by 1.4 % (res 32) and 4 % (res 16) and won 0.02 % per texel
+            # (docs/decisions.md, 2026-11-27). Below the horizon the texel's points have
+            # (n . w)^+ = 0, so its radiance is 0 either way.
             a[rq] = self._eval_maps(self.ray_row[t[rq]], w[rq], interp, t[rq], bnd)
-            bq = rq[bnd]
-            if bq.size:  # a_vis <= U, exact at w (a_vis -> 0 at the horizon with U)
-                a[bq] = np.minimum(a[bq], eval_closed_form(self.cf, t[bq], w[bq]))
         a = np.maximum(a, 0.0)
         valid = dir_ok & (a > floor * self.texel_area[t]) & (self.texel_area[t] > 0)
         return np.where(valid, a, 0.0), valid
@@ -368,6 +373,7 @@ def visible_fraction(maps: np.ndarray, unoccluded: np.ndarray) -> np.ndarray:
 #: bisection steps of the bounded texels' exponent (log-gamma in [-8, 8]: 16 / 2^30 = 1.5e-8)
 _GAMMA_STEPS = 30
 _LOG_GAMMA_MAX = 8.0
+_SCALE_SPAN = 8.0  # c in (8, 16]: the power at 8 times the scale (16 - c) / 8
 
 
 def sum_correction(exact: np.ndarray, approx: np.ndarray, weight: np.ndarray,
@@ -380,11 +386,16 @@ def sum_correction(exact: np.ndarray, approx: np.ndarray, weight: np.ndarray,
     2-5 % (benchmarks/avis_methods.py). One scalar per cube pixel puts the group's missing
     total back:
 
-    * bounded texels (the table holds F = a_vis / U in [0, 1]): F~ -> F~^gamma with
-      gamma = exp(g), g solved by bisection so that sum_t U_t F~_t^gamma = sum_t U_t F_t. The
-      power keeps 0 at 0 (a fully masked direction stays masked), 1 at 1 and F in [0, 1],
-      and spans every total between the fully visible texels' and all non-zero texels' U;
-      a target outside that range gets the nearest end (g = -+8).
+    * bounded texels (the table holds F = a_vis / U in [0, 1]): one parameter c per pixel,
+      solved by bisection so that sum_t U_t F'_t = sum_t U_t F_t, of a family decreasing in c:
+      for c in [-8, 8] the power F' = F~^exp(c), which keeps 0 at 0 (a fully masked direction
+      stays masked), 1 at 1 and F in [0, 1] and spans every total between the fully visible
+      texels' U and all non-zero texels' U; for c in (8, 16] the power at 8 times the scale
+      (16 - c) / 8, which takes the total on down to 0. The scale is for a pixel where the
+      reconstruction calls texels fully visible that are not (a periodic field's alike coarse
+      texels at grazing pixels: measured, the V-grooves' level 2 at res 32 was 11 % over its
+      total there, 1.1 % off the identity between pixels). A target above the range gets
+      c = -8.
     * direct texels (the table holds a_vis itself, W = 1): a~ (1 + m) with
       m = sum_t (a_t - a~_t) / sum_t a~_t, clipped to [-1, 1] (0 stays 0).
 
@@ -407,14 +418,12 @@ def sum_correction(exact: np.ndarray, approx: np.ndarray, weight: np.ndarray,
         have = np.sum(u * a, axis=0)
         m = np.divide(target - have, have, out=np.zeros_like(have), where=have > 0)
         return np.clip(m, -1.0, 1.0).astype(np.float32)
-    # sum_t U_t F~_t^exp(g) decreases in g: bisection on [-8, 8], vectorized over pixels
-    logf = np.log(np.where(a > 0, a, 1.0))  # (n, 6, res, res); F~ = 0 terms masked below
-    pos = a > 0
+    # the total decreases in c: bisection on [-8, 16], vectorized over pixels
     lo = np.full(target.shape, -_LOG_GAMMA_MAX)
-    hi = np.full(target.shape, _LOG_GAMMA_MAX)
+    hi = np.full(target.shape, _LOG_GAMMA_MAX + _SCALE_SPAN)
     for _ in range(_GAMMA_STEPS):  # a loop over bisection steps, each over all pixels
         mid = 0.5 * (lo + hi)
-        total = np.sum(np.where(pos, u * np.exp(np.exp(mid) * logf), 0.0), axis=0)
+        total = np.sum(u * apply_correction(a, mid[None], bounded=True), axis=0)
         too_big = total > target
         lo = np.where(too_big, mid, lo)
         hi = np.where(too_big, hi, mid)
@@ -427,7 +436,9 @@ def apply_correction(values: np.ndarray, c: np.ndarray, bounded: bool) -> np.nda
     v = np.asarray(values, np.float64)
     c = np.asarray(c, np.float64)
     if bounded:
-        return np.where(v > 0, np.exp(np.exp(c) * np.log(np.where(v > 0, v, 1.0))), 0.0)
+        g = np.minimum(c, _LOG_GAMMA_MAX)
+        scale = np.clip((_LOG_GAMMA_MAX + _SCALE_SPAN - c) / _SCALE_SPAN, 0.0, 1.0)
+        return np.where(v > 0, np.exp(np.exp(g) * np.log(np.where(v > 0, v, 1.0))), 0.0) * scale
     return v * (1.0 + c)
 
 
@@ -476,7 +487,8 @@ def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float, *
             groups.append(1)
             maps_c.append(sum_correction(direct, np.maximum(approx[~frac], 0.0),
                                          np.ones_like(direct), bounded=False))
-    # float16: g and m are in [-8, 8] and [-1, 1]; 11 bits move F^exp(g) by < 1e-3 relative
+    # float16: c and m are in [-8, 16] and [-1, 1]; 11 bits move F^exp(c) by < 1e-3 relative
+    # and the scale (16 - c) / 8 by <= 1e-3
     correction = (np.stack(maps_c).astype(np.float16) if maps_c
                   else np.zeros(0, np.float16))
     return AvisTable(level.res, frames, level.texel_area, level.closed, level.bounded, level.cf,

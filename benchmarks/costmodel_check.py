@@ -1,0 +1,82 @@
+"""The cost model against the bake (issue 15, item 4): full bakes of the cylinder and the bolt at
+several atlas sizes at `texelbake bake`'s defaults, each in a fresh process (`bake.run_child`),
+with the cost model's prediction (made by the bake itself after its geometry stage, the figure
+`texelbake bake` prints and the job API returns) beside the measured wall time, per stage and
+in total, and texels/s and held-out SNR (median, p5) per level.
+
+    python benchmarks/costmodel_check.py --scenes cylinder,bolt --atlas 32,64,128 \
+        --json benchmarks/results/costmodel_check.json
+
+The bar (issue 15): the prediction within +-30 % of the measured total on every bake. Peak
+memory: the largest resident set of any process of the bake so far (`RUSAGE_CHILDREN`, the
+kernel's maximum over the process tree; sizes run in increasing order, so a rise is this bake's).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bake import JOBS, run_child, write_scene  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="cylinder,bolt")
+    ap.add_argument("--atlas", default="32,64,128")
+    ap.add_argument("--size", default="full", choices=["small", "full"])
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--workdir", type=Path, default=None)
+    args = ap.parse_args()
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-costmodel-"))
+    here = Path(__file__).resolve().parents[1]
+    rows = []
+    for name in args.scenes.split(","):
+        scene = write_scene(name, work / f"{name}_{args.size}.usda", args.size)
+        for n in (int(a) for a in args.atlas.split(",")):
+            r = run_child(here, scene, work / f"{name}{n}", {"atlas_resolution": n}, JOBS)
+            est = r["estimate"] or {}
+            st = r["stage_seconds"] or {}
+            rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0  # MiB
+            texels = sum(lv["texels"] for lv in r["levels"])
+            fit_wall = sum(lv["fit_wall_seconds"] for lv in r["levels"])
+            row = {"scene": name, "size": args.size, "atlas": n, "jobs": JOBS,
+                   "total_seconds": r["total_seconds"], "stage_seconds": st,
+                   "predicted_seconds": est.get("seconds"),
+                   "predicted_stage_seconds": est.get("stage_seconds"),
+                   "ratio": (r["total_seconds"] / est["seconds"]) if est.get("seconds") else None,
+                   "load_before": r["load_before"], "load_after": r["load_after"],
+                   "peak_rss_mib_so_far": rss, "texels": texels,
+                   "texels_per_second": texels / max(fit_wall, 1e-9) * JOBS,
+                   "levels": r["levels"]}
+            rows.append(row)
+            print(f"\n{name} {args.size} {n}^2, {JOBS} processes, load {r['load_before']} -> "
+                  f"{r['load_after']}: measured {r['total_seconds']:.1f} s, predicted "
+                  f"{est.get('seconds', float('nan')):.1f} s (measured/predicted "
+                  f"{row['ratio'] or float('nan'):.2f}, bar 0.70-1.30: "
+                  f"{'holds' if row['ratio'] and 0.7 <= row['ratio'] <= 1.3 else 'DOES NOT HOLD'})"
+                  f"; peak RSS so far {rss:.0f} MiB", flush=True)
+            pst = est.get("stage_seconds") or {}
+            print("  stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in st.items())
+                  + f"; predicted cpm {pst.get('cpm', float('nan')):.1f}, "
+                    f"avis {pst.get('avis', float('nan')):.1f}")
+            print(f"  {'lvl':>3} {'texels':>6} {'tex/s':>8} {'ho med':>7} {'ho p5':>7}")
+            for lv in r["levels"]:
+                tps = lv["texels"] / max(lv["fit_wall_seconds"], 1e-9)
+                med = lv["heldout_db_median"]
+                p5 = lv["heldout_db_p5"]
+                print(f"  {lv['level']:>3} {lv['texels']:>6} {tps:>8.2f} "
+                      f"{med if med is not None else float('nan'):>7.2f} "
+                      f"{p5 if p5 is not None else float('nan'):>7.2f}")
+            if args.json:  # written after every bake: a long run keeps what it measured
+                args.json.write_text(json.dumps({"rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
