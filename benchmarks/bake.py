@@ -194,7 +194,9 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
         shutil.rmtree(out)
     out.mkdir(parents=True)
     timings = out / "fit_timings.jsonl"
-    env = {**os.environ, "PYTHONPATH": str(tree)}
+    # a fresh artifact store: the default one (~/.cache/texelbake) would serve a rerun's
+    # stages from an earlier bake's artifacts and time nothing
+    env = {**os.environ, "PYTHONPATH": str(tree), "TEXELBAKE_WORKDIR": str(out / "work")}
     load0 = _uptime()
     proc = subprocess.run(
         [sys.executable, str(Path(__file__).with_name("_bake_child.py")), str(scene),

@@ -35,36 +35,41 @@ DEFAULT_FILL = 0.4
 
 @dataclass(frozen=True)
 class Coefficients:
-    """Seconds per unit. First fitted (NNLS on relative residuals,
-    `benchmarks/calibrate_costmodel.py`) to the CPU seconds (`time.process_time()`) of every
-    level's `fit_level` calls measured by `benchmarks/cpm_cpu.py` after issue 15's second pass
-    (full cylinder at 32^2, two bolt tiles, 2026-11-25, load 30-45). Re-scaled 2026-11-26 with
-    `calibrate_costmodel.py --scale-only` on `cpm_cpu.py` runs that include the coarse levels'
-    dense refit (`coarse_target="dense"`, merged after that fit and 40 % of a bake): the full
-    cylinder and the full bolt at 16^2 (load 3-10): the fit terms x 1.82 (the first fit
-    under-predicted every level 0.10-0.56x), the refit's terms fitted beside them; every level
-    of both runs within 0.88-1.07x, the sums 0.98x and 1.00x; checked out of sample on the full
-    cylinder at 32^2 (266 CPU s, 130 of them the refit, load 7-10): 0.91-1.16x per level, 1.00x
-    summed. The eigh term fitted to 0 (absorbed by the Gram and per-texel terms)."""
+    """Seconds per unit, fitted 2026-11-27 on a quiet machine (load 1-3, this project's 2 cores).
+    The fit terms: NNLS on relative residuals (`benchmarks/calibrate_costmodel.py`) to the CPU
+    seconds (`time.process_time()`) of every level's `fit_level` calls, `benchmarks/cpm_cpu.py`
+    over the full cylinder and the full bolt at 32^2 (defaults): every level within
+    0.88-1.07x, the sums 1.00x and 0.99x. The coefficients before (fitted 2026-11-25/26 under
+    load 3-45) predicted 3.1x and 4.0x those sums on a quiet machine: a loaded machine's CPU
+    seconds are not a quiet one's. The dense refit's terms (off by default) were not
+    re-measured: scaled by the fit terms' mean change (1/3.5). a_vis, export, process and fixed
+    from the stage seconds of `benchmarks/costmodel_check.py` at 32^2 (`-j 2`) and of the
+    cylinder at a_vis faces 16 and 32: the a_vis stage 8.3 s at 16^2 faces, 19.0 s at 32^2 on
+    65,536 samples, less a pool's start (3.5 s: imports, the worker's scene and ray caster);
+    the export 2.3 s and 3.9 s. Checked out of sample at 64^2 and 128^2 by
+    `costmodel_check.py` (docs/profile.md)."""
 
-    r_entry: float = 1.19e-7  # s per (candidate, direction pair), Lambert / Phong
-    gram: float = 3.09e-10  # s per m^2 d
+    r_entry: float = 3.01e-8  # s per (candidate, direction pair), Lambert / Phong
+    gram: float = 1.42e-10  # s per m^2 d
     eigh: float = 0.0  # s per m^3
-    held: float = 3.37e-7  # s per (dense sample, held-out pair), Lambert / Phong (+ a_vis)
-    texel: float = 2.26e-2  # s per fitted texel
-    brdf_ggx: float = 1.88  # R cost of a GGX (preview, merl, cellular) material, x r_entry
-    held_ggx: float = 1.48  # held-out cost of such a material, x held
-    refit: float = 9.83e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
+    held: float = 1.02e-7  # s per (dense sample, held-out pair), Lambert / Phong (+ a_vis)
+    texel: float = 2.24e-3  # s per fitted texel
+    brdf_ggx: float = 1.62  # R cost of a GGX (preview, merl, cellular) material, x r_entry
+    held_ggx: float = 1.30  # held-out cost of such a material, x held
+    refit: float = 2.8e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
     refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
-    avis: float = 4.0e-5  # s per dense sample (a_vis maps and compression)
+    avis: float = 4.4e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
+    avis_fixed: float = 3.7e-5  # s per dense sample at any face resolution (maps, coarsening)
+    export: float = 3.3e-5  # s per dense sample at 32^2 faces, x (res / 32)^2 (a_vis tables)
     geometry: float = 2.0e-5  # s per dense sample (sampling, texel assignment)
-    process: float = 5.0  # s per worker process (imports of pxr, open3d, torch, scipy)
-    fixed: float = 2.0  # s (ingest, plan, export)
+    process: float = 3.5  # s per process pool's start (imports, scene, ray caster)
+    fixed: float = 2.0  # s (ingest, plan, the export's USD and LODs)
 
 
 #: typical characteristic points per texel at level L (children hierarchy), capped by c_max:
-#: measured means 25, 26, 35, 55, 85 at levels 0-4 (cylinder, 32^2, eps 30 dB)
-C_LEVEL = (25.0, 26.0, 35.0, 55.0, 85.0)
+#: measured means at levels 0-4 at 32^2 (defaults, 2026-11-27): cylinder 32, 35, 42, 51, 82,
+#: bolt 21, 19, 19, 21, 31; their mean
+C_LEVEL = (27.0, 27.0, 31.0, 36.0, 56.0)
 
 
 @dataclass
@@ -78,6 +83,8 @@ class Estimate:
     geometry_seconds: float
     texels: int  # texels with samples, all levels
     stretch: float = 1.0  # wall / CPU slowdown from the machine's other load (>= 1)
+    cpm_serial_seconds: float = 0.0  # of cpm_seconds, the levels above a tile (one shard)
+    export_seconds: float = 0.0
     per_level: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -163,6 +170,8 @@ def estimate(
     brdf_r = 1.0 + (coef.refit_ggx - 1.0) * g
     per_level = []
     cpm = 0.0
+    serial = 0.0  # levels above a tile: `run_cpm_top`, one shard on one worker
+    tile_levels = int(s.shard_texels).bit_length()
     texels = 0
     for level, (m, dense, mult) in enumerate(sizes):
         refit = brdf_r * coef.refit * (dense * d).sum() if refits and level > 0 else 0.0
@@ -172,16 +181,21 @@ def estimate(
         n_tex = int(round(mult * m.size))
         per_level.append({"level": level, "texels": n_tex, "seconds": sec})
         cpm += sec
+        if level >= tile_levels:
+            serial += sec
         texels += n_tex
     total_samples = float(sizes[0][1].sum() * sizes[0][2])
-    avis = coef.avis * total_samples * (s.avis_resolution / 16.0) ** 2
+    faces = (s.avis_resolution / 32.0) ** 2
+    avis = (coef.avis * faces + coef.avis_fixed) * total_samples
+    export = coef.export * faces * total_samples
     geom = coef.geometry * total_samples
     par = min(workers, cores or workers)
-    seconds = coef.fixed + geom + coef.process * (1 if workers == 1 else 2) \
-        + (cpm + avis) / par
+    seconds = coef.fixed + geom + export + coef.process * (1 if workers == 1 else 2) \
+        + (cpm - serial + avis) / par + serial
     stretch = max(1.0, (max(load, 0.0) + par) / cores) if cores else 1.0
     return Estimate(seconds=seconds * stretch, workers=workers, cpm_seconds=cpm,
                     avis_seconds=avis, geometry_seconds=geom, texels=texels,
+                    cpm_serial_seconds=serial, export_seconds=export,
                     per_level=per_level, stretch=stretch)
 
 
