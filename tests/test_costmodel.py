@@ -122,16 +122,16 @@ def test_atlas_trade_prices_the_resolution_lod1_asks_for():
 
 def test_estimate_prices_the_coarse_levels_dense_refit():
     """coarse_target="dense" refits every coarse level against all its dense samples: on the
-    uniform prediction each level >= 1 holds all 0.4 N^2 spt samples once, so the refit adds
+    uniform prediction each level >= 1 holds all N^2 spt samples once, so the refit adds
     refit x (levels - 1) x samples x d seconds (on one worker, Lambert / Phong), by hand."""
-    from texelbake.costmodel import DEFAULT_FILL, Coefficients, estimate
+    from texelbake.costmodel import Coefficients, estimate
 
     s = BakeSettings(atlas_resolution=32, coarse_target="dense")
     coef = Coefficients()
     dense = estimate(s, ggx_fraction=0.0)
     children = estimate(s.model_copy(update={"coarse_target": "children"}), ggx_fraction=0.0)
     n_levels = s.atlas_resolution.bit_length()
-    samples = DEFAULT_FILL * s.atlas_resolution ** 2 * s.samples_per_texel
+    samples = s.atlas_resolution ** 2 * s.samples_per_texel
     d = s.n_light_dirs * s.n_view_dirs
     want = coef.refit * (n_levels - 1) * samples * d
     assert dense.cpm_seconds - children.cpm_seconds == pytest.approx(want, rel=1e-9)
@@ -139,3 +139,17 @@ def test_estimate_prices_the_coarse_levels_dense_refit():
     g = estimate(s, ggx_fraction=1.0).cpm_seconds - estimate(
         s.model_copy(update={"coarse_target": "children"}), ggx_fraction=1.0).cpm_seconds
     assert g == pytest.approx(want * coef.refit_ggx, rel=1e-9)
+
+
+def test_levels_above_a_tile_are_one_serial_shard():
+    """The levels coarser than a shard's tile run as one shard (`run_cpm_top`) on one worker:
+    more workers divide the tiles' levels only. By hand from the per-level prediction."""
+    s = BakeSettings(atlas_resolution=64, shard_texels=8)
+    one, two = costmodel.estimate(s, 1, cores=2), costmodel.estimate(s, 2, cores=2)
+    top = sum(lv["seconds"] for lv in two.per_level if lv["level"] >= 4)  # 8 = 0b1000: L0-3 tile
+    assert two.cpm_serial_seconds == pytest.approx(top, rel=1e-12) and top > 0
+    c = costmodel.Coefficients()
+    # one worker -> two: the tiles' levels and a_vis halve, the serial levels do not; the
+    # second pool start costs one process term more
+    saved = (two.cpm_seconds - top + two.avis_seconds) / 2.0
+    assert one.seconds - two.seconds == pytest.approx(saved - c.process, rel=1e-9)

@@ -11,11 +11,11 @@ fit, `texelbake.cpm.level_batched`):
     texel          draws, bisection and NNLS on the reduced r x c systems
 
 Level 0's m are the dense samples per texel (known exactly once the geometry stage has placed
-them: `sample_counts`; before that spt per occupied texel with an assumed atlas fill); a coarser
+them: `sample_counts`; before that the n^2 spt samples spread over an assumed atlas fill); a coarser
 texel selects among its children's points, m = sum over its children of min(c_L, m_child) with
 c_L the typical points per texel of a level (C_LEVEL, measured). The a_vis and geometry stages
-scale with the dense samples. Shards spread over the workers; every worker process pays the
-imports once. Coefficients are seconds measured on this project's 2-core machine
+scale with the dense samples. Tile shards spread over the workers; the levels above a tile
+are one shard (`run_cpm_top`), priced serially; each process pool pays its start once. Coefficients are seconds measured on this project's 2-core machine
 (benchmarks/bake.py compares prediction and outcome); `Coefficients` can be re-fitted for
 another machine.
 """
@@ -115,10 +115,13 @@ def level_sizes(counts: np.ndarray, c_max: int) -> list[tuple[np.ndarray, np.nda
 
 
 def _uniform_sizes(n: int, spt: int, c_max: int) -> list[tuple[np.ndarray, np.ndarray, float]]:
-    """`level_sizes` of DEFAULT_FILL n^2 texels with spt samples each, in O(log n): at level L,
-    t_L = max(t_0 / 4^L, 1) texels share the samples evenly (m, dense, multiplicity t_L)."""
+    """`level_sizes` of the n^2 spt dense samples (the geometry stage places spt per atlas
+    texel on average, `build_geometry`) spread evenly over DEFAULT_FILL n^2 occupied texels,
+    in O(log n): at level L, t_L = max(t_0 / 4^L, 1) texels share the samples evenly (m,
+    dense, multiplicity t_L). (Before 2026-11-27 each occupied texel got spt samples, 1/fill
+    too few: the job API's estimates were 2.3x short.)"""
     t = max(DEFAULT_FILL * n * n, 1.0)
-    m, dense = float(spt), float(spt)
+    m = dense = float(spt) * n * n / t
     out = []
     for level in range(int(n).bit_length()):
         out.append((np.full(1, m), np.full(1, dense), t))

@@ -214,6 +214,23 @@ def bake(
     return root
 
 
+def _other_runnable(samples: int = 5, interval: float = 0.05) -> float:
+    """Runnable tasks on the machine besides this process, now: the mean of a few readings of
+    /proc/loadavg's running count, less this one. Not the 1-min load average: it lags by
+    minutes, so the workers of a bake that just ended (or of this bake's earlier stages) still
+    count there as load, and stretched the estimate of a bake on an idle machine by 1.5x."""
+    try:
+        runs = []
+        for i in range(samples):  # a few readings: one is a snapshot
+            if i:
+                time.sleep(interval)
+            with open("/proc/loadavg") as f:
+                runs.append(int(f.read().split()[3].split("/")[0]))
+        return max(sum(runs) / len(runs) - 1.0, 0.0)
+    except (OSError, ValueError, IndexError):  # no procfs: the 1-min average
+        return max(os.getloadavg()[0] - 1.0, 0.0)
+
+
 def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> dict:
     """The cost model's prediction (`texelbake.costmodel`) from the placed samples: total
     seconds, the cpm and avis stages' wall seconds on `jobs` workers, and the ETA (UTC) of the
@@ -226,7 +243,7 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
     s = ctx.settings
     geo = ctx.geometry()
     cores = os.cpu_count() or 1
-    other = max(os.getloadavg()[0] - 1.0, 0.0)  # runnable processes besides this one
+    other = _other_runnable()
     e = costmodel.estimate(s, jobs, costmodel.sample_counts(geo, s.atlas_resolution),
                            ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
                            load=other, cores=cores)
