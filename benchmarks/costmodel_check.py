@@ -32,6 +32,37 @@ from schemas.settings import BakeSettings  # noqa: E402
 from texelbake import costmodel  # noqa: E402
 
 
+def recheck(args: argparse.Namespace) -> None:
+    from texelbake import stages
+    from texelbake.pipeline import _other_runnable, bake_estimate
+
+    data = json.loads(args.recheck.read_text())
+    work = args.workdir
+    print(f"this tree's estimate on the stored geometry of {args.recheck} (other runnable now: "
+          f"{_other_runnable():.1f})")
+    print(f"{'scene':<9} {'atlas':>5} {'measured s':>10} {'printed':>8} {'ratio':>6} "
+          f"{'now':>8} {'ratio':>6} {'before run':>10} {'ratio':>6}  bar 0.70-1.30")
+    for row in data["rows"]:
+        n, name = row["atlas"], row["scene"]
+        ctx = stages.StageContext.create(work / f"{name}{n}" / "work",
+                                         work / f"{name}_{row['size']}.usda",
+                                         BakeSettings(atlas_resolution=n))
+        st = row["stage_seconds"]
+        est = bake_estimate(ctx, row["jobs"], elapsed=st.get("ingest", 0.0) + st["geometry"])
+        pre = costmodel.estimate(BakeSettings(atlas_resolution=n), row["jobs"],
+                                 cores=os.cpu_count()).seconds
+        row["predicted_seconds_recheck"] = est["seconds"]
+        row["predicted_stage_seconds_recheck"] = est["stage_seconds"]
+        row["predicted_before_run_seconds_recheck"] = pre
+        t = row["total_seconds"]
+        r = t / est["seconds"]
+        print(f"{name:<9} {n:>5} {t:>10.1f} {row['predicted_seconds']:>8.1f} "
+              f"{t / row['predicted_seconds']:>6.2f} {est['seconds']:>8.1f} {r:>6.2f} "
+              f"{pre:>10.1f} {t / pre:>6.2f}  {'holds' if 0.7 <= r <= 1.3 else 'DOES NOT HOLD'}")
+    if args.json:
+        args.json.write_text(json.dumps(data, indent=1))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="cylinder,bolt")
@@ -39,7 +70,15 @@ def main() -> None:
     ap.add_argument("--size", default="full", choices=["small", "full"])
     ap.add_argument("--json", type=Path)
     ap.add_argument("--workdir", type=Path, default=None)
+    ap.add_argument("--recheck", type=Path, default=None,
+                    help="a JSON of an earlier run whose --workdir still holds the bakes: the "
+                         "estimate of this tree's cost model from their geometry (the bake's "
+                         "own call, `pipeline.bake_estimate`, with their measured ingest and "
+                         "geometry seconds), beside what was measured; no bake is rerun")
     args = ap.parse_args()
+    if args.recheck:
+        recheck(args)
+        return
     work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-costmodel-"))
     here = Path(__file__).resolve().parents[1]
     rows = []

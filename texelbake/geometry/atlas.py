@@ -27,10 +27,12 @@ from texelbake.geometry.closest import closest_point_on_triangles
 from texelbake.geometry.mesh import Mesh, face_components
 from texelbake.geometry.raycast import RayCaster
 
-#: xatlas packing is retried with a texel density shrunk by this factor until one N × N page
-#: holds all charts
+#: xatlas packing is retried with a texel density shrunk by _STEP until one N × N page holds
+#: all charts, then bisected between the last density that did not fit and the first that did
+#: until they are within 1 / _SHRINK; below _MIN_DENSITY of the first guess it gives up
 _SHRINK = 0.96
-_MAX_TRIES = 60
+_STEP = 0.8
+_MIN_DENSITY = _SHRINK ** 60
 #: fraction of the way from a corner of M_i to its face's centroid used to pick its chart
 SEAM_PULL = 1e-3
 #: assumed fraction of the square the packed charts cover, for the first density guess
@@ -96,7 +98,12 @@ def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
 
     xatlas packs at a texel density (texels per scene unit): one unconstrained pack gives
     the page size at a first-guess density, the density is scaled so that size becomes N,
-    then shrunk by 4 % steps until every chart fits one page of exactly N × N texels.
+    then shrunk by 20 % steps until every chart fits one page of exactly N × N texels and
+    bisected (geometric mean) between the last density that did not fit and the first that
+    did until they are within 4 %; the densest fitting pack is kept. Each pack recomputes the
+    charts (the binding has no separate pack step): on the full bolt's LOD1 at 64^2 a pack
+    is 2.9 s, and the 4 % steps of the search before 2026-11-27 took 27 packs (77 s) to fit,
+    and 60 (39 s at 32^2) to give up on a mesh whose padded charts never fit one page.
     mesh : M1; resolution : N (>= 8); padding_texels : >= 0
     returns : Atlas
     raises SettingsError for bad arguments, StageError when packing does not converge.
@@ -123,17 +130,30 @@ def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
     side = max(free.width, free.height)
     if side > 0:
         tpu *= (n - padding_texels) / side
-    for _ in range(_MAX_TRIES):  # a few packing attempts, each over all charts at once
+    floor = tpu * _MIN_DENSITY
+    best: xatlas.Atlas | None = None
+    too_dense = None  # the lowest density seen that did not fit
+    while True:  # packing attempts (~10), each over all charts at once
         xa = _xatlas_pack(mesh.vertices, mesh.faces, n, padding_texels, tpu)
         if fits(xa):
-            break
-        tpu *= _SHRINK
-    else:
-        raise StageError(
-            f"geometry: xatlas could not pack M1 ({mesh.num_faces} faces) into one "
-            f"{n} x {n} page (last: {xa.atlas_count} pages of {xa.width} x {xa.height}); "
-            f"raise atlas_resolution or lower m1_faces"
-        )
+            best, fit_tpu = xa, tpu
+            if too_dense is None or too_dense * _SHRINK <= fit_tpu:
+                break
+            tpu = math.sqrt(fit_tpu * too_dense)
+        else:
+            too_dense = tpu
+            if best is not None:  # bisecting: the densest fit so far stays
+                if too_dense * _SHRINK <= fit_tpu:
+                    break
+                tpu = math.sqrt(fit_tpu * too_dense)
+            elif tpu * _STEP < floor:
+                raise StageError(
+                    f"geometry: xatlas could not pack M1 ({mesh.num_faces} faces) into one "
+                    f"{n} x {n} page (last: {xa.atlas_count} pages of {xa.width} x "
+                    f"{xa.height}); raise atlas_resolution or lower m1_faces")
+            else:
+                tpu *= _STEP
+    xa = best
     vmap, indices, uvs = xa[0]
     vmap = vmap.astype(np.int64)
     indices = indices.astype(np.int64)
