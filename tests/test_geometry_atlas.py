@@ -143,3 +143,27 @@ def test_bad_arguments():
         build_atlas(Mesh(v, np.zeros((0, 3), np.int64)), 64)
     face, bary, count = rasterize_atlas(np.zeros((0, 3, 2)), 8)
     assert face.shape == (64,) and (face == -1).all() and count.sum() == 0
+
+
+def test_collapsed_area_fraction_by_hand():
+    """Five unit right triangles (area 1/2 each) mapped at one UV scale, then one of them
+    collapsed to a point and one shrunk 1000x: the collapsed and the shrunk face (2/5 of the
+    area) are under 1 % of the median texels per area, a face shrunk only 10x is not."""
+    from texelbake.geometry.atlas import COLLAPSED_RATIO, collapsed_area_fraction
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    verts = np.concatenate([v + [2 * i, 0, 0] for i in range(5)])
+    faces = np.arange(15).reshape(5, 3)
+    uv = np.tile(np.array([[0, 0], [0.1, 0], [0, 0.1]]), (5, 1, 1))
+    assert collapsed_area_fraction(verts, faces, uv) == 0.0
+    bad = uv.copy()
+    bad[0] = 0.05  # a point
+    bad[1] *= np.sqrt(1e-3)  # 1000x less UV area
+    assert collapsed_area_fraction(verts, faces, bad) == pytest.approx(0.4)
+    mild = uv.copy()
+    mild[2] *= np.sqrt(0.1)  # 10x less: conformal distortion, not a collapse
+    assert collapsed_area_fraction(verts, faces, mild) == 0.0
+    assert COLLAPSED_RATIO < 0.1
+    # degenerate 3D faces carry no area and are ignored; an empty mesh has nothing collapsed
+    assert collapsed_area_fraction(np.zeros((3, 3)), np.array([[0, 1, 2]]),
+                                   np.zeros((1, 3, 2))) == 0.0
