@@ -15,7 +15,8 @@ them: `sample_counts`; before that the n^2 spt samples spread over an assumed at
 texel selects among its children's points, m = sum over its children of min(c_L, m_child) with
 c_L the typical points per texel of a level (C_LEVEL, measured). The a_vis and geometry stages
 scale with the dense samples. Tile shards spread over the workers; the levels above a tile
-are one shard (`run_cpm_top`), priced serially; each process pool pays its start once. Coefficients are seconds measured on this project's 2-core machine
+are one shard (`run_cpm_top`), priced serially; each process pool pays its start once.
+Coefficients are seconds measured on this project's 2-core machine
 (benchmarks/bake.py compares prediction and outcome); `Coefficients` can be re-fitted for
 another machine.
 """

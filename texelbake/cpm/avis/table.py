@@ -370,7 +370,7 @@ def visible_fraction(maps: np.ndarray, unoccluded: np.ndarray) -> np.ndarray:
     return f
 
 
-#: bisection steps of the bounded texels' exponent (log-gamma in [-8, 8]: 16 / 2^30 = 1.5e-8)
+#: bisection steps of the bounded texels' correction (c in [-8, 16]: 24 / 2^30 = 2.2e-8)
 _GAMMA_STEPS = 30
 _LOG_GAMMA_MAX = 8.0
 _SCALE_SPAN = 8.0  # c in (8, 16]: the power at 8 times the scale (16 - c) / 8
@@ -418,16 +418,27 @@ def sum_correction(exact: np.ndarray, approx: np.ndarray, weight: np.ndarray,
         have = np.sum(u * a, axis=0)
         m = np.divide(target - have, have, out=np.zeros_like(have), where=have > 0)
         return np.clip(m, -1.0, 1.0).astype(np.float32)
-    # the total decreases in c: bisection on [-8, 16], vectorized over pixels
+    # the total decreases in c: bisection on [-8, 16], vectorized over pixels; `apply_correction`
+    # with log F~ taken once
+    logf = np.log(np.where(a > 0, a, 1.0))  # (n, 6, res, res); F~ = 0 terms masked below
+    pos = a > 0
     lo = np.full(target.shape, -_LOG_GAMMA_MAX)
     hi = np.full(target.shape, _LOG_GAMMA_MAX + _SCALE_SPAN)
     for _ in range(_GAMMA_STEPS):  # a loop over bisection steps, each over all pixels
         mid = 0.5 * (lo + hi)
-        total = np.sum(u * apply_correction(a, mid[None], bounded=True), axis=0)
+        g, scale = _power_and_scale(mid)
+        total = np.sum(u * (np.where(pos, np.exp(np.exp(g[None]) * logf), 0.0) * scale[None]),
+                       axis=0)
         too_big = total > target
         lo = np.where(too_big, mid, lo)
         hi = np.where(too_big, hi, mid)
     return (0.5 * (lo + hi)).astype(np.float32)
+
+
+def _power_and_scale(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The bounded correction's parameter c as (the power's log-exponent, the scale)."""
+    return (np.minimum(c, _LOG_GAMMA_MAX),
+            np.clip((_LOG_GAMMA_MAX + _SCALE_SPAN - c) / _SCALE_SPAN, 0.0, 1.0))
 
 
 def apply_correction(values: np.ndarray, c: np.ndarray, bounded: bool) -> np.ndarray:
@@ -436,8 +447,7 @@ def apply_correction(values: np.ndarray, c: np.ndarray, bounded: bool) -> np.nda
     v = np.asarray(values, np.float64)
     c = np.asarray(c, np.float64)
     if bounded:
-        g = np.minimum(c, _LOG_GAMMA_MAX)
-        scale = np.clip((_LOG_GAMMA_MAX + _SCALE_SPAN - c) / _SCALE_SPAN, 0.0, 1.0)
+        g, scale = _power_and_scale(c)
         return np.where(v > 0, np.exp(np.exp(g) * np.log(np.where(v > 0, v, 1.0))), 0.0) * scale
     return v * (1.0 + c)
 
