@@ -86,6 +86,8 @@ class Estimate:
     stretch: float = 1.0  # wall / CPU slowdown from the machine's other load (>= 1)
     cpm_serial_seconds: float = 0.0  # of cpm_seconds, the levels above a tile (one shard)
     export_seconds: float = 0.0
+    cpm_wall_seconds: float = 0.0  # the cpm stages' wall seconds on the workers (stretched)
+    avis_wall_seconds: float = 0.0  # the avis stage's wall seconds on the workers (stretched)
     per_level: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -194,12 +196,14 @@ def estimate(
     export = coef.export * faces * total_samples
     geom = coef.geometry * total_samples
     par = min(workers, cores or workers)
+    cpm_wall = (cpm - serial) / par + serial
     seconds = coef.fixed + geom + export + coef.process * (1 if workers == 1 else 2) \
-        + (cpm - serial + avis) / par + serial
+        + cpm_wall + avis / par
     stretch = max(1.0, (max(load, 0.0) + par) / cores) if cores else 1.0
     return Estimate(seconds=seconds * stretch, workers=workers, cpm_seconds=cpm,
                     avis_seconds=avis, geometry_seconds=geom, texels=texels,
                     cpm_serial_seconds=serial, export_seconds=export,
+                    cpm_wall_seconds=cpm_wall * stretch, avis_wall_seconds=avis / par * stretch,
                     per_level=per_level, stretch=stretch)
 
 

@@ -248,17 +248,15 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
                            ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
                            load=other, cores=cores)
     w = max(int(jobs), 1)
-    par = min(w, cores)
     # made after the geometry stage: its measured seconds (`elapsed`, with ingest) replace the
     # model's geometry term (the bolt's xatlas packing took 42 s where the model says 1)
     seconds = elapsed + max(e.seconds - e.geometry_seconds * e.stretch, 0.0)
     remaining = max(seconds - elapsed, 0.0)
     eta = datetime.now(UTC) + timedelta(seconds=remaining)
-    cpm_wall = ((e.cpm_seconds - e.cpm_serial_seconds) / par + e.cpm_serial_seconds) * e.stretch
     return {"seconds": round(seconds, 1), "workers": w, "load": round(other, 2),
             "cores": cores,
-            "stage_seconds": {"cpm": round(cpm_wall, 1),
-                              "avis": round(e.avis_seconds / par * e.stretch, 1),
+            "stage_seconds": {"cpm": round(e.cpm_wall_seconds, 1),
+                              "avis": round(e.avis_wall_seconds, 1),
                               "export": round(e.export_seconds * e.stretch, 1)},
             "per_level": e.per_level, "eta": eta.strftime("%H:%M:%S UTC")}
 

@@ -24,7 +24,7 @@ import xatlas
 
 from texelbake.errors import SettingsError, ShapeError, StageError
 from texelbake.geometry.closest import closest_point_on_triangles
-from texelbake.geometry.mesh import Mesh, face_components
+from texelbake.geometry.mesh import Mesh, face_components, triangle_areas
 from texelbake.geometry.raycast import RayCaster
 
 #: xatlas packing is retried with a texel density shrunk by _STEP until one N × N page holds
@@ -75,9 +75,14 @@ class Atlas:
 
     def uv_areas(self) -> np.ndarray:
         """(f,) float64 signed uv-space areas (positive = counter-clockwise in (u, v))."""
-        e1 = self.corner_uvs[:, 1] - self.corner_uvs[:, 0]
-        e2 = self.corner_uvs[:, 2] - self.corner_uvs[:, 0]
-        return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        return corner_uv_areas(self.corner_uvs)
+
+
+def corner_uv_areas(corner_uvs: np.ndarray) -> np.ndarray:
+    """(f,) float64 signed areas of triangles given by their corner uvs (f, 3, 2)."""
+    e1 = corner_uvs[:, 1] - corner_uvs[:, 0]
+    e2 = corner_uvs[:, 2] - corner_uvs[:, 0]
+    return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
 def _xatlas_pack(
@@ -107,11 +112,8 @@ def collapsed_area_fraction(vertices: np.ndarray, faces: np.ndarray,
     median texel: 13), which both misrepresents that strip and holds one texel's R at 0.6 GB.
 
     vertices : (v, 3); faces : (f, 3); corner_uvs : (f, 3, 2); returns a fraction in [0, 1]"""
-    tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)]  # (f, 3, 3)
-    a3 = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    uv = np.asarray(corner_uvs, np.float64)
-    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
-    a2 = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    a3 = triangle_areas(np.asarray(vertices, np.float64), np.asarray(faces, np.int64))
+    a2 = np.abs(corner_uv_areas(np.asarray(corner_uvs, np.float64)))
     ok = a3 > 0
     total = float(a3.sum())
     if not ok.any() or total <= 0:
@@ -169,22 +171,19 @@ def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
         xa = _xatlas_pack(mesh.vertices, mesh.faces, n, padding_texels, tpu)
         if fits(xa):
             best, fit_tpu = xa, tpu
-            if too_dense is None or too_dense * _SHRINK <= fit_tpu:
-                break
-            tpu = math.sqrt(fit_tpu * too_dense)
         else:
             too_dense = tpu
-            if best is not None:  # bisecting: the densest fit so far stays
-                if too_dense * _SHRINK <= fit_tpu:
-                    break
-                tpu = math.sqrt(fit_tpu * too_dense)
-            elif tpu * _STEP < floor:
+        if best is None:  # no fit yet: step down
+            if tpu * _STEP < floor:
                 raise StageError(
                     f"geometry: xatlas could not pack M1 ({mesh.num_faces} faces) into one "
                     f"{n} x {n} page (last: {xa.atlas_count} pages of {xa.width} x "
                     f"{xa.height}); raise atlas_resolution or lower m1_faces")
-            else:
-                tpu *= _STEP
+            tpu *= _STEP
+            continue
+        if too_dense is None or too_dense * _SHRINK <= fit_tpu:
+            break  # the densest fit so far is within 4 % of a density that did not fit
+        tpu = math.sqrt(fit_tpu * too_dense)  # bisect
     xa = best
     vmap, indices, uvs = xa[0]
     vmap = vmap.astype(np.int64)
