@@ -153,3 +153,46 @@ def test_levels_above_a_tile_are_one_serial_shard():
     # second pool start costs one process term more
     saved = (two.cpm_seconds - top + two.avis_seconds) / 2.0
     assert one.seconds - two.seconds == pytest.approx(saved - c.process, rel=1e-9)
+
+
+def test_the_load_reading_counts_other_processes_not_this_ones_threads(tmp_path):
+    """The estimate's load is other processes' runnable tasks: a busy child process is counted
+    (a CPU-bound loop is in state R whether it runs or waits for a core), this process's own
+    busy threads are not; a fake procfs pins the parsing (a comm with spaces and parentheses)."""
+    import os
+    import subprocess
+    import sys
+    import threading
+
+    from texelbake.pipeline import _other_runnable, runnable_tasks
+
+    stop = threading.Event()
+
+    def busy() -> None:
+        while not stop.is_set():
+            pass
+
+    spin = threading.Thread(target=busy, daemon=True)
+    child = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        spin.start()
+        # the child counts once it runs its loop
+        for _ in range(100):  # a bounded wait for the child's first reading
+            seen = runnable_tasks(exclude_pid=os.getpid())
+            if any(pid == child.pid for pid, _ in seen):
+                break
+        assert any(pid == child.pid for pid, _ in seen)
+        assert not any(pid == os.getpid() for pid, _ in seen)
+        assert any(pid == os.getpid() for pid, _ in runnable_tasks())  # the spinning thread
+        assert _other_runnable(samples=3, interval=0.01) >= 1.0
+    finally:
+        stop.set()
+        child.kill()
+        child.wait()
+    for pid, tid, state in ((10, 10, "R"), (10, 11, "S"), (12, 12, "R"), (13, 13, "D")):
+        d = tmp_path / str(pid) / "task" / str(tid)
+        d.mkdir(parents=True)
+        (d / "stat").write_text(f"{tid} (a (b) c) {state} 1 2 3\n")
+    (tmp_path / "self").mkdir()
+    assert sorted(runnable_tasks(proc=tmp_path)) == [(10, 10), (12, 12)]
+    assert runnable_tasks(exclude_pid=12, proc=tmp_path) == [(10, 10)]

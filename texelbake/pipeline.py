@@ -215,20 +215,49 @@ def bake(
 
 
 def _other_runnable(samples: int = 5, interval: float = 0.05) -> float:
-    """Runnable tasks on the machine besides this process, now: the mean of a few readings of
-    /proc/loadavg's running count, less this one. Not the 1-min load average: it lags by
-    minutes, so the workers of a bake that just ended (or of this bake's earlier stages) still
-    count there as load, and stretched the estimate of a bake on an idle machine by 1.5x."""
+    """Runnable tasks of the other processes on the machine, now: the mean of a few readings
+    of every task's state in /proc (`runnable_tasks`), this process's own threads left out.
+    Not the 1-min load average: it lags by minutes, so the workers of a bake that just ended
+    (or of this bake's earlier stages) still count there as load, and stretched the estimate
+    of a bake on an idle machine by 1.5x. Not /proc/loadavg's running count either: it counts
+    this process's own runnable threads (BLAS, Embree, the progress bar's), which are the bake,
+    not load on it (measured 2026-11-27: three re-estimates of one idle-machine bake read
+    0.2-1.4 other tasks, 0.89-1.19 of the outcome)."""
     try:
         runs = []
         for i in range(samples):  # a few readings: one is a snapshot
             if i:
                 time.sleep(interval)
-            with open("/proc/loadavg") as f:
-                runs.append(int(f.read().split()[3].split("/")[0]))
-        return max(sum(runs) / len(runs) - 1.0, 0.0)
-    except (OSError, ValueError, IndexError):  # no procfs: the 1-min average
+            runs.append(len(runnable_tasks(exclude_pid=os.getpid())))
+        return sum(runs) / len(runs)
+    except OSError:  # no procfs: the 1-min average
         return max(os.getloadavg()[0] - 1.0, 0.0)
+
+
+def runnable_tasks(exclude_pid: int | None = None, proc: Path = Path("/proc")
+                   ) -> list[tuple[int, int]]:
+    """(pid, tid) of every task (thread) in state R (running or waiting for a core) under
+    `proc`, the threads of `exclude_pid` left out. A loop over the machine's few hundred tasks:
+    procfs has no batched read. Raises OSError when `proc` cannot be listed; tasks that end
+    while being read are skipped."""
+    out = []
+    for pdir in proc.iterdir():  # a loop over processes: one directory each
+        if not pdir.name.isdigit() or int(pdir.name) == exclude_pid:
+            continue
+        try:
+            tids = [t.name for t in (pdir / "task").iterdir()]
+        except OSError:  # ended, or not ours to read
+            continue
+        for tid in tids:  # a loop over the process's threads
+            try:
+                stat = (pdir / "task" / tid / "stat").read_bytes()
+            except OSError:
+                continue
+            # "pid (comm) S ...": comm may hold spaces and parentheses, the state follows
+            # the last ')'
+            if stat[stat.rfind(b")") + 2:stat.rfind(b")") + 3] == b"R":
+                out.append((int(pdir.name), int(tid)))
+    return out
 
 
 def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> dict:
