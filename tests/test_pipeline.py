@@ -314,6 +314,48 @@ def test_plan_lists_stages_and_skips(tmp_path):
     assert {s for s, _ in plan.skipped} >= {"btf", "render"}
 
 
+def test_export_reads_avis_tiles_like_the_stacked_levels(cylinder_bake):
+    """Issue 15 item 5: the export compresses every level's a_vis from its tiles a chunk at a
+    time (`stages.avis.avis_level_chunks`, tile-major rows). Against the stacked level (the
+    whole level in memory, ascending rows): the same per-texel arrays, the same maps row for
+    row, a table whose look-ups agree, and the same report figures."""
+    from texelbake.cpm.avis import compress_level
+    from texelbake.cpm.avis.compress import compress_chunks
+    from texelbake.stages import StageContext
+    from texelbake.stages.avis import avis_level_chunks, avis_levels
+
+    src_path, _, settings = cylinder_bake
+    ctx = StageContext.create(default_workdir(), src_path, settings)
+    stacked = avis_levels(ctx)
+    geo = ctx.geometry()
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    assert ctx.tile_levels < ctx.n_levels  # both kinds of level are read
+    for lvl, lv in enumerate(stacked):  # a loop over the few levels
+        src = avis_level_chunks(ctx, lvl)
+        for name in ("closed", "bounded", "texel_area"):
+            np.testing.assert_array_equal(getattr(src.level, name), getattr(lv, name))
+        np.testing.assert_array_equal(np.sort(src.ray_texels), lv.ray_texels)
+        rows = np.searchsorted(lv.ray_texels, src.ray_texels)
+        got = [src.read(i) for i in range(src.n_chunks)]
+        maps = np.concatenate(got) if got else np.zeros((0, 6, lv.res, lv.res))
+        np.testing.assert_array_equal(maps, lv.ray_maps[rows])
+        frames = geo[f"frames_L{lvl}"]
+        table, errs = compress_chunks(src, frames, settings.avis_keep_fraction, errors=True)
+        whole = compress_level(lv, frames, settings.avis_keep_fraction)
+        assert table.haar.nnz == whole.haar.nnz
+        for t in lv.ray_texels[:: max(1, len(lv.ray_texels) // 12)]:  # a dozen texels
+            a, _ = table.evaluate(np.full(len(d), t), d @ frames[t].T)
+            b, _ = whole.evaluate(np.full(len(d), t), d @ frames[t].T)
+            np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-9 * lv.texel_area.max())
+        ref = whole.ray_texel_maps()
+        per = np.linalg.norm((ref - lv.ray_maps).reshape(len(ref), -1), axis=1)
+        norm = np.linalg.norm(lv.ray_maps.reshape(len(ref), -1), axis=1)
+        np.testing.assert_allclose(errs.per_texel, (per / np.where(norm > 0, norm, 1))[rows],
+                                   rtol=1e-3, atol=1e-9)
+
+
 def test_report_flags_texels_whose_avis_table_is_off(cylinder_bake):
     """Issue 11: the report counts, per level, the texels whose compressed a_vis table is more
     than the tolerance from the uncompressed maps, and the bake's warnings name those levels."""

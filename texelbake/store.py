@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -65,12 +65,15 @@ class ArtifactStore:
         atomic_write_bytes(self.path(key), npz_bytes(arrays))
         return key
 
-    def read_arrays(self, key: str) -> dict[str, np.ndarray]:
+    def read_arrays(self, key: str, names: Callable[[str], bool] | None = None
+                    ) -> dict[str, np.ndarray]:
+        """The arrays of an npz artifact; with `names`, only those it accepts (the others
+        are not read from the file)."""
         p = self.path(key)
         if not p.is_file():
             raise StageError(f"artifact {key} is missing from {self.root}")
         with np.load(p, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            return {k: z[k] for k in z.files if names is None or names(k)}
 
     def write_json(self, key: str, obj: Any) -> str:
         data = json.dumps(obj, indent=2, sort_keys=True, default=_json_default).encode()

@@ -8,6 +8,12 @@ from collections.abc import Mapping
 import numpy as np
 
 from texelbake.cpm import avis as avis_mod
+from texelbake.cpm.avis.compress import (  # noqa: F401  (texel_rel_errors: its home before)
+    LevelChunks,
+    chunks_of,
+    compress_chunks,
+    texel_rel_errors,
+)
 from texelbake.cpm.avis.table import avis_table_arrays
 
 
@@ -26,15 +32,6 @@ def percentiles(x: np.ndarray) -> dict[str, float]:
 AVIS_TEXEL_TOLERANCE = 0.02
 
 
-def texel_rel_errors(table_maps: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Relative L2 error per texel, ||table - ref|| / ||ref|| over each texel's (6, res, res)
-    maps (0 where both are zero). table_maps, ref : (n, 6, res, res); returns (n,)."""
-    n = ref.shape[0]
-    diff = np.linalg.norm((table_maps - ref).reshape(n, -1), axis=1)
-    norm = np.linalg.norm(ref.reshape(n, -1), axis=1)
-    return np.divide(diff, norm, out=np.where(diff > 0, np.inf, 0.0), where=norm > 0)
-
-
 def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     """Texels the batched fit did not fit by draws and trials (issue 15), with their held-out
     SNR: "rank1" (closed form), "per_texel" (fitted by `fit.fit_texel`). Empty for the
@@ -50,12 +47,13 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
 
 def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_keep_fraction: float,
                    level: int, data: dict[str, np.ndarray],
-                   avis_level: avis_mod.AvisLevel, avis_selection: str = "texel",
+                   avis_level: avis_mod.AvisLevel | LevelChunks, avis_selection: str = "texel",
                    ) -> tuple[dict[str, np.ndarray], dict]:
     """One CPM level as dense per-texel payload arrays, and its report entry.
 
     geo : the geometry stage's arrays; data : the level's fit (`texelbake.cpm.level`, sorted
-    by texel); avis_level : its a_vis maps (`texelbake.cpm.avis.levels`).
+    by texel); avis_level : its a_vis maps (`texelbake.cpm.avis.levels`), in memory or read a
+    chunk at a time (`cpm.avis.compress.LevelChunks`: the export's, memory bounded).
     """
     n_l = atlas_resolution >> level
     n_tex = n_l * n_l
@@ -70,8 +68,10 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         return out
 
     frames = geo[f"frames_L{level}"]
-    table = avis_mod.compress_level(avis_level, frames, avis_keep_fraction,
-                                    selection=avis_selection)
+    src = avis_level if isinstance(avis_level, LevelChunks) else chunks_of(avis_level)
+    table, errs = compress_chunks(src, frames, avis_keep_fraction, selection=avis_selection,
+                                  errors=True)
+    assert errs is not None  # asked for
     arrays = {
         "texel_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
         "point_sample": pts.astype(np.int64),
@@ -93,14 +93,8 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
     # a_vis compression error against the uncompressed maps, relative L2 over the ray-based
     # texels' cube pixels, of a_vis as the renderer reads it (U times the corrected fraction
     # for bounded texels): the whole level and per texel against AVIS_TEXEL_TOLERANCE (the
-    # texels the report flags)
-    err = 0.0
-    per_texel = np.zeros(0)
-    if len(avis_level.ray_texels):
-        table_maps = table.ray_texel_maps()
-        ref = avis_level.ray_maps
-        err = float(np.linalg.norm(table_maps - ref)) / max(float(np.linalg.norm(ref)), 1e-300)
-        per_texel = texel_rel_errors(table_maps, ref)
+    # texels the report flags); computed chunk by chunk (`compress_chunks(errors=True)`)
+    err, per_texel = errs.rel_error, errs.per_texel
     valid = data["valid"]
     report = {
         "level": level,
@@ -121,8 +115,8 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "rays": int(data["rays"].sum()) if "rays" in data else 0,
         "bytes": int(sum(a.nbytes for a in arrays.values())),
         "avis": {
-            "closed_form_texels": int(avis_level.closed.sum()),
-            "ray_texels": int(len(avis_level.ray_texels)),
+            "closed_form_texels": int(src.level.closed.sum()),
+            "ray_texels": int(len(src.ray_texels)),
             "kept_fraction": float(table.haar.kept_fraction),
             "rel_error": err,
             "texel_rel_error": percentiles(per_texel),

@@ -80,6 +80,17 @@ class HaarCoeffs:
         return float(self.nnz / total) if total else 0.0
 
 
+def map_range(coeffs: HaarCoeffs, start: int, stop: int, batch_shape: tuple[int, ...]
+              ) -> HaarCoeffs:
+    """The maps start..stop-1 of `coeffs` (a CSR slice: no copy of the values), shaped
+    `batch_shape` (its product: stop - start)."""
+    o = coeffs.offsets[start:stop + 1]
+    if int(np.prod(batch_shape)) != stop - start or o.shape[0] != stop - start + 1:
+        raise ShapeError(f"maps {start}..{stop} of {coeffs.n_maps} as {batch_shape}")
+    return HaarCoeffs(coeffs.res, batch_shape, o - o[0], coeffs.indices[o[0]:o[-1]],
+                      coeffs.values[o[0]:o[-1]])
+
+
 def _check_res(res: int, field: str = "res") -> int:
     res_i = int(res)
     if res_i != res or res_i < 1 or (res_i & (res_i - 1)) != 0:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from texelbake.cpm import avis as avis_mod
+from texelbake.cpm.avis.compress import CHUNK_ROWS, LevelChunks, chunks_of
 from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
 from texelbake.tol import TOL
 
@@ -14,9 +15,10 @@ def _avis_level_arrays(level: avis_mod.AvisLevel, prefix: str) -> dict[str, np.n
     return {f"{prefix}{k}": v for k, v in avis_mod.level_to_arrays(level).items()}
 
 
-def _avis_level_from(data: dict[str, np.ndarray], prefix: str) -> avis_mod.AvisLevel:
+def _avis_level_from(data: dict[str, np.ndarray], prefix: str, *, maps: bool = True
+                     ) -> avis_mod.AvisLevel:
     return avis_mod.level_from_arrays(
-        {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)}
+        {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)}, maps=maps
     )
 
 
@@ -95,3 +97,36 @@ def avis_levels(ctx: StageContext) -> list[avis_mod.AvisLevel]:
         else:
             levels.append(_avis_level_from(top, f"L{lvl:02d}_"))
     return levels
+
+
+def avis_level_chunks(ctx: StageContext, lvl: int) -> LevelChunks:
+    """One level's a_vis for the export's compression (`cpm.avis.compress`), its ray maps read
+    a tile at a time (at most `CHUNK_ROWS` ray texels per chunk) instead of stacked: the
+    per-texel arrays of every tile, each tile's maps only when its chunk is read (issue 15
+    item 5). Levels coarser than a tile are one artifact, read whole."""
+    s = ctx.settings
+    prefix = f"L{lvl:02d}_"
+    if lvl >= ctx.tile_levels:
+        return chunks_of(_avis_level_from(ctx.store.read_arrays(_avis_key(ctx, None)), prefix))
+    per_row = s.atlas_resolution // s.shard_texels
+    keys = [_avis_key(ctx, t) for t in range(per_row * per_row)]
+    maps_name = f"{prefix}ray_maps"
+    metas = [_avis_level_from(ctx.store.read_arrays(
+        k, lambda name: name.startswith(prefix) and name != maps_name), prefix, maps=False)
+        for k in keys]  # a loop over tiles: their per-texel arrays
+    level, ids = avis_mod.tile_layout(metas, per_row)
+    pieces = [(t, a, min(a + CHUNK_ROWS, len(ids[t])))  # (tile, rows a..b of its maps)
+              for t in range(len(ids)) for a in range(0, len(ids[t]), CHUNK_ROWS)]
+    bounds = np.zeros(len(pieces) + 1, np.int64)
+    np.cumsum([b - a for _, a, b in pieces], out=bounds[1:])
+    last: dict[int, np.ndarray] = {}  # the tile read last (its pieces come one after another)
+
+    def read(i: int) -> np.ndarray:
+        t, a, b = pieces[i]
+        if t not in last:
+            last.clear()
+            last[t] = ctx.store.read_arrays(keys[t], lambda name: name == maps_name)[maps_name]
+        return last[t][a:b]
+
+    return LevelChunks(level, np.concatenate(ids) if ids else np.zeros(0, np.int64), bounds,
+                       read)

@@ -14,7 +14,7 @@ from texelbake.geometry.build import lod_meshes, lod_report
 from texelbake.geometry.lodchain import transfer_corner_normals
 from texelbake.lodmesh import LodMesh
 from texelbake.quality import quality_gate
-from texelbake.stages.avis import avis_levels, avis_rays
+from texelbake.stages.avis import avis_level_chunks, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
@@ -62,11 +62,10 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     geo = ctx.geometry()
     asset = ctx.asset()
     cpm_lv = cpm_levels(ctx)
-    avis_lv = avis_levels(ctx)
     levels, level_reports = [], []
     for lvl in range(ctx.n_levels):
         arrays, rep = assemble_level(geo, s.atlas_resolution, s.avis_keep_fraction, lvl, cpm_lv[lvl],
-                                   avis_lv[lvl], s.avis_selection)
+                                   avis_level_chunks(ctx, lvl), s.avis_selection)
         levels.append(arrays)
         level_reports.append(rep)
     dirs = direction_sets(s)

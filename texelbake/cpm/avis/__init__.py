@@ -81,6 +81,7 @@ from texelbake.cpm.avis.closed_form import (
     eval_closed_form,
     unoccluded_texels,
 )
+from texelbake.cpm.avis.compress import compress_level
 from texelbake.cpm.avis.cube import cube_directions, cube_solid_angles, dirs_to_cube
 from texelbake.cpm.avis.levels import (
     AvisLevel,
@@ -90,6 +91,7 @@ from texelbake.cpm.avis.levels import (
     level_from_arrays,
     level_to_arrays,
     stack_tiles,
+    tile_layout,
 )
 from texelbake.cpm.avis.maps import (
     avis_cube_maps,
@@ -98,13 +100,13 @@ from texelbake.cpm.avis.maps import (
     default_eps,
     geometric_normals,
 )
-from texelbake.cpm.avis.table import AvisTable, compress_level, visible_fraction
+from texelbake.cpm.avis.table import AvisTable, visible_fraction
 
 __all__ = [
     "AvisLevel", "AvisTable", "ClosedForm", "avis_cube_maps", "avis_from_visibility", "avis_level",
     "avis_ortho_grids", "closed_form_maps", "closed_form_terms", "coarsen_level", "coarsen_maps",
     "compress_level", "cube_directions", "cube_solid_angles", "default_eps", "dirs_to_cube",
     "eval_closed_form", "geometric_normals", "level_from_arrays", "level_to_arrays",
-    "stack_tiles", "unoccluded_texels", "visible_fraction",
+    "stack_tiles", "tile_layout", "unoccluded_texels", "visible_fraction",
 ]
 

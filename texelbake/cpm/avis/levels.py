@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -99,22 +100,28 @@ def level_to_arrays(level: AvisLevel) -> dict[str, np.ndarray]:
     }
 
 
-def level_from_arrays(arrays) -> AvisLevel:
-    """AvisLevel from `level_to_arrays` output (any mapping of name -> array, e.g. an NpzFile)."""
-    missing = [k for k in ("meta", *_LEVEL_ARRAYS) if k not in arrays]
+def level_from_arrays(arrays, *, maps: bool = True) -> AvisLevel:
+    """AvisLevel from `level_to_arrays` output (any mapping of name -> array, e.g. an NpzFile).
+    maps=False: without its ray maps (`ray_maps` need not be present and is left with no
+    rows: the per-texel arrays of a level whose maps are read a chunk at a time)."""
+    need = ("meta", *_LEVEL_ARRAYS) if maps else ("meta", *(k for k in _LEVEL_ARRAYS
+                                                             if k != "ray_maps"))
+    missing = [k for k in need if k not in arrays]
     if missing:
         raise ShapeError(f"a_vis level arrays are missing {missing}")
     n_side, res, max_terms = (int(x) for x in np.asarray(arrays["meta"]))
+    ray_maps = (np.asarray(arrays["ray_maps"], np.float64) if maps
+                else np.zeros((0, 6, res, res)))
     level = AvisLevel(
         n_side, res, np.asarray(arrays["closed"], bool), np.asarray(arrays["bounded"], bool),
         ClosedForm(np.asarray(arrays["cf_offsets"], np.int64),
                    np.asarray(arrays["cf_normals"], np.float64),
                    np.asarray(arrays["cf_areas"], np.float64)),
-        np.asarray(arrays["ray_texels"], np.int64), np.asarray(arrays["ray_maps"], np.float64),
+        np.asarray(arrays["ray_texels"], np.int64), ray_maps,
         np.asarray(arrays["texel_area"], np.float64), max_terms)
     n = n_side * n_side
     if (level.closed.shape != (n,) or level.cf.n_texels != n
-            or level.ray_maps.shape != (level.ray_texels.shape[0], 6, res, res)):
+            or (maps and level.ray_maps.shape != (level.ray_texels.shape[0], 6, res, res))):
         raise ShapeError(f"a_vis level arrays are inconsistent with n_side={n_side}, res={res}")
     return level
 
@@ -126,6 +133,20 @@ def stack_tiles(tiles: list[AvisLevel], tiles_per_side: int) -> AvisLevel:
         iy * n + ix), all with one res and max_terms
     returns : AvisLevel of side T * n with texel id (ty n + iy) (T n) + tx n + ix
     """
+    level, ids = tile_layout(tiles, tiles_per_side)
+    flat = np.concatenate(ids)
+    order = np.argsort(flat, kind="stable")
+    maps = (np.concatenate([t.ray_maps for t in tiles])[order] if flat.size
+            else np.zeros((0, 6, level.res, level.res)))
+    return dataclasses.replace(level, ray_texels=flat[order], ray_maps=maps)
+
+
+def tile_layout(tiles: list[AvisLevel], tiles_per_side: int
+                ) -> tuple[AvisLevel, list[np.ndarray]]:
+    """`stack_tiles` without the ray maps: the stacked level's per-texel arrays (its
+    `ray_texels` ascending, `ray_maps` with no rows), and every tile's ray texels as ids of
+    the stacked level, in the tile's own order (the order a reader of tile after tile meets
+    them). The tiles' ray maps are not read."""
     t_side = int(tiles_per_side)
     if t_side < 1 or len(tiles) != t_side * t_side:
         raise ShapeError(f"expected {t_side}^2 tiles, got {len(tiles)}")
@@ -137,7 +158,7 @@ def stack_tiles(tiles: list[AvisLevel], tiles_per_side: int) -> AvisLevel:
     closed = np.zeros(side * side, dtype=bool)
     bounded = np.zeros(side * side, dtype=bool)
     area = np.zeros(side * side)
-    owners, normals, areas, ray_ids, ray_maps = [], [], [], [], []
+    owners, normals, areas, ray_ids = [], [], [], []
     for k, tile in enumerate(tiles):  # a loop over tiles
         ty, tx = divmod(k, t_side)
         gid = (ty * n + iy) * side + tx * n + ix  # (n*n,) local -> global
@@ -146,13 +167,10 @@ def stack_tiles(tiles: list[AvisLevel], tiles_per_side: int) -> AvisLevel:
         normals.append(tile.cf.normals)
         areas.append(tile.cf.areas)
         ray_ids.append(gid[tile.ray_texels])
-        ray_maps.append(tile.ray_maps)
     cf = merge_terms(np.concatenate(owners), np.concatenate(normals), np.concatenate(areas),
-                      side * side)
-    ids = np.concatenate(ray_ids)
-    order = np.argsort(ids, kind="stable")
-    maps = np.concatenate(ray_maps)[order] if ids.size else np.zeros((0, 6, res, res))
-    return AvisLevel(side, res, closed, bounded, cf, ids[order], maps, area, max_terms)
+                     side * side)
+    return (AvisLevel(side, res, closed, bounded, cf, np.sort(np.concatenate(ray_ids)),
+                      np.zeros((0, 6, res, res)), area, max_terms), ray_ids)
 
 
 def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,

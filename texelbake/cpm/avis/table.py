@@ -8,17 +8,12 @@ import numpy as np
 
 from texelbake.cpm.avis.closed_form import ClosedForm, closed_form_maps, eval_closed_form
 from texelbake.cpm.avis.cube import FACE_BASIS, dirs_to_cube
-from texelbake.cpm.avis.levels import AvisLevel
 from texelbake.cpm.haar import (
     HaarCoeffs,
-    budget_mask,
-    coeffs_from_mask,
-    compress_haar,
     decompress_haar,
     dequantize_values,
     eval_haar_point,
-    haar_coefficients,
-    haar_support_mean,
+    map_range,
     quantize_values,
 )
 from texelbake.errors import SettingsError, ShapeError
@@ -262,15 +257,20 @@ class AvisTable:
         wts = np.concatenate([(1 - au) * (1 - av), au * (1 - av), (1 - au) * av, au * av])
         return np.sum((taps * wts).reshape(4, -1), axis=0)
 
-    def ray_texel_maps(self) -> np.ndarray:
-        """(n_ray, 6, res, res) float64 a_vis of the ray-based texels at the cube pixels as
-        this table reconstructs them (bounded texels: U times the corrected fraction): what a
-        nearest look-up returns there. For measuring the table against its uncompressed maps;
-        a full inverse transform, not for rendering."""
+    def ray_texel_maps(self, rows: slice | None = None) -> np.ndarray:
+        """(n_ray, 6, res, res) float64 a_vis of the ray-based texels (of table rows `rows`,
+        default all) at the cube pixels as this table reconstructs them (bounded texels: U
+        times the corrected fraction): what a nearest look-up returns there. For measuring
+        the table against its uncompressed maps; a full inverse transform, not for
+        rendering."""
         res = self.res
-        rec = decompress_haar(self.haar).reshape(-1, 6, res, res)
-        rows = np.flatnonzero(self.ray_row >= 0)
-        texels = rows[np.argsort(self.ray_row[rows])]  # texel of each ray row
+        r = self.haar.n_maps // 6
+        a, b, _ = (rows or slice(0, r)).indices(r)
+        rec = decompress_haar(map_range(self.haar, a * 6, b * 6, (b - a, 6)))
+        texels = np.empty(r, np.int64)  # texel of each ray row
+        has = np.flatnonzero(self.ray_row >= 0)
+        texels[self.ray_row[has]] = has
+        texels = texels[a:b]
         bnd = self.bounded[texels]
         face, iv, iu = np.meshgrid(np.arange(6), np.arange(res), np.arange(res), indexing="ij")
         n = rec.shape[0]
@@ -450,98 +450,6 @@ def apply_correction(values: np.ndarray, c: np.ndarray, bounded: bool) -> np.nda
         g, scale = _power_and_scale(c)
         return np.where(v > 0, np.exp(np.exp(g) * np.log(np.where(v > 0, v, 1.0))), 0.0) * scale
     return v * (1.0 + c)
-
-
-def compress_level(level: AvisLevel, frames: np.ndarray, keep_fraction: float, *,
-                   correct_sum: bool = True, selection: str = "texel") -> AvisTable:
-    """AvisTable of a level: closed-form terms as they are, Haar for the ray-based texels.
-
-    frames : (N*N, 3, 3) float64 texel frames of this level (rows t, b, n)
-    keep_fraction : Haar coefficients kept, as a fraction of the ray texels' dense cube pixels
-    correct_sum : store the level's `sum_correction` (default); False is the seed's plain Haar
-        table
-    selection : "texel" (default, `select_texel_budget`): one budget for the level, spent so
-        that every texel's relative error of a_vis is about equal, each coefficient weighted by
-        the U^2 it is multiplied with, values float16 relative to a per-texel scale; "face":
-        the seed's per-face top fraction (`compress_haar`), float32 values
-    """
-    n = level.n_side * level.n_side
-    frames = np.asarray(frames, dtype=np.float64)
-    if frames.shape != (n, 3, 3):
-        raise ShapeError(f"frames must be ({n}, 3, 3), got {frames.shape}")
-    if selection not in ("texel", "face"):
-        raise SettingsError(f"avis selection must be 'texel' or 'face', got {selection!r}")
-    ray_row = np.full(n, -1, dtype=np.int64)
-    ray_row[level.ray_texels] = np.arange(level.ray_texels.shape[0])
-    maps = level.ray_maps.copy()  # (n_ray, 6, res, res)
-    frac = level.bounded[level.ray_texels]
-    unocc = np.ones_like(maps)
-    if frac.any():
-        unocc[frac] = closed_form_maps(level.cf, level.res, level.ray_texels[frac])
-        maps[frac] = visible_fraction(maps[frac], unocc[frac])
-    scale = np.zeros(0, np.float32)
-    if selection == "face":
-        haar = compress_haar(maps, keep_fraction)
-    else:
-        haar, scale = select_texel_budget(maps, unocc, level.ray_maps, keep_fraction)
-    maps_c: list[np.ndarray] = []
-    groups: list[int] = []
-    if correct_sum and level.ray_texels.shape[0]:
-        approx = decompress_haar(haar)  # (n_ray, 6, res, res)
-        if frac.any():
-            groups.append(0)
-            maps_c.append(sum_correction(maps[frac], np.clip(approx[frac], 0.0, 1.0),
-                                         unocc[frac], bounded=True))
-        if (~frac).any():
-            direct = maps[~frac]
-            groups.append(1)
-            maps_c.append(sum_correction(direct, np.maximum(approx[~frac], 0.0),
-                                         np.ones_like(direct), bounded=False))
-    # float16: c and m are in [-8, 16] and [-1, 1]; 11 bits move F^exp(c) by < 1e-3 relative
-    # and the scale (16 - c) / 8 by <= 1e-3
-    correction = (np.stack(maps_c).astype(np.float16) if maps_c
-                  else np.zeros(0, np.float16))
-    return AvisTable(level.res, frames, level.texel_area, level.closed, level.bounded, level.cf,
-                     ray_row, haar, correction, np.asarray(groups, np.uint8), scale)
-
-
-def select_texel_budget(stored: np.ndarray, unoccluded: np.ndarray, avis: np.ndarray,
-                        keep_fraction: float) -> tuple[HaarCoeffs, np.ndarray]:
-    """Haar coefficients of a level's ray texels under one budget (issue 11, item 1).
-
-    stored : (n, 6, res, res) what the table holds (F for bounded texels, a_vis otherwise)
-    unoccluded : (n, 6, res, res) U for bounded texels, ones otherwise (a_vis = U F)
-    avis : (n, 6, res, res) the uncompressed a_vis (each texel's error is relative to it)
-    keep_fraction : budget = ceil(keep_fraction * n * 6 * res^2) coefficients for the level
-
-    Dropping a coefficient c costs about c^2 mean(U^2 over its support) of a_vis error (a Haar
-    function's square is flat on its support); divided by the texel's ||a_vis||^2 that is its
-    share of the texel's relative error. `budget_mask` keeps, per texel, the largest shares
-    until every texel's dropped sum is at most one common tau: the texels' relative errors are
-    about equal and the budget goes to the faces that matter (a height field's lower face,
-    below every horizon, keeps nothing; the seed's per-face quota spends 1/6 of it there).
-    Values are float16 relative to the texel's largest |c| (2 + 2 bytes per coefficient with a
-    uint16 index, against 4 + 2 for float32).
-
-    returns : (HaarCoeffs with float32 dequantized values, (n,) float32 scales)
-    """
-    n = stored.shape[0]
-    res = stored.shape[-1]
-    if n == 0:
-        return compress_haar(stored, 1.0), np.zeros(0, np.float32)
-    if not (0.0 < keep_fraction <= 1.0):
-        raise SettingsError(f"keep_fraction must be in (0, 1], got {keep_fraction!r}")
-    coef = haar_coefficients(stored)  # (n, 6, res, res)
-    cost = coef * coef * haar_support_mean(np.square(unoccluded))
-    norm2 = np.sum(np.square(avis).reshape(n, -1), axis=1)
-    share = cost.reshape(n, -1) / np.where(norm2 > 0, norm2, 1.0)[:, None]
-    budget = max(n, int(np.ceil(keep_fraction * n * 6 * res * res)))
-    mask = budget_mask(share, budget).reshape(coef.shape)
-    peak = np.max(np.abs(np.where(mask, coef, 0.0)).reshape(n, -1), axis=1)
-    scale = np.where(peak > 0, peak, 1.0).astype(np.float32)
-    deq = dequantize_values(quantize_values(coef.reshape(n, -1),
-                                            scale[:, None])[0], scale[:, None])
-    return coeffs_from_mask(coef, mask, deq.reshape(coef.shape)), scale
 
 
 def avis_table_arrays(table: AvisTable) -> dict[str, np.ndarray]:
