@@ -16,15 +16,16 @@ other settings at their defaults) unless already baked under `--work`, then per 
 motion) renders the reference `gt` of the deformed M_org at `--ref-spp` eye rays per pixel —
 the mean of `--ref-parts` independent renders, whose mutual PSNR is the reference's own noise
 (`reference.noise_psnr_db`: its estimated PSNR against the converged image) — and each mode
-at `--spp` with `--seeds` seeds: `cpm` (through the look-up rotation L, Eq. 10, from the
-Table 1 parameterization of M1's vertices: the seed's construction), `cpm-naive` (no L) and
-`normalmap` (tangent frame carried by the deformed M1), and `gt` at `--spp` for scale;
-`cpm-tri` is cpm with the Jacobians of M_org's triangles' constant affine maps
+at `--spp` with `--seeds` seeds: `cpm` (through the look-up rotation L, Eq. 10, at the
+renderer's default look-up: each characteristic point's BRDF directions through its own L,
+its shading frame and Ψ's Jacobian at the point, the seed's limit where the impostor is the
+surface), `cpm-naive` (no L) and `normalmap` (tangent frame carried by the deformed M1), and
+`gt` at `--spp` for scale; `cpm-vertex` is the seed's construction (L of a texel from the
+Table 1 parameterization of M1's vertices, interpolated; `cpm` until 2026-11-27),
+`cpm-texel` L from each texel's own frame and J at its centroid (`render.deformed.LOOKUPS`),
+`cpm-tri` cpm with the Jacobians of M_org's triangles' constant affine maps
 (`deform_scene(jacobian_field="triangle")`, the default before 2026-11-27) instead of Ψ's
-vertex Jacobians interpolated; `cpm-texel` is cpm with L from each texel's own frame and J
-at its centroid, `cpm-point` with each characteristic point's BRDF directions through its
-own L (its shading frame and the Jacobian at the point: the seed's limit where the impostor
-is the surface) (`render.deformed.LOOKUPS`). Each mode is rendered once to warm it, then
+vertex Jacobians interpolated. Each mode is rendered once to warm it, then
 once per seed; its `seconds` is the median over the seeds, `psnr_db` the mean and
 `psnr_db_spread` the sample standard deviation of the per-seed PSNR over the object's pixels
 (`metrics.object_errors`). Why 16 spp and 6 seeds, not the renderer's 4 spp: at the lod
@@ -95,7 +96,7 @@ WARPS = ("bend:angle=90", "twist:angle=90", "stretch:x=2,y=1,z=1")
 RIGID = "rigid:angle=40,axis=x,tx=0.5,ty=-0.3,tz=0.2"
 #: the arm's own animation (texelbake.scenes.arm): bent 45° at time 12, 90° at 24
 ARM_TIMES = ("time:12", "time:24")
-MODES = ("cpm", "cpm-tri", "cpm-texel", "cpm-point", "cpm-naive", "normalmap", "gt")
+MODES = ("cpm", "cpm-vertex", "cpm-texel", "cpm-tri", "cpm-naive", "normalmap", "gt")
 
 
 def bake_scene(scene: str, work: Path, atlas: int, size: str) -> Path:
@@ -179,13 +180,13 @@ def _case(scene_name: str, d, cam, spp: int, ref_spp: int, render_fn, seeds: int
     modes = {}
     for mode in MODES:  # a loop over the few modes
         kw = ({"lookup": "texel"} if mode == "cpm-texel" else
-              {"lookup": "point"} if mode == "cpm-point" else {})
+              {"lookup": "vertex"} if mode == "cpm-vertex" else {})
         scene = d_tri if mode == "cpm-tri" else d
         if scene is None:
             continue
 
         def run(seed: int, m=mode, kw=kw, scene=scene):
-            return render_fn(scene, m.replace("-texel", "").replace("-point", "").replace(
+            return render_fn(scene, m.replace("-texel", "").replace("-vertex", "").replace(
                 "-tri", ""), cam, spp, seed, **kw)
 
         run(0)  # warm (the per-frame caches: L, the deformed points)
@@ -335,7 +336,7 @@ def _lookup_comparisons(cases: list[dict]) -> list[dict]:
     for c in cases:
         if c["warp"] in ("none", RIGID):
             continue
-        for alt in ("cpm-tri", "cpm-texel", "cpm-point"):
+        for alt in ("cpm-vertex", "cpm-texel", "cpm-tri"):
             if alt in c["modes"]:
                 v, dlt, spread = verdict(c["modes"][alt], c["modes"]["cpm"])
                 out.append({"scene": c["scene"], "warp": c["warp"], "mode": alt,

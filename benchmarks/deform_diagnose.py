@@ -1,6 +1,7 @@
 """Why cpm through L loses to cpm-naive on the bolt (issue 12; docs/deformation.md, "Why cpm
 loses on the bolt"): per warp, the reference gt of the deformed M_org twice (two seeds: its own
-noise), cpm (through L), cpm-naive, cpm-texel, cpm-point and gt at `--spp`, each with PSNR over
+noise), cpm (through L, the default per-point look-up), cpm-naive, cpm-texel, cpm-vertex (the seed's
+look-up) and gt at `--spp`, each with PSNR over
 the object, PSNR after a Gaussian blur of 1 and 2 pixels (a highlight one pixel off is then
 not counted twice), and the light it shows against the reference's (flux ratio). Options: the
 metal's roughness overridden at render time (`--roughness`: gt and cpm both evaluate the true
@@ -37,7 +38,7 @@ from texelbake.render.deformed import deform_scene, render_deformed  # noqa: E40
 from texelbake.render.scene import load_scene, lod_camera  # noqa: E402
 
 MODES = (("cpm", "cpm", {}), ("cpm-naive", "cpm-naive", {}),
-         ("cpm-texel", "cpm", {"lookup": "texel"}), ("cpm-point", "cpm", {"lookup": "point"}),
+         ("cpm-texel", "cpm", {"lookup": "texel"}), ("cpm-vertex", "cpm", {"lookup": "vertex"}),
          ("gt", "gt", {}))
 
 

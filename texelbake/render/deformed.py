@@ -10,10 +10,14 @@ characteristic points follow Ψ (`deform_scene`), and the modes of a deformed fr
   view direction v* from p* to the camera, and per point and light the direction l* from
   the deformed point Ψ(x̂k) to the light with the attenuation of Eq. 11 (A(d) = 1/d² from
   the deformed point). (l, v) = L (l*, v*) are the rest-frame directions at which Eq. 12 of
-  seed 000 is evaluated with the rest points, normals, weights and a_vis tables. L of a texel
-  comes from the impostor parameterization of M1 (Table 1): the rest centroid's closest
-  point on M1, R0 and the deformed (u, v) = J (u0, v0) of the triangle's vertices
-  interpolated there (`texelbake.deform.lookup`). Shadow rays are traced from the deformed
+  seed 000 is evaluated with the rest points, normals, weights and a_vis tables. The
+  seed's L of a texel (`lookup="vertex"`) comes from the impostor parameterization of M1
+  (Table 1): the rest centroid's closest point on M1, R0 and the deformed (u, v) = J (u0, v0)
+  of the triangle's vertices interpolated there (`texelbake.deform.lookup`); it gives the
+  texel's view direction, view term and a_vis. The default (`lookup="point"`,
+  `DEFAULT_LOOKUP`) turns each point's light and view directions for its BRDF by the point's
+  own L (its shading frame carried by Ψ's Jacobian at the point), the seed's limit where the
+  impostor is the surface (§4.4). Shadow rays are traced from the deformed
   points toward the lights against the deformed M_org, so shadows one part casts on another
   after the deformation are seen (inter-object shadows on the deformed geometry). The view
   term V(x̂k, ωo) is traced at rest (rest point, rest-frame direction, rest M_org): Eq. 12
@@ -297,16 +301,21 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
 
 
 #: where the look-up rotation L of a texel comes from: "texel" (the texel as the impostor
-#: point: R0 its baked frame, J at its centroid), "vertex" (Table 1 on M1's vertices, from the
-#: payload, interpolated at the centroid's closest point), "none" (L = I, ``cpm-naive``),
-#: "point" (a diagnostic: each characteristic point's BRDF directions through its own L — its
-#: shading frame carried by the deformed M_org's Jacobian at the point —, the texel's view
-#: direction, view term and a_vis through "vertex"; `benchmarks/deform.py` ``cpm-point``)
+#: point: R0 its baked frame, J at its centroid), "vertex" (the seed's: Table 1 on M1's
+#: vertices, from the payload, interpolated at the centroid's closest point), "none" (L = I,
+#: ``cpm-naive``), "point" (the default: each characteristic point's BRDF directions through
+#: its own L — its shading frame carried by the deformed M_org's Jacobian at the point —, the
+#: texel's view direction, view term and a_vis through "vertex")
 LOOKUPS = ("texel", "vertex", "none", "point")
+#: the default look-up (decisions 2026-11-27: measured in `benchmarks/deform.py` against the
+#: seed's "vertex", ``cpm-vertex`` there, it never loses and wins on 7 of 8 deformed frames,
+#: by up to 40 dB where M1's interpolated frame is a few degrees off a faceted metal's own
+#: rotation and puts a false mirror highlight in a texel)
+DEFAULT_LOOKUP = "point"
 
 
 def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
-                            texels: np.ndarray, lookup: str = "vertex"
+                            texels: np.ndarray, lookup: str = DEFAULT_LOOKUP
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Eq. 12 of seed 000 for texels of one level of a deformed scene (module docstring);
     the same contract as `render.cpm.texel_radiance`. lookup : one of LOOKUPS."""
@@ -426,7 +435,7 @@ def render_deformed(d: RenderScene, mode: str, cam: PinholeCamera, spp: int, see
     elif mode == "normalmap":
         img, rays, cov = render_normalmap(d, cam, spp, seed)
     elif mode in ("cpm", "cpm-naive"):
-        lookup = kw.pop("lookup", "vertex")
+        lookup = kw.pop("lookup", DEFAULT_LOOKUP)
         frame = DeformedCpmFrame(d, cam, choose_mesh(d, cam, kw.pop("max_error_px", 1.0)),
                                  lookup="none" if mode == "cpm-naive" else lookup)
         img, rays, cov, extras = render_cpm(d, cam, spp, seed, frame=frame, **kw)
