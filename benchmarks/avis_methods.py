@@ -299,8 +299,8 @@ def identity_table(res_keeps, k=64, n_side=16, n_dirs=300, tables=("seed", "face
     ("face+corr") and the per-level texel budget with the correction ("texel", the default).
     Storage: `AvisTable.stored_bytes` (what the payload stores) over the dense float32 cube maps
     of every level. PASS: every texel within 2 % and the identity within 1 % at <= 4 %."""
-    from texelbake.cpm.assemble import texel_rel_errors
     from texelbake.cpm.avis import coarsen_level
+    from texelbake.cpm.avis.compress import texel_rel_errors
 
     period = 1.0 / 8
     fields = {"bumpy": periodic_height(0.05, seed=1),

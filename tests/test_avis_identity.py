@@ -113,7 +113,7 @@ def test_sum_correction_is_exact_and_keeps_the_bounds(rng):
 def _stored_and_errors(levels, keep, selection):
     """(stored bytes / dense float32 bytes over every level, worst texel's relative L2 error of
     the table the renderer reads against the uncompressed maps, over every level)."""
-    from texelbake.cpm.assemble import texel_rel_errors
+    from texelbake.cpm.avis.compress import texel_rel_errors
     from texelbake.cpm.avis.table import AvisTable
 
     nbytes, dense, worst = 0, 0.0, 0.0

@@ -359,7 +359,8 @@ def test_export_reads_avis_tiles_like_the_stacked_levels(cylinder_bake):
 def test_report_flags_texels_whose_avis_table_is_off(cylinder_bake):
     """Issue 11: the report counts, per level, the texels whose compressed a_vis table is more
     than the tolerance from the uncompressed maps, and the bake's warnings name those levels."""
-    from texelbake.cpm.assemble import AVIS_TEXEL_TOLERANCE, texel_rel_errors
+    from texelbake.cpm.assemble import AVIS_TEXEL_TOLERANCE
+    from texelbake.cpm.avis.compress import texel_rel_errors
 
     _, root, _ = cylinder_bake
     report = json.loads((root.parent / "report.json").read_text())

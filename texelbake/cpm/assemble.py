@@ -8,12 +8,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from texelbake.cpm import avis as avis_mod
-from texelbake.cpm.avis.compress import (  # noqa: F401  (texel_rel_errors: its home before)
-    LevelChunks,
-    chunks_of,
-    compress_chunks,
-    texel_rel_errors,
-)
+from texelbake.cpm.avis.compress import LevelChunks, chunks_of, compress_chunks
 from texelbake.cpm.avis.table import avis_table_arrays
 
 

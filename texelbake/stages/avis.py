@@ -107,7 +107,8 @@ def avis_level_chunks(ctx: StageContext, lvl: int) -> LevelChunks:
     s = ctx.settings
     prefix = f"L{lvl:02d}_"
     if lvl >= ctx.tile_levels:
-        return chunks_of(_avis_level_from(ctx.store.read_arrays(_avis_key(ctx, None)), prefix))
+        return chunks_of(_avis_level_from(ctx.store.read_arrays(
+            _avis_key(ctx, None), lambda name: name.startswith(prefix)), prefix))
     per_row = s.atlas_resolution // s.shard_texels
     keys = [_avis_key(ctx, t) for t in range(per_row * per_row)]
     maps_name = f"{prefix}ray_maps"
