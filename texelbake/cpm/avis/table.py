@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,6 +65,15 @@ class AvisTable:
     @property
     def n_texels(self) -> int:
         return int(self.closed.shape[0])
+
+    @functools.cached_property
+    def row_texels(self) -> np.ndarray:
+        """(n_ray,) int64 the texel of each row of `haar` (the inverse of `ray_row`), built
+        once: `ray_texel_maps` is called a chunk of rows at a time."""
+        out = np.empty(self.haar.n_maps // 6, np.int64)
+        has = np.flatnonzero(self.ray_row >= 0)
+        out[self.ray_row[has]] = has
+        return out
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Named arrays (what the payload writer stores). USD has no 16-bit integer arrays, so
@@ -264,13 +274,10 @@ class AvisTable:
         the table against its uncompressed maps; a full inverse transform, not for
         rendering."""
         res = self.res
-        r = self.haar.n_maps // 6
+        r = self.row_texels.shape[0]
         a, b, _ = (rows or slice(0, r)).indices(r)
         rec = decompress_haar(map_range(self.haar, a * 6, b * 6, (b - a, 6)))
-        texels = np.empty(r, np.int64)  # texel of each ray row
-        has = np.flatnonzero(self.ray_row >= 0)
-        texels[self.ray_row[has]] = has
-        texels = texels[a:b]
+        texels = self.row_texels[a:b]
         bnd = self.bounded[texels]
         face, iv, iu = np.meshgrid(np.arange(6), np.arange(res), np.arange(res), indexing="ij")
         n = rec.shape[0]
