@@ -245,18 +245,19 @@ def runnable_tasks(exclude_pid: int | None = None, proc: Path = Path("/proc")
         if not pdir.name.isdigit() or int(pdir.name) == exclude_pid:
             continue
         try:
-            tids = [t.name for t in (pdir / "task").iterdir()]
+            tasks = list((pdir / "task").iterdir())
         except OSError:  # ended, or not ours to read
             continue
-        for tid in tids:  # a loop over the process's threads
+        for task in tasks:  # a loop over the process's threads
             try:
-                stat = (pdir / "task" / tid / "stat").read_bytes()
+                stat = (task / "stat").read_bytes()
             except OSError:
                 continue
             # "pid (comm) S ...": comm may hold spaces and parentheses, the state follows
             # the last ')'
-            if stat[stat.rfind(b")") + 2:stat.rfind(b")") + 3] == b"R":
-                out.append((int(pdir.name), int(tid)))
+            end = stat.rfind(b")")
+            if stat[end + 2:end + 3] == b"R":
+                out.append((int(pdir.name), int(task.name)))
     return out
 
 
@@ -264,7 +265,6 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
     """The cost model's prediction (`texelbake.costmodel`) from the placed samples: total
     seconds, the cpm and avis stages' wall seconds on `jobs` workers, and the ETA (UTC) of the
     bake given the `elapsed` seconds so far."""
-    import os
     from datetime import UTC, datetime, timedelta
 
     from texelbake import costmodel

@@ -133,12 +133,11 @@ def stack_tiles(tiles: list[AvisLevel], tiles_per_side: int) -> AvisLevel:
         iy * n + ix), all with one res and max_terms
     returns : AvisLevel of side T * n with texel id (ty n + iy) (T n) + tx n + ix
     """
-    level, ids = tile_layout(tiles, tiles_per_side)
-    flat = np.concatenate(ids)
-    order = np.argsort(flat, kind="stable")
-    maps = (np.concatenate([t.ray_maps for t in tiles])[order] if flat.size
+    level, ids = tile_layout(tiles, tiles_per_side)  # level.ray_texels: ids sorted
+    order = np.argsort(np.concatenate(ids), kind="stable")
+    maps = (np.concatenate([t.ray_maps for t in tiles])[order] if order.size
             else np.zeros((0, 6, level.res, level.res)))
-    return dataclasses.replace(level, ray_texels=flat[order], ray_maps=maps)
+    return dataclasses.replace(level, ray_maps=maps)
 
 
 def tile_layout(tiles: list[AvisLevel], tiles_per_side: int
