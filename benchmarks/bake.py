@@ -90,6 +90,7 @@ import numpy as np
 from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm import avis as avis_mod
+from texelbake.cpm.assemble import SNR_EXACT_DB
 from texelbake.cpm.avis.table import avis_table_from
 from texelbake.cpm.level import texel_ids
 from texelbake.payload import read_baked
@@ -212,6 +213,7 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
     for lv in sorted({r["level"] for r in recs}):
         rs = [r for r in recs if r["level"] == lv]
         ho = np.array([x for r in rs for x in r["snr_ho"]], dtype=np.float64)
+        ho = np.where(np.isposinf(ho), SNR_EXACT_DB, ho)  # an exact texel counts
         ho = ho[np.isfinite(ho)]
         n = sum(r["texels"] for r in rs)
         wall, cpu = sum(r["wall"] for r in rs), sum(r["cpu"] for r in rs)

@@ -75,6 +75,13 @@ class BakeSettings(BaseModel):
     eps_db: float = Field(30.0, gt=0.0, le=200.0, description="Target SNR (dB) for the bisection on c.")
     c_max: int = Field(64, ge=1, le=4096, description="Maximum characteristic points per texel.")
     n_trials: int = Field(4, ge=1, le=64, description="Random column draws per c; best kept.")
+    small_texels: Literal["all", "fit"] = Field(
+        "all",
+        description="all: a texel with at most c_max candidates keeps every one of them (its "
+        "Eq. 7 exact at every direction, no fit); fit: the seed's bisection on c, which stops "
+        "at the smallest c reaching eps_db on the direction grid and generalizes worse off it "
+        "(docs/decisions.md 2026-11-27).",
+    )
     weights: Literal["nnls", "clamp"] = Field(
         "nnls", description="nnls: exact non-negative LS; clamp: the seed's C+R1 with negatives to 0."
     )

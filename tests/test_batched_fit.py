@@ -159,14 +159,15 @@ def test_brdf_product_equals_brdf_grid_on_live_entries(small_scene):
 
 
 def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):
-    """The whole level (closed form off): the same texels valid, in-sample SNR equal to
-    rounding, held-out SNR median no lower than the per-texel loop's minus 0.5 dB; a 64 MiB memory bound (many chunks) gives the same arrays
+    """The whole level (closed form off, every texel fitted: small_texels "fit"): the same
+    texels valid, in-sample SNR equal to rounding, held-out SNR median no lower than the
+    per-texel loop's minus 0.5 dB; a 64 MiB memory bound (many chunks) gives the same arrays
     byte for byte as the default."""
     src = small_scene.fit_inputs()
     texels = tile_texels(16, 8, 1, 0)
     cands = level_candidates(src, 0, texels, None)
     src = dataclasses.replace(src, settings=src.settings.model_copy(
-        update={"closed_form": False}))
+        update={"closed_form": False, "small_texels": "fit"}))
     ref = fit_level_per_texel(src, 0, texels, cands)
     got = fit_level_batched(src, 0, texels, cands)
     np.testing.assert_array_equal(got["valid"], ref["valid"])
@@ -260,3 +261,25 @@ def test_trial_options_reach_the_target_with_fewer_draws(option):
         if ref.snr_db_insample >= kw["eps_db"]:
             assert got.snr_db_insample >= kw["eps_db"] - 0.5  # float32 weights, d-space SNR
     assert counts[1]["draws"] <= counts[0]["draws"]
+
+
+def test_small_texels_keep_every_candidate_on_both_paths():
+    """small="all" on the Gram path: a texel of m <= c_max columns is not fitted (skip "all",
+    every column at weight 1, the in-sample SNR of round-off only) and its result is fit_texel's
+    with the same setting; a wider texel is fitted exactly as with small="fit"."""
+    rng = np.random.default_rng(5)
+    texels = [_texel(rng, 300, m, r, False) for m, r in ((20, 6), (40, 9))]
+    Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
+    corrs = [channel_correlation(R) for R, _ in texels]
+    kw = dict(KW, c_max=24)
+    got = fit_many(list(Fs), list(valids), corrs, [1, 2], closed_form=False, small="all", **kw)
+    seed_fit = fit_many(list(Fs), list(valids), corrs, [1, 2], closed_form=False, **kw)
+    (small, skip_small), (wide, skip_wide) = got
+    assert skip_small == "all" and skip_wide == ""
+    assert small.c == 20 and np.array_equal(small.columns, np.arange(20))
+    assert np.all(small.weights == 1.0) and small.snr_db_insample > 250.0
+    ref = fit_texel(*texels[0], seed=1, texel_area=1.0, small="all", **kw)
+    assert np.array_equal(ref.columns, small.columns) and ref.c == small.c
+    np.testing.assert_array_equal(wide.columns, seed_fit[1][0].columns)
+    np.testing.assert_array_equal(wide.weights, seed_fit[1][0].weights)
+    assert seed_fit[0][0].c < 20  # the seed's bisection stops short of every column

@@ -5,6 +5,7 @@ import mpmath
 import numpy as np
 import pytest
 
+from texelbake.cpm.assemble import SNR_EXACT_DB, percentiles
 from texelbake.cpm.column_sampling import fit_weights
 from texelbake.cpm.directions import heldout_pairs, hemisphere_directions, product_pairs
 from texelbake.cpm.fit import (
@@ -481,3 +482,61 @@ def test_weights_past_float32_range_are_dropped_not_stored_as_inf():
     assert out.dtype == np.float32 and np.isfinite(out).all()
     np.testing.assert_array_equal(out, np.array([[0.5, 2.0], [0.0, 3.0], [0.0, 1.0],
                                                  [0.0, 0.0]], np.float32))
+
+
+def test_small_texel_keeps_every_candidate_and_holds_between_the_grid(rng):
+    """small="all": a texel of m <= c_max samples keeps all of them at weight 1, so Eq. 7 holds
+    at directions the grid never sampled (checked against a brute-force sum over the samples on
+    an independent, finer grid with its own visibility); the seed's bisection ("fit") stops at
+    the smallest c reaching eps_db on the grid and is measurably worse there. Above c_max the
+    two settings are the same fit."""
+    t = texel(rng, m=40, exps=(1.0, 60.0))
+    area = t["area"]
+    eps = avis_floor(area.sum())
+    # an independent 20 x 20 grid: other directions, their own random visibility
+    wi_h, wo_h = hemisphere_directions(20, 7), hemisphere_directions(20, 8)
+    vis_ih, vis_oh = rng.random((40, 20)) < 0.8, rng.random((40, 20)) < 0.8
+    ri, ro = product_pairs(20, 20)
+
+    def brdf_h(a, b):
+        return phong(t["n_s"], t["mat"], wi_h[a], wo_h[b], t["kd"], t["ks"], t["exps"])
+
+    R_h = reflectance_matrix(brdf_h, vis_ih, vis_oh, t["n_s"] @ wi_h.T, t["n_s"] @ wo_h.T, area)
+    avis_h = avis_on_grid(vis_oh, t["n_s"] @ wo_h.T, area)[ro]
+    brute = np.zeros((len(ri), 3))
+    for j in range(40):  # Eq. 7's numerator sample by sample, not through R's sum
+        brute += R_h[:, j]
+    ok = avis_h > eps
+    fitted = fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=64, small="fit")
+    kept = fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=64, small="all")
+    assert fitted.c < 40
+    assert kept.c == 40 and np.array_equal(kept.columns, np.arange(40))
+    assert np.all(kept.weights == 1.0) and kept.weights.dtype == np.float32
+    assert kept.snr_db_insample > 250.0  # round-off only (float64: ~300 dB)
+
+    def held(fit):
+        apx = np.einsum("dcx,cx->dx", R_h[:, fit.columns], fit.weights.astype(np.float64))
+        return snr_db(brute[ok] / avis_h[ok, None], apx[ok] / avis_h[ok, None])
+
+    assert held(kept) > 250.0
+    assert held(fitted) < 60.0  # 30 dB on the grid, off it the drawn points miss lobes
+    # above c_max the setting changes nothing
+    a = fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=20, small="all")
+    b = fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=20, small="fit")
+    assert np.array_equal(a.columns, b.columns) and np.array_equal(a.weights, b.weights)
+    with pytest.raises(SettingsError, match="small"):
+        fit_texel(t["R"], t["avis"], small="some")
+    # a rank-1 texel's one point is exact everywhere: it stays one point
+    R1, avis1, _, _, _, area1 = flat_lambert(m=30)
+    one = fit_texel(R1, avis1, texel_area=area1.sum(), small="all")
+    assert one.c == 1 and one.snr_db_insample >= 100.0
+
+
+def test_report_percentiles_count_exact_texels():
+    """+inf (an exact texel's SNR) counts as SNR_EXACT_DB when asked, instead of being left out
+    of the median (which would report the worst texels only); NaN is always left out."""
+    x = np.array([10.0, 20.0, np.inf, np.inf, np.nan])
+    assert percentiles(x)["p50"] == 15.0 and percentiles(x)["n"] == 2
+    got = percentiles(x, SNR_EXACT_DB)
+    assert got["n"] == 4 and got["p50"] == pytest.approx((20.0 + SNR_EXACT_DB) / 2)
+    assert got["max"] == SNR_EXACT_DB

@@ -21,6 +21,7 @@ class Tolerances:
     # visible projected area
     avis_floor: float = 1e-9          # relative to texel area: a_vis below is "fully masked"
     rank1_rel: float = 1e-10          # energy outside the top eigenvalue: R is rank 1 (closed form)
+    exact_fit_db: float = 100.0       # a fit this close to the grid's Eq. 7 is exact (rank 1)
     # directions
     grazing_cos: float = 1e-6         # n.w below this counts as below the horizon
     # brdf

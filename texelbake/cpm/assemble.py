@@ -11,9 +11,17 @@ from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.avis.compress import LevelChunks, chunks_of, compress_chunks
 from texelbake.cpm.avis.table import avis_table_arrays
 
+#: an SNR of +inf (an exact reproduction) enters the report's percentiles as this many dB:
+#: float64 round-off alone stays below ~313 dB, so no measured value reaches it
+SNR_EXACT_DB = 320.0
 
-def percentiles(x: np.ndarray) -> dict[str, float]:
+
+def percentiles(x: np.ndarray, posinf: float | None = None) -> dict[str, float]:
+    """n, mean, p5, p50, p95, min, max over the finite values of x; with `posinf`, +inf
+    values count as that value instead of being left out (an exact texel's SNR)."""
     x = np.asarray(x, dtype=np.float64)
+    if posinf is not None:
+        x = np.where(np.isposinf(x), posinf, x)
     x = x[np.isfinite(x)]
     if x.size == 0:
         return {"n": 0}
@@ -29,15 +37,16 @@ AVIS_TEXEL_TOLERANCE = 0.02
 
 def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     """Texels the batched fit did not fit by draws and trials (issue 15), with their held-out
-    SNR: "rank1" (closed form), "per_texel" (fitted by `fit.fit_texel`). Empty for the
+    SNR: "rank1" (closed form), "per_texel" (fitted by `fit.fit_texel`), "all_points" (every
+    candidate kept, `BakeSettings.small_texels`). Empty for the
     per-texel path, which records no skip."""
     if "skip" not in data:
         return {}
     skip = data["skip"][valid]
     ho = data["snr_ho"][valid]
     return {name: {"texels": int(np.sum(skip == code)),
-                   "snr_heldout_db": percentiles(ho[skip == code])}
-            for code, name in ((1, "rank1"), (2, "per_texel"))}
+                   "snr_heldout_db": percentiles(ho[skip == code], SNR_EXACT_DB)}
+            for code, name in ((1, "rank1"), (2, "per_texel"), (3, "all_points"))}
 
 
 def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_keep_fraction: float,
@@ -99,8 +108,8 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "texels_valid": int(valid.sum()),
         "k": percentiles(data["k"][valid]),
         "c": percentiles(data["c"][valid]),
-        "snr_insample_db": percentiles(data["snr_in"][valid]),
-        "snr_heldout_db": percentiles(data["snr_ho"][valid]),
+        "snr_insample_db": percentiles(data["snr_in"][valid], SNR_EXACT_DB),
+        "snr_heldout_db": percentiles(data["snr_ho"][valid], SNR_EXACT_DB),
         "per_channel_texels": int(np.sum(data["mode"][valid] == 1)),
         "skips": _skips(data, valid),
         # coarse levels: texels whose dense refit the validation fold refused (cpm/refit.py)

@@ -116,6 +116,32 @@ def _empty_fit(m_ch: int, reason: str, valid: bool, snr: float, corr: float = 1.
     )
 
 
+def needs_all_points(small: str, m: int, c_max: int, snr_insample: float) -> bool:
+    """small="all": a texel of m <= c_max candidates whose fit is not exact on the grid
+    (in-sample SNR under TOL.exact_fit_db: a rank-1 texel's one point is exact everywhere and
+    stays one point) keeps every candidate instead (`all_points_fit`)."""
+    return small == "all" and m <= c_max and not snr_insample >= TOL.exact_fit_db
+
+
+def all_points_fit(F_sum: np.ndarray, approx: np.ndarray, valid: np.ndarray, m: int,
+                   corr: float, eps_db: float) -> TexelFit:
+    """A texel that keeps every one of its m candidates with weight 1 (`small="all"`): its
+    points are its candidates, so Eq. 7 is reproduced exactly at *every* direction pair, not
+    only on the fitted grid (seed 000 §4.1 selects c < m by bisection even when m <= c_max,
+    trading accuracy off the grid for storage that c_max already bounds). k is not computed
+    (m, its upper bound, is reported). F_sum, approx : (d, ch) Eq. 7 of all candidates and of
+    the stored weights (the same sum up to round-off); valid : (d,) rows above the floor."""
+    snr = snr_db(F_sum, approx, valid)
+    ch = F_sum.shape[1]
+    return TexelFit(
+        columns=np.arange(m, dtype=np.int64), weights=np.ones((m, ch), np.float32), k=m, c=m,
+        snr_db_insample=snr, colour_mode="luminance", valid=True,
+        reason=f"all {m} candidates kept (m <= c_max)", channel_correlation=corr,
+        k_channels=np.array([m], np.int64), c_channels=np.array([m], np.int64),
+        c_capped=False, eps_reached=bool(snr >= eps_db),
+    )
+
+
 def channel_correlation(R: np.ndarray) -> float:
     """Min pairwise Pearson correlation between the colour channels of R (d, m, ch), flattened.
 
@@ -350,6 +376,7 @@ def fit_texel(
     n_batch: int = 2048,
     texel_area: float | None = None,
     rows: Literal["eq7", "seed"] = "eq7",
+    small: Literal["fit", "all"] = "fit",
 ) -> TexelFit:
     """Characteristic points and weights of one texel (seed 000 §3.3, §4.1; DMM06 Table 2).
 
@@ -374,6 +401,9 @@ def fit_texel(
         "new matrix formulation which also includes the 1/a_vis term" the seed's §3.2 leaves to
         future work); "seed" selects and fits on R as the seed does. Rows with a_vis <= eps
         get zero weight under "eq7". Measured in benchmarks/column_sampling.py.
+    small : "fit" (the seed: bisection on c even when m <= c_max) or "all": a texel with
+        m <= c_max whose fit is not exact on the grid keeps all its candidates with weight 1
+        (`needs_all_points`, `all_points_fit`; BakeSettings.small_texels)
     returns : TexelFit
 
     c search (seed §4.1): bisection on [k, c_max]; for a probe c, n_trials draws of c columns
@@ -429,6 +459,8 @@ def fit_texel(
         mode = "per_channel" if (ch > 1 and corr < decorrelation_threshold) else "luminance"
     if ch == 1:
         mode = "luminance"
+    if small not in ("fit", "all"):
+        raise SettingsError(f"small must be 'fit' or 'all', got {small!r}")
 
     rng = np.random.default_rng(seed)
     cand = np.arange(m, dtype=np.int64)
@@ -471,6 +503,10 @@ def fit_texel(
     approx = np.einsum("dcx,cx->dx", R[:, columns], w32.astype(np.float64))  # (d, ch)
     fbar_apx, _ = filtered_reflectance(approx, avis_rows, eps_avis)
     snr = snr_db(fbar_ref, fbar_apx, valid)
+    if needs_all_points(small, m, c_max, snr):
+        approx_all = np.einsum("dcx,cx->dx", R, np.ones((m, ch)))
+        return all_points_fit(fbar_ref, filtered_reflectance(approx_all, avis_rows, eps_avis)[0],
+                              valid, m, corr, eps_db)
     capped = any(gf.capped for gf in fits)
     reasons = []
     if capped:

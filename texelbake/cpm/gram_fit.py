@@ -44,7 +44,14 @@ from texelbake.cpm.column_sampling import (
     fit_weights,
     sample_columns,
 )
-from texelbake.cpm.fit import LUMA_709, TexelFit, _empty_fit, _storable_weights
+from texelbake.cpm.fit import (
+    LUMA_709,
+    TexelFit,
+    _empty_fit,
+    _storable_weights,
+    all_points_fit,
+    needs_all_points,
+)
 from texelbake.cpm.matrix import snr_db
 from texelbake.tol import TOL
 
@@ -425,9 +432,11 @@ def fit_many(
     n_batch: int | None = None,
     trial_stop: str = "all",
     c_start: str = "interval",
+    small: str = "fit",
 ) -> list[tuple[TexelFit | None, str]]:
     """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
-    `fit_texel_gram` per texel. Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous
+    `fit_texel_gram` per texel. With small="all" a texel of m <= c_max candidates whose fit is
+    not exact on the grid keeps them all (`fit.needs_all_points`, skip "all"). Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous
     blocks); valids[t] : (d,) bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
     Texels must have m >= 1, d >= 2 min(m, n_batch), a valid row and a nonzero R
     (`fit_texel`'s cases); texels wider than n_batch columns go through `fit_split`."""
@@ -453,19 +462,25 @@ def fit_many(
         Fs, valids, corrs, seeds, plans, strict=True
     ):  # loop over texels: the m-sized work
         if plan is None:
-            out.append(fit_split(
+            got = fit_split(
                 F, valid, corr, seed, n_batch=int(n_batch or 0), psi=psi, eps_db=eps_db,
                 c_max=c_max, n_trials=n_trials, weights=weights, colour=colour,
-                decorrelation_threshold=decorrelation_threshold))
-            continue
-        mode, Gc, groups, first = plan
-        ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
-                for j, (g, chans) in enumerate(groups)]
-        out.append(fit_texel_gram(
-            F, valid, Gc, ginp, mode=mode, corr=corr,
-            psi=psi, eps_db=eps_db, c_max=c_max, n_trials=n_trials, weights=weights, seed=seed,
-            closed_form=closed_form, trial_stop=trial_stop, c_start=c_start,
-        ))
+                decorrelation_threshold=decorrelation_threshold)
+        else:
+            mode, Gc, groups, first = plan
+            ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
+                    for j, (g, chans) in enumerate(groups)]
+            got = fit_texel_gram(
+                F, valid, Gc, ginp, mode=mode, corr=corr,
+                psi=psi, eps_db=eps_db, c_max=c_max, n_trials=n_trials, weights=weights,
+                seed=seed, closed_form=closed_form, trial_stop=trial_stop, c_start=c_start,
+            )
+        fit = got[0]
+        if fit is not None and needs_all_points(small, F.shape[1], c_max, fit.snr_db_insample):
+            ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F
+            approx = np.stack([np.ones(F.shape[1]) @ F[c] for c in range(F.shape[0])], axis=1)
+            got = (all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db), "all")
+        out.append(got)
     return out
 
 

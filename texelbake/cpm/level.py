@@ -267,6 +267,7 @@ def _fit_level(
             R, avis_rows, psi=s.psi, eps_db=s.eps_db, c_max=s.c_max, n_trials=s.n_trials,
             weights=s.weights, colour=s.colour, decorrelation_threshold=s.decorrelation_threshold,
             seed=texel_seed(s.seed, level, int(texel)), n_batch=s.n_batch, texel_area=texel_area,
+            small=s.small_texels,
         )
         # effective weight of a point: alpha times its candidate weight (Eq. 10 with dA folded in)
         w_eff = fit.weights.astype(np.float64) * cset.weight[fit.columns]
@@ -286,7 +287,8 @@ def _fit_level(
         if n_hi and fit.valid:
             stats["snr_ho"][t] = heldout_snr(
                 src, dirs, frames, int(texel), samp_all[rows_all], held_vc[rows_all],
-                area_all[rows_all], cset.sample[fit.columns], w_eff,
+                area_all[rows_all], cset.sample[fit.columns],
+                w_eff.astype(np.float32).astype(np.float64),  # as stored
                 held_vc[np.searchsorted(samp_all, cset.sample[fit.columns])],
                 texel_area,
             )

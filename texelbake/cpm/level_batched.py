@@ -46,7 +46,7 @@ BYTES_PER_EVAL_ENTRY = 8 * 40
 #: bytes per (dense sample, held-out pair, channel) in the held-out pass
 BYTES_PER_HELD_ENTRY = 8 * 12
 
-SKIP_CODES = {"": 0, "split": 0, "rank1": 1, "per_texel": 2}
+SKIP_CODES = {"": 0, "split": 0, "rank1": 1, "per_texel": 2, "all": 3}
 
 
 def chunk_bounds(sizes: np.ndarray, cap: int) -> list[tuple[int, int]]:
@@ -275,7 +275,7 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         [seeds[t] for t in gram], psi=s.psi, eps_db=s.eps_db, c_max=s.c_max,
         n_trials=s.n_trials, weights=s.weights, colour=s.colour,
         decorrelation_threshold=s.decorrelation_threshold, closed_form=s.closed_form,
-        n_batch=s.n_batch, trial_stop=s.trial_stop, c_start=s.c_start,
+        n_batch=s.n_batch, trial_stop=s.trial_stop, c_start=s.c_start, small=s.small_texels,
     ), strict=True))
     fits: list[TexelFit | None] = [None] * n_t
     for t in range(n_t):  # loop over texels
@@ -292,7 +292,8 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
                             texel_area=float(area[t]), seed=seeds[t], psi=s.psi,
                             eps_db=s.eps_db, c_max=s.c_max, n_trials=s.n_trials,
                             weights=s.weights, colour=s.colour,
-                            decorrelation_threshold=s.decorrelation_threshold, n_batch=s.n_batch)
+                            decorrelation_threshold=s.decorrelation_threshold, n_batch=s.n_batch,
+                            small=s.small_texels)
             skip = "per_texel" if (t in done or too_wide(b - a, d, s)) else ""
         fits[t] = fit
         _store(res, base + t, fit, cset.take(np.arange(a, b)), SKIP_CODES[skip])
@@ -333,7 +334,9 @@ def _heldout(src, frames, texels, dense, dseg, cset, fits, dirs, area, budget, r
         p = lo + np.searchsorted(dense[lo:hi], smp)
         pt_pos.append(p)
         pt_seg.append(np.full(len(p), t))
-        pt_w.append(res.w[i][0])
+        # the weights as stored (float32): a texel that keeps all its candidates at their own
+        # weights would otherwise reproduce the reference bit for bit (+inf dB)
+        pt_w.append(res.w[i][0].astype(np.float32).astype(np.float64))
     pos = np.concatenate(pt_pos) if pt_pos else np.zeros(0, np.int64)
     pseg = np.concatenate(pt_seg) if pt_seg else np.zeros(0, np.int64)
     pw = np.concatenate(pt_w) if pt_w else np.zeros((0, 3))
