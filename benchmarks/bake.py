@@ -227,6 +227,17 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
             "estimate": report.get("estimate"), "levels": levels}
 
 
+def scene_file(name: str, size: str, work: Path) -> Path:
+    """A generated scene by name (`texelbake.scenes`), or a USD file given by its path (e.g.
+    ../shared/assets/Teapot/Teapot.usd), baked as `texelbake bake` would."""
+    path = Path(name)
+    if path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):
+        if not path.is_file():
+            raise SystemExit(f"--scene {name}: no such USD file")
+        return path.resolve()
+    return write_scene(name, work / f"{name}_{size}.usda", size)
+
+
 def compare(args: argparse.Namespace) -> None:
     """This tree against an older one (`--against`, e.g. a worktree of c15cea2), back to back
     in one session on the same scene and settings: texels/s per level (fitted texels over the
@@ -234,7 +245,7 @@ def compare(args: argparse.Namespace) -> None:
     held-out SNR median and p5 per level, their ratios, the machine load, the cost model's
     prediction against the measured total."""
     work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-bench-"))
-    scene = write_scene(args.scene, work / f"{args.scene}_{args.size}.usda", args.size)
+    scene = scene_file(args.scene, args.size, work)
     atlas = args.atlas or BakeSettings().atlas_resolution
     settings = {"atlas_resolution": atlas, "shard_texels": min(BakeSettings().shard_texels, atlas)}
     here = Path(__file__).resolve().parents[1]
@@ -337,7 +348,8 @@ def print_bars(scene: str, atlas: int, old: dict, new: dict) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", default="cylinder")
+    ap.add_argument("--scene", default="cylinder",
+                    help="a generated scene's name, or the path of a USD file")
     ap.add_argument("--size", default="full", choices=["small", "full"])
     ap.add_argument("--json", type=Path)
     ap.add_argument("--atlas", type=int, default=None,
@@ -364,7 +376,7 @@ def main() -> None:
         compare(args)
         return
     work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-bench-"))
-    scene = write_scene(args.scene, work / f"{args.scene}_{args.size}.usda", args.size)
+    scene = scene_file(args.scene, args.size, work)
     base: dict = {}
     if args.atlas is not None:
         base.update(atlas_resolution=args.atlas,

@@ -78,9 +78,10 @@ class BakeSettings(BaseModel):
     small_texels: Literal["all", "fit"] = Field(
         "all",
         description="all: a texel with at most c_max candidates keeps every one of them (its "
-        "Eq. 7 exact at every direction, no fit); fit: the seed's bisection on c, which stops "
-        "at the smallest c reaching eps_db on the direction grid and generalizes worse off it "
-        "(docs/decisions.md 2026-11-27).",
+        "Eq. 7 exact at every direction) unless its fit is already exact on the grid (rank 1: "
+        "one point); fit: the seed's bisection on c, which stops at the smallest c reaching "
+        "eps_db on the direction grid and generalizes worse off it (docs/decisions.md "
+        "2026-11-27).",
     )
     weights: Literal["nnls", "clamp"] = Field(
         "nnls", description="nnls: exact non-negative LS; clamp: the seed's C+R1 with negatives to 0."
