@@ -283,3 +283,4 @@ def test_small_texels_keep_every_candidate_on_both_paths():
     np.testing.assert_array_equal(wide.columns, seed_fit[1][0].columns)
     np.testing.assert_array_equal(wide.weights, seed_fit[1][0].weights)
     assert seed_fit[0][0].c < 20  # the seed's bisection stops short of every column
+    assert small.k == seed_fit[0][0].k  # the rank the fit found, reported as it is

@@ -124,20 +124,20 @@ def needs_all_points(small: str, m: int, c_max: int, snr_insample: float) -> boo
 
 
 def all_points_fit(F_sum: np.ndarray, approx: np.ndarray, valid: np.ndarray, m: int,
-                   corr: float, eps_db: float) -> TexelFit:
+                   corr: float, eps_db: float, k: int) -> TexelFit:
     """A texel that keeps every one of its m candidates with weight 1 (`small="all"`): its
     points are its candidates, so Eq. 7 is reproduced exactly at *every* direction pair, not
     only on the fitted grid (seed 000 §4.1 selects c < m by bisection even when m <= c_max,
-    trading accuracy off the grid for storage that c_max already bounds). k is not computed
-    (m, its upper bound, is reported). F_sum, approx : (d, ch) Eq. 7 of all candidates and of
-    the stored weights (the same sum up to round-off); valid : (d,) rows above the floor."""
+    trading accuracy off the grid for storage that c_max already bounds). F_sum, approx :
+    (d, ch) Eq. 7 of all candidates and of the stored weights (the same sum up to round-off);
+    valid : (d,) rows above the floor; k : the psi-rank the fit found (reported as it is)."""
     snr = snr_db(F_sum, approx, valid)
     ch = F_sum.shape[1]
     return TexelFit(
-        columns=np.arange(m, dtype=np.int64), weights=np.ones((m, ch), np.float32), k=m, c=m,
-        snr_db_insample=snr, colour_mode="luminance", valid=True,
+        columns=np.arange(m, dtype=np.int64), weights=np.ones((m, ch), np.float32), k=int(k),
+        c=m, snr_db_insample=snr, colour_mode="luminance", valid=True,
         reason=f"all {m} candidates kept (m <= c_max)", channel_correlation=corr,
-        k_channels=np.array([m], np.int64), c_channels=np.array([m], np.int64),
+        k_channels=np.array([k], np.int64), c_channels=np.array([m], np.int64),
         c_capped=False, eps_reached=bool(snr >= eps_db),
     )
 
@@ -506,7 +506,7 @@ def fit_texel(
     if needs_all_points(small, m, c_max, snr):
         approx_all = np.einsum("dcx,cx->dx", R, np.ones((m, ch)))
         return all_points_fit(fbar_ref, filtered_reflectance(approx_all, avis_rows, eps_avis)[0],
-                              valid, m, corr, eps_db)
+                              valid, m, corr, eps_db, max(gf.k for gf in fits))
     capped = any(gf.capped for gf in fits)
     reasons = []
     if capped:

@@ -436,8 +436,9 @@ def fit_many(
 ) -> list[tuple[TexelFit | None, str]]:
     """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
     `fit_texel_gram` per texel. With small="all" a texel of m <= c_max candidates whose fit is
-    not exact on the grid keeps them all (`fit.needs_all_points`, skip "all"). Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous
-    blocks); valids[t] : (d,) bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
+    not exact on the grid keeps them all (`fit.needs_all_points`, skip "all").
+    Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous blocks); valids[t] : (d,)
+    bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
     Texels must have m >= 1, d >= 2 min(m, n_batch), a valid row and a nonzero R
     (`fit_texel`'s cases); texels wider than n_batch columns go through `fit_split`."""
     plans: list[tuple | None] = []
@@ -479,7 +480,7 @@ def fit_many(
         if fit is not None and needs_all_points(small, F.shape[1], c_max, fit.snr_db_insample):
             ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F
             approx = np.stack([np.ones(F.shape[1]) @ F[c] for c in range(F.shape[0])], axis=1)
-            got = (all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db), "all")
+            got = (all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db, fit.k), "all")
         out.append(got)
     return out
 
