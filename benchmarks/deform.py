@@ -52,7 +52,10 @@ with the cases where it fails; the look-up variants against `cpm` follow (not th
 
 Measured: docs/deformation.md "Measured" (benchmarks/results/deform_512.json).
 
-JSON: {"settings", "complete", "cases": [{"scene", "warp", "object_pixels", "reference":
+JSON: {"settings", "complete", "cases": [{"scene", "warp", "object_pixels", "m1"
+{"triangles", "hausdorff_rel"} (M1 against M_org, from the bake's report: on the generated
+scenes M1 is M_org within 1e-5 of the diagonal, so the normal map is traced on the original
+geometry, and a claim against it says so), "reference":
 {"seconds", "spp", "parts", "half_vs_half_db", "noise_psnr_db", "top2_share"}, "modes":
 {mode: {"seconds", "psnr_db", "psnr_db_spread", "psnr_db_seeds", "seeds", "spp",
 "object_pixels", "flux_ratio", "fallback_fraction"?}}}], "claims": [{"claim", "holds",
@@ -252,6 +255,20 @@ def verdict_spread(a: dict, b: dict) -> tuple[str, float, float]:
             dlt, spread)
 
 
+#: M1 closer to M_org than this (Hausdorff over the bounding-box diagonal) is the original
+#: geometry for the normal-map baseline: nothing fine is left for the normal map to carry
+M1_IS_ORG = 1e-3
+
+
+def _m1(baked: Path) -> dict | None:
+    """M1's triangles and Hausdorff distance to M_org over the diagonal, from the bake's report."""
+    rep = baked.parent / "report.json"
+    if not rep.is_file():
+        return None
+    lv = json.loads(rep.read_text())["lods"]["levels"][0]
+    return {"triangles": int(lv["triangles"]), "hausdorff_rel": float(lv["hausdorff_rel"])}
+
+
 def _claims(cases: list[dict]) -> list[dict]:
     deformed = [c for c in cases if c["warp"] not in ("none", RIGID)]
     out = []
@@ -280,6 +297,14 @@ def _claims(cases: list[dict]) -> list[dict]:
         if m["cpm"].get("psnr_db_seeds") == m[other].get("psnr_db_seeds"):
             text += (" [identical images: L = I on every texel the frame shows (a warp that "
                      "does not turn the surface's frames), so no look-up can differ]")
+        m1 = c.get("m1")
+        rest = [r for r in cases if r["scene"] == c["scene"] and r["warp"] == "none"]
+        if other == "normalmap" and m1 and m1["hausdorff_rel"] < M1_IS_ORG and rest:
+            rm = rest[0]["modes"]
+            text += (f" [M1 is M_org within {m1['hausdorff_rel']:.1e} of the diagonal "
+                     f"({m1['triangles']} triangles): the normal map is traced on the original "
+                     f"geometry; undeformed it scores {rm['normalmap']['psnr_db']:.2f} dB, gt at "
+                     f"the same spp {rm['gt']['psnr_db']:.2f}, cpm {rm['cpm']['psnr_db']:.2f}]")
         if share >= 0.5:
             text += (f" [the reference's 2 brightest pixels hold {share:.0%} of its light (a "
                      f"sub-pixel highlight); light shown: cpm {m['cpm'].get('flux_ratio')}x, "
@@ -424,7 +449,10 @@ def main(argv: list[str] | None = None) -> dict:
                         "rule (difference above the sum of the two spreads)"}
     cases: list[dict] = []
 
+    m1: dict | None = None
+
     def done(case: dict) -> None:  # the JSON after every case: a cut-short run keeps its cases
+        case["m1"] = m1
         cases.append(case)
         print(f"{case['scene']} {case['warp']}: done", flush=True)
         _write(args.json, {"settings": settings, "cases": cases, "complete": False,
@@ -434,6 +462,7 @@ def main(argv: list[str] | None = None) -> dict:
     for scene_name in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         baked = bake_scene(scene_name, args.work, args.atlas, args.scene_size)
         scene = load_scene(baked)
+        m1 = _m1(baked)
         # the undeformed frame, and the rigid motion seen with the camera and lights moving
         # along (the same relative view)
         cam0 = lod_camera(scene, args.size, args.size)
