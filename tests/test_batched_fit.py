@@ -264,9 +264,10 @@ def test_trial_options_reach_the_target_with_fewer_draws(option):
 
 
 def test_small_texels_keep_every_candidate_on_both_paths():
-    """small="all" on the Gram path: a texel of m <= c_max columns is not fitted (skip "all",
-    every column at weight 1, the in-sample SNR of round-off only) and its result is fit_texel's
-    with the same setting; a wider texel is fitted exactly as with small="fit"."""
+    """small="all" on the Gram path: a texel of m <= c_max columns whose fit is not exact on
+    the grid keeps every column at weight 1 instead (skip "all", the in-sample SNR of round-off
+    only, the fit's rank reported) and equals fit_texel's with the same setting; a wider texel
+    is fitted exactly as with small="fit"."""
     rng = np.random.default_rng(5)
     texels = [_texel(rng, 300, m, r, False) for m, r in ((20, 6), (40, 9))]
     Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
