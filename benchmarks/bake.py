@@ -90,7 +90,7 @@ import numpy as np
 from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm import avis as avis_mod
-from texelbake.cpm.assemble import SNR_EXACT_DB
+from texelbake.cpm.assemble import SNR_EXACT_DB, percentiles
 from texelbake.cpm.avis.table import avis_table_from
 from texelbake.cpm.level import texel_ids
 from texelbake.payload import read_baked
@@ -212,16 +212,15 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
     levels = []
     for lv in sorted({r["level"] for r in recs}):
         rs = [r for r in recs if r["level"] == lv]
-        ho = np.array([x for r in rs for x in r["snr_ho"]], dtype=np.float64)
-        ho = np.where(np.isposinf(ho), SNR_EXACT_DB, ho)  # an exact texel counts
-        ho = ho[np.isfinite(ho)]
+        # the report's own percentiles: an exact texel (+inf) counts as SNR_EXACT_DB
+        ho = percentiles(np.array([x for r in rs for x in r["snr_ho"]], dtype=np.float64),
+                         SNR_EXACT_DB)
         n = sum(r["texels"] for r in rs)
         wall, cpu = sum(r["wall"] for r in rs), sum(r["cpu"] for r in rs)
         levels.append({"level": lv, "texels": n, "fit_wall_seconds": wall, "fit_cpu_seconds": cpu,
                        "texels_per_second": n / max(wall, 1e-9),
                        "texels_per_cpu_second": n / max(cpu, 1e-9),
-                       "heldout_db_median": float(np.median(ho)) if ho.size else None,
-                       "heldout_db_p5": float(np.percentile(ho, 5)) if ho.size else None})
+                       "heldout_db_median": ho.get("p50"), "heldout_db_p5": ho.get("p5")})
     return {"tree": str(tree), "total_seconds": total, "load_before": load0,
             "load_after": _uptime(), "stage_seconds": report.get("stage_seconds"),
             "estimate": report.get("estimate"), "levels": levels}
