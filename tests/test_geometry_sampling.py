@@ -132,6 +132,11 @@ def test_attributes_are_interpolated():
     expect /= np.linalg.norm(expect, axis=1, keepdims=True)
     np.testing.assert_allclose(s.normals, expect, atol=1e-12)
     assert np.array_equal(s.material, material[s.face]) and s.material.dtype == np.int32
+    # computed 37 samples at a time (the memory bound, issue 15): bit for bit the same
+    parts = sample_surface(sv, sf, 500, seed=0, corner_normals=corner_normals,
+                           corner_uvs=corner_uvs, face_material=material, chunk=37)
+    for name in ("positions", "normals", "face", "bary", "uv", "material", "area"):
+        assert np.array_equal(getattr(parts, name), getattr(s, name)), name
 
 
 def test_geometric_normals_without_corner_normals(bumpy):

@@ -11,6 +11,7 @@ from texelbake.geometry.atlas import atlas_uv_of_points, build_atlas, rasterize_
 from texelbake.geometry.closest import closest_point_on_triangles
 from texelbake.geometry.hierarchy import simplify_hierarchy
 from texelbake.geometry.mesh import Mesh
+from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import sample_surface
 from texelbake.geometry.texels import (
     assign_texels,
@@ -53,8 +54,22 @@ def test_every_sample_is_assigned_once(sphere):
     m = len(s)
     for level in range(LEVELS):
         assert a.counts(level).sum() == m
-        assert np.array_equal(np.sort(a.orders[level]), np.arange(m))
+        listed = np.concatenate([a.samples_of(level, t) for t in a.occupied(level)])
+        assert np.array_equal(np.sort(listed), np.arange(m))
         assert a.offsets[level].shape == ((N >> level) ** 2 + 1,)
+
+
+def test_assignment_in_chunks_is_the_one_pass_assignment(sphere):
+    """The memory bound (issue 15): samples assigned `chunk` at a time, with both side rules
+    on (normals, and M_org as occluder), give the arrays of one pass bit for bit."""
+    v, f, m1, atlas, s, _ = sphere
+    kw = {"normals": s.normals, "occluder": RayCaster(v, f)}
+    one = assign_texels(s.positions, m1, atlas, LEVELS, chunk=len(s), **kw)
+    parts = assign_texels(s.positions, m1, atlas, LEVELS, chunk=777, **kw)
+    for name in ("prim", "bary", "uv", "distance", "row", "col"):
+        assert np.array_equal(getattr(one, name), getattr(parts, name)), name
+    for level in range(LEVELS):
+        assert np.array_equal(one.offsets[level], parts.offsets[level])
 
 
 def test_parent_counts_are_sums_of_their_four_children(sphere):
@@ -287,3 +302,7 @@ def test_bent_normal_rule_sends_a_gap_wall_to_the_sheet_it_is_seen_through():
     tri = m1.vertices[m1.faces[bent.prim[:k]]]
     hit = np.einsum("nk,nkj->nj", bent.bary[:k], tri)
     assert (hit[:, 0] > 1.0).all() and np.median(hit[:, 0]) < 1.6
+    # assigned 37 at a time (the memory bound, issue 15), with both rules firing: bit for bit
+    parts = assign_texels(pts, m1, atlas, 1, normals=nrm, occluder=org, chunk=37)
+    for name in ("prim", "bary", "uv", "distance", "row", "col"):
+        assert np.array_equal(getattr(parts, name), getattr(bent, name)), name

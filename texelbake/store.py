@@ -11,14 +11,16 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-from collections.abc import Callable, Mapping
+import struct
+import zipfile
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
-from texelbake.archive import zip_bytes
-from texelbake.atomic import atomic_write_bytes
+from texelbake.archive import EPOCH
+from texelbake.atomic import atomic_path, atomic_write_bytes
 from texelbake.errors import StageError
 
 
@@ -31,17 +33,75 @@ def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def npz_bytes(arrays: Mapping[str, Any]) -> bytes:
-    """Deterministic `.npz` bytes (sorted keys, fixed timestamps, no compression)."""
-    members = []
+#: a member's size is not known before numpy writes its header: this bound on the header
+#: (numpy pads it to a multiple of 64 bytes; a few hundred for any shape we store) lets
+#: `write_npz` decide zip64 as `ZipFile.writestr` does from the real size
+_NPY_HEADER_BOUND = 4096
+#: members smaller than this are read into memory by `read_npz(mmap=True)`, not mapped
+MMAP_MIN_BYTES = 1 << 20
+
+
+def _npz_members(arrays: Mapping[str, Any]) -> Iterator[tuple[str, np.ndarray]]:
     for name in sorted(arrays):  # by array name, as `.npz` artifacts always were
         arr = np.asanyarray(arrays[name])
         if arr.dtype == object:
             raise StageError(f"artifact array {name!r} has dtype object; store plain arrays")
-        member = io.BytesIO()
-        np.lib.format.write_array(member, arr, allow_pickle=False)
-        members.append((f"{name}.npy", member.getvalue()))
-    return zip_bytes(members, deflate=False, mode=None, sort=False)
+        yield f"{name}.npy", arr
+
+
+def write_npz(f: BinaryIO, arrays: Mapping[str, Any]) -> None:
+    """Deterministic `.npz` (sorted keys, fixed timestamps, no compression) written to the
+    seekable binary file `f`, each array streamed by numpy's own writer in 16 MiB pieces: a
+    stage's arrays are never held twice (a 512^2 geometry artifact is 2.5 GB). The bytes are
+    those `zip_bytes` gives for the same members (a test holds it)."""
+    with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, arr in _npz_members(arrays):
+            info = zipfile.ZipInfo(name, date_time=EPOCH)
+            info.compress_type = zipfile.ZIP_STORED
+            info.file_size = arr.nbytes + _NPY_HEADER_BOUND  # rewritten with the real size
+            with zf.open(info, "w") as dest:
+                np.lib.format.write_array(dest, arr, allow_pickle=False)
+
+
+def npz_bytes(arrays: Mapping[str, Any]) -> bytes:
+    """The bytes `write_npz` writes, in memory (small artifacts, tests)."""
+    buf = io.BytesIO()
+    write_npz(buf, arrays)
+    return buf.getvalue()
+
+
+def read_npz(path: Path, names: Callable[[str], bool] | None = None, *, mmap: bool = False
+             ) -> dict[str, np.ndarray]:
+    """The arrays of an `.npz` file; with `names`, only those it accepts. mmap : map every
+    stored member of at least MMAP_MIN_BYTES read-only from the file instead of reading it,
+    so a process pays in memory only for the pages it touches (a shard of a 512^2 bake reads
+    its tile's samples of a 2.5 GB geometry artifact). numpy maps `.npy` files but not the
+    members of an `.npz` (np.load ignores mmap_mode there), hence the zip local header read
+    here: a stored member's bytes are a plain `.npy` file at a known offset."""
+    out: dict[str, np.ndarray] = {}
+    with zipfile.ZipFile(path) as zf, open(path, "rb") as f:
+        for info in zf.infolist():
+            name = info.filename.removesuffix(".npy")
+            if names is not None and not names(name):
+                continue
+            if not mmap or info.compress_type != zipfile.ZIP_STORED \
+                    or info.file_size < MMAP_MIN_BYTES:
+                with zf.open(info) as member:
+                    out[name] = np.lib.format.read_array(member, allow_pickle=False)
+                continue
+            f.seek(info.header_offset)
+            head = f.read(30)  # the local file header's fixed part (APPNOTE 4.3.7)
+            if head[:4] != b"PK\x03\x04":
+                raise StageError(f"{path}: member {info.filename} has no local header")
+            n_name, n_extra = struct.unpack("<HH", head[26:30])
+            f.seek(info.header_offset + 30 + n_name + n_extra)
+            version = np.lib.format.read_magic(f)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            shape, fortran, dtype = read_header(f)
+            out[name] = np.asarray(np.memmap(path, dtype=dtype, mode="r", offset=f.tell(),
+                                             shape=shape, order="F" if fortran else "C"))
+    return out
 
 
 class ArtifactStore:
@@ -62,18 +122,18 @@ class ArtifactStore:
         return self.path(key).is_file()
 
     def write_arrays(self, key: str, arrays: Mapping[str, Any]) -> str:
-        atomic_write_bytes(self.path(key), npz_bytes(arrays))
+        with atomic_path(self.path(key)) as tmp, open(tmp, "wb") as f:
+            write_npz(f, arrays)
         return key
 
-    def read_arrays(self, key: str, names: Callable[[str], bool] | None = None
-                    ) -> dict[str, np.ndarray]:
+    def read_arrays(self, key: str, names: Callable[[str], bool] | None = None, *,
+                    mmap: bool = False) -> dict[str, np.ndarray]:
         """The arrays of an npz artifact; with `names`, only those it accepts (the others
-        are not read from the file)."""
+        are not read from the file); mmap : large arrays mapped read-only (`read_npz`)."""
         p = self.path(key)
         if not p.is_file():
             raise StageError(f"artifact {key} is missing from {self.root}")
-        with np.load(p, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files if names is None or names(k)}
+        return read_npz(p, names, mmap=mmap)
 
     def write_json(self, key: str, obj: Any) -> str:
         data = json.dumps(obj, indent=2, sort_keys=True, default=_json_default).encode()

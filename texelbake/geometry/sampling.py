@@ -139,6 +139,10 @@ def stratified_unit_square(counts: np.ndarray, rng: np.random.Generator) -> np.n
     return np.column_stack([np.minimum(u1, np.nextafter(1.0, 0.0)), u2])
 
 
+#: samples whose attributes `sample_surface` computes at a time
+SAMPLE_CHUNK = 1 << 20
+
+
 def sample_surface(
     points: object,
     faces: object,
@@ -149,6 +153,7 @@ def sample_surface(
     corner_uvs: object | None = None,
     face_material: object | None = None,
     eps: float = TOL.zero_area,
+    chunk: int = SAMPLE_CHUNK,
 ) -> Samples:
     """Area-weighted, per-triangle stratified samples of a triangle mesh.
 
@@ -161,6 +166,8 @@ def sample_surface(
         interpolated normal is zero or not finite the sample takes the geometric normal
     corner_uvs : (f, 3, 2) float64 or None
     face_material : (f,) int32 or None
+    chunk : samples whose attributes are computed at a time (memory only: the result does
+        not depend on it)
     returns : Samples, grouped by triangle in face order; ΔA of a triangle's samples is
         its area / its count. Empty (typed) when nothing has area or n_samples <= 0.
     """
@@ -192,26 +199,33 @@ def sample_surface(
     rng = np.random.default_rng(seed)
     bary = square_to_triangle(stratified_unit_square(counts, rng))  # (m, 3)
     face = np.repeat(np.arange(f, dtype=np.int64), counts)  # (m,)
-    corner = fcs[face]  # (m, 3) vertex ids; per-corner sums keep temporaries at (m, 3)
-    positions = (
-        bary[:, 0:1] * pts[corner[:, 0]]
-        + bary[:, 1:2] * pts[corner[:, 1]]
-        + bary[:, 2:3] * pts[corner[:, 2]]
-    )
-    face_geo = face_normals(pts, fcs)  # (f, 3)
-    geo = face_geo[face]  # sampled faces are nondegenerate, so these are unit
-    if corner_normals is None:
-        normals = geo
-    else:
-        cn = corner_normals[face]  # (m, 3, 3)
-        interp = bary[:, 0:1] * cn[:, 0] + bary[:, 1:2] * cn[:, 1] + bary[:, 2:3] * cn[:, 2]
-        length = np.linalg.norm(interp, axis=1, keepdims=True)
-        good = (length[:, 0] > TOL.brdf_eps) & np.isfinite(length[:, 0])
-        normals = np.where(good[:, None], interp / np.where(good, length[:, 0], 1.0)[:, None], geo)
-    if corner_uvs is None:
-        uv = np.zeros((m, 2))
-    else:
-        uv = np.einsum("mk,mkd->md", bary, corner_uvs[face])
+    face_geo = face_normals(pts, fcs)  # (f, 3); sampled faces are nondegenerate: unit
+    positions = np.empty((m, 3))
+    normals = np.empty((m, 3))
+    uv = np.zeros((m, 2))
+    # every sample's attributes depend on that sample only: computed `chunk` samples at a time,
+    # so the (k, 3, 3) corner gathers stay bounded whatever the atlas size (issue 15, memory)
+    for a in range(0, m, int(chunk)):
+        b = min(a + int(chunk), m)
+        fa, ba = face[a:b], bary[a:b]
+        corner = fcs[fa]  # (k, 3) vertex ids; per-corner sums keep temporaries at (k, 3)
+        positions[a:b] = (
+            ba[:, 0:1] * pts[corner[:, 0]]
+            + ba[:, 1:2] * pts[corner[:, 1]]
+            + ba[:, 2:3] * pts[corner[:, 2]]
+        )
+        geo = face_geo[fa]
+        if corner_normals is None:
+            normals[a:b] = geo
+        else:
+            cn = corner_normals[fa]  # (k, 3, 3)
+            interp = ba[:, 0:1] * cn[:, 0] + ba[:, 1:2] * cn[:, 1] + ba[:, 2:3] * cn[:, 2]
+            length = np.linalg.norm(interp, axis=1, keepdims=True)
+            good = (length[:, 0] > TOL.brdf_eps) & np.isfinite(length[:, 0])
+            normals[a:b] = np.where(good[:, None],
+                                    interp / np.where(good, length[:, 0], 1.0)[:, None], geo)
+        if corner_uvs is not None:
+            uv[a:b] = np.einsum("mk,mkd->md", ba, corner_uvs[fa])
     material = np.zeros(m, np.int32) if face_material is None else face_material[face]
     area = (areas / np.maximum(counts, 1))[face]
     return Samples(positions, normals, face, bary, uv, material, area)

@@ -71,6 +71,10 @@ def bilinear_texels(uv: object, resolution: int) -> tuple[np.ndarray, np.ndarray
     return index, weight
 
 
+#: samples `assign_texels` takes at a time (~0.4 KB of temporaries each)
+ASSIGN_CHUNK = 1 << 20
+
+
 @dataclass(frozen=True, eq=False)
 class TexelAssignment:
     """Samples grouped by texel at every mip level.
@@ -81,9 +85,9 @@ class TexelAssignment:
     uv : (m, 2) float64 atlas uv of the closest point
     distance : (m,) float64 sample-to-M1 distance
     row, col : (m,) int64 level-0 texel
-    orders : L arrays (m,) int64 — sample ids sorted by texel at level ℓ (stable)
-    offsets : L arrays (N_ℓ² + 1,) int64 — samples of texel p at level ℓ are
-        orders[ℓ][offsets[ℓ][p]:offsets[ℓ][p + 1]]
+    offsets : L arrays (N_ℓ² + 1,) int64 — texel p at level ℓ holds
+        offsets[ℓ][p + 1] - offsets[ℓ][p] samples (`samples_of` lists them; the sorted order
+        of all samples, L x m int64, is not kept: 1.3 GB at 512²)
     """
 
     resolution: int
@@ -94,7 +98,6 @@ class TexelAssignment:
     distance: np.ndarray
     row: np.ndarray
     col: np.ndarray
-    orders: tuple[np.ndarray, ...]
     offsets: tuple[np.ndarray, ...]
 
     def _check_level(self, level: int) -> int:
@@ -123,7 +126,7 @@ class TexelAssignment:
         texel = int(texel)
         if not 0 <= texel < off.shape[0] - 1:
             raise SettingsError(f"texel must be in [0, {off.shape[0] - 1}), got {texel}")
-        return self.orders[level][off[texel] : off[texel + 1]]
+        return np.flatnonzero(self.texel_index(level) == texel)  # ascending, as a stable sort
 
     def occupied(self, level: int) -> np.ndarray:
         """(k,) int64 flat ids of the texels holding at least one sample, ascending."""
@@ -139,6 +142,7 @@ def assign_texels(
     caster: RayCaster | None = None,
     normals: object = None,
     occluder: RayCaster | None = None,
+    chunk: int = ASSIGN_CHUNK,
 ) -> TexelAssignment:
     """Assign every sample to its texel at every mip level by exact closest point on M1
     (seed 000 §4.1: "based on Euclidean distances").
@@ -160,6 +164,7 @@ def assign_texels(
     caster : a RayCaster over atlas.mesh to reuse (built when None)
     normals : None, or (m, 3) the samples' geometric normals (outward; need not be unit)
     occluder : None, or a RayCaster over M_org (the bent-normal rule; needs `normals`)
+    chunk : samples assigned at a time (memory only: the result does not depend on it)
     returns : TexelAssignment
     """
     pts = check_points(sample_positions, "sample_positions")
@@ -178,28 +183,38 @@ def assign_texels(
     m = pts.shape[0]
     if caster is None:
         caster = RayCaster(atlas.mesh.vertices, atlas.mesh.faces)
-    if m:
-        closest, prim, bary2 = caster.closest_points(pts)
-    else:
-        closest, prim, bary2 = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2))
-    bary = np.column_stack([1.0 - bary2[:, 0] - bary2[:, 1], bary2])  # (m, 3)
+    nrm = None
     if normals is not None and m:
         nrm = check_points(normals, "normals")
         if nrm.shape[0] != m:
             raise ShapeError(f"normals must be ({m}, 3) like sample_positions, got {nrm.shape}")
-        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-        closest, prim, bary = _own_side(pts, nrm, closest, prim, bary, caster)
-        if occluder is not None:
-            closest, prim, bary = _bent_side(pts, nrm, closest, prim, bary, caster, occluder,
-                                             m1.face_normals())
-    uv = np.einsum("mk,mkd->md", bary, atlas.corner_uvs[prim])  # (m, 2)
+    face_normals = m1.face_normals() if occluder is not None else None
+    prim = np.zeros(m, np.int64)
+    bary = np.zeros((m, 3))
+    uv = np.zeros((m, 2))
+    distance = np.zeros(m)
+    # every sample's assignment depends on that sample only (its closest point, its rays), so
+    # samples go in chunks: the temporaries of the rules stay at `chunk` samples whatever the
+    # atlas size (issue 15, memory), with the result of one pass over all
+    for a in range(0, m, int(chunk)):
+        b = min(a + int(chunk), m)
+        p = pts[a:b]
+        closest, pr, bary2 = caster.closest_points(p)
+        ba = np.column_stack([1.0 - bary2[:, 0] - bary2[:, 1], bary2])  # (k, 3)
+        if nrm is not None:
+            n_unit = nrm[a:b] / np.maximum(np.linalg.norm(nrm[a:b], axis=1, keepdims=True), 1e-300)
+            closest, pr, ba = _own_side(p, n_unit, closest, pr, ba, caster)
+            if occluder is not None:
+                closest, pr, ba = _bent_side(p, n_unit, closest, pr, ba, caster, occluder,
+                                             face_normals)
+        prim[a:b], bary[a:b] = pr, ba
+        uv[a:b] = np.einsum("mk,mkd->md", ba, atlas.corner_uvs[pr])
+        distance[a:b] = np.linalg.norm(closest - p, axis=1)
     row, col = uv_to_texel(uv, n)
-    orders = []
     offsets = []
     for level in range(n_levels):  # a handful of mip levels
         n_l = n >> level
         idx = (row >> level) * n_l + (col >> level)
-        orders.append(np.argsort(idx, kind="stable").astype(np.int64))
         counts = np.bincount(idx, minlength=n_l * n_l)
         offsets.append(np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
     return TexelAssignment(
@@ -208,10 +223,9 @@ def assign_texels(
         prim=prim,
         bary=bary,
         uv=uv,
-        distance=np.linalg.norm(closest - pts, axis=1),
+        distance=distance,
         row=row,
         col=col,
-        orders=tuple(orders),
         offsets=tuple(offsets),
     )
 

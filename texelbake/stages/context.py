@@ -102,7 +102,8 @@ def _load_asset_cached(path: str, digest: str) -> AssetModel:
 
 @functools.lru_cache(maxsize=4)
 def _read_cached(root: str, key: str) -> dict[str, np.ndarray]:
-    return ArtifactStore(root).read_arrays(key)
+    # mapped, not read: a shard touches its tile's samples only (issue 15, memory)
+    return ArtifactStore(root).read_arrays(key, mmap=True)
 
 
 _CASTERS: dict[str, RayCaster] = {}
