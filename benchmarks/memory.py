@@ -1,0 +1,105 @@
+"""Peak memory per process of a large bake without running all of it (issue 15, item 5): the
+geometry stage, then one a_vis and one CPM shard of the tile holding the most samples, each
+in a fresh process, with its peak resident set (`ru_maxrss`) and seconds.
+
+    python benchmarks/memory.py --scene cylinder --atlas 512 --json benchmarks/results/memory_512.json
+
+A full 512^2 bake is hours on this machine; its per-process memory is decided by these tasks
+(the geometry stage holds every sample; a shard reads the geometry artifact, mapped since
+2026-11-27, and fits its tile). Not measured: the top stages (cpm_top, avis_top), which need
+every tile first. With `--workdir` kept between runs the geometry is reused (its peak is then
+the one recorded in the JSON of the run that built it); a shard's artifacts are removed first,
+so it is always fitted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+_CHILD = """
+import json, resource, sys, time
+from pathlib import Path
+from schemas.settings import BakeSettings
+from texelbake.pipeline import run_shard
+work, usd, settings, stage, shard = sys.argv[1:6]
+t = time.perf_counter()
+key = run_shard(Path(work), Path(usd), BakeSettings.model_validate_json(settings), stage, int(shard))
+print(json.dumps({"seconds": time.perf_counter() - t, "key": key,
+                  "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+
+def run_task(work: Path, usd: Path, settings, stage: str, shard: int) -> dict:  # noqa: ANN001
+    out = subprocess.run([sys.executable, "-c", _CHILD, str(work), str(usd),
+                          settings.model_dump_json(), stage, str(shard)],
+                         check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def fullest_tile(work: Path, geometry_key: str, atlas: int, side: int) -> tuple[int, int]:
+    from texelbake.store import ArtifactStore
+
+    geo = ArtifactStore(work / "artifacts").read_arrays(
+        geometry_key, lambda n: n in ("sample_row", "sample_col"), mmap=True)
+    tile = (geo["sample_row"] // side) * (atlas // side) + geo["sample_col"] // side
+    counts = np.bincount(tile, minlength=(atlas // side) ** 2)
+    return int(np.argmax(counts)), int(counts.max())
+
+
+def main() -> None:
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bake import scene_file
+
+    from schemas.settings import BakeSettings
+    from texelbake.stages import StageContext
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="cylinder",
+                    help="a generated scene's name, or the path of a USD file")
+    ap.add_argument("--atlas", type=int, default=512)
+    ap.add_argument("--workdir", type=Path, default=None)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="tb-memory-"))
+    work.mkdir(parents=True, exist_ok=True)
+    usd = scene_file(args.scene, "full", work)
+    settings = BakeSettings(atlas_resolution=args.atlas)
+    ctx = StageContext.create(work, usd, settings)
+    rows = []
+    built = not ctx.store.exists(ctx.geometry_key())
+    r = run_task(work, usd, settings, "geometry", 0)
+    rows.append({"task": "geometry", "shard": 0, **r, "reused": not built})
+    tile, samples = fullest_tile(work, ctx.geometry_key(), args.atlas, settings.shard_texels)
+    for stage in ("avis", "cpm"):
+        for p in (work / "artifacts").glob(f"*/{stage}-*/*tile{tile:05d}-*"):
+            p.unlink()
+        rows.append({"task": stage, "shard": tile, **run_task(work, usd, settings, stage, tile)})
+    geo_bytes = ctx.store.path(ctx.geometry_key()).stat().st_size
+    print(f"{usd.name}, atlas {args.atlas}^2, shard_texels {settings.shard_texels}: "
+          f"{geo_bytes / 2**30:.2f} GiB geometry artifact; fullest tile {tile} "
+          f"({samples} samples)")
+    print(f"  {'task':10s} {'shard':>6s} {'seconds':>8s} {'peak RSS MiB':>13s}")
+    for row in rows:
+        note = " (reused: its peak is the run that built it)" if row.get("reused") else ""
+        print(f"  {row['task']:10s} {row['shard']:6d} {row['seconds']:8.1f} "
+              f"{row['peak_rss_mib']:13.0f}{note}")
+    if args.json:
+        args.json.write_text(json.dumps({
+            "scene": args.scene, "atlas": args.atlas, "geometry_bytes": geo_bytes,
+            "fullest_tile": tile, "tile_samples": samples, "tasks": rows,
+            "max_rss_self_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "when": time.strftime("%Y-%m-%d %H:%M:%S")}, indent=2) + "\n")
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
