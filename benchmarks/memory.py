@@ -26,15 +26,16 @@ from pathlib import Path
 import numpy as np
 
 _CHILD = """
-import json, resource, sys, time
+import json, sys, time
 from pathlib import Path
 from schemas.settings import BakeSettings
 from texelbake.pipeline import run_shard
 work, usd, settings, stage, shard = sys.argv[1:6]
 t = time.perf_counter()
 key = run_shard(Path(work), Path(usd), BakeSettings.model_validate_json(settings), stage, int(shard))
+hwm = next(x for x in open("/proc/self/status") if x.startswith("VmHWM"))
 print(json.dumps({"seconds": time.perf_counter() - t, "key": key,
-                  "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                  "peak_rss_mib": int(hwm.split()[1]) / 1024}))
 """
 
 

@@ -1,0 +1,108 @@
+"""The artifact store's `.npz` files: streamed writes give the bytes of the in-memory zip they
+replaced, and a mapped read gives the arrays a plain read gives (issue 15, memory)."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+
+from texelbake.archive import zip_bytes
+from texelbake.errors import StageError
+from texelbake.store import MMAP_MIN_BYTES, ArtifactStore, npz_bytes, read_npz
+
+
+def _arrays() -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(4)
+    return {
+        "pos": rng.random((70_000, 3)),  # 1.7 MB: mapped
+        "fortran": np.asfortranarray(rng.random((400, 500))),  # 1.6 MB, F order: mapped
+        "ids": np.arange(300_000, dtype=np.int32),  # 1.2 MB: mapped
+        "small": np.arange(10, dtype=np.int64),  # read
+        "empty": np.zeros((0, 3)),
+        "flag": np.array(True),
+        "text": np.array('{"a": 1}'),
+    }
+
+
+def _zip_of_members(arrays: dict[str, np.ndarray]) -> bytes:
+    """The artifacts' bytes before they were streamed: every member's `.npy` bytes in memory,
+    then one zip (texelbake.archive.zip_bytes, stored, no permissions, sorted by name)."""
+    members = []
+    for name in sorted(arrays):
+        buf = io.BytesIO()
+        np.lib.format.write_array(buf, np.asanyarray(arrays[name]), allow_pickle=False)
+        members.append((f"{name}.npy", buf.getvalue()))
+    return zip_bytes(members, deflate=False, mode=None, sort=False)
+
+
+def test_streamed_npz_has_the_bytes_of_the_in_memory_zip(tmp_path):
+    arrays = _arrays()
+    expect = _zip_of_members(arrays)
+    assert npz_bytes(arrays) == expect
+    store = ArtifactStore(tmp_path)
+    store.write_arrays("a/b.npz", arrays)
+    assert store.path("a/b.npz").read_bytes() == expect
+    with np.load(store.path("a/b.npz")) as z:  # numpy reads it as its own
+        for name, arr in arrays.items():
+            np.testing.assert_array_equal(z[name], arr)
+
+
+@pytest.mark.parametrize("mmap", [False, True])
+def test_read_gives_the_arrays_written(tmp_path, mmap):
+    arrays = _arrays()
+    store = ArtifactStore(tmp_path)
+    store.write_arrays("k.npz", arrays)
+    got = store.read_arrays("k.npz", mmap=mmap)
+    assert sorted(got) == sorted(arrays)
+    for name, arr in arrays.items():
+        assert got[name].dtype == arr.dtype and got[name].shape == arr.shape, name
+        np.testing.assert_array_equal(got[name], arr)
+        assert type(got[name]) is np.ndarray
+        mapped = mmap and arr.nbytes >= MMAP_MIN_BYTES
+        assert got[name].flags.writeable is not mapped, name  # a mapped array is read-only
+    assert got["fortran"].flags.f_contiguous
+    only = store.read_arrays("k.npz", lambda n: n in ("pos", "flag"), mmap=mmap)
+    assert sorted(only) == ["flag", "pos"]
+
+
+def test_a_mapped_read_pays_for_the_pages_it_touches(tmp_path):
+    """A 400 MB member read mapped, one row of it touched, in a fresh process: its peak
+    resident set grows by far less than the member (read whole, it would grow by all of it)."""
+    store = ArtifactStore(tmp_path)
+    big = np.ones((50_000_000,))  # 400 MB
+    store.write_arrays("big.npz", {"big": big})
+    del big
+    # VmHWM, not ru_maxrss: Linux carries ru_maxrss over from the (large) parent across exec
+    code = (
+        "import sys; from pathlib import Path; from texelbake.store import read_npz\n"
+        "def hwm():\n"
+        "    line = next(x for x in open('/proc/self/status') if x.startswith('VmHWM'))\n"
+        "    return int(line.split()[1])\n"
+        "before = hwm()\n"
+        "a = read_npz(Path(sys.argv[1]), mmap=sys.argv[2] == '1')['big']\n"
+        "assert a[12_345_678] == 1.0\n"
+        "print((hwm() - before) / 1024)\n"
+    )
+    grow = {m: float(subprocess.run([sys.executable, "-c", code, str(store.path("big.npz")), m],
+                                    check=True, capture_output=True, text=True).stdout)
+            for m in ("1", "0")}
+    assert grow["1"] < 40.0  # MiB: a few pages and the interpreter's own noise
+    assert grow["0"] > 300.0  # the same read without the map holds the member
+
+
+def test_a_damaged_member_header_is_named(tmp_path):
+    store = ArtifactStore(tmp_path)
+    store.write_arrays("d.npz", {"pos": np.zeros((200_000, 3))})
+    p = store.path("d.npz")
+    with zipfile.ZipFile(p) as zf:
+        offset = zf.getinfo("pos.npy").header_offset
+    data = bytearray(p.read_bytes())
+    data[offset:offset + 4] = b"XXXX"
+    p.write_bytes(bytes(data))
+    with pytest.raises(StageError, match="pos.npy"):
+        read_npz(p, mmap=True)
