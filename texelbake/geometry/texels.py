@@ -188,7 +188,7 @@ def assign_texels(
         nrm = check_points(normals, "normals")
         if nrm.shape[0] != m:
             raise ShapeError(f"normals must be ({m}, 3) like sample_positions, got {nrm.shape}")
-    face_normals = m1.face_normals() if occluder is not None else None
+    face_normals = m1.face_normals()  # of M1: a few thousand faces
     prim = np.zeros(m, np.int64)
     bary = np.zeros((m, 3))
     uv = np.zeros((m, 2))
