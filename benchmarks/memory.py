@@ -47,12 +47,13 @@ def run_task(work: Path, usd: Path, settings, stage: str, shard: int) -> dict:  
 
 
 def fullest_tile(work: Path, geometry_key: str, atlas: int, side: int) -> tuple[int, int]:
+    from texelbake.cpm.level import texel_ids
     from texelbake.store import ArtifactStore
 
     geo = ArtifactStore(work / "artifacts").read_arrays(
         geometry_key, lambda n: n in ("sample_row", "sample_col"), mmap=True)
-    tile = (geo["sample_row"] // side) * (atlas // side) + geo["sample_col"] // side
-    counts = np.bincount(tile, minlength=(atlas // side) ** 2)
+    level = side.bit_length() - 1  # a tile of side^2 finest texels is one texel of this level
+    counts = np.bincount(texel_ids(geo, atlas, level), minlength=(atlas // side) ** 2)
     return int(np.argmax(counts)), int(counts.max())
 
 

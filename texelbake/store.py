@@ -9,7 +9,6 @@ the same arrays give the same bytes.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import struct
 import zipfile
@@ -61,13 +60,6 @@ def write_npz(f: BinaryIO, arrays: Mapping[str, Any]) -> None:
             info.file_size = arr.nbytes + _NPY_HEADER_BOUND  # rewritten with the real size
             with zf.open(info, "w") as dest:
                 np.lib.format.write_array(dest, arr, allow_pickle=False)
-
-
-def npz_bytes(arrays: Mapping[str, Any]) -> bytes:
-    """The bytes `write_npz` writes, in memory (small artifacts, tests)."""
-    buf = io.BytesIO()
-    write_npz(buf, arrays)
-    return buf.getvalue()
 
 
 def read_npz(path: Path, names: Callable[[str], bool] | None = None, *, mmap: bool = False
