@@ -14,6 +14,8 @@ from texelbake.geometry.sampling import (
     allocate_counts,
     sample_surface,
     square_to_triangle,
+    stratified_unit_square,
+    surface_sampler,
 )
 
 
@@ -188,3 +190,22 @@ def test_bad_corner_normals_fall_back_to_geometric():
     cn[0] = np.nan  # and NaN on face 0
     s = sample_surface(v, f, 64, seed=0, corner_normals=cn)
     np.testing.assert_array_equal(s.normals, np.tile([0.0, 0.0, 1.0], (len(s), 1)))
+
+
+def test_chunked_sampler_draws_the_one_shot_stratified_set(bumpy):
+    """`SurfaceSampler.chunks` draws the jitters a chunk at a time from one PCG64 stream (the
+    geometry stage spools 16.8 M samples at 512²): its barycentrics equal those of the
+    one-shot `stratified_unit_square` over all counts, for chunks of 1, 37 and everything,
+    and Σ ΔA is the sampler's per-triangle total."""
+    v, f = bumpy
+    sampler = surface_sampler(v, f, 3_000, seed=5)
+    expect = square_to_triangle(stratified_unit_square(sampler.counts,
+                                                       np.random.default_rng(5)))
+    for chunk in (1, 37, sampler.m):
+        parts = list(sampler.chunks(chunk))
+        assert [a for a, _ in parts] == list(range(0, sampler.m, chunk))
+        bary = np.concatenate([p.bary for _, p in parts])
+        assert bary.tobytes() == expect.tobytes(), chunk
+    area = np.concatenate([p.area for _, p in sampler.chunks(100)])
+    assert area.sum() == pytest.approx(sampler.total_area, rel=1e-12)
+    assert sampler.total_area == pytest.approx(Mesh(v, f).area(), rel=1e-12)

@@ -14,6 +14,7 @@ from texelbake.geometry.mesh import Mesh
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import sample_surface
 from texelbake.geometry.texels import (
+    FrameSums,
     assign_texels,
     bilinear_texels,
     texel_centers_uv,
@@ -306,3 +307,20 @@ def test_bent_normal_rule_sends_a_gap_wall_to_the_sheet_it_is_seen_through():
     parts = assign_texels(pts, m1, atlas, 1, normals=nrm, occluder=org, chunk=37)
     for name in ("prim", "bary", "uv", "distance", "row", "col"):
         assert np.array_equal(getattr(parts, name), getattr(bent, name)), name
+
+
+def test_frame_sums_in_chunks_are_the_one_pass_frames(sphere):
+    """The geometry stage's pass over spooled samples (issue 15, memory): `FrameSums` fed
+    chunks of 777 samples in order gives `texel_frames`' frames and flags bit for bit at every
+    level, the nearest-sample fallback (texels whose centre has no M1 face) included."""
+    _, _, m1, atlas, s, a = sphere
+    for level in range(LEVELS):
+        one, valid = texel_frames(a, s.normals, s.area, m1, atlas, level)
+        acc = FrameSums(atlas, N >> level)
+        assert (acc.under < 0).any()  # the fallback is exercised
+        for i in range(0, len(s), 777):
+            sl = slice(i, i + 777)
+            acc.add(a.row[sl] >> level, a.col[sl] >> level, s.normals[sl], s.area[sl],
+                    a.uv[sl], a.prim[sl])
+        frames, valid2 = acc.frames(atlas)
+        assert np.array_equal(valid, valid2) and frames.tobytes() == one.tobytes(), level

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from texelbake.archive import zip_bytes
-from texelbake.errors import StageError
+from texelbake.errors import ShapeError, StageError
+from texelbake.spool import FileSpool, spooled_file
 from texelbake.store import MMAP_MIN_BYTES, ArtifactStore, read_npz, write_npz
 
 
@@ -108,3 +109,32 @@ def test_a_damaged_member_header_is_named(tmp_path):
     p.write_bytes(bytes(data))
     with pytest.raises(StageError, match="pos.npy"):
         read_npz(p, mmap=True)
+
+
+def test_a_spooled_array_is_copied_with_the_bytes_of_the_array(tmp_path):
+    """A `FileSpool` array (the geometry stage's samples, filled a block of rows at a time)
+    goes into an `.npz` with the bytes the same array in memory gives; a view of its file
+    under another shape, a slice or a reversed view is written as an ordinary array."""
+    rng = np.random.default_rng(7)
+    arrays = {"pos": rng.random((5_000, 3)), "ids": np.arange(7_001, dtype=np.int32)}
+    spool = FileSpool(tmp_path / "spool")
+    for name, arr in arrays.items():
+        spool.allocate(name, arr.dtype, arr.shape)
+        for a in range(0, len(arr), 999):
+            spool.write(name, a, arr[a:a + 999])
+        np.testing.assert_array_equal(spool.read(name, 1000, 3000), arr[1000:3000])
+    got = spool.arrays()
+    assert all(spooled_file(v) is not None for v in got.values())
+    buf = io.BytesIO()
+    write_npz(buf, got)
+    assert buf.getvalue() == _zip_of_members(arrays)
+    views = {"flat": got["pos"].reshape(-1), "half": got["pos"][:2500],
+             "back": got["ids"][::-1]}
+    assert all(spooled_file(v) is None for v in views.values())
+    buf = io.BytesIO()
+    write_npz(buf, views)
+    assert buf.getvalue() == _zip_of_members({k: np.array(v) for k, v in views.items()})
+    with pytest.raises(ShapeError, match="pos"):
+        spool.write("pos", 4_999, arrays["pos"][:2])
+    spool.close()
+    assert not (tmp_path / "spool").exists() or not any((tmp_path / "spool").iterdir())

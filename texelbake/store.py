@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import struct
 import zipfile
 from collections.abc import Callable, Iterator, Mapping
@@ -21,6 +22,7 @@ import numpy as np
 from texelbake.archive import EPOCH
 from texelbake.atomic import atomic_path, atomic_write_bytes
 from texelbake.errors import StageError
+from texelbake.spool import spooled_file
 
 
 def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -36,6 +38,8 @@ def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
 #: (numpy pads it to a multiple of 64 bytes; a few hundred for any shape we store) lets
 #: `write_npz` decide zip64 as `ZipFile.writestr` does from the real size
 _NPY_HEADER_BOUND = 4096
+#: bytes per read when a spooled member is copied into an `.npz`
+_COPY_BLOCK = 16 << 20
 #: members smaller than this are read into memory by `read_npz(mmap=True)`, not mapped
 MMAP_MIN_BYTES = 1 << 20
 
@@ -51,15 +55,23 @@ def _npz_members(arrays: Mapping[str, Any]) -> Iterator[tuple[str, np.ndarray]]:
 def write_npz(f: BinaryIO, arrays: Mapping[str, Any]) -> None:
     """Deterministic `.npz` (sorted keys, fixed timestamps, no compression) written to the
     seekable binary file `f`, each array streamed by numpy's own writer in 16 MiB pieces: a
-    stage's arrays are never held twice (a 512^2 geometry artifact is 2.5 GB). The bytes are
-    those `zip_bytes` gives for the same members (a test holds it)."""
+    stage's arrays are never held twice (a 512^2 geometry artifact is 2.5 GB); a member that
+    is a `texelbake.spool.FileSpool` array is copied from its file. The bytes are those
+    `zip_bytes` gives for the same members (a test holds it)."""
     with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
         for name, arr in _npz_members(arrays):
             info = zipfile.ZipInfo(name, date_time=EPOCH)
             info.compress_type = zipfile.ZIP_STORED
             info.file_size = arr.nbytes + _NPY_HEADER_BOUND  # rewritten with the real size
+            spooled = spooled_file(arr)
             with zf.open(info, "w") as dest:
-                np.lib.format.write_array(dest, arr, allow_pickle=False)
+                if spooled is None:
+                    np.lib.format.write_array(dest, arr, allow_pickle=False)
+                else:
+                    # a `.npy` file of texelbake.spool: its bytes are what write_array would
+                    # write (same header); copied by reads, its pages never enter this process
+                    with open(spooled[0], "rb") as src:
+                        shutil.copyfileobj(src, dest, _COPY_BLOCK)
 
 
 def read_npz(path: Path, names: Callable[[str], bool] | None = None, *, mmap: bool = False

@@ -17,13 +17,15 @@ from texelbake.geometry.hierarchy import enclose, n_parts, needs_wrap, simplify_
 from texelbake.geometry.lodchain import build_lod_chain, hausdorff
 from texelbake.geometry.mesh import Mesh, bbox_diagonal, compact, weld
 from texelbake.geometry.raycast import RayCaster
-from texelbake.geometry.sampling import sample_surface
-from texelbake.geometry.texels import assign_texels, texel_frames
+from texelbake.geometry.sampling import SurfaceSampler, surface_sampler
+from texelbake.geometry.texels import FrameSums, assign_rows, uv_to_texel
 from texelbake.model import AssetModel
+from texelbake.spool import FileSpool, MemorySpool
 
 
 def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
-                   n_levels: int) -> dict[str, np.ndarray]:
+                   n_levels: int, spool: MemorySpool | FileSpool | None = None
+                   ) -> dict[str, np.ndarray]:
     """The geometry stage's arrays: the LOD meshes, the atlas mesh M_T (the CPM's domain),
     dense samples on M_org with their texel (row, col) at the finest level, and the texel
     frames of every mip level.
@@ -37,15 +39,22 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
     n_levels : mip levels (log2 N + 1). returns : sample_* (m, ...) arrays, m1_* (M_T with
     corner uvs), lod{i}_* (LOD i: vertices, faces, corner_uvs, one_chart), lod_exact (LOD1 is
     M_T), lod_report (JSON), frames_L{l} (N_l^2, 3, 3) and frames_valid_L{l}.
+    spool : where the sample_* arrays are made, a chunk of samples at a time
+    (`geometry_chunk`): a `FileSpool` keeps them on disk (the stage: memory bounded by
+    settings.worker_memory_mb whatever the atlas size), None or a `MemorySpool` in memory.
+    The arrays do not depend on the spool or the chunk.
     """
     s = settings
     n = s.atlas_resolution
-    samples = sample_surface(
+    spool = MemorySpool() if spool is None else spool
+    sampler = surface_sampler(
         asset.points, asset.faces, n * n * s.samples_per_texel, s.seed,
         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
         face_material=asset.face_material,
     )
-    probe = samples.positions[:: max(1, samples.positions.shape[0] // 200_000)]
+    chunk = geometry_chunk(s)
+    probes = _spool_samples(sampler, asset, spool, chunk, (200_000, 20_000))
+    probe = probes[200_000]
     atlas = None
     wrap_offset = None
     lod_exact = True
@@ -53,7 +62,7 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
         chain = build_lod_chain(
             asset.points, asset.faces, s.lod_switch_px[: s.mesh_levels], s.lod_error_px,
             enclose_meshes=s.enclose_meshes,
-            probe=samples.positions[:: max(1, samples.positions.shape[0] // 20_000)],
+            probe=probes[20_000],
             seed=s.seed,
         )
         lods = [lv.mesh for lv in chain.levels]
@@ -72,33 +81,21 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
     report["atlas_mesh"] = {"triangles": int(atlas.mesh.num_faces), "is_lod1": bool(lod_exact),
                             "atlas_resolution": int(n),
                             "atlas_resolution_for_lod1": _resolution_needed(
-                                float(samples.area.sum()), bbox_diagonal(asset.points),
+                                sampler.total_area, bbox_diagonal(asset.points),
                                 report["levels"][0].get("switch_px")),
-                            "cpm_max_px": _cpm_max_px(float(samples.area.sum()),
+                            "cpm_max_px": _cpm_max_px(sampler.total_area,
                                                       bbox_diagonal(asset.points), n)}
     if not lod_exact:
         report["notes"] = [*report.get("notes", []), (
             f"LOD1 ({lods[0].num_faces} triangles) does not fit a {n}x{n} atlas: the CPM "
             f"maps are built on a {atlas.mesh.num_faces}-triangle M_T and every LOD is mapped "
             f"into them by closest point")]
-    gnrm = asset.face_normals()[samples.face]
     # a wrap has a sheet on each side of thin parts: samples take the one they are seen
     # through (the bent-normal rule); QEM meshes keep the seed's closest point
     occluder = caster if wrap_offset is not None else None
-    assignment = assign_texels(samples.positions, atlas.mesh, atlas, n_levels,
-                               normals=gnrm, occluder=occluder)
+    frame_sums = _assign_spooled(spool, sampler.m, atlas, n_levels, occluder, chunk)
     out: dict[str, np.ndarray] = {
-        "sample_pos": samples.positions,
-        "sample_nrm": samples.normals,
-        "sample_gnrm": gnrm,
-        "sample_face": samples.face,
-        "sample_uv": samples.uv,
-        "sample_mat": samples.material.astype(np.int32),
-        "sample_area": samples.area,
-        "sample_row": assignment.row,
-        "sample_col": assignment.col,
-        "sample_atlas_uv": assignment.uv,
-        "sample_m1_prim": assignment.prim,
+        **spool.arrays(),
         "m1_vertices": atlas.mesh.vertices,
         "m1_faces": atlas.mesh.faces,
         "m1_corner_uvs": atlas.corner_uvs,
@@ -106,12 +103,8 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
         "lod_exact": np.array(lod_exact),
         "lod_report": np.array(json.dumps(report, sort_keys=True)),
     }
-    for level in range(n_levels):
-        frames, valid = texel_frames(
-            assignment, samples.normals, samples.area, atlas.mesh, atlas, level
-        )
-        out[f"frames_L{level}"] = frames
-        out[f"frames_valid_L{level}"] = valid
+    for level, sums in enumerate(frame_sums):
+        out[f"frames_L{level}"], out[f"frames_valid_L{level}"] = sums.frames(atlas)
     for i, mesh in enumerate(lods, start=1):
         if i == 1 and lod_exact:
             mesh, uvs, one = atlas.mesh, atlas.corner_uvs, np.ones(atlas.mesh.num_faces, bool)
@@ -126,6 +119,76 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
 
 #: fraction of the page xatlas' charts cover (geometry.atlas: ~40-45 % measured)
 CHART_COVER = 0.4
+
+
+#: the geometry stage's working bytes per sample in a chunk (the sample's attributes, the
+#: closest-point and bent-normal temporaries of `assign_rows`, the frame sums' gathers)
+GEOMETRY_BYTES_PER_SAMPLE = 1024
+
+
+def geometry_chunk(s: BakeSettings) -> int:
+    """Samples the geometry stage takes at a time under settings.worker_memory_mb."""
+    return int(np.clip(int(s.worker_memory_mb) * 2**20 // 4 // GEOMETRY_BYTES_PER_SAMPLE,
+                       1 << 14, 1 << 22))
+
+
+#: the per-sample arrays of the geometry artifact, written by the two passes below
+_SAMPLE_ARRAYS = {
+    "sample_pos": (np.float64, (3,)), "sample_nrm": (np.float64, (3,)),
+    "sample_gnrm": (np.float64, (3,)), "sample_face": (np.int64, ()),
+    "sample_uv": (np.float64, (2,)), "sample_mat": (np.int32, ()),
+    "sample_area": (np.float64, ()),
+}
+_ASSIGN_ARRAYS = {
+    "sample_row": (np.int64, ()), "sample_col": (np.int64, ()),
+    "sample_atlas_uv": (np.float64, (2,)), "sample_m1_prim": (np.int64, ()),
+}
+
+
+def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int,
+                   probe_sizes: tuple[int, ...]) -> dict[int, np.ndarray]:
+    """First pass: the samples into the spool, a chunk at a time; returns, per size p, every
+    (m // p)-th sample position (the probes the LOD chain and the atlas search measure on)."""
+    m = sampler.m
+    for name, (dt, tail) in _SAMPLE_ARRAYS.items():
+        spool.allocate(name, dt, (m, *tail))
+    face_n = asset.face_normals()
+    strides = {p: max(1, m // p) for p in probe_sizes}
+    probes: dict[int, list[np.ndarray]] = {p: [] for p in probe_sizes}
+    for a, smp in sampler.chunks(chunk):  # loop over chunks (memory bound)
+        for name, arr in (("sample_pos", smp.positions), ("sample_nrm", smp.normals),
+                          ("sample_gnrm", face_n[smp.face]), ("sample_face", smp.face),
+                          ("sample_uv", smp.uv), ("sample_mat", smp.material),
+                          ("sample_area", smp.area)):
+            spool.write(name, a, arr)
+        for p, st in strides.items():  # global ids 0, st, 2 st, ... that fall in the chunk
+            probes[p].append(smp.positions[(-a) % st::st])
+    return {p: np.concatenate(v) if v else np.zeros((0, 3)) for p, v in probes.items()}
+
+
+def _assign_spooled(spool, m: int, atlas, n_levels: int, occluder: RayCaster | None,
+                    chunk: int) -> list[FrameSums]:
+    """Second pass: each spooled sample's texel by `assign_rows` (seed 000 §4.1's closest
+    point, with the own-side and bent-normal rules), written back to the spool, and the
+    texel-frame sums of every level, a chunk at a time."""
+    for name, (dt, tail) in _ASSIGN_ARRAYS.items():
+        spool.allocate(name, dt, (m, *tail))
+    n = int(atlas.resolution)
+    m1_caster = RayCaster(atlas.mesh.vertices, atlas.mesh.faces)
+    m1_normals = atlas.mesh.face_normals()
+    sums = [FrameSums(atlas, n >> level) for level in range(n_levels)]
+    for a in range(0, m, chunk):  # loop over chunks (memory bound)
+        b = min(a + chunk, m)
+        pts, gnrm = spool.read("sample_pos", a, b), spool.read("sample_gnrm", a, b)
+        prim, _, uv, _ = assign_rows(pts, gnrm, atlas, m1_caster, occluder, m1_normals)
+        row, col = uv_to_texel(uv, n)
+        for name, arr in (("sample_row", row), ("sample_col", col), ("sample_atlas_uv", uv),
+                          ("sample_m1_prim", prim)):
+            spool.write(name, a, arr)
+        nrm, area = spool.read("sample_nrm", a, b), spool.read("sample_area", a, b)
+        for level, acc in enumerate(sums):  # a handful of mip levels
+            acc.add(row >> level, col >> level, nrm, area, uv, prim)
+    return sums
 
 
 def _resolution_needed(area: float, diag: float, switch_px: float | None) -> int | None:

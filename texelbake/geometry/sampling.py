@@ -10,6 +10,7 @@ floating-point summation.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,16 +132,118 @@ def stratified_unit_square(counts: np.ndarray, rng: np.random.Generator) -> np.n
     starts = np.cumsum(counts) - counts
     tri = np.repeat(np.arange(counts.shape[0]), counts)  # (m,)
     k = np.arange(m, dtype=np.int64) - starts[tri]  # index inside the triangle
-    c = counts[tri].astype(np.float64)
     shift = np.asarray(rng.random(counts.shape[0]))[tri]
-    jitter = rng.random(m)
-    u1 = (k + jitter) / c
+    return _stratified(k, counts[tri], shift, rng.random(m))
+
+
+def _stratified(k: np.ndarray, c: np.ndarray, shift: np.ndarray, jitter: np.ndarray
+                ) -> np.ndarray:
+    """Point k of a triangle with c points, its triangle's shift and its own jitter."""
+    u1 = (k + jitter) / c.astype(np.float64)
     u2 = np.mod(shift + k * _GOLDEN, 1.0)
     return np.column_stack([np.minimum(u1, np.nextafter(1.0, 0.0)), u2])
 
 
 #: samples whose attributes `sample_surface` computes at a time
 SAMPLE_CHUNK = 1 << 20
+
+
+class SurfaceSampler:
+    """The samples of `sample_surface`, made a chunk of consecutive samples at a time.
+
+    Every sample depends only on its triangle, its index inside the triangle, its triangle's
+    shift and its own jitter; the jitters are one PCG64 stream drawn in sample order, so any
+    chunking gives the same samples bit for bit (a test holds it). m : the sample count;
+    total_area : Σ ΔA_j, the area of the sampled triangles (summed per triangle, not per
+    sample, so it does not depend on the chunking either)."""
+
+    def __init__(self, pts, fcs, counts, areas, seed, corner_normals, corner_uvs,
+                 face_material) -> None:
+        self.pts, self.fcs, self.counts, self.areas = pts, fcs, counts, areas
+        self.corner_normals, self.corner_uvs = corner_normals, corner_uvs
+        self.face_material = face_material
+        self.seed = int(seed)
+        self.m = int(counts.sum())
+        self.total_area = float(areas[counts > 0].sum())
+
+    def chunks(self, chunk: int = SAMPLE_CHUNK) -> Iterator[tuple[int, Samples]]:
+        """(first sample id, Samples) for consecutive blocks of at most `chunk` samples."""
+        if self.m == 0:
+            return
+        pts, fcs, counts = self.pts, self.fcs, self.counts
+        rng = np.random.default_rng(self.seed)
+        shift = np.asarray(rng.random(counts.shape[0]))  # (f,) one per triangle, then jitters
+        ends = np.cumsum(counts)
+        starts = ends - counts
+        face_geo = face_normals(pts, fcs)  # (f, 3); sampled faces are nondegenerate: unit
+        share = self.areas / np.maximum(counts, 1)
+        for a in range(0, self.m, int(chunk)):  # loop over chunks (memory bound)
+            b = min(a + int(chunk), self.m)
+            j = np.arange(a, b, dtype=np.int64)
+            fa = np.searchsorted(ends, j, side="right")  # (k,) = np.repeat(range(f), counts)
+            bary = square_to_triangle(
+                _stratified(j - starts[fa], counts[fa], shift[fa], rng.random(b - a)))
+            yield a, self._attributes(fa, bary, face_geo, share)
+
+    def _attributes(self, fa, ba, face_geo, share) -> Samples:
+        pts, corner = self.pts, self.fcs[fa]  # (k, 3) vertex ids; per-corner sums keep
+        positions = (  # temporaries at (k, 3)
+            ba[:, 0:1] * pts[corner[:, 0]]
+            + ba[:, 1:2] * pts[corner[:, 1]]
+            + ba[:, 2:3] * pts[corner[:, 2]]
+        )
+        geo = face_geo[fa]
+        if self.corner_normals is None:
+            normals = geo
+        else:
+            cn = self.corner_normals[fa]  # (k, 3, 3)
+            interp = ba[:, 0:1] * cn[:, 0] + ba[:, 1:2] * cn[:, 1] + ba[:, 2:3] * cn[:, 2]
+            length = np.linalg.norm(interp, axis=1, keepdims=True)
+            good = (length[:, 0] > TOL.brdf_eps) & np.isfinite(length[:, 0])
+            normals = np.where(good[:, None],
+                               interp / np.where(good, length[:, 0], 1.0)[:, None], geo)
+        uv = (np.einsum("mk,mkd->md", ba, self.corner_uvs[fa]) if self.corner_uvs is not None
+              else np.zeros((len(fa), 2)))
+        material = (np.zeros(len(fa), np.int32) if self.face_material is None
+                    else self.face_material[fa])
+        return Samples(positions, normals, fa.astype(np.int64), ba, uv, material, share[fa])
+
+
+def surface_sampler(
+    points: object,
+    faces: object,
+    n_samples: int,
+    seed: int,
+    *,
+    corner_normals: object | None = None,
+    corner_uvs: object | None = None,
+    face_material: object | None = None,
+    eps: float = TOL.zero_area,
+) -> SurfaceSampler:
+    """`sample_surface`'s samples as a `SurfaceSampler` (same arguments, checked here)."""
+    pts = check_points(points)
+    fcs = check_faces(faces, pts.shape[0])
+    f = fcs.shape[0]
+    if corner_normals is not None:
+        corner_normals = np.asarray(corner_normals, dtype=np.float64)
+        if corner_normals.shape != (f, 3, 3):
+            raise ShapeError(f"corner_normals must be ({f}, 3, 3), got {corner_normals.shape}")
+    if corner_uvs is not None:
+        corner_uvs = np.asarray(corner_uvs, dtype=np.float64)
+        if corner_uvs.shape != (f, 3, 2):
+            raise ShapeError(f"corner_uvs must be ({f}, 3, 2), got {corner_uvs.shape}")
+    if face_material is not None:
+        face_material = np.asarray(face_material)
+        if face_material.shape != (f,):
+            raise ShapeError(f"face_material must be ({f},), got {face_material.shape}")
+        face_material = face_material.astype(np.int32)
+    if f == 0 or int(n_samples) <= 0:
+        counts, areas = np.zeros(f, np.int64), np.zeros(f)
+    else:
+        areas = triangle_areas(pts, fcs)  # (f,)
+        counts = allocate_counts(areas, int(n_samples), eps * bbox_diagonal(pts) ** 2)
+    return SurfaceSampler(pts, fcs, counts, areas, seed, corner_normals, corner_uvs,
+                          face_material)
 
 
 def sample_surface(
@@ -167,65 +270,16 @@ def sample_surface(
     corner_uvs : (f, 3, 2) float64 or None
     face_material : (f,) int32 or None
     chunk : samples whose attributes are computed at a time (memory only: the result does
-        not depend on it)
+        not depend on it; `surface_sampler` gives the chunks without the whole)
     returns : Samples, grouped by triangle in face order; ΔA of a triangle's samples is
         its area / its count. Empty (typed) when nothing has area or n_samples <= 0.
     """
-    pts = check_points(points)
-    fcs = check_faces(faces, pts.shape[0])
-    f = fcs.shape[0]
-    if corner_normals is not None:
-        corner_normals = np.asarray(corner_normals, dtype=np.float64)
-        if corner_normals.shape != (f, 3, 3):
-            raise ShapeError(f"corner_normals must be ({f}, 3, 3), got {corner_normals.shape}")
-    if corner_uvs is not None:
-        corner_uvs = np.asarray(corner_uvs, dtype=np.float64)
-        if corner_uvs.shape != (f, 3, 2):
-            raise ShapeError(f"corner_uvs must be ({f}, 3, 2), got {corner_uvs.shape}")
-    if face_material is not None:
-        face_material = np.asarray(face_material)
-        if face_material.shape != (f,):
-            raise ShapeError(f"face_material must be ({f},), got {face_material.shape}")
-        face_material = face_material.astype(np.int32)
-    if f == 0 or int(n_samples) <= 0:
+    sampler = surface_sampler(points, faces, n_samples, seed, corner_normals=corner_normals,
+                              corner_uvs=corner_uvs, face_material=face_material, eps=eps)
+    parts = [smp for _, smp in sampler.chunks(chunk)]
+    if not parts:
         return empty_samples()
-
-    areas = triangle_areas(pts, fcs)  # (f,)
-    eps_area = eps * bbox_diagonal(pts) ** 2
-    counts = allocate_counts(areas, int(n_samples), eps_area)  # (f,)
-    m = int(counts.sum())
-    if m == 0:
-        return empty_samples()
-    rng = np.random.default_rng(seed)
-    bary = square_to_triangle(stratified_unit_square(counts, rng))  # (m, 3)
-    face = np.repeat(np.arange(f, dtype=np.int64), counts)  # (m,)
-    face_geo = face_normals(pts, fcs)  # (f, 3); sampled faces are nondegenerate: unit
-    positions = np.empty((m, 3))
-    normals = np.empty((m, 3))
-    uv = np.zeros((m, 2))
-    # every sample's attributes depend on that sample only: computed `chunk` samples at a time,
-    # so the (k, 3, 3) corner gathers stay bounded whatever the atlas size (issue 15, memory)
-    for a in range(0, m, int(chunk)):
-        b = min(a + int(chunk), m)
-        fa, ba = face[a:b], bary[a:b]
-        corner = fcs[fa]  # (k, 3) vertex ids; per-corner sums keep temporaries at (k, 3)
-        positions[a:b] = (
-            ba[:, 0:1] * pts[corner[:, 0]]
-            + ba[:, 1:2] * pts[corner[:, 1]]
-            + ba[:, 2:3] * pts[corner[:, 2]]
-        )
-        geo = face_geo[fa]
-        if corner_normals is None:
-            normals[a:b] = geo
-        else:
-            cn = corner_normals[fa]  # (k, 3, 3)
-            interp = ba[:, 0:1] * cn[:, 0] + ba[:, 1:2] * cn[:, 1] + ba[:, 2:3] * cn[:, 2]
-            length = np.linalg.norm(interp, axis=1, keepdims=True)
-            good = (length[:, 0] > TOL.brdf_eps) & np.isfinite(length[:, 0])
-            normals[a:b] = np.where(good[:, None],
-                                    interp / np.where(good, length[:, 0], 1.0)[:, None], geo)
-        if corner_uvs is not None:
-            uv[a:b] = np.einsum("mk,mkd->md", ba, corner_uvs[fa])
-    material = np.zeros(m, np.int32) if face_material is None else face_material[face]
-    area = (areas / np.maximum(counts, 1))[face]
-    return Samples(positions, normals, face, bary, uv, material, area)
+    if len(parts) == 1:
+        return parts[0]
+    return Samples(*(np.concatenate([getattr(p, k) for p in parts]) for k in
+                     ("positions", "normals", "face", "bary", "uv", "material", "area")))

@@ -198,18 +198,8 @@ def assign_texels(
     # atlas size (issue 15, memory), with the result of one pass over all
     for a in range(0, m, int(chunk)):
         b = min(a + int(chunk), m)
-        p = pts[a:b]
-        closest, pr, bary2 = caster.closest_points(p)
-        ba = np.column_stack([1.0 - bary2[:, 0] - bary2[:, 1], bary2])  # (k, 3)
-        if nrm is not None:
-            n_unit = nrm[a:b] / np.maximum(np.linalg.norm(nrm[a:b], axis=1, keepdims=True), 1e-300)
-            closest, pr, ba = _own_side(p, n_unit, closest, pr, ba, caster)
-            if occluder is not None:
-                closest, pr, ba = _bent_side(p, n_unit, closest, pr, ba, caster, occluder,
-                                             face_normals)
-        prim[a:b], bary[a:b] = pr, ba
-        uv[a:b] = np.einsum("mk,mkd->md", ba, atlas.corner_uvs[pr])
-        distance[a:b] = np.linalg.norm(closest - p, axis=1)
+        prim[a:b], bary[a:b], uv[a:b], distance[a:b] = assign_rows(
+            pts[a:b], None if nrm is None else nrm[a:b], atlas, caster, occluder, face_normals)
     row, col = uv_to_texel(uv, n)
     offsets = []
     for level in range(n_levels):  # a handful of mip levels
@@ -228,6 +218,24 @@ def assign_texels(
         col=col,
         offsets=tuple(offsets),
     )
+
+
+def assign_rows(p: np.ndarray, nrm: np.ndarray | None, atlas: Atlas, caster: RayCaster,
+                occluder: RayCaster | None, face_normals: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`assign_texels`' rules for the samples `p` (k, 3) with their normals (or None): (prim,
+    bary (k, 3), atlas uv (k, 2), distance) of each. Each row depends on its sample only.
+    caster : over atlas.mesh; face_normals : of atlas.mesh."""
+    closest, pr, bary2 = caster.closest_points(p)
+    ba = np.column_stack([1.0 - bary2[:, 0] - bary2[:, 1], bary2])  # (k, 3)
+    if nrm is not None:
+        n_unit = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        closest, pr, ba = _own_side(p, n_unit, closest, pr, ba, caster)
+        if occluder is not None:
+            closest, pr, ba = _bent_side(p, n_unit, closest, pr, ba, caster, occluder,
+                                         face_normals)
+    uv = np.einsum("mk,mkd->md", ba, atlas.corner_uvs[pr])
+    return pr, ba, uv, np.linalg.norm(closest - p, axis=1)
 
 
 #: a closest point further than this from a sample's normal lies behind its surface
@@ -374,41 +382,74 @@ def texel_frames(
         raise ShapeError(
             f"m1 has {m1.num_faces} faces but the atlas mesh has {atlas.mesh.num_faces}"
         )
-    n_l = assignment.resolution_at(level)
-    n_tex = n_l * n_l
-    idx = assignment.texel_index(level)  # (m,)
-    nsum = np.stack(
-        [np.bincount(idx, weights=w * nrm[:, k], minlength=n_tex) for k in range(3)], axis=1
-    ).astype(np.float64)  # (N_ℓ², 3); bincount of nothing is int64
-    length = np.linalg.norm(nsum, axis=1)
-    wsum = np.bincount(idx, weights=np.abs(w), minlength=n_tex)
-    counts = assignment.counts(level)
-    valid = (counts > 0) & (length > TOL.grazing_cos * wsum) & (length > 0)
+    acc = FrameSums(atlas, assignment.resolution_at(level))
+    acc.add(assignment.row >> level, assignment.col >> level, nrm, w, assignment.uv,
+            assignment.prim)
+    return acc.frames(atlas)
 
-    face_tangent, tangent_ok = face_uv_tangents(atlas)
-    face_normal = atlas.mesh.face_normals()
-    under, _, _ = rasterize_atlas(atlas.corner_uvs, n_l)  # (N_ℓ²,) M1 face under centre
-    # fallback face where no face lies under the centre: the texel's sample nearest to the
-    # texel centre in uv (only those texels' samples are sorted: at 512² sorting all 16.8 M
-    # was the geometry stage's peak, issue 15)
-    centres = texel_centers_uv(n_l)
-    nearest_face = np.full(n_tex, -1, dtype=np.int64)
-    sel = np.flatnonzero(under[idx] < 0)  # ascending sample ids
-    if sel.size:
-        isel = idx[sel]
-        dist = np.linalg.norm(assignment.uv[sel] - centres[isel], axis=1)
-        order = np.lexsort((sel, dist, isel))
-        first = np.ones(sel.size, dtype=bool)
-        first[1:] = isel[order][1:] != isel[order][:-1]
-        nearest_face[isel[order][first]] = assignment.prim[sel][order][first]
-    face = np.where(under >= 0, under, nearest_face)  # (N_ℓ²,)
-    has_face = face >= 0
-    safe_face = np.where(has_face, face, 0)
 
-    n_out = np.where(
-        valid[:, None],
-        np.divide(nsum, length[:, None], out=np.zeros_like(nsum), where=length[:, None] > 0),
-        np.where(has_face[:, None], face_normal[safe_face], 0.0),
-    )
-    t_in = np.where((has_face & tangent_ok[safe_face])[:, None], face_tangent[safe_face], 0.0)
-    return tangent_frames(n_out, t_in), valid
+class FrameSums:
+    """`texel_frames` of one level, accumulated over consecutive chunks of samples (the
+    geometry stage's pass over a spooled 512² sample set). Sums over a texel's samples are
+    continued across chunks in sample order (the running sums enter each chunk's bincount
+    first), so any chunking gives the one-pass result bit for bit."""
+
+    def __init__(self, atlas: Atlas, n_l: int) -> None:
+        self.n_l = int(n_l)
+        n_tex = self.n_l * self.n_l
+        self.nsum = np.zeros((n_tex, 3))
+        self.wsum = np.zeros(n_tex)
+        self.counts = np.zeros(n_tex, np.int64)
+        self.under, _, _ = rasterize_atlas(atlas.corner_uvs, self.n_l)  # M1 face under centre
+        self.centres = texel_centers_uv(self.n_l)
+        # fallback where no face lies under the centre: of the texel's samples, the one
+        # nearest the centre in uv (ties: the lowest sample id); only those texels' samples
+        # are looked at (sorting all 16.8 M at 512² was the geometry stage's peak, issue 15)
+        self.best_dist = np.full(n_tex, np.inf)
+        self.nearest_face = np.full(n_tex, -1, dtype=np.int64)
+
+    def add(self, row: np.ndarray, col: np.ndarray, nrm: np.ndarray, w: np.ndarray,
+            uv: np.ndarray, prim: np.ndarray) -> None:
+        """The next chunk of samples (chunks come in sample order): their texel row, col at
+        this level, shading normals, ΔA, atlas uv and M1 triangle."""
+        n_tex = self.n_l * self.n_l
+        idx = row * self.n_l + col
+        ext = np.concatenate([np.arange(n_tex, dtype=np.int64), idx])
+        for k in range(3):  # x, y, z
+            self.nsum[:, k] = np.bincount(ext, weights=np.concatenate([self.nsum[:, k],
+                                                                         w * nrm[:, k]]),
+                                          minlength=n_tex)
+        self.wsum[:] = np.bincount(ext, weights=np.concatenate([self.wsum, np.abs(w)]),
+                                   minlength=n_tex)
+        self.counts += np.bincount(idx, minlength=n_tex)
+        sel = np.flatnonzero(self.under[idx] < 0)  # ascending in the chunk
+        if sel.size:
+            isel = idx[sel]
+            dist = np.linalg.norm(uv[sel] - self.centres[isel], axis=1)
+            order = np.lexsort((sel, dist, isel))
+            head = np.ones(sel.size, dtype=bool)
+            head[1:] = isel[order][1:] != isel[order][:-1]
+            t, d = isel[order][head], dist[order][head]
+            # an earlier chunk's sample keeps a tie: its id is lower
+            better = d < self.best_dist[t]
+            self.best_dist[t[better]] = d[better]
+            self.nearest_face[t[better]] = prim[sel][order][head][better]
+
+    def frames(self, atlas: Atlas) -> tuple[np.ndarray, np.ndarray]:
+        nsum = self.nsum
+        length = np.linalg.norm(nsum, axis=1)
+        valid = (self.counts > 0) & (length > TOL.grazing_cos * self.wsum) & (length > 0)
+        face_tangent, tangent_ok = face_uv_tangents(atlas)
+        face_normal = atlas.mesh.face_normals()
+        face = np.where(self.under >= 0, self.under, self.nearest_face)  # (N_ℓ²,)
+        has_face = face >= 0
+        safe_face = np.where(has_face, face, 0)
+        n_out = np.where(
+            valid[:, None],
+            np.divide(nsum, length[:, None], out=np.zeros_like(nsum),
+                      where=length[:, None] > 0),
+            np.where(has_face[:, None], face_normal[safe_face], 0.0),
+        )
+        t_in = np.where((has_face & tangent_ok[safe_face])[:, None], face_tangent[safe_face],
+                        0.0)
+        return tangent_frames(n_out, t_in), valid

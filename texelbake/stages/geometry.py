@@ -4,6 +4,7 @@ their texel assignment at every mip level and the texel frames (`texelbake.geome
 from __future__ import annotations
 
 from texelbake.geometry.build import build_geometry
+from texelbake.spool import FileSpool
 from texelbake.stages.context import StageContext
 
 
@@ -12,5 +13,15 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
     key = ctx.geometry_key()
     if ctx.store.exists(key):
         return key
-    out = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels)
-    return ctx.store.write_arrays(key, out)
+    # the per-sample arrays (2.5 GB at 512²) go to disk a chunk at a time, beside the
+    # artifact, and are copied into it from there: the stage holds one chunk (issue 15)
+    folder = ctx.store.path(key).parent
+    FileSpool.sweep(folder)  # a killed worker's spool (its pid is gone)
+    spool = FileSpool(folder)
+    try:
+        out = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels, spool)
+        key = ctx.store.write_arrays(key, out)
+        del out
+    finally:
+        spool.close()
+    return key

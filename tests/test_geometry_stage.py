@@ -1,0 +1,77 @@
+"""The geometry stage's samples made a chunk at a time on disk (issue 15, memory bounded per
+worker whatever the atlas size): the artifact does not depend on the chunk or the spool, the
+spool is removed, a killed worker's spool is swept by the next run."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from schemas.settings import BakeSettings
+from texelbake import stages
+from texelbake.geometry import build as build_mod
+from texelbake.geometry.build import build_geometry, geometry_chunk
+from texelbake.scenes import write_scene
+from texelbake.spool import FileSpool, MemorySpool
+
+
+@pytest.fixture(scope="module")
+def wall_ctx(tmp_path_factory):
+    """The wall: a wrapped M1, so the bent-normal rule (M_org as occluder) runs in the pass."""
+    d = tmp_path_factory.mktemp("geostage")
+    scene = write_scene("wall", d / "wall.usda", "small")
+    s = BakeSettings(atlas_resolution=32, samples_per_texel=16, mesh_levels=2)
+    ctx = stages.StageContext.create(d / "work", scene, s)
+    stages.run_ingest(ctx, 0)
+    return ctx
+
+
+def test_chunks_and_spools_give_the_same_arrays(wall_ctx, tmp_path, monkeypatch):
+    ctx = wall_ctx
+    one = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels, MemorySpool())
+    assert len(one["sample_pos"]) > 3 * 1000
+    monkeypatch.setattr(build_mod, "geometry_chunk", lambda s: 1000)
+    spool = FileSpool(tmp_path)
+    parts = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels, spool)
+    assert sorted(parts) == sorted(one)
+    for name, arr in one.items():
+        assert parts[name].dtype == arr.dtype and parts[name].shape == arr.shape, name
+        assert np.array(parts[name]).tobytes() == arr.tobytes(), name
+    assert isinstance(parts["sample_row"], np.memmap)  # on disk, not in the process
+    spool.close()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_stage_writes_the_in_memory_arrays_and_leaves_no_spool(wall_ctx):
+    ctx = wall_ctx
+    key = stages.run_geometry(ctx, 0)
+    folder = ctx.store.path(key).parent
+    assert [p.name for p in folder.iterdir()] == [ctx.store.path(key).name]
+    got = ctx.store.read_arrays(key)
+    one = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels)
+    assert sorted(got) == sorted(one)
+    for name, arr in one.items():
+        assert got[name].tobytes() == np.asarray(arr).tobytes(), name
+
+
+def test_a_dead_workers_spool_is_swept(tmp_path):
+    """A spool whose process is gone is removed by the next sweep; a live one is kept."""
+    child = subprocess.run(
+        [sys.executable, "-c", "import sys; from texelbake.spool import FileSpool; "
+         "s = FileSpool(sys.argv[1]); s.allocate('a', 'f8', (10,)); print(s.dir)",
+         str(tmp_path)], check=True, capture_output=True, text=True)
+    dead = tmp_path / os.path.basename(child.stdout.strip())
+    assert dead.is_dir()  # the child exited without closing it
+    live = FileSpool(tmp_path)
+    assert FileSpool.sweep(tmp_path) == [dead]
+    assert not dead.exists() and live.dir.is_dir()
+    live.close()
+
+
+def test_chunk_follows_the_worker_memory_setting():
+    small, big = (geometry_chunk(BakeSettings(worker_memory_mb=mb)) for mb in (64, 4096))
+    assert small == 1 << 14 and big == 4096 * 2**20 // 4 // build_mod.GEOMETRY_BYTES_PER_SAMPLE
