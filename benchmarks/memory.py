@@ -9,7 +9,8 @@ A full 512^2 bake is hours on this machine; its per-process memory is decided by
 2026-11-27, and fits its tile). Not measured: the top stages (cpm_top, avis_top), which need
 every tile first. With `--workdir` kept between runs the geometry is reused (its peak is then
 the one recorded in the JSON of the run that built it); a shard's artifacts are removed first,
-so it is always fitted.
+so it is always fitted. `--set samples_per_texel=4096` crowds every texel (thousands of
+candidates each: one texel's F, d x m, is what the fit then holds).
 """
 
 from __future__ import annotations
@@ -70,11 +71,20 @@ def main() -> None:
     ap.add_argument("--atlas", type=int, default=512)
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a BakeSettings field (JSON value), e.g. samples_per_texel=4096")
     args = ap.parse_args()
+    base: dict = {"atlas_resolution": args.atlas}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        try:
+            base[key] = json.loads(value)
+        except json.JSONDecodeError:
+            base[key] = value
     work = args.workdir or Path(tempfile.mkdtemp(prefix="tb-memory-"))
     work.mkdir(parents=True, exist_ok=True)
     usd = scene_file(args.scene, "full", work)
-    settings = BakeSettings(atlas_resolution=args.atlas)
+    settings = BakeSettings(**base)
     ctx = StageContext.create(work, usd, settings)
     rows = []
     built = not ctx.store.exists(ctx.geometry_key())
@@ -96,7 +106,8 @@ def main() -> None:
               f"{row['peak_rss_mib']:13.0f}{note}")
     if args.json:
         args.json.write_text(json.dumps({
-            "scene": args.scene, "atlas": args.atlas, "geometry_bytes": geo_bytes,
+            "scene": args.scene, "atlas": args.atlas, "set": args.set,
+            "geometry_bytes": geo_bytes,
             "fullest_tile": tile, "tile_samples": samples, "tasks": rows,
             "max_rss_self_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "when": time.strftime("%Y-%m-%d %H:%M:%S")}, indent=2) + "\n")

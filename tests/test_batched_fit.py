@@ -12,6 +12,7 @@ import pytest
 
 from schemas.settings import BakeSettings
 from texelbake import stages
+from texelbake.cpm import level_batched as lb
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.fit import channel_correlation, fit_texel
 from texelbake.cpm.gram_fit import batched_eigh, fit_many
@@ -182,7 +183,6 @@ def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):
     small = dataclasses.replace(src, settings=src.settings.model_copy(
         update={"worker_memory_mb": 64}))
     # a 64 MiB bound with 16 x 16 pairs still fits a tile: force single-texel chunks too
-    import texelbake.cpm.level_batched as lb
     old = lb.BYTES_PER_R_ENTRY
     try:
         lb.BYTES_PER_R_ENTRY = 10**7
@@ -285,3 +285,32 @@ def test_small_texels_keep_every_candidate_on_both_paths():
     np.testing.assert_array_equal(wide.weights, seed_fit[1][0].weights)
     assert seed_fit[0][0].c < 20  # the seed's bisection stops short of every column
     assert small.k == seed_fit[0][0].k  # the rank the fit found, reported as it is
+
+
+def test_a_wide_texel_read_by_blocks_is_fitted_as_if_held(small_scene, monkeypatch):
+    """Texels wider than n_batch (16 here: most level-0 texels of this scene) are fitted from
+    `Columns` built a block of n_batch candidates at a time (issue 15: one texel's F no longer
+    grows with its width). Held whole instead (its F built in one `_build_R` call and wrapped
+    by `Columns.of_array`), every array of the level is the same bit for bit: a block's
+    columns are those of the whole F, and sums go by the same blocks."""
+    src = small_scene.fit_inputs()
+    src = dataclasses.replace(src, settings=src.settings.model_copy(update={"n_batch": 16}))
+    texels = tile_texels(16, 8, 0, 0)
+    cands = level_candidates(src, 0, texels, None)
+    counts = np.bincount(np.searchsorted(np.sort(texels), cands.texel), minlength=len(texels))
+    assert (counts > 16).sum() >= 5 and counts.max() > 3 * 16
+    built = []
+
+    def held(src_, frames, cset, rows, cseg, dirs, budget, inv_o, level, n_batch, s1, s2):
+        F, s1[rows], s2[rows] = lb._build_R(src_, frames, cset.take(rows), dirs, budget, inv_o,
+                                            cseg[rows])
+        built.append(F.shape[1])
+        return lb.Columns.of_array(F, n_batch)
+
+    lazy = fit_level_batched(src, 0, texels, cands)
+    monkeypatch.setattr(lb, "_wide_columns", held)
+    whole = fit_level_batched(src, 0, texels, cands)
+    assert len(built) == (counts > 16).sum()
+    assert lazy["valid"].sum() >= 5
+    for k in lazy:
+        np.testing.assert_array_equal(lazy[k], whole[k], err_msg=k)

@@ -415,8 +415,71 @@ def _merge(F, valid, fits, groups, *, mode, corr, eps_db, c_max) -> TexelFit:
     )
 
 
+class Columns:
+    """F (ch, m, d) of a texel wider than n_batch columns, read a block of columns at a time
+    (`fit_split`'s only access): `block(cols)` gives F[:, cols] (ch, len(cols), d). The CPM
+    stage builds a wide texel's blocks from its samples when asked (issue 15: a 6,162-sample
+    texel's F was 0.6 GB); an array is wrapped with `of_array`, so a wide texel's arithmetic
+    is the same whether its F is held or built. Sums over columns go by blocks of n_batch in
+    order; the last block asked for is kept (the channels of one step read it in turn)."""
+
+    def __init__(self, block, shape: tuple[int, int, int], n_batch: int,
+                 total: np.ndarray | None = None) -> None:
+        self._block = block
+        self.shape = tuple(int(x) for x in shape)
+        self.n_batch = int(n_batch)
+        self._last: tuple[bytes, np.ndarray] | None = None
+        self._total = total
+
+    @classmethod
+    def of_array(cls, F: np.ndarray, n_batch: int) -> Columns:
+        return cls(lambda cols: F[:, cols], F.shape, n_batch)
+
+    def take(self, cols: np.ndarray) -> np.ndarray:
+        """F[:, cols] (ch, len(cols), d)."""
+        cols = np.asarray(cols, dtype=np.int64)
+        key = cols.tobytes()
+        if self._last is None or self._last[0] != key:
+            self._last = (key, self._block(cols))
+        return self._last[1]
+
+    def __getitem__(self, idx: tuple) -> np.ndarray:
+        c, cols = idx  # F[c, cols]: a channel (or slice of channels) of a block
+        return self.take(cols)[c]
+
+    def sum_over(self, cols: np.ndarray) -> np.ndarray:
+        """Σ over `cols` of F[:, col], (ch, d): blocks of n_batch summed in order."""
+        acc = None
+        for b0 in range(0, cols.size, self.n_batch):  # loop over column blocks
+            part = self.take(cols[b0:b0 + self.n_batch]).sum(axis=1)
+            acc = part if acc is None else acc + part
+        return acc if acc is not None else np.zeros(self.shape[::2])
+
+    def sum(self, axis: int) -> np.ndarray:
+        """F.sum(axis=1) (ch, d) over every column (as `_merge` reads an array's), kept."""
+        if axis != 1:
+            raise ValueError("Columns sums over its columns only (axis=1)")
+        if self._total is None:
+            self._total = self.sum_over(np.arange(self.shape[1], dtype=np.int64))
+        return self._total
+
+
+class _Rows:
+    """The selection matrix S of a wide texel, a block at a time: the luminance
+    Σ_c lw_c F_c, or one channel F_c, of the columns asked for."""
+
+    def __init__(self, F: Columns, lw: np.ndarray | None, chan: int = 0) -> None:
+        self.F, self.lw, self.chan = F, lw, chan
+
+    def __getitem__(self, cand: np.ndarray) -> np.ndarray:
+        block = self.F.take(cand)
+        if self.lw is None:
+            return block[self.chan]
+        return np.tensordot(self.lw, block, axes=(0, 0))
+
+
 def fit_many(
-    Fs: list[np.ndarray],
+    Fs: list[np.ndarray | Columns],
     valids: list[np.ndarray],
     corrs: list[float],
     seeds: list[int],
@@ -437,7 +500,8 @@ def fit_many(
     """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
     `fit_texel_gram` per texel. With small="all" a texel of m <= c_max candidates whose fit is
     not exact on the grid keeps them all (`fit.needs_all_points`, skip "all").
-    Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous blocks); valids[t] : (d,)
+    Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous blocks), or `Columns`
+    (m > n_batch only); valids[t] : (d,)
     bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
     Texels must have m >= 1, d >= 2 min(m, n_batch), a valid row and a nonzero R
     (`fit_texel`'s cases); texels wider than n_batch columns go through `fit_split`."""
@@ -448,6 +512,9 @@ def fit_many(
         if n_batch is not None and F.shape[1] > n_batch:
             plans.append(None)
             continue
+        if isinstance(F, Columns):
+            raise ValueError(f"Columns are for texels wider than n_batch ({n_batch}), "
+                             f"got {F.shape[1]} columns")
         mode = "per_channel" if (ch > 1 and corr < decorrelation_threshold) else "luminance"
         if colour != "auto":
             mode = colour
@@ -468,6 +535,7 @@ def fit_many(
                 c_max=c_max, n_trials=n_trials, weights=weights, colour=colour,
                 decorrelation_threshold=decorrelation_threshold)
         else:
+            assert not isinstance(F, Columns)  # narrowed in the first loop
             mode, Gc, groups, first = plan
             ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
                     for j, (g, chans) in enumerate(groups)]
@@ -479,14 +547,15 @@ def fit_many(
         fit = got[0]
         if fit is not None and needs_all_points(small, F.shape[1], c_max, fit.snr_db_insample):
             ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F
-            approx = np.stack([np.ones(F.shape[1]) @ F[c] for c in range(F.shape[0])], axis=1)
+            approx = (ref if isinstance(F, Columns) else  # every column at weight 1: the sum
+                      np.stack([np.ones(F.shape[1]) @ F[c] for c in range(F.shape[0])], axis=1))
             got = (all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db, fit.k), "all")
         out.append(got)
     return out
 
 
 def fit_split(
-    F: np.ndarray, valid: np.ndarray, corr: float, seed: int, *, n_batch: int, psi: float,
+    F: np.ndarray | Columns, valid: np.ndarray, corr: float, seed: int, *, n_batch: int, psi: float,
     eps_db: float, c_max: int, n_trials: int, weights: str, colour: str,
     decorrelation_threshold: float,
 ) -> tuple[TexelFit | None, str]:
@@ -494,7 +563,11 @@ def fit_split(
     of n_batch columns fitted on their partial sums with c_max capped at n_batch // 2, the union
     of their points fitted against the full sum), every step from Grams of <= n_batch columns:
     Gram work m n_batch d instead of m^2 d. Same draws as `fit_texel` with the same n_batch.
+    F : the texel's F, held or as `Columns` (read a block of <= n_batch columns at a time:
+    the memory of a step is n_batch d, whatever m).
     Returns (None, "full_svd") when a step needs the full SVD (see `fit_texel_gram`)."""
+    if not isinstance(F, Columns):
+        F = Columns.of_array(F, n_batch)
     ch, m, _ = F.shape
     mode = "per_channel" if (ch > 1 and corr < decorrelation_threshold) else "luminance"
     if colour != "auto":
@@ -502,16 +575,18 @@ def fit_split(
     if ch == 1:
         mode = "luminance"
     rng = np.random.default_rng(seed)
+    sel_rows: list[tuple[_Rows, np.ndarray]]
     if mode == "luminance":
         lw = LUMA_709 if ch == 3 else np.full(ch, 1.0 / ch)
-        sel_rows = [(np.tensordot(lw, F, axes=(0, 0)), np.arange(ch))]
+        sel_rows = [(_Rows(F, lw), np.arange(ch))]
     else:
-        sel_rows = [(F[c], np.array([c])) for c in range(ch)]
+        sel_rows = [(_Rows(F, None, c), np.array([c])) for c in range(ch)]
     kw = {"psi": psi, "eps_db": eps_db, "n_trials": n_trials, "weights": weights, "rng": rng}
     fits = []
     for S, chans in sel_rows:  # loop over <= ch groups
         def select(cand: np.ndarray, cm: int, S=S, chans=chans) -> tuple | None:
-            targets = [F[c, cand].sum(axis=0) for c in chans]  # (d,) per channel
+            total = F.sum_over(cand)  # (ch, d)
+            targets = [total[c] for c in chans]  # (d,) per channel
             if cand.size > n_batch:
                 c_batch = min(c_max, n_batch // 2)
                 pools = []
@@ -578,7 +653,7 @@ def select_groups(
 
 
 __all__ = [
-    "GroupInput", "batched_eigh", "correlation_from_sums", "fit_many", "fit_texel_gram",
+    "Columns", "GroupInput", "batched_eigh", "correlation_from_sums", "fit_many", "fit_texel_gram",
     "needs_full_svd",
     "normalised_gram", "select_groups", "spectrum", "_empty_fit",
 ]

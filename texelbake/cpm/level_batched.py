@@ -10,8 +10,11 @@ tiling nor the memory bound changes it.
 Memory per worker is bounded by BakeSettings.worker_memory_mb: texels are taken in chunks whose
 R (d x candidates x 3 with its temporaries) fits, and the dense samples of a chunk (a_vis and
 the held-out truth) in sub-batches that fit; a coarse texel with millions of samples (the top
-level of a large atlas) is streamed the same way. One texel's own R (d x m) is the only thing
-not split; with the default hierarchy m <= 4 c_max.
+level of a large atlas) is streamed the same way. A texel of more than n_batch candidates (a
+crowded level-0 texel: 6,162 samples in one texel of the bolt's collapsed 64² atlas) is fitted
+by `gram_fit.fit_split` on its F read a block of n_batch columns at a time (`Columns`), built
+from its candidates when asked; only the per-texel fallback (`fit_texel`, when a step needs
+the full SVD) still builds a texel's whole R.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from threadpoolctl import threadpool_limits
 from texelbake.cpm import level as level_mod
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.fit import TexelFit, _empty_fit, fit_texel
-from texelbake.cpm.gram_fit import correlation_from_sums, fit_many
+from texelbake.cpm.gram_fit import Columns, correlation_from_sums, fit_many
 from texelbake.cpm.level import (
     FitInputs,
     PointSet,
@@ -124,7 +127,8 @@ def fit_level_batched(
 
     res = _Results(n_t, d if s.btf else 0)
     cap = max(budget // (BYTES_PER_R_ENTRY * d * 3), 1)
-    for a, b in chunk_bounds(n_cand, cap):  # loop over memory-bounded chunks of texels
+    # a texel wider than n_batch holds one block of n_batch columns at a time (`Columns`)
+    for a, b in chunk_bounds(np.minimum(n_cand, s.n_batch), cap):  # loop over chunks
         dense = samp_all[cb_all[a]:cb_all[b]]
         dseg = seg_all[cb_all[a]:cb_all[b]] - a
         rows = order_c[cb_c[a]:cb_c[b]]
@@ -246,19 +250,33 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
     inv_o = np.where(valid_o, 1.0 / np.where(valid_o, avis_o, 1.0), 0.0)
     avis_rows = np.tile(avis_o, (1, n_i))  # (t, d): row i * n_o + o
     valid = np.tile(valid_o, (1, n_i))
-    # F = diag(1/a_vis) R per channel, (3, P, d), built in one pass with R's channel sums;
-    # a texel's columns are a contiguous block
-    Ft, s1, s2 = _build_R(src, src.geo[f"frames_L{level}"], cset, dirs, budget, inv_o, cseg)
-    d = Ft.shape[2]
-    if not np.all(np.isfinite(Ft)):
-        bad = np.unique(cset.texel[np.any(~np.isfinite(Ft), axis=(0, 2))])
-        raise NumericalError(f"R of level {level} texels {bad[:8].tolist()} has non-finite entries")
-    bounds = np.r_[0, np.cumsum(n_cand)]
+    frames = src.geo[f"frames_L{level}"]
+    bounds = np.r_[0, np.cumsum(n_cand)]  # a texel's candidates are a contiguous block
+    # F = diag(1/a_vis) R per channel, (3, P, d), built in one pass with R's channel sums, for
+    # the texels of at most n_batch candidates; a wider texel's F is read a block at a time
+    # (`Columns`: its memory is n_batch d whatever its width, issue 15)
+    wide = n_cand > s.n_batch
+    held = np.flatnonzero(~np.repeat(wide, n_cand))
+    Ft, s1_h, s2_h = _build_R(src, frames, cset.take(held), dirs, budget, inv_o, cseg[held])
+    d = n_i * len(dirs["dirs_o"])
+    _check_finite(Ft, cset.texel[held], level)
+    s1 = np.zeros((len(cset.sample), 3))
+    s2 = np.zeros((len(cset.sample), 3, 3))
+    s1[held], s2[held] = s1_h, s2_h
+    hb = np.r_[0, np.cumsum(np.where(wide, 0, n_cand))]  # a held texel's block of Ft
+    Fs: dict[int, np.ndarray | Columns] = {}
+    for t in range(n_t):  # loop over texels: views, and the wide ones' first pass
+        if not wide[t]:
+            Fs[t] = Ft[:, hb[t]:hb[t + 1]]
+            continue
+        rows = np.arange(bounds[t], bounds[t + 1])
+        Fs[t] = _wide_columns(src, frames, cset, rows, cseg, dirs, budget, inv_o, level,
+                              s.n_batch, s1, s2)
     sx = _segment_sum(s1, cseg, n_t, 0)
     sxx = _segment_sum(s2, cseg, n_t, 0)
     if res.fbar is not None:
         for t in range(n_t):  # loop over texels: one row sum each
-            res.fbar[base + t] = Ft[:, bounds[t]:bounds[t + 1]].sum(axis=1).T
+            res.fbar[base + t] = Fs[t].sum(axis=1).T
     # texels for the Gram path (the others are fit_texel's special cases or too wide)
     gram, corrs = [], []
     for t in range(n_t):  # loop over texels: classification only
@@ -271,7 +289,7 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
             corrs.append(correlation_from_sums(sx[t], sxx[t], d * m))
     seeds = [texel_seed(s.seed, level, int(texels[t])) for t in range(n_t)]
     done = dict(zip(gram, fit_many(
-        [Ft[:, bounds[t]:bounds[t + 1]] for t in gram], [valid[t] for t in gram], corrs,
+        [Fs[t] for t in gram], [valid[t] for t in gram], corrs,
         [seeds[t] for t in gram], psi=s.psi, eps_db=s.eps_db, c_max=s.c_max,
         n_trials=s.n_trials, weights=s.weights, colour=s.colour,
         decorrelation_threshold=s.decorrelation_threshold, closed_form=s.closed_form,
@@ -286,8 +304,7 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         if fit is None:  # fit_texel's special cases, wide texels, Gram route unresolved
             # the texel's R itself, rebuilt (F dropped its rows under the a_vis floor); every
             # entry depends on its candidate only, so this is the R the chunk's F came from
-            Rt = _build_R(src, src.geo[f"frames_L{level}"], cset.take(np.arange(a, b)), dirs,
-                          budget)
+            Rt = _build_R(src, frames, cset.take(np.arange(a, b)), dirs, budget)
             fit = fit_texel(Rt.transpose(2, 1, 0), avis_rows[t],
                             texel_area=float(area[t]), seed=seeds[t], psi=s.psi,
                             eps_db=s.eps_db, c_max=s.c_max, n_trials=s.n_trials,
@@ -298,6 +315,37 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         fits[t] = fit
         _store(res, base + t, fit, cset.take(np.arange(a, b)), SKIP_CODES[skip])
     return fits
+
+
+def _check_finite(Ft: np.ndarray, texel: np.ndarray, level: int) -> None:
+    if not np.all(np.isfinite(Ft)):
+        bad = np.unique(texel[np.any(~np.isfinite(Ft), axis=(0, 2))])
+        raise NumericalError(f"R of level {level} texels {bad[:8].tolist()} has non-finite entries")
+
+
+def _wide_columns(src, frames, cset: PointSet, rows: np.ndarray, cseg: np.ndarray, dirs,
+                  budget: int, inv_o: np.ndarray, level: int, n_batch: int, s1: np.ndarray,
+                  s2: np.ndarray) -> Columns:
+    """F of the texel whose candidates are cset's `rows` (more than n_batch of them) as
+    `Columns`: a block is built from its candidates when the fit asks (every entry depends
+    on its candidate only, so a block equals the same columns of the whole F). One first pass
+    by blocks of n_batch writes the candidates' channel sums into s1, s2 and keeps Σ F."""
+    def block(cols: np.ndarray) -> np.ndarray:
+        r = rows[cols]
+        Fb, _, _ = _build_R(src, frames, cset.take(r), dirs, budget, inv_o, cseg[r])
+        _check_finite(Fb, cset.texel[r], level)
+        return Fb
+
+    total = None
+    for b0 in range(0, rows.size, n_batch):  # loop over column blocks (memory bound)
+        r = rows[b0:b0 + n_batch]
+        Fb, s1[r], s2[r] = _build_R(src, frames, cset.take(r), dirs, budget, inv_o, cseg[r])
+        _check_finite(Fb, cset.texel[r], level)
+        part = Fb.sum(axis=1)
+        total = part if total is None else total + part
+        del Fb
+    return Columns(block, (3, rows.size, len(dirs["dirs_i"]) * len(dirs["dirs_o"])), n_batch,
+                   total)
 
 
 def too_wide(m: int, d: int, s) -> bool:
