@@ -13,8 +13,10 @@ import pytest
 
 from schemas.settings import BakeSettings
 from texelbake import stages
+from texelbake.cpm.level import samples_in, texel_ids
 from texelbake.geometry import build as build_mod
 from texelbake.geometry.build import build_geometry, geometry_chunk
+from texelbake.geometry.texels import morton
 from texelbake.scenes import write_scene
 from texelbake.spool import FileSpool, MemorySpool
 
@@ -75,3 +77,47 @@ def test_a_dead_workers_spool_is_swept(tmp_path):
 def test_chunk_follows_the_worker_memory_setting():
     small, big = (geometry_chunk(BakeSettings(worker_memory_mb=mb)) for mb in (64, 4096))
     assert small == 1 << 14 and big == 4096 * 2**20 // 4 // build_mod.GEOMETRY_BYTES_PER_SAMPLE
+
+
+def test_morton_codes_make_every_level_texel_one_run():
+    """`morton` against its definition: bits interleaved (row's odd), and an aligned block of
+    2^l x 2^l texels is the 4^l codes from its first."""
+    rng = np.random.default_rng(2)
+    r, c = rng.integers(0, 1 << 20, 500), rng.integers(0, 1 << 20, 500)
+    want = [sum((((int(a) >> k) & 1) << (2 * k + 1)) | (((int(b) >> k) & 1) << (2 * k))
+                for k in range(20)) for a, b in zip(r, c, strict=True)]
+    assert morton(r, c).tolist() == want
+    n, level = 32, 3
+    rows, cols = np.divmod(np.arange(n * n), n)
+    code = morton(rows, cols)
+    assert np.array_equal(np.sort(code), np.arange(n * n))  # a permutation
+    block = (rows >> level) * (n >> level) + (cols >> level)
+    for t in range((n >> level) ** 2):
+        got = np.sort(code[block == t])
+        assert got[0] == morton(np.array([t // (n >> level) << level]),
+                                np.array([t % (n >> level) << level]))[0]
+        assert np.array_equal(got, np.arange(got[0], got[0] + 4 ** level))
+
+
+def test_zorder_index_lists_the_samples_a_scan_finds(wall_ctx, monkeypatch):
+    """`samples_in` (the Z-order index) against the scan of every sample's texel, at every
+    level, for single texels, tiles and scattered sets; the index is the same for any chunk
+    (the bucket sort's buckets follow the chunk)."""
+    ctx = wall_ctx
+    geo = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels)
+    monkeypatch.setattr(build_mod, "geometry_chunk", lambda s: 777)
+    small = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels)
+    assert np.array_equal(geo["sample_zorder"], small["sample_zorder"])
+    n = ctx.settings.atlas_resolution
+    m = len(geo["sample_pos"])
+    assert np.array_equal(np.sort(geo["sample_zorder"]), np.arange(m))
+    scan = {k: v for k, v in geo.items() if k not in ("sample_zorder", "texel_zoffsets")}
+    rng = np.random.default_rng(0)
+    for level in range(ctx.n_levels):
+        n_l = n >> level
+        tex = texel_ids(geo, n, level)
+        for texels in (np.array([int(tex[0])]), np.arange(n_l * n_l),
+                       rng.choice(n_l * n_l, max(1, n_l * n_l // 5), replace=False)):
+            want = np.flatnonzero(np.isin(tex, texels))
+            assert np.array_equal(samples_in(geo, n, level, texels), want), level
+            assert np.array_equal(samples_in(scan, n, level, texels), want), level

@@ -20,6 +20,7 @@ import shutil
 import socket
 import tempfile
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -41,6 +42,9 @@ class MemorySpool:
     def read(self, name: str, start: int, stop: int) -> np.ndarray:
         return self._arrays[name][start:stop]
 
+    def drop(self, name: str) -> None:
+        del self._arrays[name]
+
     def arrays(self) -> dict[str, np.ndarray]:
         return dict(self._arrays)
 
@@ -57,6 +61,7 @@ class FileSpool:
         Path(parent).mkdir(parents=True, exist_ok=True)
         self.dir = Path(tempfile.mkdtemp(prefix=f"{_prefix()}{os.getpid()}-", dir=parent))
         self._meta: dict[str, tuple[np.dtype, tuple[int, ...], int]] = {}
+        self._files: dict[str, BinaryIO] = {}  # open while the array is filled and read
 
     @staticmethod
     def sweep(parent: str | Path) -> list[Path]:
@@ -80,6 +85,7 @@ class FileSpool:
         offset = int(mm.offset)
         del mm  # header written, file sized; nothing was touched
         self._meta[name] = (dt, tuple(shape), offset)
+        self._files[name] = open(self._path(name), "r+b")  # noqa: SIM115 (closed by drop/close)
 
     def _row_bytes(self, name: str) -> int:
         dt, shape, _ = self._meta[name]
@@ -90,23 +96,36 @@ class FileSpool:
         rows = np.ascontiguousarray(rows, dtype=dt)
         if rows.shape[1:] != shape[1:] or start < 0 or start + len(rows) > shape[0]:
             raise ShapeError(f"spool {name}: rows {rows.shape} at {start} do not fit {shape}")
-        with open(self._path(name), "r+b") as f:
-            f.seek(offset + start * self._row_bytes(name))
-            f.write(rows.data)
+        f = self._files[name]
+        f.seek(offset + start * self._row_bytes(name))
+        f.write(rows.data)
 
     def read(self, name: str, start: int, stop: int) -> np.ndarray:
         dt, shape, offset = self._meta[name]
         stop = min(stop, shape[0])
-        with open(self._path(name), "rb") as f:
-            f.seek(offset + start * self._row_bytes(name))
-            flat = np.fromfile(f, dtype=dt, count=(stop - start) * (self._row_bytes(name)
-                                                                    // dt.itemsize))
-        return flat.reshape((stop - start, *shape[1:]))
+        f = self._files[name]
+        f.flush()
+        f.seek(offset + start * self._row_bytes(name))
+        out = np.empty((max(stop - start, 0), *shape[1:]), dt)
+        if f.readinto(out.data) != out.nbytes:  # type: ignore[attr-defined]
+            raise ShapeError(f"spool {name}: rows {start}:{stop} are past the end of its file")
+        return out
+
+    def drop(self, name: str) -> None:
+        """Forget a scratch array and remove its file."""
+        self._files.pop(name).close()
+        del self._meta[name]
+        self._path(name).unlink()
 
     def arrays(self) -> dict[str, np.ndarray]:
+        for f in self._files.values():
+            f.flush()
         return {name: np.load(self._path(name), mmap_mode="r") for name in self._meta}
 
     def close(self) -> None:
+        for f in self._files.values():
+            f.close()
+        self._files.clear()
         shutil.rmtree(self.dir, ignore_errors=True)
         self._meta.clear()
 

@@ -27,6 +27,7 @@ from texelbake.cpm.fit import fit_texel
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
 from texelbake.frames import tangent_frames
 from texelbake.geometry.raycast import RayCaster
+from texelbake.geometry.texels import morton
 from texelbake.model import Material
 from texelbake.tol import TOL
 
@@ -44,10 +45,40 @@ class FitInputs:
     materials: Sequence[Material]
 
 
-def texel_ids(geo: Mapping[str, np.ndarray], n: int, level: int) -> np.ndarray:
-    """(m,) int64 flat texel id of every sample at `level` (row * N_l + col)."""
+def texel_ids(geo: Mapping[str, np.ndarray], n: int, level: int,
+              samples: np.ndarray | None = None) -> np.ndarray:
+    """(m,) int64 flat texel id of every sample at `level` (row * N_l + col); with `samples`,
+    of those samples only."""
     n_l = n >> level
-    return (geo["sample_row"] >> level) * n_l + (geo["sample_col"] >> level)
+    row, col = geo["sample_row"], geo["sample_col"]
+    if samples is not None:
+        row, col = row[samples], col[samples]
+    return (row >> level) * n_l + (col >> level)
+
+
+def samples_in(geo: Mapping[str, np.ndarray], n: int, level: int,
+               texels: np.ndarray) -> np.ndarray:
+    """(k,) int64 ids of the samples of `texels` (flat ids at `level`), ascending, as
+    `np.flatnonzero(np.isin(texel_ids(geo, n, level), texels))` gives them. Read from the
+    geometry stage's Z-order index (`sample_zorder`, `texel_zoffsets`): a texel at level l is
+    one run of 4^l finest codes, so only these texels' ids are read, not every sample's texel
+    (artifacts from before the index: that scan)."""
+    texels = np.unique(np.asarray(texels, dtype=np.int64))
+    if "sample_zorder" not in geo:
+        return np.flatnonzero(np.isin(texel_ids(geo, n, level), texels))
+    zoff = geo["texel_zoffsets"]
+    r, c = np.divmod(texels, n >> level)
+    first = morton(r << level, c << level)
+    lo, hi = zoff[first], zoff[first + (1 << (2 * level))]
+    size = hi - lo
+    if not size.sum():
+        return np.zeros(0, np.int64)
+    # the runs' positions in sample_zorder, concatenated: lo_j, lo_j + 1, ..., hi_j - 1
+    pos = np.arange(int(size.sum()), dtype=np.int64) - np.repeat(np.cumsum(size) - size, size)
+    pos += np.repeat(lo, size)
+    order = geo["sample_zorder"]
+    # runs sorted by position: a mapped index is read front to back
+    return np.sort(np.asarray(order[np.sort(pos)], dtype=np.int64))
 
 
 def tile_texels(n: int, s: int, tile: int, level: int) -> np.ndarray:
@@ -206,11 +237,9 @@ def _fit_level(
     n = s.atlas_resolution
     dirs = direction_sets(s)
     frames = geo[f"frames_L{level}"]
-    tex_of_sample = texel_ids(geo, n, level)
-    # all dense samples of these texels (for a_vis and the held-out truth)
-    in_set = np.isin(tex_of_sample, texels)
-    samp_all = np.nonzero(in_set)[0]
-    tex_all = tex_of_sample[samp_all]
+    # all dense samples of these texels (for a_vis and the held-out truth), ascending
+    samp_all = samples_in(geo, n, level, texels)
+    tex_all = texel_ids(geo, n, level, samp_all)
     n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
     n_hi = len(dirs["held_i"])
     # one batch of rays per direction set for the whole tile
@@ -345,10 +374,10 @@ def level_candidates(
     geo = src.geo
     n = src.settings.atlas_resolution
     if level == 0 or src.settings.hierarchy == "dense" or children is None:
-        tex = texel_ids(geo, n, level)
-        idx = np.nonzero(np.isin(tex, texels))[0]
+        idx = samples_in(geo, n, level, texels)
         area = geo["sample_area"][idx]
-        return PointSet(idx.astype(np.int64), np.repeat(area[:, None], 3, axis=1), tex[idx])
+        return PointSet(idx, np.repeat(area[:, None], 3, axis=1),
+                        texel_ids(geo, n, level, idx))
     counts = np.diff(children["offsets"])
     child_tex = np.repeat(children["texel"], counts)  # (p,) child texel ids at level-1
     n_c = n >> (level - 1)

@@ -31,6 +31,7 @@ from texelbake.cpm.level import (
     FitInputs,
     PointSet,
     direction_sets,
+    samples_in,
     texel_ids,
     texel_seed,
     visibility_cos,
@@ -109,12 +110,11 @@ def fit_level_batched(
     n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
     d = n_i * n_o
     budget = int(s.worker_memory_mb) * 2**20
-    tex_of_sample = texel_ids(geo, s.atlas_resolution, level)
     # dense samples and candidates of every texel, grouped by texel (position in `texels`)
-    pos_all = _positions(texels, tex_of_sample)
-    samp_all = np.flatnonzero(pos_all >= 0)
-    samp_all = samp_all[np.argsort(pos_all[samp_all], kind="stable")]
-    seg_all = pos_all[samp_all]
+    ids = samples_in(geo, s.atlas_resolution, level, texels)  # ascending
+    pos_ids = _positions(texels, texel_ids(geo, s.atlas_resolution, level, ids))
+    samp_all = ids[np.argsort(pos_ids, kind="stable")]
+    seg_all = np.sort(pos_ids, kind="stable")
     pos_c = _positions(texels, candidates.texel)
     order_c = np.argsort(pos_c, kind="stable")
     order_c = order_c[pos_c[order_c] >= 0]

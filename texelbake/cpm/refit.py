@@ -27,7 +27,7 @@ from texelbake.cpm.level import (
     PointSet,
     direction_sets,
     heldout_snr,
-    texel_ids,
+    samples_in,
     visibility_cos,
     world_dirs,
 )
@@ -111,7 +111,6 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
     samples = np.asarray(out["point_sample"], np.int64)
     snr_in = np.asarray(out["snr_in"], np.float32).copy()
     snr_ho = np.asarray(out["snr_ho"], np.float32).copy()
-    tex_of_sample = texel_ids(geo, s.atlas_resolution, level)
     budget = int(s.worker_memory_mb) * 2**20
     rays0 = src.caster.rays_cast
     fold = validation_fold(n_i, n_o, REFIT_FOLDS)
@@ -120,7 +119,7 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
         a, b = offsets[t], offsets[t + 1]
         if not out["valid"][t] or b == a:
             continue
-        dense = np.flatnonzero(tex_of_sample == texel)
+        dense = samples_in(geo, s.atlas_resolution, level, np.array([texel]))
         area = geo["sample_area"][dense]
         # the dense target (3, d) and a_vis on the training grid
         target = np.zeros((3, n_i * n_o))

@@ -18,7 +18,7 @@ from texelbake.geometry.lodchain import build_lod_chain, hausdorff
 from texelbake.geometry.mesh import Mesh, bbox_diagonal, compact, weld
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import SurfaceSampler, surface_sampler
-from texelbake.geometry.texels import FrameSums, assign_rows, uv_to_texel
+from texelbake.geometry.texels import FrameSums, assign_rows, morton, uv_to_texel
 from texelbake.model import AssetModel
 from texelbake.spool import FileSpool, MemorySpool
 
@@ -94,8 +94,10 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
     # through (the bent-normal rule); QEM meshes keep the seed's closest point
     occluder = caster if wrap_offset is not None else None
     frame_sums = _assign_spooled(spool, sampler.m, atlas, n_levels, occluder, chunk)
+    zoffsets = _zorder_spooled(spool, sampler.m, n, frame_sums[0].counts, chunk)
     out: dict[str, np.ndarray] = {
         **spool.arrays(),
+        "texel_zoffsets": zoffsets,
         "m1_vertices": atlas.mesh.vertices,
         "m1_faces": atlas.mesh.faces,
         "m1_corner_uvs": atlas.corner_uvs,
@@ -189,6 +191,49 @@ def _assign_spooled(spool, m: int, atlas, n_levels: int, occluder: RayCaster | N
         for level, acc in enumerate(sums):  # a handful of mip levels
             acc.add(row >> level, col >> level, nrm, area, uv, prim)
     return sums
+
+
+def _zorder_spooled(spool, m: int, n: int, counts: np.ndarray, chunk: int) -> np.ndarray:
+    """Third pass: `sample_zorder` (m,), the sample ids ordered by the Z-order code of their
+    finest texel (`morton`), ascending ids within a texel, and the offsets (n² + 1,) of each
+    code's run in it: a texel of any level is one run, so a shard reads its tile's ids, not
+    every sample's texel (issue 15: at 1k² that scan was most of a shard's seconds and memory).
+
+    A bucket sort bounded by the chunk: codes are cut into buckets of about `chunk` samples
+    (a bucket is a range of codes, so its samples have one range of the result); each chunk's
+    ids go to their buckets' next free places, then each bucket is sorted by code on its own.
+    counts : (n²,) samples per finest texel, row-major."""
+    rows, cols = np.divmod(np.arange(n * n, dtype=np.int64), n)
+    per_code = np.zeros(n * n, np.int64)
+    per_code[morton(rows, cols)] = counts
+    zoff = np.r_[0, np.cumsum(per_code)].astype(np.int64)
+    bucket_of_code = zoff[:-1] // max(chunk, 1)  # non-decreasing
+    n_b = int(bucket_of_code[-1]) + 1 if n else 0
+    bstart = zoff[np.searchsorted(bucket_of_code, np.arange(n_b + 1))]  # (n_b + 1,)
+    cursor = bstart[:-1].copy()
+    spool.allocate("_zorder_ids", np.int64, (m,))
+    spool.allocate("_zorder_codes", np.int64, (m,))
+    for a in range(0, m, chunk):  # loop over chunks (memory bound)
+        b = min(a + chunk, m)
+        code = morton(spool.read("sample_row", a, b), spool.read("sample_col", a, b))
+        bk = bucket_of_code[code]
+        order = np.argsort(bk, kind="stable")
+        bks = bk[order]
+        heads = np.flatnonzero(np.r_[True, bks[1:] != bks[:-1]])
+        for h, e in zip(heads, np.r_[heads[1:], len(bks)], strict=True):  # chunk's buckets
+            j = int(bks[h])
+            spool.write("_zorder_ids", int(cursor[j]), a + order[h:e])
+            spool.write("_zorder_codes", int(cursor[j]), code[order[h:e]])
+            cursor[j] += e - h
+    spool.allocate("sample_zorder", np.int64, (m,))
+    for j in range(n_b):  # loop over buckets (each about a chunk)
+        lo, hi = int(bstart[j]), int(bstart[j + 1])
+        ids = spool.read("_zorder_ids", lo, hi)
+        spool.write("sample_zorder", lo,
+                    ids[np.argsort(spool.read("_zorder_codes", lo, hi), kind="stable")])
+    spool.drop("_zorder_ids")
+    spool.drop("_zorder_codes")
+    return zoff
 
 
 def _resolution_needed(area: float, diag: float, switch_px: float | None) -> int | None:

@@ -71,6 +71,25 @@ def bilinear_texels(uv: object, resolution: int) -> tuple[np.ndarray, np.ndarray
     return index, weight
 
 
+def _part1by1(x: np.ndarray) -> np.ndarray:
+    """The bits of x (< 2^32) spread to the even places of a 64-bit word."""
+    x = x.astype(np.uint64) & np.uint64(0xFFFFFFFF)
+    for shift, mask in ((16, 0x0000FFFF0000FFFF), (8, 0x00FF00FF00FF00FF),
+                        (4, 0x0F0F0F0F0F0F0F0F), (2, 0x3333333333333333),
+                        (1, 0x5555555555555555)):  # five bit-spreading steps
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
+def morton(row: np.ndarray, col: np.ndarray) -> np.ndarray:
+    """Z-order code of texel (row, col) (int64; row's bits in the odd places): the texels of an
+    aligned 2^l x 2^l block, i.e. one texel of level l, are the 4^l consecutive codes from
+    morton(r << l, c << l). The geometry stage orders samples by it (`sample_zorder`), so a
+    shard finds its tile's samples without reading every sample's texel."""
+    code = (_part1by1(np.asarray(row)) << np.uint64(1)) | _part1by1(np.asarray(col))
+    return code.astype(np.int64)
+
+
 #: samples `assign_texels` takes at a time (~0.4 KB of temporaries each)
 ASSIGN_CHUNK = 1 << 20
 

@@ -7,6 +7,7 @@ import numpy as np
 
 from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.avis.compress import CHUNK_ROWS, LevelChunks, chunks_of
+from texelbake.cpm.level import samples_in
 from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
 from texelbake.tol import TOL
 
@@ -38,10 +39,10 @@ def run_avis_tile(ctx: StageContext, shard: int) -> str:
     geo = ctx.geometry()
     n, side = s.atlas_resolution, s.shard_texels
     tr, tc = divmod(shard, n // side)
-    row, col = geo["sample_row"], geo["sample_col"]
-    inside = (row // side == tr) & (col // side == tc)
-    idx = np.nonzero(inside)[0]
-    local = (row[idx] - tr * side) * side + (col[idx] - tc * side)
+    # the tile is one texel of level log2(side): its samples from the Z-order index
+    idx = samples_in(geo, n, side.bit_length() - 1, np.array([shard]))
+    row, col = geo["sample_row"][idx], geo["sample_col"][idx]
+    local = (row - tr * side) * side + (col - tc * side)
     caster = ctx.caster()
     rays0 = caster.rays_cast
     level = avis_mod.avis_level(
