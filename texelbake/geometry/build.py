@@ -164,7 +164,7 @@ def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int
                           ("sample_area", smp.area)):
             spool.write(name, a, arr)
         for p, st in strides.items():  # global ids 0, st, 2 st, ... that fall in the chunk
-            probes[p].append(smp.positions[(-a) % st::st])
+            probes[p].append(smp.positions[(-a) % st::st].copy())  # not a view of the chunk
     return {p: np.concatenate(v) if v else np.zeros((0, 3)) for p, v in probes.items()}
 
 
