@@ -33,7 +33,13 @@ from schemas.settings import BakeSettings
 from texelbake.pipeline import run_shard
 work, usd, settings, stage, shard = sys.argv[1:6]
 t = time.perf_counter()
-key = run_shard(Path(work), Path(usd), BakeSettings.model_validate_json(settings), stage, int(shard))
+settings = BakeSettings.model_validate_json(settings)
+if stage == "filtered":  # the export's filtered maps over every sample (issue 21)
+    from texelbake.stages import StageContext
+    from texelbake.stages.filtered import run_filtered
+    key = run_filtered(StageContext.create(Path(work), Path(usd), settings), 0)
+else:
+    key = run_shard(Path(work), Path(usd), settings, stage, int(shard))
 hwm = next(x for x in open("/proc/self/status") if x.startswith("VmHWM"))
 print(json.dumps({"seconds": time.perf_counter() - t, "key": key,
                   "peak_rss_mib": int(hwm.split()[1]) / 1024}))
@@ -71,6 +77,8 @@ def main() -> None:
     ap.add_argument("--atlas", type=int, default=512)
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--filtered", action="store_true",
+                    help="also the export's filtered maps (every sample, AO rays: not a shard)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="a BakeSettings field (JSON value), e.g. samples_per_texel=4096")
     args = ap.parse_args()
@@ -95,6 +103,11 @@ def main() -> None:
         for p in (work / "artifacts").glob(f"*/{stage}-*/*tile{tile:05d}-*"):
             p.unlink()
         rows.append({"task": stage, "shard": tile, **run_task(work, usd, settings, stage, tile)})
+    if args.filtered:
+        for p in (work / "artifacts").glob("*/filtered-*/*.npz"):
+            p.unlink()
+        rows.append({"task": "filtered", "shard": 0,
+                     **run_task(work, usd, settings, "filtered", 0)})
     geo_bytes = ctx.store.path(ctx.geometry_key()).stat().st_size
     print(f"{usd.name}, atlas {args.atlas}^2, shard_texels {settings.shard_texels}: "
           f"{geo_bytes / 2**30:.2f} GiB geometry artifact; fullest tile {tile} "

@@ -185,3 +185,49 @@ def test_filtered_map_with_wrong_channels_is_refused_naming_the_file(tmp_path):
     write_pixels(tmp_path / "a_filtered_L01.exr", good[..., :3], "float")
     with pytest.raises(AssetError, match="a_filtered_L01.exr"):
         read_filtered_maps(tmp_path, "a")
+
+
+def test_chunked_passes_give_the_one_pass_maps_and_ao():
+    """The export's passes a chunk of samples at a time (issue 15, memory): `FilteredSums`,
+    `PreviewSums` and AO over chunks of 37 give the one-pass maps and AO bit for bit (the
+    sums continue across chunks; AO's draws are those of the one-pass streams)."""
+    from texelbake.chunks import chunk_ranges
+    from texelbake.filtered_maps import FilteredSums
+    from texelbake.normalmap import PreviewSums, bake_preview_maps
+
+    rng = np.random.default_rng(9)
+    n, m = 8, 500
+    row, col = rng.integers(0, n, m), rng.integers(0, n, m)
+    area = rng.uniform(0.5, 1.5, m)
+    nrm = rng.normal(size=(m, 3)) * [0.4, 0.4, 0.2] + [0, 0, 1.0]
+    ao, alb, base, a2 = rng.uniform(size=m), rng.uniform(size=(m, 3)), \
+        rng.uniform(size=(m, 3)), rng.uniform(size=m)
+    texels = [(row >> lv) * (n >> lv) + (col >> lv) for lv in range(4)]
+    one = bake_filtered_levels(n, 4, texels, area, nrm, ao, alb, base, a2)
+    sums = FilteredSums(n, 4)
+    mats = [model.Material("/M/a", "lambert", {"diffuseColor": (0.2, 0.5, 0.7)}),
+            model.Material("/M/b", "lambert", {"diffuseColor": (0.9, 0.1, 0.3)})]
+    mat = rng.integers(0, 2, m).astype(np.int32)
+    uv = rng.uniform(size=(m, 2))
+    frames = np.linalg.qr(rng.normal(size=(20, 3, 3)))[0]
+    face = rng.integers(0, 20, m)
+    prev_one = bake_preview_maps(n, texels[0], area, nrm, uv, mat, mats, frames, face)
+    prev = PreviewSums(n)
+    for a, b in chunk_ranges(m, 37):
+        sums.add([t[a:b] for t in texels], area[a:b], nrm[a:b], ao[a:b], alb[a:b], base[a:b],
+                 a2[a:b])
+        prev.add(texels[0][a:b], area[a:b], nrm[a:b], uv[a:b], mat[a:b], mats, frames,
+                 face[a:b])
+    for x, y in zip(one, sums.maps(), strict=True):
+        assert x.tobytes() == y.tobytes()
+    for x, y in zip(prev_one, prev.maps(), strict=True):
+        assert x.tobytes() == y.tobytes()
+    quad = np.array([[-1.0, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]])
+    caster = RayCaster(quad, np.array([[0, 1, 2], [0, 2, 3]]))
+    pts = rng.uniform(-1, 1, (m, 3)) * [1, 1, 0]
+    up = np.tile([0.0, 0.0, 1.0], (m, 1))
+    whole = ambient_occlusion(pts, up, caster.occluded, n_rays=8, seed=4)
+    parts = np.concatenate([ambient_occlusion(pts[a:b], up[a:b], caster.occluded, n_rays=8,
+                                              seed=4, first=a, total=m)
+                            for a, b in chunk_ranges(m, 37)])
+    assert whole.tobytes() == parts.tobytes() and 0 < whole.mean() < 1

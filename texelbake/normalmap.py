@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from texelbake import brdf
+from texelbake.chunks import bincount_continued
 from texelbake.errors import ShapeError
 from texelbake.frames import tangent_frames
 from texelbake.model import Material
@@ -81,7 +82,8 @@ def bake_preview_maps(
     m1_frames: np.ndarray,
     sample_m1_face: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Area-weighted albedo and tangent-space normal per texel of M1's atlas.
+    """Area-weighted albedo and tangent-space normal per texel of M1's atlas (`PreviewSums`
+    takes the samples a chunk at a time with the same result).
 
     texel : (m,) int64 flat texel ids at level 0; area : (m,) ΔA; sample_normals : (m, 3)
     sample_uv : (m, 2) the samples' own texture coordinates (for textured albedo)
@@ -89,25 +91,50 @@ def bake_preview_maps(
     sample_m1_face : (m,) int64 M1 triangle under each sample (closest point)
     returns : (albedo (N, N, 3) float32, normal (N, N, 3) float32 unit, filled (N, N) bool)
     """
-    n_tex = resolution * resolution
-    albedo_s = np.zeros((len(texel), 3))
-    for mi in np.unique(sample_material):  # a loop over the few materials
-        sel = sample_material == mi
-        albedo_s[sel] = brdf.diffuse_albedo(materials[int(mi)], sample_uv[sel])
-    local = np.einsum("mij,mj->mi", m1_frames[sample_m1_face], sample_normals)
-    wsum = np.bincount(texel, weights=area, minlength=n_tex)
-    filled = wsum > 0
-    alb = np.stack([np.bincount(texel, weights=area * albedo_s[:, c], minlength=n_tex)
-                    for c in range(3)], axis=1)
-    nrm = np.stack([np.bincount(texel, weights=area * local[:, c], minlength=n_tex)
-                    for c in range(3)], axis=1)
-    alb = np.divide(alb, wsum[:, None], out=np.zeros_like(alb), where=filled[:, None])
-    length = np.linalg.norm(nrm, axis=1, keepdims=True)
-    nrm = np.divide(nrm, length, out=np.tile([0.0, 0.0, 1.0], (n_tex, 1)),
-                    where=length > 0)
-    shape = (resolution, resolution, 3)
-    f2 = filled.reshape(resolution, resolution)
-    alb = dilate(alb.reshape(shape), f2)
-    nrm = dilate(nrm.reshape(shape), f2)
-    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=2, keepdims=True), 1e-12)
-    return alb.astype(np.float32), nrm.astype(np.float32), f2
+    sums = PreviewSums(resolution)
+    sums.add(texel, area, sample_normals, sample_uv, sample_material, materials, m1_frames,
+             sample_m1_face)
+    return sums.maps()
+
+
+class PreviewSums:
+    """`bake_preview_maps` over chunks of samples given in order, the sums continued across
+    chunks (`chunks.bincount_continued`): the one-pass maps bit for bit."""
+
+    def __init__(self, resolution: int) -> None:
+        self.resolution = int(resolution)
+        n_tex = self.resolution * self.resolution
+        self.wsum = np.zeros(n_tex)
+        self.alb = np.zeros((3, n_tex))
+        self.nrm = np.zeros((3, n_tex))
+
+    def add(self, texel: np.ndarray, area: np.ndarray, sample_normals: np.ndarray,
+            sample_uv: np.ndarray, sample_material: np.ndarray, materials: Sequence[Material],
+            m1_frames: np.ndarray, sample_m1_face: np.ndarray) -> None:
+        """The next chunk of samples (arguments as `bake_preview_maps`')."""
+        albedo_s = np.zeros((len(texel), 3))
+        for mi in np.unique(sample_material):  # a loop over the few materials
+            sel = sample_material == mi
+            albedo_s[sel] = brdf.diffuse_albedo(materials[int(mi)], sample_uv[sel])
+        local = np.einsum("mij,mj->mi", m1_frames[sample_m1_face], sample_normals)
+        self.wsum = bincount_continued(self.wsum, texel, area)
+        for c in range(3):  # r, g, b / x, y, z
+            self.alb[c] = bincount_continued(self.alb[c], texel, area * albedo_s[:, c])
+            self.nrm[c] = bincount_continued(self.nrm[c], texel, area * local[:, c])
+
+    def maps(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        resolution, n_tex = self.resolution, self.resolution * self.resolution
+        wsum = self.wsum
+        filled = wsum > 0
+        alb = np.divide(np.ascontiguousarray(self.alb.T), wsum[:, None],
+                        out=np.zeros((n_tex, 3)), where=filled[:, None])
+        nrm = np.ascontiguousarray(self.nrm.T)  # (N², 3) as the one-pass stack
+        length = np.linalg.norm(nrm, axis=1, keepdims=True)
+        nrm = np.divide(nrm, length, out=np.tile([0.0, 0.0, 1.0], (n_tex, 1)),
+                        where=length > 0)
+        shape = (resolution, resolution, 3)
+        f2 = filled.reshape(resolution, resolution)
+        alb = dilate(alb.reshape(shape), f2)
+        nrm = dilate(nrm.reshape(shape), f2)
+        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=2, keepdims=True), 1e-12)
+        return alb.astype(np.float32), nrm.astype(np.float32), f2

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from texelbake.chunks import bincount_continued
 from texelbake.errors import SettingsError, ShapeError
 from texelbake.frames import tangent_frames
 from texelbake.geometry.atlas import Atlas, rasterize_atlas
@@ -410,8 +411,8 @@ def texel_frames(
 class FrameSums:
     """`texel_frames` of one level, accumulated over consecutive chunks of samples (the
     geometry stage's pass over a spooled 512² sample set). Sums over a texel's samples are
-    continued across chunks in sample order (the running sums enter each chunk's bincount
-    first), so any chunking gives the one-pass result bit for bit."""
+    continued across chunks in sample order (`chunks.bincount_continued`), so any chunking
+    gives the one-pass result bit for bit."""
 
     def __init__(self, atlas: Atlas, n_l: int) -> None:
         self.n_l = int(n_l)
@@ -433,13 +434,9 @@ class FrameSums:
         this level, shading normals, ΔA, atlas uv and M1 triangle."""
         n_tex = self.n_l * self.n_l
         idx = row * self.n_l + col
-        ext = np.concatenate([np.arange(n_tex, dtype=np.int64), idx])
         for k in range(3):  # x, y, z
-            self.nsum[:, k] = np.bincount(ext, weights=np.concatenate([self.nsum[:, k],
-                                                                         w * nrm[:, k]]),
-                                          minlength=n_tex)
-        self.wsum[:] = np.bincount(ext, weights=np.concatenate([self.wsum, np.abs(w)]),
-                                   minlength=n_tex)
+            self.nsum[:, k] = bincount_continued(self.nsum[:, k], idx, w * nrm[:, k])
+        self.wsum[:] = bincount_continued(self.wsum, idx, np.abs(w))
         self.counts += np.bincount(idx, minlength=n_tex)
         sel = np.flatnonzero(self.under[idx] < 0)  # ascending in the chunk
         if sel.size:

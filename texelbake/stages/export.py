@@ -7,10 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from texelbake.chunks import chunk_ranges, sample_rows
 from texelbake.costmodel import atlas_trade
 from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
-from texelbake.geometry.build import lod_meshes, lod_report
+from texelbake.geometry.build import geometry_chunk, lod_meshes, lod_report
 from texelbake.geometry.lodchain import transfer_corner_normals
 from texelbake.lodmesh import LodMesh
 from texelbake.quality import quality_gate
@@ -53,7 +54,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
 
         raise SettingsError(f"field 'source': expected 'copy' or 'reference', got {source!r}")
     from texelbake import payload
-    from texelbake.normalmap import bake_preview_maps
+    from texelbake.normalmap import PreviewSums
     from texelbake.scene import check_asset_paths
 
     s = ctx.settings
@@ -73,12 +74,14 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     meshes = [LodMesh(v, f, uv, corner_normals=transfer_corner_normals(
         v, f, asset.corner_normals, ctx.caster())) for v, f, uv in lod_meshes(geo)]
     # the normal map is in the tangent frames of the mesh that carries it, LOD1
-    frames1, sample_prim = lod1_frames(geo)
-    albedo, normal, _ = bake_preview_maps(
-        s.atlas_resolution, texel_ids(geo, s.atlas_resolution, 0), geo["sample_area"],
-        geo["sample_nrm"], geo["sample_uv"], geo["sample_mat"], asset.materials, frames1,
-        sample_prim,
-    )
+    frames1, prim_of = lod1_frames(geo)
+    preview = PreviewSums(s.atlas_resolution)
+    for a, b in chunk_ranges(len(geo["sample_area"]), geometry_chunk(s)):  # memory bound
+        r = sample_rows(geo, ("sample_row", "sample_col", "sample_area", "sample_nrm",
+                              "sample_uv", "sample_mat"), a, b)
+        preview.add(texel_ids(r, s.atlas_resolution, 0), r["sample_area"], r["sample_nrm"],
+                    r["sample_uv"], r["sample_mat"], asset.materials, frames1, prim_of(a, b))
+    albedo, normal, _ = preview.maps()
     extra_arrays = {}
     if not bool(geo["lod_exact"]):  # the CPM's atlas mesh M_T is not LOD1: the renderer needs it
         extra_arrays = {"atlas_vertices": geo["m1_vertices"], "atlas_faces": geo["m1_faces"],

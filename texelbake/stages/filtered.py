@@ -5,15 +5,20 @@ AO rays are the cost, so a rerun of the export does not cast them again)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
+from texelbake.chunks import chunk_ranges, sample_rows
 from texelbake.cpm.level import texel_ids
 from texelbake.filtered_maps import (
     FILTER_TOL,
+    FilteredSums,
     ambient_occlusion,
     bake_filtered_levels,
     material_base,
 )
+from texelbake.geometry.build import geometry_chunk
 from texelbake.normalmap import face_tangent_space
 from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
 from texelbake.tol import TOL
@@ -30,33 +35,47 @@ def run_filtered(ctx: StageContext, shard: int = 0) -> str:
         return key
     s = ctx.settings
     geo = ctx.geometry()
-    asset = ctx.asset()
+    materials = ctx.asset().materials
     caster = ctx.caster()
-    frames, prim = lod1_frames(geo)
-    local = np.einsum("mij,mj->mi", frames[prim], geo["sample_nrm"])
-    ao = ambient_occlusion(geo["sample_pos"], geo["sample_gnrm"], caster.occluded,
-                           seed=s.seed, ray_eps=TOL.ray_offset * caster.bbox_diag)
-    albedo, base, alpha2 = material_base(asset.materials, geo["sample_mat"], geo["sample_uv"])
-    texels = [texel_ids(geo, s.atlas_resolution, lvl) for lvl in range(ctx.n_levels)]
-    maps = bake_filtered_levels(s.atlas_resolution, ctx.n_levels, texels, geo["sample_area"],
-                                local, ao, albedo, base, alpha2)
+    frames, prim_of = lod1_frames(geo)
+    m = len(geo["sample_area"])
+    sums = FilteredSums(s.atlas_resolution, ctx.n_levels)
+    # a chunk of samples at a time (issue 15: one pass held ~500 bytes a sample, 8.4 GB at
+    # 512²); the sums continue across chunks and AO's draws are the one-pass draws, so the
+    # maps are the one-pass maps bit for bit
+    for a, b in chunk_ranges(m, geometry_chunk(s)):  # loop over chunks (memory bound)
+        r = sample_rows(geo, ("sample_pos", "sample_nrm", "sample_gnrm", "sample_mat",
+                              "sample_uv", "sample_area", "sample_row", "sample_col"), a, b)
+        local = np.einsum("mij,mj->mi", frames[prim_of(a, b)], r["sample_nrm"])
+        ao = ambient_occlusion(r["sample_pos"], r["sample_gnrm"], caster.occluded,
+                               seed=s.seed, ray_eps=TOL.ray_offset * caster.bbox_diag,
+                               first=a, total=m)
+        albedo, base, alpha2 = material_base(materials, r["sample_mat"], r["sample_uv"])
+        texels = [texel_ids(r, s.atlas_resolution, lvl) for lvl in range(ctx.n_levels)]
+        sums.add(texels, r["sample_area"], local, ao, albedo, base, alpha2)
+    maps = sums.maps()
     return ctx.store.write_arrays(key, {f"L{lvl:02d}": m for lvl, m in enumerate(maps)})
 
 
-def lod1_frames(geo: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """The tangent frames of LOD1's faces (from its atlas uvs) and each sample's LOD1 face:
-    the maps a viewer applies to LOD1 are in LOD1's frames. LOD1 is the atlas mesh M_T (the
-    samples' `sample_m1_prim`) unless it was too fine for the atlas (issue 22): then each
-    sample takes its closest LOD1 face."""
+def lod1_frames(geo: dict[str, np.ndarray]
+                ) -> tuple[np.ndarray, Callable[[int, int], np.ndarray]]:
+    """The tangent frames of LOD1's faces (from its atlas uvs) and, for samples a..b, their
+    LOD1 face: the maps a viewer applies to LOD1 are in LOD1's frames. LOD1 is the atlas mesh
+    M_T (the samples' `sample_m1_prim`) unless it was too fine for the atlas (issue 22): then
+    each sample takes its closest LOD1 face (each sample's on its own: any chunking)."""
     from texelbake.geometry.build import lod_meshes
     from texelbake.geometry.raycast import RayCaster
 
     v, f, uv = lod_meshes(geo)[0]
     if bool(geo["lod_exact"]):
-        prim = geo["sample_m1_prim"]
+        def prim_of(a: int, b: int) -> np.ndarray:
+            return sample_rows(geo, ("sample_m1_prim",), a, b)["sample_m1_prim"]
     else:
-        _, prim, _ = RayCaster(v, f).closest_points(geo["sample_pos"])
-    return face_tangent_space(v, f, uv), prim
+        lod1 = RayCaster(v, f)
+
+        def prim_of(a: int, b: int) -> np.ndarray:
+            return lod1.closest_points(sample_rows(geo, ("sample_pos",), a, b)["sample_pos"])[1]
+    return face_tangent_space(v, f, uv), prim_of
 
 
 def filtered_levels(ctx: StageContext) -> list[np.ndarray]:
