@@ -38,7 +38,8 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
     asset : M_org; caster : a ray caster over M_org (the bent-normal rule on wraps);
     n_levels : mip levels (log2 N + 1). returns : sample_* (m, ...) arrays, m1_* (M_T with
     corner uvs), lod{i}_* (LOD i: vertices, faces, corner_uvs, one_chart), lod_exact (LOD1 is
-    M_T), lod_report (JSON), frames_L{l} (N_l^2, 3, 3) and frames_valid_L{l}.
+    M_T), lod_report (JSON), frames_L{l} (N_l^2, 3, 3) and frames_valid_L{l}, and the samples'
+    Z-order index sample_zorder (m,) with texel_zoffsets (N^2 + 1,) (`_zorder_spooled`).
     spool : where the sample_* arrays are made, a chunk of samples at a time
     (`geometry_chunk`): a `FileSpool` keeps them on disk (the stage: memory bounded by
     settings.worker_memory_mb whatever the atlas size), None or a `MemorySpool` in memory.
@@ -134,7 +135,7 @@ def geometry_chunk(s: BakeSettings) -> int:
                        1 << 14, 1 << 22))
 
 
-#: the per-sample arrays of the geometry artifact, written by the two passes below
+#: the per-sample arrays of the geometry artifact, written by the first two passes below
 _SAMPLE_ARRAYS = {
     "sample_pos": (np.float64, (3,)), "sample_nrm": (np.float64, (3,)),
     "sample_gnrm": (np.float64, (3,)), "sample_face": (np.int64, ()),
