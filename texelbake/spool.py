@@ -77,7 +77,9 @@ class FileSpool:
         return removed
 
     def _path(self, name: str) -> Path:
-        return self.dir / f"{name}.npy"
+        # a leading dot, as every file still being written in the store has (atomic_path):
+        # tools that watch the store skip it (benchmarks/chaos.py)
+        return self.dir / f".{name}.npy"
 
     def allocate(self, name: str, dtype: np.dtype | type, shape: tuple[int, ...]) -> None:
         dt = np.dtype(dtype)
