@@ -138,3 +138,32 @@ def test_a_spooled_array_is_copied_with_the_bytes_of_the_array(tmp_path):
         spool.write("pos", 4_999, arrays["pos"][:2])
     spool.close()
     assert not (tmp_path / "spool").exists() or not any((tmp_path / "spool").iterdir())
+
+
+def test_mapped_arrays_author_into_usd(tmp_path):
+    """Arrays mapped from an artifact lie where their zip member does, unaligned; numpy then
+    exports them with the buffer format '=d', which Vt.FromNumpy refuses. The baked USD's
+    writers take aligned copies (a 256² bake's export failed on its mapped frames)."""
+    from pxr import Usd
+
+    from texelbake import payload
+    from texelbake.lodmesh import LodMesh, author_mesh
+
+    rng = np.random.default_rng(1)
+    arrays = {"frames": rng.random((50_000, 3, 3)), "ids": np.arange(300_001, dtype=np.int32),
+              "vertices": rng.random((100_000, 3)),
+              "faces": rng.integers(0, 100_000, (100_000, 3)).astype(np.int32)}
+    store = ArtifactStore(tmp_path)
+    store.write_arrays("k.npz", arrays)
+    got = store.read_arrays("k.npz", mmap=True)
+    assert not all(got[k].flags.aligned for k in got)  # the case this test is about
+    stage = Usd.Stage.CreateInMemory()
+    prim = stage.DefinePrim("/A")
+    for name in ("frames", "ids"):
+        payload._author_array(prim, name, got[name])
+        np.testing.assert_array_equal(np.array(prim.GetAttribute(f"texelbake:{name}").Get()),
+                                      arrays[name].reshape(-1))
+    corner_uvs = np.zeros((100_000, 3, 2))
+    geom = author_mesh(stage, "/M", LodMesh(got["vertices"], got["faces"], corner_uvs))
+    np.testing.assert_array_equal(np.array(geom.GetFaceVertexIndicesAttr().Get()),
+                                  arrays["faces"].reshape(-1))

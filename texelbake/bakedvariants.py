@@ -62,8 +62,8 @@ def author_proxy(stage: Usd.Stage, root_name: str, vertices: np.ndarray, faces: 
     """The proxy mesh in the root layer, beside the `Baked` scope that holds the payload."""
     path = f"/{root_name}/Proxy"
     geom = UsdGeom.Mesh.Define(stage, path)
-    v = np.ascontiguousarray(vertices, dtype=np.float32)
-    f = np.ascontiguousarray(faces, dtype=np.int32)
+    v = np.require(vertices, dtype=np.float32, requirements=["C", "A"])  # aligned (mapped inputs)
+    f = np.require(faces, dtype=np.int32, requirements=["C", "A"])
     geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(v))
     geom.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(f)))
     geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(f.reshape(-1)))

@@ -41,8 +41,10 @@ class LodMesh:
 
 def author_mesh(stage: Usd.Stage, path: str, mesh: LodMesh) -> UsdGeom.Mesh:
     geom = UsdGeom.Mesh.Define(stage, path)
-    v = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
-    f = np.ascontiguousarray(mesh.faces, dtype=np.int32)
+    # aligned copies where needed: a mapped artifact's arrays may be unaligned, which
+    # Vt.*.FromNumpy refuses (see payload._author_array)
+    v = np.require(mesh.vertices, dtype=np.float32, requirements=["C", "A"])
+    f = np.require(mesh.faces, dtype=np.int32, requirements=["C", "A"])
     geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(v))
     geom.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(f)))
     geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(f.reshape(-1)))

@@ -118,6 +118,11 @@ def _author_array(prim: Usd.Prim, name: str, arr: np.ndarray) -> None:
         raise ShapeError(f"payload array {name!r}: unsupported dtype {arr.dtype}")
     vtype, vt = _DTYPES[key]
     flat = np.ascontiguousarray(arr.reshape(-1))
+    if not flat.flags.aligned:
+        # an array mapped from an artifact (`store.read_npz(mmap=True)`) lies where its zip
+        # member does: unaligned, numpy exports it with the format '=d', which Vt.FromNumpy
+        # refuses ("Unsupported format"); an aligned copy is what it reads
+        flat = flat.copy()
     value = vt(flat.tolist()) if key in ("bool", "uint8") else vt.FromNumpy(flat)
     prim.CreateAttribute(f"{_NS}{name}", vtype, custom=True).Set(value)
     prim.CreateAttribute(f"{_NS}{name}:shape", Sdf.ValueTypeNames.IntArray, custom=True).Set(
