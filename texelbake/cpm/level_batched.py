@@ -25,8 +25,9 @@ from threadpoolctl import threadpool_limits
 
 from texelbake.cpm import level as level_mod
 from texelbake.cpm.brdf_product import brdf_product
+from texelbake.cpm.columns import Columns
 from texelbake.cpm.fit import TexelFit, _empty_fit, fit_texel
-from texelbake.cpm.gram_fit import Columns, correlation_from_sums, fit_many
+from texelbake.cpm.gram_fit import correlation_from_sums, fit_many
 from texelbake.cpm.level import (
     FitInputs,
     PointSet,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -246,18 +247,8 @@ def surface_sampler(
                           face_material)
 
 
-def sample_surface(
-    points: object,
-    faces: object,
-    n_samples: int,
-    seed: int,
-    *,
-    corner_normals: object | None = None,
-    corner_uvs: object | None = None,
-    face_material: object | None = None,
-    eps: float = TOL.zero_area,
-    chunk: int = SAMPLE_CHUNK,
-) -> Samples:
+def sample_surface(points: object, faces: object, n_samples: int, seed: int, *,
+                   chunk: int = SAMPLE_CHUNK, **options: Any) -> Samples:
     """Area-weighted, per-triangle stratified samples of a triangle mesh.
 
     points : (n, 3) float64; faces : (f, 3) int64
@@ -265,6 +256,7 @@ def sample_surface(
         so every triangle with area > eps * bbox_diag**2 is represented (degenerate
         triangles get none)
     seed : seeds the jitter and shifts; equal inputs give byte-identical output
+    options : `surface_sampler`'s keywords:
     corner_normals : (f, 3, 3) float64 or None — shading normals per face corner; where the
         interpolated normal is zero or not finite the sample takes the geometric normal
     corner_uvs : (f, 3, 2) float64 or None
@@ -274,8 +266,7 @@ def sample_surface(
     returns : Samples, grouped by triangle in face order; ΔA of a triangle's samples is
         its area / its count. Empty (typed) when nothing has area or n_samples <= 0.
     """
-    sampler = surface_sampler(points, faces, n_samples, seed, corner_normals=corner_normals,
-                              corner_uvs=corner_uvs, face_material=face_material, eps=eps)
+    sampler = surface_sampler(points, faces, n_samples, seed, **options)
     parts = [smp for _, smp in sampler.chunks(chunk)]
     if not parts:
         return empty_samples()
