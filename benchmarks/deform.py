@@ -52,7 +52,7 @@ with the cases where it fails; the look-up variants against `cpm` follow (not th
 
 Measured: docs/deformation.md "Measured" (benchmarks/results/deform_512.json).
 
-JSON: {"settings", "complete", "cases": [{"scene", "warp", "object_pixels", "m1"
+JSON: {"settings", "complete", "cases": [{"scene", "scene_size", "warp", "object_pixels", "m1"
 {"triangles", "hausdorff_rel"} (M1 against M_org, from the bake's report: on the generated
 scenes M1 is M_org within 1e-5 of the diagonal, so the normal map is traced on the original
 geometry, and a claim against it says so), "reference":
@@ -278,7 +278,7 @@ def _claims(cases: list[dict]) -> list[dict]:
                     "why": "; ".join(bad) if bad else "on every case"})
 
     def name(c: dict) -> str:
-        return f"{c['scene']} {c['warp']}"
+        return f"{_label(c)} {c['warp']}"
 
     def why(c: dict, other: str) -> str:
         """A case where cpm does not beat `other`: the verdict, the figures, and what the
@@ -370,12 +370,18 @@ def _lookup_comparisons(cases: list[dict]) -> list[dict]:
     return out
 
 
+def _label(c: dict) -> str:
+    """The scene's name, with its size when it is not the generated scenes' small one."""
+    size = c.get("scene_size", "small")
+    return c["scene"] if size == "small" else f"{c['scene']} ({size})"
+
+
 def _report(result: dict) -> None:
     cases = result["cases"]
     print(f"\n{'scene':<10}{'warp':<44}{'obj px':>7}{'ref s':>8}{'ref nz':>7}"
           + "".join(f"{m + ' s':>13}{m + ' dB':>18}" for m in MODES))
     for c in cases:
-        row = (f"{c['scene']:<10}{c['warp']:<44}{c['object_pixels']:>7}"
+        row = (f"{_label(c):<10}{c['warp']:<44}{c['object_pixels']:>7}"
                f"{c['reference']['seconds']:>8.1f}"
                f"{c['reference'].get('noise_psnr_db') or float('nan'):>7.1f}")
         for m in MODES:
@@ -430,8 +436,11 @@ def main(argv: list[str] | None = None) -> dict:
         parts = [json.loads(f.read_text()) for f in args.merge]
         result = {"settings": {**parts[0]["settings"],
                                "scenes": ",".join(p["settings"]["scenes"] for p in parts),
+                               "scene_size": ",".join(sorted({
+                                   p["settings"].get("scene_size", "small") for p in parts})),
                                "merged_from": [f.name for f in args.merge]},
-                  "cases": [c for p in parts for c in p["cases"]]}
+                  "cases": [{"scene_size": p["settings"].get("scene_size", "small"), **c}
+                            for p in parts for c in p["cases"]]}
         result.update(claims=_claims(result["cases"]), pairs=_pairs(result["cases"]),
                       lookup_comparisons=_lookup_comparisons(result["cases"]), complete=all(
                           p.get("complete", True) for p in parts))
@@ -453,6 +462,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     def done(case: dict) -> None:  # the JSON after every case: a cut-short run keeps its cases
         case["m1"] = m1
+        case["scene_size"] = args.scene_size
         cases.append(case)
         print(f"{case['scene']} {case['warp']}: done", flush=True)
         _write(args.json, {"settings": settings, "cases": cases, "complete": False,
