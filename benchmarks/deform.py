@@ -99,7 +99,10 @@ WARPS = ("bend:angle=90", "twist:angle=90", "stretch:x=2,y=1,z=1")
 RIGID = "rigid:angle=40,axis=x,tx=0.5,ty=-0.3,tz=0.2"
 #: the arm's own animation (texelbake.scenes.arm): bent 45° at time 12, 90° at 24
 ARM_TIMES = ("time:12", "time:24")
-MODES = ("cpm", "cpm-vertex", "cpm-texel", "cpm-tri", "cpm-naive", "normalmap", "gt")
+MODES = ("cpm", "cpm-affine", "cpm-vertex", "cpm-texel", "cpm-tri", "cpm-naive", "normalmap",
+         "gt")
+#: the look-up variants: mode -> `render_deformed`'s lookup
+VARIANTS = {"cpm-affine": "affine", "cpm-texel": "texel", "cpm-vertex": "vertex"}
 
 
 def bake_scene(scene: str, work: Path, atlas: int, size: str) -> Path:
@@ -182,15 +185,14 @@ def _case(scene_name: str, d, cam, spp: int, ref_spp: int, render_fn, seeds: int
     ref, ref_info = _reference(d, cam, ref_spp, ref_parts, render_fn)
     modes = {}
     for mode in MODES:  # a loop over the few modes
-        kw = ({"lookup": "texel"} if mode == "cpm-texel" else
-              {"lookup": "vertex"} if mode == "cpm-vertex" else {})
+        kw = {"lookup": VARIANTS[mode]} if mode in VARIANTS else {}
         scene = d_tri if mode == "cpm-tri" else d
         if scene is None:
             continue
 
         def run(seed: int, m=mode, kw=kw, scene=scene):
-            return render_fn(scene, m.replace("-texel", "").replace("-vertex", "").replace(
-                "-tri", ""), cam, spp, seed, **kw)
+            return render_fn(scene, "cpm" if m in VARIANTS or m == "cpm-tri" else m, cam, spp,
+                             seed, **kw)
 
         run(0)  # warm (the per-frame caches: L, the deformed points)
         runs = [run(s) for s in range(seeds)]  # a loop over the few seeds
@@ -361,7 +363,7 @@ def _lookup_comparisons(cases: list[dict]) -> list[dict]:
     for c in cases:
         if c["warp"] in ("none", RIGID):
             continue
-        for alt in ("cpm-vertex", "cpm-texel", "cpm-tri"):
+        for alt in ("cpm-affine", "cpm-vertex", "cpm-texel", "cpm-tri"):
             if alt in c["modes"]:
                 v, dlt, spread = verdict(c["modes"][alt], c["modes"]["cpm"])
                 out.append({"scene": c["scene"], "warp": c["warp"], "mode": alt,

@@ -289,6 +289,23 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
             np.einsum("nij,nj->ni", jc, frames[live, 1]),
             fallback_normal=deform_normals(jc, frames[live, 2]))
     out["lookup:texel"] = lrot_t
+    # option "affine": the texel's view term, projected area and a_vis along J⁻¹ v* (J Ψ's
+    # Jacobian at the texel's centroid), not L v*. Under an affine Ψ a ray x + t ω of the rest
+    # texel maps to Ψ(x) + t J ω, so the points that see ω* = J ω in the deformed world are
+    # exactly those that see ω at rest, and by Nanson's formula (dA* n* = cof(J) dA n) a
+    # point's deformed projected area toward ω* is det J |J⁻¹ ω*| times its rest one toward
+    # J⁻¹ ω* / |J⁻¹ ω*| — a factor common to the texel's points, which Eq. 12's division by
+    # a_vis cancels. L (a rotation) is the same where J is a rotation times a scale; under a
+    # non-uniform stretch it is not (seed §4.4, limitation 2). J⁻¹ is taken as adj(J) =
+    # cof(J)ᵀ (its scale drops out of the unit direction); where det J ≤ AFFINE_MIN_DET of
+    # (|J|_F / √3)³ (a squeezed or folded texel) the texel keeps the vertex L.
+    view_aff = lrot.copy()
+    if live.any():
+        det = np.linalg.det(jc)
+        scale = (np.linalg.norm(jc, axis=(1, 2)) / np.sqrt(3.0)) ** 3
+        ok = det > AFFINE_MIN_DET * scale
+        view_aff[np.flatnonzero(live)[ok]] = np.transpose(cofactor(jc[ok]), (0, 2, 1))
+    out["view:affine"] = view_aff
     # each characteristic point as its own impostor point (the seed's limit where the impostor
     # is the surface, §4.4): R0 its shading frame, (u, v) = J (t, b) with J the deformed
     # M_org's own affine map at the point (per point, not per texel)
@@ -305,8 +322,15 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
 #: vertices, from the payload, interpolated at the centroid's closest point), "none" (L = I,
 #: ``cpm-naive``), "point" (the default: each characteristic point's BRDF directions through
 #: its own L — its shading frame carried by the deformed M_org's Jacobian at the point —, the
-#: texel's view direction, view term and a_vis through "vertex")
-LOOKUPS = ("texel", "vertex", "none", "point")
+#: texel's view direction, view term and a_vis through "vertex"), "affine" (as "point", but the
+#: texel's view direction, view term, projected areas and a_vis through Ψ's inverse Jacobian
+#: at the texel's centroid instead of a rotation: exact for a locally affine Ψ, a
+#: non-uniform stretch included; `_level_geometry`)
+LOOKUPS = ("texel", "vertex", "none", "point", "affine")
+#: a texel whose det J is at or below this fraction of (|J|_F / √3)³ (1 for a rotation) keeps
+#: the vertex L under "affine": J⁻¹ would be dominated by rounding, or the texel is folded
+#: (det J < 0); 1e-9 is far below any real stretch (a 1000:1 squeeze in every direction)
+AFFINE_MIN_DET = 1e-9
 #: the default look-up (decisions 2026-11-27: measured in `benchmarks/deform.py` against the
 #: seed's "vertex", ``cpm-vertex`` there, it never loses and wins on 7 of 8 deformed frames,
 #: by up to 40 dB where M1's interpolated frame is a few degrees off a faceted metal's own
@@ -338,10 +362,11 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     geo = _level_geometry(d, level)
     ng, ns, w = cp["geom_normal"][pt], cp["normal"][pt], cp["weight"][pt]
     pos_d, ng_d = geo["position"][pt], geo["geom_normal"][pt]
+    per_point = lookup in ("point", "affine")
     lrot = (np.broadcast_to(np.eye(3), (n_tex, 3, 3)) if lookup == "none"
-            else geo["lookup:vertex"][texels] if lookup == "point"
+            else geo["lookup:vertex"][texels] if per_point
             else geo[f"lookup:{lookup}"][texels])  # (t, 3, 3) deformed world -> rest world
-    lpt = geo["lookup:point"][pt] if lookup == "point" else None  # (k, 3, 3) per point
+    lpt = geo["lookup:point"][pt] if per_point else None  # (k, 3, 3) per point
     # one view direction per texel: deformed weighted centroid -> camera
     ws = np.abs(w).sum(axis=1)
     ws = np.where(np.bincount(tex, ws, n_tex)[tex] > 0, ws, 1.0)
@@ -349,7 +374,9 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     cen = np.stack([np.bincount(tex, ws * pos_d[:, c], n_tex) for c in range(3)], axis=1)
     cen = np.divide(cen, wsum[:, None], out=np.zeros_like(cen), where=wsum[:, None] > 0)
     wo_d_tex = _unit(cam_pos[None, :] - cen)
-    wo_tex = np.einsum("nij,nj->ni", lrot, wo_d_tex)  # rest frame (Eq. 10)
+    wo_tex = (_unit(np.einsum("nij,nj->ni", geo["view:affine"][texels], wo_d_tex))
+              if lookup == "affine"  # J⁻¹ v* (`_level_geometry`)
+              else np.einsum("nij,nj->ni", lrot, wo_d_tex))  # rest frame (Eq. 10)
     wo = wo_tex[tex]
     g = TOL.grazing_cos
     cos_go = np.einsum("ij,ij->i", ng, wo)
