@@ -23,6 +23,8 @@ surface), `cpm-naive` (no L) and `normalmap` (tangent frame carried by the defor
 `gt` at `--spp` for scale; `cpm-vertex` is the seed's construction (L of a texel from the
 Table 1 parameterization of M1's vertices, interpolated; `cpm` until 2026-11-27),
 `cpm-texel` L from each texel's own frame and J at its centroid (`render.deformed.LOOKUPS`),
+`cpm-affine` the default's per-point BRDF directions with the texel's view term, projected
+areas and a_vis read along J⁻¹ v* instead of L v* (exact for a locally affine Ψ),
 `cpm-tri` cpm with the Jacobians of M_org's triangles' constant affine maps
 (`deform_scene(jacobian_field="triangle")`, the default before 2026-11-27) instead of Ψ's
 vertex Jacobians interpolated. Each mode is rendered once to warm it, then

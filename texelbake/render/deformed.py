@@ -32,6 +32,10 @@ characteristic points follow Ψ (`deform_scene`), and the modes of a deformed fr
   Option `lookup="texel"`: the texel itself as the impostor point, R0 its baked frame and
   (u, v) = J (t, b) at its centroid (no interpolation across M1's coarse triangles; see
   `LOOKUPS`, measured beside the default in `benchmarks/deform.py` as ``cpm-texel``).
+  Option `lookup="affine"`: as the default, but the texel's view term, projected areas and
+  a_vis are read along J⁻¹ v* (J Ψ's Jacobian at the texel's centroid) instead of L v*: a
+  rotation cannot follow a non-uniform stretch (§4.4), the inverse Jacobian can, exactly
+  for a locally affine Ψ (`_level_geometry`; ``cpm-affine`` in the benchmark).
 - ``cpm-naive`` — the same with L = I: the rest tables looked up with the deformed world's
   directions (what L buys).
 - ``normalmap`` — the studio baseline on the deformed M1: its tangent frame rebuilt from the
