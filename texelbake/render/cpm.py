@@ -14,7 +14,7 @@ from texelbake.errors import SettingsError
 from texelbake.geometry.texels import bilinear_texels
 from texelbake.render.camera import PinholeCamera
 from texelbake.render.gt import shade_org
-from texelbake.render.scene import RenderScene, atlas_uv
+from texelbake.render.scene import RenderScene, atlas_uv, ray_atlas_uv
 from texelbake.render.shade import direct_radiance, light_at
 from texelbake.render.tracer import eye_passes, ray_slices
 from texelbake.tol import TOL
@@ -203,18 +203,27 @@ def footprint_level(scene: RenderScene, cam: PinholeCamera, mesh: int, prim: np.
     return 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(scene.n0)
 
 
-def _check_cpm_options(filtering: str, footprint: str) -> None:
+#: where a hit on a coarser M_i reads the atlas: "ray" (default) — where the eye ray, carried
+#: on, meets the atlas mesh (LOD1 or M_T) inside M_i; "closest" — seed 000 §4.1's composite
+#: map T(T_i(·)), M_i's own uvs or the closest atlas-mesh point (the rays that miss the atlas
+#: mesh, under M_i's rim, take it with either)
+UV_FROM = ("ray", "closest")
+
+
+def _check_cpm_options(filtering: str, footprint: str, uv_from: str = "ray") -> None:
     """The cpm mode's string options, checked before any ray is cast."""
     if filtering not in ("projected", "radiance"):
         raise SettingsError(f"field 'filtering': 'projected' or 'radiance', got {filtering!r}")
     if footprint not in ("sample", "pixel"):
         raise SettingsError(f"field 'footprint': 'sample' or 'pixel', got {footprint!r}")
+    if uv_from not in UV_FROM:
+        raise SettingsError(f"field 'uv_from': one of {UV_FROM}, got {uv_from!r}")
 
 
 def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
                  d: np.ndarray, *, lod_bias: float = 0.0, local_light_ratio: float = 8.0,
-                 spp: int = 1, footprint: str = "sample", coverage: bool = True
-                 ) -> dict[str, Any]:
+                 spp: int = 1, footprint: str = "sample", coverage: bool = True,
+                 uv_from: str = "ray") -> dict[str, Any]:
     """First half of `shade_cpm`: eye rays against M_i, atlas uv, mip level λ of every hit;
     the texels the look-ups will read are requested from `frame` (computed in one batch by
     `CpmFrame.flush`).
@@ -235,7 +244,16 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
         which is what M_org's outline does in gt. The other way round, an eye ray that misses
         M_i but meets M_org (an open surface's edge under the rim of an enclosing M_i: 473 of
         a grazing view's 6,720 object pixels on a bumpy open field) is shaded from M_org
-        (`_outline_misses`; `_cpm_finish` treats it as a fallback ray)."""
+        (`_outline_misses`; `_cpm_finish` treats it as a fallback ray).
+    uv_from : UV_FROM. A coarser M_i lies up to its error outside the atlas mesh, and a point
+        of M_i maps (by its own uvs, or by the closest point, seed 000 §4.1) to the atlas-mesh
+        point under it, not to the one the eye ray would meet behind it: at grazing angles,
+        i.e. along the outline, the two are h / tan θ apart — a parallax of texels. On the
+        full cylinder at its lod view (72 object pixels, 64² atlas, M2 chosen at 0.19 px of
+        Hausdorff error) that cost 3 dB: 19.6–20.8 dB against 22.7–25.2 with the ray's own
+        atlas point, the same as rendering M1 (docs/decisions.md 2026-11-28).
+        "ray" casts each M_i hit's eye ray on against the atlas mesh (one more ray per hit,
+        M_i ≠ the atlas mesh only)."""
     i = frame.mesh
     mesh = scene.baked.meshes[i]
     hits = scene.lods[i].cast(o, d)
@@ -252,6 +270,11 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
     p = np.einsum("nk,nkj->nj", b, mesh.vertices[mesh.faces[prim]])
     uv = np.einsum("nk,nkj->nj", b, mesh.corner_uvs[prim])
     inexact = ~scene.lod_uv_exact[i][prim]
+    if uv_from == "ray" and (i > 0 or scene.atlas_separate):  # the ray's own atlas point
+        ruv, met = ray_atlas_uv(scene, o[idx], d[idx])
+        h["rays"] += idx.size
+        uv[met] = ruv[met]
+        inexact &= ~met
     if inexact.any():  # the exact composite map: closest point on M1, its atlas uv
         uv[inexact] = atlas_uv(scene, p[inexact])
     lam = footprint_level(scene, cam, i, prim, p, o[idx], d[idx]) + lod_bias
@@ -349,17 +372,17 @@ def _outline_misses(scene: RenderScene, cam: PinholeCamera, d: np.ndarray,
 def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.ndarray,
               d: np.ndarray, spp: int, *, lod_bias: float = 0.0,
               local_light_ratio: float = 8.0, filtering: str = "projected",
-              footprint: str = "sample", coverage: bool = True
+              footprint: str = "sample", coverage: bool = True, uv_from: str = "ray"
               ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     """Radiance along eye rays from the characteristic point maps (module docstring).
 
     returns : (radiance (n, 3), level (n,) float64 — the fractional mip level used, -1 where
         M_org was used, NaN for misses; rays cast; hit (n,) bool — the ray sees the object)
     """
-    _check_cpm_options(filtering, footprint)
+    _check_cpm_options(filtering, footprint, uv_from)
     h = _cpm_prepare(scene, frame, cam, o, d, lod_bias=lod_bias,
                      local_light_ratio=local_light_ratio, spp=spp, footprint=footprint,
-                     coverage=coverage)
+                     coverage=coverage, uv_from=uv_from)
     frame.flush()
     return _cpm_finish(scene, frame, o, d, h, filtering)
 
@@ -367,7 +390,7 @@ def shade_cpm(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.nda
 def render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):
     max_error_px = kw.pop("max_error_px", 1.0)
     filtering = kw.pop("filtering", "projected")
-    _check_cpm_options(filtering, kw.get("footprint", "sample"))
+    _check_cpm_options(filtering, kw.get("footprint", "sample"), kw.get("uv_from", "ray"))
     # a caller's CpmFrame (the deformed modes: `texelbake.render.deformed`) or this frame's
     frame = kw.pop("frame", None) or cpm_frame(scene, cam, max_error_px)
     n_pix = cam.height * cam.width

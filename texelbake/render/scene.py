@@ -264,14 +264,31 @@ def hit_m1(scene: RenderScene, o: np.ndarray, d: np.ndarray):
     return hits.hit, idx, prim, p, uv, row, col
 
 
+def _atlas_mesh(scene: RenderScene) -> tuple[np.ndarray, RayCaster]:
+    """The atlas mesh's corner uvs (f, 3, 2) and its ray caster: LOD1, or the separate M_T
+    (a deformed frame replaces either with its warped copy)."""
+    if scene.atlas_separate:
+        return scene.atlas_arrays[2], scene.atlas_caster
+    return scene.baked.meshes[0].corner_uvs, scene.lods[0]
+
+
+def ray_atlas_uv(scene: RenderScene, o: np.ndarray, d: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The atlas uv where eye rays (o, d) (n, 3) meet the atlas mesh (LOD1 or M_T), which lies
+    inside every coarser M_i: the texel the ray would read had it been traced against the
+    atlas mesh. returns (uv (n, 2) float64, hit (n,) bool; uv 0 where the ray misses)"""
+    c1, caster = _atlas_mesh(scene)
+    hits = caster.cast(o, d)
+    uv = np.zeros((o.shape[0], 2))
+    h = hits.hit
+    uv[h] = np.einsum("nk,nkj->nj", hits.bary3()[h], c1[hits.prim[h]])
+    return uv, h
+
+
 def atlas_uv(scene: RenderScene, p: np.ndarray) -> np.ndarray:
     """The exact composite map T(T_i(·)) of seed 000 §4.1: the atlas uv of the closest point
     on the atlas mesh (LOD1, or the separate M_T) to points p (n, 3) on any LOD."""
-    if scene.atlas_separate:
-        _, f1, c1 = scene.atlas_arrays
-        caster = scene.atlas_caster
-    else:  # LOD1 (scene.lods[0]: a deformed frame replaces it with the warped LOD1)
-        c1, caster = scene.baked.meshes[0].corner_uvs, scene.lods[0]
+    c1, caster = _atlas_mesh(scene)
     _, p1, b1 = caster.closest_points(p)
     w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
     return np.einsum("nk,nkj->nj", w1, c1[p1])
