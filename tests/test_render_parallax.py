@@ -63,3 +63,11 @@ def test_ray_atlas_uv_is_the_atlas_mesh_hit(baked_cylinder):
     bary = np.column_stack([1 - hits.bary[met].sum(axis=1), hits.bary[met]])
     np.testing.assert_allclose(uv[met], np.einsum("nk,nkj->nj", bary,
                                                   m1.corner_uvs[hits.prim[met]]), atol=1e-12)
+    # the depth guard: an atlas-mesh hit farther than max_depth below the M_i hit (along its
+    # normal) is another part of the object, not the surface under M_i
+    p1 = o + hits.t[:, None] * (d / np.linalg.norm(d, axis=1, keepdims=True))
+    nrm = np.tile([0.0, 0.0, 1.0], (400, 1))
+    for shift, expect in ((0.1 * scene.diag, False), (1e-4 * scene.diag, True)):
+        _, ok = ray_atlas_uv(scene, o, d, np.where(met[:, None], p1, 0.0) + shift * nrm, nrm,
+                             0.01 * scene.diag)
+        np.testing.assert_array_equal(ok, met & expect)

@@ -271,7 +271,11 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
     uv = np.einsum("nk,nkj->nj", b, mesh.corner_uvs[prim])
     inexact = ~scene.lod_uv_exact[i][prim]
     if uv_from == "ray" and (i > 0 or scene.atlas_separate):  # the ray's own atlas point
-        ruv, met = ray_atlas_uv(scene, o[idx], d[idx])
+        # an atlas-mesh hit deeper than twice M_i's distance to M_org (+ the atlas mesh's
+        # own) below the M_i hit is another part of the object, reached under M_i's rim
+        depth = 2.0 * (scene.lod_error[i] + scene.lod_error[0]) + 1e-6 * scene.diag
+        ruv, met = ray_atlas_uv(scene, o[idx], d[idx], p, scene.lod_face_normals[i][prim],
+                                depth)
         h["rays"] += idx.size
         uv[met] = ruv[met]
         inexact &= ~met

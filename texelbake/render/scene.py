@@ -272,17 +272,26 @@ def _atlas_mesh(scene: RenderScene) -> tuple[np.ndarray, RayCaster]:
     return scene.baked.meshes[0].corner_uvs, scene.lods[0]
 
 
-def ray_atlas_uv(scene: RenderScene, o: np.ndarray, d: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def ray_atlas_uv(scene: RenderScene, o: np.ndarray, d: np.ndarray,
+                 near: np.ndarray | None = None, normal: np.ndarray | None = None,
+                 max_depth: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
     """The atlas uv where eye rays (o, d) (n, 3) meet the atlas mesh (LOD1 or M_T), which lies
     inside every coarser M_i: the texel the ray would read had it been traced against the
-    atlas mesh. returns (uv (n, 2) float64, hit (n,) bool; uv 0 where the ray misses)"""
+    atlas mesh. near, normal (n, 3): the rays' hits on M_i and M_i's unit normals there; an
+    atlas-mesh hit farther than `max_depth` from near along the normal is not the surface
+    under M_i but another part (a ray that slips under M_i's rim and goes on) and counts as a
+    miss. returns (uv (n, 2) float64, met (n,) bool; uv 0 where not met)"""
     c1, caster = _atlas_mesh(scene)
     hits = caster.cast(o, d)
     uv = np.zeros((o.shape[0], 2))
-    h = hits.hit
-    uv[h] = np.einsum("nk,nkj->nj", hits.bary3()[h], c1[hits.prim[h]])
-    return uv, h
+    met = hits.hit.copy()
+    if near is not None and normal is not None:
+        dn = d / np.linalg.norm(d, axis=1, keepdims=True)  # t is along the unit direction
+        p1 = o + np.where(met, hits.t, 0.0)[:, None] * dn
+        depth = np.abs(np.einsum("ij,ij->i", np.where(met[:, None], p1 - near, 0.0), normal))
+        met &= depth <= max_depth
+    uv[met] = np.einsum("nk,nkj->nj", hits.bary3()[met], c1[hits.prim[met]])
+    return uv, met
 
 
 def atlas_uv(scene: RenderScene, p: np.ndarray) -> np.ndarray:
