@@ -302,7 +302,7 @@ def _claims(cases: list[dict]) -> list[dict]:
             text += (" [identical images: L = I on every texel the frame shows (a warp that "
                      "does not turn the surface's frames), so no look-up can differ]")
         m1 = c.get("m1")
-        rest = [r for r in cases if r["scene"] == c["scene"] and r["warp"] == "none"]
+        rest = [r for r in cases if _label(r) == _label(c) and r["warp"] == "none"]
         if other == "normalmap" and m1 and m1["hausdorff_rel"] < M1_IS_ORG and rest:
             rm = rest[0]["modes"]
             text += (f" [M1 is M_org within {m1['hausdorff_rel']:.1e} of the diagonal "
@@ -325,9 +325,9 @@ def _claims(cases: list[dict]) -> list[dict]:
            for c in deformed
            if c["reference"]["seconds"] < 20.0 * c["modes"]["cpm"]["seconds"]])
     bad = []
-    for scene in sorted({c["scene"] for c in cases}):
-        rest = [c for c in cases if c["scene"] == scene and c["warp"] == "none"]
-        rig = [c for c in cases if c["scene"] == scene and c["warp"] == RIGID]
+    for scene in sorted({_label(c) for c in cases}):  # a scene at each of its sizes
+        rest = [c for c in cases if _label(c) == scene and c["warp"] == "none"]
+        rig = [c for c in cases if _label(c) == scene and c["warp"] == RIGID]
         if rest and rig:
             dlt = rig[0]["modes"]["cpm"]["psnr_db"] - rest[0]["modes"]["cpm"]["psnr_db"]
             if not abs(dlt) <= 0.5:
