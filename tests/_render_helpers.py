@@ -151,3 +151,17 @@ def psnr_object(res, ref) -> float:
 
     mask = metrics.object_mask(ref.coverage, res.coverage)
     return metrics.psnr_db(res.image[mask], ref.image[mask], float(ref.image[mask].max()))
+
+
+def bake_small_cylinder(folder: Path) -> Path:
+    """The small ridged cylinder baked at 32² with the smallest settings that keep every level,
+    an atlas-sized LOD chain (issue 22: its M2 is coarse); the baked root USD."""
+    from schemas.settings import BakeSettings
+    from texelbake.pipeline import bake
+    from texelbake.scenes import write_scene
+
+    src = write_scene("cylinder", folder / "cylinder.usda", size="small")
+    settings = BakeSettings(atlas_resolution=32, samples_per_texel=8, n_light_dirs=8,
+                            n_view_dirs=8, n_heldout=4, c_max=8, avis_resolution=4,
+                            lod_mode="atlas")
+    return bake(src, folder / "baked", settings, progress=False)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _render_helpers import psnr_object
+from _render_helpers import bake_small_cylinder, psnr_object
 
 from texelbake.errors import SettingsError
 from texelbake.render.frame import render_frame
@@ -18,16 +18,7 @@ from texelbake.render.scene import load_scene, lod_camera, ray_atlas_uv
 
 @pytest.fixture(scope="module")
 def baked_cylinder(tmp_path_factory) -> Path:
-    from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
-    from texelbake.scenes import write_scene
-
-    d = tmp_path_factory.mktemp("cyl")
-    src = write_scene("cylinder", d / "cylinder.usda", size="small")
-    settings = BakeSettings(atlas_resolution=32, samples_per_texel=8, n_light_dirs=8,
-                            n_view_dirs=8, n_heldout=4, c_max=8, avis_resolution=4,
-                            lod_mode="atlas")  # an atlas-sized chain: M2 is coarse
-    return bake(src, d / "baked", settings, progress=False)
+    return bake_small_cylinder(tmp_path_factory.mktemp("cyl"))
 
 
 def test_coarse_mesh_reads_the_texel_behind_it(baked_cylinder):
