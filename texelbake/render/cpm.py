@@ -187,19 +187,27 @@ def _lookup_level(frame: CpmFrame, level: int, idx: np.ndarray, w: np.ndarray,
 
 
 def footprint_level(scene: RenderScene, cam: PinholeCamera, mesh: int, prim: np.ndarray,
-                    p: np.ndarray, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+                    p: np.ndarray, o: np.ndarray, d: np.ndarray,
+                    ratio: np.ndarray | None = None, normal: np.ndarray | None = None
+                    ) -> np.ndarray:
     """Mip level λ (unclipped, finest = 0) of eye-ray hits on M_i from the ray differential:
     the pixel's footprint on the hit triangle (screen-space derivatives, seed 000 §4.2; the
     footprint of the pixel, not of the sample, as texture hardware does under multi-sampling),
-    mapped into the atlas by the triangle's uv density. Used by the cpm and btf modes.
+    mapped into the atlas by the uv density of the triangle the uv was read from. Used by the
+    cpm and btf modes.
 
-    prim (k,) hit triangles of M_{mesh+1}; p (k, 3) hit points; o, d (k, 3) their eye rays"""
+    prim (k,) hit triangles of M_{mesh+1}; p (k, 3) hit points; o, d (k, 3) their eye rays;
+    ratio (k,) atlas uv area per world area and normal (k, 3) the unit normal of the surface
+    the hits read the atlas on (default: the hit triangle's own, `RenderScene.lod_uv_ratio`,
+    `lod_face_normals`)"""
     t = np.linalg.norm(p - o, axis=1)
-    cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", scene.lod_face_normals[mesh][prim], d)),
-                       1e-3)
+    if normal is None:
+        normal = scene.lod_face_normals[mesh][prim]
+    cos_t = np.maximum(np.abs(np.einsum("ij,ij->i", normal, d)), 1e-3)
     cos_p = np.clip(d @ cam.forward, 1e-3, 1.0)
     area_world = (t * cam.pixel_angle) ** 2 * cos_p ** 3 / cos_t
-    ratio = scene.lod_uv_ratio[mesh][prim]
+    if ratio is None:
+        ratio = scene.lod_uv_ratio[mesh][prim]
     return 0.5 * np.log2(np.maximum(area_world * ratio, 1e-300)) + math.log2(scene.n0)
 
 
@@ -270,19 +278,30 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
     p = np.einsum("nk,nkj->nj", b, mesh.vertices[mesh.faces[prim]])
     uv = np.einsum("nk,nkj->nj", b, mesh.corner_uvs[prim])
     inexact = ~scene.lod_uv_exact[i][prim]
+    # the footprint is taken where the uv is read: on M_i's own triangle, or on the
+    # atlas-mesh triangle the look-up maps to, with its uv density and slope (a coarse or a
+    # deformed-and-refined M_i's own uv density says nothing about the atlas: a refined M2
+    # of the 2:1-stretched full cylinder put λ 1.1 levels low, and 80 % of the eye rays
+    # fell back to M_org)
+    ratio = scene.lod_uv_ratio[i][prim].copy()
+    normal = scene.lod_face_normals[i][prim].copy()
     if uv_from == "ray" and (i > 0 or scene.atlas_separate):  # the ray's own atlas point
         # an atlas-mesh hit deeper than twice M_i's distance to M_org (+ the atlas mesh's
         # own) below the M_i hit is another part of the object, reached under M_i's rim
         depth = 2.0 * (scene.lod_error[i] + scene.lod_error[0]) + 1e-6 * scene.diag
-        ruv, met = ray_atlas_uv(scene, o[idx], d[idx], p, scene.lod_face_normals[i][prim],
-                                depth)
+        ruv, met, tri = ray_atlas_uv(scene, o[idx], d[idx], p,
+                                     scene.lod_face_normals[i][prim], depth)
         h["rays"] += idx.size
         uv[met] = ruv[met]
+        ratio[met] = scene.atlas_uv_ratio[tri[met]]
+        normal[met] = scene.atlas_face_normals[tri[met]]
         inexact &= ~met
     if inexact.any():  # the exact composite map: closest point on M1, its atlas uv
-        uv[inexact] = atlas_uv(scene, p[inexact])
-    lam = footprint_level(scene, cam, i, prim, p, o[idx], d[idx]) + lod_bias
-    s0 = 1.0 / (scene.n0 * np.sqrt(scene.lod_uv_ratio[i][prim]))  # world size of a finest texel
+        uv[inexact], tri = atlas_uv(scene, p[inexact], with_prim=True)
+        ratio[inexact] = scene.atlas_uv_ratio[tri]
+        normal[inexact] = scene.atlas_face_normals[tri]
+    lam = footprint_level(scene, cam, i, prim, p, o[idx], d[idx], ratio, normal) + lod_bias
+    s0 = 1.0 / (scene.n0 * np.sqrt(ratio))  # world size of a finest texel
     for light in scene.lights:  # local lights: keep ωi about constant across a texel
         if light.kind != "distant":
             _, _, dist = light_at(light, p)

@@ -220,8 +220,15 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
         d.atlas_arrays = (warp.positions(av), af, ac)
         d.atlas_caster = RayCaster(d.atlas_arrays[0], af)
     d.lod_face_normals = [face_normals(m.vertices, m.faces) for m in meshes]
-    d.lod_uv_ratio = tuple(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0)[0]
-                           for i, m in enumerate(meshes))
+    d.lod_uv_ratio = tuple(
+        _uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0 and not scene.atlas_separate,
+                  exact=ex)[0]
+        for i, (m, ex) in enumerate(zip(meshes, exact, strict=True)))
+    if scene.atlas_separate:
+        d.atlas_uv_ratio = _uv_ratio(*d.atlas_arrays, first=True)[0]
+        d.atlas_face_normals = face_normals(*d.atlas_arrays[:2])
+    else:
+        d.atlas_uv_ratio, d.atlas_face_normals = d.lod_uv_ratio[0], d.lod_face_normals[0]
     d.lod_error = [_hausdorff(d.org, c, pts, m.vertices) for c, m in zip(d.lods, meshes,
                                                                           strict=True)]
     d._nm = None  # the normal map's tangent frames follow the deformed M1

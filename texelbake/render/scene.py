@@ -85,6 +85,10 @@ class RenderScene(OrgScene):
             m0 = self.baked.meshes[0]
             self.atlas_arrays = (m0.vertices, m0.faces, m0.corner_uvs)
             self.atlas_caster = self.lods[0]
+        # uv area per world area of each atlas-mesh triangle: the texel density a look-up
+        # that reads the atlas mesh (by the eye ray or by closest point) sees
+        self.atlas_uv_ratio = _uv_ratio(*self.atlas_arrays, first=True)[0]
+        self.atlas_face_normals = face_normals(*self.atlas_arrays[:2])
         self.lod_uv_ratio, self.lod_uv_exact = zip(
             *(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0 and not self.atlas_separate)
               for i, m in enumerate(self.baked.meshes)),
@@ -139,28 +143,30 @@ def _avis_table(level: dict[str, np.ndarray]):
     return AvisTable.from_arrays(old)
 
 
-def _uv_ratio(v: np.ndarray, f: np.ndarray, cuv: np.ndarray, first: bool = False
-              ) -> tuple[np.ndarray, np.ndarray]:
+def _uv_ratio(v: np.ndarray, f: np.ndarray, cuv: np.ndarray, first: bool = False,
+              exact: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per triangle of M_i: atlas uv area per world area (f,), and whether its interpolated
     uvs can be trusted (f,) bool. Triangles of a coarse M_i whose corners map into different
     charts (their uv density is far from the atlas' median) are looked up by closest point on
-    M1 instead (the exact composite map T(T_i(·)) of seed 000 §4.1)."""
+    M1 instead (the exact composite map T(T_i(·)) of seed 000 §4.1). `exact` (f,) bool: the
+    trusted triangles are given (a deformed frame's refined M_i inherits its parents' flags:
+    the median density of the refined faces is not the rest mesh's, and the rule would flag
+    other faces)."""
     tri = v[f]
-    if first:  # M1 carries the atlas itself: its interpolated uvs are exact
-        a_w0 = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
-                                    axis=1)
-        d1, d2 = cuv[:, 1] - cuv[:, 0], cuv[:, 2] - cuv[:, 0]
-        a_uv0 = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
-        r = np.divide(a_uv0, a_w0, out=np.zeros_like(a_w0), where=a_w0 > 0)
-        med0 = float(np.median(r[r > 0])) if np.any(r > 0) else 1.0
-        return np.where(r > 0, r, med0), np.ones(len(f), bool)
     a_w = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     d1, d2 = cuv[:, 1] - cuv[:, 0], cuv[:, 2] - cuv[:, 0]
     a_uv = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
     ok = a_w > 0
     ratio = np.divide(a_uv, a_w, out=np.zeros_like(a_w), where=ok)
-    med = float(np.median(ratio[ok & (ratio > 0)])) if np.any(ok & (ratio > 0)) else 1.0
-    exact = ok & (ratio > 0.25 * med) & (ratio < 4.0 * med)
+    if first:  # M1 carries the atlas itself: its interpolated uvs are exact
+        med0 = float(np.median(ratio[ratio > 0])) if np.any(ratio > 0) else 1.0
+        return np.where(ratio > 0, ratio, med0), np.ones(len(f), bool)
+    if exact is None:
+        med = float(np.median(ratio[ok & (ratio > 0)])) if np.any(ok & (ratio > 0)) else 1.0
+        exact = ok & (ratio > 0.25 * med) & (ratio < 4.0 * med)
+    else:
+        exact = np.asarray(exact, dtype=bool) & ok & (ratio > 0)
+        med = float(np.median(ratio[exact])) if exact.any() else 1.0
     return np.where(exact, ratio, med), exact
 
 
@@ -274,13 +280,14 @@ def _atlas_mesh(scene: RenderScene) -> tuple[np.ndarray, RayCaster]:
 
 def ray_atlas_uv(scene: RenderScene, o: np.ndarray, d: np.ndarray,
                  near: np.ndarray | None = None, normal: np.ndarray | None = None,
-                 max_depth: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
+                 max_depth: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The atlas uv where eye rays (o, d) (n, 3) meet the atlas mesh (LOD1 or M_T), which lies
     inside every coarser M_i: the texel the ray would read had it been traced against the
     atlas mesh. near, normal (n, 3): the rays' hits on M_i and M_i's unit normals there; an
     atlas-mesh hit farther than `max_depth` from near along the normal is not the surface
     under M_i but another part (a ray that slips under M_i's rim and goes on) and counts as a
-    miss. returns (uv (n, 2) float64, met (n,) bool; uv 0 where not met)"""
+    miss. returns (uv (n, 2) float64, met (n,) bool, the atlas-mesh triangle (n,) int64;
+    uv 0 and triangle -1 where not met)"""
     c1, caster = _atlas_mesh(scene)
     hits = caster.cast(o, d)
     uv = np.zeros((o.shape[0], 2))
@@ -291,13 +298,15 @@ def ray_atlas_uv(scene: RenderScene, o: np.ndarray, d: np.ndarray,
         depth = np.abs(np.einsum("ij,ij->i", np.where(met[:, None], p1 - near, 0.0), normal))
         met &= depth <= max_depth
     uv[met] = np.einsum("nk,nkj->nj", hits.bary3()[met], c1[hits.prim[met]])
-    return uv, met
+    return uv, met, np.where(met, hits.prim, -1).astype(np.int64)
 
 
-def atlas_uv(scene: RenderScene, p: np.ndarray) -> np.ndarray:
-    """The exact composite map T(T_i(·)) of seed 000 §4.1: the atlas uv of the closest point
-    on the atlas mesh (LOD1, or the separate M_T) to points p (n, 3) on any LOD."""
+def atlas_uv(scene: RenderScene, p: np.ndarray, *, with_prim: bool = False):
+    """The exact composite map T(T_i(·)) of seed 000 §4.1: the atlas uv (n, 2) of the closest
+    point on the atlas mesh (LOD1, or the separate M_T) to points p (n, 3) on any LOD; with
+    `with_prim`, (uv, the atlas-mesh triangle (n,) int64)."""
     c1, caster = _atlas_mesh(scene)
     _, p1, b1 = caster.closest_points(p)
     w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
-    return np.einsum("nk,nkj->nj", w1, c1[p1])
+    uv = np.einsum("nk,nkj->nj", w1, c1[p1])
+    return (uv, np.asarray(p1, dtype=np.int64)) if with_prim else uv
