@@ -59,8 +59,8 @@ def test_ray_atlas_uv_is_the_atlas_mesh_hit(baked_cylinder):
     p1 = o + hits.t[:, None] * (d / np.linalg.norm(d, axis=1, keepdims=True))
     nrm = np.tile([0.0, 0.0, 1.0], (400, 1))
     for shift, expect in ((0.1 * scene.diag, False), (1e-4 * scene.diag, True)):
-        _, ok, _ = ray_atlas_uv(scene, o, d, np.where(met[:, None], p1, 0.0) + shift * nrm, nrm,
-                             0.01 * scene.diag)
+        _, ok, _ = ray_atlas_uv(scene, o, d, np.where(met[:, None], p1, 0.0) + shift * nrm,
+                                nrm, 0.01 * scene.diag)
         np.testing.assert_array_equal(ok, met & expect)
 
 
