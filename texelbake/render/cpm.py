@@ -14,7 +14,7 @@ from texelbake.errors import SettingsError
 from texelbake.geometry.texels import bilinear_texels
 from texelbake.render.camera import PinholeCamera
 from texelbake.render.gt import shade_org
-from texelbake.render.scene import RenderScene, atlas_uv, ray_atlas_uv
+from texelbake.render.scene import RenderScene, atlas_uv_prim, ray_atlas_uv
 from texelbake.render.shade import direct_radiance, light_at
 from texelbake.render.tracer import eye_passes, ray_slices
 from texelbake.tol import TOL
@@ -289,15 +289,14 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
         # an atlas-mesh hit deeper than twice M_i's distance to M_org (+ the atlas mesh's
         # own) below the M_i hit is another part of the object, reached under M_i's rim
         depth = 2.0 * (scene.lod_error[i] + scene.lod_error[0]) + 1e-6 * scene.diag
-        ruv, met, tri = ray_atlas_uv(scene, o[idx], d[idx], p,
-                                     scene.lod_face_normals[i][prim], depth)
+        ruv, met, tri = ray_atlas_uv(scene, o[idx], d[idx], p, normal, depth)
         h["rays"] += idx.size
         uv[met] = ruv[met]
         ratio[met] = scene.atlas_uv_ratio[tri[met]]
         normal[met] = scene.atlas_face_normals[tri[met]]
         inexact &= ~met
     if inexact.any():  # the exact composite map: closest point on M1, its atlas uv
-        uv[inexact], tri = atlas_uv(scene, p[inexact], with_prim=True)
+        uv[inexact], tri = atlas_uv_prim(scene, p[inexact])
         ratio[inexact] = scene.atlas_uv_ratio[tri]
         normal[inexact] = scene.atlas_face_normals[tri]
     lam = footprint_level(scene, cam, i, prim, p, o[idx], d[idx], ratio, normal) + lod_bias

@@ -75,7 +75,7 @@ from texelbake.render.camera import PinholeCamera
 from texelbake.render.cpm import CpmFrame, choose_mesh, render_cpm
 from texelbake.render.gt import render_org, shade_org
 from texelbake.render.normalmap import render_normalmap
-from texelbake.render.scene import RenderScene, _hausdorff, _uv_ratio
+from texelbake.render.scene import RenderScene, _hausdorff, _uv_ratio, set_atlas_surface
 from texelbake.render.shade import light_at
 from texelbake.render.tracer import RenderResult, progressive
 from texelbake.tol import TOL
@@ -224,11 +224,7 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
         _uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0 and not scene.atlas_separate,
                   exact=ex)[0]
         for i, (m, ex) in enumerate(zip(meshes, exact, strict=True)))
-    if scene.atlas_separate:
-        d.atlas_uv_ratio = _uv_ratio(*d.atlas_arrays, first=True)[0]
-        d.atlas_face_normals = face_normals(*d.atlas_arrays[:2])
-    else:
-        d.atlas_uv_ratio, d.atlas_face_normals = d.lod_uv_ratio[0], d.lod_face_normals[0]
+    set_atlas_surface(d)
     d.lod_error = [_hausdorff(d.org, c, pts, m.vertices) for c, m in zip(d.lods, meshes,
                                                                           strict=True)]
     d._nm = None  # the normal map's tangent frames follow the deformed M1

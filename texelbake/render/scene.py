@@ -55,6 +55,10 @@ class RenderScene(OrgScene):
     """A baked asset ready to render: the baked arrays, M_org with its materials and lights,
     and ray casters over M_org and every M_i (built once)."""
 
+    #: per atlas-mesh triangle, uv area per world area and unit normal (`set_atlas_surface`)
+    atlas_uv_ratio: np.ndarray
+    atlas_face_normals: np.ndarray
+
     def __init__(self, baked_root: str | Path) -> None:
         from texelbake.payload import read_baked
         from texelbake.scene import load_asset
@@ -85,14 +89,11 @@ class RenderScene(OrgScene):
             m0 = self.baked.meshes[0]
             self.atlas_arrays = (m0.vertices, m0.faces, m0.corner_uvs)
             self.atlas_caster = self.lods[0]
-        # uv area per world area of each atlas-mesh triangle: the texel density a look-up
-        # that reads the atlas mesh (by the eye ray or by closest point) sees
-        self.atlas_uv_ratio = _uv_ratio(*self.atlas_arrays, first=True)[0]
-        self.atlas_face_normals = face_normals(*self.atlas_arrays[:2])
         self.lod_uv_ratio, self.lod_uv_exact = zip(
             *(_uv_ratio(m.vertices, m.faces, m.corner_uvs, i == 0 and not self.atlas_separate)
               for i, m in enumerate(self.baked.meshes)),
             strict=True)
+        set_atlas_surface(self)
         self.lod_error = [_hausdorff(self.org, c, self.asset.points, m.vertices)
                           for c, m in zip(self.lods, self.baked.meshes, strict=True)]
         self._tables = [_avis_table(lv) for lv in self.baked.levels]
@@ -141,6 +142,20 @@ def _avis_table(level: dict[str, np.ndarray]):
     old = {k[5:].replace(":", "_"): v for k, v in level.items() if k.startswith("avis:")}
     old["meta"] = np.array([int(old["res"]), int(old.get("haar_res", old["res"]))], np.int64)
     return AvisTable.from_arrays(old)
+
+
+def set_atlas_surface(scene: RenderScene) -> None:
+    """`scene.atlas_uv_ratio` (uv area per world area) and `atlas_face_normals` of each
+    atlas-mesh triangle: the texel density and slope a look-up that reads the atlas mesh (by
+    the eye ray or by closest point) sees. LOD1's own when it is the atlas mesh; called again
+    by a deformed frame after it moves the meshes."""
+    if scene.atlas_separate:
+        v, f, cuv = scene.atlas_arrays
+        scene.atlas_uv_ratio = _uv_ratio(v, f, cuv, first=True)[0]
+        scene.atlas_face_normals = face_normals(v, f)
+    else:
+        scene.atlas_uv_ratio = scene.lod_uv_ratio[0]
+        scene.atlas_face_normals = scene.lod_face_normals[0]
 
 
 def _uv_ratio(v: np.ndarray, f: np.ndarray, cuv: np.ndarray, first: bool = False,
@@ -301,12 +316,16 @@ def ray_atlas_uv(scene: RenderScene, o: np.ndarray, d: np.ndarray,
     return uv, met, np.where(met, hits.prim, -1).astype(np.int64)
 
 
-def atlas_uv(scene: RenderScene, p: np.ndarray, *, with_prim: bool = False):
+def atlas_uv_prim(scene: RenderScene, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The exact composite map T(T_i(·)) of seed 000 §4.1: the atlas uv (n, 2) of the closest
-    point on the atlas mesh (LOD1, or the separate M_T) to points p (n, 3) on any LOD; with
-    `with_prim`, (uv, the atlas-mesh triangle (n,) int64)."""
+    point on the atlas mesh (LOD1, or the separate M_T) to points p (n, 3) on any LOD, and
+    that atlas-mesh triangle (n,) int64."""
     c1, caster = _atlas_mesh(scene)
     _, p1, b1 = caster.closest_points(p)
     w1 = np.column_stack([1.0 - b1[:, 0] - b1[:, 1], b1])
-    uv = np.einsum("nk,nkj->nj", w1, c1[p1])
-    return (uv, np.asarray(p1, dtype=np.int64)) if with_prim else uv
+    return np.einsum("nk,nkj->nj", w1, c1[p1]), np.asarray(p1, dtype=np.int64)
+
+
+def atlas_uv(scene: RenderScene, p: np.ndarray) -> np.ndarray:
+    """`atlas_uv_prim`'s uv alone."""
+    return atlas_uv_prim(scene, p)[0]
