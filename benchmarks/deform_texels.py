@@ -105,9 +105,10 @@ class ExactTexelFrame(DeformedCpmFrame):
         cnt = np.bincount(t, minlength=n * n)
         rad[todo] = np.divide(num[todo], den[todo, None], out=np.zeros((todo.size, 3)),
                               where=den[todo, None] > 0)
-        # the look-up weighs texels by a_vis ("projected" filtering): the visible projected
-        # area per sample, up to a factor common to the level
-        avis[todo] = den[todo] / np.maximum(cnt[todo], 1)
+        # the look-up weighs texels by a_vis ("projected" filtering): the samples are uniform
+        # over the rest surface, so the weight sum is the texel's visible projected area up to
+        # a factor common to the level
+        avis[todo] = den[todo]
         ex[todo] = cnt[todo] > 0
         done[todo] = True
 
