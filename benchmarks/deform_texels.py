@@ -18,7 +18,7 @@ Per deformed frame (a `time:T` of the asset's own animation, or a procedural war
   first, and shaded by `gt`'s own `shade_org` (lights, shadows on the deformed geometry, the
   BRDF at the deformed shading normal). The arm at 64² gets ~3,000 samples per finest
   texel (4 M over 1,344), so the average's standard error is ~2 % where a texel's radiance
-  varies by its whole value across it (1/√3000, before the back-facing half drops out).
+  varies by its whole value across it (1/√3000; more where part of the texel is hidden).
 - `normalmap` and `gt` at `--spp`.
 `texel-exact` scoring like `cpm` says the error is the texel average itself (the atlas's
 resolution at that view: a highlight narrower than a texel is spread over it), not the
