@@ -11,10 +11,11 @@ Per deformed frame (a `time:T` of the asset's own animation, or a procedural war
 - `cpm`: the renderer's default (Eq. 12 of seed 000 at rest through L, seed 002 Eq. 10);
 - `texel-exact`: the same renderer, mesh, mip levels and trilinear look-ups, but each texel's
   radiance replaced by the brute-force average radiance over the texel's visible projected
-  area on the *deformed* M_org — what Eq. 12 approximates. `--samples` points uniform on the
-  rest M_org are assigned to texels by the closest atlas-mesh point (the bake's assignment,
-  `render.scene.atlas_uv_prim`), moved by Ψ, weighted by their triangle's deformed / rest
-  area and |cos| toward the camera, kept where the eye ray to them meets their own triangle
+  area on the *deformed* M_org — what Eq. 12 approximates. `--samples` points on the rest
+  M_org (the bake's own stratified sampler, `geometry.sampling.sample_surface`) are assigned
+  to texels by the closest atlas-mesh point (the bake's assignment,
+  `render.scene.atlas_uv_prim`), moved by Ψ, weighted by their ΔA times their triangle's
+  deformed / rest area and |cos| toward the camera, kept where the eye ray to them meets their own triangle
   first, and shaded by `gt`'s own `shade_org` (lights, shadows on the deformed geometry, the
   BRDF at the deformed shading normal). The arm at 64² gets ~3,000 samples per finest
   texel (4 M over 1,344), so the average's standard error is ~2 % where a texel's radiance
@@ -34,7 +35,6 @@ mode's four worst pixels.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -47,17 +47,15 @@ if str(ROOT) not in sys.path:
 
 from texelbake import metrics  # noqa: E402
 from texelbake.deform.warps import parse_warp  # noqa: E402
+from texelbake.geometry.mesh import triangle_areas  # noqa: E402
+from texelbake.geometry.sampling import sample_surface  # noqa: E402
 from texelbake.geometry.texels import uv_to_texel  # noqa: E402
+from texelbake.payload import atomic_json  # noqa: E402
 from texelbake.render.cpm import choose_mesh, render_cpm  # noqa: E402
 from texelbake.render.deformed import DeformedCpmFrame, deform_scene, render_deformed  # noqa: E402
 from texelbake.render.deformed_report import warp_at_time  # noqa: E402
 from texelbake.render.gt import shade_org  # noqa: E402
 from texelbake.render.scene import atlas_uv_prim, load_scene, lod_camera  # noqa: E402
-
-
-def _areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]),
-                                axis=1)
 
 
 class ExactTexelFrame(DeformedCpmFrame):
@@ -68,15 +66,13 @@ class ExactTexelFrame(DeformedCpmFrame):
         super().__init__(d, cam, mesh, "point")
         a = d.rest.asset
         f = a.faces
-        area = _areas(a.points, f)
-        rng = np.random.default_rng(seed)
-        self.tri = rng.choice(f.shape[0], n_samples, p=area / area.sum())
-        s, r = np.sqrt(rng.random(n_samples)), rng.random(n_samples)
-        b = np.column_stack([1.0 - s, s * (1.0 - r), s * r])  # uniform on each triangle
-        self.uv, _ = atlas_uv_prim(d.rest, np.einsum("nk,nkj->nj", b, a.points[f[self.tri]]))
-        self.p_def = np.einsum("nk,nkj->nj", b, d.asset.points[f[self.tri]])
-        stretch = _areas(d.asset.points, f) / np.maximum(area, 1e-300)
-        self.w_area = stretch[self.tri]
+        smp = sample_surface(a.points, f, n_samples, seed)  # the bake's own sampler
+        self.tri = smp.face
+        self.uv, _ = atlas_uv_prim(d.rest, smp.positions)
+        self.p_def = np.einsum("nk,nkj->nj", smp.bary, d.asset.points[f[self.tri]])
+        stretch = (triangle_areas(d.asset.points, f)
+                   / np.maximum(triangle_areas(a.points, f), 1e-300))
+        self.w_area = smp.area * stretch[self.tri]  # the sample's deformed ΔA
         self.ng = d.org_face_normals[self.tri]
 
     def _compute(self, j: int, todo: np.ndarray) -> None:
@@ -106,9 +102,8 @@ class ExactTexelFrame(DeformedCpmFrame):
         cnt = np.bincount(t, minlength=n * n)
         rad[todo] = np.divide(num[todo], den[todo, None], out=np.zeros((todo.size, 3)),
                               where=den[todo, None] > 0)
-        # the look-up weighs texels by a_vis ("projected" filtering): the samples are uniform
-        # over the rest surface, so the weight sum is the texel's visible projected area up to
-        # a factor common to the level
+        # the look-up weighs texels by a_vis ("projected" filtering): the weight sum is the
+        # texel's visible projected area on the deformed surface
         avis[todo] = den[todo]
         ex[todo] = cnt[todo] > 0
         done[todo] = True
@@ -171,10 +166,8 @@ def main(argv: list[str] | None = None) -> dict:
             fb = e.get("fallback_fraction")
             print(f"  {mode:<12}{e['seconds']:>7.1f}{e['psnr_db']:>8.2f}{e['flux_ratio']:>8.3f}"
                   f"{e['top4_error_share']:>8.2f}{'' if fb is None else f'{fb:>10.1%}'}")
-    out = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-           "cases": cases}
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(out, indent=2, sort_keys=True))
+    out = {"settings": vars(args), "cases": cases}
+    atomic_json(args.json, out)  # sorted, indented; the Path settings as strings
     return out
 
 
