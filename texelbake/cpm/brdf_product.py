@@ -35,7 +35,7 @@ from texelbake.brdf.analytic import _preview_params, _schlick_weight
 from texelbake.brdf.common import INV_PI, as_color, as_scalar
 from texelbake.brdf.evaluate import _PREVIEW_BRDF_INPUTS, _inputs
 from texelbake.errors import NumericalError, SettingsError
-from texelbake.frames import tangent_frames
+from texelbake.frames import grid_to_local, tangent_frames
 from texelbake.tol import TOL
 
 #: below this fraction of live entries a material's samples are evaluated on the live entries
@@ -72,8 +72,8 @@ def brdf_product(
     if p == 0 or A == 0 or B == 0:
         return out
     frames = tangent_frames(geo["sample_nrm"][sample])  # (p, 3, 3)
-    wi_loc = np.einsum("pkl,pal->apk", frames, wi_world)  # (A, p, 3)
-    wo_loc = np.einsum("pkl,pbl->bpk", frames, wo_world)  # (B, p, 3)
+    wi_loc = grid_to_local(frames, wi_world)  # (A, p, 3)
+    wo_loc = grid_to_local(frames, wo_world)  # (B, p, 3)
     mat = geo["sample_mat"][sample]
     uv = geo["sample_uv"][sample]
     eps = TOL.grazing_cos

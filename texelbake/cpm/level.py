@@ -25,7 +25,7 @@ from texelbake import brdf as brdf_mod
 from texelbake.cpm import directions
 from texelbake.cpm.fit import fit_texel
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
-from texelbake.frames import tangent_frames
+from texelbake.frames import grid_to_local, tangent_frames
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.texels import morton
 from texelbake.model import Material
@@ -155,7 +155,9 @@ def visibility_cos(
 
 def world_dirs(frames: np.ndarray, texel: np.ndarray, dirs_local: np.ndarray) -> np.ndarray:
     """(p, D, 3) world directions of texel-frame `dirs_local` (D, 3) for points in `texel`."""
-    return np.einsum("dk,pkl->pdl", dirs_local, frames[texel])
+    # matmul broadcasts (D, 3) @ (p, 3, 3): ~25x faster than the einsum it replaced (9 % of a
+    # bake's fit, issue 15), equal to it up to rounding (FMA)
+    return np.matmul(dirs_local, frames[texel])
 
 
 def brdf_grid(
@@ -173,8 +175,8 @@ def brdf_grid(
     """
     geo = src.geo
     frames = tangent_frames(geo["sample_nrm"][sample])  # (p, 3, 3)
-    wi_loc = np.einsum("pkl,pal->apk", frames, wi_world)  # (A, p, 3)
-    wo_loc = np.einsum("pkl,pbl->bpk", frames, wo_world)  # (B, p, 3)
+    wi_loc = grid_to_local(frames, wi_world)  # (A, p, 3)
+    wo_loc = grid_to_local(frames, wo_world)  # (B, p, 3)
     a_idx, b_idx, p_idx = np.nonzero(live)
     out = np.zeros(live.shape + (3,))
     if a_idx.size:

@@ -191,7 +191,7 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
                 jj, dd = np.nonzero(face)
                 ray_dirs = dl[dd]
             else:
-                dw = np.einsum("dk,jkl->jdl", dl, frames[tex[js]])  # (mb, db, 3) world
+                dw = np.matmul(dl, frames[tex[js]])  # (mb, db, 3) world (not einsum: 25x)
                 cos = np.einsum("jl,jdl->jd", nrm[js], dw)
                 face = cos > TOL.grazing_cos
                 jj, dd = np.nonzero(face)
