@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -34,6 +33,7 @@ if str(ROOT) not in sys.path:
 
 from texelbake import metrics  # noqa: E402
 from texelbake.deform.warps import parse_warp  # noqa: E402
+from texelbake.payload import atomic_json  # noqa: E402
 from texelbake.render.deformed import deform_scene, render_deformed  # noqa: E402
 from texelbake.render.scene import load_scene, lod_camera  # noqa: E402
 
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> dict:
     out = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
            "cases": cases}
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(out, indent=2, sort_keys=True))
+    atomic_json(args.json, out)  # sorted, indented, written whole or not at all
     return out
 
 
