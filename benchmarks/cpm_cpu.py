@@ -3,7 +3,7 @@ quick loop for issue 15's throughput work (the cpm stage without the farm, the a
 export; `benchmarks/bake.py` times the whole bake).
 
     python benchmarks/cpm_cpu.py --scene cylinder --atlas 32 [--set KEY=VALUE ...] [--tiles 0,5]
-        [--json PATH]
+        [--seeds 0,1,2] [--json PATH]
 
 Ingest and geometry run once (untimed, cached in --workdir); then every tile's levels and the
 top levels are fitted in order, exactly as `run_cpm_tile` / `run_cpm_top` do, each `fit_level`
@@ -29,6 +29,7 @@ from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
 from texelbake.cpm.level_batched import fit_level
+from texelbake.payload import atomic_json
 from texelbake.stages.cpm import refit_coarse
 
 
@@ -214,6 +215,38 @@ def print_table(res: dict) -> None:
               f"{json.dumps(lv['skip_counts']):<16} {lv['digest']}")
 
 
+def seed_summary(runs: list[dict]) -> list[dict]:
+    """Per level, across the runs (one per seed): CPU seconds summed, and the held-out median
+    and p5 of each run as median, min and max."""
+    out = []
+    for level in sorted({lv["level"] for r in runs for lv in r["levels"]}):
+        rows = [lv for r in runs for lv in r["levels"] if lv["level"] == level]
+        med = [lv["heldout_db_median"] for lv in rows if lv["heldout_db_median"] is not None]
+        p5 = [lv["heldout_db_p5"] for lv in rows if lv["heldout_db_p5"] is not None]
+        out.append({
+            "level": level, "runs": len(rows), "cpu_seconds": sum(lv["cpu_seconds"] for lv in rows),
+            "texels": sum(lv["texels"] for lv in rows),
+            "heldout_db_median": {"median": float(np.median(med)), "min": min(med),
+                                  "max": max(med)} if med else None,
+            "heldout_db_p5": {"median": float(np.median(p5)), "min": min(p5),
+                              "max": max(p5)} if p5 else None,
+        })
+    return out
+
+
+def print_seed_summary(res: dict) -> None:
+    print(f"across seeds {res['seeds']}: per level, the runs' held-out median and p5 (dB) as "
+          "median [min, max]")
+    print(f"{'lvl':>3} {'texels':>7} {'cpu s':>8} {'tex/cpu s':>9}  {'ho median':<26} ho p5")
+    for lv in res["summary"]:
+        def span(x):
+            return ("n/a" if x is None else
+                    f"{x['median']:7.2f} [{x['min']:7.2f}, {x['max']:7.2f}]")
+        print(f"{lv['level']:>3} {lv['texels']:>7} {lv['cpu_seconds']:>8.2f} "
+              f"{lv['texels'] / max(lv['cpu_seconds'], 1e-9):>9.2f}  "
+              f"{span(lv['heldout_db_median']):<26} {span(lv['heldout_db_p5'])}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="cylinder")
@@ -223,6 +256,11 @@ def main() -> None:
     ap.add_argument("--tiles", default=None, help="comma-separated tile ids (default: all)")
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--seeds", default=None,
+                    help="comma-separated BakeSettings.seed values: one fit per seed (the seed "
+                    "draws the dense samples and the fit's columns) and a table of each level's "
+                    "held-out median and p5 across them (their spread is the noise a "
+                    "comparison of single bakes cannot see)")
     ap.add_argument("--breakdown", action="store_true",
                     help="also time the fit's parts (process time per function)")
     args = ap.parse_args()
@@ -234,6 +272,19 @@ def main() -> None:
               **_parse_set(args.set)}
     settings = BakeSettings(**fields)
     tiles = [int(x) for x in args.tiles.split(",")] if args.tiles else None
+    if args.seeds:
+        seeds = [int(x) for x in args.seeds.split(",")]
+        runs = []
+        for seed in seeds:  # loop over whole fits
+            runs.append(run(args.scene, args.size, settings.model_copy(update={"seed": seed}),
+                            work, tiles))
+            print_table(runs[-1])
+        res = {"seeds": seeds, "runs": runs, "summary": seed_summary(runs)}
+        print_seed_summary(res)
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            atomic_json(args.json, res)
+        return
     res = run(args.scene, args.size, settings, work, tiles)
     print_table(res)
     if acc is not None:
@@ -245,7 +296,7 @@ def main() -> None:
                   f"{int(v[1]):>7}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(res, indent=2))
+        atomic_json(args.json, res)
 
 
 if __name__ == "__main__":
