@@ -281,13 +281,10 @@ def main() -> None:
             print_table(runs[-1])
         res = {"seeds": seeds, "runs": runs, "summary": seed_summary(runs)}
         print_seed_summary(res)
-        if args.json:
-            args.json.parent.mkdir(parents=True, exist_ok=True)
-            atomic_json(args.json, res)
-        return
-    res = run(args.scene, args.size, settings, work, tiles)
-    print_table(res)
-    if acc is not None:
+    else:
+        res = run(args.scene, args.size, settings, work, tiles)
+        print_table(res)
+    if acc is not None and not args.seeds:
         res["breakdown"] = {k: {"cpu_seconds": v[0], "calls": int(v[1])} for k, v in acc.items()}
         print(f"{'part (CPU s, nested parts inside callers)':<44} {'cpu s':>8} {'share':>6} "
               f"{'calls':>7}")

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from texelbake.cpm.avis.cube import OccludedFn, check_res, cube_directions
 from texelbake.errors import NumericalError, SettingsError, ShapeError
-from texelbake.frames import tangent_frames
+from texelbake.frames import grid_to_world, tangent_frames
 from texelbake.geometry.mesh import face_normals
 from texelbake.tol import TOL
 
@@ -191,7 +191,7 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
                 jj, dd = np.nonzero(face)
                 ray_dirs = dl[dd]
             else:
-                dw = np.matmul(dl, frames[tex[js]])  # (mb, db, 3) world (not einsum: 25x)
+                dw = grid_to_world(frames[tex[js]], dl)  # (mb, db, 3) world
                 cos = np.einsum("jl,jdl->jd", nrm[js], dw)
                 face = cos > TOL.grazing_cos
                 jj, dd = np.nonzero(face)
