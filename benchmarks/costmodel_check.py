@@ -12,6 +12,9 @@ prediction `texelbake bake` makes after its geometry stage knows the samples per
 stage's seconds; the job API's, before anything runs, knows the settings only (printed beside). Peak
 memory: the largest resident set of any process of the bake so far (`RUSAGE_CHILDREN`, the
 kernel's maximum over the process tree; sizes run in increasing order, so a rise is this bake's).
+Both predictions are priced on this machine (`texelbake.machinespeed`: a reference workload's
+seconds here against the machine the coefficients were fitted on), printed first;
+`TEXELBAKE_MACHINE_SPEED=1` prices on the fitted machine instead (the model without the term).
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bake import JOBS, run_child, write_scene  # noqa: E402
 
 from schemas.settings import BakeSettings  # noqa: E402
-from texelbake import costmodel  # noqa: E402
+from texelbake import costmodel, machinespeed  # noqa: E402
 
 
 def recheck(args: argparse.Namespace) -> None:
@@ -50,7 +53,7 @@ def recheck(args: argparse.Namespace) -> None:
         st = row["stage_seconds"]
         est = bake_estimate(ctx, row["jobs"], elapsed=st.get("ingest", 0.0) + st["geometry"])
         pre = costmodel.estimate(BakeSettings(atlas_resolution=n), row["jobs"],
-                                 cores=os.cpu_count()).seconds
+                                 cores=os.cpu_count(), speed=machinespeed.this_machine()).seconds
         row["predicted_seconds_recheck"] = est["seconds"]
         row["predicted_stage_seconds_recheck"] = est["stage_seconds"]
         row["predicted_before_run_seconds_recheck"] = pre
@@ -79,6 +82,9 @@ def main() -> None:
     if args.recheck:
         recheck(args)
         return
+    speed = machinespeed.this_machine()
+    print("this machine against the cost model's (seconds ratio, > 1 slower): "
+          + ", ".join(f"{k} {v:.2f}" for k, v in speed.factors.items()), flush=True)
     work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-costmodel-"))
     here = Path(__file__).resolve().parents[1]
     rows = []
@@ -89,7 +95,7 @@ def main() -> None:
             # what the job API says before anything runs (settings only: uniform fill, half
             # the samples on GGX materials, the model's geometry term)
             pre = costmodel.estimate(BakeSettings(atlas_resolution=n), JOBS,
-                                     cores=os.cpu_count()).seconds
+                                     cores=os.cpu_count(), speed=speed).seconds
             est = r["estimate"] or {}
             st = r["stage_seconds"] or {}
             rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0  # MiB
@@ -100,6 +106,7 @@ def main() -> None:
                    "predicted_seconds": est.get("seconds"),
                    "predicted_stage_seconds": est.get("stage_seconds"),
                    "predicted_before_run_seconds": pre,
+                   "machine_speed": est.get("machine_speed"),
                    "ratio": (r["total_seconds"] / est["seconds"]) if est.get("seconds") else None,
                    "load_before": r["load_before"], "load_after": r["load_after"],
                    "peak_rss_mib_so_far": rss, "texels": texels,

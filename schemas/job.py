@@ -77,6 +77,10 @@ class JobEstimate(BaseModel):
     cpm_seconds: float = Field(description="Predicted CPU seconds of the CPM fit, all levels.")
     eta: datetime | None = Field(
         None, description="started_at + seconds while the job runs; null before it starts.")
+    machine_speed: dict[str, float] | None = Field(
+        None, description="Seconds per kind of work (grid, blas, rays, python) on the API's "
+        "machine against the machine the cost model was fitted on (> 1: slower); the "
+        "estimate is scaled by them (`texelbake.machinespeed`).")
 
 
 class JobPublic(BaseModel):

@@ -65,12 +65,13 @@ def test_job_status_carries_the_core_estimate():
     from types import SimpleNamespace
 
     from services.routers.jobs import job_estimate
+    from texelbake import machinespeed
 
     s = BakeSettings(atlas_resolution=64)
-    core = costmodel.estimate(s, 3)
+    core = costmodel.estimate(s, 3, speed=machinespeed.this_machine())
     queued = job_estimate(SimpleNamespace(started_at=None, settings_json=s.model_dump_json()), s, 3)
     assert queued.seconds == pytest.approx(core.seconds, abs=0.05) and queued.eta is None
-    assert queued.workers == 3
+    assert queued.workers == 3 and queued.machine_speed == core.speed["factors"]
     t0 = datetime(2026, 11, 25, 9, 0, tzinfo=UTC)
     running = job_estimate(SimpleNamespace(started_at=t0, settings_json=s.model_dump_json()), s, 3)
     assert running.eta == t0 + timedelta(seconds=core.seconds)
@@ -196,3 +197,52 @@ def test_the_load_reading_counts_other_processes_not_this_ones_threads(tmp_path)
     (tmp_path / "self").mkdir()
     assert sorted(runnable_tasks(proc=tmp_path)) == [(10, 10), (12, 12)]
     assert runnable_tasks(exclude_pid=12, proc=tmp_path) == [(10, 10)]
+
+
+def test_machine_speed_scales_each_term_by_its_kind_of_work():
+    """`estimate(speed=...)` multiplies each coefficient by its kind of work's factor: with
+    one coefficient nonzero at a time the estimate's part grows by exactly that factor (by
+    hand); every seconds field of `Coefficients` has a kind of work (a new one must too)."""
+    from dataclasses import fields, replace
+
+    from texelbake.costmodel import Coefficients
+    from texelbake.machinespeed import PART_OF, MachineSpeed
+
+    ratios = {"brdf_ggx", "held_ggx", "refit_ggx"}
+    assert {f.name for f in fields(Coefficients)} == set(PART_OF) | ratios
+    factors = {"grid": 2.0, "blas": 3.0, "rays": 5.0, "python": 7.0}
+    speed = MachineSpeed(factors=factors, seconds=dict.fromkeys(factors, 1.0))
+    zero = Coefficients(**{f.name: (1.0 if f.name in ratios else 0.0)
+                           for f in fields(Coefficients)})
+    s = BakeSettings(atlas_resolution=32, coarse_target="dense")  # the refit term priced too
+    for name, part in PART_OF.items():
+        one = replace(zero, **{name: getattr(Coefficients(), name) or 1e-9})
+        base = costmodel.estimate(s, 1, coef=one, ggx_fraction=0.0)
+        fast = costmodel.estimate(s, 1, coef=one, ggx_fraction=0.0, speed=speed)
+        assert base.seconds > 0, name
+        assert fast.seconds == pytest.approx(factors[part] * base.seconds, rel=1e-12), name
+        assert fast.speed == speed.to_dict() and base.speed is None
+    # the ratio fields are not seconds: the GGX share of R is priced the same on any machine
+    c = Coefficients().scaled(speed)
+    assert (c.brdf_ggx, c.held_ggx, c.refit_ggx) == (Coefficients().brdf_ggx,
+                                                    Coefficients().held_ggx,
+                                                    Coefficients().refit_ggx)
+
+
+def test_machine_speed_measurement(monkeypatch):
+    """The reference workload's factors are its seconds here over the reference seconds;
+    a factor outside FACTOR_RANGE (a broken timing) is clamped and flagged; the environment
+    switch returns the reference machine without timing anything."""
+    from texelbake import machinespeed
+
+    m = machinespeed.measure(repeats=1)
+    lo, hi = machinespeed.FACTOR_RANGE
+    for k, f in m.factors.items():
+        assert m.seconds[k] > 0 and np.isfinite(f)
+        assert f == pytest.approx(np.clip(m.seconds[k] / machinespeed.REFERENCE[k], lo, hi))
+    monkeypatch.setattr(machinespeed, "REFERENCE", dict.fromkeys(machinespeed.REFERENCE, 1e-09))
+    slow = machinespeed.measure(repeats=1)
+    assert slow.clamped and all(f == hi for f in slow.factors.values())
+    monkeypatch.setenv("TEXELBAKE_MACHINE_SPEED", "1")
+    ref = machinespeed.measure()
+    assert ref is machinespeed.REFERENCE_SPEED and set(ref.factors.values()) == {1.0}

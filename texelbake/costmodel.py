@@ -16,18 +16,24 @@ texel selects among its children's points, m = sum over its children of min(c_L,
 c_L the typical points per texel of a level (C_LEVEL, measured). The a_vis and geometry stages
 scale with the dense samples. Tile shards spread over the workers; the levels above a tile
 are one shard (`run_cpm_top`), priced serially; each process pool pays its start once.
-Coefficients are seconds measured on this project's 2-core machine
-(benchmarks/bake.py compares prediction and outcome); `Coefficients` can be re-fitted for
-another machine.
+Coefficients are seconds measured on one 2-core machine (benchmarks/costmodel_check.py compares
+prediction and outcome); on another machine `estimate(speed=...)` scales them by a short
+reference workload's time there against its time on that machine (`texelbake.machinespeed`,
+per kind of work: elementwise grids, BLAS, rays, per-call Python), and `Coefficients` can be
+re-fitted for another machine.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from schemas.settings import BakeSettings
+
+if TYPE_CHECKING:
+    from texelbake.machinespeed import MachineSpeed
 
 #: occupied fraction of the atlas' finest texels when the geometry is not known yet (measured:
 #: cylinder 0.37, bolt 0.4 at 32^2)
@@ -66,6 +72,12 @@ class Coefficients:
     process: float = 3.5  # s per process pool's start (imports, scene, ray caster)
     fixed: float = 2.0  # s (ingest, plan, the export's USD and LODs)
 
+    def scaled(self, speed: MachineSpeed) -> Coefficients:
+        """These coefficients on a machine of `speed` (every seconds field times its kind of
+        work's factor, `MachineSpeed.factor`; the ratio fields unchanged)."""
+        return replace(self, **{f.name: getattr(self, f.name) * speed.factor(f.name)
+                                for f in fields(self)})
+
 
 #: typical characteristic points per texel at level L (children hierarchy), capped by c_max:
 #: measured means at levels 0-4 at 32^2 (defaults, 2026-11-27): cylinder 32, 35, 42, 51, 82,
@@ -89,6 +101,7 @@ class Estimate:
     cpm_wall_seconds: float = 0.0  # the cpm stages' wall seconds on the workers (stretched)
     avis_wall_seconds: float = 0.0  # the avis stage's wall seconds on the workers (stretched)
     per_level: list[dict] = field(default_factory=list)
+    speed: dict | None = None  # the machine's speed factors (`MachineSpeed.to_dict`), if used
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -144,6 +157,7 @@ def estimate(
     ggx_fraction: float = 0.5,
     load: float = 0.0,
     cores: int | None = None,
+    speed: MachineSpeed | None = None,
 ) -> Estimate:
     """Predict a bake's seconds.
 
@@ -157,8 +171,12 @@ def estimate(
     sample_counts : (N, N) int dense samples per finest texel (the geometry stage's
         `sample_row`/`sample_col` histogram, `sample_counts`); None: spt on DEFAULT_FILL of
         the atlas, spread evenly (a prediction before the geometry exists; O(log N) work)
+    speed : this machine against the coefficients' (`texelbake.machinespeed.this_machine()`);
+        None: the coefficients' machine (deterministic, for tests and ratios of estimates)
     """
     coef = coef or Coefficients()
+    if speed is not None:
+        coef = coef.scaled(speed)
     s = settings
     n = s.atlas_resolution
     workers = max(int(workers), 1)
@@ -204,7 +222,8 @@ def estimate(
                     avis_seconds=avis, geometry_seconds=geom, texels=texels,
                     cpm_serial_seconds=serial, export_seconds=export,
                     cpm_wall_seconds=cpm_wall * stretch, avis_wall_seconds=avis / par * stretch,
-                    per_level=per_level, stretch=stretch)
+                    per_level=per_level, stretch=stretch,
+                    speed=speed.to_dict() if speed is not None else None)
 
 
 def atlas_trade(settings: BakeSettings, lod_report: dict,

@@ -207,7 +207,9 @@ def bake(
             if progress:
                 print(f"estimate: {est['seconds']:.0f} s on {est['workers']} worker(s) "
                       f"(cpm {est['stage_seconds']['cpm']:.0f} s, avis "
-                      f"{est['stage_seconds']['avis']:.0f} s), ETA {est['eta']}")
+                      f"{est['stage_seconds']['avis']:.0f} s), ETA {est['eta']}; this "
+                      "machine's seconds / the model's: " + ", ".join(
+                          f"{k} {v:.2f}" for k, v in est["machine_speed"]["factors"].items()))
     if root is None:
         raise StageError("the plan has no export stage")
     stages.update_report_seconds(out_dir, seconds, est)
@@ -267,15 +269,16 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
     bake given the `elapsed` seconds so far."""
     from datetime import UTC, datetime, timedelta
 
-    from texelbake import costmodel
+    from texelbake import costmodel, machinespeed
 
     s = ctx.settings
     geo = ctx.geometry()
     cores = os.cpu_count() or 1
+    speed = machinespeed.this_machine()  # before the load reading: ~1 s of this process's CPU
     other = _other_runnable()
     e = costmodel.estimate(s, jobs, costmodel.sample_counts(geo, s.atlas_resolution),
                            ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
-                           load=other, cores=cores)
+                           load=other, cores=cores, speed=speed)
     w = max(int(jobs), 1)
     # made after the geometry stage: its measured seconds (`elapsed`, with ingest) replace the
     # model's geometry term (the bolt's xatlas packing took 42 s where the model says 1)
@@ -287,7 +290,8 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
             "stage_seconds": {"cpm": round(e.cpm_wall_seconds, 1),
                               "avis": round(e.avis_wall_seconds, 1),
                               "export": round(e.export_seconds * e.stretch, 1)},
-            "per_level": e.per_level, "eta": eta.strftime("%H:%M:%S UTC")}
+            "per_level": e.per_level, "eta": eta.strftime("%H:%M:%S UTC"),
+            "machine_speed": e.speed}
 
 
 def _run_parallel(workdir: Path, asset_path: Path, settings: BakeSettings, sp: StagePlan,

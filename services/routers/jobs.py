@@ -83,8 +83,13 @@ def _progress(done: int, total: int) -> float:
 
 @lru_cache(maxsize=1024)
 def _estimate(settings_json: str, workers: int) -> costmodel.Estimate:
-    """The cost model per (settings, workers): computed once, not on every status read."""
-    return costmodel.estimate(BakeSettings.model_validate_json(settings_json), workers)
+    """The cost model per (settings, workers): computed once, not on every status read. Priced
+    on this API process's machine (`machinespeed.this_machine()`, measured once per process):
+    the workers are assumed to run on machines like it."""
+    from texelbake import machinespeed
+
+    return costmodel.estimate(BakeSettings.model_validate_json(settings_json), workers,
+                              speed=machinespeed.this_machine())
 
 
 def job_estimate(job: Job, settings: BakeSettings, workers: int) -> JobEstimate:
@@ -94,7 +99,8 @@ def job_estimate(job: Job, settings: BakeSettings, workers: int) -> JobEstimate:
     e = _estimate(job.settings_json, workers)
     eta = job.started_at + timedelta(seconds=e.seconds) if job.started_at is not None else None
     return JobEstimate(seconds=round(e.seconds, 1), workers=e.workers,
-                       cpm_seconds=round(e.cpm_seconds, 1), eta=eta)
+                       cpm_seconds=round(e.cpm_seconds, 1), eta=eta,
+                       machine_speed=e.speed["factors"] if e.speed else None)
 
 
 def job_public(session: Session, job: Job, root: Path, workers: int = 2) -> JobPublic:

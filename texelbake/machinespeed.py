@@ -1,0 +1,212 @@
+"""How fast this machine runs the bake's kinds of work, against the machine the cost model's
+coefficients were fitted on (issue 15, item 4): a short reference workload timed at estimate
+time, so that `texelbake.costmodel.estimate` carries its coefficients across machines.
+
+The coefficients are CPU seconds of one machine; another machine runs the same bake 3x slower
+(2026-11-28, `docs/profile.md` third pass) and the estimate was 0.42-0.44 of the outcome. A
+single factor would not do: machines differ per kind of work (vector width for the Grams,
+Embree's kernels for rays, the interpreter for the per-texel bookkeeping). The workload has
+one part per kind of work the cost model prices, each sized like the fit's own calls:
+
+    grid    elementwise float64 arithmetic on a (p, A, B) direction grid (BRDF evaluation
+            building R, the held-out truth, the dense refit, a_vis tables): r_entry, held,
+            refit, avis_fixed, export, geometry
+    blas    Gram matrices (m x d by its transpose, m ~ 100, d = 4,096) and a stack of
+            symmetric eigendecompositions: gram, eigh
+    rays    one batch of 2^18 rays against a 20k-triangle mesh in open3d's Embree scene: avis
+    python  small NNLS solves and array bookkeeping, one call at a time (the per-texel draws,
+            bisection and trials): texel, process, fixed
+
+Each part's factor = its seconds here / its seconds on the reference machine (`REFERENCE`);
+a coefficient is multiplied by its part's factor. A part is timed as the least of a few runs
+of `time.process_time()` (CPU seconds of this process, so other processes' load is left to
+the estimate's own `load` term). Pure numpy / scipy / open3d calls, not texelbake's code: a
+change to the bake's code changes the coefficients (re-fit them), not the reference.
+
+`REFERENCE` is not a measurement on the coefficients' machine (gone when this was written):
+the parts were timed on the 2026-11-28 AMD EPYC machine and multiplied by the cost model's
+prediction over the measured CPU seconds of its calibration run on that machine
+(`CALIBRATION_RATIO`), i.e. every part is assumed to differ between those two machines by the
+fit's overall ratio (docs/decisions.md 2026-11-28). Re-fitting the coefficients on a machine
+means timing the parts there (`python -m texelbake.machinespeed`) and setting both.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+#: part -> the cost model's coefficients it scales (`Coefficients` field names); the ratio
+#: fields (brdf_ggx, held_ggx, refit_ggx) are not seconds and are not scaled
+PART_OF = {
+    "r_entry": "grid", "held": "grid", "refit": "grid", "avis_fixed": "grid",
+    "export": "grid", "geometry": "grid",
+    "gram": "blas", "eigh": "blas",
+    "avis": "rays",
+    "texel": "python", "process": "python", "fixed": "python",
+}
+
+#: the cost model's CPU seconds for the aff1130 calibration run (the coefficients' commit:
+#: `benchmarks/cpm_cpu.py --scene cylinder --atlas 32`, priced on the run's own texel sizes by
+#: `benchmarks/calibrate_costmodel.py`) against the seconds measured on the machine `_MEASURED`
+#: was timed on (2026-11-28, AMD EPYC, 2 cores, alone): 42.36 / 57.58 (that machine is 1.36x
+#: slower per CPU second than the coefficients' on the fit)
+CALIBRATION_RATIO = 42.36 / 57.58
+#: the parts' seconds on the 2026-11-28 AMD EPYC machine (`python -m texelbake.machinespeed`,
+#: the median of eight runs, each the least of three or five)
+_MEASURED = {"grid": 0.0444, "blas": 0.0450, "rays": 0.0521, "python": 0.0251}
+#: the parts' seconds on the machine the cost model's coefficients hold on
+REFERENCE = {k: v * CALIBRATION_RATIO for k, v in _MEASURED.items()}
+
+#: a factor outside this range is a broken measurement (a suspended process, a clock jump),
+#: not a machine: it is clamped and the estimate says so through `MachineSpeed.clamped`
+FACTOR_RANGE = (0.05, 20.0)
+
+
+@dataclass(frozen=True)
+class MachineSpeed:
+    """Seconds per part here against the reference machine (> 1: slower here)."""
+
+    factors: dict[str, float]
+    seconds: dict[str, float]  # the parts' measured seconds here
+    clamped: bool = False
+
+    def factor(self, coefficient: str) -> float:
+        """The factor that scales the cost model's `coefficient` (1 for a ratio field)."""
+        part = PART_OF.get(coefficient)
+        return self.factors[part] if part else 1.0
+
+    def to_dict(self) -> dict:
+        return {"factors": {k: round(v, 3) for k, v in self.factors.items()},
+                "seconds": {k: round(v, 5) for k, v in self.seconds.items()},
+                "clamped": self.clamped}
+
+
+#: the reference machine itself: every factor 1
+REFERENCE_SPEED = MachineSpeed(factors=dict.fromkeys(REFERENCE, 1.0), seconds=dict(REFERENCE))
+
+
+def _grid(rng: np.random.Generator) -> float:
+    # a GGX-like lobe on a (p, A, B) = (192, 64, 64) grid with per-sample parameters broadcast,
+    # float64 like `brdf_product`: dots, a power, a division, a sqrt, an exp
+    p, a, b = 192, 64, 64
+    wi = rng.standard_normal((p, a, 1, 3))
+    wo = rng.standard_normal((p, 1, b, 3))
+    rough = rng.uniform(0.1, 0.9, (p, 1, 1))
+    t0 = time.process_time()
+    h = wi + wo
+    h /= np.sqrt((h * h).sum(axis=-1, keepdims=True)) + 1e-12
+    c = np.abs(h[..., 2])
+    a2 = rough * rough
+    dd = c * c * (a2 - 1.0) + 1.0
+    d = a2 / (np.pi * dd * dd)
+    f = 0.04 + 0.96 * (1.0 - c) ** 5
+    g = np.exp(-np.abs(wi[..., 2] * wo[..., 2]) * a2)
+    out = d * f * g / (4.0 * np.abs(wi[..., 2] * wo[..., 2]) + 1e-3)
+    t = time.process_time() - t0
+    assert np.isfinite(out).all()
+    return t
+
+
+def _blas(rng: np.random.Generator) -> float:
+    # the Grams of a few texels of m ~ 100 candidates on d = 4,096 direction pairs, and the
+    # eigendecompositions of a stack of them (level_batched's two LAPACK / BLAS calls)
+    r = rng.standard_normal((24, 96, 4096))
+    t0 = time.process_time()
+    g = np.matmul(r, r.transpose(0, 2, 1))
+    w = np.linalg.eigh(g)[0]
+    t = time.process_time() - t0
+    assert np.isfinite(w).all()
+    return t
+
+
+@functools.cache
+def _caster():
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=100)  # 19,800 faces
+    scene = o3d.t.geometry.RaycastingScene(nthreads=1)
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return scene
+
+
+def _rays(rng: np.random.Generator) -> float:
+    import open3d as o3d
+
+    scene = _caster()
+    n = 2**18
+    o = rng.uniform(-0.9, 0.9, (n, 3)) * (1.0 / np.sqrt(3.0))  # inside the sphere: all hit
+    d = rng.standard_normal((n, 3))
+    rays = o3d.core.Tensor.from_numpy(np.hstack([o, d]).astype(np.float32))
+    t0 = time.process_time()
+    hit = scene.cast_rays(rays, nthreads=1)["t_hit"].numpy()
+    t = time.process_time() - t0
+    assert np.isfinite(hit).all()
+    return t
+
+
+def _python(rng: np.random.Generator) -> float:
+    # 1,500 small problems one call each: an NNLS on a reduced r x c system and a few small
+    # array operations, as the per-texel draws, bisection and trials do
+    import scipy.optimize
+
+    a = rng.uniform(0.0, 1.0, (1500, 24, 12))
+    y = rng.uniform(0.0, 1.0, (1500, 24))
+    t0 = time.process_time()
+    s = 0.0
+    for i in range(a.shape[0]):  # a loop per problem: the per-call overhead is what is timed
+        x = scipy.optimize.nnls(a[i], y[i])[0]
+        k = np.argsort(x)[-4:]
+        s += float(np.linalg.norm(a[i][:, k] @ x[k] - y[i]))
+    t = time.process_time() - t0
+    assert np.isfinite(s)
+    return t
+
+
+_PARTS = {"grid": _grid, "blas": _blas, "rays": _rays, "python": _python}
+
+
+def time_parts(repeats: int = 3, seed: int = 0) -> dict[str, float]:
+    """Each part's least CPU seconds over `repeats` runs in this process (one thread each)."""
+    import threadpoolctl
+
+    rng = np.random.default_rng(seed)
+    out = {}
+    with threadpoolctl.threadpool_limits(1):  # the bake's fit runs one BLAS thread a process
+        for name, part in _PARTS.items():
+            part(rng)  # warm: first-call imports, page faults, Embree's scene build
+            out[name] = min(part(rng) for _ in range(max(int(repeats), 1)))
+    return out
+
+
+def measure(repeats: int = 3) -> MachineSpeed:
+    """This machine's `MachineSpeed` (~1 s). `TEXELBAKE_MACHINE_SPEED=1` skips the
+    measurement and returns the reference machine (every factor 1)."""
+    if os.environ.get("TEXELBAKE_MACHINE_SPEED", "").strip() == "1":
+        return REFERENCE_SPEED
+    sec = time_parts(repeats)
+    lo, hi = FACTOR_RANGE
+    raw = {k: sec[k] / REFERENCE[k] for k in REFERENCE}
+    factors = {k: float(np.clip(v, lo, hi)) for k, v in raw.items()}
+    return MachineSpeed(factors=factors, seconds=sec, clamped=factors != raw)
+
+
+@functools.cache
+def this_machine() -> MachineSpeed:
+    """`measure()` once per process."""
+    return measure()
+
+
+def main() -> None:
+    sec = time_parts(repeats=5)
+    print("part     seconds here   reference   factor")
+    for k, v in sec.items():
+        print(f"{k:<8} {v:12.5f} {REFERENCE[k]:11.5f} {v / REFERENCE[k]:8.3f}")
+
+
+if __name__ == "__main__":
+    main()
