@@ -9,7 +9,9 @@ cheap (Lambert / Phong) and costly materials, m^2, texels); the direction pairs 
 held-out pairs H come from the run's settings. Non-negative least squares on relative
 residuals (each level weighted by 1 / its measured seconds), so small and large levels count
 alike. The fitted values are printed as a `Coefficients(...)` line to paste into
-texelbake/costmodel.py; the table then shows the current model's prediction too.
+texelbake/costmodel.py; the table then shows the current model's prediction too. Runs that
+record the machine they were made on (`machine_speed`, `texelbake.machinespeed`) are priced on
+it, so the fitted coefficients stay the reference machine's seconds.
 """
 
 from __future__ import annotations
@@ -29,12 +31,19 @@ def design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
     s = run["settings"]
     d = s["n_light_dirs"] * s["n_view_dirs"]
     h = int(round(np.sqrt(s["n_heldout"]))) ** 2 if s["n_heldout"] else 0
+    # the run's machine against the coefficients' (`texelbake.machinespeed`, recorded by
+    # cpm_cpu.py since 2026-11-28; older runs: the coefficients' machine): each column is
+    # priced at its kind of work's factor, so the fitted coefficients are the reference
+    # machine's seconds wherever the runs were made
+    f = (run.get("machine_speed") or {}).get("factors") or {}
+    grid, blas, py = f.get("grid", 1.0), f.get("blas", 1.0), f.get("python", 1.0)
     rows, y, names = [], [], []
     for lv in run["levels"]:
         z = lv["sizes"]
-        rows.append([z["m_cheap"] * d, z["m_costly"] * d, z["m2"] * d,
-                     z["dense_cheap"] * h, z["dense_costly"] * h, z["texels"],
-                     z.get("refit_cheap", 0.0) * d, z.get("refit_costly", 0.0) * d])
+        rows.append([z["m_cheap"] * d * grid, z["m_costly"] * d * grid, z["m2"] * d * blas,
+                     z["dense_cheap"] * h * grid, z["dense_costly"] * h * grid,
+                     z["texels"] * py, z.get("refit_cheap", 0.0) * d * grid,
+                     z.get("refit_costly", 0.0) * d * grid])
         y.append(lv["cpu_seconds"])
         names.append(f"{run['scene']} L{lv['level']}")
     return np.array(rows, float), np.array(y, float), names

@@ -292,6 +292,11 @@ def main() -> None:
             print(f"{k:<44} {v[0]:>8.2f} {100 * v[0] / max(res['cpu_seconds'], 1e-9):>5.1f}% "
                   f"{int(v[1]):>7}")
     if args.json:
+        from texelbake import machinespeed
+
+        # the machine the seconds were measured on (calibrate_costmodel.py prices the runs
+        # on it): the reference workload after the fit, so the fit's timings are not disturbed
+        res["machine_speed"] = machinespeed.this_machine().to_dict()
         args.json.parent.mkdir(parents=True, exist_ok=True)
         atomic_json(args.json, res)
 

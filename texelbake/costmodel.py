@@ -54,7 +54,12 @@ class Coefficients:
     cylinder at a_vis faces 16 and 32: the a_vis stage 8.3 s at 16^2 faces, 19.0 s at 32^2 on
     65,536 samples, less a pool's start (3.5 s: imports, the worker's scene and ray caster);
     the export 2.3 s and 3.9 s. Checked out of sample at 64^2 and 128^2 by
-    `costmodel_check.py` (docs/profile.md)."""
+    `costmodel_check.py` (docs/profile.md). a_vis re-fitted 2026-11-28 as a line in the dense
+    samples (its per-sample cost fitted at 32^2 alone had absorbed a fixed part and priced
+    the 128^2 stage 1.3x): the a_vis stage's wall seconds of 2026-11-27's six bakes
+    (`benchmarks/results/costmodel_check.json`, -j 2) at 64^2 and 128^2 give 2.19e-4 (cylinder)
+    and 1.96e-4 (bolt) s per sample on two workers and 4.0 / 5.6 s at none; their means, the
+    per-sample cost less avis_fixed as `avis`; within 0.92-1.05 of all six stages."""
 
     r_entry: float = 3.01e-8  # s per (candidate, direction pair), Lambert / Phong
     gram: float = 1.42e-10  # s per m^2 d
@@ -65,8 +70,9 @@ class Coefficients:
     held_ggx: float = 1.30  # held-out cost of such a material, x held
     refit: float = 2.8e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
     refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
-    avis: float = 4.4e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
+    avis: float = 3.78e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
     avis_fixed: float = 3.7e-5  # s per dense sample at any face resolution (maps, coarsening)
+    avis_stage: float = 4.8  # wall s of the a_vis stage on any atlas (each worker's set-up)
     export: float = 3.3e-5  # s per dense sample at 32^2 faces, x (res / 32)^2 (a_vis tables)
     geometry: float = 2.0e-5  # s per dense sample (sampling, texel assignment)
     process: float = 3.5  # s per process pool's start (imports, scene, ray caster)
@@ -216,12 +222,12 @@ def estimate(
     par = min(workers, cores or workers)
     cpm_wall = (cpm - serial) / par + serial
     seconds = coef.fixed + geom + export + coef.process * (1 if workers == 1 else 2) \
-        + cpm_wall + avis / par
+        + cpm_wall + avis / par + coef.avis_stage
     stretch = max(1.0, (max(load, 0.0) + par) / cores) if cores else 1.0
     return Estimate(seconds=seconds * stretch, workers=workers, cpm_seconds=cpm,
                     avis_seconds=avis, geometry_seconds=geom, texels=texels,
                     cpm_serial_seconds=serial, export_seconds=export,
-                    cpm_wall_seconds=cpm_wall * stretch, avis_wall_seconds=avis / par * stretch,
+                    cpm_wall_seconds=cpm_wall * stretch, avis_wall_seconds=(avis / par + coef.avis_stage) * stretch,
                     per_level=per_level, stretch=stretch,
                     speed=speed.to_dict() if speed is not None else None)
 

@@ -18,7 +18,7 @@ one part per kind of work the cost model prices, each sized like the fit's own c
             bisection and trials): texel, process, fixed
 
 Each part's factor = its seconds here / its seconds on the reference machine (`REFERENCE`);
-a coefficient is multiplied by its part's factor. A part is timed as the least of a few runs
+a coefficient is multiplied by its part's factor. A part is timed as the least of five interleaved runs
 of `time.process_time()` (CPU seconds of this process, so other processes' load is left to
 the estimate's own `load` term). Pure numpy / scipy / open3d calls, not texelbake's code: a
 change to the bake's code changes the coefficients (re-fit them), not the reference.
@@ -47,7 +47,7 @@ PART_OF = {
     "export": "grid", "geometry": "grid",
     "gram": "blas", "eigh": "blas",
     "avis": "rays",
-    "texel": "python", "process": "python", "fixed": "python",
+    "texel": "python", "process": "python", "fixed": "python", "avis_stage": "python",
 }
 
 #: the cost model's CPU seconds for the aff1130 calibration run (the coefficients' commit:
@@ -57,8 +57,8 @@ PART_OF = {
 #: slower per CPU second than the coefficients' on the fit)
 CALIBRATION_RATIO = 42.36 / 57.58
 #: the parts' seconds on the 2026-11-28 AMD EPYC machine (`python -m texelbake.machinespeed`,
-#: the median of eight runs, each the least of three or five)
-_MEASURED = {"grid": 0.0444, "blas": 0.0450, "rays": 0.0521, "python": 0.0251}
+#: the median of five processes, each the least of five interleaved rounds)
+_MEASURED = {"grid": 0.0420, "blas": 0.0446, "rays": 0.0520, "python": 0.0250}
 #: the parts' seconds on the machine the cost model's coefficients hold on
 REFERENCE = {k: v * CALIBRATION_RATIO for k, v in _MEASURED.items()}
 
@@ -90,100 +90,110 @@ class MachineSpeed:
 REFERENCE_SPEED = MachineSpeed(factors=dict.fromkeys(REFERENCE, 1.0), seconds=dict(REFERENCE))
 
 
-def _grid(rng: np.random.Generator) -> float:
+def _grid(rng: np.random.Generator):
     # a GGX-like lobe on a (p, A, B) = (192, 64, 64) grid with per-sample parameters broadcast,
     # float64 like `brdf_product`: dots, a power, a division, a sqrt, an exp
     p, a, b = 192, 64, 64
     wi = rng.standard_normal((p, a, 1, 3))
     wo = rng.standard_normal((p, 1, b, 3))
     rough = rng.uniform(0.1, 0.9, (p, 1, 1))
-    t0 = time.process_time()
-    h = wi + wo
-    h /= np.sqrt((h * h).sum(axis=-1, keepdims=True)) + 1e-12
-    c = np.abs(h[..., 2])
-    a2 = rough * rough
-    dd = c * c * (a2 - 1.0) + 1.0
-    d = a2 / (np.pi * dd * dd)
-    f = 0.04 + 0.96 * (1.0 - c) ** 5
-    g = np.exp(-np.abs(wi[..., 2] * wo[..., 2]) * a2)
-    out = d * f * g / (4.0 * np.abs(wi[..., 2] * wo[..., 2]) + 1e-3)
-    t = time.process_time() - t0
-    assert np.isfinite(out).all()
-    return t
+
+    def run() -> float:
+        t0 = time.process_time()
+        h = wi + wo
+        h /= np.sqrt((h * h).sum(axis=-1, keepdims=True)) + 1e-12
+        c = np.abs(h[..., 2])
+        a2 = rough * rough
+        dd = c * c * (a2 - 1.0) + 1.0
+        d = a2 / (np.pi * dd * dd)
+        f = 0.04 + 0.96 * (1.0 - c) ** 5
+        g = np.exp(-np.abs(wi[..., 2] * wo[..., 2]) * a2)
+        out = d * f * g / (4.0 * np.abs(wi[..., 2] * wo[..., 2]) + 1e-3)
+        t = time.process_time() - t0
+        assert np.isfinite(out).all()
+        return t
+    return run
 
 
-def _blas(rng: np.random.Generator) -> float:
+def _blas(rng: np.random.Generator):
     # the Grams of a few texels of m ~ 100 candidates on d = 4,096 direction pairs, and the
     # eigendecompositions of a stack of them (level_batched's two LAPACK / BLAS calls)
     r = rng.standard_normal((24, 96, 4096))
-    t0 = time.process_time()
-    g = np.matmul(r, r.transpose(0, 2, 1))
-    w = np.linalg.eigh(g)[0]
-    t = time.process_time() - t0
-    assert np.isfinite(w).all()
-    return t
+
+    def run() -> float:
+        t0 = time.process_time()
+        g = np.matmul(r, r.transpose(0, 2, 1))
+        w = np.linalg.eigh(g)[0]
+        t = time.process_time() - t0
+        assert np.isfinite(w).all()
+        return t
+    return run
 
 
-@functools.cache
-def _caster():
+def _rays(rng: np.random.Generator):
     import open3d as o3d
 
     mesh = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=100)  # 19,800 faces
     scene = o3d.t.geometry.RaycastingScene(nthreads=1)
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-    return scene
-
-
-def _rays(rng: np.random.Generator) -> float:
-    import open3d as o3d
-
-    scene = _caster()
     n = 2**18
     o = rng.uniform(-0.9, 0.9, (n, 3)) * (1.0 / np.sqrt(3.0))  # inside the sphere: all hit
     d = rng.standard_normal((n, 3))
     rays = o3d.core.Tensor.from_numpy(np.hstack([o, d]).astype(np.float32))
-    t0 = time.process_time()
-    hit = scene.cast_rays(rays, nthreads=1)["t_hit"].numpy()
-    t = time.process_time() - t0
-    assert np.isfinite(hit).all()
-    return t
+
+    def run() -> float:
+        t0 = time.process_time()
+        hit = scene.cast_rays(rays, nthreads=1)["t_hit"].numpy()
+        t = time.process_time() - t0
+        assert np.isfinite(hit).all()
+        return t
+    return run
 
 
-def _python(rng: np.random.Generator) -> float:
+def _python(rng: np.random.Generator):
     # 1,500 small problems one call each: an NNLS on a reduced r x c system and a few small
     # array operations, as the per-texel draws, bisection and trials do
     import scipy.optimize
 
     a = rng.uniform(0.0, 1.0, (1500, 24, 12))
     y = rng.uniform(0.0, 1.0, (1500, 24))
-    t0 = time.process_time()
-    s = 0.0
-    for i in range(a.shape[0]):  # a loop per problem: the per-call overhead is what is timed
-        x = scipy.optimize.nnls(a[i], y[i])[0]
-        k = np.argsort(x)[-4:]
-        s += float(np.linalg.norm(a[i][:, k] @ x[k] - y[i]))
-    t = time.process_time() - t0
-    assert np.isfinite(s)
-    return t
+
+    def run() -> float:
+        t0 = time.process_time()
+        s = 0.0
+        for i in range(a.shape[0]):  # a loop per problem: the per-call overhead is timed
+            x = scipy.optimize.nnls(a[i], y[i])[0]
+            k = np.argsort(x)[-4:]
+            s += float(np.linalg.norm(a[i][:, k] @ x[k] - y[i]))
+        t = time.process_time() - t0
+        assert np.isfinite(s)
+        return t
+    return run
 
 
 _PARTS = {"grid": _grid, "blas": _blas, "rays": _rays, "python": _python}
 
 
-def time_parts(repeats: int = 3, seed: int = 0) -> dict[str, float]:
-    """Each part's least CPU seconds over `repeats` runs in this process (one thread each)."""
+def time_parts(repeats: int = 5, seed: int = 0) -> dict[str, float]:
+    """Each part's least CPU seconds over `repeats` rounds in this process (one thread each).
+    The rounds interleave the parts, so a short disturbance (another process, the host taking
+    the virtual CPU away) spoils one round of each part, not every run of one part."""
     import threadpoolctl
 
     rng = np.random.default_rng(seed)
-    out = {}
+    out: dict[str, float] = {}
     with threadpoolctl.threadpool_limits(1):  # the bake's fit runs one BLAS thread a process
-        for name, part in _PARTS.items():
-            part(rng)  # warm: first-call imports, page faults, Embree's scene build
-            out[name] = min(part(rng) for _ in range(max(int(repeats), 1)))
+        runs = {name: make(rng) for name, make in _PARTS.items()}
+        for run in runs.values():
+            run()  # warm: first-call imports, page faults, Embree's scene build
+        for _ in range(max(int(repeats), 1)):  # rounds, each part once
+            for name, run in runs.items():
+                t = run()
+                out[name] = min(out.get(name, t), t)
     return out
 
 
-def measure(repeats: int = 3) -> MachineSpeed:
+def measure(repeats: int = 5) -> MachineSpeed:
     """This machine's `MachineSpeed` (~1 s). `TEXELBAKE_MACHINE_SPEED=1` skips the
     measurement and returns the reference machine (every factor 1)."""
     if os.environ.get("TEXELBAKE_MACHINE_SPEED", "").strip() == "1":
@@ -202,7 +212,7 @@ def this_machine() -> MachineSpeed:
 
 
 def main() -> None:
-    sec = time_parts(repeats=5)
+    sec = time_parts(repeats=7)
     print("part     seconds here   reference   factor")
     for k, v in sec.items():
         print(f"{k:<8} {v:12.5f} {REFERENCE[k]:11.5f} {v / REFERENCE[k]:8.3f}")
