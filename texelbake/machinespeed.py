@@ -33,8 +33,8 @@ means timing the parts there (`python -m texelbake.machinespeed`) and setting bo
 
 from __future__ import annotations
 
-import functools
 import os
+import threading
 import time
 from dataclasses import dataclass
 
@@ -205,10 +205,16 @@ def measure(repeats: int = 5) -> MachineSpeed:
     return MachineSpeed(factors=factors, seconds=sec, clamped=factors != raw)
 
 
-@functools.cache
+_lock = threading.Lock()
+_this: list[MachineSpeed] = []
+
+
 def this_machine() -> MachineSpeed:
-    """`measure()` once per process."""
-    return measure()
+    """`measure()` once per process (thread-safe: a second caller waits for the first's)."""
+    with _lock:
+        if not _this:
+            _this.append(measure())
+        return _this[0]
 
 
 def main() -> None:
