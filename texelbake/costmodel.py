@@ -42,7 +42,15 @@ DEFAULT_FILL = 0.4
 
 @dataclass(frozen=True)
 class Coefficients:
-    """Seconds per unit, fitted 2026-11-27 on a quiet machine (load 1-3, this project's 2 cores).
+    """Seconds per unit on the reference machine (`texelbake.machinespeed`: an estimate on
+    another machine scales them by its reference workload's factors). The fit terms (r_entry,
+    brdf_ggx, gram, held, held_ggx, texel) re-fitted 2026-11-28 (all six, NNLS on relative
+    residuals, `benchmarks/calibrate_costmodel.py`) to `cpm_cpu.py` runs of the full cylinder
+    and bolt at 32^2 and 64^2 on an AMD EPYC, priced at its machine factors (1.36): every
+    level of the four runs within 0.92-1.07 (the 32^2-only fit put the 64^2 cylinder's
+    level 0 at 1.25x and its top levels at 1.2-1.34x: m^2 d was over-weighted); checked out of
+    sample on six full bakes (32^2-128^2, docs/profile.md "The cost model on another
+    machine"). History: fitted 2026-11-27 on a quiet machine (load 1-3, this project's 2 cores).
     The fit terms: NNLS on relative residuals (`benchmarks/calibrate_costmodel.py`) to the CPU
     seconds (`time.process_time()`) of every level's `fit_level` calls, `benchmarks/cpm_cpu.py`
     over the full cylinder and the full bolt at 32^2 (defaults): every level within
@@ -61,13 +69,13 @@ class Coefficients:
     and 1.96e-4 (bolt) s per sample on two workers and 4.0 / 5.6 s at none; their means, the
     per-sample cost less avis_fixed as `avis`; within 0.92-1.05 of all six stages."""
 
-    r_entry: float = 3.01e-8  # s per (candidate, direction pair), Lambert / Phong
-    gram: float = 1.42e-10  # s per m^2 d
+    r_entry: float = 4.9e-8  # s per (candidate, direction pair), Lambert / Phong
+    gram: float = 7.21e-11  # s per m^2 d
     eigh: float = 0.0  # s per m^3
-    held: float = 1.02e-7  # s per (dense sample, held-out pair), Lambert / Phong (+ a_vis)
-    texel: float = 2.24e-3  # s per fitted texel
-    brdf_ggx: float = 1.62  # R cost of a GGX (preview, merl, cellular) material, x r_entry
-    held_ggx: float = 1.30  # held-out cost of such a material, x held
+    held: float = 7.73e-8  # s per (dense sample, held-out pair), Lambert / Phong (+ a_vis)
+    texel: float = 3.28e-3  # s per fitted texel
+    brdf_ggx: float = 1.25  # R cost of a GGX (preview, merl, cellular) material, x r_entry
+    held_ggx: float = 1.43  # held-out cost of such a material, x held
     refit: float = 2.8e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
     refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
     avis: float = 3.78e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
