@@ -94,9 +94,10 @@ def main() -> None:
     print(f"{'level':<14} {'measured s':>10} {'fitted':>8} {'ratio':>6} {'current':>8} {'ratio':>6}")
     for n, a, b, e in zip(names, y, p_fit, p_now, strict=True):
         print(f"{n:<14} {a:>10.2f} {b:>8.2f} {b / a:>6.2f} {e:>8.2f} {e / a:>6.2f}")
+    start = 0
     for run_names, (_, yy, _) in zip(args.runs, parts, strict=True):
-        sel = [i for i, n in enumerate(names) if n.split()[0] == json.loads(
-            run_names.read_text())["scene"]]
+        sel = slice(start, start + yy.size)  # this run's rows (two runs may share a scene)
+        start += yy.size
         print(f"{run_names.name:<30} summed: measured {yy.sum():.2f} s, fitted "
               f"{p_fit[sel].sum():.2f} ({p_fit[sel].sum() / yy.sum():.2f}x), current "
               f"{p_now[sel].sum():.2f} ({p_now[sel].sum() / yy.sum():.2f}x)")

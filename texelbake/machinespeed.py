@@ -18,9 +18,9 @@ one part per kind of work the cost model prices, each sized like the fit's own c
             bisection and trials): texel, process, fixed
 
 Each part's factor = its seconds here / its seconds on the reference machine (`REFERENCE`);
-a coefficient is multiplied by its part's factor. A part is timed as the least of five interleaved runs
-of `time.process_time()` (CPU seconds of this process, so other processes' load is left to
-the estimate's own `load` term). Pure numpy / scipy / open3d calls, not texelbake's code: a
+a coefficient is multiplied by its part's factor. A part is timed as the least of five
+interleaved runs of `time.process_time()` (CPU seconds of this process, so other processes'
+load is left to the estimate's own `load` term). Pure numpy / scipy / open3d calls, not texelbake's code: a
 change to the bake's code changes the coefficients (re-fit them), not the reference.
 
 `REFERENCE` is not a measurement on the coefficients' machine (gone when this was written):
