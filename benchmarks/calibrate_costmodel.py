@@ -25,6 +25,10 @@ import numpy as np
 import scipy.optimize
 
 from texelbake.costmodel import Coefficients
+from texelbake.machinespeed import REFERENCE_SPEED, MachineSpeed
+
+#: the coefficient each column of `design` is priced by (its kind of work's machine factor)
+COLUMNS = ("r_entry", "r_entry", "gram", "held", "held", "texel", "refit", "refit")
 
 
 def design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -35,18 +39,18 @@ def design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
     # cpm_cpu.py since 2026-11-28; older runs: the coefficients' machine): each column is
     # priced at its kind of work's factor, so the fitted coefficients are the reference
     # machine's seconds wherever the runs were made
-    f = (run.get("machine_speed") or {}).get("factors") or {}
-    grid, blas, py = f.get("grid", 1.0), f.get("blas", 1.0), f.get("python", 1.0)
+    f = (run.get("machine_speed") or {}).get("factors")
+    speed = MachineSpeed(factors=f, seconds={}) if f else REFERENCE_SPEED
     rows, y, names = [], [], []
     for lv in run["levels"]:
         z = lv["sizes"]
-        rows.append([z["m_cheap"] * d * grid, z["m_costly"] * d * grid, z["m2"] * d * blas,
-                     z["dense_cheap"] * h * grid, z["dense_costly"] * h * grid,
-                     z["texels"] * py, z.get("refit_cheap", 0.0) * d * grid,
-                     z.get("refit_costly", 0.0) * d * grid])
+        rows.append([z["m_cheap"] * d, z["m_costly"] * d, z["m2"] * d,
+                     z["dense_cheap"] * h, z["dense_costly"] * h, z["texels"],
+                     z.get("refit_cheap", 0.0) * d, z.get("refit_costly", 0.0) * d])
         y.append(lv["cpu_seconds"])
         names.append(f"{run['scene']} L{lv['level']}")
-    return np.array(rows, float), np.array(y, float), names
+    scale = [speed.factor(c) for c in COLUMNS]  # each column at its coefficient's factor
+    return np.array(rows, float) * scale, np.array(y, float), names
 
 
 def predict(coef: Coefficients, X: np.ndarray) -> np.ndarray:

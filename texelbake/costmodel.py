@@ -229,13 +229,14 @@ def estimate(
     geom = coef.geometry * total_samples
     par = min(workers, cores or workers)
     cpm_wall = (cpm - serial) / par + serial
+    avis_wall = avis / par + coef.avis_stage
     seconds = coef.fixed + geom + export + coef.process * (1 if workers == 1 else 2) \
-        + cpm_wall + avis / par + coef.avis_stage
+        + cpm_wall + avis_wall
     stretch = max(1.0, (max(load, 0.0) + par) / cores) if cores else 1.0
     return Estimate(seconds=seconds * stretch, workers=workers, cpm_seconds=cpm,
                     avis_seconds=avis, geometry_seconds=geom, texels=texels,
                     cpm_serial_seconds=serial, export_seconds=export,
-                    cpm_wall_seconds=cpm_wall * stretch, avis_wall_seconds=(avis / par + coef.avis_stage) * stretch,
+                    cpm_wall_seconds=cpm_wall * stretch, avis_wall_seconds=avis_wall * stretch,
                     per_level=per_level, stretch=stretch,
                     speed=speed.to_dict() if speed is not None else None)
 

@@ -226,10 +226,10 @@ def this_machine() -> MachineSpeed:
 
 
 def main() -> None:
-    sec = time_parts(repeats=7)
+    m = measure(repeats=7)
     print("part     seconds here   reference   factor")
-    for k, v in sec.items():
-        print(f"{k:<8} {v:12.5f} {REFERENCE[k]:11.5f} {v / REFERENCE[k]:8.3f}")
+    for k, v in m.seconds.items():
+        print(f"{k:<8} {v:12.5f} {REFERENCE[k]:11.5f} {m.factors[k]:8.3f}")
 
 
 if __name__ == "__main__":
