@@ -7,7 +7,8 @@ texelbake tree under test (this one, or an older commit's worktree).
 
 Wraps the cpm stage's `fit_level` so that every call appends one JSON line to TIMINGS.jsonl:
 level, texels fitted (valid), wall and CPU seconds of the call, and the held-out SNR of each
-valid texel. The wrapper is installed at import time of this module, so the spawned worker
+valid texel; since the tile shards sum their samples for the top levels (`top_level_sums`),
+those calls too, as their level's work with no texels. The wrapper is installed at import time of this module, so the spawned worker
 processes of `bake(jobs > 1)` (multiprocessing "spawn" re-imports the main module) time their
 calls too. Works with the package layout of c15cea2 (`texelbake.stages.fit_level`) and of
 today (`texelbake.stages.cpm.fit_level`).
@@ -45,6 +46,19 @@ def _install() -> None:
         return out
 
     mod.fit_level = timed
+    if hasattr(mod, "top_level_sums"):  # a top level's sums, made by the tile shards (issue 15)
+        sums = mod.top_level_sums
+
+        def timed_sums(src, level, texels, samples):
+            w0, c0 = time.perf_counter(), time.process_time()
+            out = sums(src, level, texels, samples)
+            rec = {"level": int(level), "texels": 0, "wall": time.perf_counter() - w0,
+                   "cpu": time.process_time() - c0, "pid": os.getpid(), "snr_ho": []}
+            with open(path, "a") as f:
+                f.write(json.dumps(rec) + "\n")
+            return out
+
+        mod.top_level_sums = timed_sums
 
 
 _install()

@@ -6,7 +6,8 @@ export; `benchmarks/bake.py` times the whole bake).
         [--seeds 0,1,2] [--json PATH]
 
 Ingest and geometry run once (untimed, cached in --workdir); then every tile's levels and the
-top levels are fitted in order, exactly as `run_cpm_tile` / `run_cpm_top` do, each `fit_level`
+top levels are fitted in order, exactly as `run_cpm_tile` / `run_cpm_top` do (the tiles' sums for the
+top levels, `top_level_sums`, timed as the top level's work), each `fit_level`
 call (and a coarse level's dense refit, `stages.cpm.refit_coarse`, as the stage applies it;
 its share is printed apart) timed with `time.process_time()` (CPU seconds of this process: the machine is shared, so
 wall time is not comparable between runs). Prints per level: texels fitted, CPU seconds,
@@ -27,10 +28,17 @@ import numpy as np
 
 from schemas.settings import BakeSettings
 from texelbake import stages
-from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
-from texelbake.cpm.level_batched import fit_level
+from texelbake.cpm.level import (
+    concat_levels,
+    direction_sets,
+    level_candidates,
+    samples_in,
+    texel_ids,
+    tile_texels,
+)
+from texelbake.cpm.level_batched import DenseSums, fit_level
 from texelbake.payload import atomic_json
-from texelbake.stages.cpm import refit_coarse
+from texelbake.stages.cpm import refit_coarse, tile_ancestor, top_level_sums
 
 
 def _parse_set(items: list[str]) -> dict:
@@ -79,8 +87,15 @@ FEATURES = ("m_cheap", "m_costly", "m2", "m3", "dense_cheap", "dense_costly", "t
             "refit_cheap", "refit_costly")
 
 
+#: the level `run` is fitting, for --breakdown's per-level sums
+CURRENT = {"level": -1}
+#: --breakdown's CPU seconds per level and part: {level: {part: seconds}}
+BY_LEVEL: dict[int, dict[str, float]] = {}
+
+
 def install_breakdown() -> dict[str, list[float]]:
-    """Wrap the BREAKDOWN functions with process-time accumulators (CPU seconds, calls)."""
+    """Wrap the BREAKDOWN functions with process-time accumulators (CPU seconds, calls; and
+    per level in BY_LEVEL)."""
     import importlib
 
     acc: dict[str, list[float]] = {}
@@ -95,8 +110,11 @@ def install_breakdown() -> dict[str, list[float]]:
             try:
                 return _inner(*a, **k)
             finally:
-                acc[_key][0] += time.process_time() - c0
+                dt = time.process_time() - c0
+                acc[_key][0] += dt
                 acc[_key][1] += 1
+                lv = BY_LEVEL.setdefault(CURRENT["level"], {})
+                lv[_key] = lv.get(_key, 0.0) + dt
         setattr(mod, fn, wrapped)
     return acc
 
@@ -118,9 +136,26 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
     mat = np.asarray(src.geo["sample_mat"], np.int64)
     feats: dict[int, np.ndarray] = {}
 
+    top_sums: dict[int, DenseSums] = {}
+
+    def timed_sums(tile, samples):
+        """The tile's share of the top levels' dense sums, as `run_cpm_tile` makes it (timed
+        as those levels' work), added in tile order as `run_cpm_top` gathers them."""
+        for level in range(ctx.tile_levels, ctx.n_levels):
+            CURRENT["level"] = level
+            c0 = time.process_time()
+            anc = np.array([tile_ancestor(ctx, tile, level)], np.int64)
+            part = top_level_sums(src, level, anc, samples)
+            acc = top_sums.setdefault(level, DenseSums.zeros(
+                (s.atlas_resolution >> level) ** 2, direction_sets(s)))
+            for f in DenseSums.FIELDS:
+                getattr(acc, f)[anc[0]] += getattr(part, f)[0]
+            sums_cpu[level] = sums_cpu.get(level, 0.0) + time.process_time() - c0
+
     def timed(level, texels, cands):
+        CURRENT["level"] = level
         c0 = time.process_time()
-        out = fit_level(src, level, texels, cands)
+        out = fit_level(src, level, texels, cands, top_sums.get(level))
         c1 = time.process_time()
         # a coarse level's dense refit, as the stage applies it (stages.cpm.refit_coarse)
         refitted = refit_coarse(ctx, level, out)
@@ -147,7 +182,12 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         return out
 
     tops = []
+    sums_cpu: dict[int, float] = {}
+    last = ctx.tile_levels - 1
     for t in tiles:  # loop over tiles, as the farm's shards
+        if ctx.tile_levels < ctx.n_levels and len(tiles) == n_tiles:
+            timed_sums(t, samples_in(src.geo, s.atlas_resolution, last,
+                                     tile_texels(s.atlas_resolution, s.shard_texels, t, last)))
         children = None
         for level in range(ctx.tile_levels):
             texels = tile_texels(s.atlas_resolution, s.shard_texels, t, level)
@@ -164,7 +204,8 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
     levels = []
     for level in sorted(per_level):
         runs = per_level[level]
-        cpu = sum(r[0] for r in runs)
+        # a top level's work includes the tiles' sums for it (`run_cpm_tile`'s `top_sums`)
+        cpu = sum(r[0] for r in runs) + sums_cpu.get(level, 0.0)
         refit_cpu = sum(r[2] for r in runs)
         data = concat_levels([r[1] for r in runs])
         v = data["valid"]
@@ -173,7 +214,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         skip = data.get("skip", np.zeros(0, np.int8))[v]
         levels.append({
             "level": level, "texels": int(v.sum()), "cpu_seconds": cpu,
-            "refit_cpu_seconds": refit_cpu,
+            "refit_cpu_seconds": refit_cpu, "sums_cpu_seconds": sums_cpu.get(level, 0.0),
             "texels_per_cpu_second": float(v.sum()) / max(cpu, 1e-9),
             "heldout_db_median": float(np.median(ho)) if ho.size else None,
             "heldout_db_p5": float(np.percentile(ho, 5)) if ho.size else None,
@@ -291,6 +332,11 @@ def main() -> None:
         for k, v in acc.items():
             print(f"{k:<44} {v[0]:>8.2f} {100 * v[0] / max(res['cpu_seconds'], 1e-9):>5.1f}% "
                   f"{int(v[1]):>7}")
+        res["breakdown_by_level"] = {str(lv): parts for lv, parts in sorted(BY_LEVEL.items())}
+        keys = list(acc)
+        print("per level (CPU s): " + " ".join(f"{k[:10]:>10}" for k in keys))
+        for lv, parts in sorted(BY_LEVEL.items()):
+            print(f"{lv:>17}: " + " ".join(f"{parts.get(k, 0.0):>10.2f}" for k in keys))
     if args.json:
         from texelbake import machinespeed
 

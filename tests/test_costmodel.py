@@ -143,16 +143,21 @@ def test_estimate_prices_the_coarse_levels_dense_refit():
 
 
 def test_levels_above_a_tile_are_one_serial_shard():
-    """The levels coarser than a shard's tile run as one shard (`run_cpm_top`) on one worker:
-    more workers divide the tiles' levels only. By hand from the per-level prediction."""
+    """The levels coarser than a shard's tile run as one shard (`run_cpm_top`) on one worker,
+    except their dense samples' sums (a_vis and the held-out truth, the held term), which the
+    tile shards make: more workers divide the tiles' levels and those sums only. By hand from
+    the per-level prediction: on the uniform prediction every level holds all N^2 spt samples."""
     s = BakeSettings(atlas_resolution=64, shard_texels=8)
     one, two = costmodel.estimate(s, 1, cores=2), costmodel.estimate(s, 2, cores=2)
     top = sum(lv["seconds"] for lv in two.per_level if lv["level"] >= 4)  # 8 = 0b1000: L0-3 tile
-    assert two.cpm_serial_seconds == pytest.approx(top, rel=1e-12) and top > 0
     c = costmodel.Coefficients()
-    # one worker -> two: the tiles' levels and a_vis halve, the serial levels do not; the
-    # second pool start costs one process term more
-    saved = (two.cpm_seconds - top + two.avis_seconds) / 2.0
+    held = (1.0 + (c.held_ggx - 1.0) * 0.5) * c.held * 64 ** 2 * s.samples_per_texel \
+        * s.n_heldout * 3  # levels 4, 5, 6
+    assert two.cpm_serial_seconds == pytest.approx(top - held, rel=1e-9)
+    assert 0 < held < top
+    # one worker -> two: the tiles' levels, the top levels' sums and a_vis halve, the serial
+    # levels do not; the second pool start costs one process term more
+    saved = (two.cpm_seconds - two.cpm_serial_seconds + two.avis_seconds) / 2.0
     assert one.seconds - two.seconds == pytest.approx(saved - c.process, rel=1e-9)
 
 

@@ -15,7 +15,8 @@ them: `sample_counts`; before that the n^2 spt samples spread over an assumed at
 texel selects among its children's points, m = sum over its children of min(c_L, m_child) with
 c_L the typical points per texel of a level (C_LEVEL, measured). The a_vis and geometry stages
 scale with the dense samples. Tile shards spread over the workers; the levels above a tile
-are one shard (`run_cpm_top`), priced serially; each process pool pays its start once.
+are one shard (`run_cpm_top`), priced serially except for their dense samples' sums (the held
+term), which the tile shards make; each process pool pays its start once.
 Coefficients are seconds measured on one 2-core machine (benchmarks/costmodel_check.py compares
 prediction and outcome); on another machine `estimate(speed=...)` scales them by a short
 reference workload's time there against its time on that machine (`texelbake.machinespeed`,
@@ -213,14 +214,17 @@ def estimate(
     texels = 0
     for level, (m, dense, mult) in enumerate(sizes):
         refit = brdf_r * coef.refit * (dense * d).sum() if refits and level > 0 else 0.0
-        sec = mult * float(brdf * coef.r_entry * (m * d).sum() + coef.gram * (m * m * d).sum()
-                           + coef.eigh * (m ** 3).sum() + brdf_h * coef.held * (dense * n_h).sum()
-                           + coef.texel * m.size + refit)
+        held = mult * float(brdf_h * coef.held * (dense * n_h).sum())
+        sec = held + mult * float(brdf * coef.r_entry * (m * d).sum()
+                                  + coef.gram * (m * m * d).sum() + coef.eigh * (m ** 3).sum()
+                                  + coef.texel * m.size + refit)
         n_tex = int(round(mult * m.size))
         per_level.append({"level": level, "texels": n_tex, "seconds": sec})
         cpm += sec
         if level >= tile_levels:
-            serial += sec
+            # a top level's dense sums (a_vis, held-out truth) are made by the tile shards
+            # (`texelbake.stages.cpm.top_sums`); the top shard fits from them
+            serial += sec - held
         texels += n_tex
     total_samples = float(sizes[0][1].sum() * sizes[0][2])
     faces = (s.avis_resolution / 32.0) ** 2

@@ -19,6 +19,8 @@ the full SVD) still builds a texel's whole R.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
@@ -84,26 +86,104 @@ def _segment_sum(values: np.ndarray, seg: np.ndarray, n_seg: int, axis: int) -> 
 
 
 def fit_level(
-    src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet
+    src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
+    sums: DenseSums | None = None,
 ) -> dict[str, np.ndarray]:
     """One level's fit by BakeSettings.fit_method: "batched" (here) or "per_texel"
-    (`texelbake.cpm.level.fit_level`, the seed's loop). Same arrays either way."""
+    (`texelbake.cpm.level.fit_level`, the seed's loop). Same arrays either way.
+
+    sums : the texels' `DenseSums`, already summed (the top levels' from the tile shards,
+        `texelbake.stages.cpm`): the fit then reads no dense sample. The per-texel loop
+        computes its own."""
     if src.settings.fit_method == "per_texel":
         return level_mod.fit_level(src, level, texels, candidates)
     # one BLAS / torch thread: parallelism comes from worker processes (see level.fit_level)
     torch.set_num_threads(1)
     rays0 = src.caster.rays_cast
     with threadpool_limits(limits=1):
-        out = fit_level_batched(src, level, texels, candidates)
+        out = fit_level_batched(src, level, texels, candidates, sums)
     out["rays"] = np.array([src.caster.rays_cast - rays0], np.int64)
     return out
 
 
+@dataclass(frozen=True)
+class DenseSums:
+    """What the fit needs from a texel's dense samples and that does not depend on the fit:
+    per texel the samples' count and area, a_vis on the grid's view directions (Eq. 3) and the
+    held-out truth (Eq. 7's numerator on the held-out pairs, a_vis on the held-out view
+    directions). Every field is a sum over samples, so the sums of disjoint sample sets of the
+    same texels add up to the whole set's (up to the order of the floating-point sums): a tile
+    shard sums its own samples for the coarse texels above it, and the top shard adds the
+    tiles' (`texelbake.stages.cpm`) instead of reading every sample of the atlas again."""
+
+    count: np.ndarray  # (t,) int64
+    area: np.ndarray  # (t,)
+    avis_o: np.ndarray  # (t, n_o)
+    ref: np.ndarray  # (t, h_i, h_o, 3)
+    avis_h: np.ndarray  # (t, h_o)
+
+    FIELDS = ("count", "area", "avis_o", "ref", "avis_h")
+
+    def __add__(self, other: DenseSums) -> DenseSums:
+        return DenseSums(*(getattr(self, f) + getattr(other, f) for f in self.FIELDS))
+
+    def rows(self, idx) -> DenseSums:
+        return DenseSums(*(getattr(self, f)[idx] for f in self.FIELDS))
+
+    @classmethod
+    def zeros(cls, n_t: int, dirs: dict[str, np.ndarray]) -> DenseSums:
+        n_o, h_i, h_o = len(dirs["dirs_o"]), len(dirs["held_i"]), len(dirs["held_o"])
+        return cls(np.zeros(n_t, np.int64), np.zeros(n_t), np.zeros((n_t, n_o)),
+                   np.zeros((n_t, h_i, h_o, 3)), np.zeros((n_t, h_o)))
+
+    def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        return {f"{prefix}{f}": getattr(self, f) for f in self.FIELDS}
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str) -> DenseSums:
+        return cls(*(np.asarray(arrays[f"{prefix}{f}"]) for f in cls.FIELDS))
+
+
+def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
+               samples: np.ndarray | None = None) -> DenseSums:
+    """`DenseSums` of `texels` (flat ids at `level`) over `samples` (ascending ids of samples
+    of those texels; default all of them), in sample batches bounded by worker_memory_mb. The
+    same passes as the fit's own (`_avis`, `_held_pass`), so a texel's sums over all its
+    samples equal the fit's."""
+    s = src.settings
+    geo = src.geo
+    dirs = direction_sets(s)
+    frames = geo[f"frames_L{level}"]
+    texels = np.asarray(texels, np.int64)
+    budget = int(s.worker_memory_mb) * 2**20
+    if samples is None:
+        samples = samples_in(geo, s.atlas_resolution, level, texels)
+    samples = np.asarray(samples, np.int64)
+    pos = _positions(texels, texel_ids(geo, s.atlas_resolution, level, samples))
+    if np.any(pos < 0):
+        raise NumericalError(f"dense_sums: samples outside the level {level} texels given")
+    order = np.argsort(pos, kind="stable")
+    dense, dseg = samples[order], pos[order]
+    n_t = len(texels)
+    avis_o, area = _avis(src, frames, texels, dense, dseg, n_t, dirs, budget)
+    out = DenseSums.zeros(n_t, dirs)
+    ref, avis_h = out.ref, out.avis_h
+    if len(dirs["held_i"]):
+        none = np.zeros(0, np.int64)
+        ref, _, avis_h = _held_pass(src, frames, texels, dense, dseg, n_t, dirs, budget,
+                                    none, none, np.zeros((0, 3)), want_ref=True)
+    return DenseSums(np.bincount(dseg, minlength=n_t).astype(np.int64), area, avis_o, ref,
+                     avis_h)
+
+
 def fit_level_batched(
-    src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet
+    src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
+    sums: DenseSums | None = None,
 ) -> dict[str, np.ndarray]:
     """`texelbake.cpm.level.fit_level`'s arrays (and `skip` (t,) int8: 0 full fit, 1 rank-1
-    closed form, 2 fitted by the per-texel path) for `texels`, in memory-bounded chunks."""
+    closed form, 2 fitted by the per-texel path) for `texels`, in memory-bounded chunks. With
+    `sums` (`DenseSums` of `texels`) no dense sample is read: a_vis and the held-out truth
+    come from them, the held-out approximation from the points themselves."""
     s = src.settings
     geo = src.geo
     dirs = direction_sets(s)
@@ -111,34 +191,46 @@ def fit_level_batched(
     n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
     d = n_i * n_o
     budget = int(s.worker_memory_mb) * 2**20
-    # dense samples and candidates of every texel, grouped by texel (position in `texels`)
-    ids = samples_in(geo, s.atlas_resolution, level, texels)  # ascending
-    pos_ids = _positions(texels, texel_ids(geo, s.atlas_resolution, level, ids))
-    samp_all = ids[np.argsort(pos_ids, kind="stable")]
-    seg_all = np.sort(pos_ids, kind="stable")
+    n_t = len(texels)
+    if sums is None:
+        # dense samples of every texel, grouped by texel (position in `texels`)
+        ids = samples_in(geo, s.atlas_resolution, level, texels)  # ascending
+        pos_ids = _positions(texels, texel_ids(geo, s.atlas_resolution, level, ids))
+        samp_all = ids[np.argsort(pos_ids, kind="stable")]
+        seg_all = np.sort(pos_ids, kind="stable")
+        n_dense = np.bincount(seg_all, minlength=n_t)
+        cb_all = np.r_[0, np.cumsum(n_dense)]
+    elif len(sums.count) != n_t:
+        raise NumericalError(f"level {level}: DenseSums of {len(sums.count)} texels for {n_t}")
+    else:
+        n_dense = sums.count
     pos_c = _positions(texels, candidates.texel)
     order_c = np.argsort(pos_c, kind="stable")
     order_c = order_c[pos_c[order_c] >= 0]
     seg_c = pos_c[order_c]
-    n_t = len(texels)
     n_cand = np.bincount(seg_c, minlength=n_t)
-    n_dense = np.bincount(seg_all, minlength=n_t)
-    cb_all = np.r_[0, np.cumsum(n_dense)]
     cb_c = np.r_[0, np.cumsum(n_cand)]
 
     res = _Results(n_t, d if s.btf else 0)
     cap = max(budget // (BYTES_PER_R_ENTRY * d * 3), 1)
     # a texel wider than n_batch holds one block of n_batch columns at a time (`Columns`)
     for a, b in chunk_bounds(np.minimum(n_cand, s.n_batch), cap):  # loop over chunks
-        dense = samp_all[cb_all[a]:cb_all[b]]
-        dseg = seg_all[cb_all[a]:cb_all[b]] - a
         rows = order_c[cb_c[a]:cb_c[b]]
-        avis_o, area = _avis(src, frames, texels[a:b], dense, dseg, b - a, dirs, budget)
+        if sums is None:
+            dense = samp_all[cb_all[a]:cb_all[b]]
+            dseg = seg_all[cb_all[a]:cb_all[b]] - a
+            avis_o, area = _avis(src, frames, texels[a:b], dense, dseg, b - a, dirs, budget)
+        else:
+            avis_o, area = sums.avis_o[a:b], sums.area[a:b]
         fits = _fit_chunk(src, level, texels[a:b], candidates.take(rows), seg_c[cb_c[a]:cb_c[b]] - a,
                           n_cand[a:b], n_dense[a:b], avis_o, area, dirs, res, a, budget)
-        if len(dirs["held_i"]):
-            _heldout(src, frames, texels[a:b], dense, dseg, candidates.take(rows), fits, dirs,
-                     area, budget, res, a)
+        if not len(dirs["held_i"]):
+            continue
+        if sums is None:
+            _heldout(src, frames, texels[a:b], dense, dseg, fits, dirs, area, budget, res, a)
+        else:
+            _heldout_from_sums(src, frames, texels[a:b], fits, dirs, area, budget, res, a,
+                               sums.rows(slice(a, b)))
     return res.arrays(texels)
 
 
@@ -365,32 +457,59 @@ def _store(res: _Results, i: int, fit: TexelFit, cset: PointSet, skip: int) -> N
     res.skip[i] = skip
 
 
-def _heldout(src, frames, texels, dense, dseg, cset, fits, dirs, area, budget, res, base):
-    """Held-out SNR of every fitted texel of the chunk: brute-force Eq. 7 over all its dense
-    samples against its characteristic points, on the held-out product grid (`heldout_snr`)."""
-    n_t = len(texels)
-    h_i, h_o = len(dirs["held_i"]), len(dirs["held_o"])
-    tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
-    # the points of each texel as positions in `dense` (a point is one of its texel's samples)
-    pt_pos, pt_seg, pt_w = [], [], []
+def _points_of(res: _Results, fits, base: int):
+    """The characteristic points of the chunk's fitted texels: sample ids, their texel (position
+    in the chunk) and their weights as stored (float32: a texel that keeps all its candidates at
+    their own weights would otherwise reproduce the reference bit for bit, +inf dB)."""
+    pts, seg, w = [], [], []
     for t, fit in enumerate(fits):  # loop over texels
         if fit is None or not fit.valid or fit.c == 0:
             continue
         i = base + t
-        smp = res.pts[i][0]
-        lo = np.searchsorted(dseg, t)
-        hi = np.searchsorted(dseg, t, side="right")
-        p = lo + np.searchsorted(dense[lo:hi], smp)
-        pt_pos.append(p)
-        pt_seg.append(np.full(len(p), t))
-        # the weights as stored (float32): a texel that keeps all its candidates at their own
-        # weights would otherwise reproduce the reference bit for bit (+inf dB)
-        pt_w.append(res.w[i][0].astype(np.float32).astype(np.float64))
-    pos = np.concatenate(pt_pos) if pt_pos else np.zeros(0, np.int64)
-    pseg = np.concatenate(pt_seg) if pt_seg else np.zeros(0, np.int64)
-    pw = np.concatenate(pt_w) if pt_w else np.zeros((0, 3))
+        pts.append(res.pts[i][0])
+        seg.append(np.full(len(res.pts[i][0]), t))
+        w.append(res.w[i][0].astype(np.float32).astype(np.float64))
+    if not pts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+    return np.concatenate(pts), np.concatenate(seg), np.concatenate(w)
+
+
+def _heldout(src, frames, texels, dense, dseg, fits, dirs, area, budget, res, base):
+    """Held-out SNR of every fitted texel of the chunk: brute-force Eq. 7 over all its dense
+    samples against its characteristic points, on the held-out product grid (`heldout_snr`)."""
+    n_t = len(texels)
+    smp, pseg, pw = _points_of(res, fits, base)
+    # the points as positions in `dense` (a point is one of its texel's samples): `dense` is
+    # ascending within each texel and dseg ascending, so (texel, sample) keys are sorted
+    span = int(max(dense.max(initial=0), smp.max(initial=0))) + 1
+    pos = np.searchsorted(dseg * span + dense, pseg * span + smp)
     order = np.argsort(pos, kind="stable")
     pos, pseg, pw = pos[order], pseg[order], pw[order]
+    ref, apx, avis_h = _held_pass(src, frames, texels, dense, dseg, n_t, dirs, budget, pos,
+                                  pseg, pw, want_ref=True)
+    _held_snr(res, fits, area, ref, apx, avis_h, base)
+
+
+def _heldout_from_sums(src, frames, texels, fits, dirs, area, budget, res, base,
+                       sums: DenseSums):
+    """`_heldout` with the truth already summed (`DenseSums`): only the points are evaluated."""
+    n_t = len(texels)
+    smp, pseg, pw = _points_of(res, fits, base)
+    order = np.lexsort((smp, pseg))
+    smp, pseg, pw = smp[order], pseg[order], pw[order]
+    _, apx, _ = _held_pass(src, frames, texels, smp, pseg, n_t, dirs, budget,
+                           np.arange(smp.size), pseg, pw, want_ref=False)
+    _held_snr(res, fits, area, sums.ref, apx, sums.avis_h, base)
+
+
+def _held_pass(src, frames, texels, dense, dseg, n_t, dirs, budget, pos, pseg, pw, *,
+               want_ref: bool):
+    """One pass over `dense` samples (grouped by texel, `dseg` ascending) on the held-out pairs:
+    the truth (Eq. 7's numerator `ref` and a_vis on the held-out views `avis_h`) when
+    `want_ref`, and the points' approximation `apx` from the rows at positions `pos`
+    (ascending; texel `pseg`, weights `pw`)."""
+    h_i, h_o = len(dirs["held_i"]), len(dirs["held_o"])
+    tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
     ref = np.zeros((n_t, h_i, h_o, 3))
     apx = np.zeros((n_t, h_i, h_o, 3))
     avis_h = np.zeros((n_t, h_o))
@@ -407,13 +526,19 @@ def _heldout(src, frames, texels, dense, dseg, cset, fits, dirs, area, budget, r
                          world_dirs(frames, tex_l[sl], dirs["held_o"]), live)  # (h_i, h_o, p, 3)
         f *= vi[None, :, :, None]
         f *= vo[None, :, None, :]  # (3, p, h_i, h_o)
-        avis_h += _segment_sum(vo * area_all[sl, None], seg, n_t, 0)
         a_, b_ = np.searchsorted(pos, [s0, s0 + len(smp)])
         if b_ > a_:
             apx += _segment_sum(f[:, pos[a_:b_] - s0] * pw.T[:, a_:b_, None, None], pseg[a_:b_],
                                 n_t, 1).transpose(1, 2, 3, 0)
-        ref += _segment_sum(f * area_all[sl][None, :, None, None], seg, n_t, 1
-                            ).transpose(1, 2, 3, 0)
+        if want_ref:
+            avis_h += _segment_sum(vo * area_all[sl, None], seg, n_t, 0)
+            ref += _segment_sum(f * area_all[sl][None, :, None, None], seg, n_t, 1
+                                ).transpose(1, 2, 3, 0)
+    return ref, apx, avis_h
+
+
+def _held_snr(res: _Results, fits, area, ref, apx, avis_h, base: int) -> None:
+    h_i = ref.shape[1]
     for t, fit in enumerate(fits):  # loop over texels: one SNR each
         if fit is None or not fit.valid:
             continue
@@ -424,4 +549,4 @@ def _heldout(src, frames, texels, dense, dseg, cset, fits, dirs, area, budget, r
         res.snr_ho[base + t] = float(snr_db(f_ref, f_apx, ok))
 
 
-__all__ = ["chunk_bounds", "fit_level_batched", "_empty_fit"]
+__all__ = ["DenseSums", "chunk_bounds", "dense_sums", "fit_level_batched", "_empty_fit"]

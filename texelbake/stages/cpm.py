@@ -1,6 +1,14 @@
 """The cpm stages: every level inside one tile of finest texels (`run_cpm_tile`, the farm's
 shard), then the levels coarser than a tile (`run_cpm_top`); the science is
-`texelbake.cpm.level`."""
+`texelbake.cpm.level`.
+
+A coarse texel's a_vis and held-out truth are sums over all its dense samples (a top level's
+texels together hold every sample of the atlas), and they do not depend on the fit. Each tile
+shard sums its own samples for the one texel above it at every top level (`top_sums`, an
+artifact beside its levels), and the top shard adds the tiles' sums in tile order
+(`gathered_sums`): the work is the same, but it is spread over the tile shards instead of
+being one worker's serial pass over the whole atlas per top level (issue 15, item 6). A store
+whose tiles predate the sums (or lack one) has the top shard read the samples itself."""
 
 from __future__ import annotations
 
@@ -8,11 +16,13 @@ import numpy as np
 
 from texelbake.cpm.level import (
     concat_levels,
+    direction_sets,
     level_candidates,
+    samples_in,
     sort_by_texel,
     tile_texels,
 )
-from texelbake.cpm.level_batched import fit_level
+from texelbake.cpm.level_batched import DenseSums, dense_sums, fit_level
 from texelbake.cpm.refit import refit_to_dense
 from texelbake.stages.context import StageContext
 
@@ -24,9 +34,51 @@ def level_key(ctx: StageContext, level: int, tile: int | None) -> str:
     return ctx.key("cpm", name)
 
 
-def run_cpm_tile(ctx: StageContext, shard: int) -> str:
-    """Every level inside one tile, finest first (coarser levels select from their children)."""
+def sums_key(ctx: StageContext, tile: int) -> str:
+    """Key of one tile's `DenseSums` for the texels above it at every top level."""
+    return ctx.key("cpm", f"sums-tile{tile:05d}-s{ctx.settings.shard_texels}.npz")
+
+
+def has_top(ctx: StageContext) -> bool:
+    return ctx.tile_levels < ctx.n_levels
+
+
+def tile_ancestor(ctx: StageContext, tile: int, level: int) -> int:
+    """Flat id at `level` (>= tile_levels - 1) of the one texel that holds tile `tile`."""
     s = ctx.settings
+    per_row = s.atlas_resolution // s.shard_texels
+    tr, tc = divmod(int(tile), per_row)
+    up = level - (ctx.tile_levels - 1)
+    return (tr >> up) * (s.atlas_resolution >> level) + (tc >> up)
+
+
+def top_sums(ctx: StageContext, tile: int) -> dict[str, np.ndarray]:
+    """The tile's samples summed for its ancestor texel at every top level (`DenseSums`,
+    arrays prefixed `L{level}_`)."""
+    s = ctx.settings
+    src = ctx.fit_inputs()
+    last = ctx.tile_levels - 1
+    samples = samples_in(src.geo, s.atlas_resolution, last,
+                         tile_texels(s.atlas_resolution, s.shard_texels, tile, last))
+    out: dict[str, np.ndarray] = {}
+    for level in range(ctx.tile_levels, ctx.n_levels):  # loop over top levels
+        anc = np.array([tile_ancestor(ctx, tile, level)], np.int64)
+        out.update(top_level_sums(src, level, anc, samples).to_arrays(f"L{level}_"))
+    return out
+
+
+def top_level_sums(src, level: int, texels: np.ndarray, samples: np.ndarray) -> DenseSums:
+    """One top level's share of a tile's sums (its own function so that benchmarks time it
+    as that level's work, `benchmarks/_bake_child.py`)."""
+    return dense_sums(src, level, texels, samples)
+
+
+def run_cpm_tile(ctx: StageContext, shard: int) -> str:
+    """Every level inside one tile, finest first (coarser levels select from their children);
+    with levels above the tile, first the tile's sums for them (`top_sums`)."""
+    s = ctx.settings
+    if has_top(ctx) and not ctx.store.exists(sums_key(ctx, shard)):
+        ctx.store.write_arrays(sums_key(ctx, shard), top_sums(ctx, shard))
     last = level_key(ctx, ctx.tile_levels - 1, shard)
     if ctx.store.exists(last):
         return last
@@ -43,6 +95,28 @@ def run_cpm_tile(ctx: StageContext, shard: int) -> str:
     return last
 
 
+def gathered_sums(ctx: StageContext) -> dict[int, DenseSums] | None:
+    """Every top level's `DenseSums` of all its texels, the tiles' sums added in tile order
+    (deterministic); None when a tile's sums are not in the store (tiles baked before they
+    existed): the top shard then reads the samples itself."""
+    s = ctx.settings
+    n_tiles = (s.atlas_resolution // s.shard_texels) ** 2
+    keys = [sums_key(ctx, t) for t in range(n_tiles)]
+    if not all(ctx.store.exists(k) for k in keys):
+        return None
+    dirs = direction_sets(s)
+    out = {lv: DenseSums.zeros((s.atlas_resolution >> lv) ** 2, dirs)
+           for lv in range(ctx.tile_levels, ctx.n_levels)}
+    for t, key in enumerate(keys):  # loop over tiles, in order: the sums' order is fixed
+        arrays = ctx.store.read_arrays(key)
+        for lv, acc in out.items():
+            part = DenseSums.from_arrays(arrays, f"L{lv}_")
+            i = tile_ancestor(ctx, t, lv)
+            for f in DenseSums.FIELDS:  # five fields
+                getattr(acc, f)[i] += getattr(part, f)[0]
+    return out
+
+
 def refit_coarse(ctx: StageContext, level: int, out: dict[str, np.ndarray]
                  ) -> dict[str, np.ndarray]:
     """A coarse level's fit with its weights refitted to the dense Eq. 7 when the settings ask
@@ -54,7 +128,7 @@ def refit_coarse(ctx: StageContext, level: int, out: dict[str, np.ndarray]
 
 
 def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
-    """Levels coarser than a tile, from the tiles' coarsest level."""
+    """Levels coarser than a tile, from the tiles' coarsest level and the tiles' sums."""
     s = ctx.settings
     n_tiles = (s.atlas_resolution // s.shard_texels) ** 2
     last = level_key(ctx, ctx.n_levels - 1, None)
@@ -64,6 +138,7 @@ def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
     children = concat_levels(
         [ctx.store.read_arrays(level_key(ctx, lvl, t)) for t in range(n_tiles)]
     )
+    sums = gathered_sums(ctx)
     for level in range(ctx.tile_levels, ctx.n_levels):
         key = level_key(ctx, level, None)
         if ctx.store.exists(key):
@@ -72,7 +147,9 @@ def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
         n_l = s.atlas_resolution >> level
         texels = np.arange(n_l * n_l, dtype=np.int64)
         cands = level_candidates(ctx.fit_inputs(), level, texels, children)
-        children = refit_coarse(ctx, level, fit_level(ctx.fit_inputs(), level, texels, cands))
+        fit = fit_level(ctx.fit_inputs(), level, texels, cands,
+                        sums[level] if sums is not None else None)
+        children = refit_coarse(ctx, level, fit)
         ctx.store.write_arrays(key, children)
     return last
 

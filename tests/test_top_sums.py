@@ -1,0 +1,128 @@
+"""The top levels' dense sums made by the tile shards (issue 15, item 6): a coarse texel's a_vis
+and held-out truth are sums over its dense samples, so the tiles' shares add up to the sums
+over all of them, and the top shard fitted from the tiles' sums reads no sample and gives the
+fit it gives when it reads every sample itself (its second method, kept as the fallback for
+stores whose tiles have no sums)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from schemas.settings import BakeSettings
+from texelbake import stages
+from texelbake.cpm import level_batched as lb
+from texelbake.cpm.level import samples_in, tile_texels
+from texelbake.cpm.level_batched import DenseSums, dense_sums
+from texelbake.scenes import write_scene
+from texelbake.stages import cpm as cpm_stage
+
+#: a 32^2 atlas in 8^2 tiles: levels 0-3 inside a tile, levels 4-5 (2 x 2 texels, 1) above
+SETTINGS = dict(atlas_resolution=32, shard_texels=8, samples_per_texel=8, n_light_dirs=12,
+                n_view_dirs=12, n_heldout=16, c_max=12, n_trials=2, mesh_levels=1)
+
+
+def _ctx(root, scene, **extra):
+    ctx = stages.StageContext.create(root, scene, BakeSettings(**{**SETTINGS, **extra}))
+    stages.run_ingest(ctx, 0)
+    stages.run_geometry(ctx, 0)
+    return ctx
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("topsums")
+    return write_scene("bolt", d / "bolt.usda", "small")
+
+
+def test_tile_ancestors_hold_their_tiles(scene, tmp_path):
+    """tile_ancestor against the texel ids of the tile's own samples at every top level."""
+    ctx = _ctx(tmp_path, scene)
+    geo = ctx.fit_inputs().geo
+    n = ctx.settings.atlas_resolution
+    last = ctx.tile_levels - 1
+    assert ctx.n_levels - ctx.tile_levels == 2  # levels 4 (2 x 2 texels) and 5 (1)
+    for tile in range(16):  # loop over the 16 tiles
+        smp = samples_in(geo, n, last, tile_texels(n, 8, tile, last))
+        for level in range(ctx.tile_levels, ctx.n_levels):
+            ids = np.unique((geo["sample_row"][smp] >> level) * (n >> level)
+                            + (geo["sample_col"][smp] >> level))
+            if smp.size:
+                assert ids.tolist() == [cpm_stage.tile_ancestor(ctx, tile, level)]
+
+
+def test_dense_sums_add_over_disjoint_samples(scene, tmp_path):
+    """Sums over every sample of the coarse texels equal the tiles' shares added (same rays,
+    same BRDF values; only the order of the floating-point sums differs: 1e-12 relative)."""
+    ctx = _ctx(tmp_path, scene)
+    src = ctx.fit_inputs()
+    level = ctx.tile_levels
+    texels = np.arange((32 >> level) ** 2, dtype=np.int64)
+    whole = dense_sums(src, level, texels)
+    parts = DenseSums.zeros(len(texels), lb.direction_sets(ctx.settings))
+    last = ctx.tile_levels - 1
+    for tile in range(16):  # loop over tiles
+        smp = samples_in(src.geo, 32, last, tile_texels(32, 8, tile, last))
+        anc = cpm_stage.tile_ancestor(ctx, tile, level)
+        part = dense_sums(src, level, np.array([anc]), smp)
+        full = DenseSums.zeros(len(texels), lb.direction_sets(ctx.settings))
+        for f in DenseSums.FIELDS:
+            getattr(full, f)[anc] = getattr(part, f)[0]
+        parts = parts + full
+    np.testing.assert_array_equal(parts.count, whole.count)
+    assert whole.count.sum() == len(src.geo["sample_area"])
+    for f in ("area", "avis_o", "ref", "avis_h"):
+        a, b = getattr(parts, f), getattr(whole, f)
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max(), err_msg=f)
+    assert whole.ref.max() > 0 and whole.avis_o.max() > 0
+
+
+def test_top_shard_from_tile_sums_reads_no_sample(scene, tmp_path, monkeypatch):
+    """The same bake's top shard twice: from the tiles' sums (with `samples_in` made to fail:
+    it reads no dense sample) and, one tile's sums removed, from every sample itself. The sums
+    differ by the order of their floating-point additions only, so the same points, weights
+    to 1e-6 and held-out SNR to 1e-4 dB."""
+    ctx = _ctx(tmp_path / "a", scene)
+    for tile in range(16):  # the tile shards
+        cpm_stage.run_cpm_tile(ctx, tile)
+        assert ctx.store.exists(cpm_stage.sums_key(ctx, tile))
+    assert cpm_stage.gathered_sums(ctx) is not None
+
+    def no_samples(*a, **k):
+        raise AssertionError("the top shard read the dense samples")
+
+    with monkeypatch.context() as m:
+        m.setattr(lb, "samples_in", no_samples)
+        cpm_stage.run_cpm_top(ctx, 0)
+    from_sums = cpm_stage.cpm_levels(ctx)
+
+    ctx_b = _ctx(tmp_path / "b", scene)
+    for tile in range(16):
+        cpm_stage.run_cpm_tile(ctx_b, tile)
+    ctx_b.store.path(cpm_stage.sums_key(ctx_b, 5)).unlink()  # one tile's sums missing
+    assert cpm_stage.gathered_sums(ctx_b) is None
+    cpm_stage.run_cpm_top(ctx_b, 0)
+    read_all = cpm_stage.cpm_levels(ctx_b)
+    for level in range(ctx.tile_levels, ctx.n_levels):
+        a, b = from_sums[level], read_all[level]
+        for k in ("texel", "offsets", "point_sample", "k", "c", "valid", "mode"):
+            np.testing.assert_array_equal(a[k], b[k], err_msg=f"L{level} {k}")
+        np.testing.assert_allclose(a["point_weight"], b["point_weight"], rtol=1e-6)
+        v = a["valid"]
+        assert v.any()
+        np.testing.assert_allclose(a["snr_ho"][v], b["snr_ho"][v], atol=1e-4)
+
+
+def test_rerun_tile_writes_missing_sums_only(scene, tmp_path):
+    """A tile fitted before the sums existed (its sums removed) gets them on a rerun without
+    refitting its levels (the level artifacts are not rewritten), byte-identical to the first."""
+    ctx = _ctx(tmp_path, scene)
+    cpm_stage.run_cpm_tile(ctx, 3)
+    key = cpm_stage.sums_key(ctx, 3)
+    first = ctx.store.path(key).read_bytes()
+    lvl = ctx.store.path(cpm_stage.level_key(ctx, 0, 3))
+    mtime = lvl.stat().st_mtime_ns
+    ctx.store.path(key).unlink()
+    cpm_stage.run_cpm_tile(ctx, 3)
+    assert ctx.store.path(key).read_bytes() == first
+    assert lvl.stat().st_mtime_ns == mtime
