@@ -34,9 +34,9 @@ def _install() -> None:
         import texelbake.stages as mod  # c15cea2: one stages module
     inner = mod.fit_level
 
-    def timed(src, level, texels, candidates):
+    def timed(src, level, texels, candidates, *rest):
         w0, c0 = time.perf_counter(), time.process_time()
-        out = inner(src, level, texels, candidates)
+        out = inner(src, level, texels, candidates, *rest)
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
         valid = np.asarray(out["valid"], bool)
         rec = {"level": int(level), "texels": int(valid.sum()), "wall": wall, "cpu": cpu,
