@@ -18,8 +18,9 @@ from texelbake.scenes import write_scene
 from texelbake.stages import cpm as cpm_stage
 
 #: a 32^2 atlas in 8^2 tiles: levels 0-3 inside a tile, levels 4-5 (2 x 2 texels, 1) above
-SETTINGS = dict(atlas_resolution=32, shard_texels=8, samples_per_texel=8, n_light_dirs=12,
-                n_view_dirs=12, n_heldout=16, c_max=12, n_trials=2, mesh_levels=1)
+SETTINGS = {"atlas_resolution": 32, "shard_texels": 8, "samples_per_texel": 8,
+            "n_light_dirs": 12, "n_view_dirs": 12, "n_heldout": 16, "c_max": 12, "n_trials": 2,
+            "mesh_levels": 1}
 
 
 def _ctx(root, scene, **extra):
@@ -126,3 +127,19 @@ def test_rerun_tile_writes_missing_sums_only(scene, tmp_path):
     cpm_stage.run_cpm_tile(ctx, 3)
     assert ctx.store.path(key).read_bytes() == first
     assert lvl.stat().st_mtime_ns == mtime
+
+
+def test_sums_of_the_wrong_texels_are_refused(scene, tmp_path):
+    """Samples outside the texels given, or sums of another texel count: a ShapeError that
+    names the level, not a fit on misaligned rows."""
+    from texelbake.errors import ShapeError
+
+    ctx = _ctx(tmp_path, scene)
+    src = ctx.fit_inputs()
+    smp = samples_in(src.geo, 32, 3, tile_texels(32, 8, 0, 3))
+    with pytest.raises(ShapeError, match="level 4"):
+        dense_sums(src, 4, np.array([3]), smp)  # tile 0 lies under texel 0, not 3
+    sums = dense_sums(src, 4, np.array([0]), smp)
+    with pytest.raises(ShapeError, match="level 4"):
+        lb.fit_level_batched(src, 4, np.arange(4), lb.PointSet(
+            np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)), sums)

@@ -41,7 +41,7 @@ from texelbake.cpm.level import (
     world_dirs,
 )
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
-from texelbake.errors import NumericalError
+from texelbake.errors import NumericalError, ShapeError
 from texelbake.tol import TOL
 
 #: bytes held per (candidate, row, channel) entry while a chunk is fitted: R and F (float64)
@@ -161,7 +161,7 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
     samples = np.asarray(samples, np.int64)
     pos = _positions(texels, texel_ids(geo, s.atlas_resolution, level, samples))
     if np.any(pos < 0):
-        raise NumericalError(f"dense_sums: samples outside the level {level} texels given")
+        raise ShapeError(f"dense_sums: samples outside the level {level} texels given")
     order = np.argsort(pos, kind="stable")
     dense, dseg = samples[order], pos[order]
     n_t = len(texels)
@@ -201,7 +201,7 @@ def fit_level_batched(
         n_dense = np.bincount(seg_all, minlength=n_t)
         cb_all = np.r_[0, np.cumsum(n_dense)]
     elif len(sums.count) != n_t:
-        raise NumericalError(f"level {level}: DenseSums of {len(sums.count)} texels for {n_t}")
+        raise ShapeError(f"level {level}: DenseSums of {len(sums.count)} texels for {n_t}")
     else:
         n_dense = sums.count
     pos_c = _positions(texels, candidates.texel)

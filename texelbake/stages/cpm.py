@@ -40,6 +40,7 @@ def sums_key(ctx: StageContext, tile: int) -> str:
 
 
 def has_top(ctx: StageContext) -> bool:
+    """Whether the atlas has levels coarser than a tile (a `cpm_top` shard)."""
     return ctx.tile_levels < ctx.n_levels
 
 
