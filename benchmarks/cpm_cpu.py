@@ -28,17 +28,11 @@ import numpy as np
 
 from schemas.settings import BakeSettings
 from texelbake import stages
-from texelbake.cpm.level import (
-    concat_levels,
-    direction_sets,
-    level_candidates,
-    samples_in,
-    texel_ids,
-    tile_texels,
-)
-from texelbake.cpm.level_batched import DenseSums, fit_level
+from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
+from texelbake.cpm.level_batched import fit_level
 from texelbake.payload import atomic_json
-from texelbake.stages.cpm import refit_coarse, tile_ancestor, top_level_sums
+from texelbake.stages import cpm as cpm_stage
+from texelbake.stages.cpm import refit_coarse
 
 
 def _parse_set(items: list[str]) -> dict:
@@ -136,21 +130,19 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
     mat = np.asarray(src.geo["sample_mat"], np.int64)
     feats: dict[int, np.ndarray] = {}
 
-    top_sums: dict[int, DenseSums] = {}
+    top = cpm_stage.has_top(ctx) and len(tiles) == n_tiles
+    top_sums = cpm_stage.empty_top_sums(ctx) if top else {}
+    sums_cpu: dict[int, float] = {}
+    inner_sums = cpm_stage.top_level_sums
 
-    def timed_sums(tile, samples):
-        """The tile's share of the top levels' dense sums, as `run_cpm_tile` makes it (timed
-        as those levels' work), added in tile order as `run_cpm_top` gathers them."""
-        for level in range(ctx.tile_levels, ctx.n_levels):
-            CURRENT["level"] = level
-            c0 = time.process_time()
-            anc = np.array([tile_ancestor(ctx, tile, level)], np.int64)
-            part = top_level_sums(src, level, anc, samples)
-            acc = top_sums.setdefault(level, DenseSums.zeros(
-                (s.atlas_resolution >> level) ** 2, direction_sets(s)))
-            for f in DenseSums.FIELDS:
-                getattr(acc, f)[anc[0]] += getattr(part, f)[0]
-            sums_cpu[level] = sums_cpu.get(level, 0.0) + time.process_time() - c0
+    def timed_sums(src_, level, texels, samples):
+        """A top level's share of a tile's sums (`run_cpm_tile`'s `top_sums` calls it per top
+        level), timed as that level's work."""
+        CURRENT["level"] = level
+        c0 = time.process_time()
+        out = inner_sums(src_, level, texels, samples)
+        sums_cpu[level] = sums_cpu.get(level, 0.0) + time.process_time() - c0
+        return out
 
     def timed(level, texels, cands):
         CURRENT["level"] = level
@@ -182,12 +174,13 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         return out
 
     tops = []
-    sums_cpu: dict[int, float] = {}
-    last = ctx.tile_levels - 1
     for t in tiles:  # loop over tiles, as the farm's shards
-        if ctx.tile_levels < ctx.n_levels and len(tiles) == n_tiles:
-            timed_sums(t, samples_in(src.geo, s.atlas_resolution, last,
-                                     tile_texels(s.atlas_resolution, s.shard_texels, t, last)))
+        if top:  # the tile's sums for the top levels, added in tile order as cpm_top does
+            cpm_stage.top_level_sums = timed_sums
+            try:
+                cpm_stage.add_tile_sums(ctx, top_sums, t, cpm_stage.top_sums(ctx, t))
+            finally:
+                cpm_stage.top_level_sums = inner_sums
         children = None
         for level in range(ctx.tile_levels):
             texels = tile_texels(s.atlas_resolution, s.shard_texels, t, level)

@@ -65,11 +65,7 @@ def test_dense_sums_add_over_disjoint_samples(scene, tmp_path):
     for tile in range(16):  # loop over tiles
         smp = samples_in(src.geo, 32, last, tile_texels(32, 8, tile, last))
         anc = cpm_stage.tile_ancestor(ctx, tile, level)
-        part = dense_sums(src, level, np.array([anc]), smp)
-        full = DenseSums.zeros(len(texels), lb.direction_sets(ctx.settings))
-        for f in DenseSums.FIELDS:
-            getattr(full, f)[anc] = getattr(part, f)[0]
-        parts = parts + full
+        parts.add_row(anc, dense_sums(src, level, np.array([anc]), smp))
     np.testing.assert_array_equal(parts.count, whole.count)
     assert whole.count.sum() == len(src.geo["sample_area"])
     for f in ("area", "avis_o", "ref", "avis_h"):

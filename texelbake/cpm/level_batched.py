@@ -124,8 +124,10 @@ class DenseSums:
 
     FIELDS = ("count", "area", "avis_o", "ref", "avis_h")
 
-    def __add__(self, other: DenseSums) -> DenseSums:
-        return DenseSums(*(getattr(self, f) + getattr(other, f) for f in self.FIELDS))
+    def add_row(self, i: int, part: DenseSums) -> None:
+        """Add `part`'s one texel into texel i of these sums, in place."""
+        for f in self.FIELDS:  # five fields
+            getattr(self, f)[i] += getattr(part, f)[0]
 
     def rows(self, idx) -> DenseSums:
         return DenseSums(*(getattr(self, f)[idx] for f in self.FIELDS))

@@ -96,6 +96,20 @@ def run_cpm_tile(ctx: StageContext, shard: int) -> str:
     return last
 
 
+def empty_top_sums(ctx: StageContext) -> dict[int, DenseSums]:
+    """Zero `DenseSums` of every texel of every top level."""
+    dirs = direction_sets(ctx.settings)
+    return {lv: DenseSums.zeros((ctx.settings.atlas_resolution >> lv) ** 2, dirs)
+            for lv in range(ctx.tile_levels, ctx.n_levels)}
+
+
+def add_tile_sums(ctx: StageContext, acc: dict[int, DenseSums], tile: int,
+                  arrays) -> None:
+    """Add one tile's `top_sums` arrays into `acc` (`empty_top_sums`), in place."""
+    for lv, sums in acc.items():  # loop over top levels
+        sums.add_row(tile_ancestor(ctx, tile, lv), DenseSums.from_arrays(arrays, f"L{lv}_"))
+
+
 def gathered_sums(ctx: StageContext) -> dict[int, DenseSums] | None:
     """Every top level's `DenseSums` of all its texels, the tiles' sums added in tile order
     (deterministic); None when a tile's sums are not in the store (tiles baked before they
@@ -105,16 +119,9 @@ def gathered_sums(ctx: StageContext) -> dict[int, DenseSums] | None:
     keys = [sums_key(ctx, t) for t in range(n_tiles)]
     if not all(ctx.store.exists(k) for k in keys):
         return None
-    dirs = direction_sets(s)
-    out = {lv: DenseSums.zeros((s.atlas_resolution >> lv) ** 2, dirs)
-           for lv in range(ctx.tile_levels, ctx.n_levels)}
+    out = empty_top_sums(ctx)
     for t, key in enumerate(keys):  # loop over tiles, in order: the sums' order is fixed
-        arrays = ctx.store.read_arrays(key)
-        for lv, acc in out.items():
-            part = DenseSums.from_arrays(arrays, f"L{lv}_")
-            i = tile_ancestor(ctx, t, lv)
-            for f in DenseSums.FIELDS:  # five fields
-                getattr(acc, f)[i] += getattr(part, f)[0]
+        add_tile_sums(ctx, out, t, ctx.store.read_arrays(key))
     return out
 
 
