@@ -203,3 +203,18 @@ def test_non_finite_rays_are_not_cast():
     assert caster.cast(o, d).hit.tolist() == [True, False, False, True]
     with pytest.raises(ShapeError, match="tmax"):
         caster.occluded(o, d, tmax=np.ones(3))
+
+
+def test_rays_outside_float32_are_dead_not_cast():
+    """Rays to infinity are checked on the float32 block Embree receives
+    (`raycast._escape_block`): an origin or direction beyond float32's range, or a direction
+    whose components all round to 0 there, is never occluded, as NaN and zero rays are; the
+    rays beside them are unaffected (a batch-wide flag would clear or keep them all)."""
+    caster = RayCaster(PLANE_V, PLANE_F)
+    o = np.array([[0.0, 0.0, 1.0], [1e300, 0.0, 1.0], [0.0, 0.0, 1.0], [0.1, 0.1, 1.0],
+                  [0.0, 0.0, 1.0]])
+    d = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1e-50], [0.0, 0.0, -1.0],
+                  [0.0, -1e39, -1.0]])
+    assert caster.occluded(o, d).tolist() == [True, False, False, True, False]
+    # the same rays in batches of one: each ray's answer is its own
+    assert caster.occluded(o, d, batch=1).tolist() == [True, False, False, True, False]

@@ -183,24 +183,27 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
     for s0 in range(0, idx.size, mb):  # loop over memory-bounded batches, not rays
         js = idx[s0:s0 + mb]
         amat = _area_matrix(tex[js], ar[js], n_texels)  # (n_texels, mb)
+        nrm_js, org_js = nrm[js], origins[js]  # gathered once per batch, not per direction block
         for d0 in range(0, nd, db):
             dl = dirs_cube[d0:d0 + db]  # (db, 3)
             if frames is None:
-                cos = nrm[js] @ dl.T  # (mb, db)
+                cos = nrm_js @ dl.T  # (mb, db)
                 face = cos > TOL.grazing_cos
                 jj, dd = np.nonzero(face)
                 ray_dirs = dl[dd]
             else:
                 dw = grid_to_world(frames[tex[js]], dl)  # (mb, db, 3) world
-                cos = np.einsum("jl,jdl->jd", nrm[js], dw)
+                cos = np.einsum("jl,jdl->jd", nrm_js, dw)
                 face = cos > TOL.grazing_cos
                 jj, dd = np.nonzero(face)
                 ray_dirs = dw[jj, dd]
-            occ = np.asarray(occluded_fn(origins[js[jj]], ray_dirs), dtype=bool)
+            occ = np.asarray(occluded_fn(org_js[jj], ray_dirs), dtype=bool)
             if occ.shape != jj.shape:
                 raise ShapeError(f"occluded_fn returned {occ.shape}, expected {jj.shape}")
-            contrib = np.zeros(cos.shape, dtype=np.float64)
-            contrib[jj, dd] = np.where(occ, 0.0, cos[jj, dd])
+            # cos where the sample faces w and its ray escapes, else 0: the facing entries
+            # kept whole and only the occluded ones scattered (most rays escape)
+            contrib = np.where(face, cos, 0.0)
+            contrib[jj[occ], dd[occ]] = 0.0
             out[:, d0:d0 + db] += amat @ contrib
     return out.reshape(n_texels, 6, res, res).astype(dtype)
 
