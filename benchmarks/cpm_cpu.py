@@ -28,10 +28,10 @@ import numpy as np
 
 from schemas.settings import BakeSettings
 from texelbake import stages
-from texelbake.allocator import keep_freed_memory
 from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
 from texelbake.cpm.level_batched import fit_level
 from texelbake.payload import atomic_json
+from texelbake.process import setup_bake_process
 from texelbake.stages import cpm as cpm_stage
 from texelbake.stages.cpm import refit_coarse
 
@@ -116,7 +116,7 @@ def install_breakdown() -> dict[str, list[float]]:
 
 def run(scene: str, size: str, settings: BakeSettings, work: Path,
         tiles: list[int] | None = None) -> dict:
-    keep_freed_memory()  # as every bake process (texelbake.pipeline.run_shard)
+    setup_bake_process()  # as every bake process (texelbake.pipeline.run_shard)
     asset = stages_asset(scene, size, work)
     ctx = stages.StageContext.create(work / "store", asset, settings)
     stages.run_ingest(ctx, 0)

@@ -19,8 +19,8 @@ from pathlib import Path
 
 from schemas.settings import BakeSettings
 from texelbake import stages
-from texelbake.allocator import keep_freed_memory
 from texelbake.errors import SettingsError, StageError
+from texelbake.process import setup_bake_process
 from texelbake.stages.srf import n_srf_shards
 
 
@@ -109,7 +109,7 @@ def run_shard(
     workdir: Path, asset_path: Path, settings: BakeSettings, stage: str, shard: int
 ) -> str:
     """Run one shard of one stage; idempotent. Returns the artifact key it wrote (or found)."""
-    keep_freed_memory()  # every process that runs shards: local pools, Celery workers
+    setup_bake_process()  # every process that runs shards: local pools, Celery workers
     plan = plan_bake(asset_path, settings)
     sp = plan.stage(stage)
     if not 0 <= shard < sp.n_shards:
@@ -130,7 +130,7 @@ def finalize(workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: P
              stage_seconds: dict[str, float] | None = None, plan: Plan | None = None) -> Path:
     """The export stage's body: write the baked USD, maps and report.json into `out_dir`
     (`stage_seconds`: the farm's timings per stage, for the report)."""
-    keep_freed_memory()
+    setup_bake_process()
     ctx = stages.StageContext.create(Path(workdir), Path(asset_path), settings)
     plan = plan or plan_bake(asset_path, settings)
     root = stages.export_to(ctx, Path(out_dir), stage_seconds=stage_seconds, plan=plan)
@@ -178,7 +178,7 @@ def bake(
     """
     from tqdm import tqdm
 
-    keep_freed_memory()  # the in-process stages (ingest, geometry, export) and -j 1 shards
+    setup_bake_process()  # the in-process stages (ingest, geometry, export) and -j 1 shards
     settings = settings or BakeSettings()
     asset_path = Path(asset_path)
     out_dir = Path(out_dir)

@@ -1,4 +1,4 @@
-"""The bake processes' allocator policy (`texelbake.allocator`): a large array freed and made
+"""A bake process's setup (`texelbake.process`): the allocator policy: a large array freed and made
 again reuses the process's memory instead of faulting in fresh pages. Each case runs in a fresh
 interpreter (the policy is process-wide and applied once)."""
 
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.skipif(
 SNIPPET = """
 import json, resource, sys
 import numpy as np
-from texelbake.allocator import keep_freed_memory
+from texelbake.process import keep_freed_memory
 applied = keep_freed_memory()
 n = 256 * 2**20 // 8
 a = np.ones(n); del a
@@ -57,3 +57,29 @@ def test_system_policy_faults_fresh_pages():
     system = _run("system")
     assert system["applied"] is False
     assert system["faults"] >= 100, system
+
+
+BLAS_SNIPPET = """
+import json, sys
+from threadpoolctl import threadpool_info
+from texelbake.process import setup_bake_process
+setup_bake_process()
+json.dump([i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"], sys.stdout)
+"""
+
+
+def test_one_blas_thread_in_a_bake_process():
+    env = dict(os.environ)
+    env.pop("TEXELBAKE_BLAS_THREADS", None)
+    out = subprocess.run([sys.executable, "-c", BLAS_SNIPPET], env=env, capture_output=True,
+                         text=True, check=True, timeout=120)
+    pools = json.loads(out.stdout)
+    assert pools and all(n == 1 for n in pools), pools
+
+
+def test_blas_threads_setting_must_be_an_integer():
+    env = dict(os.environ, TEXELBAKE_BLAS_THREADS="two")
+    out = subprocess.run([sys.executable, "-c", BLAS_SNIPPET], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode != 0
+    assert "TEXELBAKE_BLAS_THREADS must be an integer, got 'two'" in out.stderr
