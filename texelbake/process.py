@@ -18,9 +18,10 @@ a no-op off glibc. TEXELBAKE_MALLOC=system leaves glibc's defaults.
 One BLAS thread (`blas_threads`, threadpoolctl). The BLAS products of a bake are small (a
 texel's Grams, a_vis blocks) or overlap with Embree's own ray threads, and shards run as one
 process per core: OpenBLAS's default of one thread per core then puts two spinning threads per
-core beside Embree's and the other shard's. The full cylinder at 32² on 2 processes took 92.4 s
-with OpenBLAS's default and 75.2 s with one thread; a_vis of 16 tiles in one process 28.6 ->
-26.2 s wall and 54.8 -> 35.9 CPU s, bit-identical. TEXELBAKE_BLAS_THREADS=N sets another count
+core beside Embree's and the other shard's. The full cylinder's a_vis stage at 32² on two
+processes, runs alternating: 34.2 / 34.9 s with OpenBLAS's default, 23.8 / 22.7 s with one
+thread; its 16 tiles in one process 28.6 -> 26.2 s wall and 54.8 -> 35.9 CPU s, bit-identical
+(whole bakes on the VM it was measured on varied 1.5x run to run, so they are not quoted). TEXELBAKE_BLAS_THREADS=N sets another count
 (0 leaves the library's default). torch's own pool is set to one thread by the CPM stage.
 """
 
