@@ -68,7 +68,12 @@ class Coefficients:
     the 128^2 stage 1.3x): the a_vis stage's wall seconds of 2026-11-27's six bakes
     (`benchmarks/results/costmodel_check.json`, -j 2) at 64^2 and 128^2 give 2.19e-4 (cylinder)
     and 1.96e-4 (bolt) s per sample on two workers and 4.0 / 5.6 s at none; their means, the
-    per-sample cost less avis_fixed as `avis`; within 0.92-1.05 of all six stages."""
+    per-sample cost less avis_fixed as `avis`; within 0.92-1.05 of all six stages. Scaled
+    2026-11-28 (second Xeon session) by 0.59, the a_vis stage's wall new / old in one run
+    (`benchmarks/bake.py --against c3e468f`, cylinder 22.5 / 40.4 s, bolt 24.5 / 39.5 s at
+    32²: freed memory kept, one BLAS thread, the float32 ray checks; docs/decisions.md), where
+    the old stage had been priced at 1.18x / 1.01x; not re-fitted across sizes. One pool
+    start per local bake since then (`pipeline._shard_pool` serves every sharded stage)."""
 
     r_entry: float = 4.9e-8  # s per (candidate, direction pair), Lambert / Phong
     gram: float = 7.21e-11  # s per m^2 d
@@ -79,8 +84,8 @@ class Coefficients:
     held_ggx: float = 1.43  # held-out cost of such a material, x held
     refit: float = 2.8e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
     refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
-    avis: float = 3.78e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
-    avis_fixed: float = 3.7e-5  # s per dense sample at any face resolution (maps, coarsening)
+    avis: float = 2.23e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
+    avis_fixed: float = 2.2e-5  # s per dense sample at any face resolution (maps, coarsening)
     avis_stage: float = 4.8  # wall s of the a_vis stage on any atlas (each worker's set-up)
     export: float = 3.3e-5  # s per dense sample at 32^2 faces, x (res / 32)^2 (a_vis tables)
     geometry: float = 2.0e-5  # s per dense sample (sampling, texel assignment)
@@ -234,8 +239,7 @@ def estimate(
     par = min(workers, cores or workers)
     cpm_wall = (cpm - serial) / par + serial
     avis_wall = avis / par + coef.avis_stage
-    seconds = coef.fixed + geom + export + coef.process * (1 if workers == 1 else 2) \
-        + cpm_wall + avis_wall
+    seconds = coef.fixed + geom + export + coef.process + cpm_wall + avis_wall
     stretch = max(1.0, (max(load, 0.0) + par) / cores) if cores else 1.0
     return Estimate(seconds=seconds * stretch, workers=workers, cpm_seconds=cpm,
                     avis_seconds=avis, geometry_seconds=geom, texels=texels,
