@@ -1,6 +1,6 @@
-"""A bake process's setup (`texelbake.process`): the allocator policy: a large array freed and made
-again reuses the process's memory instead of faulting in fresh pages. Each case runs in a fresh
-interpreter (the policy is process-wide and applied once)."""
+"""A bake process's setup (`texelbake.process`): a large array freed and made again reuses the
+process's memory instead of faulting in fresh pages, and BLAS runs one thread. Each case runs
+in a fresh interpreter (the setup is process-wide and applied once)."""
 
 from __future__ import annotations
 
@@ -34,18 +34,18 @@ json.dump({"applied": applied, "faults": f1 - f0, "sum": float(b.sum())}, sys.st
 """
 
 
-def _run(env_value: str | None) -> dict:
-    env = dict(os.environ)
-    env.pop("TEXELBAKE_MALLOC", None)
-    if env_value is not None:
-        env["TEXELBAKE_MALLOC"] = env_value
-    out = subprocess.run([sys.executable, "-c", SNIPPET], env=env, capture_output=True,
-                         text=True, check=True, timeout=120)
-    return json.loads(out.stdout)
+def _run(snippet: str, check: bool = True, **env_values: str) -> subprocess.CompletedProcess:
+    """`snippet` in a fresh interpreter with TEXELBAKE_MALLOC and TEXELBAKE_BLAS_THREADS unset
+    unless given."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("TEXELBAKE_MALLOC", "TEXELBAKE_BLAS_THREADS")}
+    env.update(env_values)
+    return subprocess.run([sys.executable, "-c", snippet], env=env, capture_output=True,
+                          text=True, check=check, timeout=120)
 
 
 def test_freed_memory_is_reused():
-    kept = _run(None)
+    kept = json.loads(_run(SNIPPET).stdout)
     assert kept["applied"] is True
     assert kept["sum"] == 256 * 2**20 // 8
     # a few faults at most (the allocator's own bookkeeping), far below one per huge page
@@ -54,7 +54,7 @@ def test_freed_memory_is_reused():
 
 def test_system_policy_faults_fresh_pages():
     """The measurement can tell: with glibc's defaults the second array is a fresh mmap."""
-    system = _run("system")
+    system = json.loads(_run(SNIPPET, TEXELBAKE_MALLOC="system").stdout)
     assert system["applied"] is False
     assert system["faults"] >= 100, system
 
@@ -69,17 +69,11 @@ json.dump([i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas
 
 
 def test_one_blas_thread_in_a_bake_process():
-    env = dict(os.environ)
-    env.pop("TEXELBAKE_BLAS_THREADS", None)
-    out = subprocess.run([sys.executable, "-c", BLAS_SNIPPET], env=env, capture_output=True,
-                         text=True, check=True, timeout=120)
-    pools = json.loads(out.stdout)
+    pools = json.loads(_run(BLAS_SNIPPET).stdout)
     assert pools and all(n == 1 for n in pools), pools
 
 
 def test_blas_threads_setting_must_be_an_integer():
-    env = dict(os.environ, TEXELBAKE_BLAS_THREADS="two")
-    out = subprocess.run([sys.executable, "-c", BLAS_SNIPPET], env=env, capture_output=True,
-                         text=True, timeout=120)
+    out = _run(BLAS_SNIPPET, check=False, TEXELBAKE_BLAS_THREADS="two")
     assert out.returncode != 0
     assert "TEXELBAKE_BLAS_THREADS must be an integer, got 'two'" in out.stderr

@@ -189,8 +189,10 @@ def bake(
     root: Path | None = None
     est: dict | None = None
     pool = None
+    # the pool lives until the last stage that runs on it
+    pooled = [i for i, sp in enumerate(plan.stages) if jobs > 1 and sp.n_shards > 1]
     try:
-        for sp in plan.stages:
+        for i, sp in enumerate(plan.stages):
             t0 = time.perf_counter()
             if sp.name == "export":
                 root = stages.export_to(ctx, out_dir, plan=plan, source=source)
@@ -198,10 +200,10 @@ def bake(
                 for p in stages.run_render(ctx, 0, out_dir=out_dir):
                     if progress:
                         print(f"preview: {p}")
-            elif jobs > 1 and sp.n_shards > 1:
-                if pool is None:  # one pool for every sharded stage (see _run_parallel)
+            elif i in pooled:
+                if pool is None:  # one pool for every sharded stage (see _shard_pool)
                     pool = _shard_pool(jobs)
-                _run_parallel(workdir, asset_path, settings, sp, jobs, progress, est, pool)
+                _run_parallel(pool, workdir, asset_path, settings, sp, progress, est)
             else:
                 bar = tqdm(range(sp.n_shards), desc=f"{sp.name:<9}", unit="shard",
                            disable=not progress, leave=True)
@@ -218,8 +220,7 @@ def bake(
                           f"{est['stage_seconds']['avis']:.0f} s), ETA {est['eta']}; this "
                           "machine's seconds / the model's: " + ", ".join(
                               f"{k} {v:.2f}" for k, v in est["machine_speed"]["factors"].items()))
-            if pool is not None and not any(
-                    later.n_shards > 1 for later in plan.stages[plan.stages.index(sp) + 1:]):
+            if pool is not None and i == pooled[-1]:
                 pool.shutdown()  # no sharded stage left: its processes' memory goes back now
                 pool = None
     finally:
@@ -320,30 +321,22 @@ def _shard_pool(jobs: int):
     return ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"))
 
 
-def _run_parallel(workdir: Path, asset_path: Path, settings: BakeSettings, sp: StagePlan,
-                  jobs: int, progress: bool, est: dict | None = None, pool=None) -> None:
-    """The shards of one stage on the processes of `pool` (`_shard_pool(jobs)` when None, shut
-    down at the end)."""
+def _run_parallel(pool, workdir: Path, asset_path: Path, settings: BakeSettings, sp: StagePlan,
+                  progress: bool, est: dict | None = None) -> None:
+    """The shards of one stage on the processes of `pool` (`_shard_pool`)."""
     from concurrent.futures import as_completed
 
     from tqdm import tqdm
 
-    own = pool is None
-    if own:
-        pool = _shard_pool(min(jobs, sp.n_shards))
-    try:
-        futures = [
-            pool.submit(_run_in_subprocess, str(workdir), str(asset_path),
-                        settings.model_dump_json(), sp.name, shard)
-            for shard in range(sp.n_shards)
-        ]
-        bar = tqdm(total=sp.n_shards, desc=f"{sp.name:<9}", unit="shard", disable=not progress)
-        if est is not None and sp.name in ("cpm", "avis"):
-            bar.set_postfix_str(f"model {est['stage_seconds'][sp.name]:.0f} s")
-        for fut in as_completed(futures):
-            fut.result()
-            bar.update(1)
-        bar.close()
-    finally:
-        if own:
-            pool.shutdown()
+    futures = [
+        pool.submit(_run_in_subprocess, str(workdir), str(asset_path),
+                    settings.model_dump_json(), sp.name, shard)
+        for shard in range(sp.n_shards)
+    ]
+    bar = tqdm(total=sp.n_shards, desc=f"{sp.name:<9}", unit="shard", disable=not progress)
+    if est is not None and sp.name in ("cpm", "avis"):
+        bar.set_postfix_str(f"model {est['stage_seconds'][sp.name]:.0f} s")
+    for fut in as_completed(futures):
+        fut.result()
+        bar.update(1)
+    bar.close()

@@ -46,30 +46,6 @@ class RayHits:
         return np.column_stack([1.0 - self.bary[:, 0] - self.bary[:, 1], self.bary])
 
 
-def _check_rays(origins: object, dirs: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Coerce rays; return (origins (n,3), dirs (n,3) as given, length (n,) of dirs).
-
-    length is 0 for rays that cannot be cast (zero, NaN or Inf direction or NaN/Inf origin).
-    """
-    o = np.asarray(origins, dtype=np.float64)
-    d = np.asarray(dirs, dtype=np.float64)
-    if o.ndim != 2 or o.shape[1] != 3:
-        raise ShapeError(f"origins must have shape (n, 3), got {o.shape}")
-    if d.shape != o.shape:
-        raise ShapeError(f"dirs must have the shape of origins {o.shape}, got {d.shape}")
-    length = np.sqrt(np.einsum("ij,ij->i", d, d))
-    fin = np.isfinite(o)  # columns combined by hand: all(axis=1) over 3 is a slow reduction
-    bad = ~(np.isfinite(length) & fin[:, 0] & fin[:, 1] & fin[:, 2])
-    if bad.any():
-        length = np.where(bad, 0.0, length)
-    return o, d, length
-
-
-_ONES6 = np.ones(6, dtype=np.float32)
-_ONES3 = np.ones(3, dtype=np.float32)
-_HARMLESS = (0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-
-
 def _coerce_rays(origins: object, dirs: object) -> tuple[np.ndarray, np.ndarray]:
     """origins, dirs as (n, 3) float64 (no copy when they already are), shapes checked."""
     o = np.asarray(origins, dtype=np.float64)
@@ -79,6 +55,28 @@ def _coerce_rays(origins: object, dirs: object) -> tuple[np.ndarray, np.ndarray]
     if d.shape != o.shape:
         raise ShapeError(f"dirs must have the shape of origins {o.shape}, got {d.shape}")
     return o, d
+
+
+def _ray_lengths(o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(n,) length of each direction, 0 for rays that cannot be cast (zero, NaN or Inf
+    direction or NaN/Inf origin)."""
+    length = np.sqrt(np.einsum("ij,ij->i", d, d))
+    fin = np.isfinite(o)  # columns combined by hand: all(axis=1) over 3 is a slow reduction
+    bad = ~(np.isfinite(length) & fin[:, 0] & fin[:, 1] & fin[:, 2])
+    if bad.any():
+        length = np.where(bad, 0.0, length)
+    return length
+
+
+def _check_rays(origins: object, dirs: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Coerce rays; return (origins (n,3), dirs (n,3) as given, `_ray_lengths`)."""
+    o, d = _coerce_rays(origins, dirs)
+    return o, d, _ray_lengths(o, d)
+
+
+_ONES6 = np.ones(6, dtype=np.float32)
+_ONES3 = np.ones(3, dtype=np.float32)
+_HARMLESS = (0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
 def _escape_block(o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -197,7 +195,7 @@ class RayCaster:
                 rays, lv = _escape_block(o[sl], d[sl])
                 out[sl] = self._test(rays, np.inf) & lv
             return out
-        _, _, length = _check_rays(o, d)
+        length = _ray_lengths(o, d)
         live = length > 0
         # Embree takes one scalar tfar per call: rays with a finite tmax get their direction
         # scaled to length tmax and tfar = 1; those with tmax = inf keep tfar = inf.
