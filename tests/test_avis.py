@@ -34,6 +34,7 @@ from texelbake.cpm.avis import (
     level_from_arrays,
     level_to_arrays,
     stack_tiles,
+    unoccluded_samples,
     unoccluded_texels,
     visible_fraction,
 )
@@ -637,6 +638,36 @@ def test_cube_maps_skip_casts_no_rays_and_shape_errors():
                        skip_texels=np.zeros(3, bool))
     with pytest.raises(ShapeError):
         avis_cube_maps(s["pos"][:5], s["nrm"], s["ar"], s["tex"], 16, None, 4, counting)
+
+
+def test_free_samples_cast_no_rays_and_change_nothing():
+    """Samples `unoccluded_samples` proves free (the plate's top, over ground that is occluded
+    by it) cast no ray and their texels' maps are bit-identical to the all-rays maps; with the
+    caster's own `occluded` (float32 rays built from the pairs) and with any other function."""
+    s = _plate_scene(hole=False)
+    free = unoccluded_samples(s["pos"], s["nrm"], s["pts"], eps=default_eps(s["pos"]))
+    per_texel = unoccluded_texels(s["pos"], s["nrm"], s["tex"], 16, s["pts"])
+    assert np.array_equal(per_texel, np.bincount(s["tex"][~free], minlength=16) == 0)
+    mixed = np.unique(s["tex"][free])
+    assert free.any() and not per_texel[mixed].any()  # free samples inside ray texels
+    calls = []
+
+    def counting(o, d):
+        calls.append(len(o))
+        return s["caster"].occluded(o, d)
+
+    full = _maps(s, 4)
+    assert np.array_equal(_maps(s, 4, free_samples=free), full)
+    part = avis_cube_maps(s["pos"], s["nrm"], s["ar"], s["tex"], 16, None, 4, counting,
+                          free_samples=free, dtype=np.float64)
+    assert np.array_equal(part, full)
+    facing = s["nrm"] @ cube_directions(4).reshape(-1, 3).T > TOL.grazing_cos
+    assert sum(calls) == int(facing[~free].sum()) < int(facing.sum())
+    with pytest.raises(ShapeError):
+        _maps(s, 4, free_samples=free[:3])
+    with pytest.raises(SettingsError):
+        avis_cube_maps(s["pos"], s["nrm"], s["ar"], s["tex"], 16, _frames_identity(16), 4,
+                       counting, free_samples=free)
 
 
 def test_visible_fraction_nearest_fill_brute_force():

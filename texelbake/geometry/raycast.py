@@ -46,12 +46,18 @@ class RayHits:
         return np.column_stack([1.0 - self.bary[:, 0] - self.bary[:, 1], self.bary])
 
 
+def _coerce_points(x: object, name: str) -> np.ndarray:
+    """x as (n, 3) float64 (no copy when it already is), shape checked."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ShapeError(f"{name} must have shape (n, 3), got {a.shape}")
+    return a
+
+
 def _coerce_rays(origins: object, dirs: object) -> tuple[np.ndarray, np.ndarray]:
     """origins, dirs as (n, 3) float64 (no copy when they already are), shapes checked."""
-    o = np.asarray(origins, dtype=np.float64)
+    o = _coerce_points(origins, "origins")
     d = np.asarray(dirs, dtype=np.float64)
-    if o.ndim != 2 or o.shape[1] != 3:
-        raise ShapeError(f"origins must have shape (n, 3), got {o.shape}")
     if d.shape != o.shape:
         raise ShapeError(f"dirs must have the shape of origins {o.shape}, got {d.shape}")
     return o, d
@@ -208,6 +214,40 @@ class RayCaster:
                 sel = idx[start : start + batch]
                 scale = tm[sel] / length[sel] if tfar == 1.0 else None
                 out[sel] = self._test(_ray_block(o[sel], d[sel], scale, None), tfar)
+        return out
+
+    def occluded_pairs(self, origins: object, dirs: object, flat: np.ndarray,
+                       batch: int = DEFAULT_BATCH) -> np.ndarray:
+        """`occluded(origins[j], dirs[d])` (tmax inf) for the pairs flat = j * len(dirs) + d,
+        with Embree's float32 rays built from the pairs directly (a sample's origin is paired
+        with many directions: the float64 gathers and the per-ray checks of `occluded` were
+        a quarter of the a_vis stage). A ray whose origin or direction has a non-finite
+        float32 entry, or whose direction is 0 in float32, is dead (never occluded).
+
+        origins : (a, 3), dirs : (b, 3) float64; flat : (k,) int in [0, a b); returns (k,) bool
+        """
+        o, d = _coerce_points(origins, "origins"), _coerce_points(dirs, "dirs")
+        flat = np.asarray(flat, dtype=np.int64)
+        n = flat.shape[0]
+        out = np.zeros(n, dtype=bool)
+        if n == 0 or self._empty:
+            return out
+        if flat.min() < 0 or flat.max() >= o.shape[0] * d.shape[0]:
+            raise ShapeError(f"pair index out of [0, {o.shape[0] * d.shape[0]})")
+        self.rays_cast += n
+        with np.errstate(invalid="ignore", over="ignore"):
+            o32, d32 = o.astype(np.float32), d.astype(np.float32)
+        live_o = np.all(np.isfinite(o32), axis=1)
+        live_d = np.all(np.isfinite(d32), axis=1) & np.any(d32 != 0, axis=1)
+        o32[~live_o], d32[~live_d] = _HARMLESS[:3], _HARMLESS[3:]
+        nd = d.shape[0]
+        batch = max(int(batch), 1)
+        for start in range(0, n, batch):  # a loop over large batches, not rays
+            jj, dd = np.divmod(flat[start:start + batch], nd)
+            rays = np.empty((jj.shape[0], 6), dtype=np.float32)
+            rays[:, :3] = o32[jj]
+            rays[:, 3:] = d32[dd]
+            out[start:start + batch] = self._test(rays, np.inf) & live_o[jj] & live_d[dd]
         return out
 
     def _test(self, rays: np.ndarray, tfar: float) -> np.ndarray:

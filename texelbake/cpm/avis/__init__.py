@@ -41,7 +41,9 @@ Decisions (the numbers are in benchmarks/avis_methods.py and the report to the l
   every direction of their hemisphere; their a_vis(w) = sum_k A_k (n_k . w)^+ over the distinct
   geometric normals n_k of the texel (areas A_k merged), evaluated at any w without rays and
   without a cube map (`ClosedForm`). When n_k . w >= 0 for all k this is the single 3-vector
-  (sum_k A_k n_k) . w; the general form is kept because it is exact at every w.
+  (sum_k A_k n_k) . w; the general form is kept because it is exact at every w. The same
+  test per sample (`unoccluded_samples`) spares the rays of the free samples of the other
+  texels: their terms are counted as the rays would count them (issue 15).
 * Compression: per cube face, full-depth Haar (texelbake.haar), largest coefficients kept;
   a single direction is reconstructed from O(log res) coefficients (eval_haar_point). For ray
   texels with a stored unoccluded bound U (see below) the Haar maps hold the visible fraction
@@ -79,6 +81,7 @@ from texelbake.cpm.avis.closed_form import (
     closed_form_maps,
     closed_form_terms,
     eval_closed_form,
+    unoccluded_samples,
     unoccluded_texels,
 )
 from texelbake.cpm.avis.compress import compress_level
@@ -107,6 +110,7 @@ __all__ = [
     "avis_ortho_grids", "closed_form_maps", "closed_form_terms", "coarsen_level", "coarsen_maps",
     "compress_level", "cube_directions", "cube_solid_angles", "default_eps", "dirs_to_cube",
     "eval_closed_form", "geometric_normals", "level_from_arrays", "level_to_arrays",
-    "stack_tiles", "tile_layout", "unoccluded_texels", "visible_fraction",
+    "stack_tiles", "tile_layout", "unoccluded_samples",
+    "unoccluded_texels", "visible_fraction",
 ]
 

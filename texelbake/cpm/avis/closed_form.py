@@ -20,11 +20,24 @@ from texelbake.tol import TOL
 def unoccluded_texels(positions: np.ndarray, normals: np.ndarray, texel_of_sample: np.ndarray,
                       n_texels: int, mesh_points: np.ndarray, *, eps: float | None = None,
                       chunk: int = 1 << 22) -> np.ndarray:
-    """Texels whose every sample is unoccluded in every direction of its hemisphere.
+    """Texels whose every sample is unoccluded in every direction of its hemisphere
+    (`unoccluded_samples`; a texel without samples passes: a_vis = 0).
+
+    texel_of_sample : (m,) int in [0, n_texels); the other arguments as `unoccluded_samples`
+    returns : (n_texels,) bool
+    """
+    _, _, _, tex, n_texels = coerce_samples(normals, np.zeros(len(np.asarray(normals))),
+                                            texel_of_sample, n_texels, positions)
+    ok = unoccluded_samples(positions, normals, mesh_points, eps=eps, chunk=chunk)
+    return np.bincount(tex[~ok], minlength=n_texels) == 0
+
+
+def unoccluded_samples(positions: np.ndarray, normals: np.ndarray, mesh_points: np.ndarray, *,
+                       eps: float | None = None, chunk: int = 1 << 22) -> np.ndarray:
+    """Samples unoccluded in every direction of their hemisphere.
 
     What is detected, exactly: sample j passes iff every vertex y of M_org satisfies
-    n_j . (y - x_j) <= eps (the mesh lies below the sample's tangent plane, lifted by eps); a
-    texel passes iff all its samples pass (a texel without samples passes: a_vis = 0).
+    n_j . (y - x_j) <= eps (the mesh lies below the sample's tangent plane, lifted by eps).
 
     Why this is exact (and complete): the mesh is a union of triangles, each the convex hull of
     its vertices, so the mesh lies in the half-space {y : n_j . (y - x_j) <= eps}. A ray from the
@@ -39,13 +52,14 @@ def unoccluded_texels(positions: np.ndarray, normals: np.ndarray, texel_of_sampl
     (scipy ConvexHull / Qhull; all vertices when Qhull cannot build a hull, e.g. a flat mesh).
 
     positions, normals : (m, 3) float64 samples and geometric normals
-    texel_of_sample : (m,) int; mesh_points : (v, 3) float64 vertices of M_org
+    mesh_points : (v, 3) float64 vertices of M_org
     eps : default `default_eps(positions)` (the same offset avis_cube_maps uses)
     chunk : bound on the (distinct normals x hull vertices) products held at once
-    returns : (n_texels,) bool
+    returns : (m,) bool
     """
-    pos, nrm, _, tex, n_texels = coerce_samples(normals, np.zeros(len(np.asarray(normals))),
-                                                 texel_of_sample, n_texels, positions)
+    m0 = len(np.asarray(normals))
+    pos, nrm, _, _, _ = coerce_samples(normals, np.zeros(m0), np.zeros(m0, np.int64), 1,
+                                       positions)
     pts = np.asarray(mesh_points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ShapeError(f"mesh_points must be (v, 3), got {pts.shape}")
@@ -54,7 +68,7 @@ def unoccluded_texels(positions: np.ndarray, normals: np.ndarray, texel_of_sampl
     eps = default_eps(pos) if eps is None else float(eps)
     m = pos.shape[0]
     if m == 0 or pts.shape[0] == 0:
-        return np.ones(n_texels, dtype=bool)
+        return np.ones(m, dtype=bool)
     try:
         hull = ConvexHull(pts)
         cand, facets = pts[hull.vertices], hull.equations  # facets: e . y + off <= 0
@@ -92,8 +106,7 @@ def unoccluded_texels(positions: np.ndarray, normals: np.ndarray, texel_of_sampl
         support = np.full(uniq.shape[0], np.inf)
         support[need] = exact
         ok |= undecided & (thresh >= support[inv])
-    bad = np.bincount(tex[~ok], minlength=n_texels)
-    return bad == 0
+    return ok
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from texelbake.cpm.avis.closed_form import (
     closed_form_maps,
     closed_form_terms,
     merge_terms,
-    unoccluded_texels,
+    unoccluded_samples,
 )
 from texelbake.cpm.avis.cube import OccludedFn
 from texelbake.cpm.avis.maps import avis_cube_maps, coerce_samples, default_eps
@@ -176,8 +176,8 @@ def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                texel_of_sample: np.ndarray, n_side: int, res: int, occluded_fn: OccludedFn,
                mesh_points: np.ndarray, *, closed_form: bool = True, max_terms: int = 256,
                ray_eps: float | None = None, max_rays: int = 1 << 21) -> AvisLevel:
-    """a_vis of one atlas level: closed form where `unoccluded_texels` proves it exact, rays
-    (avis_cube_maps, world directions) elsewhere.
+    """a_vis of one atlas level: closed form where `unoccluded_samples` proves every sample of
+    a texel free, rays (avis_cube_maps, world directions) elsewhere, none from a free sample.
 
     positions, normals : (m, 3) float64 samples and geometric normals; areas : (m,) float64
     texel_of_sample : (m,) int in [0, n_side^2); mesh_points : (v, 3) float64 M_org vertices
@@ -194,14 +194,19 @@ def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                                                   int(n_side) ** 2, positions)
     eps = default_eps(pos) if ray_eps is None else float(ray_eps)
     if closed_form:
-        closed = unoccluded_texels(pos, nrm, tex, n_texels, mesh_points, eps=eps)
+        # a texel is closed when all its samples are free; the free samples of the others
+        # cast no rays either (theirs would all escape: `unoccluded_samples`)
+        free = unoccluded_samples(pos, nrm, mesh_points, eps=eps)
+        closed = np.bincount(tex[~free], minlength=n_texels) == 0
     else:
+        free = None
         closed = np.zeros(n_texels, dtype=bool)
     cf, bounded = _bounded_terms(closed_form_terms(nrm, ar, tex, n_texels), closed,
                                  int(max_terms))
     ray_texels = np.flatnonzero(~closed)
     maps = avis_cube_maps(pos, nrm, ar, tex, n_texels, None, res, occluded_fn,
-                          skip_texels=closed, ray_eps=eps, max_rays=max_rays, dtype=np.float64)
+                          skip_texels=closed, free_samples=free, ray_eps=eps,
+                          max_rays=max_rays, dtype=np.float64)
     area = np.bincount(tex, weights=ar, minlength=n_texels)
     return AvisLevel(int(n_side), int(res), closed, bounded, cf, ray_texels, maps[ray_texels],
                      area, int(max_terms))

@@ -133,11 +133,31 @@ def avis_from_visibility(visible: np.ndarray, normals: np.ndarray, areas: np.nda
     return np.asarray(_area_matrix(tex, ar, n_texels) @ contrib)
 
 
+def _pairs_fn(occluded_fn: OccludedFn) -> Callable[[np.ndarray, np.ndarray, np.ndarray],
+                                                    np.ndarray]:
+    """(origins (a, 3), dirs (b, 3), flat (k,)) -> (k,) bool: the rays origins[flat // b] along
+    dirs[flat % b]. A `RayCaster.occluded` is replaced by the caster's `occluded_pairs`, which
+    builds Embree's float32 rays from the pairs directly (the same rays, no float64 gathers);
+    any other function gets the gathered rays."""
+    owner = getattr(occluded_fn, "__self__", None)
+    fast = getattr(owner, "occluded_pairs", None)
+    if fast is not None and getattr(occluded_fn, "__name__", "") == "occluded":
+        return fast
+
+    def gathered(org: np.ndarray, dirs: np.ndarray, flat: np.ndarray) -> np.ndarray:
+        jj, dd = np.divmod(flat, dirs.shape[0])
+        occ = np.asarray(occluded_fn(org[jj], dirs[dd]), dtype=bool)
+        if occ.shape != flat.shape:
+            raise ShapeError(f"occluded_fn returned {occ.shape}, expected {flat.shape}")
+        return occ
+    return gathered
+
+
 def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                    texel_of_sample: np.ndarray, n_texels: int, frames: np.ndarray | None,
                    res: int, occluded_fn: OccludedFn, *, skip_texels: np.ndarray | None = None,
-                   ray_eps: float | None = None, max_rays: int = 1 << 21,
-                   dtype: type = np.float32) -> np.ndarray:
+                   free_samples: np.ndarray | None = None, ray_eps: float | None = None,
+                   max_rays: int = 1 << 21, dtype: type = np.float32) -> np.ndarray:
     """a_vis of every texel at every cube-map direction, by one visibility ray per
     (sample, direction) pair that faces the direction (n_j . w > TOL.grazing_cos).
 
@@ -151,6 +171,9 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
     occluded_fn : (origins (k, 3), dirs (k, 3)) -> (k,) bool, e.g. RayCaster(...).occluded;
         origins are already offset by ray_eps along the normal
     skip_texels : (n_texels,) bool, texels to leave at zero (closed-form texels: no rays cast)
+    free_samples : (m,) bool, samples proven unoccluded in every facing direction
+        (`closed_form.unoccluded_samples`, same ray_eps): they count (n_j . w)^+ dA_j as the
+        ray path would and cast no ray (world directions only, frames None)
     ray_eps : origin offset; default `default_eps(positions)`
     max_rays : bound on the candidate (sample, direction) pairs held in memory at once
     returns : (n_texels, 6, res, res) `dtype` (float32 by default; accumulated in float64)
@@ -173,10 +196,18 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
         sel = ~skip[tex]
     sel &= (ar > 0) & np.any(nrm != 0, axis=1)
     idx = np.flatnonzero(sel)
+    free = np.zeros(tex.shape[0], dtype=bool)
+    if free_samples is not None:
+        if frames is not None:
+            raise SettingsError("free_samples needs world directions (frames None)")
+        free = np.asarray(free_samples, dtype=bool)
+        if free.shape != tex.shape:
+            raise ShapeError(f"free_samples must be ({tex.shape[0]},), got {free.shape}")
     if idx.size == 0 or n_texels == 0:
         return out.reshape(n_texels, 6, res, res).astype(dtype)
     eps = default_eps(pos) if ray_eps is None else float(ray_eps)
     origins = pos + eps * nrm
+    occluded_pairs = _pairs_fn(occluded_fn)
     max_rays = max(int(max_rays), 1)
     mb = min(idx.size, max_rays)
     db = max(1, min(nd, max_rays // mb))
@@ -184,26 +215,28 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
         js = idx[s0:s0 + mb]
         amat = _area_matrix(tex[js], ar[js], n_texels)  # (n_texels, mb)
         nrm_js, org_js = nrm[js], origins[js]  # gathered once per batch, not per direction block
+        cast_js = ~free[js][:, None]
         for d0 in range(0, nd, db):
             dl = dirs_cube[d0:d0 + db]  # (db, 3)
             if frames is None:
                 cos = nrm_js @ dl.T  # (mb, db)
                 face = cos > TOL.grazing_cos
-                jj, dd = np.nonzero(face)
-                ray_dirs = dl[dd]
+                # the facing pairs of samples not proven free, as flat (j, d) indices
+                flat = np.flatnonzero(face & cast_js)
+                occ = occluded_pairs(org_js, dl, flat)
             else:
                 dw = grid_to_world(frames[tex[js]], dl)  # (mb, db, 3) world
                 cos = np.einsum("jl,jdl->jd", nrm_js, dw)
                 face = cos > TOL.grazing_cos
-                jj, dd = np.nonzero(face)
-                ray_dirs = dw[jj, dd]
-            occ = np.asarray(occluded_fn(org_js[jj], ray_dirs), dtype=bool)
-            if occ.shape != jj.shape:
-                raise ShapeError(f"occluded_fn returned {occ.shape}, expected {jj.shape}")
+                flat = np.flatnonzero(face)
+                jj, dd = np.divmod(flat, dl.shape[0])
+                occ = np.asarray(occluded_fn(org_js[jj], dw[jj, dd]), dtype=bool)
+                if occ.shape != flat.shape:
+                    raise ShapeError(f"occluded_fn returned {occ.shape}, expected {flat.shape}")
             # cos where the sample faces w and its ray escapes, else 0: the facing entries
             # kept whole and only the occluded ones scattered (most rays escape)
             contrib = np.where(face, cos, 0.0)
-            contrib[jj[occ], dd[occ]] = 0.0
+            contrib.ravel()[flat[occ]] = 0.0
             out[:, d0:d0 + db] += amat @ contrib
     return out.reshape(n_texels, 6, res, res).astype(dtype)
 
