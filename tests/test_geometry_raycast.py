@@ -221,23 +221,24 @@ def test_rays_outside_float32_are_dead_not_cast():
 
 
 def test_occluded_pairs_equals_occluded_on_the_gathered_rays():
-    """`occluded_pairs(o, d, flat)` answers `occluded(o[j], d[k])` for flat = j len(d) + k, on a
-    box with rays from inside, outside and beyond float32 (those and zero directions dead),
-    whatever the batch; pairs out of range are refused."""
+    """`occluded_pairs(o, d, jj, dd)` answers `occluded(o[jj], d[dd])`, on a box with rays from
+    inside, outside and beyond float32 (those and zero directions dead), whatever the batch;
+    indices out of range are refused."""
     v, f = box()
     caster = RayCaster(v, f)
     rng = np.random.default_rng(3)
     o = np.concatenate([rng.uniform(-0.5, 1.5, (40, 3)), [[1e300, 0.0, 0.0], [np.nan, 0, 0]]])
     d = np.concatenate([rng.normal(size=(30, 3)), [[0.0, 0.0, 0.0], [0.0, 1e-50, 0.0]]])
-    flat = np.sort(rng.choice(o.shape[0] * d.shape[0], 900, replace=False))
-    flat = np.concatenate([flat, [40 * 32 + 3, 41 * 32 + 5, 7 * 32 + 30, 8 * 32 + 31]])
-    jj, kk = np.divmod(flat, d.shape[0])
-    want = caster.occluded(o[jj], d[kk])
+    jj = np.concatenate([rng.integers(0, 42, 900), [40, 41, 7, 8]])
+    dd = np.concatenate([rng.integers(0, 32, 900), [3, 5, 30, 31]])
+    want = caster.occluded(o[jj], d[dd])
     assert 0.2 < want.mean() < 0.9
-    assert np.array_equal(caster.occluded_pairs(o, d, flat), want)
-    assert np.array_equal(caster.occluded_pairs(o, d, flat, batch=7), want)
-    assert not caster.occluded_pairs(o, d, flat[-4:]).any()
+    assert np.array_equal(caster.occluded_pairs(o, d, jj, dd), want)
+    assert np.array_equal(caster.occluded_pairs(o, d, jj, dd, batch=7), want)
+    assert not caster.occluded_pairs(o, d, jj[-4:], dd[-4:]).any()
     with pytest.raises(ShapeError):
-        caster.occluded_pairs(o, d, np.array([o.shape[0] * d.shape[0]]))
+        caster.occluded_pairs(o, d, np.array([42]), np.array([0]))
     with pytest.raises(ShapeError):
-        caster.occluded_pairs(o[:, :2], d, flat)
+        caster.occluded_pairs(o, d, jj, dd[:-1])
+    with pytest.raises(ShapeError):
+        caster.occluded_pairs(o[:, :2], d, jj, dd)

@@ -145,9 +145,9 @@ def visibility_cos(
     caster = src.caster
     live = (cos_g > TOL.grazing_cos) & (cos_s > TOL.grazing_cos)
     pi, di = np.nonzero(live)
-    # offset once per sample, then gathered per ray (the same float operations per element)
-    origins = (pos + (TOL.ray_offset * caster.bbox_diag) * gn)[pi]
-    occ = caster.occluded(origins, dirs_world[pi, di])
+    # offset once per sample; the caster pairs origins and directions into its float32 rays
+    origins = pos + (TOL.ray_offset * caster.bbox_diag) * gn
+    occ = caster.occluded_pairs(origins, dirs_world.reshape(-1, 3), pi, pi * n_dirs + di)
     cos = cos_s if cosine == "shading" else cos_g
     # the live entries kept whole, only the occluded ones scattered (most rays escape)
     out = np.where(live, cos, 0.0)

@@ -133,22 +133,24 @@ def avis_from_visibility(visible: np.ndarray, normals: np.ndarray, areas: np.nda
     return np.asarray(_area_matrix(tex, ar, n_texels) @ contrib)
 
 
-def _pairs_fn(occluded_fn: OccludedFn) -> Callable[[np.ndarray, np.ndarray, np.ndarray],
-                                                    np.ndarray]:
-    """(origins (a, 3), dirs (b, 3), flat (k,)) -> (k,) bool: the rays origins[flat // b] along
-    dirs[flat % b]. A `RayCaster.occluded` is replaced by the caster's `occluded_pairs`, which
-    builds Embree's float32 rays from the pairs directly (the same rays, no float64 gathers);
-    any other function gets the gathered rays."""
+PairsFn = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+def pairs_fn(occluded_fn: OccludedFn) -> PairsFn:
+    """(origins (a, 3), dirs (b, 3), jj (k,), dd (k,)) -> (k,) bool: occlusion of the rays
+    origins[jj] along dirs[dd]. A `RayCaster.occluded` is replaced by the caster's
+    `occluded_pairs`, which builds Embree's float32 rays from the pairs directly (the same rays,
+    no float64 gathers); any other function gets the gathered rays."""
     owner = getattr(occluded_fn, "__self__", None)
     fast = getattr(owner, "occluded_pairs", None)
     if fast is not None and getattr(occluded_fn, "__name__", "") == "occluded":
         return fast
 
-    def gathered(org: np.ndarray, dirs: np.ndarray, flat: np.ndarray) -> np.ndarray:
-        jj, dd = np.divmod(flat, dirs.shape[0])
+    def gathered(org: np.ndarray, dirs: np.ndarray, jj: np.ndarray, dd: np.ndarray
+                 ) -> np.ndarray:
         occ = np.asarray(occluded_fn(org[jj], dirs[dd]), dtype=bool)
-        if occ.shape != flat.shape:
-            raise ShapeError(f"occluded_fn returned {occ.shape}, expected {flat.shape}")
+        if occ.shape != jj.shape:
+            raise ShapeError(f"occluded_fn returned {occ.shape}, expected {jj.shape}")
         return occ
     return gathered
 
@@ -207,7 +209,7 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
         return out.reshape(n_texels, 6, res, res).astype(dtype)
     eps = default_eps(pos) if ray_eps is None else float(ray_eps)
     origins = pos + eps * nrm
-    occluded_pairs = _pairs_fn(occluded_fn)
+    occluded_pairs = pairs_fn(occluded_fn)
     max_rays = max(int(max_rays), 1)
     mb = min(idx.size, max_rays)
     db = max(1, min(nd, max_rays // mb))
@@ -223,7 +225,7 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
                 face = cos > TOL.grazing_cos
                 # the facing pairs of samples not proven free, as flat (j, d) indices
                 flat = np.flatnonzero(face & cast_js)
-                occ = occluded_pairs(org_js, dl, flat)
+                occ = occluded_pairs(org_js, dl, *np.divmod(flat, dl.shape[0]))
             else:
                 dw = grid_to_world(frames[tex[js]], dl)  # (mb, db, 3) world
                 cos = np.einsum("jl,jdl->jd", nrm_js, dw)
