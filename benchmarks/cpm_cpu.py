@@ -67,7 +67,7 @@ BREAKDOWN = (
     ("texelbake.cpm.level_batched", "visibility_cos"),
     ("texelbake.cpm.level_batched", "fit_many"),
     ("texelbake.cpm.gram_fit", "select_groups"),
-    ("texelbake.cpm.gram_fit", "batched_eigh"),
+    ("texelbake.cpm.gram_fit", "top_eighs"),
     ("texelbake.cpm.gram_fit", "fit_texel_gram"),
     ("texelbake.cpm.gram_fit", "reduced_system"),
     ("texelbake.cpm.gram_fit", "_bisect"),

@@ -15,6 +15,7 @@ from texelbake import stages
 from texelbake.cpm import level_batched as lb
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.fit import channel_correlation, fit_texel
+from texelbake.cpm import gram_fit
 from texelbake.cpm.gram_fit import batched_eigh, fit_many
 from texelbake.cpm.level import brdf_grid, direction_sets, level_candidates, tile_texels, world_dirs
 from texelbake.cpm.level import fit_level as fit_level_per_texel
@@ -61,6 +62,53 @@ def test_gram_fit_of_many_texels_equals_fit_texel(decorrelate):
         np.testing.assert_allclose(fit.weights, ref.weights, rtol=1e-5, atol=0)
         assert fit.k == ref.k and fit.c == ref.c
         assert abs(fit.snr_db_insample - ref.snr_db_insample) < 1e-6
+
+
+@pytest.mark.parametrize("decorrelate", [False, True])
+def test_top_eigenpairs_fit_equals_fit_texel(decorrelate, monkeypatch):
+    """The selection Grams' top eigenpairs only (`top_eighs`, LAPACK dsyevr on a subset),
+    forced on every texel: the same points and weights as fit_texel's full SVD of R, whatever
+    K it needed (a texel of rank 40 with psi 0.999 outgrows the first K = 8)."""
+    monkeypatch.setattr(gram_fit, "SUBSET_MIN_M", 4)
+    monkeypatch.setattr(gram_fit, "SUBSET_START", 8)
+    rng = np.random.default_rng(5)
+    texels = [_texel(rng, 500, m, r, decorrelate) for m, r in ((40, 6), (90, 40), (70, 3))]
+    kw = {**KW, "psi": 0.999}
+    Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
+    got = fit_many(list(Fs), list(valids), [channel_correlation(R) for R, _ in texels],
+                   [31, 32, 33], closed_form=False, **kw)
+    ks = []
+    for (R, avis), seed, (fit, _) in zip(texels, [31, 32, 33], got, strict=True):
+        ref = fit_texel(R, avis, seed=seed, texel_area=1.0, **kw)
+        np.testing.assert_array_equal(fit.columns, ref.columns)
+        np.testing.assert_allclose(fit.weights, ref.weights, rtol=1e-5, atol=0)
+        assert fit.k == ref.k and abs(fit.snr_db_insample - ref.snr_db_insample) < 1e-6
+        ks.append(fit.k)
+    assert max(ks) > 8  # the growth of K was exercised
+
+
+def test_top_eighs_are_the_full_decomposition_s_top():
+    """`top_eighs` against numpy's full eigh: the top K eigenvalues to 1e-12 of the largest,
+    their eigenvectors up to sign, K > the psi-rank (or K = m); narrow matrices complete."""
+    rng = np.random.default_rng(9)
+    mats = []
+    for m, decay in ((200, 0.5), (300, 0.97), (170, 0.999), (50, 0.9)):
+        Q, _ = np.linalg.qr(rng.normal(size=(m, m)))
+        mats.append((Q * decay ** np.arange(m)) @ Q.T)
+    sizes = []
+    for G, (lam, V) in zip(mats, gram_fit.top_eighs(mats, 0.97), strict=True):
+        m, K = G.shape[0], lam.shape[0]
+        sizes.append(K)
+        full_lam, full_V = np.linalg.eigh(G)
+        s, _ = gram_fit.spectrum((full_lam, full_V))
+        k = gram_fit.energy_rank(s, 0.97, float(np.trace(G)))
+        assert K == m or K > k
+        np.testing.assert_allclose(lam, full_lam[m - K:], rtol=0, atol=1e-12 * full_lam[-1])
+        top = min(k + 1, K)  # distinct eigenvalues: vectors equal up to sign
+        dots = np.abs(np.einsum("ij,ij->j", V[:, K - top:], full_V[:, m - top:]))
+        np.testing.assert_allclose(dots, 1.0, atol=1e-8)
+    # fast decay: the first K; slow: K grew; flat: all of it; narrow: the full eigh
+    assert sizes == [gram_fit.SUBSET_START, 128, 170, 50]
 
 
 @pytest.mark.parametrize("decorrelate", [False, True])
