@@ -12,10 +12,10 @@ import pytest
 
 from schemas.settings import BakeSettings
 from texelbake import stages
+from texelbake.cpm import gram_fit
 from texelbake.cpm import level_batched as lb
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.fit import channel_correlation, fit_texel
-from texelbake.cpm import gram_fit
 from texelbake.cpm.gram_fit import batched_eigh, fit_many
 from texelbake.cpm.level import brdf_grid, direction_sets, level_candidates, tile_texels, world_dirs
 from texelbake.cpm.level import fit_level as fit_level_per_texel
