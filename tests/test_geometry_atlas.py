@@ -167,3 +167,29 @@ def test_collapsed_area_fraction_by_hand():
     # degenerate 3D faces carry no area and are ignored; an empty mesh has nothing collapsed
     assert collapsed_area_fraction(np.zeros((3, 3)), np.array([[0, 1, 2]]),
                                    np.zeros((1, 3, 2))) == 0.0
+
+
+def test_charts_that_never_fit_are_refused_after_one_probe(monkeypatch):
+    """300 separate triangles (one chart each) cannot share one 16 x 16 page at any density:
+    after the first density fails, one pack at the search's lowest density decides (3 packs,
+    not the 12 of the steps down), with the same error; a mesh that fits is unaffected."""
+    import texelbake.geometry.atlas as atlas_mod
+
+    calls = []
+    inner = atlas_mod._xatlas_pack
+
+    def counting(*args):
+        calls.append(args[-1])
+        return inner(*args)
+
+    monkeypatch.setattr(atlas_mod, "_xatlas_pack", counting)
+    rng = np.random.default_rng(2)
+    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    v = (tri[None] + 3.0 * rng.integers(0, 20, (300, 1, 3))).reshape(-1, 3)
+    f = np.arange(v.shape[0]).reshape(-1, 3)
+    with pytest.raises(StageError, match="could not pack M1 \\(300 faces\\) into one 16 x 16"):
+        build_atlas(Mesh(v, f), 16, padding_texels=1)
+    assert len(calls) == 3 and calls[2] < calls[1] * 0.8 ** 10 * 1.0001
+    calls.clear()
+    v2, f2 = bumpy_sphere(2)
+    assert build_atlas(Mesh(v2, f2), 64, padding_texels=1).resolution == 64
