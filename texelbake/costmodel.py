@@ -73,7 +73,10 @@ class Coefficients:
     (`benchmarks/bake.py --against c3e468f`, cylinder 22.5 / 40.4 s, bolt 24.5 / 39.5 s at
     32²: freed memory kept, one BLAS thread, the float32 ray checks; docs/decisions.md), where
     the old stage had been priced at 1.18x / 1.01x; not re-fitted across sizes. One pool
-    start per local bake since then (`pipeline._shard_pool` serves every sharded stage)."""
+    start per local bake since then (`pipeline._shard_pool` serves every sharded stage).
+    Scaled again 2026-11-28 (third session, AMD EPYC) by 0.79, the a_vis stage's wall new / old
+    in one run (`--against 0ee3da6`, cylinder 9.6 / 12.1 s, bolt 9.8 / 12.5 s at 32²: rays
+    taken in pairs, free samples cast none; docs/decisions.md)."""
 
     r_entry: float = 4.9e-8  # s per (candidate, direction pair), Lambert / Phong
     gram: float = 7.21e-11  # s per m^2 d
@@ -84,8 +87,8 @@ class Coefficients:
     held_ggx: float = 1.43  # held-out cost of such a material, x held
     refit: float = 2.8e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
     refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
-    avis: float = 2.23e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
-    avis_fixed: float = 2.2e-5  # s per dense sample at any face resolution (maps, coarsening)
+    avis: float = 1.76e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
+    avis_fixed: float = 1.74e-5  # s per dense sample at any face resolution (maps, coarsening)
     avis_stage: float = 4.8  # wall s of the a_vis stage on any atlas (each worker's set-up)
     export: float = 3.3e-5  # s per dense sample at 32^2 faces, x (res / 32)^2 (a_vis tables)
     geometry: float = 2.0e-5  # s per dense sample (sampling, texel assignment)

@@ -179,9 +179,11 @@ def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
         if best is None and not probed and tpu > lowest:
             # the first density did not fit: before stepping down, one pack at the lowest
             # density the search would reach. Charts shrink with the density down to their
-            # padded minimum, so one that fails there fails at every step above it (the full
-            # bolt's LOD1 at 32^2: 130 charts, 3 pages at every density; the steps took 11
-            # packs, 11 s, to learn it). A probe that fits is only a probe: the steps go on.
+            # padded minimum, so a mesh that fails there is taken to fail at every step above
+            # it (an assumption on xatlas's packer, a heuristic: smaller charts never needing
+            # more pages; the full bolt's LOD1 at 32^2 needs 3 pages at every density, and the
+            # steps took 11 packs, 11 s, to learn it). A probe that fits is only a probe: the
+            # steps go on as before, so every atlas found is the one found without it.
             probed = True
             low = _xatlas_pack(mesh.vertices, mesh.faces, n, padding_texels, lowest)
             if not fits(low):
