@@ -87,7 +87,7 @@ def test_top_eigenpairs_fit_equals_fit_texel(decorrelate, monkeypatch):
     assert max(ks) > 8  # the growth of K was exercised
 
 
-def test_top_eighs_are_the_full_decomposition_s_top():
+def test_top_eighs_are_the_top_of_the_full_decomposition():
     """`top_eighs` against numpy's full eigh: the top K eigenvalues to 1e-12 of the largest,
     their eigenvectors up to sign, K > the psi-rank (or K = m); narrow matrices complete."""
     rng = np.random.default_rng(9)
