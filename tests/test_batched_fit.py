@@ -12,11 +12,12 @@ import pytest
 
 from schemas.settings import BakeSettings
 from texelbake import stages
-from texelbake.cpm import gram_fit
+from texelbake.cpm import gram_linalg
 from texelbake.cpm import level_batched as lb
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.fit import channel_correlation, fit_texel
-from texelbake.cpm.gram_fit import batched_eigh, fit_many
+from texelbake.cpm.gram_fit import fit_many
+from texelbake.cpm.gram_linalg import batched_eigh
 from texelbake.cpm.level import brdf_grid, direction_sets, level_candidates, tile_texels, world_dirs
 from texelbake.cpm.level import fit_level as fit_level_per_texel
 from texelbake.cpm.level_batched import chunk_bounds, fit_level_batched
@@ -69,8 +70,8 @@ def test_top_eigenpairs_fit_equals_fit_texel(decorrelate, monkeypatch):
     """The selection Grams' top eigenpairs only (`top_eighs`, LAPACK dsyevr on a subset),
     forced on every texel: the same points and weights as fit_texel's full SVD of R, whatever
     K it needed (a texel of rank 40 with psi 0.999 outgrows the first K = 8)."""
-    monkeypatch.setattr(gram_fit, "SUBSET_MIN_M", 4)
-    monkeypatch.setattr(gram_fit, "SUBSET_START", 8)
+    monkeypatch.setattr(gram_linalg, "SUBSET_MIN_M", 4)
+    monkeypatch.setattr(gram_linalg, "SUBSET_START", 8)
     rng = np.random.default_rng(5)
     texels = [_texel(rng, 500, m, r, decorrelate) for m, r in ((40, 6), (90, 40), (70, 3))]
     kw = {**KW, "psi": 0.999}
@@ -96,19 +97,19 @@ def test_top_eighs_are_the_top_of_the_full_decomposition():
         Q, _ = np.linalg.qr(rng.normal(size=(m, m)))
         mats.append((Q * decay ** np.arange(m)) @ Q.T)
     sizes = []
-    for G, (lam, V) in zip(mats, gram_fit.top_eighs(mats, 0.97), strict=True):
+    for G, (lam, V) in zip(mats, gram_linalg.top_eighs(mats, 0.97), strict=True):
         m, K = G.shape[0], lam.shape[0]
         sizes.append(K)
         full_lam, full_V = np.linalg.eigh(G)
-        s, _ = gram_fit.spectrum((full_lam, full_V))
-        k = gram_fit.energy_rank(s, 0.97, float(np.trace(G)))
+        s, _ = gram_linalg.spectrum((full_lam, full_V))
+        k = gram_linalg.energy_rank(s, 0.97, float(np.trace(G)))
         assert K == m or K > k
         np.testing.assert_allclose(lam, full_lam[m - K:], rtol=0, atol=1e-12 * full_lam[-1])
         top = min(k + 1, K)  # distinct eigenvalues: vectors equal up to sign
         dots = np.abs(np.einsum("ij,ij->j", V[:, K - top:], full_V[:, m - top:]))
         np.testing.assert_allclose(dots, 1.0, atol=1e-8)
     # fast decay: the first K; slow: K grew; flat: all of it; narrow: the full eigh
-    assert sizes == [gram_fit.SUBSET_START, 128, 170, 50]
+    assert sizes == [gram_linalg.SUBSET_START, 128, 170, 50]
 
 
 @pytest.mark.parametrize("decorrelate", [False, True])
@@ -245,7 +246,7 @@ def test_reduced_system_cholesky_and_eigh_against_the_residual():
     """The trials' reduced least squares: pivoted Cholesky (batched path) and the
     eigendecomposition (per-texel algebra) both reproduce ||M a - target||^2 for any a, with
     duplicate, collinear and zero columns (one facet's samples)."""
-    from texelbake.cpm.gram_fit import normalised_gram, reduced_system, reduced_system_eigh
+    from texelbake.cpm.gram_linalg import normalised_gram, reduced_system, reduced_system_eigh
 
     rng = np.random.default_rng(2)
     M = rng.random((500, 12)) @ rng.random((12, 30))  # rank 12

@@ -230,11 +230,8 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
                 dw = grid_to_world(frames[tex[js]], dl)  # (mb, db, 3) world
                 cos = np.einsum("jl,jdl->jd", nrm_js, dw)
                 face = cos > TOL.grazing_cos
-                flat = np.flatnonzero(face)
-                jj, dd = np.divmod(flat, dl.shape[0])
-                occ = np.asarray(occluded_fn(org_js[jj], dw[jj, dd]), dtype=bool)
-                if occ.shape != flat.shape:
-                    raise ShapeError(f"occluded_fn returned {occ.shape}, expected {flat.shape}")
+                flat = np.flatnonzero(face)  # also the row of each pair's direction in dw
+                occ = occluded_pairs(org_js, dw.reshape(-1, 3), flat // dl.shape[0], flat)
             # cos where the sample faces w and its ray escapes, else 0: the facing entries
             # kept whole and only the occluded ones scattered (most rays escape)
             contrib = np.where(face, cos, 0.0)
