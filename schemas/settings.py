@@ -174,6 +174,14 @@ class BakeSettings(BaseModel):
     # optional stages
     btf: bool = Field(False, description="Run the BTF stage (real-time target).")
     previews: bool = Field(False, description="Render previews after export.")
+    # deformed frames (seed 002 §4): an animated preview after export, when there is motion
+    warp: str = Field(
+        "", max_length=200,
+        description="A procedural warp whose sweep from the identity the deformed previews show, "
+        "e.g. 'bend:angle=90' (texelbake.deform.warps); empty: the asset's own animation, if "
+        "it has one. Only with previews.",
+    )
+    deform_frames: int = Field(9, ge=2, le=240, description="Frames of the deformed preview.")
     # surface reflectance field (seed 002 §3, §5): captured with gt, sharded by camera
     srf: bool = Field(False, description="Capture a surface reflectance field of M_org beside "
                       "the bake (render mode srf).")
@@ -195,6 +203,10 @@ class BakeSettings(BaseModel):
         if not px or len(px) > 8 or any(not p > 0 for p in px) or any(
                 b >= a for a, b in zip(px, px[1:], strict=False)):
             raise ValueError(f"lod_switch_px must be 1 to 8 decreasing positive sizes, got {px}")
+        if self.warp:
+            from texelbake.deform.warps import check_warp_spec
+
+            check_warp_spec(self.warp)
         if self.shard_texels > self.atlas_resolution:
             raise ValueError(
                 f"shard_texels ({self.shard_texels}) must not exceed atlas_resolution "

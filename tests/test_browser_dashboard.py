@@ -32,7 +32,8 @@ SHOTS = REPO / "build" / "browser-screenshots"
 #: a bake of the small cylinder in about a minute of worker time, with previews and BTF maps
 #: two LODs (switch sizes 32 and 8 px: the small cylinder's chain keeps M1 and M2), so the
 #: viewer's distance switch is exercised; typed as the form takes a list
-SETTINGS = {**CHEAP_SETTINGS, "previews": True, "btf": True, "lod_switch_px": "32,8"}
+SETTINGS = {**CHEAP_SETTINGS, "previews": True, "btf": True, "lod_switch_px": "32,8",
+            "warp": "bend:angle=45", "deform_frames": 2}  # a warp: the deformed frames too
 #: the decode check: GL float32 against the CPU's float64 on the same float32 maps; a texel
 #: sums at most L x C = 4 x 12 products, so the difference is float32 rounding (~1e-7
 #: relative; measured below 1e-6): 1e-5 absolute plus 1e-4 relative leaves room, and a wrong
@@ -235,7 +236,8 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     stages = page.locator("[data-testid=stage-row]").evaluate_all(
         "els => els.map(e => [e.dataset.stage, e.dataset.state])"
     )
-    assert {"ingest", "geometry", "cpm", "avis", "export", "render"} <= {s for s, _ in stages}
+    assert {"ingest", "geometry", "cpm", "avis", "export", "render", "deformed"} <= {
+        s for s, _ in stages}
     assert all(st == "done" for _, st in stages), stages
     assert page.get_attribute("[role=progressbar]", "aria-valuenow") == "100"
     assert "atlas_resolution" in page.inner_text("[data-testid=settings]")
@@ -288,6 +290,15 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     ).json_value()
     assert nonzero > 0
     shot(page, "09-previews-difference")
+    # the deformed frames (settings.warp): the animation and its error plot, decoded
+    page.wait_for_function(
+        "[...document.querySelectorAll('[data-testid=deformed] img')]"
+        ".filter(i => i.complete && i.naturalWidth > 0).length == 2"
+    )
+    alts = page.locator("[data-testid=deformed] img").evaluate_all("els => els.map(e => e.alt)")
+    assert alts == ["animation.gif", "error_per_frame.png"], alts
+    page.locator("[data-testid=deformed]").first.scroll_into_view_if_needed()
+    shot(page, "09b-previews-deformed")
 
     # --- the plot: one point per finite sweep entry; hover names mode, spp, seconds, dB
     with api(stack, TOKEN_A) as a:

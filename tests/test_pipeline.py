@@ -20,6 +20,7 @@ from texelbake.payload import read_baked
 from texelbake.pipeline import bake, default_workdir, plan_bake
 from texelbake.scene import load_asset
 from texelbake.scenes import write_scene
+from texelbake.scenes.arm import write_arm
 
 SMALL = {"atlas_resolution": 16, "shard_texels": 8, "samples_per_texel": 8, "n_light_dirs": 12,
          "n_view_dirs": 12, "n_heldout": 16, "c_max": 12, "n_trials": 2, "mesh_levels": 1}
@@ -311,7 +312,37 @@ def test_plan_lists_stages_and_skips(tmp_path):
     names = [s.name for s in plan.stages]
     assert names == ["ingest", "geometry", "cpm", "cpm_top", "avis", "avis_top", "export"]
     assert plan.stage("cpm").n_shards == 4
-    assert {s for s, _ in plan.skipped} >= {"btf", "render"}
+    assert {s for s, _ in plan.skipped} >= {"btf", "render", "deformed"}
+
+
+def test_deformed_previews_are_planned_only_for_motion(tmp_path):
+    """Issue 12 item 7: the deformed stage (render queue, after export) is planned when
+    previews are asked and the asset animates or a warp is set; otherwise it is skipped with
+    the reason. A warp that cannot parse is refused when the settings are made."""
+    static = write_scene("cylinder", tmp_path / "cylinder.usda", "small")
+    arm = write_arm(tmp_path / "arm.usda", "small")
+
+    def plan(src, **kw):
+        p = plan_bake(src, BakeSettings(**SMALL, **kw))
+        return [s.name for s in p.stages], dict(p.skipped)
+
+    names, skipped = plan(static, previews=True)
+    assert "deformed" not in names and "render" in names
+    assert "no animation" in skipped["deformed"] and "settings.warp" in skipped["deformed"]
+    names, _ = plan(static, previews=True, warp="twist:angle=30")
+    assert names[-2:] == ["render", "deformed"]
+    p = plan_bake(static, BakeSettings(**SMALL, previews=True, warp="twist:angle=30"))
+    assert p.stage("deformed").queue == "render" and p.stage("deformed").depends_on == ("export",)
+    names, _ = plan(arm, previews=True)  # the asset's own animation
+    assert "deformed" in names
+    names, skipped = plan(arm)
+    assert "deformed" not in names and "previews not requested" in skipped["deformed"]
+    for bad, words in (("wobble", "unknown warp"), ("bend:angle=ninety", "warp.angle"),
+                       ("bend:axis=x,toward=x", "warp.toward"), ("twist:spin=3", "warp.spin")):
+        with pytest.raises(ValueError, match=words):
+            BakeSettings(**SMALL, warp=bad)
+    with pytest.raises(ValueError, match="deform_frames"):
+        BakeSettings(**SMALL, deform_frames=1)
 
 
 def test_export_reads_avis_tiles_like_the_stacked_levels(cylinder_bake):

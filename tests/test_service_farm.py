@@ -320,12 +320,15 @@ def test_stuck_shard_is_killed_at_its_time_limit(cylinder, reference, tmp_path):
 
 def test_renderer_worker_writes_previews(cylinder, tmp_path):
     """previews=true adds the render stage: the renderer worker renders the finished job's
-    previews from the written USD; they are listed on the job and served by the API."""
+    previews from the written USD; they are listed on the job and served by the API. A warp
+    adds the deformed stage (issue 12 item 7): the same worker renders its frames."""
     with farm(tmp_path / "stack", workers={"prep": 1, "numeric": 1, "render": 1}) as stack:
         with httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=60) as c:
             aid = c.post("/assets", files={"file": package(cylinder)}).json()["id"]
             r = c.post(
-                "/jobs", json={"asset_id": aid, "settings": {**CHEAP_SETTINGS, "previews": True}}
+                "/jobs", json={"asset_id": aid, "settings": {
+                    **CHEAP_SETTINGS, "previews": True, "warp": "bend:angle=45",
+                    "deform_frames": 2}}
             )
             assert r.status_code == 201, r.text
             job_id = r.json()["id"]
@@ -334,6 +337,17 @@ def test_renderer_worker_writes_previews(cylinder, tmp_path):
             render = next(s for s in job["stages"] if s["name"] == "render")
             pid = int(render["shards"][0]["worker"].rsplit(":", 1)[1])
             assert pid in _child_pids(stack.pids["worker-render-0"])  # the renderer did it
+            deformed = next(s for s in job["stages"] if s["name"] == "deformed")
+            assert int(deformed["shards"][0]["worker"].rsplit(":", 1)[1]) in _child_pids(
+                stack.pids["worker-render-0"])
+            assert {"animation.gif", "animation.json", "error_per_frame.png"} <= set(
+                job["previews"])
+            gif = c.get(f"/jobs/{job_id}/previews/animation.gif")
+            assert gif.status_code == 200 and gif.content[:6] == b"GIF89a", gif.content[:6]
+            assert gif.headers["content-type"] == "image/gif"
+            anim = c.get(f"/jobs/{job_id}/previews/animation.json").json()
+            assert anim["source"] == "warp" and anim["warp"] == "bend:angle=45"
+            assert [f["amount"] for f in anim["frames"]] == [0.0, 1.0]
             pngs = [n for n in job["previews"] if n.endswith(".png")]
             assert pngs, job["previews"]
             img = c.get(f"/jobs/{job_id}/previews/{pngs[0]}")

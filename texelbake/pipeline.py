@@ -11,15 +11,17 @@ S x S tile (S = settings.shard_texels) and every coarser level's texels inside i
 
 from __future__ import annotations
 
+import functools
 import os
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from schemas.settings import BakeSettings
 from texelbake import stages
-from texelbake.errors import SettingsError, StageError
+from texelbake.errors import AssetError, SettingsError, StageError
 from texelbake.process import setup_bake_process
 from texelbake.stages.srf import n_srf_shards
 
@@ -78,15 +80,42 @@ def plan_bake(asset_path: Path, settings: BakeSettings) -> Plan:
     plan.append(StagePlan("export", "export", 1, export_deps))
     if settings.previews:
         plan.append(StagePlan("render", "render", 1, ("export",)))
+        # seed 002 §4: an animated preview of deformed frames, only when there is motion
+        if settings.warp or asset_deforms(asset_path):
+            plan.append(StagePlan("deformed", "render", 1, ("export",)))
+        else:
+            skipped.append(("deformed", "the asset has no animation (at most one time sample) "
+                                        "and no warp was asked (settings.warp)"))
     else:
         skipped.append(("render", "previews not requested (settings.previews is false)"))
+        skipped.append(("deformed", "previews not requested (settings.previews is false)"))
     if not settings.srf:
         skipped.append(
             ("srf", "no reflectance field requested (settings.srf is false; the impostor "
-                    "parameterization is on every LOD mesh, `texelbake render --warp` renders "
-                    "deformed frames)")
+                    "parameterization is on every LOD mesh for deformed frames)")
         )
     return Plan(tuple(plan), tuple(skipped))
+
+
+def asset_deforms(asset_path: Path) -> bool:
+    """Whether the asset's points move over its time samples (`AssetModel.has_deformation`,
+    the ingest's own reading), read once per file version and process: the plan is made
+    again by every shard."""
+    path = Path(asset_path)
+    try:
+        st = path.stat()
+    except OSError as exc:
+        raise AssetError(f"the asset cannot be read ({exc.strerror})", path=str(path)) from None
+    return _deforms(str(path.resolve()), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=16)
+def _deforms(path: str, mtime_ns: int, size: int) -> bool:
+    from texelbake.scene.load import load_asset
+
+    with warnings.catch_warnings():  # the ingest stage reports the asset's warnings
+        warnings.simplefilter("ignore")
+        return load_asset(path).has_deformation
 
 
 #: stage -> shard body (the render stage needs the exported folder: `bake` and the farm call
@@ -196,8 +225,9 @@ def bake(
             t0 = time.perf_counter()
             if sp.name == "export":
                 root = stages.export_to(ctx, out_dir, plan=plan, source=source)
-            elif sp.name == "render":
-                for p in stages.run_render(ctx, 0, out_dir=out_dir):
+            elif sp.name in ("render", "deformed"):
+                run = stages.run_render if sp.name == "render" else stages.run_deformed
+                for p in run(ctx, 0, out_dir=out_dir):
                     if progress:
                         print(f"preview: {p}")
             elif i in pooled:

@@ -170,25 +170,21 @@ def execute_shard(job_id: str, stage: str, shard: int) -> str:
             plan=pipeline.plan_bake(asset_path, settings),
         )
         return str(Path(baked).relative_to(out_dir))
-    if stage == "render":
-        return _render(workdir, asset_path, settings, out_dir, shard)
+    if stage in ("render", "deformed"):
+        return _previews(stage, workdir, asset_path, settings, out_dir)
     return pipeline.run_shard(workdir, asset_path, settings, stage, shard)
 
 
-def _render(
-    workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: Path, shard: int
+def _previews(
+    stage: str, workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: Path
 ) -> str:
-    """Previews of the finished job, rendered from the written USD."""
-    try:
-        from texelbake.render import render_previews  # type: ignore[attr-defined]
-    except ImportError:
-        from texelbake import pipeline
+    """Previews of the finished job rendered from the written USD: the stills (`render`) or
+    the deformed frames (`deformed`); returns the written files' names."""
+    from texelbake import stages
 
-        return pipeline.run_shard(workdir, asset_path, settings, "render", shard)
-    roots = sorted(p for p in out_dir.glob("*_baked.usda"))
-    if not roots:
-        raise TexelbakeError(f"render: no *_baked.usda in {out_dir}; export has not run")
-    written = render_previews(roots[0], out_dir / "previews")
+    ctx = stages.StageContext.create(workdir, asset_path, settings)
+    run = stages.run_render if stage == "render" else stages.run_deformed
+    written = run(ctx, 0, out_dir=out_dir)
     return ",".join(sorted(Path(p).name for p in written))
 
 

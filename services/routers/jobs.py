@@ -63,7 +63,8 @@ BINARY = {"type": "string", "format": "binary"}
 #: for (`Accept`) and the one generic generators know how to download
 OCTET = "application/octet-stream"
 #: media types of preview files by suffix (not guessed: `mimetypes` differs between machines)
-PREVIEW_TYPES = {".png": "image/png", ".exr": "image/x-exr", ".json": "application/json"}
+PREVIEW_TYPES = {".png": "image/png", ".exr": "image/x-exr", ".json": "application/json",
+                 ".gif": "image/gif"}
 
 
 def _own_job(session: Session, job_id: str, tenant: str) -> Job:
@@ -487,11 +488,13 @@ def read_job_result(
             "content": {
                 "image/png": {"schema": BINARY},
                 "image/x-exr": {"schema": BINARY},
+                "image/gif": {"schema": BINARY},
                 OCTET: {"schema": BINARY},
                 "application/json": {"schema": {"type": "object"}},
             },
-            "description": "A preview: an sRGB `.png`, a linear `.exr`, or the render "
-            "report `.json`; the media type follows the name.",
+            "description": "A preview: an sRGB `.png`, a linear `.exr`, the render "
+            "report `.json`, or the deformed frames' `animation.gif`; the media type follows "
+            "the name.",
         },
         **errors(
             401, (404, "`job_not_found`, or `preview_not_found`: no such preview."), 422

@@ -389,6 +389,17 @@ def _parse_fields(spec: str) -> tuple[str, dict[str, object]]:
     return name, params
 
 
+def check_warp_spec(spec: str) -> str:
+    """Check a warp spec before any asset is read (a setting, a CLI flag): its name, fields
+    and values, and an axis-bent warp's `toward` off its axis; returns the spec. What depends
+    on the asset (a flat extent along the axis) is checked by `parse_warp`."""
+    name, prm = _parse_fields(spec)
+    if name in ("bend", "sine") and prm["axis"] == prm["toward"]:
+        raise SettingsError(f"field 'warp.toward': must differ from the axis "
+                            f"{prm['axis']!r}, got {prm['toward']!r}")
+    return spec
+
+
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     a = axis / np.linalg.norm(axis)
     k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])

@@ -22,8 +22,9 @@ from texelbake.store import ArtifactStore, file_sha256
 #: (shard_texels changes no result but does name the tile artifacts: it is part of their key,
 #: so bakes of one asset with different tilings can share a store, issue 22's default store;
 #: worker_memory_mb changes how a worker chunks its texels, never a result, issue 15)
-LAYOUT_ONLY = {"previews", "worker_memory_mb", "gate_snr_median_db", "gate_snr_p5_db",
-               "gate_avis_rel_error"}  # the gate's targets are re-checked on every export
+LAYOUT_ONLY = {"previews", "warp", "deform_frames", "worker_memory_mb", "gate_snr_median_db",
+               "gate_snr_p5_db", "gate_avis_rel_error"}  # the gate's targets are re-checked on
+# every export; warp and deform_frames change the deformed previews only
 GEOMETRY_FIELDS = (
     "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",
     "enclose_meshes", "m1_method", "lod_mode", "lod_switch_px", "lod_error_px",

@@ -9,6 +9,8 @@ import { IDENTITY, type View, ZoomPanView } from "../components/ZoomPan";
 /** Preview modes in display order; the reference first. */
 export const MODES = ["gt_reference", "gt", "cpm", "normalmap", "equal-time", "btf"];
 const DIAGNOSTICS = ["mip_levels.png", "cp_density_atlas.png", "cp_density_model.png"];
+/** The deformed frames (the `deformed` stage: the asset's animation or a warp's sweep). */
+const DEFORMED = ["animation.gif", "error_per_frame.png"];
 const VIEWS: Record<string, string> = { near: "", far: "far_" };
 
 export function Previews({ job }: { job: JobPublic }) {
@@ -17,7 +19,8 @@ export function Previews({ job }: { job: JobPublic }) {
   const prefix = VIEWS[viewName];
   const modes = MODES.filter((m) => names.has(`${prefix}${m}.png`));
   const diags = DIAGNOSTICS.map((d) => (d.startsWith("mip") ? `${prefix}${d}` : d)).filter((d) => names.has(d));
-  const wanted = [...modes.map((m) => `${prefix}${m}.png`), ...diags];
+  const deformed = DEFORMED.filter((d) => names.has(d));
+  const wanted = [...modes.map((m) => `${prefix}${m}.png`), ...diags, ...deformed];
   const { urls, error } = useBlobUrls(job.id, wanted);
   const [view, setView] = useState<View>(IDENTITY);
   // the diagnostics zoom together too, apart from the renders (the atlas is another space)
@@ -117,6 +120,23 @@ export function Previews({ job }: { job: JobPublic }) {
         </figure>
         {names.has(`${prefix}diff_${b}.png`) && <DiffFile job={job} name={`${prefix}diff_${b}.png`} view={view} onView={setView} />}
       </div>
+      {deformed.length > 0 && (
+        <>
+          <h3>Deformed frames</h3>
+          <p class="muted small">
+            The asset's animation, or the warp's sweep from the rest pose: the reference, cpm, cpm-naive and the normal map, left to
+            right; PSNR over the object per frame.
+          </p>
+          <div class="deformed-row">
+            {deformed.map((d) => (
+              <figure class="preview" data-testid="deformed">
+                {urls[d] && <img src={urls[d]} alt={d} draggable={false} />}
+                <figcaption>{d === "animation.gif" ? "animation" : "error per frame"}</figcaption>
+              </figure>
+            ))}
+          </div>
+        </>
+      )}
       {diags.length > 0 && (
         <>
           <h3>Diagnostics</h3>
