@@ -52,6 +52,17 @@ for t in map(float, sys.argv[2:]):
             w = np.array(xc.GetLocalToWorldTransform(prim))
             out["points"].setdefault(str(prim.GetPath()), {})[str(t)] = (
                 pts @ w[:3, :3] + w[3, :3]).tolist()
+# with payloads unloaded (a viewer's first look): the proxy, and the root's extentsHint
+light = Usd.Stage.Open(sys.argv[1], Usd.Stage.LoadNone)
+out["proxy"] = {}
+for prim in light.Traverse():
+    if prim.IsA(UsdGeom.Mesh) and prim.GetName() == "Proxy":
+        for t in map(float, sys.argv[2:]):
+            pts = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(t), dtype=np.float64)
+            w = np.array(UsdGeom.XformCache(t).GetLocalToWorldTransform(prim))
+            out["proxy"][str(t)] = (pts @ w[:3, :3] + w[3, :3]).tolist()
+hint = UsdGeom.ModelAPI(light.GetDefaultPrim()).GetExtentsHint()
+out["extents_hint"] = [list(hint[0]), list(hint[1])]
 assert not [m for m in sys.modules if m.split(".")[0] in ("texelbake", "schemas")]
 print(json.dumps(out))
 """
@@ -146,6 +157,49 @@ def test_skinned_lods_animate_in_plain_usdskel_as_the_renderer_deforms_them(bake
     assert report["lod_animation"] == "usdskel"
     got = plain_pxr(baked_arm, TIMES)
     assert _check_follows(baked_arm, got["skinned"]) == len(baked.meshes)
+
+
+def _check_proxy_follows(got: dict, lods: dict[str, dict[str, list]], diag: float) -> None:
+    """The proxy, read with payloads unloaded, at every time code is the coarsest LOD as the
+    loaded stage poses it; the extentsHint holds it at every time (identity root transform)."""
+    last = max(lods, key=lambda k: int(k.rsplit("LOD", 1)[1]))
+    lo, hi = (np.array(x) for x in got["extents_hint"])
+    rest = np.array(got["proxy"]["0.0"])
+    for t in map(str, TIMES):
+        proxy = np.array(got["proxy"][t])
+        np.testing.assert_allclose(proxy, np.array(lods[last][t]), rtol=0, atol=1e-5)
+        assert np.all(proxy >= lo - 1e-5) and np.all(proxy <= hi + 1e-5), t
+    assert np.abs(proxy - rest).max() > 0.3 * diag  # it moved with the animation
+
+
+def test_the_proxy_moves_with_a_skinned_asset(baked_arm):
+    """Issue 12: the proxy (outside the payload, so it cannot be bound to the skeleton inside)
+    carries the coarsest LOD's UsdSkel pose at every time code of the animation."""
+    got = plain_pxr(baked_arm, TIMES)
+    lods = {k: v for k, v in got["skinned"].items() if "/Baked/LOD" in k}
+    _check_proxy_follows(got, lods, load_scene(baked_arm).diag)
+
+
+def test_the_proxy_moves_with_time_sampled_points(baked_pointcache):
+    got = plain_pxr(baked_pointcache, TIMES)
+    _check_proxy_follows(got, got["points"], load_scene(baked_pointcache).diag)
+
+
+@pytest.mark.parametrize("suffix", [".usda", ".usdz"])
+def test_an_exported_skinned_lod_stays_bound(baked_arm, tmp_path, suffix):
+    """`texelbake export --lod 1`: the one-LOD file keeps the skeleton, its animation and the
+    binding, so a plain UsdSkel process poses LOD1 exactly as in the baked root; stock valid."""
+    from texelbake.lodexport import export_lod
+
+    out = export_lod(baked_arm, 1, tmp_path / f"lod1{suffix}")
+    root = plain_pxr(baked_arm, TIMES)["skinned"]
+    got = plain_pxr(out, TIMES)["skinned"]
+    lod1 = next(k for k in root if k.endswith("/Baked/LOD1"))
+    assert lod1 in got and not any(k.endswith("/Baked/LOD2") for k in got)
+    for t in map(str, TIMES):
+        np.testing.assert_array_equal(np.array(got[lod1][t]), np.array(root[lod1][t]))
+    assert np.abs(np.array(got[lod1]["24.0"]) - np.array(got[lod1]["0.0"])).max() > 0.1
+    assert stock_errors(out) == {str(out): []}
 
 
 def test_lod_weights_are_m_orgs_blended_at_the_closest_point(baked_arm):

@@ -18,6 +18,10 @@ made for, and a guard).
   different one ("leave it at its original"; baking each combination would multiply the bake
   by the number of combinations: 12 for the Teapot). Variant sets below the default prim are
   recorded, not guarded (their variants cannot reach `Baked`).
+- An animated asset's proxy moves with it (issue 12): it carries one time sample of its points
+  (and extent) per time code of the coarsest LOD's motion — that LOD's own time samples, or
+  its UsdSkel skinning computed by UsdSkel on the written stage (`proxy_motion`) — since a
+  proxy outside the payload cannot be bound to a skeleton inside it.
 """
 
 from __future__ import annotations
@@ -25,9 +29,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
-from texelbake.errors import AssetError
+from texelbake.errors import AssetError, ShapeError
 
 
 def source_variant_selections(source_layer: Path) -> dict[str, dict[str, str]]:
@@ -57,21 +61,75 @@ def variant_names(source_layer: Path, prim_path: str) -> dict[str, list[str]]:
     return {n: list(vsets.GetVariantSet(n).GetVariantNames()) for n in sorted(vsets.GetNames())}
 
 
-def author_proxy(stage: Usd.Stage, root_name: str, vertices: np.ndarray, faces: np.ndarray
-                 ) -> UsdGeom.Mesh:
-    """The proxy mesh in the root layer, beside the `Baked` scope that holds the payload."""
+def _extent(points: np.ndarray) -> Vt.Vec3fArray:
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    return Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))])
+
+
+def author_proxy(stage: Usd.Stage, root_name: str, vertices: np.ndarray, faces: np.ndarray,
+                 motion: list[tuple[float, np.ndarray]] | None = None) -> UsdGeom.Mesh:
+    """The proxy mesh in the root layer, beside the `Baked` scope that holds the payload.
+    motion : [(time code, (n, 3) points)] of an animated asset (`proxy_motion`), authored as
+        time samples of the points and extent beside their rest defaults."""
     path = f"/{root_name}/Proxy"
     geom = UsdGeom.Mesh.Define(stage, path)
     v = np.require(vertices, dtype=np.float32, requirements=["C", "A"])  # aligned (mapped inputs)
     f = np.require(faces, dtype=np.int32, requirements=["C", "A"])
-    geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(v))
+    points = geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(v))
     geom.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(f)))
     geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(f.reshape(-1)))
     geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+    extent = geom.CreateExtentAttr(_extent(v))
+    for t, pts in motion or ():  # a loop over the animation's time codes
+        p32 = np.ascontiguousarray(pts, dtype=np.float32)
+        if p32.shape != v.shape:
+            raise ShapeError(f"proxy motion at time {t}: points {p32.shape}, the proxy has "
+                             f"{v.shape}")
+        points.Set(Vt.Vec3fArray.FromNumpy(p32), Usd.TimeCode(t))
+        extent.Set(_extent(p32), Usd.TimeCode(t))
     geom.CreatePurposeAttr(UsdGeom.Tokens.proxy)
     return geom
+
+
+def proxy_motion(stage: Usd.Stage, lod_path: str, time_codes: np.ndarray,
+                 points_over_time: np.ndarray, skinned: bool) -> list[tuple[float, np.ndarray]]:
+    """[(time code, points)] of the LOD mesh at `lod_path` over its animation, in its parent's
+    space (the proxy's: `Baked` carries no transform): its time samples as given, or — bound
+    to a skeleton — UsdSkel's skinning of it on `stage` (the payload loaded) at every time
+    sample of the skeleton's animation, the way any USD tool will pose it. [] when static."""
+    if time_codes.shape[0] > 1:
+        return [(float(t), np.asarray(p)) for t, p in
+                zip(time_codes.tolist(), points_over_time, strict=True)]
+    if not skinned:
+        return []
+    prim = stage.GetPrimAtPath(lod_path)
+    root = UsdSkel.Root.Find(prim)
+    if not prim or not root:
+        raise AssetError("a skinned LOD mesh is not below a SkelRoot", path=lod_path)
+    cache = UsdSkel.Cache()
+    cache.Populate(root, Usd.PrimDefaultPredicate)
+    query = cache.GetSkinningQuery(prim)
+    skel = cache.GetSkelQuery(UsdSkel.BindingAPI(prim).GetInheritedSkeleton())
+    if not query or not skel:
+        raise AssetError("the skinned LOD mesh has no valid skinning query or skeleton",
+                         path=lod_path)
+    anim = skel.GetAnimQuery()
+    times = sorted(set(anim.GetJointTransformTimeSamples()) if anim else set())
+    if len(times) < 2:
+        return []
+    rest = UsdGeom.Mesh(prim).GetPointsAttr().Get()
+    out = []
+    for t in times:  # a loop over the animation's time codes
+        xc = UsdGeom.XformCache(t)
+        pts = Vt.Vec3fArray(rest)
+        if not query.ComputeSkinnedPoints(skel.ComputeSkinningTransforms(t), pts, t):
+            raise AssetError(f"UsdSkel could not skin the LOD mesh at time {t}", path=lod_path)
+        # skinned points are in the skeleton's space: to world, then to the LOD's parent
+        to_parent = (np.array(xc.GetLocalToWorldTransform(skel.GetPrim()))
+                     @ np.linalg.inv(np.array(xc.GetParentToWorldTransform(prim))))
+        a = np.array(pts, dtype=np.float64)
+        out.append((float(t), a @ to_parent[:3, :3] + to_parent[3, :3]))
+    return out
 
 
 def author_variant_guard(stage: Usd.Stage, root: Usd.Prim, baked_for: dict[str, str],

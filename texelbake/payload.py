@@ -331,8 +331,11 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     # selections the bake was made for, and other asset variants shown as authored
     selections = bakedvariants.source_variant_selections(source_copy)
     if n_lod:
-        bakedvariants.author_proxy(stage, root_name, baked.meshes[-1].vertices,
-                                   baked.meshes[-1].faces)
+        last = baked.meshes[-1]
+        motion = bakedvariants.proxy_motion(stage, f"/{root_name}/Baked/LOD{n_lod}",
+                                            last.time_codes, last.points_over_time,
+                                            bool(last.skin))
+        bakedvariants.author_proxy(stage, root_name, last.vertices, last.faces, motion)
         bakedvariants.author_variant_guard(
             stage, root.GetPrim(), selections.get(str(default_root), {}),
             bakedvariants.variant_names(source_copy, str(default_root)),
@@ -340,8 +343,11 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
              for mp in original_mesh_paths])
     stage.GetRootLayer().customLayerData = {"texelbake": _plain_json(
         {**baked.metadata, "variantSelections": selections})}
-    if n_lod:  # with payloads unloaded, clients size the asset by this: every LOD inside it
+    if n_lod:  # with payloads unloaded, clients size the asset by this: every LOD inside it,
+        # and the proxy at every time code (an animated asset moves beyond its rest bounds)
         lo, hi = _lod_extent(stage, root.GetPrim(), vset, n_lod)
+        for _, pts in motion:  # a loop over time codes
+            lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
         UsdGeom.ModelAPI(root.GetPrim()).SetExtentsHint(
             Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
         vset.SetVariantSelection("LOD0")
