@@ -4,7 +4,7 @@ acceptance; seed 002 §4).
     .venv/bin/python benchmarks/deform.py --json out.json
         [--scenes cylinder,bolt,arm] [--scene-size small|full] [--atlas 32] [--size 512]
         [--ref-spp 1024] [--ref-parts 2] [--spp 16] [--seeds 6] [--warp SPEC ...]
-        [--work DIR]
+        [--btf] [--work DIR]
     .venv/bin/python benchmarks/deform.py --json all.json --merge a.json b.json ...
 
 The `arm` (texelbake.scenes.arm) is deformed by its own UsdSkel animation at time codes 12
@@ -27,7 +27,9 @@ Table 1 parameterization of M1's vertices, interpolated; `cpm` until 2026-11-27)
 areas and a_vis read along J⁻¹ v* instead of L v* (exact for a locally affine Ψ),
 `cpm-tri` cpm with the Jacobians of M_org's triangles' constant affine maps
 (`deform_scene(jacobian_field="triangle")`, the default before 2026-11-27) instead of Ψ's
-vertex Jacobians interpolated. Each mode is rendered once to warm it, then
+vertex Jacobians interpolated; with `--btf` (bakes with `settings.btf`) also `btf`, seed 001's
+maps on the deformed M1 through the seed's L at each hit, and `btf-naive` without it. Each
+mode is rendered once to warm it, then
 once per seed; its `seconds` is the median over the seeds, `psnr_db` the mean and
 `psnr_db_spread` the sample standard deviation of the per-seed PSNR over the object's pixels
 (`metrics.object_errors`). Why 16 spp and 6 seeds, not the renderer's 4 spp: at the lod
@@ -103,12 +105,14 @@ RIGID = "rigid:angle=40,axis=x,tx=0.5,ty=-0.3,tz=0.2"
 ARM_TIMES = ("time:12", "time:24")
 MODES = ("cpm", "cpm-affine", "cpm-vertex", "cpm-texel", "cpm-tri", "cpm-naive", "normalmap",
          "gt")
+#: with --btf (bakes with settings.btf): seed 001's maps through the seed's L and without it
+BTF_MODES = ("btf", "btf-naive")
 #: the look-up variants: mode -> `render_deformed`'s lookup
 VARIANTS = {"cpm-affine": "affine", "cpm-texel": "texel", "cpm-vertex": "vertex"}
 
 
-def bake_scene(scene: str, work: Path, atlas: int, size: str) -> Path:
-    settings = BakeSettings(atlas_resolution=atlas)
+def bake_scene(scene: str, work: Path, atlas: int, size: str, btf: bool = False) -> Path:
+    settings = BakeSettings(atlas_resolution=atlas, btf=btf)
     if scene == "arm":  # the skinned cylinder: its own animation, not a procedural warp
         from texelbake.scenes.arm import write_arm
 
@@ -180,13 +184,13 @@ def _reference(d, cam, ref_spp: int, ref_parts: int, render_fn):
 
 
 def _case(scene_name: str, d, cam, spp: int, ref_spp: int, render_fn, seeds: int = 3,
-          ref_parts: int = 2, d_tri=None) -> dict:
+          ref_parts: int = 2, d_tri=None, modes: tuple[str, ...] = MODES) -> dict:
     """One frame: the reference, then every mode at `seeds` seeds. d_tri: the same frame
     deformed with `jacobian_field="triangle"` (the ``cpm-tri`` mode; its reference is d's: gt
     does not read the field)."""
     ref, ref_info = _reference(d, cam, ref_spp, ref_parts, render_fn)
-    modes = {}
-    for mode in MODES:  # a loop over the few modes
+    out = {}
+    for mode in modes:  # a loop over the few modes
         kw = {"lookup": VARIANTS[mode]} if mode in VARIANTS else {}
         scene = d_tri if mode == "cpm-tri" else d
         if scene is None:
@@ -209,9 +213,9 @@ def _case(scene_name: str, d, cam, spp: int, ref_spp: int, render_fn, seeds: int
         if "fallback_fraction" in runs[0].extras:
             entry["fallback_fraction"] = round(float(np.mean(
                 [r.extras["fallback_fraction"] for r in runs])), 4)
-        modes[mode] = entry
+        out[mode] = entry
     return {"scene": scene_name, "object_pixels": int((ref.coverage > 0).sum()),
-            "reference": {**ref_info, "top2_share": _top2_share(ref)}, "modes": modes}
+            "reference": {**ref_info, "top2_share": _top2_share(ref)}, "modes": out}
 
 
 def _moved_with(scene, warp):
@@ -337,6 +341,16 @@ def _claims(cases: list[dict]) -> list[dict]:
           f"fell back to M_org" for c in cases
           if c["modes"]["cpm"].get("fallback_fraction", 0) > 0.5]
     claim("cpm's images come from the maps (fallback to M_org below 50 %)", fb)
+    with_btf = [c for c in deformed if "btf" in c["modes"] and "btf-naive" in c["modes"]]
+    if with_btf:  # --btf: does L help seed 001's maps too? (not the issue's bar)
+        notes = []
+        for c in with_btf:
+            v, dlt, spread = verdict(c["modes"]["btf"], c["modes"]["btf-naive"])
+            if v != "beats":
+                notes.append(f"{name(c)}: {v} (btf {c['modes']['btf']['psnr_db']:.2f}, "
+                             f"btf-naive {c['modes']['btf-naive']['psnr_db']:.2f} dB: paired "
+                             f"difference {dlt:+.2f}, margin {spread:.2f})")
+        claim("btf through L beats btf-naive (paired over the seeds: t-test at 5 %)", notes)
     return out
 
 
@@ -382,13 +396,14 @@ def _label(c: dict) -> str:
 
 def _report(result: dict) -> None:
     cases = result["cases"]
+    shown = MODES + tuple(m for m in BTF_MODES if any(m in c["modes"] for c in cases))
     print(f"\n{'scene':<10}{'warp':<44}{'obj px':>7}{'ref s':>8}{'ref nz':>7}"
-          + "".join(f"{m + ' s':>13}{m + ' dB':>18}" for m in MODES))
+          + "".join(f"{m + ' s':>13}{m + ' dB':>18}" for m in shown))
     for c in cases:
         row = (f"{_label(c):<10}{c['warp']:<44}{c['object_pixels']:>7}"
                f"{c['reference']['seconds']:>8.1f}"
                f"{c['reference'].get('noise_psnr_db') or float('nan'):>7.1f}")
-        for m in MODES:
+        for m in shown:
             e = c["modes"].get(m)
             if e is None:
                 row += f"{'—':>13}{'—':>18}"
@@ -431,6 +446,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--seeds", type=int, default=6, help="renders per mode (seeds 0..n-1)")
     ap.add_argument("--warp", action="append", default=None,
                     help=f"a warp spec (repeatable; default: {' '.join(WARPS)})")
+    ap.add_argument("--btf", action="store_true",
+                    help="bake with settings.btf and render btf (through L) and btf-naive too")
     ap.add_argument("--work", type=Path, default=Path("bench_out/deform"))
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="render nothing: join the cases of these JSON files (runs of one "
@@ -454,7 +471,7 @@ def main(argv: list[str] | None = None) -> dict:
     warps = args.warp or list(WARPS)
     settings = {"scenes": args.scenes, "scene_size": args.scene_size, "atlas": args.atlas,
                 "size": args.size, "ref_spp": args.ref_spp, "ref_parts": args.ref_parts,
-                "spp": args.spp, "seeds": args.seeds,
+                "spp": args.spp, "seeds": args.seeds, "btf": args.btf,
                 "camera": "lod view of the deformed object",
                 "psnr": "mean over the seeds, spread the seeds' sample standard deviation; "
                         "'beats': a paired t-test over the seeds at 5 % (the modes share each "
@@ -472,9 +489,10 @@ def main(argv: list[str] | None = None) -> dict:
         _write(args.json, {"settings": settings, "cases": cases, "complete": False,
                            "claims": _claims(cases)})
 
-    kw = {"seeds": args.seeds, "ref_parts": args.ref_parts}
+    kw = {"seeds": args.seeds, "ref_parts": args.ref_parts,
+          "modes": MODES + (BTF_MODES if args.btf else ())}
     for scene_name in [s.strip() for s in args.scenes.split(",") if s.strip()]:
-        baked = bake_scene(scene_name, args.work, args.atlas, args.scene_size)
+        baked = bake_scene(scene_name, args.work, args.atlas, args.scene_size, args.btf)
         scene = load_scene(baked)
         m1 = _m1(baked)
         # the undeformed frame, and the rigid motion seen with the camera and lights moving

@@ -12,7 +12,7 @@ import pytest
 from _render_helpers import bake_small_cylinder, psnr_object
 
 from texelbake.deform.warps import AffineWarp, _rotation, parse_warp
-from texelbake.errors import SettingsError
+from texelbake.errors import SettingsError, StageError
 from texelbake.model import Light
 from texelbake.render.camera import PinholeCamera
 from texelbake.render.deformed import deform_scene, render_deformed
@@ -123,6 +123,8 @@ def test_deformed_modes_and_errors(baked_cylinder):
     d = deform_scene(scene, parse_warp("twist:angle=90", scene.asset.bounds))
     cam = resolve_camera(scene, "lod", 32, 32)
     with pytest.raises(SettingsError, match="mode"):
+        render_deformed(d, "toksvig", cam, 1)
+    with pytest.raises(StageError, match="needs the BTF maps"):  # baked without settings.btf
         render_deformed(d, "btf", cam, 1)
     with pytest.raises(SettingsError, match="lookup"):
         render_deformed(d, "cpm", cam, 1, lookup="polar")

@@ -411,7 +411,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--modes", default=RENDER_MODES,
                    help="comma-separated: gt, cpm, normalmap, equal-time, btf (bakes with btf on), "
                    "toksvig, toksvig+ao, leadr, leadr+ao, preview-surface (the filtered "
-                   "baselines); with --warp/--time also cpm-naive; srf (after srf-capture), "
+                   "baselines); with --warp/--time also cpm-naive and btf-naive (btf through "
+                   "the look-up rotation L, btf-naive without); srf (after srf-capture), "
                    "with --warp/--time also srf-naive")
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--width", type=int, default=256)

@@ -1,8 +1,14 @@
 """``btf``: the real-time target of seed 001 (§3.4) on M1, the baked BTF maps looked up with
-Eq. 7 (continuous LOD) at the pixel footprint."""
+Eq. 7 (continuous LOD) at the pixel footprint.
+
+On a deformed frame (`render.deformed`, seed 002 §4) the eye rays meet the deformed M1 and the
+light and view directions reach the rest texel frame through the look-up rotation L of the
+hit point (Eq. 10 interpolated on M1's triangle, `lookup`); without it (`btf-naive`) the rest table is read
+with deformed-world directions."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -44,12 +50,15 @@ def btf_maps(scene: RenderScene):
 
 
 def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarray,
-              *, lod_bias: float = 0.0, interpolate: bool = False
+              *, lod_bias: float = 0.0, interpolate: bool = False,
+              lookup: Callable[[RenderScene, np.ndarray, np.ndarray], np.ndarray] | None = None
               ) -> tuple[np.ndarray, int, np.ndarray]:
     """Radiance along eye rays traced against M1 with the BTF maps (module docstring).
 
-    o, d : (n, 3) float64 eye rays; returns (radiance (n, 3) float64, rays cast, hit (n,)
-    bool)
+    o, d : (n, 3) float64 eye rays; lookup : (scene, M1 triangles (k,), hits (k, 3)) -> the
+    rotations (k, 3, 3) from the deformed world to the rest world at the hits (seed 002
+    Eq. 10, `render.deformed.m1_hit_lookup`), or None (directions in the rest world);
+    returns (radiance (n, 3) float64, rays cast, hit (n,) bool)
     """
     from texelbake.btf import btf_lookup_texels
 
@@ -62,6 +71,8 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
         return out, rays, hit
     n = scene.n0
     frames = scene.baked.levels[0]["frames"][row * n + col].astype(np.float64)  # (k, 3, 3)
+    if lookup is not None:  # rest texel frame ∘ L: deformed-world directions in, local out
+        frames = frames @ lookup(scene, prim, p)
     ng = scene.lod_face_normals[0][prim]
     wo = -d[idx]
     lam = footprint_level(scene, cam, 0, prim, p, o[idx], d[idx]) + lod_bias

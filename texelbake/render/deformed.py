@@ -88,7 +88,8 @@ from texelbake.tol import TOL
 #: warped, curved surface)
 JACOBIAN_FIELDS = ("vertex", "triangle")
 
-DEFORMED_MODES = ("gt", "cpm", "cpm-naive", "normalmap", "equal-time", "srf", "srf-naive")
+DEFORMED_MODES = ("gt", "cpm", "cpm-naive", "normalmap", "equal-time", "srf", "srf-naive",
+                  "btf", "btf-naive")
 
 
 def cofactor(jac: np.ndarray) -> np.ndarray:
@@ -244,6 +245,41 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     return d
 
 
+def vertex_lookup(d: RenderScene, prim: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """The seed's look-up rotation L (Eqs. 7–10) at points of M1 given by triangle `prim`
+    (k,) and barycentrics `bary` (k, 3): R0 and the deformed (u, v) of the Table 1
+    parameterization on the triangle's vertices (quarter turns aligned), interpolated.
+    Returns (k, 3, 3) deformed world -> rest world."""
+    _, m1_faces = d.m1_rest  # type: ignore[attr-defined]
+    corners = m1_faces[prim]  # (k, 3)
+    f0 = d.m1_frames0  # type: ignore[attr-defined]
+    u, v = d.m1_uv  # type: ignore[attr-defined]
+    cu0, cv0, cu, cv = align_quarter_turns(f0[corners, :, 0], f0[corners, :, 1],
+                                           u[corners], v[corners])
+
+    def interp(x: np.ndarray) -> np.ndarray:
+        return np.einsum("nk,nkj->nj", bary, x)
+
+    r0 = rest_frames_at(interp(cu0), interp(cv0))
+    lrot, _ = lookup_rotation(r0, interp(cu), interp(cv),
+                              fallback_normal=d.lod_face_normals[0][prim])
+    return lrot
+
+
+def m1_hit_lookup(d: RenderScene, prim: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """`vertex_lookup` at hits `p` (k, 3) on the deformed M1's triangles `prim` (k,): the
+    barycentrics solved on the deformed triangle (least squares in its plane)."""
+    m = d.baked.meshes[0]
+    a, b, c = (m.vertices[m.faces[prim, i]] for i in range(3))
+    e1, e2, r = b - a, c - a, np.asarray(p, dtype=np.float64) - a
+    d11, d12, d22 = (np.einsum("ij,ij->i", x, y) for x, y in ((e1, e1), (e1, e2), (e2, e2)))
+    r1, r2 = np.einsum("ij,ij->i", r, e1), np.einsum("ij,ij->i", r, e2)
+    det = d11 * d22 - d12 * d12
+    det = np.where(np.abs(det) > 0, det, 1.0)  # a degenerate triangle: its first vertex
+    s, t = (d22 * r1 - d12 * r2) / det, (d11 * r2 - d12 * r1) / det
+    return vertex_lookup(d, prim, np.column_stack([1.0 - s - t, s, t]))
+
+
 def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
     """Per level, once per deformed scene: the deformed points Ψ(x̂k), their deformed
     geometric normals (ray offsets), and per texel the look-up rotation L (t, 3, 3)."""
@@ -268,21 +304,9 @@ def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
     cen = np.divide(cen, wsum[:, None], out=np.zeros_like(cen), where=live[:, None])
     lrot = np.broadcast_to(np.eye(3), (n_tex, 3, 3)).copy()
     if live.any():
-        m1_caster, m1_faces = d.m1_rest  # type: ignore[attr-defined]
+        m1_caster, _ = d.m1_rest  # type: ignore[attr-defined]
         _, prim, b2 = m1_caster.closest_points(cen[live])
-        bary = np.column_stack([1.0 - b2[:, 0] - b2[:, 1], b2])
-        corners = m1_faces[prim]  # (k, 3)
-        f0 = d.m1_frames0  # type: ignore[attr-defined]
-        u, v = d.m1_uv  # type: ignore[attr-defined]
-        cu0, cv0, cu, cv = align_quarter_turns(f0[corners, :, 0], f0[corners, :, 1],
-                                               u[corners], v[corners])
-
-        def interp(x: np.ndarray) -> np.ndarray:
-            return np.einsum("nk,nkj->nj", bary, x)
-
-        r0 = rest_frames_at(interp(cu0), interp(cv0))
-        lrot[live], _ = lookup_rotation(r0, interp(cu), interp(cv),
-                                        fallback_normal=d.lod_face_normals[0][prim])
+        lrot[live] = vertex_lookup(d, prim, np.column_stack([1.0 - b2[:, 0] - b2[:, 1], b2]))
     out["lookup:vertex"] = lrot
     # the texel as the impostor point (seed 002 §4.2 allows point-sampled impostors): R0 the
     # texel's own frame (rows t, b, n), (u, v) = J (t, b) at the texel's centroid
@@ -473,6 +497,11 @@ def render_deformed(d: RenderScene, mode: str, cam: PinholeCamera, spp: int, see
         frame = DeformedCpmFrame(d, cam, choose_mesh(d, cam, kw.pop("max_error_px", 1.0)),
                                  lookup="none" if mode == "cpm-naive" else lookup)
         img, rays, cov, extras = render_cpm(d, cam, spp, seed, frame=frame, **kw)
+    elif mode in ("btf", "btf-naive"):  # seed 001's maps through the seed's L, or without
+        from texelbake.render.btf import render_btf
+
+        img, rays, cov = render_btf(d, cam, spp, seed,
+                                    lookup=m1_hit_lookup if mode == "btf" else None, **kw)
     elif mode in ("srf", "srf-naive"):  # the reflectance field through L, or without it
         from texelbake.srf.mode import render_srf_mode
 
