@@ -2,9 +2,9 @@
 Eq. 7 (continuous LOD) at the pixel footprint.
 
 On a deformed frame (`render.deformed`, seed 002 §4) the eye rays meet the deformed M1 and the
-light and view directions reach the rest texel frame through the look-up rotation L of the
-hit point (Eq. 10 interpolated on M1's triangle, `lookup`); without it (`btf-naive`) the rest table is read
-with deformed-world directions."""
+light and view directions reach the rest texel frame through the look-up rotation L at the
+hit (Eq. 10 interpolated on M1's triangle, `lookup`); without it (`btf-naive`) the rest table
+is read with deformed-world directions."""
 
 from __future__ import annotations
 
