@@ -130,7 +130,7 @@ export function Previews({ job }: { job: JobPublic }) {
           <div class="deformed-row">
             {deformed.map((d) => (
               <figure class="preview" data-testid="deformed">
-                {urls[d] && <img src={urls[d]} alt={d} draggable={false} />}
+                {urls[d] && <img src={urls[d]} alt={d} draggable={false} class={d.endsWith(".gif") ? "blocks" : undefined} />}
                 <figcaption>{d === "animation.gif" ? "animation" : "error per frame"}</figcaption>
               </figure>
             ))}
