@@ -28,7 +28,7 @@ from services.deps import TokenCache
 from services.errors import ApiError
 from services.fastpath import StatusFastPath
 from services.limits import BodyLimit, ServerTiming
-from services.routers import assets, batches, events, farm, jobs, utils, viewer
+from services.routers import assets, batches, events, farm, job_files, jobs, utils, viewer
 from services.routers.jobs import JobCache, VersionCache
 from texelbake import machinespeed
 from workers.celeryconfig import celery_config
@@ -124,8 +124,8 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     celery = Celery("texelbake")
     celery.conf.update(celery_config(settings))
     app.state.celery = celery
-    for r in (utils.router, assets.router, jobs.router, batches.router, viewer.router,
-              events.router, farm.router):
+    for r in (utils.router, assets.router, jobs.router, job_files.router, batches.router,
+              viewer.router, events.router, farm.router):
         app.include_router(r, prefix=API_V1)
     mount_dashboard(app, settings.web_dist or WEB_DIST)
     errors.install(app)

@@ -204,7 +204,7 @@ def test_lod_faces_across_atlas_seams_take_the_atlas_mesh_uv(baked):
         pytest.skip(f"{name}: LOD1 is the atlas mesh, every face exact")
     cam = cam_mod.auto_frame(scene.asset.bounds, 48, 48)
     o, d = eye_rays(cam, sample_offsets(1, cam.width * cam.height, 0, 0, 1))
-    _, _, prim, p, uv, _, _ = hit_m1(scene, o, d)
+    _, _, prim, p, uv, _, _, _ = hit_m1(scene, o, d)
     inexact = ~scene.lod_uv_exact[0][prim]
     assert inexact.any() and (~inexact).any()
     v, f, cuv = scene.atlas_arrays

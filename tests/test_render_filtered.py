@@ -92,7 +92,7 @@ def test_filtered_modes_pick_the_mip_level_as_cpm_does(specular_plane):
         n_pix = cam.width * cam.height
         lam_sum, count = np.zeros(n_pix), np.zeros(n_pix)
         for _, o, d in eye_passes(cam, spp, 1):
-            _, idx, prim, p, uv, _, _ = hit_m1(scene, o, d)
+            _, idx, prim, p, uv, _, _, _ = hit_m1(scene, o, d)
             _, lam = lookup_filtered(scene, cam, spp, prim, p, o[idx], d[idx], uv)
             np.add.at(lam_sum, idx % n_pix, lam)
             np.add.at(count, idx % n_pix, 1.0)

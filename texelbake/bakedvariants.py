@@ -29,9 +29,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+from pxr import Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 from texelbake.errors import AssetError, ShapeError
+from texelbake.lodmesh import author_point_samples, extent_of
 
 
 def source_variant_selections(source_layer: Path) -> dict[str, dict[str, str]]:
@@ -61,11 +62,6 @@ def variant_names(source_layer: Path, prim_path: str) -> dict[str, list[str]]:
     return {n: list(vsets.GetVariantSet(n).GetVariantNames()) for n in sorted(vsets.GetNames())}
 
 
-def _extent(points: np.ndarray) -> Vt.Vec3fArray:
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    return Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))])
-
-
 def author_proxy(stage: Usd.Stage, root_name: str, vertices: np.ndarray, faces: np.ndarray,
                  motion: list[tuple[float, np.ndarray]] | None = None) -> UsdGeom.Mesh:
     """The proxy mesh in the root layer, beside the `Baked` scope that holds the payload.
@@ -75,18 +71,15 @@ def author_proxy(stage: Usd.Stage, root_name: str, vertices: np.ndarray, faces: 
     geom = UsdGeom.Mesh.Define(stage, path)
     v = np.require(vertices, dtype=np.float32, requirements=["C", "A"])  # aligned (mapped inputs)
     f = np.require(faces, dtype=np.int32, requirements=["C", "A"])
-    points = geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(v))
+    geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(v))
     geom.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(f)))
     geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(f.reshape(-1)))
     geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    extent = geom.CreateExtentAttr(_extent(v))
-    for t, pts in motion or ():  # a loop over the animation's time codes
-        p32 = np.ascontiguousarray(pts, dtype=np.float32)
-        if p32.shape != v.shape:
-            raise ShapeError(f"proxy motion at time {t}: points {p32.shape}, the proxy has "
-                             f"{v.shape}")
-        points.Set(Vt.Vec3fArray.FromNumpy(p32), Usd.TimeCode(t))
-        extent.Set(_extent(p32), Usd.TimeCode(t))
+    geom.CreateExtentAttr(extent_of(v))
+    bad = [t for t, pts in motion or () if np.shape(pts) != v.shape]
+    if bad:
+        raise ShapeError(f"proxy motion at time {bad[0]}: points are not the proxy's {v.shape}")
+    author_point_samples(geom, motion or ())
     geom.CreatePurposeAttr(UsdGeom.Tokens.proxy)
     return geom
 

@@ -5,6 +5,7 @@ normals, the impostor parameterization (seed 002 Table 1) and how it follows M_o
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -80,14 +81,26 @@ def _author_animation(geom: UsdGeom.Mesh, mesh: LodMesh) -> None:
         api.CreateGeomBindTransformAttr(Gf.Matrix4d(np.asarray(mesh.skin["bind"],
                                                                np.float64).tolist()))
     if mesh.time_codes.shape[0] > 1:
-        attr = geom.GetPointsAttr()
-        ext = geom.GetExtentAttr()
-        for t, pts in zip(mesh.time_codes.tolist(), mesh.points_over_time, strict=True):
-            p32 = np.ascontiguousarray(pts, dtype=np.float32)
-            attr.Set(Vt.Vec3fArray.FromNumpy(p32), Usd.TimeCode(t))
-            lo, hi = p32.min(axis=0), p32.max(axis=0)
-            ext.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]),
-                    Usd.TimeCode(t))
+        author_point_samples(geom, zip(mesh.time_codes.tolist(), mesh.points_over_time,
+                                       strict=True))
+
+
+def extent_of(points: np.ndarray) -> Vt.Vec3fArray:
+    """A mesh's `extent`: the (2,) float3 bounds of its (n, 3) points."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    return Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))])
+
+
+def author_point_samples(geom: UsdGeom.Mesh, samples: Iterable[tuple[float, np.ndarray]]
+                         ) -> None:
+    """Time samples of a mesh's points and extent: one per (time code, (n, 3) points), the
+    points as float32 (a LOD that follows time-sampled points, the animated proxy)."""
+    attr = geom.GetPointsAttr()
+    ext = geom.GetExtentAttr()
+    for t, pts in samples:  # a loop over time codes
+        p32 = np.ascontiguousarray(pts, dtype=np.float32)
+        attr.Set(Vt.Vec3fArray.FromNumpy(p32), Usd.TimeCode(t))
+        ext.Set(extent_of(p32), Usd.TimeCode(t))
 
 
 #: the impostor parameterization's primvars (seed 002 Table 1): `primvars:texelbake:<name>`,

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
+from pxr import Kind, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
 from texelbake import bakedvariants
 from texelbake.atomic import atomic_write_bytes, replace
@@ -45,6 +45,7 @@ from texelbake.errors import AssetError, ShapeError
 from texelbake.lodmesh import (
     LodMesh,
     author_mesh,
+    extent_of,
     read_animation,
     read_impostor,
 )
@@ -346,10 +347,8 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     if n_lod:  # with payloads unloaded, clients size the asset by this: every LOD inside it,
         # and the proxy at every time code (an animated asset moves beyond its rest bounds)
         lo, hi = _lod_extent(stage, root.GetPrim(), vset, n_lod)
-        for _, pts in motion:  # a loop over time codes
-            lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
         UsdGeom.ModelAPI(root.GetPrim()).SetExtentsHint(
-            Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+            extent_of(np.concatenate([np.stack([lo, hi])] + [pts for _, pts in motion])))
         vset.SetVariantSelection("LOD0")
     _commit_stage(stage, root_file)
     return root_file

@@ -55,9 +55,9 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
               ) -> tuple[np.ndarray, int, np.ndarray]:
     """Radiance along eye rays traced against M1 with the BTF maps (module docstring).
 
-    o, d : (n, 3) float64 eye rays; lookup : (scene, M1 triangles (k,), hits (k, 3)) -> the
-    rotations (k, 3, 3) from the deformed world to the rest world at the hits (seed 002
-    Eq. 10, `render.deformed.m1_hit_lookup`), or None (directions in the rest world);
+    o, d : (n, 3) float64 eye rays; lookup : (scene, M1 triangles (k,), barycentrics (k, 3))
+    -> the rotations (k, 3, 3) from the deformed world to the rest world at the hits (seed
+    002 Eq. 10, `render.deformed.vertex_lookup`), or None (directions in the rest world);
     returns (radiance (n, 3) float64, rays cast, hit (n,) bool)
     """
     from texelbake.btf import btf_lookup_texels
@@ -66,13 +66,13 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
     caster = scene.lods[0]
     rays = o.shape[0]
     out = np.zeros((o.shape[0], 3))
-    hit, idx, prim, p, _, row, col = hit_m1(scene, o, d)
+    hit, idx, prim, p, _, row, col, bary = hit_m1(scene, o, d)
     if idx.size == 0:
         return out, rays, hit
     n = scene.n0
     frames = scene.baked.levels[0]["frames"][row * n + col].astype(np.float64)  # (k, 3, 3)
     if lookup is not None:  # rest texel frame ∘ L: deformed-world directions in, local out
-        frames = frames @ lookup(scene, prim, p)
+        frames = frames @ lookup(scene, prim, bary)
     ng = scene.lod_face_normals[0][prim]
     wo = -d[idx]
     lam = footprint_level(scene, cam, 0, prim, p, o[idx], d[idx]) + lod_bias

@@ -266,20 +266,6 @@ def vertex_lookup(d: RenderScene, prim: np.ndarray, bary: np.ndarray) -> np.ndar
     return lrot
 
 
-def m1_hit_lookup(d: RenderScene, prim: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """`vertex_lookup` at hits `p` (k, 3) on the deformed M1's triangles `prim` (k,): the
-    barycentrics solved on the deformed triangle (least squares in its plane)."""
-    m = d.baked.meshes[0]
-    a, b, c = (m.vertices[m.faces[prim, i]] for i in range(3))
-    e1, e2, r = b - a, c - a, np.asarray(p, dtype=np.float64) - a
-    d11, d12, d22 = (np.einsum("ij,ij->i", x, y) for x, y in ((e1, e1), (e1, e2), (e2, e2)))
-    r1, r2 = np.einsum("ij,ij->i", r, e1), np.einsum("ij,ij->i", r, e2)
-    det = d11 * d22 - d12 * d12
-    det = np.where(np.abs(det) > 0, det, 1.0)  # a degenerate triangle: its first vertex
-    s, t = (d22 * r1 - d12 * r2) / det, (d11 * r2 - d12 * r1) / det
-    return vertex_lookup(d, prim, np.column_stack([1.0 - s - t, s, t]))
-
-
 def _level_geometry(d: RenderScene, level: int) -> dict[str, np.ndarray]:
     """Per level, once per deformed scene: the deformed points Ψ(x̂k), their deformed
     geometric normals (ray offsets), and per texel the look-up rotation L (t, 3, 3)."""
@@ -501,7 +487,7 @@ def render_deformed(d: RenderScene, mode: str, cam: PinholeCamera, spp: int, see
         from texelbake.render.btf import render_btf
 
         img, rays, cov = render_btf(d, cam, spp, seed,
-                                    lookup=m1_hit_lookup if mode == "btf" else None, **kw)
+                                    lookup=vertex_lookup if mode == "btf" else None, **kw)
     elif mode in ("srf", "srf-naive"):  # the reflectance field through L, or without it
         from texelbake.srf.mode import render_srf_mode
 

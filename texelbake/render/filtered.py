@@ -94,7 +94,7 @@ def shade_filtered(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.
     caster = scene.lods[0]
     rays = o.shape[0]
     out = np.zeros((o.shape[0], 3))
-    hit, idx, prim, p, uv, row, col = hit_m1(scene, o, d)
+    hit, idx, prim, p, uv, row, col, _ = hit_m1(scene, o, d)
     if idx.size == 0:
         return out, rays, hit
     values, lam = lookup_filtered(scene, cam, spp, prim, p, o[idx], d[idx], uv)

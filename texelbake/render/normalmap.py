@@ -103,7 +103,7 @@ def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray
     caster = scene.lods[0]
     rays = o.shape[0]
     out = np.zeros((o.shape[0], 3))
-    hit, idx, prim, p, uv, row, col = hit_m1(scene, o, d)
+    hit, idx, prim, p, uv, row, col, _ = hit_m1(scene, o, d)
     if idx.size == 0:
         return out, rays, hit
     albedo_map, normal_map = baseline_maps(scene)

@@ -270,7 +270,8 @@ def m1_arrays(scene: RenderScene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def hit_m1(scene: RenderScene, o: np.ndarray, d: np.ndarray):
     """Eye rays against M1: (hit (n,) bool, idx (k,) rays that hit, prim (k,), p (k, 3),
-    uv (k, 2) atlas uv, row (k,), col (k,) finest texel under the hit)."""
+    uv (k, 2) atlas uv, row (k,), col (k,) finest texel under the hit, bary (k, 3) the hit's
+    barycentrics on its triangle)."""
     v, f, cuv = m1_arrays(scene)
     hits = scene.lods[0].cast(o, d)
     idx = np.flatnonzero(hits.hit)
@@ -282,7 +283,7 @@ def hit_m1(scene: RenderScene, o: np.ndarray, d: np.ndarray):
     if inexact.any():
         uv[inexact] = atlas_uv(scene, p[inexact])
     row, col = uv_to_texel(uv, scene.n0)
-    return hits.hit, idx, prim, p, uv, row, col
+    return hits.hit, idx, prim, p, uv, row, col, b
 
 
 def _atlas_mesh(scene: RenderScene) -> tuple[np.ndarray, RayCaster]:
