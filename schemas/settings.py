@@ -173,6 +173,19 @@ class BakeSettings(BaseModel):
     )
     # optional stages
     btf: bool = Field(False, description="Run the BTF stage (real-time target).")
+    btf_table: Literal["point", "cell"] = Field(
+        "point",
+        description="What the BTF stores per direction pair: 'point', Eq. 7 at the pair itself "
+        "(seed 001's tables of point samples); 'cell', the BRDF averaged over the pair's cell "
+        "(the directions its nearest look-up answers for), so a lobe narrower than a cell is "
+        "not aliased: 5.3 dB better on the bolt's polished metal, 0.3 dB worse on the cylinder's "
+        "Phong, 1.7-1.9x the cpm stage's time (benchmarks/btf_tables.py).",
+    )
+    btf_cell_draws: int = Field(
+        4, ge=1, le=256,
+        description="Draws per direction cell for btf_table='cell', besides the pair itself "
+        "(the BRDF is evaluated 1 + this many times per pair; visibility stays at the pair).",
+    )
     previews: bool = Field(False, description="Render previews after export.")
     # deformed frames (seed 002 §4): an animated preview after export, when there is motion
     warp: str = Field(

@@ -213,7 +213,7 @@ def test_machine_speed_scales_each_term_by_its_kind_of_work():
     from texelbake.costmodel import Coefficients
     from texelbake.machinespeed import PART_OF, MachineSpeed
 
-    ratios = {"brdf_ggx", "held_ggx", "refit_ggx"}
+    ratios = {"brdf_ggx", "held_ggx", "refit_ggx", "btf_cell"}
     assert {f.name for f in fields(Coefficients)} == set(PART_OF) | ratios
     factors = {"grid": 2.0, "blas": 3.0, "rays": 5.0, "python": 7.0}
     speed = MachineSpeed(factors=factors, seconds=dict.fromkeys(factors, 1.0))
@@ -251,3 +251,20 @@ def test_machine_speed_measurement(monkeypatch):
     monkeypatch.setenv("TEXELBAKE_MACHINE_SPEED", "1")
     ref = machinespeed.measure()
     assert ref is machinespeed.REFERENCE_SPEED and set(ref.factors.values()) == {1.0}
+
+
+def test_the_cell_table_is_priced_at_level_0():
+    """btf_table "cell" adds (1 + draws) BRDF grids over level 0's (sample, pair) entries, at
+    btf_cell x r_entry each (by hand from the uniform sizes); "point" and btf off add nothing."""
+    c = costmodel.Coefficients()
+    point = BakeSettings(atlas_resolution=32, btf=True)
+    off = BakeSettings(atlas_resolution=32)
+    cell = BakeSettings(atlas_resolution=32, btf=True, btf_table="cell", btf_cell_draws=6)
+    m, _, mult = costmodel._uniform_sizes(32, point.samples_per_texel, point.c_max)[0]
+    d = point.n_light_dirs * point.n_view_dirs
+    brdf = 1.0 + (c.brdf_ggx - 1.0) * 0.5
+    extra = mult * 7 * c.btf_cell * brdf * c.r_entry * float((m * d).sum())
+    e_point, e_cell = (costmodel.estimate(s, 2) for s in (point, cell))
+    assert costmodel.estimate(off, 2).cpm_seconds == e_point.cpm_seconds
+    assert e_cell.cpm_seconds - e_point.cpm_seconds == pytest.approx(extra, rel=1e-9)
+    assert e_cell.per_level[1] == e_point.per_level[1]

@@ -86,6 +86,12 @@ class Coefficients:
     brdf_ggx: float = 1.25  # R cost of a GGX (preview, merl, cellular) material, x r_entry
     held_ggx: float = 1.43  # held-out cost of such a material, x held
     refit: float = 2.8e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
+    # level 0's cell-averaged BTF table (btf_table "cell", `cpm.cell_table`): one BRDF grid per
+    # draw and the pair's own, x r_entry per (sample, pair, grid); fitted 2026-11-29 to the cpm
+    # stage's seconds cell / point on the small bolt and cylinder at 32^2 (-j 2,
+    # benchmarks/btf_tables.py: 1.86x and 1.70x measured, 0.41 and 0.36 fitted each; priced
+    # 1.82x and 1.75x)
+    btf_cell: float = 0.39
     refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
     avis: float = 1.76e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
     avis_fixed: float = 1.74e-5  # s per dense sample at any face resolution (maps, coarsening)
@@ -215,6 +221,7 @@ def estimate(
     # dense sample of the level once more
     refits = s.hierarchy == "children" and s.coarse_target == "dense"
     brdf_r = 1.0 + (coef.refit_ggx - 1.0) * g
+    cell_grids = (1 + s.btf_cell_draws) if s.btf and s.btf_table == "cell" else 0
     per_level = []
     cpm = 0.0
     serial = 0.0  # levels above a tile: `run_cpm_top`, one shard on one worker
@@ -226,6 +233,8 @@ def estimate(
         sec = held + mult * float(brdf * coef.r_entry * (m * d).sum()
                                   + coef.gram * (m * m * d).sum() + coef.eigh * (m ** 3).sum()
                                   + coef.texel * m.size + refit)
+        if level == 0 and cell_grids:
+            sec += mult * cell_grids * coef.btf_cell * brdf * coef.r_entry * float((m * d).sum())
         n_tex = int(round(mult * m.size))
         per_level.append({"level": level, "texels": n_tex, "seconds": sec})
         cpm += sec

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 #: part -> the cost model's coefficients it scales (`Coefficients` field names); the ratio
-#: fields (brdf_ggx, held_ggx, refit_ggx) are not seconds and are not scaled
+#: fields (brdf_ggx, held_ggx, refit_ggx, btf_cell) are not seconds and are not scaled
 PART_OF = {
     "r_entry": "grid", "held": "grid", "refit": "grid", "avis_fixed": "grid",
     "export": "grid", "geometry": "grid",

@@ -173,16 +173,11 @@ class BuildInfo:
     cpu_seconds: dict[str, float] = field(default_factory=dict)
 
 
-def resolvable_alpha(wi: np.ndarray, wo: np.ndarray) -> float:
-    """The sharpest Phong exponent the direction sampling can see: a lobe (N·H)^alpha still at
-    half height half a sampling step from its peak, (cos(δ/2))^alpha = 1/2, with δ the median
-    angle between a sampled direction and its nearest neighbour (light and view directions
-    alike; the larger). A fit wanting a sharper lobe is chasing a few spiking pairs; evaluated
-    between the pairs (the renderer's look-ups) it would invent highlights hundreds of times
-    the data (measured on the bolt: alpha 4122 on a ~20 degree grid, btf image 13x too
-    bright), so `fit_phong` falls back to the tabulated mean instead.
+def direction_step(wi: np.ndarray, wo: np.ndarray) -> float | None:
+    """The sampling's step: the median angle (radians) between a sampled direction and its
+    nearest neighbour, light and view directions alike, the larger; None for single directions.
 
-    wi, wo : (d, 3) float64 unit; returns float (TOL.phong_alpha_max for a single direction)"""
+    wi, wo : (d, 3) float64 unit"""
     steps = []
     for dirs in (wi, wo):
         u = np.unique(np.round(np.asarray(dirs, dtype=np.float64), 9), axis=0)
@@ -191,9 +186,22 @@ def resolvable_alpha(wi: np.ndarray, wo: np.ndarray) -> float:
         cos = np.clip(u @ u.T, -1.0, 1.0)
         np.fill_diagonal(cos, -1.0)
         steps.append(float(np.median(np.arccos(cos.max(axis=1)))))
-    if not steps:
+    return max(steps) if steps else None
+
+
+def resolvable_alpha(wi: np.ndarray, wo: np.ndarray) -> float:
+    """The sharpest Phong exponent the direction sampling can see: a lobe (N·H)^alpha still at
+    half height half a sampling step from its peak, (cos(δ/2))^alpha = 1/2, with δ the
+    `direction_step`. A fit wanting a sharper lobe is chasing a few spiking pairs; evaluated
+    between the pairs (the renderer's look-ups) it would invent highlights hundreds of times
+    the data (measured on the bolt: alpha 4122 on a ~20 degree grid, btf image 13x too
+    bright), so `fit_phong` falls back to the tabulated mean instead.
+
+    wi, wo : (d, 3) float64 unit; returns float (TOL.phong_alpha_max for a single direction)"""
+    step = direction_step(wi, wo)
+    if step is None:
         return float(TOL.phong_alpha_max)
-    half = 0.5 * max(steps)
+    half = 0.5 * step
     return float(min(TOL.phong_alpha_max, np.log(0.5) / np.log(np.cos(half))))
 
 

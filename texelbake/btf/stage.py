@@ -13,7 +13,7 @@ import os
 
 import numpy as np
 
-from texelbake.btf.compress import BTFMaps, BTFSettings
+from texelbake.btf.compress import BTFMaps, BTFSettings, direction_step
 from texelbake.btf.maps_io import PARTS, SHADER_BTF, write_btf_maps
 from texelbake.btf.report import btf_report
 from texelbake.errors import ShapeError
@@ -109,6 +109,52 @@ def bake_btf(
     paths = write_btf_maps(maps, out_dir, stem)
     report["files"] = {part: p.name for part, p in paths.items()}
     return maps, report
+
+
+#: a lobe narrower (to half height) than this fraction of the direction step is flagged
+NARROW_LOBE_FRACTION = 0.25
+
+
+def lobe_half_width(material) -> float | None:
+    """Half width at half maximum (radians, in the reflected direction) of a material's
+    specular lobe, for the analytic families with a constant lobe parameter; None otherwise
+    (Lambert: no lobe; textured roughness, cellular, MERL: not one width).
+
+    phong (Lafortune's cos^e of the angle to the mirror direction): cos^e a = 1/2.
+    preview (GGX, alpha = roughness^2 as `brdf.analytic.preview_surface`): D falls to half at
+    tan^2 theta_h = alpha^2 (sqrt 2 - 1); the reflected direction turns by 2 theta_h."""
+    from texelbake.brdf.analytic import PREVIEW_MIN_ROUGHNESS
+
+    p = material.params
+    if material.model == "phong" and "exponent" not in material.textures:
+        e = float(p.get("exponent", 0.0))
+        return float(np.arccos(0.5 ** (1.0 / e))) if e > 0 else None
+    if material.model == "preview" and "roughness" not in material.textures:
+        alpha = float(np.clip(p.get("roughness", 0.5), PREVIEW_MIN_ROUGHNESS, 1.0)) ** 2
+        return float(2.0 * np.arctan(alpha * np.sqrt(np.sqrt(2.0) - 1.0)))
+    return None
+
+
+def narrow_lobes(materials, dirs_i: np.ndarray, dirs_o: np.ndarray) -> list[str]:
+    """A warning per material whose specular lobe is narrower than the BTF's direction
+    sampling resolves (half width < NARROW_LOBE_FRACTION x `direction_step`): its table holds
+    the lobe averaged over a cell (btf_table "cell") or aliased (at "point"), so a
+    look-up shows its highlights blurred and where they are not (measured on the bolt, GGX
+    alpha 0.0225 on 64 x 64 directions: the btf image 5x gt's light, docs/decisions.md
+    2026-11-29)."""
+    step = direction_step(dirs_i, dirs_o)
+    if step is None:
+        return []
+    out = []
+    for m in materials:  # loop over the asset's few materials
+        w = lobe_half_width(m)
+        if w is not None and w < NARROW_LOBE_FRACTION * step:
+            out.append(f"btf: material {m.path or '(default)'} has a specular lobe "
+                       f"{np.degrees(w):.1f}° wide to half height, under a quarter of the BTF's "
+                       f"direction step ({np.degrees(step):.1f}°): its highlights are averaged "
+                       f"over the step and the btf mode shows them blurred and too bright; "
+                       f"render cpm, or raise n_light_dirs and n_view_dirs")
+    return out
 
 
 def author_btf_shader(stage, material_path: str, files: dict[str, str], maps: BTFMaps,

@@ -19,6 +19,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.stats import qmc
 
 from texelbake.errors import SettingsError
@@ -27,6 +28,9 @@ from texelbake.errors import SettingsError
 # independent sequences even when the caller passes the same seed to each.
 _TAG_HELDOUT = 0x4E1D
 _TAG_BALANCED = 0xBA1A
+_TAG_CELLS = 0xCE11
+#: dense points drawn per (cell x draw) to find k uniform points in each direction's cell
+_CELL_OVERSAMPLE = 4
 
 
 def _check_count(name: str, n: int) -> int:
@@ -112,6 +116,42 @@ def balanced_pairs(n_i: int, n_o: int, d: int, seed: int = 0) -> tuple[np.ndarra
     k = np.tile(np.arange(r, dtype=np.int64), n_i)  # (d,)
     key = np.sort(perm_i[a] * n_o + perm_o[(a * r + k) % n_o])
     return key // n_o, key % n_o
+
+
+def cell_directions(dirs: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
+    """k directions spread uniformly over each direction's cell: the part of the hemisphere
+    nearer to it than to any other direction of `dirs` (chord distance, the cells the BTF's
+    nearest-direction look-up reads, `texelbake.btf.lut`).
+
+    A table read at the nearest sampled pair returns the pair's value for every direction in its
+    cell; averaging f̄ over the cell's directions instead of taking it at the centre keeps a lobe
+    narrower than the cell from being spread over the whole cell (docs/decisions.md
+    2026-11-29). The draws: a scrambled Sobol' set of ~4 k n points uniform in solid angle,
+    each given to its nearest direction; a cell keeps its first k points in sequence order (a
+    prefix of a Sobol' set stays well spread), cycling through them when it caught fewer, and
+    holds its own direction k times when it caught none (a cell smaller than the set's spacing).
+
+    dirs : (n, 3) unit directions with z > 0; k : draws per cell, >= 1
+    returns : (k, n, 3) float64 unit vectors, draw-major: [a] is one direction of every cell
+    """
+    dirs = np.asarray(dirs, dtype=np.float64)
+    k = _check_count("k", k)
+    if dirs.ndim != 2 or dirs.shape[1] != 3:
+        raise SettingsError(f"dirs must be (n, 3), got {dirs.shape}")
+    n = dirs.shape[0]
+    if k == 0 or n == 0:
+        raise SettingsError(f"cell_directions needs k >= 1 and directions, got k={k}, n={n}")
+    dense = hemisphere_directions(_CELL_OVERSAMPLE * k * n, seed=seed * 65536 + _TAG_CELLS)
+    owner = cKDTree(dirs).query(dense)[1].astype(np.int64)  # (M,) nearest direction
+    order = np.argsort(owner, kind="stable")  # per cell, its points in sequence order
+    count = np.bincount(owner, minlength=n)
+    start = np.r_[0, np.cumsum(count)[:-1]]
+    out = np.repeat(dirs[None], k, axis=0)  # empty cells hold their own direction
+    has = count > 0
+    for a in range(k):  # loop over the k draws (k is small)
+        pick = order[start[has] + a % count[has]]
+        out[a, has] = dense[pick]
+    return out
 
 
 def heldout_pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -155,6 +155,21 @@ def visibility_cos(
     return out
 
 
+def segment_sum(values: np.ndarray, seg: np.ndarray, n_seg: int, axis: int) -> np.ndarray:
+    """Sum `values` along `axis` over runs of equal, ascending segment ids seg -> n_seg rows."""
+    shape = list(values.shape)
+    shape[axis] = n_seg
+    out = np.zeros(shape, dtype=np.float64)
+    if seg.size == 0:
+        return out
+    starts = np.flatnonzero(np.r_[True, seg[1:] != seg[:-1]])
+    sums = np.add.reduceat(values, starts, axis=axis)
+    idx: list[slice | np.ndarray] = [slice(None)] * values.ndim
+    idx[axis] = seg[starts]
+    out[tuple(idx)] = sums
+    return out
+
+
 def world_dirs(frames: np.ndarray, texel: np.ndarray, dirs_local: np.ndarray) -> np.ndarray:
     """(p, D, 3) world directions of texel-frame `dirs_local` (D, 3) for points in `texel`."""
     return grid_to_world(frames[texel], dirs_local)

@@ -27,6 +27,7 @@ from threadpoolctl import threadpool_limits
 
 from texelbake.cpm import level as level_mod
 from texelbake.cpm.brdf_product import brdf_product
+from texelbake.cpm.cell_table import cell_fbar, direction_cells
 from texelbake.cpm.columns import Columns
 from texelbake.cpm.fit import TexelFit, _empty_fit, fit_texel
 from texelbake.cpm.gram_fit import correlation_from_sums, fit_many
@@ -35,6 +36,7 @@ from texelbake.cpm.level import (
     PointSet,
     direction_sets,
     samples_in,
+    segment_sum,
     texel_ids,
     texel_seed,
     visibility_cos,
@@ -70,21 +72,6 @@ def chunk_bounds(sizes: np.ndarray, cap: int) -> list[tuple[int, int]]:
     return out
 
 
-def _segment_sum(values: np.ndarray, seg: np.ndarray, n_seg: int, axis: int) -> np.ndarray:
-    """Sum `values` along `axis` over runs of equal, ascending segment ids seg -> n_seg rows."""
-    shape = list(values.shape)
-    shape[axis] = n_seg
-    out = np.zeros(shape, dtype=np.float64)
-    if seg.size == 0:
-        return out
-    starts = np.flatnonzero(np.r_[True, seg[1:] != seg[:-1]])
-    sums = np.add.reduceat(values, starts, axis=axis)
-    idx: list[slice | np.ndarray] = [slice(None)] * values.ndim
-    idx[axis] = seg[starts]
-    out[tuple(idx)] = sums
-    return out
-
-
 def fit_level(
     src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
     sums: DenseSums | None = None,
@@ -96,7 +83,10 @@ def fit_level(
         `texelbake.stages.cpm`): the fit then reads no dense sample. The per-texel loop
         computes its own."""
     if src.settings.fit_method == "per_texel":
-        return level_mod.fit_level(src, level, texels, candidates)
+        out = level_mod.fit_level(src, level, texels, candidates)
+        if "fbar" in out and level == 0 and src.settings.btf_table == "cell":
+            out["fbar"] = _cell_fbar_of(src, texels, candidates)
+        return out
     # one BLAS / torch thread: parallelism comes from worker processes (see level.fit_level)
     torch.set_num_threads(1)
     rays0 = src.caster.rays_cast
@@ -236,6 +226,27 @@ def fit_level_batched(
     return res.arrays(texels)
 
 
+def _cell_fbar_of(src: FitInputs, texels: np.ndarray, candidates: PointSet) -> np.ndarray:
+    """Level 0's cell-averaged f̄ (`cell_table`) for the per-texel path, which keeps neither
+    a_vis nor the candidates' order: both remade here, in memory-bounded chunks."""
+    s = src.settings
+    dirs = direction_sets(s)
+    frames = src.geo["frames_L0"]
+    budget = int(s.worker_memory_mb) * 2**20
+    ids = samples_in(src.geo, s.atlas_resolution, 0, texels)
+    pos = _positions(texels, texel_ids(src.geo, s.atlas_resolution, 0, ids))
+    dense, dseg = ids[np.argsort(pos, kind="stable")], np.sort(pos, kind="stable")
+    avis_o, area = _avis(src, frames, texels, dense, dseg, len(texels), dirs, budget)
+    eps = np.array([avis_floor(a) for a in area])[:, None]
+    ok = np.isfinite(avis_o) & (avis_o > eps)
+    inv_o = np.where(ok, 1.0 / np.where(ok, avis_o, 1.0), 0.0)
+    pos_c = _positions(texels, candidates.texel)
+    order = np.argsort(pos_c, kind="stable")
+    order = order[pos_c[order] >= 0]
+    return cell_fbar(src, frames, candidates.take(order), pos_c[order], len(texels), dirs,
+                     *direction_cells(s, dirs), inv_o, budget)
+
+
 def _positions(texels: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """Position of each id in `texels` (any order, unique), -1 when absent."""
     order = np.argsort(texels, kind="stable")
@@ -256,8 +267,8 @@ def _avis(src, frames, texels, dense, dseg, n_t, dirs, budget):
         sl = slice(s0, s0 + step)
         vc = visibility_cos(src, dense[sl], world_dirs(frames, tex_l[sl], dirs["dirs_o"]),
                             "geometric")
-        avis += _segment_sum(vc * area_all[sl, None], dseg[sl], n_t, 0)
-    area = _segment_sum(area_all, dseg, n_t, 0)
+        avis += segment_sum(vc * area_all[sl, None], dseg[sl], n_t, 0)
+    area = segment_sum(area_all, dseg, n_t, 0)
     return avis, area
 
 
@@ -367,9 +378,13 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         rows = np.arange(bounds[t], bounds[t + 1])
         Fs[t] = _wide_columns(src, frames, cset, rows, cseg, dirs, budget, inv_o, level,
                               s.n_batch, s1, s2)
-    sx = _segment_sum(s1, cseg, n_t, 0)
-    sxx = _segment_sum(s2, cseg, n_t, 0)
-    if res.fbar is not None:
+    sx = segment_sum(s1, cseg, n_t, 0)
+    sxx = segment_sum(s2, cseg, n_t, 0)
+    if res.fbar is not None and level == 0 and s.btf_table == "cell":
+        cells = direction_cells(s, dirs)
+        res.fbar[base:base + n_t] = cell_fbar(src, frames, cset, cseg, n_t, dirs, *cells, inv_o,
+                                              budget)
+    elif res.fbar is not None:  # the coarse levels' tables are not read (the BTF's own pyramid)
         for t in range(n_t):  # loop over texels: one row sum each
             res.fbar[base + t] = Fs[t].sum(axis=1).T
     # texels for the Gram path (the others are fit_texel's special cases or too wide)
@@ -530,11 +545,11 @@ def _held_pass(src, frames, texels, dense, dseg, n_t, dirs, budget, pos, pseg, p
         f *= vo[None, :, None, :]  # (3, p, h_i, h_o)
         a_, b_ = np.searchsorted(pos, [s0, s0 + len(smp)])
         if b_ > a_:
-            apx += _segment_sum(f[:, pos[a_:b_] - s0] * pw.T[:, a_:b_, None, None], pseg[a_:b_],
+            apx += segment_sum(f[:, pos[a_:b_] - s0] * pw.T[:, a_:b_, None, None], pseg[a_:b_],
                                 n_t, 1).transpose(1, 2, 3, 0)
         if want_ref:
-            avis_h += _segment_sum(vo * area_all[sl, None], seg, n_t, 0)
-            ref += _segment_sum(f * area_all[sl][None, :, None, None], seg, n_t, 1
+            avis_h += segment_sum(vo * area_all[sl, None], seg, n_t, 0)
+            ref += segment_sum(f * area_all[sl][None, :, None, None], seg, n_t, 1
                                 ).transpose(1, 2, 3, 0)
     return ref, apx, avis_h
 

@@ -22,6 +22,7 @@ def run_btf(ctx: StageContext, shard: int = 0) -> str:
     Eq. 7 values the CPM stage measured against (f_bar on the N_i x N_o grid), one BTF image per
     direction pair over the atlas; EXR maps and a report under the store."""
     from texelbake.btf import BTFSettings, bake_btf, btf_from_texels
+    from texelbake.btf.stage import narrow_lobes
 
     key = btf_key(ctx)
     out = ctx.store.path(key)
@@ -39,6 +40,8 @@ def run_btf(ctx: StageContext, shard: int = 0) -> str:
     do = np.tile(dirs["dirs_o"], (len(dirs["dirs_i"]), 1))
     out.mkdir(parents=True, exist_ok=True)
     _, report = bake_btf(btf, di, do, out, BTFSettings(), covered=covered)
+    report["btf_table"] = ctx.settings.btf_table
+    report["warnings"] = narrow_lobes(ctx.asset().materials, dirs["dirs_i"], dirs["dirs_o"])
     ctx.store.write_json(f"{key}/report.json", report)
     return key
 
@@ -55,6 +58,7 @@ def export_btf(ctx: StageContext, out_dir: Path, report: dict):
     for name in sorted(btf_report["files"].values()):
         shutil.copyfile(src / name, out_dir / name)
     report["btf"] = btf_report
+    report["warnings"] = list(report.get("warnings", [])) + list(btf_report.get("warnings", []))
     maps = read_btf_maps(out_dir, "btf")
     files = {part: f"./{name}" for part, name in btf_report["files"].items()}
 
