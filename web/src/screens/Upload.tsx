@@ -127,7 +127,16 @@ export function Upload() {
           </ErrorBox>
         )}
         <div class="actions">
-          <button class="btn primary" type="submit" data-testid="submit" disabled={!file || !schema || busy !== null}>
+          {/* the press keeps the focus where it is: Chromium scrolled the page when a focused
+              number field lost it to the button mid-click (measured: 322 px between mousedown
+              and mouseup), so the release landed elsewhere and the click never submitted */}
+          <button
+            class="btn primary"
+            type="submit"
+            data-testid="submit"
+            disabled={!file || !schema || busy !== null}
+            onMouseDown={(e) => e.preventDefault()}
+          >
             {busy ?? "Upload and bake"}
           </button>
           {schema && (
