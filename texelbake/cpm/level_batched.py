@@ -546,11 +546,11 @@ def _held_pass(src, frames, texels, dense, dseg, n_t, dirs, budget, pos, pseg, p
         a_, b_ = np.searchsorted(pos, [s0, s0 + len(smp)])
         if b_ > a_:
             apx += segment_sum(f[:, pos[a_:b_] - s0] * pw.T[:, a_:b_, None, None], pseg[a_:b_],
-                                n_t, 1).transpose(1, 2, 3, 0)
+                               n_t, 1).transpose(1, 2, 3, 0)
         if want_ref:
             avis_h += segment_sum(vo * area_all[sl, None], seg, n_t, 0)
             ref += segment_sum(f * area_all[sl][None, :, None, None], seg, n_t, 1
-                                ).transpose(1, 2, 3, 0)
+                               ).transpose(1, 2, 3, 0)
     return ref, apx, avis_h
 
 
