@@ -7,6 +7,7 @@ both fit paths (the wiring: visibility, weights, a_vis)."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -161,3 +162,19 @@ def test_the_btf_warns_of_a_lobe_narrower_than_its_directions():
     assert len(got) == 1 and "/Looks/Steel" in got[0] and "1.7°" in got[0]
     many = direction_sets(BakeSettings(n_light_dirs=4096, n_view_dirs=4096))
     assert narrow_lobes([sharp], many["dirs_i"], many["dirs_o"]) == []
+
+
+def test_the_render_table_repeats_the_bakes_btf_warnings(tmp_path, capsys):
+    """`texelbake render` with a btf mode prints the bake's btf warnings under its table (read
+    from the report.json beside the baked USD); without a btf mode, or without the file, none."""
+    from texelbake.cli import print_btf_warnings
+
+    baked = tmp_path / "a_baked.usda"
+    warn = "btf: material /M has a specular lobe 1.7° wide to half height, ..."
+    (tmp_path / "report.json").write_text(
+        json.dumps({"warnings": ["level 0: 3 of 9 ray-traced texels ...", warn]}))
+    print_btf_warnings(baked, {"modes": {"gt": {}, "btf": {}}})
+    assert capsys.readouterr().out == f"note (from the bake): {warn}\n"
+    print_btf_warnings(baked, {"modes": {"gt": {}, "cpm": {}}})
+    print_btf_warnings(tmp_path / "elsewhere" / "b.usda", {"modes": {"btf-naive": {}}})
+    assert capsys.readouterr().out == ""

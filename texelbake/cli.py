@@ -230,14 +230,30 @@ def cmd_render(args: argparse.Namespace) -> int:
         rep = json.loads(report.read_text())
         print(f"warp: {rep['warp']}")
         _print_render_table(rep)
+        print_btf_warnings(Path(args.file), rep)
         print(report)
         return 0
     report = render_report(Path(args.file), out, modes=args.modes, width=args.width,
                            height=args.height, spp=args.spp, ref_spp=args.ref_spp,
                            camera=_camera_arg(args.camera))
-    _print_render_table(json.loads(report.read_text()))
+    rep = json.loads(report.read_text())
+    _print_render_table(rep)
+    print_btf_warnings(Path(args.file), rep)
     print(report)
     return 0
+
+
+def print_btf_warnings(baked: Path, rep: dict) -> None:
+    """Under a table with a btf mode, the bake's own warnings about its BTF (the report.json
+    beside the baked USD: `btf.stage.narrow_lobes`), so a btf figure out of the table's band
+    is read as such."""
+    if not any(m.startswith("btf") for m in rep.get("modes", {})):
+        return
+    path = baked.parent / "report.json"
+    bake_report = json.loads(path.read_text()) if path.is_file() else {}
+    for w in bake_report.get("warnings", []):
+        if w.startswith("btf:"):
+            print(f"note (from the bake): {w}")
 
 
 def _print_animation(rep: dict) -> None:
