@@ -237,14 +237,20 @@ def _cell_fbar_of(src: FitInputs, texels: np.ndarray, candidates: PointSet) -> n
     pos = _positions(texels, texel_ids(src.geo, s.atlas_resolution, 0, ids))
     dense, dseg = ids[np.argsort(pos, kind="stable")], np.sort(pos, kind="stable")
     avis_o, area = _avis(src, frames, texels, dense, dseg, len(texels), dirs, budget)
-    eps = np.array([avis_floor(a) for a in area])[:, None]
-    ok = np.isfinite(avis_o) & (avis_o > eps)
-    inv_o = np.where(ok, 1.0 / np.where(ok, avis_o, 1.0), 0.0)
+    inv_o = _inv_avis(avis_o, area)[1]
     pos_c = _positions(texels, candidates.texel)
     order = np.argsort(pos_c, kind="stable")
     order = order[pos_c[order] >= 0]
     return cell_fbar(src, frames, candidates.take(order), pos_c[order], len(texels), dirs,
                      *direction_cells(s, dirs), inv_o, budget)
+
+
+def _inv_avis(avis_o: np.ndarray, area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(valid (t, n_o) bool, 1 / a_vis (t, n_o), 0 where invalid): a_vis above each texel's
+    floor (`avis_floor` of its area)."""
+    eps = np.array([avis_floor(a) for a in area])[:, None]
+    valid = np.isfinite(avis_o) & (avis_o > eps)
+    return valid, np.where(valid, 1.0 / np.where(valid, avis_o, 1.0), 0.0)
 
 
 def _positions(texels: np.ndarray, ids: np.ndarray) -> np.ndarray:
@@ -351,9 +357,7 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
     s = src.settings
     n_i = len(dirs["dirs_i"])
     n_t = len(texels)
-    eps = np.array([avis_floor(a) for a in area])
-    valid_o = np.isfinite(avis_o) & (avis_o > eps[:, None])  # (t, n_o)
-    inv_o = np.where(valid_o, 1.0 / np.where(valid_o, avis_o, 1.0), 0.0)
+    valid_o, inv_o = _inv_avis(avis_o, area)  # (t, n_o)
     avis_rows = np.tile(avis_o, (1, n_i))  # (t, d): row i * n_o + o
     valid = np.tile(valid_o, (1, n_i))
     frames = src.geo[f"frames_L{level}"]
