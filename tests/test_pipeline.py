@@ -400,7 +400,8 @@ def test_report_flags_texels_whose_avis_table_is_off(cylinder_bake):
         a = lv["avis"]
         assert a["tolerance"] == AVIS_TEXEL_TOLERANCE
         assert 0 <= a["texels_above_tolerance"] <= a["ray_texels"]
-    assert [int(w.split()[1].rstrip(":")) for w in report["warnings"]] == flagged
+    assert [int(w.split()[1].rstrip(":")) for w in report["warnings"]
+            if w.startswith("level ")] == flagged
     # the per-texel measure against a loop over texels (brute force)
     rng = np.random.default_rng(2)
     ref = rng.random((5, 6, 4, 4))

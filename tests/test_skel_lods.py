@@ -392,3 +392,33 @@ def test_refined_lods_follow_the_bent_m_org(baked_arm):
     averaged = SkinWarp(np.asarray(warp.transforms), va, fa, wa).positions(va)
     old = float(np.linalg.norm(averaged - follow, axis=1).max())
     assert got < 0.6 * old, (got, old)
+
+
+def test_an_asset_warning_is_shown_once_and_kept_in_the_report(tmp_path):
+    """The asset's warnings (here: the skinned arm's authored rest-pose normals, replaced) are
+    shown once by the ingest stage, not again by each shard process that reads the asset,
+    and listed in report.json; `texelbake`'s terminal shows them as "warning: <message>"."""
+    import subprocess
+    import sys
+    import warnings
+
+    from texelbake.pipeline import bake
+    from texelbake.scenes.arm import write_arm
+    from texelbake.stages.context import _load_asset_cached
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        src = write_arm(tmp_path / "arm.usda")
+        root = bake(src, tmp_path / "baked", _settings(), progress=False, jobs=2)
+        _load_asset_cached.cache_clear()  # what a shard process does: read the asset again
+        _load_asset_cached(str(src), "digest")
+    shown = [str(w.message) for w in seen if "skinned by UsdSkel" in str(w.message)]
+    assert len(shown) == 1
+    report = json.loads((root.parent / "report.json").read_text())
+    assert [w for w in report["warnings"] if "skinned by UsdSkel" in w] == [f"asset: {shown[0]}"]
+    code = ("import warnings\nfrom texelbake.cli import _show_asset_warnings_plainly\n"
+            "from texelbake.scene.values import AssetWarning\n_show_asset_warnings_plainly()\n"
+            "warnings.warn('mesh /A: something', AssetWarning)\n")
+    err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stderr
+    assert err == "warning: mesh /A: something\n"

@@ -487,8 +487,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_asset_warnings_plainly() -> None:
+    """An asset's warnings on the terminal as "warning: <message>" lines (Python's default
+    format adds the file and source line of texelbake's reader, which names nothing in the
+    asset); other warnings keep the default format."""
+    import warnings
+
+    from texelbake.scene.values import AssetWarning
+
+    default = warnings.formatwarning
+
+    def fmt(message, category, filename, lineno, line=None):
+        if issubclass(category, AssetWarning):
+            return f"warning: {message}\n"
+        return default(message, category, filename, lineno, line)
+
+    warnings.formatwarning = fmt  # type: ignore[assignment]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _show_asset_warnings_plainly()
     try:
         return int(args.func(args) or 0)
     except TexelbakeError as exc:

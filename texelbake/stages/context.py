@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -96,9 +97,15 @@ def _asset_digest(path: str, mtime_ns: int) -> str:
 
 @functools.lru_cache(maxsize=2)
 def _load_asset_cached(path: str, digest: str) -> AssetModel:
+    """The asset as every stage reads it, its warnings kept in `AssetModel.warnings` and not
+    shown: the ingest stage shows them once (`run_ingest`), the report lists them, and a
+    shard process that reads the asset again does not repeat them."""
     from texelbake.scene import load_asset
+    from texelbake.scene.values import AssetWarning
 
-    return load_asset(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AssetWarning)
+        return load_asset(path)
 
 
 @functools.lru_cache(maxsize=4)

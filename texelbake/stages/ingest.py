@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import warnings
+
+from texelbake.scene.values import AssetWarning
 from texelbake.stages.context import StageContext
 
 
@@ -11,6 +14,8 @@ def run_ingest(ctx: StageContext, shard: int = 0) -> str:
     if ctx.store.exists(key):
         return key
     asset = ctx.asset()
+    for w in dict.fromkeys(asset.warnings):  # shown once, here (`context._load_asset_cached`)
+        warnings.warn(w, AssetWarning, stacklevel=2)
     summary = {
         "source": str(ctx.asset_path),
         "asset_hash": ctx.asset_hash,
