@@ -132,6 +132,13 @@ class BakeSettings(BaseModel):
         "selection matrix is eps_db below its energy, then brackets outward from it (batched "
         "fit only; issue 15).",
     )
+    selection_columns: int = Field(
+        0, ge=0, le=65536,
+        description="0: a texel's points are drawn from all its candidates (the seed); s > 0: "
+        "a texel of more than s candidates draws them from s of its candidates (a uniform "
+        "subset, seeded by the texel), its weights still fitted to Eq. 7 over all of them "
+        "(Grams s^2 d instead of m^2 d; batched fit only; issue 15).",
+    )
     closed_form: bool = Field(
         False, description="A texel whose R is numerically rank 1 gets its point in closed form, "
         "without draws or trials (batched fit only). Off by default: measured, the one column it "

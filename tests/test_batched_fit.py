@@ -363,3 +363,49 @@ def test_a_wide_texel_read_by_blocks_is_fitted_as_if_held(small_scene, monkeypat
     assert lazy["valid"].sum() >= 5
     for k in lazy:
         np.testing.assert_array_equal(lazy[k], whole[k], err_msg=k)
+
+
+@pytest.mark.parametrize("decorrelate", [False, True])
+def test_selection_columns_draws_from_a_subset_and_fits_every_candidate(decorrelate):
+    """selection_columns (issue 15): a texel of more candidates draws its points from a seeded
+    subset while its weights fit Eq. 7 over all of them. Checked on the whole F: in luminance
+    mode each channel's weights leave the residual of scipy's NNLS over the chosen columns
+    against the full row sums (to the float32 storage), the reported in-sample SNR is that of
+    the stored weights against the full row sums, the points lie in the subset and a rerun
+    draws the same; a subset as wide as the texel is the default fit bit for bit."""
+    from scipy.optimize import nnls
+
+    from texelbake.cpm.gram_fit import SUBSET_STREAM
+
+    rng = np.random.default_rng(5)
+    texels = [_texel(rng, 300, m, r, decorrelate) for m, r in ((90, 8), (120, 10))]
+    Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
+    corrs = [channel_correlation(R) for R, _ in texels]
+    seeds = [21, 22]
+    got = fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False,
+                   selection_columns=48, **KW)
+    again = fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False,
+                     selection_columns=48, **KW)
+    for F, valid, seed, (fit, _), (fit2, _) in zip(Fs, valids, seeds, got, again, strict=True):
+        assert fit is not None and fit.c >= 1
+        np.testing.assert_array_equal(fit.columns, fit2.columns)
+        np.testing.assert_array_equal(fit.weights, fit2.weights)
+        subset = np.random.default_rng((seed, SUBSET_STREAM)).choice(F.shape[1], 48,
+                                                                      replace=False)
+        assert np.isin(fit.columns, subset).all()
+        target = F.sum(axis=1)  # (ch, d): every candidate
+        approx = np.stack([fit.weights[:, c].astype(np.float64) @ F[c, fit.columns]
+                           for c in range(3)], axis=1)
+        assert fit.snr_db_insample == pytest.approx(snr_db(target.T, approx, valid), abs=1e-9)
+        if fit.colour_mode == "luminance":  # every channel's weights on the same columns
+            for c in range(3):
+                A, t = F[c, fit.columns][:, valid].T, target[c, valid]
+                best = nnls(A, t, maxiter=100 * A.shape[1])[1]
+                mine = np.linalg.norm(A @ fit.weights[:, c].astype(np.float64) - t)
+                assert mine <= best * (1 + 1e-4) + 1e-6 * np.linalg.norm(t)
+    whole = fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False, **KW)
+    wide = fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False,
+                    selection_columns=120, **KW)  # no texel has more than 120 candidates
+    for (a, _), (b, _) in zip(wide, whole, strict=True):
+        np.testing.assert_array_equal(a.columns, b.columns)
+        np.testing.assert_array_equal(a.weights, b.weights)

@@ -268,3 +268,20 @@ def test_the_cell_table_is_priced_at_level_0():
     assert costmodel.estimate(off, 2).cpm_seconds == e_point.cpm_seconds
     assert e_cell.cpm_seconds - e_point.cpm_seconds == pytest.approx(extra, rel=1e-9)
     assert e_cell.per_level[1] == e_point.per_level[1]
+
+
+def test_selection_columns_prices_the_subsets_grams():
+    """selection_columns s prices a texel's Grams and eigendecompositions at min(m, s) columns
+    (by hand from the uniform sizes, every level); 0 prices them at m."""
+    c = costmodel.Coefficients()
+    base = BakeSettings(atlas_resolution=32, samples_per_texel=512)
+    sub = BakeSettings(atlas_resolution=32, samples_per_texel=512, selection_columns=96)
+    d = base.n_light_dirs * base.n_view_dirs
+    saved = 0.0
+    for m, _, mult in costmodel._uniform_sizes(32, base.samples_per_texel, base.c_max):
+        ms = np.minimum(m, 96)
+        saved += mult * float(c.gram * ((m * m - ms * ms) * d).sum()
+                              + c.eigh * (m ** 3 - ms ** 3).sum())
+    assert saved > 0.0
+    e_base, e_sub = (costmodel.estimate(s, 2) for s in (base, sub))
+    assert e_base.cpm_seconds - e_sub.cpm_seconds == pytest.approx(saved, rel=1e-9)

@@ -230,8 +230,11 @@ def estimate(
     for level, (m, dense, mult) in enumerate(sizes):
         refit = brdf_r * coef.refit * (dense * d).sum() if refits and level > 0 else 0.0
         held = mult * float(brdf_h * coef.held * (dense * n_h).sum())
+        # with selection_columns, a wider texel's Grams and eigendecompositions are the subset's
+        m_sel = np.minimum(m, s.selection_columns) if s.selection_columns else m
         sec = held + mult * float(brdf * coef.r_entry * (m * d).sum()
-                                  + coef.gram * (m * m * d).sum() + coef.eigh * (m ** 3).sum()
+                                  + coef.gram * (m_sel * m_sel * d).sum()
+                                  + coef.eigh * (m_sel ** 3).sum()
                                   + coef.texel * m.size + refit)
         if level == 0 and cell_grids:
             sec += mult * cell_grids * coef.btf_cell * brdf * coef.r_entry * float((m * d).sum())

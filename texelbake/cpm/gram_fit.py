@@ -30,6 +30,7 @@ alpha_c = (G_c 1)_j / (G_c)_jj for the column j of largest energy; no draws, no 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -88,6 +89,10 @@ class GroupInput:
     sel_total: float  # ||S||_F^2
     chans: np.ndarray  # channel indices fitted by this group
 
+
+#: the stream of a texel's seed that draws `fit_many`'s selection_columns subset (the trials
+#: draw from the texel's seed itself)
+SUBSET_STREAM = 0x5E1EC7
 
 #: counts of the trial work done by `_bisect` in this process (probes of c, NNLS draws solved,
 #: draws not solved because a probe stopped at the target); read by benchmarks/cpm_cpu.py
@@ -205,6 +210,7 @@ def fit_texel_gram(
     closed_form: bool,
     trial_stop: str = "all",
     c_start: str = "interval",
+    targets: np.ndarray | None = None,
 ) -> tuple[TexelFit | None, str]:
     """One texel's fit from its Grams; returns (TexelFit, skip) with skip "" or "rank1", or
     (None, "full_svd") when the Gram route cannot resolve span(V_k) (`top_singular` redoes a
@@ -213,6 +219,8 @@ def fit_texel_gram(
     F : (ch, m, d) float64, F = diag(1/a_vis) R transposed per channel (invalid rows zero);
     valid : (d,) bool rows with a_vis above the floor; Gc : ch Grams F_c F_c^T (m, m);
     groups : the selection groups (one in luminance mode, one per channel otherwise);
+    targets : (ch, d) what the points fit, Eq. 7's row sums of a texel of which F holds only
+    some candidates (`fit_many`'s selection_columns); default F's own row sums F 1.
     Caller handles m = 0, no valid row, all-zero R and non-finite input (`fit_texel`'s cases).
     """
     ch, m, _ = F.shape
@@ -221,7 +229,11 @@ def fit_texel_gram(
     for c in range(ch):  # loop over <= 3 channels
         Gn_scale = np.sqrt(np.maximum(np.diag(Gc[c]), 0.0))
         scales.append(np.where(Gn_scale > 0, Gn_scale, 1.0))
-        reds.append(reduced_system(Gc[c], scales[c]))
+        if targets is None:
+            reds.append(reduced_system(Gc[c], scales[c]))
+        else:
+            reds.append(reduced_system(Gc[c], scales[c], F[c] @ targets[c],
+                                       float(targets[c] @ targets[c])))
     specs = []
     for gi in groups:  # loop over <= ch groups
         s, Vt = spectrum(gi.sel_eig)
@@ -230,7 +242,8 @@ def fit_texel_gram(
             return None, "full_svd"
         specs.append((s, Vt, k))
     skip = ""
-    if closed_form and all(_rank1(gi.sel_eig, gi.sel_total) for gi in groups) and all(
+    if closed_form and targets is None and all(
+        _rank1(gi.sel_eig, gi.sel_total) for gi in groups) and all(
         _rank1_gram(g) for g in Gc
     ):
         skip = "rank1"
@@ -246,7 +259,8 @@ def fit_texel_gram(
             fits.append((np.array([j], np.int64), alpha, k, False))
             continue
         p = column_probabilities(np.zeros((0, 0)), s, Vt, k, col_energy=gi.sel_diag)
-        signal = float(sum(Gc[c].sum() for c in chans))
+        signal = float(sum(Gc[c].sum() if targets is None else targets[c] @ targets[c]
+                           for c in chans))
         hint = spectrum_c(s, gi.sel_total, eps_db) if c_start == "spectrum" else None
         cols, alpha, capped = _bisect(
             p, k, [reds[c] for c in chans], signal, eps_db=eps_db, c_max=c_max,
@@ -254,7 +268,7 @@ def fit_texel_gram(
         )
         fits.append((cols, alpha, k, capped))
     return _merge(F, valid, fits, groups, mode=mode, corr=corr, eps_db=eps_db,
-                  c_max=c_max), skip
+                  c_max=c_max, ref=None if targets is None else targets.T), skip
 
 
 def _rank1(eig: tuple[np.ndarray, np.ndarray], total: float) -> bool:
@@ -284,9 +298,10 @@ def _one_column_weight(G: np.ndarray, j: int) -> float:
     return max(float(G[j].sum()), 0.0) / gjj if gjj > 0.0 else 0.0
 
 
-def _merge(F, valid, fits, groups, *, mode, corr, eps_db, c_max) -> TexelFit:
+def _merge(F, valid, fits, groups, *, mode, corr, eps_db, c_max, ref=None) -> TexelFit:
     """`fit_texel`'s merge: union of the groups' columns, float32 weights, points with a zero
-    weight everywhere dropped, the in-sample SNR of Eq. 7 recomputed in d space."""
+    weight everywhere dropped, the in-sample SNR of Eq. 7 recomputed in d space (against
+    ref (d, ch), default F's row sums)."""
     ch = F.shape[0]
     columns = np.unique(np.concatenate([f[0] for f in fits])).astype(np.int64)
     w64 = np.zeros((columns.size, ch), dtype=np.float64)
@@ -298,7 +313,8 @@ def _merge(F, valid, fits, groups, *, mode, corr, eps_db, c_max) -> TexelFit:
     columns, w32 = columns[live], w32[live]
     w = w32.astype(np.float64)
     approx = np.stack([w[:, c] @ F[c, columns] for c in range(ch)], axis=1)  # (d, ch)
-    ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F
+    if ref is None:
+        ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F
     snr = snr_db(ref, approx, valid)
     capped = any(f[3] for f in fits)
     reasons = []
@@ -335,10 +351,15 @@ def fit_many(
     trial_stop: str = "all",
     c_start: str = "interval",
     small: str = "fit",
+    selection_columns: int = 0,
 ) -> list[tuple[TexelFit | None, str]]:
     """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
     `fit_texel_gram` per texel. With small="all" a texel of m <= c_max candidates whose fit is
     not exact on the grid keeps them all (`fit.needs_all_points`, skip "all").
+    selection_columns > 0: a texel of more candidates draws its points from that many of them
+    (a uniform subset without replacement, seeded by the texel) while the weights still fit the
+    sum over all of them (Eq. 7): Grams of s^2 d and eigendecompositions of s^3 instead of m^2 d
+    and m^3 (issue 15); 0 (default) selects from every candidate, as the seed.
     Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous blocks), or `Columns`
     (m > n_batch only); valids[t] : (d,)
     bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
@@ -346,7 +367,7 @@ def fit_many(
     (`fit_texel`'s cases); texels wider than n_batch columns go through `fit_split`."""
     plans: list[tuple | None] = []
     mats: list[np.ndarray] = []
-    for F, corr in zip(Fs, corrs, strict=True):  # loop over texels: Grams (GEMMs)
+    for F, corr, seed in zip(Fs, corrs, seeds, strict=True):  # loop over texels: Grams (GEMMs)
         ch = F.shape[0]
         if n_batch is not None and F.shape[1] > n_batch:
             plans.append(None)
@@ -359,9 +380,15 @@ def fit_many(
             mode = colour
         if ch == 1:
             mode = "luminance"
+        sub = targets = None
+        if 0 < selection_columns < F.shape[1]:
+            sub = np.sort(np.random.default_rng((seed, SUBSET_STREAM)).choice(
+                F.shape[1], selection_columns, replace=False))
+            targets = F.sum(axis=1)  # (ch, d): Eq. 7 over every candidate
+            F = np.ascontiguousarray(F[:, sub])
         Gc = [F[c] @ F[c].T for c in range(ch)]
         groups = select_groups(F, Gc, mode)
-        plans.append((mode, Gc, groups, len(mats)))
+        plans.append((mode, Gc, groups, len(mats), F, sub, targets))
         mats += [g for g, _ in groups]
     eigs = top_eighs(mats, psi)
     out: list[tuple[TexelFit | None, str]] = []
@@ -375,14 +402,17 @@ def fit_many(
                 decorrelation_threshold=decorrelation_threshold)
         else:
             assert not isinstance(F, Columns)  # narrowed in the first loop
-            mode, Gc, groups, first = plan
+            mode, Gc, groups, first, F_sel, sub, targets = plan
             ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
                     for j, (g, chans) in enumerate(groups)]
             got = fit_texel_gram(
-                F, valid, Gc, ginp, mode=mode, corr=corr,
+                F_sel, valid, Gc, ginp, mode=mode, corr=corr,
                 psi=psi, eps_db=eps_db, c_max=c_max, n_trials=n_trials, weights=weights,
                 seed=seed, closed_form=closed_form, trial_stop=trial_stop, c_start=c_start,
+                targets=targets,
             )
+            if sub is not None and got[0] is not None:  # columns of the subset -> of the texel
+                got = (dataclasses.replace(got[0], columns=sub[got[0].columns]), got[1])
         fit = got[0]
         if fit is not None and needs_all_points(small, F.shape[1], c_max, fit.snr_db_insample):
             ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F

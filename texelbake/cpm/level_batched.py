@@ -408,6 +408,7 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         n_trials=s.n_trials, weights=s.weights, colour=s.colour,
         decorrelation_threshold=s.decorrelation_threshold, closed_form=s.closed_form,
         n_batch=s.n_batch, trial_stop=s.trial_stop, c_start=s.c_start, small=s.small_texels,
+        selection_columns=s.selection_columns,
     ), strict=True))
     fits: list[TexelFit | None] = [None] * n_t
     for t in range(n_t):  # loop over texels
