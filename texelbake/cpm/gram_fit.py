@@ -359,7 +359,8 @@ def fit_many(
     selection_columns > 0: a texel of more candidates draws its points from that many of them
     (a uniform subset without replacement, seeded by the texel) while the weights still fit the
     sum over all of them (Eq. 7): Grams of s^2 d and eigendecompositions of s^3 instead of m^2 d
-    and m^3 (issue 15); 0 (default) selects from every candidate, as the seed.
+    and m^3 (issue 15); 0 (default) selects from every candidate, as the seed. A texel the
+    Gram route cannot resolve ("full_svd") is fitted by the caller over all its candidates.
     Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous blocks), or `Columns`
     (m > n_batch only); valids[t] : (d,)
     bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
@@ -385,10 +386,10 @@ def fit_many(
             sub = np.sort(np.random.default_rng((seed, SUBSET_STREAM)).choice(
                 F.shape[1], selection_columns, replace=False))
             targets = F.sum(axis=1)  # (ch, d): Eq. 7 over every candidate
-            F = np.ascontiguousarray(F[:, sub])
+            F = np.ascontiguousarray(F[:, sub])  # a copy, dropped after the Grams (memory)
         Gc = [F[c] @ F[c].T for c in range(ch)]
         groups = select_groups(F, Gc, mode)
-        plans.append((mode, Gc, groups, len(mats), F, sub, targets))
+        plans.append((mode, Gc, groups, len(mats), sub, targets))
         mats += [g for g, _ in groups]
     eigs = top_eighs(mats, psi)
     out: list[tuple[TexelFit | None, str]] = []
@@ -402,7 +403,8 @@ def fit_many(
                 decorrelation_threshold=decorrelation_threshold)
         else:
             assert not isinstance(F, Columns)  # narrowed in the first loop
-            mode, Gc, groups, first, F_sel, sub, targets = plan
+            mode, Gc, groups, first, sub, targets = plan
+            F_sel = F if sub is None else np.ascontiguousarray(F[:, sub])
             ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
                     for j, (g, chans) in enumerate(groups)]
             got = fit_texel_gram(
