@@ -225,15 +225,20 @@ def fit_texel_gram(
     """
     ch, m, _ = F.shape
     rng = np.random.default_rng(seed)
+    # per channel F_c^T target and ||target||^2 (the signal of Eq. 7's SNR): of the given
+    # targets, or of F's own row sums (then reduced_system forms G 1 itself)
+    fits_of: list[tuple[np.ndarray | None, float | None]]
+    if targets is None:
+        fits_of = [(None, None)] * ch
+        signals = [float(Gc[c].sum()) for c in range(ch)]
+    else:
+        signals = [float(targets[c] @ targets[c]) for c in range(ch)]
+        fits_of = [(F[c] @ targets[c], signals[c]) for c in range(ch)]
     reds, scales = [], []
     for c in range(ch):  # loop over <= 3 channels
         Gn_scale = np.sqrt(np.maximum(np.diag(Gc[c]), 0.0))
         scales.append(np.where(Gn_scale > 0, Gn_scale, 1.0))
-        if targets is None:
-            reds.append(reduced_system(Gc[c], scales[c]))
-        else:
-            reds.append(reduced_system(Gc[c], scales[c], F[c] @ targets[c],
-                                       float(targets[c] @ targets[c])))
+        reds.append(reduced_system(Gc[c], scales[c], *fits_of[c]))
     specs = []
     for gi in groups:  # loop over <= ch groups
         s, Vt = spectrum(gi.sel_eig)
@@ -259,8 +264,7 @@ def fit_texel_gram(
             fits.append((np.array([j], np.int64), alpha, k, False))
             continue
         p = column_probabilities(np.zeros((0, 0)), s, Vt, k, col_energy=gi.sel_diag)
-        signal = float(sum(Gc[c].sum() if targets is None else targets[c] @ targets[c]
-                           for c in chans))
+        signal = float(sum(signals[c] for c in chans))
         hint = spectrum_c(s, gi.sel_total, eps_db) if c_start == "spectrum" else None
         cols, alpha, capped = _bisect(
             p, k, [reds[c] for c in chans], signal, eps_db=eps_db, c_max=c_max,
