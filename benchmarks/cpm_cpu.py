@@ -230,6 +230,10 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
 def stages_asset(scene: str, size: str, work: Path) -> Path:
     from texelbake.scenes import write_scene
 
+    if Path(scene).suffix in (".usd", ".usda", ".usdc", ".usdz"):  # an asset file (the Teapot)
+        if not Path(scene).is_file():
+            raise SystemExit(f"--scene {scene}: no such USD file")
+        return Path(scene).resolve()
     path = work / f"{scene}_{size}.usda"
     if not path.exists():
         write_scene(scene, path, size)
@@ -285,7 +289,8 @@ def print_seed_summary(res: dict) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", default="cylinder")
+    ap.add_argument("--scene", default="cylinder",
+                    help="a generated scene's name, or the path of a USD asset")
     ap.add_argument("--size", default="full", choices=["small", "full"])
     ap.add_argument("--atlas", type=int, default=32)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")

@@ -114,6 +114,13 @@ class BakeSettings(BaseModel):
         "cloisonne's level-3 held-out p5 at -1.9 dB (-7.7 without) but refuses most refits, so "
         "the full cylinder's coarse medians fall 2-6 dB (docs/decisions.md).",
     )
+    refit_shrink: bool = Field(
+        False,
+        description="With coarse_target='dense', shrink each texel's refitted weights towards "
+        "the fit's: NNLS of |A w - f|^2 + lam |w - w_fit|^2 with lam chosen per texel from five "
+        "strengths and the fit's own weights by an 8-fold cross-validation over the grid's "
+        "light directions (texelbake.cpm.refit.shrunk_refit; docs/decisions.md 2026-11-29).",
+    )
     fit_method: Literal["batched", "per_texel"] = Field(
         "batched",
         description="batched: R, Grams and eigendecompositions for many texels at once "
@@ -227,6 +234,10 @@ class BakeSettings(BaseModel):
             from texelbake.deform.warps import check_warp_spec
 
             check_warp_spec(self.warp)
+        if self.refit_shrink and self.refit_validation:
+            raise ValueError("refit_shrink and refit_validation are two rules for the same "
+                             "refit (shrink towards the fit's weights, or all or nothing): "
+                             "choose one")
         if self.shard_texels > self.atlas_resolution:
             raise ValueError(
                 f"shard_texels ({self.shard_texels}) must not exceed atlas_resolution "

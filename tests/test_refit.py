@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.optimize import nnls as scipy_nnls
 
 from schemas.settings import BakeSettings
 from texelbake import stages
@@ -22,7 +23,15 @@ from texelbake.cpm.level import (
 )
 from texelbake.cpm.level_batched import fit_level
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
-from texelbake.cpm.refit import dense_nnls, refit_generalizes, refit_to_dense, validation_fold
+from texelbake.cpm.refit import (
+    SHRINK_ALPHAS,
+    SHRINK_FOLDS,
+    dense_nnls,
+    refit_generalizes,
+    refit_to_dense,
+    shrunk_refit,
+    validation_fold,
+)
 from texelbake.scenes import write_scene
 
 
@@ -151,3 +160,97 @@ def test_refit_without_validation_differs_only_where_it_was_refused(two_levels):
         np.testing.assert_array_equal(guarded["point_weight"][a:b], want)
     # both branches are exercised on this tile (measured: 4 of 13 refused)
     assert 0 < rej.sum() < fit["valid"].sum(), (rej.sum(), fit["valid"].sum())
+
+
+def _random_problem(seed: int, d_i: int = 16, n_o: int = 6, c: int = 9, noise: float = 0.05):
+    """A (3, d, c) non-negative problem whose target is a positive combination of its columns
+    plus noise, and a fit's weights w0 that are close to, not at, the best ones."""
+    rng = np.random.default_rng(seed)
+    d = d_i * n_o
+    A = rng.uniform(0.0, 1.0, (3, d, c)) ** 3
+    w = rng.uniform(0.0, 1.0, (c, 3)) * (rng.uniform(size=(c, 1)) < 0.7)
+    f = np.einsum("kdc,ck->dk", A, w) + rng.normal(0.0, noise, (d, 3))
+    w0 = np.abs(w + rng.normal(0.0, 0.2, w.shape))
+    ok = rng.uniform(size=d) < 0.9
+    return A, f, ok, w0, validation_fold(d_i, n_o, SHRINK_FOLDS)
+
+
+def _stacked_nnls(a, f, w0, lam):
+    """The shrunk least squares solved independently: scipy's NNLS on the stacked rows
+    [a; sqrt(lam) I] against [f; sqrt(lam) w0]."""
+    c = a.shape[1]
+    M = np.vstack([a, np.sqrt(lam) * np.eye(c)])
+    return scipy_nnls(M, np.concatenate([f, np.sqrt(lam) * w0]), maxiter=50 * c)[0]
+
+
+# (seed, noise, view directions): measured to choose 0, 1e-3, 1e-2, 1 and inf (the fit's weights)
+@pytest.mark.parametrize("seed,noise,n_o", [(0, 0.05, 6), (1, 0.05, 6), (5, 0.05, 6),
+                                             (0, 0.5, 2), (1, 0.5, 2), (5, 2.0, 2)])
+def test_shrunk_refit_against_a_brute_force_cross_validation(seed, noise, n_o):
+    """`shrunk_refit` works in Gram space (c x c); here every fold's fit is scipy's NNLS on the
+    stacked rows and every error is summed over the held-out rows themselves. The chosen
+    strength must be the brute force's (its errors differ by more than the solvers'
+    ~1e-9 relative disagreement, checked) and the weights equal to 1e-6 of their scale."""
+    A, f, ok, w0, fold = _random_problem(seed, n_o=n_o, noise=noise)
+    alphas = (*SHRINK_ALPHAS, np.inf)
+    err = np.zeros(len(alphas))
+    for k in np.unique(fold):  # loop over folds
+        tr, va = ok & (fold != k), ok & (fold == k)
+        for ch in range(3):  # loop over colour channels
+            lam0 = np.mean(np.sum(A[ch][tr] ** 2, axis=0))
+            for n, alpha in enumerate(alphas):  # loop over strengths
+                w = w0[:, ch] if np.isinf(alpha) else _stacked_nnls(
+                    A[ch][tr], f[tr, ch], w0[:, ch], alpha * lam0)
+                err[n] += np.sum((A[ch][va] @ w - f[va, ch]) ** 2)
+    want = len(alphas) - 1 - int(np.argmin(err[::-1]))
+    gap = np.sort(err)[1] - np.sort(err)[0]
+    assert gap > 1e-6 * err.min()  # a clear winner: the comparison below is not a coin toss
+    got_w, got_alpha = shrunk_refit(A, f, ok, w0, fold)
+    assert got_alpha == alphas[want], (got_alpha, err)
+    for ch in range(3):  # loop over colour channels
+        lam0 = np.mean(np.sum(A[ch][ok] ** 2, axis=0))
+        w = w0[:, ch] if np.isinf(alphas[want]) else _stacked_nnls(
+            A[ch][ok], f[ok, ch], w0[:, ch], alphas[want] * lam0)
+        np.testing.assert_allclose(got_w[:, ch], w, atol=1e-6 * max(1.0, np.abs(w).max()))
+
+
+def test_shrunk_refit_keeps_the_fit_where_the_refit_only_fits_the_grid():
+    """The guard's toy (points that matter on the even light directions only, a target that
+    deviates there only): the unshrunk refit fits the deviations; the cross-validation, which
+    sees the odd light directions, keeps the smooth term's weight and leaves the one-hot
+    points near zero (the plain refit gives them the deviations, 0.1-0.4)."""
+    A, f, ok, _ = _grid_problem(noise=True)
+    fold = validation_fold(8, 4, SHRINK_FOLDS)
+    old = np.zeros((A.shape[2], 3))
+    old[0] = 1.0
+    w, alpha = shrunk_refit(A, f, ok, old, fold)
+    plain = dense_nnls(A, f, ok)
+    assert alpha > 0  # not the plain refit
+    assert np.abs(w[1:]).max() < 0.5 * np.abs(plain[1:]).max(), (alpha, w[1:].max())
+
+
+def test_refit_shrink_and_refit_validation_are_exclusive():
+    with pytest.raises(ValueError, match="refit_shrink and refit_validation"):
+        BakeSettings(coarse_target="dense", refit_shrink=True, refit_validation=True)
+
+
+def test_shrunk_refit_in_the_stage_raises_the_dense_in_sample_snr(two_levels):
+    """On a real level: the shrunk weights' in-sample SNR against the brute-force dense Eq. 7
+    (`_dense_snr`, the per-texel functions) is never below the fit's weights' (the penalty is
+    0 at the fit's weights), a texel whose strength is infinite keeps the fit's weights
+    exactly, and the points do not move."""
+    src, fit, _ = two_levels
+    shrunk = refit_to_dense(dataclasses.replace(src, settings=src.settings.model_copy(
+        update={"refit_shrink": True})), 1, fit)
+    np.testing.assert_array_equal(shrunk["point_sample"], fit["point_sample"])
+    alpha = shrunk["refit_alpha"]
+    v = np.flatnonzero(fit["valid"] & (np.diff(fit["offsets"]) > 0))
+    assert np.all(np.isin(alpha[v], np.float32((*SHRINK_ALPHAS, np.inf))))
+    for t in v:  # loop over the texels of one tile
+        a, b = fit["offsets"][t], fit["offsets"][t + 1]
+        pts = fit["point_sample"][a:b]
+        before = _dense_snr(src, fit["texel"][t], pts, fit["point_weight"][a:b])
+        after = _dense_snr(src, fit["texel"][t], pts, shrunk["point_weight"][a:b])
+        assert after >= before - 1e-3, (t, before, after)
+        if np.isinf(alpha[t]):
+            np.testing.assert_array_equal(shrunk["point_weight"][a:b], fit["point_weight"][a:b])

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.optimize import nnls
 from threadpoolctl import threadpool_limits
 
+from texelbake.cpm.gram_linalg import normalised_gram, reduced_system
 from texelbake.cpm.level import (
     FitInputs,
     PointSet,
@@ -89,12 +90,100 @@ def refit_generalizes(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: n
     return err_cv < err_old if scored else True  # nothing to validate on: in-sample alone
 
 
+#: light-direction folds of the shrunk refit's cross-validation (`shrunk_refit`): more folds
+#: than the guard's 4 so that each fold's training rows (7/8 of the grid's light directions)
+#: fit nearly as well as the whole grid (the guard's bias against the refit, 2026-11-26)
+SHRINK_FOLDS = 8
+
+#: strengths alpha of the shrunk refit, lambda = alpha x the mean diagonal of the training Gram
+#: (a column's mean squared norm): 0 is the plain refit; the fit's own weights are the last
+#: candidate (alpha = infinity)
+SHRINK_ALPHAS = (0.0, 1e-3, 1e-2, 1e-1, 1.0)
+
+
+def _gram_nnls(G: np.ndarray, b: np.ndarray, tt: float) -> np.ndarray:
+    """min ||M w - t||^2 over w >= 0 from G = M^T M, b = M^T t, tt = ||t||^2 (c x c, not
+    d x c: the reduced system of `gram_linalg.reduced_system`). Zeros for an all-zero G."""
+    if not np.any(np.diag(G) > 0):
+        return np.zeros(G.shape[0])
+    _, scale = normalised_gram(G)
+    A, t, _ = reduced_system(G, scale, b, tt)
+    if A.shape[0] == 0:
+        return np.zeros(G.shape[0])
+    return nnls(A, t, maxiter=50 * G.shape[0])[0]
+
+
+def _shrunk(G: np.ndarray, b: np.ndarray, tt: float, w0: np.ndarray, alpha: float) -> np.ndarray:
+    """argmin over w >= 0 of ||M w - t||^2 + lam ||w - w0||^2, lam = alpha mean(diag G): the
+    NNLS of the Gram G + lam I with b + lam w0 (the stacked system [M; sqrt(lam) I] against
+    [t; sqrt(lam) w0])."""
+    lam = alpha * float(np.mean(np.diag(G)))
+    return _gram_nnls(G + lam * np.eye(G.shape[0]), b + lam * w0, tt + lam * float(w0 @ w0))
+
+
+def shrunk_refit(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.ndarray,
+                 fold: np.ndarray) -> tuple[np.ndarray, float]:
+    """The refit's weights shrunk towards the fit's (`settings.refit_shrink`): per channel
+    w = argmin_{w >= 0} ||A_k w - f_k||^2 + lam ||w - w_fit||^2 over the rows `ok`, with one
+    strength per texel chosen from `SHRINK_ALPHAS` and the fit's own weights (alpha = inf) by
+    cross-validation over the folds of `fold` (weights fitted on the other folds' rows, squared
+    errors on the fold's rows summed over folds and channels; ties go to the stronger shrink).
+
+    Why: the plain refit (alpha = 0) raises the coarse levels' held-out medians and lowers their
+    tails where NNLS with many points fits the grid's directions and misses between them; the
+    guard (`refit_generalizes`) can only say all or nothing, and says nothing too often. A
+    ridge towards the fit's weights is the middle the two measurements asked for
+    (docs/decisions.md 2026-11-26). In-sample it can only beat the fit's weights: at
+    w = w_fit the penalty is 0.
+    A : (3, d, c); f_ref : (d, 3); ok : (d,) bool; old_w : (c, 3); fold : (d,) int.
+    returns ((c, 3) weights, the chosen alpha; inf when the fit's weights are kept)."""
+    c = A.shape[2]
+    folds = [k for k in np.unique(fold) if np.any(ok & (fold == k))]
+    # per channel and fold: the fold's Gram, A^T f and ||f||^2 (c x c: the folds' training
+    # systems are the whole grid's minus the fold's)
+    G = np.zeros((3, len(folds), c, c))
+    b = np.zeros((3, len(folds), c))
+    tt = np.zeros((3, len(folds)))
+    for j, k in enumerate(folds):  # loop over folds (eight)
+        rows = ok & (fold == k)
+        a, f = A[:, rows], f_ref[rows].T  # (3, n, c), (3, n)
+        G[:, j] = np.einsum("knc,kne->kce", a, a)
+        b[:, j] = np.einsum("knc,kn->kc", a, f)
+        tt[:, j] = np.einsum("kn,kn->k", f, f)
+    G_all, b_all, tt_all = G.sum(axis=1), b.sum(axis=1), tt.sum(axis=1)
+
+    def fold_err(w: np.ndarray, ch: int, j: int) -> float:
+        return float(w @ G[ch, j] @ w - 2.0 * b[ch, j] @ w + tt[ch, j])
+
+    alphas = (*SHRINK_ALPHAS, np.inf)
+    err = np.zeros(len(alphas))
+    for ch in range(3):  # loop over colour channels
+        for j in range(len(folds) if len(folds) > 1 else 0):  # loop over folds
+            G_tr, b_tr, tt_tr = G_all[ch] - G[ch, j], b_all[ch] - b[ch, j], tt_all[ch] - tt[ch, j]
+            for n, alpha in enumerate(SHRINK_ALPHAS):  # loop over the strengths (five)
+                err[n] += fold_err(_shrunk(G_tr, b_tr, tt_tr, old_w[:, ch], alpha), ch, j)
+            err[-1] += fold_err(old_w[:, ch], ch, j)
+    # the strongest shrink among the smallest errors (reversed: argmin takes the first)
+    best = len(alphas) - 1 - int(np.argmin(err[::-1]))
+    if len(folds) < 2:  # nothing to validate on: the in-sample refit, as the plain rule
+        best = 0
+    alpha = float(alphas[best])
+    if not np.isfinite(alpha):
+        return old_w.copy(), alpha
+    w = np.stack([_shrunk(G_all[ch], b_all[ch], tt_all[ch], old_w[:, ch], alpha)
+                  for ch in range(3)], axis=1)  # loop over colour channels
+    return w, alpha
+
+
 def refit_to_dense(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """`out` of `fit_level` for `level` with every valid texel's point weights refitted to the
     dense Eq. 7 (see the module docstring); snr_in and snr_ho measured against it. A texel
     whose refit would not raise its in-sample SNR against the dense reference keeps its
     weights, and so does one the validation guard refuses (`settings.refit_validation`,
-    `refit_generalizes`). Returns a new dict: the same keys plus `refit_rejected` (t,) bool."""
+    `refit_generalizes`); with `settings.refit_shrink` the weights are shrunk towards the
+    fit's (`shrunk_refit`). Returns a new dict: the same keys plus `refit_rejected` (t,) bool
+    and `refit_alpha` (t,) float32, the shrink's strength (inf: the fit's weights kept; nan:
+    not shrunk)."""
     with threadpool_limits(limits=1):  # small per-texel solves: see level.fit_level
         return _refit(src, level, out)
 
@@ -114,7 +203,9 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
     budget = int(s.worker_memory_mb) * 2**20
     rays0 = src.caster.rays_cast
     fold = validation_fold(n_i, n_o, REFIT_FOLDS)
+    shrink_fold = validation_fold(n_i, n_o, SHRINK_FOLDS)
     rejected = np.zeros(texels.shape[0], bool)  # refits the validation fold refused
+    alphas = np.full(texels.shape[0], np.nan, np.float32)  # the shrunk refit's strengths
     for t, texel in enumerate(texels):  # loop over texels: one dense target and NNLS each
         a, b = offsets[t], offsets[t + 1]
         if not out["valid"][t] or b == a:
@@ -140,7 +231,11 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
         A = np.stack([(R[ch] * inv[None, :]).T for ch in range(3)])  # (3, d, c): F per channel
         old_w = weights[a:b].astype(np.float64)
         old = np.einsum("kdc,ck->dk", A, old_w)  # (d, 3): Eq. 7 of the fit's weights
-        new_w = dense_nnls(A, f_ref, ok)
+        if s.refit_shrink:
+            new_w, alpha = shrunk_refit(A, f_ref, ok, old_w, shrink_fold)
+            alphas[t] = alpha
+        else:
+            new_w = dense_nnls(A, f_ref, ok)
         new = np.einsum("kdc,ck->dk", A, new_w)
         snr_old, snr_new = snr_db(f_ref, old, ok), snr_db(f_ref, new, ok)
         accept = snr_new > snr_old
@@ -168,6 +263,7 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
     res["snr_in"] = snr_in
     res["snr_ho"] = snr_ho
     res["refit_rejected"] = rejected
+    res["refit_alpha"] = alphas
     if "rays" in out:  # work done, for rays/s: the fit's and the refit's
         res["rays"] = np.asarray(out["rays"], np.int64) + (src.caster.rays_cast - rays0)
     return res
