@@ -148,7 +148,7 @@ def shrunk_refit(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.nda
         rows = ok & (fold == k)
         a, f = A[:, rows], f_ref[rows].T  # (3, n, c), (3, n)
         at = a.transpose(0, 2, 1)
-        G[:, j] = at @ a  # batched matmul (BLAS), not einsum: 10x less time measured
+        G[:, j] = at @ a  # batched matmul (BLAS): einsum took 27x as long (3 x 512 x 64)
         b[:, j] = (at @ f[:, :, None])[:, :, 0]
         tt[:, j] = np.sum(f * f, axis=1)
     G_all, b_all, tt_all = G.sum(axis=1), b.sum(axis=1), tt.sum(axis=1)
