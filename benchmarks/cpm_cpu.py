@@ -4,6 +4,7 @@ export; `benchmarks/bake.py` times the whole bake).
 
     python benchmarks/cpm_cpu.py --scene cylinder --atlas 32 [--set KEY=VALUE ...] [--tiles 0,5]
         [--seeds 0,1,2] [--json PATH]
+    python benchmarks/cpm_cpu.py --compare A.json B.json ...   # --seeds results side by side
 
 Ingest and geometry run once (untimed, cached in --workdir); then every tile's levels and the
 top levels are fitted in order, exactly as `run_cpm_tile` / `run_cpm_top` do (the tiles' sums for the
@@ -287,6 +288,33 @@ def print_seed_summary(res: dict) -> None:
               f"{span(lv['heldout_db_median']):<26} {span(lv['heldout_db_p5'])}")
 
 
+def compare(paths: list[Path]) -> None:
+    """Side by side, per level, the median over seeds of each --seeds JSON's held-out median and
+    p5 and its CPU seconds; each file is named by its stem and the settings in which it differs
+    from the first file's."""
+    docs = [json.loads(p.read_text()) for p in paths]
+    for p, d in zip(paths, docs, strict=True):
+        if "summary" not in d:
+            raise SystemExit(f"{p}: not a --seeds result (no 'summary')")
+    base = docs[0]["runs"][0]["settings"]
+    levels = sorted({lv["level"] for d in docs for lv in d["summary"]})
+    print(f"{'run':<64} {'cpu s':>7}  " + " ".join(f"{'L' + str(v) + ' med/p5':>13}" for v in levels))
+    for p, d in zip(paths, docs, strict=True):
+        st = d["runs"][0]["settings"]
+        diff = ",".join(f"{k}={st[k]}" for k in sorted(st) if k != "seed" and st.get(k) != base.get(k))
+        by = {lv["level"]: lv for lv in d["summary"]}
+        cells = []
+        for v in levels:  # loop over levels
+            lv = by.get(v)
+            if lv is None or lv["heldout_db_median"] is None:
+                cells.append(f"{'n/a':>13}")
+                continue
+            cells.append(f"{lv['heldout_db_median']['median']:6.1f}/{lv['heldout_db_p5']['median']:<6.1f}")
+        cpu = sum(lv["cpu_seconds"] for lv in d["summary"]) / max(len(d["seeds"]), 1)
+        name = f"{p.stem} {diff}".strip()
+        print(f"{name:<64} {cpu:>7.1f}  " + " ".join(cells))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="cylinder",
@@ -304,7 +332,13 @@ def main() -> None:
                     "comparison of single bakes cannot see)")
     ap.add_argument("--breakdown", action="store_true",
                     help="also time the fit's parts (process time per function)")
+    ap.add_argument("--compare", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="print earlier --seeds results side by side (per level, the median over "
+                    "seeds of the held-out median/p5; CPU s per seed) and exit")
     args = ap.parse_args()
+    if args.compare:
+        compare(args.compare)
+        return
     acc = install_breakdown() if args.breakdown else None
     work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-cpmcpu-"))
     work.mkdir(parents=True, exist_ok=True)
