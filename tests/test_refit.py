@@ -24,9 +24,11 @@ from texelbake.cpm.level import (
 from texelbake.cpm.level_batched import fit_level
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
 from texelbake.cpm.refit import (
+    POOL_TEXELS,
     SHRINK_ALPHAS,
     SHRINK_FOLDS,
     dense_nnls,
+    pooled_alpha,
     refit_generalizes,
     refit_to_dense,
     shrunk_refit,
@@ -229,6 +231,19 @@ def test_shrunk_refit_keeps_the_fit_where_the_refit_only_fits_the_grid():
     assert np.abs(w[1:]).max() < 0.5 * np.abs(plain[1:]).max(), (alpha, w[1:].max())
 
 
+def test_pooled_alpha_sums_the_texels_relative_errors():
+    """By hand: texel 1 alone prefers alpha 0, texel 2 alone 1e-1; summed, 1e-2 wins. Ties go
+    to the stronger shrink (the fit's weights first), and so does an empty pool."""
+    inf = np.inf
+    e = np.array([[0.10, 0.20, 0.30, 0.40, 0.50, 0.60],
+                  [0.90, 0.80, 0.25, 0.20, 0.60, 0.70]])  # sums 1.0 1.0 0.55 0.6 1.1 1.3
+    assert (pooled_alpha(e[:1]), pooled_alpha(e[1:]), pooled_alpha(e)) == (0.0, 0.1, 0.01)
+    assert pooled_alpha(np.full((1, 6), 0.5)) == inf
+    tie = np.array([[0.3, 0.3, 0.3, 0.2, 0.2, 0.9]])
+    assert pooled_alpha(tie) == 1.0
+    assert pooled_alpha(np.zeros((0, 6))) == inf
+
+
 def test_refit_shrink_and_refit_validation_are_exclusive():
     with pytest.raises(ValueError, match="refit_shrink and refit_validation"):
         BakeSettings(coarse_target="dense", refit_shrink=True, refit_validation=True)
@@ -246,6 +261,7 @@ def test_shrunk_refit_in_the_stage_raises_the_dense_in_sample_snr(two_levels):
     alpha = shrunk["refit_alpha"]
     v = np.flatnonzero(fit["valid"] & (np.diff(fit["offsets"]) > 0))
     assert np.all(np.isin(alpha[v], np.float32((*SHRINK_ALPHAS, np.inf))))
+    assert len(v) <= POOL_TEXELS and np.unique(alpha[v]).size == 1  # one pool: one strength
     for t in v:  # loop over the texels of one tile
         a, b = fit["offsets"][t], fit["offsets"][t + 1]
         pts = fit["point_sample"][a:b]

@@ -95,6 +95,18 @@ def refit_generalizes(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: n
 #: fit nearly as well as the whole grid (the guard's bias against the refit, 2026-11-26)
 SHRINK_FOLDS = 8
 
+#: texels whose cross-validation errors choose one strength together (`pooled_alpha`): a
+#: tile's level or a block of a top level, in texel order; bounds what is held between the two
+#: passes (each texel's target, (d, 3) float64: 256 x 98 KB = 25 MB)
+POOL_TEXELS = 256
+
+#: The shrunk refit (`settings.refit_shrink`): the plain refit (alpha = 0) raises the coarse
+#: levels' held-out medians and lowers their tails where NNLS with many points fits the grid's
+#: directions and misses between them; the guard (`refit_generalizes`) can only say all or
+#: nothing, and says nothing too often. A ridge towards the fit's weights, w = argmin_{w >= 0}
+#: ||A w - f||^2 + lam ||w - w_fit||^2, is the middle the two measurements asked for
+#: (docs/decisions.md 2026-11-26); in-sample it cannot lose to the fit's weights (the penalty
+#: is 0 there).
 #: strengths alpha of the shrunk refit, lambda = alpha x the mean diagonal of the training Gram
 #: (a column's mean squared norm): 0 is the plain refit; the fit's own weights are the last
 #: candidate (alpha = infinity)
@@ -121,26 +133,13 @@ def _shrunk(G: np.ndarray, b: np.ndarray, tt: float, w0: np.ndarray, alpha: floa
     return _gram_nnls(G + lam * np.eye(G.shape[0]), b + lam * w0, tt + lam * float(w0 @ w0))
 
 
-def shrunk_refit(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.ndarray,
-                 fold: np.ndarray) -> tuple[np.ndarray, float]:
-    """The refit's weights shrunk towards the fit's (`settings.refit_shrink`): per channel
-    w = argmin_{w >= 0} ||A_k w - f_k||^2 + lam ||w - w_fit||^2 over the rows `ok`, with one
-    strength per texel chosen from `SHRINK_ALPHAS` and the fit's own weights (alpha = inf) by
-    cross-validation over the folds of `fold` (weights fitted on the other folds' rows, squared
-    errors on the fold's rows summed over folds and channels; ties go to the stronger shrink).
-
-    Why: the plain refit (alpha = 0) raises the coarse levels' held-out medians and lowers their
-    tails where NNLS with many points fits the grid's directions and misses between them; the
-    guard (`refit_generalizes`) can only say all or nothing, and says nothing too often. A
-    ridge towards the fit's weights is the middle the two measurements asked for
-    (docs/decisions.md 2026-11-26). In-sample it can only beat the fit's weights: at
-    w = w_fit the penalty is 0.
-    A : (3, d, c); f_ref : (d, 3); ok : (d,) bool; old_w : (c, 3); fold : (d,) int.
-    returns ((c, 3) weights, the chosen alpha; inf when the fit's weights are kept)."""
+def _fold_systems(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, fold: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per channel and fold of `fold` (folds without a row in `ok` dropped): the fold's Gram
+    (3, F, c, c), A^T f (3, F, c) and ||f||^2 (3, F) over its rows in `ok`; a fold's training
+    system is the sum over the other folds."""
     c = A.shape[2]
     folds = [k for k in np.unique(fold) if np.any(ok & (fold == k))]
-    # per channel and fold: the fold's Gram, A^T f and ||f||^2 (c x c: the folds' training
-    # systems are the whole grid's minus the fold's)
     G = np.zeros((3, len(folds), c, c))
     b = np.zeros((3, len(folds), c))
     tt = np.zeros((3, len(folds)))
@@ -151,29 +150,73 @@ def shrunk_refit(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.nda
         G[:, j] = at @ a  # batched matmul (BLAS): einsum took 27x as long (3 x 512 x 64)
         b[:, j] = (at @ f[:, :, None])[:, :, 0]
         tt[:, j] = np.sum(f * f, axis=1)
+    return G, b, tt
+
+
+def shrink_errors(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.ndarray,
+                  fold: np.ndarray) -> np.ndarray:
+    """The cross-validation errors of every strength of `SHRINK_ALPHAS` and of the fit's own
+    weights (last), relative to the texel's signal: for each fold of `fold`, weights fitted
+    (`_shrunk`) on the other folds' rows and scored on the fold's, squared errors summed over
+    folds and channels, over sum ||f||^2 (so texels of any brightness count alike when pooled).
+    All zeros when fewer than two folds have rows (nothing to validate on).
+    A : (3, d, c); f_ref : (d, 3); ok : (d,) bool; old_w : (c, 3); fold : (d,) int.
+    returns (len(SHRINK_ALPHAS) + 1,) float64."""
+    G, b, tt = _fold_systems(A, f_ref, ok, fold)
+    n_f = G.shape[1]
     G_all, b_all, tt_all = G.sum(axis=1), b.sum(axis=1), tt.sum(axis=1)
+    err = np.zeros(len(SHRINK_ALPHAS) + 1)
+    if n_f < 2:
+        return err
 
     def fold_err(w: np.ndarray, ch: int, j: int) -> float:
         return float(w @ G[ch, j] @ w - 2.0 * b[ch, j] @ w + tt[ch, j])
 
-    alphas = (*SHRINK_ALPHAS, np.inf)
-    err = np.zeros(len(alphas))
     for ch in range(3):  # loop over colour channels
-        for j in range(len(folds) if len(folds) > 1 else 0):  # loop over folds
+        for j in range(n_f):  # loop over folds
             G_tr, b_tr, tt_tr = G_all[ch] - G[ch, j], b_all[ch] - b[ch, j], tt_all[ch] - tt[ch, j]
             for n, alpha in enumerate(SHRINK_ALPHAS):  # loop over the strengths (five)
                 err[n] += fold_err(_shrunk(G_tr, b_tr, tt_tr, old_w[:, ch], alpha), ch, j)
             err[-1] += fold_err(old_w[:, ch], ch, j)
-    # the strongest shrink among the smallest errors (reversed: argmin takes the first)
-    best = len(alphas) - 1 - int(np.argmin(err[::-1]))
-    if len(folds) < 2:  # nothing to validate on: the in-sample refit, as the plain rule
-        best = 0
-    alpha = float(alphas[best])
+    return err / max(float(tt_all.sum()), np.finfo(np.float64).tiny)
+
+
+def pooled_alpha(errors: np.ndarray) -> float:
+    """The strength whose summed relative errors over the rows of `errors` (texels, strengths
+    + 1) are smallest; ties (and an all-zero table: nothing validated) go to the strongest
+    shrink, the fit's own weights (inf) first; so does an empty pool.
+
+    Why pooled: a texel's own eight folds choose noisily, and the choice that helps one texel's
+    grid can lose its held-out pairs (the Teapot's worst level-3 texel, 5.2 -> -3.4 dB with a
+    strength per texel); one strength for a pool of texels, chosen on all their folds, kept the
+    tails of the cloisonne and the Teapot and most of the cylinder's gain (docs/decisions.md
+    2026-11-29)."""
+    alphas = (*SHRINK_ALPHAS, np.inf)
+    errors = np.asarray(errors, np.float64).reshape(-1, len(alphas))
+    total = errors.sum(axis=0)
+    return float(alphas[len(alphas) - 1 - int(np.argmin(total[::-1]))])
+
+
+def shrunk_weights(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.ndarray,
+                   alpha: float) -> np.ndarray:
+    """(c, 3): per channel argmin_{w >= 0} ||A_k w - f_k||^2 + lam ||w - old_w_k||^2 over the
+    rows `ok`, lam = alpha x the Gram's mean diagonal; alpha = inf returns the fit's weights."""
     if not np.isfinite(alpha):
-        return old_w.copy(), alpha
-    w = np.stack([_shrunk(G_all[ch], b_all[ch], tt_all[ch], old_w[:, ch], alpha)
-                  for ch in range(3)], axis=1)  # loop over colour channels
-    return w, alpha
+        return np.asarray(old_w, np.float64).copy()
+    a, f = A[:, ok], f_ref[ok].T
+    at = a.transpose(0, 2, 1)
+    G, b = at @ a, (at @ f[:, :, None])[:, :, 0]
+    return np.stack([_shrunk(G[ch], b[ch], float(f[ch] @ f[ch]), old_w[:, ch], alpha)
+                     for ch in range(3)], axis=1)  # loop over colour channels
+
+
+def shrunk_refit(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.ndarray,
+                 fold: np.ndarray) -> tuple[np.ndarray, float]:
+    """One texel's refit shrunk towards the fit's weights, its strength chosen by its own
+    cross-validation (a pool of one: `pooled_alpha` of its `shrink_errors`); the stage pools
+    `POOL_TEXELS` texels (`refit_to_dense`). returns ((c, 3) weights, alpha)."""
+    alpha = pooled_alpha(shrink_errors(A, f_ref, ok, old_w, fold))
+    return shrunk_weights(A, f_ref, ok, old_w, alpha), alpha
 
 
 def refit_to_dense(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -189,11 +232,40 @@ def refit_to_dense(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> di
         return _refit(src, level, out)
 
 
+def _dense_target(src: FitInputs, level: int, frames: np.ndarray, dirs: dict, texel: int,
+                  budget: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The texel's dense Eq. 7 on the training grid (the refit's cost: R over every dense
+    sample). returns (f_ref (d, 3), ok (d,) rows with a_vis above its floor, inv (d,) 1/a_vis
+    on them and 0 elsewhere, dense (n,) sample ids, area (n,))."""
+    geo = src.geo
+    n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
+    dense = samples_in(geo, src.settings.atlas_resolution, level, np.array([texel]))
+    area = geo["sample_area"][dense]
+    target = np.zeros((3, n_i * n_o))
+    for s0 in range(0, dense.size, _BATCH):  # loop over sample batches (memory bound)
+        part = PointSet(dense[s0:s0 + _BATCH], np.repeat(area[s0:s0 + _BATCH, None], 3, 1),
+                        np.full(min(_BATCH, dense.size - s0), texel))
+        target += _build_R(src, frames, part, dirs, budget).sum(axis=1)
+    vo = visibility_cos(src, dense, world_dirs(frames, np.full(dense.size, texel),
+                                               dirs["dirs_o"]), "geometric")
+    avis_rows = np.tile(vo.T @ area, n_i)  # (d,) row i * n_o + o
+    f_ref, ok = filtered_reflectance(target.T, avis_rows, avis_floor(float(area.sum())))
+    inv = np.where(ok, 1.0 / np.where(ok, avis_rows, 1.0), 0.0)
+    return f_ref, ok, inv, dense, area
+
+
+def _point_terms(src: FitInputs, frames: np.ndarray, dirs: dict, texel: int, pts: np.ndarray,
+                 inv: np.ndarray, budget: int) -> np.ndarray:
+    """(3, d, c): each point's Eq. 7 term per channel over a_vis (F of the fit, unit weights)."""
+    R = _build_R(src, frames, PointSet(pts, np.ones((pts.size, 3)), np.full(pts.size, texel)),
+                 dirs, budget)  # (3, c, d)
+    return np.stack([(R[ch] * inv[None, :]).T for ch in range(3)])
+
+
 def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     s = src.settings
-    geo = src.geo
     dirs = direction_sets(s)
-    frames = geo[f"frames_L{level}"]
+    frames = src.geo[f"frames_L{level}"]
     n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
     texels = np.asarray(out["texel"], np.int64)
     offsets = np.asarray(out["offsets"], np.int64)
@@ -207,58 +279,49 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
     shrink_fold = validation_fold(n_i, n_o, SHRINK_FOLDS)
     rejected = np.zeros(texels.shape[0], bool)  # refits the validation fold refused
     alphas = np.full(texels.shape[0], np.nan, np.float32)  # the shrunk refit's strengths
-    for t, texel in enumerate(texels):  # loop over texels: one dense target and NNLS each
-        a, b = offsets[t], offsets[t + 1]
-        if not out["valid"][t] or b == a:
-            continue
-        dense = samples_in(geo, s.atlas_resolution, level, np.array([texel]))
-        area = geo["sample_area"][dense]
-        # the dense target (3, d) and a_vis on the training grid
-        target = np.zeros((3, n_i * n_o))
-        for s0 in range(0, dense.size, _BATCH):  # loop over sample batches (memory bound)
-            part = PointSet(dense[s0:s0 + _BATCH], np.repeat(area[s0:s0 + _BATCH, None], 3, 1),
-                            np.full(min(_BATCH, dense.size - s0), texel))
-            target += _build_R(src, frames, part, dirs, budget).sum(axis=1)
-        vo = visibility_cos(src, dense, world_dirs(frames, np.full(dense.size, texel),
-                                                   dirs["dirs_o"]), "geometric")
-        avis_rows = np.tile(vo.T @ area, n_i)  # (d,) row i * n_o + o
-        eps = avis_floor(float(area.sum()))
-        pts = PointSet(samples[a:b], np.ones((b - a, 3)), np.full(b - a, texel))
-        R = _build_R(src, frames, pts, dirs, budget)  # (3, c, d), unit weights
-        f_ref, ok = filtered_reflectance(target.T, avis_rows, eps)  # (d, 3)
-        if not ok.any():
-            continue
-        inv = np.where(ok, 1.0 / np.where(ok, avis_rows, 1.0), 0.0)
-        A = np.stack([(R[ch] * inv[None, :]).T for ch in range(3)])  # (3, d, c): F per channel
-        old_w = weights[a:b].astype(np.float64)
-        old = np.einsum("kdc,ck->dk", A, old_w)  # (d, 3): Eq. 7 of the fit's weights
-        if s.refit_shrink:
-            new_w, alpha = shrunk_refit(A, f_ref, ok, old_w, shrink_fold)
-            alphas[t] = alpha
-        else:
-            new_w = dense_nnls(A, f_ref, ok)
-        new = np.einsum("kdc,ck->dk", A, new_w)
-        snr_old, snr_new = snr_db(f_ref, old, ok), snr_db(f_ref, new, ok)
-        accept = snr_new > snr_old
-        if accept and s.refit_validation:
-            accept = refit_generalizes(A, f_ref, ok, old_w, fold)
-            rejected[t] = not accept
-        if accept:
-            weights[a:b] = new_w.astype(np.float32)
-        snr_in[t] = snr_new if accept else snr_old
-        if len(dirs["held_i"]):
-            held_dirs = np.concatenate([dirs["held_i"], dirs["held_o"]])
-            tex_d = np.full(dense.size, texel)
-            n_hi = len(dirs["held_i"])
-            hw = world_dirs(frames, tex_d, held_dirs)
-            held_vc = np.concatenate([visibility_cos(src, dense, hw[:, :n_hi]),
-                                      visibility_cos(src, dense, hw[:, n_hi:], "geometric")],
-                                     axis=1)
-            order = np.argsort(samples[a:b], kind="stable")
-            p_s = samples[a:b][order]
-            snr_ho[t] = heldout_snr(src, dirs, frames, int(texel), dense, held_vc, area, p_s,
-                                    weights[a:b][order], held_vc[np.searchsorted(dense, p_s)],
-                                    float(area.sum()))
+    todo = [t for t in range(texels.shape[0])
+            if out["valid"][t] and offsets[t + 1] > offsets[t]]
+    pool = POOL_TEXELS if s.refit_shrink else 1
+    for p0 in range(0, len(todo), pool):  # loop over pools of texels (one each unshrunk)
+        # pass 1: each texel's dense target (and, shrunk, its cross-validation errors)
+        held: dict[int, tuple] = {}
+        errors = []
+        for t in todo[p0:p0 + pool]:  # loop over texels: one dense target each
+            a, b = offsets[t], offsets[t + 1]
+            f_ref, ok, inv, dense, area = _dense_target(src, level, frames, dirs,
+                                                        int(texels[t]), budget)
+            if not ok.any():
+                continue
+            held[t] = (f_ref, ok, inv, dense, area)
+            if s.refit_shrink:
+                A = _point_terms(src, frames, dirs, int(texels[t]), samples[a:b], inv, budget)
+                errors.append(shrink_errors(A, f_ref, ok, weights[a:b].astype(np.float64),
+                                            shrink_fold))
+        alpha = pooled_alpha(np.array(errors)) if s.refit_shrink else np.nan
+        # pass 2: the weights, the in-sample SNR against the dense target, the held-out SNR
+        for t, (f_ref, ok, inv, dense, area) in held.items():  # loop over the pool's texels
+            a, b = offsets[t], offsets[t + 1]
+            texel = int(texels[t])
+            A = _point_terms(src, frames, dirs, texel, samples[a:b], inv, budget)
+            old_w = weights[a:b].astype(np.float64)
+            if s.refit_shrink:
+                new_w = shrunk_weights(A, f_ref, ok, old_w, alpha)
+                alphas[t] = alpha
+            else:
+                new_w = dense_nnls(A, f_ref, ok)
+            old = np.einsum("kdc,ck->dk", A, old_w)  # (d, 3): Eq. 7 of the fit's weights
+            new = np.einsum("kdc,ck->dk", A, new_w)
+            snr_old, snr_new = snr_db(f_ref, old, ok), snr_db(f_ref, new, ok)
+            accept = snr_new > snr_old
+            if accept and s.refit_validation:
+                accept = refit_generalizes(A, f_ref, ok, old_w, fold)
+                rejected[t] = not accept
+            if accept:
+                weights[a:b] = new_w.astype(np.float32)
+            snr_in[t] = snr_new if accept else snr_old
+            if len(dirs["held_i"]):
+                snr_ho[t] = _heldout(src, dirs, frames, texel, dense, area, samples[a:b],
+                                     weights[a:b])
     res = dict(out)
     res["point_weight"] = weights.astype(np.float32)
     res["snr_in"] = snr_in
@@ -268,3 +331,17 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
     if "rays" in out:  # work done, for rays/s: the fit's and the refit's
         res["rays"] = np.asarray(out["rays"], np.int64) + (src.caster.rays_cast - rays0)
     return res
+
+
+def _heldout(src: FitInputs, dirs: dict, frames: np.ndarray, texel: int, dense: np.ndarray,
+             area: np.ndarray, pts: np.ndarray, w: np.ndarray) -> float:
+    """The texel's held-out SNR of points `pts` with weights `w` against its dense Eq. 7."""
+    held_dirs = np.concatenate([dirs["held_i"], dirs["held_o"]])
+    n_hi = len(dirs["held_i"])
+    hw = world_dirs(frames, np.full(dense.size, texel), held_dirs)
+    held_vc = np.concatenate([visibility_cos(src, dense, hw[:, :n_hi]),
+                              visibility_cos(src, dense, hw[:, n_hi:], "geometric")], axis=1)
+    order = np.argsort(pts, kind="stable")
+    p_s = pts[order]
+    return float(heldout_snr(src, dirs, frames, texel, dense, held_vc, area, p_s, w[order],
+                             held_vc[np.searchsorted(dense, p_s)], float(area.sum())))
