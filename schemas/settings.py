@@ -116,13 +116,14 @@ class BakeSettings(BaseModel):
     )
     refit_shrink: bool = Field(
         False,
-        description="With coarse_target='dense', shrink each texel's refitted weights towards "
-        "the fit's: NNLS of |A w - f|^2 + lam |w - w_fit|^2 with lam chosen per texel from five "
-        "strengths and the fit's own weights by an 8-fold cross-validation over the grid's "
-        "light directions (texelbake.cpm.refit.shrunk_refit). Measured at 16², 3 seeds: keeps the "
-        "cloisonne's coarse tails (L2 p5 0.7 dB, -2.9 unshrunk) and two thirds of the "
-        "cylinder's median gain (L2 24.5 dB; 20.8 children, 27.3 unshrunk), but the Teapot's "
-        "worst level-3 texel drops (p5 5.2 -> -3.4 dB); off (docs/decisions.md 2026-11-29).",
+        description="With coarse_target='dense', shrink the refitted weights towards the fit's: "
+        "NNLS of |A w - f|^2 + lam |w - w_fit|^2, lam from five strengths or the fit's own "
+        "weights, chosen once per pool of texels (a tile's level, or 256 texels of a top level) "
+        "by an 8-fold cross-validation over the grid's light directions "
+        "(texelbake.cpm.refit). Measured at 16², 3 seeds: the cylinder's coarse held-out "
+        "medians and tails rise at every level (L3 19.5 -> 23.3 dB, p5 13.8 -> 20.4), the "
+        "cloisonne's and the Teapot's tails stay where 'children' has them (the plain refit "
+        "lowers them); costs what the refit costs; off (docs/decisions.md 2026-11-29).",
     )
     fit_method: Literal["batched", "per_texel"] = Field(
         "batched",
