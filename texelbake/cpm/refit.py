@@ -90,23 +90,24 @@ def refit_generalizes(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: n
     return err_cv < err_old if scored else True  # nothing to validate on: in-sample alone
 
 
-#: light-direction folds of the shrunk refit's cross-validation (`shrunk_refit`): more folds
+# The shrunk refit (`settings.refit_shrink`): the plain refit (alpha = 0) raises the coarse
+# levels' held-out medians and lowers their tails where NNLS with many points fits the grid's
+# directions and misses between them; the guard (`refit_generalizes`) can only say all or
+# nothing, and says nothing too often. A ridge towards the fit's weights, w = argmin_{w >= 0}
+# ||A w - f||^2 + lam ||w - w_fit||^2, is the middle the two measurements asked for
+# (docs/decisions.md 2026-11-26); in-sample it cannot lose to the fit's weights (the penalty
+# is 0 there). Its strength is chosen by cross-validation, once per pool of texels.
+
+#: light-direction folds of the shrunk refit's cross-validation (`shrink_errors`): more folds
 #: than the guard's 4 so that each fold's training rows (7/8 of the grid's light directions)
 #: fit nearly as well as the whole grid (the guard's bias against the refit, 2026-11-26)
 SHRINK_FOLDS = 8
 
 #: texels whose cross-validation errors choose one strength together (`pooled_alpha`): a
 #: tile's level or a block of a top level, in texel order; bounds what is held between the two
-#: passes (each texel's target, (d, 3) float64: 256 x 98 KB = 25 MB)
+#: passes (each texel's target and 1/a_vis, (d, 4) float64: 256 x 131 KB = 34 MB)
 POOL_TEXELS = 256
 
-#: The shrunk refit (`settings.refit_shrink`): the plain refit (alpha = 0) raises the coarse
-#: levels' held-out medians and lowers their tails where NNLS with many points fits the grid's
-#: directions and misses between them; the guard (`refit_generalizes`) can only say all or
-#: nothing, and says nothing too often. A ridge towards the fit's weights, w = argmin_{w >= 0}
-#: ||A w - f||^2 + lam ||w - w_fit||^2, is the middle the two measurements asked for
-#: (docs/decisions.md 2026-11-26); in-sample it cannot lose to the fit's weights (the penalty
-#: is 0 there).
 #: strengths alpha of the shrunk refit, lambda = alpha x the mean diagonal of the training Gram
 #: (a column's mean squared norm): 0 is the plain refit; the fit's own weights are the last
 #: candidate (alpha = infinity)
@@ -225,7 +226,8 @@ def refit_to_dense(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> di
     whose refit would not raise its in-sample SNR against the dense reference keeps its
     weights, and so does one the validation guard refuses (`settings.refit_validation`,
     `refit_generalizes`); with `settings.refit_shrink` the weights are shrunk towards the
-    fit's (`shrunk_refit`). Returns a new dict: the same keys plus `refit_rejected` (t,) bool
+    fit's with one strength per pool of `POOL_TEXELS` texels (`shrink_errors`, `pooled_alpha`,
+    `shrunk_weights`). Returns a new dict: the same keys plus `refit_rejected` (t,) bool
     and `refit_alpha` (t,) float32, the shrink's strength (inf: the fit's weights kept; nan:
     not shrunk)."""
     with threadpool_limits(limits=1):  # small per-texel solves: see level.fit_level
@@ -233,10 +235,10 @@ def refit_to_dense(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> di
 
 
 def _dense_target(src: FitInputs, level: int, frames: np.ndarray, dirs: dict, texel: int,
-                  budget: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  budget: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The texel's dense Eq. 7 on the training grid (the refit's cost: R over every dense
     sample). returns (f_ref (d, 3), ok (d,) rows with a_vis above its floor, inv (d,) 1/a_vis
-    on them and 0 elsewhere, dense (n,) sample ids, area (n,))."""
+    on them and 0 elsewhere)."""
     geo = src.geo
     n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
     dense = samples_in(geo, src.settings.atlas_resolution, level, np.array([texel]))
@@ -251,7 +253,7 @@ def _dense_target(src: FitInputs, level: int, frames: np.ndarray, dirs: dict, te
     avis_rows = np.tile(vo.T @ area, n_i)  # (d,) row i * n_o + o
     f_ref, ok = filtered_reflectance(target.T, avis_rows, avis_floor(float(area.sum())))
     inv = np.where(ok, 1.0 / np.where(ok, avis_rows, 1.0), 0.0)
-    return f_ref, ok, inv, dense, area
+    return f_ref, ok, inv
 
 
 def _point_terms(src: FitInputs, frames: np.ndarray, dirs: dict, texel: int, pts: np.ndarray,
@@ -288,20 +290,20 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
         errors = []
         for t in todo[p0:p0 + pool]:  # loop over texels: one dense target each
             a, b = offsets[t], offsets[t + 1]
-            f_ref, ok, inv, dense, area = _dense_target(src, level, frames, dirs,
-                                                        int(texels[t]), budget)
+            f_ref, ok, inv = _dense_target(src, level, frames, dirs, int(texels[t]), budget)
             if not ok.any():
                 continue
-            held[t] = (f_ref, ok, inv, dense, area)
+            held[t] = (f_ref, ok, inv)
             if s.refit_shrink:
                 A = _point_terms(src, frames, dirs, int(texels[t]), samples[a:b], inv, budget)
                 errors.append(shrink_errors(A, f_ref, ok, weights[a:b].astype(np.float64),
                                             shrink_fold))
         alpha = pooled_alpha(np.array(errors)) if s.refit_shrink else np.nan
         # pass 2: the weights, the in-sample SNR against the dense target, the held-out SNR
-        for t, (f_ref, ok, inv, dense, area) in held.items():  # loop over the pool's texels
+        for t, (f_ref, ok, inv) in held.items():  # loop over the pool's texels
             a, b = offsets[t], offsets[t + 1]
             texel = int(texels[t])
+            dense = samples_in(src.geo, s.atlas_resolution, level, np.array([texel]))
             A = _point_terms(src, frames, dirs, texel, samples[a:b], inv, budget)
             old_w = weights[a:b].astype(np.float64)
             if s.refit_shrink:
@@ -320,8 +322,8 @@ def _refit(src: FitInputs, level: int, out: dict[str, np.ndarray]) -> dict[str, 
                 weights[a:b] = new_w.astype(np.float32)
             snr_in[t] = snr_new if accept else snr_old
             if len(dirs["held_i"]):
-                snr_ho[t] = _heldout(src, dirs, frames, texel, dense, area, samples[a:b],
-                                     weights[a:b])
+                snr_ho[t] = _heldout(src, dirs, frames, texel, dense,
+                                     src.geo["sample_area"][dense], samples[a:b], weights[a:b])
     res = dict(out)
     res["point_weight"] = weights.astype(np.float32)
     res["snr_in"] = snr_in
