@@ -31,7 +31,9 @@ from texelbake.cpm.refit import (
     pooled_alpha,
     refit_generalizes,
     refit_to_dense,
+    shrink_errors,
     shrunk_refit,
+    shrunk_weights,
     validation_fold,
 )
 from texelbake.scenes import write_scene
@@ -54,9 +56,10 @@ def two_levels(tmp_path_factory):
     return src, fit, refit_to_dense(src, 1, fit)
 
 
-def _dense_snr(src, texel, samples, weights):
-    """In-sample SNR of points (samples, weights (c, 3)) against the brute-force Eq. 7 of the
-    level-1 texel on the training grid, from `level.brdf_grid` over every dense sample."""
+def _dense_system(src, texel, samples):
+    """The level-1 texel's refit system from the per-texel functions (`level.brdf_grid` over
+    every dense sample): (A (3, d, c) each point's Eq. 7 term over a_vis, f_ref (d, 3) the
+    dense Eq. 7 over a_vis, ok (d,) rows with a_vis above its floor)."""
     dirs = direction_sets(src.settings)
     frames = src.geo["frames_L1"]
     dense = np.flatnonzero(texel_ids(src.geo, 16, 1) == texel)
@@ -69,12 +72,19 @@ def _dense_snr(src, texel, samples, weights):
     f = brdf_grid(src, dense, wi, wo, live)  # (A, B, m, 3)
     ref = np.einsum("abmc,am,bm,m->abc", f, vi.T, vo.T, area).reshape(-1, 3)
     pos = np.searchsorted(dense, samples)
-    apx = np.einsum("abmc,am,bm,mc->abc", f[:, :, pos], vi[pos].T, vo[pos].T,
-                    weights).reshape(-1, 3)
+    terms = np.einsum("abmc,am,bm->cabm", f[:, :, pos], vi[pos].T, vo[pos].T)
     rows = np.tile(vo.T @ area, len(dirs["dirs_i"]))
-    eps = avis_floor(float(area.sum()))
-    f_ref, ok = filtered_reflectance(ref, rows, eps)
-    return snr_db(f_ref, filtered_reflectance(apx, rows, eps)[0], ok)
+    f_ref, ok = filtered_reflectance(ref, rows, avis_floor(float(area.sum())))
+    inv = np.where(ok, 1.0 / np.where(ok, rows, 1.0), 0.0)
+    A = terms.reshape(3, -1, pos.size) * inv[None, :, None]
+    return A, f_ref, ok
+
+
+def _dense_snr(src, texel, samples, weights):
+    """In-sample SNR of points (samples, weights (c, 3)) against the brute-force Eq. 7 of the
+    level-1 texel on the training grid (`_dense_system`)."""
+    A, f_ref, ok = _dense_system(src, texel, samples)
+    return snr_db(f_ref, np.einsum("kdc,ck->dk", A, weights), ok)
 
 
 def test_refit_weights_against_an_independent_dense_eq7(two_levels):
@@ -270,3 +280,37 @@ def test_shrunk_refit_in_the_stage_raises_the_dense_in_sample_snr(two_levels):
         assert after >= before - 1e-3, (t, before, after)
         if np.isinf(alpha[t]):
             np.testing.assert_array_equal(shrunk["point_weight"][a:b], fit["point_weight"][a:b])
+
+
+def test_the_stage_pools_its_texels_strength_as_an_independent_computation(two_levels):
+    """The stage's two passes against one computation from the per-texel functions: every
+    texel's cross-validation errors from its brute-force system (`_dense_system`), pooled by
+    `pooled_alpha`, must choose the stage's strength, and the weights that strength gives on the
+    brute-force system must reach the stage's in-sample SNR (0.05 dB: float32 weights)."""
+    src, fit, _ = two_levels
+    shrunk = refit_to_dense(dataclasses.replace(src, settings=src.settings.model_copy(
+        update={"refit_shrink": True})), 1, fit)
+    v = np.flatnonzero(fit["valid"] & (np.diff(fit["offsets"]) > 0))
+    fold = validation_fold(*(len(direction_sets(src.settings)[k]) for k in ("dirs_i", "dirs_o")),
+                           SHRINK_FOLDS)
+    systems, errors = {}, []
+    for t in v:  # loop over the texels of one tile
+        a, b = fit["offsets"][t], fit["offsets"][t + 1]
+        systems[t] = _dense_system(src, fit["texel"][t], fit["point_sample"][a:b])
+        A, f_ref, ok = systems[t]
+        if ok.any():
+            errors.append(shrink_errors(A, f_ref, ok, fit["point_weight"][a:b].astype(np.float64),
+                                        fold))
+    alpha = pooled_alpha(np.array(errors))
+    assert np.isfinite(alpha)  # measured 0.01 on this tile: the weights move
+    np.testing.assert_array_equal(shrunk["refit_alpha"][v], np.float32(alpha))
+    for t in v:  # loop over the texels of one tile
+        a, b = fit["offsets"][t], fit["offsets"][t + 1]
+        A, f_ref, ok = systems[t]
+        old = fit["point_weight"][a:b].astype(np.float64)
+        w = shrunk_weights(A, f_ref, ok, old, alpha)
+        want = max(snr_db(f_ref, np.einsum("kdc,ck->dk", A, w), ok),
+                   snr_db(f_ref, np.einsum("kdc,ck->dk", A, old), ok))  # the stage keeps the better
+        got = snr_db(f_ref, np.einsum("kdc,ck->dk", A, shrunk["point_weight"][a:b]
+                                      .astype(np.float64)), ok)
+        assert abs(min(got, 80.0) - min(want, 80.0)) < 0.05, (t, got, want)
