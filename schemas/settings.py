@@ -123,7 +123,8 @@ class BakeSettings(BaseModel):
         "(texelbake.cpm.refit). Measured at 16², 3 seeds: the cylinder's coarse held-out "
         "medians and tails rise at every level (L3 19.5 -> 23.3 dB, p5 13.8 -> 20.4), the "
         "cloisonne's and the Teapot's tails stay where 'children' has them (the plain refit "
-        "lowers them); costs what the refit costs; off (docs/decisions.md 2026-11-29).",
+        "lowers them; with c_max 256 the Teapot's coarse tails move with the seed both ways); "
+        "costs what the refit costs; off (docs/decisions.md 2026-11-29).",
     )
     fit_method: Literal["batched", "per_texel"] = Field(
         "batched",
