@@ -314,3 +314,13 @@ def test_the_stage_pools_its_texels_strength_as_an_independent_computation(two_l
         got = snr_db(f_ref, np.einsum("kdc,ck->dk", A, shrunk["point_weight"][a:b]
                                       .astype(np.float64)), ok)
         assert abs(min(got, 80.0) - min(want, 80.0)) < 0.05, (t, got, want)
+
+
+def test_the_level_report_counts_texels_per_strength():
+    """report.json's `refit_alpha` per level: texels per chosen strength, by hand; texels not
+    shrunk (nan) are not counted."""
+    from texelbake.cpm.assemble import _alpha_counts
+
+    a = np.float32([0.01, np.inf, 0.01, np.nan, 0.0, 1e-3])
+    assert _alpha_counts(a) == {"0": 1, "0.001": 1, "0.01": 2, "inf": 1}
+    assert _alpha_counts(np.float32([np.nan])) == {}

@@ -115,6 +115,8 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         # coarse levels: texels whose dense refit the validation fold refused (cpm/refit.py)
         "refit_rejected": int(np.sum(data["refit_rejected"][valid]))
         if "refit_rejected" in data else 0,
+        # coarse levels with refit_shrink: texels per chosen strength ("inf": the fit's weights)
+        "refit_alpha": _alpha_counts(data["refit_alpha"][valid]) if "refit_alpha" in data else {},
         "points": int(len(pts)),
         "rays": int(data["rays"].sum()) if "rays" in data else 0,
         "bytes": int(sum(a.nbytes for a in arrays.values())),
@@ -129,3 +131,11 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         },
     }
     return arrays, report
+
+
+def _alpha_counts(alpha: np.ndarray) -> dict[str, int]:
+    """{strength: texels} of the shrunk refit's strengths (`cpm.refit.pooled_alpha`), in
+    ascending order; texels it did not shrink (nan) are not counted."""
+    a = np.asarray(alpha, np.float64)
+    vals, counts = np.unique(a[~np.isnan(a)], return_counts=True)
+    return {("inf" if np.isinf(v) else f"{v:g}"): int(n) for v, n in zip(vals, counts, strict=True)}

@@ -105,7 +105,8 @@ SHRINK_FOLDS = 8
 
 #: texels whose cross-validation errors choose one strength together (`pooled_alpha`): a
 #: tile's level or a block of a top level, in texel order; bounds what is held between the two
-#: passes (each texel's target and 1/a_vis, (d, 4) float64: 256 x 131 KB = 34 MB)
+#: passes (each texel's target and 1/a_vis, (d, 4) float64: 256 x 131 KB = 34 MB). A tile's
+#: coarsest level holds one texel (a tile is one shard), so there the choice is the texel's own.
 POOL_TEXELS = 256
 
 #: strengths alpha of the shrunk refit, lambda = alpha x the mean diagonal of the training Gram
