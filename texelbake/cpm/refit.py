@@ -140,19 +140,22 @@ def _fold_systems(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, fold: np.nda
     """Per channel and fold of `fold` (folds without a row in `ok` dropped): the fold's Gram
     (3, F, c, c), A^T f (3, F, c) and ||f||^2 (3, F) over its rows in `ok`; a fold's training
     system is the sum over the other folds."""
-    c = A.shape[2]
     folds = [k for k in np.unique(fold) if np.any(ok & (fold == k))]
-    G = np.zeros((3, len(folds), c, c))
-    b = np.zeros((3, len(folds), c))
-    tt = np.zeros((3, len(folds)))
-    for j, k in enumerate(folds):  # loop over folds (eight)
-        rows = ok & (fold == k)
-        a, f = A[:, rows], f_ref[rows].T  # (3, n, c), (3, n)
-        at = a.transpose(0, 2, 1)
-        G[:, j] = at @ a  # batched matmul (BLAS): einsum took 27x as long (3 x 512 x 64)
-        b[:, j] = (at @ f[:, :, None])[:, :, 0]
-        tt[:, j] = np.sum(f * f, axis=1)
+    parts = [_normal_equations(A, f_ref, ok & (fold == k)) for k in folds]  # loop over folds
+    c = A.shape[2]
+    if not parts:
+        return np.zeros((3, 0, c, c)), np.zeros((3, 0, c)), np.zeros((3, 0))
+    G, b, tt = (np.stack(x, axis=1) for x in zip(*parts, strict=True))
     return G, b, tt
+
+
+def _normal_equations(A: np.ndarray, f_ref: np.ndarray, rows: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per channel over `rows`: the Gram A^T A (3, c, c), A^T f (3, c) and ||f||^2 (3,)."""
+    a, f = A[:, rows], f_ref[rows].T  # (3, n, c), (3, n)
+    at = a.transpose(0, 2, 1)
+    # batched matmul (BLAS): einsum took 27x as long (3 x 512 x 64)
+    return at @ a, (at @ f[:, :, None])[:, :, 0], np.sum(f * f, axis=1)
 
 
 def shrink_errors(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.ndarray,
@@ -205,10 +208,8 @@ def shrunk_weights(A: np.ndarray, f_ref: np.ndarray, ok: np.ndarray, old_w: np.n
     rows `ok`, lam = alpha x the Gram's mean diagonal; alpha = inf returns the fit's weights."""
     if not np.isfinite(alpha):
         return np.asarray(old_w, np.float64).copy()
-    a, f = A[:, ok], f_ref[ok].T
-    at = a.transpose(0, 2, 1)
-    G, b = at @ a, (at @ f[:, :, None])[:, :, 0]
-    return np.stack([_shrunk(G[ch], b[ch], float(f[ch] @ f[ch]), old_w[:, ch], alpha)
+    G, b, tt = _normal_equations(A, f_ref, ok)
+    return np.stack([_shrunk(G[ch], b[ch], float(tt[ch]), old_w[:, ch], alpha)
                      for ch in range(3)], axis=1)  # loop over colour channels
 
 
