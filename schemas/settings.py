@@ -151,6 +151,14 @@ class BakeSettings(BaseModel):
         "subset, seeded by the texel), its weights still fitted to Eq. 7 over all of them "
         "(Grams s^2 d instead of m^2 d; batched fit only; issue 15).",
     )
+    identical_columns: Literal["keep", "merge"] = Field(
+        "keep",
+        description="keep: every candidate is a column of the fit (the seed); merge: candidates "
+        "whose columns of F are identical (flat, unoccluded, single-material samples) are "
+        "fitted as one column of weight sqrt(k), which leaves the fit's distribution the seed's "
+        "and stores no point twice (Grams u^2 d for u distinct columns; batched fit only; "
+        "issue 15).",
+    )
     closed_form: bool = Field(
         False, description="A texel whose R is numerically rank 1 gets its point in closed form, "
         "without draws or trials (batched fit only). Off by default: measured, the one column it "

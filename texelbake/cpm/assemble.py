@@ -117,6 +117,10 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         if "refit_rejected" in data else 0,
         # coarse levels with refit_shrink: texels per chosen strength ("inf": the fit's weights)
         "refit_alpha": _alpha_counts(data["refit_alpha"][valid]) if "refit_alpha" in data else {},
+        # identical_columns="merge": texels with identical candidates, and the candidates
+        # fitted as copies of others (columns the Grams and eigendecompositions did not hold)
+        "merged": {"texels": int(np.sum(data["merged"][valid] > 0)),
+                   "candidates": int(data["merged"][valid].sum())} if "merged" in data else {},
         "points": int(len(pts)),
         "rays": int(data["rays"].sum()) if "rays" in data else 0,
         "bytes": int(sum(a.nbytes for a in arrays.values())),

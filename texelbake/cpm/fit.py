@@ -46,6 +46,8 @@ class TexelFit:
     k_channels, c_channels : (g,) int64, k and number of points with nonzero weight per selection
         group (one group in luminance mode, one per channel otherwise)
     c_capped : bool, c_max < k so c was capped at c_max
+    merged : int, candidates fitted as a copy of another (identical columns of F,
+        `texelbake.cpm.identical`): m minus the distinct columns; 0 when not merged
     eps_reached : bool, snr_db_insample >= eps_db
     valid : bool, False when the texel cannot be fitted (no samples, no valid row)
     reason : str, "" or a short description of what was special
@@ -65,6 +67,7 @@ class TexelFit:
     c_channels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     c_capped: bool = False
     eps_reached: bool = False
+    merged: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """Arrays stay numpy arrays (np.savez-able), scalars become Python scalars."""

@@ -59,6 +59,7 @@ from texelbake.cpm.gram_linalg import (
     spectrum,
     top_eighs,
 )
+from texelbake.cpm.identical import identical_columns, unmerge
 from texelbake.cpm.matrix import snr_db
 from texelbake.tol import TOL
 
@@ -96,7 +97,7 @@ SUBSET_STREAM = 0x5E1EC7
 
 #: counts of the trial work done by `_bisect` in this process (probes of c, NNLS draws solved,
 #: draws not solved because a probe stopped at the target); read by benchmarks/cpm_cpu.py
-COUNTS = {"probes": 0, "draws": 0, "draws_stopped": 0}
+COUNTS = {"probes": 0, "draws": 0, "draws_stopped": 0, "merged_texels": 0, "merged_columns": 0}
 
 
 def spectrum_c(s: np.ndarray, total: float, eps_db: float) -> int:
@@ -211,6 +212,7 @@ def fit_texel_gram(
     trial_stop: str = "all",
     c_start: str = "interval",
     targets: np.ndarray | None = None,
+    in_span: bool = False,
 ) -> tuple[TexelFit | None, str]:
     """One texel's fit from its Grams; returns (TexelFit, skip) with skip "" or "rank1", or
     (None, "full_svd") when the Gram route cannot resolve span(V_k) (`top_singular` redoes a
@@ -220,7 +222,9 @@ def fit_texel_gram(
     valid : (d,) bool rows with a_vis above the floor; Gc : ch Grams F_c F_c^T (m, m);
     groups : the selection groups (one in luminance mode, one per channel otherwise);
     targets : (ch, d) what the points fit, Eq. 7's row sums of a texel of which F holds only
-    some candidates (`fit_many`'s selection_columns); default F's own row sums F 1.
+    some candidates (`fit_many`'s selection_columns), or of merged columns (`identical`;
+    in_span: the targets lie in span(F), so the rank-1 closed form applies); default F's own
+    row sums F 1.
     Caller handles m = 0, no valid row, all-zero R and non-finite input (`fit_texel`'s cases).
     """
     ch, m, _ = F.shape
@@ -247,7 +251,7 @@ def fit_texel_gram(
             return None, "full_svd"
         specs.append((s, Vt, k))
     skip = ""
-    if closed_form and targets is None and all(
+    if closed_form and (targets is None or in_span) and all(
         _rank1(gi.sel_eig, gi.sel_total) for gi in groups) and all(
         _rank1_gram(g) for g in Gc
     ):
@@ -260,7 +264,7 @@ def fit_texel_gram(
             continue
         if skip:
             j = int(np.argmax(gi.sel_diag))
-            alpha = np.array([[_one_column_weight(Gc[c], j) for c in chans]])
+            alpha = np.array([[_one_column_weight(Gc[c], j, fits_of[c][0]) for c in chans]])
             fits.append((np.array([j], np.int64), alpha, k, False))
             continue
         p = column_probabilities(np.zeros((0, 0)), s, Vt, k, col_energy=gi.sel_diag)
@@ -296,10 +300,12 @@ def _rank1_gram(G: np.ndarray) -> bool:
     return tr - float(G[p] @ G[p]) / float(G[p, p]) <= TOL.rank1_rel * tr
 
 
-def _one_column_weight(G: np.ndarray, j: int) -> float:
-    """min_a>=0 ||a F_j - F 1||: a = max(F_j . F 1, 0) / ||F_j||^2 = (G 1)_j / G_jj."""
+def _one_column_weight(G: np.ndarray, j: int, Ft: np.ndarray | None = None) -> float:
+    """min_a>=0 ||a F_j - t||: a = max(F_j . t, 0) / ||F_j||^2, with t = F 1 ((G 1)_j) unless
+    Ft = F^T t is given."""
     gjj = float(G[j, j])
-    return max(float(G[j].sum()), 0.0) / gjj if gjj > 0.0 else 0.0
+    fjt = float(G[j].sum()) if Ft is None else float(Ft[j])
+    return max(fjt, 0.0) / gjj if gjj > 0.0 else 0.0
 
 
 def _merge(F, valid, fits, groups, *, mode, corr, eps_db, c_max, ref=None) -> TexelFit:
@@ -356,6 +362,7 @@ def fit_many(
     c_start: str = "interval",
     small: str = "fit",
     selection_columns: int = 0,
+    identical: str = "keep",
 ) -> list[tuple[TexelFit | None, str]]:
     """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
     `fit_texel_gram` per texel. With small="all" a texel of m <= c_max candidates whose fit is
@@ -363,7 +370,12 @@ def fit_many(
     selection_columns > 0: a texel of more candidates draws its points from that many of them
     (a uniform subset without replacement, seeded by the texel) while the weights still fit the
     sum over all of them (Eq. 7): Grams of s^2 d and eigendecompositions of s^3 instead of m^2 d
-    and m^3 (issue 15); 0 (default) selects from every candidate, as the seed. A texel the
+    and m^3 (issue 15); 0 (default) selects from every candidate, as the seed.
+    identical="merge": a texel's candidates with identical columns are fitted as one column
+    (`texelbake.cpm.identical`: the seed's fit in distribution, Grams of u^2 d for u distinct
+    columns, no point stored twice; under small="all" a texel of m <= c_max candidates is not
+    merged, one of more whose u distinct columns are <= c_max keeps them all); "keep": as the
+    seed. A texel the
     Gram route cannot resolve ("full_svd") is fitted by the caller over all its candidates.
     Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous blocks), or `Columns`
     (m > n_batch only); valids[t] : (d,)
@@ -385,15 +397,25 @@ def fit_many(
             mode = colour
         if ch == 1:
             mode = "luminance"
-        sub = targets = None
+        sub = targets = merge = None
+        if identical == "merge" and not needs_all_points(small, F.shape[1], c_max, -math.inf):
+            # (a texel that keeps every candidate when its fit is not exact is not merged:
+            # identical on the grid is not identical between its directions)
+            merge = identical_columns(F, seed)
+            if merge is not None:
+                COUNTS["merged_texels"] += 1
+                COUNTS["merged_columns"] += F.shape[1] - merge.rep.size
+                targets = F.sum(axis=1)  # (ch, d): Eq. 7 over every candidate
+                F = merge.columns(F)  # a copy, dropped after the Grams (memory)
         if 0 < selection_columns < F.shape[1]:
             sub = np.sort(np.random.default_rng((seed, SUBSET_STREAM)).choice(
                 F.shape[1], selection_columns, replace=False))
-            targets = F.sum(axis=1)  # (ch, d): Eq. 7 over every candidate
+            if targets is None:
+                targets = F.sum(axis=1)  # (ch, d): Eq. 7 over every candidate
             F = np.ascontiguousarray(F[:, sub])  # a copy, dropped after the Grams (memory)
         Gc = [F[c] @ F[c].T for c in range(ch)]
         groups = select_groups(F, Gc, mode)
-        plans.append((mode, Gc, groups, len(mats), sub, targets))
+        plans.append((mode, Gc, groups, len(mats), sub, targets, merge))
         mats += [g for g, _ in groups]
     eigs = top_eighs(mats, psi)
     out: list[tuple[TexelFit | None, str]] = []
@@ -407,18 +429,34 @@ def fit_many(
                 decorrelation_threshold=decorrelation_threshold)
         else:
             assert not isinstance(F, Columns)  # narrowed in the first loop
-            mode, Gc, groups, first, sub, targets = plan
-            F_sel = F if sub is None else np.ascontiguousarray(F[:, sub])
+            mode, Gc, groups, first, sub, targets, merge = plan
+            F_sel = F if merge is None else merge.columns(F)
+            F_sel = F_sel if sub is None else np.ascontiguousarray(F_sel[:, sub])
             ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
                     for j, (g, chans) in enumerate(groups)]
             got = fit_texel_gram(
                 F_sel, valid, Gc, ginp, mode=mode, corr=corr,
                 psi=psi, eps_db=eps_db, c_max=c_max, n_trials=n_trials, weights=weights,
                 seed=seed, closed_form=closed_form, trial_stop=trial_stop, c_start=c_start,
-                targets=targets,
+                targets=targets, in_span=sub is None,
             )
-            if sub is not None and got[0] is not None:  # columns of the subset -> of the texel
+            if sub is not None and got[0] is not None:  # columns of the subset -> of the merged
                 got = (dataclasses.replace(got[0], columns=sub[got[0].columns]), got[1])
+            if merge is not None and got[0] is not None:
+                mfit = got[0]
+                if needs_all_points(small, merge.rep.size, c_max, mfit.snr_db_insample):
+                    # every group at weight sqrt(k) on its merged column: k times its member
+                    u = merge.rep.size
+                    mfit = dataclasses.replace(
+                        mfit, columns=np.arange(u), c=u, c_channels=np.array([u]),
+                        weights=np.repeat(merge.scale[:, None], F.shape[0], 1),
+                        k_channels=np.array([mfit.k]), colour_mode="luminance", c_capped=False,
+                        reason=f"all {u} distinct candidates of {F.shape[1]} kept (u <= c_max)")
+                    got = (unmerge(mfit, merge, F, valid, eps_db), "all")
+                else:
+                    got = (unmerge(mfit, merge, F, valid, eps_db), got[1])
+                out.append(got)
+                continue
         fit = got[0]
         if fit is not None and needs_all_points(small, F.shape[1], c_max, fit.snr_db_insample):
             ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F

@@ -203,7 +203,7 @@ def fit_level_batched(
     n_cand = np.bincount(seg_c, minlength=n_t)
     cb_c = np.r_[0, np.cumsum(n_cand)]
 
-    res = _Results(n_t, d if s.btf else 0)
+    res = _Results(n_t, d if s.btf else 0, s.identical_columns == "merge")
     cap = max(budget // (BYTES_PER_R_ENTRY * d * 3), 1)
     # a texel wider than n_batch holds one block of n_batch columns at a time (`Columns`)
     for a, b in chunk_bounds(np.minimum(n_cand, s.n_batch), cap):  # loop over chunks
@@ -279,7 +279,7 @@ def _avis(src, frames, texels, dense, dseg, n_t, dirs, budget):
 
 
 class _Results:
-    def __init__(self, n_t: int, d_btf: int):
+    def __init__(self, n_t: int, d_btf: int, merged: bool = False):
         self.pts: list[list[np.ndarray]] = [[] for _ in range(n_t)]
         self.w: list[list[np.ndarray]] = [[] for _ in range(n_t)]
         self.k = np.zeros(n_t)
@@ -290,6 +290,8 @@ class _Results:
         self.valid = np.zeros(n_t, bool)
         self.skip = np.zeros(n_t, np.int8)
         self.fbar = np.zeros((n_t, d_btf, 3), np.float32) if d_btf else None
+        # candidates fitted as copies of others (identical_columns="merge" only)
+        self.merged = np.zeros(n_t, np.int32) if merged else None
 
     def arrays(self, texels: np.ndarray) -> dict[str, np.ndarray]:
         counts = [sum(len(p) for p in ps) for ps in self.pts]
@@ -308,6 +310,8 @@ class _Results:
         }
         if self.fbar is not None:
             out["fbar"] = self.fbar
+        if self.merged is not None:
+            out["merged"] = self.merged
         return out
 
 
@@ -408,7 +412,7 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         n_trials=s.n_trials, weights=s.weights, colour=s.colour,
         decorrelation_threshold=s.decorrelation_threshold, closed_form=s.closed_form,
         n_batch=s.n_batch, trial_stop=s.trial_stop, c_start=s.c_start, small=s.small_texels,
-        selection_columns=s.selection_columns,
+        selection_columns=s.selection_columns, identical=s.identical_columns,
     ), strict=True))
     fits: list[TexelFit | None] = [None] * n_t
     for t in range(n_t):  # loop over texels
@@ -477,6 +481,8 @@ def _store(res: _Results, i: int, fit: TexelFit, cset: PointSet, skip: int) -> N
     res.mode[i] = 1 if fit.colour_mode == "per_channel" else 0
     res.valid[i] = fit.valid
     res.skip[i] = skip
+    if res.merged is not None:
+        res.merged[i] = fit.merged
 
 
 def _points_of(res: _Results, fits, base: int):
