@@ -152,12 +152,12 @@ class BakeSettings(BaseModel):
         "(Grams s^2 d instead of m^2 d; batched fit only; issue 15).",
     )
     identical_columns: Literal["keep", "merge"] = Field(
-        "keep",
-        description="keep: every candidate is a column of the fit (the seed); merge: candidates "
-        "whose columns of F are identical (flat, unoccluded, single-material samples) are "
-        "fitted as one column of weight sqrt(k), which leaves the fit's distribution the seed's "
-        "and stores no point twice (Grams u^2 d for u distinct columns; batched fit only; "
-        "issue 15).",
+        "merge",
+        description="merge: candidates whose columns of F are identical (flat, unoccluded, "
+        "single-material samples) are fitted as one column of weight sqrt(k), which leaves the "
+        "fit's distribution the seed's and stores no point twice (Grams u^2 d for u distinct "
+        "columns; batched fit only; issue 15); keep: every candidate is a column of the fit "
+        "(the seed).",
     )
     closed_form: bool = Field(
         False, description="A texel whose R is numerically rank 1 gets its point in closed form, "

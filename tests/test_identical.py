@@ -201,3 +201,15 @@ def test_a_merged_level_stores_eq7_where_it_reports_it_exact(tmp_path):
         assert b - a < len(mine)  # fewer points than candidates
         checked += 1
     assert checked >= 3
+
+
+def test_the_report_counts_what_was_merged_by_hand():
+    from texelbake.cpm.assemble import _merged
+
+    data = {"merged": np.array([0, 5, 0, 2, 7], np.int32),
+            "snr_ho": np.array([10.0, 20.0, 30.0, np.inf, 40.0], np.float32)}
+    valid = np.array([True, True, True, True, False])
+    got = _merged(data, valid)
+    assert got["texels"] == 2 and got["candidates"] == 7
+    assert got["snr_heldout_db"]["n"] == 2 and got["snr_heldout_db"]["max"] > 100.0
+    assert _merged({"snr_ho": data["snr_ho"]}, valid) == {}

@@ -43,8 +43,10 @@ from texelbake.scenes import write_scene
 def two_levels(tmp_path_factory):
     d = tmp_path_factory.mktemp("refit")
     scene = write_scene("cylinder", d / "cyl.usda", "small")
+    # identical_columns "keep": the tile whose pooled strength the tests below measured (0.01)
     s = BakeSettings(atlas_resolution=16, shard_texels=8, samples_per_texel=16, n_light_dirs=16,
-                     n_view_dirs=16, n_heldout=64, c_max=12, n_trials=2, mesh_levels=1)
+                     n_view_dirs=16, n_heldout=64, c_max=12, n_trials=2, mesh_levels=1,
+                     identical_columns="keep")
     ctx = stages.StageContext.create(d / "work", scene, s)
     stages.run_ingest(ctx, 0)
     stages.run_geometry(ctx, 0)

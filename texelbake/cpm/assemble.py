@@ -49,6 +49,17 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
             for code, name in ((1, "rank1"), (2, "per_texel"), (3, "all_points"))}
 
 
+def _merged(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
+    """identical_columns="merge": the texels that merged identical candidates, the candidates
+    fitted as copies of others (columns the Grams and eigendecompositions did not hold) and
+    those texels' held-out SNR. Empty when the bake did not merge."""
+    if "merged" not in data:
+        return {}
+    merged = data["merged"][valid]
+    return {"texels": int(np.sum(merged > 0)), "candidates": int(merged.sum()),
+            "snr_heldout_db": percentiles(data["snr_ho"][valid][merged > 0], SNR_EXACT_DB)}
+
+
 def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_keep_fraction: float,
                    level: int, data: dict[str, np.ndarray],
                    avis_level: avis_mod.AvisLevel | LevelChunks, avis_selection: str = "texel",
@@ -119,8 +130,7 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "refit_alpha": _alpha_counts(data["refit_alpha"][valid]) if "refit_alpha" in data else {},
         # identical_columns="merge": texels with identical candidates, and the candidates
         # fitted as copies of others (columns the Grams and eigendecompositions did not hold)
-        "merged": {"texels": int(np.sum(data["merged"][valid] > 0)),
-                   "candidates": int(data["merged"][valid].sum())} if "merged" in data else {},
+        "merged": _merged(data, valid),
         "points": int(len(pts)),
         "rays": int(data["rays"].sum()) if "rays" in data else 0,
         "bytes": int(sum(a.nbytes for a in arrays.values())),
