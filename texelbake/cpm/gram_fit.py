@@ -375,8 +375,8 @@ def fit_many(
     (`texelbake.cpm.identical`: the seed's fit in distribution, Grams of u^2 d for u distinct
     columns, no point stored twice; under small="all" a texel of m <= c_max candidates is not
     merged, one of more whose u distinct columns are <= c_max keeps them all); "keep": as the
-    seed. A texel the
-    Gram route cannot resolve ("full_svd") is fitted by the caller over all its candidates.
+    seed. A texel the Gram route cannot resolve ("full_svd") is fitted by the caller over all
+    its candidates.
     Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous blocks), or `Columns`
     (m > n_batch only); valids[t] : (d,)
     bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
