@@ -67,6 +67,8 @@ BREAKDOWN = (
     ("texelbake.cpm.level_batched", "brdf_product"),
     ("texelbake.cpm.level_batched", "visibility_cos"),
     ("texelbake.cpm.level_batched", "fit_many"),
+    ("texelbake.cpm.gram_fit", "identical_columns"),
+    ("texelbake.cpm.gram_fit", "unmerge"),
     ("texelbake.cpm.gram_fit", "select_groups"),
     ("texelbake.cpm.gram_fit", "top_eighs"),
     ("texelbake.cpm.gram_fit", "fit_texel_gram"),
