@@ -74,6 +74,13 @@ results/bake_compare_cylinder_32_pass2.json prints the bars):
     summed 71.3 against 69.7 s (1.02x); the bake itself ran the previous coefficients (0.80x
     summed) and its wall estimate (load 17 at the estimate) was 1.39x. The bolt's comparison
     was stopped unfinished (its c15 bake alone ran > 40 min at load 20-40).
+
+Latest (2026-11-29 at 69a4e9b, identical candidate columns merged, a quiet machine, load ~2;
+results/bake_compare_{cylinder,bolt}_32_identical_merge.json): fit CPU seconds, all levels,
+cylinder 158.7 -> 41.7 (3.80x; L0 5.30x, L1-L5 1.8-2.5x), bolt 109.6 -> 48.6 (2.26x, lowest
+level 1.46x); whole bakes 98.1 -> 44.3 s and 75.5 -> 54.3 s. FAIL 10x. Held-out higher on
+every cylinder level but L5 (one texel, 11.55 -> 6.87, inside its seed spread); the bolt's L3/L4
+medians 14.1 -> 6.5 and 5.2 -> 2.3 (one seed a side; its L3 moves 3.5-14.9 dB with the seed).
 """
 
 from __future__ import annotations
