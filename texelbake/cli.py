@@ -95,14 +95,16 @@ def _print_summary(root: Path) -> None:
     report = json.loads((root.parent / "report.json").read_text())
     print(f"baked: {root}")
     print(f"report: {root.parent / 'report.json'}  (total {report.get('total_seconds', 0):.1f} s)")
+    # "merged": candidates fitted as copies of identical others (identical_columns="merge")
     print(f"{'level':>5} {'texels':>7} {'valid':>6} {'c mean':>7} {'SNR in':>7} {'SNR ho':>7} "
-          f"{'ho p5':>6} {'avis err':>8}")
+          f"{'ho p5':>6} {'avis err':>8} {'merged':>7}")
     for lv in report["levels"]:
+        merged = (lv.get("merged") or {}).get("candidates")
         print(f"{lv['level']:>5} {lv['texels']:>7} {lv['texels_valid']:>6} "
               f"{lv['c'].get('mean', 0):>7.1f} {lv['snr_insample_db'].get('mean', float('nan')):>7.1f} "
               f"{lv['snr_heldout_db'].get('mean', float('nan')):>7.1f} "
               f"{lv['snr_heldout_db'].get('p5', float('nan')):>6.1f} "
-              f"{lv['avis']['rel_error']:>8.3f}")
+              f"{lv['avis']['rel_error']:>8.3f} {'-' if merged is None else merged:>7}")
     for s in report.get("skipped", []):
         print(f"skipped {s['stage']}: {s['reason']}")
     for w in report.get("warnings", []):
