@@ -127,20 +127,30 @@ def needs_all_points(small: str, m: int, c_max: int, snr_insample: float) -> boo
 
 
 def all_points_fit(F_sum: np.ndarray, approx: np.ndarray, valid: np.ndarray, m: int,
-                   corr: float, eps_db: float, k: int) -> TexelFit:
+                   corr: float, eps_db: float, k: int, columns: np.ndarray | None = None,
+                   weights: np.ndarray | None = None) -> TexelFit:
     """A texel that keeps every one of its m candidates with weight 1 (`small="all"`): its
     points are its candidates, so Eq. 7 is reproduced exactly at *every* direction pair, not
     only on the fitted grid (seed 000 §4.1 selects c < m by bisection even when m <= c_max,
     trading accuracy off the grid for storage that c_max already bounds). F_sum, approx :
     (d, ch) Eq. 7 of all candidates and of the stored weights (the same sum up to round-off);
-    valid : (d,) rows above the floor; k : the psi-rank the fit found (reported as it is)."""
+    valid : (d,) rows above the floor; k : the psi-rank the fit found (reported as it is).
+    columns, weights : (u,) the kept candidates (sorted) and their weights, when the m
+    candidates are kept as u groups of identical ones (`texelbake.cpm.identical`: each group's
+    member at the group's size); default every candidate at weight 1."""
     snr = snr_db(F_sum, approx, valid)
     ch = F_sum.shape[1]
+    reason = f"all {m} candidates kept (m <= c_max)"
+    if columns is None or weights is None:
+        columns, weights = np.arange(m, dtype=np.int64), np.ones(m)
+    else:
+        reason = f"all {columns.size} distinct candidates of {m} kept (u <= c_max)"
+    c = int(columns.size)
     return TexelFit(
-        columns=np.arange(m, dtype=np.int64), weights=np.ones((m, ch), np.float32), k=int(k),
-        c=m, snr_db_insample=snr, colour_mode="luminance", valid=True,
-        reason=f"all {m} candidates kept (m <= c_max)", channel_correlation=corr,
-        k_channels=np.array([k], np.int64), c_channels=np.array([m], np.int64),
+        columns=columns, weights=np.repeat(np.asarray(weights, np.float32)[:, None], ch, 1),
+        k=int(k), c=c, snr_db_insample=snr, colour_mode="luminance", valid=True,
+        reason=reason, channel_correlation=corr,
+        k_channels=np.array([k], np.int64), c_channels=np.array([c], np.int64),
         c_capped=False, eps_reached=bool(snr >= eps_db),
     )
 

@@ -422,6 +422,7 @@ def fit_many(
     for F, valid, corr, seed, plan in zip(
         Fs, valids, corrs, seeds, plans, strict=True
     ):  # loop over texels: the m-sized work
+        targets = merge = None
         if plan is None:
             got = fit_split(
                 F, valid, corr, seed, n_batch=int(n_batch or 0), psi=psi, eps_db=eps_db,
@@ -442,27 +443,24 @@ def fit_many(
             )
             if sub is not None and got[0] is not None:  # columns of the subset -> of the merged
                 got = (dataclasses.replace(got[0], columns=sub[got[0].columns]), got[1])
-            if merge is not None and got[0] is not None:
-                mfit = got[0]
-                if needs_all_points(small, merge.rep.size, c_max, mfit.snr_db_insample):
-                    # every group at weight sqrt(k) on its merged column: k times its member
-                    u = merge.rep.size
-                    mfit = dataclasses.replace(
-                        mfit, columns=np.arange(u), c=u, c_channels=np.array([u]),
-                        weights=np.repeat(merge.scale[:, None], F.shape[0], 1),
-                        k_channels=np.array([mfit.k]), colour_mode="luminance", c_capped=False,
-                        reason=f"all {u} distinct candidates of {F.shape[1]} kept (u <= c_max)")
-                    got = (unmerge(mfit, merge, F, valid, eps_db), "all")
-                else:
-                    got = (unmerge(mfit, merge, F, valid, eps_db), got[1])
-                out.append(got)
-                continue
         fit = got[0]
-        if fit is not None and needs_all_points(small, F.shape[1], c_max, fit.snr_db_insample):
-            ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F
-            approx = (ref if isinstance(F, Columns) else  # every column at weight 1: the sum
-                      np.stack([np.ones(F.shape[1]) @ F[c] for c in range(F.shape[0])], axis=1))
-            got = (all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db, fit.k), "all")
+        m_fit = F.shape[1] if merge is None else merge.rep.size  # columns the fit saw
+        if fit is not None and needs_all_points(small, m_fit, c_max, fit.snr_db_insample):
+            ref = (F.sum(axis=1) if targets is None else targets).T  # (d, ch): Eq. 7, 1/a_vis in F
+            if merge is not None:  # every group at its size: the sum of its members
+                cols, size = merge.groups()
+                approx = np.stack([size @ F[c, cols] for c in range(F.shape[0])], axis=1)
+                fit = all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db, fit.k,
+                                     columns=cols, weights=size)
+                got = (dataclasses.replace(fit, merged=merge.merged), "all")
+            else:
+                approx = (ref if isinstance(F, Columns) else  # every column at weight 1: the sum
+                          np.stack([np.ones(F.shape[1]) @ F[c] for c in range(F.shape[0])],
+                                   axis=1))
+                got = (all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db, fit.k), "all")
+        elif fit is not None and merge is not None:  # merged columns -> the texel's candidates
+            assert not isinstance(F, Columns) and targets is not None  # what a merge implies
+            got = (unmerge(fit, merge, F, targets, valid, eps_db), got[1])
         out.append(got)
     return out
 

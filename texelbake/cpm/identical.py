@@ -46,6 +46,16 @@ class Merge:
     def scale(self) -> np.ndarray:
         return np.sqrt(self.count.astype(np.float64))
 
+    @property
+    def merged(self) -> int:
+        """Candidates fitted as copies of others: m - u."""
+        return int(self.count.sum() - self.rep.size)
+
+    def groups(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every group's stored member, sorted (as a TexelFit's columns), and its size (float)."""
+        order = np.argsort(self.rep, kind="stable")
+        return self.rep[order], self.count[order].astype(np.float64)
+
     def columns(self, F: np.ndarray) -> np.ndarray:
         """The merged columns sqrt(k_g) f_g: (ch, u, d), a copy."""
         return F[:, self.rep] * self.scale[None, :, None]
@@ -93,26 +103,24 @@ def identical_columns(F: np.ndarray, seed: int) -> Merge | None:
     return Merge(rep=member, count=count)
 
 
-def unmerge(fit: TexelFit, merge: Merge, F: np.ndarray, valid: np.ndarray,
-            eps_db: float) -> TexelFit:
+def unmerge(fit: TexelFit, merge: Merge, F: np.ndarray, targets: np.ndarray,
+            valid: np.ndarray, eps_db: float) -> TexelFit:
     """A fit over the merged columns as a fit over the texel's candidates: each point is its
     group's stored member with weight alpha sqrt(k) (the same approximation: sqrt(k) f = k^1/2
     times the member's column), the float32 weights and the in-sample SNR recomputed against
-    Eq. 7 over every candidate of F (ch, m, d)."""
+    Eq. 7 over every candidate of F (ch, m, d), `targets` (ch, d) = F's row sums."""
     if fit.c == 0:
-        return dataclasses.replace(fit, merged=int(merge.count.sum() - merge.rep.size))
+        return dataclasses.replace(fit, merged=merge.merged)
     cols = merge.rep[fit.columns]
     w32 = _storable_weights(fit.weights.astype(np.float64) * merge.scale[fit.columns][:, None])
     order = np.argsort(cols, kind="stable")  # TexelFit's columns are sorted
     cols, w32 = cols[order], w32[order]
     w = w32.astype(np.float64)
     ch = F.shape[0]
-    ref = F.sum(axis=1).T  # (d, ch): Eq. 7
     approx = np.stack([w[:, c] @ F[c, cols] for c in range(ch)], axis=1)
-    snr = snr_db(ref, approx, valid)
+    snr = snr_db(targets.T, approx, valid)  # (d, ch): Eq. 7
     return dataclasses.replace(fit, columns=cols, weights=w32, snr_db_insample=snr,
-                               eps_reached=bool(snr >= eps_db),
-                               merged=int(merge.count.sum() - merge.rep.size))
+                               eps_reached=bool(snr >= eps_db), merged=merge.merged)
 
 
 __all__ = ["MERGE_STREAM", "PRINT_TAPS", "Merge", "identical_columns", "unmerge"]
