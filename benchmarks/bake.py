@@ -81,6 +81,14 @@ cylinder 158.7 -> 41.7 (3.80x; L0 5.30x, L1-L5 1.8-2.5x), bolt 109.6 -> 48.6 (2.
 level 1.46x); whole bakes 98.1 -> 44.3 s and 75.5 -> 54.3 s. FAIL 10x. Held-out higher on
 every cylinder level but L5 (one texel, 11.55 -> 6.87, inside its seed spread); the bolt's L3/L4
 medians 14.1 -> 6.5 and 5.2 -> 2.3 (one seed a side; its L3 moves 3.5-14.9 dB with the seed).
+
+At 64^2 (2026-11-29 at 50ef010, quiet machine, load 1-3; results/bake_compare_{cylinder,bolt}_64.json):
+fit CPU seconds, all levels, cylinder 534.0 -> 163.7 (3.26x; per level 2.02-3.69x), bolt 460.6
+-> 184.4 (2.50x; 1.65-2.63x); whole bakes 330.4 -> 144.1 s and 294.3 -> 199.5 s; cost model
+1.12x / 1.07x of the wall, 1.21x / 1.14x of the fit CPU. FAIL 10x; held-out medians higher on
+most levels (cylinder L0 26.6 -> 28.5, bolt L0 26.3 -> 49.6), lower on the few-texel top levels
+(cylinder L4 18.4 -> 17.8, bolt L4/L5 6.2 -> 4.2, 4.3 -> 0.7). Why 10x per level is out of reach
+of the seed's algorithm: docs/profile.md, sixth pass.
 """
 
 from __future__ import annotations
