@@ -89,6 +89,12 @@ fit CPU seconds, all levels, cylinder 534.0 -> 163.7 (3.26x; per level 2.02-3.69
 most levels (cylinder L0 26.6 -> 28.5, bolt L0 26.3 -> 49.6), lower on the few-texel top levels
 (cylinder L4 18.4 -> 17.8, bolt L4/L5 6.2 -> 4.2, 4.3 -> 0.7). Why 10x per level is out of reach
 of the seed's algorithm: docs/profile.md, sixth pass.
+
+At 128^2 (same session; results/bake_compare_cylinder_128.json): the cylinder's fit CPU 1862.2 ->
+532.0 s (3.50x; per level 2.13-4.30x), whole bake 1193.8 -> 477.6 s; held-out medians higher on
+L0-L3 and L6-L7 (L0 28.8 -> 30.8), lower on L4/L5 (19.2 -> 17.5, 16.1 -> 15.5). Cost model: wall
+1.17x (PASS), fit CPU summed 1.33x (FAIL +-30 %): levels 0 and 1 priced 1.50x / 1.43x because
+the model prices a texel at its m candidates, not at the u distinct columns the merge fits.
 """
 
 from __future__ import annotations
