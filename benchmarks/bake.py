@@ -95,6 +95,11 @@ At 128^2 (same session; results/bake_compare_cylinder_128.json): the cylinder's 
 L0-L3 and L6-L7 (L0 28.8 -> 30.8), lower on L4/L5 (19.2 -> 17.5, 16.1 -> 15.5). Cost model: wall
 1.17x (PASS), fit CPU summed 1.33x (FAIL +-30 %): levels 0 and 1 priced 1.50x / 1.43x because
 the model prices a texel at its m candidates, not at the u distinct columns the merge fits.
+The bolt at 128^2 (results/bake_compare_bolt_128.json): fit CPU 1872.9 -> 757.8 s (2.47x; per
+level 1.78-2.73x), whole bake 1217.1 -> 597.1 s (<= 15 min: PASS); held-out medians higher on
+L0-L3, L5 and L7 (L0 31.2 -> 147.2, L1 22.2 -> 143.5: texels of at most c_max candidates keep
+them all), lower on L4 and L6 (10.9 -> 7.5, 6.0 -> 3.2); cost model 1.11x of the wall, 1.20x of
+the fit CPU.
 """
 
 from __future__ import annotations
