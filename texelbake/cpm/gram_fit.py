@@ -60,7 +60,7 @@ from texelbake.cpm.gram_linalg import (
     top_eighs,
 )
 from texelbake.cpm.identical import identical_columns, unmerge
-from texelbake.cpm.matrix import snr_db
+from texelbake.cpm.matrix import points_sum, snr_db
 from texelbake.tol import TOL
 
 
@@ -322,7 +322,7 @@ def _merge(F, valid, fits, groups, *, mode, corr, eps_db, c_max, ref=None) -> Te
     live = np.any(w32 != 0.0, axis=1)
     columns, w32 = columns[live], w32[live]
     w = w32.astype(np.float64)
-    approx = np.stack([w[:, c] @ F[c, columns] for c in range(ch)], axis=1)  # (d, ch)
+    approx = points_sum(F, columns, w)  # (d, ch)
     if ref is None:
         ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F
     snr = snr_db(ref, approx, valid)
@@ -448,15 +448,15 @@ def fit_many(
         if fit is not None and needs_all_points(small, m_fit, c_max, fit.snr_db_insample):
             ref = (F.sum(axis=1) if targets is None else targets).T  # (d, ch): Eq. 7, 1/a_vis in F
             if merge is not None:  # every group at its size: the sum of its members
+                assert not isinstance(F, Columns)  # what a merge implies
                 cols, size = merge.groups()
-                approx = np.stack([size @ F[c, cols] for c in range(F.shape[0])], axis=1)
+                approx = points_sum(F, cols, size)
                 fit = all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db, fit.k,
                                      columns=cols, weights=size)
                 got = (dataclasses.replace(fit, merged=merge.merged), "all")
             else:
                 approx = (ref if isinstance(F, Columns) else  # every column at weight 1: the sum
-                          np.stack([np.ones(F.shape[1]) @ F[c] for c in range(F.shape[0])],
-                                   axis=1))
+                          points_sum(F, None, np.ones(F.shape[1])))
                 got = (all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db, fit.k), "all")
         elif fit is not None and merge is not None:  # merged columns -> the texel's candidates
             assert not isinstance(F, Columns) and targets is not None  # what a merge implies

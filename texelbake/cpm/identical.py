@@ -26,7 +26,7 @@ import dataclasses
 import numpy as np
 
 from texelbake.cpm.fit import TexelFit, _storable_weights
-from texelbake.cpm.matrix import snr_db
+from texelbake.cpm.matrix import points_sum, snr_db
 
 #: the stream of a texel's seed that draws each merged group's stored member
 MERGE_STREAM = 0x1DE47C
@@ -116,8 +116,7 @@ def unmerge(fit: TexelFit, merge: Merge, F: np.ndarray, targets: np.ndarray,
     order = np.argsort(cols, kind="stable")  # TexelFit's columns are sorted
     cols, w32 = cols[order], w32[order]
     w = w32.astype(np.float64)
-    ch = F.shape[0]
-    approx = np.stack([w[:, c] @ F[c, cols] for c in range(ch)], axis=1)
+    approx = points_sum(F, cols, w)
     snr = snr_db(targets.T, approx, valid)  # (d, ch): Eq. 7
     return dataclasses.replace(fit, columns=cols, weights=w32, snr_db_insample=snr,
                                eps_reached=bool(snr >= eps_db), merged=merge.merged)

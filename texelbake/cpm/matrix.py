@@ -235,3 +235,15 @@ def snr_db(ref: np.ndarray, approx: np.ndarray, valid: np.ndarray | None = None)
     if signal == 0.0:
         return -math.inf
     return 10.0 * math.log10(signal / noise)
+
+
+def points_sum(F: np.ndarray, columns: np.ndarray | None, w: np.ndarray) -> np.ndarray:
+    """Eq. 8's right side on the grid: sum_k alpha_k f(x_k) per channel.
+
+    F : (ch, m, d) channel-major F (or R); columns : (c,) the points' columns, None for all m;
+    w : (c, ch) per-channel weights or (c,) one weight for every channel
+    returns : (d, ch) float64
+    """
+    ch = F.shape[0]
+    return np.stack([(w if w.ndim == 1 else w[:, c]) @ (F[c] if columns is None else F[c, columns])
+                     for c in range(ch)], axis=1)  # loop over colour channels
