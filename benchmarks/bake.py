@@ -119,9 +119,9 @@ from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.assemble import SNR_EXACT_DB, percentiles
 from texelbake.cpm.avis.table import avis_table_from
 from texelbake.cpm.level import texel_ids
-from texelbake.payload import read_baked
-from texelbake.pipeline import bake
+from texelbake.pipeline.run import bake
 from texelbake.scenes import write_scene
+from texelbake.usd.read import read_baked
 
 JOBS = 2  # processes for the sharded stages: this machine's cores
 

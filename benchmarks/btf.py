@@ -98,9 +98,11 @@ def bake_scene_btf(name: str, atlas: int, workdir: Path) -> Path:
     pipeline's own BTF stage (`stages.run_btf`) is wired.
     """
     from schemas.settings import BakeSettings
-    from texelbake import pipeline, scenes, stages
+    from texelbake import scenes, stages
     from texelbake.btf.stage import btf_from_texels
     from texelbake.cpm.level import direction_sets
+    from texelbake.pipeline.plan import n_tiles
+    from texelbake.pipeline.run import run_shard
     from texelbake.stages.cpm import level_key
 
     folder = workdir / f"{name}{atlas}"
@@ -110,11 +112,11 @@ def bake_scene_btf(name: str, atlas: int, workdir: Path) -> Path:
     work = folder / "work"
     t0 = time.perf_counter()
     for stage in ("ingest", "geometry"):
-        pipeline.run_shard(work, asset, s, stage, 0)
+        run_shard(work, asset, s, stage, 0)
     ctx = stages.StageContext.create(work, asset, s)
     ids, fbar, valid = [], [], []
-    for tile in range(pipeline.n_tiles(s)):  # one CPM shard per tile
-        pipeline.run_shard(work, asset, s, "cpm", tile)
+    for tile in range(n_tiles(s)):  # one CPM shard per tile
+        run_shard(work, asset, s, "cpm", tile)
         arrays = ctx.store.read_arrays(level_key(ctx, 0, tile))
         ids.append(arrays["texel"])
         fbar.append(arrays["fbar"])

@@ -26,8 +26,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from schemas.settings import BakeSettings  # noqa: E402
-from texelbake import metrics  # noqa: E402
-from texelbake.pipeline import bake  # noqa: E402
+from texelbake.pipeline.run import bake  # noqa: E402
+from texelbake.render import metrics  # noqa: E402
 from texelbake.render.report import render  # noqa: E402
 from texelbake.scenes import write_scene  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""Fit the cost model's per-unit CPU costs (`texelbake.costmodel.Coefficients`) to measured
+"""Fit the cost model's per-unit CPU costs (`texelbake.estimate.costmodel.Coefficients`) to measured
 per-level CPU seconds of the CPM fit (`benchmarks/cpm_cpu.py --json`), and print prediction
 against measurement per (scene, level) and summed.
 
@@ -9,8 +9,8 @@ cheap (Lambert / Phong) and costly materials, m^2, texels); the direction pairs 
 held-out pairs H come from the run's settings. Non-negative least squares on relative
 residuals (each level weighted by 1 / its measured seconds), so small and large levels count
 alike. The fitted values are printed as a `Coefficients(...)` line to paste into
-texelbake/costmodel.py; the table then shows the current model's prediction too. Runs that
-record the machine they were made on (`machine_speed`, `texelbake.machinespeed`) are priced on
+texelbake/estimate/costmodel.py; the table then shows the current model's prediction too. Runs that
+record the machine they were made on (`machine_speed`, `texelbake.estimate.machinespeed`) are priced on
 it, so the fitted coefficients stay the reference machine's seconds.
 """
 
@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 
-from texelbake.costmodel import Coefficients
-from texelbake.machinespeed import REFERENCE_SPEED, MachineSpeed
+from texelbake.estimate.costmodel import Coefficients
+from texelbake.estimate.machinespeed import REFERENCE_SPEED, MachineSpeed
 
 #: the coefficient each column of `design` is priced by (its kind of work's machine factor)
 COLUMNS = ("r_entry", "r_entry", "gram", "held", "held", "texel", "refit", "refit")
@@ -35,7 +35,7 @@ def design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
     s = run["settings"]
     d = s["n_light_dirs"] * s["n_view_dirs"]
     h = int(round(np.sqrt(s["n_heldout"]))) ** 2 if s["n_heldout"] else 0
-    # the run's machine against the coefficients' (`texelbake.machinespeed`, recorded by
+    # the run's machine against the coefficients' (`texelbake.estimate.machinespeed`, recorded by
     # cpm_cpu.py since 2026-11-28; older runs: the coefficients' machine): each column is
     # priced at its kind of work's factor, so the fitted coefficients are the reference
     # machine's seconds wherever the runs were made

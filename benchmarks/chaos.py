@@ -17,7 +17,7 @@ one fault of its kind:
   queued messages are gone), restarted; `postgres`: an immediate stop of the cluster (its
   crash-restart path), restarted;
 - `enospc`, `eacces`: the artifact store's writes fail with that errno for a seeded while
-  (`texelbake.atomic.failpoint`; shorter than the retry budget);
+  (`texelbake.io.atomic.failpoint`; shorter than the retry budget);
 - `disk_full`: ENOSPC that outlives the retry budget: the job must fail with an error naming
   ENOSPC and the path; then the fault clears and `POST /jobs/{id}/resume` must complete it;
 - `hang`: the next shard to start hangs (`workers.tasks` hang failpoint) while its heartbeats
@@ -72,7 +72,7 @@ from tests.test_service_farm import (  # noqa: E402
     farm,
     ledger_rows,
 )
-from texelbake.atomic import FAILPOINT_ENV  # noqa: E402
+from texelbake.io.atomic import FAILPOINT_ENV  # noqa: E402
 
 KINDS = ("worker_child", "worker_whole", "api", "redis", "postgres", "enospc", "eacces",
          "disk_full", "hang")
@@ -482,7 +482,7 @@ def open_farm(db: str, base: Path, cylinder: Path, reference: Path):
 
 def make_scene(base: Path) -> tuple[Path, Path]:
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes import write_scene
 
     cylinder = write_scene("cylinder", base / "scene" / "cylinder.usda", "small")

@@ -81,12 +81,6 @@ from texelbake.cpm.column_sampling import (  # noqa: E402
     top_singular,
     uniform_probabilities,
 )
-from texelbake.cpm.directions import (  # noqa: E402
-    balanced_pairs,
-    heldout_pairs,
-    hemisphere_directions,
-    product_pairs,
-)
 from texelbake.cpm.fit import LUMA_709, evaluate_fit, fit_texel  # noqa: E402
 from texelbake.cpm.matrix import (  # noqa: E402
     avis_floor,
@@ -94,6 +88,12 @@ from texelbake.cpm.matrix import (  # noqa: E402
     filtered_reflectance,
     reflectance_matrix,
     reflectance_pairs,
+)
+from texelbake.geometry.directions import (  # noqa: E402
+    balanced_pairs,
+    heldout_pairs,
+    hemisphere_directions,
+    product_pairs,
 )
 
 METHODS = ("seed+clamp", "seed+nnls", "leverage", "uniform", "pivqr", "eq7+nnls")

@@ -12,7 +12,7 @@ prediction `texelbake bake` makes after its geometry stage knows the samples per
 stage's seconds; the job API's, before anything runs, knows the settings only (printed beside). Peak
 memory: the largest resident set of any process of the bake so far (`RUSAGE_CHILDREN`, the
 kernel's maximum over the process tree; sizes run in increasing order, so a rise is this bake's).
-Both predictions are priced on this machine (`texelbake.machinespeed`: a reference workload's
+Both predictions are priced on this machine (`texelbake.estimate.machinespeed`: a reference workload's
 seconds here against the machine the coefficients were fitted on), printed first;
 `TEXELBAKE_MACHINE_SPEED=1` prices on the fitted machine instead (the model without the term).
 """
@@ -32,12 +32,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bake import JOBS, run_child, write_scene  # noqa: E402
 
 from schemas.settings import BakeSettings  # noqa: E402
-from texelbake import costmodel, machinespeed  # noqa: E402
+from texelbake.estimate import costmodel, machinespeed  # noqa: E402
 
 
 def recheck(args: argparse.Namespace) -> None:
     from texelbake import stages
-    from texelbake.pipeline import _other_runnable, bake_estimate
+    from texelbake.pipeline.estimate import _other_runnable, bake_estimate
 
     data = json.loads(args.recheck.read_text())
     work = args.workdir
@@ -76,7 +76,7 @@ def main() -> None:
     ap.add_argument("--recheck", type=Path, default=None,
                     help="a JSON of an earlier run whose --workdir still holds the bakes: the "
                          "estimate of this tree's cost model from their geometry (the bake's "
-                         "own call, `pipeline.bake_estimate`, with their measured ingest and "
+                         "own call, `pipeline.estimate.bake_estimate`, with their measured ingest and "
                          "geometry seconds), beside what was measured; no bake is rerun")
     args = ap.parse_args()
     if args.recheck:

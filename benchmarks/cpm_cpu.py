@@ -31,8 +31,8 @@ from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
 from texelbake.cpm.level_batched import fit_level
-from texelbake.payload import atomic_json
-from texelbake.process import setup_bake_process
+from texelbake.io.atomic import atomic_json
+from texelbake.pipeline.process import setup_bake_process
 from texelbake.stages import cpm as cpm_stage
 from texelbake.stages.cpm import refit_coarse
 
@@ -119,7 +119,7 @@ def install_breakdown() -> dict[str, list[float]]:
 
 def run(scene: str, size: str, settings: BakeSettings, work: Path,
         tiles: list[int] | None = None) -> dict:
-    setup_bake_process()  # as every bake process (texelbake.pipeline.run_shard)
+    setup_bake_process()  # as every bake process (texelbake.pipeline.run.run_shard)
     asset = stages_asset(scene, size, work)
     ctx = stages.StageContext.create(work / "store", asset, settings)
     stages.run_ingest(ctx, 0)
@@ -160,7 +160,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         out = refitted
         c2 = time.process_time()
         per_level.setdefault(level, []).append((c2 - c0, out, c2 - c1))
-        # the cost model's sizes of this call (texelbake.costmodel): per texel m candidates
+        # the cost model's sizes of this call (texelbake.estimate.costmodel): per texel m candidates
         # and n dense samples, split by material cost (Lambert / Phong vs the rest)
         pos = np.searchsorted(np.sort(texels), cands.texel)
         m = np.bincount(pos, minlength=len(texels)).astype(float)
@@ -374,7 +374,7 @@ def main() -> None:
         for lv, parts in sorted(BY_LEVEL.items()):
             print(f"{lv:>17}: " + " ".join(f"{parts.get(k, 0.0):>10.2f}" for k in keys))
     if args.json:
-        from texelbake import machinespeed
+        from texelbake.estimate import machinespeed
 
         # the machine the seconds were measured on (calibrate_costmodel.py prices the runs
         # on it): the reference workload after the fit, so the fit's timings are not disturbed

@@ -87,14 +87,15 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from schemas.settings import BakeSettings  # noqa: E402
-from texelbake import metrics  # noqa: E402
 from texelbake.deform.warps import AffineWarp, parse_warp  # noqa: E402
-from texelbake.pipeline import bake  # noqa: E402
-from texelbake.render.camera import PinholeCamera  # noqa: E402
-from texelbake.render.deformed import deform_scene, render_deformed  # noqa: E402
+from texelbake.pipeline.run import bake  # noqa: E402
+from texelbake.render import metrics  # noqa: E402
+from texelbake.render.deformed import deform_scene  # noqa: E402
 from texelbake.render.deformed_report import warp_at_time  # noqa: E402
+from texelbake.render.frame import render_deformed  # noqa: E402
 from texelbake.render.scene import load_scene, lod_camera  # noqa: E402
 from texelbake.scenes import write_scene  # noqa: E402
+from texelbake.trace.camera import PinholeCamera  # noqa: E402
 
 #: the stretch is 1:2 across the axis (y): along it, a cylinder's surface frames do not turn,
 #: L = I on every texel and cpm and cpm-naive render identical images (measured 2026-11-27:

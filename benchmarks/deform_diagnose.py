@@ -31,10 +31,11 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from texelbake import metrics  # noqa: E402
 from texelbake.deform.warps import parse_warp  # noqa: E402
-from texelbake.payload import atomic_json  # noqa: E402
-from texelbake.render.deformed import deform_scene, render_deformed  # noqa: E402
+from texelbake.io.atomic import atomic_json  # noqa: E402
+from texelbake.render import metrics  # noqa: E402
+from texelbake.render.deformed import deform_scene  # noqa: E402
+from texelbake.render.frame import render_deformed  # noqa: E402
 from texelbake.render.scene import load_scene, lod_camera  # noqa: E402
 
 MODES = (("cpm", "cpm", {}), ("cpm-naive", "cpm-naive", {}),

@@ -45,17 +45,18 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from texelbake import metrics  # noqa: E402
 from texelbake.deform.warps import parse_warp  # noqa: E402
 from texelbake.geometry.mesh import triangle_areas  # noqa: E402
 from texelbake.geometry.sampling import sample_surface  # noqa: E402
 from texelbake.geometry.texels import uv_to_texel  # noqa: E402
-from texelbake.payload import atomic_json  # noqa: E402
+from texelbake.io.atomic import atomic_json  # noqa: E402
+from texelbake.render import metrics  # noqa: E402
 from texelbake.render.cpm import choose_mesh, render_cpm  # noqa: E402
-from texelbake.render.deformed import DeformedCpmFrame, deform_scene, render_deformed  # noqa: E402
+from texelbake.render.deformed import DeformedCpmFrame, deform_scene  # noqa: E402
 from texelbake.render.deformed_report import warp_at_time  # noqa: E402
-from texelbake.render.gt import shade_org  # noqa: E402
+from texelbake.render.frame import render_deformed  # noqa: E402
 from texelbake.render.scene import atlas_uv_prim, load_scene, lod_camera  # noqa: E402
+from texelbake.trace.org import shade_org  # noqa: E402
 
 
 class ExactTexelFrame(DeformedCpmFrame):

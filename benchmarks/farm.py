@@ -20,7 +20,7 @@ Method (one run, ratios only):
   finished job every `--poll` seconds for `--seconds`; p50/p99 of all request latencies.
 - 4 cpm workers (issue 15, item 6): oversubscribes the 2 cores (two workers per CPU), so the
   figure that matters is speed-up per core: t_farm[1] / t_farm[n] / min(n, cores).
-- the N-machine prediction (issue 15, item 6): `texelbake.costmodel.simulate_farm`, a
+- the N-machine prediction (issue 15, item 6): `texelbake.estimate.costmodel.simulate_farm`, a
   discrete-event simulation of N workers draining the shard queue over one shared artifact
   store, fed with this run's measured per-shard durations (1-worker run), per-shard artifact
   bytes written, the geometry arrays each worker reads once and the farm's overhead per shard.
@@ -78,15 +78,16 @@ import json, os, sys, time
 os.sched_setaffinity(0, {0})
 from pathlib import Path
 from schemas.settings import BakeSettings
-from texelbake import pipeline
+from texelbake.pipeline.plan import plan_bake
+from texelbake.pipeline.run import run_shard
 asset, wd, settings = Path(sys.argv[1]), Path(sys.argv[2]), BakeSettings(**json.loads(sys.argv[3]))
 for st in ("ingest", "geometry"):
-    pipeline.run_shard(wd, asset, settings, st, 0)
-n = pipeline.plan_bake(asset, settings).stage("cpm").n_shards
+    run_shard(wd, asset, settings, st, 0)
+n = plan_bake(asset, settings).stage("cpm").n_shards
 times = []
 for k in range(n):
     t0 = time.perf_counter()
-    pipeline.run_shard(wd, asset, settings, "cpm", k)
+    run_shard(wd, asset, settings, "cpm", k)
     times.append(time.perf_counter() - t0)
 print(json.dumps({"shard_seconds": times}))
 """
@@ -176,7 +177,7 @@ def predict_farm(f1: dict, runs: dict[int, dict], n_shards: int, overhead: float
                  atlas: int = 1024, counts: tuple[int, ...] = (8, 32, 128)) -> dict:
     """`costmodel.simulate_farm` checked against the real runs, then the 1024^2 prediction."""
     from schemas.settings import BakeSettings
-    from texelbake import costmodel
+    from texelbake.estimate import costmodel
 
     dur = np.asarray(f1["shard_seconds"], dtype=np.float64)
     ab = f1["artifact_bytes"]

@@ -52,7 +52,7 @@ import time
 from pathlib import Path
 
 from schemas.settings import BakeSettings
-from texelbake.pipeline import bake
+from texelbake.pipeline.run import bake
 from texelbake.scenes import write_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,7 +93,7 @@ def blender_columns(asset: str, src: Path, root: Path, rows: list[dict], renders
     import pytest
 
     from tests.dcc_util import compare_renders, import_and_render, side_by_side
-    from texelbake.lodexport import export_lod
+    from texelbake.usd.export import export_lod
 
     files = {"original": src}
     for r in rows:

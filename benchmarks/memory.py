@@ -30,7 +30,7 @@ _CHILD = """
 import json, sys, time
 from pathlib import Path
 from schemas.settings import BakeSettings
-from texelbake.pipeline import run_shard
+from texelbake.pipeline.run import run_shard
 work, usd, settings, stage, shard = sys.argv[1:6]
 t = time.perf_counter()
 settings = BakeSettings.model_validate_json(settings)
@@ -55,7 +55,7 @@ def run_task(work: Path, usd: Path, settings, stage: str, shard: int) -> dict:  
 
 def fullest_tile(work: Path, geometry_key: str, atlas: int, side: int) -> tuple[int, int]:
     from texelbake.cpm.level import texel_ids
-    from texelbake.store import ArtifactStore
+    from texelbake.io.store import ArtifactStore
 
     geo = ArtifactStore(work / "artifacts").read_arrays(
         geometry_key, lambda n: n in ("sample_row", "sample_col"), mmap=True)

@@ -93,7 +93,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from schemas.settings import BakeSettings  # noqa: E402
-from texelbake.pipeline import bake  # noqa: E402
+from texelbake.pipeline.run import bake  # noqa: E402
 from texelbake.render.frame import FILTERED_MODES, MODES, render_frame  # noqa: E402
 from texelbake.render.report import (  # noqa: E402
     _entry,

@@ -53,13 +53,11 @@ if str(ROOT) not in sys.path:
 
 from scipy.spatial import ConvexHull  # noqa: E402
 
-from texelbake import metrics  # noqa: E402
 from texelbake.deform.warps import parse_warp  # noqa: E402
 from texelbake.geometry.raycast import RayCaster  # noqa: E402
 from texelbake.model import Light  # noqa: E402
-from texelbake.render import camera as cam_mod  # noqa: E402
+from texelbake.render import metrics  # noqa: E402
 from texelbake.render.deformed import deform_normals  # noqa: E402
-from texelbake.render.gt import render_model  # noqa: E402
 from texelbake.scene import load_asset  # noqa: E402
 from texelbake.scenes import write_scene  # noqa: E402
 from texelbake.srf.cache import shade  # noqa: E402
@@ -67,6 +65,8 @@ from texelbake.srf.capture import capture, unit_light  # noqa: E402
 from texelbake.srf.frame import VIS_OFFSET, frame_ops, render_srf, splat_surfels  # noqa: E402
 from texelbake.srf.store import SrfStore, open_store, subset  # noqa: E402
 from texelbake.srf.surfels import surfels_from_mesh  # noqa: E402
+from texelbake.trace import camera as cam_mod  # noqa: E402
+from texelbake.trace.org import render_model  # noqa: E402
 
 
 def hull_impostor(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

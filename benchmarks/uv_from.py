@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texelbake import metrics
+from texelbake.render import metrics
 from texelbake.render.frame import render_frame
 from texelbake.render.scene import load_scene, lod_camera
 

@@ -68,7 +68,7 @@ class SkippedStage(BaseModel):
 
 
 class JobEstimate(BaseModel):
-    """The cost model's prediction of a bake (`texelbake.costmodel.estimate`): from the
+    """The cost model's prediction of a bake (`texelbake.estimate.costmodel.estimate`): from the
     settings (texel count, samples per texel, direction pairs) and the worker count, before
     the geometry exists (atlas fill assumed)."""
 
@@ -80,7 +80,7 @@ class JobEstimate(BaseModel):
     machine_speed: dict[str, float] | None = Field(
         None, description="Seconds per kind of work (grid, blas, rays, python) on the API's "
         "machine against the machine the cost model was fitted on (> 1: slower); the "
-        "estimate is scaled by them (`texelbake.machinespeed`).")
+        "estimate is scaled by them (`texelbake.estimate.machinespeed`).")
 
 
 class JobPublic(BaseModel):
@@ -100,7 +100,7 @@ class JobPublic(BaseModel):
     previews: list[str] = Field(default_factory=list, description="Names under .../previews/.")
     estimate: JobEstimate | None = Field(None, description="Predicted time (issue 15).")
     outcome: Literal["completed", "completed with warnings"] | None = Field(
-        None, description="A succeeded job's quality gate (texelbake.quality): 'completed with "
+        None, description="A succeeded job's quality gate (texelbake.stages.quality): 'completed with "
         "warnings' when the bake missed a target, listed in `warnings`; null before success.")
     warnings: list[str] = Field(
         default_factory=list, description="Each missed quality target, naming the LOD or CPM "

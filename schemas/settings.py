@@ -12,7 +12,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-#: quality-gate defaults (texelbake.quality; measured in docs/decisions.md, 2026-11-25)
+from schemas.warp import check_warp_spec
+
+#: quality-gate defaults (texelbake.stages.quality; measured in docs/decisions.md, 2026-11-25)
 GATE_SNR_MEDIAN_DB = 0.0
 GATE_SNR_P5_DB = -6.0
 GATE_AVIS_REL_ERROR = 0.15
@@ -178,7 +180,7 @@ class BakeSettings(BaseModel):
         "texel", description="How the a_vis Haar coefficients are chosen: 'texel' spends one "
         "budget per level so that every texel's relative error is about equal (U^2-weighted, "
         "float16 values); 'face' is the seed's per-face top fraction with float32 values.")
-    # quality gate (issue 22, item 2; texelbake.quality): targets, not inputs of any stage
+    # quality gate (issue 22, item 2; texelbake.stages.quality): targets, not inputs of any stage
     gate_snr_median_db: float = Field(
         GATE_SNR_MEDIAN_DB, ge=-200.0, le=200.0,
         description="Each CPM level's held-out SNR median (dB) must reach this.",
@@ -244,8 +246,6 @@ class BakeSettings(BaseModel):
                 b >= a for a, b in zip(px, px[1:], strict=False)):
             raise ValueError(f"lod_switch_px must be 1 to 8 decreasing positive sizes, got {px}")
         if self.warp:
-            from texelbake.deform.warps import check_warp_spec
-
             check_warp_spec(self.warp)
         if self.refit_shrink and self.refit_validation:
             raise ValueError("refit_shrink and refit_validation are two rules for the same "

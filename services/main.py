@@ -30,7 +30,7 @@ from services.fastpath import StatusFastPath
 from services.limits import BodyLimit, ServerTiming
 from services.routers import assets, batches, events, farm, job_files, jobs, utils, viewer
 from services.routers.jobs import JobCache, VersionCache
-from texelbake import machinespeed
+from texelbake.estimate import machinespeed
 from workers.celeryconfig import celery_config
 
 log = logging.getLogger("texelbake.api")
@@ -98,7 +98,7 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
         if sweeper:
             thread = threading.Thread(target=_sweeper, args=(app, stop), daemon=True)
             thread.start()
-        # the cost model's machine speed (~1 s of CPU, `texelbake.machinespeed`) measured now,
+        # the cost model's machine speed (~1 s of CPU, `texelbake.estimate.machinespeed`) measured now,
         # so no job's first status read pays it
         threading.Thread(target=machinespeed.this_machine, daemon=True,
                          name="machine-speed").start()

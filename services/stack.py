@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlparse
 
-from texelbake.atomic import atomic_write_bytes
 from texelbake.errors import SettingsError, StageError
+from texelbake.io.atomic import atomic_write_bytes
 
 #: queue family -> queues (the same split as docker-compose.yml and workers.celeryconfig)
 QUEUE_FAMILIES: dict[str, tuple[str, ...]] = {

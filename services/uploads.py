@@ -29,7 +29,7 @@ from pathlib import Path, PurePosixPath
 
 from schemas.common import ErrorCode
 from services import storage
-from texelbake.atomic import replace
+from texelbake.io.atomic import replace
 
 KINDS = {".usda": "usda", ".usdc": "usdc", ".usd": "usdc", ".usdz": "usdz", ".zip": "zip"}
 LAYER_SUFFIXES = (".usd", ".usda", ".usdc")

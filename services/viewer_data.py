@@ -2,7 +2,7 @@
 
 Run as a subprocess by the API (`python -m services.viewer_data BAKED_ROOT OUT_DIR`), as
 `services.validate` is: pxr and the core stay out of the API process. Reads the baked USD with
-`texelbake.payload.read_baked` (and the BTF maps with `read_btf_maps`) and writes into OUT_DIR
+`texelbake.usd.read.read_baked` (and the BTF maps with `read_btf_maps`) and writes into OUT_DIR
 (atomically: a temporary folder renamed into place):
 
 * `manifest.json` — atlas size, the LOD meshes (vertex counts, bounds), the texel arrays'
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 #: floats per corner of `lod<i>.bin`: position 3, atlas uv 2, face normal 3, tangent 3,
-#: bitangent 3 (the normal map's tangent space, `texelbake.normalmap.face_tangent_space`)
+#: bitangent 3 (the normal map's tangent space, `texelbake.baselines.normalmap.face_tangent_space`)
 CORNER_FLOATS = 14
 #: the a_vis polar grid: theta from the normal (cell centres over [0, 90) degrees), phi
 AVIS_THETA = 9
@@ -61,9 +61,9 @@ def polar_dirs(n_theta: int = AVIS_THETA, n_phi: int = AVIS_PHI) -> np.ndarray:
 
 
 def extract(baked_root: Path, out: Path) -> dict:
+    from texelbake.baselines.normalmap import face_tangent_space
     from texelbake.cpm.avis.table import avis_table_from
-    from texelbake.normalmap import face_tangent_space
-    from texelbake.payload import read_baked
+    from texelbake.usd.read import read_baked
 
     baked = read_baked(baked_root)
     lvl = baked.levels[0]

@@ -147,7 +147,7 @@ def write_plane_usd(path: Path, rho=RHO, light_dir=(0.3, 0.2, 0.9), intensity=3.
 def psnr_object(res, ref) -> float:
     """PSNR of RenderResult `res` against `ref` over the object's pixels (the union of both
     coverages, dilated by a pixel: what the reports measure), the reference's peak."""
-    from texelbake import metrics
+    from texelbake.render import metrics
 
     mask = metrics.object_mask(ref.coverage, res.coverage)
     return metrics.psnr_db(res.image[mask], ref.image[mask], float(ref.image[mask].max()))
@@ -157,7 +157,7 @@ def bake_small_cylinder(folder: Path) -> Path:
     """The small ridged cylinder baked at 32² with the smallest settings that keep every level,
     an atlas-sized LOD chain (issue 22: its M2 is coarse); the baked root USD."""
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes import write_scene
 
     src = write_scene("cylinder", folder / "cylinder.usda", size="small")

@@ -74,8 +74,8 @@ def compare_renders(reference_png: Path | str, png: Path | str) -> dict[str, flo
     """
     import numpy as np
 
-    from texelbake.imageio import read_pixels
-    from texelbake.metrics import object_mask
+    from texelbake.io.images import read_pixels
+    from texelbake.render.metrics import object_mask
 
     ref = read_pixels(reference_png)[0].astype(np.float64)
     img = read_pixels(png)[0].astype(np.float64)
@@ -97,7 +97,7 @@ def side_by_side(pngs: list[Path], out: Path) -> Path:
     """One PNG of the renders in a row over a grey background, for a person to look at."""
     import numpy as np
 
-    from texelbake.imageio import read_pixels, write_pixels
+    from texelbake.io.images import read_pixels, write_pixels
 
     tiles = []
     for p in pngs:

@@ -372,7 +372,7 @@ def test_panel_picture_reads_the_recorded_layout(tmp_path):
                                        "value": "64", "kind": "prop"}
     assert parse_line("result: LOD0,LOD1")["value"] == "LOD0,LOD1"
 
-    from texelbake.imageio import read_pixels
+    from texelbake.io.images import read_pixels
 
     blue = []
     for pct in (10, 90):

@@ -67,7 +67,7 @@ def test_lbs_jacobian_is_the_joint_rotation_on_rigid_segments(arm):
 
 
 def test_arm_ships_the_shader_definitions_beside_it(arm):
-    from texelbake.shaderdefs import DEFINITIONS_FILE
+    from texelbake.usd.shaderdefs import DEFINITIONS_FILE
 
     path, _ = arm  # a stock pxr resolves the arm's texelbake shaders through this file
     assert (path.parent / DEFINITIONS_FILE).is_file()

@@ -510,7 +510,7 @@ def check_view_against_cpu(page, out: Path, maps) -> None:  # noqa: ANN001
 
     from texelbake.btf import btf_lookup_texels
     from texelbake.btf.render import texel_of_uv
-    from texelbake.payload import read_baked
+    from texelbake.usd.read import read_baked
 
     w, h = 160, 120
     cap = page.evaluate(f"() => window.texelbakeCapture({w}, {h})")

@@ -9,7 +9,7 @@ from texelbake.btf.maps_io import SHADER_BTF, read_btf_maps
 from texelbake.btf.report import btf_errors
 from texelbake.btf.stage import author_btf_shader, bake_btf, btf_from_texels, fill_uncovered
 from texelbake.errors import ShapeError
-from texelbake.shaderdefs import shader_id
+from texelbake.usd.shaderdefs import shader_id
 
 
 def _grid(n=4):

@@ -16,9 +16,9 @@ from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.btf.lut import build_lut, lookup_pairs
 from texelbake.cpm import level_batched as lb
-from texelbake.cpm.directions import cell_directions, hemisphere_directions, product_pairs
 from texelbake.cpm.level import direction_sets, level_candidates, tile_texels
 from texelbake.errors import SettingsError
+from texelbake.geometry.directions import cell_directions, hemisphere_directions, product_pairs
 from texelbake.scenes import write_scene
 
 
@@ -167,7 +167,7 @@ def test_the_btf_warns_of_a_lobe_narrower_than_its_directions():
 def test_the_render_table_repeats_the_bakes_btf_warnings(tmp_path, capsys):
     """`texelbake render` with a btf mode prints the bake's btf warnings under its table (read
     from the report.json beside the baked USD); without a btf mode, or without the file, none."""
-    from texelbake.cli import print_btf_warnings
+    from texelbake.cli.render import print_btf_warnings
 
     baked = tmp_path / "a_baked.usda"
     warn = "btf: material /M has a specular lobe 1.7° wide to half height, ..."

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from schemas.settings import BakeSettings
-from texelbake import costmodel
+from texelbake.estimate import costmodel
 
 
 def test_uniform_prediction_equals_the_histogram_of_an_even_fill():
@@ -65,7 +65,7 @@ def test_job_status_carries_the_core_estimate():
     from types import SimpleNamespace
 
     from services.routers.jobs import job_estimate
-    from texelbake import machinespeed
+    from texelbake.estimate import machinespeed
 
     s = BakeSettings(atlas_resolution=64)
     core = costmodel.estimate(s, 3, speed=machinespeed.this_machine())
@@ -101,7 +101,7 @@ def test_farm_simulation_against_closed_forms():
 def test_atlas_trade_prices_the_resolution_lod1_asks_for():
     """The report's CPM atlas trade (issue 22): the same cost model at both resolutions, so a
     4x larger atlas side costs more (about 16x the texels), an equal one the same."""
-    from texelbake.costmodel import atlas_trade, estimate
+    from texelbake.estimate.costmodel import atlas_trade, estimate
 
     s = BakeSettings(atlas_resolution=16)
     lod = {"atlas_mesh": {"atlas_resolution_for_lod1": 64, "cpm_max_px": 40.0}}
@@ -125,7 +125,7 @@ def test_estimate_prices_the_coarse_levels_dense_refit():
     """coarse_target="dense" refits every coarse level against all its dense samples: on the
     uniform prediction each level >= 1 holds all N^2 spt samples once, so the refit adds
     refit x (levels - 1) x samples x d seconds (on one worker, Lambert / Phong), by hand."""
-    from texelbake.costmodel import Coefficients, estimate
+    from texelbake.estimate.costmodel import Coefficients, estimate
 
     s = BakeSettings(atlas_resolution=32, coarse_target="dense")
     coef = Coefficients()
@@ -170,7 +170,7 @@ def test_the_load_reading_counts_other_processes_not_this_ones_threads(tmp_path)
     import sys
     import threading
 
-    from texelbake.pipeline import _other_runnable, runnable_tasks
+    from texelbake.pipeline.estimate import _other_runnable, runnable_tasks
 
     stop = threading.Event()
 
@@ -210,8 +210,8 @@ def test_machine_speed_scales_each_term_by_its_kind_of_work():
     hand); every seconds field of `Coefficients` has a kind of work (a new one must too)."""
     from dataclasses import fields, replace
 
-    from texelbake.costmodel import Coefficients
-    from texelbake.machinespeed import PART_OF, MachineSpeed
+    from texelbake.estimate.costmodel import Coefficients
+    from texelbake.estimate.machinespeed import PART_OF, MachineSpeed
 
     ratios = {"brdf_ggx", "held_ggx", "refit_ggx", "btf_cell"}
     assert {f.name for f in fields(Coefficients)} == set(PART_OF) | ratios
@@ -238,7 +238,7 @@ def test_machine_speed_measurement(monkeypatch):
     """The reference workload's factors are its seconds here over the reference seconds;
     a factor outside FACTOR_RANGE (a broken timing) is clamped and flagged; the environment
     switch returns the reference machine without timing anything."""
-    from texelbake import machinespeed
+    from texelbake.estimate import machinespeed
 
     m = machinespeed.measure(repeats=1)
     lo, hi = machinespeed.FACTOR_RANGE

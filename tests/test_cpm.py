@@ -7,7 +7,6 @@ import pytest
 
 from texelbake.cpm.assemble import SNR_EXACT_DB, percentiles
 from texelbake.cpm.column_sampling import fit_weights
-from texelbake.cpm.directions import heldout_pairs, hemisphere_directions, product_pairs
 from texelbake.cpm.fit import (
     TexelFit,
     channel_correlation,
@@ -24,6 +23,7 @@ from texelbake.cpm.matrix import (
     snr_db,
 )
 from texelbake.errors import NumericalError, SettingsError, ShapeError
+from texelbake.geometry.directions import heldout_pairs, hemisphere_directions, product_pairs
 from texelbake.tol import TOL
 
 N_I = N_O = 12

@@ -58,7 +58,7 @@ def _asset_file(name: str) -> Path:
 
 def _bake(name: str, d: Path) -> tuple[Path, Path]:
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes import write_scene
 
     src = _asset_file(name) if name == "teapot" else write_scene(name, d / f"{name}.usda",
@@ -86,7 +86,7 @@ def dcc(request, tmp_path_factory):
     """Bake, export every LOD as .usdc and .usdz, import and render everything in Blender."""
     from pxr import UsdGeom
 
-    from texelbake.lodexport import export_lod
+    from texelbake.usd.export import export_lod
 
     name = request.param
     d = tmp_path_factory.mktemp(f"dcc_{name}")
@@ -123,7 +123,7 @@ def test_the_root_imports_as_the_original(dcc):
 
 @pytest.mark.parametrize("suffix", ["usdc", "usdz"])
 def test_each_lod_export_imports_with_its_mesh_material_and_textures(dcc, suffix):
-    from texelbake.imageio import read_pixels
+    from texelbake.io.images import read_pixels
 
     orig = np.asarray(dcc["got"]["files"]["original"]["bounds"])
     for n, lod in enumerate(dcc["report"]["lods"]["levels"], start=1):

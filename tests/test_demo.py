@@ -11,7 +11,7 @@ from scipy.ndimage import binary_dilation, binary_erosion
 
 def test_demo_writes_previews_of_every_mode_next_to_the_bake(tmp_path, capsys):
     from texelbake.cli import main
-    from texelbake.imageio import read_image
+    from texelbake.io.images import read_image
 
     out = tmp_path / "demo"
     # the demo's own settings, made smaller for CI; the scenes are the small ones as in

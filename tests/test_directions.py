@@ -1,13 +1,13 @@
 import numpy as np
 import pytest
 
-from texelbake.cpm.directions import (
+from texelbake.errors import SettingsError
+from texelbake.geometry.directions import (
     balanced_pairs,
     heldout_pairs,
     hemisphere_directions,
     product_pairs,
 )
-from texelbake.errors import SettingsError
 
 
 @pytest.mark.parametrize("n", [1, 7, 64, 100])

@@ -1,4 +1,4 @@
-"""The artifact write path's fault-injection point (`texelbake.atomic.failpoint`), the hook the
+"""The artifact write path's fault-injection point (`texelbake.io.atomic.failpoint`), the hook the
 chaos suite uses to make a worker's disk full (ENOSPC) or read-only (EACCES) for a while."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import errno
 
 import pytest
 
-from texelbake.atomic import FAILPOINT_ENV, atomic_path, atomic_write_bytes
+from texelbake.io.atomic import FAILPOINT_ENV, atomic_path, atomic_write_bytes
 
 
 def test_unset_or_empty_control_file_writes_normally(tmp_path, monkeypatch):

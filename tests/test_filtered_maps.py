@@ -8,9 +8,7 @@ import numpy as np
 import pytest
 
 from texelbake import model
-from texelbake.brdf.analytic import preview_surface
-from texelbake.brdf.widened import preview_leadr, toksvig_phong_exponent, widen_material
-from texelbake.filtered_maps import (
+from texelbake.baselines.filtered import (
     CHANNELS,
     FIELDS,
     FILTER_TOL,
@@ -21,6 +19,8 @@ from texelbake.filtered_maps import (
     slopes,
     toksvig_variance,
 )
+from texelbake.brdf.analytic import preview_surface
+from texelbake.brdf.widened import preview_leadr, toksvig_phong_exponent, widen_material
 from texelbake.geometry.raycast import RayCaster
 
 
@@ -174,8 +174,8 @@ def test_filtered_map_with_wrong_channels_is_refused_naming_the_file(tmp_path):
     """A filtered map whose channels are not `CHANNELS` (a foreign or truncated EXR) is an
     AssetError naming the file, not a silently misread map; absent maps read as none."""
     from texelbake.errors import AssetError
-    from texelbake.imageio import write_pixels
-    from texelbake.payload import read_filtered_maps
+    from texelbake.io.images import write_pixels
+    from texelbake.usd.read import read_filtered_maps
 
     assert read_filtered_maps(tmp_path, "a") == []
     good = np.random.default_rng(0).uniform(size=(4, 4, len(CHANNELS))).astype(np.float32)
@@ -191,9 +191,9 @@ def test_chunked_passes_give_the_one_pass_maps_and_ao():
     """The export's passes a chunk of samples at a time (issue 15, memory): `FilteredSums`,
     `PreviewSums` and AO over chunks of 37 give the one-pass maps and AO bit for bit (the
     sums continue across chunks; AO's draws are those of the one-pass streams)."""
-    from texelbake.chunks import chunk_ranges
-    from texelbake.filtered_maps import FilteredSums
-    from texelbake.normalmap import PreviewSums, bake_preview_maps
+    from texelbake.baselines.filtered import FilteredSums
+    from texelbake.baselines.normalmap import PreviewSums, bake_preview_maps
+    from texelbake.io.chunks import chunk_ranges
 
     rng = np.random.default_rng(9)
     n, m = 8, 500

@@ -17,8 +17,8 @@ from texelbake.cpm.level import samples_in, texel_ids
 from texelbake.geometry import build as build_mod
 from texelbake.geometry.build import build_geometry, geometry_chunk
 from texelbake.geometry.texels import morton
+from texelbake.io.spool import FileSpool, MemorySpool
 from texelbake.scenes import write_scene
-from texelbake.spool import FileSpool, MemorySpool
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +63,7 @@ def test_the_stage_writes_the_in_memory_arrays_and_leaves_no_spool(wall_ctx):
 def test_a_dead_workers_spool_is_swept(tmp_path):
     """A spool whose process is gone is removed by the next sweep; a live one is kept."""
     child = subprocess.run(
-        [sys.executable, "-c", "import sys; from texelbake.spool import FileSpool; "
+        [sys.executable, "-c", "import sys; from texelbake.io.spool import FileSpool; "
          "s = FileSpool(sys.argv[1]); s.allocate('a', 'f8', (10,)); print(s.dir)",
          str(tmp_path)], check=True, capture_output=True, text=True)
     dead = tmp_path / os.path.basename(child.stdout.strip())

@@ -46,7 +46,7 @@ def test_scene_counts_and_describe(tmp_path, name, size):
     np.testing.assert_allclose(np.linalg.norm(asset.corner_normals, axis=2), 1.0, atol=1e-9)
 
     bundle = check_asset_paths(path)
-    # the layer, its textures and the texelbake shaders' definitions (texelbake.shaderdefs)
+    # the layer, its textures and the texelbake shaders' definitions (texelbake.usd.shaderdefs)
     own = any(m.model != "preview" for m in asset.materials)  # a texelbake shader is authored
     defs = [str((path.parent / "texelbake_shaders.usda").resolve())] if own else []
     assert bundle == sorted([str(path.resolve()), *textures, *defs])

@@ -112,7 +112,7 @@ def test_core_does_not_import_the_service_packages_statically():
     bad = {m: sorted(t for t in ts if t.split(".")[0] in ("services", "workers"))
            for m, ts in graph.items() if m.startswith("texelbake")}
     # the CLI's `texelbake stack up` is the one door into the service's process launcher
-    assert {m: ts for m, ts in bad.items() if ts} == {"texelbake.cli": ["services.stack"]}
+    assert {m: ts for m, ts in bad.items() if ts} == {"texelbake.cli.farm": ["services.stack"]}
 
 
 _PROBE = r"""
@@ -157,3 +157,76 @@ def test_core_imports_neither_fastapi_celery_nor_redis(tmp_path):
     loaded = _probe(mods, "core", tmp_path)["loaded"]
     assert "texelbake" in loaded and "torch" in loaded  # the probe did import the core
     assert [lib for lib in SERVICE_LIBS if lib in loaded] == []
+
+
+#: the core's layers, lowest first: a module imports only from its own package or from a
+#: package of a lower layer (two packages of one layer do not import each other)
+CORE_LAYERS: tuple[tuple[str, ...], ...] = (
+    ("schemas",),
+    ("texelbake", "texelbake.errors", "texelbake.tol"),
+    ("texelbake.model", "texelbake.io"),
+    ("texelbake.brdf", "texelbake.geometry", "texelbake.estimate"),
+    ("texelbake.baselines", "texelbake.cpm", "texelbake.deform"),
+    ("texelbake.usd",),
+    ("texelbake.scene", "texelbake.btf", "texelbake.scenes"),
+    ("texelbake.trace",),
+    ("texelbake.srf",),
+    ("texelbake.render",),
+    ("texelbake.stages",),
+    ("texelbake.pipeline",),
+    ("texelbake.cli",),
+)
+
+
+def package_of(module: str) -> str:
+    """The unit a layer names: `texelbake.<package>` for the core's packages and its loose
+    modules, the top-level package otherwise."""
+    parts = module.split(".")
+    return ".".join(parts[:2]) if parts[0] == "texelbake" and len(parts) > 1 else parts[0]
+
+
+def layer_violations(graph: dict[str, set[str]], layers=CORE_LAYERS) -> list[str]:
+    rank = {p: i for i, layer in enumerate(layers) for p in layer}
+    out = []
+    for mod in sorted(graph):
+        a = package_of(mod)
+        if a not in rank:
+            continue
+        for t in sorted(graph[mod]):
+            b = package_of(t)
+            if b != a and b in rank and rank[b] >= rank[a]:
+                out.append(f"{mod} -> {t}")
+    return out
+
+
+def private_imports(modules: dict[str, Path]) -> list[str]:
+    """`from a.b import _name` where a.b lies in another package than the importer."""
+    out = []
+    for mod, path in modules.items():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                for a in node.names:
+                    if (a.name.startswith("_") and not a.name.startswith("__")
+                            and package_of(node.module) != package_of(mod)):
+                        out.append(f"{mod}: from {node.module} import {a.name}")
+    return out
+
+
+def test_layer_checker_finds_an_upward_import():
+    g = {"texelbake.io.store": {"texelbake.cpm.fit"}, "texelbake.cpm.fit": {"texelbake.io.store"}}
+    assert layer_violations(g) == ["texelbake.io.store -> texelbake.cpm.fit"]
+
+
+def test_every_layer_is_known():
+    """Every package of the core is in a layer (a new package must be placed)."""
+    known = {p for layer in CORE_LAYERS for p in layer}
+    core = {package_of(m) for m in _modules(("texelbake", "schemas"))}
+    assert sorted(core - known) == []
+
+
+def test_no_import_runs_up_the_layers():
+    assert layer_violations(import_graph(_modules())) == []
+
+
+def test_no_private_name_is_imported_across_packages():
+    assert private_imports(_modules()) == []

@@ -45,7 +45,7 @@ def _inspect(path):
 @pytest.fixture(scope="module")
 def baked(tmp_path_factory):
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes import write_scene
 
     d = tmp_path_factory.mktemp("lods")
@@ -57,8 +57,8 @@ def baked(tmp_path_factory):
 
 @pytest.mark.parametrize("suffix", [".usdc", ".usdz"])
 def test_one_lod_exports_self_contained_and_stock_valid(baked, tmp_path, suffix):
-    from texelbake.lodexport import export_lod
-    from texelbake.payload import read_baked
+    from texelbake.usd.export import export_lod
+    from texelbake.usd.read import read_baked
 
     lods = read_baked(baked).meshes
     for n in (1, 2):
@@ -81,7 +81,7 @@ def test_one_lod_exports_self_contained_and_stock_valid(baked, tmp_path, suffix)
 
 
 def test_lod0_is_the_asset_as_authored(baked, tmp_path):
-    from texelbake.lodexport import export_lod
+    from texelbake.usd.export import export_lod
 
     got = _inspect(export_lod(baked, 0, tmp_path / "lod0.usda"))
     assert got["meshes"] == ["/Cylinder/Geom/RidgedCylinder"] and not got["baked_scope"]
@@ -101,7 +101,7 @@ def test_baked_result_passes_stock_validation(baked):
 
 def test_bad_requests_name_the_field_and_write_nothing(baked, tmp_path):
     from texelbake.errors import AssetError, SettingsError
-    from texelbake.lodexport import export_lod
+    from texelbake.usd.export import export_lod
 
     with pytest.raises(SettingsError, match="'lod'"):
         export_lod(baked, 3, tmp_path / "x.usdc")
@@ -132,7 +132,7 @@ def test_the_output_folder_holds_the_result_only(baked, tmp_path):
 def test_packed_usdz_carries_the_source_and_passes_stock_validation(baked, tmp_path):
     import shutil
 
-    from texelbake.payload import pack_usdz
+    from texelbake.usd.package import pack_usdz
 
     # a copy of the result beside a copy of its source, so the package is written there
     (tmp_path / "out").mkdir()

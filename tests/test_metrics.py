@@ -1,4 +1,4 @@
-"""texelbake.metrics against hand computation."""
+"""texelbake.render.metrics against hand computation."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from texelbake import metrics
 from texelbake.errors import ShapeError
+from texelbake.render import metrics
 
 
 def test_rmse_psnr_snr_by_hand():
@@ -59,7 +59,7 @@ def test_lab_and_delta_e_by_hand():
 
 
 def test_difference_map_png(tmp_path):
-    from texelbake.imageio import read_image
+    from texelbake.io.images import read_image
 
     d = np.array([[0.0, 5.0], [10.0, 20.0]])
     p = metrics.write_difference_map(tmp_path / "d.png", d)

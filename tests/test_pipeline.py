@@ -14,13 +14,14 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 from schemas.settings import BakeSettings
 from texelbake import brdf
 from texelbake.cpm.avis.table import avis_table_from
-from texelbake.frames import tangent_frames
+from texelbake.geometry.basis import tangent_frames
 from texelbake.geometry.raycast import RayCaster
-from texelbake.payload import read_baked
-from texelbake.pipeline import bake, default_workdir, plan_bake
+from texelbake.pipeline.plan import plan_bake
+from texelbake.pipeline.run import bake, default_workdir
 from texelbake.scene import load_asset
 from texelbake.scenes import write_scene
 from texelbake.scenes.arm import write_arm
+from texelbake.usd.read import read_baked
 
 SMALL = {"atlas_resolution": 16, "shard_texels": 8, "samples_per_texel": 8, "n_light_dirs": 12,
          "n_view_dirs": 12, "n_heldout": 16, "c_max": 12, "n_trials": 2, "mesh_levels": 1}
@@ -263,7 +264,9 @@ def test_payload_round_trip_and_report(cylinder_bake):
 
 def test_written_arrays_are_identical_when_read_back(tmp_path):
     """The writer and reader are exact for every dtype the payload uses."""
-    from texelbake import payload
+    from texelbake.usd.baked import BakedAsset
+    from texelbake.usd.package import copy_source
+    from texelbake.usd.write import write_baked_asset
 
     rng = np.random.default_rng(0)
     arrays = {
@@ -275,10 +278,10 @@ def test_written_arrays_are_identical_when_read_back(tmp_path):
     }
     src = write_plane(tmp_path / "p.usda")
     out = tmp_path / "out"
-    copy = payload.copy_source(src, [str(src)], out / "source")
-    baked = payload.BakedAsset("p", [arrays], {"x": np.arange(3)}, [], np.zeros((2, 2, 3)),
+    copy = copy_source(src, [str(src)], out / "source")
+    baked = BakedAsset("p", [arrays], {"x": np.arange(3)}, [], np.zeros((2, 2, 3)),
                                np.zeros((2, 2, 3)), {"a": 1})
-    root = payload.write_baked_asset(out, copy, baked, ["/Plane/Geom"])
+    root = write_baked_asset(out, copy, baked, ["/Plane/Geom"])
     back = read_baked(root)
     for k, v in arrays.items():
         assert back.levels[0][k].dtype == v.dtype and np.array_equal(back.levels[0][k], v), k
@@ -418,7 +421,7 @@ def test_report_flags_texels_whose_avis_table_is_off(cylinder_bake):
 
 def test_shard_processes_do_not_change_the_result(tmp_path):
     """`bake(jobs=2)` runs the sharded stages on one pool of spawned processes, reused from
-    stage to stage (`pipeline._shard_pool`): its payload is byte-identical to the one-process
+    stage to stage (`pipeline.run._shard_pool`): its payload is byte-identical to the one-process
     bake's, each made in its own artifact store (nothing reused between them)."""
     src = write_plane(tmp_path / "plane.usda")
     settings = BakeSettings(**SMALL)

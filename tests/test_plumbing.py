@@ -8,9 +8,9 @@ import zipfile
 import numpy as np
 import pytest
 
-from texelbake.archive import zip_bytes
-from texelbake.atomic import atomic_path, atomic_write_bytes
-from texelbake.imageio import linear_to_srgb, read_pixels, srgb_to_linear, write_exr
+from texelbake.io.archive import zip_bytes
+from texelbake.io.atomic import atomic_path, atomic_write_bytes
+from texelbake.io.images import linear_to_srgb, read_pixels, srgb_to_linear, write_exr
 
 
 def test_a_failing_write_leaves_the_old_file_and_no_temporary(tmp_path):

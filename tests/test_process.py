@@ -1,4 +1,4 @@
-"""A bake process's setup (`texelbake.process`): a large array freed and made again reuses the
+"""A bake process's setup (`texelbake.pipeline.process`): a large array freed and made again reuses the
 process's memory instead of faulting in fresh pages, and BLAS runs one thread. Each case runs
 in a fresh interpreter (the setup is process-wide and applied once)."""
 
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.skipif(
 SNIPPET = """
 import json, resource, sys
 import numpy as np
-from texelbake.process import keep_freed_memory
+from texelbake.pipeline.process import keep_freed_memory
 applied = keep_freed_memory()
 n = 256 * 2**20 // 8
 a = np.ones(n); del a
@@ -62,7 +62,7 @@ def test_system_policy_faults_fresh_pages():
 BLAS_SNIPPET = """
 import json, sys
 from threadpoolctl import threadpool_info
-from texelbake.process import setup_bake_process
+from texelbake.pipeline.process import setup_bake_process
 setup_bake_process()
 json.dump([i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"], sys.stdout)
 """

@@ -1,4 +1,4 @@
-"""The quality gate (issue 22, item 2; texelbake.quality): the report's pass/fail per LOD and
+"""The quality gate (issue 22, item 2; texelbake.stages.quality): the report's pass/fail per LOD and
 per CPM level, `texelbake bake`'s exit status 3 naming what missed, `--accept-below-target`."""
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def test_a_bake_within_its_targets_exits_0_and_says_so(cylinder, capsys):
 
 
 def test_a_missed_target_exits_3_naming_the_level(cylinder, capsys):
-    from texelbake.quality import QUALITY_EXIT
+    from texelbake.stages.quality import QUALITY_EXIT
 
     d, src = cylinder
     code, err, report = _bake(d, src, "strict", capsys, gate_snr_median_db=199.0,
@@ -84,7 +84,7 @@ def test_accept_below_target_exits_0_but_still_reports(cylinder, capsys):
 def test_a_lod_outside_its_bound_is_named(cylinder, capsys):
     # the gate reads the report: the same bake's LOD1 against a bound a tenth of its distance
     from schemas.settings import BakeSettings
-    from texelbake.quality import quality_gate
+    from texelbake.stages.quality import quality_gate
 
     d, src = cylinder
     _, _, report = _bake(d, src, "lod", capsys, gate_snr_median_db=-200.0,

@@ -31,7 +31,7 @@ def _asset(name: str) -> Path:
 @pytest.fixture(scope="module", params=sorted(CASES))
 def baked(request, tmp_path_factory):
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
 
     src = _asset(request.param)
     out = tmp_path_factory.mktemp(request.param)
@@ -46,7 +46,7 @@ def test_bakes_and_passes_stock_validation(baked):
 
 
 def test_previews_of_every_mode_are_lit(baked):
-    from texelbake.imageio import read_image
+    from texelbake.io.images import read_image
 
     _, _, root = baked
     previews = root.parent / "previews"
@@ -64,7 +64,7 @@ def test_previews_of_every_mode_are_lit(baked):
 
 
 def test_lod_modes_cover_the_object(baked):
-    from texelbake.imageio import read_image
+    from texelbake.io.images import read_image
 
     name, _, root = baked
     if name != "teapot":
@@ -81,7 +81,7 @@ def test_teapot_colour_comes_from_its_display_color_primvar(baked):
         pytest.skip("the Teapot's material reads displayColor")
     from pxr import Usd, UsdGeom, UsdShade
 
-    from texelbake.payload import read_baked
+    from texelbake.usd.read import read_baked
 
     stage = Usd.Stage.Open(str(src))
     meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)
@@ -101,8 +101,8 @@ def test_lods_keep_the_shape_within_their_bounds(baked):
     # issue 22: each LOD within error_px pixels at its switch size of M_org (the report's
     # pymeshlab distance), so its bounding box is within that bound of M_org's; a LOD1 too
     # fine for the 16² atlas is mapped into an atlas mesh stored beside the CPM arrays
-    from texelbake.payload import read_baked
     from texelbake.scene import load_asset
+    from texelbake.usd.read import read_baked
 
     _, src, root = baked
     report = json.loads((root.parent / "report.json").read_text())
@@ -129,7 +129,7 @@ def test_payloads_unloaded_show_the_proxy_and_loaded_hide_it(baked):
     # issue 22, item 3: the coarsest LOD, purpose proxy, outside the payload
     from pxr import Usd, UsdGeom
 
-    from texelbake.payload import read_baked
+    from texelbake.usd.read import read_baked
 
     _, src, root = baked
     unloaded = Usd.Stage.Open(str(root), Usd.Stage.LoadNone)
@@ -194,9 +194,9 @@ def test_lod_faces_across_atlas_seams_take_the_atlas_mesh_uv(baked):
     # looks its hits up on M_T instead. Checked against a brute-force closest point over
     # every M_T triangle (numpy, not Embree).
     from texelbake.geometry.closest import closest_point_on_triangles
-    from texelbake.render import camera as cam_mod
-    from texelbake.render.camera import eye_rays, sample_offsets
     from texelbake.render.scene import hit_m1, load_scene
+    from texelbake.trace import camera as cam_mod
+    from texelbake.trace.camera import eye_rays, sample_offsets
 
     name, _, root = baked
     scene = load_scene(root)

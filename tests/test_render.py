@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 from _render_helpers import RHO, distant, icosphere, model, psnr_object, quad, write_plane_usd
 
-from texelbake import metrics
 from texelbake.errors import SettingsError
-from texelbake.render import camera as cam_mod
-from texelbake.render.gt import render_model, shade_org
-from texelbake.render.scene import OrgScene
+from texelbake.render import metrics
+from texelbake.trace import camera as cam_mod
+from texelbake.trace.org import OrgScene, render_model, shade_org
 
 LIGHT = np.array([0.3, 0.2, 0.9]) / np.linalg.norm([0.3, 0.2, 0.9])
 E = 3.0
@@ -147,7 +146,7 @@ def test_render_is_deterministic():
 @pytest.fixture(scope="module")
 def baked_plane(tmp_path_factory) -> Path:
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
 
     d = tmp_path_factory.mktemp("plane")
     src = write_plane_usd(d / "plane.usda")
@@ -222,7 +221,7 @@ def test_previews_and_report(baked_plane, tmp_path, monkeypatch):
     # radiance is the plane's)
     from scipy.ndimage import binary_erosion
 
-    from texelbake.imageio import read_image
+    from texelbake.io.images import read_image
 
     assert rep["far"]["modes"]["cpm"]["fallback_fraction"] < 0.5
     far_gt, far_cpm = (read_image(tmp_path / f"far_{m}.exr") for m in ("gt", "cpm"))
@@ -252,7 +251,7 @@ def test_previews_and_report(baked_plane, tmp_path, monkeypatch):
 
 
 def test_well_stratified_is_the_largest_balanced_count():
-    from texelbake.render.tracer import well_stratified
+    from texelbake.trace.tracer import well_stratified
 
     def balanced(m):
         nx, ny = cam_mod.strata(m)
@@ -332,7 +331,7 @@ def test_progressive_renders_any_sample_count_unbiased():
     """Equal-time's time-budgeted loop (`tracer.progressive`): a zero budget gives exactly
     one sample per pixel; a larger budget adds samples (not a square count, not the same in
     every pixel) whose mean converges to the many-sample image — closer than one sample."""
-    from texelbake.render.tracer import progressive
+    from texelbake.trace.tracer import progressive
 
     v, f = icosphere(2)
     asset = model(v, f, lights=[distant(LIGHT, E)])

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from _render_helpers import psnr_object, write_plane_usd
 
-from texelbake import metrics
 from texelbake.errors import StageError
+from texelbake.render import metrics
 
 
 def _bake(d: Path, btf: bool) -> Path:
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
 
     src = write_plane_usd(d / "plane.usda")
     settings = BakeSettings(atlas_resolution=16, shard_texels=16, samples_per_texel=4,
@@ -93,7 +93,7 @@ def test_render_report_accepts_btf_and_measures_it_against_gt(baked_btf_plane, t
     assert (out / "btf.exr").is_file() and (out / "diff_btf.png").is_file()
     assert btf["seconds"] > 0 and btf["rays_cast"] > 0
     # The reported error is the error of the written images ...
-    from texelbake.imageio import read_image as read_exr
+    from texelbake.io.images import read_image as read_exr
 
     ref = read_exr(out / "gt_reference.exr")
     assert btf["psnr_db"] == pytest.approx(metrics.psnr_db(read_exr(out / "btf.exr"), ref),
@@ -123,10 +123,10 @@ def test_btf_through_l_under_rigid_motion_and_scale(baked_btf_plane):
     import dataclasses
 
     from texelbake.deform.warps import AffineWarp, _rotation
-    from texelbake.render.camera import PinholeCamera
-    from texelbake.render.deformed import deform_scene, render_deformed
-    from texelbake.render.frame import render_frame
+    from texelbake.render.deformed import deform_scene
+    from texelbake.render.frame import render_deformed, render_frame
     from texelbake.render.scene import load_scene, resolve_camera
+    from texelbake.trace.camera import PinholeCamera
 
     scene = load_scene(baked_btf_plane)
     q = _rotation(np.array([0.3, 1.0, 0.2]), 0.7)

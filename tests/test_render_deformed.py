@@ -14,10 +14,10 @@ from _render_helpers import bake_small_cylinder, psnr_object
 from texelbake.deform.warps import AffineWarp, _rotation, parse_warp
 from texelbake.errors import SettingsError, StageError
 from texelbake.model import Light
-from texelbake.render.camera import PinholeCamera
-from texelbake.render.deformed import deform_scene, render_deformed
-from texelbake.render.frame import render_frame
+from texelbake.render.deformed import deform_scene
+from texelbake.render.frame import render_deformed, render_frame
 from texelbake.render.scene import RenderScene, load_scene, lod_camera, resolve_camera
+from texelbake.trace.camera import PinholeCamera
 
 
 @pytest.fixture(scope="module")
@@ -183,9 +183,9 @@ def test_impostor_primvars_round_trip_through_the_payload(baked_cylinder):
     from pxr import Usd, UsdGeom
 
     from texelbake.deform import impostor as imp
-    from texelbake.lodmesh import IMPOSTOR_PRIMVARS
-    from texelbake.payload import read_baked
     from texelbake.render.deformed import lod_impostor
+    from texelbake.usd.lodmesh import IMPOSTOR_PRIMVARS
+    from texelbake.usd.read import read_baked
 
     baked = read_baked(baked_cylinder)
     assert len(baked.meshes) >= 2

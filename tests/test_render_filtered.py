@@ -42,7 +42,7 @@ def _to_preview(path: Path, params: dict) -> Path:
 
 def _bake(src: Path, out: Path, **over) -> Path:
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
 
     return bake(src, out, BakeSettings(**{**SMALL, **over}), progress=False)
 
@@ -58,9 +58,9 @@ def specular_plane(tmp_path_factory) -> Path:
 def test_flat_plane_filtered_modes_equal_normalmap(specular_plane):
     """Variance 0 (a flat plane): every filtered mode is normalmap to 1e-6, far (coarse mip
     levels) and near (clamped to the finest); AO is 1 exactly (nothing above the plane)."""
-    from texelbake.filtered_maps import FIELDS
-    from texelbake.payload import read_baked
+    from texelbake.baselines.filtered import FIELDS
     from texelbake.render import render
+    from texelbake.usd.read import read_baked
 
     baked = read_baked(specular_plane)
     assert len(baked.filtered) == len(baked.levels)
@@ -83,7 +83,7 @@ def test_filtered_modes_pick_the_mip_level_as_cpm_does(specular_plane):
     from texelbake.render.filtered import lookup_filtered
     from texelbake.render.frame import render_frame
     from texelbake.render.scene import hit_m1, load_scene, resolve_camera
-    from texelbake.render.tracer import eye_passes
+    from texelbake.trace.tracer import eye_passes
 
     scene = load_scene(specular_plane)
     cam = resolve_camera(scene, 8.0, 48, 48)
@@ -160,8 +160,8 @@ def _brute_force_normal_mapped(scene, cam, period, slope_deg, material, spp):
     the material's own BRDF, `spp` stratified eye rays per pixel."""
     from texelbake import brdf
     from texelbake.geometry.raycast import RayCaster
-    from texelbake.render.shade import direct_radiance
-    from texelbake.render.tracer import accumulate
+    from texelbake.trace.shade import direct_radiance
+    from texelbake.trace.tracer import accumulate
 
     quad = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0.0]])
     plane = RayCaster(quad, np.array([[0, 1, 2], [0, 2, 3]]))
@@ -272,9 +272,9 @@ def test_fallback_materials_pass_stock_validation(tmp_path):
     (every LOD's fallback, and texelbake's own shaders with their definitions beside the
     file) nor on each exported LOD (what a tool without variants opens). The second
     LOD's roughness map is of its own level (coarser or equal)."""
-    from texelbake.lodexport import export_lod
-    from texelbake.payload import read_baked
     from texelbake.scenes import write_scene
+    from texelbake.usd.export import export_lod
+    from texelbake.usd.read import read_baked
 
     src = write_scene("cylinder", tmp_path / "cylinder.usda", "small")
     root = _bake(src, tmp_path / "out", mesh_levels=2, atlas_resolution=16, shard_texels=8,

@@ -45,7 +45,7 @@ def _write_field(path: Path, n: int = 24, amp: float = 0.04) -> Path:
 @pytest.fixture(scope="module")
 def baked_field(tmp_path_factory):
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
 
     d = tmp_path_factory.mktemp("field")
     settings = BakeSettings(atlas_resolution=16, shard_texels=16, samples_per_texel=8,
@@ -59,9 +59,9 @@ def baked_field(tmp_path_factory):
     ((4.0, 3.0, 3.0), (0.0, 0.0, 0.0), 20.0),  # the whole field, oblique
 ])
 def test_cpm_covers_every_pixel_gt_covers(baked_field, eye, target, fov):
-    from texelbake.render import camera as cam_mod
     from texelbake.render.frame import render_frame
     from texelbake.render.scene import load_scene
+    from texelbake.trace import camera as cam_mod
 
     scene = load_scene(baked_field)
     # M1 encloses the open field: its rim lies beyond M_org's edge (what loses the rays)

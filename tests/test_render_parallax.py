@@ -90,8 +90,8 @@ def test_coarse_mesh_looks_up_at_the_atlas_meshs_level(baked_cylinder, spec):
     # 1.1 levels low: 80 % of its eye rays fell back to M_org). What remains is M_i's
     # distance to M1 along the ray (measured: |Δλ| ≤ 0.02 at p5-p95).
     from texelbake.deform.warps import parse_warp
-    from texelbake.render.camera import eye_rays
     from texelbake.render.deformed import deform_scene
+    from texelbake.trace.camera import eye_rays
 
     rest = load_scene(baked_cylinder)
     scene = rest if spec == "none" else deform_scene(rest, parse_warp(spec, rest.asset.bounds))

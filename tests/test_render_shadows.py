@@ -24,7 +24,7 @@ OCCLUDER = (0.0, 0.4, -0.2, 0.2, 0.3)
 @pytest.fixture(scope="module")
 def baked_shadow(tmp_path_factory) -> Path:
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
 
     d = tmp_path_factory.mktemp("shadow")
     src = write_plane_usd(d / "shadow.usda", light_dir=LIGHT, occluder=OCCLUDER)
@@ -36,8 +36,8 @@ def baked_shadow(tmp_path_factory) -> Path:
 
 def test_cpm_carries_the_shadow_of_another_object(baked_shadow):
     from texelbake.render import render
-    from texelbake.render.camera import eye_rays
     from texelbake.render.scene import load_scene, resolve_camera
+    from texelbake.trace.camera import eye_rays
 
     # the asset's top view moved back until a finest texel spans 0.7 pixel: every plane
     # pixel takes the CPM path

@@ -12,7 +12,7 @@ import pytest
 @pytest.fixture(scope="module")
 def baked_wall(tmp_path_factory) -> Path:
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes import write_scene
 
     d = tmp_path_factory.mktemp("wall")
@@ -43,10 +43,10 @@ def test_cpm_takes_its_outline_from_m_org(baked_wall):
     """Eye rays that hit the wrap but miss M_org see the background: every pixel whose eye
     rays all miss M_org is black in cpm (without the test, the wrap's rim lights a ring of
     them), and the image's total light comes closer to gt's."""
-    from texelbake.render import camera as cam_mod
-    from texelbake.render.camera import eye_rays, sample_offsets
     from texelbake.render.frame import render_frame
     from texelbake.render.scene import load_scene
+    from texelbake.trace import camera as cam_mod
+    from texelbake.trace.camera import eye_rays, sample_offsets
 
     scene = load_scene(baked_wall)
     cam = cam_mod.auto_frame(scene.asset.bounds, 48, 32, distance=1.2)

@@ -20,8 +20,8 @@ from texelbake import scenes
 from texelbake.errors import SettingsError
 from texelbake.model import SHADER_CELLULAR, SHADER_PREVIEW
 from texelbake.scenes import SCENE_NAMES, expected_counts, write_scene
-from texelbake.shaderdefs import SHADER_INPUTS, register_shader_definitions
-from texelbake.shaderdefs import shader_id as read_shader_id
+from texelbake.usd.shaderdefs import SHADER_INPUTS, register_shader_definitions
+from texelbake.usd.shaderdefs import shader_id as read_shader_id
 
 CASES = [(n, s) for s in ("small", "full") for n in SCENE_NAMES]
 

@@ -2,7 +2,7 @@
 
 End to end over HTTP (SQLite and PostgreSQL), a worker killed with -9 while it holds a cpm
 shard, and redis-server and the API restarted mid-job: every job completes and its result is
-identical to the in-process `texelbake.pipeline.bake` of the same file with the same settings.
+identical to the in-process `texelbake.pipeline.run.bake` of the same file with the same settings.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def cylinder(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def reference(cylinder, tmp_path_factory) -> Path:
     """The in-process bake: the truth every farm result must equal."""
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
 
     out = tmp_path_factory.mktemp("reference")
     return bake(cylinder, out, BakeSettings(**CHEAP_SETTINGS), progress=False)

@@ -88,7 +88,7 @@ def _settings():
 
 @pytest.fixture(scope="module")
 def baked_arm(tmp_path_factory) -> Path:
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes.arm import write_arm
 
     d = tmp_path_factory.mktemp("arm")
@@ -104,7 +104,7 @@ def baked_pointcache(tmp_path_factory) -> Path:
     from pxr import Gf, Usd, UsdGeom, Vt
 
     from texelbake.deform.warps import parse_warp
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes import write_scene
 
     d = tmp_path_factory.mktemp("pc")
@@ -144,7 +144,7 @@ def _check_follows(root: Path, got: dict[str, dict[str, list]]) -> int:
 
 
 def test_skinned_lods_animate_in_plain_usdskel_as_the_renderer_deforms_them(baked_arm):
-    from texelbake.payload import read_baked
+    from texelbake.usd.read import read_baked
 
     baked = read_baked(baked_arm)
     assert baked.skeleton == "/Cylinder/Geom/Skel"
@@ -189,7 +189,7 @@ def test_the_proxy_moves_with_time_sampled_points(baked_pointcache):
 def test_an_exported_skinned_lod_stays_bound(baked_arm, tmp_path, suffix):
     """`texelbake export --lod 1`: the one-LOD file keeps the skeleton, its animation and the
     binding, so a plain UsdSkel process poses LOD1 exactly as in the baked root; stock valid."""
-    from texelbake.lodexport import export_lod
+    from texelbake.usd.export import export_lod
 
     out = export_lod(baked_arm, 1, tmp_path / f"lod1{suffix}")
     root = plain_pxr(baked_arm, TIMES)["skinned"]
@@ -207,8 +207,8 @@ def test_lod_weights_are_m_orgs_blended_at_the_closest_point(baked_arm):
     of height (scenes.arm.joint_weights), so the barycentric blend at a vertex's closest
     point on M_org is that function of the closest point's height wherever the triangle lies
     inside one linear piece; brute-force closest points over every triangle."""
-    from texelbake.payload import read_baked
     from texelbake.scenes.arm import BLEND, joint_heights, joint_weights
+    from texelbake.usd.read import read_baked
 
     scene = load_scene(baked_arm)
     a = scene.asset
@@ -246,7 +246,7 @@ def test_skinned_bake_passes_stock_validation(baked_arm):
 
 
 def test_time_sampled_lods_follow_m_org_in_plain_pxr(baked_pointcache):
-    from texelbake.payload import read_baked
+    from texelbake.usd.read import read_baked
 
     baked = read_baked(baked_pointcache)
     assert baked.skeleton == ""
@@ -341,7 +341,7 @@ def test_write_animation_frames_and_errors(tmp_path):
     import OpenImageIO as oiio
 
     from texelbake.errors import ShapeError
-    from texelbake.imageio import write_animation
+    from texelbake.io.images import write_animation
 
     frames = [np.full((6, 5, 3), k / 3.0) for k in range(4)]
     p = write_animation(tmp_path / "a.gif", frames, fps=4.0)
@@ -354,7 +354,7 @@ def test_write_animation_frames_and_errors(tmp_path):
     inp.close()
     assert k == 4
     # flat frames: the palette holds the exact sRGB-encoded grey
-    from texelbake.imageio import to_uint8
+    from texelbake.io.images import to_uint8
 
     assert [int(g[0]) for g in got] == [int(to_uint8(np.full(3, j / 3.0))[0]) for j in range(4)]
     with pytest.raises(ShapeError, match="gif"):
@@ -402,7 +402,7 @@ def test_an_asset_warning_is_shown_once_and_kept_in_the_report(tmp_path):
     import sys
     import warnings
 
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes.arm import write_arm
     from texelbake.stages.context import _load_asset_cached
 

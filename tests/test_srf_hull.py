@@ -9,7 +9,7 @@ import pytest
 from tests._render_helpers import icosphere
 from tests._srf_helpers import sphere_asset
 from texelbake.errors import AssetError, SettingsError
-from texelbake.metrics import psnr_db
+from texelbake.render.metrics import psnr_db
 from texelbake.srf.capture import capture, unit_light
 from texelbake.srf.frame import render_srf
 from texelbake.srf.hull import carve, cuberille, visual_hull

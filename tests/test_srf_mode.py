@@ -19,7 +19,7 @@ from texelbake.render.scene import load_scene
 @pytest.fixture(scope="module")
 def baked_cylinder(tmp_path_factory) -> Path:
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes import write_scene
 
     d = tmp_path_factory.mktemp("cyl")

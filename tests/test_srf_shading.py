@@ -10,12 +10,12 @@ from scipy.ndimage import map_coordinates
 from tests._render_helpers import quad
 from texelbake.errors import SettingsError
 from texelbake.geometry.raycast import RayCaster
-from texelbake.render import camera as cam_mod
 from texelbake.srf.cache import BlockCache, shade
 from texelbake.srf.ops import build_ops, naive_order, sorted_order
 from texelbake.srf.rig import sphere_cameras, sphere_directions
 from texelbake.srf.store import SrfWriter
 from texelbake.srf.ulr import camera_weights, light_weights, ulr_weights
+from texelbake.trace import camera as cam_mod
 
 
 def test_ulr_weights_closed_form():

@@ -10,13 +10,13 @@ from tests._render_helpers import icosphere, quad
 from tests._srf_helpers import sphere_asset
 from texelbake.deform.warps import parse_warp
 from texelbake.geometry.raycast import RayCaster
-from texelbake.metrics import psnr_db
-from texelbake.render import camera as cam_mod
+from texelbake.render.metrics import psnr_db
 from texelbake.srf.capture import capture, unit_light
 from texelbake.srf.frame import render_srf, splat_surfels
 from texelbake.srf.rig import project
 from texelbake.srf.splat import splat
 from texelbake.srf.surfels import surfels_from_mesh
+from texelbake.trace import camera as cam_mod
 
 CAM = cam_mod.look_at((0.0, 0.0, 6.0), (0.0, 0.0, 0.0), 128, 128)
 
@@ -127,8 +127,8 @@ def _deformed_asset(asset, warp, lights):
 
 
 def test_under_a_rotation_srf_through_l_beats_srf_without_l(sphere_field):
-    from texelbake.metrics import object_errors, object_mask
-    from texelbake.render.gt import render_model
+    from texelbake.render.metrics import object_errors, object_mask
+    from texelbake.trace.org import render_model
 
     store, surf = sphere_field
     bounds = np.array([[-1.0, -1, -1], [1, 1, 1]])

@@ -10,7 +10,8 @@ import pytest
 
 from schemas.settings import BakeSettings
 from texelbake.errors import SettingsError
-from texelbake.pipeline import bake, plan_bake, run_shard
+from texelbake.pipeline.plan import plan_bake
+from texelbake.pipeline.run import bake, run_shard
 from texelbake.render.frame import render_frame
 from texelbake.render.scene import load_scene
 from texelbake.scenes import write_scene

@@ -11,13 +11,13 @@ import pytest
 
 from tests._srf_helpers import sphere_asset
 from texelbake.errors import AssetError, SettingsError
-from texelbake.imageio import write_exr, write_png
-from texelbake.render.gt import render_model
+from texelbake.io.images import write_exr, write_png
 from texelbake.srf import pca
 from texelbake.srf.capture import capture, unit_light
 from texelbake.srf.measured import import_measured
 from texelbake.srf.rig import camera_to_json, project, sphere_cameras, sphere_directions
 from texelbake.srf.store import SrfWriter, open_store, sample_bilinear
+from texelbake.trace.org import render_model
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +139,7 @@ def _measured_rig(tmp_path, n_cams=2, n_lights=2):
             if j % 2:  # an LDR image: sRGB PNG
                 name = f"c{c}_l{j}.png"
                 write_png(tmp_path / name, img)
-                from texelbake.imageio import read_image, srgb_to_linear
+                from texelbake.io.images import read_image, srgb_to_linear
 
                 truth[c, j] = srgb_to_linear(read_image(tmp_path / name))
             else:

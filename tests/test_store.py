@@ -11,10 +11,10 @@ import zipfile
 import numpy as np
 import pytest
 
-from texelbake.archive import zip_bytes
 from texelbake.errors import ShapeError, StageError
-from texelbake.spool import FileSpool, spooled_file
-from texelbake.store import MMAP_MIN_BYTES, ArtifactStore, read_npz, write_npz
+from texelbake.io.archive import zip_bytes
+from texelbake.io.spool import FileSpool, spooled_file
+from texelbake.io.store import MMAP_MIN_BYTES, ArtifactStore, read_npz, write_npz
 
 
 def _arrays() -> dict[str, np.ndarray]:
@@ -32,7 +32,7 @@ def _arrays() -> dict[str, np.ndarray]:
 
 def _zip_of_members(arrays: dict[str, np.ndarray]) -> bytes:
     """The artifacts' bytes before they were streamed: every member's `.npy` bytes in memory,
-    then one zip (texelbake.archive.zip_bytes, stored, no permissions, sorted by name)."""
+    then one zip (texelbake.io.archive.zip_bytes, stored, no permissions, sorted by name)."""
     members = []
     for name in sorted(arrays):
         buf = io.BytesIO()
@@ -82,7 +82,7 @@ def test_a_mapped_read_pays_for_the_pages_it_touches(tmp_path):
     del big
     # VmHWM, not ru_maxrss: Linux carries ru_maxrss over from the (large) parent across exec
     code = (
-        "import sys; from pathlib import Path; from texelbake.store import read_npz\n"
+        "import sys; from pathlib import Path; from texelbake.io.store import read_npz\n"
         "def hwm():\n"
         "    line = next(x for x in open('/proc/self/status') if x.startswith('VmHWM'))\n"
         "    return int(line.split()[1])\n"
@@ -146,8 +146,8 @@ def test_mapped_arrays_author_into_usd(tmp_path):
     writers take aligned copies (a 256² bake's export failed on its mapped frames)."""
     from pxr import Usd
 
-    from texelbake import payload
-    from texelbake.lodmesh import LodMesh, author_mesh
+    from texelbake.usd.lodmesh import LodMesh, author_mesh
+    from texelbake.usd.write import author_array
 
     rng = np.random.default_rng(1)
     arrays = {"frames": rng.random((50_000, 3, 3)), "ids": np.arange(300_001, dtype=np.int32),
@@ -160,7 +160,7 @@ def test_mapped_arrays_author_into_usd(tmp_path):
     stage = Usd.Stage.CreateInMemory()
     prim = stage.DefinePrim("/A")
     for name in ("frames", "ids"):
-        payload._author_array(prim, name, got[name])
+        author_array(prim, name, got[name])
         np.testing.assert_array_equal(np.array(prim.GetAttribute(f"texelbake:{name}").Get()),
                                       arrays[name].reshape(-1))
     corner_uvs = np.zeros((100_000, 3, 2))

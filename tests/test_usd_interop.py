@@ -15,7 +15,7 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdLux, UsdShade
 
 from texelbake.model import SHADER_CELLULAR, SHADER_LAMBERT
-from texelbake.shaderdefs import (
+from texelbake.usd.shaderdefs import (
     ALL_SHADER_INPUTS,
     DEFINITIONS_FILE,
     author_shader,
@@ -196,9 +196,9 @@ def test_up_axis_and_units_reach_every_output(tmp_path):
     from pxr import UsdGeom
 
     from schemas.settings import BakeSettings
-    from texelbake.lodexport import export_lod
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
     from texelbake.scenes import write_scene
+    from texelbake.usd.export import export_lod
 
     src = write_scene("cylinder", tmp_path / "src" / "cyl.usda", "small")
     stage = Usd.Stage.Open(str(src))

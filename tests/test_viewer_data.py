@@ -17,7 +17,7 @@ from services.viewer_data import AVIS_PHI, AVIS_THETA, CORNER_FLOATS, extract, p
 @pytest.fixture(scope="module")
 def baked(tmp_path_factory) -> Path:
     from schemas.settings import BakeSettings
-    from texelbake.pipeline import bake
+    from texelbake.pipeline.run import bake
 
     d = tmp_path_factory.mktemp("viewer_plane")
     src = write_plane_usd(d / "plane.usda")
@@ -39,7 +39,7 @@ def f32(path: Path, shape) -> np.ndarray:  # noqa: ANN001
 
 
 def test_meshes_and_texels_are_the_baked_ones(baked, out):
-    from texelbake.payload import read_baked
+    from texelbake.usd.read import read_baked
 
     b = read_baked(baked)
     man = json.loads((out / "manifest.json").read_text())
@@ -72,7 +72,7 @@ def test_meshes_and_texels_are_the_baked_ones(baked, out):
 def test_avis_grid_of_a_flat_texel_is_cos_theta(baked, out):
     """A flat, unoccluded texel of area A shows A cos(theta) to a view at theta from its
     normal (the projected area): the grid, divided by A, is cos(theta) at every cell centre."""
-    from texelbake.payload import read_baked
+    from texelbake.usd.read import read_baked
 
     lvl = read_baked(baked).levels[0]
     avis = f32(out / "avis.bin", (-1, AVIS_THETA, AVIS_PHI))

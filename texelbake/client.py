@@ -20,9 +20,9 @@ from typing import Any
 
 import httpx
 
-from texelbake.archive import zip_bytes
-from texelbake.atomic import atomic_write_bytes
 from texelbake.errors import AssetError, StageError
+from texelbake.io.archive import zip_bytes
+from texelbake.io.atomic import atomic_write_bytes
 
 API = "/api/v1"
 TERMINAL = ("succeeded", "failed", "cancelled")

@@ -249,15 +249,3 @@ class AssetModel:
     @property
     def has_deformation(self) -> bool:
         return self.time_codes.shape[0] > 1
-
-    def face_areas(self) -> np.ndarray:
-        """(f,) float64 triangle areas."""
-        from texelbake.geometry.mesh import triangle_areas
-
-        return triangle_areas(self.points, self.faces)
-
-    def face_normals(self) -> np.ndarray:
-        """(f, 3) float64 unit geometric normals (zero for degenerate faces)."""
-        from texelbake.geometry.mesh import face_normals
-
-        return face_normals(self.points, self.faces)

@@ -25,4 +25,4 @@ def _init_pool_child(**_kwargs) -> None:
 
     dispose_engines()
     if os.environ.get("TEXELBAKE_WARM_IMPORT", "1") != "0":
-        import texelbake.pipeline  # noqa: F401
+        import texelbake.pipeline.run  # noqa: F401

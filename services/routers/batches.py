@@ -37,7 +37,7 @@ from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ
 from services.errors import ApiError, errors
 from services.routers.jobs import BINARY, OCTET, _media_type
 from services.submission import BatchSpec, JobSpec, create_jobs, own_asset
-from texelbake.archive import folder_members, write_zip
+from texelbake.io.archive import folder_members, write_zip
 
 router = APIRouter(prefix="/batches", tags=["batches"])
 

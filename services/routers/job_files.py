@@ -24,8 +24,8 @@ from services.routers.jobs import (
     _own_job,
     _require_done,
 )
-from texelbake.archive import zip_folder
-from texelbake.atomic import atomic_write_bytes
+from texelbake.io.archive import zip_folder
+from texelbake.io.atomic import atomic_write_bytes
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 

@@ -40,7 +40,7 @@ from services.limits import cpu_slot
 from services.resume import resume_job
 from services.routers.assets import ASSET_404
 from services.submission import JobSpec, create_jobs, own_asset
-from texelbake import costmodel
+from texelbake.estimate import costmodel
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -78,14 +78,14 @@ def _estimate(settings_json: str, workers: int) -> costmodel.Estimate:
     """The cost model per (settings, workers): computed once, not on every status read. Priced
     on this API process's machine (`machinespeed.this_machine()`, measured once per process):
     the workers are assumed to run on machines like it."""
-    from texelbake import machinespeed
+    from texelbake.estimate import machinespeed
 
     return costmodel.estimate(BakeSettings.model_validate_json(settings_json), workers,
                               speed=machinespeed.this_machine())
 
 
 def job_estimate(job: Job, settings: BakeSettings, workers: int) -> JobEstimate:
-    """The core cost model's prediction for a job (thin: `texelbake.costmodel.estimate`)."""
+    """The core cost model's prediction for a job (thin: `texelbake.estimate.costmodel.estimate`)."""
     from datetime import timedelta
 
     e = _estimate(job.settings_json, workers)
@@ -160,7 +160,7 @@ def job_public(session: Session, job: Job, root: Path, workers: int = 2) -> JobP
 
 
 def _quality(out: Path, state: str) -> tuple[str | None, list[str]]:
-    """A succeeded job's quality gate from its report.json (texelbake.quality)."""
+    """A succeeded job's quality gate from its report.json (texelbake.stages.quality)."""
     report = out / "report.json"
     if state != "succeeded" or not report.is_file():
         return None, []

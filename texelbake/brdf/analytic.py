@@ -123,7 +123,7 @@ def _ggx_dv(nh2: np.ndarray, zi: np.ndarray, zo: np.ndarray, alpha: np.ndarray) 
     return a2 / d
 
 
-def _schlick_weight(cos_d: np.ndarray) -> np.ndarray:
+def schlick_weight(cos_d: np.ndarray) -> np.ndarray:
     """(1 - cos_d)^5, (n,) float64 (Schlick 1994)."""
     w = 1.0 - cos_d
     np.maximum(w, 0.0, out=w)
@@ -137,7 +137,7 @@ def _preview_block(
     wi: np.ndarray, wo: np.ndarray, p: Mapping[str, np.ndarray]
 ) -> np.ndarray:
     zi, zo, nh2, cos_d = _half_terms(wi, wo)
-    fres = _schlick_weight(cos_d)  # (b,)
+    fres = schlick_weight(cos_d)  # (b,)
     diffuse = p["diffuseColor"]
     m = p["metallic"][:, None]
     spec_wf = p["useSpecularWorkflow"][:, None] != 0.0
@@ -211,7 +211,7 @@ def preview_surface(
     """
     wi, wo = as_dirs(wi, wo)
     n = wi.shape[0]
-    p = _preview_params(params, n)
+    p = preview_surface_params(params, n)
     ok = valid_pairs(wi, wo, eps)
     out = np.empty((n, 3), dtype=np.float64)
     for lo in range(0, n, CHUNK):
@@ -222,7 +222,7 @@ def preview_surface(
     return out
 
 
-def _preview_params(params: Mapping[str, Any], n: int) -> dict[str, np.ndarray]:
+def preview_surface_params(params: Mapping[str, Any], n: int) -> dict[str, np.ndarray]:
     unknown = set(params) - set(model.PREVIEW_DEFAULTS)
     if unknown:
         raise SettingsError(
@@ -262,7 +262,7 @@ def ggx_conductor(
     for lo in range(0, n, CHUNK):
         hi = min(lo + CHUNK, n)
         zi, zo, nh2, cos_d = _half_terms(wi[lo:hi], wo[lo:hi])
-        w = _schlick_weight(cos_d)[:, None]
+        w = schlick_weight(cos_d)[:, None]
         f0b = row_block(f0_, lo, hi)
         fr = f0b + (1.0 - f0b) * w
         fr *= _ggx_dv(nh2, zi, zo, row_block(alpha, lo, hi))[:, None]

@@ -70,7 +70,7 @@ def _input(
     return _DEFAULTS[material.model][name], False
 
 
-def _inputs(
+def material_inputs(
     material: model.Material,
     names: Sequence[str],
     uv: np.ndarray | None,
@@ -139,22 +139,22 @@ def evaluate(
         raise ShapeError(f"uv must be ({n}, 2) to match wi, got {uv_a.shape}")
     kind = material.model
     if kind == "lambert":
-        p = _inputs(material, ("diffuseColor",), uv_a, rows)
+        p = material_inputs(material, ("diffuseColor",), uv_a, rows)
         return lambert(p["diffuseColor"], wi, wo, eps=eps)
     if kind == "phong":
-        p = _inputs(material, ("diffuseColor", "specularColor", "exponent"), uv_a, rows)
+        p = material_inputs(material, ("diffuseColor", "specularColor", "exponent"), uv_a, rows)
         return phong(p["diffuseColor"], p["specularColor"], p["exponent"], wi, wo, eps=eps)
     if kind == "preview":
-        return preview_surface(_inputs(material, _PREVIEW_BRDF_INPUTS, uv_a, rows), wi, wo,
+        return preview_surface(material_inputs(material, PREVIEW_BRDF_INPUTS, uv_a, rows), wi, wo,
                                eps=eps)
     if kind == "merl":
-        scale = as_scalar(_inputs(material, ("scale",), uv_a, rows)["scale"], n, "scale")
+        scale = as_scalar(material_inputs(material, ("scale",), uv_a, rows)["scale"], n, "scale")
         return merl_lookup(_merl_table(material), wi, wo, eps=eps) * scale[:, None]
     # cellular: the pattern once per uv row, the shading per evaluation row
     if uv_a is None:
         raise ShapeError(f"material {material.path!r}: the cellular model needs uv (n, 2)")
     m = uv_a.shape[0]
-    p = cellular_params(_inputs(material, tuple(CELLULAR_DEFAULTS), uv_a, None), m)
+    p = cellular_params(material_inputs(material, tuple(CELLULAR_DEFAULTS), uv_a, None), m)
     border, color, finite = cellular_split(p, uv_a)
     bc, br = p["borderColor"], p["borderRoughness"]
     if rows is not None:
@@ -192,7 +192,7 @@ def _rows_index(sample_index: Any, n: int, uv: np.ndarray | None) -> np.ndarray 
     return rows
 
 
-_PREVIEW_BRDF_INPUTS = (
+PREVIEW_BRDF_INPUTS = (
     "diffuseColor",
     "specularColor",
     "useSpecularWorkflow",
@@ -225,10 +225,10 @@ def diffuse_albedo(material: model.Material, uv: Any = None) -> np.ndarray:
     n = 1 if uv_a is None else uv_a.shape[0]
     kind = material.model
     if kind in ("lambert", "phong"):
-        d = _inputs(material, ("diffuseColor",), uv_a, None)["diffuseColor"]
+        d = material_inputs(material, ("diffuseColor",), uv_a, None)["diffuseColor"]
         return np.broadcast_to(as_color(d, n, "diffuseColor"), (n, 3)).copy()
     if kind == "preview":
-        p = _inputs(material, ("diffuseColor", "metallic", "useSpecularWorkflow"), uv_a, None)
+        p = material_inputs(material, ("diffuseColor", "metallic", "useSpecularWorkflow"), uv_a, None)
         d = as_color(p["diffuseColor"], n, "diffuseColor")
         m = np.clip(as_scalar(p["metallic"], n, "metallic"), 0.0, 1.0)
         wf = as_scalar(p["useSpecularWorkflow"], n, "useSpecularWorkflow")
@@ -237,14 +237,14 @@ def diffuse_albedo(material: model.Material, uv: Any = None) -> np.ndarray:
     if kind == "cellular":
         if uv_a is None:
             raise ShapeError(f"material {material.path!r}: the cellular model needs uv (n, 2)")
-        return cellular_color(_inputs(material, tuple(CELLULAR_DEFAULTS), uv_a, None), uv_a)
+        return cellular_color(material_inputs(material, tuple(CELLULAR_DEFAULTS), uv_a, None), uv_a)
     # merl
     g = (np.arange(_ALBEDO_GRID) + 0.5) / _ALBEDO_GRID
     u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
     wi = cosine_hemisphere(u)
     wo = np.broadcast_to(np.array([0.0, 0.0, 1.0]), wi.shape)
     rho = np.pi * merl_lookup(_merl_table(material), wi, wo).mean(axis=0)
-    scale = as_scalar(_inputs(material, ("scale",), uv_a, None)["scale"], n, "scale")[:, None]
+    scale = as_scalar(material_inputs(material, ("scale",), uv_a, None)["scale"], n, "scale")[:, None]
     return np.broadcast_to(rho[None, :] * scale, (n, 3)).copy()
 
 

@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from texelbake.atomic import atomic_write_bytes
 from texelbake.brdf.common import CHUNK, as_dirs, valid_pairs
 from texelbake.errors import AssetError, ShapeError
+from texelbake.io.atomic import atomic_write_bytes
 from texelbake.tol import TOL
 
 #: (BRDFRead.cpp: RED_SCALE = 1/1500, GREEN_SCALE = 1.15/1500, BLUE_SCALE = 1.66/1500)

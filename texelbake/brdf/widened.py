@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from texelbake import model
-from texelbake.brdf.analytic import _preview_params, _schlick_weight
+from texelbake.brdf.analytic import preview_surface_params, schlick_weight
 from texelbake.brdf.common import INV_PI, PREVIEW_MIN_ROUGHNESS, as_dirs, valid_pairs
 from texelbake.tol import TOL
 
@@ -113,7 +113,7 @@ def preview_leadr(params: Mapping[str, Any], wi: Any, wo: Any, mean_slope: np.nd
     """
     wi, wo = as_dirs(wi, wo)
     n = wi.shape[0]
-    p = _preview_params(params, n)
+    p = preview_surface_params(params, n)
     mean = np.asarray(mean_slope, dtype=np.float64).reshape(n, 2)
     sig = np.asarray(cov, dtype=np.float64).reshape(n, 2, 2)
     n_mu = np.column_stack([-mean, np.ones(n)])
@@ -131,7 +131,7 @@ def preview_leadr(params: Mapping[str, Any], wi: Any, wo: Any, mean_slope: np.nd
     h = wi + wo
     h /= np.linalg.norm(h, axis=1, keepdims=True)
     cos_d = np.clip(np.einsum("ij,ij->i", wi, h), 0.0, 1.0)
-    fres = _schlick_weight(cos_d)
+    fres = schlick_weight(cos_d)
     row = {k: (v[idx] if v.shape[0] == n else v) for k, v in p.items()}
     d = row["diffuseColor"]
     m = row["metallic"][:, None]

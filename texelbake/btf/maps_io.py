@@ -31,7 +31,7 @@ import numpy as np
 from texelbake.btf.compress import MEAN_MODELS, BTFMaps
 from texelbake.btf.lut import DirectionLUT, build_lut
 from texelbake.errors import AssetError
-from texelbake.imageio import ImageInfo, read_pixels, write_pixels
+from texelbake.io.images import ImageInfo, read_pixels, write_pixels
 from texelbake.model import SHADER_BTF  # noqa: F401  (re-exported: the BTF material's shader id)
 
 FORMAT_VERSION = 1

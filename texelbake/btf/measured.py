@@ -29,7 +29,7 @@ import numpy as np
 from texelbake.btf.lut import dirs_from_degrees
 from texelbake.btf.maps_io import read_float_pixels
 from texelbake.errors import AssetError, AssetPathError
-from texelbake.imageio import srgb_to_linear
+from texelbake.io.images import srgb_to_linear
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".hdr")
 DIRECTION_FILES = ("directions.json", "directions.csv")

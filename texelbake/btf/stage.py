@@ -17,7 +17,7 @@ from texelbake.btf.compress import BTFMaps, BTFSettings, direction_step
 from texelbake.btf.maps_io import PARTS, SHADER_BTF, write_btf_maps
 from texelbake.btf.report import btf_report
 from texelbake.errors import ShapeError
-from texelbake.shaderdefs import author_shader
+from texelbake.usd.shaderdefs import author_shader
 
 
 def btf_from_texels(

@@ -31,11 +31,11 @@ from collections.abc import Mapping
 import numpy as np
 
 from texelbake import brdf as brdf_mod
-from texelbake.brdf.analytic import _preview_params, _schlick_weight
+from texelbake.brdf.analytic import preview_surface_params, schlick_weight
 from texelbake.brdf.common import INV_PI, as_color, as_scalar
-from texelbake.brdf.evaluate import _PREVIEW_BRDF_INPUTS, _inputs
+from texelbake.brdf.evaluate import PREVIEW_BRDF_INPUTS, material_inputs
 from texelbake.errors import NumericalError, SettingsError
-from texelbake.frames import grid_to_local, tangent_frames
+from texelbake.geometry.basis import grid_to_local, tangent_frames
 from texelbake.tol import TOL
 
 #: below this fraction of live entries a material's samples are evaluated on the live entries
@@ -93,7 +93,7 @@ def brdf_product(
                 out[c, sel] = ok * rho_pi[:, c, None, None]
             continue
         if material.model == "preview" and kernel == "product":
-            prm = _preview_params(_inputs(material, _PREVIEW_BRDF_INPUTS, uv[sel], None), n_s)
+            prm = preview_surface_params(material_inputs(material, PREVIEW_BRDF_INPUTS, uv[sel], None), n_s)
             for b0 in range(0, n_s, GRID_BLOCK):  # loop over sample blocks (cache-sized)
                 blk = sel[b0:b0 + GRID_BLOCK]
                 pb = {k: (v if v.shape[0] == 1 else v[b0:b0 + GRID_BLOCK]) for k, v in prm.items()}
@@ -107,7 +107,7 @@ def brdf_product(
                 out[:, blk] = fg
             continue
         if material.model == "phong" and kernel == "product":
-            prm = _inputs(material, ("diffuseColor", "specularColor", "exponent"), uv[sel], None)
+            prm = material_inputs(material, ("diffuseColor", "specularColor", "exponent"), uv[sel], None)
             kd = as_color(prm["diffuseColor"], n_s, "diffuseColor")
             ks = as_color(prm["specularColor"], n_s, "specularColor")
             ex = as_scalar(prm["exponent"], n_s, "exponent")
@@ -157,10 +157,10 @@ GRID_BLOCK = 16
 def preview_grid(p: dict[str, np.ndarray], wi: np.ndarray, wo: np.ndarray, eps: float
                  ) -> np.ndarray:
     """UsdPreviewSurface on the product grid: `brdf.analytic.preview_surface` (with
-    `_half_terms`, `_ggx_dv`, `_schlick_weight`) term by term, in the same order of operations,
+    `_half_terms`, `_ggx_dv`, `schlick_weight`) term by term, in the same order of operations,
     with per-direction terms on (n, A) or (n, B) and per-sample parameters broadcast.
 
-    p : `_preview_params` arrays with leading dimension 1 or n; wi (n, A, 3), wo (n, B, 3) local
+    p : `preview_surface_params` arrays with leading dimension 1 or n; wi (n, A, 3), wo (n, B, 3) local
     returns (3, n, A, B) float64, 0 where either direction is under the horizon (or not finite)
     """
     n, A, B = wi.shape[0], wi.shape[1], wo.shape[1]
@@ -178,7 +178,7 @@ def preview_grid(p: dict[str, np.ndarray], wi: np.ndarray, wo: np.ndarray, eps: 
     c *= 0.5
     cos_d = np.sqrt(c, out=c)
     np.minimum(cos_d, 1.0, out=cos_d)
-    fres = _schlick_weight(cos_d)  # (n, A, B)
+    fres = schlick_weight(cos_d)  # (n, A, B)
 
     def col(v: np.ndarray) -> np.ndarray:  # (1 or n, 3) -> (3, 1 or n, 1, 1)
         return v.T[:, :, None, None]

@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from texelbake.cpm import directions
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.level import FitInputs, PointSet, segment_sum, visibility_cos, world_dirs
+from texelbake.geometry import directions
 from texelbake.tol import TOL
 
 _TAG_CELL_I, _TAG_CELL_O = 0x55, 0x66

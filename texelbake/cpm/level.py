@@ -22,10 +22,10 @@ from threadpoolctl import threadpool_limits
 
 from schemas.settings import BakeSettings
 from texelbake import brdf as brdf_mod
-from texelbake.cpm import directions
 from texelbake.cpm.fit import fit_texel
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
-from texelbake.frames import grid_to_local, grid_to_world, tangent_frames
+from texelbake.geometry import directions
+from texelbake.geometry.basis import grid_to_local, grid_to_world, tangent_frames
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.texels import morton
 from texelbake.model import Material

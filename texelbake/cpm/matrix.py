@@ -12,7 +12,7 @@ projected area a_vis(w_o) = sum_j V(x_j, w_o) (n_j . w_o)+ dA_j (Eq. 3, discreti
 samples and the same visibility, so a flat Lambertian texel reproduces its BRDF exactly:
 R 1 / a_vis = (rho / pi) cos(theta_i) there, whatever the sample areas).
 
-Rows follow `texelbake.cpm.directions.product_pairs`: row r = i * n_o + o on a product grid of n_i
+Rows follow `texelbake.geometry.directions.product_pairs`: row r = i * n_o + o on a product grid of n_i
 light and n_o view directions. Arrays carry a trailing colour axis ch (1 or 3).
 
 Limit a_vis -> 0 (grazing or fully masked view directions). In exact arithmetic f_bar stays

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from texelbake.errors import ShapeError
-from texelbake.frames import tangent_frames
+from texelbake.geometry.basis import tangent_frames
 
 #: |w| of the unit quaternion at or below this: the rotation is taken as 180° and has no
 #: Rodrigues vector (|r| = |x| / |w| would exceed 1e8; 1 + tan² overflows nothing, but a

@@ -24,7 +24,7 @@ import numpy as np
 
 from texelbake.deform.warps import Warp, central_jacobian
 from texelbake.errors import SettingsError, ShapeError
-from texelbake.frames import tangent_frames
+from texelbake.geometry.basis import tangent_frames
 
 #: |u × v| / (|u| |v|) at or below this: the tangent plane is degenerate (a 1e-9 rad angle
 #: between u and v is far below any real surface's shear; float64 cross products of unit

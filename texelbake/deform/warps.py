@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from schemas import warp as warp_grammar
 from texelbake.errors import SettingsError, ShapeError
 
 #: Eq. 6 step, relative to the bounding-box diagonal of the warp's domain. Central
@@ -347,57 +348,22 @@ class SkinWarp(Warp):
 
 _AXES = {"x": np.array([1.0, 0, 0]), "y": np.array([0, 1.0, 0]), "z": np.array([0, 0, 1.0])}
 #: name -> {parameter: default}
-WARP_PARAMS: dict[str, dict[str, object]] = {
-    "twist": {"angle": 90.0, "axis": "y"},
-    "bend": {"angle": 90.0, "axis": "y", "toward": "x"},
-    "sine": {"amplitude": 0.1, "periods": 1.0, "phase": 0.0, "axis": "y", "toward": "x"},
-    "stretch": {"x": 1.0, "y": 2.0, "z": 1.0},
-    "scale": {"s": 2.0},
-    "rigid": {"angle": 30.0, "axis": "z", "tx": 0.0, "ty": 0.0, "tz": 0.0},
-}
+WARP_PARAMS = warp_grammar.WARP_PARAMS
 
 
-def _parse_fields(spec: str) -> tuple[str, dict[str, object]]:
-    text = spec.strip()
-    name, _, rest = text.partition(":")
-    name = name.strip().lower()
-    if name not in WARP_PARAMS:
-        raise SettingsError(f"field 'warp': unknown warp {name!r} in {spec!r}; expected one of "
-                            f"{sorted(WARP_PARAMS)}")
-    params = dict(WARP_PARAMS[name])
-    for item in filter(None, (s.strip() for s in rest.split(","))):
-        key, eq, value = item.partition("=")
-        key = key.strip()
-        if not eq:
-            raise SettingsError(f"field 'warp': {item!r} in {spec!r} is not key=value")
-        if key not in params:
-            raise SettingsError(f"field 'warp.{key}': {name} takes {sorted(params)}, got "
-                                f"{key!r}")
-        if isinstance(params[key], str):
-            v = value.strip().lower()
-            if v not in _AXES:
-                raise SettingsError(f"field 'warp.{key}': expected x, y or z, got {value!r}")
-            params[key] = v
-        else:
-            try:
-                params[key] = float(value)
-            except ValueError:
-                raise SettingsError(f"field 'warp.{key}': expected a number, got "
-                                    f"{value!r}") from None
-            if not math.isfinite(float(params[key])):  # type: ignore[arg-type]
-                raise SettingsError(f"field 'warp.{key}': must be finite, got {value!r}")
-    return name, params
+def parse_warp_fields(spec: str) -> tuple[str, dict[str, object]]:
+    try:
+        return warp_grammar.parse_warp_fields(spec)
+    except ValueError as exc:
+        raise SettingsError(str(exc)) from None
 
 
 def check_warp_spec(spec: str) -> str:
-    """Check a warp spec before any asset is read (a setting, a CLI flag): its name, fields
-    and values, and an axis-bent warp's `toward` off its axis; returns the spec. What depends
-    on the asset (a flat extent along the axis) is checked by `parse_warp`."""
-    name, prm = _parse_fields(spec)
-    if name in ("bend", "sine") and prm["axis"] == prm["toward"]:
-        raise SettingsError(f"field 'warp.toward': must differ from the axis "
-                            f"{prm['axis']!r}, got {prm['toward']!r}")
-    return spec
+    """`schemas.warp.check_warp_spec` with a SettingsError (exit status 2 on the CLI)."""
+    try:
+        return warp_grammar.check_warp_spec(spec)
+    except ValueError as exc:
+        raise SettingsError(str(exc)) from None
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -411,7 +377,7 @@ def parse_warp(spec: str, bounds: np.ndarray) -> Warp:
     and defaults; angles in degrees, sine amplitude as a fraction of the axis length),
     placed on the rest bounding box `bounds` (2, 3): the axis runs through the box's centre
     from its low end, over its extent along the axis."""
-    name, prm = _parse_fields(spec)
+    name, prm = parse_warp_fields(spec)
     lo, hi = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
     centre = 0.5 * (lo + hi)
     diag = float(np.linalg.norm(hi - lo)) or 1.0

@@ -15,12 +15,12 @@ from texelbake.errors import StageError
 from texelbake.geometry.atlas import build_atlas, map_into_atlas
 from texelbake.geometry.hierarchy import enclose, n_parts, needs_wrap, simplify_hierarchy
 from texelbake.geometry.lodchain import build_lod_chain, hausdorff
-from texelbake.geometry.mesh import Mesh, bbox_diagonal, compact, weld
+from texelbake.geometry.mesh import Mesh, bbox_diagonal, compact, face_normals, weld
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import SurfaceSampler, surface_sampler
 from texelbake.geometry.texels import FrameSums, assign_rows, morton, uv_to_texel
+from texelbake.io.spool import FileSpool, MemorySpool
 from texelbake.model import AssetModel
-from texelbake.spool import FileSpool, MemorySpool
 
 
 def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
@@ -155,7 +155,7 @@ def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int
     m = sampler.m
     for name, (dt, tail) in _SAMPLE_ARRAYS.items():
         spool.allocate(name, dt, (m, *tail))
-    face_n = asset.face_normals()
+    face_n = face_normals(asset.points, asset.faces)
     strides = {p: max(1, m // p) for p in probe_sizes}
     probes: dict[int, list[np.ndarray]] = {p: [] for p in probe_sizes}
     for a, smp in sampler.chunks(chunk):  # loop over chunks (memory bound)

@@ -17,12 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from texelbake.chunks import bincount_continued
 from texelbake.errors import SettingsError, ShapeError
-from texelbake.frames import tangent_frames
 from texelbake.geometry.atlas import Atlas, rasterize_atlas
+from texelbake.geometry.basis import tangent_frames
 from texelbake.geometry.mesh import Mesh, check_points
 from texelbake.geometry.raycast import RayCaster
+from texelbake.io.chunks import bincount_continued
 from texelbake.tol import TOL
 
 
@@ -304,8 +304,8 @@ def _bent_side(pts: np.ndarray, n: np.ndarray, closest: np.ndarray, prim: np.nda
                face_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`assign_texels`' bent-normal rule (see there; `n` unit normals), all candidates' rays
     in one batch."""
-    from texelbake.cpm.directions import hemisphere_directions
-    from texelbake.frames import tangent_frames
+    from texelbake.geometry.basis import tangent_frames
+    from texelbake.geometry.directions import hemisphere_directions
     from texelbake.geometry.raycast import offset_origins
 
     facing = np.einsum("ij,ij->i", face_normals[prim], n)
@@ -385,7 +385,7 @@ def texel_frames(
     outside every chart, of the triangle under the texel's sample nearest the centre in uv),
     made orthogonal to n; b = n × t (right-handed; on a mirrored chart b = -dP/dv).
     Texels with no samples, or whose normals cancel, get a frame from the M1 triangle under
-    their centre (or the default frame of `texelbake.frames.tangent_frames`) and valid False.
+    their centre (or the default frame of `texelbake.geometry.basis.tangent_frames`) and valid False.
 
     normals : (m, 3) float64 sample shading normals; areas : (m,) float64 ΔA
     returns : (frames (N_ℓ², 3, 3) float64, valid (N_ℓ²,) bool)

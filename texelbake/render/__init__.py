@@ -12,7 +12,6 @@ Modules: `frame` (the modes and `render_frame`), `tracer` (the wavefront loop), 
 `images` (EXR/PNG), `report` (previews, the report and its plot).
 """
 
-from texelbake.render.camera import PinholeCamera, auto_frame, from_usd, look_at
 from texelbake.render.frame import EXTRA_MODES, MODES, render_frame
 from texelbake.render.report import (
     PREVIEW_SIZES,
@@ -23,7 +22,8 @@ from texelbake.render.report import (
     write_report_plot,
 )
 from texelbake.render.scene import RenderScene, load_scene
-from texelbake.render.tracer import RenderResult
+from texelbake.trace.camera import PinholeCamera, auto_frame, from_usd, look_at
+from texelbake.trace.tracer import RenderResult
 
 __all__ = [
     "EXTRA_MODES", "MODES", "PREVIEW_SIZES", "PinholeCamera", "RenderResult", "RenderScene", "auto_frame",

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from texelbake.errors import StageError
-from texelbake.render.camera import PinholeCamera
 from texelbake.render.cpm import footprint_level
 from texelbake.render.scene import RenderScene, hit_m1
-from texelbake.render.shade import lit_points
-from texelbake.render.tracer import accumulate
 from texelbake.tol import TOL
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.shade import lit_points
+from texelbake.trace.tracer import accumulate
 
 
 def _btf_files(scene: RenderScene) -> list[Path]:

@@ -12,12 +12,12 @@ import numpy as np
 from texelbake import brdf as brdf_mod
 from texelbake.errors import SettingsError
 from texelbake.geometry.texels import bilinear_texels
-from texelbake.render.camera import PinholeCamera
-from texelbake.render.gt import shade_org
 from texelbake.render.scene import RenderScene, atlas_uv_prim, ray_atlas_uv
-from texelbake.render.shade import direct_radiance, light_at
-from texelbake.render.tracer import eye_passes, ray_slices
 from texelbake.tol import TOL
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.org import shade_org
+from texelbake.trace.shade import direct_radiance, light_at
+from texelbake.trace.tracer import eye_passes, ray_slices
 
 
 def choose_mesh(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0) -> int:

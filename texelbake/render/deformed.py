@@ -50,7 +50,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
-from typing import Any
 
 import numpy as np
 
@@ -66,19 +65,15 @@ from texelbake.deform.refine import refine_levels, subdivide
 from texelbake.deform.skinbind import dense_weights
 from texelbake.deform.warps import MeshWarp, SkinWarp, Warp, transfer_weights
 from texelbake.errors import SettingsError
-from texelbake.frames import tangent_frames
+from texelbake.geometry.basis import tangent_frames
 from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.raycast import RayCaster
-from texelbake.lodmesh import LodMesh
-from texelbake.render import camera as cam_mod
-from texelbake.render.camera import PinholeCamera
-from texelbake.render.cpm import CpmFrame, choose_mesh, render_cpm
-from texelbake.render.gt import render_org, shade_org
-from texelbake.render.normalmap import render_normalmap
+from texelbake.render.cpm import CpmFrame
 from texelbake.render.scene import RenderScene, _hausdorff, _uv_ratio, set_atlas_surface
-from texelbake.render.shade import light_at
-from texelbake.render.tracer import RenderResult, progressive
 from texelbake.tol import TOL
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.shade import light_at
+from texelbake.usd.lodmesh import LodMesh
 
 #: the Jacobian field the characteristic points, the LOD vertices and the look-up read when
 #: the frame follows the deformed M_org (`deform_scene(follow="mesh")`): "vertex" — Ψ's own
@@ -87,9 +82,6 @@ from texelbake.tol import TOL
 #: 2026-11-27; a flat face of a coarse M_org then turns as one piece while gt shades it as the
 #: warped, curved surface)
 JACOBIAN_FIELDS = ("vertex", "triangle")
-
-DEFORMED_MODES = ("gt", "cpm", "cpm-naive", "normalmap", "equal-time", "srf", "srf-naive",
-                  "btf", "btf-naive")
 
 
 def cofactor(jac: np.ndarray) -> np.ndarray:
@@ -203,7 +195,7 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
                             a.corner_normals.reshape(-1, 3)).reshape(a.corner_normals.shape)
     d.asset = dataclasses.replace(a, points=pts, corner_normals=corner)
     d.org = RayCaster(pts, a.faces)
-    d.org_face_normals = d.asset.face_normals()
+    d.org_face_normals = face_normals(d.asset.points, d.asset.faces)
     # diag and ray_eps stay the rest scene's: a length of the object, not of its axis-aligned
     # box, which a rotation changes (a rigidly moved asset must render as the unmoved one)
     rest_lods, exact, frames0, lod_w = _refined_lods(scene, refine, n_joints)
@@ -460,49 +452,3 @@ class DeformedCpmFrame(CpmFrame):
                                                       self.lookup)
             rad[todo], avis[todo], ex[todo], done[todo] = r, a, e, True
             self.rays += n_rays
-
-
-def render_deformed(d: RenderScene, mode: str, cam: PinholeCamera, spp: int, seed: int = 0,
-                    *, budget_seconds: float | None = None, **kw: Any) -> RenderResult:
-    """One image of a deformed scene (`deform_scene`) in `mode` (DEFORMED_MODES)."""
-    if not hasattr(d, "warp"):
-        raise SettingsError("render_deformed needs a scene from deform_scene()")
-    if mode not in DEFORMED_MODES:
-        raise SettingsError(f"field 'mode': a deformed frame renders one of {DEFORMED_MODES}, "
-                            f"got {mode!r}")
-    spp = int(spp)
-    cam_mod.strata(spp)
-    extras: dict[str, Any] = {}
-    t0 = time.perf_counter()
-    if mode == "gt":
-        img, rays, cov = render_org(d, cam, spp, seed)
-    elif mode == "normalmap":
-        img, rays, cov = render_normalmap(d, cam, spp, seed)
-    elif mode in ("cpm", "cpm-naive"):
-        lookup = kw.pop("lookup", DEFAULT_LOOKUP)
-        frame = DeformedCpmFrame(d, cam, choose_mesh(d, cam, kw.pop("max_error_px", 1.0)),
-                                 lookup="none" if mode == "cpm-naive" else lookup)
-        img, rays, cov, extras = render_cpm(d, cam, spp, seed, frame=frame, **kw)
-    elif mode in ("btf", "btf-naive"):  # seed 001's maps through the seed's L, or without
-        from texelbake.render.btf import render_btf
-
-        img, rays, cov = render_btf(d, cam, spp, seed,
-                                    lookup=vertex_lookup if mode == "btf" else None, **kw)
-    elif mode in ("srf", "srf-naive"):  # the reflectance field through L, or without it
-        from texelbake.srf.mode import render_srf_mode
-
-        img, rays, cov, extras = render_srf_mode(d.rest, cam, warp=d.warp,  # type: ignore[attr-defined]
-                                                 use_lookup=mode == "srf", **kw)
-    else:  # equal-time
-        if budget_seconds is None:
-            budget_seconds = render_deformed(d, "cpm", cam, spp, seed, **kw).seconds
-        if not budget_seconds >= 0:
-            raise SettingsError(f"field 'budget_seconds': must be >= 0, got {budget_seconds}")
-        img, rays, cov, mean_spp, seconds = progressive(
-            cam, seed, lambda o, dd: shade_org(d, o, dd), float(budget_seconds))
-        return RenderResult(img.astype(np.float32), seconds, int(rays), int(mean_spp), mode,
-                            {"budget_seconds": float(budget_seconds),
-                             "mean_spp": float(mean_spp)}, cov.astype(np.float32))
-    seconds = time.perf_counter() - t0
-    return RenderResult(img.astype(np.float32), seconds, int(rays), spp, mode, extras,
-                        cov.astype(np.float32))

@@ -26,15 +26,16 @@ from typing import Any
 
 import numpy as np
 
-from texelbake.atomic import atomic_path
-from texelbake.deform.warps import WARP_PARAMS, Warp, _parse_fields, parse_warp
+from texelbake.deform.warps import WARP_PARAMS, Warp, parse_warp, parse_warp_fields
 from texelbake.errors import SettingsError
-from texelbake.imageio import to_uint8, write_animation
-from texelbake.render import camera as cam_mod
-from texelbake.render.deformed import DEFORMED_MODES, deform_scene, render_deformed
+from texelbake.io.atomic import atomic_path
+from texelbake.io.images import to_uint8, write_animation
+from texelbake.render.deformed import deform_scene
 from texelbake.render.deformed_report import warp_at_time
+from texelbake.render.frame import DEFORMED_MODES, render_deformed
 from texelbake.render.report import _entry
 from texelbake.render.scene import RenderScene, load_scene, texel_size
+from texelbake.trace import camera as cam_mod
 
 ANIM_MODES = ("cpm", "cpm-naive", "normalmap")
 
@@ -50,7 +51,7 @@ def sweep_spec(spec: str, amount: float) -> str:
     """The warp `spec` at `amount` ∈ [0, 1] of its way from the identity: each numeric
     parameter with an identity value (`_IDENTITY`) blended linearly, the others (axes, phase,
     periods) kept."""
-    name, prm = _parse_fields(spec)
+    name, prm = parse_warp_fields(spec)
     if not 0.0 <= amount <= 1.0:
         raise SettingsError(f"field 'amount': must be in [0, 1], got {amount}")
     ident = _IDENTITY[name]

@@ -20,9 +20,10 @@ import numpy as np
 from texelbake.deform.skinbind import transforms_at
 from texelbake.deform.warps import AffineWarp, MeshWarp, SkinnedMeshWarp, Warp, parse_warp
 from texelbake.errors import SettingsError
-from texelbake.imageio import write_exr, write_png
+from texelbake.io.images import write_exr, write_png
 from texelbake.model import AssetModel
-from texelbake.render.deformed import DEFORMED_MODES, deform_scene, render_deformed
+from texelbake.render.deformed import deform_scene
+from texelbake.render.frame import DEFORMED_MODES, render_deformed
 from texelbake.render.report import _entry, _write_json
 from texelbake.render.scene import describe_camera, load_scene, resolve_camera
 

@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from texelbake.render import camera as cam_mod
 from texelbake.render.scene import RenderScene
+from texelbake.trace import camera as cam_mod
 
 
 def level_colours(level: np.ndarray, n_levels: int) -> np.ndarray:

@@ -1,5 +1,5 @@
 """What the filtered-normal-map modes (`toksvig`, `leadr`, their `+ao` variants) share: the
-bake's filtered maps read back through `texelbake.payload` (`texelbake.filtered_maps`
+bake's filtered maps read back through `texelbake.payload` (`texelbake.baselines.filtered`
 layout), looked up trilinearly at each eye ray's footprint exactly as ``cpm`` picks its level
 (`cpm.footprint_level`, each of the spp samples at its 1/spp share of the pixel: λ lower by
 ½ log2 spp, clipped to the levels — the maps have no M_org fall-back: closer than the finest
@@ -20,15 +20,15 @@ from collections.abc import Callable
 
 import numpy as np
 
+from texelbake.baselines.filtered import CHANNELS, FIELDS
 from texelbake.errors import StageError
-from texelbake.filtered_maps import CHANNELS, FIELDS
 from texelbake.geometry.texels import bilinear_texels
-from texelbake.render.camera import PinholeCamera
 from texelbake.render.cpm import footprint_level
 from texelbake.render.normalmap import _normalmap_tables
 from texelbake.render.scene import RenderScene, hit_m1
-from texelbake.render.shade import lit_points
 from texelbake.tol import TOL
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.shade import lit_points
 
 #: radiance(selection (k,) into the hits, wi (k, 3), wo (k, 3) in the M1 tangent frame)
 #: -> (k, 3): f_r times the mode's cosines (per unit irradiance)

@@ -4,7 +4,7 @@ Every mode traces all eye rays of a pass at once (`camera.eye_rays`), shades the
 whole-array numpy and sums the samples of each pixel with a box filter; loops run over sample
 passes, lights, levels and materials only.
 
-Modes (all read the baked USD through `texelbake.payload.read_baked` and the copied source):
+Modes (all read the baked USD through `texelbake.usd.read.read_baked` and the copied source):
 
 - ``gt`` — M_org, stratified eye rays, direct light with shadow rays against M_org
   (`shade.direct_radiance`).
@@ -70,66 +70,136 @@ renderer, as a previewer between frames).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from texelbake.errors import SettingsError
-from texelbake.render import camera as cam_mod
 from texelbake.render.btf import render_btf
-from texelbake.render.camera import PinholeCamera
-from texelbake.render.cpm import render_cpm
-from texelbake.render.gt import render_org, shade_org
+from texelbake.render.cpm import choose_mesh, render_cpm
+from texelbake.render.deformed import DEFAULT_LOOKUP, DeformedCpmFrame, vertex_lookup
 from texelbake.render.leadr import render_leadr
 from texelbake.render.normalmap import render_normalmap
 from texelbake.render.preview_surface import render_preview_surface
 from texelbake.render.scene import RenderScene
 from texelbake.render.toksvig import render_toksvig
-from texelbake.render.tracer import RenderResult, progressive
+from texelbake.trace import camera as cam_mod
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.org import render_org, shade_org
+from texelbake.trace.tracer import RenderResult, progressive
 
-MODES = ("gt", "cpm", "normalmap", "equal-time")
-#: the filtered-normal-map baselines studios ship (issue 21): mode -> (renderer, keyword
-#: arguments); they need the filtered maps of a bake (`texelbake.filtered_maps`)
-FILTERED_MODES: dict[str, tuple[Any, dict[str, Any]]] = {
-    "toksvig": (render_toksvig, {}), "toksvig+ao": (render_toksvig, {"ao": True}),
-    "leadr": (render_leadr, {}), "leadr+ao": (render_leadr, {"ao": True}),
-    "preview-surface": (render_preview_surface, {}),
+
+def _gt(scene, cam, spp, seed, **kw):
+    return (*render_org(scene, cam, spp, seed), {})
+
+
+def _normalmap(scene, cam, spp, seed, **kw):
+    return (*render_normalmap(scene, cam, spp, seed), {})
+
+
+def _baked_only(mode: str, fn, **mode_kw):
+    """A mode that needs a baked asset's maps (a RenderScene), not M_org alone."""
+
+    def run(scene, cam, spp, seed, **kw):
+        if not isinstance(scene, RenderScene):
+            raise SettingsError(f"field 'mode': {mode!r} needs a baked asset (RenderScene)")
+        return (*fn(scene, cam, spp, seed, **mode_kw, **kw), {})
+
+    return run
+
+
+def _srf(scene, cam, spp, seed, **kw):  # seed 002 §3, §5 (texelbake.srf)
+    from texelbake.srf.mode import render_srf_mode
+
+    return render_srf_mode(scene, cam, **kw)
+
+
+def _cpm_deformed(naive: bool):
+    def run(d, cam, spp, seed, **kw):
+        lookup = kw.pop("lookup", DEFAULT_LOOKUP)
+        frame = DeformedCpmFrame(d, cam, choose_mesh(d, cam, kw.pop("max_error_px", 1.0)),
+                                 lookup="none" if naive else lookup)
+        return render_cpm(d, cam, spp, seed, frame=frame, **kw)
+
+    return run
+
+
+def _btf_deformed(naive: bool):  # seed 001's maps through the seed's L, or without
+    def run(d, cam, spp, seed, **kw):
+        return (*render_btf(d, cam, spp, seed, lookup=None if naive else vertex_lookup, **kw),
+                {})
+
+    return run
+
+
+def _srf_deformed(naive: bool):  # the reflectance field through L, or without it
+    def run(d, cam, spp, seed, **kw):
+        from texelbake.srf.mode import render_srf_mode
+
+        return render_srf_mode(d.rest, cam, warp=d.warp, use_lookup=not naive, **kw)
+
+    return run
+
+
+@dataclass(frozen=True)
+class Mode:
+    """How a mode renders a frame at rest and a deformed frame (`deform_scene`); None where
+    it does not. Each is (scene, cam, spp, seed, **kw) -> (image, rays, coverage, extras);
+    ``equal-time`` is `render_frame`'s own (it times another mode)."""
+
+    rest: Callable[..., tuple] | None
+    deformed: Callable[..., tuple] | None
+    #: "main": every preview and report renders it; "extra": on request, it needs optional
+    #: bake outputs; "": deformed frames only
+    listed: str
+
+
+#: the one table of render modes, in the order reports list them
+MODE_TABLE: dict[str, Mode] = {
+    "gt": Mode(_gt, _gt, "main"),
+    "cpm": Mode(render_cpm, _cpm_deformed(naive=False), "main"),
+    "cpm-naive": Mode(None, _cpm_deformed(naive=True), ""),
+    "normalmap": Mode(_normalmap, _normalmap, "main"),
+    "equal-time": Mode(None, None, "main"),
+    "srf": Mode(_srf, _srf_deformed(naive=False), "extra"),
+    "srf-naive": Mode(None, _srf_deformed(naive=True), ""),
+    "btf": Mode(_baked_only("btf", render_btf), _btf_deformed(naive=False), "extra"),
+    "btf-naive": Mode(None, _btf_deformed(naive=True), ""),
+    # the filtered-normal-map baselines studios ship; they need a bake's filtered maps
+    "toksvig": Mode(_baked_only("toksvig", render_toksvig), None, "extra"),
+    "toksvig+ao": Mode(_baked_only("toksvig+ao", render_toksvig, ao=True), None, "extra"),
+    "leadr": Mode(_baked_only("leadr", render_leadr), None, "extra"),
+    "leadr+ao": Mode(_baked_only("leadr+ao", render_leadr, ao=True), None, "extra"),
+    "preview-surface": Mode(_baked_only("preview-surface", render_preview_surface), None,
+                            "extra"),
 }
+MODES = tuple(m for m, e in MODE_TABLE.items() if e.listed == "main")
 #: modes `render_frame` accepts beyond MODES (they need optional bake outputs; ``srf``: a
 #: reflectance field captured beside the bake, `texelbake.srf.mode`)
-EXTRA_MODES = ("btf", "srf") + tuple(FILTERED_MODES)
+EXTRA_MODES = tuple(m for m, e in MODE_TABLE.items() if e.listed == "extra")
+FILTERED_MODES = ("toksvig", "toksvig+ao", "leadr", "leadr+ao", "preview-surface")
+DEFORMED_MODES = tuple(m for m, e in MODE_TABLE.items()
+                       if e.deformed is not None or m == "equal-time")
 
 
 def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, seed: int = 0,
                  *, budget_seconds: float | None = None, **kw) -> RenderResult:
-    """Render one image of `scene` (already loaded) in `mode` (see module docstring)."""
-    if mode not in MODES + EXTRA_MODES:
+    """Render one image of `scene` (already loaded; a frame at rest, or a deformed frame from
+    `deform_scene`) in `mode` (see module docstring)."""
+    deformed = hasattr(scene, "warp")
+    entry = MODE_TABLE.get(mode)
+    if deformed and mode not in DEFORMED_MODES:
+        raise SettingsError(f"field 'mode': a deformed frame renders one of {DEFORMED_MODES}, "
+                            f"got {mode!r}")
+    if entry is None or (not deformed and entry.rest is None and mode != "equal-time"):
         raise SettingsError(f"field 'mode': expected one of {MODES + EXTRA_MODES}, got "
                             f"{mode!r}")
     spp = int(spp)
     cam_mod.strata(spp)  # validates spp
-    extras: dict[str, Any] = {}
     t0 = time.perf_counter()
-    if mode == "gt":
-        img, rays, cov = render_org(scene, cam, spp, seed)
-    elif mode == "normalmap":
-        img, rays, cov = render_normalmap(scene, cam, spp, seed)
-    elif mode == "cpm":
-        img, rays, cov, extras = render_cpm(scene, cam, spp, seed, **kw)
-    elif mode in FILTERED_MODES:
-        if not isinstance(scene, RenderScene):
-            raise SettingsError(f"field 'mode': {mode!r} needs a baked asset (RenderScene)")
-        fn, mode_kw = FILTERED_MODES[mode]
-        img, rays, cov = fn(scene, cam, spp, seed, **mode_kw)
-    elif mode == "btf":
-        if not isinstance(scene, RenderScene):
-            raise SettingsError("field 'mode': 'btf' needs a baked asset (RenderScene)")
-        img, rays, cov = render_btf(scene, cam, spp, seed, **kw)
-    elif mode == "srf":  # seed 002 §3, §5 (texelbake.srf)
-        from texelbake.srf.mode import render_srf_mode
-
-        img, rays, cov, extras = render_srf_mode(scene, cam, **kw)
-    else:  # equal-time
+    if mode == "equal-time":
         if budget_seconds is None:
             budget_seconds = render_frame(scene, "cpm", cam, spp, seed, **kw).seconds
         if not budget_seconds >= 0:  # 0: the first pass only (one sample per pixel)
@@ -139,6 +209,16 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
         extras = {"budget_seconds": float(budget_seconds), "mean_spp": float(mean_spp)}
         return RenderResult(img.astype(np.float32), seconds, int(rays), int(mean_spp), mode,
                             extras, cov.astype(np.float32))
+    fn = entry.deformed if deformed else entry.rest
+    img, rays, cov, extras = fn(scene, cam, spp, seed, **kw)
     seconds = time.perf_counter() - t0
     return RenderResult(img.astype(np.float32), seconds, int(rays), spp, mode, extras,
                         cov.astype(np.float32))
+
+
+def render_deformed(d: RenderScene, mode: str, cam: PinholeCamera, spp: int, seed: int = 0,
+                    *, budget_seconds: float | None = None, **kw: Any) -> RenderResult:
+    """One image of a deformed scene (`deform_scene`) in `mode` (DEFORMED_MODES)."""
+    if not hasattr(d, "warp"):
+        raise SettingsError("render_deformed needs a scene from deform_scene()")
+    return render_frame(d, mode, cam, spp, seed, budget_seconds=budget_seconds, **kw)

@@ -25,16 +25,16 @@ from __future__ import annotations
 import numpy as np
 
 from texelbake import brdf as brdf_mod
-from texelbake.brdf.evaluate import _PREVIEW_BRDF_INPUTS, _inputs
+from texelbake.baselines.filtered import slope_covariance
+from texelbake.brdf.evaluate import PREVIEW_BRDF_INPUTS, material_inputs
 from texelbake.brdf.widened import preview_leadr, widen_material
-from texelbake.filtered_maps import slope_covariance
-from texelbake.frames import tangent_frames
-from texelbake.render.camera import PinholeCamera
+from texelbake.geometry.basis import tangent_frames
 from texelbake.render.filtered import RadianceFn, field, shade_filtered
 from texelbake.render.normalmap import _normalmap_tables
 from texelbake.render.scene import RenderScene
-from texelbake.render.tracer import accumulate
 from texelbake.tol import TOL
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.tracer import accumulate
 
 
 def leadr_radiance(scene: RenderScene, values: np.ndarray, texel: np.ndarray, hits: dict,
@@ -63,7 +63,7 @@ def leadr_radiance(scene: RenderScene, values: np.ndarray, texel: np.ndarray, hi
             material = scene.materials[int(m)]
             s = sel[rows]
             if material.model == "preview":
-                params = _inputs(material, _PREVIEW_BRDF_INPUTS, uvm[s], None)
+                params = material_inputs(material, PREVIEW_BRDF_INPUTS, uvm[s], None)
                 spec[rows], diffuse[rows] = preview_leadr(params, wi_t[rows], wo_t[rows],
                                                           mean[s], cov[s])
             else:

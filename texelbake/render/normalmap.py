@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 
 from texelbake import brdf as brdf_mod
+from texelbake.baselines.normalmap import face_tangent_space
 from texelbake.errors import StageError
 from texelbake.geometry.texels import bilinear_texels
-from texelbake.normalmap import face_tangent_space
-from texelbake.render.camera import PinholeCamera
 from texelbake.render.scene import RenderScene, hit_m1, m1_arrays
-from texelbake.render.shade import direct_radiance
-from texelbake.render.tracer import accumulate
 from texelbake.tol import TOL
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.shade import direct_radiance
+from texelbake.trace.tracer import accumulate
 
 
 def _normalmap_tables(scene: RenderScene) -> dict[str, np.ndarray]:
@@ -66,7 +66,7 @@ def baseline_maps(scene: RenderScene) -> tuple[np.ndarray, np.ndarray]:
     else the PNGs of the USD fallback (bakes before issue 21)."""
     if not scene.baked.filtered:
         return scene.baked.albedo, scene.baked.normal
-    from texelbake.filtered_maps import FIELDS
+    from texelbake.baselines.filtered import FIELDS
 
     top = scene.baked.filtered[0].astype(np.float64)
     nbar = top[..., FIELDS["nbar"]]

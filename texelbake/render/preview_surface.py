@@ -1,6 +1,6 @@
 """``preview-surface``: exactly what a USD viewer without texelbake's shader shows — each
 LOD's UsdPreviewSurface fallback as authored in the baked USD (read back by
-`texelbake.payload.read_baked`: its diffuseColor, normal, roughness and occlusion textures
+`texelbake.usd.read.read_baked`: its diffuseColor, normal, roughness and occlusion textures
 after their colour space, scale and bias, and its constant inputs), evaluated with the
 specification's BRDF (`brdf.analytic.preview_surface`).
 
@@ -23,15 +23,15 @@ import math
 import numpy as np
 
 from texelbake import model
+from texelbake.baselines.normalmap import face_tangent_space
 from texelbake.brdf.analytic import preview_surface
 from texelbake.errors import StageError
 from texelbake.geometry.texels import bilinear_texels
-from texelbake.normalmap import face_tangent_space
-from texelbake.render.camera import PinholeCamera
 from texelbake.render.cpm import choose_mesh, footprint_level
 from texelbake.render.scene import RenderScene
-from texelbake.render.shade import direct_radiance
-from texelbake.render.tracer import accumulate
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.shade import direct_radiance
+from texelbake.trace.tracer import accumulate
 
 
 def mip_chain(img: np.ndarray) -> list[np.ndarray]:

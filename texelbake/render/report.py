@@ -28,11 +28,10 @@ from typing import Any
 
 import numpy as np
 
-from texelbake import metrics
-from texelbake.atomic import atomic_path
 from texelbake.errors import SettingsError, StageError
-from texelbake.imageio import write_exr, write_png
-from texelbake.render import camera as cam_mod
+from texelbake.io.atomic import atomic_path
+from texelbake.io.images import write_exr, write_png
+from texelbake.render import metrics
 from texelbake.render.btf import has_btf_maps
 from texelbake.render.diagnostics import (
     density_atlas,
@@ -42,7 +41,8 @@ from texelbake.render.diagnostics import (
 )
 from texelbake.render.frame import EXTRA_MODES, MODES, render_frame
 from texelbake.render.scene import RenderScene, describe_camera, load_scene, resolve_camera
-from texelbake.render.tracer import RenderResult
+from texelbake.trace import camera as cam_mod
+from texelbake.trace.tracer import RenderResult
 
 #: preview sizes: (pixels per side, reference spp, gt sweep spp, cpm sweep spp, spp of the
 #: compared images)
@@ -310,7 +310,7 @@ def _ref_coverage(ref: RenderResult) -> np.ndarray:
 
 
 def _write_json(path: Path, obj: Any) -> None:
-    from texelbake.payload import atomic_json
+    from texelbake.io.atomic import atomic_json
 
     atomic_json(path, _finite(obj))
 

@@ -17,38 +17,10 @@ from texelbake.errors import SettingsError, ShapeError, StageError
 from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.texels import uv_to_texel
-from texelbake.model import AssetModel, Camera
-from texelbake.render import camera as cam_mod
-from texelbake.render.camera import PinholeCamera
-from texelbake.tol import TOL
-
-
-class OrgScene:
-    """M_org ready to render: an AssetModel with its ray caster (what `gt` traces). Also
-    usable without a bake (`render_model`)."""
-
-    def __init__(self, asset: AssetModel) -> None:
-        self.asset = asset
-        self.materials = asset.materials
-        self.lights = asset.lights
-        #: True when the asset has no lights and the renderer lights it with
-        #: `scene.lights.default_light_rig` (reports name the rig's lights)
-        self.default_lights = not asset.lights
-        if self.default_lights:
-            from texelbake.scene.lights import default_light_rig
-
-            centre = np.asarray(asset.bounds, dtype=np.float64).mean(axis=0)
-            view = self.default_camera(64, 64).position - centre
-            self.lights = default_light_rig(view, asset.up_axis)
-        self.org = RayCaster(asset.points, asset.faces)
-        self.org_face_normals = asset.face_normals()
-        self.diag = self.org.bbox_diag
-        self.ray_eps = TOL.ray_offset * self.diag
-
-    def default_camera(self, width: int, height: int) -> PinholeCamera:
-        if self.asset.cameras:
-            return cam_mod.from_usd(self.asset.cameras[0], width, height)
-        return cam_mod.auto_frame(self.asset.bounds, width, height)
+from texelbake.model import Camera
+from texelbake.trace import camera as cam_mod
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.org import OrgScene
 
 
 class RenderScene(OrgScene):
@@ -60,8 +32,8 @@ class RenderScene(OrgScene):
     atlas_face_normals: np.ndarray
 
     def __init__(self, baked_root: str | Path) -> None:
-        from texelbake.payload import read_baked
         from texelbake.scene import load_asset
+        from texelbake.usd.read import read_baked
 
         t0 = time.perf_counter()
         self.root = Path(baked_root)

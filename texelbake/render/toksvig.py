@@ -24,15 +24,15 @@ from dataclasses import replace
 import numpy as np
 
 from texelbake import brdf as brdf_mod
+from texelbake.baselines.filtered import toksvig_variance
 from texelbake.brdf.widened import toksvig_phong_exponent, widen_material
-from texelbake.filtered_maps import toksvig_variance
-from texelbake.frames import tangent_frames
-from texelbake.render.camera import PinholeCamera
+from texelbake.geometry.basis import tangent_frames
 from texelbake.render.filtered import RadianceFn, field, shade_filtered
 from texelbake.render.normalmap import _normalmap_tables
 from texelbake.render.scene import RenderScene
-from texelbake.render.tracer import accumulate
 from texelbake.tol import TOL
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.tracer import accumulate
 
 
 def toksvig_radiance(scene: RenderScene, values: np.ndarray, texel: np.ndarray, hits: dict,

@@ -26,7 +26,7 @@ and cameras as column-vector matrices (`M.T`).
 """
 
 
-from texelbake.imageio import srgb_to_linear
+from texelbake.io.images import srgb_to_linear
 from texelbake.scene.describe import describe
 from texelbake.scene.load import load_asset
 from texelbake.scene.materials import DEFAULT_MATERIAL, TEXELBAKE_DEFAULTS

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from texelbake.errors import AssetError, AssetPathError
-from texelbake.imageio import read_pixels
+from texelbake.io.images import read_pixels
 
 
 def _read_resolved_bytes(resolved: str, prim: str) -> bytes:

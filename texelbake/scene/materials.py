@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from texelbake.errors import AssetError, AssetPathError
-from texelbake.imageio import srgb_to_linear
+from texelbake.io.images import srgb_to_linear
 from texelbake.model import (
     PREVIEW_DEFAULTS,
     SHADER_MEASURED,
@@ -21,10 +21,10 @@ from texelbake.scene.files import load_image, load_merl
 from texelbake.scene.mtlx import MTLX_SURFACES, preview_params
 from texelbake.scene.primvars import READER_WIDTH, face_values, group_faces
 from texelbake.scene.values import coerce_like, default_param, warn
-from texelbake.shaderdefs import SHADER_INPUTS, shader_id
+from texelbake.usd.shaderdefs import SHADER_INPUTS, shader_id
 
 #: defaults for unauthored inputs of texelbake's own shader ids: the Sdr definitions'
-#: defaults (texelbake.shaderdefs.SHADER_INPUTS), colours as tuples
+#: defaults (texelbake.usd.shaderdefs.SHADER_INPUTS), colours as tuples
 TEXELBAKE_DEFAULTS: dict[str, dict[str, Any]] = {
     sid: {name: ("" if type_name == "asset" else default)
           for name, type_name, default in inputs}

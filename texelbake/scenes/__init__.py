@@ -46,7 +46,7 @@ share a folder. Everything is seeded (`SEEDS`); rewriting a scene gives identica
 Files are written atomically (temp file in the same folder, then rename).
 
 texelbake's shaders name their definition by source asset: `texelbake_shaders.usda`, written
-beside the layer (`texelbake.shaderdefs`), so a stock pxr that never imported texelbake
+beside the layer (`texelbake.usd.shaderdefs`), so a stock pxr that never imported texelbake
 validates every scene with no error. Lights author `inputs:normalize` and, for distant lights,
 `inputs:angle` explicitly (a distant light's intensity is then its irradiance at normal
 incidence, the UsdLux rule for a normalized distant light).

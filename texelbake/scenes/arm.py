@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
-from texelbake.atomic import atomic_path
 from texelbake.errors import SettingsError
+from texelbake.io.atomic import atomic_path
 from texelbake.scenes.author import _author_mesh, build_stage
 from texelbake.scenes.cylinder import build_cylinder
 from texelbake.scenes.params import CYLINDER, SCENE_PARAMS, SEEDS
@@ -139,8 +139,8 @@ def build_arm_stage(size: str = "small") -> tuple[Usd.Stage, dict[str, np.ndarra
 
 def write_arm(path: str | Path, size: str = "small") -> Path:
     """Write the arm to `path` (.usda/.usdc/.usd) with its textures beside it."""
-    from texelbake.imageio import write_png
-    from texelbake.shaderdefs import write_definitions
+    from texelbake.io.images import write_png
+    from texelbake.usd.shaderdefs import write_definitions
 
     path = Path(path)
     if path.suffix not in (".usda", ".usdc", ".usd"):

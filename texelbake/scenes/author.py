@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 from pxr import Gf, Kind, Sdf, Sdr, Usd, UsdGeom, UsdLux, UsdShade, Vt
 
-from texelbake.atomic import atomic_path
 from texelbake.errors import SettingsError
-from texelbake.imageio import write_png
+from texelbake.io.atomic import atomic_path
+from texelbake.io.images import write_png
 from texelbake.model import SHADER_PREVIEW
 from texelbake.scenes.bolt import build_bolt
 from texelbake.scenes.cloisonne import build_cloisonne
@@ -28,7 +28,7 @@ from texelbake.scenes.params import (
 )
 from texelbake.scenes.spec import LightSpec, MaterialSpec, MeshSpec, unit
 from texelbake.scenes.wall import build_wall
-from texelbake.shaderdefs import (
+from texelbake.usd.shaderdefs import (
     ALL_SHADER_INPUTS,
     author_shader,
     input_type,
@@ -238,7 +238,7 @@ def write_scene(name: str, path: str | Path, size: str = "small") -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     for file_name in sorted(textures):  # textures first: the layer must resolve them
         write_png(path.parent / file_name, textures[file_name])
-    write_definitions(path.parent)  # the texelbake shaders' definitions (texelbake.shaderdefs)
+    write_definitions(path.parent)  # the texelbake shaders' definitions (texelbake.usd.shaderdefs)
     with atomic_path(path) as tmp:
         if not stage.GetRootLayer().Export(str(tmp)):
             raise OSError(f"cannot write {path}")

@@ -89,6 +89,6 @@ def vertex_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
 
 def to_srgb8(linear: np.ndarray) -> np.ndarray:
     """(h, w, 3) float linear [0, 1] -> uint8 sRGB (the PNG is tagged sRGB)."""
-    from texelbake.imageio import to_uint8
+    from texelbake.io.images import to_uint8
 
     return to_uint8(linear)

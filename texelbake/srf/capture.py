@@ -19,11 +19,6 @@ import numpy as np
 
 from texelbake.errors import SettingsError
 from texelbake.model import AssetModel, Light
-from texelbake.render import camera as cam_mod
-from texelbake.render.camera import PinholeCamera
-from texelbake.render.gt import shade_org
-from texelbake.render.scene import OrgScene
-from texelbake.render.tracer import accumulate
 from texelbake.srf.rig import (
     DEFAULT_CAMERAS,
     DEFAULT_LIGHTS,
@@ -33,6 +28,10 @@ from texelbake.srf.rig import (
     sphere_directions,
 )
 from texelbake.srf.store import SrfStore, SrfWriter
+from texelbake.trace import camera as cam_mod
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.org import OrgScene, shade_org
+from texelbake.trace.tracer import accumulate
 
 
 def unit_light(direction: np.ndarray, index: int) -> Light:

@@ -33,15 +33,15 @@ from texelbake.deform.warps import Warp
 from texelbake.errors import SettingsError
 from texelbake.geometry.raycast import RayCaster
 from texelbake.model import Light
-from texelbake.render.camera import PinholeCamera
-from texelbake.render.shade import light_at
-from texelbake.render.tracer import RenderResult
 from texelbake.srf.cache import DEFAULT_CAPACITY, shade
 from texelbake.srf.ops import ShadingOps, build_ops
 from texelbake.srf.splat import SplatFrame, splat
 from texelbake.srf.store import SrfStore
 from texelbake.srf.surfels import Surfels
 from texelbake.srf.ulr import camera_weights, light_weights
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.shade import light_at
+from texelbake.trace.tracer import RenderResult
 
 #: ULR's k (the seed's and Buehler's usual 3-4)
 K_CAMERAS = 3

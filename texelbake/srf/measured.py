@@ -1,6 +1,6 @@
 """Import of a measured surface reflectance field: a folder of images, one per (camera,
 light), HDR (EXR, float) or LDR (PNG, 8-bit sRGB, decoded to linear), read through
-`texelbake.imageio`, and a JSON describing the rig:
+`texelbake.io.images`, and a JSON describing the rig:
 
     {"cameras": [{"width": 64, "height": 48, "fov_x_deg": 30,          (or "tan_half_x")
                   "world_from_camera": [[...4 x 4, USD column vectors...]]}   (or
@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from texelbake.errors import AssetError, SettingsError
-from texelbake.imageio import read_pixels, srgb_to_linear
+from texelbake.io.images import read_pixels, srgb_to_linear
 from texelbake.srf.rig import camera_from_json
 from texelbake.srf.store import SrfStore, SrfWriter
 

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 
 from texelbake.errors import SettingsError, ShapeError
-from texelbake.render import camera as cam_mod
-from texelbake.render.camera import PinholeCamera
+from texelbake.trace import camera as cam_mod
+from texelbake.trace.camera import PinholeCamera
 
 #: the seed's Table of models: the mug is 216 viewpoints x 44 lights
 DEFAULT_CAMERAS = 216

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from texelbake.errors import ShapeError
-from texelbake.render.camera import PinholeCamera
+from texelbake.trace.camera import PinholeCamera
 
 #: reconstruction kernel's σ in footprint units (the footprint edge is at 2σ)
 SIGMA = 0.5

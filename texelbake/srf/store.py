@@ -25,11 +25,11 @@ from typing import Any
 
 import numpy as np
 
-from texelbake.atomic import atomic_path
 from texelbake.errors import AssetError, SettingsError, ShapeError
-from texelbake.render.camera import PinholeCamera
+from texelbake.io.atomic import atomic_path
 from texelbake.srf import pca
 from texelbake.srf.rig import camera_from_json, camera_to_json
+from texelbake.trace.camera import PinholeCamera
 
 FORMAT = "texelbake-srf"
 VERSION = 1

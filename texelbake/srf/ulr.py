@@ -30,7 +30,7 @@ import numpy as np
 
 from texelbake.errors import SettingsError, ShapeError
 from texelbake.geometry.raycast import RayCaster
-from texelbake.render.camera import PinholeCamera
+from texelbake.trace.camera import PinholeCamera
 
 #: a penalty at or below this (radians) is the capture ray itself: weight 1
 EXACT_ANGLE = 1e-9

@@ -16,8 +16,8 @@ from schemas.settings import BakeSettings
 from texelbake.cpm.level import FitInputs
 from texelbake.errors import StageError
 from texelbake.geometry.raycast import RayCaster
+from texelbake.io.store import ArtifactStore, file_sha256
 from texelbake.model import AssetModel
-from texelbake.store import ArtifactStore, file_sha256
 
 #: settings that change no stage output (farm layout and optional downstream stages)
 #: (shard_texels changes no result but does name the tile artifacts: it is part of their key,

@@ -7,20 +7,24 @@ from pathlib import Path
 
 import numpy as np
 
-from texelbake.chunks import chunk_ranges, sample_rows
-from texelbake.costmodel import atlas_trade
 from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
+from texelbake.estimate.costmodel import atlas_trade
 from texelbake.geometry.build import geometry_chunk, lod_meshes, lod_report
 from texelbake.geometry.lodchain import transfer_corner_normals
-from texelbake.lodmesh import LodMesh
-from texelbake.quality import quality_gate
+from texelbake.io.atomic import atomic_json
+from texelbake.io.chunks import chunk_ranges, sample_rows
 from texelbake.stages.avis import avis_level_chunks, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
 from texelbake.stages.filtered import fallback_maps, filtered_levels, lod1_frames
+from texelbake.stages.quality import quality_gate
 from texelbake.stages.srf import export_srf
+from texelbake.usd.baked import BakedAsset
+from texelbake.usd.lodmesh import LodMesh
+from texelbake.usd.package import copy_source
+from texelbake.usd.write import write_baked_asset
 
 
 def lod_animation(asset, meshes) -> str:
@@ -53,8 +57,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         from texelbake.errors import SettingsError
 
         raise SettingsError(f"field 'source': expected 'copy' or 'reference', got {source!r}")
-    from texelbake import payload
-    from texelbake.normalmap import PreviewSums
+    from texelbake.baselines.normalmap import PreviewSums
     from texelbake.scene import check_asset_paths
 
     s = ctx.settings
@@ -134,7 +137,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
             "avis_rel_error": l0["avis"]["rel_error"],
         },
     }
-    baked = payload.BakedAsset(
+    baked = BakedAsset(
         name=name, levels=levels,
         arrays={"dirs_i": dirs["dirs_i"], "dirs_o": dirs["dirs_o"],
                 "heldout_i": dirs["held_i"], "heldout_o": dirs["held_o"],
@@ -150,22 +153,21 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     if s.srf:
         export_srf(ctx, out_dir, report)
     if source == "copy":
-        source_copy = payload.copy_source(
+        source_copy = copy_source(
             ctx.asset_path, check_asset_paths(ctx.asset_path), out_dir / "source"
         )
     else:
         source_copy = ctx.asset_path
-    root = payload.write_baked_asset(out_dir, source_copy, baked, list(asset.mesh_paths),
+    root = write_baked_asset(out_dir, source_copy, baked, list(asset.mesh_paths),
                                      author_extra=author_extra)
     report["quality"] = quality_gate(report, s)
-    payload.atomic_json(out_dir / "report.json", report)
+    atomic_json(out_dir / "report.json", report)
     return root
 
 
 def update_report_seconds(out_dir: Path, seconds: dict[str, float],
                           estimate: dict | None = None) -> None:
-    """Stage seconds (and the cost model's prediction, `texelbake.costmodel`) into report.json."""
-    from texelbake import payload
+    """Stage seconds (and the cost model's prediction, `texelbake.estimate.costmodel`) into report.json."""
 
     path = Path(out_dir) / "report.json"
     report = json.loads(path.read_text())
@@ -173,7 +175,7 @@ def update_report_seconds(out_dir: Path, seconds: dict[str, float],
     report["total_seconds"] = round(sum(seconds.values()), 3)
     if estimate is not None:
         report["estimate"] = estimate
-    payload.atomic_json(path, report)
+    atomic_json(path, report)
 
 
 def run_export(ctx: StageContext, shard: int = 0) -> str:
@@ -181,11 +183,10 @@ def run_export(ctx: StageContext, shard: int = 0) -> str:
     key = ctx.key("export", "result")
     out = ctx.store.path(key)
     if (out / "report.json").is_file():  # the same bake: only the gate's targets may differ
-        from texelbake import payload
 
         report = json.loads((out / "report.json").read_text())
         report["quality"] = quality_gate(report, ctx.settings)
-        payload.atomic_json(out / "report.json", report)
+        atomic_json(out / "report.json", report)
         return key
     export_to(ctx, out)
     return key

@@ -1,6 +1,6 @@
 """The filtered-maps step of the export (issue 21): the filtered normal, LEADR moment, AO,
 albedo and base maps of every mip level, from the geometry stage's samples and texel
-assignment (`texelbake.filtered_maps`), kept in the artifact store under a content key (the
+assignment (`texelbake.baselines.filtered`), kept in the artifact store under a content key (the
 AO rays are the cost, so a rerun of the export does not cast them again)."""
 
 from __future__ import annotations
@@ -9,17 +9,17 @@ from collections.abc import Callable
 
 import numpy as np
 
-from texelbake.chunks import chunk_ranges, sample_rows
-from texelbake.cpm.level import texel_ids
-from texelbake.filtered_maps import (
+from texelbake.baselines.filtered import (
     FILTER_TOL,
     FilteredSums,
     ambient_occlusion,
     bake_filtered_levels,
     material_base,
 )
+from texelbake.baselines.normalmap import face_tangent_space
+from texelbake.cpm.level import texel_ids
 from texelbake.geometry.build import geometry_chunk
-from texelbake.normalmap import face_tangent_space
+from texelbake.io.chunks import chunk_ranges, sample_rows
 from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
 from texelbake.tol import TOL
 
@@ -144,9 +144,9 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     geometry stage's (`assign_texels`, the bent-normal rule on wraps), and the level-0 tangent-
     space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
     artifact store."""
-    from texelbake.filtered_maps import CHANNELS, FIELDS
+    from texelbake.baselines.filtered import CHANNELS, FIELDS
     from texelbake.geometry.atlas import Atlas
-    from texelbake.geometry.mesh import Mesh
+    from texelbake.geometry.mesh import Mesh, face_normals
     from texelbake.geometry.raycast import RayCaster
     from texelbake.geometry.sampling import sample_surface
     from texelbake.geometry.texels import assign_texels
@@ -164,15 +164,15 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     smp = sample_surface(asset.points, asset.faces, res * res * FALLBACK_SAMPLES_PER_TEXEL,
                          s.seed * 1000 + _TAG_FALLBACK, corner_normals=asset.corner_normals,
                          corner_uvs=asset.corner_uvs, face_material=asset.face_material)
-    gnrm = asset.face_normals()[smp.face]
+    gnrm = face_normals(asset.points, asset.faces)[smp.face]
     m_t = Mesh(geo["m1_vertices"], geo["m1_faces"])
     atlas = Atlas(m_t, geo["m1_corner_uvs"], res, np.arange(m_t.num_vertices),
                   np.zeros(m_t.num_faces, np.int64), 1)
     wrapped = float(geo["m1_wrap_offset"]) > 0.0
     asg = assign_texels(smp.positions, m_t, atlas, 1, normals=gnrm,
                         occluder=caster if wrapped else None)
+    from texelbake.baselines.normalmap import face_tangent_space
     from texelbake.geometry.build import lod_meshes
-    from texelbake.normalmap import face_tangent_space
 
     v, f, uv = lod_meshes(geo)[0]
     frames = face_tangent_space(v, f, uv)
@@ -221,7 +221,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
 
 
 def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
-    """The UsdPreviewSurface fallback of every LOD (`payload.BakedAsset.fallback`): base
+    """The UsdPreviewSurface fallback of every LOD (`usd.baked.BakedAsset.fallback`): base
     colour and occlusion of level 0 (a viewer mip-maps them itself), and per LOD the roughness
     widened by the slope variance of the level where that LOD is shown
     (`filtered_maps.lod_levels`; a viewer filters textures but widens no lobe).
@@ -230,7 +230,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     atlas resolution the maps are baked from their own dense samples on the same layout
     (`_dense_fallback_levels`) and the fallback gets its own normal map ("normal"); else
     they are the filtered levels `maps` and the normal map is the baseline's."""
-    from texelbake.filtered_maps import (
+    from texelbake.baselines.filtered import (
         FIELDS,
         dominant_constants,
         fallback_roughness,

@@ -4,7 +4,7 @@ their texel assignment at every mip level and the texel frames (`texelbake.geome
 from __future__ import annotations
 
 from texelbake.geometry.build import build_geometry
-from texelbake.spool import FileSpool
+from texelbake.io.spool import FileSpool
 from texelbake.stages.context import StageContext
 
 

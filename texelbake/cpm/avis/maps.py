@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from texelbake.cpm.avis.cube import OccludedFn, check_res, cube_directions
 from texelbake.errors import NumericalError, SettingsError, ShapeError
-from texelbake.frames import grid_to_world, tangent_frames
+from texelbake.geometry.basis import grid_to_world, tangent_frames
 from texelbake.geometry.mesh import face_normals
 from texelbake.tol import TOL
 

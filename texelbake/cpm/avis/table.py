@@ -18,7 +18,7 @@ from texelbake.cpm.haar import (
     quantize_values,
 )
 from texelbake.errors import SettingsError, ShapeError
-from texelbake.frames import to_world
+from texelbake.geometry.basis import to_world
 from texelbake.tol import TOL
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,387 @@
+"""A bake's cost model (issue 15): its time predicted from the texel count, the samples per
+texel, the direction pairs and the worker count, before the CPM stages run.
+
+The CPM fit of a texel with m candidate columns on d = N_i N_o direction pairs costs (batched
+fit, `texelbake.cpm.level_batched`):
+
+    r_entry m d    building R (BRDF evaluation, visibility products, F = R / a_vis)
+    gram m^2 d     the Gram matrices (4 per texel in luminance mode)
+    eigh m^3       their eigendecompositions
+    held n H       the held-out truth over its n dense samples on H held-out pairs
+    texel          draws, bisection and NNLS on the reduced r x c systems
+
+Level 0's m are the dense samples per texel (known exactly once the geometry stage has placed
+them: `sample_counts`; before that the n^2 spt samples spread over an assumed atlas fill); a coarser
+texel selects among its children's points, m = sum over its children of min(c_L, m_child) with
+c_L the typical points per texel of a level (C_LEVEL, measured). The a_vis and geometry stages
+scale with the dense samples. Tile shards spread over the workers; the levels above a tile
+are one shard (`run_cpm_top`), priced serially except for their dense samples' sums (the held
+term), which the tile shards make; each process pool pays its start once.
+Coefficients are seconds measured on one 2-core machine (benchmarks/costmodel_check.py compares
+prediction and outcome); on another machine `estimate(speed=...)` scales them by a short
+reference workload's time there against its time on that machine (`texelbake.estimate.machinespeed`,
+per kind of work: elementwise grids, BLAS, rays, per-call Python), and `Coefficients` can be
+re-fitted for another machine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from schemas.settings import BakeSettings
+
+if TYPE_CHECKING:
+    from texelbake.estimate.machinespeed import MachineSpeed
+
+#: occupied fraction of the atlas' finest texels when the geometry is not known yet (measured:
+#: cylinder 0.37, bolt 0.4 at 32^2)
+DEFAULT_FILL = 0.4
+
+
+@dataclass(frozen=True)
+class Coefficients:
+    """Seconds per unit on the reference machine (`texelbake.estimate.machinespeed`: an estimate on
+    another machine scales them by its reference workload's factors). The fit terms (r_entry,
+    brdf_ggx, gram, held, held_ggx, texel) re-fitted 2026-11-28 (all six, NNLS on relative
+    residuals, `benchmarks/calibrate_costmodel.py`) to `cpm_cpu.py` runs of the full cylinder
+    and bolt at 32^2 and 64^2 on an AMD EPYC, priced at its machine factors (1.36): every
+    level of the four runs within 0.92-1.07 (the 32^2-only fit put the 64^2 cylinder's
+    level 0 at 1.25x and its top levels at 1.2-1.34x: m^2 d was over-weighted); checked out of
+    sample on six full bakes (32^2-128^2, docs/profile.md "The cost model on another
+    machine"). History: fitted 2026-11-27 on a quiet machine (load 1-3, this project's 2 cores).
+    The fit terms: NNLS on relative residuals (`benchmarks/calibrate_costmodel.py`) to the CPU
+    seconds (`time.process_time()`) of every level's `fit_level` calls, `benchmarks/cpm_cpu.py`
+    over the full cylinder and the full bolt at 32^2 (defaults): every level within
+    0.88-1.07x, the sums 1.00x and 0.99x. The coefficients before (fitted 2026-11-25/26 under
+    load 3-45) predicted 3.1x and 4.0x those sums on a quiet machine: a loaded machine's CPU
+    seconds are not a quiet one's. The dense refit's terms (off by default) were not
+    re-measured: scaled by the fit terms' mean change (1/3.5). a_vis, export, process and fixed
+    from the stage seconds of `benchmarks/costmodel_check.py` at 32^2 (`-j 2`) and of the
+    cylinder at a_vis faces 16 and 32: the a_vis stage 8.3 s at 16^2 faces, 19.0 s at 32^2 on
+    65,536 samples, less a pool's start (3.5 s: imports, the worker's scene and ray caster);
+    the export 2.3 s and 3.9 s. Checked out of sample at 64^2 and 128^2 by
+    `costmodel_check.py` (docs/profile.md). a_vis re-fitted 2026-11-28 as a line in the dense
+    samples (its per-sample cost fitted at 32^2 alone had absorbed a fixed part and priced
+    the 128^2 stage 1.3x): the a_vis stage's wall seconds of 2026-11-27's six bakes
+    (`benchmarks/results/costmodel_check.json`, -j 2) at 64^2 and 128^2 give 2.19e-4 (cylinder)
+    and 1.96e-4 (bolt) s per sample on two workers and 4.0 / 5.6 s at none; their means, the
+    per-sample cost less avis_fixed as `avis`; within 0.92-1.05 of all six stages. Scaled
+    2026-11-28 (second Xeon session) by 0.59, the a_vis stage's wall new / old in one run
+    (`benchmarks/bake.py --against c3e468f`, cylinder 22.5 / 40.4 s, bolt 24.5 / 39.5 s at
+    32²: freed memory kept, one BLAS thread, the float32 ray checks; docs/decisions.md), where
+    the old stage had been priced at 1.18x / 1.01x; not re-fitted across sizes. One pool
+    start per local bake since then (`pipeline.run._shard_pool` serves every sharded stage).
+    Scaled again 2026-11-28 (third session, AMD EPYC) by 0.79, the a_vis stage's wall new / old
+    in one run (`--against 0ee3da6`, cylinder 9.6 / 12.1 s, bolt 9.8 / 12.5 s at 32²: rays
+    taken in pairs, free samples cast none; docs/decisions.md)."""
+
+    r_entry: float = 4.9e-8  # s per (candidate, direction pair), Lambert / Phong
+    gram: float = 7.21e-11  # s per m^2 d
+    eigh: float = 0.0  # s per m^3
+    held: float = 7.73e-8  # s per (dense sample, held-out pair), Lambert / Phong (+ a_vis)
+    texel: float = 3.28e-3  # s per fitted texel
+    brdf_ggx: float = 1.25  # R cost of a GGX (preview, merl, cellular) material, x r_entry
+    held_ggx: float = 1.43  # held-out cost of such a material, x held
+    refit: float = 2.8e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
+    # level 0's cell-averaged BTF table (btf_table "cell", `cpm.cell_table`): one BRDF grid per
+    # draw and the pair's own, x r_entry per (sample, pair, grid); fitted 2026-11-29 to the cpm
+    # stage's seconds cell / point on the small bolt and cylinder at 32^2 (-j 2,
+    # benchmarks/btf_tables.py: 1.86x and 1.70x measured, 0.41 and 0.36 fitted each; priced
+    # 1.82x and 1.75x)
+    btf_cell: float = 0.39
+    refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
+    avis: float = 1.76e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
+    avis_fixed: float = 1.74e-5  # s per dense sample at any face resolution (maps, coarsening)
+    avis_stage: float = 4.8  # wall s of the a_vis stage on any atlas (each worker's set-up)
+    export: float = 3.3e-5  # s per dense sample at 32^2 faces, x (res / 32)^2 (a_vis tables)
+    geometry: float = 2.0e-5  # s per dense sample (sampling, texel assignment)
+    process: float = 3.5  # s per process pool's start (imports, scene, ray caster)
+    fixed: float = 2.0  # s (ingest, plan, the export's USD and LODs)
+
+    def scaled(self, speed: MachineSpeed) -> Coefficients:
+        """These coefficients on a machine of `speed` (every seconds field times its kind of
+        work's factor, `MachineSpeed.factor`; the ratio fields unchanged)."""
+        return replace(self, **{f.name: getattr(self, f.name) * speed.factor(f.name)
+                                for f in fields(self)})
+
+
+#: typical characteristic points per texel at level L (children hierarchy), capped by c_max:
+#: measured means at levels 0-4 at 32^2 (defaults, 2026-11-27): cylinder 32, 35, 42, 51, 82,
+#: bolt 21, 19, 19, 21, 31; their mean
+C_LEVEL = (27.0, 27.0, 31.0, 36.0, 56.0)
+
+
+@dataclass
+class Estimate:
+    """Predicted seconds of a bake: total wall time on `workers` processes and its parts."""
+
+    seconds: float
+    workers: int
+    cpm_seconds: float  # CPU seconds of the CPM fit (all levels), before dividing by workers
+    avis_seconds: float
+    geometry_seconds: float
+    texels: int  # texels with samples, all levels
+    stretch: float = 1.0  # wall / CPU slowdown from the machine's other load (>= 1)
+    cpm_serial_seconds: float = 0.0  # of cpm_seconds, the levels above a tile (one shard)
+    export_seconds: float = 0.0
+    cpm_wall_seconds: float = 0.0  # the cpm stages' wall seconds on the workers (stretched)
+    avis_wall_seconds: float = 0.0  # the avis stage's wall seconds on the workers (stretched)
+    per_level: list[dict] = field(default_factory=list)
+    speed: dict | None = None  # the machine's speed factors (`MachineSpeed.to_dict`), if used
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _pool2(a: np.ndarray) -> np.ndarray:
+    n = a.shape[0] // 2
+    return a.reshape(n, 2, n, 2).sum(axis=(1, 3))
+
+
+def level_sizes(counts: np.ndarray, c_max: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(m (t,), n_dense (t,)) of the texels with samples at every level, from the finest
+    level's dense sample counts (N, N)."""
+    out = []
+    m = counts.astype(np.float64)
+    dense = counts.astype(np.float64)
+    level = 0
+    while True:
+        keep = dense > 0
+        out.append((m[keep], dense[keep]))
+        if dense.shape[0] == 1:
+            return out
+        c_l = min(float(c_max), C_LEVEL[min(level, len(C_LEVEL) - 1)])
+        m = _pool2(np.minimum(m, c_l))
+        dense = _pool2(dense)
+        level += 1
+
+
+def _uniform_sizes(n: int, spt: int, c_max: int) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """`level_sizes` of the n^2 spt dense samples (the geometry stage places spt per atlas
+    texel on average, `build_geometry`) spread evenly over DEFAULT_FILL n^2 occupied texels,
+    in O(log n): at level L, t_L = max(t_0 / 4^L, 1) texels share the samples evenly (m,
+    dense, multiplicity t_L). (Before 2026-11-27 each occupied texel got spt samples, 1/fill
+    too few: the job API's estimates were 2.3x short.)"""
+    t = max(DEFAULT_FILL * n * n, 1.0)
+    m = dense = float(spt) * n * n / t
+    out = []
+    for level in range(int(n).bit_length()):
+        out.append((np.full(1, m), np.full(1, dense), t))
+        t_next = max(t / 4.0, 1.0)
+        c_l = min(float(c_max), C_LEVEL[min(level, len(C_LEVEL) - 1)])
+        m = min(m, c_l) * t / t_next
+        dense = dense * t / t_next
+        t = t_next
+    return out
+
+
+def estimate(
+    settings: BakeSettings,
+    workers: int = 1,
+    sample_counts: np.ndarray | None = None,
+    coef: Coefficients | None = None,
+    ggx_fraction: float = 0.5,
+    load: float = 0.0,
+    cores: int | None = None,
+    speed: MachineSpeed | None = None,
+) -> Estimate:
+    """Predict a bake's seconds.
+
+    settings : the bake's settings; workers : processes running shards (>= 1)
+    ggx_fraction : fraction of the samples on materials costlier than Lambert / Phong
+        (`ggx_fraction_of`); 0.5 when the asset is not known
+    load, cores : other runnable processes on the machine (the 1-min load average without the
+        bake's own) and its cores; when load + workers > cores each process gets
+        cores / (load + workers) of a core and every term is stretched accordingly (default:
+        a quiet machine)
+    sample_counts : (N, N) int dense samples per finest texel (the geometry stage's
+        `sample_row`/`sample_col` histogram, `sample_counts`); None: spt on DEFAULT_FILL of
+        the atlas, spread evenly (a prediction before the geometry exists; O(log N) work)
+    speed : this machine against the coefficients' (`texelbake.estimate.machinespeed.this_machine()`);
+        None: the coefficients' machine (deterministic, for tests and ratios of estimates)
+    """
+    coef = coef or Coefficients()
+    if speed is not None:
+        coef = coef.scaled(speed)
+    s = settings
+    n = s.atlas_resolution
+    workers = max(int(workers), 1)
+    sizes = ([(m, dn, 1.0) for m, dn in level_sizes(
+        np.asarray(sample_counts, dtype=np.float64).reshape(n, n), s.c_max)]
+        if sample_counts is not None else _uniform_sizes(n, s.samples_per_texel, s.c_max))
+    d = s.n_light_dirs * s.n_view_dirs
+    n_h = int(round(np.sqrt(s.n_heldout))) ** 2 if s.n_heldout else 0
+    g = float(np.clip(ggx_fraction, 0.0, 1.0))
+    brdf = 1.0 + (coef.brdf_ggx - 1.0) * g
+    brdf_h = 1.0 + (coef.held_ggx - 1.0) * g
+    # a coarse level's weights refitted to the dense Eq. 7 (texelbake.cpm.refit): R over every
+    # dense sample of the level once more
+    refits = s.hierarchy == "children" and s.coarse_target == "dense"
+    brdf_r = 1.0 + (coef.refit_ggx - 1.0) * g
+    cell_grids = (1 + s.btf_cell_draws) if s.btf and s.btf_table == "cell" else 0
+    per_level = []
+    cpm = 0.0
+    serial = 0.0  # levels above a tile: `run_cpm_top`, one shard on one worker
+    tile_levels = int(s.shard_texels).bit_length()
+    texels = 0
+    for level, (m, dense, mult) in enumerate(sizes):
+        refit = brdf_r * coef.refit * (dense * d).sum() if refits and level > 0 else 0.0
+        held = mult * float(brdf_h * coef.held * (dense * n_h).sum())
+        # with selection_columns, a wider texel's Grams and eigendecompositions are the subset's
+        m_sel = np.minimum(m, s.selection_columns) if s.selection_columns else m
+        sec = held + mult * float(brdf * coef.r_entry * (m * d).sum()
+                                  + coef.gram * (m_sel * m_sel * d).sum()
+                                  + coef.eigh * (m_sel ** 3).sum()
+                                  + coef.texel * m.size + refit)
+        if level == 0 and cell_grids:
+            sec += mult * cell_grids * coef.btf_cell * brdf * coef.r_entry * float((m * d).sum())
+        n_tex = int(round(mult * m.size))
+        per_level.append({"level": level, "texels": n_tex, "seconds": sec})
+        cpm += sec
+        if level >= tile_levels:
+            # a top level's dense sums (a_vis, held-out truth) are made by the tile shards
+            # (`texelbake.stages.cpm.top_sums`); the top shard fits from them
+            serial += sec - held
+        texels += n_tex
+    total_samples = float(sizes[0][1].sum() * sizes[0][2])
+    faces = (s.avis_resolution / 32.0) ** 2
+    avis = (coef.avis * faces + coef.avis_fixed) * total_samples
+    export = coef.export * faces * total_samples
+    geom = coef.geometry * total_samples
+    par = min(workers, cores or workers)
+    cpm_wall = (cpm - serial) / par + serial
+    avis_wall = avis / par + coef.avis_stage
+    seconds = coef.fixed + geom + export + coef.process + cpm_wall + avis_wall
+    stretch = max(1.0, (max(load, 0.0) + par) / cores) if cores else 1.0
+    return Estimate(seconds=seconds * stretch, workers=workers, cpm_seconds=cpm,
+                    avis_seconds=avis, geometry_seconds=geom, texels=texels,
+                    cpm_serial_seconds=serial, export_seconds=export,
+                    cpm_wall_seconds=cpm_wall * stretch, avis_wall_seconds=avis_wall * stretch,
+                    per_level=per_level, stretch=stretch,
+                    speed=speed.to_dict() if speed is not None else None)
+
+
+def atlas_trade(settings: BakeSettings, lod_report: dict,
+                measured_seconds: float | None = None) -> dict:
+    """What the CPM atlas covers and what the atlas LOD1 asks for would cost (issue 22): the
+    baked resolution, the largest screen size it serves (`max_px`, the bbox diagonal in pixels
+    at which a finest texel is one pixel; larger on screen texelbake's renderer shades from
+    M_org), the resolution at which a finest texel is one pixel where LOD1 switches in, the
+    cost model's one-worker seconds of both (uniform fill, a quiet machine) and their ratio;
+    with `measured_seconds` (this bake's stages), the projection measured x ratio. The ratio
+    of one model's two predictions is what is trusted here, not its absolute seconds."""
+    atlas = lod_report.get("atlas_mesh", {})
+    need = atlas.get("atlas_resolution_for_lod1")
+    n = settings.atlas_resolution
+    est = estimate(settings).seconds
+    out = {"resolution": n, "max_px": atlas.get("cpm_max_px"), "for_lod1": need,
+           "estimated_seconds": est, "estimated_seconds_for_lod1": None, "cost_ratio": None,
+           "projected_seconds_for_lod1": None}
+    if need:
+        est_need = est if need == n else estimate(
+            settings.model_copy(update={"atlas_resolution": int(need)})).seconds
+        out["estimated_seconds_for_lod1"] = est_need
+        out["cost_ratio"] = est_need / est
+        if measured_seconds:
+            out["projected_seconds_for_lod1"] = float(measured_seconds) * est_need / est
+    return out
+
+
+def sample_counts(geo, n: int) -> np.ndarray:
+    """(n, n) dense samples per finest texel from the geometry stage's arrays."""
+    flat = geo["sample_row"].astype(np.int64) * n + geo["sample_col"].astype(np.int64)
+    return np.bincount(flat, minlength=n * n).reshape(n, n)
+
+
+def ggx_fraction_of(geo, materials) -> float:
+    """Fraction of the dense samples whose material is not Lambert or Phong."""
+    mat = np.asarray(geo["sample_mat"], dtype=np.int64)
+    if mat.size == 0:
+        return 0.0
+    costly = np.array([m.model not in ("lambert", "phong") for m in materials], dtype=bool)
+    return float(costly[mat].mean()) if costly.size else 0.0
+
+
+@dataclass
+class FarmRun:
+    """A simulated farm run (`simulate_farm`): seconds from the first shard's start to the
+    last one's end, and each part."""
+
+    seconds: float
+    workers: int
+    shards: int
+    tile_seconds: float  # the sharded part (all tiles done)
+    serial_seconds: float  # the single shard after the tiles (cpm_top), with its reads
+    store_busy_seconds: float  # time the shared store spent transferring
+    worker_busy_fraction: float  # compute seconds / (workers x tile_seconds)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def simulate_farm(
+    durations: np.ndarray,
+    read_bytes: np.ndarray,
+    write_bytes: np.ndarray,
+    workers: int,
+    *,
+    bandwidth: float,
+    overhead: float = 0.0,
+    startup_bytes: float = 0.0,
+    serial_seconds: float = 0.0,
+    serial_read_bytes: float = 0.0,
+    cores: int | None = None,
+) -> FarmRun:
+    """A discrete-event simulation of `workers` processes draining a queue of shards (issue 15,
+    item 6): each worker takes the next shard (FIFO, prefetch 1), pays the broker/ledger
+    `overhead`, reads its inputs from the shared artifact store, computes for its duration and
+    writes its outputs; the store is one FIFO server of `bandwidth` bytes/s shared by all
+    workers (a network filesystem), so transfers queue when many workers read or write at once.
+    A worker's first shard also reads `startup_bytes` (the geometry arrays, cached per process
+    after that). After the last tile, one worker runs the serial shard (`serial_seconds`, after
+    reading `serial_read_bytes`). With `cores` < workers (one machine oversubscribed) every
+    duration is stretched by workers / cores.
+
+    durations, read_bytes, write_bytes : (S,) per shard, in queue order
+    returns FarmRun
+    """
+    import heapq
+
+    dur = np.asarray(durations, dtype=np.float64)
+    rb = np.asarray(read_bytes, dtype=np.float64)
+    wb = np.asarray(write_bytes, dtype=np.float64)
+    n = max(int(workers), 1)
+    stretch = max(1.0, n / cores) if cores else 1.0
+    heap: list[tuple[float, int, int, int]] = [(0.0, 0, w, -1) for w in range(n)]
+    heapq.heapify(heap)
+    nxt, store_free, store_busy, compute, end = 0, 0.0, 0.0, 0.0, 0.0
+    started = np.zeros(n, dtype=bool)
+    READY, READ, WRITE = 0, 1, 2
+    while heap:  # loop over events (3 per shard): O(S log n)
+        t, kind, w, i = heapq.heappop(heap)
+        if kind == READY:
+            if nxt < dur.size:
+                heapq.heappush(heap, (t + overhead, READ, w, nxt))
+                nxt += 1
+            continue
+        if kind == READ:
+            nbytes = rb[i] + (0.0 if started[w] else startup_bytes)
+            started[w] = True
+            start = max(t, store_free)
+            store_free = start + nbytes / bandwidth
+            store_busy += nbytes / bandwidth
+            compute += dur[i] * stretch
+            heapq.heappush(heap, (store_free + dur[i] * stretch, WRITE, w, i))
+            continue
+        start = max(t, store_free)  # WRITE
+        store_free = start + wb[i] / bandwidth
+        store_busy += wb[i] / bandwidth
+        end = max(end, store_free)
+        heapq.heappush(heap, (store_free, READY, w, -1))
+    serial = serial_read_bytes / bandwidth + serial_seconds
+    return FarmRun(seconds=end + serial, workers=n, shards=int(dur.size), tile_seconds=end,
+                   serial_seconds=serial, store_busy_seconds=store_busy + serial_read_bytes
+                   / bandwidth, worker_busy_fraction=compute / max(n * end, 1e-12))

@@ -1,0 +1,88 @@
+"""A bake's estimate while it runs: the cost model priced on this machine, under its load now.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+from texelbake import stages
+
+
+def _other_runnable(samples: int = 5, interval: float = 0.05) -> float:
+    """Runnable tasks of the other processes on the machine, now: the mean of a few readings
+    of every task's state in /proc (`runnable_tasks`), this process's own threads left out.
+    Not the 1-min load average: it lags by minutes, so the workers of a bake that just ended
+    (or of this bake's earlier stages) still count there as load, and stretched the estimate
+    of a bake on an idle machine by 1.5x. Not /proc/loadavg's running count either: it counts
+    this process's own runnable threads (BLAS, Embree, the progress bar's), which are the bake,
+    not load on it (measured 2026-11-27: three re-estimates of one idle-machine bake read
+    0.2-1.4 other tasks, 0.89-1.19 of the outcome)."""
+    try:
+        runs = []
+        for i in range(samples):  # a few readings: one is a snapshot
+            if i:
+                time.sleep(interval)
+            runs.append(len(runnable_tasks(exclude_pid=os.getpid())))
+        return sum(runs) / len(runs)
+    except OSError:  # no procfs: the 1-min average
+        return max(os.getloadavg()[0] - 1.0, 0.0)
+
+
+def runnable_tasks(exclude_pid: int | None = None, proc: Path = Path("/proc")
+                   ) -> list[tuple[int, int]]:
+    """(pid, tid) of every task (thread) in state R (running or waiting for a core) under
+    `proc`, the threads of `exclude_pid` left out. A loop over the machine's few hundred tasks:
+    procfs has no batched read. Raises OSError when `proc` cannot be listed; tasks that end
+    while being read are skipped."""
+    out = []
+    for pdir in proc.iterdir():  # a loop over processes: one directory each
+        if not pdir.name.isdigit() or int(pdir.name) == exclude_pid:
+            continue
+        try:
+            tasks = list((pdir / "task").iterdir())
+        except OSError:  # ended, or not ours to read
+            continue
+        for task in tasks:  # a loop over the process's threads
+            try:
+                stat = (task / "stat").read_bytes()
+            except OSError:
+                continue
+            # "pid (comm) S ...": comm may hold spaces and parentheses, the state follows
+            # the last ')'
+            end = stat.rfind(b")")
+            if stat[end + 2:end + 3] == b"R":
+                out.append((int(pdir.name), int(task.name)))
+    return out
+
+
+def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> dict:
+    """The cost model's prediction (`texelbake.estimate.costmodel`) from the placed samples: total
+    seconds, the cpm and avis stages' wall seconds on `jobs` workers, and the ETA (UTC) of the
+    bake given the `elapsed` seconds so far."""
+    from datetime import UTC, datetime, timedelta
+
+    from texelbake.estimate import costmodel, machinespeed
+
+    s = ctx.settings
+    geo = ctx.geometry()
+    cores = os.cpu_count() or 1
+    speed = machinespeed.this_machine()  # before the load reading: ~1 s of this process's CPU
+    other = _other_runnable()
+    e = costmodel.estimate(s, jobs, costmodel.sample_counts(geo, s.atlas_resolution),
+                           ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
+                           load=other, cores=cores, speed=speed)
+    w = max(int(jobs), 1)
+    # made after the geometry stage: its measured seconds (`elapsed`, with ingest) replace the
+    # model's geometry term (the bolt's xatlas packing took 42 s where the model says 1)
+    seconds = elapsed + max(e.seconds - e.geometry_seconds * e.stretch, 0.0)
+    remaining = max(seconds - elapsed, 0.0)
+    eta = datetime.now(UTC) + timedelta(seconds=remaining)
+    return {"seconds": round(seconds, 1), "workers": w, "load": round(other, 2),
+            "cores": cores,
+            "stage_seconds": {"cpm": round(e.cpm_wall_seconds, 1),
+                              "avis": round(e.avis_wall_seconds, 1),
+                              "export": round(e.export_seconds * e.stretch, 1)},
+            "per_level": e.per_level, "eta": eta.strftime("%H:%M:%S UTC"),
+            "machine_speed": e.speed}

@@ -1,0 +1,113 @@
+"""Which stages an asset needs: the plan of a bake.
+
+A bake is a plan of stages; some are sharded by texel tile. Every shard is a pure function from
+files in the artifact store to files in the artifact store (`texelbake.stages`), so the same code
+runs in one process (`bake`) or as Celery tasks (`run_shard`, called by `workers.tasks`).
+
+Tiles: the finest CPM level has N x N texels (N = settings.atlas_resolution); a shard owns an
+S x S tile (S = settings.shard_texels) and every coarser level's texels inside it (levels
+0..log2 S). Levels coarser than a tile (log2 S + 1 .. log2 N) are one `*_top` shard.
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from schemas.settings import BakeSettings
+from texelbake.errors import AssetError, StageError
+from texelbake.stages.srf import n_srf_shards
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    name: str
+    queue: str
+    n_shards: int
+    depends_on: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Plan:
+    stages: tuple[StagePlan, ...]
+    skipped: tuple[tuple[str, str], ...] = ()
+
+    def stage(self, name: str) -> StagePlan:
+        for s in self.stages:
+            if s.name == name:
+                return s
+        raise StageError(f"stage {name!r} is not in this plan ({[s.name for s in self.stages]})")
+
+
+def n_tiles(settings: BakeSettings) -> int:
+    side = settings.atlas_resolution // settings.shard_texels
+    return side * side
+
+
+def plan_bake(asset_path: Path, settings: BakeSettings) -> Plan:
+    """The stages this asset and these settings need, in execution order, with what is skipped."""
+    tiles = n_tiles(settings)
+    has_top = settings.shard_texels < settings.atlas_resolution
+    plan = [
+        StagePlan("ingest", "ingest", 1),
+        StagePlan("geometry", "geometry", 1, ("ingest",)),
+        StagePlan("cpm", "cpm", tiles, ("geometry",)),
+    ]
+    skipped: list[tuple[str, str]] = []
+    if has_top:
+        plan.append(StagePlan("cpm_top", "cpm", 1, ("cpm",)))
+    plan.append(StagePlan("avis", "avis", tiles, ("geometry",)))
+    if has_top:
+        plan.append(StagePlan("avis_top", "avis", 1, ("avis",)))
+    cpm_deps = ("cpm_top",) if has_top else ("cpm",)
+    avis_deps = ("avis_top",) if has_top else ("avis",)
+    if settings.btf:
+        plan.append(StagePlan("btf", "btf", 1, cpm_deps))
+    else:
+        skipped.append(("btf", "no real-time target requested (settings.btf is false)"))
+    if settings.srf:  # seed 002 §3: captured with gt, sharded by camera (render workers)
+        plan.append(StagePlan("srf", "render", n_srf_shards(settings), ("ingest",)))
+        plan.append(StagePlan("srf_top", "render", 1, ("srf",)))
+    export_deps = (cpm_deps + avis_deps + (("btf",) if settings.btf else ())
+                   + (("srf_top",) if settings.srf else ()))
+    plan.append(StagePlan("export", "export", 1, export_deps))
+    if settings.previews:
+        plan.append(StagePlan("render", "render", 1, ("export",)))
+        # seed 002 §4: an animated preview of deformed frames, only when there is motion
+        if settings.warp or asset_deforms(asset_path):
+            plan.append(StagePlan("deformed", "render", 1, ("export",)))
+        else:
+            skipped.append(("deformed", "the asset has no animation (at most one time sample) "
+                                        "and no warp was asked (settings.warp)"))
+    else:
+        skipped.append(("render", "previews not requested (settings.previews is false)"))
+        skipped.append(("deformed", "previews not requested (settings.previews is false)"))
+    if not settings.srf:
+        skipped.append(
+            ("srf", "no reflectance field requested (settings.srf is false; the impostor "
+                    "parameterization is on every LOD mesh for deformed frames)")
+        )
+    return Plan(tuple(plan), tuple(skipped))
+
+
+def asset_deforms(asset_path: Path) -> bool:
+    """Whether the asset's points move over its time samples (`AssetModel.has_deformation`,
+    the ingest's own reading), read once per file version and process: the plan is made
+    again by every shard."""
+    path = Path(asset_path)
+    try:
+        st = path.stat()
+    except OSError as exc:
+        raise AssetError(f"the asset cannot be read ({exc.strerror})", path=str(path)) from None
+    return _deforms(str(path.resolve()), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=16)
+def _deforms(path: str, mtime_ns: int, size: int) -> bool:
+    from texelbake.scene.load import load_asset
+
+    with warnings.catch_warnings():  # the ingest stage reports the asset's warnings
+        warnings.simplefilter("ignore")
+        return load_asset(path).has_deformation

@@ -1,0 +1,89 @@
+"""``gt``: M_org, stratified eye rays, direct light with shadow rays against M_org."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from texelbake import brdf as brdf_mod
+from texelbake.geometry.mesh import face_normals
+from texelbake.geometry.raycast import RayCaster
+from texelbake.model import AssetModel
+from texelbake.tol import TOL
+from texelbake.trace import camera as cam_mod
+from texelbake.trace.camera import PinholeCamera
+from texelbake.trace.shade import direct_radiance
+from texelbake.trace.tracer import RenderResult, accumulate
+
+
+class OrgScene:
+    """M_org ready to render: an AssetModel with its ray caster (what `gt` traces). Also
+    usable without a bake (`render_model`)."""
+
+    def __init__(self, asset: AssetModel) -> None:
+        self.asset = asset
+        self.materials = asset.materials
+        self.lights = asset.lights
+        #: True when the asset has no lights and the renderer lights it with
+        #: `scene.lights.default_light_rig` (reports name the rig's lights)
+        self.default_lights = not asset.lights
+        if self.default_lights:
+            from texelbake.scene.lights import default_light_rig
+
+            centre = np.asarray(asset.bounds, dtype=np.float64).mean(axis=0)
+            view = self.default_camera(64, 64).position - centre
+            self.lights = default_light_rig(view, asset.up_axis)
+        self.org = RayCaster(asset.points, asset.faces)
+        self.org_face_normals = face_normals(asset.points, asset.faces)
+        self.diag = self.org.bbox_diag
+        self.ray_eps = TOL.ray_offset * self.diag
+
+    def default_camera(self, width: int, height: int) -> PinholeCamera:
+        if self.asset.cameras:
+            return cam_mod.from_usd(self.asset.cameras[0], width, height)
+        return cam_mod.auto_frame(self.asset.bounds, width, height)
+
+
+def shade_org(scene: OrgScene, o: np.ndarray, d: np.ndarray
+              ) -> tuple[np.ndarray, int, np.ndarray]:
+    """Radiance along eye rays traced against M_org. o, d : (n, 3); returns ((n, 3), rays,
+    hit (n,) bool: the ray met the object)."""
+    a = scene.asset
+    hits = scene.org.cast(o, d)
+    rays = o.shape[0]
+    out = np.zeros((o.shape[0], 3))
+    idx = np.flatnonzero(hits.hit)
+    if idx.size == 0:
+        return out, rays, hits.hit
+    prim = hits.prim[idx]
+    b = hits.bary3()[idx]  # (k, 3)
+    p = np.einsum("nk,nkj->nj", b, a.points[a.faces[prim]])
+    ns = np.einsum("nk,nkj->nj", b, a.corner_normals[prim])
+    ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
+    uv = np.einsum("nk,nkj->nj", b, a.corner_uvs[prim])
+    mat = a.face_material[prim]
+
+    def brdf(sel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi, wo, uv[sel])
+
+    rad, shadow = direct_radiance(p, scene.org_face_normals[prim], ns, -d[idx], scene.lights,
+                                  brdf, scene.org, scene.ray_eps)
+    out[idx] = rad
+    return out, rays + shadow, hits.hit
+
+
+def render_org(scene: OrgScene, cam: PinholeCamera, spp: int, seed: int
+               ) -> tuple[np.ndarray, int, np.ndarray]:
+    return accumulate(cam, spp, seed, lambda o, d: shade_org(scene, o, d))
+
+
+def render_model(asset: AssetModel, cam: PinholeCamera, spp: int, seed: int = 0
+                 ) -> RenderResult:
+    """`gt` of an AssetModel directly (no bake): M_org, direct light, shadows."""
+    scene = OrgScene(asset)
+    cam_mod.strata(int(spp))
+    t0 = time.perf_counter()
+    img, rays, cov = render_org(scene, cam, int(spp), seed)
+    return RenderResult(img.astype(np.float32), time.perf_counter() - t0, int(rays), int(spp),
+                        "gt", coverage=cov)
