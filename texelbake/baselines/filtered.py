@@ -1,4 +1,4 @@
-"""The filtered normal maps studios ship (issue 21): per mip level of M1's atlas, from the
+"""The filtered normal maps studios ship: per mip level of M1's atlas, from the
 geometry stage's samples and their texel assignment (the same `texel_ids` as the CPM levels),
 
 - the mean tangent-space normal *before* renormalisation, n̄ = Σ ΔA n / Σ ΔA, whose length

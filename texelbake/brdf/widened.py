@@ -1,4 +1,4 @@
-"""Lobes widened by the normal variance a filtered normal map removed (issue 21): Toksvig's
+"""Lobes widened by the normal variance a filtered normal map removed: Toksvig's
 factor (Toksvig 2005) and the LEAN/LEADR slope statistics (Olano & Baker 2010; Dupuy et al.
 2013), applied to the families the bake supports.
 

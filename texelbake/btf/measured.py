@@ -1,4 +1,4 @@
-"""Importing a measured BTF: a folder of images, one per (light, view) pair (issue 5, item 1b).
+"""Importing a measured BTF: a folder of images, one per (light, view) pair.
 
 Directions come from, in this order:
 1. a directions file given explicitly, or `directions.json` / `directions.csv` in the folder:

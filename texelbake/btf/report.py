@@ -1,4 +1,4 @@
-"""The BTF stage's report (issue 5, item 7; seed 001, §4.2, Table 1 and Fig. 6).
+"""The BTF stage's report (seed 001, §4.2, Table 1 and Fig. 6).
 
 * compression ratio: raw BTF bytes (d x h x w x 3 at 8 bits, the seed's accounting, which gives
   its 80,621,568 bytes for 81 x 81 pairs of 64 x 64 texels) over the bytes of the two float32

@@ -140,8 +140,7 @@ def narrow_lobes(materials, dirs_i: np.ndarray, dirs_o: np.ndarray) -> list[str]
     sampling resolves (half width < NARROW_LOBE_FRACTION x `direction_step`): its table holds
     the lobe averaged over a cell (btf_table "cell") or aliased (at "point"), so a
     look-up shows its highlights blurred and where they are not (measured on the bolt, GGX
-    alpha 0.0225 on 64 x 64 directions: the btf image 5x gt's light, docs/decisions.md
-    2026-11-29)."""
+    alpha 0.0225 on 64 x 64 directions: the btf image 5x gt's light, docs/decisions.md)."""
     step = direction_step(dirs_i, dirs_o)
     if step is None:
         return []

@@ -1,4 +1,4 @@
-"""The LOD meshes follow M_org (issue 12, deliverable 2): what the baked USD authors on M1..Mn
+"""The LOD meshes follow M_org: what the baked USD authors on M1..Mn
 so that any USD viewer animates every LOD, and what the renderer's deformed frame does with it.
 
 - A skinned asset (`model.SkinData`): each LOD vertex gets joint weights transferred from

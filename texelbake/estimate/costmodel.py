@@ -1,4 +1,4 @@
-"""A bake's cost model (issue 15): its time predicted from the texel count, the samples per
+"""A bake's cost model: its time predicted from the texel count, the samples per
 texel, the direction pairs and the worker count, before the CPM stages run.
 
 The CPM fit of a texel with m candidate columns on d = N_i N_o direction pairs costs (batched
@@ -45,38 +45,11 @@ DEFAULT_FILL = 0.4
 class Coefficients:
     """Seconds per unit on the reference machine (`texelbake.estimate.machinespeed`: an estimate on
     another machine scales them by its reference workload's factors). The fit terms (r_entry,
-    brdf_ggx, gram, held, held_ggx, texel) re-fitted 2026-11-28 (all six, NNLS on relative
-    residuals, `benchmarks/calibrate_costmodel.py`) to `cpm_cpu.py` runs of the full cylinder
-    and bolt at 32^2 and 64^2 on an AMD EPYC, priced at its machine factors (1.36): every
-    level of the four runs within 0.92-1.07 (the 32^2-only fit put the 64^2 cylinder's
-    level 0 at 1.25x and its top levels at 1.2-1.34x: m^2 d was over-weighted); checked out of
-    sample on six full bakes (32^2-128^2, docs/profile.md "The cost model on another
-    machine"). History: fitted 2026-11-27 on a quiet machine (load 1-3, this project's 2 cores).
-    The fit terms: NNLS on relative residuals (`benchmarks/calibrate_costmodel.py`) to the CPU
-    seconds (`time.process_time()`) of every level's `fit_level` calls, `benchmarks/cpm_cpu.py`
-    over the full cylinder and the full bolt at 32^2 (defaults): every level within
-    0.88-1.07x, the sums 1.00x and 0.99x. The coefficients before (fitted 2026-11-25/26 under
-    load 3-45) predicted 3.1x and 4.0x those sums on a quiet machine: a loaded machine's CPU
-    seconds are not a quiet one's. The dense refit's terms (off by default) were not
-    re-measured: scaled by the fit terms' mean change (1/3.5). a_vis, export, process and fixed
-    from the stage seconds of `benchmarks/costmodel_check.py` at 32^2 (`-j 2`) and of the
-    cylinder at a_vis faces 16 and 32: the a_vis stage 8.3 s at 16^2 faces, 19.0 s at 32^2 on
-    65,536 samples, less a pool's start (3.5 s: imports, the worker's scene and ray caster);
-    the export 2.3 s and 3.9 s. Checked out of sample at 64^2 and 128^2 by
-    `costmodel_check.py` (docs/profile.md). a_vis re-fitted 2026-11-28 as a line in the dense
-    samples (its per-sample cost fitted at 32^2 alone had absorbed a fixed part and priced
-    the 128^2 stage 1.3x): the a_vis stage's wall seconds of 2026-11-27's six bakes
-    (`benchmarks/results/costmodel_check.json`, -j 2) at 64^2 and 128^2 give 2.19e-4 (cylinder)
-    and 1.96e-4 (bolt) s per sample on two workers and 4.0 / 5.6 s at none; their means, the
-    per-sample cost less avis_fixed as `avis`; within 0.92-1.05 of all six stages. Scaled
-    2026-11-28 (second Xeon session) by 0.59, the a_vis stage's wall new / old in one run
-    (`benchmarks/bake.py --against c3e468f`, cylinder 22.5 / 40.4 s, bolt 24.5 / 39.5 s at
-    32²: freed memory kept, one BLAS thread, the float32 ray checks; docs/decisions.md), where
-    the old stage had been priced at 1.18x / 1.01x; not re-fitted across sizes. One pool
-    start per local bake since then (`pipeline.run._shard_pool` serves every sharded stage).
-    Scaled again 2026-11-28 (third session, AMD EPYC) by 0.79, the a_vis stage's wall new / old
-    in one run (`--against 0ee3da6`, cylinder 9.6 / 12.1 s, bolt 9.8 / 12.5 s at 32²: rays
-    taken in pairs, free samples cast none; docs/decisions.md)."""
+    brdf_ggx, gram, held, held_ggx, texel) are fitted by NNLS on relative residuals
+    (`benchmarks/calibrate_costmodel.py`) to the CPU seconds of every level's fit in
+    `benchmarks/cpm_cpu.py` runs; the a_vis, export, process and fixed terms to the stage
+    seconds of `benchmarks/costmodel_check.py`, which also checks prediction against outcome
+    out of sample (docs/profile.md)."""
 
     r_entry: float = 4.9e-8  # s per (candidate, direction pair), Lambert / Phong
     gram: float = 7.21e-11  # s per m^2 d
@@ -87,10 +60,8 @@ class Coefficients:
     held_ggx: float = 1.43  # held-out cost of such a material, x held
     refit: float = 2.8e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
     # level 0's cell-averaged BTF table (btf_table "cell", `cpm.cell_table`): one BRDF grid per
-    # draw and the pair's own, x r_entry per (sample, pair, grid); fitted 2026-11-29 to the cpm
-    # stage's seconds cell / point on the small bolt and cylinder at 32^2 (-j 2,
-    # benchmarks/btf_tables.py: 1.86x and 1.70x measured, 0.41 and 0.36 fitted each; priced
-    # 1.82x and 1.75x)
+    # draw and the pair's own, x r_entry per (sample, pair, grid); fitted to the cpm stage's
+    # seconds cell / point (benchmarks/btf_tables.py)
     btf_cell: float = 0.39
     refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
     avis: float = 1.76e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
@@ -109,7 +80,7 @@ class Coefficients:
 
 
 #: typical characteristic points per texel at level L (children hierarchy), capped by c_max:
-#: measured means at levels 0-4 at 32^2 (defaults, 2026-11-27): cylinder 32, 35, 42, 51, 82,
+#: measured means at levels 0-4 at 32^2 (defaults): cylinder 32, 35, 42, 51, 82,
 #: bolt 21, 19, 19, 21, 31; their mean
 C_LEVEL = (27.0, 27.0, 31.0, 36.0, 56.0)
 
@@ -163,8 +134,8 @@ def _uniform_sizes(n: int, spt: int, c_max: int) -> list[tuple[np.ndarray, np.nd
     """`level_sizes` of the n^2 spt dense samples (the geometry stage places spt per atlas
     texel on average, `build_geometry`) spread evenly over DEFAULT_FILL n^2 occupied texels,
     in O(log n): at level L, t_L = max(t_0 / 4^L, 1) texels share the samples evenly (m,
-    dense, multiplicity t_L). (Before 2026-11-27 each occupied texel got spt samples, 1/fill
-    too few: the job API's estimates were 2.3x short.)"""
+    dense, multiplicity t_L). (Giving each occupied texel spt samples would be 1/fill too
+    few: the job API's estimates were 2.3x short.)"""
     t = max(DEFAULT_FILL * n * n, 1.0)
     m = dense = float(spt) * n * n / t
     out = []
@@ -266,7 +237,7 @@ def estimate(
 
 def atlas_trade(settings: BakeSettings, lod_report: dict,
                 measured_seconds: float | None = None) -> dict:
-    """What the CPM atlas covers and what the atlas LOD1 asks for would cost (issue 22): the
+    """What the CPM atlas covers and what the atlas LOD1 asks for would cost: the
     baked resolution, the largest screen size it serves (`max_px`, the bbox diagonal in pixels
     at which a finest texel is one pixel; larger on screen texelbake's renderer shades from
     M_org), the resolution at which a finest texel is one pixel where LOD1 switches in, the
@@ -335,8 +306,7 @@ def simulate_farm(
     serial_read_bytes: float = 0.0,
     cores: int | None = None,
 ) -> FarmRun:
-    """A discrete-event simulation of `workers` processes draining a queue of shards (issue 15,
-    item 6): each worker takes the next shard (FIFO, prefetch 1), pays the broker/ledger
+    """A discrete-event simulation of `workers` processes draining a queue of shards: each worker takes the next shard (FIFO, prefetch 1), pays the broker/ledger
     `overhead`, reads its inputs from the shared artifact store, computes for its duration and
     writes its outputs; the store is one FIFO server of `bandwidth` bytes/s shared by all
     workers (a network filesystem), so transfers queue when many workers read or write at once.

@@ -1,9 +1,9 @@
 """How fast this machine runs the bake's kinds of work, against the machine the cost model's
-coefficients were fitted on (issue 15, item 4): a short reference workload timed at estimate
+coefficients were fitted on: a short reference workload timed at estimate
 time, so that `texelbake.estimate.costmodel.estimate` carries its coefficients across machines.
 
 The coefficients are CPU seconds of one machine; another machine runs the same bake 3x slower
-(2026-11-28, `docs/profile.md` third pass) and the estimate was 0.42-0.44 of the outcome. A
+(`docs/profile.md` third pass) and the estimate was 0.42-0.44 of the outcome. A
 single factor would not do: machines differ per kind of work (vector width for the Grams,
 Embree's kernels for rays, the interpreter for the per-texel bookkeeping). The workload has
 one part per kind of work the cost model prices, each sized like the fit's own calls:
@@ -24,10 +24,10 @@ load is left to the estimate's own `load` term). Pure numpy / scipy / open3d cal
 change to the bake's code changes the coefficients (re-fit them), not the reference.
 
 `REFERENCE` is not a measurement on the coefficients' machine (gone when this was written):
-the parts were timed on the 2026-11-28 AMD EPYC machine and multiplied by the cost model's
+the parts were timed on an AMD EPYC machine and multiplied by the cost model's
 prediction over the measured CPU seconds of its calibration run on that machine
 (`CALIBRATION_RATIO`), i.e. every part is assumed to differ between those two machines by the
-fit's overall ratio (docs/decisions.md 2026-11-28). Re-fitting the coefficients on a machine
+fit's overall ratio (docs/decisions.md). Re-fitting the coefficients on a machine
 means timing the parts there (`python -m texelbake.estimate.machinespeed`) and setting both.
 """
 
@@ -50,13 +50,13 @@ PART_OF = {
     "texel": "python", "process": "python", "fixed": "python", "avis_stage": "python",
 }
 
-#: the cost model's CPU seconds for the aff1130 calibration run (the coefficients' commit:
-#: `benchmarks/cpm_cpu.py --scene cylinder --atlas 32`, priced on the run's own texel sizes by
+#: the cost model's CPU seconds for the coefficients' calibration run
+#: (`benchmarks/cpm_cpu.py --scene cylinder --atlas 32`, priced on the run's own texel sizes by
 #: `benchmarks/calibrate_costmodel.py`) against the seconds measured on the machine `_MEASURED`
-#: was timed on (2026-11-28, AMD EPYC, 2 cores, alone): 42.36 / 57.58 (that machine is 1.36x
+#: was timed on (AMD EPYC, 2 cores, alone): 42.36 / 57.58 (that machine is 1.36x
 #: slower per CPU second than the coefficients' on the fit)
 CALIBRATION_RATIO = 42.36 / 57.58
-#: the parts' seconds on the 2026-11-28 AMD EPYC machine (`python -m texelbake.estimate.machinespeed`,
+#: the parts' seconds on that AMD EPYC machine (`python -m texelbake.estimate.machinespeed`,
 #: the median of five processes, each the least of five interleaved rounds)
 _MEASURED = {"grid": 0.0226, "blas": 0.0446, "rays": 0.0520, "python": 0.0250}
 #: the parts' seconds on the machine the cost model's coefficients hold on

@@ -134,8 +134,8 @@ def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
     bisected (geometric mean) between the last density that did not fit and the first that
     did until they are within 4 %; the densest fitting pack is kept. Each pack recomputes the
     charts (the binding has no separate pack step): on the full bolt's LOD1 at 64^2 a pack
-    is 2.9 s, and the 4 % steps of the search before 2026-11-27 took 27 packs (77 s) to fit,
-    and 60 (39 s at 32^2) to give up on a mesh whose padded charts never fit one page.
+    is 2.9 s, and 4 % steps all the way would take 27 packs (77 s) to fit, and 60 (39 s at
+    32^2) to give up on a mesh whose padded charts never fit one page.
     mesh : M1; resolution : N (>= 8); padding_texels : >= 0
     returns : Atlas
     raises SettingsError for bad arguments, StageError when packing does not converge or

@@ -69,7 +69,7 @@ def to_world(frames: np.ndarray, dirs_local: np.ndarray) -> np.ndarray:
 def grid_to_world(frames: np.ndarray, dirs_local: np.ndarray) -> np.ndarray:
     """(p, D, 3) world directions of one local direction set dirs_local (D, 3) in each of the
     frames (p, 3, 3) (rows: the frame's axes). A broadcast matmul: the einsum it replaced
-    ("dk,pkl->pdl") looped without BLAS and was ~25x slower (issue 15's profile); equal to it
+    ("dk,pkl->pdl") looped without BLAS and was ~25x slower (the profile, docs/profile.md); equal to it
     up to rounding (FMA)."""
     return np.matmul(dirs_local, frames)
 
@@ -77,6 +77,6 @@ def grid_to_world(frames: np.ndarray, dirs_local: np.ndarray) -> np.ndarray:
 def grid_to_local(frames: np.ndarray, w_world: np.ndarray) -> np.ndarray:
     """(A, p, 3) directions w_world (p, A, 3) in each sample's frame (p, 3, 3) (rows: the
     frame's axes). A batched matmul: the einsum it replaced looped without BLAS and was ~5x
-    slower (issue 15's profile); equal to it up to rounding."""
+    slower (the profile, docs/profile.md); equal to it up to rounding."""
     ft = np.ascontiguousarray(frames.transpose(0, 2, 1))
     return np.ascontiguousarray(np.matmul(w_world, ft).transpose(1, 0, 2))

@@ -33,7 +33,7 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
     LODs (settings.lod_mode): 'error' sizes each LOD by its geometric error bound at its
     switch size (`geometry.lodchain`); the atlas is built on LOD1 when its charts fit one
     N x N page, else on the atlas-capped M1 of the 'atlas' mode, into which every LOD is mapped
-    by closest point. 'atlas' (before issue 22): M1 capped by the atlas is LOD1 and M_T.
+    by closest point. 'atlas': M1 capped by the atlas is LOD1 and M_T.
 
     asset : M_org; caster : a ray caster over M_org (the bent-normal rule on wraps);
     n_levels : mip levels (log2 N + 1). returns : sample_* (m, ...) arrays, m1_* (M_T with
@@ -198,7 +198,7 @@ def _zorder_spooled(spool, m: int, n: int, counts: np.ndarray, chunk: int) -> np
     """Third pass: `sample_zorder` (m,), the sample ids ordered by the Z-order code of their
     finest texel (`morton`), ascending ids within a texel, and the offsets (n² + 1,) of each
     code's run in it: a texel of any level is one run, so a shard reads its tile's ids, not
-    every sample's texel (issue 15: at 1k² that scan was most of a shard's seconds and memory).
+    every sample's texel (at 1k² that scan was most of a shard's seconds and memory).
 
     A bucket sort bounded by the chunk: codes are cut into buckets of about `chunk` samples
     (a bucket is a range of codes, so its samples have one range of the result); each chunk's

@@ -125,8 +125,7 @@ def cell_directions(dirs: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
 
     A table read at the nearest sampled pair returns the pair's value for every direction in its
     cell; averaging f̄ over the cell's directions instead of taking it at the centre keeps a lobe
-    narrower than the cell from being spread over the whole cell (docs/decisions.md
-    2026-11-29). The draws: a scrambled Sobol' set of ~4 k n points uniform in solid angle,
+    narrower than the cell from being spread over the whole cell (docs/decisions.md). The draws: a scrambled Sobol' set of ~4 k n points uniform in solid angle,
     each given to its nearest direction; a cell keeps its first k points in sequence order (a
     prefix of a Sobol' set stays well spread), cycling through them when it caught fewer, and
     holds its own direction k times when it caught none (a cell smaller than the set's spacing).

@@ -1,5 +1,5 @@
 """The LOD chain LOD1 ⊃ LOD2 ⊃ … chosen by the geometric error each level may show where it
-is used (issue 22, DESIGN.md "Geometry"), not by the CPM atlas.
+is used (DESIGN.md "Geometry"), not by the CPM atlas.
 
 Level i switches in when the asset's bounding-box diagonal D covers `switch_px[i]` pixels on
 screen; one pixel there is D / switch_px[i] world units, so the level may deviate from M_org by
@@ -327,7 +327,7 @@ CORNER_INSET = 0.1
 
 def transfer_corner_normals(vertices: np.ndarray, faces: np.ndarray,
                             org_faces_normals: np.ndarray, caster: RayCaster) -> np.ndarray:
-    """Shading normals for a LOD's face corners carried from M_org (issue 22: what a DCC shades
+    """Shading normals for a LOD's face corners carried from M_org (what a DCC shades
     a LOD with). Each corner, moved CORNER_INSET of the way towards its face's centroid, takes
     M_org's interpolated corner normal at the closest point (`caster` over M_org): sharp edges
     stay sharp (the cylinder's ridges), smooth surfaces stay smooth (the Teapot), whatever

@@ -90,7 +90,7 @@ def _escape_block(o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     block Embree gets: a ray with a non-finite entry there (NaN, inf, beyond float32's range) or
     a direction whose three float32 components are 0 is dead (never occluded) and made harmless.
     One cast and two matrix-vector products instead of float64 lengths and finiteness tests of
-    the input (issue 15: 17 % of the a_vis stage was spent checking rays)."""
+    the input (17 % of the a_vis stage was spent checking rays)."""
     rays = np.empty((o.shape[0], 6), dtype=np.float32)
     with np.errstate(invalid="ignore", over="ignore"):
         rays[:, :3] = o

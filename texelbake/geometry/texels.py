@@ -215,7 +215,7 @@ def assign_texels(
     distance = np.zeros(m)
     # every sample's assignment depends on that sample only (its closest point, its rays), so
     # samples go in chunks: the temporaries of the rules stay at `chunk` samples whatever the
-    # atlas size (issue 15, memory), with the result of one pass over all
+    # atlas size (memory), with the result of one pass over all
     for a in range(0, m, int(chunk)):
         b = min(a + int(chunk), m)
         prim[a:b], bary[a:b], uv[a:b], distance[a:b] = assign_rows(
@@ -424,7 +424,7 @@ class FrameSums:
         self.centres = texel_centers_uv(self.n_l)
         # fallback where no face lies under the centre: of the texel's samples, the one
         # nearest the centre in uv (ties: the lowest sample id); only those texels' samples
-        # are looked at (sorting all 16.8 M at 512² was the geometry stage's peak, issue 15)
+        # are looked at (sorting all 16.8 M at 512² was the geometry stage's peak)
         self.best_dist = np.full(n_tex, np.inf)
         self.nearest_face = np.full(n_tex, -1, dtype=np.int64)
 

@@ -1,4 +1,4 @@
-"""Passes over every dense sample a chunk at a time (issue 15: memory bounded per worker
+"""Passes over every dense sample a chunk at a time (memory bounded per worker
 whatever the atlas size).
 
 The geometry stage (`geometry.build`), the export's preview maps and its filtered maps reduce

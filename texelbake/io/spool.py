@@ -6,7 +6,7 @@ times that at 1k²) in chunks. `MemorySpool` keeps them as numpy arrays (tests, 
 rows back the same way, so a process holds one chunk, never the whole array, and the page
 cache, not the process, holds the rest. Its `arrays()` are read-only `np.memmap`s of those
 files; `texelbake.io.store.write_npz` copies such a member from its file in blocks instead of
-touching its pages (issue 15, memory bounded per worker whatever the atlas size).
+touching its pages (memory bounded per worker whatever the atlas size).
 
 numpy's `open_memmap` writes the header (the same bytes `np.save` writes for that dtype and
 shape) and sizes the file; the rows are then written with `os.pwrite`-style file writes, not

@@ -17,7 +17,7 @@ def _other_runnable(samples: int = 5, interval: float = 0.05) -> float:
     (or of this bake's earlier stages) still count there as load, and stretched the estimate
     of a bake on an idle machine by 1.5x. Not /proc/loadavg's running count either: it counts
     this process's own runnable threads (BLAS, Embree, the progress bar's), which are the bake,
-    not load on it (measured 2026-11-27: three re-estimates of one idle-machine bake read
+    not load on it (measured: three re-estimates of one idle-machine bake read
     0.2-1.4 other tasks, 0.89-1.19 of the outcome)."""
     try:
         runs = []

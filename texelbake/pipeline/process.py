@@ -9,9 +9,9 @@ above M_MMAP_THRESHOLD (at most 32 MiB) with its own mmap and unmaps it on free,
 chunk's arrays are fresh pages: a fault and a zeroed page per 4 KiB, every chunk. On the farm's
 virtual machines freed guest memory also goes back to the host (free page reporting), and a
 page touched again costs a host fault: a fresh GB took 4.7 s to first touch against 0.24 s for a
-reused one (2026-11-28, docs/decisions.md). mallopt(M_MMAP_MAX, 0) serves large blocks from the
+reused one (docs/decisions.md). mallopt(M_MMAP_MAX, 0) serves large blocks from the
 heap and mallopt(M_TRIM_THRESHOLD, INT_MAX) keeps its freed top: a process's resident memory
-stays at its peak between chunks; the peak is bounded as before (issue 15 item 5). No Python
+stays at its peak between chunks; the peak is bounded as before. No Python
 library sets the C allocator's options, so these are the few ctypes lines mallopt(3) documents;
 a no-op off glibc. TEXELBAKE_MALLOC=system leaves glibc's defaults.
 

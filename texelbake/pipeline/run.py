@@ -106,7 +106,7 @@ def bake(
     baked USD to `out_dir`.
 
     Returns the root layer path. `workdir` holds the artifact store (default
-    `default_workdir()`, outside out_dir: the output holds the result only, issue 22).
+    `default_workdir()`, outside out_dir: the output holds the result only).
     source : "reference" (the baked root references the source where it lies, by a relative
         path) or "copy" (copied into out_dir/source: a folder that travels alone).
     jobs : processes for the sharded stages (cpm, avis); 1 runs everything in this process.
@@ -172,7 +172,7 @@ def bake(
 def _shard_pool(jobs: int):
     """`jobs` processes for the sharded stages of one bake (spawn: no fork after Embree and
     BLAS have started threads). One pool serves every sharded stage: a new one per stage paid
-    each process's imports (4.5 s of torch, open3d and pxr on the 2026-11-28 Xeon) and its
+    each process's imports (4.5 s of torch, open3d and pxr on a Xeon) and its
     first touch of its memory again."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor

@@ -259,7 +259,7 @@ def _cpm_prepare(scene: RenderScene, frame: CpmFrame, cam: PinholeCamera, o: np.
         i.e. along the outline, the two are h / tan θ apart — a parallax of texels. On the
         full cylinder at its lod view (72 object pixels, 64² atlas, M2 chosen at 0.19 px of
         Hausdorff error) that cost 3 dB: 19.6–20.8 dB against 22.7–25.2 with the ray's own
-        atlas point, the same as rendering M1 (docs/decisions.md 2026-11-28).
+        atlas point, the same as rendering M1 (docs/decisions.md).
         "ray" casts each M_i hit's eye ray on against the atlas mesh (one more ray per hit,
         M_i ≠ the atlas mesh only)."""
     i = frame.mesh

@@ -78,8 +78,7 @@ from texelbake.usd.lodmesh import LodMesh
 #: the Jacobian field the characteristic points, the LOD vertices and the look-up read when
 #: the frame follows the deformed M_org (`deform_scene(follow="mesh")`): "vertex" — Ψ's own
 #: Jacobian at M_org's vertices interpolated on its triangles, the field gt's shading normals
-#: cof(J) n come from; "triangle" — each M_org triangle's constant affine map (before
-#: 2026-11-27; a flat face of a coarse M_org then turns as one piece while gt shades it as the
+#: cof(J) n come from; "triangle" — each M_org triangle's constant affine map (a flat face of a coarse M_org then turns as one piece while gt shades it as the
 #: warped, curved surface)
 JACOBIAN_FIELDS = ("vertex", "triangle")
 
@@ -122,8 +121,7 @@ def _refined_lods(scene: RenderScene, refine: float, n_joints: int = 0
     per LOD its dense skin weights (n, n_joints) from the payload's binding on the LOD's own
     vertices and, on the added ones, transferred from M_org's skin as the payload's binding
     was (`warps.transfer_weights`: closest point, barycentric blend, ≤ 4 influences) (None:
-    no binding, or n_joints = 0). The mean of an edge's ends' weights, used before
-    2026-11-27, put the added vertices of the arm's long M1 edges up to 0.38 (10 % of the
+    no binding, or n_joints = 0). The mean of an edge's ends' weights would put the added vertices of the arm's long M1 edges up to 0.38 (10 % of the
     diagonal) off the bent M_org: linear blending of averaged weights is not the skinning of
     the surface between two vertices whose weights differ."""
     out, exact, weights = [], [], []
@@ -208,7 +206,7 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     d.baked = dataclasses.replace(scene.baked, meshes=meshes)
     d.lod_uv_exact = tuple(exact)
     d.lods = [RayCaster(m.vertices, m.faces) for m in meshes]
-    if scene.atlas_separate:  # the CPM's atlas mesh (issue 22) follows the warp too
+    if scene.atlas_separate:  # the CPM's atlas mesh follows the warp too
         av, af, ac = scene.atlas_arrays
         d.atlas_arrays = (warp.positions(av), af, ac)
         d.atlas_caster = RayCaster(d.atlas_arrays[0], af)
@@ -340,7 +338,7 @@ LOOKUPS = ("texel", "vertex", "none", "point", "affine")
 #: the vertex L under "affine": J⁻¹ would be dominated by rounding, or the texel is folded
 #: (det J < 0); 1e-9 is far below any real stretch (a 1000:1 squeeze in every direction)
 AFFINE_MIN_DET = 1e-9
-#: the default look-up (decisions 2026-11-27: measured in `benchmarks/deform.py` against the
+#: the default look-up (docs/decisions.md: measured in `benchmarks/deform.py` against the
 #: seed's "vertex", ``cpm-vertex`` there, it never loses and wins on 7 of 8 deformed frames,
 #: by up to 40 dB where M1's interpolated frame is a few degrees off a faceted metal's own
 #: rotation and puts a false mirror highlight in a texel)

@@ -1,4 +1,4 @@
-"""Animated previews of a deformed baked asset (issue 12, deliverable 5): the frames of the
+"""Animated previews of a deformed baked asset: the frames of the
 asset's own animation (its time codes' range) or of a warp sweep (a procedural warp grown from
 the identity to its full amount), each rendered in the deformed frame's modes beside the
 reference gt of the deformed M_org, written next to the stills as

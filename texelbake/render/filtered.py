@@ -37,7 +37,7 @@ RadianceFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 def filtered_tables(scene: RenderScene) -> list[np.ndarray]:
     """Every level's filtered map as (N_l², C) float64, converted once per scene. StageError
-    naming the bake when it wrote none (bakes before issue 21)."""
+    naming the bake when it wrote none (bakes from before the filtered maps)."""
     cached = getattr(scene, "_filtered_tables", None)
     if cached is not None:
         return cached

@@ -47,18 +47,17 @@ Modes (all read the baked USD through `texelbake.usd.read.read_baked` and the co
   (clamped to [0, λ_max] by the look-up). Not in `MODES` (previews and reports iterate MODES
   and most bakes carry no BTF maps); `render_frame` accepts it through `EXTRA_MODES`.
 - ``toksvig``, ``leadr`` (each also ``+ao``), ``preview-surface`` — the filtered baselines
-  studios ship (issue 21): the mip-mapped normal map with Toksvig's widened lobe
+  studios ship: the mip-mapped normal map with Toksvig's widened lobe
   (`render.toksvig`), LEAN/LEADR from the baked slope moments (`render.leadr`), the baked AO
   multiplied into the albedo term, and each LOD's UsdPreviewSurface fallback evaluated as
   authored (`render.preview_surface`); the level from the pixel footprint as ``cpm``. In
-  `EXTRA_MODES` (bakes before issue 21 have no filtered maps).
+  `EXTRA_MODES` (older bakes have no filtered maps).
 - ``equal-time`` — M_org shaded as ``gt`` for exactly the time budget (by default the time
   of the ``cpm`` image at the given spp, measured in this call): `tracer.progressive` adds
   samples in chunks, each half the time left at the measured cost per sample, so its
   measured time lands within a few percent of the budget whatever a sample costs (the sample count per
-  pixel need not be a square, nor the same in every pixel: `extras["mean_spp"]`). Before
-  2026-11-25 it rendered a stratified count floored from a pilot's cost, which gave 0.70-0.75
-  of cpm's time on three of four scenes (issue 19).
+  pixel need not be a square, nor the same in every pixel: `extras["mean_spp"]`). A stratified
+  count floored from a pilot's cost would give 0.70-0.75 of cpm's time.
 
 Timing: `RenderResult.seconds` counts the rendering of one frame (rays, shading, per-frame
 precomputation), not reading the USD files and building the ray-tracing structures and the

@@ -7,7 +7,7 @@ Conventions (stated once, used by every report):
 - RMSE is over every pixel and channel given; the reports measure over the *object's*
   pixels (`object_mask`: where the reference or the image saw the object, dilated by one
   pixel) — over a whole frame the exactly-black background lifts PSNR by 20-30 dB when the
-  object covers 1 % of it (issue 19); whole-frame PSNR stays in the reports, labelled;
+  object covers 1 % of it; whole-frame PSNR stays in the reports, labelled;
 - PSNR uses the peak of the *reference* (its largest value over pixels and channels), so a
   brighter scene does not look better; PSNR = 20 log10(peak / RMSE);
 - SNR = 10 log10(Σ ref² / Σ (img - ref)²), the energy ratio seed 000 uses for its ε (§3.3);

@@ -63,7 +63,7 @@ def baseline_maps(scene: RenderScene) -> tuple[np.ndarray, np.ndarray]:
     the finest filtered level when the bake wrote them (the renormalised mean normal and the
     albedo, the same area-weighted means as the 8-bit PNGs, without their quantisation: the
     filtered modes read the same floats, so with zero variance they equal this mode exactly),
-    else the PNGs of the USD fallback (bakes before issue 21)."""
+    else the PNGs of the USD fallback (bakes from before the filtered maps)."""
     if not scene.baked.filtered:
         return scene.baked.albedo, scene.baked.normal
     from texelbake.baselines.filtered import FIELDS

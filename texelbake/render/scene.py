@@ -48,7 +48,7 @@ class RenderScene(OrgScene):
         self.lods = [RayCaster(m.vertices, m.faces) for m in self.baked.meshes]
         self.lod_face_normals = [face_normals(m.vertices, m.faces) for m in self.baked.meshes]
         self.n0 = int(round(math.sqrt(len(self.baked.levels[0]["texel_offsets"]) - 1)))
-        # the atlas mesh M_T: LOD1 itself, or (LOD1 too fine for the atlas, issue 22) the
+        # the atlas mesh M_T: LOD1 itself, or (LOD1 too fine for the atlas) the
         # mesh the CPM maps are built on, stored beside them; LODs are mapped into it
         arr = self.baked.arrays
         self.atlas_separate = "atlas_vertices" in arr

@@ -1,7 +1,7 @@
 """The chunked on-disk store of a surface reflectance field: one block per reflectance image
 (camera c, light l), each a NumPy `.npy` file, and `srf.json` (cameras, light directions,
 encoding). Reading one block is the unit of I/O; the field is never loaded whole
-(docs/decisions.md, 2026-11-25: why `.npy` blocks rather than zarr or tiled EXR).
+(docs/decisions.md: why `.npy` blocks rather than zarr or tiled EXR).
 
 Layout of a store folder:
 

@@ -103,8 +103,8 @@ def avis_levels(ctx: StageContext) -> list[avis_mod.AvisLevel]:
 def avis_level_chunks(ctx: StageContext, lvl: int) -> LevelChunks:
     """One level's a_vis for the export's compression (`cpm.avis.compress`), its ray maps read
     a tile at a time (at most `CHUNK_ROWS` ray texels per chunk) instead of stacked: the
-    per-texel arrays of every tile, each tile's maps only when its chunk is read (issue 15
-    item 5). Levels coarser than a tile are one artifact, read whole."""
+    per-texel arrays of every tile, each tile's maps only when its chunk is read (memory
+    bounded whatever the atlas size). Levels coarser than a tile are one artifact, read whole."""
     s = ctx.settings
     prefix = f"L{lvl:02d}_"
     if lvl >= ctx.tile_levels:

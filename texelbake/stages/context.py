@@ -21,8 +21,8 @@ from texelbake.model import AssetModel
 
 #: settings that change no stage output (farm layout and optional downstream stages)
 #: (shard_texels changes no result but does name the tile artifacts: it is part of their key,
-#: so bakes of one asset with different tilings can share a store, issue 22's default store;
-#: worker_memory_mb changes how a worker chunks its texels, never a result, issue 15)
+#: so bakes of one asset with different tilings can share a store, the default store;
+#: worker_memory_mb changes how a worker chunks its texels, never a result)
 LAYOUT_ONLY = {"previews", "warp", "deform_frames", "worker_memory_mb", "gate_snr_median_db",
                "gate_snr_p5_db", "gate_avis_rel_error"}  # the gate's targets are re-checked on
 # every export; warp and deform_frames change the deformed previews only
@@ -110,7 +110,7 @@ def _load_asset_cached(path: str, digest: str) -> AssetModel:
 
 @functools.lru_cache(maxsize=4)
 def _read_cached(root: str, key: str) -> dict[str, np.ndarray]:
-    # mapped, not read: a shard touches its tile's samples only (issue 15, memory)
+    # mapped, not read: a shard touches its tile's samples only (memory)
     return ArtifactStore(root).read_arrays(key, mmap=True)
 
 

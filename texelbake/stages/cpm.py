@@ -7,7 +7,7 @@ texels together hold every sample of the atlas), and they do not depend on the f
 shard sums its own samples for the one texel above it at every top level (`top_sums`, an
 artifact beside its levels), and the top shard adds the tiles' sums in tile order
 (`gathered_sums`): the work is the same, but it is spread over the tile shards instead of
-being one worker's serial pass over the whole atlas per top level (issue 15, item 6). A store
+being one worker's serial pass over the whole atlas per top level. A store
 whose tiles predate the sums (or lack one) has the top shard read the samples itself."""
 
 from __future__ import annotations
@@ -128,7 +128,7 @@ def gathered_sums(ctx: StageContext) -> dict[int, DenseSums] | None:
 def refit_coarse(ctx: StageContext, level: int, out: dict[str, np.ndarray]
                  ) -> dict[str, np.ndarray]:
     """A coarse level's fit with its weights refitted to the dense Eq. 7 when the settings ask
-    for it (`coarse_target="dense"` with `hierarchy="children"`; issue 11, item 3)."""
+    for it (`coarse_target="dense"` with `hierarchy="children"`)."""
     s = ctx.settings
     if level == 0 or s.hierarchy != "children" or s.coarse_target != "dense":
         return out

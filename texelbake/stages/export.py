@@ -52,7 +52,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
               plan=None, source: str = "copy") -> Path:
     """Write the baked USD bundle and report.json into out_dir (the export stage).
     source : "copy" (the source and its files under out_dir/source: the farm's downloadable
-    result) or "reference" (the source referenced where it lies, issue 22)."""
+    result) or "reference" (the source referenced where it lies)."""
     if source not in ("copy", "reference"):
         from texelbake.errors import SettingsError
 
@@ -73,7 +73,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         levels.append(arrays)
         level_reports.append(rep)
     dirs = direction_sets(s)
-    # shading normals from M_org for the tools that shade the LOD meshes themselves (issue 22)
+    # shading normals from M_org for the tools that shade the LOD meshes themselves
     meshes = [LodMesh(v, f, uv, corner_normals=transfer_corner_normals(
         v, f, asset.corner_normals, ctx.caster())) for v, f, uv in lod_meshes(geo)]
     # the normal map is in the tangent frames of the mesh that carries it, LOD1
@@ -89,7 +89,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     if not bool(geo["lod_exact"]):  # the CPM's atlas mesh M_T is not LOD1: the renderer needs it
         extra_arrays = {"atlas_vertices": geo["m1_vertices"], "atlas_faces": geo["m1_faces"],
                         "atlas_corner_uvs": geo["m1_corner_uvs"]}
-    filtered = filtered_levels(ctx)  # the filtered baseline maps of every level (issue 21)
+    filtered = filtered_levels(ctx)  # the filtered baseline maps of every level
     fallback = fallback_maps(ctx, filtered)
     from texelbake.deform.impostor import impostor_params
 
@@ -108,7 +108,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
         "surface_area": float(geo["sample_area"].sum()),
         "lods": lod_report(geo),
-        # where the CPM maps apply, and what the atlas LOD1 asks for would cost (issue 22)
+        # where the CPM maps apply, and what the atlas LOD1 asks for would cost
         "cpm_atlas": atlas_trade(s, lod_report(geo),
                                  measured_seconds=sum((stage_seconds or {}).values()) or None),
         # how the LOD meshes follow M_org's animation (texelbake.deform.skinbind)

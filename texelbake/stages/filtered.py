@@ -1,4 +1,4 @@
-"""The filtered-maps step of the export (issue 21): the filtered normal, LEADR moment, AO,
+"""The filtered-maps step of the export: the filtered normal, LEADR moment, AO,
 albedo and base maps of every mip level, from the geometry stage's samples and texel
 assignment (`texelbake.baselines.filtered`), kept in the artifact store under a content key (the
 AO rays are the cost, so a rerun of the export does not cast them again)."""
@@ -40,7 +40,7 @@ def run_filtered(ctx: StageContext, shard: int = 0) -> str:
     frames, prim_of = lod1_frames(geo)
     m = len(geo["sample_area"])
     sums = FilteredSums(s.atlas_resolution, ctx.n_levels)
-    # a chunk of samples at a time (issue 15: one pass held ~500 bytes a sample, 8.4 GB at
+    # a chunk of samples at a time (one pass held ~500 bytes a sample, 8.4 GB at
     # 512²); the sums continue across chunks and AO's draws are the one-pass draws, so the
     # maps are the one-pass maps bit for bit
     for a, b in chunk_ranges(m, geometry_chunk(s)):  # loop over chunks (memory bound)
@@ -61,7 +61,7 @@ def lod1_frames(geo: dict[str, np.ndarray]
                 ) -> tuple[np.ndarray, Callable[[int, int], np.ndarray]]:
     """The tangent frames of LOD1's faces (from its atlas uvs) and, for samples a..b, their
     LOD1 face: the maps a viewer applies to LOD1 are in LOD1's frames. LOD1 is the atlas mesh
-    M_T (the samples' `sample_m1_prim`) unless it was too fine for the atlas (issue 22): then
+    M_T (the samples' `sample_m1_prim`) unless it was too fine for the atlas: then
     each sample takes its closest LOD1 face (each sample's on its own: any chunking)."""
     from texelbake.geometry.build import lod_meshes
     from texelbake.geometry.raycast import RayCaster
@@ -86,7 +86,7 @@ def filtered_levels(ctx: StageContext) -> list[np.ndarray]:
 
 #: the fallback textures' largest side (texels): 512² RGB is what studios ship for a prop's
 #: LOD1; above it the samples and AO rays of the dense bake cost more than the CPM stage at
-#: the defaults (docs/decisions.md, 2026-11-25)
+#: the defaults (docs/decisions.md)
 FALLBACK_MAX_RESOLUTION = 512
 #: dense samples per texel of the fallback page (~2.5 per covered texel at 40 % coverage)
 FALLBACK_SAMPLES_PER_TEXEL = 1
@@ -226,7 +226,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     widened by the slope variance of the level where that LOD is shown
     (`filtered_maps.lod_levels`; a viewer filters textures but widens no lobe).
 
-    The textures' side is `fallback_resolution` (issue 22, item 1): when it is above the
+    The textures' side is `fallback_resolution`: when it is above the
     atlas resolution the maps are baked from their own dense samples on the same layout
     (`_dense_fallback_levels`) and the fallback gets its own normal map ("normal"); else
     they are the filtered levels `maps` and the normal map is the baseline's."""
@@ -248,7 +248,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
         maps, normal = _dense_fallback_levels(ctx, res)
     texel = _texel_size(geo, res)  # world size of a texel of the fallback page on M1
     errors = [0.0]
-    for v, f, _ in lod_meshes(geo)[1:]:  # a loop over the few LODs (issue 22's lod{i} keys)
+    for v, f, _ in lod_meshes(geo)[1:]:  # a loop over the few LODs (the lod{i} keys)
         lod = RayCaster(v, f)
         a, _, _ = ctx.caster().closest_points(v)
         b, _, _ = lod.closest_points(asset.points)

@@ -14,7 +14,7 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
     if ctx.store.exists(key):
         return key
     # the per-sample arrays (2.5 GB at 512²) go to disk a chunk at a time, beside the
-    # artifact, and are copied into it from there: the stage holds one chunk (issue 15)
+    # artifact, and are copied into it from there: the stage holds one chunk
     folder = ctx.store.path(key).parent
     FileSpool.sweep(folder)  # a killed worker's spool (its pid is gone)
     spool = FileSpool(folder)

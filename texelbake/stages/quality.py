@@ -1,4 +1,4 @@
-"""The quality gate of a bake (issue 22, item 2): per LOD and per CPM level, pass or fail
+"""The quality gate of a bake: per LOD and per CPM level, pass or fail
 against stated targets, written to report.json as `quality` and read by `texelbake bake` (exit
 status QUALITY_EXIT naming what missed) and the job API ("completed with warnings").
 

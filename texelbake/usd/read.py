@@ -91,7 +91,7 @@ def read_baked(path: str | Path) -> BakedAsset:
 
 def read_filtered_maps(folder: Path, name: str) -> list[np.ndarray]:
     """The filtered maps `<name>_filtered_L<ll>.exr` of every level (empty list when the bake
-    wrote none: bakes before issue 21). AssetError naming the file when its channels are not
+    wrote none: older bakes). AssetError naming the file when its channels are not
     `filtered_maps.CHANNELS`."""
     from texelbake.baselines.filtered import CHANNELS
     from texelbake.io.images import read_pixels

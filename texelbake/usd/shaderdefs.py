@@ -205,7 +205,7 @@ def register_shader_definitions() -> None:
     with _LOCK:
         if _LAYER:
             return
-        layer = build_definitions_layer(str(Path(__file__).with_name("model.py").resolve()))
+        layer = build_definitions_layer(str((Path(__file__).parents[1] / "model.py").resolve()))
         _LAYER.append(layer)
         registry = Sdr.Registry()
         for sid in sorted(ALL_SHADER_INPUTS):

@@ -1,4 +1,4 @@
-"""What a baked asset shows when it is not opened the way it was baked (issue 22, item 3):
+"""What a baked asset shows when it is not opened the way it was baked:
 with payloads unloaded (a proxy), and under another asset variant (the selections the bake was
 made for, and a guard).
 
@@ -18,7 +18,7 @@ made for, and a guard).
   different one ("leave it at its original"; baking each combination would multiply the bake
   by the number of combinations: 12 for the Teapot). Variant sets below the default prim are
   recorded, not guarded (their variants cannot reach `Baked`).
-- An animated asset's proxy moves with it (issue 12): it carries one time sample of its points
+- An animated asset's proxy moves with it: it carries one time sample of its points
   (and extent) per time code of the coarsest LOD's motion — that LOD's own time samples, or
   its UsdSkel skinning computed by UsdSkel on the written stage (`proxy_motion`) — since a
   proxy outside the payload cannot be bound to a skeleton inside it.

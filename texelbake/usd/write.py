@@ -210,7 +210,7 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     # the asset as authored by default: a client without a variant picker (Blender's
     # importer) shows the original, not a LOD it did not ask for
     vset.SetVariantSelection("LOD0")
-    # issue 22 (texelbake.usd.variants): a proxy outside the payload, the asset variant
+    # (texelbake.usd.variants): a proxy outside the payload, the asset variant
     # selections the bake was made for, and other asset variants shown as authored
     selections = variants.source_variant_selections(source_copy)
     if n_lod:
