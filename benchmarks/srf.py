@@ -53,11 +53,11 @@ if str(ROOT) not in sys.path:
 
 from scipy.spatial import ConvexHull  # noqa: E402
 
+from texelbake.deform.normals import deform_normals  # noqa: E402
 from texelbake.deform.warps import parse_warp  # noqa: E402
 from texelbake.geometry.raycast import RayCaster  # noqa: E402
 from texelbake.model import Light  # noqa: E402
 from texelbake.render import metrics  # noqa: E402
-from texelbake.render.deformed import deform_normals  # noqa: E402
 from texelbake.scene import load_asset  # noqa: E402
 from texelbake.scenes import write_scene  # noqa: E402
 from texelbake.srf.cache import shade  # noqa: E402

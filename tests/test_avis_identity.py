@@ -12,7 +12,7 @@ from avis_scenes import grid_mesh, periodic_height, sample_faces, texel_of_xy, t
 
 from schemas.settings import BakeSettings
 from texelbake.cpm.avis import avis_level, coarsen_level, compress_level
-from texelbake.cpm.avis.table import apply_correction, sum_correction
+from texelbake.cpm.avis.correction import apply_correction, sum_correction
 from texelbake.geometry.raycast import RayCaster
 
 KEEP = BakeSettings().avis_keep_fraction

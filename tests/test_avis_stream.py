@@ -15,7 +15,7 @@ from avis_scenes import grid_mesh, periodic_height, sample_faces, texel_of_xy, t
 from texelbake.cpm.avis import AvisLevel, avis_level, compress_level
 from texelbake.cpm.avis import compress as cz
 from texelbake.cpm.avis.closed_form import ClosedForm
-from texelbake.cpm.avis.table import apply_correction, sum_correction
+from texelbake.cpm.avis.correction import apply_correction, sum_correction
 from texelbake.cpm.haar import budget_mask, decompress_haar
 from texelbake.geometry.raycast import RayCaster
 

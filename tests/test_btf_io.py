@@ -165,7 +165,7 @@ def test_read_maps_errors(tmp_path, rng):
 
 
 def test_half_storage_round_trip_and_error(tmp_path, rng):
-    from texelbake.btf.compress import reconstruct_btf
+    from texelbake.btf.lod import reconstruct_btf
 
     full = _small_maps(rng, n_components=(36, 36, 36))
     rng2 = np.random.default_rng(12345)  # same input as `full`

@@ -4,14 +4,9 @@ import numpy as np
 import pytest
 
 from texelbake.btf.color import rgb_to_ycbcr
-from texelbake.btf.compress import (
-    BTFSettings,
-    build_btf_maps,
-    lod_from_distance,
-    lod_weights,
-    reconstruct_btf,
-)
+from texelbake.btf.compress import BTFSettings, build_btf_maps
 from texelbake.btf.laplacian import build_pyramid, expand
+from texelbake.btf.lod import lod_from_distance, lod_weights, reconstruct_btf
 from texelbake.btf.lut import bonn_directions, build_lut, lookup_pairs
 from texelbake.btf.render import btf_lookup, btf_lookup_texels
 from texelbake.btf.report import btf_errors, compression_stats

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from texelbake.btf.compress import BTFSettings, reconstruct_btf
+from texelbake.btf.compress import BTFSettings
+from texelbake.btf.lod import reconstruct_btf
 from texelbake.btf.lut import bonn_directions
 from texelbake.btf.maps_io import SHADER_BTF, read_btf_maps
 from texelbake.btf.report import btf_errors

@@ -13,12 +13,11 @@ from texelbake.geometry.hierarchy import simplify_hierarchy
 from texelbake.geometry.mesh import Mesh
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import sample_surface
+from texelbake.geometry.texel_frames import FrameSums, texel_frames
 from texelbake.geometry.texels import (
-    FrameSums,
     assign_texels,
     bilinear_texels,
     texel_centers_uv,
-    texel_frames,
     texel_surface_points,
     uv_to_texel,
 )

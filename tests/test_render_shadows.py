@@ -80,8 +80,8 @@ def test_cpm_carries_the_shadow_of_another_object(baked_shadow):
 def test_texel_radiance_of_a_subset_equals_the_full_level(baked_shadow):
     """The cpm mode computes Eq. 12 only for the texels a frame looks up; each texel's value
     must not depend on which others are computed with it."""
-    from texelbake.render.cpm import texel_radiance
     from texelbake.render.scene import load_scene, resolve_camera
+    from texelbake.render.texel_radiance import texel_radiance
 
     scene = load_scene(baked_shadow)
     cam = resolve_camera(scene, "lod", 32, 32)

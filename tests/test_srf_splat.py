@@ -117,7 +117,7 @@ def test_points_no_capture_camera_sees_stay_black(tmp_path):
 def _deformed_asset(asset, warp, lights):
     import dataclasses
 
-    from texelbake.render.deformed import deform_normals
+    from texelbake.deform.normals import deform_normals
 
     corner = deform_normals(warp.jacobian(asset.points)[asset.faces.reshape(-1)],
                             asset.corner_normals.reshape(-1, 3)).reshape(

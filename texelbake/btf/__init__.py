@@ -2,17 +2,9 @@
 channel, a Phong top-level mean, packed into two float EXR maps and evaluated with Eq. 7."""
 
 from texelbake.btf.color import rgb_to_ycbcr, ycbcr_to_rgb
-from texelbake.btf.compress import (
-    BTFMaps,
-    BTFSettings,
-    BuildInfo,
-    build_btf_maps,
-    lod_from_distance,
-    lod_weights,
-    reconstruct_btf,
-    reconstruct_channel,
-)
+from texelbake.btf.compress import BTFMaps, BTFSettings, BuildInfo, build_btf_maps
 from texelbake.btf.laplacian import build_pyramid, collapse
+from texelbake.btf.lod import lod_from_distance, lod_weights, reconstruct_btf, reconstruct_channel
 from texelbake.btf.lut import DirectionLUT, bonn_directions, build_lut, lookup_pairs
 from texelbake.btf.maps_io import SHADER_BTF, read_btf_maps, write_btf_maps
 from texelbake.btf.measured import MeasuredBTF, load_measured_btf, parse_ubo2003_name

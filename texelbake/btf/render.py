@@ -19,7 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from texelbake.btf.color import RGB_FROM_YCBCR
-from texelbake.btf.compress import BTFMaps, lod_weights, mean_on_pairs
+from texelbake.btf.compress import BTFMaps, mean_on_pairs
+from texelbake.btf.lod import lod_weights
 from texelbake.btf.lut import lookup_pairs
 from texelbake.btf.phong import above_horizon
 from texelbake.errors import NumericalError, ShapeError

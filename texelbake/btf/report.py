@@ -21,14 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from texelbake.btf.color import CHANNELS
-from texelbake.btf.compress import (
-    BTFMaps,
-    BTFSettings,
-    build_btf_maps,
-    reconstruct_channel,
-    to_ycbcr_planes,
-)
+from texelbake.btf.compress import BTFMaps, BTFSettings, build_btf_maps, to_ycbcr_planes
 from texelbake.btf.laplacian import top_level_for
+from texelbake.btf.lod import reconstruct_channel
 from texelbake.btf.phong import above_horizon
 from texelbake.errors import ShapeError
 

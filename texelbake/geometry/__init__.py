@@ -17,12 +17,12 @@ from texelbake.geometry.hierarchy import simplify_hierarchy
 from texelbake.geometry.mesh import Mesh, compact, weld
 from texelbake.geometry.raycast import RayCaster, RayHits, offset_origins
 from texelbake.geometry.sampling import Samples, sample_surface
+from texelbake.geometry.texel_frames import texel_frames
 from texelbake.geometry.texels import (
     TexelAssignment,
     assign_texels,
     bilinear_texels,
     texel_centers_uv,
-    texel_frames,
     texel_surface_points,
     uv_to_texel,
 )

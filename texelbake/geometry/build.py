@@ -18,7 +18,8 @@ from texelbake.geometry.lodchain import build_lod_chain, hausdorff
 from texelbake.geometry.mesh import Mesh, bbox_diagonal, compact, face_normals, weld
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import SurfaceSampler, surface_sampler
-from texelbake.geometry.texels import FrameSums, assign_rows, morton, uv_to_texel
+from texelbake.geometry.texel_frames import FrameSums
+from texelbake.geometry.texels import assign_rows, morton, uv_to_texel
 from texelbake.io.spool import FileSpool, MemorySpool
 from texelbake.model import AssetModel
 

@@ -61,6 +61,7 @@ from texelbake.deform.lookup import (
     lookup_rotation,
     rest_frames_at,
 )
+from texelbake.deform.normals import cofactor, deform_normals
 from texelbake.deform.refine import refine_levels, subdivide
 from texelbake.deform.skinbind import dense_weights
 from texelbake.deform.warps import MeshWarp, SkinWarp, Warp, transfer_weights
@@ -83,21 +84,9 @@ from texelbake.usd.lodmesh import LodMesh
 JACOBIAN_FIELDS = ("vertex", "triangle")
 
 
-def cofactor(jac: np.ndarray) -> np.ndarray:
-    """cof(J) = det(J) J⁻ᵀ, columns (j2 × j3, j3 × j1, j1 × j2): maps normals to the deformed
-    surface's normals without inverting J (defined where J is singular). (n, 3, 3)"""
-    j1, j2, j3 = jac[:, :, 0], jac[:, :, 1], jac[:, :, 2]
-    return np.stack([np.cross(j2, j3), np.cross(j3, j1), np.cross(j1, j2)], axis=2)
-
-
 def _unit(x: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(x, axis=-1, keepdims=True)
     return np.divide(x, n, out=np.zeros_like(x), where=n > 0)
-
-
-def deform_normals(jac: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Unit normals carried by Ψ: cof(J) n / |cof(J) n| (zero where that vanishes)."""
-    return _unit(np.einsum("nij,nj->ni", cofactor(jac), normals))
 
 
 def lod_impostor(scene: RenderScene, i: int) -> ImpostorParams:
@@ -349,7 +338,7 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
                             texels: np.ndarray, lookup: str = DEFAULT_LOOKUP
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Eq. 12 of seed 000 for texels of one level of a deformed scene (module docstring);
-    the same contract as `render.cpm.texel_radiance`. lookup : one of LOOKUPS."""
+    the same contract as `render.texel_radiance.texel_radiance`. lookup : one of LOOKUPS."""
     rest: RenderScene = d.rest  # type: ignore[attr-defined]
     lv = rest.baked.levels[level]
     offsets = lv["texel_offsets"]

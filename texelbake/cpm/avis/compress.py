@@ -35,14 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from texelbake.cpm.avis.closed_form import closed_form_maps
+from texelbake.cpm.avis.correction import _LOG_GAMMA_MAX, _SCALE_SPAN, _power_and_scale
 from texelbake.cpm.avis.levels import AvisLevel
-from texelbake.cpm.avis.table import (
-    _LOG_GAMMA_MAX,
-    _SCALE_SPAN,
-    AvisTable,
-    _power_and_scale,
-    visible_fraction,
-)
+from texelbake.cpm.avis.table import AvisTable, visible_fraction
 from texelbake.cpm.haar import (
     HaarCoeffs,
     coeffs_from_mask,
