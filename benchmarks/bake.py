@@ -120,7 +120,7 @@ from texelbake.cpm.assemble import SNR_EXACT_DB, percentiles
 from texelbake.cpm.avis.table import avis_table_from
 from texelbake.cpm.level import texel_ids
 from texelbake.pipeline.run import bake
-from texelbake.scenes import write_scene
+from texelbake.testscenes import write_scene
 from texelbake.usd.read import read_baked
 
 JOBS = 2  # processes for the sharded stages: this machine's cores
@@ -253,7 +253,7 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
 
 
 def scene_file(name: str, size: str, work: Path) -> Path:
-    """A generated scene by name (`texelbake.scenes`), or a USD file given by its path (e.g.
+    """A generated scene by name (`texelbake.testscenes`), or a USD file given by its path (e.g.
     ../shared/assets/Teapot/Teapot.usd), baked as `texelbake bake` would."""
     path = Path(name)
     if path.suffix.lower() in (".usd", ".usda", ".usdc", ".usdz"):

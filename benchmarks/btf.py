@@ -54,6 +54,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from texelbake.btf.bake import fill_uncovered  # noqa: E402
 from texelbake.btf.compress import BTFSettings, to_ycbcr_planes  # noqa: E402
 from texelbake.btf.laplacian import reduce  # noqa: E402
 from texelbake.btf.pca import pca_batched  # noqa: E402
@@ -62,7 +63,6 @@ from texelbake.btf.report import (  # noqa: E402
     error_vs_components,
     plot_error_vs_components,
 )
-from texelbake.btf.stage import fill_uncovered  # noqa: E402
 from texelbake.btf.synthetic import synthetic_btf  # noqa: E402
 
 SEED_REFERENCE = {
@@ -98,8 +98,9 @@ def bake_scene_btf(name: str, atlas: int, workdir: Path) -> Path:
     pipeline's own BTF stage (`stages.run_btf`) is wired.
     """
     from schemas.settings import BakeSettings
-    from texelbake import scenes, stages
-    from texelbake.btf.stage import btf_from_texels
+    from texelbake import stages
+    from texelbake import testscenes as scenes
+    from texelbake.btf.bake import btf_from_texels
     from texelbake.cpm.level import direction_sets
     from texelbake.pipeline.plan import n_tiles
     from texelbake.pipeline.run import run_shard
@@ -261,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=str, default=None, help="write the results here")
     args = ap.parse_args(argv)
     if args.bake_scenes is not None:
-        from texelbake.scenes import SCENE_NAMES
+        from texelbake.testscenes import SCENE_NAMES
 
         for name in args.bake_scenes or SCENE_NAMES:
             args.inputs.append(bake_scene_btf(name, args.atlas, args.bake_dir))

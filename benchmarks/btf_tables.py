@@ -29,7 +29,7 @@ from schemas.settings import BakeSettings  # noqa: E402
 from texelbake.pipeline.run import bake  # noqa: E402
 from texelbake.render import metrics  # noqa: E402
 from texelbake.render.report import render  # noqa: E402
-from texelbake.scenes import write_scene  # noqa: E402
+from texelbake.testscenes import write_scene  # noqa: E402
 
 TABLES = ("point", "cell")
 

@@ -483,7 +483,7 @@ def open_farm(db: str, base: Path, cylinder: Path, reference: Path):
 def make_scene(base: Path) -> tuple[Path, Path]:
     from schemas.settings import BakeSettings
     from texelbake.pipeline.run import bake
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     cylinder = write_scene("cylinder", base / "scene" / "cylinder.usda", "small")
     reference = bake(cylinder, base / "reference", BakeSettings(**CHEAP_SETTINGS), progress=False)

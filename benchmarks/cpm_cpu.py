@@ -231,7 +231,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
 
 
 def stages_asset(scene: str, size: str, work: Path) -> Path:
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     if Path(scene).suffix in (".usd", ".usda", ".usdc", ".usdz"):  # an asset file (the Teapot)
         if not Path(scene).is_file():

@@ -132,7 +132,7 @@ def first_render(api_url: str, chromium: str, runs: int) -> list[dict]:
 
 def bake_cylinder(client: httpx.Client, work: Path) -> str:
     """Upload the small cylinder, bake it with BTF maps, wait for success; the job id."""
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     folder = work / "scene"
     write_scene("cylinder", folder / "cylinder.usda", "small")

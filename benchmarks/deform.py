@@ -7,10 +7,10 @@ acceptance; seed 002 §4).
         [--btf] [--work DIR]
     .venv/bin/python benchmarks/deform.py --json all.json --merge a.json b.json ...
 
-The `arm` (texelbake.scenes.arm) is deformed by its own UsdSkel animation at time codes 12
+The `arm` (texelbake.testscenes.arm) is deformed by its own UsdSkel animation at time codes 12
 and 24 (bent 45° and 90°) instead of the procedural warps.
 
-Bakes each scene (texelbake.scenes at `--scene-size`, `--atlas` finest texels per side, the
+Bakes each scene (texelbake.testscenes at `--scene-size`, `--atlas` finest texels per side, the
 other settings at their defaults) unless already baked under `--work`, then per warp
 (default: bend 90°, twist 90° and the 1:2 anisotropic stretch across the axis, plus a rigid
 motion) renders the reference `gt` of the deformed M_org at `--ref-spp` eye rays per pixel —
@@ -94,7 +94,7 @@ from texelbake.render.deformed import deform_scene  # noqa: E402
 from texelbake.render.deformed_report import warp_at_time  # noqa: E402
 from texelbake.render.frame import render_deformed  # noqa: E402
 from texelbake.render.scene import load_scene, lod_camera  # noqa: E402
-from texelbake.scenes import write_scene  # noqa: E402
+from texelbake.testscenes import write_scene  # noqa: E402
 from texelbake.trace.camera import PinholeCamera  # noqa: E402
 
 #: the stretch is 1:2 across the axis (y): along it, a cylinder's surface frames do not turn,
@@ -102,7 +102,7 @@ from texelbake.trace.camera import PinholeCamera  # noqa: E402
 #: the same PSNR on every seed), a case that cannot tell look-ups apart
 WARPS = ("bend:angle=90", "twist:angle=90", "stretch:x=2,y=1,z=1")
 RIGID = "rigid:angle=40,axis=x,tx=0.5,ty=-0.3,tz=0.2"
-#: the arm's own animation (texelbake.scenes.arm): bent 45° at time 12, 90° at 24
+#: the arm's own animation (texelbake.testscenes.arm): bent 45° at time 12, 90° at 24
 ARM_TIMES = ("time:12", "time:24")
 MODES = ("cpm", "cpm-affine", "cpm-vertex", "cpm-texel", "cpm-tri", "cpm-naive", "normalmap",
          "gt")
@@ -115,7 +115,7 @@ VARIANTS = {"cpm-affine": "affine", "cpm-texel": "texel", "cpm-vertex": "vertex"
 def bake_scene(scene: str, work: Path, atlas: int, size: str, btf: bool = False) -> Path:
     settings = BakeSettings(atlas_resolution=atlas, btf=btf)
     if scene == "arm":  # the skinned cylinder: its own animation, not a procedural warp
-        from texelbake.scenes.arm import write_arm
+        from texelbake.testscenes.arm import write_arm
 
         src = write_arm(work / "src" / f"arm_{size}.usda", size)
     else:

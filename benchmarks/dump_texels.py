@@ -20,7 +20,7 @@ import numpy as np
 from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm.level import brdf_grid, direction_sets, texel_ids, visibility_cos, world_dirs
-from texelbake.scenes import write_scene
+from texelbake.testscenes import write_scene
 
 
 def texel_matrices(ctx: stages.StageContext, texel: int, dirs_i: np.ndarray,

@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     policies = [p for p in args.policies.split(",") if p]
     with tempfile.TemporaryDirectory(prefix="texelbake-fair-") as tmp:
         work = Path(tmp)
-        from texelbake.scenes import write_scene
+        from texelbake.testscenes import write_scene
 
         scene = write_scene("cylinder", work / "scene" / "cylinder.usda", "small")
         load0 = os.getloadavg()

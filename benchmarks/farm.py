@@ -284,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--size", default="full", choices=["small", "full"])
     args = ap.parse_args(argv)
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     with tempfile.TemporaryDirectory(prefix="texelbake-farm-") as tmp:
         tmp = Path(tmp)

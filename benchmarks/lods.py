@@ -53,7 +53,7 @@ from pathlib import Path
 
 from schemas.settings import BakeSettings
 from texelbake.pipeline.run import bake
-from texelbake.scenes import write_scene
+from texelbake.testscenes import write_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:

@@ -39,8 +39,8 @@ LOOP_REPEATS = 5
 
 def load_bolt(size: str) -> tuple[np.ndarray, np.ndarray, str]:
     """The bolt test scene at `size`, through the real USD writer and ingest."""
-    from texelbake.scene import load_asset
-    from texelbake.scenes import write_scene
+    from texelbake.asset import load_asset
+    from texelbake.testscenes import write_scene
 
     with tempfile.TemporaryDirectory() as tmp:
         path = write_scene("bolt", Path(tmp) / "bolt.usda", size)

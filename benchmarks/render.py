@@ -5,7 +5,7 @@
         [--camera lod|asset] [--eps 30] [--out DIR] [--scene-size small|full]
         [--quality fast|high] [--m1-faces N] [--btf]
 
-Bakes the scene (texelbake.scenes, small size, `--atlas` finest texels per side) unless
+Bakes the scene (texelbake.testscenes, small size, `--atlas` finest texels per side) unless
 `--baked` names a baked USD, renders the reference `gt` at `--ref-spp` eye rays per pixel,
 then every mode (`gt`, `cpm`, `normalmap` at `--spp`, `equal-time` in the cpm image's time),
 the gt sweep 1, 4, 16, ... up to ref/4 and cpm at 1, 4, 16 eye rays per pixel (and at every
@@ -102,7 +102,7 @@ from texelbake.render.report import (  # noqa: E402
     write_report_plot,
 )
 from texelbake.render.scene import load_scene, resolve_camera  # noqa: E402
-from texelbake.scenes import write_scene  # noqa: E402
+from texelbake.testscenes import write_scene  # noqa: E402
 
 #: `--quality`: labelled non-default bake settings (a second row, never the headline): what
 #: earlier sessions used to bake a small scene in a few minutes here

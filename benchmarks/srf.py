@@ -5,7 +5,7 @@ against naive order, and the field's error against gt.
         [--lights 12] [--capture-size 48] [--capture-spp 16] [--size 64]
         [--warp twist:angle=60] [--work DIR] [--sweep]
 
-Captures the scene's M_org (texelbake.scenes, small) with `gt` from `--cameras` cameras on a
+Captures the scene's M_org (texelbake.testscenes, small) with `gt` from `--cameras` cameras on a
 sphere × `--lights` directional lights at `--capture-size`² and `--capture-spp` eye rays per
 pixel (raw blocks: one `.npy` per image), unless already captured under `--work`. The impostor is the convex hull of M_org (an
 enclosing mesh, as a visual hull carved from every direction), sampled into surfels. Then:
@@ -53,18 +53,18 @@ if str(ROOT) not in sys.path:
 
 from scipy.spatial import ConvexHull  # noqa: E402
 
+from texelbake.asset import load_asset  # noqa: E402
 from texelbake.deform.normals import deform_normals  # noqa: E402
 from texelbake.deform.warps import parse_warp  # noqa: E402
 from texelbake.geometry.raycast import RayCaster  # noqa: E402
 from texelbake.model import Light  # noqa: E402
 from texelbake.render import metrics  # noqa: E402
-from texelbake.scene import load_asset  # noqa: E402
-from texelbake.scenes import write_scene  # noqa: E402
 from texelbake.srf.cache import shade  # noqa: E402
 from texelbake.srf.capture import capture, unit_light  # noqa: E402
-from texelbake.srf.frame import VIS_OFFSET, frame_ops, render_srf, splat_surfels  # noqa: E402
+from texelbake.srf.deferred import VIS_OFFSET, frame_ops, render_srf, splat_surfels  # noqa: E402
 from texelbake.srf.store import SrfStore, open_store, subset  # noqa: E402
 from texelbake.srf.surfels import surfels_from_mesh  # noqa: E402
+from texelbake.testscenes import write_scene  # noqa: E402
 from texelbake.trace import camera as cam_mod  # noqa: E402
 from texelbake.trace.org import render_model  # noqa: E402
 

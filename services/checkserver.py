@@ -50,7 +50,7 @@ def main(argv: list[str]) -> int:
     import services.validate  # noqa: F401
 
     try:
-        import texelbake.scene  # noqa: F401 - the core's check (services.validate._core_check)
+        import texelbake.asset  # noqa: F401 - the core's check (services.validate._core_check)
     except ImportError:  # pragma: no cover
         pass
     path = argv[0]

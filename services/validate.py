@@ -121,7 +121,7 @@ def check_bundle(bundle: Path, root_rel: str) -> list[tuple[str, str]]:
 def _core_check(root_layer: Path, bundle: Path) -> list[tuple[str, str]]:
     """The ingest engineer's own check, when it exists (it raises AssetPathError naming the path)."""
     try:
-        from texelbake.scene import check_asset_paths  # type: ignore[attr-defined]
+        from texelbake.asset import check_asset_paths  # type: ignore[attr-defined]
     except ImportError:
         return []
     from texelbake.errors import AssetError

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 #: floats per corner of `lod<i>.bin`: position 3, atlas uv 2, face normal 3, tangent 3,
-#: bitangent 3 (the normal map's tangent space, `texelbake.baselines.normalmap.face_tangent_space`)
+#: bitangent 3 (the normal map's tangent space, `texelbake.baselines.normal_maps.face_tangent_space`)
 CORNER_FLOATS = 14
 #: the a_vis polar grid: theta from the normal (cell centres over [0, 90) degrees), phi
 AVIS_THETA = 9
@@ -61,7 +61,7 @@ def polar_dirs(n_theta: int = AVIS_THETA, n_phi: int = AVIS_PHI) -> np.ndarray:
 
 
 def extract(baked_root: Path, out: Path) -> dict:
-    from texelbake.baselines.normalmap import face_tangent_space
+    from texelbake.baselines.normal_maps import face_tangent_space
     from texelbake.cpm.avis.table import avis_table_from
     from texelbake.usd.read import read_baked
 

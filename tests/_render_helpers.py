@@ -158,7 +158,7 @@ def bake_small_cylinder(folder: Path) -> Path:
     an atlas-sized LOD chain (issue 22: its M2 is coarse); the baked root USD."""
     from schemas.settings import BakeSettings
     from texelbake.pipeline.run import bake
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     src = write_scene("cylinder", folder / "cylinder.usda", size="small")
     settings = BakeSettings(atlas_resolution=32, samples_per_texel=8, n_light_dirs=8,

@@ -11,7 +11,7 @@ import pytest
 from texelbake.deform.warps import SkinWarp, triangle_jacobians
 from texelbake.errors import SettingsError
 from texelbake.render.deformed_report import warp_at_time
-from texelbake.scenes.arm import (
+from texelbake.testscenes.arm import (
     TIME_CODES,
     joint_heights,
     joint_weights,
@@ -22,7 +22,7 @@ from texelbake.scenes.arm import (
 
 @pytest.fixture(scope="module")
 def arm(tmp_path_factory):
-    from texelbake.scene import load_asset
+    from texelbake.asset import load_asset
 
     path = write_arm(tmp_path_factory.mktemp("arm") / "arm.usda")
     with pytest.warns(Warning, match="skinned by UsdSkel"):

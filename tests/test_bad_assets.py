@@ -8,9 +8,9 @@ import pytest
 from _scene_helpers import bind, grid_mesh, new_stage, preview_material, triangle_mesh, write_png
 from pxr import Sdf, UsdGeom, UsdShade, Vt
 
+from texelbake.asset import AssetWarning, check_asset_paths, load_asset
 from texelbake.errors import AssetError, AssetPathError, TexelbakeError
 from texelbake.model import SHADER_MEASURED
-from texelbake.scene import AssetWarning, check_asset_paths, load_asset
 
 # ------------------------------------------------------------------------------------------
 # files and geometry

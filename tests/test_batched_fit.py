@@ -22,7 +22,7 @@ from texelbake.cpm.level import brdf_grid, direction_sets, level_candidates, til
 from texelbake.cpm.level import fit_level as fit_level_per_texel
 from texelbake.cpm.level_batched import chunk_bounds, fit_level_batched
 from texelbake.cpm.matrix import snr_db
-from texelbake.scenes import write_scene
+from texelbake.testscenes import write_scene
 
 KW = {"psi": 0.97, "eps_db": 30.0, "c_max": 24, "n_trials": 3, "weights": "nnls", "colour": "auto",
           "decorrelation_threshold": 0.9}

@@ -72,7 +72,7 @@ def stack(tmp_path_factory):
 def cylinder(tmp_path_factory) -> Path:
     """The small cylinder as a studio ships it: a .zip of its layer and the files beside it
     (the scene writer puts texelbake_shaders.usda next to the layer)."""
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     folder = tmp_path_factory.mktemp("scene")
     write_scene("cylinder", folder / "cylinder.usda", "small")

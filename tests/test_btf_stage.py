@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
+from texelbake.btf.bake import author_btf_shader, bake_btf, btf_from_texels, fill_uncovered
 from texelbake.btf.compress import BTFSettings
 from texelbake.btf.lod import reconstruct_btf
 from texelbake.btf.lut import bonn_directions
 from texelbake.btf.maps_io import SHADER_BTF, read_btf_maps
 from texelbake.btf.report import btf_errors
-from texelbake.btf.stage import author_btf_shader, bake_btf, btf_from_texels, fill_uncovered
 from texelbake.errors import ShapeError
 from texelbake.usd.shaderdefs import shader_id
 

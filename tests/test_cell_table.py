@@ -19,7 +19,7 @@ from texelbake.cpm import level_batched as lb
 from texelbake.cpm.level import direction_sets, level_candidates, tile_texels
 from texelbake.errors import SettingsError
 from texelbake.geometry.directions import cell_directions, hemisphere_directions, product_pairs
-from texelbake.scenes import write_scene
+from texelbake.testscenes import write_scene
 
 
 def test_cell_directions_lie_in_their_cells_and_repeat():
@@ -136,7 +136,7 @@ def test_lobe_half_width_against_the_brdf_itself(model, params):
     from the mirror direction in 0.005° steps: where it first falls to half its peak (within
     6 %: GGX's Fresnel, masking and 1/cos terms move the half point a little)."""
     from texelbake.brdf import evaluate
-    from texelbake.btf.stage import lobe_half_width
+    from texelbake.btf.bake import lobe_half_width
     from texelbake.model import Material
 
     m = Material("/M", model, params)
@@ -151,7 +151,7 @@ def test_lobe_half_width_against_the_brdf_itself(model, params):
 
 
 def test_the_btf_warns_of_a_lobe_narrower_than_its_directions():
-    from texelbake.btf.stage import narrow_lobes
+    from texelbake.btf.bake import narrow_lobes
     from texelbake.model import Material
 
     dirs = direction_sets(BakeSettings())

@@ -59,7 +59,7 @@ def _asset_file(name: str) -> Path:
 def _bake(name: str, d: Path) -> tuple[Path, Path]:
     from schemas.settings import BakeSettings
     from texelbake.pipeline.run import bake
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     src = _asset_file(name) if name == "teapot" else write_scene(name, d / f"{name}.usda",
                                                                    "small")

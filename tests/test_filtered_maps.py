@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from texelbake import model
-from texelbake.baselines.filtered import (
+from texelbake.baselines.filtered_maps import (
     CHANNELS,
     FIELDS,
     FILTER_TOL,
@@ -191,8 +191,8 @@ def test_chunked_passes_give_the_one_pass_maps_and_ao():
     """The export's passes a chunk of samples at a time (issue 15, memory): `FilteredSums`,
     `PreviewSums` and AO over chunks of 37 give the one-pass maps and AO bit for bit (the
     sums continue across chunks; AO's draws are those of the one-pass streams)."""
-    from texelbake.baselines.filtered import FilteredSums
-    from texelbake.baselines.normalmap import PreviewSums, bake_preview_maps
+    from texelbake.baselines.filtered_maps import FilteredSums
+    from texelbake.baselines.normal_maps import PreviewSums, bake_preview_maps
     from texelbake.io.chunks import chunk_ranges
 
     rng = np.random.default_rng(9)

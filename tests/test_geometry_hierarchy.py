@@ -173,9 +173,9 @@ def test_enclose_never_folds_a_face(tmp_path):
     neighbours'; moved by the normal equations alone, 4 of its faces folded (turned by more
     than 60 degrees or lost 80 % of their area) and the bake's R went non-finite. Their
     vertices must stay put instead."""
+    from texelbake.asset import load_asset
     from texelbake.geometry.hierarchy import enclose
-    from texelbake.scene import load_asset
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     asset = load_asset(write_scene("cylinder", tmp_path / "c.usda", "small"))
     pts = sample_surface(asset.points, asset.faces, 32 * 32 * 16, seed=0).positions

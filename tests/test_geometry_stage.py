@@ -18,7 +18,7 @@ from texelbake.geometry import build as build_mod
 from texelbake.geometry.build import build_geometry, geometry_chunk
 from texelbake.geometry.texels import morton
 from texelbake.io.spool import FileSpool, MemorySpool
-from texelbake.scenes import write_scene
+from texelbake.testscenes import write_scene
 
 
 @pytest.fixture(scope="module")

@@ -165,7 +165,7 @@ def test_a_merged_level_stores_eq7_where_it_reports_it_exact(tmp_path):
     from texelbake import stages
     from texelbake.cpm import level_batched as lb
     from texelbake.cpm.level import direction_sets, level_candidates, tile_texels
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     scene = write_scene("cylinder", tmp_path / "cyl.usda", "small")
     s = BakeSettings(atlas_resolution=16, shard_texels=8, samples_per_texel=16, n_light_dirs=16,

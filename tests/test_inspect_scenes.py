@@ -1,4 +1,4 @@
-"""The project's four test scenes (texelbake.scenes) read back by the ingest: counts against
+"""The project's four test scenes (texelbake.testscenes) read back by the ingest: counts against
 `expected_counts` (computed from the parameter table, independently of the reader), the
 models the texelbake render context selects, and what `describe` prints."""
 
@@ -9,8 +9,8 @@ import warnings
 import numpy as np
 import pytest
 
-from texelbake.scene import check_asset_paths, describe, load_asset
-from texelbake.scenes import expected_counts, write_scene
+from texelbake.asset import check_asset_paths, describe, load_asset
+from texelbake.testscenes import expected_counts, write_scene
 
 SCENES = ("cylinder", "wall", "bolt", "cloisonne")
 #: texelbake shader ids win over the UsdPreviewSurface approximation (scenes' convention)

@@ -168,7 +168,7 @@ CORE_LAYERS: tuple[tuple[str, ...], ...] = (
     ("texelbake.brdf", "texelbake.geometry", "texelbake.estimate"),
     ("texelbake.baselines", "texelbake.cpm", "texelbake.deform"),
     ("texelbake.usd",),
-    ("texelbake.scene", "texelbake.btf", "texelbake.scenes"),
+    ("texelbake.asset", "texelbake.btf", "texelbake.testscenes"),
     ("texelbake.trace",),
     ("texelbake.srf",),
     ("texelbake.render",),

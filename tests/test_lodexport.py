@@ -46,7 +46,7 @@ def _inspect(path):
 def baked(tmp_path_factory):
     from schemas.settings import BakeSettings
     from texelbake.pipeline.run import bake
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     d = tmp_path_factory.mktemp("lods")
     src = write_scene("cylinder", d / "cylinder.usda", "small")

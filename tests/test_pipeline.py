@@ -13,14 +13,14 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
 from schemas.settings import BakeSettings
 from texelbake import brdf
+from texelbake.asset import load_asset
 from texelbake.cpm.avis.table import avis_table_from
 from texelbake.geometry.basis import tangent_frames
 from texelbake.geometry.raycast import RayCaster
 from texelbake.pipeline.plan import plan_bake
 from texelbake.pipeline.run import bake, default_workdir
-from texelbake.scene import load_asset
-from texelbake.scenes import write_scene
-from texelbake.scenes.arm import write_arm
+from texelbake.testscenes import write_scene
+from texelbake.testscenes.arm import write_arm
 from texelbake.usd.read import read_baked
 
 SMALL = {"atlas_resolution": 16, "shard_texels": 8, "samples_per_texel": 8, "n_light_dirs": 12,

@@ -13,7 +13,7 @@ CHEAP = {"samples_per_texel": 4, "n_light_dirs": 4, "n_view_dirs": 4, "n_heldout
 
 @pytest.fixture(scope="module")
 def cylinder(tmp_path_factory):
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     d = tmp_path_factory.mktemp("quality")
     return d, write_scene("cylinder", d / "cylinder.usda", "small")

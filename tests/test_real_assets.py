@@ -101,7 +101,7 @@ def test_lods_keep_the_shape_within_their_bounds(baked):
     # issue 22: each LOD within error_px pixels at its switch size of M_org (the report's
     # pymeshlab distance), so its bounding box is within that bound of M_org's; a LOD1 too
     # fine for the 16² atlas is mapped into an atlas mesh stored beside the CPM arrays
-    from texelbake.scene import load_asset
+    from texelbake.asset import load_asset
     from texelbake.usd.read import read_baked
 
     _, src, root = baked

@@ -36,7 +36,7 @@ from texelbake.cpm.refit import (
     shrunk_weights,
     validation_fold,
 )
-from texelbake.scenes import write_scene
+from texelbake.testscenes import write_scene
 
 
 @pytest.fixture(scope="module")

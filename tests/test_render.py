@@ -362,7 +362,7 @@ def test_progressive_renders_any_sample_count_unbiased():
 def test_a_lightless_asset_is_lit_by_the_default_rig():
     """Studios ship assets without lights (the Teapot): the renderer lights them with a key and
     a fill from the viewer's side, and says so, instead of rendering black."""
-    from texelbake.scene.lights import DEFAULT_KEY_IRRADIANCE, default_light_rig
+    from texelbake.asset.lights import DEFAULT_KEY_IRRADIANCE, default_light_rig
 
     v, f = icosphere(2)
     asset = model(v, f)  # no lights

@@ -58,7 +58,7 @@ def specular_plane(tmp_path_factory) -> Path:
 def test_flat_plane_filtered_modes_equal_normalmap(specular_plane):
     """Variance 0 (a flat plane): every filtered mode is normalmap to 1e-6, far (coarse mip
     levels) and near (clamped to the finest); AO is 1 exactly (nothing above the plane)."""
-    from texelbake.baselines.filtered import FIELDS
+    from texelbake.baselines.filtered_maps import FIELDS
     from texelbake.render import render
     from texelbake.usd.read import read_baked
 
@@ -272,7 +272,7 @@ def test_fallback_materials_pass_stock_validation(tmp_path):
     (every LOD's fallback, and texelbake's own shaders with their definitions beside the
     file) nor on each exported LOD (what a tool without variants opens). The second
     LOD's roughness map is of its own level (coarser or equal)."""
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
     from texelbake.usd.export import export_lod
     from texelbake.usd.read import read_baked
 

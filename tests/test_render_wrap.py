@@ -13,7 +13,7 @@ import pytest
 def baked_wall(tmp_path_factory) -> Path:
     from schemas.settings import BakeSettings
     from texelbake.pipeline.run import bake
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     d = tmp_path_factory.mktemp("wall")
     src = write_scene("wall", d / "wall_small.usda", "small")

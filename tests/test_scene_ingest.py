@@ -1,4 +1,4 @@
-"""USD ingest (texelbake.scene): every feature on small stages built with pxr, each checked
+"""USD ingest (texelbake.asset): every feature on small stages built with pxr, each checked
 against an independent truth (hand-built matrices, brute-force loops, closed forms)."""
 
 from __future__ import annotations
@@ -18,9 +18,7 @@ from _scene_helpers import (
 )
 from pxr import Gf, Sdf, UsdGeom, UsdLux, UsdShade, UsdUtils, Vt
 
-from texelbake.geometry.mesh import face_normals, triangle_areas
-from texelbake.model import SHADER_LAMBERT, SHADER_MEASURED, SHADER_PHONG, AssetModel
-from texelbake.scene import (
+from texelbake.asset import (
     DEFAULT_MATERIAL,
     AssetWarning,
     check_asset_paths,
@@ -28,6 +26,8 @@ from texelbake.scene import (
     load_asset,
     srgb_to_linear,
 )
+from texelbake.geometry.mesh import face_normals, triangle_areas
+from texelbake.model import SHADER_LAMBERT, SHADER_MEASURED, SHADER_PHONG, AssetModel
 
 # Points are authored as float32; every comparison of positions uses the float32 inputs
 # widened to float64, so exact transforms agree to float64 rounding of a few products.

@@ -9,7 +9,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from tests._scene_helpers import new_stage, triangle_mesh
-from texelbake.scene import load_asset
+from texelbake.asset import load_asset
 
 TRI = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 

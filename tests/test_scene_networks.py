@@ -1,6 +1,6 @@
 """Shading networks as studios author them: material inputs driven by UsdPrimvarReader nodes
 are evaluated on the bound mesh; MaterialX surface shaders are read as UsdPreviewSurface
-(issue 11, item 4; texelbake.scene.primvars). Expected values are computed here from the
+(issue 11, item 4; texelbake.asset.primvars). Expected values are computed here from the
 authored arrays, not through texelbake."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from pxr import Sdf, UsdGeom, UsdShade, Vt
 
 from tests._scene_helpers import bind, grid_mesh, new_stage
-from texelbake.scene import load_asset
+from texelbake.asset import load_asset
 
 
 def _display_color_material(stage, path, reader_id="UsdPrimvarReader_float3", fallback=None,
@@ -105,7 +105,7 @@ def test_missing_primvar_gives_the_readers_fallback(tmp_path):
 
 
 def test_many_distinct_values_are_bounded(tmp_path):
-    from texelbake.scene.primvars import MAX_VARIANTS
+    from texelbake.asset.primvars import MAX_VARIANTS
 
     stage = new_stage(tmp_path / "a.usda")
     mat = _display_color_material(stage, "/Root/Looks/M")
@@ -129,7 +129,7 @@ def test_subdivision_mesh_is_baked_as_its_cage_with_a_warning(tmp_path):
     assert asset.num_faces == 2  # the cage's triangles
 
 
-# ---- MaterialX surface shaders (texelbake.scene.mtlx) ---------------------------------------
+# ---- MaterialX surface shaders (texelbake.asset.mtlx) ---------------------------------------
 
 
 def _mtlx_material(stage, path, inputs, *, universal=False, driven=None):

@@ -1,7 +1,7 @@
 """The USD test scenes: written, validated by pxr, counted independently, deterministic.
 
 Counts here are taken from the written files with pxr alone (faceVertexCounts, prim types,
-resolved bindings, UsdUVTexture file inputs), never from texelbake.scenes' own arrays; the
+resolved bindings, UsdUVTexture file inputs), never from texelbake.testscenes' own arrays; the
 geometry checks compare against closed forms (the ridged cylinder's volume, the bolt's
 lattice) or a second computation (Newell face normals against the authored normals).
 """
@@ -16,10 +16,10 @@ import OpenImageIO as oiio
 import pytest
 from pxr import Gf, Sdf, Sdr, Usd, UsdGeom, UsdLux, UsdShade, UsdValidation
 
-from texelbake import scenes
+from texelbake import testscenes as scenes
 from texelbake.errors import SettingsError
 from texelbake.model import SHADER_CELLULAR, SHADER_PREVIEW
-from texelbake.scenes import SCENE_NAMES, expected_counts, write_scene
+from texelbake.testscenes import SCENE_NAMES, expected_counts, write_scene
 from texelbake.usd.shaderdefs import SHADER_INPUTS, register_shader_definitions
 from texelbake.usd.shaderdefs import shader_id as read_shader_id
 
@@ -57,7 +57,7 @@ def _mesh_arrays(mesh: UsdGeom.Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def _fan(counts: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """(t, 3) triangles of a fan triangulation, written independently of texelbake.scenes."""
+    """(t, 3) triangles of a fan triangulation, written independently of texelbake.testscenes."""
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     face = np.repeat(np.arange(len(counts)), counts - 2)
     k = np.arange(len(face)) - np.repeat(np.cumsum(counts - 2) - (counts - 2), counts - 2)

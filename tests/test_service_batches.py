@@ -32,7 +32,7 @@ NO_MESH = usda()
 
 @pytest.fixture(scope="module")
 def cylinder(tmp_path_factory) -> Path:
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     return write_scene("cylinder", tmp_path_factory.mktemp("scene") / "cylinder.usda", "small")
 

@@ -90,7 +90,7 @@ def client(gen, stack):
 
 @pytest.fixture(scope="module")
 def cylinder(tmp_path_factory) -> Path:
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     return write_scene("cylinder", tmp_path_factory.mktemp("scene") / "cylinder.usda", "small")
 

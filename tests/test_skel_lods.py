@@ -89,7 +89,7 @@ def _settings():
 @pytest.fixture(scope="module")
 def baked_arm(tmp_path_factory) -> Path:
     from texelbake.pipeline.run import bake
-    from texelbake.scenes.arm import write_arm
+    from texelbake.testscenes.arm import write_arm
 
     d = tmp_path_factory.mktemp("arm")
     with pytest.warns(Warning, match="skinned by UsdSkel"):
@@ -105,7 +105,7 @@ def baked_pointcache(tmp_path_factory) -> Path:
 
     from texelbake.deform.warps import parse_warp
     from texelbake.pipeline.run import bake
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     d = tmp_path_factory.mktemp("pc")
     src = write_scene("cylinder", d / "cyl.usda", size="small")
@@ -207,7 +207,7 @@ def test_lod_weights_are_m_orgs_blended_at_the_closest_point(baked_arm):
     of height (scenes.arm.joint_weights), so the barycentric blend at a vertex's closest
     point on M_org is that function of the closest point's height wherever the triangle lies
     inside one linear piece; brute-force closest points over every triangle."""
-    from texelbake.scenes.arm import BLEND, joint_heights, joint_weights
+    from texelbake.testscenes.arm import BLEND, joint_heights, joint_weights
     from texelbake.usd.read import read_baked
 
     scene = load_scene(baked_arm)
@@ -266,8 +266,8 @@ def test_skinning_that_is_not_one_blend_falls_back_to_time_samples(tmp_path):
     are still skinned into time samples (the LODs then carry those)."""
     from pxr import Usd, Vt
 
-    from texelbake.scene import load_asset
-    from texelbake.scenes.arm import write_arm
+    from texelbake.asset import load_asset
+    from texelbake.testscenes.arm import write_arm
 
     path = write_arm(tmp_path / "arm.usda")
     stage = Usd.Stage.Open(str(path))
@@ -403,8 +403,8 @@ def test_an_asset_warning_is_shown_once_and_kept_in_the_report(tmp_path):
     import warnings
 
     from texelbake.pipeline.run import bake
-    from texelbake.scenes.arm import write_arm
     from texelbake.stages.context import _load_asset_cached
+    from texelbake.testscenes.arm import write_arm
 
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
@@ -420,7 +420,7 @@ def test_an_asset_warning_is_shown_once_and_kept_in_the_report(tmp_path):
     report = json.loads((root.parent / "report.json").read_text())
     assert [w for w in report["warnings"] if "skinned by UsdSkel" in w] == [f"asset: {shown[0]}"]
     code = ("import warnings\nfrom texelbake.cli import _show_asset_warnings_plainly\n"
-            "from texelbake.scene.values import AssetWarning\n_show_asset_warnings_plainly()\n"
+            "from texelbake.asset.values import AssetWarning\n_show_asset_warnings_plainly()\n"
             "warnings.warn('mesh /A: something', AssetWarning)\n")
     err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stderr

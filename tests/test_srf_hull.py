@@ -11,7 +11,7 @@ from tests._srf_helpers import sphere_asset
 from texelbake.errors import AssetError, SettingsError
 from texelbake.render.metrics import psnr_db
 from texelbake.srf.capture import capture, unit_light
-from texelbake.srf.frame import render_srf
+from texelbake.srf.deferred import render_srf
 from texelbake.srf.hull import carve, cuberille, visual_hull
 from texelbake.srf.store import SrfWriter
 from texelbake.srf.surfels import surfels_from_mesh

@@ -20,7 +20,7 @@ from texelbake.render.scene import load_scene
 def baked_cylinder(tmp_path_factory) -> Path:
     from schemas.settings import BakeSettings
     from texelbake.pipeline.run import bake
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     d = tmp_path_factory.mktemp("cyl")
     src = write_scene("cylinder", d / "cylinder.usda", size="small")

@@ -12,7 +12,7 @@ from texelbake.deform.warps import parse_warp
 from texelbake.geometry.raycast import RayCaster
 from texelbake.render.metrics import psnr_db
 from texelbake.srf.capture import capture, unit_light
-from texelbake.srf.frame import render_srf, splat_surfels
+from texelbake.srf.deferred import render_srf, splat_surfels
 from texelbake.srf.rig import project
 from texelbake.srf.splat import splat
 from texelbake.srf.surfels import surfels_from_mesh

@@ -14,9 +14,9 @@ from texelbake.pipeline.plan import plan_bake
 from texelbake.pipeline.run import bake, run_shard
 from texelbake.render.frame import render_frame
 from texelbake.render.scene import load_scene
-from texelbake.scenes import write_scene
 from texelbake.srf.capture import capture
 from texelbake.srf.store import open_store
+from texelbake.testscenes import write_scene
 
 SRF = {"srf": True, "srf_cameras": 5, "srf_lights": 2, "srf_size": 12, "srf_spp": 1,
        "srf_shard_cameras": 2}

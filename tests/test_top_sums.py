@@ -14,8 +14,8 @@ from texelbake import stages
 from texelbake.cpm import level_batched as lb
 from texelbake.cpm.level import samples_in, tile_texels
 from texelbake.cpm.level_batched import DenseSums, dense_sums
-from texelbake.scenes import write_scene
 from texelbake.stages import cpm as cpm_stage
+from texelbake.testscenes import write_scene
 
 #: a 32^2 atlas in 8^2 tiles: levels 0-3 inside a tile, levels 4-5 (2 x 2 texels, 1) above
 SETTINGS = {"atlas_resolution": 32, "shard_texels": 8, "samples_per_texel": 8,

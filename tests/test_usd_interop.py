@@ -52,7 +52,7 @@ def stock_errors(*paths: Path) -> dict[str, list[str]]:
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory) -> list[Path]:
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     out = tmp_path_factory.mktemp("scenes")
     return [write_scene(n, out / f"{n}.usda", "small")
@@ -107,7 +107,7 @@ def test_shader_id_reads_both_forms():
 
 
 def test_ingest_reads_a_source_asset_shader_like_an_id_shader(scenes):
-    from texelbake.scene import load_asset
+    from texelbake.asset import load_asset
 
     asset = load_asset(scenes[0])  # the cylinder: texelbake:lambert and texelbake:phong
     assert sorted(m.model for m in asset.materials) == ["lambert", "phong"]
@@ -129,7 +129,7 @@ def _sun(stage, path, **attrs):
 
 def test_distant_light_units_follow_usdlux(tmp_path):
     from tests._scene_helpers import grid_mesh, new_stage
-    from texelbake.scene import load_asset
+    from texelbake.asset import load_asset
 
     stage = new_stage(tmp_path / "a.usda")
     grid_mesh(stage, "/Root/m", 1, 1)
@@ -159,7 +159,7 @@ def test_distant_light_units_follow_usdlux(tmp_path):
 
 def test_sphere_light_units_follow_usdlux(tmp_path):
     from tests._scene_helpers import grid_mesh, new_stage
-    from texelbake.scene import load_asset
+    from texelbake.asset import load_asset
 
     stage = new_stage(tmp_path / "a.usda")
     grid_mesh(stage, "/Root/m", 1, 1)
@@ -197,7 +197,7 @@ def test_up_axis_and_units_reach_every_output(tmp_path):
 
     from schemas.settings import BakeSettings
     from texelbake.pipeline.run import bake
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
     from texelbake.usd.export import export_lod
 
     src = write_scene("cylinder", tmp_path / "src" / "cyl.usda", "small")

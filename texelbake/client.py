@@ -3,7 +3,7 @@
 
 Uses only httpx and the standard library (no server imports). A layer file that uses other
 files (textures, sublayers) is sent as a `.zip` bundle of exactly the files it uses (found with
-`texelbake.scene.check_asset_paths`); a folder is zipped whole; `.usdz` and `.zip` go as they are.
+`texelbake.asset.check_asset_paths`); a folder is zipped whole; `.usdz` and `.zip` go as they are.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def package(path: str | Path) -> tuple[str, bytes]:
     if path.suffix.lower() in (".usdz", ".zip"):
         return path.name, path.read_bytes()
     try:
-        from texelbake.scene import check_asset_paths
+        from texelbake.asset import check_asset_paths
     except ImportError:  # pxr missing on this machine: send the layer alone
         return path.name, path.read_bytes()
     used = [Path(p) for p in check_asset_paths(path)]

@@ -1,6 +1,6 @@
 """The AssetModel: everything the pipeline needs from a USD asset, as immutable arrays.
 
-`texelbake.scene.load_asset` builds it; every later stage reads only this. World space is
+`texelbake.asset.load_asset` builds it; every later stage reads only this. World space is
 the asset's, after flattening transforms; directions are unit vectors.
 
 Shader ids: UsdPreviewSurface is read per its published spec. texelbake's own ids (authored
@@ -122,7 +122,7 @@ class Light:
     position : (3,) float64, world space (sphere)
     radiance_scale : (3,) float64. distant: irradiance at normal incidence (UsdLux: luminance
         color * intensity * 2**exposure, times the solid angle of `inputs:angle` unless
-        `inputs:normalize`; `texelbake.scene.lights.distant_irradiance_factor`). sphere: radiant intensity in W/sr
+        `inputs:normalize`; `texelbake.asset.lights.distant_irradiance_factor`). sphere: radiant intensity in W/sr
         (color * intensity * 2**exposure * pi * radius**2, or without the area term when
         radius == 0 / treatAsPoint), falling off as 1/d**2.
     """

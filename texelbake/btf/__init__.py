@@ -1,6 +1,7 @@
 """BTF level of detail (seed 001): Laplacian pyramids of the BTF images, PCA per level and
 channel, a Phong top-level mean, packed into two float EXR maps and evaluated with Eq. 7."""
 
+from texelbake.btf.bake import author_btf_shader, bake_btf, btf_from_texels
 from texelbake.btf.color import rgb_to_ycbcr, ycbcr_to_rgb
 from texelbake.btf.compress import BTFMaps, BTFSettings, BuildInfo, build_btf_maps
 from texelbake.btf.laplacian import build_pyramid, collapse
@@ -12,7 +13,6 @@ from texelbake.btf.pca import pca_batched
 from texelbake.btf.phong import fit_phong, phong_eval
 from texelbake.btf.render import btf_lookup, btf_lookup_texels
 from texelbake.btf.report import btf_errors, btf_report, compression_stats, error_vs_components
-from texelbake.btf.stage import author_btf_shader, bake_btf, btf_from_texels
 
 __all__ = [
     "SHADER_BTF",

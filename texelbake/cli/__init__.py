@@ -30,7 +30,7 @@ def _show_asset_warnings_plainly() -> None:
     asset); other warnings keep the default format."""
     import warnings
 
-    from texelbake.scene.values import AssetWarning
+    from texelbake.asset.values import AssetWarning
 
     default = warnings.formatwarning
 

@@ -109,7 +109,7 @@ def _quality_status(root: Path, accept: bool) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     """Bake generated scenes in one process (no servers) and say where the results are."""
     from texelbake.pipeline.run import bake
-    from texelbake.scenes import write_scene
+    from texelbake.testscenes import write_scene
 
     out = Path(args.out)
     settings = settings_from_args(args, DEMO_SETTINGS)
@@ -117,7 +117,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     for name in names:
         t0 = time.perf_counter()
         if name == "arm":  # skinned (UsdSkel): its LODs are bound to the skeleton
-            from texelbake.scenes.arm import write_arm
+            from texelbake.testscenes.arm import write_arm
 
             scene = write_arm(out / "scenes" / "arm_small.usda", "small")
         else:

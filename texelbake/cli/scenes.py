@@ -7,12 +7,12 @@ from pathlib import Path
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:
-    from texelbake.scenes import SCENE_NAMES, write_scene
+    from texelbake.testscenes import SCENE_NAMES, write_scene
 
     names = SCENE_NAMES if args.name == "all" else (args.name,)
     out = Path(args.output)
-    if args.name == "arm":  # the skinned cylinder of seed 002 (texelbake.scenes.arm)
-        from texelbake.scenes.arm import write_arm
+    if args.name == "arm":  # the skinned cylinder of seed 002 (texelbake.testscenes.arm)
+        from texelbake.testscenes.arm import write_arm
 
         print(write_arm(out, args.size))
         return 0
@@ -23,7 +23,7 @@ def cmd_scenes(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from texelbake.scene import describe, load_asset
+    from texelbake.asset import describe, load_asset
 
     print(describe(load_asset(args.file)))
     return 0

@@ -106,7 +106,7 @@ def asset_deforms(asset_path: Path) -> bool:
 
 @functools.lru_cache(maxsize=16)
 def _deforms(path: str, mtime_ns: int, size: int) -> bool:
-    from texelbake.scene.load import load_asset
+    from texelbake.asset.load import load_asset
 
     with warnings.catch_warnings():  # the ingest stage reports the asset's warnings
         warnings.simplefilter("ignore")

@@ -1,5 +1,5 @@
 """What the filtered-normal-map modes (`toksvig`, `leadr`, their `+ao` variants) share: the
-bake's filtered maps read back through `texelbake.payload` (`texelbake.baselines.filtered`
+bake's filtered maps read back through `texelbake.payload` (`texelbake.baselines.filtered_maps`
 layout), looked up trilinearly at each eye ray's footprint exactly as ``cpm`` picks its level
 (`cpm.footprint_level`, each of the spp samples at its 1/spp share of the pixel: λ lower by
 ½ log2 spp, clipped to the levels — the maps have no M_org fall-back: closer than the finest
@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from texelbake.baselines.filtered import CHANNELS, FIELDS
+from texelbake.baselines.filtered_maps import CHANNELS, FIELDS
 from texelbake.errors import StageError
 from texelbake.geometry.texels import bilinear_texels
 from texelbake.render.cpm import footprint_level

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from texelbake import brdf as brdf_mod
-from texelbake.baselines.filtered import slope_covariance
+from texelbake.baselines.filtered_maps import slope_covariance
 from texelbake.brdf.evaluate import PREVIEW_BRDF_INPUTS, material_inputs
 from texelbake.brdf.widened import preview_leadr, widen_material
 from texelbake.geometry.basis import tangent_frames

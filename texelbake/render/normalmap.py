@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from texelbake import brdf as brdf_mod
-from texelbake.baselines.normalmap import face_tangent_space
+from texelbake.baselines.normal_maps import face_tangent_space
 from texelbake.errors import StageError
 from texelbake.geometry.texels import bilinear_texels
 from texelbake.render.scene import RenderScene, hit_m1, m1_arrays
@@ -66,7 +66,7 @@ def baseline_maps(scene: RenderScene) -> tuple[np.ndarray, np.ndarray]:
     else the PNGs of the USD fallback (bakes from before the filtered maps)."""
     if not scene.baked.filtered:
         return scene.baked.albedo, scene.baked.normal
-    from texelbake.baselines.filtered import FIELDS
+    from texelbake.baselines.filtered_maps import FIELDS
 
     top = scene.baked.filtered[0].astype(np.float64)
     nbar = top[..., FIELDS["nbar"]]

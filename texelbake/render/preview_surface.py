@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from texelbake import model
-from texelbake.baselines.normalmap import face_tangent_space
+from texelbake.baselines.normal_maps import face_tangent_space
 from texelbake.brdf.analytic import preview_surface
 from texelbake.errors import StageError
 from texelbake.geometry.texels import bilinear_texels

@@ -32,7 +32,7 @@ class RenderScene(OrgScene):
     atlas_face_normals: np.ndarray
 
     def __init__(self, baked_root: str | Path) -> None:
-        from texelbake.scene import load_asset
+        from texelbake.asset import load_asset
         from texelbake.usd.read import read_baked
 
         t0 = time.perf_counter()

@@ -24,7 +24,7 @@ from dataclasses import replace
 import numpy as np
 
 from texelbake import brdf as brdf_mod
-from texelbake.baselines.filtered import toksvig_variance
+from texelbake.baselines.filtered_maps import toksvig_variance
 from texelbake.brdf.widened import toksvig_phong_exponent, widen_material
 from texelbake.geometry.basis import tangent_frames
 from texelbake.render.filtered import RadianceFn, field, shade_filtered

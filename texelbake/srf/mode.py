@@ -15,7 +15,7 @@ from texelbake.deform.warps import Warp
 from texelbake.errors import SettingsError, StageError
 from texelbake.srf.cache import DEFAULT_CAPACITY
 from texelbake.srf.capture import capture
-from texelbake.srf.frame import render_srf
+from texelbake.srf.deferred import render_srf
 from texelbake.srf.hull import visual_hull
 from texelbake.srf.store import SrfStore, open_store
 from texelbake.srf.surfels import Surfels, surfels_from_baked, surfels_from_mesh

@@ -22,7 +22,7 @@ def run_btf(ctx: StageContext, shard: int = 0) -> str:
     Eq. 7 values the CPM stage measured against (f_bar on the N_i x N_o grid), one BTF image per
     direction pair over the atlas; EXR maps and a report under the store."""
     from texelbake.btf import BTFSettings, bake_btf, btf_from_texels
-    from texelbake.btf.stage import narrow_lobes
+    from texelbake.btf.bake import narrow_lobes
 
     key = btf_key(ctx)
     out = ctx.store.path(key)

@@ -87,7 +87,7 @@ def _asset_digest(path: str, mtime_ns: int) -> str:
     # The root layer's bytes plus every file it references (textures, sublayers): a texture
     # edit must change the key.
     h = hashlib.sha256(file_sha256(path).encode())
-    from texelbake.scene import check_asset_paths
+    from texelbake.asset import check_asset_paths
 
     for dep in sorted(check_asset_paths(path)):
         if Path(dep).resolve() != Path(path).resolve():
@@ -100,8 +100,8 @@ def _load_asset_cached(path: str, digest: str) -> AssetModel:
     """The asset as every stage reads it, its warnings kept in `AssetModel.warnings` and not
     shown: the ingest stage shows them once (`run_ingest`), the report lists them, and a
     shard process that reads the asset again does not repeat them."""
-    from texelbake.scene import load_asset
-    from texelbake.scene.values import AssetWarning
+    from texelbake.asset import load_asset
+    from texelbake.asset.values import AssetWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AssetWarning)

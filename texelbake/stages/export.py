@@ -57,8 +57,8 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         from texelbake.errors import SettingsError
 
         raise SettingsError(f"field 'source': expected 'copy' or 'reference', got {source!r}")
-    from texelbake.baselines.normalmap import PreviewSums
-    from texelbake.scene import check_asset_paths
+    from texelbake.asset import check_asset_paths
+    from texelbake.baselines.normal_maps import PreviewSums
 
     s = ctx.settings
     out_dir = Path(out_dir)

@@ -1,6 +1,6 @@
 """The filtered-maps step of the export: the filtered normal, LEADR moment, AO,
 albedo and base maps of every mip level, from the geometry stage's samples and texel
-assignment (`texelbake.baselines.filtered`), kept in the artifact store under a content key (the
+assignment (`texelbake.baselines.filtered_maps`), kept in the artifact store under a content key (the
 AO rays are the cost, so a rerun of the export does not cast them again)."""
 
 from __future__ import annotations
@@ -9,14 +9,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from texelbake.baselines.filtered import (
+from texelbake.baselines.filtered_maps import (
     FILTER_TOL,
     FilteredSums,
     ambient_occlusion,
     bake_filtered_levels,
     material_base,
 )
-from texelbake.baselines.normalmap import face_tangent_space
+from texelbake.baselines.normal_maps import face_tangent_space
 from texelbake.cpm.level import texel_ids
 from texelbake.geometry.build import geometry_chunk
 from texelbake.io.chunks import chunk_ranges, sample_rows
@@ -144,7 +144,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     geometry stage's (`assign_texels`, the bent-normal rule on wraps), and the level-0 tangent-
     space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
     artifact store."""
-    from texelbake.baselines.filtered import CHANNELS, FIELDS
+    from texelbake.baselines.filtered_maps import CHANNELS, FIELDS
     from texelbake.geometry.atlas import Atlas
     from texelbake.geometry.mesh import Mesh, face_normals
     from texelbake.geometry.raycast import RayCaster
@@ -171,7 +171,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     wrapped = float(geo["m1_wrap_offset"]) > 0.0
     asg = assign_texels(smp.positions, m_t, atlas, 1, normals=gnrm,
                         occluder=caster if wrapped else None)
-    from texelbake.baselines.normalmap import face_tangent_space
+    from texelbake.baselines.normal_maps import face_tangent_space
     from texelbake.geometry.build import lod_meshes
 
     v, f, uv = lod_meshes(geo)[0]
@@ -230,7 +230,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     atlas resolution the maps are baked from their own dense samples on the same layout
     (`_dense_fallback_levels`) and the fallback gets its own normal map ("normal"); else
     they are the filtered levels `maps` and the normal map is the baseline's."""
-    from texelbake.baselines.filtered import (
+    from texelbake.baselines.filtered_maps import (
         FIELDS,
         dominant_constants,
         fallback_roughness,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import warnings
 
-from texelbake.scene.values import AssetWarning
+from texelbake.asset.values import AssetWarning
 from texelbake.stages.context import StageContext
 
 

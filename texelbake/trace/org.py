@@ -29,7 +29,7 @@ class OrgScene:
         #: `scene.lights.default_light_rig` (reports name the rig's lights)
         self.default_lights = not asset.lights
         if self.default_lights:
-            from texelbake.scene.lights import default_light_rig
+            from texelbake.asset.lights import default_light_rig
 
             centre = np.asarray(asset.bounds, dtype=np.float64).mean(axis=0)
             view = self.default_camera(64, 64).position - centre

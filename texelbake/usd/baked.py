@@ -9,7 +9,7 @@ A baked asset is a folder:
     <name>_albedo.png, <name>_normal.png
                              the baseline's albedo and normal maps baked onto M1
     <name>_filtered_L<ll>.exr
-                             the filtered maps of each mip level (`texelbake.baselines.filtered`:
+                             the filtered maps of each mip level (`texelbake.baselines.filtered_maps`:
                              mean normal, LEADR moments, AO, albedo, base colour, α²)
     <name>_basecolor.png, <name>_occlusion.png, <name>_roughness_lod<i>.png
     [<name>_fallback_normal.png]

@@ -93,7 +93,7 @@ def read_filtered_maps(folder: Path, name: str) -> list[np.ndarray]:
     """The filtered maps `<name>_filtered_L<ll>.exr` of every level (empty list when the bake
     wrote none: older bakes). AssetError naming the file when its channels are not
     `filtered_maps.CHANNELS`."""
-    from texelbake.baselines.filtered import CHANNELS
+    from texelbake.baselines.filtered_maps import CHANNELS
     from texelbake.io.images import read_pixels
 
     out: list[np.ndarray] = []

@@ -47,7 +47,7 @@ def _author_arrays(prim: Usd.Prim, arrays: dict[str, np.ndarray]) -> None:
 
 def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
     """Write every map file of the bundle; returns the file names the materials use."""
-    from texelbake.baselines.filtered import CHANNELS
+    from texelbake.baselines.filtered_maps import CHANNELS
     from texelbake.io.images import write_pixels
 
     name = baked.name

@@ -7,8 +7,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from texelbake.scenes.params import BOLT
-from texelbake.scenes.spec import (
+from texelbake.testscenes.params import BOLT
+from texelbake.testscenes.spec import (
     LightSpec,
     MaterialSpec,
     MeshSpec,

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from texelbake import brdf
-from texelbake.baselines.normalmap import dilate
+from texelbake.baselines.normal_maps import dilate
 from texelbake.errors import ShapeError
 from texelbake.io.chunks import bincount_continued
 from texelbake.model import Material

@@ -56,8 +56,8 @@ arrays), one module per scene (`cylinder`, `wall`, `bolt`, `cloisonne`), `author
 authoring, `build_stage`, `write_scene`).
 """
 
-from texelbake.scenes.author import build_stage, write_scene
-from texelbake.scenes.params import (
+from texelbake.testscenes.author import build_stage, write_scene
+from texelbake.testscenes.params import (
     CELLULAR_INPUTS,
     LAYER_SUFFIXES,
     SCENE_NAMES,

@@ -8,8 +8,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from texelbake.model import SHADER_LAMBERT, SHADER_PHONG
-from texelbake.scenes.params import CYLINDER
-from texelbake.scenes.spec import LightSpec, MaterialSpec, MeshSpec, SceneSpec, unit
+from texelbake.testscenes.params import CYLINDER
+from texelbake.testscenes.spec import LightSpec, MaterialSpec, MeshSpec, SceneSpec, unit
 
 
 def build_cylinder(p: Mapping[str, int], rng: np.random.Generator) -> SceneSpec:

@@ -16,18 +16,18 @@ from texelbake.errors import SettingsError
 from texelbake.io.atomic import atomic_path
 from texelbake.io.images import write_png
 from texelbake.model import SHADER_PREVIEW
-from texelbake.scenes.bolt import build_bolt
-from texelbake.scenes.cloisonne import build_cloisonne
-from texelbake.scenes.cylinder import build_cylinder
-from texelbake.scenes.params import (
+from texelbake.testscenes.bolt import build_bolt
+from texelbake.testscenes.cloisonne import build_cloisonne
+from texelbake.testscenes.cylinder import build_cylinder
+from texelbake.testscenes.params import (
     LAYER_SUFFIXES,
     METERS_PER_UNIT,
     SCENE_PARAMS,
     SEEDS,
     check_scene,
 )
-from texelbake.scenes.spec import LightSpec, MaterialSpec, MeshSpec, unit
-from texelbake.scenes.wall import build_wall
+from texelbake.testscenes.spec import LightSpec, MaterialSpec, MeshSpec, unit
+from texelbake.testscenes.wall import build_wall
 from texelbake.usd.shaderdefs import (
     ALL_SHADER_INPUTS,
     author_shader,
@@ -191,7 +191,7 @@ def build_stage(name: str, size: str = "small") -> tuple[Usd.Stage, dict[str, np
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, METERS_PER_UNIT[name])
     layer = stage.GetRootLayer()
-    layer.documentation = f"texelbake test scene '{name}' ({size}), written by texelbake.scenes"
+    layer.documentation = f"texelbake test scene '{name}' ({size}), written by texelbake.testscenes"
     layer.customLayerData = {"texelbake": {"scene": name, "size": size, "seed": SEEDS[name]}}
     root_path = f"/{spec.root}"
     root = UsdGeom.Xform.Define(stage, root_path)

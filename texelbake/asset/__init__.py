@@ -26,12 +26,12 @@ and cameras as column-vector matrices (`M.T`).
 """
 
 
+from texelbake.asset.describe import describe
+from texelbake.asset.load import load_asset
+from texelbake.asset.materials import DEFAULT_MATERIAL, TEXELBAKE_DEFAULTS
+from texelbake.asset.paths import USD_EXTENSIONS, check_asset_paths
+from texelbake.asset.values import AssetWarning
 from texelbake.io.images import srgb_to_linear
-from texelbake.scene.describe import describe
-from texelbake.scene.load import load_asset
-from texelbake.scene.materials import DEFAULT_MATERIAL, TEXELBAKE_DEFAULTS
-from texelbake.scene.paths import USD_EXTENSIONS, check_asset_paths
-from texelbake.scene.values import AssetWarning
 
 __all__ = [
     "DEFAULT_MATERIAL",

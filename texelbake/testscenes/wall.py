@@ -6,8 +6,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from texelbake.scenes.params import WALL
-from texelbake.scenes.spec import (
+from texelbake.testscenes.params import WALL
+from texelbake.testscenes.spec import (
     LightSpec,
     MaterialSpec,
     MeshSpec,

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from texelbake.asset.values import usd_matrix, warn
 from texelbake.model import SkinData
-from texelbake.scene.values import usd_matrix, warn
 
 
 def skin_data(mesh_prims: list[Any | None], n_points: list[int], skins: dict[str, tuple[Any, Any]],

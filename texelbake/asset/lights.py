@@ -6,12 +6,12 @@ from typing import Any
 
 import numpy as np
 
+from texelbake.asset.values import usd_matrix, warn
 from texelbake.errors import AssetError
 from texelbake.model import (
     Camera,
     Light,
 )
-from texelbake.scene.values import usd_matrix, warn
 
 
 def read_light(prim: Any, time: Any, xcache: Any, warns: list[str]) -> Light | None:

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from texelbake.asset.values import first_line
 from texelbake.errors import AssetError, AssetPathError
-from texelbake.scene.values import first_line
 
 # "scheme:" with a scheme of >= 2 characters is a URL ("C:" alone is a Windows drive).
 USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")

@@ -9,17 +9,10 @@ from typing import Any
 
 import numpy as np
 
-from texelbake.errors import AssetError
-from texelbake.model import (
-    AssetModel,
-    Camera,
-    Light,
-    Material,
-)
-from texelbake.scene.instancers import instancer_meshes
-from texelbake.scene.lights import read_camera, read_light
-from texelbake.scene.materials import DEFAULT_MATERIAL, MaterialReader, face_materials
-from texelbake.scene.meshes import (
+from texelbake.asset.instancers import instancer_meshes
+from texelbake.asset.lights import read_camera, read_light
+from texelbake.asset.materials import DEFAULT_MATERIAL, MaterialReader, face_materials
+from texelbake.asset.meshes import (
     MeshData,
     area_weighted_normals,
     is_rendered,
@@ -29,9 +22,16 @@ from texelbake.scene.meshes import (
     tri_cross,
     world_points,
 )
-from texelbake.scene.paths import check_asset_paths
-from texelbake.scene.skin import skin_data
-from texelbake.scene.values import first_line, warn
+from texelbake.asset.paths import check_asset_paths
+from texelbake.asset.skin import skin_data
+from texelbake.asset.values import first_line, warn
+from texelbake.errors import AssetError
+from texelbake.model import (
+    AssetModel,
+    Camera,
+    Light,
+    Material,
+)
 from texelbake.tol import TOL
 
 

@@ -7,6 +7,10 @@ from typing import Any
 
 import numpy as np
 
+from texelbake.asset.files import load_image, load_merl
+from texelbake.asset.mtlx import MTLX_SURFACES, preview_params
+from texelbake.asset.primvars import READER_WIDTH, face_values, group_faces
+from texelbake.asset.values import coerce_like, default_param, warn
 from texelbake.errors import AssetError, AssetPathError
 from texelbake.io.images import srgb_to_linear
 from texelbake.model import (
@@ -17,10 +21,6 @@ from texelbake.model import (
     Material,
     Texture,
 )
-from texelbake.scene.files import load_image, load_merl
-from texelbake.scene.mtlx import MTLX_SURFACES, preview_params
-from texelbake.scene.primvars import READER_WIDTH, face_values, group_faces
-from texelbake.scene.values import coerce_like, default_param, warn
 from texelbake.usd.shaderdefs import SHADER_INPUTS, shader_id
 
 #: defaults for unauthored inputs of texelbake's own shader ids: the Sdr definitions'
@@ -63,13 +63,13 @@ class MaterialReader:
         self.warns = warns
         self._images: dict[str, tuple[np.ndarray, bool, str]] = {}
         #: material path -> {input name: (primvar name, width, fallback (width,))} for inputs
-        #: driven by a UsdPrimvarReader (texelbake.scene.primvars)
+        #: driven by a UsdPrimvarReader (texelbake.asset.primvars)
         self.primvar_inputs: dict[str, dict[str, tuple[str, int, np.ndarray]]] = {}
 
     def specialize(self, material: Material, prim: Any, faces: np.ndarray
                    ) -> tuple[list[tuple[bytes, Material]], np.ndarray]:
         """The material as faces `faces` of mesh `prim` see it: its primvar-driven inputs
-        evaluated on the mesh (texelbake.scene.primvars).
+        evaluated on the mesh (texelbake.asset.primvars).
 
         returns : ([(key, Material) per distinct value; key b"" when nothing is driven],
                    (len(faces),) int64 index into that list per face)
@@ -170,7 +170,7 @@ class MaterialReader:
         return self._constant_preview(mat_path, prim)
 
     def _read_mtlx(self, mat_path: str, prim: Any, sid: str | None) -> Material:
-        """A MaterialX surface shader as UsdPreviewSurface parameters (texelbake.scene.mtlx)."""
+        """A MaterialX surface shader as UsdPreviewSurface parameters (texelbake.asset.mtlx)."""
         from pxr import UsdShade
 
         shader = UsdShade.Shader(prim)

@@ -83,7 +83,7 @@ def group_faces(values: np.ndarray, warns: list[str], where: str
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Group faces by value: (distinct (k, w) float64, (n,) int group of each face), with the
     MAX_VARIANTS rule of the module docstring."""
-    from texelbake.scene.values import warn
+    from texelbake.asset.values import warn
 
     distinct, group = np.unique(values, axis=0, return_inverse=True)
     if distinct.shape[0] > MAX_VARIANTS:

@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from texelbake.asset.values import usd_matrix, warn
 from texelbake.errors import AssetError
-from texelbake.scene.values import usd_matrix, warn
 
 
 @dataclass

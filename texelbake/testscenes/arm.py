@@ -20,9 +20,9 @@ from pxr import Gf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
 from texelbake.errors import SettingsError
 from texelbake.io.atomic import atomic_path
-from texelbake.scenes.author import _author_mesh, build_stage
-from texelbake.scenes.cylinder import build_cylinder
-from texelbake.scenes.params import CYLINDER, SCENE_PARAMS, SEEDS
+from texelbake.testscenes.author import _author_mesh, build_stage
+from texelbake.testscenes.cylinder import build_cylinder
+from texelbake.testscenes.params import CYLINDER, SCENE_PARAMS, SEEDS
 
 JOINTS = ("Shoulder", "Shoulder/Elbow", "Shoulder/Elbow/Wrist")
 #: rings along the axis per size (the cylinder scene has 4 / 11: too few to bend)

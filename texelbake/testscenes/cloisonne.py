@@ -8,8 +8,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from texelbake.model import SHADER_CELLULAR
-from texelbake.scenes.params import CELLULAR_INPUTS, CLOISONNE, CLOISONNE_SCALE
-from texelbake.scenes.spec import (
+from texelbake.testscenes.params import CELLULAR_INPUTS, CLOISONNE, CLOISONNE_SCALE
+from texelbake.testscenes.spec import (
     LightSpec,
     MaterialSpec,
     MeshSpec,

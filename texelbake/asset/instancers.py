@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from texelbake.scene.meshes import MeshData
-from texelbake.scene.values import usd_matrix, warn
+from texelbake.asset.meshes import MeshData
+from texelbake.asset.values import usd_matrix, warn
 
 
 def _instance_transforms(instancer: Any, time: Any) -> tuple[np.ndarray, np.ndarray]:
