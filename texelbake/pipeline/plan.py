@@ -2,7 +2,7 @@
 
 A bake is a plan of stages; some are sharded by texel tile. Every shard is a pure function from
 files in the artifact store to files in the artifact store (`texelbake.stages`), so the same code
-runs in one process (`bake`) or as Celery tasks (`run_shard`, called by `workers.tasks`).
+runs in one process (`pipeline.run.bake`) or as Celery tasks (`pipeline.run.run_shard`).
 
 Tiles: the finest CPM level has N x N texels (N = settings.atlas_resolution); a shard owns an
 S x S tile (S = settings.shard_texels) and every coarser level's texels inside it (levels

@@ -1,15 +1,7 @@
 """Running a bake's stages: one shard (`run_shard`, the farm's tasks), or every stage in
-this process (`bake`).
-
-A bake is a plan of stages; some are sharded by texel tile. Every shard is a pure function from
-files in the artifact store to files in the artifact store (`texelbake.stages`), so the same code
-runs in one process (`bake`) or as Celery tasks (`run_shard`, called by `workers.tasks`).
-
-Tiles: the finest CPM level has N x N texels (N = settings.atlas_resolution); a shard owns an
-S x S tile (S = settings.shard_texels) and every coarser level's texels inside it (levels
-0..log2 S). Levels coarser than a tile (log2 S + 1 .. log2 N) are one `*_top` shard.
+this process (`bake`). Every shard is a pure function from files in the artifact store to files
+in the artifact store (`texelbake.stages`); the plan and its tiles are `pipeline.plan`'s.
 """
-
 from __future__ import annotations
 
 import os

@@ -71,6 +71,7 @@ from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.raycast import RayCaster
 from texelbake.render.cpm import CpmFrame
 from texelbake.render.scene import RenderScene, _hausdorff, _uv_ratio, set_atlas_surface
+from texelbake.render.texel_radiance import texel_points
 from texelbake.tol import TOL
 from texelbake.trace.camera import PinholeCamera
 from texelbake.trace.shade import light_at
@@ -342,18 +343,12 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
     rest: RenderScene = d.rest  # type: ignore[attr-defined]
     lv = rest.baked.levels[level]
     offsets = lv["texel_offsets"]
-    texels = np.asarray(texels, dtype=np.int64)
-    n_tex = texels.shape[0]
-    counts = offsets[texels + 1] - offsets[texels]
-    exists = counts > 0
+    texels, exists, tex, pt = texel_points(offsets, texels)
+    n_tex, n_pts = texels.shape[0], pt.shape[0]
     radiance = np.zeros((n_tex, 3))
     avis = np.zeros(n_tex)
-    n_pts = int(counts.sum())
     if n_pts == 0:
         return radiance, avis, exists, 0
-    tex = np.repeat(np.arange(n_tex), counts)
-    first = np.cumsum(counts) - counts
-    pt = offsets[texels][tex] + (np.arange(n_pts) - first[tex])
     cp = rest.points(level)
     geo = _level_geometry(d, level)
     ng, ns, w = cp["geom_normal"][pt], cp["normal"][pt], cp["weight"][pt]

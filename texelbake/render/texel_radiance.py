@@ -11,6 +11,21 @@ from texelbake.tol import TOL
 from texelbake.trace.shade import direct_radiance
 
 
+def texel_points(offsets: np.ndarray, texels: object
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The characteristic points of some texels of a level, from its CSR `offsets` (t + 1,):
+    (texels (n,) int64, exists (n,) bool: the texel has points, tex (P,) int64: each point's
+    index into `texels`, pt (P,) int64: each point's row in the level's point arrays), every
+    texel's range concatenated in order."""
+    texels = np.asarray(texels, dtype=np.int64)
+    counts = offsets[texels + 1] - offsets[texels]
+    n_pts = int(counts.sum())
+    tex = np.repeat(np.arange(texels.shape[0]), counts)  # (P,) local texel of each point
+    first = np.cumsum(counts) - counts
+    pt = offsets[texels][tex] + (np.arange(n_pts) - first[tex])
+    return texels, counts > 0, tex, pt
+
+
 def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray,
                    texels: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -27,19 +42,12 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray,
     offsets = lv["texel_offsets"]
     if texels is None:
         texels = np.arange(offsets.shape[0] - 1)
-    texels = np.asarray(texels, dtype=np.int64)
-    n_tex = texels.shape[0]
-    counts = offsets[texels + 1] - offsets[texels]
-    exists = counts > 0
+    texels, exists, tex, pt = texel_points(offsets, texels)
+    n_tex, n_pts = texels.shape[0], pt.shape[0]
     radiance = np.zeros((n_tex, 3))
     avis = np.zeros(n_tex)
-    n_pts = int(counts.sum())
     if n_pts == 0:
         return radiance, avis, exists, 0
-    tex = np.repeat(np.arange(n_tex), counts)  # (P,) local texel of each point
-    # the points of the chosen texels: each texel's CSR range, concatenated
-    first = np.cumsum(counts) - counts
-    pt = offsets[texels][tex] + (np.arange(n_pts) - first[tex])
     cp = scene.points(level)
     pos, ng, ns, w = cp["position"][pt], cp["geom_normal"][pt], cp["normal"][pt], cp["weight"][pt]
     # one view direction per texel: weighted centroid -> camera
