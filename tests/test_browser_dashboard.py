@@ -195,6 +195,8 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
     schema = httpx.get(stack.api_url + "/api/v1/openapi.json").json()
     props = schema["components"]["schemas"]["BakeSettings"]["properties"]
     assert page.locator("[data-testid=settings-form] .field").count() == len(props)
+    groups = {p.get("group") for p in props.values()}
+    assert page.locator("[data-testid=settings-form] fieldset[data-group]").count() == len(groups)
     res = page.locator("[data-field=atlas_resolution]")
     assert props["atlas_resolution"]["description"] in res.inner_text()
     assert f"default {props['atlas_resolution']['default']}" in res.inner_text()
@@ -240,7 +242,12 @@ def test_dashboard_end_to_end(stack, browser, cylinder):
         s for s, _ in stages}
     assert all(st == "done" for _, st in stages), stages
     assert page.get_attribute("[role=progressbar]", "aria-valuenow") == "100"
-    assert "atlas_resolution" in page.inner_text("[data-testid=settings]")
+    # the settings the bake changed come first, the defaults folded away by group
+    changed = page.inner_text("[data-testid=settings-changed]")
+    assert "atlas_resolution" in changed
+    assert "seed" not in changed.split()  # at its default
+    page.click("[data-testid=settings-defaults] summary")
+    assert page.locator("[data-testid=settings-defaults] [data-group]").count() >= 2
     shot(page, "06-job-done")
 
     # --- download: the result zip, through the page

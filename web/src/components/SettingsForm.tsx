@@ -1,6 +1,8 @@
 // Bake settings fields generated from the JSON Schema of BakeSettings as the API serves it
 // (components.schemas.BakeSettings of /api/v1/openapi.json): a field per property, its type,
-// bounds, choices, default and description from the schema.
+// bounds, choices, default and description from the schema, shown in the settings' groups
+// (each property's `group`, in the order the schema lists them).
+import { useEffect, useState } from "preact/hooks";
 
 export interface JsonSchemaProp {
   type?: string;
@@ -12,6 +14,8 @@ export interface JsonSchemaProp {
   maximum?: number;
   exclusiveMinimum?: number;
   exclusiveMaximum?: number;
+  /** the settings group (geometry, fit, a_vis, ...) the API schema files the field under */
+  group?: string;
 }
 
 export interface ObjectSchema {
@@ -20,6 +24,45 @@ export interface ObjectSchema {
 }
 
 export type Values = Record<string, string | boolean>;
+
+/** The served BakeSettings schema (components.schemas.BakeSettings of the API's OpenAPI). */
+export function useSettingsSchema(): { schema: ObjectSchema | null; error: string | null } {
+  const [schema, setSchema] = useState<ObjectSchema | null>(null);
+  const [error, setError] = useState<string | null>(null);
+  useEffect(() => {
+    (async () => {
+      const r = await fetch("/api/v1/openapi.json");
+      if (!r.ok) {
+        setError(`cannot read the API schema: HTTP ${r.status}`);
+        return;
+      }
+      const spec = await r.json();
+      const s = spec?.components?.schemas?.BakeSettings as ObjectSchema | undefined;
+      if (!s?.properties) {
+        setError("the API schema has no BakeSettings");
+        return;
+      }
+      setSchema(s);
+    })();
+  }, []);
+  return { schema, error };
+}
+
+/** The schema's properties by group, groups and fields in the schema's order. */
+export function groupedProps(schema: ObjectSchema): [string, [string, JsonSchemaProp][]][] {
+  const groups = new Map<string, [string, JsonSchemaProp][]>();
+  for (const [k, p] of Object.entries(schema.properties)) {
+    const g = p.group ?? "settings";
+    if (!groups.has(g)) groups.set(g, []);
+    groups.get(g)!.push([k, p]);
+  }
+  return [...groups.entries()];
+}
+
+/** Whether a stored setting's value is the schema's default for it. */
+export function isDefault(p: JsonSchemaProp | undefined, v: unknown): boolean {
+  return p !== undefined && JSON.stringify(v) === JSON.stringify(p.default);
+}
 
 export function initialValues(schema: ObjectSchema): Values {
   const out: Values = {};
@@ -59,9 +102,7 @@ export function SettingsForm({
   onChange: (v: Values) => void;
 }) {
   const set = (k: string, v: string | boolean) => onChange({ ...values, [k]: v });
-  return (
-    <div class="settings-form" data-testid="settings-form">
-      {Object.entries(schema.properties).map(([k, p]) => {
+  const field = ([k, p]: [string, JsonSchemaProp]) => {
         const id = `setting-${k}`;
         const changed =
           p.type === "boolean" ? values[k] !== Boolean(p.default) : String(values[k]) !== String(p.default ?? "");
@@ -114,7 +155,15 @@ export function SettingsForm({
             </div>
           </div>
         );
-      })}
+  };
+  return (
+    <div data-testid="settings-form">
+      {groupedProps(schema).map(([group, props]) => (
+        <fieldset class="settings-group" data-group={group}>
+          <legend>{group}</legend>
+          <div class="settings-form">{props.map(field)}</div>
+        </fieldset>
+      ))}
     </div>
   );
 }

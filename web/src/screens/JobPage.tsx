@@ -4,6 +4,7 @@ import { useEffect, useRef, useState } from "preact/hooks";
 import { api, errorText, fetchBlob, TERMINAL, type JobPublic } from "../api/client";
 import { openEvents } from "../api/sse";
 import { ErrorBox, ErrorText, fmtSeconds, fmtTime, ProgressBar, StateBadge } from "../components/common";
+import { groupedProps, isDefault, useSettingsSchema } from "../components/SettingsForm";
 import { ShardGrid } from "../components/ShardGrid";
 import { Previews } from "./Previews";
 import { Inspector } from "./Inspector";
@@ -202,17 +203,7 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
               </>
             )}
           </div>
-          <div class="card settings">
-            <h3>Settings</h3>
-            <dl class="kv small" data-testid="settings">
-              {Object.entries(job.settings).map(([k, v]) => (
-                <>
-                  <dt>{k}</dt>
-                  <dd class="mono">{String(v)}</dd>
-                </>
-              ))}
-            </dl>
-          </div>
+          <JobSettings settings={job.settings as Record<string, unknown>} />
           <div class="card stages">
             <h3>Stages</h3>
             {job.stages.length === 0 && <p class="muted">Not planned yet (waiting for the ingest worker).</p>}
@@ -251,5 +242,49 @@ export function JobPage({ id, tab }: { id: string; tab: string }) {
         </div>
       )}
     </section>
+  );
+}
+
+
+/** The job's settings: the fields that differ from the defaults first, then the rest by group
+ * (folded away). */
+function JobSettings({ settings }: { settings: Record<string, unknown> }) {
+  const { schema } = useSettingsSchema();
+  const props = schema?.properties ?? {};
+  const changed = Object.entries(settings).filter(([k, v]) => !isDefault(props[k], v));
+  const kv = (entries: [string, unknown][]) => (
+    <dl class="kv small">
+      {entries.map(([k, v]) => (
+        <>
+          <dt>{k}</dt>
+          <dd class="mono">{Array.isArray(v) ? v.join(", ") : String(v)}</dd>
+        </>
+      ))}
+    </dl>
+  );
+  return (
+    <div class="card settings" data-testid="settings">
+      <h3>Settings</h3>
+      <h4>Changed from the defaults</h4>
+      <div data-testid="settings-changed">
+        {changed.length > 0 ? kv(changed) : <p class="muted small">none: the default bake</p>}
+      </div>
+      {schema && (
+        <details data-testid="settings-defaults">
+          <summary class="small">the other {Object.keys(settings).length - changed.length} at their defaults, by group</summary>
+          {groupedProps(schema).map(([group, fields]) => {
+            const rest = fields
+              .filter(([k]) => k in settings && isDefault(props[k], settings[k]))
+              .map(([k]): [string, unknown] => [k, settings[k]]);
+            return rest.length > 0 ? (
+              <div data-group={group}>
+                <h4>{group}</h4>
+                {kv(rest)}
+              </div>
+            ) : null;
+          })}
+        </details>
+      )}
+    </div>
   );
 }

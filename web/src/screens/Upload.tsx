@@ -3,7 +3,14 @@
 import { useEffect, useState } from "preact/hooks";
 import { api, errorText } from "../api/client";
 import { ErrorBox, ErrorText } from "../components/common";
-import { initialValues, type ObjectSchema, SettingsForm, toSettings, type Values } from "../components/SettingsForm";
+import {
+  initialValues,
+  type ObjectSchema,
+  SettingsForm,
+  toSettings,
+  useSettingsSchema,
+  type Values,
+} from "../components/SettingsForm";
 
 const ACCEPT = ".usda,.usdc,.usd,.usdz,.zip";
 
@@ -17,23 +24,14 @@ export function Upload() {
   // the job's queue priority (0..100, higher first; JobCreate.priority): not a bake setting
   const [priority, setPriority] = useState(50);
 
+  const served = useSettingsSchema();
   useEffect(() => {
-    (async () => {
-      const r = await fetch("/api/v1/openapi.json");
-      if (!r.ok) {
-        setError(`cannot read the API schema: HTTP ${r.status}`);
-        return;
-      }
-      const spec = await r.json();
-      const s = spec?.components?.schemas?.BakeSettings as ObjectSchema | undefined;
-      if (!s?.properties) {
-        setError("the API schema has no BakeSettings");
-        return;
-      }
-      setSchema(s);
-      setValues(initialValues(s));
-    })();
-  }, []);
+    if (served.error) setError(served.error);
+    if (served.schema) {
+      setSchema(served.schema);
+      setValues(initialValues(served.schema));
+    }
+  }, [served.schema, served.error]);
 
   async function submit(e: Event) {
     e.preventDefault();
