@@ -13,11 +13,12 @@ import argparse
 import sys
 
 from texelbake.cli import bake, farm, render, scenes
+from texelbake.cli.args import Parser
 from texelbake.errors import TexelbakeError
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="texelbake", description=__doc__)
+    parser = Parser(prog="texelbake", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     for group in (scenes, bake, render, farm):
         group.add_parsers(sub)
