@@ -7,6 +7,7 @@ WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY texelbake ./texelbake
 COPY schemas ./schemas
+COPY farm ./farm
 COPY services ./services
 COPY workers ./workers
 COPY scripts ./scripts

@@ -52,7 +52,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from services.stack import free_port, stack_down, stack_up, worker_command  # noqa: E402
+from farm.stack import free_port, stack_down, stack_up, worker_command  # noqa: E402
 
 SETTINGS = {
     "atlas_resolution": 64,

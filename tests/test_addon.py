@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.stack import free_port, stack_down, stack_up
+from farm.stack import free_port, stack_down, stack_up
 from tests.dcc_util import bpy_python, run_blender
 from tests.panel_picture import draw_panel, parse_line
 from tests.svc_util import usda

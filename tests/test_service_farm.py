@@ -17,9 +17,9 @@ import httpx
 import pytest
 from sqlalchemy import select
 
+from farm.db import Shard, session_factory
+from farm.stack import free_port, stack_down, stack_up
 from schemas.settings import BakeSettings
-from services.db import Shard, session_factory
-from services.stack import free_port, stack_down, stack_up
 from tests.svc_util import CHEAP_SETTINGS, assert_same_bake, fresh_postgres
 from texelbake.client import package, submit  # package: the layer and the files it uses
 
@@ -288,7 +288,7 @@ def test_stuck_shard_is_killed_at_its_time_limit(cylinder, reference, tmp_path):
     kills its pool child, the sweeper re-queues it and the redelivery completes the job with the
     in-process bake's bytes. One that hangs on every delivery fails the job at `max_attempts`,
     naming the time limit, instead of holding the prep worker for ever."""
-    from services.db import Event
+    from farm.db import Event
 
     control = tmp_path / "hang"
     # 12 s: every task of the job runs under this limit (the plan, each shard); the small

@@ -366,7 +366,7 @@ def cmd_submit(args: argparse.Namespace) -> int:
 def cmd_stack(args: argparse.Namespace) -> int:
     # the launcher lives next to the service it launches (stdlib only: importing it pulls in
     # neither FastAPI, Celery nor Redis); the CLI is the one place the core reaches for it
-    from services import stack
+    from farm import stack
 
     if args.action == "up":
         stack.stack_up(Path(args.dir))

@@ -23,11 +23,11 @@ import redis
 import sqlalchemy.exc
 from celery.utils.log import get_task_logger
 
+from farm import ledger, storage
+from farm.broker import broker_run_id, celery_sender
+from farm.config import get_settings
+from farm.db import Asset, Job, session_factory
 from schemas.settings import BakeSettings
-from services import ledger, storage
-from services.broker import broker_run_id, celery_sender
-from services.config import get_settings
-from services.db import Asset, Job, session_factory
 from texelbake.atomic import control_words
 from texelbake.errors import TexelbakeError
 from workers.celery_app import app
