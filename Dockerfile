@@ -8,6 +8,7 @@ COPY pyproject.toml README.md ./
 COPY texelbake ./texelbake
 COPY schemas ./schemas
 COPY farm ./farm
+COPY texelbake_client ./texelbake_client
 COPY services ./services
 COPY workers ./workers
 COPY scripts ./scripts

@@ -283,7 +283,7 @@ class TrialFailure(AssertionError):
 
 
 def _package(path: Path):  # noqa: ANN202
-    from texelbake.client import package
+    from texelbake_client.submit import package
 
     return package(path)
 

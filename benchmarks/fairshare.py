@@ -113,7 +113,7 @@ def run(policy: str, n_jobs: int, workers: int, work: Path, artifacts: Path,
                                 "TEXELBAKE_QUEUE_GROUPS": json.dumps({"all": list(QUEUES)}),
                                 **policy_env(policy, workers)})
     api = stack.api_url + "/api/v1"
-    from texelbake.client import package
+    from texelbake_client.submit import package
 
     try:
         clients = {t: httpx.Client(base_url=api, headers={"Authorization": f"Bearer {t}"},

@@ -271,8 +271,8 @@ def compare_lod(got: list[dict], root: Path, lod: int) -> tuple[float, dict]:
 @pytest.mark.service
 @pytest.mark.timeout(900)
 def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
-    from texelbake.client import package
     from texelbake.scenes import write_scene
+    from texelbake_client.submit import package
 
     out = tmp_path_factory.mktemp("addon_out")
     scene = write_scene("cylinder", out / "scene" / "cylinder.usda", "small")

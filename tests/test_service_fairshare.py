@@ -18,7 +18,7 @@ from farm.stack import free_port, stack_down, stack_up
 from schemas.queues import QUEUES
 from tests.svc_util import CHEAP_SETTINGS, assert_same_bake
 from tests.test_service_farm import AUTH, TOKEN, cylinder, download, reference, wait_for
-from texelbake.client import package
+from texelbake_client.submit import package
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(400)]
 __all__ = ["cylinder", "reference"]  # module fixtures shared with test_service_farm

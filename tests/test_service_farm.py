@@ -21,7 +21,7 @@ from farm.db import Shard, session_factory
 from farm.stack import free_port, stack_down, stack_up
 from schemas.settings import BakeSettings
 from tests.svc_util import CHEAP_SETTINGS, assert_same_bake, fresh_postgres
-from texelbake.client import package, submit  # package: the layer and the files it uses
+from texelbake_client.submit import package, submit  # package: the layer and the files it uses
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(300)]
 TOKEN = "farm-token-0123456789abcdef"
@@ -116,7 +116,7 @@ def wait_for_running_cpm_shard(stack, job_id: str) -> dict:
 
 
 def download(stack, job_id: str, out: Path) -> Path:
-    from texelbake.client import safe_extract
+    from texelbake_client.submit import safe_extract
 
     r = httpx.get(f"{stack.api_url}/api/v1/jobs/{job_id}/result", headers=AUTH, timeout=60)
     assert r.status_code == 200, r.text

@@ -332,7 +332,7 @@ EXIT_ITEMS_FAILED = 4
 
 
 def cmd_submit_manifest(args: argparse.Namespace) -> int:
-    from texelbake.batch_client import failed_items, load_manifest, submit_batch
+    from texelbake_client.batch import failed_items, load_manifest, submit_batch
 
     if args.file or args.settings or args.set:
         raise TexelbakeError("--manifest takes its files and settings from the manifest: "
@@ -350,7 +350,7 @@ def cmd_submit_manifest(args: argparse.Namespace) -> int:
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
-    from texelbake.client import submit
+    from texelbake_client.submit import submit
 
     if args.manifest:
         return cmd_submit_manifest(args)
@@ -474,7 +474,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("submit", help="upload an asset (or a manifest's assets, as one batch) "
                        "to a texelbake server and fetch the result")
     p.add_argument("file", nargs="?")
-    p.add_argument("--manifest", help="JSON manifest of many assets (texelbake.batch_client); "
+    p.add_argument("--manifest", help="JSON manifest of many assets (texelbake_client.batch); "
                    f"exit status {EXIT_ITEMS_FAILED} when an item failed")
     p.add_argument("--server", required=True)
     p.add_argument("--token", required=True)
