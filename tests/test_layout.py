@@ -1,7 +1,9 @@
 """The layout's rules (DESIGN.md "Layout"): no import cycles anywhere in texelbake, schemas,
-services and workers (every module imports alone; the static import graph, function-level
-imports included, has no cycle), and the core package imports neither FastAPI, Celery nor
-Redis."""
+farm, texelbake_client, services and workers (every module imports alone; the static import
+graph, function-level imports included, has no cycle); the packages import downwards only
+(schemas < the texelbake core < farm, texelbake_client < services, workers, texelbake.cli),
+services and workers do not import each other, no private name crosses a package; and the core
+package imports neither FastAPI, Celery nor Redis."""
 
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("texelbake", "schemas", "farm", "services", "workers")
+PACKAGES = ("texelbake", "schemas", "farm", "texelbake_client", "services", "workers")
 SERVICE_LIBS = ("fastapi", "starlette", "celery", "kombu", "redis", "uvicorn")
 
 
@@ -109,16 +111,99 @@ def test_no_import_cycles_in_the_static_graph():
 
 def test_core_does_not_import_the_service_packages_statically():
     graph = import_graph(_modules())
-    bad = {m: sorted(t for t in ts if t.split(".")[0] in ("farm", "services", "workers"))
-           for m, ts in graph.items() if m.startswith("texelbake")}
-    # the CLI's `texelbake stack up` is the one door into the service's process launcher
-    assert {m: ts for m, ts in bad.items() if ts} == {"texelbake.cli": ["farm.stack"]}
+    bad = {m: sorted(t for t in ts
+                     if t.split(".")[0] in ("farm", "texelbake_client", "services", "workers"))
+           for m, ts in graph.items() if m.split(".")[0] == "texelbake"}
+    # the CLI's `texelbake stack up` is the one door into the farm's process launcher, and
+    # `texelbake submit` the one into the HTTP clients
+    assert {m: ts for m, ts in bad.items() if ts} == {
+        "texelbake.cli": ["farm.stack", "texelbake_client.batch", "texelbake_client.submit"]}
+
+
+#: each package's layer: a module imports from lower layers, and within its layer only from
+#: its own package (farm and the clients do not import each other, nor services and workers)
+LAYERS = {"schemas": 0, "texelbake": 1, "farm": 2, "texelbake_client": 2, "services": 3,
+          "workers": 3}
+#: modules that sit above their package: the command line starts the stack and submits jobs
+MODULE_LAYERS = {"texelbake.cli": 3}
+
+
+def _layer(mod: str) -> int:
+    return MODULE_LAYERS.get(mod, LAYERS[mod.split(".")[0]])
+
+
+def layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    bad = []
+    for mod, targets in sorted(graph.items()):
+        for t in sorted(targets):
+            up = _layer(t) > _layer(mod)
+            sideways = _layer(t) == _layer(mod) and t.split(".")[0] != mod.split(".")[0]
+            if up or sideways:
+                bad.append(f"{mod} -> {t}")
+    return bad
+
+
+def test_layer_check_finds_violations():
+    g = {"schemas.job": {"texelbake.errors"}, "texelbake.pipeline": {"schemas.job"},
+         "farm.db": {"services.deps"}, "services.main": {"workers.tasks", "farm.db"},
+         "workers.tasks": {"farm.db"}, "texelbake.cli": {"farm.stack"},
+         "texelbake.errors": set(), "services.deps": set(), "farm.stack": set()}
+    assert layer_violations(g) == ["farm.db -> services.deps", "schemas.job -> texelbake.errors",
+                                   "services.main -> workers.tasks"]
+
+
+#: the one upward import left: the settings' `warp` validator parses the spec with the core's
+#: parser, at call time (a function-level import)
+KNOWN_UPWARD = ["schemas.settings -> texelbake.deform.warps"]
+
+
+def test_packages_import_downwards_only():
+    graph = import_graph(_modules())
+    assert layer_violations(graph) == KNOWN_UPWARD
+
+
+def private_imports(modules: dict[str, Path]) -> list[str]:
+    """`from X import _name` where X is a module of another package than the importer's
+    (its parent package; `from pkg import _mod` of a private module counts too)."""
+    bad = []
+    for mod, path in modules.items():
+        is_pkg = path.name == "__init__.py"
+        own = mod if is_pkg else mod.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not isinstance(node, ast.ImportFrom) or node.level:
+                continue
+            base = node.module or ""
+            if base.split(".")[0] not in PACKAGES:
+                continue  # not one of ours
+            src_pkg = base if (ROOT / base.replace(".", "/")).is_dir() else base.rpartition(".")[0]
+            for a in node.names:
+                if a.name.startswith("_") and not a.name.startswith("__") and src_pkg != own:
+                    bad.append(f"{mod}: from {base} import {a.name}")
+    return bad
+
+
+def test_no_private_name_crosses_a_package():
+    assert private_imports(_modules(("farm", "texelbake_client", "services", "workers"))) == []
+
+
+def test_one_queue_table():
+    """The queues, their worker families and the stage -> queue map live in schemas.queues
+    only: no other module spells a family's queue list or a stage's queue."""
+    from schemas.queues import PLAN_QUEUE, QUEUE_FAMILIES, QUEUES, STAGE_QUEUES
+
+    assert sorted(q for qs in QUEUE_FAMILIES.values() for q in qs) == sorted(QUEUES)
+    assert set(STAGE_QUEUES.values()) <= set(QUEUES) and PLAN_QUEUE in QUEUES
+    spelled = ('("ingest", "geometry", "export")', '("cpm", "avis", "btf")', '"ingest", "ingest"',
+               '"cpm", "cpm"', '"geometry", "geometry"', 'PLAN_QUEUE = "')
+    found = [f"{m}: {lit}" for m, path in _modules().items() if m != "schemas.queues"
+             for lit in spelled if lit in path.read_text()]
+    assert found == []
 
 
 _PROBE = r"""
 import importlib, json, sys
 mods = json.loads(sys.argv[1])
-ours = ("texelbake", "schemas", "farm", "services", "workers")
+ours = ("texelbake", "schemas", "farm", "texelbake_client", "services", "workers")
 failed = {}
 for m in mods:
     for k in [k for k in sys.modules if k.split(".")[0] in ours]:
