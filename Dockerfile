@@ -7,6 +7,8 @@ WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY texelbake ./texelbake
 COPY schemas ./schemas
+COPY farm ./farm
+COPY texelbake_client ./texelbake_client
 COPY services ./services
 COPY workers ./workers
 COPY scripts ./scripts

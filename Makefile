@@ -43,8 +43,8 @@ test-fast: setup
 	$(PY) -m pytest -q -x -m "not service and not browser and not slow"
 
 lint: setup
-	$(VENV)/bin/ruff check texelbake schemas workers services tests benchmarks blender scripts
-	$(VENV)/bin/mypy texelbake blender/texelbake_submit/client.py
+	$(VENV)/bin/ruff check texelbake schemas farm texelbake_client workers services tests benchmarks blender scripts
+	$(VENV)/bin/mypy texelbake texelbake_client blender/texelbake_submit/client.py
 
 # The Blender add-on as an installable extension zip: build/texelbake_submit-<version>.zip
 # (Blender: Edit > Preferences > Get Extensions > Install from Disk).

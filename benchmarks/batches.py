@@ -3,7 +3,7 @@ batch, listing, cancelling, against SQLite and PostgreSQL.
 
     .venv/bin/python benchmarks/batches.py --json bench_out/batches.json [--sizes 10,100,1000]
 
-Method: a real stack per backend (`services.stack.stack_up`: uvicorn and its own redis-server,
+Method: a real stack per backend (`farm.stack.stack_up`: uvicorn and its own redis-server,
 no workers, so every item's job stays queued and each request is the API's and the
 database's own work), one tenant, one uploaded asset. Per size N, on loopback only: one
 `POST /batches` of N items (every item validated, then the batch and N jobs in one
@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from services.stack import free_port, stack_down, stack_up  # noqa: E402
+from farm.stack import free_port, stack_down, stack_up  # noqa: E402
 
 TOKEN = "bench-batches-0123456789abcdef"
 SETTINGS = {"atlas_resolution": 8, "samples_per_texel": 4, "c_max": 4}
@@ -86,7 +86,7 @@ def run_backend(db: str, sizes: list[int], reads: int, work: Path) -> list[dict]
     finally:
         stack_down(work)
         if admin is not None:
-            from services.db import _engines
+            from farm.db import _engines
 
             for key in [k for k in _engines if name and name in k[0]]:
                 _engines.pop(key).dispose()

@@ -61,8 +61,8 @@ import httpx
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from services import storage  # noqa: E402
-from services.stack import free_port  # noqa: E402
+from farm import storage  # noqa: E402
+from farm.stack import free_port  # noqa: E402
 from tests.svc_util import CHEAP_SETTINGS, assert_same_bake  # noqa: E402
 from tests.test_service_farm import (  # noqa: E402
     AUTH,
@@ -238,7 +238,7 @@ class Farm:
         from schemas.settings import BakeSettings
 
         with _sm(self.stack)() as s:
-            from services.db import Asset
+            from farm.db import Asset
 
             sha = s.get(Asset, self.asset_id).sha256
         return storage.work_dir(self.root, sha, BakeSettings(**CHEAP_SETTINGS).digest())
@@ -283,13 +283,13 @@ class TrialFailure(AssertionError):
 
 
 def _package(path: Path):  # noqa: ANN202
-    from texelbake.client import package
+    from texelbake_client.submit import package
 
     return package(path)
 
 
 def _sm(stack):  # noqa: ANN001, ANN202
-    from services.db import session_factory
+    from farm.db import session_factory
 
     return session_factory(db_url(stack))
 
@@ -380,7 +380,7 @@ def leftovers(f: Farm) -> list[str]:
                 found.append(f"temp file {rel}")
     from sqlalchemy import select
 
-    from services.db import Job, Shard, Stage
+    from farm.db import Job, Shard, Stage
 
     with _sm(f.stack)() as s:
         jobs = set(s.scalars(select(Job.id)))

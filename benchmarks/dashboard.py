@@ -40,8 +40,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from services.db import Asset, Event, Job, Shard, Stage, session_factory, utcnow  # noqa: E402
-from services.stack import free_port, stack_down, stack_up  # noqa: E402
+from farm.db import Asset, Event, Job, Shard, Stage, session_factory, utcnow  # noqa: E402
+from farm.stack import free_port, stack_down, stack_up  # noqa: E402
 
 TOKEN = "bench-dashboard-token-0123456789"
 OTHER = "bench-dashboard-other-0123456789"

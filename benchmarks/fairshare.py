@@ -5,7 +5,7 @@ one of them at high priority, under three admission policies of the shard ledger
 
 Workload (the same under every policy): tenant `lo` submits one job at the default priority
 (50); right after it, tenant `hi` submits a batch of `--jobs - 1` jobs at priority 90. All are
-real jobs over HTTP (individual `POST /jobs`) on a real stack (`services.stack.stack_up`:
+real jobs over HTTP (individual `POST /jobs`) on a real stack (`farm.stack.stack_up`:
 uvicorn, redis-server, `--workers` Celery worker processes serving every queue, SQLite). They
 bake the same small cylinder with the same settings, and the artifacts of a first, untimed
 job are kept: an existing artifact key is success, so each job's shards cost the farm's
@@ -49,9 +49,9 @@ if str(ROOT) not in sys.path:
 
 from sqlalchemy import func, select  # noqa: E402
 
-from services.db import Job, Shard, session_factory  # noqa: E402
-from services.stack import free_port, stack_down, stack_up  # noqa: E402
-from workers.celeryconfig import QUEUES  # noqa: E402
+from farm.db import Job, Shard, session_factory  # noqa: E402
+from farm.stack import free_port, stack_down, stack_up  # noqa: E402
+from schemas.queues import QUEUES  # noqa: E402
 
 TOKENS = {"fair-token-hi-0123456789abcdef": "hi", "fair-token-lo-0123456789abcdef": "lo"}
 HI, LO = list(TOKENS)
@@ -113,7 +113,7 @@ def run(policy: str, n_jobs: int, workers: int, work: Path, artifacts: Path,
                                 "TEXELBAKE_QUEUE_GROUPS": json.dumps({"all": list(QUEUES)}),
                                 **policy_env(policy, workers)})
     api = stack.api_url + "/api/v1"
-    from texelbake.client import package
+    from texelbake_client.submit import package
 
     try:
         clients = {t: httpx.Client(base_url=api, headers={"Authorization": f"Bearer {t}"},

@@ -52,7 +52,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from services.stack import free_port, stack_down, stack_up, worker_command  # noqa: E402
+from farm.stack import free_port, stack_down, stack_up, worker_command  # noqa: E402
 
 SETTINGS = {
     "atlas_resolution": 64,
@@ -128,7 +128,7 @@ def farm_run(asset: Path, work: Path, n_workers: int) -> dict:
     try:
         time.sleep(8.0)  # pool children finish their warm imports before the job starts
         with httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=120) as c:
-            from texelbake.client import package  # the layer and the files it uses (shaders)
+            from texelbake_client.submit import package  # the layer and the files it uses (shaders)
 
             aid = c.post("/assets", files={"file": package(asset)}).json()["id"]
             job_id = c.post("/jobs", json={"asset_id": aid, "settings": SETTINGS}).json()["id"]

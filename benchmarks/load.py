@@ -3,7 +3,7 @@
 
     .venv/bin/python benchmarks/load.py --json bench_out/load.json [--seconds 20] [--db sqlite]
 
-Method: a real stack per backend (`services.stack.stack_up`: uvicorn, its own redis-server, no
+Method: a real stack per backend (`farm.stack.stack_up`: uvicorn, its own redis-server, no
 workers, so submitted jobs stay queued and every request is the API's and the database's own
 work), two tenants. Before the clock: one asset and one job per tenant, then one client polls
 alone for `--baseline` seconds (the floor the machine sets today). Then, at once, on loopback
@@ -55,7 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from services.stack import free_port, stack_down, stack_up  # noqa: E402
+from farm.stack import free_port, stack_down, stack_up  # noqa: E402
 from tests.svc_util import proc_cpu  # noqa: E402
 
 TOKENS = {"load-token-a-0123456789abcdef": "team-a", "load-token-b-0123456789abcdef": "team-b"}

@@ -98,7 +98,7 @@ class JobPublic(BaseModel):
     finished_at: datetime | None = None
     seconds: float | None = None
     previews: list[str] = Field(default_factory=list, description="Names under .../previews/.")
-    estimate: JobEstimate | None = Field(None, description="Predicted time (issue 15).")
+    estimate: JobEstimate | None = Field(None, description="Predicted time (the cost model's estimate).")
     outcome: Literal["completed", "completed with warnings"] | None = Field(
         None, description="A succeeded job's quality gate (texelbake.stages.quality): 'completed with "
         "warnings' when the bake missed a target, listed in `warnings`; null before success.")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 def main(out: str) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from services.config import Settings
+    from farm.config import Settings
     from services.main import create_app
 
     with tempfile.TemporaryDirectory() as tmp:

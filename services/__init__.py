@@ -1,1 +1,2 @@
-"""The texelbake HTTP service (FastAPI): routes, auth, upload handling, the job store."""
+"""The texelbake HTTP service (FastAPI): routes, auth, upload handling; the farm's shared
+plumbing (settings, database, ledger) is `farm`."""

@@ -10,7 +10,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import sessionmaker
 
-from services.db import ApiToken
+from farm.db import ApiToken
 
 
 def token_digest(secret_key: str, token: str) -> str:

@@ -10,10 +10,10 @@ from fastapi import Depends, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
+from farm.config import Settings
+from farm.db import retry_disconnect
 from schemas.common import ErrorCode
 from services.auth import tenant_by_digest, token_digest
-from services.config import Settings
-from services.db import retry_disconnect
 from services.errors import ApiError
 
 NOT_AUTHENTICATED = "not authenticated"

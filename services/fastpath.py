@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import re
 
+from farm.config import API_V1
 from services.auth import token_digest
-from services.config import API_V1
 
 _JOB = re.compile(rf"^{re.escape(API_V1)}/jobs/([A-Za-z0-9_-]{{1,64}})$")
 

@@ -2,7 +2,7 @@
 
 The API never imports torch or pxr: it enqueues tasks by name, and uploads are checked with
 pxr in a child process (`services.validate`). A background thread sweeps the shard ledger
-(`services.ledger.sweep`): it re-sends work lost with a Redis restart or a dead worker.
+(`farm.ledger.sweep`): it re-sends work lost with a Redis restart or a dead worker.
 """
 
 from __future__ import annotations
@@ -18,12 +18,14 @@ from fastapi import FastAPI, status
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 
+from farm import ledger
+from farm.broker import broker_run_id, celery_sender
+from farm.celeryconfig import celery_config
+from farm.config import API_V1, Settings, get_settings
+from farm.db import session_factory
 from schemas.common import ErrorCode
-from services import errors, ledger
+from services import errors
 from services.auth import ensure_tokens
-from services.broker import broker_run_id, celery_sender
-from services.config import API_V1, Settings, get_settings
-from services.db import session_factory
 from services.deps import TokenCache
 from services.errors import ApiError
 from services.fastpath import StatusFastPath
@@ -31,7 +33,6 @@ from services.limits import BodyLimit, ServerTiming
 from services.routers import assets, batches, events, farm, job_files, jobs, utils, viewer
 from services.routers.jobs import JobCache, VersionCache
 from texelbake.estimate import machinespeed
-from workers.celeryconfig import celery_config
 
 log = logging.getLogger("texelbake.api")
 

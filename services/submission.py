@@ -15,10 +15,10 @@ from typing import Any
 from fastapi import BackgroundTasks, Request, status
 from sqlalchemy.orm import Session
 
+from farm import ledger
+from farm.broker import broker_run_id, celery_sender
+from farm.db import Asset, Batch, BatchItem
 from schemas.common import ErrorCode
-from services import ledger
-from services.broker import broker_run_id, celery_sender
-from services.db import Asset, Batch, BatchItem
 from services.errors import ApiError
 from services.routers.assets import ASSET_NOT_FOUND
 

@@ -42,7 +42,7 @@ def fresh_postgres():
     try:
         yield PG_ADMIN.rsplit("/", 1)[0] + "/" + name
     finally:
-        from services.db import _engines
+        from farm.db import _engines
 
         for key in [k for k in _engines if name in k[0]]:
             _engines.pop(key).dispose()

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.stack import free_port, stack_down, stack_up
+from farm.stack import free_port, stack_down, stack_up
 from tests.dcc_util import bpy_python, run_blender
 from tests.panel_picture import draw_panel, parse_line
 from tests.svc_util import usda
@@ -76,11 +76,12 @@ def ext_zip(tmp_path_factory) -> Path:
 
 @pytest.mark.dcc
 def test_extension_zip(ext_zip, tmp_path):
-    """The build is deterministic and holds the manifest and both modules; Blender's own
+    """The build is deterministic and holds the manifest and the modules; Blender's own
     extension validator (bl_pkg's blender_ext.py, run by the bpy virtualenv) accepts it."""
     with zipfile.ZipFile(ext_zip) as zf:
         names = sorted(zf.namelist())
-    assert names == ["__init__.py", "blender_manifest.toml", "client.py"], names
+    assert names == ["__init__.py", "blender_manifest.toml", "client.py", "lod_import.py",
+                     "operators.py", "panel.py", "prefs.py", "props.py", "timer.py"], names
     again = subprocess.run([sys.executable, str(ROOT / "scripts" / "build_addon.py"), "-o",
                             str(tmp_path)], capture_output=True, text=True, check=True)
     assert Path(again.stdout.strip()).read_bytes() == ext_zip.read_bytes()
@@ -271,8 +272,8 @@ def compare_lod(got: list[dict], root: Path, lod: int) -> tuple[float, dict]:
 @pytest.mark.service
 @pytest.mark.timeout(900)
 def test_addon_in_blender(stack, ext_zip, tmp_path_factory, monkeypatch):
-    from texelbake.client import package
     from texelbake.testscenes import write_scene
+    from texelbake_client.submit import package
 
     out = tmp_path_factory.mktemp("addon_out")
     scene = write_scene("cylinder", out / "scene" / "cylinder.usda", "small")

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
+from farm.config import Settings
 from schemas.common import ErrorCode
-from services.config import Settings
 from services.main import create_app
 from services.uploads import CODES, UploadRejected
 

@@ -20,9 +20,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.stack import free_port, stack_down, stack_up
+from farm.stack import free_port, stack_down, stack_up
+from schemas.queues import QUEUE_FAMILIES
 from tests.svc_util import CHEAP_SETTINGS, backend_missing, make_zip, usda
-from workers.celeryconfig import QUEUE_FAMILIES
 
 pytestmark = [pytest.mark.browser, pytest.mark.service, pytest.mark.timeout(900)]
 TOKEN_A = "browser-token-a-0123456789"

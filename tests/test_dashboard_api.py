@@ -11,9 +11,9 @@ import uuid
 import pytest
 from fastapi.testclient import TestClient
 
-from services import ledger
-from services.config import Settings
-from services.db import Asset
+from farm import ledger
+from farm.config import Settings
+from farm.db import Asset
 from services.main import DASHBOARD_NOT_BUILT, create_app
 from services.routers.farm import farm_snapshot
 

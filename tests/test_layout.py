@@ -1,7 +1,10 @@
 """The layout's rules (DESIGN.md "Layout"): no import cycles anywhere in texelbake, schemas,
-services and workers (every module imports alone; the static import graph, function-level
-imports included, has no cycle), and the core package imports neither FastAPI, Celery nor
-Redis."""
+farm, texelbake_client, services and workers (every module imports alone; the static import
+graph, function-level imports included, has no cycle); the packages import downwards only
+(schemas < the texelbake core < farm, texelbake_client < services, workers, texelbake.cli),
+services and workers do not import each other, no private name crosses a package; inside the
+core, its packages in layers (CORE_LAYERS); and the core package imports neither FastAPI, Celery
+nor Redis."""
 
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("texelbake", "schemas", "services", "workers")
+PACKAGES = ("texelbake", "schemas", "farm", "texelbake_client", "services", "workers")
 SERVICE_LIBS = ("fastapi", "starlette", "celery", "kombu", "redis", "uvicorn")
 
 
@@ -109,16 +112,155 @@ def test_no_import_cycles_in_the_static_graph():
 
 def test_core_does_not_import_the_service_packages_statically():
     graph = import_graph(_modules())
-    bad = {m: sorted(t for t in ts if t.split(".")[0] in ("services", "workers"))
-           for m, ts in graph.items() if m.startswith("texelbake")}
-    # the CLI's `texelbake stack up` is the one door into the service's process launcher
-    assert {m: ts for m, ts in bad.items() if ts} == {"texelbake.cli.farm": ["services.stack"]}
+    bad = {m: sorted(t for t in ts
+                     if t.split(".")[0] in ("farm", "texelbake_client", "services", "workers"))
+           for m, ts in graph.items() if m.split(".")[0] == "texelbake"}
+    # the CLI's `texelbake stack up` is the one door into the farm's process launcher, and
+    # `texelbake submit` the one into the HTTP clients
+    assert {m: ts for m, ts in bad.items() if ts} == {
+        "texelbake.cli.farm": ["farm.stack", "texelbake_client.batch", "texelbake_client.submit"]}
+
+
+#: each package's layer: a module imports from lower layers, and within its layer only from
+#: its own package (farm and the clients do not import each other, nor services and workers)
+LAYERS = {"schemas": 0, "texelbake": 1, "farm": 2, "texelbake_client": 2, "services": 3,
+          "workers": 3}
+#: packages that sit above their top package: the command line starts the stack and submits jobs
+MODULE_LAYERS = {"texelbake.cli": 3}
+
+
+def _layer(mod: str) -> int:
+    for prefix, layer in MODULE_LAYERS.items():
+        if mod == prefix or mod.startswith(prefix + "."):
+            return layer
+    return LAYERS[mod.split(".")[0]]
+
+
+def layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    bad = []
+    for mod, targets in sorted(graph.items()):
+        for t in sorted(targets):
+            up = _layer(t) > _layer(mod)
+            sideways = _layer(t) == _layer(mod) and t.split(".")[0] != mod.split(".")[0]
+            if up or sideways:
+                bad.append(f"{mod} -> {t}")
+    return bad
+
+
+def test_layer_check_finds_violations():
+    g = {"schemas.job": {"texelbake.errors"}, "texelbake.pipeline": {"schemas.job"},
+         "farm.db": {"services.deps"}, "services.main": {"workers.tasks", "farm.db"},
+         "workers.tasks": {"farm.db"}, "texelbake.cli": {"farm.stack"},
+         "texelbake.errors": set(), "services.deps": set(), "farm.stack": set()}
+    assert layer_violations(g) == ["farm.db -> services.deps", "schemas.job -> texelbake.errors",
+                                   "services.main -> workers.tasks"]
+
+
+def test_packages_import_downwards_only():
+    graph = import_graph(_modules())
+    assert layer_violations(graph) == []
+
+
+#: the core's layers, lowest first: a module imports only from its own package or from a
+#: package of a lower layer (two packages of one layer do not import each other)
+CORE_LAYERS: tuple[tuple[str, ...], ...] = (
+    ("schemas",),
+    ("texelbake", "texelbake.errors", "texelbake.tol"),
+    ("texelbake.model", "texelbake.io"),
+    ("texelbake.brdf", "texelbake.geometry", "texelbake.estimate"),
+    ("texelbake.baselines", "texelbake.cpm", "texelbake.deform"),
+    ("texelbake.usd",),
+    ("texelbake.asset", "texelbake.btf", "texelbake.testscenes"),
+    ("texelbake.trace",),
+    ("texelbake.srf",),
+    ("texelbake.render",),
+    ("texelbake.stages",),
+    ("texelbake.pipeline",),
+    ("texelbake.cli",),
+)
+
+
+def core_package(module: str) -> str:
+    """The unit a core layer names: `texelbake.<package>` for the core's packages and its
+    loose modules, the top-level package otherwise."""
+    parts = module.split(".")
+    return ".".join(parts[:2]) if parts[0] == "texelbake" and len(parts) > 1 else parts[0]
+
+
+def core_layer_violations(graph: dict[str, set[str]], layers=CORE_LAYERS) -> list[str]:
+    rank = {p: i for i, layer in enumerate(layers) for p in layer}
+    out = []
+    for mod in sorted(graph):
+        a = core_package(mod)
+        if a not in rank:
+            continue
+        for t in sorted(graph[mod]):
+            b = core_package(t)
+            if b != a and b in rank and rank[b] >= rank[a]:
+                out.append(f"{mod} -> {t}")
+    return out
+
+
+def test_core_layer_check_finds_an_upward_import():
+    g = {"texelbake.io.store": {"texelbake.cpm.fit"}, "texelbake.cpm.fit": {"texelbake.io.store"},
+         "texelbake.cpm.level": {"texelbake.deform.warps"}}
+    assert core_layer_violations(g) == ["texelbake.cpm.level -> texelbake.deform.warps",
+                                        "texelbake.io.store -> texelbake.cpm.fit"]
+
+
+def test_every_core_package_has_a_layer():
+    """A new package of the core must be placed in CORE_LAYERS."""
+    known = {p for layer in CORE_LAYERS for p in layer}
+    core = {core_package(m) for m in _modules(("texelbake", "schemas"))}
+    assert sorted(core - known) == []
+
+
+def test_no_import_runs_up_the_core_layers():
+    assert core_layer_violations(import_graph(_modules())) == []
+
+
+def private_imports(modules: dict[str, Path]) -> list[str]:
+    """`from X import _name` where X is a module of another package than the importer's
+    (its parent package; `from pkg import _mod` of a private module counts too)."""
+    bad = []
+    for mod, path in modules.items():
+        is_pkg = path.name == "__init__.py"
+        own = mod if is_pkg else mod.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not isinstance(node, ast.ImportFrom) or node.level:
+                continue
+            base = node.module or ""
+            if base.split(".")[0] not in PACKAGES:
+                continue  # not one of ours
+            src_pkg = base if (ROOT / base.replace(".", "/")).is_dir() else base.rpartition(".")[0]
+            for a in node.names:
+                if a.name.startswith("_") and not a.name.startswith("__") and src_pkg != own:
+                    bad.append(f"{mod}: from {base} import {a.name}")
+    return bad
+
+
+def test_no_private_name_crosses_a_package():
+    assert private_imports(_modules()) == []
+
+
+def test_one_queue_table():
+    """The queues, their worker families and the stage -> queue map live in schemas.queues
+    only: no other module spells a family's queue list or a stage's queue."""
+    from schemas.queues import PLAN_QUEUE, QUEUE_FAMILIES, QUEUES, STAGE_QUEUES
+
+    assert sorted(q for qs in QUEUE_FAMILIES.values() for q in qs) == sorted(QUEUES)
+    assert set(STAGE_QUEUES.values()) <= set(QUEUES) and PLAN_QUEUE in QUEUES
+    spelled = ('("ingest", "geometry", "export")', '("cpm", "avis", "btf")', '"ingest", "ingest"',
+               '"cpm", "cpm"', '"geometry", "geometry"', 'PLAN_QUEUE = "')
+    found = [f"{m}: {lit}" for m, path in _modules().items() if m != "schemas.queues"
+             for lit in spelled if lit in path.read_text()]
+    assert found == []
 
 
 _PROBE = r"""
 import importlib, json, sys
 mods = json.loads(sys.argv[1])
-ours = ("texelbake", "schemas", "services", "workers")
+ours = ("texelbake", "schemas", "farm", "texelbake_client", "services", "workers")
 failed = {}
 for m in mods:
     for k in [k for k in sys.modules if k.split(".")[0] in ours]:
@@ -157,76 +299,3 @@ def test_core_imports_neither_fastapi_celery_nor_redis(tmp_path):
     loaded = _probe(mods, "core", tmp_path)["loaded"]
     assert "texelbake" in loaded and "torch" in loaded  # the probe did import the core
     assert [lib for lib in SERVICE_LIBS if lib in loaded] == []
-
-
-#: the core's layers, lowest first: a module imports only from its own package or from a
-#: package of a lower layer (two packages of one layer do not import each other)
-CORE_LAYERS: tuple[tuple[str, ...], ...] = (
-    ("schemas",),
-    ("texelbake", "texelbake.errors", "texelbake.tol"),
-    ("texelbake.model", "texelbake.io"),
-    ("texelbake.brdf", "texelbake.geometry", "texelbake.estimate"),
-    ("texelbake.baselines", "texelbake.cpm", "texelbake.deform"),
-    ("texelbake.usd",),
-    ("texelbake.asset", "texelbake.btf", "texelbake.testscenes"),
-    ("texelbake.trace",),
-    ("texelbake.srf",),
-    ("texelbake.render",),
-    ("texelbake.stages",),
-    ("texelbake.pipeline",),
-    ("texelbake.cli",),
-)
-
-
-def package_of(module: str) -> str:
-    """The unit a layer names: `texelbake.<package>` for the core's packages and its loose
-    modules, the top-level package otherwise."""
-    parts = module.split(".")
-    return ".".join(parts[:2]) if parts[0] == "texelbake" and len(parts) > 1 else parts[0]
-
-
-def layer_violations(graph: dict[str, set[str]], layers=CORE_LAYERS) -> list[str]:
-    rank = {p: i for i, layer in enumerate(layers) for p in layer}
-    out = []
-    for mod in sorted(graph):
-        a = package_of(mod)
-        if a not in rank:
-            continue
-        for t in sorted(graph[mod]):
-            b = package_of(t)
-            if b != a and b in rank and rank[b] >= rank[a]:
-                out.append(f"{mod} -> {t}")
-    return out
-
-
-def private_imports(modules: dict[str, Path]) -> list[str]:
-    """`from a.b import _name` where a.b lies in another package than the importer."""
-    out = []
-    for mod, path in modules.items():
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.ImportFrom) and node.module and not node.level:
-                for a in node.names:
-                    if (a.name.startswith("_") and not a.name.startswith("__")
-                            and package_of(node.module) != package_of(mod)):
-                        out.append(f"{mod}: from {node.module} import {a.name}")
-    return out
-
-
-def test_layer_checker_finds_an_upward_import():
-    g = {"texelbake.io.store": {"texelbake.cpm.fit"}, "texelbake.cpm.fit": {"texelbake.io.store"}}
-    assert layer_violations(g) == ["texelbake.io.store -> texelbake.cpm.fit"]
-
-
-def test_every_layer_is_known():
-    """Every package of the core is in a layer (a new package must be placed)."""
-    known = {p for layer in CORE_LAYERS for p in layer}
-    core = {package_of(m) for m in _modules(("texelbake", "schemas"))}
-    assert sorted(core - known) == []
-
-
-def test_no_import_runs_up_the_layers():
-    assert layer_violations(import_graph(_modules())) == []
-
-
-def test_no_private_name_is_imported_across_packages():
-    assert private_imports(_modules()) == []

@@ -9,8 +9,8 @@ from datetime import timedelta
 import pytest
 from sqlalchemy import select
 
-from services import ledger
-from services.db import Asset, Job, Shard, session_factory, utcnow
+from farm import ledger
+from farm.db import Asset, Job, Shard, session_factory, utcnow
 from tests.svc_util import fresh_postgres
 
 PLAN = [

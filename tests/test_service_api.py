@@ -10,8 +10,8 @@ import zipfile
 import httpx
 import pytest
 
-from services.config import Settings
-from services.stack import free_port, stack_down, stack_up
+from farm.config import Settings
+from farm.stack import free_port, stack_down, stack_up
 from tests.svc_util import dir_listing, make_zip, usda
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(120)]
@@ -376,7 +376,7 @@ def test_shard_time_limit_must_stay_below_the_visibility_timeout():
     with pytest.raises(ValueError, match="must stay below heartbeat_timeout"):
         Settings(**base, shard_kill_grace=60, heartbeat_timeout=60)
     st = Settings(**base, visibility_timeout=600, shard_time_limit=500, shard_kill_grace=10)
-    from workers.celeryconfig import celery_config
+    from farm.celeryconfig import celery_config
 
     assert celery_config(st)["task_time_limit"] == 510
 
@@ -390,7 +390,7 @@ def test_api_process_imports_neither_torch_nor_pxr(tmp_path):
     code = (
         "import sys\n"
         "from services.main import create_app\n"
-        "from services.config import Settings\n"
+        "from farm.config import Settings\n"
         f"create_app(Settings(secret_key='0123456789', redis_url='redis://127.0.0.1:1/0', "
         f"artifact_root={str(tmp_path)!r}), sweeper=False)\n"
         "import workers.celery_app\n"

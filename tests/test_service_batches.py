@@ -19,7 +19,7 @@ import pytest
 
 from tests.svc_util import CHEAP_SETTINGS, fresh_postgres, usda
 from tests.test_service_farm import AUTH, TOKEN, farm, ledger_rows
-from texelbake.client import package
+from texelbake_client.submit import package
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(420)]
 TOKEN_B = "batch-tenant-b-0123456789"
@@ -268,8 +268,8 @@ def test_cli_manifest_end_to_end(stack, cylinder, tmp_path):
 ])
 def test_manifest_shape_errors(tmp_path, doc, needle):
     """A manifest's shape is checked before anything is uploaded (no server needed)."""
-    from texelbake.batch_client import load_manifest
     from texelbake.errors import SettingsError
+    from texelbake_client.batch import load_manifest
 
     (tmp_path / "a.usda").write_bytes(NO_MESH)
     m = tmp_path / "m.json"
@@ -280,7 +280,7 @@ def test_manifest_shape_errors(tmp_path, doc, needle):
 
 
 def test_manifest_paths_resolve_against_its_folder(tmp_path):
-    from texelbake.batch_client import load_manifest
+    from texelbake_client.batch import load_manifest
 
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "a.usda").write_bytes(NO_MESH)

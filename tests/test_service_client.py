@@ -19,7 +19,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.stack import free_port, stack_down, stack_up
+from farm.stack import free_port, stack_down, stack_up
 from tests.svc_util import CHEAP_SETTINGS, backend_missing, make_zip, usda
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(600)]

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from schemas.queues import QUEUE_FAMILIES, QUEUES
 from tests.svc_util import backend_missing
-from workers.celeryconfig import QUEUE_FAMILIES, QUEUES
 
 pytestmark = pytest.mark.service
 COMPOSE = Path(__file__).resolve().parents[1] / "docker-compose.yml"

@@ -10,8 +10,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 from sqlalchemy.exc import OperationalError
 
-from services.config import Settings
-from services.db import Job, session_factory
+from farm.config import Settings
+from farm.db import Job, session_factory
 from services.main import create_app
 
 

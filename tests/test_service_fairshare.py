@@ -13,12 +13,12 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from services.db import Job, Shard, session_factory
-from services.stack import free_port, stack_down, stack_up
+from farm.db import Job, Shard, session_factory
+from farm.stack import free_port, stack_down, stack_up
+from schemas.queues import QUEUES
 from tests.svc_util import CHEAP_SETTINGS, assert_same_bake
 from tests.test_service_farm import AUTH, TOKEN, cylinder, download, reference, wait_for
-from texelbake.client import package
-from workers.celeryconfig import QUEUES
+from texelbake_client.submit import package
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(400)]
 __all__ = ["cylinder", "reference"]  # module fixtures shared with test_service_farm

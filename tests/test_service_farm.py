@@ -2,7 +2,7 @@
 
 End to end over HTTP (SQLite and PostgreSQL), a worker killed with -9 while it holds a cpm
 shard, and redis-server and the API restarted mid-job: every job completes and its result is
-identical to the in-process `texelbake.pipeline.run.bake` of the same file with the same settings.
+identical to the in-process `texelbake.pipeline.run.run.bake` of the same file with the same settings.
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ import httpx
 import pytest
 from sqlalchemy import select
 
+from farm.db import Shard, session_factory
+from farm.stack import free_port, stack_down, stack_up
 from schemas.settings import BakeSettings
-from services.db import Shard, session_factory
-from services.stack import free_port, stack_down, stack_up
 from tests.svc_util import CHEAP_SETTINGS, assert_same_bake, fresh_postgres
-from texelbake.client import package, submit  # package: the layer and the files it uses
+from texelbake_client.submit import package, submit  # package: the layer and the files it uses
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(300)]
 TOKEN = "farm-token-0123456789abcdef"
@@ -116,7 +116,7 @@ def wait_for_running_cpm_shard(stack, job_id: str) -> dict:
 
 
 def download(stack, job_id: str, out: Path) -> Path:
-    from texelbake.client import safe_extract
+    from texelbake_client.submit import safe_extract
 
     r = httpx.get(f"{stack.api_url}/api/v1/jobs/{job_id}/result", headers=AUTH, timeout=60)
     assert r.status_code == 200, r.text
@@ -288,7 +288,7 @@ def test_stuck_shard_is_killed_at_its_time_limit(cylinder, reference, tmp_path):
     kills its pool child, the sweeper re-queues it and the redelivery completes the job with the
     in-process bake's bytes. One that hangs on every delivery fails the job at `max_attempts`,
     naming the time limit, instead of holding the prep worker for ever."""
-    from services.db import Event
+    from farm.db import Event
 
     control = tmp_path / "hang"
     # 12 s: every task of the job runs under this limit (the plan, each shard); the small

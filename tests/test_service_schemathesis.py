@@ -11,7 +11,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.stack import free_port, stack_down, stack_up
+from farm.stack import free_port, stack_down, stack_up
 from tests.svc_util import backend_missing, usda
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(300)]

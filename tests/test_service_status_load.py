@@ -11,10 +11,10 @@ from pathlib import Path
 import httpx
 import pytest
 
+from farm.db import session_factory
+from farm.ledger import cancel_job
+from farm.stack import free_port, stack_down, stack_up
 from services import checkserver, uploads
-from services.db import session_factory
-from services.ledger import cancel_job
-from services.stack import free_port, stack_down, stack_up
 from tests.svc_util import proc_cpu, usda
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(180)]
@@ -125,7 +125,7 @@ def _redis(port: int, workdir: Path):
     import shutil
     import subprocess
 
-    from services.stack import redis_ping
+    from farm.stack import redis_ping
 
     proc = subprocess.Popen([shutil.which("redis-server") or "/usr/bin/redis-server", "--port",
                              str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
@@ -141,7 +141,7 @@ def test_broker_run_id_is_cheap_and_follows_a_restart(tmp_path):
     """POST /jobs reads Redis' run id on every call: one pooled connection and no parse of the
     whole INFO section (it was a new connection and 40 % of a submission's CPU), and still a
     new id after a restart and None while Redis is down."""
-    from services.broker import broker_run_id
+    from farm.broker import broker_run_id
 
     port = free_port()
     url = f"redis://127.0.0.1:{port}/0"

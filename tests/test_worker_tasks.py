@@ -8,9 +8,9 @@ from __future__ import annotations
 import pytest
 from sqlalchemy import select
 
-from services import ledger, storage
-from services.config import get_settings
-from services.db import Asset, Job, Shard, session_factory
+from farm import ledger, storage
+from farm.config import get_settings
+from farm.db import Asset, Job, Shard, session_factory
 
 PLAN = [("ingest", "ingest", 1, ()), ("geometry", "geometry", 1, ("ingest",))]
 

@@ -1,1 +1,2 @@
-"""The farm: a Celery app, its configuration and thin tasks over `texelbake.pipeline`."""
+"""The Celery workers: the app (configured by `farm.celeryconfig`) and thin tasks over
+`texelbake.pipeline`."""

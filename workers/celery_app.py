@@ -9,7 +9,7 @@ from __future__ import annotations
 from celery import Celery
 from celery.signals import worker_process_init
 
-from workers.celeryconfig import celery_config
+from farm.celeryconfig import celery_config
 
 app = Celery("texelbake", include=["workers.tasks"])
 app.conf.update(celery_config())
@@ -21,7 +21,7 @@ def _init_pool_child(**_kwargs) -> None:
     core pipeline (torch, open3d, pxr) once here, not inside its first shard's time."""
     import os
 
-    from services.db import dispose_engines
+    from farm.db import dispose_engines
 
     dispose_engines()
     if os.environ.get("TEXELBAKE_WARM_IMPORT", "1") != "0":

@@ -10,10 +10,10 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
+from farm.db import Asset
 from schemas.asset import AssetPublic, AssetsPublic
 from schemas.common import ErrorCode
 from services import uploads
-from services.db import Asset
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
 

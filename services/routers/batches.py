@@ -20,6 +20,8 @@ from pydantic import ValidationError
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from farm import ledger, storage
+from farm.db import Asset, Batch, BatchItem, Job, Shard, Stage
 from schemas.batch import (
     BatchCounts,
     BatchCreate,
@@ -31,8 +33,6 @@ from schemas.batch import (
 from schemas.common import ErrorCode
 from schemas.job import TERMINAL_JOB_STATES
 from schemas.settings import BakeSettings
-from services import ledger, storage
-from services.db import Asset, Batch, BatchItem, Job, Shard, Stage
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ
 from services.errors import ApiError, errors
 from services.routers.jobs import BINARY, OCTET, _media_type

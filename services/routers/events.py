@@ -13,7 +13,7 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import sessionmaker
 
-from services.db import Event, Job
+from farm.db import Event, Job
 from services.deps import CurrentTenant
 from services.errors import errors
 

@@ -17,11 +17,11 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import sessionmaker
 
+from farm.db import Job, Shard, utcnow
 from schemas.farm import CurrentShard, FarmPublic, QueuePublic, WorkerPublic
-from services.db import Job, Shard, utcnow
+from schemas.queues import QUEUES
 from services.deps import CurrentTenant
 from services.errors import errors
-from workers.celeryconfig import QUEUES
 
 router = APIRouter(prefix="/farm", tags=["farm"])
 

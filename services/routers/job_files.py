@@ -11,8 +11,8 @@ from pathlib import Path
 from fastapi import APIRouter, Request, status
 from fastapi.responses import FileResponse, JSONResponse
 
+from farm import storage
 from schemas.common import ErrorCode
-from services import storage
 from services.deps import CurrentTenant, SessionDep, SettingsDep
 from services.errors import ApiError, errors
 from services.routers.jobs import (

@@ -17,6 +17,10 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from farm import ledger, storage
+from farm.broker import broker_run_id, celery_sender
+from farm.db import Event, Job, Shard, Stage, retry_disconnect
+from farm.resume import resume_job
 from schemas.common import ErrorCode
 from schemas.job import (
     TERMINAL_JOB_STATES,
@@ -31,13 +35,9 @@ from schemas.job import (
     StagePublic,
 )
 from schemas.settings import BakeSettings
-from services import ledger, storage
-from services.broker import broker_run_id, celery_sender
-from services.db import Event, Job, Shard, Stage, retry_disconnect
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
 from services.limits import cpu_slot
-from services.resume import resume_job
 from services.routers.assets import ASSET_404
 from services.submission import JobSpec, create_jobs, own_asset
 from texelbake.estimate import costmodel
@@ -470,7 +470,7 @@ def delete_job(
 def resume(job_id: str, request: Request, session: SessionDep, writer: WriterDep,
            tenant: CurrentTenant, settings: SettingsDep) -> JobPublic:
     """Resume a failed job once its cause is gone: its unfinished shards run again, done ones
-    are kept (`services.resume`)."""
+    are kept (`farm.resume`)."""
     state = _own_job(session, job_id, tenant).state
     session.close()
     sends = resume_job(writer, job_id, ledger.policy_from(settings))

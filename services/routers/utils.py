@@ -5,8 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter, Response, status
 from sqlalchemy import text
 
+from farm.broker import broker_run_id
 from schemas.common import HealthCheck
-from services.broker import broker_run_id
 from services.deps import SessionDep, SettingsDep
 
 router = APIRouter(prefix="/utils", tags=["utils"])

@@ -15,8 +15,8 @@ from fastapi import APIRouter, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse
 
+from farm import storage
 from schemas.common import ErrorCode
-from services import storage
 from services.deps import CurrentTenant, SessionDep, SettingsDep
 from services.errors import ApiError, errors
 from services.routers.jobs import BINARY, JOB_404, JOB_409, OCTET, _own_job, _require_done

@@ -14,7 +14,7 @@ EXIT_ITEMS_FAILED = 4
 
 
 def cmd_submit_manifest(args: argparse.Namespace) -> int:
-    from texelbake.batch_client import failed_items, load_manifest, submit_batch
+    from texelbake_client.batch import failed_items, load_manifest, submit_batch
 
     if args.file or args.settings or args.set:
         raise TexelbakeError("--manifest takes its files and settings from the manifest: "
@@ -32,7 +32,7 @@ def cmd_submit_manifest(args: argparse.Namespace) -> int:
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
-    from texelbake.client import submit
+    from texelbake_client.submit import submit
 
     if args.manifest:
         return cmd_submit_manifest(args)
@@ -48,7 +48,7 @@ def cmd_submit(args: argparse.Namespace) -> int:
 def cmd_stack(args: argparse.Namespace) -> int:
     # the launcher lives next to the service it launches (stdlib only: importing it pulls in
     # neither FastAPI, Celery nor Redis); the CLI is the one place the core reaches for it
-    from services import stack
+    from farm import stack
 
     if args.action == "up":
         stack.stack_up(Path(args.dir))
@@ -62,7 +62,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("submit", help="upload an asset (or a manifest's assets, as one batch) "
                        "to a texelbake server and fetch the result")
     p.add_argument("file", nargs="?")
-    p.add_argument("--manifest", help="JSON manifest of many assets (texelbake.batch_client); "
+    p.add_argument("--manifest", help="JSON manifest of many assets (texelbake_client.batch); "
                    f"exit status {EXIT_ITEMS_FAILED} when an item failed")
     p.add_argument("--server", required=True)
     p.add_argument("--token", required=True)

@@ -16,6 +16,7 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+from schemas.queues import STAGE_QUEUES
 from schemas.settings import BakeSettings
 from texelbake.errors import AssetError, StageError
 from texelbake.stages.srf import n_srf_shards
@@ -51,33 +52,33 @@ def plan_bake(asset_path: Path, settings: BakeSettings) -> Plan:
     tiles = n_tiles(settings)
     has_top = settings.shard_texels < settings.atlas_resolution
     plan = [
-        StagePlan("ingest", "ingest", 1),
-        StagePlan("geometry", "geometry", 1, ("ingest",)),
-        StagePlan("cpm", "cpm", tiles, ("geometry",)),
+        StagePlan("ingest", STAGE_QUEUES["ingest"], 1),
+        StagePlan("geometry", STAGE_QUEUES["geometry"], 1, ("ingest",)),
+        StagePlan("cpm", STAGE_QUEUES["cpm"], tiles, ("geometry",)),
     ]
     skipped: list[tuple[str, str]] = []
     if has_top:
-        plan.append(StagePlan("cpm_top", "cpm", 1, ("cpm",)))
-    plan.append(StagePlan("avis", "avis", tiles, ("geometry",)))
+        plan.append(StagePlan("cpm_top", STAGE_QUEUES["cpm_top"], 1, ("cpm",)))
+    plan.append(StagePlan("avis", STAGE_QUEUES["avis"], tiles, ("geometry",)))
     if has_top:
-        plan.append(StagePlan("avis_top", "avis", 1, ("avis",)))
+        plan.append(StagePlan("avis_top", STAGE_QUEUES["avis_top"], 1, ("avis",)))
     cpm_deps = ("cpm_top",) if has_top else ("cpm",)
     avis_deps = ("avis_top",) if has_top else ("avis",)
     if settings.btf:
-        plan.append(StagePlan("btf", "btf", 1, cpm_deps))
+        plan.append(StagePlan("btf", STAGE_QUEUES["btf"], 1, cpm_deps))
     else:
         skipped.append(("btf", "no real-time target requested (settings.btf is false)"))
     if settings.srf:  # seed 002 §3: captured with gt, sharded by camera (render workers)
-        plan.append(StagePlan("srf", "render", n_srf_shards(settings), ("ingest",)))
-        plan.append(StagePlan("srf_top", "render", 1, ("srf",)))
+        plan.append(StagePlan("srf", STAGE_QUEUES["srf"], n_srf_shards(settings), ("ingest",)))
+        plan.append(StagePlan("srf_top", STAGE_QUEUES["srf_top"], 1, ("srf",)))
     export_deps = (cpm_deps + avis_deps + (("btf",) if settings.btf else ())
                    + (("srf_top",) if settings.srf else ()))
-    plan.append(StagePlan("export", "export", 1, export_deps))
+    plan.append(StagePlan("export", STAGE_QUEUES["export"], 1, export_deps))
     if settings.previews:
-        plan.append(StagePlan("render", "render", 1, ("export",)))
+        plan.append(StagePlan("render", STAGE_QUEUES["render"], 1, ("export",)))
         # seed 002 §4: an animated preview of deformed frames, only when there is motion
         if settings.warp or asset_deforms(asset_path):
-            plan.append(StagePlan("deformed", "render", 1, ("export",)))
+            plan.append(StagePlan("deformed", STAGE_QUEUES["deformed"], 1, ("export",)))
         else:
             skipped.append(("deformed", "the asset has no animation (at most one time sample) "
                                         "and no warp was asked (settings.warp)"))

@@ -1,5 +1,5 @@
 """`texelbake submit FILE --server URL`: upload, follow progress, download the baked bundle
-(`texelbake submit --manifest FILE`, many assets as one batch: `texelbake.batch_client`).
+(`texelbake submit --manifest FILE`, many assets as one batch: `texelbake_client.batch`).
 
 Uses only httpx and the standard library (no server imports). A layer file that uses other
 files (textures, sublayers) is sent as a `.zip` bundle of exactly the files it uses (found with
@@ -59,7 +59,7 @@ def package(path: str | Path) -> tuple[str, bytes]:
     return f"{path.stem}.zip", _zip_files(files)
 
 
-class _Bar:
+class ProgressBar:
     """A one-line text progress bar on stderr (stdlib only)."""
 
     def __init__(self, enabled: bool, width: int = 30):
@@ -116,7 +116,7 @@ def iter_events(
             time.sleep(retry)
 
 
-def _check(r: httpx.Response, what: str) -> httpx.Response:
+def check_response(r: httpx.Response, what: str) -> httpx.Response:
     if r.status_code >= 400:
         try:
             detail = r.json().get("detail")
@@ -148,7 +148,7 @@ def upload(client: httpx.Client, path: str | Path, what: str = "") -> dict[str, 
     copy per content hash: the same bytes give the same asset)."""
     name, data = package(path)
     label = f"{what}: upload {name}" if what else f"upload {name}"
-    return _check(client.post(f"{API}/assets", files={"file": (name, data)}), label).json()
+    return check_response(client.post(f"{API}/assets", files={"file": (name, data)}), label).json()
 
 
 def submit(
@@ -171,12 +171,12 @@ def submit(
     """
     headers = {"Authorization": f"Bearer {token}"}
     deadline = time.monotonic() + timeout
-    bar = _Bar(progress)
+    bar = ProgressBar(progress)
     with httpx.Client(
         base_url=server.rstrip("/"), headers=headers, timeout=120.0, transport=transport
     ) as c:
         asset = upload(c, file)
-        job = _check(
+        job = check_response(
             c.post(f"{API}/jobs", json={"asset_id": asset["id"], "settings": settings or {}}),
             "create job",
         ).json()
@@ -186,7 +186,7 @@ def submit(
                 if on_event is not None:
                     on_event(ev)
                 if ev["kind"] in ("stage", "job") or ev["data"].get("state") == "done":
-                    job = _check(c.get(f"{API}/jobs/{job_id}"), "job status").json()
+                    job = check_response(c.get(f"{API}/jobs/{job_id}"), "job status").json()
                     running = [
                         s["name"] for s in job["stages"] if s["state"] in ("queued", "running")
                     ]
@@ -195,10 +195,10 @@ def submit(
                     raise StageError(f"job {job_id} did not finish within {timeout} s")
         finally:
             bar.close()
-        job = _check(c.get(f"{API}/jobs/{job_id}"), "job status").json()
+        job = check_response(c.get(f"{API}/jobs/{job_id}"), "job status").json()
         if job["state"] != "succeeded":
             raise StageError(f"job {job_id} ended {job['state']}: {job.get('error')}")
-        r = _check(c.get(f"{API}/jobs/{job_id}/result"), "download result")
+        r = check_response(c.get(f"{API}/jobs/{job_id}/result"), "download result")
     files = safe_extract(r.content, Path(out_dir))
     roots = sorted(
         p for p in files if p.name.endswith("_baked.usda") and p.parent == Path(out_dir).resolve()

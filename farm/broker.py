@@ -7,7 +7,7 @@ import threading
 
 import redis
 
-from services.ledger import Sender
+from farm.ledger import Sender
 
 _RUN_ID = re.compile(rb"^run_id:([0-9A-Za-z]+)", re.M)
 _clients: dict[tuple[str, float], redis.Redis] = {}

@@ -66,7 +66,7 @@ class Settings(BaseSettings):
         "of its pool child (the time to record why); below heartbeat_timeout. Default: 10 s "
         "or half the heartbeat_timeout if that is less.")
     sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
-    # scheduling (issue 16): the shard ledger admits ready shards to the broker
+    # scheduling: the shard ledger admits ready shards to the broker
     queue_backlog: int = Field(
         2, ge=0, description="Admitted shards per queue group waiting unstarted in the broker; the "
         "rest wait in the ledger, which admits by job priority (Redis queues are FIFO). "

@@ -24,15 +24,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlparse
 
+from schemas.queues import QUEUE_FAMILIES
 from texelbake.errors import SettingsError, StageError
 from texelbake.io.atomic import atomic_write_bytes
 
-#: queue family -> queues (the same split as docker-compose.yml and workers.celeryconfig)
-QUEUE_FAMILIES: dict[str, tuple[str, ...]] = {
-    "prep": ("ingest", "geometry", "export"),
-    "numeric": ("cpm", "avis", "btf"),
-    "render": ("render",),
-}
 _REPO = Path(__file__).resolve().parents[1]
 HEALTH_PATH = "/api/v1/utils/health-check/"
 

@@ -1,24 +1,16 @@
 """Celery configuration: queues per workload, late acks, prefetch 1, redelivery, retries.
 
-Read by `workers.celery_app`; the broker URL and the visibility timeout come from the one
-settings class (`services.config.Settings`), shared with the API.
+Read by the workers' app (`workers.celery_app`) and by the API's sending app alike; the queues
+are the one table (`schemas.queues`), the broker URL and the visibility timeout come from the
+one settings class (`farm.config.Settings`).
 """
 
 from __future__ import annotations
 
 from kombu import Queue
 
-from services.config import Settings, get_settings
-
-#: one queue per workload
-QUEUES = ("ingest", "geometry", "cpm", "avis", "btf", "export", "render")
-
-#: worker services: queue families that share a process type (compose and `texelbake stack`)
-QUEUE_FAMILIES: dict[str, tuple[str, ...]] = {
-    "prep": ("ingest", "geometry", "export"),
-    "numeric": ("cpm", "avis", "btf"),
-    "render": ("render",),
-}
+from farm.config import Settings, get_settings
+from schemas.queues import PLAN_QUEUE, QUEUES
 
 
 def celery_config(settings: Settings | None = None) -> dict:
@@ -28,7 +20,7 @@ def celery_config(settings: Settings | None = None) -> dict:
         "result_backend": None,  # job state lives in the database, not in Redis
         "task_ignore_result": True,
         "task_queues": [Queue(q, routing_key=q) for q in QUEUES],
-        "task_default_queue": "ingest",
+        "task_default_queue": PLAN_QUEUE,
         "task_create_missing_queues": False,
         # a message is acknowledged only after the task returns; a worker that dies (kill -9,
         # OOM) puts it back; the redelivery cap is counted in the shard ledger (max_attempts)

@@ -75,7 +75,7 @@ class Job(Base):
     asset_id: Mapped[str] = mapped_column(ForeignKey("assets.id"))
     settings_json: Mapped[str] = mapped_column(Text)
     state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
-    #: 0..100, higher first: the ledger admits shards to the broker by priority (issue 16)
+    #: 0..100, higher first: the ledger admits shards to the broker by priority
     priority: Mapped[int] = mapped_column(Integer, default=50, server_default="50")
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     skipped_json: Mapped[str] = mapped_column(Text, default="[]")
@@ -189,7 +189,7 @@ def get_engine(url: str, *, readonly: bool = False, role: str | None = None) -> 
     read roles keep deferred transactions so reads never queue on writers (WAL). The pool has
     no upper bound (a SQLite connection is a file handle, not a server slot): a bounded pool
     was exhausted by requests waiting for the write lock, and a read on the event loop then
-    blocked the whole API for the pool timeout (issue 16, benchmarks/load.py).
+    blocked the whole API for the pool timeout (benchmarks/load.py).
     PostgreSQL: the read roles run in autocommit (each read is one statement: no BEGIN and no
     ROLLBACK round trips); the inline role skips the pre-ping round trip too (its callers retry
     once on a dropped connection: `retry_disconnect`).

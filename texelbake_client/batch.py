@@ -9,7 +9,7 @@ The manifest is JSON::
                {"path": "barrel", "settings": {"samples_per_texel": 32}, "priority": 80}]}
 
 `path` is relative to the manifest's folder; an item's `settings` override the batch's field
-by field. Every item is uploaded (`texelbake.client.upload`), the batch is created, its
+by field. Every item is uploaded (`texelbake_client.submit.upload`), the batch is created, its
 progress shown on one line, and when every item has finished the batch archive is unpacked
 into the output folder: `batch.json` and one folder per succeeded item. Uses only httpx and
 the standard library (no server imports).
@@ -25,8 +25,8 @@ from typing import Any
 
 import httpx
 
-from texelbake.client import API, _Bar, _check, safe_extract, upload
 from texelbake.errors import SettingsError, StageError
+from texelbake_client.submit import API, ProgressBar, check_response, safe_extract, upload
 
 MANIFEST_KEYS = frozenset({"name", "settings", "priority", "items"})
 ITEM_KEYS = frozenset({"path", "settings", "priority"})
@@ -105,7 +105,7 @@ def submit_batch(
     item), or the batch does not finish within `timeout`."""
     m = load_manifest(manifest)
     deadline = time.monotonic() + timeout
-    bar = _Bar(progress)
+    bar = ProgressBar(progress)
     with httpx.Client(base_url=server.rstrip("/"), headers={"Authorization": f"Bearer {token}"},
                       timeout=120.0, transport=transport) as c:
         uploaded: dict[Path, str] = {}
@@ -115,7 +115,7 @@ def submit_batch(
             if key not in uploaded:
                 uploaded[key] = upload(c, p, f"items[{i}] ({p})")["id"]
             items.append({"asset_id": uploaded[key], **extra})
-        batch = _check(c.post(f"{API}/batches", json={**m.body, "items": items}),
+        batch = check_response(c.post(f"{API}/batches", json={**m.body, "items": items}),
                        "create batch").json()
         try:
             while batch["state"] not in FINISHED:
@@ -126,13 +126,13 @@ def submit_batch(
                     raise StageError(f"batch {batch['id']} did not finish within {timeout} s")
                 time.sleep(poll)
                 try:
-                    batch = _check(c.get(f"{API}/batches/{batch['id']}"), "batch status").json()
+                    batch = check_response(c.get(f"{API}/batches/{batch['id']}"), "batch status").json()
                 except httpx.TransportError:
                     continue  # the API is restarting: ask again
             bar.show(batch["progress"], _label(batch))
         finally:
             bar.close()
-        r = _check(c.get(f"{API}/batches/{batch['id']}/result"), "download batch result")
+        r = check_response(c.get(f"{API}/batches/{batch['id']}/result"), "download batch result")
     safe_extract(r.content, Path(out_dir))
     return batch
 

@@ -1,10 +1,10 @@
-"""Admission: which ready shards the ledger sends to the broker, and when (issue 16, item 2).
+"""Admission: which ready shards the ledger sends to the broker, and when.
 
 A stage that becomes ready makes its shards `queued` in the ledger; only *admitted* shards get
-a task id and are sent (`services.ledger.dispatch`). `Policy` says how: job priority, a backlog
+a task id and are sent (`farm.ledger.dispatch`). `Policy` says how: job priority, a backlog
 per queue group, per-tenant limits (docs/service.md "Priorities and fair share"). Admission runs
-inside the ledger's transactions, one at a time (`serialize`). Split out of `services.ledger`,
-which re-exports every name.
+inside the ledger's transactions, one at a time (`serialize`). `farm.ledger` re-exports its
+names.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ from typing import Any
 from sqlalchemy import func, select, text, update
 from sqlalchemy.orm import Session
 
-from services.db import Job, Shard, utcnow
+from farm.db import Job, Shard, utcnow
+from schemas.queues import QUEUE_FAMILIES
 
 RUN_SHARD_TASK = "workers.tasks.run_shard"
 
@@ -37,7 +38,7 @@ class Send:
 
 @dataclass(frozen=True)
 class Policy:
-    """How the ledger admits ready (`queued`) shards to the broker (issue 16, item 2).
+    """How the ledger admits ready (`queued`) shards to the broker.
 
     A ready shard waits in the ledger until it is admitted: then it gets its task id and is
     sent. Admission takes, per queue group (`groups`: the queues one kind of worker serves;
@@ -50,7 +51,7 @@ class Policy:
       count; a worker's start frees a slot and admits the next shard at once), and
     - `tenant_max_running`: the tenant has fewer than this many shards admitted or running
       (`tenant_limits` overrides it per tenant): one tenant's batch cannot take every worker.
-    0 means no limit; `Policy()` admits every ready shard at once (the farm before issue 16).
+    0 means no limit; `Policy()` admits every ready shard at once (no scheduling).
     """
 
     queue_backlog: int = 0
@@ -68,13 +69,12 @@ class Policy:
         return queue
 
 
-#: the farm before issue 16: every ready shard is sent at once (tests of the transitions)
+#: no scheduling: every ready shard is sent at once (tests of the transitions)
 NO_LIMITS = Policy()
 
 
 def policy_from(settings: Any) -> Policy:
-    """The admission policy of the service settings (`services.config.Settings`)."""
-    from services.stack import QUEUE_FAMILIES
+    """The admission policy of the service settings (`farm.config.Settings`)."""
 
     groups = settings.queue_groups if settings.queue_groups is not None else QUEUE_FAMILIES
     return Policy(
