@@ -9,8 +9,7 @@ export; `benchmarks/bake.py` times the whole bake).
 Ingest and geometry run once (untimed, cached in --workdir); then every tile's levels and the
 top levels are fitted in order, exactly as `run_cpm_tile` / `run_cpm_top` do (the tiles' sums for the
 top levels, `top_level_sums`, timed as the top level's work), each `fit_level`
-call (and a coarse level's dense refit, `stages.cpm.refit_coarse`, as the stage applies it;
-its share is printed apart) timed with `time.process_time()` (CPU seconds of this process: the machine is shared, so
+call timed with `time.process_time()` (CPU seconds of this process: the machine is shared, so
 wall time is not comparable between runs). Prints per level: texels fitted, CPU seconds,
 texels per CPU second, held-out SNR median and p5, the skip counts (what the fit did not
 model fully) and a digest of the level's arrays (equal digests: byte-identical results).
@@ -34,7 +33,6 @@ from texelbake.cpm.level_batched import fit_level
 from texelbake.payload import atomic_json
 from texelbake.process import setup_bake_process
 from texelbake.stages import cpm as cpm_stage
-from texelbake.stages.cpm import refit_coarse
 
 
 def _parse_set(items: list[str]) -> dict:
@@ -81,8 +79,7 @@ BREAKDOWN = (
 
 #: per-level sums recorded for the cost model's calibration: candidates on cheap (Lambert /
 #: Phong) and costly materials, m^2, m^3, dense samples on cheap / costly materials, texels
-FEATURES = ("m_cheap", "m_costly", "m2", "m3", "dense_cheap", "dense_costly", "texels",
-            "refit_cheap", "refit_costly")
+FEATURES = ("m_cheap", "m_costly", "m2", "m3", "dense_cheap", "dense_costly", "texels")
 
 
 #: the level `run` is fitting, for --breakdown's per-level sums
@@ -153,13 +150,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         CURRENT["level"] = level
         c0 = time.process_time()
         out = fit_level(src, level, texels, cands, top_sums.get(level))
-        c1 = time.process_time()
-        # a coarse level's dense refit, as the stage applies it (stages.cpm.refit_coarse)
-        refitted = refit_coarse(ctx, level, out)
-        refit = refitted is not out
-        out = refitted
-        c2 = time.process_time()
-        per_level.setdefault(level, []).append((c2 - c0, out, c2 - c1))
+        per_level.setdefault(level, []).append((time.process_time() - c0, out))
         # the cost model's sizes of this call (texelbake.costmodel): per texel m candidates
         # and n dense samples, split by material cost (Lambert / Phong vs the rest)
         pos = np.searchsorted(np.sort(texels), cands.texel)
@@ -173,8 +164,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
                           minlength=len(texels))
         has = nd > 0
         f = np.array([(m - mg).sum(), mg.sum(), (m * m).sum(), (m ** 3).sum(),
-                      (nd - ndg).sum(), ndg.sum(), float(has.sum()),
-                      (nd - ndg).sum() if refit else 0.0, ndg.sum() if refit else 0.0])
+                      (nd - ndg).sum(), ndg.sum(), float(has.sum())])
         feats[level] = feats.get(level, 0) + f
         return out
 
@@ -204,7 +194,6 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         runs = per_level[level]
         # a top level's work includes the tiles' sums for it (`run_cpm_tile`'s `top_sums`)
         cpu = sum(r[0] for r in runs) + sums_cpu.get(level, 0.0)
-        refit_cpu = sum(r[2] for r in runs)
         data = concat_levels([r[1] for r in runs])
         v = data["valid"]
         ho = data["snr_ho"][v].astype(np.float64)
@@ -212,7 +201,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         skip = data.get("skip", np.zeros(0, np.int8))[v]
         levels.append({
             "level": level, "texels": int(v.sum()), "cpu_seconds": cpu,
-            "refit_cpu_seconds": refit_cpu, "sums_cpu_seconds": sums_cpu.get(level, 0.0),
+            "sums_cpu_seconds": sums_cpu.get(level, 0.0),
             "texels_per_cpu_second": float(v.sum()) / max(cpu, 1e-9),
             "heldout_db_median": float(np.median(ho)) if ho.size else None,
             "heldout_db_p5": float(np.percentile(ho, 5)) if ho.size else None,
@@ -247,13 +236,13 @@ def print_table(res: dict) -> None:
     print(f"{res['scene']} ({res['size']}) {res['settings']['atlas_resolution']}^2, "
           f"CPU seconds of fit_level (process time), total {res['cpu_seconds']:.2f} s")
     print(f"trials: {res['trial_counts']}")
-    print(f"{'lvl':>3} {'texels':>6} {'cpu s':>8} {'refit s':>8} {'tex/cpu s':>9} {'ho med':>7} "
+    print(f"{'lvl':>3} {'texels':>6} {'cpu s':>8} {'tex/cpu s':>9} {'ho med':>7} "
           f"{'ho p5':>7} {'c':>6}  skips            digest")
     for lv in res["levels"]:
         def f(x):
             return float("nan") if x is None else x
         print(f"{lv['level']:>3} {lv['texels']:>6} {lv['cpu_seconds']:>8.2f} "
-              f"{lv.get('refit_cpu_seconds', 0.0):>8.2f} {lv['texels_per_cpu_second']:>9.2f} {f(lv['heldout_db_median']):>7.2f} "
+              f"{lv['texels_per_cpu_second']:>9.2f} {f(lv['heldout_db_median']):>7.2f} "
               f"{f(lv['heldout_db_p5']):>7.2f} {f(lv['c_mean']):>6.1f}  "
               f"{json.dumps(lv['skip_counts']):<16} {lv['digest']}")
 

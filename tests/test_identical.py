@@ -98,10 +98,8 @@ def test_merged_fit_reproduces_eq7_over_every_candidate(decorrelate):
     F[:, :, :3] = 0.0
     R = F.transpose(2, 1, 0)
     before = dict(COUNTS)
-    got = fit_many([F], [valid], [channel_correlation(R)], [9], closed_form=False,
-                   identical="merge", **KW)
-    again = fit_many([F], [valid], [channel_correlation(R)], [9], closed_form=False,
-                     identical="merge", **KW)
+    got = fit_many([F], [valid], [channel_correlation(R)], [9], identical="merge", **KW)
+    again = fit_many([F], [valid], [channel_correlation(R)], [9], identical="merge", **KW)
     assert COUNTS["merged_columns"] - before["merged_columns"] == 2 * 80
     (fit, skip), (fit2, _) = got[0], again[0]
     assert skip == "" and fit.c >= 1
@@ -122,26 +120,14 @@ def test_a_texel_of_few_distinct_columns_keeps_them_all_exactly():
     F, _ = _duplicated(rng, 200, 10, 60, rank=10)
     valid = np.ones(200, bool)
     R = F.transpose(2, 1, 0)
-    (fit, skip), = fit_many([F], [valid], [channel_correlation(R)], [3], closed_form=False,
-                            identical="merge", small="all", **KW)
+    (fit, skip), = fit_many([F], [valid], [channel_correlation(R)], [3], identical="merge", small="all", **KW)
     label = _brute_groups(F)
     assert skip == "all" and fit.c == 10
     sizes = np.array([np.count_nonzero(label == label[j]) for j in fit.columns])
     np.testing.assert_array_equal(fit.weights, np.repeat(sizes[:, None], 3, 1))
     assert fit.snr_db_insample > 120.0
-    (kept, _), = fit_many([F], [valid], [channel_correlation(R)], [3], closed_form=False,
-                          identical="keep", small="all", **KW)
+    (kept, _), = fit_many([F], [valid], [channel_correlation(R)], [3], identical="keep", small="all", **KW)
     assert kept.c <= KW["c_max"]  # the seed's route fits 60 > c_max columns
-
-
-def test_all_identical_columns_in_closed_form_are_one_point_of_weight_m():
-    rng = np.random.default_rng(13)
-    f = rng.random((3, 1, 128))
-    F = np.repeat(f, 37, axis=1)
-    valid = np.ones(128, bool)
-    (fit, skip), = fit_many([F], [valid], [1.0], [5], closed_form=True, identical="merge", **KW)
-    assert skip == "rank1" and fit.c == 1
-    np.testing.assert_allclose(fit.weights, 37.0, rtol=1e-6)
 
 
 def test_no_identical_columns_is_the_seeds_fit_bit_for_bit():
@@ -149,9 +135,8 @@ def test_no_identical_columns_is_the_seeds_fit_bit_for_bit():
     F = rng.random((3, 50, 200))
     valid = np.ones(200, bool)
     R = F.transpose(2, 1, 0)
-    a = fit_many([F], [valid], [channel_correlation(R)], [2], closed_form=False,
-                 identical="merge", **KW)[0][0]
-    b = fit_many([F], [valid], [channel_correlation(R)], [2], closed_form=False, **KW)[0][0]
+    a = fit_many([F], [valid], [channel_correlation(R)], [2], identical="merge", **KW)[0][0]
+    b = fit_many([F], [valid], [channel_correlation(R)], [2], **KW)[0][0]
     np.testing.assert_array_equal(a.columns, b.columns)
     np.testing.assert_array_equal(a.weights, b.weights)
 

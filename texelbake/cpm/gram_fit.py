@@ -20,12 +20,6 @@ torch.linalg.eigh over stacks of equal-size matrices, or LAPACK's top eigenpairs
 a texel's result never depends on which texels share its batch) are computed by the caller; here, per texel, only the m-sized work remains: probabilities, the
 bisection on c with its trials (NNLS on r x c systems, r <= m), and the reported in-sample SNR,
 recomputed in d space from F with the stored float32 weights as `fit_texel` does.
-
-Closed form (issue 15, "model only what a texel needs"): when every selection matrix is
-numerically rank 1 (lam_2 <= TOL.rank1_rel lam_1 for S and every channel: coplanar,
-unoccluded, single-material samples, or any texel whose samples all see the same reflectance up
-to scale), one column spans span(R) and Eq. 10's weights are the 1-column least squares
-alpha_c = (G_c 1)_j / (G_c)_jj for the column j of largest energy; no draws, no trials.
 """
 
 from __future__ import annotations
@@ -91,40 +85,17 @@ class GroupInput:
     chans: np.ndarray  # channel indices fitted by this group
 
 
-#: the stream of a texel's seed that draws `fit_many`'s selection_columns subset (the trials
-#: draw from the texel's seed itself)
-SUBSET_STREAM = 0x5E1EC7
-
 #: counts of the trial work done by `_bisect` in this process (probes of c, NNLS draws solved,
 #: draws not solved because a probe stopped at the target); read by benchmarks/cpm_cpu.py
-COUNTS = {"probes": 0, "draws": 0, "draws_stopped": 0, "merged_texels": 0, "merged_columns": 0}
-
-
-def spectrum_c(s: np.ndarray, total: float, eps_db: float) -> int:
-    """Smallest c whose Eckart-Young tail sum_{r > c} s_r^2 is at most 10^(-eps_db/10) of the
-    selection matrix's energy `total`: the rank at which the best rank-c approximation of the
-    whole matrix reaches the target SNR (its row sums, the fitted target, usually need no more).
-    s : singular values, descending; returns len(s) when even the full spectrum does not."""
-    if total <= 0.0 or s.size == 0:
-        return 0
-    tail = total - np.cumsum(s * s)
-    ok = np.flatnonzero(tail <= total * 10.0 ** (-eps_db / 10.0))
-    return int(ok[0]) + 1 if ok.size else int(s.size)
+COUNTS = {"probes": 0, "draws": 0, "merged_texels": 0, "merged_columns": 0}
 
 
 def _bisect(
     p: np.ndarray, k: int, red: list[tuple], signal: float, *, eps_db: float, c_max: int,
-    n_trials: int, weights: str, rng: np.random.Generator, trial_stop: str = "all",
-    c_hint: int | None = None,
+    n_trials: int, weights: str, rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """`fit._Fitter._select_direct`'s bisection on [k, c_max] with n_trials draws per probe, in
-    the reduced space. returns (columns, alpha (c, ch_g), capped).
-
-    trial_stop "target": a probe stops drawing at the first draw whose SNR reaches eps_db (the
-    probe's answer is then known; the kept fit is that draw, not the best of n_trials).
-    c_hint (the spectrum's `spectrum_c`): the first probe is c_hint instead of the interval's
-    middle; when it passes, c_hint - 1, c_hint - 2, c_hint - 4, ... are probed until one fails
-    (when it fails, c_hint + 1, + 2, + 4, ...), and the bisection finishes inside that bracket."""
+    the reduced space. returns (columns, alpha (c, ch_g), capped)."""
     cache: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
 
     def best_of_trials(c: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -132,7 +103,7 @@ def _bisect(
             COUNTS["probes"] += 1
             best: tuple[np.ndarray, np.ndarray, float] | None = None
             seen: set[bytes] = set()
-            for trial in range(n_trials):  # loop over a handful of randomized trials
+            for _ in range(n_trials):  # loop over a handful of randomized trials
                 local = sample_columns(p, c, rng)
                 key = local.tobytes()
                 if key in seen:
@@ -150,9 +121,6 @@ def _bisect(
                     -math.inf if signal <= 0.0 else 10.0 * math.log10(signal / noise))
                 if best is None or snr > best[2]:
                     best = (local, alpha, snr)
-                if trial_stop == "target" and snr >= eps_db:
-                    COUNTS["draws_stopped"] += n_trials - 1 - trial
-                    break
             assert best is not None
             cache[c] = best
         return cache[c]
@@ -162,28 +130,6 @@ def _bisect(
 
     capped = c_max < k
     lo, hi = (c_max, c_max) if capped else (k, c_max)
-    if c_hint is not None and lo < hi:  # bracket the answer outward from the spectrum's c
-        c0 = min(max(int(c_hint), lo), hi)
-        step = 1
-        if passes(c0):
-            hi = c0
-            while lo < hi:  # loop over a few doubling steps down
-                probe = max(hi - step, lo)
-                if passes(probe):
-                    hi = probe
-                    step *= 2
-                else:
-                    lo = probe + 1
-                    break
-        else:
-            lo = c0 + 1
-            while lo < hi:  # loop over a few doubling steps up
-                probe = min(c0 + step, hi)
-                if passes(probe):
-                    hi = probe
-                    break
-                lo = probe + 1
-                step *= 2
     while lo < hi:  # seed 000 §4.1: bisection with the median as the probe
         mid = (lo + hi) // 2
         if passes(mid):
@@ -208,23 +154,17 @@ def fit_texel_gram(
     n_trials: int,
     weights: str,
     seed: int,
-    closed_form: bool,
-    trial_stop: str = "all",
-    c_start: str = "interval",
     targets: np.ndarray | None = None,
-    in_span: bool = False,
 ) -> tuple[TexelFit | None, str]:
-    """One texel's fit from its Grams; returns (TexelFit, skip) with skip "" or "rank1", or
+    """One texel's fit from its Grams; returns (TexelFit, ""), or
     (None, "full_svd") when the Gram route cannot resolve span(V_k) (`top_singular` redoes a
     full SVD then; the caller fits that texel with `fit.fit_texel`).
 
     F : (ch, m, d) float64, F = diag(1/a_vis) R transposed per channel (invalid rows zero);
     valid : (d,) bool rows with a_vis above the floor; Gc : ch Grams F_c F_c^T (m, m);
     groups : the selection groups (one in luminance mode, one per channel otherwise);
-    targets : (ch, d) what the points fit, Eq. 7's row sums of a texel of which F holds only
-    some candidates (`fit_many`'s selection_columns), or of merged columns (`identical`;
-    in_span: the targets lie in span(F), so the rank-1 closed form applies); default F's own
-    row sums F 1.
+    targets : (ch, d) what the points fit, Eq. 7's row sums of a texel whose candidates F holds
+    as merged columns (`identical`); default F's own row sums F 1.
     Caller handles m = 0, no valid row, all-zero R and non-finite input (`fit_texel`'s cases).
     """
     ch, m, _ = F.shape
@@ -250,62 +190,21 @@ def fit_texel_gram(
         if needs_full_svd(s, k, m):
             return None, "full_svd"
         specs.append((s, Vt, k))
-    skip = ""
-    if closed_form and (targets is None or in_span) and all(
-        _rank1(gi.sel_eig, gi.sel_total) for gi in groups) and all(
-        _rank1_gram(g) for g in Gc
-    ):
-        skip = "rank1"
     fits = []
     for gi, (s, Vt, k) in zip(groups, specs, strict=True):  # loop over <= ch groups
         chans = gi.chans
         if k == 0:
             fits.append((np.zeros(0, np.int64), np.zeros((0, len(chans))), 0, False))
             continue
-        if skip:
-            j = int(np.argmax(gi.sel_diag))
-            alpha = np.array([[_one_column_weight(Gc[c], j, fits_of[c][0]) for c in chans]])
-            fits.append((np.array([j], np.int64), alpha, k, False))
-            continue
         p = column_probabilities(np.zeros((0, 0)), s, Vt, k, col_energy=gi.sel_diag)
         signal = float(sum(signals[c] for c in chans))
-        hint = spectrum_c(s, gi.sel_total, eps_db) if c_start == "spectrum" else None
         cols, alpha, capped = _bisect(
             p, k, [reds[c] for c in chans], signal, eps_db=eps_db, c_max=c_max,
-            n_trials=n_trials, weights=weights, rng=rng, trial_stop=trial_stop, c_hint=hint,
+            n_trials=n_trials, weights=weights, rng=rng,
         )
         fits.append((cols, alpha, k, capped))
     return _merge(F, valid, fits, groups, mode=mode, corr=corr, eps_db=eps_db,
-                  c_max=c_max, ref=None if targets is None else targets.T), skip
-
-
-def _rank1(eig: tuple[np.ndarray, np.ndarray], total: float) -> bool:
-    """Numerically rank 1: the energy outside the top eigenvalue, total - lam_1 (total: the
-    Gram's trace; eig may be its top eigenpairs only), is <= TOL.rank1_rel of the total (1e-10:
-    100 dB below the signal, far under any eps_db a bake asks for)."""
-    lam = np.clip(eig[0], 0.0, None)
-    if eig[1].shape[0] < 2 or total <= 0.0:
-        return True
-    return total - float(lam[-1]) <= TOL.rank1_rel * total
-
-
-def _rank1_gram(G: np.ndarray) -> bool:
-    """Numerically rank 1 from a Gram without its spectrum: the residual of the best single
-    column, trace(G) - ||G_p||^2 / G_pp (p = largest diagonal), bounds the energy outside the
-    top eigenvalue from above; <= TOL.rank1_rel trace(G) implies `_rank1`."""
-    tr = float(np.trace(G))
-    if tr <= 0.0:
-        return True
-    p = int(np.argmax(np.diag(G)))
-    return tr - float(G[p] @ G[p]) / float(G[p, p]) <= TOL.rank1_rel * tr
-
-
-def _one_column_weight(G: np.ndarray, j: int, Ft: np.ndarray | None = None) -> float:
-    """min_a>=0 ||a F_j - t||: a = max(F_j . t, 0) / ||F_j||^2, with t = F 1 ((G 1)_j) unless
-    Ft = F^T t is given."""
-    gjj = float(G[j, j])
-    fjt = float(G[j].sum()) if Ft is None else float(Ft[j])
-    return max(fjt, 0.0) / gjj if gjj > 0.0 else 0.0
+                  c_max=c_max, ref=None if targets is None else targets.T), ""
 
 
 def _merge(F, valid, fits, groups, *, mode, corr, eps_db, c_max, ref=None) -> TexelFit:
@@ -356,21 +255,13 @@ def fit_many(
     weights: str,
     colour: str,
     decorrelation_threshold: float,
-    closed_form: bool,
     n_batch: int | None = None,
-    trial_stop: str = "all",
-    c_start: str = "interval",
     small: str = "fit",
-    selection_columns: int = 0,
     identical: str = "keep",
 ) -> list[tuple[TexelFit | None, str]]:
     """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
     `fit_texel_gram` per texel. With small="all" a texel of m <= c_max candidates whose fit is
     not exact on the grid keeps them all (`fit.needs_all_points`, skip "all").
-    selection_columns > 0: a texel of more candidates draws its points from that many of them
-    (a uniform subset without replacement, seeded by the texel) while the weights still fit the
-    sum over all of them (Eq. 7): Grams of s^2 d and eigendecompositions of s^3 instead of m^2 d
-    and m^3 (issue 15); 0 (default) selects from every candidate, as the seed.
     identical="merge": a texel's candidates with identical columns are fitted as one column
     (`texelbake.cpm.identical`: the seed's fit in distribution, Grams of u^2 d for u distinct
     columns, no point stored twice; under small="all" a texel of m <= c_max candidates is not
@@ -397,7 +288,7 @@ def fit_many(
             mode = colour
         if ch == 1:
             mode = "luminance"
-        sub = targets = merge = None
+        targets = merge = None
         if identical == "merge" and not needs_all_points(small, F.shape[1], c_max, -math.inf):
             # (a texel that keeps every candidate when its fit is not exact is not merged:
             # identical on the grid is not identical between its directions)
@@ -407,15 +298,9 @@ def fit_many(
                 COUNTS["merged_columns"] += F.shape[1] - merge.rep.size
                 targets = F.sum(axis=1)  # (ch, d): Eq. 7 over every candidate
                 F = merge.columns(F)  # a copy, dropped after the Grams (memory)
-        if 0 < selection_columns < F.shape[1]:
-            sub = np.sort(np.random.default_rng((seed, SUBSET_STREAM)).choice(
-                F.shape[1], selection_columns, replace=False))
-            if targets is None:
-                targets = F.sum(axis=1)  # (ch, d): Eq. 7 over every candidate
-            F = np.ascontiguousarray(F[:, sub])  # a copy, dropped after the Grams (memory)
         Gc = [F[c] @ F[c].T for c in range(ch)]
         groups = select_groups(F, Gc, mode)
-        plans.append((mode, Gc, groups, len(mats), sub, targets, merge))
+        plans.append((mode, Gc, groups, len(mats), targets, merge))
         mats += [g for g, _ in groups]
     eigs = top_eighs(mats, psi)
     out: list[tuple[TexelFit | None, str]] = []
@@ -430,19 +315,15 @@ def fit_many(
                 decorrelation_threshold=decorrelation_threshold)
         else:
             assert not isinstance(F, Columns)  # narrowed in the first loop
-            mode, Gc, groups, first, sub, targets, merge = plan
+            mode, Gc, groups, first, targets, merge = plan
             F_sel = F if merge is None else merge.columns(F)
-            F_sel = F_sel if sub is None else np.ascontiguousarray(F_sel[:, sub])
             ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
                     for j, (g, chans) in enumerate(groups)]
             got = fit_texel_gram(
                 F_sel, valid, Gc, ginp, mode=mode, corr=corr,
                 psi=psi, eps_db=eps_db, c_max=c_max, n_trials=n_trials, weights=weights,
-                seed=seed, closed_form=closed_form, trial_stop=trial_stop, c_start=c_start,
-                targets=targets, in_span=sub is None,
+                seed=seed, targets=targets,
             )
-            if sub is not None and got[0] is not None:  # columns of the subset -> of the merged
-                got = (dataclasses.replace(got[0], columns=sub[got[0].columns]), got[1])
         fit = got[0]
         m_fit = F.shape[1] if merge is None else merge.rep.size  # columns the fit saw
         if fit is not None and needs_all_points(small, m_fit, c_max, fit.snr_db_insample):

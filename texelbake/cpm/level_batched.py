@@ -55,7 +55,9 @@ BYTES_PER_EVAL_ENTRY = 8 * 40
 #: bytes per (dense sample, held-out pair, channel) in the held-out pass
 BYTES_PER_HELD_ENTRY = 8 * 12
 
-SKIP_CODES = {"": 0, "split": 0, "rank1": 1, "per_texel": 2, "all": 3}
+#: how a texel was fitted, as stored in a level's `skip` array: 0 draws and trials, 2 by the
+#: per-texel path, 3 every candidate kept (1 is unused)
+SKIP_CODES = {"": 0, "split": 0, "per_texel": 2, "all": 3}
 
 
 def chunk_bounds(sizes: np.ndarray, cap: int) -> list[tuple[int, int]]:
@@ -172,9 +174,8 @@ def fit_level_batched(
     src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
     sums: DenseSums | None = None,
 ) -> dict[str, np.ndarray]:
-    """`texelbake.cpm.level.fit_level`'s arrays (and `skip` (t,) int8: 0 full fit, 1 rank-1
-    closed form, 2 fitted by the per-texel path) for `texels`, in memory-bounded chunks. With
-    `sums` (`DenseSums` of `texels`) no dense sample is read: a_vis and the held-out truth
+    """`texelbake.cpm.level.fit_level`'s arrays (and `skip` (t,) int8, `SKIP_CODES`) for
+    `texels`, in memory-bounded chunks. With `sums` (`DenseSums` of `texels`) no dense sample is read: a_vis and the held-out truth
     come from them, the held-out approximation from the points themselves."""
     s = src.settings
     geo = src.geo
@@ -410,9 +411,8 @@ def _fit_chunk(src, level, texels, cset, cseg, n_cand, n_dense, avis_o, area, di
         [Fs[t] for t in gram], [valid[t] for t in gram], corrs,
         [seeds[t] for t in gram], psi=s.psi, eps_db=s.eps_db, c_max=s.c_max,
         n_trials=s.n_trials, weights=s.weights, colour=s.colour,
-        decorrelation_threshold=s.decorrelation_threshold, closed_form=s.closed_form,
-        n_batch=s.n_batch, trial_stop=s.trial_stop, c_start=s.c_start, small=s.small_texels,
-        selection_columns=s.selection_columns, identical=s.identical_columns,
+        decorrelation_threshold=s.decorrelation_threshold,
+        n_batch=s.n_batch, small=s.small_texels, identical=s.identical_columns,
     ), strict=True))
     fits: list[TexelFit | None] = [None] * n_t
     for t in range(n_t):  # loop over texels

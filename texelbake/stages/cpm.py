@@ -23,7 +23,6 @@ from texelbake.cpm.level import (
     tile_texels,
 )
 from texelbake.cpm.level_batched import DenseSums, dense_sums, fit_level
-from texelbake.cpm.refit import refit_to_dense
 from texelbake.stages.context import StageContext
 
 
@@ -91,7 +90,7 @@ def run_cpm_tile(ctx: StageContext, shard: int) -> str:
             continue
         texels = tile_texels(s.atlas_resolution, s.shard_texels, shard, level)
         cands = level_candidates(ctx.fit_inputs(), level, texels, children)
-        children = refit_coarse(ctx, level, fit_level(ctx.fit_inputs(), level, texels, cands))
+        children = fit_level(ctx.fit_inputs(), level, texels, cands)
         ctx.store.write_arrays(key, children)
     return last
 
@@ -125,16 +124,6 @@ def gathered_sums(ctx: StageContext) -> dict[int, DenseSums] | None:
     return out
 
 
-def refit_coarse(ctx: StageContext, level: int, out: dict[str, np.ndarray]
-                 ) -> dict[str, np.ndarray]:
-    """A coarse level's fit with its weights refitted to the dense Eq. 7 when the settings ask
-    for it (`coarse_target="dense"` with `hierarchy="children"`; issue 11, item 3)."""
-    s = ctx.settings
-    if level == 0 or s.hierarchy != "children" or s.coarse_target != "dense":
-        return out
-    return refit_to_dense(ctx.fit_inputs(), level, out)
-
-
 def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
     """Levels coarser than a tile, from the tiles' coarsest level and the tiles' sums."""
     s = ctx.settings
@@ -155,9 +144,8 @@ def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
         n_l = s.atlas_resolution >> level
         texels = np.arange(n_l * n_l, dtype=np.int64)
         cands = level_candidates(ctx.fit_inputs(), level, texels, children)
-        fit = fit_level(ctx.fit_inputs(), level, texels, cands,
-                        sums[level] if sums is not None else None)
-        children = refit_coarse(ctx, level, fit)
+        children = fit_level(ctx.fit_inputs(), level, texels, cands,
+                             sums[level] if sums is not None else None)
         ctx.store.write_arrays(key, children)
     return last
 
