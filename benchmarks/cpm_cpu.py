@@ -29,10 +29,11 @@ import numpy as np
 from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
-from texelbake.cpm.level_batched import fit_level
+from texelbake.cpm.texel_fit import FitCounts
 from texelbake.payload import atomic_json
 from texelbake.process import setup_bake_process
 from texelbake.stages import cpm as cpm_stage
+from texelbake.stages.cpm import fit_level
 
 
 def _parse_set(items: list[str]) -> dict:
@@ -59,9 +60,9 @@ def digest(arrays: dict[str, np.ndarray]) -> str:
 #: (module, function) pairs timed by --breakdown (CPU seconds summed over calls; nested parts
 #: are included in their callers)
 BREAKDOWN = (
-    ("texelbake.cpm.level_batched", "_avis"),
+    ("texelbake.cpm.level_batched", "avis_sums"),
     ("texelbake.cpm.level_batched", "_fit_chunk"),
-    ("texelbake.cpm.level_batched", "_build_R"),
+    ("texelbake.cpm.level_batched", "build_R"),
     ("texelbake.cpm.level_batched", "brdf_product"),
     ("texelbake.cpm.level_batched", "visibility_cos"),
     ("texelbake.cpm.level_batched", "fit_many"),
@@ -71,9 +72,9 @@ BREAKDOWN = (
     ("texelbake.cpm.gram_fit", "top_eighs"),
     ("texelbake.cpm.gram_fit", "fit_texel_gram"),
     ("texelbake.cpm.gram_fit", "reduced_system"),
-    ("texelbake.cpm.gram_fit", "_bisect"),
-    ("texelbake.cpm.gram_fit", "_merge"),
-    ("texelbake.cpm.level_batched", "_heldout"),
+    ("texelbake.cpm.gram_fit", "search_c"),
+    ("texelbake.cpm.gram_fit", "_assemble"),
+    ("texelbake.cpm.level_batched", "heldout_from_samples"),
 )
 
 
@@ -126,6 +127,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
     n_tiles = (s.atlas_resolution // s.shard_texels) ** 2
     tiles = list(range(n_tiles)) if tiles is None else tiles
     per_level: dict[int, list] = {}
+    counts = FitCounts()  # the batched fit's search work (probes of c, draws solved, merges)
 
     tex_l = {lv: texel_ids(src.geo, s.atlas_resolution, lv) for lv in range(ctx.n_levels)}
     costly = np.array([m.model not in ("lambert", "phong") for m in src.materials], bool)
@@ -149,7 +151,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
     def timed(level, texels, cands):
         CURRENT["level"] = level
         c0 = time.process_time()
-        out = fit_level(src, level, texels, cands, top_sums.get(level))
+        out = fit_level(src, level, texels, cands, top_sums.get(level), counts)
         per_level.setdefault(level, []).append((time.process_time() - c0, out))
         # the cost model's sizes of this call (texelbake.costmodel): per texel m candidates
         # and n dense samples, split by material cost (Lambert / Phong vs the rest)
@@ -198,7 +200,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         v = data["valid"]
         ho = data["snr_ho"][v].astype(np.float64)
         ho = ho[np.isfinite(ho)]
-        skip = data.get("skip", np.zeros(0, np.int8))[v]
+        skip = data["skip"][v] if "skip" in data else np.zeros(0, np.int8)  # per_texel: none
         levels.append({
             "level": level, "texels": int(v.sum()), "cpu_seconds": cpu,
             "sums_cpu_seconds": sums_cpu.get(level, 0.0),
@@ -211,11 +213,8 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
             "digest": digest(data),
             "sizes": dict(zip(FEATURES, feats[level].tolist(), strict=True)),
         })
-    from texelbake.cpm import gram_fit
-
-    counts = dict(getattr(gram_fit, "COUNTS", {}))  # absent before issue 15's second pass
     return {"scene": scene, "size": size, "settings": json.loads(settings.model_dump_json()),
-            "tiles": tiles, "levels": levels, "trial_counts": counts,
+            "tiles": tiles, "levels": levels, "trial_counts": counts.as_dict(),
             "cpu_seconds": sum(lv["cpu_seconds"] for lv in levels)}
 
 

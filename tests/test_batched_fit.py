@@ -16,15 +16,27 @@ from texelbake.cpm import gram_linalg
 from texelbake.cpm import level_batched as lb
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.fit import channel_correlation, fit_texel
-from texelbake.cpm.gram_fit import fit_many
+from texelbake.cpm.gram_fit import GramTexel, fit_many
 from texelbake.cpm.gram_linalg import batched_eigh
 from texelbake.cpm.level import brdf_grid, direction_sets, level_candidates, tile_texels, world_dirs
-from texelbake.cpm.level import fit_level as fit_level_per_texel
 from texelbake.cpm.level_batched import chunk_bounds, fit_level_batched
+from texelbake.cpm.level_per_texel import fit_level_per_texel
+from texelbake.cpm.texel_fit import FitParams
 from texelbake.scenes import write_scene
 
 KW = {"psi": 0.97, "eps_db": 30.0, "c_max": 24, "n_trials": 3, "weights": "nnls", "colour": "auto",
           "decorrelation_threshold": 0.9}
+
+
+def _fit_many(Fs, valids, corrs, seeds, counts=None, **params):
+    """`fit_many` of texels given as parallel lists, FitParams from keywords."""
+    texels = [GramTexel(F, v, c, s) for F, v, c, s in zip(Fs, valids, corrs, seeds, strict=True)]
+    return fit_many(texels, FitParams(**params), counts)
+
+
+def _fit_texel(R, avis, seed=0, texel_area=None, rows="eq7", **params):
+    """`fit_texel` with FitParams from keywords."""
+    return fit_texel(R, avis, FitParams(**params), seed=seed, texel_area=texel_area, rows=rows)
 
 
 def _texel(rng, d, m, rank, decorrelate):
@@ -52,10 +64,10 @@ def test_gram_fit_of_many_texels_equals_fit_texel(decorrelate):
     rng = np.random.default_rng(3)
     texels = [_texel(rng, 300, m, r, decorrelate) for m, r in ((40, 6), (25, 4), (40, 9), (60, 12))]
     Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
-    got = fit_many(list(Fs), list(valids), [channel_correlation(R) for R, _ in texels],
+    got = _fit_many(list(Fs), list(valids), [channel_correlation(R) for R, _ in texels],
                    [11, 12, 13, 14], **KW)
     for (R, avis), seed, (fit, skip) in zip(texels, [11, 12, 13, 14], got, strict=True):
-        ref = fit_texel(R, avis, seed=seed, texel_area=1.0, **KW)
+        ref = _fit_texel(R, avis, seed=seed, texel_area=1.0, **KW)
         assert skip == ""
         assert fit.colour_mode == ref.colour_mode == ("per_channel" if decorrelate else "luminance")
         np.testing.assert_array_equal(fit.columns, ref.columns)
@@ -75,11 +87,11 @@ def test_top_eigenpairs_fit_equals_fit_texel(decorrelate, monkeypatch):
     texels = [_texel(rng, 500, m, r, decorrelate) for m, r in ((40, 6), (90, 40), (70, 3))]
     kw = {**KW, "psi": 0.999}
     Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
-    got = fit_many(list(Fs), list(valids), [channel_correlation(R) for R, _ in texels],
+    got = _fit_many(list(Fs), list(valids), [channel_correlation(R) for R, _ in texels],
                    [31, 32, 33], **kw)
     ks = []
     for (R, avis), seed, (fit, _) in zip(texels, [31, 32, 33], got, strict=True):
-        ref = fit_texel(R, avis, seed=seed, texel_area=1.0, **kw)
+        ref = _fit_texel(R, avis, seed=seed, texel_area=1.0, **kw)
         np.testing.assert_array_equal(fit.columns, ref.columns)
         np.testing.assert_allclose(fit.weights, ref.weights, rtol=1e-5, atol=0)
         assert fit.k == ref.k and abs(fit.snr_db_insample - ref.snr_db_insample) < 1e-6
@@ -114,12 +126,12 @@ def test_top_eighs_are_the_top_of_the_full_decomposition():
 @pytest.mark.parametrize("decorrelate", [False, True])
 def test_split_of_a_wide_texel_equals_fit_texel_batches(decorrelate):
     """A texel wider than n_batch: fit_many's split (Grams of <= n_batch columns) against
-    fit_texel's batches on R with the same n_batch (`fit._Fitter.select`)."""
+    fit_texel's batches on R with the same n_batch (`search.select_batched` on both)."""
     rng = np.random.default_rng(8)
     R, avis = _texel(rng, 400, 90, 10, decorrelate)
     F, valid = _F(R, avis)
-    (fit, skip), = fit_many([F], [valid], [channel_correlation(R)], [21], n_batch=32, **KW)
-    ref = fit_texel(R, avis, seed=21, texel_area=1.0, n_batch=32, **KW)
+    (fit, skip), = _fit_many([F], [valid], [channel_correlation(R)], [21], n_batch=32, **KW)
+    ref = _fit_texel(R, avis, seed=21, texel_area=1.0, n_batch=32, **KW)
     assert skip == "split"
     np.testing.assert_array_equal(fit.columns, ref.columns)
     np.testing.assert_allclose(fit.weights, ref.weights, rtol=1e-5, atol=0)
@@ -181,7 +193,7 @@ def test_brdf_product_equals_brdf_grid_on_live_entries(small_scene):
 
 
 def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):
-    """The whole level (closed form off, every texel fitted: small_texels "fit"): the same
+    """The whole level (every texel fitted: small_texels "fit"): the same
     texels valid, in-sample SNR equal to rounding, held-out SNR median no lower than the
     per-texel loop's minus 0.5 dB; a 64 MiB memory bound (many chunks) gives the same arrays
     byte for byte as the default."""
@@ -190,7 +202,7 @@ def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):
     cands = level_candidates(src, 0, texels, None)
     # identical_columns "keep": the per-texel loop is the seed's fit, column for column
     src = dataclasses.replace(src, settings=src.settings.model_copy(
-        update={"closed_form": False, "small_texels": "fit", "identical_columns": "keep"}))
+        update={"small_texels": "fit", "identical_columns": "keep"}))
     ref = fit_level_per_texel(src, 0, texels, cands)
     got = fit_level_batched(src, 0, texels, cands)
     np.testing.assert_array_equal(got["valid"], ref["valid"])
@@ -251,13 +263,13 @@ def test_small_texels_keep_every_candidate_on_both_paths():
     Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
     corrs = [channel_correlation(R) for R, _ in texels]
     kw = dict(KW, c_max=24)
-    got = fit_many(list(Fs), list(valids), corrs, [1, 2], small="all", **kw)
-    seed_fit = fit_many(list(Fs), list(valids), corrs, [1, 2], **kw)
+    got = _fit_many(list(Fs), list(valids), corrs, [1, 2], small="all", **kw)
+    seed_fit = _fit_many(list(Fs), list(valids), corrs, [1, 2], **kw)
     (small, skip_small), (wide, skip_wide) = got
     assert skip_small == "all" and skip_wide == ""
     assert small.c == 20 and np.array_equal(small.columns, np.arange(20))
     assert np.all(small.weights == 1.0) and small.snr_db_insample > 250.0
-    ref = fit_texel(*texels[0], seed=1, texel_area=1.0, small="all", **kw)
+    ref = _fit_texel(*texels[0], seed=1, texel_area=1.0, small="all", **kw)
     assert np.array_equal(ref.columns, small.columns) and ref.c == small.c
     np.testing.assert_array_equal(wide.columns, seed_fit[1][0].columns)
     np.testing.assert_array_equal(wide.weights, seed_fit[1][0].weights)
@@ -267,8 +279,8 @@ def test_small_texels_keep_every_candidate_on_both_paths():
 
 def test_a_wide_texel_read_by_blocks_is_fitted_as_if_held(small_scene, monkeypatch):
     """Texels wider than n_batch (16 here: most level-0 texels of this scene) are fitted from
-    `Columns` built a block of n_batch candidates at a time (issue 15: one texel's F no longer
-    grows with its width). Held whole instead (its F built in one `_build_R` call and wrapped
+    `Columns` built a block of n_batch candidates at a time (one texel's F does not grow with
+    its width). Held whole instead (its F built in one `build_R` call and wrapped
     by `Columns.of_array`), every array of the level is the same bit for bit: a block's
     columns are those of the whole F, and sums go by the same blocks."""
     src = small_scene.fit_inputs()
@@ -279,11 +291,10 @@ def test_a_wide_texel_read_by_blocks_is_fitted_as_if_held(small_scene, monkeypat
     assert (counts > 16).sum() >= 5 and counts.max() > 3 * 16
     built = []
 
-    def held(src_, frames, cset, rows, cseg, dirs, budget, inv_o, level, n_batch, s1, s2):
-        F, s1[rows], s2[rows] = lb._build_R(src_, frames, cset.take(rows), dirs, budget, inv_o,
-                                            cseg[rows])
+    def held(lp, cset, rows, cseg, inv_o, s1, s2):
+        F, s1[rows], s2[rows] = lb.build_R(lp, cset.take(rows), inv_o, cseg[rows])
         built.append(F.shape[1])
-        return lb.Columns.of_array(F, n_batch)
+        return lb.Columns.of_array(F, lp.src.settings.n_batch)
 
     lazy = fit_level_batched(src, 0, texels, cands)
     monkeypatch.setattr(lb, "_wide_columns", held)

@@ -31,7 +31,7 @@ def percentiles(x: np.ndarray, posinf: float | None = None) -> dict[str, float]:
 
 
 #: a texel's compressed a_vis table may differ from its uncompressed maps by this relative L2
-#: (over its six faces) before the bake report flags it (issue 11's per-texel bound)
+#: (over its six faces) before the bake report flags it (the per-texel bound)
 AVIS_TEXEL_TOLERANCE = 0.02
 
 
