@@ -28,7 +28,7 @@ from texelbake.estimate.costmodel import Coefficients
 from texelbake.estimate.machinespeed import REFERENCE_SPEED, MachineSpeed
 
 #: the coefficient each column of `design` is priced by (its kind of work's machine factor)
-COLUMNS = ("r_entry", "r_entry", "gram", "held", "held", "texel", "refit", "refit")
+COLUMNS = ("r_entry", "r_entry", "gram", "held", "held", "texel")
 
 
 def design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -45,8 +45,7 @@ def design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
     for lv in run["levels"]:
         z = lv["sizes"]
         rows.append([z["m_cheap"] * d, z["m_costly"] * d, z["m2"] * d,
-                     z["dense_cheap"] * h, z["dense_costly"] * h, z["texels"],
-                     z.get("refit_cheap", 0.0) * d, z.get("refit_costly", 0.0) * d])
+                     z["dense_cheap"] * h, z["dense_costly"] * h, z["texels"]])
         y.append(lv["cpu_seconds"])
         names.append(f"{run['scene']} L{lv['level']}")
     scale = [speed.factor(c) for c in COLUMNS]  # each column at its coefficient's factor
@@ -55,16 +54,15 @@ def design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
 
 def predict(coef: Coefficients, X: np.ndarray) -> np.ndarray:
     return (coef.r_entry * X[:, 0] + coef.r_entry * coef.brdf_ggx * X[:, 1] + coef.gram * X[:, 2]
-            + coef.held * X[:, 3] + coef.held * coef.held_ggx * X[:, 4] + coef.texel * X[:, 5]
-            + coef.refit * X[:, 6] + coef.refit * coef.refit_ggx * X[:, 7])
+            + coef.held * X[:, 3] + coef.held * coef.held_ggx * X[:, 4] + coef.texel * X[:, 5])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--scale-only", action="store_true",
-                    help="keep the current fit terms' ratios: fit one factor on them and the "
-                         "dense refit's two terms (few runs: the full fit is underdetermined)")
+                    help="keep the current terms' ratios and fit one factor on them (few runs: "
+                         "the full fit is underdetermined)")
     args = ap.parse_args()
     parts = [design(json.loads(p.read_text())) for p in args.runs]
     X = np.vstack([p[0] for p in parts])
@@ -73,27 +71,22 @@ def main() -> None:
     w = 1.0 / np.maximum(y, 1e-3)
     now = Coefficients()
     if args.scale_only:
-        fit_terms = predict(dataclasses.replace(now, refit=0.0), X)
-        A = np.stack([fit_terms, X[:, 6], X[:, 7]], axis=1)
-        scale = np.maximum(np.abs(A).max(axis=0), 1e-30)
-        sol, _ = scipy.optimize.nnls((A * w[:, None]) / scale, y * w)
-        k, refit, refit_costly = sol / scale
+        fit_terms = predict(now, X)
+        k = float((fit_terms * w) @ (y * w) / max(float((fit_terms * w) @ (fit_terms * w)),
+                                                  1e-30))
         print(f"fit terms x {k:.3f}")
         fitted = dataclasses.replace(
             now, r_entry=now.r_entry * k, gram=now.gram * k, eigh=now.eigh * k,
-            held=now.held * k, texel=now.texel * k, refit=float(refit),
-            refit_ggx=float(refit_costly / refit) if refit > 0 else 1.0)
+            held=now.held * k, texel=now.texel * k)
     else:
         scale = np.maximum(np.abs(X).max(axis=0), 1e-30)
         sol, _ = scipy.optimize.nnls((X * w[:, None]) / scale, y * w)
         c = sol / scale
         r_entry = c[0] if c[0] > 0 else 1e-12
         held = c[3] if c[3] > 0 else 1e-12
-        refit = c[6] if c[6] > 0 else 1e-12
         fitted = Coefficients(r_entry=float(c[0]), brdf_ggx=float(c[1] / r_entry),
                               gram=float(c[2]), held=float(c[3]), held_ggx=float(c[4] / held),
-                              texel=float(c[5]), refit=float(c[6]),
-                              refit_ggx=float(c[7] / refit) if c[7] > 0 else 1.0)
+                              texel=float(c[5]))
     p_fit, p_now = predict(fitted, X), predict(now, X)
     print(f"{'level':<14} {'measured s':>10} {'fitted':>8} {'ratio':>6} {'current':>8} {'ratio':>6}")
     for n, a, b, e in zip(names, y, p_fit, p_now, strict=True):
@@ -107,8 +100,7 @@ def main() -> None:
               f"{p_now[sel].sum():.2f} ({p_now[sel].sum() / yy.sum():.2f}x)")
     print("Coefficients(" + ", ".join(
         f"{k}={getattr(fitted, k):.3g}" for k in ("r_entry", "brdf_ggx", "gram", "held",
-                                                    "held_ggx", "texel", "refit",
-                                                    "refit_ggx")) + ")")
+                                                    "held_ggx", "texel")) + ")")
 
 
 if __name__ == "__main__":

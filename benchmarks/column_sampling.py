@@ -81,7 +81,7 @@ from texelbake.cpm.column_sampling import (  # noqa: E402
     top_singular,
     uniform_probabilities,
 )
-from texelbake.cpm.fit import LUMA_709, evaluate_fit, fit_texel  # noqa: E402
+from texelbake.cpm.fit import LUMA_709, FitParams, evaluate_fit, fit_texel  # noqa: E402
 from texelbake.cpm.matrix import (  # noqa: E402
     avis_floor,
     avis_on_grid,
@@ -333,8 +333,7 @@ def run(
             fit = fit_texel(
                 Rt,
                 at,
-                psi=psi,
-                n_trials=n_trials,
+                FitParams(psi=psi, n_trials=n_trials),
                 seed=seed + t,
                 texel_area=tex["texel_area"],
                 rows=how_rows,

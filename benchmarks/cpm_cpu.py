@@ -9,8 +9,7 @@ export; `benchmarks/bake.py` times the whole bake).
 Ingest and geometry run once (untimed, cached in --workdir); then every tile's levels and the
 top levels are fitted in order, exactly as `run_cpm_tile` / `run_cpm_top` do (the tiles' sums for the
 top levels, `top_level_sums`, timed as the top level's work), each `fit_level`
-call (and a coarse level's dense refit, `stages.cpm.refit_coarse`, as the stage applies it;
-its share is printed apart) timed with `time.process_time()` (CPU seconds of this process: the machine is shared, so
+call timed with `time.process_time()` (CPU seconds of this process: the machine is shared, so
 wall time is not comparable between runs). Prints per level: texels fitted, CPU seconds,
 texels per CPU second, held-out SNR median and p5, the skip counts (what the fit did not
 model fully) and a digest of the level's arrays (equal digests: byte-identical results).
@@ -30,11 +29,11 @@ import numpy as np
 from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
-from texelbake.cpm.level_batched import fit_level
+from texelbake.cpm.texel_fit import FitCounts
 from texelbake.io.atomic import atomic_json
 from texelbake.pipeline.process import setup_bake_process
 from texelbake.stages import cpm as cpm_stage
-from texelbake.stages.cpm import refit_coarse
+from texelbake.stages.cpm import fit_level
 
 
 def _parse_set(items: list[str]) -> dict:
@@ -61,9 +60,9 @@ def digest(arrays: dict[str, np.ndarray]) -> str:
 #: (module, function) pairs timed by --breakdown (CPU seconds summed over calls; nested parts
 #: are included in their callers)
 BREAKDOWN = (
-    ("texelbake.cpm.level_batched", "_avis"),
+    ("texelbake.cpm.level_batched", "avis_sums"),
     ("texelbake.cpm.level_batched", "_fit_chunk"),
-    ("texelbake.cpm.level_batched", "_build_R"),
+    ("texelbake.cpm.level_batched", "build_R"),
     ("texelbake.cpm.level_batched", "brdf_product"),
     ("texelbake.cpm.level_batched", "visibility_cos"),
     ("texelbake.cpm.level_batched", "fit_many"),
@@ -73,16 +72,15 @@ BREAKDOWN = (
     ("texelbake.cpm.gram_fit", "top_eighs"),
     ("texelbake.cpm.gram_fit", "fit_texel_gram"),
     ("texelbake.cpm.gram_fit", "reduced_system"),
-    ("texelbake.cpm.gram_fit", "_bisect"),
-    ("texelbake.cpm.gram_fit", "_merge"),
-    ("texelbake.cpm.level_batched", "_heldout"),
+    ("texelbake.cpm.gram_fit", "search_c"),
+    ("texelbake.cpm.gram_fit", "_assemble"),
+    ("texelbake.cpm.level_batched", "heldout_from_samples"),
 )
 
 
 #: per-level sums recorded for the cost model's calibration: candidates on cheap (Lambert /
 #: Phong) and costly materials, m^2, m^3, dense samples on cheap / costly materials, texels
-FEATURES = ("m_cheap", "m_costly", "m2", "m3", "dense_cheap", "dense_costly", "texels",
-            "refit_cheap", "refit_costly")
+FEATURES = ("m_cheap", "m_costly", "m2", "m3", "dense_cheap", "dense_costly", "texels")
 
 
 #: the level `run` is fitting, for --breakdown's per-level sums
@@ -119,7 +117,7 @@ def install_breakdown() -> dict[str, list[float]]:
 
 def run(scene: str, size: str, settings: BakeSettings, work: Path,
         tiles: list[int] | None = None) -> dict:
-    setup_bake_process()  # as every bake process (texelbake.pipeline.run.run.run_shard)
+    setup_bake_process()  # as every bake process (texelbake.pipeline.run.run.run.run.run.run_shard)
     asset = stages_asset(scene, size, work)
     ctx = stages.StageContext.create(work / "store", asset, settings)
     stages.run_ingest(ctx, 0)
@@ -129,6 +127,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
     n_tiles = (s.atlas_resolution // s.shard_texels) ** 2
     tiles = list(range(n_tiles)) if tiles is None else tiles
     per_level: dict[int, list] = {}
+    counts = FitCounts()  # the batched fit's search work (probes of c, draws solved, merges)
 
     tex_l = {lv: texel_ids(src.geo, s.atlas_resolution, lv) for lv in range(ctx.n_levels)}
     costly = np.array([m.model not in ("lambert", "phong") for m in src.materials], bool)
@@ -152,14 +151,8 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
     def timed(level, texels, cands):
         CURRENT["level"] = level
         c0 = time.process_time()
-        out = fit_level(src, level, texels, cands, top_sums.get(level))
-        c1 = time.process_time()
-        # a coarse level's dense refit, as the stage applies it (stages.cpm.refit_coarse)
-        refitted = refit_coarse(ctx, level, out)
-        refit = refitted is not out
-        out = refitted
-        c2 = time.process_time()
-        per_level.setdefault(level, []).append((c2 - c0, out, c2 - c1))
+        out = fit_level(src, level, texels, cands, top_sums.get(level), counts)
+        per_level.setdefault(level, []).append((time.process_time() - c0, out))
         # the cost model's sizes of this call (texelbake.estimate.costmodel): per texel m candidates
         # and n dense samples, split by material cost (Lambert / Phong vs the rest)
         pos = np.searchsorted(np.sort(texels), cands.texel)
@@ -173,8 +166,7 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
                           minlength=len(texels))
         has = nd > 0
         f = np.array([(m - mg).sum(), mg.sum(), (m * m).sum(), (m ** 3).sum(),
-                      (nd - ndg).sum(), ndg.sum(), float(has.sum()),
-                      (nd - ndg).sum() if refit else 0.0, ndg.sum() if refit else 0.0])
+                      (nd - ndg).sum(), ndg.sum(), float(has.sum())])
         feats[level] = feats.get(level, 0) + f
         return out
 
@@ -204,15 +196,14 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         runs = per_level[level]
         # a top level's work includes the tiles' sums for it (`run_cpm_tile`'s `top_sums`)
         cpu = sum(r[0] for r in runs) + sums_cpu.get(level, 0.0)
-        refit_cpu = sum(r[2] for r in runs)
         data = concat_levels([r[1] for r in runs])
         v = data["valid"]
         ho = data["snr_ho"][v].astype(np.float64)
         ho = ho[np.isfinite(ho)]
-        skip = data.get("skip", np.zeros(0, np.int8))[v]
+        skip = data["skip"][v] if "skip" in data else np.zeros(0, np.int8)  # per_texel: none
         levels.append({
             "level": level, "texels": int(v.sum()), "cpu_seconds": cpu,
-            "refit_cpu_seconds": refit_cpu, "sums_cpu_seconds": sums_cpu.get(level, 0.0),
+            "sums_cpu_seconds": sums_cpu.get(level, 0.0),
             "texels_per_cpu_second": float(v.sum()) / max(cpu, 1e-9),
             "heldout_db_median": float(np.median(ho)) if ho.size else None,
             "heldout_db_p5": float(np.percentile(ho, 5)) if ho.size else None,
@@ -222,11 +213,8 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
             "digest": digest(data),
             "sizes": dict(zip(FEATURES, feats[level].tolist(), strict=True)),
         })
-    from texelbake.cpm import gram_fit
-
-    counts = dict(getattr(gram_fit, "COUNTS", {}))  # absent before issue 15's second pass
     return {"scene": scene, "size": size, "settings": json.loads(settings.model_dump_json()),
-            "tiles": tiles, "levels": levels, "trial_counts": counts,
+            "tiles": tiles, "levels": levels, "trial_counts": counts.as_dict(),
             "cpu_seconds": sum(lv["cpu_seconds"] for lv in levels)}
 
 
@@ -247,13 +235,13 @@ def print_table(res: dict) -> None:
     print(f"{res['scene']} ({res['size']}) {res['settings']['atlas_resolution']}^2, "
           f"CPU seconds of fit_level (process time), total {res['cpu_seconds']:.2f} s")
     print(f"trials: {res['trial_counts']}")
-    print(f"{'lvl':>3} {'texels':>6} {'cpu s':>8} {'refit s':>8} {'tex/cpu s':>9} {'ho med':>7} "
+    print(f"{'lvl':>3} {'texels':>6} {'cpu s':>8} {'tex/cpu s':>9} {'ho med':>7} "
           f"{'ho p5':>7} {'c':>6}  skips            digest")
     for lv in res["levels"]:
         def f(x):
             return float("nan") if x is None else x
         print(f"{lv['level']:>3} {lv['texels']:>6} {lv['cpu_seconds']:>8.2f} "
-              f"{lv.get('refit_cpu_seconds', 0.0):>8.2f} {lv['texels_per_cpu_second']:>9.2f} {f(lv['heldout_db_median']):>7.2f} "
+              f"{lv['texels_per_cpu_second']:>9.2f} {f(lv['heldout_db_median']):>7.2f} "
               f"{f(lv['heldout_db_p5']):>7.2f} {f(lv['c_mean']):>6.1f}  "
               f"{json.dumps(lv['skip_counts']):<16} {lv['digest']}")
 

@@ -32,8 +32,8 @@ At defaults (2026-11-26, benchmarks/results/lods.json; bake s on a 2-core machin
 
 All six PASS this bar. The quality gate (a separate verdict, printed after the table and in
 each row's `quality_missed`) missed on the cloisonne in that run (CPM level 3's held-out SNR p5
--7.7 dB against the -6 dB floor), which had the coarse levels' dense refit on by default; with
-today's default (`coarse_target="children"`) all six pass it (`--no-blender`,
+-7.7 dB against the -6 dB floor), which had the coarse levels' dense refit on by default (an
+experiment since removed, docs/decisions.md); without it all six pass it (`--no-blender`,
 benchmarks/results/lods_gate.json, bakes of 39-61 s at load 1.5-3; the LODs and fallback maps
 the Blender columns see do not depend on that setting). Read with care: Blender cannot evaluate texelbake's cellular shader, so its
 "original" cloisonne is plain pink while the LOD's fallback shows the baked cells; most of

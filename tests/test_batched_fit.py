@@ -1,7 +1,7 @@
 """The batched CPM fit (issue 15) against the per-texel path, its second method: the Gram-space
 fit of many texels (`gram_fit.fit_many`) against `fit.fit_texel` on R itself, the product BRDF
 grid against `level.brdf_grid`, a level fitted batched against the per-texel loop, the memory
-bound not changing a result, and the rank-1 closed form against the full fit."""
+bound not changing a result."""
 
 from __future__ import annotations
 
@@ -16,16 +16,27 @@ from texelbake.cpm import gram_linalg
 from texelbake.cpm import level_batched as lb
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.fit import channel_correlation, fit_texel
-from texelbake.cpm.gram_fit import fit_many
+from texelbake.cpm.gram_fit import GramTexel, fit_many
 from texelbake.cpm.gram_linalg import batched_eigh
 from texelbake.cpm.level import brdf_grid, direction_sets, level_candidates, tile_texels, world_dirs
-from texelbake.cpm.level import fit_level as fit_level_per_texel
 from texelbake.cpm.level_batched import chunk_bounds, fit_level_batched
-from texelbake.cpm.matrix import snr_db
+from texelbake.cpm.level_per_texel import fit_level_per_texel
+from texelbake.cpm.texel_fit import FitParams
 from texelbake.testscenes import write_scene
 
 KW = {"psi": 0.97, "eps_db": 30.0, "c_max": 24, "n_trials": 3, "weights": "nnls", "colour": "auto",
           "decorrelation_threshold": 0.9}
+
+
+def _fit_many(Fs, valids, corrs, seeds, counts=None, **params):
+    """`fit_many` of texels given as parallel lists, FitParams from keywords."""
+    texels = [GramTexel(F, v, c, s) for F, v, c, s in zip(Fs, valids, corrs, seeds, strict=True)]
+    return fit_many(texels, FitParams(**params), counts)
+
+
+def _fit_texel(R, avis, seed=0, texel_area=None, rows="eq7", **params):
+    """`fit_texel` with FitParams from keywords."""
+    return fit_texel(R, avis, FitParams(**params), seed=seed, texel_area=texel_area, rows=rows)
 
 
 def _texel(rng, d, m, rank, decorrelate):
@@ -53,10 +64,10 @@ def test_gram_fit_of_many_texels_equals_fit_texel(decorrelate):
     rng = np.random.default_rng(3)
     texels = [_texel(rng, 300, m, r, decorrelate) for m, r in ((40, 6), (25, 4), (40, 9), (60, 12))]
     Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
-    got = fit_many(list(Fs), list(valids), [channel_correlation(R) for R, _ in texels],
-                   [11, 12, 13, 14], closed_form=True, **KW)
+    got = _fit_many(list(Fs), list(valids), [channel_correlation(R) for R, _ in texels],
+                   [11, 12, 13, 14], **KW)
     for (R, avis), seed, (fit, skip) in zip(texels, [11, 12, 13, 14], got, strict=True):
-        ref = fit_texel(R, avis, seed=seed, texel_area=1.0, **KW)
+        ref = _fit_texel(R, avis, seed=seed, texel_area=1.0, **KW)
         assert skip == ""
         assert fit.colour_mode == ref.colour_mode == ("per_channel" if decorrelate else "luminance")
         np.testing.assert_array_equal(fit.columns, ref.columns)
@@ -76,11 +87,11 @@ def test_top_eigenpairs_fit_equals_fit_texel(decorrelate, monkeypatch):
     texels = [_texel(rng, 500, m, r, decorrelate) for m, r in ((40, 6), (90, 40), (70, 3))]
     kw = {**KW, "psi": 0.999}
     Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
-    got = fit_many(list(Fs), list(valids), [channel_correlation(R) for R, _ in texels],
-                   [31, 32, 33], closed_form=False, **kw)
+    got = _fit_many(list(Fs), list(valids), [channel_correlation(R) for R, _ in texels],
+                   [31, 32, 33], **kw)
     ks = []
     for (R, avis), seed, (fit, _) in zip(texels, [31, 32, 33], got, strict=True):
-        ref = fit_texel(R, avis, seed=seed, texel_area=1.0, **kw)
+        ref = _fit_texel(R, avis, seed=seed, texel_area=1.0, **kw)
         np.testing.assert_array_equal(fit.columns, ref.columns)
         np.testing.assert_allclose(fit.weights, ref.weights, rtol=1e-5, atol=0)
         assert fit.k == ref.k and abs(fit.snr_db_insample - ref.snr_db_insample) < 1e-6
@@ -115,13 +126,12 @@ def test_top_eighs_are_the_top_of_the_full_decomposition():
 @pytest.mark.parametrize("decorrelate", [False, True])
 def test_split_of_a_wide_texel_equals_fit_texel_batches(decorrelate):
     """A texel wider than n_batch: fit_many's split (Grams of <= n_batch columns) against
-    fit_texel's batches on R with the same n_batch (`fit._Fitter.select`)."""
+    fit_texel's batches on R with the same n_batch (`search.select_batched` on both)."""
     rng = np.random.default_rng(8)
     R, avis = _texel(rng, 400, 90, 10, decorrelate)
     F, valid = _F(R, avis)
-    (fit, skip), = fit_many([F], [valid], [channel_correlation(R)], [21], closed_form=True,
-                            n_batch=32, **KW)
-    ref = fit_texel(R, avis, seed=21, texel_area=1.0, n_batch=32, **KW)
+    (fit, skip), = _fit_many([F], [valid], [channel_correlation(R)], [21], n_batch=32, **KW)
+    ref = _fit_texel(R, avis, seed=21, texel_area=1.0, n_batch=32, **KW)
     assert skip == "split"
     np.testing.assert_array_equal(fit.columns, ref.columns)
     np.testing.assert_allclose(fit.weights, ref.weights, rtol=1e-5, atol=0)
@@ -139,32 +149,6 @@ def test_batched_eigh_does_not_depend_on_the_stack():
         np.testing.assert_array_equal(lam, lam1)
         np.testing.assert_array_equal(V, V1)
         np.testing.assert_allclose(V @ np.diag(lam) @ V.T, g, atol=1e-10 * np.abs(g).max())
-
-
-def test_rank1_closed_form_against_the_full_fit():
-    """Coplanar, unoccluded, single-material samples: every column of R is the same function of
-    (w_i, w_o) times the sample's area, so R is rank 1. The closed form takes the column of
-    largest energy with weight sum(area) / its area (Eq. 7 exact); the full fit (draws,
-    bisection, NNLS) must reach the same reconstruction."""
-    rng = np.random.default_rng(5)
-    d, m = 256, 30
-    brdf_vals = rng.random(d)[:, None] * np.array([0.7, 0.5, 0.2])  # (d, 3)
-    area = 0.5 + rng.random(m)
-    R = brdf_vals[:, None, :] * area[None, :, None]  # (d, m, 3) rank 1 per channel
-    avis = 0.3 + rng.random(d)
-    F, valid = _F(R, avis)
-    corr = channel_correlation(R)
-    (closed, skip), = fit_many([F], [valid], [corr], [1], closed_form=True, **KW)
-    (full, skip_full), = fit_many([F], [valid], [corr], [1], closed_form=False, **KW)
-    assert skip == "rank1" and skip_full == ""
-    j = int(np.argmax(area))
-    np.testing.assert_array_equal(closed.columns, [j])
-    np.testing.assert_allclose(closed.weights[0], area.sum() / area[j], rtol=1e-6)
-    ref = (R.sum(axis=1) / avis[:, None])
-    for fit in (closed, full):
-        approx = np.einsum("dcx,cx->dx", R[:, fit.columns], fit.weights.astype(float)) / avis[:, None]
-        assert snr_db(ref, approx) > 120.0  # float32 weights: ~140 dB
-    assert closed.c <= full.c
 
 
 def test_chunk_bounds_cover_and_respect_the_cap():
@@ -209,7 +193,7 @@ def test_brdf_product_equals_brdf_grid_on_live_entries(small_scene):
 
 
 def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):
-    """The whole level (closed form off, every texel fitted: small_texels "fit"): the same
+    """The whole level (every texel fitted: small_texels "fit"): the same
     texels valid, in-sample SNR equal to rounding, held-out SNR median no lower than the
     per-texel loop's minus 0.5 dB; a 64 MiB memory bound (many chunks) gives the same arrays
     byte for byte as the default."""
@@ -218,7 +202,7 @@ def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):
     cands = level_candidates(src, 0, texels, None)
     # identical_columns "keep": the per-texel loop is the seed's fit, column for column
     src = dataclasses.replace(src, settings=src.settings.model_copy(
-        update={"closed_form": False, "small_texels": "fit", "identical_columns": "keep"}))
+        update={"small_texels": "fit", "identical_columns": "keep"}))
     ref = fit_level_per_texel(src, 0, texels, cands)
     got = fit_level_batched(src, 0, texels, cands)
     np.testing.assert_array_equal(got["valid"], ref["valid"])
@@ -269,50 +253,6 @@ def test_reduced_system_cholesky_and_eigh_against_the_residual():
                                                                              abs=1e-9 * tt)
 
 
-def test_spectrum_c_against_the_eckart_young_tail():
-    """spectrum_c is the smallest c whose best rank-c approximation (Eckart-Young: the energy of
-    the dropped singular values) is eps_db below the energy; checked against truncated SVDs."""
-    from texelbake.cpm.gram_fit import spectrum_c
-
-    rng = np.random.default_rng(4)
-    X = rng.random((200, 12)) @ np.diag(0.5 ** np.arange(12)) @ rng.random((12, 40))
-    U, s, Vt = np.linalg.svd(X, full_matrices=False)
-    total = float(np.sum(X * X))
-    for eps_db in (10.0, 20.0, 30.0, 45.0):
-        c = spectrum_c(s, total, eps_db)
-        err = [float(np.sum((X - (U[:, :j] * s[:j]) @ Vt[:j]) ** 2)) for j in (c - 1, c)]
-        assert 10 * np.log10(total / err[1]) >= eps_db - 1e-9
-        assert c == 1 or 10 * np.log10(total / err[0]) < eps_db
-
-
-@pytest.mark.parametrize("option", [{"trial_stop": "target"}, {"c_start": "spectrum"},
-                                    {"trial_stop": "target", "c_start": "spectrum"}])
-def test_trial_options_reach_the_target_with_fewer_draws(option):
-    """Early stop of trials and the spectrum's start of the bisection against the seed's
-    bisection on the same texels: every texel that reaches eps_db with the seed's search also
-    reaches it (the search still ends on the smallest c found to pass), with no more NNLS draws
-    in total."""
-    from texelbake.cpm import gram_fit
-
-    rng = np.random.default_rng(9)
-    texels = [_texel(rng, 300, m, r, dec) for m, r, dec in
-              ((40, 6, False), (25, 4, True), (60, 9, False), (60, 14, True), (50, 20, False))]
-    Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
-    corrs = [channel_correlation(R) for R, _ in texels]
-    seeds = [31, 32, 33, 34, 35]
-    kw = {**KW, "c_max": 40}
-    counts = []
-    fits = []
-    for opt in ({}, option):
-        gram_fit.COUNTS.update(probes=0, draws=0, draws_stopped=0)
-        fits.append(fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False, **kw, **opt))
-        counts.append(dict(gram_fit.COUNTS))
-    for (ref, _), (got, _) in zip(*fits, strict=True):
-        if ref.snr_db_insample >= kw["eps_db"]:
-            assert got.snr_db_insample >= kw["eps_db"] - 0.5  # float32 weights, d-space SNR
-    assert counts[1]["draws"] <= counts[0]["draws"]
-
-
 def test_small_texels_keep_every_candidate_on_both_paths():
     """small="all" on the Gram path: a texel of m <= c_max columns whose fit is not exact on
     the grid keeps every column at weight 1 instead (skip "all", the in-sample SNR of round-off
@@ -323,13 +263,13 @@ def test_small_texels_keep_every_candidate_on_both_paths():
     Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
     corrs = [channel_correlation(R) for R, _ in texels]
     kw = dict(KW, c_max=24)
-    got = fit_many(list(Fs), list(valids), corrs, [1, 2], closed_form=False, small="all", **kw)
-    seed_fit = fit_many(list(Fs), list(valids), corrs, [1, 2], closed_form=False, **kw)
+    got = _fit_many(list(Fs), list(valids), corrs, [1, 2], small="all", **kw)
+    seed_fit = _fit_many(list(Fs), list(valids), corrs, [1, 2], **kw)
     (small, skip_small), (wide, skip_wide) = got
     assert skip_small == "all" and skip_wide == ""
     assert small.c == 20 and np.array_equal(small.columns, np.arange(20))
     assert np.all(small.weights == 1.0) and small.snr_db_insample > 250.0
-    ref = fit_texel(*texels[0], seed=1, texel_area=1.0, small="all", **kw)
+    ref = _fit_texel(*texels[0], seed=1, texel_area=1.0, small="all", **kw)
     assert np.array_equal(ref.columns, small.columns) and ref.c == small.c
     np.testing.assert_array_equal(wide.columns, seed_fit[1][0].columns)
     np.testing.assert_array_equal(wide.weights, seed_fit[1][0].weights)
@@ -339,8 +279,8 @@ def test_small_texels_keep_every_candidate_on_both_paths():
 
 def test_a_wide_texel_read_by_blocks_is_fitted_as_if_held(small_scene, monkeypatch):
     """Texels wider than n_batch (16 here: most level-0 texels of this scene) are fitted from
-    `Columns` built a block of n_batch candidates at a time (issue 15: one texel's F no longer
-    grows with its width). Held whole instead (its F built in one `_build_R` call and wrapped
+    `Columns` built a block of n_batch candidates at a time (one texel's F does not grow with
+    its width). Held whole instead (its F built in one `build_R` call and wrapped
     by `Columns.of_array`), every array of the level is the same bit for bit: a block's
     columns are those of the whole F, and sums go by the same blocks."""
     src = small_scene.fit_inputs()
@@ -351,11 +291,10 @@ def test_a_wide_texel_read_by_blocks_is_fitted_as_if_held(small_scene, monkeypat
     assert (counts > 16).sum() >= 5 and counts.max() > 3 * 16
     built = []
 
-    def held(src_, frames, cset, rows, cseg, dirs, budget, inv_o, level, n_batch, s1, s2):
-        F, s1[rows], s2[rows] = lb._build_R(src_, frames, cset.take(rows), dirs, budget, inv_o,
-                                            cseg[rows])
+    def held(lp, cset, rows, cseg, inv_o, s1, s2):
+        F, s1[rows], s2[rows] = lb.build_R(lp, cset.take(rows), inv_o, cseg[rows])
         built.append(F.shape[1])
-        return lb.Columns.of_array(F, n_batch)
+        return lb.Columns.of_array(F, lp.src.settings.n_batch)
 
     lazy = fit_level_batched(src, 0, texels, cands)
     monkeypatch.setattr(lb, "_wide_columns", held)
@@ -364,49 +303,3 @@ def test_a_wide_texel_read_by_blocks_is_fitted_as_if_held(small_scene, monkeypat
     assert lazy["valid"].sum() >= 5
     for k in lazy:
         np.testing.assert_array_equal(lazy[k], whole[k], err_msg=k)
-
-
-@pytest.mark.parametrize("decorrelate", [False, True])
-def test_selection_columns_draws_from_a_subset_and_fits_every_candidate(decorrelate):
-    """selection_columns (issue 15): a texel of more candidates draws its points from a seeded
-    subset while its weights fit Eq. 7 over all of them. Checked on the whole F: in luminance
-    mode each channel's weights leave the residual of scipy's NNLS over the chosen columns
-    against the full row sums (to the float32 storage), the reported in-sample SNR is that of
-    the stored weights against the full row sums, the points lie in the subset and a rerun
-    draws the same; a subset as wide as the texel is the default fit bit for bit."""
-    from scipy.optimize import nnls
-
-    from texelbake.cpm.gram_fit import SUBSET_STREAM
-
-    rng = np.random.default_rng(5)
-    texels = [_texel(rng, 300, m, r, decorrelate) for m, r in ((90, 8), (120, 10))]
-    Fs, valids = zip(*[_F(R, a) for R, a in texels], strict=True)
-    corrs = [channel_correlation(R) for R, _ in texels]
-    seeds = [21, 22]
-    got = fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False,
-                   selection_columns=48, **KW)
-    again = fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False,
-                     selection_columns=48, **KW)
-    for F, valid, seed, (fit, _), (fit2, _) in zip(Fs, valids, seeds, got, again, strict=True):
-        assert fit is not None and fit.c >= 1
-        np.testing.assert_array_equal(fit.columns, fit2.columns)
-        np.testing.assert_array_equal(fit.weights, fit2.weights)
-        subset = np.random.default_rng((seed, SUBSET_STREAM)).choice(F.shape[1], 48,
-                                                                      replace=False)
-        assert np.isin(fit.columns, subset).all()
-        target = F.sum(axis=1)  # (ch, d): every candidate
-        approx = np.stack([fit.weights[:, c].astype(np.float64) @ F[c, fit.columns]
-                           for c in range(3)], axis=1)
-        assert fit.snr_db_insample == pytest.approx(snr_db(target.T, approx, valid), abs=1e-9)
-        if fit.colour_mode == "luminance":  # every channel's weights on the same columns
-            for c in range(3):
-                A, t = F[c, fit.columns][:, valid].T, target[c, valid]
-                best = nnls(A, t, maxiter=100 * A.shape[1])[1]
-                mine = np.linalg.norm(A @ fit.weights[:, c].astype(np.float64) - t)
-                assert mine <= best * (1 + 1e-4) + 1e-6 * np.linalg.norm(t)
-    whole = fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False, **KW)
-    wide = fit_many(list(Fs), list(valids), corrs, seeds, closed_form=False,
-                    selection_columns=120, **KW)  # no texel has more than 120 candidates
-    for (a, _), (b, _) in zip(wide, whole, strict=True):
-        np.testing.assert_array_equal(a.columns, b.columns)
-        np.testing.assert_array_equal(a.weights, b.weights)

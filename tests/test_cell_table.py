@@ -15,10 +15,11 @@ import pytest
 from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.btf.lut import build_lut, lookup_pairs
-from texelbake.cpm import level_batched as lb
+from texelbake.cpm import level_batched, level_per_texel
 from texelbake.cpm.level import direction_sets, level_candidates, tile_texels
 from texelbake.errors import SettingsError
 from texelbake.geometry.directions import cell_directions, hemisphere_directions, product_pairs
+from texelbake.stages.cpm import fit_level
 from texelbake.testscenes import write_scene
 
 
@@ -109,7 +110,7 @@ def test_draws_at_the_centres_give_the_point_table(btf_scene, monkeypatch, metho
 
     def at(table):
         s = src.settings.model_copy(update={"btf_table": table, "fit_method": method})
-        return lb.fit_level(dataclasses.replace(src, settings=s), 0, texels, cands)
+        return fit_level(dataclasses.replace(src, settings=s), 0, texels, cands)
 
     point = at("point")["fbar"]
     assert point.max() > 0
@@ -120,7 +121,8 @@ def test_draws_at_the_centres_give_the_point_table(btf_scene, monkeypatch, metho
         k = settings.btf_cell_draws
         return np.repeat(dirs["dirs_i"][None], k, 0), np.repeat(dirs["dirs_o"][None], k, 0)
 
-    monkeypatch.setattr(lb, "direction_cells", centres)
+    for mod in (level_batched, level_per_texel):  # the cell table's two callers
+        monkeypatch.setattr(mod, "direction_cells", centres)
     np.testing.assert_allclose(at("cell")["fbar"], point, rtol=1e-5, atol=1e-7)
     assert direction_sets(src.settings)["dirs_i"].shape == (16, 3)
 

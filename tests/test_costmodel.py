@@ -121,27 +121,6 @@ def test_atlas_trade_prices_the_resolution_lod1_asks_for():
     assert atlas_trade(s, {})["estimated_seconds_for_lod1"] is None
 
 
-def test_estimate_prices_the_coarse_levels_dense_refit():
-    """coarse_target="dense" refits every coarse level against all its dense samples: on the
-    uniform prediction each level >= 1 holds all N^2 spt samples once, so the refit adds
-    refit x (levels - 1) x samples x d seconds (on one worker, Lambert / Phong), by hand."""
-    from texelbake.estimate.costmodel import Coefficients, estimate
-
-    s = BakeSettings(atlas_resolution=32, coarse_target="dense")
-    coef = Coefficients()
-    dense = estimate(s, ggx_fraction=0.0)
-    children = estimate(s.model_copy(update={"coarse_target": "children"}), ggx_fraction=0.0)
-    n_levels = s.atlas_resolution.bit_length()
-    samples = s.atlas_resolution ** 2 * s.samples_per_texel
-    d = s.n_light_dirs * s.n_view_dirs
-    want = coef.refit * (n_levels - 1) * samples * d
-    assert dense.cpm_seconds - children.cpm_seconds == pytest.approx(want, rel=1e-9)
-    # a GGX asset pays the refit's material factor
-    g = estimate(s, ggx_fraction=1.0).cpm_seconds - estimate(
-        s.model_copy(update={"coarse_target": "children"}), ggx_fraction=1.0).cpm_seconds
-    assert g == pytest.approx(want * coef.refit_ggx, rel=1e-9)
-
-
 def test_levels_above_a_tile_are_one_serial_shard():
     """The levels coarser than a shard's tile run as one shard (`run_cpm_top`) on one worker,
     except their dense samples' sums (a_vis and the held-out truth, the held term), which the
@@ -213,13 +192,13 @@ def test_machine_speed_scales_each_term_by_its_kind_of_work():
     from texelbake.estimate.costmodel import Coefficients
     from texelbake.estimate.machinespeed import PART_OF, MachineSpeed
 
-    ratios = {"brdf_ggx", "held_ggx", "refit_ggx", "btf_cell"}
+    ratios = {"brdf_ggx", "held_ggx", "btf_cell"}
     assert {f.name for f in fields(Coefficients)} == set(PART_OF) | ratios
     factors = {"grid": 2.0, "blas": 3.0, "rays": 5.0, "python": 7.0}
     speed = MachineSpeed(factors=factors, seconds=dict.fromkeys(factors, 1.0))
     zero = Coefficients(**{f.name: (1.0 if f.name in ratios else 0.0)
                            for f in fields(Coefficients)})
-    s = BakeSettings(atlas_resolution=32, coarse_target="dense")  # the refit term priced too
+    s = BakeSettings(atlas_resolution=32)
     for name, part in PART_OF.items():
         one = replace(zero, **{name: getattr(Coefficients(), name) or 1e-9})
         base = costmodel.estimate(s, 1, coef=one, ggx_fraction=0.0)
@@ -229,9 +208,7 @@ def test_machine_speed_scales_each_term_by_its_kind_of_work():
         assert fast.speed == speed.to_dict() and base.speed is None
     # the ratio fields are not seconds: the GGX share of R is priced the same on any machine
     c = Coefficients().scaled(speed)
-    assert (c.brdf_ggx, c.held_ggx, c.refit_ggx) == (Coefficients().brdf_ggx,
-                                                    Coefficients().held_ggx,
-                                                    Coefficients().refit_ggx)
+    assert (c.brdf_ggx, c.held_ggx) == (Coefficients().brdf_ggx, Coefficients().held_ggx)
 
 
 def test_machine_speed_measurement(monkeypatch):
@@ -268,20 +245,3 @@ def test_the_cell_table_is_priced_at_level_0():
     assert costmodel.estimate(off, 2).cpm_seconds == e_point.cpm_seconds
     assert e_cell.cpm_seconds - e_point.cpm_seconds == pytest.approx(extra, rel=1e-9)
     assert e_cell.per_level[1] == e_point.per_level[1]
-
-
-def test_selection_columns_prices_the_subsets_grams():
-    """selection_columns s prices a texel's Grams and eigendecompositions at min(m, s) columns
-    (by hand from the uniform sizes, every level); 0 prices them at m."""
-    c = costmodel.Coefficients()
-    base = BakeSettings(atlas_resolution=32, samples_per_texel=512)
-    sub = BakeSettings(atlas_resolution=32, samples_per_texel=512, selection_columns=96)
-    d = base.n_light_dirs * base.n_view_dirs
-    saved = 0.0
-    for m, _, mult in costmodel._uniform_sizes(32, base.samples_per_texel, base.c_max):
-        ms = np.minimum(m, 96)
-        saved += mult * float(c.gram * ((m * m - ms * ms) * d).sum()
-                              + c.eigh * (m ** 3 - ms ** 3).sum())
-    assert saved > 0.0
-    e_base, e_sub = (costmodel.estimate(s, 2) for s in (base, sub))
-    assert e_base.cpm_seconds - e_sub.cpm_seconds == pytest.approx(saved, rel=1e-9)

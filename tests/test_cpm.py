@@ -22,9 +22,15 @@ from texelbake.cpm.matrix import (
     reflectance_pairs,
     snr_db,
 )
+from texelbake.cpm.texel_fit import FitParams, storable_weights
 from texelbake.errors import NumericalError, SettingsError, ShapeError
 from texelbake.geometry.directions import heldout_pairs, hemisphere_directions, product_pairs
 from texelbake.tol import TOL
+
+
+def _fit_texel(R, avis, seed=0, texel_area=None, rows="eq7", **params):
+    """`fit_texel` with FitParams from keywords."""
+    return fit_texel(R, avis, FitParams(**params), seed=seed, texel_area=texel_area, rows=rows)
 
 N_I = N_O = 12
 
@@ -182,7 +188,7 @@ def test_grazing_and_fully_masked_rows(rng):
     n_o = N_O + 2
     bad = np.isin(np.arange(len(avis)) % n_o, [N_O, N_O + 1])
     assert np.all(avis[bad] == 0.0) and np.all(R[bad] == 0.0)
-    fit = fit_texel(R, avis)
+    fit = _fit_texel(R, avis)
     fbar, valid = reconstruct(fit, R, avis, avis_floor(area.sum()))
     assert np.all(np.isfinite(fbar)) and not np.any(valid[bad]) and np.all(valid[~bad])
     assert np.all(fbar[bad] == 0.0)
@@ -197,14 +203,14 @@ def test_grazing_and_fully_masked_rows(rng):
     _, ro = product_pairs(N_I, N_O)
     avis = avis_on_grid(vis_o, cos_o, t["area"])[ro]
     with np.errstate(divide="raise", invalid="raise"):
-        fit = fit_texel(R, avis, texel_area=t["area"].sum(), seed=1)
+        fit = _fit_texel(R, avis, texel_area=t["area"].sum(), seed=1)
     assert fit.valid and np.all(np.isfinite(fit.weights)) and np.isfinite(fit.snr_db_insample)
 
 
 def test_no_valid_row_and_empty_texel():
-    fit = fit_texel(np.ones((8, 3, 1)), np.zeros(8))
+    fit = _fit_texel(np.ones((8, 3, 1)), np.zeros(8))
     assert not fit.valid and fit.c == 0 and "a_vis" in fit.reason
-    empty = fit_texel(np.zeros((16, 0, 3)), np.ones(16))
+    empty = _fit_texel(np.zeros((16, 0, 3)), np.ones(16))
     assert not empty.valid and empty.c == 0 and empty.k == 0
     assert empty.columns.shape == (0,) and empty.columns.dtype == np.int64
     assert empty.weights.shape == (0, 3) and empty.weights.dtype == np.float32
@@ -247,7 +253,7 @@ def test_snr_db_extreme_scale_against_exact_fractions(rng):
 def test_flat_lambertian_exact(rng):
     # issue 3 acceptance (a): f_bar = rho / pi cos(theta_i) to 1e-6, one characteristic point
     R, avis, wi_r, wo_r, rho, area = flat_lambert()
-    fit = fit_texel(R, avis, texel_area=area.sum())
+    fit = _fit_texel(R, avis, texel_area=area.sum())
     assert fit.c == 1 and fit.k == 1 and fit.valid and fit.eps_reached
     fbar, valid = reconstruct(fit, R, avis, avis_floor(area.sum()))
     assert valid.all()
@@ -278,7 +284,7 @@ def test_rank1_with_occluded_and_duplicate_columns():
     col = R[:, :1, :]
     Rd = np.concatenate([np.repeat(col, 9, axis=1), np.zeros((R.shape[0], 4, 3))], axis=1)
     avis_d = avis * 0 + avis.max()  # any positive a_vis
-    fit = fit_texel(Rd, avis_d)
+    fit = _fit_texel(Rd, avis_d)
     assert fit.c == 1 and fit.columns[0] < 9
     np.testing.assert_allclose(fit.weights, 9.0, rtol=1e-6)
     assert fit.snr_db_insample > 120  # exact up to float32 weights
@@ -286,20 +292,20 @@ def test_rank1_with_occluded_and_duplicate_columns():
 
 def test_one_sample_texel():
     R, avis, *_ = flat_lambert(m=1)
-    fit = fit_texel(R, avis)
+    fit = _fit_texel(R, avis)
     assert fit.c == 1 and fit.columns.tolist() == [0]
     np.testing.assert_allclose(fit.weights, 1.0, rtol=1e-6)
 
 
 def test_all_zero_R():
-    fit = fit_texel(np.zeros((20, 5, 3)), np.ones(20))
+    fit = _fit_texel(np.zeros((20, 5, 3)), np.ones(20))
     assert fit.valid and fit.c == 0 and fit.snr_db_insample == math.inf
     assert fit.weights.shape == (0, 3)
 
 
 def test_c_max_below_k(rng):
     R = rng.random((144, 30, 1))  # generic: full rank, k ~ 25 at psi = 0.999
-    fit = fit_texel(R, np.ones(144), psi=0.999, c_max=3)
+    fit = _fit_texel(R, np.ones(144), psi=0.999, c_max=3)
     assert fit.k > 3 and 1 <= fit.c <= 3 and fit.c_capped
     assert "c_max" in fit.reason and fit.valid
 
@@ -318,7 +324,7 @@ def test_specular_dynamic_range_snr_against_mpmath(rng):
     R, avis = t["R"], t["avis"]
     pos = R[R > 0]
     assert pos.max() / pos.min() > 1e6
-    fit = fit_texel(R, avis, texel_area=t["area"].sum(), c_max=40)
+    fit = _fit_texel(R, avis, texel_area=t["area"].sum(), c_max=40)
     assert np.all(np.isfinite(fit.weights)) and np.isfinite(fit.snr_db_insample)
     # independent SNR in 50-digit arithmetic from the returned float32 weights
     mpmath.mp.dps = 50
@@ -349,7 +355,7 @@ def test_specular_dynamic_range_snr_against_mpmath(rng):
 def test_weighted_points_vs_brute_force_sum(rng):
     # (b): R 1 by brute force against the weighted characteristic points at the reported SNR
     t = texel(rng, m=40)
-    fit = fit_texel(t["R"], t["avis"], texel_area=t["area"].sum(), seed=3)
+    fit = _fit_texel(t["R"], t["avis"], texel_area=t["area"].sum(), seed=3)
     eps = avis_floor(t["area"].sum())
     ri, ro = product_pairs(N_I, N_O)
     cos_i, cos_o = t["n_s"] @ t["wi"].T, t["n_s"] @ t["wo"].T
@@ -381,8 +387,8 @@ def test_nnls_never_worse_than_clamp_on_the_same_points(rng):
     # for a fixed C, NNLS minimises ||C alpha - R 1|| over alpha >= 0 and the seed's clamped
     # pseudo-inverse is one feasible alpha: NNLS is never worse on the row sums
     t = texel(rng, m=40)
-    fit = fit_texel(t["R"], t["avis"], weights="nnls", c_max=8, seed=2)
-    clamp = fit_texel(t["R"], t["avis"], weights="clamp", c_max=8, seed=2)
+    fit = _fit_texel(t["R"], t["avis"], weights="nnls", c_max=8, seed=2)
+    clamp = _fit_texel(t["R"], t["avis"], weights="clamp", c_max=8, seed=2)
     assert np.all(fit.weights >= 0) and np.all(clamp.weights >= 0)
     for x in range(3):
         C = t["R"][:, fit.columns, x]
@@ -398,8 +404,8 @@ def test_batching(rng):
     mix = rng.random((4, 200))
     R = np.einsum("dkx,km->dmx", base, mix)
     avis = np.full(R.shape[0], 1.0)
-    fb = fit_texel(R, avis, n_batch=40, c_max=8, seed=0)
-    fu = fit_texel(R, avis, c_max=8, seed=0)
+    fb = _fit_texel(R, avis, n_batch=40, c_max=8, seed=0)
+    fu = _fit_texel(R, avis, c_max=8, seed=0)
     for fit in (fb, fu):
         assert fit.valid and fit.eps_reached and fit.c <= 8 * 3
         assert np.all(np.diff(fit.columns) > 0) and fit.columns.max() < 200
@@ -407,18 +413,18 @@ def test_batching(rng):
     # points > n_batch = 10): the recursion terminates and the result is still a valid fit
     mix2 = rng.random((4, 200))
     R2 = np.einsum("dkx,km->dmx", base[:, :, :1], mix2)
-    fr = fit_texel(R2, avis, n_batch=10, c_max=8, seed=1)
+    fr = _fit_texel(R2, avis, n_batch=10, c_max=8, seed=1)
     assert fr.valid and 1 <= fr.c <= 8 and fr.columns.max() < 200
     assert fr.snr_db_insample > 20.0  # rank-4 texel: a few columns already fit well
     with pytest.raises(SettingsError):
-        fit_texel(R, avis, n_batch=1)
+        _fit_texel(R, avis, n_batch=1)
 
 
 def test_colour_modes(rng):
     # red and blue materials on disjoint samples: channels decorrelated -> per-channel points
     t = texel(rng, m=30, kd=[[0.8, 0.0, 0.0], [0.0, 0.0, 0.8]], ks=(0.0, 0.0))
     assert channel_correlation(t["R"]) < 0.5
-    fit = fit_texel(t["R"], t["avis"], texel_area=t["area"].sum())
+    fit = _fit_texel(t["R"], t["avis"], texel_area=t["area"].sum())
     assert fit.colour_mode == "per_channel" and fit.k_channels.shape == (3,)
     red_only = t["mat"][fit.columns] == 0
     # a point chosen for the red channel is a red sample: its blue weight carries nothing
@@ -426,15 +432,15 @@ def test_colour_modes(rng):
     # grey albedo: channels proportional -> one shared selection on luminance
     g = texel(rng, m=30, kd=[[0.5, 0.5, 0.5], [0.2, 0.2, 0.2]])
     assert channel_correlation(g["R"]) > 0.999
-    assert fit_texel(g["R"], g["avis"]).colour_mode == "luminance"
-    forced = fit_texel(t["R"], t["avis"], colour="luminance")
+    assert _fit_texel(g["R"], g["avis"]).colour_mode == "luminance"
+    forced = _fit_texel(t["R"], t["avis"], colour="luminance")
     assert forced.colour_mode == "luminance" and forced.k_channels.shape == (1,)
 
 
 def test_deterministic_and_serializable(rng, tmp_path):
     t = texel(rng, m=40)
-    a = fit_texel(t["R"], t["avis"], seed=7)
-    b = fit_texel(t["R"], t["avis"], seed=7)
+    a = _fit_texel(t["R"], t["avis"], seed=7)
+    b = _fit_texel(t["R"], t["avis"], seed=7)
     assert a.columns.tobytes() == b.columns.tobytes() and a.weights.tobytes() == b.weights.tobytes()
     assert a.snr_db_insample == b.snr_db_insample
     np.savez(tmp_path / "fit.npz", **a.to_dict())
@@ -448,16 +454,16 @@ def test_deterministic_and_serializable(rng, tmp_path):
 
 def test_fit_input_errors():
     with pytest.raises(NumericalError):
-        fit_texel(np.full((4, 2, 1), np.nan), np.ones(4))
+        _fit_texel(np.full((4, 2, 1), np.nan), np.ones(4))
     with pytest.raises(NumericalError):
-        fit_texel(np.ones((4, 2, 1)), np.array([1.0, np.inf, 1.0, 1.0]))
+        _fit_texel(np.ones((4, 2, 1)), np.array([1.0, np.inf, 1.0, 1.0]))
     with pytest.raises(ShapeError):
-        fit_texel(np.ones((4, 2)), np.ones(4))
+        _fit_texel(np.ones((4, 2)), np.ones(4))
     with pytest.raises(ShapeError):
-        fit_texel(np.ones((4, 2, 1)), np.ones(3))
+        _fit_texel(np.ones((4, 2, 1)), np.ones(3))
     for bad in ({"psi": 0.0}, {"c_max": 0}, {"n_trials": 0}, {"colour": "rgb"}, {"weights": "x"}):
         with pytest.raises(SettingsError):
-            fit_texel(np.ones((4, 2, 1)), np.ones(4), **bad)
+            _fit_texel(np.ones((4, 2, 1)), np.ones(4), **bad)
 
 
 def test_channel_correlation_matches_numpy(rng):
@@ -475,10 +481,9 @@ def test_channel_correlation_matches_numpy(rng):
 def test_weights_past_float32_range_are_dropped_not_stored_as_inf():
     """NNLS weights 1/scale of a vanishing column: past float32 they would be stored as inf and
     poison the next level's R with inf x 0 = NaN (the small bolt at 32²); they become 0."""
-    from texelbake.cpm.fit import _storable_weights
 
     w = np.array([[0.5, 2.0], [1e39, 3.0], [np.nan, 1.0], [-1e300, np.inf]])
-    out = _storable_weights(w)
+    out = storable_weights(w)
     assert out.dtype == np.float32 and np.isfinite(out).all()
     np.testing.assert_array_equal(out, np.array([[0.5, 2.0], [0.0, 3.0], [0.0, 1.0],
                                                  [0.0, 0.0]], np.float32))
@@ -507,8 +512,8 @@ def test_small_texel_keeps_every_candidate_and_holds_between_the_grid(rng):
     for j in range(40):  # Eq. 7's numerator sample by sample, not through R's sum
         brute += R_h[:, j]
     ok = avis_h > eps
-    fitted = fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=64, small="fit")
-    kept = fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=64, small="all")
+    fitted = _fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=64, small="fit")
+    kept = _fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=64, small="all")
     assert fitted.c < 40
     assert kept.c == 40 and np.array_equal(kept.columns, np.arange(40))
     assert np.all(kept.weights == 1.0) and kept.weights.dtype == np.float32
@@ -521,14 +526,14 @@ def test_small_texel_keeps_every_candidate_and_holds_between_the_grid(rng):
     assert held(kept) > 250.0
     assert held(fitted) < 60.0  # 30 dB on the grid, off it the drawn points miss lobes
     # above c_max the setting changes nothing
-    a = fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=20, small="all")
-    b = fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=20, small="fit")
+    a = _fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=20, small="all")
+    b = _fit_texel(t["R"], t["avis"], texel_area=area.sum(), seed=3, c_max=20, small="fit")
     assert np.array_equal(a.columns, b.columns) and np.array_equal(a.weights, b.weights)
     with pytest.raises(SettingsError, match="small"):
-        fit_texel(t["R"], t["avis"], small="some")
+        _fit_texel(t["R"], t["avis"], small="some")
     # a rank-1 texel's one point is exact everywhere: it stays one point
     R1, avis1, _, _, _, area1 = flat_lambert(m=30)
-    one = fit_texel(R1, avis1, texel_area=area1.sum(), small="all")
+    one = _fit_texel(R1, avis1, texel_area=area1.sum(), small="all")
     assert one.c == 1 and one.snr_db_insample >= 100.0
 
 

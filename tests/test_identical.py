@@ -10,12 +10,19 @@ import pytest
 
 from texelbake.cpm.column_sampling import column_probabilities, energy_rank
 from texelbake.cpm.fit import channel_correlation
-from texelbake.cpm.gram_fit import COUNTS, fit_many
+from texelbake.cpm.gram_fit import GramTexel, fit_many
 from texelbake.cpm.identical import PRINT_TAPS, identical_columns
 from texelbake.cpm.matrix import snr_db
+from texelbake.cpm.texel_fit import FitCounts, FitParams
 
 KW = {"psi": 0.97, "eps_db": 30.0, "c_max": 24, "n_trials": 3, "weights": "nnls",
       "colour": "auto", "decorrelation_threshold": 0.9}
+
+
+def _fit_many(Fs, valids, corrs, seeds, counts=None, **params):
+    """`fit_many` of texels given as parallel lists, FitParams from keywords."""
+    texels = [GramTexel(F, v, c, s) for F, v, c, s in zip(Fs, valids, corrs, seeds, strict=True)]
+    return fit_many(texels, FitParams(**params), counts)
 
 
 def _duplicated(rng, d, u, m, rank=6):
@@ -97,12 +104,11 @@ def test_merged_fit_reproduces_eq7_over_every_candidate(decorrelate):
     valid[:3] = False
     F[:, :, :3] = 0.0
     R = F.transpose(2, 1, 0)
-    before = dict(COUNTS)
-    got = fit_many([F], [valid], [channel_correlation(R)], [9], closed_form=False,
-                   identical="merge", **KW)
-    again = fit_many([F], [valid], [channel_correlation(R)], [9], closed_form=False,
-                     identical="merge", **KW)
-    assert COUNTS["merged_columns"] - before["merged_columns"] == 2 * 80
+    counts = FitCounts()
+    got = _fit_many([F], [valid], [channel_correlation(R)], [9], counts, identical="merge", **KW)
+    again = _fit_many([F], [valid], [channel_correlation(R)], [9], counts, identical="merge",
+                      **KW)
+    assert counts.merged_columns == 2 * 80 and counts.merged_texels == 2
     (fit, skip), (fit2, _) = got[0], again[0]
     assert skip == "" and fit.c >= 1
     np.testing.assert_array_equal(fit.columns, fit2.columns)
@@ -122,26 +128,14 @@ def test_a_texel_of_few_distinct_columns_keeps_them_all_exactly():
     F, _ = _duplicated(rng, 200, 10, 60, rank=10)
     valid = np.ones(200, bool)
     R = F.transpose(2, 1, 0)
-    (fit, skip), = fit_many([F], [valid], [channel_correlation(R)], [3], closed_form=False,
-                            identical="merge", small="all", **KW)
+    (fit, skip), = _fit_many([F], [valid], [channel_correlation(R)], [3], identical="merge", small="all", **KW)
     label = _brute_groups(F)
     assert skip == "all" and fit.c == 10
     sizes = np.array([np.count_nonzero(label == label[j]) for j in fit.columns])
     np.testing.assert_array_equal(fit.weights, np.repeat(sizes[:, None], 3, 1))
     assert fit.snr_db_insample > 120.0
-    (kept, _), = fit_many([F], [valid], [channel_correlation(R)], [3], closed_form=False,
-                          identical="keep", small="all", **KW)
+    (kept, _), = _fit_many([F], [valid], [channel_correlation(R)], [3], identical="keep", small="all", **KW)
     assert kept.c <= KW["c_max"]  # the seed's route fits 60 > c_max columns
-
-
-def test_all_identical_columns_in_closed_form_are_one_point_of_weight_m():
-    rng = np.random.default_rng(13)
-    f = rng.random((3, 1, 128))
-    F = np.repeat(f, 37, axis=1)
-    valid = np.ones(128, bool)
-    (fit, skip), = fit_many([F], [valid], [1.0], [5], closed_form=True, identical="merge", **KW)
-    assert skip == "rank1" and fit.c == 1
-    np.testing.assert_allclose(fit.weights, 37.0, rtol=1e-6)
 
 
 def test_no_identical_columns_is_the_seeds_fit_bit_for_bit():
@@ -149,9 +143,8 @@ def test_no_identical_columns_is_the_seeds_fit_bit_for_bit():
     F = rng.random((3, 50, 200))
     valid = np.ones(200, bool)
     R = F.transpose(2, 1, 0)
-    a = fit_many([F], [valid], [channel_correlation(R)], [2], closed_form=False,
-                 identical="merge", **KW)[0][0]
-    b = fit_many([F], [valid], [channel_correlation(R)], [2], closed_form=False, **KW)[0][0]
+    a = _fit_many([F], [valid], [channel_correlation(R)], [2], identical="merge", **KW)[0][0]
+    b = _fit_many([F], [valid], [channel_correlation(R)], [2], **KW)[0][0]
     np.testing.assert_array_equal(a.columns, b.columns)
     np.testing.assert_array_equal(a.weights, b.weights)
 
@@ -160,10 +153,11 @@ def test_a_merged_level_stores_eq7_where_it_reports_it_exact(tmp_path):
     """A level fitted with identical_columns="merge" on a scene with flat, unoccluded caps: it
     merges, records what it merged, and a texel it reports exact on the grid (every distinct
     column kept, or a fit at >= 100 dB) stores points whose weighted R (rebuilt from the stored
-    sample ids, `_build_R`) is the R of every candidate summed, to float32 rounding."""
+    sample ids, `build_R`) is the R of every candidate summed, to float32 rounding."""
     from schemas.settings import BakeSettings
     from texelbake import stages
     from texelbake.cpm import level_batched as lb
+    from texelbake.cpm.dense import LevelPass
     from texelbake.cpm.level import direction_sets, level_candidates, tile_texels
     from texelbake.testscenes import write_scene
 
@@ -188,13 +182,13 @@ def test_a_merged_level_stores_eq7_where_it_reports_it_exact(tmp_path):
     checked = 0
     for i in np.flatnonzero(out["valid"] & (merged > 0) & (out["snr_in"] >= 100.0)):
         mine = np.flatnonzero(cands.texel == out["texel"][i])
-        R_all = lb._build_R(src, frames, cands.take(mine), dirs, 1 << 26).sum(axis=1)
+        R_all = lb.build_R(LevelPass(src, 0, frames, dirs, 1 << 26), cands.take(mine)).sum(axis=1)
         a, b = out["offsets"][i], out["offsets"][i + 1]
         pts = out["point_sample"][a:b]
         order = np.argsort(cands.sample[mine])  # the stored points among the candidates
         at = order[np.searchsorted(cands.sample[mine][order], pts)]
         assert np.array_equal(cands.sample[mine][at], pts)
-        R_pts = lb._build_R(src, frames, cands.take(mine[at]), dirs, 1 << 26)
+        R_pts = lb.build_R(LevelPass(src, 0, frames, dirs, 1 << 26), cands.take(mine[at]))
         alpha = out["point_weight"][a:b].astype(np.float64) / cands.weight[mine[at]]
         approx = np.einsum("cpd,pc->cd", R_pts, alpha)
         np.testing.assert_allclose(approx, R_all, rtol=1e-5, atol=1e-6 * np.abs(R_all).max())

@@ -11,9 +11,10 @@ import pytest
 
 from schemas.settings import BakeSettings
 from texelbake import stages
+from texelbake.cpm import dense as dense_mod
 from texelbake.cpm import level_batched as lb
-from texelbake.cpm.level import samples_in, tile_texels
-from texelbake.cpm.level_batched import DenseSums, dense_sums
+from texelbake.cpm.dense import DenseSums, dense_sums
+from texelbake.cpm.level import PointSet, direction_sets, samples_in, tile_texels
 from texelbake.stages import cpm as cpm_stage
 from texelbake.testscenes import write_scene
 
@@ -60,7 +61,7 @@ def test_dense_sums_add_over_disjoint_samples(scene, tmp_path):
     level = ctx.tile_levels
     texels = np.arange((32 >> level) ** 2, dtype=np.int64)
     whole = dense_sums(src, level, texels)
-    parts = DenseSums.zeros(len(texels), lb.direction_sets(ctx.settings))
+    parts = DenseSums.zeros(len(texels), direction_sets(ctx.settings))
     last = ctx.tile_levels - 1
     for tile in range(16):  # loop over tiles
         smp = samples_in(src.geo, 32, last, tile_texels(32, 8, tile, last))
@@ -89,7 +90,7 @@ def test_top_shard_from_tile_sums_reads_no_sample(scene, tmp_path, monkeypatch):
         raise AssertionError("the top shard read the dense samples")
 
     with monkeypatch.context() as m:
-        m.setattr(lb, "samples_in", no_samples)
+        m.setattr(dense_mod, "samples_in", no_samples)  # where the batched fit reads samples
         cpm_stage.run_cpm_top(ctx, 0)
     from_sums = cpm_stage.cpm_levels(ctx)
 
@@ -137,5 +138,5 @@ def test_sums_of_the_wrong_texels_are_refused(scene, tmp_path):
         dense_sums(src, 4, np.array([3]), smp)  # tile 0 lies under texel 0, not 3
     sums = dense_sums(src, 4, np.array([0]), smp)
     with pytest.raises(ShapeError, match="level 4"):
-        lb.fit_level_batched(src, 4, np.arange(4), lb.PointSet(
+        lb.fit_level_batched(src, 4, np.arange(4), PointSet(
             np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)), sums)

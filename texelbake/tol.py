@@ -20,7 +20,6 @@ class Tolerances:
     const_channel_var: float = 1e-10  # variance / sum x^2 below this: a constant colour channel
     # visible projected area
     avis_floor: float = 1e-9          # relative to texel area: a_vis below is "fully masked"
-    rank1_rel: float = 1e-10          # energy outside the top eigenvalue: R is rank 1 (closed form)
     exact_fit_db: float = 100.0       # a fit this close to the grid's Eq. 7 is exact (rank 1)
     # directions
     grazing_cos: float = 1e-6         # n.w below this counts as below the horizon

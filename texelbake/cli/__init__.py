@@ -3,7 +3,7 @@ submit, stack.
 
 Heavy modules are imported inside each command so `texelbake --help` is instant.
 Exit status: 0 done, 2 error (texelbake.errors), 3 `bake` finished below a quality target
-(texelbake.quality; `--accept-below-target` makes it 0), 4 `submit --manifest`: the batch
+(texelbake.stages.quality; `--accept-below-target` makes it 0), 4 `submit --manifest`: the batch
 finished but some item failed or was cancelled (each is printed).
 """
 
@@ -12,8 +12,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from texelbake.cli import bake, farm, render, scenes
 from texelbake.cli.args import Parser
+from texelbake.cli.bake import bake
+from texelbake.cli.farm import farm
+from texelbake.cli.render import render
+from texelbake.cli.scenes import scenes
 from texelbake.errors import TexelbakeError
 
 

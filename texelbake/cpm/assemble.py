@@ -31,22 +31,21 @@ def percentiles(x: np.ndarray, posinf: float | None = None) -> dict[str, float]:
 
 
 #: a texel's compressed a_vis table may differ from its uncompressed maps by this relative L2
-#: (over its six faces) before the bake report flags it (issue 11's per-texel bound)
+#: (over its six faces) before the bake report flags it (the per-texel bound)
 AVIS_TEXEL_TOLERANCE = 0.02
 
 
 def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
-    """Texels the batched fit did not fit by draws and trials (issue 15), with their held-out
-    SNR: "rank1" (closed form), "per_texel" (fitted by `fit.fit_texel`), "all_points" (every
-    candidate kept, `BakeSettings.small_texels`). Empty for the
-    per-texel path, which records no skip."""
+    """Texels the batched fit did not fit by draws and trials, with their held-out SNR:
+    "per_texel" (fitted by `fit.fit_texel`), "all_points" (every candidate kept,
+    `BakeSettings.small_texels`). Empty for the per-texel path, which records no skip."""
     if "skip" not in data:
         return {}
     skip = data["skip"][valid]
     ho = data["snr_ho"][valid]
     return {name: {"texels": int(np.sum(skip == code)),
                    "snr_heldout_db": percentiles(ho[skip == code], SNR_EXACT_DB)}
-            for code, name in ((1, "rank1"), (2, "per_texel"), (3, "all_points"))}
+            for code, name in ((2, "per_texel"), (3, "all_points"))}
 
 
 def _merged(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
@@ -123,11 +122,6 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "snr_heldout_db": percentiles(data["snr_ho"][valid], SNR_EXACT_DB),
         "per_channel_texels": int(np.sum(data["mode"][valid] == 1)),
         "skips": _skips(data, valid),
-        # coarse levels: texels whose dense refit the validation fold refused (cpm/refit.py)
-        "refit_rejected": int(np.sum(data["refit_rejected"][valid]))
-        if "refit_rejected" in data else 0,
-        # coarse levels with refit_shrink: texels per chosen strength ("inf": the fit's weights)
-        "refit_alpha": _alpha_counts(data["refit_alpha"][valid]) if "refit_alpha" in data else {},
         # identical_columns="merge": texels with identical candidates, and the candidates
         # fitted as copies of others (columns the Grams and eigendecompositions did not hold)
         "merged": _merged(data, valid),
@@ -145,11 +139,3 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         },
     }
     return arrays, report
-
-
-def _alpha_counts(alpha: np.ndarray) -> dict[str, int]:
-    """{strength: texels} of the shrunk refit's strengths (`cpm.refit.pooled_alpha`), in
-    ascending order; texels it did not shrink (nan) are not counted."""
-    a = np.asarray(alpha, np.float64)
-    vals, counts = np.unique(a[~np.isnan(a)], return_counts=True)
-    return {("inf" if np.isinf(v) else f"{v:g}"): int(n) for v, n in zip(vals, counts, strict=True)}

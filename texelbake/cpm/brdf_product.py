@@ -1,4 +1,4 @@
-"""f_r(x_j, w_i, w_o) on a product of direction sets for many samples at once (issue 15): the
+"""f_r(x_j, w_i, w_o) on a product of direction sets for many samples at once: the
 BRDF evaluation that builds R (seed 000 Eq. 9) for a whole chunk of texels.
 
 `texelbake.cpm.level.brdf_grid` evaluates only the entries whose visibility-cosine product is

@@ -6,7 +6,7 @@ renderer reads it at the nearest pair (seed 001 §3.4's look-up table). A table 
 narrower than a cell to every direction of the cell: on the bolt's polished facets (GGX, α ≈
 0.02, a lobe ~2° wide; the 64-direction cells reach 16° from their centre) the pair nearest each
 facet's mirror configuration holds the lobe's peak, and the `btf` image came out 5-7x gt's
-light (docs/decisions.md 2026-11-29). `btf_table="cell"` stores instead, per pair (j, k),
+light (docs/decisions.md). `btf_table="cell"` stores instead, per pair (j, k),
 the mean of f̄ over the cell C_j x C_k of directions nearer to (l_j, v_k) than to any other
 pair — what a nearest look-up should return so that its expected value over a cell is right.
 

@@ -1,9 +1,9 @@
 """The columns of one texel's F = diag(1/a_vis) R read a block at a time (seed 000 §4.1's
-n_batch batches; issue 15: memory bounded whatever the texel's width).
+n_batch batches: memory bounded whatever the texel's width).
 
 `gram_fit.fit_split` only ever reads blocks of at most n_batch columns of a wide texel and
 their sums; `Columns` gives it those blocks from an array it holds or from a function that
-builds them (`level_batched._wide_columns`), with the same arithmetic either way.
+builds them (the batched level fit), with the same arithmetic either way.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 class Columns:
     """F (ch, m, d) of a texel wider than n_batch columns, read a block of columns at a time
     (`fit_split`'s only access): `block(cols)` gives F[:, cols] (ch, len(cols), d). The CPM
-    stage builds a wide texel's blocks from its samples when asked (issue 15: a 6,162-sample
+    stage builds a wide texel's blocks from its samples when asked (a 6,162-sample
     texel's F was 0.6 GB); an array is wrapped with `of_array`, so a wide texel's arithmetic
     is the same whether its F is held or built. Sums over columns go by blocks of n_batch in
     order; the last block asked for is kept (the channels of one step read it in turn)."""
@@ -52,7 +52,7 @@ class Columns:
         return acc if acc is not None else np.zeros(self.shape[::2])
 
     def sum(self, axis: int) -> np.ndarray:
-        """F.sum(axis=1) (ch, d) over every column (as `_merge` reads an array's), kept."""
+        """F.sum(axis=1) (ch, d) over every column (as the fit's assembly reads an array's), kept."""
         if axis != 1:
             raise ValueError("Columns sums over its columns only (axis=1)")
         if self._total is None:

@@ -11,56 +11,48 @@ zero) is a Gram matrix (d = N_i N_o rows, m samples, d >> m):
 - the trials solve min ||F_c[:, C] a - F_c 1|| (Eq. 10-11, NNLS); with G_c = F_c^T F_c =
   D V diag(lam) V^T D (D = column norms) that residual equals ||A a - t||^2 + rest with
   A = diag(sqrt lam) V^T D, t = diag(1/sqrt lam) V^T D^-1 G_c 1 and rest = 1^T G_c 1 - t^T t,
-  the reduced system `fit._Fitter._reduce` forms from F itself (same algebra, the products
+  the reduced system the per-texel path forms from F itself (same algebra, the products
   M^T t replaced by G 1);
 - the SNR signal of Eq. 7 is sum_c 1^T G_c 1.
 
 The Grams (one GEMM per matrix) and the eigendecompositions (`texelbake.cpm.gram_linalg`:
 torch.linalg.eigh over stacks of equal-size matrices, or LAPACK's top eigenpairs of a wide one;
-a texel's result never depends on which texels share its batch) are computed by the caller; here, per texel, only the m-sized work remains: probabilities, the
-bisection on c with its trials (NNLS on r x c systems, r <= m), and the reported in-sample SNR,
-recomputed in d space from F with the stored float32 weights as `fit_texel` does.
-
-Closed form (issue 15, "model only what a texel needs"): when every selection matrix is
-numerically rank 1 (lam_2 <= TOL.rank1_rel lam_1 for S and every channel: coplanar,
-unoccluded, single-material samples, or any texel whose samples all see the same reflectance up
-to scale), one column spans span(R) and Eq. 10's weights are the 1-column least squares
-alpha_c = (G_c 1)_j / (G_c)_jj for the column j of largest energy; no draws, no trials.
+a texel's result never depends on which texels share its batch) are computed for many texels
+at once (`fit_many`); per texel only the m-sized work remains: probabilities, the search on c
+(`texelbake.cpm.search`, NNLS on r x c systems, r <= m), and the reported in-sample SNR,
+recomputed in d space from F with the stored float32 weights (`texel_fit.assemble_fit`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from texelbake.cpm.column_sampling import (
-    column_probabilities,
-    energy_rank,
-    fit_weights,
-    sample_columns,
-)
+from texelbake.cpm.column_sampling import column_probabilities, energy_rank
 from texelbake.cpm.columns import Columns, SelectionRows
-from texelbake.cpm.fit import (
-    LUMA_709,
-    TexelFit,
-    _empty_fit,
-    _storable_weights,
-    all_points_fit,
-    needs_all_points,
-)
 from texelbake.cpm.gram_linalg import (
-    batched_eigh,
     needs_full_svd,
     normalised_gram,
     reduced_system,
     spectrum,
     top_eighs,
 )
-from texelbake.cpm.identical import identical_columns, unmerge
-from texelbake.cpm.matrix import points_sum, snr_db
+from texelbake.cpm.identical import Merge, identical_columns, unmerge
+from texelbake.cpm.matrix import points_sum
+from texelbake.cpm.search import reduced_trial, search_c, select_batched
+from texelbake.cpm.texel_fit import (
+    FitCounts,
+    FitParams,
+    GroupFit,
+    TexelFit,
+    all_points_fit,
+    assemble_fit,
+    needs_all_points,
+)
 from texelbake.tol import TOL
 
 
@@ -81,7 +73,20 @@ def correlation_from_sums(sx: np.ndarray, sxx: np.ndarray, n: int) -> float:
     return float(np.clip(corr.min(), -1.0, 1.0))
 
 
-@dataclass
+@dataclass(frozen=True)
+class GramTexel:
+    """One texel for the batched fit: F (ch, m, d) float64 = diag(1/a_vis) R transposed per
+    channel (rows under the a_vis floor zero; contiguous blocks), or `Columns` for a texel
+    wider than n_batch; valid (d,) bool rows above the floor; corr its `channel_correlation`
+    (`correlation_from_sums`); seed its rng seed."""
+
+    F: np.ndarray | Columns
+    valid: np.ndarray
+    corr: float
+    seed: int
+
+
+@dataclass(frozen=True)
 class GroupInput:
     """One selection group of a texel: its selection Gram's eigh and the channels it fits."""
 
@@ -91,144 +96,33 @@ class GroupInput:
     chans: np.ndarray  # channel indices fitted by this group
 
 
-#: the stream of a texel's seed that draws `fit_many`'s selection_columns subset (the trials
-#: draw from the texel's seed itself)
-SUBSET_STREAM = 0x5E1EC7
+@dataclass(frozen=True)
+class GramProblem:
+    """One texel's fit from Grams: F (ch, m, d) the columns it selects among (the merged ones
+    when identical columns are merged), valid (d,) bool, Gc the ch Grams F_c F_c^T (m, m),
+    groups its selection groups (one in luminance mode, one per channel otherwise), mode,
+    corr, seed, and targets (ch, d): Eq. 7's row sums over every candidate when F holds merged
+    columns (default F's own row sums F 1)."""
 
-#: counts of the trial work done by `_bisect` in this process (probes of c, NNLS draws solved,
-#: draws not solved because a probe stopped at the target); read by benchmarks/cpm_cpu.py
-COUNTS = {"probes": 0, "draws": 0, "draws_stopped": 0, "merged_texels": 0, "merged_columns": 0}
-
-
-def spectrum_c(s: np.ndarray, total: float, eps_db: float) -> int:
-    """Smallest c whose Eckart-Young tail sum_{r > c} s_r^2 is at most 10^(-eps_db/10) of the
-    selection matrix's energy `total`: the rank at which the best rank-c approximation of the
-    whole matrix reaches the target SNR (its row sums, the fitted target, usually need no more).
-    s : singular values, descending; returns len(s) when even the full spectrum does not."""
-    if total <= 0.0 or s.size == 0:
-        return 0
-    tail = total - np.cumsum(s * s)
-    ok = np.flatnonzero(tail <= total * 10.0 ** (-eps_db / 10.0))
-    return int(ok[0]) + 1 if ok.size else int(s.size)
+    F: np.ndarray
+    valid: np.ndarray
+    Gc: list[np.ndarray]
+    groups: list[GroupInput]
+    mode: str
+    corr: float
+    seed: int
+    targets: np.ndarray | None = None
 
 
-def _bisect(
-    p: np.ndarray, k: int, red: list[tuple], signal: float, *, eps_db: float, c_max: int,
-    n_trials: int, weights: str, rng: np.random.Generator, trial_stop: str = "all",
-    c_hint: int | None = None,
-) -> tuple[np.ndarray, np.ndarray, bool]:
-    """`fit._Fitter._select_direct`'s bisection on [k, c_max] with n_trials draws per probe, in
-    the reduced space. returns (columns, alpha (c, ch_g), capped).
-
-    trial_stop "target": a probe stops drawing at the first draw whose SNR reaches eps_db (the
-    probe's answer is then known; the kept fit is that draw, not the best of n_trials).
-    c_hint (the spectrum's `spectrum_c`): the first probe is c_hint instead of the interval's
-    middle; when it passes, c_hint - 1, c_hint - 2, c_hint - 4, ... are probed until one fails
-    (when it fails, c_hint + 1, + 2, + 4, ...), and the bisection finishes inside that bracket."""
-    cache: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
-
-    def best_of_trials(c: int) -> tuple[np.ndarray, np.ndarray, float]:
-        if c not in cache:
-            COUNTS["probes"] += 1
-            best: tuple[np.ndarray, np.ndarray, float] | None = None
-            seen: set[bytes] = set()
-            for trial in range(n_trials):  # loop over a handful of randomized trials
-                local = sample_columns(p, c, rng)
-                key = local.tobytes()
-                if key in seen:
-                    continue
-                seen.add(key)
-                COUNTS["draws"] += 1
-                alpha = np.zeros((local.size, len(red)))
-                noise = 0.0
-                for g, (A, t, rest) in enumerate(red):  # loop over <= 3 channels
-                    C = A[:, local]
-                    alpha[:, g] = fit_weights(C, t, weights)  # type: ignore[arg-type]
-                    r = C @ alpha[:, g] - t
-                    noise += float(r @ r) + rest
-                snr = math.inf if noise <= 0.0 else (
-                    -math.inf if signal <= 0.0 else 10.0 * math.log10(signal / noise))
-                if best is None or snr > best[2]:
-                    best = (local, alpha, snr)
-                if trial_stop == "target" and snr >= eps_db:
-                    COUNTS["draws_stopped"] += n_trials - 1 - trial
-                    break
-            assert best is not None
-            cache[c] = best
-        return cache[c]
-
-    def passes(c: int) -> bool:
-        return best_of_trials(c)[2] >= eps_db
-
-    capped = c_max < k
-    lo, hi = (c_max, c_max) if capped else (k, c_max)
-    if c_hint is not None and lo < hi:  # bracket the answer outward from the spectrum's c
-        c0 = min(max(int(c_hint), lo), hi)
-        step = 1
-        if passes(c0):
-            hi = c0
-            while lo < hi:  # loop over a few doubling steps down
-                probe = max(hi - step, lo)
-                if passes(probe):
-                    hi = probe
-                    step *= 2
-                else:
-                    lo = probe + 1
-                    break
-        else:
-            lo = c0 + 1
-            while lo < hi:  # loop over a few doubling steps up
-                probe = min(c0 + step, hi)
-                if passes(probe):
-                    hi = probe
-                    break
-                lo = probe + 1
-                step *= 2
-    while lo < hi:  # seed 000 §4.1: bisection with the median as the probe
-        mid = (lo + hi) // 2
-        if passes(mid):
-            hi = mid
-        else:
-            lo = mid + 1
-    cols, alpha, _ = best_of_trials(lo)
-    return cols, alpha, capped
-
-
-def fit_texel_gram(
-    F: np.ndarray,
-    valid: np.ndarray,
-    Gc: list[np.ndarray],
-    groups: list[GroupInput],
-    *,
-    mode: str,
-    corr: float,
-    psi: float,
-    eps_db: float,
-    c_max: int,
-    n_trials: int,
-    weights: str,
-    seed: int,
-    closed_form: bool,
-    trial_stop: str = "all",
-    c_start: str = "interval",
-    targets: np.ndarray | None = None,
-    in_span: bool = False,
-) -> tuple[TexelFit | None, str]:
-    """One texel's fit from its Grams; returns (TexelFit, skip) with skip "" or "rank1", or
-    (None, "full_svd") when the Gram route cannot resolve span(V_k) (`top_singular` redoes a
-    full SVD then; the caller fits that texel with `fit.fit_texel`).
-
-    F : (ch, m, d) float64, F = diag(1/a_vis) R transposed per channel (invalid rows zero);
-    valid : (d,) bool rows with a_vis above the floor; Gc : ch Grams F_c F_c^T (m, m);
-    groups : the selection groups (one in luminance mode, one per channel otherwise);
-    targets : (ch, d) what the points fit, Eq. 7's row sums of a texel of which F holds only
-    some candidates (`fit_many`'s selection_columns), or of merged columns (`identical`;
-    in_span: the targets lie in span(F), so the rank-1 closed form applies); default F's own
-    row sums F 1.
-    Caller handles m = 0, no valid row, all-zero R and non-finite input (`fit_texel`'s cases).
-    """
+def fit_texel_gram(prob: GramProblem, params: FitParams, counts: FitCounts | None = None
+                   ) -> tuple[TexelFit | None, str]:
+    """One texel's fit from its Grams; returns (TexelFit, ""), or (None, "full_svd") when the
+    Gram route cannot resolve span(V_k) (`top_singular` redoes a full SVD then; the caller
+    fits that texel with `fit.fit_texel`). The caller handles m = 0, no valid row, all-zero R
+    and non-finite input (`fit_texel`'s cases)."""
+    F, targets, Gc = prob.F, prob.targets, prob.Gc
     ch, m, _ = F.shape
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(prob.seed)
     # per channel F_c^T target and ||target||^2 (the signal of Eq. 7's SNR): of the given
     # targets, or of F's own row sums (then reduced_system forms G 1 itself)
     fits_of: list[tuple[np.ndarray | None, float | None]]
@@ -238,303 +132,192 @@ def fit_texel_gram(
     else:
         signals = [float(targets[c] @ targets[c]) for c in range(ch)]
         fits_of = [(F[c] @ targets[c], signals[c]) for c in range(ch)]
-    reds, scales = [], []
+    reds = []
     for c in range(ch):  # loop over <= 3 channels
-        Gn_scale = np.sqrt(np.maximum(np.diag(Gc[c]), 0.0))
-        scales.append(np.where(Gn_scale > 0, Gn_scale, 1.0))
-        reds.append(reduced_system(Gc[c], scales[c], *fits_of[c]))
+        norms = np.sqrt(np.maximum(np.diag(Gc[c]), 0.0))
+        reds.append(reduced_system(Gc[c], np.where(norms > 0, norms, 1.0), *fits_of[c]))
     specs = []
-    for gi in groups:  # loop over <= ch groups
+    for gi in prob.groups:  # loop over <= ch groups
         s, Vt = spectrum(gi.sel_eig)
-        k = energy_rank(s, psi, gi.sel_total)
+        k = energy_rank(s, params.psi, gi.sel_total)
         if needs_full_svd(s, k, m):
             return None, "full_svd"
         specs.append((s, Vt, k))
-    skip = ""
-    if closed_form and (targets is None or in_span) and all(
-        _rank1(gi.sel_eig, gi.sel_total) for gi in groups) and all(
-        _rank1_gram(g) for g in Gc
-    ):
-        skip = "rank1"
     fits = []
-    for gi, (s, Vt, k) in zip(groups, specs, strict=True):  # loop over <= ch groups
-        chans = gi.chans
+    for gi, (s, Vt, k) in zip(prob.groups, specs, strict=True):  # loop over <= ch groups
         if k == 0:
-            fits.append((np.zeros(0, np.int64), np.zeros((0, len(chans))), 0, False))
-            continue
-        if skip:
-            j = int(np.argmax(gi.sel_diag))
-            alpha = np.array([[_one_column_weight(Gc[c], j, fits_of[c][0]) for c in chans]])
-            fits.append((np.array([j], np.int64), alpha, k, False))
+            fits.append(GroupFit(np.zeros(0, np.int64), np.zeros((0, len(gi.chans))), 0, False))
             continue
         p = column_probabilities(np.zeros((0, 0)), s, Vt, k, col_energy=gi.sel_diag)
-        signal = float(sum(signals[c] for c in chans))
-        hint = spectrum_c(s, gi.sel_total, eps_db) if c_start == "spectrum" else None
-        cols, alpha, capped = _bisect(
-            p, k, [reds[c] for c in chans], signal, eps_db=eps_db, c_max=c_max,
-            n_trials=n_trials, weights=weights, rng=rng, trial_stop=trial_stop, c_hint=hint,
-        )
-        fits.append((cols, alpha, k, capped))
-    return _merge(F, valid, fits, groups, mode=mode, corr=corr, eps_db=eps_db,
-                  c_max=c_max, ref=None if targets is None else targets.T), skip
+        signal = float(sum(signals[c] for c in gi.chans))
+        trial = reduced_trial([reds[c] for c in gi.chans], signal, params.weights)
+        cols, alpha, capped = search_c(p, k, trial, rng, params.c_max, params, counts)
+        fits.append(GroupFit(cols, alpha, k, capped))
+    ref = F.sum(axis=1).T if targets is None else targets.T  # (d, ch): Eq. 7, 1/a_vis in F
+    return _assemble(F, prob.valid, fits, [gi.chans for gi in prob.groups], ref,
+                     prob.mode, prob.corr, params), ""
 
 
-def _rank1(eig: tuple[np.ndarray, np.ndarray], total: float) -> bool:
-    """Numerically rank 1: the energy outside the top eigenvalue, total - lam_1 (total: the
-    Gram's trace; eig may be its top eigenpairs only), is <= TOL.rank1_rel of the total (1e-10:
-    100 dB below the signal, far under any eps_db a bake asks for)."""
-    lam = np.clip(eig[0], 0.0, None)
-    if eig[1].shape[0] < 2 or total <= 0.0:
-        return True
-    return total - float(lam[-1]) <= TOL.rank1_rel * total
+def _assemble(F: np.ndarray | Columns, valid: np.ndarray, fits: list[GroupFit],
+              chans: list[np.ndarray], ref: np.ndarray, mode: str, corr: float,
+              params: FitParams) -> TexelFit:
+    """`texel_fit.assemble_fit` with Eq. 7 of the points summed from F's columns."""
+    def eq7(columns: np.ndarray, w: np.ndarray) -> np.ndarray:
+        return points_sum(F, columns, w)  # (d, ch)
+
+    return assemble_fit(fits, chans, F.shape[0], eq7, ref, valid, mode=mode, corr=corr,
+                        params=params)
 
 
-def _rank1_gram(G: np.ndarray) -> bool:
-    """Numerically rank 1 from a Gram without its spectrum: the residual of the best single
-    column, trace(G) - ||G_p||^2 / G_pp (p = largest diagonal), bounds the energy outside the
-    top eigenvalue from above; <= TOL.rank1_rel trace(G) implies `_rank1`."""
-    tr = float(np.trace(G))
-    if tr <= 0.0:
-        return True
-    p = int(np.argmax(np.diag(G)))
-    return tr - float(G[p] @ G[p]) / float(G[p, p]) <= TOL.rank1_rel * tr
+@dataclass(frozen=True)
+class _Plan:
+    """A texel's Grams and selection groups between `fit_many`'s two passes."""
+
+    mode: str
+    Gc: list[np.ndarray]
+    groups: list[tuple[np.ndarray, np.ndarray]]
+    first: int  # position of its first selection Gram in the stacked eigendecompositions
+    targets: np.ndarray | None
+    merge: Merge | None
 
 
-def _one_column_weight(G: np.ndarray, j: int, Ft: np.ndarray | None = None) -> float:
-    """min_a>=0 ||a F_j - t||: a = max(F_j . t, 0) / ||F_j||^2, with t = F 1 ((G 1)_j) unless
-    Ft = F^T t is given."""
-    gjj = float(G[j, j])
-    fjt = float(G[j].sum()) if Ft is None else float(Ft[j])
-    return max(fjt, 0.0) / gjj if gjj > 0.0 else 0.0
-
-
-def _merge(F, valid, fits, groups, *, mode, corr, eps_db, c_max, ref=None) -> TexelFit:
-    """`fit_texel`'s merge: union of the groups' columns, float32 weights, points with a zero
-    weight everywhere dropped, the in-sample SNR of Eq. 7 recomputed in d space (against
-    ref (d, ch), default F's row sums)."""
-    ch = F.shape[0]
-    columns = np.unique(np.concatenate([f[0] for f in fits])).astype(np.int64)
-    w64 = np.zeros((columns.size, ch), dtype=np.float64)
-    for (cols, alpha, _, _), gi in zip(fits, groups, strict=True):  # loop over <= ch groups
-        pos = np.searchsorted(columns, cols)
-        w64[np.ix_(pos, gi.chans)] = alpha
-    w32 = _storable_weights(w64)
-    live = np.any(w32 != 0.0, axis=1)
-    columns, w32 = columns[live], w32[live]
-    w = w32.astype(np.float64)
-    approx = points_sum(F, columns, w)  # (d, ch)
-    if ref is None:
-        ref = F.sum(axis=1).T  # (d, ch): Eq. 7, 1/a_vis folded into F
-    snr = snr_db(ref, approx, valid)
-    capped = any(f[3] for f in fits)
-    reasons = []
-    if capped:
-        reasons.append(f"c_max={c_max} < k: c capped")
-    if snr < eps_db:
-        reasons.append(f"eps {eps_db} dB not reached (SNR {snr:.2f} dB)")
-    return TexelFit(
-        columns=columns, weights=w32, k=max(f[2] for f in fits), c=int(columns.size),
-        snr_db_insample=snr, colour_mode=mode, valid=True, reason="; ".join(reasons),
-        channel_correlation=corr,
-        k_channels=np.array([f[2] for f in fits], dtype=np.int64),
-        c_channels=np.array([int(np.count_nonzero(np.any(f[1] != 0.0, axis=1))) for f in fits],
-                            dtype=np.int64),
-        c_capped=capped, eps_reached=bool(snr >= eps_db),
-    )
-
-
-def fit_many(
-    Fs: list[np.ndarray | Columns],
-    valids: list[np.ndarray],
-    corrs: list[float],
-    seeds: list[int],
-    *,
-    psi: float,
-    eps_db: float,
-    c_max: int,
-    n_trials: int,
-    weights: str,
-    colour: str,
-    decorrelation_threshold: float,
-    closed_form: bool,
-    n_batch: int | None = None,
-    trial_stop: str = "all",
-    c_start: str = "interval",
-    small: str = "fit",
-    selection_columns: int = 0,
-    identical: str = "keep",
-) -> list[tuple[TexelFit | None, str]]:
-    """Fits of many texels: Grams per texel, every eigendecomposition in `batched_eigh`, then
-    `fit_texel_gram` per texel. With small="all" a texel of m <= c_max candidates whose fit is
-    not exact on the grid keeps them all (`fit.needs_all_points`, skip "all").
-    selection_columns > 0: a texel of more candidates draws its points from that many of them
-    (a uniform subset without replacement, seeded by the texel) while the weights still fit the
-    sum over all of them (Eq. 7): Grams of s^2 d and eigendecompositions of s^3 instead of m^2 d
-    and m^3 (issue 15); 0 (default) selects from every candidate, as the seed.
-    identical="merge": a texel's candidates with identical columns are fitted as one column
-    (`texelbake.cpm.identical`: the seed's fit in distribution, Grams of u^2 d for u distinct
-    columns, no point stored twice; under small="all" a texel of m <= c_max candidates is not
-    merged, one of more whose u distinct columns are <= c_max keeps them all); "keep": as the
-    seed. A texel the Gram route cannot resolve ("full_svd") is fitted by the caller over all
-    its candidates.
-    Fs[t] : (ch, m, d) F = diag(1/a_vis) R per channel (contiguous blocks), or `Columns`
-    (m > n_batch only); valids[t] : (d,)
-    bool; corrs[t] : `channel_correlation` of R; seeds[t] : rng seed.
+def fit_many(texels: Sequence[GramTexel], params: FitParams, counts: FitCounts | None = None
+             ) -> list[tuple[TexelFit | None, str]]:
+    """Fits of many texels: Grams per texel, every eigendecomposition stacked (`top_eighs`),
+    then `fit_texel_gram` per texel; returns per texel (TexelFit, skip) with skip "" (draws
+    and trials), "split" (wider than n_batch, `fit_split`), "all" (every candidate kept:
+    params.small="all" and a texel of m <= c_max whose fit is not exact on the grid,
+    `needs_all_points`), or (None, "full_svd") for a texel the Gram route cannot resolve, which
+    the caller fits over all its candidates.
+    params.identical="merge": a texel's candidates with identical columns are fitted as one
+    column (`texelbake.cpm.identical`: the seed's fit in distribution, Grams of u^2 d for u
+    distinct columns, no point stored twice; under small="all" a texel of m <= c_max candidates
+    is not merged, one of more whose u distinct columns are <= c_max keeps them all).
     Texels must have m >= 1, d >= 2 min(m, n_batch), a valid row and a nonzero R
-    (`fit_texel`'s cases); texels wider than n_batch columns go through `fit_split`."""
-    plans: list[tuple | None] = []
+    (`fit_texel`'s cases)."""
+    plans: list[_Plan | None] = []
     mats: list[np.ndarray] = []
-    for F, corr, seed in zip(Fs, corrs, seeds, strict=True):  # loop over texels: Grams (GEMMs)
+    for tex in texels:  # loop over texels: Grams (GEMMs)
+        F = tex.F
         ch = F.shape[0]
-        if n_batch is not None and F.shape[1] > n_batch:
+        if F.shape[1] > params.n_batch:
             plans.append(None)
             continue
         if isinstance(F, Columns):
-            raise ValueError(f"Columns are for texels wider than n_batch ({n_batch}), "
+            raise ValueError(f"Columns are for texels wider than n_batch ({params.n_batch}), "
                              f"got {F.shape[1]} columns")
-        mode = "per_channel" if (ch > 1 and corr < decorrelation_threshold) else "luminance"
-        if colour != "auto":
-            mode = colour
-        if ch == 1:
-            mode = "luminance"
-        sub = targets = merge = None
-        if identical == "merge" and not needs_all_points(small, F.shape[1], c_max, -math.inf):
+        mode = params.colour_mode(ch, tex.corr)
+        targets = merge = None
+        if params.identical == "merge" and not needs_all_points(
+                params.small, F.shape[1], params.c_max, -math.inf):
             # (a texel that keeps every candidate when its fit is not exact is not merged:
             # identical on the grid is not identical between its directions)
-            merge = identical_columns(F, seed)
+            merge = identical_columns(F, tex.seed)
             if merge is not None:
-                COUNTS["merged_texels"] += 1
-                COUNTS["merged_columns"] += F.shape[1] - merge.rep.size
+                if counts is not None:
+                    counts.merged_texels += 1
+                    counts.merged_columns += F.shape[1] - merge.rep.size
                 targets = F.sum(axis=1)  # (ch, d): Eq. 7 over every candidate
                 F = merge.columns(F)  # a copy, dropped after the Grams (memory)
-        if 0 < selection_columns < F.shape[1]:
-            sub = np.sort(np.random.default_rng((seed, SUBSET_STREAM)).choice(
-                F.shape[1], selection_columns, replace=False))
-            if targets is None:
-                targets = F.sum(axis=1)  # (ch, d): Eq. 7 over every candidate
-            F = np.ascontiguousarray(F[:, sub])  # a copy, dropped after the Grams (memory)
         Gc = [F[c] @ F[c].T for c in range(ch)]
-        groups = select_groups(F, Gc, mode)
-        plans.append((mode, Gc, groups, len(mats), sub, targets, merge))
+        groups = select_groups(F, Gc, mode, params)
+        plans.append(_Plan(mode, Gc, groups, len(mats), targets, merge))
         mats += [g for g, _ in groups]
-    eigs = top_eighs(mats, psi)
+    eigs = top_eighs(mats, params.psi)
     out: list[tuple[TexelFit | None, str]] = []
-    for F, valid, corr, seed, plan in zip(
-        Fs, valids, corrs, seeds, plans, strict=True
-    ):  # loop over texels: the m-sized work
-        targets = merge = None
+    for tex, plan in zip(texels, plans, strict=True):  # loop over texels: the m-sized work
         if plan is None:
-            got = fit_split(
-                F, valid, corr, seed, n_batch=int(n_batch or 0), psi=psi, eps_db=eps_db,
-                c_max=c_max, n_trials=n_trials, weights=weights, colour=colour,
-                decorrelation_threshold=decorrelation_threshold)
-        else:
-            assert not isinstance(F, Columns)  # narrowed in the first loop
-            mode, Gc, groups, first, sub, targets, merge = plan
-            F_sel = F if merge is None else merge.columns(F)
-            F_sel = F_sel if sub is None else np.ascontiguousarray(F_sel[:, sub])
-            ginp = [GroupInput(eigs[first + j], np.diag(g).copy(), float(np.trace(g)), chans)
-                    for j, (g, chans) in enumerate(groups)]
-            got = fit_texel_gram(
-                F_sel, valid, Gc, ginp, mode=mode, corr=corr,
-                psi=psi, eps_db=eps_db, c_max=c_max, n_trials=n_trials, weights=weights,
-                seed=seed, closed_form=closed_form, trial_stop=trial_stop, c_start=c_start,
-                targets=targets, in_span=sub is None,
-            )
-            if sub is not None and got[0] is not None:  # columns of the subset -> of the merged
-                got = (dataclasses.replace(got[0], columns=sub[got[0].columns]), got[1])
-        fit = got[0]
-        m_fit = F.shape[1] if merge is None else merge.rep.size  # columns the fit saw
-        if fit is not None and needs_all_points(small, m_fit, c_max, fit.snr_db_insample):
-            ref = (F.sum(axis=1) if targets is None else targets).T  # (d, ch): Eq. 7, 1/a_vis in F
-            if merge is not None:  # every group at its size: the sum of its members
-                assert not isinstance(F, Columns)  # what a merge implies
-                cols, size = merge.groups()
-                approx = points_sum(F, cols, size)
-                fit = all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db, fit.k,
-                                     columns=cols, weights=size)
-                got = (dataclasses.replace(fit, merged=merge.merged), "all")
-            else:
-                approx = (ref if isinstance(F, Columns) else  # every column at weight 1: the sum
-                          points_sum(F, None, np.ones(F.shape[1])))
-                got = (all_points_fit(ref, approx, valid, F.shape[1], corr, eps_db, fit.k), "all")
-        elif fit is not None and merge is not None:  # merged columns -> the texel's candidates
-            assert not isinstance(F, Columns) and targets is not None  # what a merge implies
-            got = (unmerge(fit, merge, F, targets, valid, eps_db), got[1])
-        out.append(got)
+            out.append(_finish(tex, None, fit_split(tex, params, counts), params))
+            continue
+        F = tex.F
+        assert not isinstance(F, Columns)  # narrowed in the first loop
+        ginp = [GroupInput(eigs[plan.first + j], np.diag(g).copy(), float(np.trace(g)), chans)
+                for j, (g, chans) in enumerate(plan.groups)]
+        F_sel = F if plan.merge is None else plan.merge.columns(F)
+        got = fit_texel_gram(GramProblem(F_sel, tex.valid, plan.Gc, ginp, plan.mode, tex.corr,
+                                         tex.seed, plan.targets), params, counts)
+        out.append(_finish(tex, plan, got, params))
     return out
 
 
-def fit_split(
-    F: np.ndarray | Columns, valid: np.ndarray, corr: float, seed: int, *, n_batch: int, psi: float,
-    eps_db: float, c_max: int, n_trials: int, weights: str, colour: str,
-    decorrelation_threshold: float,
-) -> tuple[TexelFit | None, str]:
-    """A texel wider than n_batch columns: `fit._Fitter.select`'s batches (contiguous batches
-    of n_batch columns fitted on their partial sums with c_max capped at n_batch // 2, the union
-    of their points fitted against the full sum), every step from Grams of <= n_batch columns:
-    Gram work m n_batch d instead of m^2 d. Same draws as `fit_texel` with the same n_batch.
-    F : the texel's F, held or as `Columns` (read a block of <= n_batch columns at a time:
+def _finish(tex: GramTexel, plan: _Plan | None, got: tuple[TexelFit | None, str],
+            params: FitParams) -> tuple[TexelFit | None, str]:
+    """A texel's Gram fit as its candidates' fit: every candidate kept when the fit asks for
+    it (`needs_all_points`), merged columns back to the texel's candidates (`unmerge`).
+    plan : None for a texel fitted by `fit_split`."""
+    fit, F = got[0], tex.F
+    merge = targets = None
+    if plan is not None:
+        merge, targets = plan.merge, plan.targets
+    if fit is None:
+        return got
+    m_fit = F.shape[1] if merge is None else merge.rep.size  # columns the fit saw
+    if needs_all_points(params.small, m_fit, params.c_max, fit.snr_db_insample):
+        ref = (F.sum(axis=1) if targets is None else targets).T  # (d, ch): Eq. 7, 1/a_vis in F
+        if isinstance(F, Columns):  # every column at weight 1: the sum itself
+            return all_points_fit(ref, ref, tex.valid, F.shape[1], tex.corr, params.eps_db,
+                                  fit.k), "all"
+        if merge is not None:  # every group at its size: the sum of its members
+            cols, size = merge.groups()
+            approx = points_sum(F, cols, size)
+            fit = all_points_fit(ref, approx, tex.valid, F.shape[1], tex.corr, params.eps_db,
+                                 fit.k, columns=cols, weights=size)
+            return dataclasses.replace(fit, merged=merge.merged), "all"
+        approx = points_sum(F, None, np.ones(F.shape[1]))  # every column at weight 1
+        return all_points_fit(ref, approx, tex.valid, F.shape[1], tex.corr, params.eps_db,
+                              fit.k), "all"
+    if merge is not None:  # merged columns -> the texel's candidates
+        assert not isinstance(F, Columns) and targets is not None  # what a merge implies
+        return unmerge(fit, merge, F, targets, tex.valid, params.eps_db), got[1]
+    return got
+
+
+def fit_split(tex: GramTexel, params: FitParams, counts: FitCounts | None = None
+              ) -> tuple[TexelFit | None, str]:
+    """A texel wider than n_batch columns: the per-texel path's batches
+    (`search.select_batched`) with every step from Grams of <= n_batch columns: Gram work
+    m n_batch d instead of m^2 d, the same draws as `fit_texel` with the same n_batch.
+    tex.F : the texel's F, held or as `Columns` (read a block of <= n_batch columns at a time:
     the memory of a step is n_batch d, whatever m).
     Returns (None, "full_svd") when a step needs the full SVD (see `fit_texel_gram`)."""
-    if not isinstance(F, Columns):
-        F = Columns.of_array(F, n_batch)
+    F = tex.F if isinstance(tex.F, Columns) else Columns.of_array(tex.F, params.n_batch)
     ch, m, _ = F.shape
-    mode = "per_channel" if (ch > 1 and corr < decorrelation_threshold) else "luminance"
-    if colour != "auto":
-        mode = colour
-    if ch == 1:
-        mode = "luminance"
-    rng = np.random.default_rng(seed)
+    mode = params.colour_mode(ch, tex.corr)
+    rng = np.random.default_rng(tex.seed)
     sel_rows: list[tuple[SelectionRows, np.ndarray]]
     if mode == "luminance":
-        lw = LUMA_709 if ch == 3 else np.full(ch, 1.0 / ch)
-        sel_rows = [(SelectionRows(F, lw), np.arange(ch))]
+        sel_rows = [(SelectionRows(F, params.luma(ch)), np.arange(ch))]
     else:
         sel_rows = [(SelectionRows(F, None, c), np.array([c])) for c in range(ch)]
-    kw = {"psi": psi, "eps_db": eps_db, "n_trials": n_trials, "weights": weights, "rng": rng}
     fits = []
     for S, chans in sel_rows:  # loop over <= ch groups
-        def select(cand: np.ndarray, cm: int, S=S, chans=chans) -> tuple | None:
-            total = F.sum_over(cand)  # (ch, d)
-            targets = [total[c] for c in chans]  # (d,) per channel
-            if cand.size > n_batch:
-                c_batch = min(c_max, n_batch // 2)
-                pools = []
-                for b0 in range(0, cand.size, n_batch):  # loop over column batches
-                    got = select(cand[b0:b0 + n_batch], c_batch)
-                    if got is None:
-                        return None
-                    pools.append(got[0])
-                pool = np.unique(np.concatenate(pools)).astype(np.int64)
-                if pool.size > n_batch:
-                    got = select(pool, c_batch)
-                    if got is None:
-                        return None
-                    pool = got[0]
-                cand = pool
-            return _select_direct(F, S, chans, cand, targets, c_max=cm, **kw)
-        got = select(np.arange(m, dtype=np.int64), c_max)
+        def direct(cand: np.ndarray, whole: np.ndarray, c_max: int, S=S, chans=chans
+                   ) -> GroupFit | None:
+            total = F.sum_over(whole)  # (ch, d)
+            return _select_direct(F, S, chans, cand, [total[c] for c in chans], c_max, params,
+                                  rng, counts)
+        got = select_batched(np.arange(m, dtype=np.int64), params.c_max, params, direct)
         if got is None:
             return None, "full_svd"
         fits.append(got)
-    groups = [GroupInput((np.zeros(0), np.zeros((0, 0))), np.zeros(0), 0.0, chans)
-              for _, chans in sel_rows]
-    return _merge(F, valid, fits, groups, mode=mode, corr=corr, eps_db=eps_db,
-                  c_max=c_max), "split"
+    return _assemble(F, tex.valid, fits, [chans for _, chans in sel_rows], F.sum(axis=1).T,
+                     mode, tex.corr, params), "split"
 
 
-def _select_direct(F, S, chans, cand, targets, *, c_max, psi, eps_db, n_trials, weights, rng):
-    """`fit._Fitter._select_direct` on columns cand against the given targets, from Grams."""
+def _select_direct(F: Columns, S: SelectionRows, chans: np.ndarray, cand: np.ndarray,
+                   targets: list[np.ndarray], c_max: int, params: FitParams,
+                   rng: np.random.Generator, counts: FitCounts | None) -> GroupFit | None:
+    """The selection among columns cand against the given targets (d,) per channel, from
+    Grams; None when it needs the full SVD."""
     Sc = S[cand]
     G_sel = Sc @ Sc.T
-    eig_sel = top_eighs([G_sel], psi)[0]
+    eig_sel = top_eighs([G_sel], params.psi)[0]
     s, Vt = spectrum(eig_sel)
-    k = energy_rank(s, psi, float(np.trace(G_sel)))
+    k = energy_rank(s, params.psi, float(np.trace(G_sel)))
     if needs_full_svd(s, k, cand.size):
         return None
     if k == 0:
-        return (np.zeros(0, np.int64), np.zeros((0, len(chans))), 0, False)
+        return GroupFit(np.zeros(0, np.int64), np.zeros((0, len(chans))), 0, False)
     p = column_probabilities(np.zeros((0, 0)), s, Vt, k, col_energy=np.diag(G_sel).copy())
     red = []
     signal = 0.0
@@ -545,26 +328,21 @@ def _select_direct(F, S, chans, cand, targets, *, c_max, psi, eps_db, n_trials, 
         tt = float(tgt @ tgt)
         signal += tt
         red.append(reduced_system(G, scale, M @ tgt, tt))
-    cols, alpha, capped = _bisect(p, k, red, signal, eps_db=eps_db, c_max=c_max,
-                                  n_trials=n_trials, weights=weights, rng=rng)
-    return (cand[cols], alpha, k, capped)
+    cols, alpha, capped = search_c(p, k, reduced_trial(red, signal, params.weights), rng, c_max,
+                                   params, counts)
+    return GroupFit(cand[cols], alpha, k, capped)
 
 
-def select_groups(
-    F: np.ndarray, Gc: list[np.ndarray], mode: str
-) -> list[tuple[np.ndarray, np.ndarray]]:
+def select_groups(F: np.ndarray, Gc: list[np.ndarray], mode: str, params: FitParams
+                  ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The selection matrices' Grams and channels: [(G_S (m, m), chans)]. Luminance: S = F lw
     (one GEMM more); per channel: S = F_c, whose Gram is G_c."""
     ch = F.shape[0]
     if mode == "luminance":
-        lw = LUMA_709 if ch == 3 else np.full(ch, 1.0 / ch)
-        S = np.tensordot(lw, F, axes=(0, 0))  # (m, d)
+        S = np.tensordot(params.luma(ch), F, axes=(0, 0))  # (m, d)
         return [(S @ S.T, np.arange(ch))]
     return [(Gc[c], np.array([c])) for c in range(ch)]
 
 
-__all__ = [
-    "GroupInput", "batched_eigh", "correlation_from_sums", "top_eighs", "fit_many", "fit_texel_gram",
-    "needs_full_svd",
-    "normalised_gram", "select_groups", "spectrum", "_empty_fit",
-]
+__all__ = ["GramProblem", "GramTexel", "GroupInput", "correlation_from_sums", "fit_many",
+           "fit_split", "fit_texel_gram", "select_groups"]

@@ -121,9 +121,9 @@ def reduced_system_eigh(
     G: np.ndarray, eig_n: tuple[np.ndarray, np.ndarray], scale: np.ndarray,
     b: np.ndarray | None = None, tt: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """`fit._Fitter._reduce` for one channel from its Gram: (A (r, m), t (r,), rest), from the
-    eigendecomposition of the unit-column Gram (the per-texel path's algebra; kept as the
-    second method `reduced_system` is tested against).
+    """The per-texel fit's reduced system (`fit_texel` on R) for one channel from its Gram:
+    (A (r, m), t (r,), rest), from the eigendecomposition of the unit-column Gram (the
+    per-texel path's algebra; kept as the second method `reduced_system` is tested against).
 
     b : (m,) M^T target and tt = ||target||^2; default target = M 1 (b = G 1, tt = 1^T G 1)."""
     lam, V = eig_n

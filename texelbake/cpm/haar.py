@@ -253,7 +253,7 @@ def eval_haar_point(coeffs: HaarCoeffs, map_index: np.ndarray, iu: np.ndarray,
 
 
 # --------------------------------------------------------------------------------------------
-# budgeted selection across maps (issue 11): one coefficient budget per batch of maps, spent
+# budgeted selection across maps: one coefficient budget per batch of maps, spent
 # where it lowers each group's *relative* error most evenly
 
 

@@ -1,4 +1,4 @@
-"""Candidates whose columns of F are identical, fitted as one column (issue 15, item 3).
+"""Candidates whose columns of F are identical, fitted as one column.
 
 Samples with the same normal, material and area weight that see every direction of the grid
 alike (a flat, unoccluded, single-material stretch of a texel) have byte-identical columns of
@@ -25,8 +25,8 @@ import dataclasses
 
 import numpy as np
 
-from texelbake.cpm.fit import TexelFit, _storable_weights
 from texelbake.cpm.matrix import points_sum, snr_db
+from texelbake.cpm.texel_fit import TexelFit, storable_weights
 
 #: the stream of a texel's seed that draws each merged group's stored member
 MERGE_STREAM = 0x1DE47C
@@ -112,7 +112,7 @@ def unmerge(fit: TexelFit, merge: Merge, F: np.ndarray, targets: np.ndarray,
     if fit.c == 0:
         return dataclasses.replace(fit, merged=merge.merged)
     cols = merge.rep[fit.columns]
-    w32 = _storable_weights(fit.weights.astype(np.float64) * merge.scale[fit.columns][:, None])
+    w32 = storable_weights(fit.weights.astype(np.float64) * merge.scale[fit.columns][:, None])
     order = np.argsort(cols, kind="stable")  # TexelFit's columns are sorted
     cols, w32 = cols[order], w32[order]
     w = w32.astype(np.float64)

@@ -1,6 +1,9 @@
-"""Fitting one CPM level over a set of texels (seed 000 §3.2–3.3): R built from visibility
-rays against M_org and the BRDFs of the samples, one `fit_texel` per texel, the held-out SNR,
-and the candidates of a coarse level (its children's points, or all dense samples).
+"""What fitting one CPM level over a set of texels reads (seed 000 §3.2–3.3): the fit's inputs,
+texel ids and the samples of texels, the direction sets, visibility rays against M_org and the
+BRDFs of the samples, and the candidates of a coarse level (its children's points, or all
+dense samples). The fits themselves: `level_batched` (many texels at once) and
+`level_per_texel` (the seed's loop); `texelbake.stages.cpm` chooses one by
+`BakeSettings.fit_method`.
 
 Inputs are the geometry stage's arrays (`FitInputs.geo`: samples, texel assignment, frames),
 a ray caster over M_org and the asset's materials; outputs are plain arrays per level, CSR by
@@ -17,13 +20,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import torch
-from threadpoolctl import threadpool_limits
 
 from schemas.settings import BakeSettings
 from texelbake import brdf as brdf_mod
-from texelbake.cpm.fit import fit_texel
-from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
 from texelbake.geometry import directions
 from texelbake.geometry.basis import grid_to_local, grid_to_world, tangent_frames
 from texelbake.geometry.raycast import RayCaster
@@ -210,177 +209,6 @@ def texel_seed(seed: int, level: int, texel: int) -> int:
     return int.from_bytes(
         hashlib.sha256(f"{seed}/{level}/{texel}".encode()).digest()[:4], "little"
     )
-
-
-# --------------------------------------------------------------------------- characteristic points
-
-
-def fit_level(
-    src: FitInputs,
-    level: int,
-    texels: np.ndarray,
-    candidates: PointSet,
-) -> dict[str, np.ndarray]:
-    """Characteristic points of `texels` at `level` chosen among `candidates` (seed 000 §3.3).
-
-    The reference of each texel is its candidates' summation term (Eq. 9 with the candidates'
-    per-channel weights); a_vis(w_o) comes from *all* dense samples of the texel (Eq. 3 on the
-    same visibility); held-out SNR compares against the brute-force Eq. 7 over all samples.
-    returns : arrays for this level: texel (t,), offsets (t+1,), point sample ids (p,), point
-        weights (p, 3) float32, k, c, snr_in, snr_ho (t,), mode (t,) int8, valid (t,) bool,
-        and when settings.btf, fbar (t, d, 3) float32 (Eq. 7 on the training grid).
-    """
-    # Per-texel matrices are small (d x m, m ~ tens to hundreds): BLAS and torch thread pools
-    # only add contention (measured on a loaded 2-core machine: a 1024 x 16 SVD takes 1.5 ms on
-    # 1 torch thread and 78 ms on 2; a 4096 x 256 QR went from milliseconds to minutes with
-    # multi-threaded OpenBLAS). Parallelism comes from shards / worker processes instead.
-    torch.set_num_threads(1)
-    caster = src.caster
-    rays0 = caster.rays_cast
-    with threadpool_limits(limits=1):
-        out = _fit_level(src, level, texels, candidates)
-    out["rays"] = np.array([caster.rays_cast - rays0], np.int64)  # work done, for rays/s
-    return out
-
-
-def _fit_level(
-    src: FitInputs,
-    level: int,
-    texels: np.ndarray,
-    candidates: PointSet,
-) -> dict[str, np.ndarray]:
-    s = src.settings
-    geo = src.geo
-    n = s.atlas_resolution
-    dirs = direction_sets(s)
-    frames = geo[f"frames_L{level}"]
-    # all dense samples of these texels (for a_vis and the held-out truth), ascending
-    samp_all = samples_in(geo, n, level, texels)
-    tex_all = texel_ids(geo, n, level, samp_all)
-    n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
-    n_hi = len(dirs["held_i"])
-    # one batch of rays per direction set for the whole tile
-    view_vc = visibility_cos(
-        src, samp_all, world_dirs(frames, tex_all, dirs["dirs_o"]), "geometric"
-    )
-    held_vc = np.concatenate([
-        visibility_cos(src, samp_all, world_dirs(frames, tex_all, dirs["held_i"])),
-        visibility_cos(
-            src, samp_all, world_dirs(frames, tex_all, dirs["held_o"]), "geometric"
-        ),
-    ], axis=1)
-    cand_light_vc = visibility_cos(
-        src, candidates.sample, world_dirs(frames, candidates.texel, dirs["dirs_i"])
-    )
-    # candidates are dense samples of these texels; samp_all is sorted (np.nonzero)
-    cand_rows = np.searchsorted(samp_all, candidates.sample)
-    cand_view_vc = view_vc[cand_rows]
-    area_all = geo["sample_area"][samp_all]
-
-    # group samples and candidates by texel (stable order)
-    order_all = np.argsort(tex_all, kind="stable")
-    order_cand = np.argsort(candidates.texel, kind="stable")
-    bounds_all = np.searchsorted(tex_all[order_all], np.stack([texels, texels + 1]))
-    bounds_cand = np.searchsorted(candidates.texel[order_cand], np.stack([texels, texels + 1]))
-
-    out_pts: list[np.ndarray] = []
-    out_w: list[np.ndarray] = []
-    offsets = [0]
-    stats = {k: np.zeros(len(texels)) for k in ("k", "c", "snr_in", "snr_ho")}
-    mode = np.zeros(len(texels), np.int8)
-    valid = np.zeros(len(texels), bool)
-    fbar_all = np.zeros((len(texels), n_i * n_o, 3), np.float32) if s.btf else None
-    for t, texel in enumerate(texels):  # one SVD/bisection per texel: inherent to the method
-        rows_all = order_all[bounds_all[0, t]:bounds_all[1, t]]
-        rows_c = order_cand[bounds_cand[0, t]:bounds_cand[1, t]]
-        if rows_all.size == 0 or rows_c.size == 0:
-            offsets.append(offsets[-1])
-            stats["snr_in"][t] = stats["snr_ho"][t] = np.nan
-            continue
-        cset = candidates.take(rows_c)
-        vi = cand_light_vc[rows_c]  # (m, n_i)
-        vo = cand_view_vc[rows_c]  # (m, n_o)
-        live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)  # (n_i, n_o, m)
-        wi_w = world_dirs(frames, cset.texel, dirs["dirs_i"])
-        wo_w = world_dirs(frames, cset.texel, dirs["dirs_o"])
-        f = brdf_grid(src, cset.sample, wi_w, wo_w, live)  # (n_i, n_o, m, 3)
-        R = (f * (vi.T[:, None, :, None] * vo.T[None, :, :, None])
-             * cset.weight[None, None, :, :]).reshape(n_i * n_o, -1, 3)
-        avis_o = view_vc[rows_all].T @ area_all[rows_all]  # (n_o,)
-        avis_rows = np.tile(avis_o, n_i)
-        texel_area = float(area_all[rows_all].sum())
-        fit = fit_texel(
-            R, avis_rows, psi=s.psi, eps_db=s.eps_db, c_max=s.c_max, n_trials=s.n_trials,
-            weights=s.weights, colour=s.colour, decorrelation_threshold=s.decorrelation_threshold,
-            seed=texel_seed(s.seed, level, int(texel)), n_batch=s.n_batch, texel_area=texel_area,
-            small=s.small_texels,
-        )
-        # effective weight of a point: alpha times its candidate weight (Eq. 10 with dA folded in)
-        w_eff = fit.weights.astype(np.float64) * cset.weight[fit.columns]
-        out_pts.append(cset.sample[fit.columns])
-        out_w.append(w_eff)
-        offsets.append(offsets[-1] + len(fit.columns))
-        stats["k"][t], stats["c"][t] = fit.k, fit.c
-        stats["snr_in"][t] = fit.snr_db_insample
-        mode[t] = 1 if fit.colour_mode == "per_channel" else 0
-        valid[t] = fit.valid
-        if fbar_all is not None:
-            fbar, _ = filtered_reflectance(
-                R.sum(axis=1), avis_rows, avis_floor(texel_area)
-            )
-            fbar_all[t] = fbar
-        # held-out: brute force over all samples vs the characteristic points
-        if n_hi and fit.valid:
-            stats["snr_ho"][t] = heldout_snr(
-                src, dirs, frames, int(texel), samp_all[rows_all], held_vc[rows_all],
-                area_all[rows_all], cset.sample[fit.columns],
-                w_eff.astype(np.float32).astype(np.float64),  # as stored
-                held_vc[np.searchsorted(samp_all, cset.sample[fit.columns])],
-                texel_area,
-            )
-        else:
-            stats["snr_ho"][t] = np.nan
-    out = {
-        "texel": texels.astype(np.int64),
-        "offsets": np.asarray(offsets, np.int64),
-        "point_sample": np.concatenate(out_pts) if out_pts else np.zeros(0, np.int64),
-        "point_weight": (np.concatenate(out_w) if out_w else np.zeros((0, 3))).astype(np.float32),
-        "k": stats["k"].astype(np.int32),
-        "c": stats["c"].astype(np.int32),
-        "snr_in": stats["snr_in"].astype(np.float32),
-        "snr_ho": stats["snr_ho"].astype(np.float32),
-        "mode": mode,
-        "valid": valid,
-    }
-    if fbar_all is not None:
-        out["fbar"] = fbar_all
-    return out
-
-
-def heldout_snr(
-    src, dirs, frames, texel, samples, held_vc, area, pts, w_eff, pts_held_vc, texel_area
-) -> float:
-    """SNR (dB) of Eq. 7 on the held-out product grid: brute force over all `samples` of the
-    texel (weights ΔA) against the characteristic points `pts` (weights w_eff)."""
-    n_hi = len(dirs["held_i"])
-    tex = np.full(len(samples), texel)
-    wi_w = world_dirs(frames, tex, dirs["held_i"])
-    wo_w = world_dirs(frames, tex, dirs["held_o"])
-    vi, vo = held_vc[:, :n_hi], held_vc[:, n_hi:]
-    live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)
-    f = brdf_grid(src, samples, wi_w, wo_w, live)  # (h_i, h_o, m, 3)
-    ref = np.einsum("abmc,am,bm,m->abc", f, vi.T, vo.T, area)
-    # the characteristic points are samples too: reuse their rows of f
-    pos = np.searchsorted(samples, pts)
-    approx = np.einsum("abmc,am,bm,mc->abc", f[:, :, pos], pts_held_vc[:, :n_hi].T,
-                       pts_held_vc[:, n_hi:].T, w_eff)
-    avis_o = vo.T @ area  # (h_o,)
-    eps = avis_floor(texel_area)
-    d = ref.shape[0] * ref.shape[1]
-    avis_rows = np.tile(avis_o, ref.shape[0])
-    f_ref, valid = filtered_reflectance(ref.reshape(d, 3), avis_rows, eps)
-    f_apx, _ = filtered_reflectance(approx.reshape(d, 3), avis_rows, eps)
-    return float(snr_db(f_ref, f_apx, valid))
 
 
 def level_candidates(

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -237,10 +238,11 @@ def snr_db(ref: np.ndarray, approx: np.ndarray, valid: np.ndarray | None = None)
     return 10.0 * math.log10(signal / noise)
 
 
-def points_sum(F: np.ndarray, columns: np.ndarray | None, w: np.ndarray) -> np.ndarray:
+def points_sum(F: Any, columns: np.ndarray | None, w: np.ndarray) -> np.ndarray:
     """Eq. 8's right side on the grid: sum_k alpha_k f(x_k) per channel.
 
-    F : (ch, m, d) channel-major F (or R); columns : (c,) the points' columns, None for all m;
+    F : (ch, m, d) channel-major F (or R), an array or any object indexed as one by
+        F[c, columns] (`columns.Columns`); columns : (c,) the points' columns, None for all m;
     w : (c, ch) per-channel weights or (c,) one weight for every channel
     returns : (d, ch) float64
     """

@@ -58,12 +58,10 @@ class Coefficients:
     texel: float = 3.28e-3  # s per fitted texel
     brdf_ggx: float = 1.25  # R cost of a GGX (preview, merl, cellular) material, x r_entry
     held_ggx: float = 1.43  # held-out cost of such a material, x held
-    refit: float = 2.8e-8  # s per (dense sample, direction pair) of a coarse level's dense refit
     # level 0's cell-averaged BTF table (btf_table "cell", `cpm.cell_table`): one BRDF grid per
     # draw and the pair's own, x r_entry per (sample, pair, grid); fitted to the cpm stage's
     # seconds cell / point (benchmarks/btf_tables.py)
     btf_cell: float = 0.39
-    refit_ggx: float = 1.33  # the refit's cost on a GGX material, x refit
     avis: float = 1.76e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
     avis_fixed: float = 1.74e-5  # s per dense sample at any face resolution (maps, coarsening)
     avis_stage: float = 4.8  # wall s of the a_vis stage on any atlas (each worker's set-up)
@@ -188,10 +186,6 @@ def estimate(
     g = float(np.clip(ggx_fraction, 0.0, 1.0))
     brdf = 1.0 + (coef.brdf_ggx - 1.0) * g
     brdf_h = 1.0 + (coef.held_ggx - 1.0) * g
-    # a coarse level's weights refitted to the dense Eq. 7 (texelbake.cpm.refit): R over every
-    # dense sample of the level once more
-    refits = s.hierarchy == "children" and s.coarse_target == "dense"
-    brdf_r = 1.0 + (coef.refit_ggx - 1.0) * g
     cell_grids = (1 + s.btf_cell_draws) if s.btf and s.btf_table == "cell" else 0
     per_level = []
     cpm = 0.0
@@ -199,14 +193,11 @@ def estimate(
     tile_levels = int(s.shard_texels).bit_length()
     texels = 0
     for level, (m, dense, mult) in enumerate(sizes):
-        refit = brdf_r * coef.refit * (dense * d).sum() if refits and level > 0 else 0.0
         held = mult * float(brdf_h * coef.held * (dense * n_h).sum())
-        # with selection_columns, a wider texel's Grams and eigendecompositions are the subset's
-        m_sel = np.minimum(m, s.selection_columns) if s.selection_columns else m
         sec = held + mult * float(brdf * coef.r_entry * (m * d).sum()
-                                  + coef.gram * (m_sel * m_sel * d).sum()
-                                  + coef.eigh * (m_sel ** 3).sum()
-                                  + coef.texel * m.size + refit)
+                                  + coef.gram * (m * m * d).sum()
+                                  + coef.eigh * (m ** 3).sum()
+                                  + coef.texel * m.size)
         if level == 0 and cell_grids:
             sec += mult * cell_grids * coef.btf_cell * brdf * coef.r_entry * float((m * d).sum())
         n_tex = int(round(mult * m.size))

@@ -9,8 +9,8 @@ Embree's kernels for rays, the interpreter for the per-texel bookkeeping). The w
 one part per kind of work the cost model prices, each sized like the fit's own calls:
 
     grid    elementwise float64 arithmetic on a (p, A, B) direction grid (BRDF evaluation
-            building R, the held-out truth, the dense refit, a_vis tables): r_entry, held,
-            refit, avis_fixed, export, geometry
+            building R, the held-out truth, a_vis tables): r_entry, held,
+            avis_fixed, export, geometry
     blas    Gram matrices (m x d by its transpose, m ~ 100, d = 4,096) and a stack of
             symmetric eigendecompositions: gram, eigh
     rays    one batch of 2^18 rays against a 20k-triangle mesh in open3d's Embree scene: avis
@@ -41,9 +41,9 @@ from dataclasses import dataclass
 import numpy as np
 
 #: part -> the cost model's coefficients it scales (`Coefficients` field names); the ratio
-#: fields (brdf_ggx, held_ggx, refit_ggx, btf_cell) are not seconds and are not scaled
+#: fields (brdf_ggx, held_ggx, btf_cell) are not seconds and are not scaled
 PART_OF = {
-    "r_entry": "grid", "held": "grid", "refit": "grid", "avis_fixed": "grid",
+    "r_entry": "grid", "held": "grid", "avis_fixed": "grid",
     "export": "grid", "geometry": "grid",
     "gram": "blas", "eigh": "blas",
     "avis": "rays",

@@ -7,14 +7,23 @@ texels together hold every sample of the atlas), and they do not depend on the f
 shard sums its own samples for the one texel above it at every top level (`top_sums`, an
 artifact beside its levels), and the top shard adds the tiles' sums in tile order
 (`gathered_sums`): the work is the same, but it is spread over the tile shards instead of
-being one worker's serial pass over the whole atlas per top level. A store
-whose tiles predate the sums (or lack one) has the top shard read the samples itself."""
+being one worker's serial pass over the whole atlas per top level. A store whose tiles
+predate the sums (or lack one) has the top shard read the samples itself.
+
+`fit_level` is where `BakeSettings.fit_method` chooses the level fit: many texels at once from
+their Gram matrices (`texelbake.cpm.level_batched`) or one texel at a time on its R, the
+seed's loop (`texelbake.cpm.level_per_texel`); same arrays either way."""
 
 from __future__ import annotations
 
 import numpy as np
+import torch
+from threadpoolctl import threadpool_limits
 
+from texelbake.cpm.dense import DenseSums, dense_sums
 from texelbake.cpm.level import (
+    FitInputs,
+    PointSet,
     concat_levels,
     direction_sets,
     level_candidates,
@@ -22,9 +31,40 @@ from texelbake.cpm.level import (
     sort_by_texel,
     tile_texels,
 )
-from texelbake.cpm.level_batched import DenseSums, dense_sums, fit_level
-from texelbake.cpm.refit import refit_to_dense
+from texelbake.cpm.level_batched import fit_level_batched
+from texelbake.cpm.level_per_texel import cell_fbar_per_texel, fit_level_per_texel
+from texelbake.cpm.texel_fit import FitCounts
 from texelbake.stages.context import StageContext
+
+
+def fit_level(
+    src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
+    sums: DenseSums | None = None, counts: FitCounts | None = None,
+) -> dict[str, np.ndarray]:
+    """One level's fit of `texels` (flat ids at `level`) among `candidates`, by
+    BakeSettings.fit_method: "batched" (`level_batched.fit_level_batched`) or "per_texel"
+    (`level_per_texel.fit_level_per_texel`, the seed's loop). Same arrays either way, and
+    `rays` (1,) int64: the rays the fit cast.
+
+    sums : the texels' `DenseSums`, already summed (the top levels' from the tile shards):
+        the batched fit then reads no dense sample; the per-texel loop computes its own.
+    counts : `FitCounts` the batched fit adds its search's work to."""
+    s = src.settings
+    # Per-texel matrices are small (d x m, m ~ tens to hundreds): BLAS and torch thread pools
+    # only add contention (measured on a loaded 2-core machine: a 1024 x 16 SVD takes 1.5 ms on
+    # 1 torch thread and 78 ms on 2; a 4096 x 256 QR went from milliseconds to minutes with
+    # multi-threaded OpenBLAS). Parallelism comes from shards / worker processes instead.
+    torch.set_num_threads(1)
+    rays0 = src.caster.rays_cast
+    with threadpool_limits(limits=1):
+        if s.fit_method == "per_texel":
+            out = fit_level_per_texel(src, level, texels, candidates)
+        else:
+            out = fit_level_batched(src, level, texels, candidates, sums, counts)
+    out["rays"] = np.array([src.caster.rays_cast - rays0], np.int64)  # work done, for rays/s
+    if s.fit_method == "per_texel" and "fbar" in out and level == 0 and s.btf_table == "cell":
+        out["fbar"] = cell_fbar_per_texel(src, texels, candidates)
+    return out
 
 
 def level_key(ctx: StageContext, level: int, tile: int | None) -> str:
@@ -91,7 +131,7 @@ def run_cpm_tile(ctx: StageContext, shard: int) -> str:
             continue
         texels = tile_texels(s.atlas_resolution, s.shard_texels, shard, level)
         cands = level_candidates(ctx.fit_inputs(), level, texels, children)
-        children = refit_coarse(ctx, level, fit_level(ctx.fit_inputs(), level, texels, cands))
+        children = fit_level(ctx.fit_inputs(), level, texels, cands)
         ctx.store.write_arrays(key, children)
     return last
 
@@ -125,16 +165,6 @@ def gathered_sums(ctx: StageContext) -> dict[int, DenseSums] | None:
     return out
 
 
-def refit_coarse(ctx: StageContext, level: int, out: dict[str, np.ndarray]
-                 ) -> dict[str, np.ndarray]:
-    """A coarse level's fit with its weights refitted to the dense Eq. 7 when the settings ask
-    for it (`coarse_target="dense"` with `hierarchy="children"`)."""
-    s = ctx.settings
-    if level == 0 or s.hierarchy != "children" or s.coarse_target != "dense":
-        return out
-    return refit_to_dense(ctx.fit_inputs(), level, out)
-
-
 def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
     """Levels coarser than a tile, from the tiles' coarsest level and the tiles' sums."""
     s = ctx.settings
@@ -155,9 +185,8 @@ def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
         n_l = s.atlas_resolution >> level
         texels = np.arange(n_l * n_l, dtype=np.int64)
         cands = level_candidates(ctx.fit_inputs(), level, texels, children)
-        fit = fit_level(ctx.fit_inputs(), level, texels, cands,
-                        sums[level] if sums is not None else None)
-        children = refit_coarse(ctx, level, fit)
+        children = fit_level(ctx.fit_inputs(), level, texels, cands,
+                             sums[level] if sums is not None else None)
         ctx.store.write_arrays(key, children)
     return last
 

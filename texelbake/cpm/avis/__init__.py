@@ -43,7 +43,7 @@ Decisions (the numbers are in benchmarks/avis_methods.py and the report to the l
   without a cube map (`ClosedForm`). When n_k . w >= 0 for all k this is the single 3-vector
   (sum_k A_k n_k) . w; the general form is kept because it is exact at every w. The same
   test per sample (`unoccluded_samples`) spares the rays of the free samples of the other
-  texels: their terms are counted as the rays would count them (issue 15).
+  texels: their terms are counted as the rays would count them.
 * Compression: per cube face, full-depth Haar (texelbake.haar), largest coefficients kept;
   a single direction is reconstructed from O(log res) coefficients (eval_haar_point). For ray
   texels with a stored unoccluded bound U (see below) the Haar maps hold the visible fraction

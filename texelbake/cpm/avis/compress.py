@@ -1,5 +1,5 @@
 """A level's a_vis cube maps compressed into the table the renderer reads, a chunk of ray
-texels at a time (issue 15 item 5: memory bounded whatever the atlas size).
+texels at a time (memory bounded whatever the atlas size).
 
 The table (`AvisTable`) needs two level-wide choices: the common residual tau of the texel
 budget (`select_texel_budget`: every texel keeps its largest coefficients until its dropped

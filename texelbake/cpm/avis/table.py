@@ -216,7 +216,7 @@ class AvisTable:
             # wall's tap overshoot past its horizon (within one cube pixel) balances the
             # undershoot of the wall it uncovers; clamping only the overshoot biased the
             # V-grooves' identity by 1.4 % (res 32) and 4 % (res 16) and won 0.02 % per texel
-            # (docs/decisions.md, 2026-11-27). Below the horizon the texel's points have
+            # (docs/decisions.md). Below the horizon the texel's points have
             # (n . w)^+ = 0, so its radiance is 0 either way.
             a[rq] = self._eval_maps(self.ray_row[t[rq]], w[rq], interp, t[rq], bnd)
         a = np.maximum(a, 0.0)

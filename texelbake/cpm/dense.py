@@ -1,0 +1,242 @@
+"""What fitting a level reads from its texels' dense samples, apart from the fit itself
+(seed 000 §3.2, §3.4): a_vis on the grid's view directions (Eq. 3), the texel areas, and the
+held-out truth and approximation of Eq. 7 on the held-out product grid, each a sum over
+samples taken in batches bounded by the worker's memory (`LevelPass.budget`).
+
+A coarse texel's sums do not depend on the fit, so a tile shard can sum its own samples for
+the texels above it (`DenseSums`, `dense_sums`) and the top shard add the tiles' sums.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from texelbake.cpm.brdf_product import brdf_product
+from texelbake.cpm.level import (
+    FitInputs,
+    direction_sets,
+    samples_in,
+    segment_sum,
+    texel_ids,
+    visibility_cos,
+    world_dirs,
+)
+from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
+from texelbake.errors import ShapeError
+
+#: bytes per (dense sample, held-out pair, channel) in the held-out pass
+BYTES_PER_HELD_ENTRY = 8 * 12
+
+
+@dataclass(frozen=True)
+class LevelPass:
+    """One level's fit inputs as its passes over samples read them: the inputs, the level,
+    its texel frames (n_l^2, 3, 3), the direction sets (`direction_sets`) and the memory
+    budget in bytes (`BakeSettings.worker_memory_mb`)."""
+
+    src: FitInputs
+    level: int
+    frames: np.ndarray
+    dirs: dict[str, np.ndarray]
+    budget: int
+
+    @classmethod
+    def of(cls, src: FitInputs, level: int) -> LevelPass:
+        s = src.settings
+        return cls(src, level, src.geo[f"frames_L{level}"], direction_sets(s),
+                   int(s.worker_memory_mb) * 2**20)
+
+
+@dataclass(frozen=True)
+class DenseSums:
+    """What the fit needs from a texel's dense samples and that does not depend on the fit:
+    per texel the samples' count and area, a_vis on the grid's view directions (Eq. 3) and the
+    held-out truth (Eq. 7's numerator on the held-out pairs, a_vis on the held-out view
+    directions). Every field is a sum over samples, so the sums of disjoint sample sets of the
+    same texels add up to the whole set's (up to the order of the floating-point sums): a tile
+    shard sums its own samples for the coarse texels above it, and the top shard adds the
+    tiles' (`texelbake.stages.cpm`) instead of reading every sample of the atlas again."""
+
+    count: np.ndarray  # (t,) int64
+    area: np.ndarray  # (t,)
+    avis_o: np.ndarray  # (t, n_o)
+    ref: np.ndarray  # (t, h_i, h_o, 3)
+    avis_h: np.ndarray  # (t, h_o)
+
+    FIELDS = ("count", "area", "avis_o", "ref", "avis_h")
+
+    def add_row(self, i: int, part: DenseSums) -> None:
+        """Add `part`'s one texel into texel i of these sums, in place."""
+        for f in self.FIELDS:  # five fields
+            getattr(self, f)[i] += getattr(part, f)[0]
+
+    def rows(self, idx) -> DenseSums:
+        return DenseSums(*(getattr(self, f)[idx] for f in self.FIELDS))
+
+    @classmethod
+    def zeros(cls, n_t: int, dirs: dict[str, np.ndarray]) -> DenseSums:
+        n_o, h_i, h_o = len(dirs["dirs_o"]), len(dirs["held_i"]), len(dirs["held_o"])
+        return cls(np.zeros(n_t, np.int64), np.zeros(n_t), np.zeros((n_t, n_o)),
+                   np.zeros((n_t, h_i, h_o, 3)), np.zeros((n_t, h_o)))
+
+    def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        return {f"{prefix}{f}": getattr(self, f) for f in self.FIELDS}
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str) -> DenseSums:
+        return cls(*(np.asarray(arrays[f"{prefix}{f}"]) for f in cls.FIELDS))
+
+
+def positions(texels: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """(n,) int64 position of each of ids (n,) in `texels` (any order, unique), -1 when
+    absent."""
+    order = np.argsort(texels, kind="stable")
+    srt = texels[order]
+    i = np.clip(np.searchsorted(srt, ids), 0, max(len(srt) - 1, 0))
+    hit = (srt[i] == ids) if len(srt) else np.zeros(len(ids), bool)
+    return np.where(hit, order[i] if len(srt) else 0, -1)
+
+
+def dense_of(lp: LevelPass, texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every dense sample of `texels` grouped by texel: (samples (n,) int64, ascending within
+    a texel; their texel's position in `texels` (n,) int64, ascending)."""
+    s = lp.src.settings
+    ids = samples_in(lp.src.geo, s.atlas_resolution, lp.level, texels)  # ascending
+    pos = positions(texels, texel_ids(lp.src.geo, s.atlas_resolution, lp.level, ids))
+    return ids[np.argsort(pos, kind="stable")], np.sort(pos, kind="stable")
+
+
+def inv_avis(avis_o: np.ndarray, area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(valid (t, n_o) bool, 1 / a_vis (t, n_o), 0 where invalid): a_vis above each texel's
+    floor (`avis_floor` of its area (t,))."""
+    eps = np.array([avis_floor(a) for a in area])[:, None]
+    valid = np.isfinite(avis_o) & (avis_o > eps)
+    return valid, np.where(valid, 1.0 / np.where(valid, avis_o, 1.0), 0.0)
+
+
+def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(a_vis(w_o) (t, n_o), area (t,)) per texel: Eq. 3 on all its dense samples (`dense`,
+    their texel positions `dseg` ascending), in sample batches."""
+    src, n_t = lp.src, len(texels)
+    n_o = len(lp.dirs["dirs_o"])
+    tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
+    area_all = src.geo["sample_area"][dense]
+    step = max(lp.budget // (8 * 16 * n_o), 1)
+    avis = np.zeros((n_t, n_o))
+    for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
+        sl = slice(s0, s0 + step)
+        vc = visibility_cos(src, dense[sl], world_dirs(lp.frames, tex_l[sl], lp.dirs["dirs_o"]),
+                            "geometric")
+        avis += segment_sum(vc * area_all[sl, None], dseg[sl], n_t, 0)
+    area = segment_sum(area_all, dseg, n_t, 0)
+    return avis, area
+
+
+def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
+               samples: np.ndarray | None = None) -> DenseSums:
+    """`DenseSums` of `texels` (flat ids at `level`) over `samples` (ascending ids of samples
+    of those texels; default all of them), in sample batches bounded by worker_memory_mb. The
+    same passes as the fit's own (`avis_sums`, `held_pass`), so a texel's sums over all its
+    samples equal the fit's."""
+    lp = LevelPass.of(src, level)
+    s, geo = src.settings, src.geo
+    texels = np.asarray(texels, np.int64)
+    if samples is None:
+        samples = samples_in(geo, s.atlas_resolution, level, texels)
+    samples = np.asarray(samples, np.int64)
+    pos = positions(texels, texel_ids(geo, s.atlas_resolution, level, samples))
+    if np.any(pos < 0):
+        raise ShapeError(f"dense_sums: samples outside the level {level} texels given")
+    order = np.argsort(pos, kind="stable")
+    dense, dseg = samples[order], pos[order]
+    n_t = len(texels)
+    avis_o, area = avis_sums(lp, texels, dense, dseg)
+    out = DenseSums.zeros(n_t, lp.dirs)
+    ref, avis_h = out.ref, out.avis_h
+    if len(lp.dirs["held_i"]):
+        none = np.zeros(0, np.int64)
+        ref, _, avis_h = held_pass(lp, texels, dense, dseg, none, none, np.zeros((0, 3)),
+                                   want_ref=True)
+    return DenseSums(np.bincount(dseg, minlength=n_t).astype(np.int64), area, avis_o, ref,
+                     avis_h)
+
+
+def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+              pos: np.ndarray, pseg: np.ndarray, pw: np.ndarray, *, want_ref: bool
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pass over `dense` samples (grouped by texel, `dseg` ascending) on the held-out pairs:
+    the truth (Eq. 7's numerator `ref` (t, h_i, h_o, 3) and a_vis on the held-out views
+    `avis_h` (t, h_o)) when `want_ref`, and the points' approximation `apx` (t, h_i, h_o, 3)
+    from the rows at positions `pos` (ascending; texel `pseg`, weights `pw` (p, 3))."""
+    src, dirs, n_t = lp.src, lp.dirs, len(texels)
+    h_i, h_o = len(dirs["held_i"]), len(dirs["held_o"])
+    tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
+    ref = np.zeros((n_t, h_i, h_o, 3))
+    apx = np.zeros((n_t, h_i, h_o, 3))
+    avis_h = np.zeros((n_t, h_o))
+    area_all = src.geo["sample_area"][dense]
+    step = max(lp.budget // (BYTES_PER_HELD_ENTRY * h_i * h_o * 3), 1)
+    for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
+        sl = slice(s0, s0 + step)
+        smp, seg = dense[sl], dseg[sl]
+        vi = visibility_cos(src, smp, world_dirs(lp.frames, tex_l[sl], dirs["held_i"]))
+        vo = visibility_cos(src, smp, world_dirs(lp.frames, tex_l[sl], dirs["held_o"]),
+                            "geometric")
+        live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)
+        f = brdf_product(src.geo, src.materials, smp,
+                         world_dirs(lp.frames, tex_l[sl], dirs["held_i"]),
+                         world_dirs(lp.frames, tex_l[sl], dirs["held_o"]), live)
+        f *= vi[None, :, :, None]
+        f *= vo[None, :, None, :]  # (3, p, h_i, h_o)
+        a_, b_ = np.searchsorted(pos, [s0, s0 + len(smp)])
+        if b_ > a_:
+            apx += segment_sum(f[:, pos[a_:b_] - s0] * pw.T[:, a_:b_, None, None], pseg[a_:b_],
+                               n_t, 1).transpose(1, 2, 3, 0)
+        if want_ref:
+            avis_h += segment_sum(vo * area_all[sl, None], seg, n_t, 0)
+            ref += segment_sum(f * area_all[sl][None, :, None, None], seg, n_t, 1
+                               ).transpose(1, 2, 3, 0)
+    return ref, apx, avis_h
+
+
+def heldout_from_samples(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
+                         dseg: np.ndarray, smp: np.ndarray, pseg: np.ndarray, pw: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Held-out (ref, apx, avis_h) of `held_pass` for texels whose dense samples are read:
+    brute-force Eq. 7 over all of them against their characteristic points (sample ids smp
+    (p,), texel positions pseg (p,), stored weights pw (p, 3)), each a sample of its texel."""
+    # the points as positions in `dense`: `dense` is ascending within each texel and dseg
+    # ascending, so (texel, sample) keys are sorted
+    span = int(max(dense.max(initial=0), smp.max(initial=0))) + 1
+    pos = np.searchsorted(dseg * span + dense, pseg * span + smp)
+    order = np.argsort(pos, kind="stable")
+    return held_pass(lp, texels, dense, dseg, pos[order], pseg[order], pw[order], want_ref=True)
+
+
+def heldout_from_sums(lp: LevelPass, texels: np.ndarray, sums: DenseSums, smp: np.ndarray,
+                      pseg: np.ndarray, pw: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`heldout_from_samples` with the truth already summed (`DenseSums`): only the points
+    are evaluated."""
+    order = np.lexsort((smp, pseg))
+    smp, pseg, pw = smp[order], pseg[order], pw[order]
+    _, apx, _ = held_pass(lp, texels, smp, pseg, np.arange(smp.size), pseg, pw, want_ref=False)
+    return sums.ref, apx, sums.avis_h
+
+
+def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: float) -> float:
+    """SNR (dB) of one texel's held-out Eq. 7: ref, apx (h_i, h_o, 3) the summed truth and
+    approximation, avis_h (h_o,) a_vis on the held-out views, area its texel area."""
+    eps = avis_floor(float(area))
+    rows = np.tile(avis_h, ref.shape[0])
+    f_ref, ok = filtered_reflectance(ref.reshape(-1, 3), rows, eps)
+    f_apx, _ = filtered_reflectance(apx.reshape(-1, 3), rows, eps)
+    return float(snr_db(f_ref, f_apx, ok))
+
+
+__all__ = ["BYTES_PER_HELD_ENTRY", "DenseSums", "LevelPass", "avis_sums", "dense_of",
+           "dense_sums", "held_pass", "heldout_from_samples", "heldout_from_sums",
+           "heldout_snr", "inv_avis", "positions"]
