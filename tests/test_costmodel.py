@@ -64,7 +64,7 @@ def test_job_status_carries_the_core_estimate():
     from datetime import UTC, datetime, timedelta
     from types import SimpleNamespace
 
-    from services.routers.jobs import job_estimate
+    from services.job_view import job_estimate
     from texelbake.estimate import machinespeed
 
     s = BakeSettings(atlas_resolution=64)

@@ -6,9 +6,6 @@ from __future__ import annotations
 import asyncio
 import json
 import time
-from collections import defaultdict
-from functools import lru_cache
-from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response, status
@@ -17,7 +14,7 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from farm import ledger, storage
+from farm import ledger
 from farm.broker import broker_run_id, celery_sender
 from farm.db import Event, Job, Shard, Stage, retry_disconnect
 from farm.resume import resume_job
@@ -25,22 +22,17 @@ from schemas.common import ErrorCode
 from schemas.job import (
     TERMINAL_JOB_STATES,
     JobCreate,
-    JobEstimate,
     JobPublic,
     JobsPublic,
     JobState,
     JobSummary,
-    ShardPublic,
-    SkippedStage,
-    StagePublic,
 )
-from schemas.settings import BakeSettings
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
 from services.errors import ApiError, errors
+from services.job_view import job_public, progress_percent
 from services.limits import cpu_slot
 from services.routers.assets import ASSET_404
 from services.submission import JobSpec, create_jobs, own_asset
-from texelbake.estimate import costmodel
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -63,109 +55,6 @@ def _own_job(session: Session, job_id: str, tenant: str) -> Job:
     if job is None or job.tenant != tenant:
         raise ApiError(status.HTTP_404_NOT_FOUND, JOB_NOT_FOUND, ErrorCode.JOB_NOT_FOUND)
     return job
-
-
-def _seconds(a, b) -> float | None:  # noqa: ANN001
-    return (b - a).total_seconds() if a is not None and b is not None else None
-
-
-def _progress(done: int, total: int) -> float:
-    return done / total if total else 0.0
-
-
-@lru_cache(maxsize=1024)
-def _estimate(settings_json: str, workers: int) -> costmodel.Estimate:
-    """The cost model per (settings, workers): computed once, not on every status read. Priced
-    on this API process's machine (`machinespeed.this_machine()`, measured once per process):
-    the workers are assumed to run on machines like it."""
-    from texelbake.estimate import machinespeed
-
-    return costmodel.estimate(BakeSettings.model_validate_json(settings_json), workers,
-                              speed=machinespeed.this_machine())
-
-
-def job_estimate(job: Job, settings: BakeSettings, workers: int) -> JobEstimate:
-    """The core cost model's prediction for a job (thin: `texelbake.estimate.costmodel.estimate`)."""
-    from datetime import timedelta
-
-    e = _estimate(job.settings_json, workers)
-    eta = job.started_at + timedelta(seconds=e.seconds) if job.started_at is not None else None
-    return JobEstimate(seconds=round(e.seconds, 1), workers=e.workers,
-                       cpm_seconds=round(e.cpm_seconds, 1), eta=eta,
-                       machine_speed=e.speed["factors"] if e.speed else None)
-
-
-def job_public(session: Session, job: Job, root: Path, workers: int = 2) -> JobPublic:
-    stages = session.scalars(
-        select(Stage).where(Stage.job_id == job.id).order_by(Stage.position)
-    ).all()
-    shards = session.scalars(
-        select(Shard).where(Shard.job_id == job.id).order_by(Shard.stage, Shard.shard)
-    ).all()
-    by_stage: dict[str, list[Shard]] = defaultdict(list)
-    for sh in shards:
-        by_stage[sh.stage].append(sh)
-    out_stages = []
-    for st in stages:
-        rows = by_stage.get(st.name, [])
-        done = sum(r.state == "done" for r in rows)
-        starts = [r.started_at for r in rows if r.started_at is not None]
-        ends = [r.finished_at for r in rows if r.finished_at is not None]
-        first = min(starts) if starts else None
-        last = max(ends) if ends and st.state == "done" else None
-        out_stages.append(
-            StagePublic(
-                name=st.name,
-                queue=st.queue,
-                state=st.state,
-                depends_on=json.loads(st.depends_on_json),
-                n_shards=st.n_shards,
-                n_done=done,
-                progress=_progress(done, st.n_shards),
-                started_at=first,
-                finished_at=last,
-                seconds=_seconds(first, last),
-                shards=[ShardPublic.model_validate(r) for r in rows],
-            )
-        )
-    total = sum(s.n_shards for s in stages)
-    done = sum(s.n_done for s in out_stages)
-    previews_dir = storage.job_out(root, job.id) / "previews"
-    previews = (
-        sorted(p.name for p in previews_dir.iterdir() if p.is_file() and not p.name.startswith("."))
-        if previews_dir.is_dir()
-        else []
-    )
-    settings = BakeSettings.model_validate_json(job.settings_json)
-    outcome, warnings = _quality(storage.job_out(root, job.id), job.state)
-    return JobPublic(
-        id=job.id,
-        asset_id=job.asset_id,
-        state=job.state,
-        priority=job.priority,
-        settings=settings,
-        progress=_progress(done, total),
-        stages=out_stages,
-        skipped=[SkippedStage(stage=a, reason=b) for a, b in json.loads(job.skipped_json or "[]")],
-        error=job.error,
-        created_at=job.created_at,
-        started_at=job.started_at,
-        finished_at=job.finished_at,
-        seconds=_seconds(job.created_at, job.finished_at),
-        previews=previews,
-        estimate=job_estimate(job, settings, workers),
-        outcome=outcome,
-        warnings=warnings,
-    )
-
-
-def _quality(out: Path, state: str) -> tuple[str | None, list[str]]:
-    """A succeeded job's quality gate from its report.json (texelbake.stages.quality)."""
-    report = out / "report.json"
-    if state != "succeeded" or not report.is_file():
-        return None, []
-    missed = list(json.loads(report.read_text()).get("quality", {}).get("missed", []))
-    return ("completed with warnings" if missed else "completed"), missed
 
 
 @router.post(
@@ -252,7 +141,7 @@ def read_jobs(
             asset_id=j.asset_id,
             state=j.state,
             priority=j.priority,
-            progress=_progress(int(dones.get(j.id, 0)), int(totals.get(j.id, 0) or 0)),
+            progress=progress_percent(int(dones.get(j.id, 0)), int(totals.get(j.id, 0) or 0)),
             error=j.error,
             created_at=j.created_at,
             finished_at=j.finished_at,
