@@ -12,11 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from texelbake.cli import bake, farm, render, scenes
 from texelbake.cli.args import Parser
-from texelbake.cli.bake import bake
-from texelbake.cli.farm import farm
-from texelbake.cli.render import render
-from texelbake.cli.scenes import scenes
 from texelbake.errors import TexelbakeError
 
 
