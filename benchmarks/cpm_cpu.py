@@ -66,14 +66,14 @@ BREAKDOWN = (
     ("texelbake.cpm.level_batched", "brdf_product"),
     ("texelbake.cpm.level_batched", "visibility_cos"),
     ("texelbake.cpm.level_batched", "fit_many"),
-    ("texelbake.cpm.gram_fit", "identical_columns"),
-    ("texelbake.cpm.gram_fit", "unmerge"),
-    ("texelbake.cpm.gram_fit", "select_groups"),
-    ("texelbake.cpm.gram_fit", "top_eighs"),
-    ("texelbake.cpm.gram_fit", "fit_texel_gram"),
-    ("texelbake.cpm.gram_fit", "reduced_system"),
-    ("texelbake.cpm.gram_fit", "search_c"),
-    ("texelbake.cpm.gram_fit", "_assemble"),
+    ("texelbake.cpm.gram.fit", "identical_columns"),
+    ("texelbake.cpm.gram.fit", "unmerge"),
+    ("texelbake.cpm.gram.fit", "select_groups"),
+    ("texelbake.cpm.gram.fit", "top_eighs"),
+    ("texelbake.cpm.gram.fit", "fit_texel_gram"),
+    ("texelbake.cpm.gram.fit", "reduced_system"),
+    ("texelbake.cpm.gram.fit", "search_c"),
+    ("texelbake.cpm.gram.fit", "_assemble"),
     ("texelbake.cpm.level_batched", "heldout_from_samples"),
 )
 
@@ -117,7 +117,7 @@ def install_breakdown() -> dict[str, list[float]]:
 
 def run(scene: str, size: str, settings: BakeSettings, work: Path,
         tiles: list[int] | None = None) -> dict:
-    setup_bake_process()  # as every bake process (texelbake.pipeline.run.run.run.run.run.run_shard)
+    setup_bake_process()  # as every bake process (texelbake.pipeline.run.run.run.run.run.run.run_shard)
     asset = stages_asset(scene, size, work)
     ctx = stages.StageContext.create(work / "store", asset, settings)
     stages.run_ingest(ctx, 0)

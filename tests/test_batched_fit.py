@@ -1,5 +1,5 @@
 """The batched CPM fit (issue 15) against the per-texel path, its second method: the Gram-space
-fit of many texels (`gram_fit.fit_many`) against `fit.fit_texel` on R itself, the product BRDF
+fit of many texels (`gram.fit.fit_many`) against `fit.fit_texel` on R itself, the product BRDF
 grid against `level.brdf_grid`, a level fitted batched against the per-texel loop, the memory
 bound not changing a result."""
 
@@ -12,12 +12,12 @@ import pytest
 
 from schemas.settings import BakeSettings
 from texelbake import stages
-from texelbake.cpm import gram_linalg
 from texelbake.cpm import level_batched as lb
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.fit import channel_correlation, fit_texel
-from texelbake.cpm.gram_fit import GramTexel, fit_many
-from texelbake.cpm.gram_linalg import batched_eigh
+from texelbake.cpm.gram import linalg as gram_linalg
+from texelbake.cpm.gram.fit import GramTexel, fit_many
+from texelbake.cpm.gram.linalg import batched_eigh
 from texelbake.cpm.level import brdf_grid, direction_sets, level_candidates, tile_texels, world_dirs
 from texelbake.cpm.level_batched import chunk_bounds, fit_level_batched
 from texelbake.cpm.level_per_texel import fit_level_per_texel
@@ -231,7 +231,7 @@ def test_reduced_system_cholesky_and_eigh_against_the_residual():
     """The trials' reduced least squares: pivoted Cholesky (batched path) and the
     eigendecomposition (per-texel algebra) both reproduce ||M a - target||^2 for any a, with
     duplicate, collinear and zero columns (one facet's samples)."""
-    from texelbake.cpm.gram_linalg import normalised_gram, reduced_system, reduced_system_eigh
+    from texelbake.cpm.gram.linalg import normalised_gram, reduced_system, reduced_system_eigh
 
     rng = np.random.default_rng(2)
     M = rng.random((500, 12)) @ rng.random((12, 30))  # rank 12

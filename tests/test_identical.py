@@ -1,4 +1,4 @@
-"""Identical candidate columns fitted as one (`texelbake.cpm.identical`, issue 15 item 3): the
+"""Identical candidate columns fitted as one (`texelbake.cpm.gram.identical`, issue 15 item 3): the
 grouping against a brute-force comparison of every pair of columns, Table 2's probabilities of
 the merged columns against the seed's summed over each group (from full SVDs, not the Gram
 route), and fit_many's merged fits against Eq. 7 over every candidate."""
@@ -10,8 +10,8 @@ import pytest
 
 from texelbake.cpm.column_sampling import column_probabilities, energy_rank
 from texelbake.cpm.fit import channel_correlation
-from texelbake.cpm.gram_fit import GramTexel, fit_many
-from texelbake.cpm.identical import PRINT_TAPS, identical_columns
+from texelbake.cpm.gram.fit import GramTexel, fit_many
+from texelbake.cpm.gram.identical import PRINT_TAPS, identical_columns
 from texelbake.cpm.matrix import snr_db
 from texelbake.cpm.texel_fit import FitCounts, FitParams
 

@@ -8,8 +8,7 @@ Modules, in the order a bake uses them:
   for both fitting paths;
 - `search`: the draws, trials and bisection on c (Table 2), written once for both paths;
 - `fit`: one texel's points on its R (the per-texel path);
-- `identical`, `columns`, `gram_linalg`, `gram_fit`: the same fit from Gram matrices, for
-  many texels at once (the batched path);
+- `gram/`: the same fit from Gram matrices, for many texels at once (the batched path);
 - `level`: what fitting a level reads (texels, samples, directions, visibility rays, BRDFs,
   a coarse level's candidates from its children);
 - `dense`: a_vis and the held-out truth from a level's dense samples;

@@ -1,5 +1,5 @@
 """One CPM level fitted in batches of texels: R for a whole chunk of texels from one BRDF
-evaluation, the Gram matrices and their eigendecompositions stacked (`texelbake.cpm.gram_fit`),
+evaluation, the Gram matrices and their eigendecompositions stacked (`texelbake.cpm.gram.fit`),
 the held-out SNR against brute-force Eq. 7 for the chunk from one evaluation per sample batch
 (`texelbake.cpm.dense`). Same science and the same per-texel seeds (settings.seed, level,
 texel) as the per-texel loop `texelbake.cpm.level_per_texel` (BakeSettings.fit_method =
@@ -12,7 +12,7 @@ R (d x candidates x 3 with its temporaries) fits, and the dense samples of a chu
 the held-out truth) in sub-batches that fit; a coarse texel with millions of samples (the top
 level of a large atlas) is streamed the same way. A texel of more than n_batch candidates (a
 crowded level-0 texel: 6,162 samples in one texel of the bolt's collapsed 64² atlas) is fitted
-by `gram_fit.fit_split` on its F read a block of n_batch columns at a time (`Columns`), built
+by `gram.fit.fit_split` on its F read a block of n_batch columns at a time (`Columns`), built
 from its candidates when asked; only the per-texel fallback (`fit_texel`, when a step needs
 the full SVD) still builds a texel's whole R.
 """
@@ -25,7 +25,6 @@ import numpy as np
 
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.cell_table import cell_fbar, direction_cells
-from texelbake.cpm.columns import Columns
 from texelbake.cpm.dense import (
     DenseSums,
     LevelPass,
@@ -38,7 +37,8 @@ from texelbake.cpm.dense import (
     positions,
 )
 from texelbake.cpm.fit import fit_texel
-from texelbake.cpm.gram_fit import GramTexel, correlation_from_sums, fit_many
+from texelbake.cpm.gram.columns import Columns
+from texelbake.cpm.gram.fit import GramTexel, correlation_from_sums, fit_many
 from texelbake.cpm.level import (
     FitInputs,
     PointSet,

@@ -20,7 +20,7 @@ from texelbake.cpm.texel_fit import FitCounts, FitParams, GroupFit
 #: a trial: drawn columns (c,) int64 -> (alpha (c, ch_g) float64, SNR of Eq. 7 in dB)
 Trial = Callable[[np.ndarray], tuple[np.ndarray, float]]
 #: one channel's reduced least squares (A (r, m), t (r,), rest >= 0): ||A a - t||^2 + rest is
-#: the residual of Eq. 7 for the weights a of any columns (`gram_linalg.reduced_system`)
+#: the residual of Eq. 7 for the weights a of any columns (`gram.linalg.reduced_system`)
 Reduced = tuple[np.ndarray, np.ndarray, float]
 
 

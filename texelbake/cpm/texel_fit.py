@@ -2,7 +2,7 @@
 (`FitParams`), a selection group's result (`GroupFit`), the assembly of the groups into the
 texel's `TexelFit` (`assemble_fit`), and the texel that keeps every candidate
 (`all_points_fit`). The per-texel path (`texelbake.cpm.fit`, on R) and the batched path
-(`texelbake.cpm.gram_fit`, on Gram matrices) differ only in how they compute Eq. 7 of a set of
+(`texelbake.cpm.gram.fit`, on Gram matrices) differ only in how they compute Eq. 7 of a set of
 weighted points; everything else about a texel's result is assembled here.
 """
 
@@ -37,7 +37,7 @@ class FitParams:
     small : "fit" (the seed's bisection) or "all": a texel of m <= c_max candidates whose fit
         is not exact on the grid keeps every candidate (`needs_all_points`)
     identical : "keep" (the seed) or "merge": identical columns fitted as one
-        (`texelbake.cpm.identical`; the batched path only)
+        (`texelbake.cpm.gram.identical`; the batched path only)
 
     The defaults are a standalone texel's; a bake's come from its settings (`of`)."""
 
@@ -137,7 +137,7 @@ class TexelFit:
         group (one group in luminance mode, one per channel otherwise)
     c_capped : bool, c_max < k so c was capped at c_max
     merged : int, candidates fitted as a copy of another (identical columns of F,
-        `texelbake.cpm.identical`): m minus the distinct columns; 0 when not merged
+        `texelbake.cpm.gram.identical`): m minus the distinct columns; 0 when not merged
     eps_reached : bool, snr_db_insample >= eps_db
     valid : bool, False when the texel cannot be fitted (no samples, no valid row)
     reason : str, "" or a short description of what was special
@@ -241,7 +241,7 @@ def all_points_fit(F_sum: np.ndarray, approx: np.ndarray, valid: np.ndarray, m: 
     (d, ch) Eq. 7 of all candidates and of the stored weights (the same sum up to round-off);
     valid : (d,) rows above the floor; k : the psi-rank the fit found (reported as it is).
     columns, weights : (u,) the kept candidates (sorted) and their weights, when the m
-    candidates are kept as u groups of identical ones (`texelbake.cpm.identical`: each group's
+    candidates are kept as u groups of identical ones (`texelbake.cpm.gram.identical`: each group's
     member at the group's size); default every candidate at weight 1."""
     snr = snr_db(F_sum, approx, valid)
     ch = F_sum.shape[1]

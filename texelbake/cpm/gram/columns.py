@@ -1,7 +1,7 @@
 """The columns of one texel's F = diag(1/a_vis) R read a block at a time (seed 000 §4.1's
 n_batch batches: memory bounded whatever the texel's width).
 
-`gram_fit.fit_split` only ever reads blocks of at most n_batch columns of a wide texel and
+`gram.fit.fit_split` only ever reads blocks of at most n_batch columns of a wide texel and
 their sums; `Columns` gives it those blocks from an array it holds or from a function that
 builds them (the batched level fit), with the same arithmetic either way.
 """

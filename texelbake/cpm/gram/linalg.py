@@ -1,4 +1,4 @@
-"""The linear algebra of the Gram route (`texelbake.cpm.gram_fit`): eigendecompositions of
+"""The linear algebra of the Gram route (`texelbake.cpm.gram.fit`): eigendecompositions of
 selection Grams (all of them stacked by size, or only the top ones of a wide matrix), the
 singular values and the Davis-Kahan test read off them, and the trials' reduced least-squares
 systems from a channel's Gram."""
@@ -21,7 +21,7 @@ def batched_eigh(mats: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
 
     mats : list of (m_i, m_i) float64; returns [(lam (m_i,) ascending, V (m_i, m_i))] in order.
     torch's batched CPU eigh runs LAPACK on each matrix of the stack, so a matrix's result is the
-    same whichever matrices share its stack (checked by tests/test_gram_fit.py)."""
+    same whichever matrices share its stack (checked by tests/test_batched_fit.py)."""
     out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(mats)
     by_size: dict[int, list[int]] = {}
     for i, g in enumerate(mats):  # loop over matrices: bucket by size only

@@ -15,7 +15,7 @@ zero) is a Gram matrix (d = N_i N_o rows, m samples, d >> m):
   M^T t replaced by G 1);
 - the SNR signal of Eq. 7 is sum_c 1^T G_c 1.
 
-The Grams (one GEMM per matrix) and the eigendecompositions (`texelbake.cpm.gram_linalg`:
+The Grams (one GEMM per matrix) and the eigendecompositions (`texelbake.cpm.gram.linalg`:
 torch.linalg.eigh over stacks of equal-size matrices, or LAPACK's top eigenpairs of a wide one;
 a texel's result never depends on which texels share its batch) are computed for many texels
 at once (`fit_many`); per texel only the m-sized work remains: probabilities, the search on c
@@ -33,15 +33,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from texelbake.cpm.column_sampling import column_probabilities, energy_rank
-from texelbake.cpm.columns import Columns, SelectionRows
-from texelbake.cpm.gram_linalg import (
+from texelbake.cpm.gram.columns import Columns, SelectionRows
+from texelbake.cpm.gram.identical import Merge, identical_columns, unmerge
+from texelbake.cpm.gram.linalg import (
     needs_full_svd,
     normalised_gram,
     reduced_system,
     spectrum,
     top_eighs,
 )
-from texelbake.cpm.identical import Merge, identical_columns, unmerge
 from texelbake.cpm.matrix import points_sum
 from texelbake.cpm.search import reduced_trial, search_c, select_batched
 from texelbake.cpm.texel_fit import (
@@ -190,7 +190,7 @@ def fit_many(texels: Sequence[GramTexel], params: FitParams, counts: FitCounts |
     `needs_all_points`), or (None, "full_svd") for a texel the Gram route cannot resolve, which
     the caller fits over all its candidates.
     params.identical="merge": a texel's candidates with identical columns are fitted as one
-    column (`texelbake.cpm.identical`: the seed's fit in distribution, Grams of u^2 d for u
+    column (`texelbake.cpm.gram.identical`: the seed's fit in distribution, Grams of u^2 d for u
     distinct columns, no point stored twice; under small="all" a texel of m <= c_max candidates
     is not merged, one of more whose u distinct columns are <= c_max keeps them all).
     Texels must have m >= 1, d >= 2 min(m, n_batch), a valid row and a nonzero R
