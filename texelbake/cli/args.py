@@ -66,5 +66,5 @@ def add_settings_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--settings", help="JSON file of bake settings (schemas.settings.BakeSettings)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override one bake setting, e.g. --set atlas_resolution=64")
-    p.epilog = settings_help  # type: ignore[assignment]  (Parser calls it)
+    p.epilog = settings_help  # type: ignore[assignment]  # Parser calls it
     p.formatter_class = argparse.RawDescriptionHelpFormatter

@@ -209,6 +209,7 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
         return RenderResult(img.astype(np.float32), seconds, int(rays), int(mean_spp), mode,
                             extras, cov.astype(np.float32))
     fn = entry.deformed if deformed else entry.rest
+    assert fn is not None  # checked above: the mode renders this kind of frame
     img, rays, cov, extras = fn(scene, cam, spp, seed, **kw)
     seconds = time.perf_counter() - t0
     return RenderResult(img.astype(np.float32), seconds, int(rays), spp, mode, extras,
