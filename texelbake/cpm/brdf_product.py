@@ -43,6 +43,17 @@ from texelbake.tol import TOL
 DENSE_FRACTION = 0.6
 
 
+def _store_finite(out: np.ndarray, blk: np.ndarray, fg: np.ndarray, live: np.ndarray,
+                  material) -> None:  # noqa: ANN001
+    """out[:, blk] = fg, a block's BRDF grid (3, nb, A, B); a non-finite value where a pair is
+    live raises (`_check_finite`), elsewhere it is stored as 0."""
+    bad = ~np.isfinite(fg)
+    if bad.any():
+        _check_finite(np.where(live[:, :, blk].transpose(2, 0, 1)[None], fg, 0.0), material)
+        fg[bad] = 0.0
+    out[:, blk] = fg
+
+
 def _check_finite(f: np.ndarray, material) -> None:
     if not np.all(np.isfinite(f)):
         raise NumericalError(
@@ -99,12 +110,7 @@ def brdf_product(
                 pb = {k: (v if v.shape[0] == 1 else v[b0:b0 + GRID_BLOCK]) for k, v in prm.items()}
                 fg = preview_grid(pb, wi_loc[:, blk].transpose(1, 0, 2),
                                   wo_loc[:, blk].transpose(1, 0, 2), eps)  # (3, nb, A, B)
-                bad = ~np.isfinite(fg)
-                if bad.any():
-                    _check_finite(np.where(live[:, :, blk].transpose(2, 0, 1)[None], fg, 0.0),
-                                  material)
-                    fg[bad] = 0.0
-                out[:, blk] = fg
+                _store_finite(out, blk, fg, live, material)
             continue
         if material.model == "phong" and kernel == "product":
             prm = material_inputs(material, ("diffuseColor", "specularColor", "exponent"), uv[sel], None)
@@ -120,12 +126,7 @@ def brdf_product(
                     return v if v.shape[0] == 1 else v[b0:b0 + GRID_BLOCK]
                 fg = phong_grid(rows(kd), rows(ks), rows(ex), wi_loc[:, blk].transpose(1, 0, 2),
                                 wo_loc[:, blk].transpose(1, 0, 2), eps)
-                bad = ~np.isfinite(fg)
-                if bad.any():
-                    _check_finite(np.where(live[:, :, blk].transpose(2, 0, 1)[None], fg, 0.0),
-                                  material)
-                    fg[bad] = 0.0
-                out[:, blk] = fg
+                _store_finite(out, blk, fg, live, material)
             continue
         lv = live[:, :, sel].transpose(2, 0, 1)  # (n_s, A, B)
         if float(lv.mean()) < DENSE_FRACTION:  # mostly dead (occluded): gather the live ones
