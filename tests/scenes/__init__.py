@@ -1,0 +1,1 @@
+"""Tests of texelbake.scenes (the generated test scenes)."""
