@@ -18,20 +18,18 @@ chaos = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(chaos)
 
 
-def test_chaos_trials_enospc_and_disk_full_then_resume(tmp_path):
-    cylinder, reference = chaos.make_scene(tmp_path)
+def test_chaos_trials_enospc_and_disk_full_then_resume(cylinder, reference, tmp_path):
+    # cylinder, reference: tests/services/conftest.py, the same as chaos.make_scene's
     with chaos.open_farm("sqlite", tmp_path / "sqlite", cylinder, reference) as f:
-        # resume is for failed jobs only: a clear 409 for a finished one, 404 for none
-        job_id = f.submit()
-        f.wait(job_id, ("succeeded",))
-        r = f.http.post(f"/jobs/{job_id}/resume")
-        assert r.status_code == 409 and r.json()["code"] == "job_not_failed", r.text
-        r = f.http.post("/jobs/nosuchjob/resume")
-        assert r.status_code == 404 and r.json()["code"] == "job_not_found", r.text
-
         rec = chaos.run_trial(f, "sqlite", "enospc", 0, 1, tmp_path / "out")
         assert rec["passed"], rec
         assert "ENOSPC on artifact writes" in rec["fault"]
+        # resume is for failed jobs only: a clear 409 for a finished one (the trial's job
+        # succeeded), 404 for none
+        r = f.http.post(f"/jobs/{rec['job_id']}/resume")
+        assert r.status_code == 409 and r.json()["code"] == "job_not_failed", r.text
+        r = f.http.post("/jobs/nosuchjob/resume")
+        assert r.status_code == 404 and r.json()["code"] == "job_not_found", r.text
 
         rec = chaos.run_trial(f, "sqlite", "disk_full", 0, 1, tmp_path / "out")
         assert rec["passed"], rec
