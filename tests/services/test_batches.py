@@ -28,6 +28,9 @@ TOKENS = {TOKEN: "farm", TOKEN_B: "other"}
 FINISHED = ("succeeded", "failed", "cancelled")
 #: a valid layer with no UsdGeom.Mesh: the upload check passes, the plan stage fails it
 NO_MESH = usda()
+#: the items' bake: the cheap one at a 16² atlas (one cpm shard); what is checked here is the
+#: batch (items, states, progress, archive), not the bake's size
+BATCH_SETTINGS = {**CHEAP_SETTINGS, "atlas_resolution": 16}
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +77,7 @@ def run_three_items(stack, c: httpx.Client, cylinder: Path) -> None:  # noqa: AN
     bad = bad.json()["id"]
     n_jobs = c.get("/jobs").json()["count"]
     r = c.post("/batches", json={
-        "name": "three", "settings": CHEAP_SETTINGS, "priority": 60,
+        "name": "three", "settings": BATCH_SETTINGS, "priority": 60,
         "items": [{"asset_id": cyl}, {"asset_id": bad, "priority": 90},
                   {"asset_id": cyl, "settings": {"samples_per_texel": 4}}]})
     assert r.status_code == 201, r.text
@@ -85,9 +88,9 @@ def run_three_items(stack, c: httpx.Client, cylinder: Path) -> None:  # noqa: AN
     # items are ordinary jobs: the batch's defaults, overridden per item field by field
     jobs = [c.get(f"/jobs/{i['job_id']}").json() for i in batch["items"]]
     assert [j["priority"] for j in jobs] == [60, 90, 60]
-    assert jobs[0]["settings"]["samples_per_texel"] == CHEAP_SETTINGS["samples_per_texel"]
+    assert jobs[0]["settings"]["samples_per_texel"] == BATCH_SETTINGS["samples_per_texel"]
     assert jobs[2]["settings"]["samples_per_texel"] == 4
-    assert jobs[2]["settings"]["atlas_resolution"] == CHEAP_SETTINGS["atlas_resolution"]
+    assert jobs[2]["settings"]["atlas_resolution"] == BATCH_SETTINGS["atlas_resolution"]
     r = c.get(f"/batches/{bid}/result")
     assert r.status_code == 409 and r.json()["code"] == "batch_not_finished", r.text
     # another tenant's batch does not exist for it
@@ -226,7 +229,7 @@ def test_cli_manifest_end_to_end(stack, cylinder, tmp_path):
     (tmp_path / "in" / "nomesh.usda").write_bytes(NO_MESH)
     manifest = tmp_path / "in" / "batch.json"
     manifest.write_text(json.dumps({
-        "name": "cli", "settings": CHEAP_SETTINGS,
+        "name": "cli", "settings": BATCH_SETTINGS,
         "items": [{"path": str(cylinder)}, {"path": "nomesh.usda", "priority": 70}]}))
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     cmd = [sys.executable, "-m", "texelbake.cli", "submit", "--manifest", str(manifest),
