@@ -244,9 +244,9 @@ def test_renderer_worker_writes_previews(cylinder, tmp_path):
         with httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=60) as c:
             aid = c.post("/assets", files={"file": package(cylinder)}).json()["id"]
             r = c.post(
-                "/jobs", json={"asset_id": aid, "settings": {
-                    **CHEAP_SETTINGS, "previews": True, "warp": "bend:angle=45",
-                    "deform_frames": 2}}
+                "/jobs", json={"asset_id": aid, "settings": {  # 16²: who renders, not the size
+                    **CHEAP_SETTINGS, "atlas_resolution": 16, "previews": True,
+                    "warp": "bend:angle=45", "deform_frames": 2}}
             )
             assert r.status_code == 201, r.text
             job_id = r.json()["id"]
