@@ -24,7 +24,7 @@ import pytest
 
 from tests.helpers.dcc import compare_renders, import_and_render, keep_artifacts, side_by_side
 
-pytestmark = pytest.mark.dcc
+pytestmark = [pytest.mark.dcc, pytest.mark.slow]  # Blender and Cycles: not for test-fast
 
 ASSETS = Path(__file__).resolve().parents[3] / "shared" / "assets"
 LIGHT = {"samples_per_texel": 8, "n_light_dirs": 8, "n_view_dirs": 8, "n_heldout": 16,

@@ -416,13 +416,12 @@ def test_report_flags_texels_whose_avis_table_is_off(cylinder_bake):
     assert got[4] == 0.0 and got[3] == np.inf
 
 
-def test_shard_processes_do_not_change_the_result(tmp_path):
+def test_shard_processes_do_not_change_the_result(plane_bake, tmp_path):
     """`bake(jobs=2)` runs the sharded stages on one pool of spawned processes, reused from
     stage to stage (`pipeline._shard_pool`): its payload is byte-identical to the one-process
-    bake's, each made in its own artifact store (nothing reused between them)."""
-    src = write_plane(tmp_path / "plane.usda")
-    settings = BakeSettings(**SMALL)
-    r1 = bake(src, tmp_path / "a", settings, progress=False, workdir=tmp_path / "wa", jobs=1)
+    bake's (the module's plane bake), made in an artifact store of its own (nothing reused
+    between them)."""
+    src, r1, settings = plane_bake  # jobs=1, in the session's store
     r2 = bake(src, tmp_path / "b", settings, progress=False, workdir=tmp_path / "wb", jobs=2)
     assert (r1.parent / "plane_payload.usdc").read_bytes() == \
         (r2.parent / "plane_payload.usdc").read_bytes()

@@ -62,6 +62,7 @@ def grooves():
     return _levels(lambda x, y: 0.06 * np.abs((x / period) % 1.0 - 0.5))
 
 
+@pytest.mark.slow  # ray-casts a 64² field at res 32 (the module fixture)
 def test_bumpy_field_identity_at_every_level(bumpy, rng):
     w, cos_t = _dirs(rng)
     for i, level in enumerate(bumpy):
@@ -76,6 +77,7 @@ def test_bumpy_field_identity_at_every_level(bumpy, rng):
     assert plain > 0.05, plain
 
 
+@pytest.mark.slow  # the V-groove field: ray-cast at res 32
 @pytest.mark.parametrize("phi", [np.pi / 2, 0.0], ids=["along", "across"])
 def test_v_grooves_along_and_across(grooves, rng, phi):
     w, cos_t = _dirs(rng, n=60, max_deg=75.0, phi=phi)
@@ -135,6 +137,7 @@ def _stored_and_errors(levels, keep, selection):
     return nbytes / dense, worst
 
 
+@pytest.mark.slow  # ray-casts two 64² fields at res 32 (module fixtures)
 def test_texel_budget_beats_the_seeds_per_face_quota(bumpy, grooves):
     # at the default resolution (32) the per-level texel budget stores about half of the
     # per-face quota at keep 0.06 for about its worst texel (measured: bumpy 1.31 % at 3.80 %
