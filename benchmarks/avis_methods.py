@@ -56,9 +56,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from avis_scenes import (  # noqa: E402
+from tests.helpers.avis_scenes import (  # noqa: E402
     grid_mesh,
     periodic_height,
     sample_faces,
@@ -67,7 +67,6 @@ from avis_scenes import (  # noqa: E402
     tile3x3,
     uv_sphere,
 )
-
 from texelbake.cpm.avis import (  # noqa: E402
     AvisLevel,
     avis_cube_maps,

@@ -4,9 +4,9 @@
     .venv/bin/python benchmarks/chaos.py --seed 7 --only-trial sqlite:redis:3   # replay one
 
 Per database (SQLite, and PostgreSQL in its own cluster on a free port under /tmp), one stack
-of real processes stays up across trials (`tests/test_service_farm.farm`: redis-server on a
+of real processes stays up across trials (`tests/helpers/farm.farm`: redis-server on a
 free port, uvicorn, one prep and one numeric Celery prefork worker). An uninterrupted job of the
-small cylinder (`tests/svc_util.CHEAP_SETTINGS`) first gives the job's duration and the bytes
+small cylinder (`tests/helpers/service.CHEAP_SETTINGS`) first gives the job's duration and the bytes
 of every artifact it wrote. Each trial then deletes the content-keyed work folder (so the job
 really runs), submits the job, and at a seeded moment in [5 %, 85 %] of that duration injects
 one fault of its kind:
@@ -27,7 +27,7 @@ one fault of its kind:
 Recovery is the stack's own (Celery redelivery, the API's sweeper, retries); the suite only
 restarts what it killed, as an operator would. A trial passes when the job succeeds; its
 result equals the in-process bake of the same file and settings, every file
-(`tests/svc_util.assert_same_bake`); every shard row is `done` with completions == 1; every
+(`tests/helpers/service.assert_same_bake`); every shard row is `done` with completions == 1; every
 artifact has the bytes of the uninterrupted run and none was ever rewritten with other bytes
 (a watcher hashes each file whenever it changes); and nothing is left behind: no temporary
 files under the artifact root, no shard rows without a job, no shard or stage row still
@@ -63,15 +63,15 @@ sys.path.insert(0, str(REPO))
 
 from farm import storage  # noqa: E402
 from farm.stack import free_port  # noqa: E402
-from tests.svc_util import CHEAP_SETTINGS, assert_same_bake  # noqa: E402
-from tests.test_service_farm import (  # noqa: E402
+from tests.helpers.farm import (  # noqa: E402
     AUTH,
-    _child_pids,
+    child_pids,
     db_url,
     download,
     farm,
     ledger_rows,
 )
+from tests.helpers.service import CHEAP_SETTINGS, assert_same_bake  # noqa: E402
 from texelbake.io.atomic import FAILPOINT_ENV  # noqa: E402
 
 KINDS = ("worker_child", "worker_whole", "api", "redis", "postgres", "enospc", "eacces",
@@ -303,7 +303,7 @@ def inject(f: Farm, kind: str, rng: random.Random, job_id: str) -> str:
     pause = rng.uniform(0.2, 1.5)
     if kind == "worker_child":
         name = rng.choice(WORKERS)
-        kids = sorted(_child_pids(st.pids[name]))
+        kids = sorted(child_pids(st.pids[name]))
         if not kids:
             return f"{name}: no pool child to kill"
         pid = rng.choice(kids)

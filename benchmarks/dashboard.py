@@ -46,7 +46,7 @@ from farm.stack import free_port, stack_down, stack_up  # noqa: E402
 TOKEN = "bench-dashboard-token-0123456789"
 OTHER = "bench-dashboard-other-0123456789"
 PAGE_SIZE = 50  # web/src/screens/JobsList.tsx PAGE_SIZE
-#: the small cylinder's cheap bake (as tests/svc_util.CHEAP_SETTINGS) with BTF maps
+#: the small cylinder's cheap bake (as tests/helpers/service.CHEAP_SETTINGS) with BTF maps
 VIEWER_BAKE = {"atlas_resolution": 32, "shard_texels": 16, "n_light_dirs": 8, "n_view_dirs": 8,
                "samples_per_texel": 8, "n_heldout": 8, "c_max": 8, "n_trials": 1,
                "avis_resolution": 4, "btf": True}  # fmt: skip

@@ -56,7 +56,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from farm.stack import free_port, stack_down, stack_up  # noqa: E402
-from tests.svc_util import proc_cpu  # noqa: E402
+from tests.helpers.service import proc_cpu  # noqa: E402
 
 TOKENS = {"load-token-a-0123456789abcdef": "team-a", "load-token-b-0123456789abcdef": "team-b"}
 PG_ADMIN = "postgresql+psycopg2://postgres@127.0.0.1:5432/test"

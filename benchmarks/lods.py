@@ -11,7 +11,7 @@ light CPM (8 samples per texel, 8 x 8 directions, c_max 8) that leaves the geome
 at defaults (it depends only on the atlas resolution, samples per texel and the LOD fields).
 The Blender columns (issue 22's acceptance): each LOD exported with `texelbake export --lod N`
 (.usdz), imported with Blender 5.0.1's USD importer at its defaults and rendered beside the
-original from one camera and sun (tests/blender/import_render.py through tests/dcc_util: Cycles
+original from one camera and sun (tests/blender/import_render.py through tests/helpers/dcc: Cycles
 CPU, 160 px, 32 samples, deterministic): `MAD` is the mean absolute difference over the
 object's pixels (8-bit sRGB as displayed, [0, 1]) and `IoU` the silhouettes' overlap. Per asset
 PASS needs LOD1 IoU >= 0.95, LOD1 MAD <= 0.10 and every LOD within its Hausdorff bound; a FAIL
@@ -60,7 +60,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 ASSETS = ROOT.parent / "shared" / "assets"
 SCENES = ("cylinder", "wall", "bolt", "cloisonne")
-IOU_MIN, MAD_MAX = 0.95, 0.10  # the issue's bar on LOD1 (tests/test_dcc.py: why)
+IOU_MIN, MAD_MAX = 0.95, 0.10  # the issue's bar on LOD1 (tests/dcc/test_blender_import.py: why)
 FAST = {"samples_per_texel": 8, "n_light_dirs": 8, "n_view_dirs": 8, "n_heldout": 16,
         "c_max": 8}
 
@@ -92,7 +92,7 @@ def blender_columns(asset: str, src: Path, root: Path, rows: list[dict], renders
     """Fill each row's blender_mad / blender_iou; returns "" or why they are not measured."""
     import pytest
 
-    from tests.dcc_util import compare_renders, import_and_render, side_by_side
+    from tests.helpers.dcc import compare_renders, import_and_render, side_by_side
     from texelbake.usd.export import export_lod
 
     files = {"original": src}

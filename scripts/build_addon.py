@@ -3,7 +3,7 @@
 `python scripts/build_addon.py [-o DIR]`. Standard library only; the zip is deterministic
 (sorted members, fixed timestamps), so a rebuild of the same sources is byte-identical.
 Blender's own checker: `<bpy python> .../bl_pkg/cli/blender_ext.py validate ZIP`
-(tests/test_addon.py runs it)."""
+(tests/dcc/test_addon.py runs it)."""
 
 from __future__ import annotations
 

@@ -40,7 +40,7 @@ log = logging.getLogger("texelbake.api")
 def custom_generate_unique_id(route: APIRoute) -> str:
     """Names of generated body models (`Body_<tag>-<handler>`). Operation ids are given on each
     route (`operation_id=`), so a handler's rename does not rename a generated client's
-    function; `tests/test_api_contract.py` checks that every route has one."""
+    function; `tests/services/test_api_contract.py` checks that every route has one."""
     return f"{route.tags[0]}-{route.name}"
 
 

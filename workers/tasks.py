@@ -131,7 +131,7 @@ def load_job(job_id: str) -> tuple[Job, Asset, BakeSettings, Path]:
 
 @app.task(name="workers.tasks.plan_job", bind=True, max_retries=None)
 def plan_job(self, job_id: str) -> None:
-    """Decide the stages of a job (`texelbake.pipeline.plan.plan.plan_bake`) and queue the first ones."""
+    """Decide the stages of a job (`texelbake.pipeline.plan.plan.plan.plan_bake`) and queue the first ones."""
     from texelbake import pipeline
 
     try:

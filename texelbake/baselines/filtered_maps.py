@@ -18,7 +18,7 @@ geometry stage's samples and their texel assignment (the same `texel_ids` as the
 The tangent space is the normal map's (`normalmap.face_tangent_space`: the M1 triangle under
 the sample), so the moments describe the same normals the `normalmap` mode decodes.
 
-Hard cases (each tested in tests/test_filtered_maps.py):
+Hard cases (each tested in tests/baselines/test_filtered_maps.py):
 - slopes at grazing normals: n_z is clamped to `FILTER_TOL.min_cos` before dividing (a normal
   at or below the M1 tangent plane gets slope |n_xy| / min_cos ≤ ~10 along its own
   azimuth), so no moment is infinite;

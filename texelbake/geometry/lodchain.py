@@ -15,7 +15,7 @@ The Hausdorff distance is pymeshlab's (`get_hausdorff_distance`) from a determin
 mesh's surface, both ways; pymeshlab's own face sampling is random per call, and reruns must be
 byte-identical.
 
-Hard cases (each tested in tests/test_lodchain.py):
+Hard cases (each tested in tests/geometry/test_lodchain.py):
 - M_org already coarser than the bound (no collapse of even 1 - KEEP_FRACTION of its faces
   stays within it): LOD1 *is* M_org, no simplification, said in the level's note.
 - A level that would keep more than KEEP_FRACTION of the previous level's faces is not worth

@@ -13,7 +13,7 @@ one chunk at a time (a tile of the farm's a_vis stage, or rows of an in-memory l
    smallest grid value whose count fits the budget. The exact bisection (`haar.budget_mask`)
    finds the crossing between two grid values: the grid keeps at most the budget, and every
    texel's dropped share is at most 1.4 % above the exact tau (its relative error 0.7 %
-   above), `tests/test_avis_stream.py` measures both against it.
+   above), `tests/cpm/avis/test_stream.py` measures both against it.
 2. The coefficients (kept per chunk: they are the table), and the correction's sums: the
    target total and, for the bounded texels, the corrected total at `C_GRID` values of c.
 3. The correction refined: per pixel, `C_REFINE` values inside the grid interval where the

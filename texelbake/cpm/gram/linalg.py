@@ -21,7 +21,7 @@ def batched_eigh(mats: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
 
     mats : list of (m_i, m_i) float64; returns [(lam (m_i,) ascending, V (m_i, m_i))] in order.
     torch's batched CPU eigh runs LAPACK on each matrix of the stack, so a matrix's result is the
-    same whichever matrices share its stack (checked by tests/test_batched_fit.py)."""
+    same whichever matrices share its stack (checked by tests/cpm/test_batched_fit.py)."""
     out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(mats)
     by_size: dict[int, list[int]] = {}
     for i, g in enumerate(mats):  # loop over matrices: bucket by size only

@@ -1,0 +1,1 @@
+"""Tests of the filtered baseline maps (LEAN/LEADR moments, Toksvig, AO)."""

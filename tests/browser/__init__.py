@@ -1,0 +1,1 @@
+"""Tests driving the dashboard in a real Chromium."""

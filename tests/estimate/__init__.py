@@ -1,0 +1,1 @@
+"""Tests of the cost model and the machine-speed reading."""

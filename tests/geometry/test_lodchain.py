@@ -1,0 +1,222 @@
+"""The LOD chain chosen by geometric error (issue 22, item 1; texelbake.geometry.lodchain):
+each level within its bound, the bound measured by an independent distance, and the hard cases
+(already coarse, a chain that stops, many parts, open surface, non-manifold input)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.helpers.meshes import box, bumpy_sphere, plane_grid
+from texelbake.errors import SettingsError
+from texelbake.geometry.lodchain import KEEP_FRACTION, build_lod_chain, error_bounds, hausdorff
+from texelbake.geometry.mesh import Mesh, bbox_diagonal
+from texelbake.geometry.raycast import RayCaster
+from texelbake.geometry.sampling import sample_surface
+
+
+def _brute_hausdorff(a: Mesh, b: Mesh, n: int = 200_000) -> float:
+    """Two-sided distance from 200k seeded samples (10x the chain's), by Embree's closest
+    points: an independent estimate (other samples, other distance code)."""
+    out = 0.0
+    for x, y in ((a, b), (b, a)):
+        pts = np.concatenate([x.vertices, sample_surface(x.vertices, x.faces, n, 7).positions])
+        cp, _, _ = RayCaster(y.vertices, y.faces).closest_points(pts)
+        out = max(out, float(np.linalg.norm(cp - pts, axis=1).max()))
+    return out
+
+
+def _boxes(k: int, size: float, gap: float):
+    vs, fs, off = [], [], 0
+    for i in range(k):
+        for j in range(k):
+            v, f = box((i * gap, j * gap, 0.0), (i * gap + size, j * gap + size, size))
+            vs.append(v)
+            fs.append(f + off)
+            off += len(v)
+    return np.concatenate(vs), np.concatenate(fs)
+
+
+def test_hausdorff_of_two_parallel_planes_is_their_distance():
+    # closed form: a unit square and the same square 0.3 above it are 0.3 apart both ways
+    v, f = plane_grid(4, 4)
+    a = Mesh(v, f)
+    b = Mesh(v + [0.0, 0.0, 0.3], f)
+    d_ab, d_ba = hausdorff(a, b)
+    assert d_ab == pytest.approx(0.3, rel=1e-6)
+    assert d_ba == pytest.approx(0.3, rel=1e-6)
+
+
+def test_hausdorff_matches_an_independent_closest_point_computation():
+    v, f = bumpy_sphere(3)
+    org = Mesh(v, f)
+    coarse = build_lod_chain(v, f, (16.0,)).levels[0].mesh
+    d = max(hausdorff(coarse, org))
+    brute = _brute_hausdorff(coarse, org)
+    # 20k samples vs 200k: the sparser set can only miss the farthest point by about its
+    # sample spacing (sqrt(area / 20k) ~ 0.02 on this unit sphere); both are distances to a
+    # triangle that Embree and pymeshlab choose in float32, exact to ~1e-7 of the diagonal
+    # (measured: 4e-9 over on a 0.2 distance)
+    assert d <= brute + 1e-6 * bbox_diagonal(org.vertices)
+    assert d >= brute - 0.02
+
+
+@pytest.fixture(scope="module")
+def sphere_chain():
+    v, f = bumpy_sphere(4)
+    return Mesh(v, f), build_lod_chain(v, f, (256.0, 64.0, 16.0), 1.0)
+
+
+def test_every_level_is_within_its_bound_and_smaller(sphere_chain):
+    org, chain = sphere_chain
+    diag = bbox_diagonal(org.vertices)
+    assert [lv.bound for lv in chain.levels] == pytest.approx(
+        [diag / 256.0, diag / 64.0, diag / 16.0])
+    faces = [org.num_faces] + [lv.mesh.num_faces for lv in chain.levels]
+    assert all(b <= KEEP_FRACTION * a for a, b in zip(faces, faces[1:], strict=False)), faces
+    for lv in chain.levels:
+        assert lv.hausdorff <= lv.bound
+        # the independent, denser estimate: within the bound up to the chain's sample spacing
+        # (sqrt(4 pi / 20k) ~ 0.025 on the unit sphere, ~1% of its diagonal)
+        assert _brute_hausdorff(lv.mesh, org) <= lv.bound + 0.01 * diag
+    rep = chain.report()
+    assert [lv["within_bound"] for lv in rep["levels"]] == [True, True, True]
+    assert rep["stopped"] == ""
+
+
+def test_a_level_is_about_the_smallest_within_its_bound(sphere_chain):
+    # the bisection's answer: a collapse to 2/3 of LOD1's faces leaves the bound
+    from texelbake.geometry.hierarchy import _decimate
+
+    org, chain = sphere_chain
+    lv = chain.levels[0]
+    smaller = _decimate(org, int(lv.mesh.num_faces * 2 / 3), 1)
+    assert max(hausdorff(smaller, org)) > lv.bound
+
+
+def test_a_mesh_already_coarser_than_the_bound_is_its_own_lod1():
+    v, f = box()  # 12 triangles: no collapse keeps a cube within a pixel at 512 px
+    chain = build_lod_chain(v, f, (512.0, 256.0))
+    assert len(chain.levels) == 1
+    lv = chain.levels[0]
+    assert lv.method == "original" and lv.mesh.num_faces == 12 and lv.hausdorff == 0.0
+    assert "original" in lv.note
+    assert "stops" in chain.stopped and "LOD2" in chain.stopped
+
+
+def test_the_chain_stops_when_a_level_would_barely_reduce():
+    v, f = bumpy_sphere(3)
+    chain = build_lod_chain(v, f, (128.0, 120.0, 16.0))
+    # LOD2's bound is 7 % looser than LOD1's: no collapse to 80 % of LOD1 stays within it
+    assert len(chain.levels) == 1
+    assert "LOD2" in chain.stopped and "80%" in chain.stopped
+
+
+def test_many_small_parts_are_merged_into_a_wrap_when_the_bound_allows():
+    v, f = _boxes(6, 0.1, 0.102)  # 36 boxes 2 mm apart: a slab to the eye at 6 px
+    org = Mesh(v, f)
+    chain = build_lod_chain(v, f, (6.0,))
+    lv = chain.levels[0]
+    assert lv.method == "wrap" and "36 parts" in lv.note
+    assert lv.mesh.num_faces < 36  # fewer triangles than parts: QEM alone cannot get there
+    assert lv.hausdorff <= lv.bound
+    assert _brute_hausdorff(lv.mesh, org) <= lv.bound * 1.05
+
+
+def test_many_small_parts_at_a_tight_bound_are_kept():
+    v, f = _boxes(6, 0.1, 0.15)
+    chain = build_lod_chain(v, f, (64.0,))
+    lv = chain.levels[0]
+    assert lv.method == "original" and lv.mesh.num_faces == 432
+
+
+def test_an_open_surface_keeps_its_boundary_within_the_bound():
+    v, f = plane_grid(40, 40)
+    v = v.copy()
+    v[:, 2] = 0.05 * np.sin(6.0 * v[:, 0]) * np.cos(4.0 * v[:, 1])
+    org = Mesh(v, f)
+    chain = build_lod_chain(v, f, (128.0, 32.0))
+    assert len(chain.levels) == 2
+    boundary = v[(np.abs(v[:, 0] - v[:, 0].min()) < 1e-9) | (np.abs(v[:, 0] - v[:, 0].max())
+                                                           < 1e-9)]
+    for lv in chain.levels:
+        assert lv.mesh.num_faces < org.num_faces
+        cp, _, _ = RayCaster(lv.mesh.vertices, lv.mesh.faces).closest_points(boundary)
+        assert np.linalg.norm(cp - boundary, axis=1).max() <= lv.bound
+
+
+def test_non_manifold_input_is_simplified_within_the_bound():
+    # three curved sheets sharing one edge (a non-manifold "book" of pages)
+    v, f = plane_grid(20, 20)
+    pages_v, pages_f = [], []
+    for k, ang in enumerate((0.0, 2.1, 4.2)):
+        rot = np.array([[np.cos(ang), 0.0, -np.sin(ang)], [0.0, 1.0, 0.0],
+                        [np.sin(ang), 0.0, np.cos(ang)]])
+        p = v.copy()
+        p[:, 0] -= p[:, 0].min()  # the shared edge is x = 0
+        p[:, 2] = 0.05 * np.sin(5.0 * p[:, 0])
+        pages_v.append(p @ rot.T)
+        pages_f.append(f + k * len(v))
+    pv, pf = np.concatenate(pages_v), np.concatenate(pages_f)
+    from texelbake.geometry.mesh import weld
+
+    welded, _, _ = weld(pv, pf)
+    edges = np.sort(welded.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert counts.max() == 3  # the input really is non-manifold
+    chain = build_lod_chain(pv, pf, (128.0,))
+    lv = chain.levels[0]
+    assert lv.mesh.num_faces < welded.num_faces
+    assert lv.hausdorff <= lv.bound
+    assert _brute_hausdorff(lv.mesh, welded) <= lv.bound * 1.05
+
+
+def test_the_chain_is_deterministic():
+    v, f = bumpy_sphere(3)
+    a = build_lod_chain(v, f, (128.0, 32.0))
+    b = build_lod_chain(v, f, (128.0, 32.0))
+    for x, y in zip(a.levels, b.levels, strict=True):
+        np.testing.assert_array_equal(x.mesh.vertices, y.mesh.vertices)
+        np.testing.assert_array_equal(x.mesh.faces, y.mesh.faces)
+        assert x.hausdorff == y.hausdorff
+
+
+def test_bad_switch_sizes_are_named():
+    with pytest.raises(SettingsError, match="decrease"):
+        error_bounds(1.0, (64.0, 128.0), 1.0)
+    with pytest.raises(SettingsError, match="positive"):
+        error_bounds(1.0, (0.0,), 1.0)
+    from pydantic import ValidationError
+
+    from schemas.settings import BakeSettings
+
+    with pytest.raises(ValidationError, match="lod_switch_px"):
+        BakeSettings(lod_switch_px=(64.0, 64.0))
+
+
+def test_lod_corner_normals_keep_sharp_edges_sharp_and_smooth_surfaces_smooth():
+    # issue 22: a DCC shades a LOD with the normals it carries. A box (M_org's corner normals
+    # its face normals, sharp) onto a box LOD: every corner takes its own face's normal
+    # exactly; a fine sphere with radial (smooth) corner normals onto a coarser sphere: each
+    # corner's normal is the radial direction at its inset point (closed form), within the
+    # interpolation error of the fine mesh's normals (edge ~0.1 rad: cos error < 1e-2)
+    from tests.helpers.meshes import icosphere
+    from texelbake.geometry.lodchain import CORNER_INSET, transfer_corner_normals
+
+    v, f = box()
+    fn = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    got = transfer_corner_normals(v, f, np.repeat(fn[:, None], 3, axis=1),
+                                  RayCaster(v, f))
+    np.testing.assert_allclose(got, np.repeat(fn[:, None], 3, axis=1), atol=1e-9)
+
+    fine_v, fine_f = icosphere(4)
+    radial = fine_v[fine_f] / np.linalg.norm(fine_v[fine_f], axis=2, keepdims=True)
+    lod_v, lod_f = icosphere(2)
+    got = transfer_corner_normals(lod_v, lod_f, radial, RayCaster(fine_v, fine_f))
+    tri = lod_v[lod_f]
+    q = tri + CORNER_INSET * (tri.mean(axis=1, keepdims=True) - tri)
+    want = q / np.linalg.norm(q, axis=2, keepdims=True)
+    assert np.einsum("fkd,fkd->fk", got, want).min() > 0.99
+    # not the face normals: the three corners of a LOD face differ (smooth shading)
+    assert np.einsum("fkd,fkd->fk", got[:, :1], got[:, 1:]).min() < 0.999

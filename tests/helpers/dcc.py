@@ -1,0 +1,125 @@
+"""The real DCC for the `dcc` tests: Blender (the `bpy` module, pinned in scripts/dcc-venv.sh)
+runs in its own virtualenv, always in a subprocess, never imported into the test process."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests.helpers.service import backend_missing
+
+ROOT = Path(__file__).resolve().parents[2]
+VENV_SCRIPT = ROOT / "scripts" / "dcc-venv.sh"
+IMPORT_RENDER = ROOT / "tests" / "blender" / "import_render.py"
+#: where the renders are kept besides the test's tmp folder, when set (a folder)
+ARTIFACTS_ENV = "TEXELBAKE_TEST_ARTIFACTS"
+
+
+def bpy_python() -> Path:
+    """The Python of the bpy virtualenv that `scripts/dcc-venv.sh` made (`make setup` and
+    `.ci/run` make it). Skips when it is missing (fails under CI: `backend_missing`)."""
+    venv = os.environ.get("TEXELBAKE_DCC_VENV") or str(
+        Path.home() / ".cache" / "texelbake" / "dcc-venv-bpy5.0.1")
+    exe = Path(venv) / "bin" / "python"
+    if not (Path(venv) / ".installed").exists() or not exe.exists():
+        backend_missing(f"no bpy virtualenv at {venv}: run scripts/dcc-venv.sh")
+    return exe
+
+
+def run_blender(script: Path | str, *args: str, timeout: float = 600.0) -> dict:
+    """Run a Python script inside Blender (headless bpy) with `args` after `--`; the script
+    prints one JSON object on its last stdout line, which is returned."""
+    exe = bpy_python()
+    proc = subprocess.run([str(exe), str(script), "--", *args], capture_output=True,
+                          text=True, timeout=timeout, cwd=str(ROOT))
+    if proc.returncode != 0:
+        pytest.fail(f"Blender script {script} failed ({proc.returncode}):\n"
+                    f"{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}", pytrace=False)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
+    if not lines:
+        pytest.fail(f"Blender script {script} printed no JSON:\n{proc.stdout[-3000:]}",
+                    pytrace=False)
+    return json.loads(lines[-1])
+
+
+def import_and_render(files: dict[str, Path], out_dir: Path, *, frame=None,
+                      resolution: int = 160, samples: int = 32, timeout: float = 600.0) -> dict:
+    """Import each of `files` ({name: USD path}) into an empty Blender scene with the USD
+    importer at its defaults and render it (tests/blender/import_render.py) from one camera
+    and sun, placed from `frame` ([lo, hi] in Blender's world space) or, when None, from the
+    first file's imported bounds. Returns {"frame", "files": {name: what Blender made, "png"}}.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    spec = out_dir / "dcc_spec.json"
+    spec.write_text(json.dumps({"files": [{"name": k, "path": str(v)} for k, v in files.items()],
+                                "out_dir": str(out_dir), "frame": frame,
+                                "resolution": resolution, "samples": samples}))
+    got = run_blender(IMPORT_RENDER, str(spec), timeout=timeout)
+    return {"frame": got["frame"], "files": {f["name"]: f for f in got["files"]}}
+
+
+def compare_renders(reference_png: Path | str, png: Path | str) -> dict[str, float]:
+    """Object-pixel mean absolute difference and silhouette IoU of two RGBA renders of one view
+    (8-bit sRGB as displayed, alpha = coverage, film transparent).
+
+    - `mad`: |a - b| averaged over RGB and over the object's pixels, both images composited
+      over black, in display values [0, 1]; the object's pixels are `metrics.object_mask` of
+      the two alphas (their union, dilated by one pixel), as every render figure of the
+      project, so a part one image has and the other lacks counts with its full colour.
+    - `iou`: |A & B| / |A | B| of the silhouettes A, B = alpha >= 0.5.
+    """
+    import numpy as np
+
+    from texelbake.io.images import read_pixels
+    from texelbake.render.metrics import object_mask
+
+    ref = read_pixels(reference_png)[0].astype(np.float64)
+    img = read_pixels(png)[0].astype(np.float64)
+    if ref.shape != img.shape or ref.shape[2] != 4:
+        raise ValueError(f"renders must be RGBA of one size: {ref.shape} vs {img.shape}")
+    a_ref, a_img = ref[..., 3], img[..., 3]
+    mask = object_mask(a_ref, a_img)
+    # OpenImageIO hands PNG pixels with associated alpha: colour over black already
+    diff = np.abs(img[..., :3] - ref[..., :3]).mean(axis=2)
+    sil_ref, sil_img = a_ref >= 0.5, a_img >= 0.5
+    union = int(np.logical_or(sil_ref, sil_img).sum())
+    inter = int(np.logical_and(sil_ref, sil_img).sum())
+    return {"mad": float(diff[mask].mean()) if mask.any() else 0.0,
+            "iou": inter / union if union else 1.0,
+            "object_pixels": int(mask.sum())}
+
+
+def side_by_side(pngs: list[Path], out: Path) -> Path:
+    """One PNG of the renders in a row over a grey background, for a person to look at."""
+    import numpy as np
+
+    from texelbake.io.images import read_pixels, write_pixels
+
+    tiles = []
+    for p in pngs:
+        px = read_pixels(p)[0].astype(np.float64)
+        tiles.append(px[..., :3] + 0.2 * (1.0 - px[..., 3:]))  # associated alpha
+    row = np.concatenate(tiles, axis=1)
+    return write_pixels(out, np.round(np.clip(row, 0, 1) * 255).astype(np.uint8), "uint8")
+
+
+def keep_artifacts(paths: list[Path], subdir: str) -> Path | None:
+    """Copy `paths` to $TEXELBAKE_TEST_ARTIFACTS/<subdir>/ when that variable is set."""
+    import shutil
+
+    root = os.environ.get(ARTIFACTS_ENV)
+    if not root:
+        return None
+    dest = Path(root) / subdir
+    dest.mkdir(parents=True, exist_ok=True)
+    for p in paths:
+        shutil.copyfile(p, dest / Path(p).name)
+    return dest
+
+
+__all__ = ["ARTIFACTS_ENV", "bpy_python", "compare_renders", "import_and_render",
+           "keep_artifacts", "run_blender", "side_by_side"]

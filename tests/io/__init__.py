@@ -1,0 +1,1 @@
+"""Tests of the artifact store and the plumbing (atomic writes, archives, images)."""

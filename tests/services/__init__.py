@@ -1,0 +1,1 @@
+"""Tests of the API (services/), in process and against real processes."""

@@ -1,0 +1,1 @@
+"""Tests of what we write as USD: LOD export, skinned LODs, interop."""
