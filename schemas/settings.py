@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -23,6 +23,13 @@ GATE_AVIS_REL_ERROR = 0.15
 #: show them; every field names its group in the JSON Schema (`json_schema_extra["group"]`)
 GROUPS = ("geometry", "fit", "a_vis", "quality gate", "farm", "optional stages")
 
+#: largest LOD switch size in pixels (a screen is a few thousand)
+MAX_SWITCH_PX = 1e6
+#: largest seed: numpy's 32-bit seed range
+MAX_SEED = 2**32 - 1
+#: a LOD switch size: finite, positive, bounded
+SwitchPx = Annotated[float, Field(gt=0.0, le=MAX_SWITCH_PX)]
+
 
 def _field(default, group: str, description: str, **bounds):
     """A settings field of `group` (one of GROUPS) described in one sentence."""
@@ -34,12 +41,14 @@ def _field(default, group: str, description: str, **bounds):
 class BakeSettings(BaseModel):
     """Settings of one bake, in the groups of GROUPS."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # NaN and Infinity (JSON extensions) are refused everywhere, list entries included: a
+    # stored job must read back, and JSON has no spelling for them
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     # geometry
     seed: int = _field(
         0, "geometry", "Seed of every random choice of the bake, so reruns are byte-identical.",
-        ge=0)
+        ge=0, le=MAX_SEED)
     atlas_resolution: int = _field(
         16, "geometry", "Side of the finest CPM level in texels over the atlas (a power of two).",
         ge=2, le=4096)
@@ -48,7 +57,7 @@ class BakeSettings(BaseModel):
         "How the LOD meshes are sized: 'error' makes each the smallest mesh within lod_error_px "
         "of the original at its switch size, 'atlas' caps M1 by the atlas and simplifies each "
         "further level by simplify_ratio.")
-    lod_switch_px: tuple[float, ...] = _field(
+    lod_switch_px: tuple[SwitchPx, ...] = _field(
         (256.0, 64.0), "geometry",
         "Decreasing screen sizes in pixels (bounding-box diagonal) at which LOD1, LOD2 and so "
         "on switch in.")
@@ -72,7 +81,7 @@ class BakeSettings(BaseModel):
         "wrapped around it, 'auto' wraps assets of many small separate parts.")
     m1_faces: int = _field(
         0, "geometry", "Target face count of M1, or 0 for simplify_ratio times the original's.",
-        ge=0)
+        ge=0, le=1 << 30)
     samples_per_texel: int = _field(
         64, "geometry", "Average number of dense samples on the original mesh per finest texel.",
         ge=1, le=65536)
@@ -112,7 +121,7 @@ class BakeSettings(BaseModel):
         ge=-1.0, le=1.0)
     n_batch: int = _field(
         1024, "fit", "Most candidate columns in one selection; wider texels are selected in "
-        "batches.", ge=16)
+        "batches.", ge=16, le=1 << 20)
     hierarchy: Literal["children", "dense"] = _field(
         "children", "fit",
         "Where a coarse texel's candidates come from: 'children' its children's weighted "

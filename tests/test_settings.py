@@ -29,3 +29,39 @@ def test_a_description_is_one_sentence_without_tickets_or_dates(name):
 def test_removed_experiments_are_refused():
     with pytest.raises(ValueError, match="coarse_target"):
         BakeSettings(coarse_target="dense")
+
+
+def _numbers(schema: dict) -> list[dict]:
+    """The number schemas of a field: itself, or its array's items."""
+    if schema.get("type") == "array":
+        return _numbers(schema["items"])
+    return [schema] if schema.get("type") in ("integer", "number") else []
+
+
+@pytest.mark.parametrize("name", sorted(BakeSettings.model_fields))
+def test_every_number_is_bounded(name):
+    """Every numeric field (list entries included) has a lower and an upper bound."""
+    prop = BakeSettings.model_json_schema()["properties"][name]
+    for num in _numbers(prop):
+        assert {"minimum", "exclusiveMinimum"} & set(num), (name, num)
+        assert {"maximum", "exclusiveMaximum"} & set(num), (name, num)
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("-inf"), float("nan"), 2e6])
+def test_non_finite_or_huge_switch_sizes_are_refused(value):
+    with pytest.raises(ValueError, match="lod_switch_px"):
+        BakeSettings(lod_switch_px=(value,))
+    with pytest.raises(ValueError, match="lod_switch_px"):
+        BakeSettings.model_validate_json('{"lod_switch_px": [Infinity]}')
+
+
+def test_valid_settings_read_back_from_their_json():
+    """Whatever validates reads back from its JSON (what the job database stores), equal."""
+    import random
+
+    rng = random.Random(7)
+    for _ in range(50):
+        px = sorted((rng.uniform(1e-3, 1e6) for _ in range(rng.randint(1, 8))), reverse=True)
+        s = BakeSettings(lod_switch_px=tuple(px), seed=rng.randint(0, 2**32 - 1),
+                         eps_db=rng.uniform(1e-9, 200.0), warp=rng.choice(["", "bend:angle=90"]))
+        assert BakeSettings.model_validate_json(s.model_dump_json()) == s
