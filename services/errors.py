@@ -72,25 +72,30 @@ async def _http_error(request: Request, exc: Exception) -> Response:
     if exc.status_code < 200 or exc.status_code in (204, 304):
         return Response(status_code=exc.status_code, headers=headers)
     return JSONResponse(
-        error_body(exc.detail, code_for(exc)), status_code=exc.status_code, headers=headers
+        error_body(_json_safe(exc.detail), code_for(exc)), status_code=exc.status_code,
+        headers=headers,
     )
 
 
 def _json_safe(obj: Any) -> Any:
-    """JSON has no NaN or Infinity: such floats (echoed back as the offending `input` of a
-    validation error) become their string names."""
+    """Anything a request sent, made renderable when echoed back (the offending `input` of a
+    validation error, a field name): JSON has no NaN or Infinity, so such floats become their
+    string names; a string that is not valid Unicode (a lone surrogate such as `"\\ud800"`)
+    has such characters spelled as escapes (`\\ud800`)."""
     if isinstance(obj, float) and not math.isfinite(obj):
         return str(obj)
+    if isinstance(obj, str):
+        return obj.encode("utf-8", "backslashreplace").decode("utf-8")
     if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
+        return {_json_safe(k): _json_safe(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
         return [_json_safe(v) for v in obj]
     return obj
 
 
 async def _validation_error(request: Request, exc: Exception) -> Response:
-    """The problems as `detail`, made encodable: FastAPI's own handler answered 500 when a
-    field's bad value was NaN or Infinity (found by benchmarks/fuzz_uploads.py)."""
+    """The problems as `detail`, made encodable (`_json_safe`): FastAPI's own handler answered
+    500 when a field's bad value was NaN, Infinity or a lone surrogate."""
     assert isinstance(exc, RequestValidationError)
     return JSONResponse(
         error_body(_json_safe(jsonable_encoder(exc.errors())), ErrorCode.VALIDATION_ERROR),
