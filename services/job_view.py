@@ -4,10 +4,12 @@ and quality."""
 from __future__ import annotations
 
 import json
+import logging
 from collections import defaultdict
 from functools import lru_cache
 from pathlib import Path
 
+from pydantic import ValidationError
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -23,9 +25,38 @@ from schemas.job import (
 from schemas.settings import BakeSettings
 from texelbake.estimate import costmodel
 
+log = logging.getLogger("texelbake.api")
+
 
 def _seconds(a, b) -> float | None:  # noqa: ANN001
     return (b - a).total_seconds() if a is not None and b is not None else None
+
+
+def stored_settings(settings_json: str, row: str) -> BakeSettings:
+    """The settings a job or batch row stores. A row stored before its settings were checked
+    to read back (`services.submission.check_readable`) may not validate: its unreadable
+    fields show their defaults (logged with `row`), so reading the row never fails."""
+    try:
+        return BakeSettings.model_validate_json(settings_json)
+    except ValidationError as exc:
+        log.warning("unreadable settings of %s: %s", row,
+                    "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()))
+    try:
+        data = json.loads(settings_json)
+    except ValueError:
+        return BakeSettings()
+    if not isinstance(data, dict):
+        return BakeSettings()
+    fields = {k: v for k, v in data.items() if k in BakeSettings.model_fields}
+    while True:
+        try:
+            return BakeSettings.model_validate(fields)
+        except ValidationError as exc:
+            bad = {e["loc"][0] for e in exc.errors() if e["loc"] and e["loc"][0] in fields}
+        if not bad:  # the fields disagree with each other
+            return BakeSettings()
+        for name in bad:
+            del fields[name]
 
 
 def progress_percent(done: int, total: int) -> float:
@@ -47,7 +78,7 @@ def job_estimate(job: Job, settings: BakeSettings, workers: int) -> JobEstimate:
     """The core cost model's prediction for a job (thin: `texelbake.estimate.costmodel.estimate`)."""
     from datetime import timedelta
 
-    e = _estimate(job.settings_json, workers)
+    e = _estimate(settings.model_dump_json(), workers)
     eta = job.started_at + timedelta(seconds=e.seconds) if job.started_at is not None else None
     return JobEstimate(seconds=round(e.seconds, 1), workers=e.workers,
                        cpm_seconds=round(e.cpm_seconds, 1), eta=eta,
@@ -95,7 +126,7 @@ def job_public(session: Session, job: Job, root: Path, workers: int = 2) -> JobP
         if previews_dir.is_dir()
         else []
     )
-    settings = BakeSettings.model_validate_json(job.settings_json)
+    settings = stored_settings(job.settings_json, f"job {job.id}")
     outcome, warnings = _quality(storage.job_out(root, job.id), job.state)
     return JobPublic(
         id=job.id,

@@ -13,23 +13,31 @@ from dataclasses import dataclass
 from typing import Any
 
 from fastapi import BackgroundTasks, Request, status
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from farm import ledger
 from farm.broker import broker_run_id, celery_sender
 from farm.db import Asset, Batch, BatchItem
 from schemas.common import ErrorCode
+from schemas.settings import BakeSettings
 from services.errors import ApiError
 from services.routers.assets import ASSET_NOT_FOUND
+
+#: where a request carries the settings of `POST /jobs` and the defaults of `POST /batches`
+SETTINGS_LOC: tuple[str | int, ...] = ("body", "settings")
 
 
 @dataclass(frozen=True)
 class JobSpec:
-    """One job to make: an asset of the tenant, validated settings (JSON), a priority."""
+    """One job to make: an asset of the tenant, validated settings (JSON), a priority;
+    `loc` is where the request carried the settings (a 422 names it)."""
 
     asset_id: str
     settings_json: str
     priority: int
+    loc: tuple[str | int, ...] = SETTINGS_LOC
 
 
 @dataclass(frozen=True)
@@ -40,6 +48,22 @@ class BatchSpec:
     name: str | None
     settings_json: str
     priority: int
+    loc: tuple[str | int, ...] = SETTINGS_LOC
+
+
+def check_readable(specs: list[JobSpec | BatchSpec]) -> None:
+    """Every spec's stored settings read back (`BakeSettings.model_validate_json`), else one
+    422 naming each field at its `loc`: nothing is stored that a later read could not
+    serve."""
+    issues: list[dict[str, Any]] = []
+    for spec in specs:
+        try:
+            BakeSettings.model_validate_json(spec.settings_json)
+        except ValidationError as exc:
+            issues += [{"loc": [*spec.loc, *e["loc"]], "msg": e["msg"], "type": e["type"]}
+                       for e in exc.errors()]
+    if issues:
+        raise RequestValidationError(issues)
 
 
 def own_asset(session: Session, tenant: str, asset_id: str, where: str = "") -> Asset:
@@ -60,7 +84,8 @@ def create_jobs(
     send their plan messages: now, or after the response when `later` is given (a batch's
     thousand messages cost seconds; a job is `queued` either way, and an unsent plan is sent
     by the sweeper). Returns the job ids in order. The caller has validated every spec and
-    holds no read session."""
+    holds no read session; settings that would not read back are a 422 (`check_readable`)."""
+    check_readable([*jobs, *([batch] if batch is not None else [])])
     app = request.app
     ids = [uuid.uuid4().hex for _ in jobs]
     with app.state.writer.begin() as s:

@@ -35,6 +35,7 @@ from schemas.job import TERMINAL_JOB_STATES
 from schemas.settings import BakeSettings
 from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ
 from services.errors import ApiError, errors
+from services.job_view import stored_settings
 from services.routers.jobs import BINARY, OCTET, _media_type
 from services.submission import BatchSpec, JobSpec, create_jobs, own_asset
 from texelbake.io.archive import folder_members, write_zip
@@ -157,7 +158,7 @@ def _summaries(session: Session, batches: list[Batch]) -> list[BatchSummary]:
 
 def batch_public(session: Session, batch: Batch) -> BatchPublic:
     fields, items = _with_items(session, batch)
-    return BatchPublic(**fields, settings=BakeSettings.model_validate_json(batch.settings_json),
+    return BatchPublic(**fields, settings=stored_settings(batch.settings_json, f"batch {batch.id}"),
                        items=items)
 
 
@@ -179,7 +180,8 @@ def _item_specs(body: BatchCreate) -> list[JobSpec]:
                         "type": e["type"]} for e in exc.errors()]
             continue
         priority = body.priority if item.priority is None else item.priority
-        specs.append(JobSpec(item.asset_id, merged.model_dump_json(), priority))
+        specs.append(JobSpec(item.asset_id, merged.model_dump_json(), priority,
+                             ("body", "items", i, "settings")))
     if issues:
         raise RequestValidationError(issues)
     return specs
