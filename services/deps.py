@@ -1,4 +1,5 @@
-"""Typed dependencies shared by the routers: settings, sessions, the current tenant."""
+"""Typed dependencies shared by the routers: settings, sessions, the current tenant, the
+bounded query parameters and headers."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import time
 from collections.abc import AsyncIterator
 from typing import Annotated
 
-from fastapi import Depends, Query, Request, status
+from fastapi import Depends, Header, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -102,3 +103,23 @@ CurrentTenant = Annotated[str, Depends(get_current_tenant)]
 #: paging of listings; out-of-range values are a 422, never a database overflow
 SkipQ = Annotated[int, Query(ge=0, le=1_000_000_000)]
 LimitQ = Annotated[int, Query(ge=1, le=1000)]
+
+#: the largest event sequence number the database holds (a signed 64-bit integer)
+MAX_EVENT_SEQ = 2**63 - 1
+
+
+async def get_last_event_id(last_event_id: Annotated[str | None, Header()] = None) -> int | None:
+    """`Last-Event-ID` as an event sequence number: a decimal integer in 0..MAX_EVENT_SEQ.
+    Anything else (not a number, negative, too large for the database) is ignored as if not
+    sent: a browser's EventSource resends whatever id it was given, so a 422 would make it
+    reconnect in a loop."""
+    if last_event_id is None:
+        return None
+    text = last_event_id.strip()
+    if not (text.isascii() and text.isdigit() and len(text) <= len(str(MAX_EVENT_SEQ))):
+        return None
+    seq = int(text)
+    return seq if seq <= MAX_EVENT_SEQ else None
+
+
+LastEventId = Annotated[int | None, Depends(get_last_event_id)]

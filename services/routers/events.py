@@ -7,14 +7,14 @@ from __future__ import annotations
 import asyncio
 import json
 
-from fastapi import APIRouter, Header, Request
+from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import sessionmaker
 
 from farm.db import Event, Job
-from services.deps import CurrentTenant
+from services.deps import CurrentTenant, LastEventId
 from services.errors import errors
 
 router = APIRouter(prefix="/events", tags=["events"])
@@ -53,20 +53,15 @@ def last_seq(reader: sessionmaker) -> int:
         **errors(401, 422),
     },
 )
-def read_events(
-    request: Request, tenant: CurrentTenant, last_event_id: str | None = Header(None)
-) -> StreamingResponse:
+def read_events(request: Request, tenant: CurrentTenant, given: LastEventId) -> StreamingResponse:
     """Events of all of this tenant's jobs (`event: job|stage|shard`, `data: JobEvent JSON`,
     `id: seq`), from now on, or after `Last-Event-ID` when given. The stream opens with
     `event: ready` (its `id` the sequence number it starts after): a client that read the
     job list before has missed nothing once it re-reads the list on `ready`. It ends after
-    `sse_max_seconds` (reconnect with `Last-Event-ID`)."""
+    `sse_max_seconds` (reconnect with `Last-Event-ID`). A `Last-Event-ID` that is not a
+    sequence number (0 to 2^63 - 1) is ignored."""
     reader = request.app.state.reader
     max_seconds = request.app.state.settings.sse_max_seconds
-    try:
-        given = int(last_event_id) if last_event_id else None
-    except ValueError:
-        given = None
 
     async def stream():
         after = given if given is not None else await run_in_threadpool(last_seq, reader)

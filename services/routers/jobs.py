@@ -8,7 +8,7 @@ import json
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Query, Request, Response, status
+from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from sqlalchemy import func, select
@@ -27,7 +27,15 @@ from schemas.job import (
     JobState,
     JobSummary,
 )
-from services.deps import CurrentTenant, LimitQ, SessionDep, SettingsDep, SkipQ, WriterDep
+from services.deps import (
+    CurrentTenant,
+    LastEventId,
+    LimitQ,
+    SessionDep,
+    SettingsDep,
+    SkipQ,
+    WriterDep,
+)
 from services.errors import ApiError, errors
 from services.job_view import job_public, progress_percent
 from services.limits import cpu_slot
@@ -258,16 +266,14 @@ def read_job_events(
     request: Request,
     session: SessionDep,
     tenant: CurrentTenant,
-    last_event_id: str | None = Header(None),
+    given: LastEventId,
 ) -> StreamingResponse:
     """Server-sent events of one job (`event: job|stage|shard`, `data: JSON`, `id: seq`); the
     stream ends after the job's terminal event, or after `sse_max_seconds` (reconnect with
-    `Last-Event-ID` to resume)."""
+    `Last-Event-ID` to resume; one that is not a sequence number, 0 to 2^63 - 1, is
+    ignored)."""
     _own_job(session, job_id, tenant)
-    try:
-        after = int(last_event_id or 0)
-    except ValueError:
-        after = 0
+    after = given or 0
     reader = request.app.state.reader
     max_seconds = request.app.state.settings.sse_max_seconds
 
