@@ -163,3 +163,18 @@ def test_every_job_reads_back(c):
         assert c.delete(f"/jobs/{j['id']}").status_code == 202, j
     for b in c.get("/batches").json()["data"]:
         assert c.get(f"/batches/{b['id']}").status_code == 200, b
+
+
+def test_settings_that_would_not_read_back_are_refused_at_their_loc():
+    """The last guard before a job is stored: a spec whose JSON does not read back."""
+    from fastapi.exceptions import RequestValidationError
+
+    from services.submission import JobSpec, check_readable
+
+    good = JobSpec("a", "{}", 50)
+    check_readable([good])
+    bad = JobSpec("a", '{"lod_switch_px": [null]}', 50, ("body", "items", 3, "settings"))
+    with pytest.raises(RequestValidationError) as exc:
+        check_readable([good, bad])
+    assert [e["loc"] for e in exc.value.errors()] == [
+        ["body", "items", 3, "settings", "lod_switch_px", 0]]
