@@ -117,7 +117,7 @@ def install_breakdown() -> dict[str, list[float]]:
 
 def run(scene: str, size: str, settings: BakeSettings, work: Path,
         tiles: list[int] | None = None) -> dict:
-    setup_bake_process()  # as every bake process (texelbake.pipeline.run.run.run.run.run.run.run.run_shard)
+    setup_bake_process()  # as every bake process (texelbake.pipeline.run.run_shard)
     asset = stages_asset(scene, size, work)
     ctx = stages.StageContext.create(work / "store", asset, settings)
     stages.run_ingest(ctx, 0)

@@ -1,7 +1,7 @@
 """The farm's queues: one per workload, the families of workers that serve them, and the queue
 of every stage a plan can hold.
 
-The one table of queues: the core's plan (`texelbake.pipeline.plan.plan.plan_bake`) reads the stage
+The one table of queues: the core's plan (`texelbake.pipeline.plan.plan_bake`) reads the stage
 queues, the Celery configuration declares `QUEUES`, the local launcher and docker-compose.yml
 start one kind of worker per family, and admission groups its backlog by family.
 """

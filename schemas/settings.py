@@ -144,7 +144,7 @@ class BakeSettings(BaseModel):
         "texel", "a_vis",
         "How the Haar coefficients are chosen: 'texel' evens the relative error over texels, "
         "'face' keeps the seed's top fraction per cube face.")
-    # quality gate (texelbake.stages.quality.quality.quality): targets, not inputs of any stage
+    # quality gate (texelbake.stages.quality): targets, not inputs of any stage
     gate_snr_median_db: float = _field(
         GATE_SNR_MEDIAN_DB, "quality gate",
         "Held-out SNR median in dB that each CPM level must reach.", ge=-200.0, le=200.0)

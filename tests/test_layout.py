@@ -118,7 +118,7 @@ def test_core_does_not_import_the_service_packages_statically():
     # the CLI's `texelbake stack up` is the one door into the farm's process launcher, and
     # `texelbake submit` the one into the HTTP clients
     assert {m: ts for m, ts in bad.items() if ts} == {
-        "texelbake.cli.farm.farm": ["farm.stack", "texelbake_client.batch", "texelbake_client.submit"]}
+        "texelbake.cli.farm": ["farm.stack", "texelbake_client.batch", "texelbake_client.submit"]}
 
 
 #: each package's layer: a module imports from lower layers, and within its layer only from

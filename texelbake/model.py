@@ -32,7 +32,7 @@ SHADER_LAMBERT = "texelbake:lambert"
 SHADER_PHONG = "texelbake:phong"
 SHADER_MEASURED = "texelbake:measured"
 SHADER_CELLULAR = "texelbake:cellular"
-#: the baked material's shaders on texelbake's render contexts (texelbake.payload, texelbake.btf)
+#: the baked material's shaders on texelbake's render contexts (texelbake.usd, texelbake.btf)
 SHADER_CPM = "texelbake:cpm"
 SHADER_BTF = "texelbake:btf_laplacian"
 

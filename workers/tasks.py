@@ -131,12 +131,12 @@ def load_job(job_id: str) -> tuple[Job, Asset, BakeSettings, Path]:
 
 @app.task(name="workers.tasks.plan_job", bind=True, max_retries=None)
 def plan_job(self, job_id: str) -> None:
-    """Decide the stages of a job (`texelbake.pipeline.plan.plan.plan.plan_bake`) and queue the first ones."""
-    from texelbake import pipeline
+    """Decide the stages of a job (`texelbake.pipeline.plan.plan_bake`) and queue the first ones."""
+    from texelbake.pipeline.plan import plan_bake
 
     try:
         _job, _asset, settings, asset_path = load_job(job_id)
-        plan = pipeline.plan_bake(asset_path, settings)
+        plan = plan_bake(asset_path, settings)
         stages = [(sp.name, sp.queue, sp.n_shards, tuple(sp.depends_on)) for sp in plan.stages]
         sends = ledger.record_plan(_sm(), job_id, stages, [list(x) for x in plan.skipped],
                                    ledger.policy_from(get_settings()))
@@ -156,7 +156,8 @@ def plan_job(self, job_id: str) -> None:
 
 def execute_shard(job_id: str, stage: str, shard: int) -> str:
     """The body of one shard: the core stage function for (stage, shard). Returns its key."""
-    from texelbake import pipeline
+    from texelbake.pipeline.plan import plan_bake
+    from texelbake.pipeline.run import finalize, run_shard
 
     _hang_failpoint(stage)
     job, asset, settings, asset_path = load_job(job_id)
@@ -164,15 +165,15 @@ def execute_shard(job_id: str, stage: str, shard: int) -> str:
     workdir = storage.work_dir(root, asset.sha256, settings.digest())
     out_dir = storage.job_out(root, job_id)
     if stage == "export":
-        baked = pipeline.finalize(
+        baked = finalize(
             workdir, asset_path, settings, out_dir,
             stage_seconds=ledger.stage_seconds(_sm(), job_id),  # the farm's own timings
-            plan=pipeline.plan_bake(asset_path, settings),
+            plan=plan_bake(asset_path, settings),
         )
         return str(Path(baked).relative_to(out_dir))
     if stage in ("render", "deformed"):
         return _previews(stage, workdir, asset_path, settings, out_dir)
-    return pipeline.run_shard(workdir, asset_path, settings, stage, shard)
+    return run_shard(workdir, asset_path, settings, stage, shard)
 
 
 def _previews(

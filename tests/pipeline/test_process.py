@@ -1,4 +1,4 @@
-"""A bake process's setup (`texelbake.pipeline.process.process.process.process`): a large array freed and made again reuses the
+"""A bake process's setup (`texelbake.pipeline.process`): a large array freed and made again reuses the
 process's memory instead of faulting in fresh pages, and BLAS runs one thread. Each case runs
 in a fresh interpreter (the setup is process-wide and applied once)."""
 

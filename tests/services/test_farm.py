@@ -2,7 +2,7 @@
 
 End to end over HTTP (SQLite and PostgreSQL), a worker killed with -9 while it holds a cpm
 shard, and redis-server and the API restarted mid-job: every job completes and its result is
-identical to the in-process `texelbake.pipeline.run.run.run.run.bake` of the same file with the same settings.
+identical to the in-process `texelbake.pipeline.run.bake` of the same file with the same settings.
 """
 
 from __future__ import annotations

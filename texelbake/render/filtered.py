@@ -1,5 +1,5 @@
 """What the filtered-normal-map modes (`toksvig`, `leadr`, their `+ao` variants) share: the
-bake's filtered maps read back through `texelbake.payload` (`texelbake.baselines.filtered_maps`
+bake's filtered maps read back through `texelbake.usd.read` (`texelbake.baselines.filtered_maps`
 layout), looked up trilinearly at each eye ray's footprint exactly as ``cpm`` picks its level
 (`cpm.footprint_level`, each of the spp samples at its 1/spp share of the pixel: λ lower by
 ½ log2 spp, clipped to the levels — the maps have no M_org fall-back: closer than the finest

@@ -1,5 +1,5 @@
 """A baked asset ready to render (`RenderScene`: the baked arrays read through
-`texelbake.payload`, M_org and every M_i with their ray casters), and the cameras a frame can
+`texelbake.usd.read`, M_org and every M_i with their ray casters), and the cameras a frame can
 be seen from (`resolve_camera`, `lod_camera`)."""
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ packages (DESIGN.md "The data flow"): `run_ingest`, `run_geometry`, `run_cpm_til
 Each `run_*` takes a StageContext and a shard index, writes its output atomically under a
 content-derived key and returns that key; when the key already exists it returns at once
 ("already there" is success), so a retried or duplicated task is harmless. The same functions
-run in-process (`texelbake.pipeline.run.run.run.bake`) and as Celery tasks (`workers.tasks`).
+run in-process (`texelbake.pipeline.run.bake`) and as Celery tasks (`workers.tasks`).
 """
 
 from texelbake.stages.avis import avis_levels, run_avis_tile, run_avis_top

@@ -1,7 +1,7 @@
 """The baked asset's UsdPreviewSurface fallback material (what any USD viewer shows): its
 authoring per LOD, with the baked maps and the constants carried from the source material and
 texelbake's CPM shader on the `texelbake` render context, and reading one back as authored.
-`texelbake.payload` writes and reads the bundle through these."""
+`texelbake.usd.write` and `texelbake.usd.read` write and read the bundle through these."""
 
 from __future__ import annotations
 

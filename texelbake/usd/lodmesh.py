@@ -1,7 +1,7 @@
 """The LOD meshes of the baked USD (DESIGN.md "The baked USD"): M_i with its atlas uvs, shading
 normals, the impostor parameterization (seed 002 Table 1) and how it follows M_org's animation
 (UsdSkel influences or time samples), authored on and read from one `UsdGeom.Mesh` each.
-`texelbake.payload` writes and reads the rest of the bundle around them."""
+`texelbake.usd.write` and `texelbake.usd.read` write and read the rest of the bundle around them."""
 
 from __future__ import annotations
 

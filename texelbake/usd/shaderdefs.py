@@ -77,7 +77,7 @@ SHADER_INPUTS: Mapping[str, tuple[tuple[str, str, object], ...]] = MappingProxyT
     }
 )
 
-#: the baked material's shaders (texelbake.payload's CPM marker, whose data is the
+#: the baked material's shaders (the payload's CPM marker, whose data is the
 #: `texelbake:levels` relationship, and texelbake.btf's Laplacian BTF): id -> inputs as above
 BAKED_SHADER_INPUTS: Mapping[str, tuple[tuple[str, str, object], ...]] = MappingProxyType(
     {

@@ -1,6 +1,6 @@
 #version 300 es
 // The UsdPreviewSurface fallback of a bake without BTF maps: the baked albedo and
-// tangent-space normal maps on the LOD mesh (texelbake/normalmap.py: n stored as
+// tangent-space normal maps on the LOD mesh (texelbake/baselines/normal_maps.py: n stored as
 // (t . n_s, b . n_s, n . n_s) in [-1, 1], encoded to [0, 1]); diffuse, one distant light.
 precision highp float;
 
