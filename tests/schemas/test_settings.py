@@ -65,3 +65,31 @@ def test_valid_settings_read_back_from_their_json():
         s = BakeSettings(lod_switch_px=tuple(px), seed=rng.randint(0, 2**32 - 1),
                          eps_db=rng.uniform(1e-9, 200.0), warp=rng.choice(["", "bend:angle=90"]))
         assert BakeSettings.model_validate_json(s.model_dump_json()) == s
+
+
+def test_readme_lists_every_field_in_its_group():
+    """The README's "Bake settings" table is the schema's grouping, field for field."""
+    import re
+    from pathlib import Path
+
+    from schemas.settings import GROUPS
+
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    table = text.split("## Bake settings", 1)[1].split("\n## ", 1)[0]
+    rows = dict(re.findall(r"^\| ([a-z_ ]+) \| (.+) \|$", table, re.M))
+    listed = {g: re.findall(r"`(\w+)`", rows.get(g, "")) for g in GROUPS}
+    want = {g: [n for n, f in BakeSettings.model_fields.items()
+                if f.json_schema_extra["group"] == g] for g in GROUPS}
+    assert listed == want
+
+
+def test_bake_help_lists_every_field_by_group():
+    """`texelbake bake --help` ends with every setting and its default, under its group."""
+    from texelbake.cli import build_parser
+
+    sub = build_parser()._subparsers._group_actions[0].choices["bake"]
+    text = sub.format_help()
+    for group in GROUPS:
+        assert f"  {group}: " in text
+    for name in BakeSettings.model_fields:
+        assert f"{name}=" in text
