@@ -15,6 +15,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("texelbake", "schemas", "farm", "texelbake_client", "services", "workers")
 SERVICE_LIBS = ("fastapi", "starlette", "celery", "kombu", "redis", "uvicorn")
@@ -289,11 +291,13 @@ def _probe(mods: list[str], mode: str, tmp_path: Path) -> dict:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # two fresh interpreters importing every module (~30 s): `make test` runs them
 def test_every_module_imports_alone(tmp_path):
     mods = sorted(_modules())
     assert _probe(mods, "alone", tmp_path)["failed"] == {}
 
 
+@pytest.mark.slow
 def test_core_imports_neither_fastapi_celery_nor_redis(tmp_path):
     mods = sorted(_modules(("texelbake", "schemas")))
     loaded = _probe(mods, "core", tmp_path)["loaded"]
