@@ -1,4 +1,5 @@
-"""``gt``: M_org, stratified eye rays, direct light with shadow rays against M_org."""
+"""M_org ready to trace (`OrgScene`) and its ground truth, ``gt``: stratified eye rays, direct
+light with shadow rays against M_org."""
 
 from __future__ import annotations
 
