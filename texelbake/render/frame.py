@@ -98,13 +98,14 @@ def _normalmap(scene, cam, spp, seed, **kw):
     return (*render_normalmap(scene, cam, spp, seed), {})
 
 
-def _baked_only(mode: str, fn, **mode_kw):
-    """A mode that needs a baked asset's maps (a RenderScene), not M_org alone."""
+def _baked_only(mode: str, fn, takes_kw: bool = False, **mode_kw):
+    """A mode that needs a baked asset's maps (a RenderScene), not M_org alone; the caller's
+    keywords reach `fn` only when it `takes_kw` (the filtered baselines take none)."""
 
     def run(scene, cam, spp, seed, **kw):
         if not isinstance(scene, RenderScene):
             raise SettingsError(f"field 'mode': {mode!r} needs a baked asset (RenderScene)")
-        return (*fn(scene, cam, spp, seed, **mode_kw, **kw), {})
+        return (*fn(scene, cam, spp, seed, **mode_kw, **(kw if takes_kw else {})), {})
 
     return run
 
@@ -164,7 +165,8 @@ MODE_TABLE: dict[str, Mode] = {
     "equal-time": Mode(None, None, "main"),
     "srf": Mode(_srf, _srf_deformed(naive=False), "extra"),
     "srf-naive": Mode(None, _srf_deformed(naive=True), ""),
-    "btf": Mode(_baked_only("btf", render_btf), _btf_deformed(naive=False), "extra"),
+    "btf": Mode(_baked_only("btf", render_btf, takes_kw=True), _btf_deformed(naive=False),
+                "extra"),
     "btf-naive": Mode(None, _btf_deformed(naive=True), ""),
     # the filtered-normal-map baselines studios ship; they need a bake's filtered maps
     "toksvig": Mode(_baked_only("toksvig", render_toksvig), None, "extra"),
