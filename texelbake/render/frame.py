@@ -156,6 +156,13 @@ class Mode:
     listed: str
 
 
+#: the filtered baselines: mode -> (renderer, its keywords)
+_FILTERED: dict[str, tuple[Callable[..., tuple], dict[str, Any]]] = {
+    "toksvig": (render_toksvig, {}), "toksvig+ao": (render_toksvig, {"ao": True}),
+    "leadr": (render_leadr, {}), "leadr+ao": (render_leadr, {"ao": True}),
+    "preview-surface": (render_preview_surface, {}),
+}
+
 #: the one table of render modes, in the order reports list them
 MODE_TABLE: dict[str, Mode] = {
     "gt": Mode(_gt, _gt, "main"),
@@ -169,18 +176,13 @@ MODE_TABLE: dict[str, Mode] = {
                 "extra"),
     "btf-naive": Mode(None, _btf_deformed(naive=True), ""),
     # the filtered-normal-map baselines studios ship; they need a bake's filtered maps
-    "toksvig": Mode(_baked_only("toksvig", render_toksvig), None, "extra"),
-    "toksvig+ao": Mode(_baked_only("toksvig+ao", render_toksvig, ao=True), None, "extra"),
-    "leadr": Mode(_baked_only("leadr", render_leadr), None, "extra"),
-    "leadr+ao": Mode(_baked_only("leadr+ao", render_leadr, ao=True), None, "extra"),
-    "preview-surface": Mode(_baked_only("preview-surface", render_preview_surface), None,
-                            "extra"),
+    **{m: Mode(_baked_only(m, fn, **kw), None, "extra") for m, (fn, kw) in _FILTERED.items()},
 }
 MODES = tuple(m for m, e in MODE_TABLE.items() if e.listed == "main")
 #: modes `render_frame` accepts beyond MODES (they need optional bake outputs; ``srf``: a
 #: reflectance field captured beside the bake, `texelbake.srf.mode`)
 EXTRA_MODES = tuple(m for m, e in MODE_TABLE.items() if e.listed == "extra")
-FILTERED_MODES = ("toksvig", "toksvig+ao", "leadr", "leadr+ao", "preview-surface")
+FILTERED_MODES = tuple(_FILTERED)
 DEFORMED_MODES = tuple(m for m, e in MODE_TABLE.items()
                        if e.deformed is not None or m == "equal-time")
 
