@@ -37,7 +37,7 @@ demo: setup
 	$(VENV)/bin/texelbake demo --out demo_out
 
 test: setup
-	$(PY) -m pytest -q -p no:cacheprovider --timeout=900 --durations=25
+	$(PY) -m pytest -q -p no:cacheprovider --timeout=900 --durations=25 -n 2 --dist loadgroup
 
 test-fast: setup
 	$(PY) -m pytest -q -x -m "not service and not browser and not slow"

@@ -3,7 +3,27 @@ import os
 import numpy as np
 import pytest
 
-os.environ.setdefault("OMP_NUM_THREADS", "2")
+# Under pytest-xdist (`make test` runs two workers) each worker gets its share of the cores, so
+# two torch/OpenMP pools do not oversubscribe the machine (OpenMP's spin-waits then cost more
+# than the parallelism gains).
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 2) // _WORKERS)))
+
+#: tests that start real processes (an API, Redis, Celery workers, Chromium) run one after
+#: another on one xdist worker: their waits overlap the other worker's numerical tests, but no
+#: two farms compete, so their time limits mean what they say on a loaded machine
+_FARM_MARKERS = ("service", "browser")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """With `--dist loadgroup`, a module's tests stay together on one worker (its module
+    fixtures are built once) and the farm tests form one group (see `_FARM_MARKERS`)."""
+    if config.getoption("dist", "no") != "loadgroup":
+        return
+    for item in items:
+        farm = any(item.get_closest_marker(m) for m in _FARM_MARKERS)
+        item.add_marker(pytest.mark.xdist_group("farm" if farm else item.module.__name__))
 
 
 @pytest.fixture(scope="session", autouse=True)
