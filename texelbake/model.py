@@ -194,6 +194,9 @@ class AssetModel:
         mesh by linear blending (None otherwise: the points are only time samples)
     dropped_faces : number of zero-area / degenerate faces removed at ingest
     warnings : human-readable warnings, each naming a prim path
+    unreachable_paths : asset paths only unselected variants name, never read ("'path' (in
+        layer L, at spec)"; `texelbake.asset.paths.scan_asset_paths`)
+    missing_paths : textures inside the asset that do not exist (their fallbacks are used)
     """
 
     source: str
@@ -215,6 +218,8 @@ class AssetModel:
     dropped_faces: int = 0
     warnings: tuple[str, ...] = ()
     skin: SkinData | None = None
+    unreachable_paths: tuple[str, ...] = ()
+    missing_paths: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         for name, dtype in (
