@@ -1,7 +1,7 @@
 """The asset's stage composed as USD composes it, with what usd-core's wheel lacks: MaterialX
 documents composed through their translation (`texelbake.asset.mtlx_document`).
 
-`open_stage` swaps, for the life of the stage, each arc to a `.mtlx` document for one to the
+`read_composed` swaps, for the life of the stage, each arc to a `.mtlx` document for one to the
 document's in-memory translation: the layer holding the arc is edited in pxr's layer registry
 (`UpdateExternalReference`) and reloaded from disk afterwards, so nothing is written and the
 next open sees the file as authored. `reached_specs` composes with some layers muted (never
@@ -11,13 +11,14 @@ opened) and tells which specs the composed stage uses: what the variant selectio
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 from texelbake.asset.mtlx_document import TRANSLATED_SUFFIX, translated_layer
 from texelbake.asset.values import first_line
 from texelbake.errors import AssetError
+
+T = TypeVar("T")
 
 
 def layer_key(layer: Any) -> str:
@@ -34,10 +35,10 @@ def layer_key(layer: Any) -> str:
     return os.path.realpath(ident)
 
 
-@contextmanager
-def open_stage(root: str, mtlx: Sequence[tuple[str, str, str]], warns: list[str], *,
-               mute: Sequence[str] = ()) -> Iterator[Any]:
-    """The composed stage of `root` (a context: the edits are undone on exit).
+def read_composed(root: str, mtlx: Sequence[tuple[str, str, str]], warns: list[str],
+                  read: Callable[[Any], T], *, mute: Sequence[str] = ()) -> T:
+    """`read(stage)` on the composed stage of `root`; the stage is released and the layers'
+    edits undone before this returns.
 
     mtlx : (layer identifier holding the arc, the arc's asset path, the document's file), from
         `AssetScan.mtlx`; mute : layer identifiers composition must not open (the stage is
@@ -65,7 +66,10 @@ def open_stage(root: str, mtlx: Sequence[tuple[str, str, str]], warns: list[str]
             raise AssetError(f"pxr cannot open the file: {first_line(exc)}", path=root) from exc
         if stage is None:
             raise AssetError("pxr cannot open the file", path=root)
-        yield stage
+        try:
+            return read(stage)
+        finally:
+            del stage  # released before the edits are undone: nothing recomposes
     finally:
         for layer in edited.values():
             layer.Reload(True)
@@ -78,11 +82,13 @@ def reached_specs(root: str, mtlx: Sequence[tuple[str, str, str]], mute: Sequenc
     variant paths (`/Asset{look=red}Body`), only for the selected variants."""
     from pxr import Usd
 
-    with open_stage(root, mtlx, [], mute=mute) as stage:
+    def read(stage: Any) -> tuple[set[tuple[str, str]], set[str]]:
         layers = {layer_key(layer) for layer in stage.GetUsedLayers()}
         prims: set[tuple[str, str]] = set()
         for top in [stage.GetPseudoRoot(), *stage.GetPrototypes()]:
             for prim in Usd.PrimRange(top, Usd.PrimAllPrimsPredicate):
                 for spec in prim.GetPrimStack():
                     prims.add((layer_key(spec.layer), str(spec.path)))
-    return prims, layers
+        return prims, layers
+
+    return read_composed(root, mtlx, [], read, mute=mute)

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from texelbake.asset.compose import open_stage
+from texelbake.asset.compose import read_composed
 from texelbake.asset.instancers import instancer_meshes
 from texelbake.asset.lights import read_camera, read_light
 from texelbake.asset.materials import DEFAULT_MATERIAL, MaterialReader, face_materials
@@ -46,7 +46,7 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
     """Read a USD asset into one AssetModel (see `texelbake.model.AssetModel` for every field).
 
     path : `.usda` / `.usdc` / `.usd` / `.usdz`. `scan_asset_paths` runs first, before the stage
-        is composed with its variant selections (`texelbake.asset.compose.open_stage`: MaterialX
+        is composed with its variant selections (`texelbake.asset.compose.read_composed`: MaterialX
         documents through their translation); paths only unselected variants name are never
         read and listed in `unreachable_paths`, missing textures in `missing_paths`.
     time_code : the time at which points, transforms, lights and cameras are read. None reads
@@ -81,8 +81,8 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
         warn(warns, f"asset path {item} is named only by unselected variants; not read")
     for item in scan.missing:
         warn(warns, f"asset path {item} does not exist; what reads it takes its fallback")
-    with open_stage(source, scan.mtlx, warns) as stage:
-        return _read_stage(stage, source, time_code, warns, scan)
+    return read_composed(source, scan.mtlx, warns,
+                         lambda stage: _read_stage(stage, source, time_code, warns, scan))
 
 
 def _read_stage(stage: Any, source: str, time_code: float | None, warns: list[str],

@@ -47,12 +47,15 @@ class AssetScan:
     missing : the same for textures (non-layer paths) inside the asset that do not exist
     mtlx : (identifier of the layer holding the arc, the arc's asset path, the document's
         file) per MaterialX document the layers name
+    unreachable_only : (layer identifier, asset path) for paths every use of which in that
+        layer is unreachable (what the upload check leaves alone)
     """
 
     files: tuple[str, ...]
     unreachable: tuple[str, ...] = ()
     missing: tuple[str, ...] = ()
     mtlx: tuple[tuple[str, str, str], ...] = ()
+    unreachable_only: tuple[tuple[str, str], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -313,6 +316,7 @@ def scan_asset_paths(path: str | Path) -> AssetScan:
     files: set[str] = {root_real}
     conditional_of: dict[_Loc, bool] = {}
     uses: list[_Use] = []  # conditional uses, and unconditional missing textures
+    plain: set[tuple[str, str]] = set()  # (layer, asset) used outside any variant
     mtlx: list[tuple[str, str, str]] = []
     stack: list[tuple[_Loc, _Use | None]] = [(start, None)]
     while stack:
@@ -348,6 +352,8 @@ def scan_asset_paths(path: str | Path) -> AssetScan:
                 raise error
             if c or error is not None:
                 uses.append(use)
+            if not c:
+                plain.add((loc.identifier, asset))
             for target in targets:
                 files.add(target.file)
                 name = target.member if target.member is not None else target.file
@@ -361,6 +367,7 @@ def scan_asset_paths(path: str | Path) -> AssetScan:
                     stack.append((target, use))  # checked above, so safe to open as a layer
     unreachable: list[str] = []
     missing: list[str] = []
+    skipped: set[tuple[str, str]] = set()
     conditional = [u for u in uses if u.conditional]
     if conditional:
         mute = sorted({_anchored(u) for u in conditional if u.error is not None and u.layer_like})
@@ -368,11 +375,15 @@ def scan_asset_paths(path: str | Path) -> AssetScan:
         for u in sorted(conditional, key=lambda u: u.describe()):
             if not u.reached(prims, layers):
                 unreachable.append(u.describe())
-            elif u.error is not None and (u.layer_like
+                skipped.add((u.holder.identifier, u.asset))
+                continue
+            plain.add((u.holder.identifier, u.asset))
+            if u.error is not None and (u.layer_like
                                           or not isinstance(u.error, MissingPathError)):
                 raise u.error
             elif u.error is not None:
                 missing.append(u.describe())
     missing += sorted(u.describe() for u in uses if not u.conditional)
     return AssetScan(files=tuple(sorted(files)), unreachable=tuple(unreachable),
-                     missing=tuple(sorted(missing)), mtlx=tuple(sorted(set(mtlx))))
+                     missing=tuple(sorted(missing)), mtlx=tuple(sorted(set(mtlx))),
+                     unreachable_only=tuple(sorted(skipped - plain)))
