@@ -121,7 +121,7 @@ def test_materialx_reference_reads_standard_surface_with_its_image(tmp_path):
     asset = load_asset(path)
     (mat,) = asset.materials
     assert mat.path == "/Root/Looks/Rook" and mat.model == "preview"
-    assert mat.params["roughness"] == pytest.approx(0.45) and mat.params["metallic"] == 0.0
+    assert mat.params["roughness"] == pytest.approx(0.6) and mat.params["metallic"] == 0.0
     tex = mat.textures["diffuseColor"]
     assert tex.path == str(tmp_path / "textures" / "rook_color.png")
     assert (tex.wrap_s, tex.wrap_t, tex.source_color_space) == ("repeat", "repeat", "sRGB")

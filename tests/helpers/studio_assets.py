@@ -147,7 +147,7 @@ MTLX_DOC = """<?xml version="1.0"?>
   <standard_surface name="SR_rook" type="surfaceshader">
     <input name="base" type="float" value="1.0" />
     <input name="base_color" type="color3" nodegraph="NG_rook" output="out_color" />
-    <input name="specular_roughness" type="float" value="0.45" />
+    <input name="specular_roughness" type="float" value="0.6" />
     <input name="metalness" type="float" value="0.0" />
   </standard_surface>
   <surfacematerial name="Rook" type="material">
