@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdShade, Vt
 
-from tests.helpers.usd_stages import bind, new_stage, write_png
+from tests.helpers.usd_stages import bind, new_stage, preview_material, write_png
 
 #: the kit's swatches (8-bit sRGB) and the faces of the box each covers (GeomSubsets)
 KIT_SWATCHES = {"Red": (200, 30, 25), "Grey": (128, 128, 128), "Blue": (30, 60, 210)}
@@ -132,6 +132,8 @@ def wheel_variants_asset(folder: Path) -> tuple[Path, Path]:
             else:
                 wheel.GetReferences().AddReference("./parts/racing_wheels.usda")
     vset.SetVariantSelection("stock")
+    paint = preview_material(stage, "/Root/Looks/Paint", (0.6, 0.45, 0.3))
+    bind(stage.GetPrimAtPath("/Root"), paint)  # inherited by the body and every wheel
     stage.Save()
     return asset / "root.usda", outside
 
