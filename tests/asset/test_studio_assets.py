@@ -245,3 +245,25 @@ def test_missing_texture_takes_its_fallback_and_the_bundle_is_accepted(tmp_path)
     np.testing.assert_allclose(asset.materials[0].params["diffuseColor"], [0.2, 0.4, 0.6],
                                atol=1e-7)
     assert not asset.materials[0].textures and len(asset.missing_paths) == 1
+
+
+def test_materialx_in_an_unselected_variant_is_not_read(tmp_path):
+    # the selected look is a UsdPreviewSurface; the other names a document that does not
+    # parse and one that is missing: neither is read, both listed
+    path = textured_box(tmp_path)
+    (tmp_path / "broken.mtlx").write_text("<materialx")
+    stage = Usd.Stage.Open(str(path))
+    vset = stage.GetPrimAtPath("/Root").GetVariantSets().AddVariantSet("look")
+    vset.AddVariant("print")
+    vset.AddVariant("mtlx")
+    vset.SetVariantSelection("mtlx")
+    with vset.GetVariantEditContext():
+        stage.DefinePrim("/Root/Alt").GetReferences().AddReference(
+            "./broken.mtlx", "/MaterialX/Materials/Rook")
+        stage.DefinePrim("/Root/Alt2").GetReferences().AddReference("./gone.mtlx")
+    vset.SetVariantSelection("print")
+    stage.Save()
+    del stage
+    asset = load_asset(path)
+    assert {p.split("'")[1] for p in asset.unreachable_paths} == {"./broken.mtlx", "./gone.mtlx"}
+    assert asset.materials[0].textures["diffuseColor"].pixels.shape == (16, 16, 3)

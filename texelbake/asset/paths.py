@@ -318,6 +318,7 @@ def scan_asset_paths(path: str | Path) -> AssetScan:
     uses: list[_Use] = []  # conditional uses, and unconditional missing textures
     plain: set[tuple[str, str]] = set()  # (layer, asset) used outside any variant
     mtlx: list[tuple[str, str, str]] = []
+    translated: set[str] = set()  # documents that opened (an unreachable one may not)
     stack: list[tuple[_Loc, _Use | None]] = [(start, None)]
     while stack:
         loc, via = stack.pop()
@@ -335,6 +336,7 @@ def scan_asset_paths(path: str | Path) -> AssetScan:
                 raise
             uses.append(_Use(via.holder, via.spec, via.asset, True, True, exc))  # type: ignore[union-attr]
             continue
+        translated.add(loc.file)
         for asset, spec, is_layer in _layer_asset_paths(layer):
             c = cond or "{" in spec  # inside a variant
             error: AssetPathError | None = None
@@ -365,6 +367,7 @@ def scan_asset_paths(path: str | Path) -> AssetScan:
                     stack.append((target, use))
                 elif is_layer or name.lower().endswith(USD_EXTENSIONS):
                     stack.append((target, use))  # checked above, so safe to open as a layer
+    mtlx = sorted({m for m in mtlx if m[2] in translated})
     unreachable: list[str] = []
     missing: list[str] = []
     skipped: set[tuple[str, str]] = set()
@@ -385,5 +388,6 @@ def scan_asset_paths(path: str | Path) -> AssetScan:
                 missing.append(u.describe())
     missing += sorted(u.describe() for u in uses if not u.conditional)
     return AssetScan(files=tuple(sorted(files)), unreachable=tuple(unreachable),
-                     missing=tuple(sorted(missing)), mtlx=tuple(sorted(set(mtlx))),
+                     missing=tuple(sorted(missing)),
+                     mtlx=tuple(mtlx),
                      unreachable_only=tuple(sorted(skipped - plain)))
