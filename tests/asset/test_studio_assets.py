@@ -6,6 +6,8 @@ swatches), not by texelbake."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdShade, Vt
@@ -267,3 +269,39 @@ def test_materialx_in_an_unselected_variant_is_not_read(tmp_path):
     asset = load_asset(path)
     assert {p.split("'")[1] for p in asset.unreachable_paths} == {"./broken.mtlx", "./gone.mtlx"}
     assert asset.materials[0].textures["diffuseColor"].pixels.shape == (16, 16, 3)
+
+
+def test_transform2d_between_reader_and_texture(tmp_path):
+    # a glTF-style texture transform: st -> UsdTransform2d -> UsdUVTexture. Reference: the
+    # same image sampled by hand at R(30°)·diag(2, 0.5)·st + (0.25, -0.1) (the Sdr order)
+    pixels = (np.arange(8 * 8 * 3) * 5 % 256).astype(np.uint8).reshape(8, 8, 3)
+    write_png(tmp_path / "t.png", pixels)
+    stage = new_stage(tmp_path / "a.usda")
+    mesh = box_mesh(stage, "/Root/Box", "uvA")
+    mat = texture_material(stage, "/Root/Looks/T", "./t.png", st_varname="uvA")
+    tex = UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/T/Texture"))
+    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+    xf = UsdShade.Shader.Define(stage, "/Root/Looks/T/Transform")
+    xf.CreateIdAttr("UsdTransform2d")
+    xf.CreateInput("in", Sdf.ValueTypeNames.Float2).ConnectToSource(
+        UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/T/StReader")).ConnectableAPI(),
+        "result")
+    xf.CreateInput("scale", Sdf.ValueTypeNames.Float2).Set((2.0, 0.5))
+    xf.CreateInput("rotation", Sdf.ValueTypeNames.Float).Set(30.0)
+    xf.CreateInput("translation", Sdf.ValueTypeNames.Float2).Set((0.25, -0.1))
+    xf.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+    tex.GetInput("st").ConnectToSource(xf.ConnectableAPI(), "result")
+    bind(mesh, mat)
+    stage.Save()
+    m = load_asset(tmp_path / "a.usda").materials[0]
+    assert m.textures["diffuseColor"].st_primvar == "uvA"
+    st = np.random.default_rng(3).uniform(0, 1, (50, 2))
+    r = np.radians(30.0)
+    rot = np.array([[np.cos(r), -np.sin(r)], [np.sin(r), np.cos(r)]])
+    moved = (st * [2.0, 0.5]) @ rot.T + [0.25, -0.1]
+    want = brdf.sample_texture(dataclasses.replace(
+        m.textures["diffuseColor"], st_transform=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0)), moved)
+    # the authored parameters are float32: uv agrees to ~1e-8, the texels to ~1e-7
+    np.testing.assert_allclose(brdf.diffuse_albedo(m, st), want, atol=1e-6)
+    assert not np.allclose(want, brdf.sample_texture(dataclasses.replace(
+        m.textures["diffuseColor"], st_transform=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0)), st))

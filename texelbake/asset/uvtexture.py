@@ -13,8 +13,10 @@ Blender's USD importer (the DCC the tests render with) reads them:
   file stores 8-bit channels, has 3 or 4 of them and drives a colour input (`COLOR_INPUTS`): a
   single-channel 8-bit roughness map and an 8-bit normal map stay linear, as in Blender.
 * `st`: the `varname` of the `UsdPrimvarReader_float2` connected to it (a value or an interface
-  input); unconnected, the mesh's `st`, else its first texCoord2f primvar (the mesh reader's
-  rule: `texelbake.asset.meshes.read_mesh`), as Blender takes the mesh's active UV map.
+  input), also through a `UsdTransform2d` (its scale, rotation and translation kept as
+  `Texture.st_transform`); unconnected, the mesh's `st`, else its first texCoord2f primvar (the
+  mesh reader's rule: `texelbake.asset.meshes.read_mesh`), as Blender takes the mesh's active
+  UV map.
 * a file that does not resolve (missing from the bundle) or a UDIM set: a warning, and the
   input takes the node's authored `fallback` (the channels of the output it drives), else the
   material's own constant for that input.
@@ -22,6 +24,7 @@ Blender's USD importer (the DCC the tests render with) reads them:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -80,23 +83,44 @@ def _fallback(shader: Any, channels: tuple[int, ...], input_value: InputValue) -
     return picked if picked.shape[0] > 1 else float(picked[0])
 
 
-def _st_primvar(shader: Any, input_value: InputValue, mat_path: str, prim_path: str,
-                warns: list[str]) -> str:
+def _transform2d(node: Any, input_value: InputValue) -> tuple[float, ...]:
+    """A UsdTransform2d's affine map of st: in * scale, rotated (degrees, counter-clockwise),
+    plus translation (the Sdr definition's order), as (a, b, c, d, e, f)."""
+    sx, sy = (float(x) for x in np.resize(np.asarray(
+        input_value(node, "scale", (1.0, 1.0)), np.float64).reshape(-1), 2))
+    tx, ty = (float(x) for x in np.resize(np.asarray(
+        input_value(node, "translation", (0.0, 0.0)), np.float64).reshape(-1), 2))
+    r = math.radians(float(input_value(node, "rotation", 0.0)))
+    cos, sin = math.cos(r), math.sin(r)
+    return (cos * sx, -sin * sy, tx, sin * sx, cos * sy, ty)
+
+
+def _st_source(shader: Any, input_value: InputValue, mat_path: str, prim_path: str,
+               warns: list[str]) -> tuple[str, tuple[float, ...]]:
+    """(st primvar name, st transform) of a UsdUVTexture: through a UsdTransform2d (its `in`)
+    to a UsdPrimvarReader's varname; unconnected: "st" (module docstring)."""
     from pxr import UsdShade
 
-    st_inp = shader.GetInput("st")
-    attrs = st_inp.GetValueProducingAttributes() if st_inp else []
-    src = attrs[0] if attrs else None
-    if src is None or not UsdShade.Output.IsOutput(src):
-        return "st"
-    reader_prim = src.GetPrim()
-    reader = UsdShade.Shader(reader_prim)
-    rid = reader.GetShaderId() if reader else None
-    if rid is not None and rid.startswith("UsdPrimvarReader"):
-        return str(input_value(reader, "varname", "st") or "st")
+    transform: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+    node, input_name = shader, "st"
+    for _ in range(2):  # the texture's st, then a UsdTransform2d's in
+        inp = node.GetInput(input_name)
+        attrs = inp.GetValueProducingAttributes() if inp else []
+        src = attrs[0] if attrs else None
+        if src is None or not UsdShade.Output.IsOutput(src):
+            return "st", transform
+        src_prim = src.GetPrim()
+        node = UsdShade.Shader(src_prim)
+        rid = node.GetShaderId() if node else None
+        if rid is not None and rid.startswith("UsdPrimvarReader"):
+            return str(input_value(node, "varname", "st") or "st"), transform
+        if rid == "UsdTransform2d" and input_name == "st":
+            transform, input_name = _transform2d(node, input_value), "in"
+            continue
+        break
     warn(warns, f"material {mat_path}: st of {prim_path} is driven by an unsupported node "
-                f"{reader_prim.GetPath()} (id {rid!r}); using primvar st")
-    return "st"
+                f"{src_prim.GetPath()} (id {rid!r}); using primvar st")
+    return "st", transform
 
 
 def read_uv_texture(prim: Any, out_name: str, input_name: str, mat_path: str,
@@ -164,6 +188,7 @@ def read_uv_texture(prim: Any, out_name: str, input_name: str, mat_path: str,
                         "using repeat")
             mode = "repeat"
         wraps.append(mode)
+    st_primvar, st_transform = _st_source(shader, input_value, mat_path, prim_path, warns)
     pixels_out = np.ascontiguousarray(rgba[..., sel], dtype=np.float32)  # (h, w, len(sel))
     pixels_out.flags.writeable = False
     return Texture(
@@ -174,5 +199,6 @@ def read_uv_texture(prim: Any, out_name: str, input_name: str, mat_path: str,
         scale=scale,  # type: ignore[arg-type]
         bias=bias,  # type: ignore[arg-type]
         source_color_space=color_space,
-        st_primvar=_st_primvar(shader, input_value, mat_path, prim_path, warns),
+        st_primvar=st_primvar,
+        st_transform=st_transform,  # type: ignore[arg-type]
     ), None
