@@ -305,3 +305,23 @@ def test_transform2d_between_reader_and_texture(tmp_path):
     np.testing.assert_allclose(brdf.diffuse_albedo(m, st), want, atol=1e-6)
     assert not np.allclose(want, brdf.sample_texture(dataclasses.replace(
         m.textures["diffuseColor"], st_transform=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0)), st))
+
+
+def test_varname_from_the_material_interface(tmp_path):
+    # the exporters' pattern: the reader's varname (a string) connected to the material's
+    # `inputs:frame:stPrimvarName`, whose value names the UV set
+    stage = new_stage(tmp_path / "a.usda")
+    mesh = box_mesh(stage, "/Root/Box", "UVMap", (0.0, 0.25))
+    write_png(tmp_path / "t.png", np.full((2, 2, 3), 90, np.uint8))
+    mat = texture_material(stage, "/Root/Looks/T", "./t.png", st_varname="st")
+    frame = mat.CreateInput("frame:stPrimvarName", Sdf.ValueTypeNames.String)
+    frame.Set("UVMap")
+    reader = UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/T/StReader"))
+    reader.GetPrim().RemoveProperty("inputs:varname")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).ConnectToSource(frame)
+    bind(mesh, mat)
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    assert asset.materials[0].textures["diffuseColor"].st_primvar == "UVMap"
+    assert asset.corner_uvs.max() == pytest.approx(0.25)
+    assert not any("as UVs" in w for w in asset.warnings)
