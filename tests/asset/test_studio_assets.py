@@ -325,3 +325,50 @@ def test_varname_from_the_material_interface(tmp_path):
     assert asset.materials[0].textures["diffuseColor"].st_primvar == "UVMap"
     assert asset.corner_uvs.max() == pytest.approx(0.25)
     assert not any("as UVs" in w for w in asset.warnings)
+
+
+MTLX_PREVIEW_DOC = """<?xml version="1.0"?>
+<materialx version="1.38">
+  <UsdPrimvarReader name="uv" type="vector2">
+    <input name="varname" type="string" value="uvA" />
+  </UsdPrimvarReader>
+  <UsdUVTexture name="tex" type="color3">
+    <input name="file" type="filename" value="tiles.png" />
+    <input name="st" type="vector2" nodename="uv" />
+    <input name="wrapS" type="string" value="mirror" />
+    <input name="fallback" type="color4" value="0.1, 0.2, 0.3, 1.0" />
+  </UsdUVTexture>
+  <UsdPreviewSurface name="SR_plastic" type="surfaceshader">
+    <input name="diffuseColor" type="color3" nodename="tex" />
+    <input name="roughness" type="float" value="0.3" />
+    <input name="metallic" type="float" value="0.0" />
+  </UsdPreviewSurface>
+  <surfacematerial name="Plastic" type="material">
+    <input name="surfaceshader" type="surfaceshader" nodename="SR_plastic" />
+  </surfacematerial>
+</materialx>
+"""
+
+
+def test_materialx_usd_preview_surface_nodes(tmp_path):
+    # MaterialX's own UsdPreviewSurface / UsdUVTexture / UsdPrimvarReader nodes; the layer
+    # references the document's root (`</MaterialX>`) and binds below it
+    write_png(tmp_path / "tiles.png", np.full((4, 4, 3), 200, np.uint8))
+    (tmp_path / "plastic.mtlx").write_text(MTLX_PREVIEW_DOC)
+    stage = new_stage(tmp_path / "a.usda")
+    mesh = box_mesh(stage, "/Root/Box", "uvA")
+    looks = stage.DefinePrim("/Root/MX")
+    looks.GetReferences().AddReference("./plastic.mtlx", "/MaterialX")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).GetDirectBindingRel().SetTargets(
+        ["/Root/MX/Materials/Plastic"])
+    stage.Save()
+    (mat,) = load_asset(tmp_path / "a.usda").materials
+    tex = mat.textures["diffuseColor"]
+    assert mat.params["roughness"] == pytest.approx(0.3)
+    assert (tex.wrap_s, tex.wrap_t, tex.st_primvar) == ("mirror", "repeat", "uvA")
+    np.testing.assert_allclose(tex.pixels, _srgb(200), atol=1e-6)  # auto, 8-bit, a colour
+    # without its file, the node's fallback stands in
+    (tmp_path / "tiles.png").unlink()
+    with pytest.warns(AssetWarning, match="fallback"):
+        (mat,) = load_asset(tmp_path / "a.usda").materials
+    np.testing.assert_allclose(mat.params["diffuseColor"], [0.1, 0.2, 0.3], atol=1e-7)

@@ -14,7 +14,8 @@ the asset) and writes, in memory, the prims usdMtlx would make at the same paths
   graphs) as a `UsdUVTexture` + `UsdPrimvarReader_float2`: the file with the document's
   `fileprefix`, relative to the document; `srgb_texture` as sRGB, other colour spaces raw;
   the address modes as wrap modes (periodic -> repeat, constant -> black); the `texcoord`
-  index or `geompropvalue` name as the st primvar; the image's `default` as the fallback.
+  index, or the `geompropvalue` / `UsdPrimvarReader` name, as the st primvar; the image's
+  `default` (a UsdUVTexture's `fallback`) as the fallback.
 
 What a UsdPreviewSurface cannot hold is warned per input: other nodes between an image and the
 shader (math, ramps, normal maps), a tiled image's tiling.
@@ -81,7 +82,7 @@ def _sdf_type(value: Any) -> Any:
 
 
 def _st_varname(image: Any) -> str:
-    tc = image.getInput("texcoord")
+    tc = image.getInput("st" if image.getCategory() == "UsdUVTexture" else "texcoord")
     node = tc.getConnectedNode() if tc is not None else None
     if node is None:
         return "st"
@@ -89,9 +90,10 @@ def _st_varname(image: Any) -> str:
         index = node.getInput("index")
         i = int(_value(index) or 0) if index is not None else 0
         return "st" if i == 0 else f"st{i}"
-    if node.getCategory() == "geompropvalue":
-        prop = node.getInput("geomprop")
-        return str(_value(prop) or "st") if prop is not None else "st"
+    for category, name in (("geompropvalue", "geomprop"), ("UsdPrimvarReader", "varname")):
+        if node.getCategory() == category:
+            prop = node.getInput(name)
+            return str(_value(prop) or "st") if prop is not None else "st"
     return "st"
 
 
