@@ -3,8 +3,9 @@ Cycles, as tests/dcc/test_blender_import.py): each small asset of tests.helpers.
 is baked with light CPM settings, its LOD1 exported, and Blender's render of LOD1 compared with
 Blender's render of the original from one camera and sun.
 
-- the kit (swatches under UVs in -37.8..37.8, no st input, no wrap modes): Blender tiles them;
-  read as "black" LOD1's base colour was black (object-pixel difference ~0.5);
+- the kit (swatches under UVs in -37.8..37.8, no st input, no wrap modes): Blender tiles them,
+  and so does the bake (read as "black", ingest gave black base colours:
+  tests/asset/test_studio_assets.py);
 - the car whose unselected variants name a file outside the asset and one missing from it:
   Blender and the bake both show the selected variant;
 - the MaterialX reference: the reference is Blender's render of the same material written as
@@ -16,8 +17,7 @@ The bars are those of tests/dcc/test_blender_import.py (IoU >= 0.95, object-pixe
 difference <= 0.10, 8-bit display values) and for the same reason: the camera frames the
 object in a 160 px image, less than LOD1's switch size. Measured: kit 0.079, variants 0.089,
 MaterialX 0.075, missing texture 0.090, IoU 1.0 each (Blender renders the `.mtlx` reference
-itself black: 0.31 from the same material as UsdPreviewSurface). The kit read with "black"
-wraps gave a black LOD1.
+itself black: 0.31 from the same material as UsdPreviewSurface).
 """
 
 from __future__ import annotations
