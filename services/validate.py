@@ -6,6 +6,12 @@ file that crashes or exhausts pxr takes down only that checker (it runs under a 
 `python -m services.validate BUNDLE_DIR ROOT_REL` does the same check in a fresh interpreter
 and prints one JSON object: `{"problems": [[path, reason], ...]}` (empty list: accepted).
 
+What is refused is what the bake would read from outside the bundle, and nothing else: paths
+that only unselected variants name are never read (the core's `scan_asset_paths` composes the
+stage with their targets muted and says which), so they are left alone, and a missing texture
+is not refused (the bake warns and uses its fallback); a missing *layer* the stage composes
+is.
+
 Reasons (stable strings; the API puts them in the 4xx `detail`):
 """
 
@@ -26,6 +32,8 @@ MISSING = "asset path does not exist"
 BAD_PATH = "asset path is not allowed"
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+#: what composition opens as a layer (a MaterialX document through its translation)
+LAYER_SUFFIXES = (*USD_SUFFIXES, ".mtlx")
 _SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]*:")
 _DRIVE = re.compile(r"^[A-Za-z]:[\\/]")
 
@@ -76,6 +84,7 @@ def check_bundle(bundle: Path, root_rel: str) -> list[tuple[str, str]]:
 
     bundle = Path(os.path.realpath(bundle))
     root_layer = bundle / root_rel
+    unreached = _unreachable_only(root_layer)
     problems: set[tuple[str, str]] = set()
     seen: set[Path] = set()
     todo = [root_layer]
@@ -98,7 +107,11 @@ def check_bundle(bundle: Path, root_rel: str) -> list[tuple[str, str]]:
             problems.add((rel_layer, CANNOT_OPEN))
             continue
         for raw in sorted(set(subs) | set(refs) | set(payloads)):
+            if (os.path.realpath(layer_path), raw) in unreached:
+                continue  # only unselected variants name it: never read
             reason, target = _classify(raw, layer_path, bundle)
+            if reason == MISSING and not _is_layer(raw) and raw not in set(subs):
+                continue  # a missing texture: the bake warns and takes its fallback
             if reason is not None:
                 problems.add((f"{raw} (in {rel_layer})", reason))
             elif target is not None and target.suffix.lower() in USD_SUFFIXES:
@@ -116,6 +129,24 @@ def check_bundle(bundle: Path, root_rel: str) -> list[tuple[str, str]]:
     if not problems:
         problems.update(_core_check(root_layer, bundle))
     return sorted(problems)
+
+
+def _is_layer(raw: str) -> bool:
+    return raw.split("[", 1)[0].lower().endswith(LAYER_SUFFIXES)
+
+
+def _unreachable_only(root_layer: Path) -> set[tuple[str, str]]:
+    """(layer real path, authored asset path) pairs only unselected variants name, from the
+    core's scan; empty when the core refuses the asset (the walk then names the problems)."""
+    try:
+        from texelbake.asset.paths import scan_asset_paths
+        from texelbake.errors import AssetError
+    except ImportError:
+        return set()
+    try:
+        return set(scan_asset_paths(root_layer).unreachable_only)
+    except AssetError:
+        return set()
 
 
 def _core_check(root_layer: Path, bundle: Path) -> list[tuple[str, str]]:

@@ -79,7 +79,9 @@ class Texture:
     """An image bound through a UsdUVTexture, loaded as linear float pixels.
 
     pixels : (h, w, c) float32, row 0 is the *top* of the image (t = 1); sample with
-        `texelbake.brdf.sample_texture`, which applies wrap, scale and bias.
+        `texelbake.brdf.sample_texture`, which applies the st transform, wrap, scale and bias.
+    st_transform : (a, b, c, d, e, f): st' = (a s + b t + c, d s + e t + f), the
+        `UsdTransform2d` between the st primvar and the texture (identity when there is none)
     """
 
     path: str
@@ -90,6 +92,7 @@ class Texture:
     bias: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     source_color_space: str = "auto"
     st_primvar: str = "st"
+    st_transform: tuple[float, float, float, float, float, float] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,6 +197,9 @@ class AssetModel:
         mesh by linear blending (None otherwise: the points are only time samples)
     dropped_faces : number of zero-area / degenerate faces removed at ingest
     warnings : human-readable warnings, each naming a prim path
+    unreachable_paths : asset paths only unselected variants name, never read ("'path' (in
+        layer L, at spec)"; `texelbake.asset.paths.scan_asset_paths`)
+    missing_paths : textures inside the asset that do not exist (their fallbacks are used)
     """
 
     source: str
@@ -215,6 +221,8 @@ class AssetModel:
     dropped_faces: int = 0
     warnings: tuple[str, ...] = ()
     skin: SkinData | None = None
+    unreachable_paths: tuple[str, ...] = ()
+    missing_paths: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         for name, dtype in (

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Sdf, UsdGeom, UsdShade, Vt
+from pxr import Sdf, Usd, UsdGeom, UsdShade, Vt
 
 from tests.helpers.usd_stages import (
     bind,
@@ -16,6 +16,7 @@ from tests.helpers.usd_stages import (
     write_png,
 )
 from texelbake.asset import AssetWarning, check_asset_paths, load_asset
+from texelbake.asset.paths import scan_asset_paths
 from texelbake.errors import AssetError, AssetPathError, TexelbakeError
 from texelbake.model import SHADER_MEASURED
 
@@ -190,11 +191,22 @@ def _assert_names(err, *needles):
 
 
 def test_missing_texture(tmp_path):
+    # a renderer's reading: warned, the material's constant (no `fallback` authored), listed
     path = _textured(tmp_path, "./textures/missing.png")
-    with pytest.raises(AssetPathError, match="does not exist") as err:
-        load_asset(path)
-    _assert_names(err, "./textures/missing.png", "/Root/Looks/M/Texture")
-    assert err.value.path == "./textures/missing.png"
+    with pytest.warns(AssetWarning, match=r"missing\.png.*/Root/Looks/M/Texture"):
+        asset = load_asset(path)
+    assert "diffuseColor" not in asset.materials[0].textures
+    np.testing.assert_allclose(asset.materials[0].params["diffuseColor"], [0.5] * 3)
+    assert len(asset.missing_paths) == 1 and "./textures/missing.png" in asset.missing_paths[0]
+    # the node's own fallback wins over the constant, reduced to the output's channels
+    stage = Usd.Stage.Open(str(path))
+    UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/M/Texture")).CreateInput(
+        "fallback", Sdf.ValueTypeNames.Float4).Set((0.1, 0.2, 0.3, 0.4))
+    stage.Save()
+    with pytest.warns(AssetWarning, match="using its fallback"):
+        asset = load_asset(path)
+    np.testing.assert_allclose(asset.materials[0].params["diffuseColor"], [0.1, 0.2, 0.3],
+                               atol=1e-7)
 
 
 def test_absolute_texture_path(tmp_path):
@@ -275,7 +287,8 @@ def test_missing_sublayer(tmp_path):
     _assert_names(err, "./layers/gone.usda", "subLayers")
 
 
-def test_absolute_payload_in_a_variant(tmp_path):
+@pytest.mark.parametrize("selected", [True, False])
+def test_absolute_payload_in_a_variant(tmp_path, selected):
     other = new_stage(tmp_path / "other.usda")
     grid_mesh(other, "/Root/m", 1, 1)
     other.Save()
@@ -287,11 +300,18 @@ def test_absolute_payload_in_a_variant(tmp_path):
     vset.SetVariantSelection("LOD1")
     with vset.GetVariantEditContext():
         stage.DefinePrim("/Root/heavy").GetPayloads().AddPayload(str(tmp_path / "other.usda"))
-    vset.ClearVariantSelection()  # unselected: composition would never see it, the check does
+    if not selected:
+        vset.ClearVariantSelection()
     stage.Save()
-    with pytest.raises(AssetPathError, match="is absolute") as err:
-        check_asset_paths(tmp_path / "a.usda")
-    _assert_names(err, "other.usda", "/Root{LOD=LOD1}heavy")
+    if selected:  # the bake would read it: refused, naming the variant's spec
+        with pytest.raises(AssetPathError, match="is absolute") as err:
+            check_asset_paths(tmp_path / "a.usda")
+        _assert_names(err, "other.usda", "/Root{LOD=LOD1}heavy")
+        return
+    # unselected: composition never reads it, so the check does not refuse it; listed instead
+    scan = scan_asset_paths(tmp_path / "a.usda")
+    assert len(scan.unreachable) == 1 and "/Root{LOD=LOD1}heavy" in scan.unreachable[0]
+    assert str(tmp_path / "other.usda") not in scan.files
 
 
 def test_path_expression_rejected(tmp_path):
@@ -389,9 +409,9 @@ def test_udim_texture_falls_back_to_constant(tmp_path):
     with pytest.warns(AssetWarning, match="UDIM"):
         asset = load_asset(path)
     assert not asset.materials[0].textures
-    (tmp_path / "tex.1001.png").unlink()
-    with pytest.raises(AssetPathError, match="UDIM"):
-        check_asset_paths(path)
+    (tmp_path / "tex.1001.png").unlink()  # no tile at all: a missing texture, listed
+    scan = scan_asset_paths(path)
+    assert len(scan.missing) == 1 and "tex.<UDIM>.png" in scan.missing[0]
 
 
 def test_material_without_surface(tmp_path):

@@ -358,7 +358,7 @@ def test_uv_texture_raw_single_channel_output(tmp_path):
     # raw: no decode; output g: only the green channel, scale reordered to follow it
     np.testing.assert_allclose(tex.pixels[..., 0], pixels[..., 1] / 255.0, atol=1e-7)
     assert tex.pixels.shape == (2, 2, 1) and tex.scale == (7, 1, 1, 1)
-    assert tex.wrap_s == "black"  # useMetadata with no wrap metadata in a PNG
+    assert tex.wrap_s == "repeat"  # useMetadata with no wrap metadata in a PNG: tiles
 
 
 def test_srgb_to_linear_matches_formula():

@@ -212,9 +212,16 @@ def test_reject_url_payload(api, a):
     rejected(api, a, "url.usda", data, 422, "URL asset path", "https://evil.example/x.usda")
 
 
-def test_reject_missing_texture(api, a):
+def test_accept_missing_texture(api, a):
+    # not read from outside the bundle: the bake warns and takes the texture's fallback
     body = "        asset inputs:file = @textures/missing.png@"
-    rejected(api, a, "tex.usda", usda(body), 422, "does not exist", "textures/missing.png")
+    r = upload(a, "tex.usda", usda(body))
+    assert r.status_code == 201, r.text
+
+
+def test_reject_missing_sublayer(api, a):
+    rejected(api, a, "sub.usda", usda(header="    subLayers = [@./layers/gone.usda@]"), 422,
+             "does not exist", "layers/gone.usda")
 
 
 def test_reject_texture_escape_in_zip(api, a):

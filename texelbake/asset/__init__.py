@@ -3,9 +3,10 @@
 Public entry points:
 
 - `check_asset_paths(path) -> list[str]`: walks every layer of the asset *as Sdf layers*, before
-  any stage is composed, and rejects asset paths that are absolute, URLs, escape the asset's
-  folder (or its `.usdz` package) or name files that do not exist. Also used by the upload
-  service.
+  any stage is composed, and rejects asset paths the bake would read that are absolute, URLs,
+  escape the asset's folder (or its `.usdz` package) or name layers that do not exist; paths
+  only unselected variants name are left unread (`paths.scan_asset_paths` lists them, and
+  missing textures). Also used by the upload service.
 - `load_asset(path, *, time_code=None) -> AssetModel`: flattens transforms, fan-triangulates
   n-gons, reads normals (authored or computed), UVs, material bindings (GeomSubsets included),
   UsdPreviewSurface and texelbake shader networks with their textures, UsdLux distant and
@@ -16,7 +17,8 @@ The AssetModel fields are documented in `texelbake.model`. This module is pure I
 here is from the seeds' equations; the reflectance it hands on is what seed 000 Eq. 1 calls
 f_r(x, wi, wo) per sample (a material per face, textures per corner UV).
 
-Modules: `paths` (asset-path safety), `load` (load_asset), `meshes`, `materials`, `lights`
+Modules: `paths` (asset-path safety), `compose` (the composed stage, MaterialX documents
+through `mtlx_document`), `load` (load_asset), `meshes`, `materials`, `uvtexture`, `lights`
 (lights and cameras), `files` (textures and MERL tables, .usdz members), `values` (USD value
 helpers, the sRGB decode), `describe`.
 

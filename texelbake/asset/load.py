@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from texelbake.asset.compose import read_composed
 from texelbake.asset.instancers import instancer_meshes
 from texelbake.asset.lights import read_camera, read_light
 from texelbake.asset.materials import DEFAULT_MATERIAL, MaterialReader, face_materials
@@ -22,9 +23,9 @@ from texelbake.asset.meshes import (
     tri_cross,
     world_points,
 )
-from texelbake.asset.paths import check_asset_paths
+from texelbake.asset.paths import AssetScan, scan_asset_paths
 from texelbake.asset.skin import skin_data
-from texelbake.asset.values import first_line, warn
+from texelbake.asset.values import warn
 from texelbake.errors import AssetError
 from texelbake.model import (
     AssetModel,
@@ -44,8 +45,10 @@ def _ancestors(prim: Any) -> Iterable[Any]:
 def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetModel:
     """Read a USD asset into one AssetModel (see `texelbake.model.AssetModel` for every field).
 
-    path : `.usda` / `.usdc` / `.usd` / `.usdz`. `check_asset_paths` runs first, before the stage
-        is composed.
+    path : `.usda` / `.usdc` / `.usd` / `.usdz`. `scan_asset_paths` runs first, before the stage
+        is composed with its variant selections (`texelbake.asset.compose.read_composed`: MaterialX
+        documents through their translation); paths only unselected variants name are never
+        read and listed in `unreachable_paths`, missing textures in `missing_paths`.
     time_code : the time at which points, transforms, lights and cameras are read. None reads
         each attribute at its earliest time sample, or its default value when it has none
         (`Usd.TimeCode.EarliestTime()`).
@@ -58,9 +61,9 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
     `points_over_time` (every mesh, same vertex order as `points`).
 
     Texture contract: `Texture.pixels` holds exactly the channels of the UsdUVTexture output
-    that drives the input (`rgb` -> 3, `r`/`g`/`b`/`a` -> 1), linear (sRGB decoded for RGB when
-    `sourceColorSpace` is sRGB, or auto with an 8-bit file); `scale`/`bias` are reordered to
-    follow those channels. `wrapS/T = useMetadata` takes the file's wrap metadata, else "black".
+    that drives the input (`rgb` -> 3, `r`/`g`/`b`/`a` -> 1), linear; `scale`/`bias` are
+    reordered to follow those channels. Colour space, wrap modes, the st primvar and a missing
+    file (a warning and the node's `fallback`) follow `texelbake.asset.uvtexture`.
     A "merl" material holds the file's resolved path in params["file"], the table in
     params["table"] (`texelbake.brdf.read_merl`: MERL RGB scale applied, invalid entries 0)
     and the shader's `scale` input unapplied.
@@ -68,23 +71,27 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
     raises : AssetPathError (unsafe / missing asset paths), AssetError (unreadable file, no mesh,
         NaN/Inf points, out-of-range indices, every face degenerate), each naming the prim/file.
     """
-    from pxr import Tf, Usd, UsdGeom
-
     src = Path(path)
     source = str(src)
     if not src.is_file():
         raise AssetError("asset file does not exist", path=source)
-    check_asset_paths(src)
-    try:
-        stage = Usd.Stage.Open(source)
-    except Tf.ErrorException as exc:
-        raise AssetError(f"pxr cannot open the file: {first_line(exc)}", path=source) from exc
-    if stage is None:
-        raise AssetError("pxr cannot open the file", path=source)
+    scan = scan_asset_paths(src)
+    warns: list[str] = []
+    for item in scan.unreachable:
+        warn(warns, f"asset path {item} is named only by unselected variants; not read")
+    for item in scan.missing:
+        warn(warns, f"asset path {item} does not exist; what reads it takes its fallback")
+    return read_composed(source, scan.mtlx, warns,
+                         lambda stage: _read_stage(stage, source, time_code, warns, scan))
+
+
+def _read_stage(stage: Any, source: str, time_code: float | None, warns: list[str],
+                scan: AssetScan) -> AssetModel:
+    """`load_asset` once the stage is composed (see there)."""
+    from pxr import Usd, UsdGeom
 
     time = Usd.TimeCode.EarliestTime() if time_code is None else Usd.TimeCode(float(time_code))
     xcache = UsdGeom.XformCache(time)
-    warns: list[str] = []
     reader = MaterialReader(time, warns)
 
     materials: list[Material] = []
@@ -215,6 +222,8 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
         dropped_faces=int(dropped),
         warnings=tuple(warns),
         skin=skin,
+        unreachable_paths=scan.unreachable,
+        missing_paths=scan.missing,
     )
 
 

@@ -7,12 +7,12 @@ from typing import Any
 
 import numpy as np
 
-from texelbake.asset.files import load_image, load_merl
+from texelbake.asset.files import load_merl
 from texelbake.asset.mtlx import MTLX_SURFACES, preview_params
 from texelbake.asset.primvars import READER_WIDTH, face_values, group_faces
+from texelbake.asset.uvtexture import read_uv_texture
 from texelbake.asset.values import coerce_like, default_param, warn
 from texelbake.errors import AssetError, AssetPathError
-from texelbake.io.images import srgb_to_linear
 from texelbake.model import (
     PREVIEW_DEFAULTS,
     SHADER_MEASURED,
@@ -42,18 +42,6 @@ def _readonly(params: dict[str, Any]) -> dict[str, Any]:
 
 DEFAULT_MATERIAL = Material(path="", model="lambert",
                             params=_readonly({"diffuseColor": np.full(3, 0.18)}))
-
-# UsdUVTexture output name -> channels of the canonical RGBA image
-_TEXTURE_OUTPUT_CHANNELS = {
-    "rgb": (0, 1, 2),
-    "rgba": (0, 1, 2, 3),
-    "r": (0,),
-    "g": (1,),
-    "b": (2,),
-    "a": (3,),
-}
-_WRAP_MODES = ("black", "clamp", "repeat", "mirror")
-
 
 class MaterialReader:
     """Reads UsdShade materials into model.Material, caching textures per load."""
@@ -235,9 +223,13 @@ class MaterialReader:
                 src_id = self._shader_id(src_prim)
                 if src_id == "UsdUVTexture":
                     out_name = UsdShade.Output(src).GetBaseName()
-                    texture = self._read_texture(src_prim, out_name, mat_path)
+                    texture, fallback = read_uv_texture(
+                        src_prim, out_name, name, mat_path, self._input_value, self._images,
+                        self.warns)
                     if texture is not None:
                         textures[name] = texture
+                    elif fallback is not None:
+                        params[name] = coerce_like(fallback, default)
                 elif src_id in READER_WIDTH:  # evaluated on the bound gprim (`specialize`)
                     reader = UsdShade.Shader(src_prim)
                     width = READER_WIDTH[src_id]
@@ -264,7 +256,8 @@ class MaterialReader:
             if not resolved:
                 shown = asset.path if asset is not None else ""
                 raise AssetPathError(
-                    f"measured BRDF file '{shown}' of material {mat_path} does not resolve",
+                    f"measured BRDF file '{shown}' of material {mat_path} does not exist "
+                    "(a measured BRDF has no fallback)",
                     path=shown, prim=str(prim.GetPath()))
             params["file"] = resolved
             params["table"] = load_merl(resolved, str(prim.GetPath()))
@@ -280,90 +273,6 @@ class MaterialReader:
             return default
         value = src.Get(self.time)
         return default if value is None else value
-
-    def _read_texture(self, prim: Any, out_name: str, mat_path: str) -> Texture | None:
-        """The Texture a UsdUVTexture output provides; None (with a warning) for UDIM sets."""
-        from pxr import UsdShade
-
-        shader = UsdShade.Shader(prim)
-        prim_path = str(prim.GetPath())
-        asset = self._input_value(shader, "file", None)
-        if asset is None or not asset.path:
-            raise AssetPathError(f"UsdUVTexture of material {mat_path} has no file",
-                                 path="", prim=prim_path)
-        if "<UDIM>" in asset.path:
-            warn(self.warns, f"material {mat_path}: UDIM texture '{asset.path}' of {prim_path} "
-                              "is not supported; using the input's constant value")
-            return None
-        resolved = asset.resolvedPath
-        if not resolved:
-            raise AssetPathError(
-                f"texture '{asset.path}' of material {mat_path} does not resolve (missing file)",
-                path=asset.path, prim=prim_path)
-        if resolved not in self._images:
-            self._images[resolved] = load_image(resolved, prim_path)
-        pixels, is_8bit, wrapmodes = self._images[resolved]
-        h, w, c = pixels.shape
-        # canonical RGBA per the UsdUVTexture spec: grey -> (g, g, g, 1), grey+alpha -> (g, g, g, a)
-        if c == 1:
-            rgba = np.concatenate([np.repeat(pixels, 3, axis=2), np.ones((h, w, 1), np.float32)], 2)
-        elif c == 2:
-            rgba = np.concatenate([np.repeat(pixels[..., :1], 3, axis=2), pixels[..., 1:2]], 2)
-        elif c == 3:
-            rgba = np.concatenate([pixels, np.ones((h, w, 1), np.float32)], 2)
-        else:
-            rgba = pixels[..., :4]
-        color_space = str(self._input_value(shader, "sourceColorSpace", "auto"))
-        if color_space == "sRGB" or (color_space == "auto" and is_8bit):
-            rgba = np.concatenate([srgb_to_linear(rgba[..., :3]), rgba[..., 3:]], axis=2)
-        channels = _TEXTURE_OUTPUT_CHANNELS.get(out_name)
-        if channels is None:
-            warn(self.warns, f"material {mat_path}: unknown UsdUVTexture output "
-                              f"'{out_name}' of {prim_path}; using rgb")
-            channels = _TEXTURE_OUTPUT_CHANNELS["rgb"]
-        sel = list(channels)
-        scale4 = np.asarray(self._input_value(shader, "scale", (1.0, 1.0, 1.0, 1.0)), np.float64)
-        bias4 = np.asarray(self._input_value(shader, "bias", (0.0, 0.0, 0.0, 0.0)), np.float64)
-        # scale/bias follow the selected channels, padded with identity values to 4
-        scale = tuple(float(x) for x in np.concatenate([scale4[sel], np.ones(4 - len(sel))]))
-        bias = tuple(float(x) for x in np.concatenate([bias4[sel], np.zeros(4 - len(sel))]))
-        meta_wraps = [m.strip() for m in wrapmodes.split(",")] if wrapmodes else []
-        wraps = []
-        for axis, key in enumerate(("wrapS", "wrapT")):
-            mode = str(self._input_value(shader, key, "useMetadata"))
-            if mode == "useMetadata":
-                # the file's own wrap metadata when present; otherwise "black" (spec fallback)
-                mode = meta_wraps[axis] if axis < len(meta_wraps) else "black"
-                mode = {"periodic": "repeat"}.get(mode, mode)
-            if mode not in _WRAP_MODES:
-                warn(self.warns, f"material {mat_path}: unknown {key} '{mode}' on {prim_path}; "
-                                  "using repeat")
-                mode = "repeat"
-            wraps.append(mode)
-        st_primvar = "st"
-        st_inp = shader.GetInput("st")
-        src = self._source(st_inp) if st_inp else None
-        if src is not None and UsdShade.Output.IsOutput(src):
-            reader = UsdShade.Shader(src.GetPrim())
-            rid = self._shader_id(src.GetPrim())
-            if rid is not None and rid.startswith("UsdPrimvarReader"):
-                st_primvar = str(self._input_value(reader, "varname", "st")) or "st"
-            else:
-                warn(self.warns, f"material {mat_path}: st of {prim_path} is driven by an "
-                                  f"unsupported node {src.GetPrim().GetPath()} (id {rid!r}); "
-                                  "using primvar st")
-        pixels_out = np.ascontiguousarray(rgba[..., sel], dtype=np.float32)  # (h, w, len(sel))
-        pixels_out.flags.writeable = False
-        return Texture(
-            path=resolved,
-            pixels=pixels_out,
-            wrap_s=wraps[0],
-            wrap_t=wraps[1],
-            scale=scale,  # type: ignore[arg-type]
-            bias=bias,  # type: ignore[arg-type]
-            source_color_space=color_space,
-            st_primvar=st_primvar,
-        )
 
 
 def _bound(prim: Any, warns: list[str]) -> Any:

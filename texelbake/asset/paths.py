@@ -1,5 +1,6 @@
-"""Asset-path safety: every asset path of every layer resolves inside the asset's folder (or its
-`.usdz` package); absolute paths, URLs, `..` escapes and missing files are rejected."""
+"""Asset-path safety: every asset path the bake reads resolves inside the asset's folder (or its
+`.usdz` package); absolute paths, URLs, `..` escapes and missing layers are rejected, paths only
+unselected variants name are listed as unreachable, missing textures as missing."""
 
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from texelbake.errors import AssetError, AssetPathError
 
 # "scheme:" with a scheme of >= 2 characters is a URL ("C:" alone is a Windows drive).
 USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
+#: MaterialX documents: composed through their translation (`texelbake.asset.mtlx_document`)
+MTLX_EXTENSION = ".mtlx"
 
 _URL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]+:")
 _DRIVE_RE = re.compile(r"^[A-Za-z]:")
@@ -32,6 +35,65 @@ class _Loc:
     @property
     def identifier(self) -> str:
         return self.file if self.member is None else f"{self.file}[{self.member}]"
+
+
+@dataclass(frozen=True)
+class AssetScan:
+    """What `scan_asset_paths` found.
+
+    files : sorted absolute paths of the files on disk the asset names (see `check_asset_paths`)
+    unreachable : "'asset' (in layer L, at spec)" for every path only unselected variants name:
+        never read by the bake
+    missing : the same for textures (non-layer paths) inside the asset that do not exist
+    mtlx : (identifier of the layer holding the arc, the arc's asset path, the document's
+        file) per MaterialX document the layers name
+    unreachable_only : (layer identifier, asset path) for paths every use of which in that
+        layer is unreachable (what the upload check leaves alone)
+    """
+
+    files: tuple[str, ...]
+    unreachable: tuple[str, ...] = ()
+    missing: tuple[str, ...] = ()
+    mtlx: tuple[tuple[str, str, str], ...] = ()
+    unreachable_only: tuple[tuple[str, str], ...] = ()
+
+
+@dataclass(frozen=True)
+class _Use:
+    """One authored asset path: where it is, whether a variant conditions it, its problem."""
+
+    holder: _Loc
+    spec: str
+    asset: str
+    conditional: bool
+    layer_like: bool
+    error: AssetError | None
+
+    def describe(self) -> str:
+        return f"'{self.asset}' (in layer {self.holder.identifier}, at {self.spec})"
+
+    def reached(self, prims: set[tuple[str, str]], layers: set[str]) -> bool:
+        """Does the composed stage use the spec holding this path?"""
+        from pxr import Sdf
+
+        key = self.holder.identifier
+        if self.spec.startswith("<"):  # sublayers, layer metadata: the layer itself
+            return key in layers
+        return (key, str(Sdf.Path(self.spec).GetPrimPath())) in prims
+
+
+def _is_layer_name(asset: str) -> bool:
+    name = asset.split("[", 1)[0].lower()
+    return name.endswith((*USD_EXTENSIONS, MTLX_EXTENSION))
+
+
+def _anchored(use: _Use) -> str:
+    """The identifier composition would open for a layer arc (what muting names)."""
+    asset = use.asset
+    if _URL_RE.match(asset) or asset.startswith(("/", "\\")) or _DRIVE_RE.match(asset) \
+            or use.holder.member is not None:
+        return asset
+    return os.path.normpath(os.path.join(os.path.dirname(use.holder.file), asset))
 
 
 def _zip_members(package: str) -> list[str]:
@@ -115,8 +177,14 @@ def _layer_asset_paths(layer: Any) -> list[tuple[str, str, bool]]:
     return found
 
 
+class MissingPathError(AssetPathError):
+    """An asset path that stays inside the asset but names no file (or no UDIM tile)."""
+
+
 def _path_error(reason: str, asset: str, holder: _Loc, spec: str) -> AssetPathError:
-    return AssetPathError(
+    kind = MissingPathError if reason.startswith(("does not exist", "matches no UDIM")) \
+        else AssetPathError
+    return kind(
         f"asset path '{asset}' {reason} (in layer {holder.identifier}, at {spec})",
         path=asset,
         prim=spec,
@@ -185,6 +253,11 @@ def _resolve_safe(asset: str, holder: _Loc, root_dir: str, spec: str) -> list[_L
 def _open_layer(loc: _Loc) -> Any:
     from pxr import Sdf, Tf
 
+    if loc.member is None and loc.file.lower().endswith(MTLX_EXTENSION):
+        from texelbake.asset.mtlx_document import translated_layer
+
+        return translated_layer(loc.file, [])
+
     try:
         layer = Sdf.Layer.FindOrOpen(loc.identifier)
     except Tf.ErrorException as exc:
@@ -196,20 +269,40 @@ def _open_layer(loc: _Loc) -> Any:
 
 
 def check_asset_paths(path: str | Path) -> list[str]:
-    """Check every asset path of an asset before it is composed; return the bundle's files.
+    """The files on disk an asset names, after `scan_asset_paths` accepted it: sorted absolute
+    paths, the root included (for a `.usdz`, the package itself: its members live inside it),
+    files named only by unselected variants included (the baked root shows them again when a
+    client selects that variant).
 
-    Walks the root layer, its sublayers, references, payloads, clips and every asset-valued
-    attribute or metadata value (textures, MERL files), layer by layer with `Sdf.Layer` (parsing
-    only: no composition, no resolver). Each path is anchored to the layer holding it and
-    checked *before* that layer is opened, so a hostile reference is never read.
+    raises : as `scan_asset_paths`
+    """
+    return list(scan_asset_paths(path).files)
+
+
+def scan_asset_paths(path: str | Path) -> AssetScan:
+    """Check every asset path of an asset before it is composed with its selections.
+
+    Walks the root layer, its sublayers, references, payloads, clips, MaterialX documents and
+    every asset-valued attribute or metadata value (textures, MERL files), layer by layer with
+    `Sdf.Layer` (parsing only). Each path is anchored to the layer holding it and checked
+    *before* that layer is opened, so a hostile reference is never read.
+
+    A path authored inside a variant (or in a layer only a variant reaches) is *conditional*:
+    whether the bake reads it depends on the variant selections, so its problem waits until
+    `texelbake.asset.compose.reached_specs` has composed the stage with every such unsafe target
+    muted (never opened). Reached by the selections, its problem is raised as any other;
+    otherwise the path is listed in `AssetScan.unreachable` and never read. A texture (any path
+    that is not a layer) inside the asset whose file is missing is listed in
+    `AssetScan.missing`: ingest warns and uses the texture's fallback.
 
     path : the root layer (`.usda` / `.usdc` / `.usd` / `.usdz`)
-    returns : sorted absolute paths of the files on disk the asset uses, the root included
-        (for a `.usdz`, the package itself: its members live inside it)
     raises : AssetPathError naming the asset path and the layer / spec holding it, for absolute
-        paths, URLs (`scheme:`), paths escaping the root layer's folder (or the package),
-        path expressions, and files that do not exist; AssetError for an unreadable layer.
+        paths, URLs (`scheme:`), paths escaping the root layer's folder (or the package), path
+        expressions (refused wherever they are: what they name is known only once composed),
+        and layers that do not exist; AssetError for an unreadable layer.
     """
+    from texelbake.asset.compose import reached_specs
+
     root = Path(path)
     if not root.is_file():
         raise AssetPathError("asset file does not exist", path=str(path))
@@ -221,21 +314,80 @@ def check_asset_paths(path: str | Path) -> list[str]:
         else _Loc(root_real)
     )
     files: set[str] = {root_real}
-    visited: set[_Loc] = set()
-    stack = [start]
+    conditional_of: dict[_Loc, bool] = {}
+    uses: list[_Use] = []  # conditional uses, and unconditional missing textures
+    plain: set[tuple[str, str]] = set()  # (layer, asset) used outside any variant
+    mtlx: list[tuple[str, str, str]] = []
+    translated: set[str] = set()  # documents that opened (an unreachable one may not)
+    stack: list[tuple[_Loc, _Use | None]] = [(start, None)]
     while stack:
-        loc = stack.pop()
-        if loc in visited:
+        loc, via = stack.pop()
+        cond = via is not None and via.conditional
+        if loc in conditional_of and (not conditional_of[loc] or cond):
             continue
-        visited.add(loc)
+        conditional_of[loc] = cond
         if loc.member is None and loc.file.lower().endswith(".usdz"):
-            stack.append(_Loc(loc.file, _first_layer_member(loc.file)))
+            stack.append((_Loc(loc.file, _first_layer_member(loc.file)), via))
             continue
-        layer = _open_layer(loc)
+        try:
+            layer = _open_layer(loc)
+        except AssetError as exc:
+            if not cond:
+                raise
+            uses.append(_Use(via.holder, via.spec, via.asset, True, True, exc))  # type: ignore[union-attr]
+            continue
+        translated.add(loc.file)
         for asset, spec, is_layer in _layer_asset_paths(layer):
-            for target in _resolve_safe(asset, loc, root_dir, spec):
+            c = cond or "{" in spec  # inside a variant
+            error: AssetPathError | None = None
+            targets: list[_Loc] = []
+            try:
+                targets = _resolve_safe(asset, loc, root_dir, spec)
+            except AssetPathError as exc:
+                if asset.startswith("`"):
+                    raise
+                error = exc
+            layer_like = is_layer or _is_layer_name(asset)
+            use = _Use(loc, spec, asset, c, layer_like, error)
+            if error is not None and not c and (layer_like
+                                                or not isinstance(error, MissingPathError)):
+                raise error
+            if c or error is not None:
+                uses.append(use)
+            if not c:
+                plain.add((loc.identifier, asset))
+            for target in targets:
                 files.add(target.file)
                 name = target.member if target.member is not None else target.file
-                if is_layer or name.lower().endswith(USD_EXTENSIONS):
-                    stack.append(target)  # checked above, so safe to open as a layer
-    return sorted(files)
+                if name.lower().endswith(MTLX_EXTENSION):
+                    if target.member is not None:
+                        raise _path_error("is a MaterialX document inside a .usdz package "
+                                          "(not supported)", asset, loc, spec)
+                    mtlx.append((loc.identifier, asset, target.file))
+                    stack.append((target, use))
+                elif is_layer or name.lower().endswith(USD_EXTENSIONS):
+                    stack.append((target, use))  # checked above, so safe to open as a layer
+    mtlx = sorted({m for m in mtlx if m[2] in translated})
+    unreachable: list[str] = []
+    missing: list[str] = []
+    skipped: set[tuple[str, str]] = set()
+    conditional = [u for u in uses if u.conditional]
+    if conditional:
+        mute = sorted({_anchored(u) for u in conditional if u.error is not None and u.layer_like})
+        prims, layers = reached_specs(str(root), mtlx, mute)
+        for u in sorted(conditional, key=lambda u: u.describe()):
+            if not u.reached(prims, layers):
+                unreachable.append(u.describe())
+                skipped.add((u.holder.identifier, u.asset))
+                continue
+            plain.add((u.holder.identifier, u.asset))
+            if u.error is not None and (u.layer_like
+                                          or not isinstance(u.error, MissingPathError)):
+                raise u.error
+            elif u.error is not None:
+                missing.append(u.describe())
+    missing += sorted(u.describe() for u in uses if not u.conditional)
+    return AssetScan(files=tuple(sorted(files)), unreachable=tuple(unreachable),
+                     missing=tuple(sorted(missing)),
+                     mtlx=tuple(mtlx),
+                     unreachable_only=tuple(sorted(skipped - plain)))

@@ -33,13 +33,17 @@ def sample_texture(tex: model.Texture, uv: Any) -> np.ndarray:
     Texel (row r, column c) of ``tex.pixels`` (row 0 = top) has its centre at
     s = (c + 0.5) / w, t = 1 - (r + 0.5) / h, so uv (0, 0) is the bottom-left corner of the image
     (USD convention). Wrap modes per axis: repeat, clamp, mirror (mirrored repeat), black (0
-    outside [0, 1]). Output = scale * texel + bias per channel (UsdUVTexture ``scale``,
+    outside [0, 1]), after ``tex.st_transform`` (a UsdTransform2d on st). Output = scale * texel
+    + bias per channel (UsdUVTexture ``scale``,
     ``bias``, first c of the 4 components).
 
     tex : model.Texture with pixels (h, w, c); uv : (n, 2) float64
     returns : (n, c) float64
     """
     uv = as_uv(uv)
+    a, b, c, d, e, f = (float(x) for x in tex.st_transform)
+    if (a, b, c, d, e, f) != (1.0, 0.0, 0.0, 0.0, 1.0, 0.0):  # a UsdTransform2d
+        uv = np.stack([a * uv[:, 0] + b * uv[:, 1] + c, d * uv[:, 0] + e * uv[:, 1] + f], 1)
     pix = np.asarray(tex.pixels)
     if pix.ndim == 2:
         pix = pix[:, :, None]

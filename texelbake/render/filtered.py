@@ -60,11 +60,12 @@ def lookup_filtered(scene: RenderScene, cam: PinholeCamera, spp: int, prim: np.n
     """Trilinear look-up of the filtered maps at each hit's footprint (module docstring).
 
     prim (k,) M1 triangles, p (k, 3) hits, o, d (k, 3) their eye rays, uv (k, 2) atlas uv
-    returns : (values (k, C) float64, λ (k,) the fractional level used)"""
+    returns : (values (k, C) float64, λ (k,) the footprint's fractional level before it is
+        clipped to the levels; below 0 the maps are magnified)"""
     tables = filtered_tables(scene)
     n_lv = len(tables)
-    lam = footprint_level(scene, cam, 0, prim, p, o, d) - 0.5 * math.log2(max(int(spp), 1))
-    lam = np.clip(lam, 0.0, n_lv - 1.0)
+    lam_raw = footprint_level(scene, cam, 0, prim, p, o, d) - 0.5 * math.log2(max(int(spp), 1))
+    lam = np.clip(lam_raw, 0.0, n_lv - 1.0)
     j0 = np.floor(lam).astype(np.int64)
     fr = lam - j0
     out = np.zeros((prim.shape[0], len(CHANNELS)))
@@ -75,7 +76,7 @@ def lookup_filtered(scene: RenderScene, cam: PinholeCamera, spp: int, prim: np.n
                 tex, w = bilinear_texels(uv[sel], max(scene.n0 >> j, 1))
                 wl = fr[sel] if weight else 1.0 - fr[sel]
                 out[sel] += wl[:, None] * np.einsum("nk,nkc->nc", w, tables[j][tex])
-    return out, lam
+    return out, lam_raw
 
 
 def field(values: np.ndarray, name: str) -> np.ndarray:
@@ -88,7 +89,8 @@ def shade_filtered(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.
                    ) -> tuple[np.ndarray, int, np.ndarray]:
     """Radiance along eye rays traced against M1 with the filtered maps: `make_radiance(scene,
     values, texel, hits)` builds the mode's shading for the hits (values from
-    `lookup_filtered`, texel (k,) the finest texel under each hit, hits a dict with "prim");
+    `lookup_filtered`, texel (k,) the finest texel under each hit, hits a dict with "prim",
+    "lam" (the unclipped footprint level) and "uv" (atlas uv));
     returns (radiance (n, 3), rays cast, hit (n,) bool)."""
     nm = _normalmap_tables(scene)
     caster = scene.lods[0]
@@ -102,7 +104,7 @@ def shade_filtered(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.
     ng = scene.lod_face_normals[0][prim]
     wo = -d[idx]
     view_ok = np.einsum("ij,ij->i", ng, wo) > TOL.grazing_cos
-    radiance = make_radiance(scene, values, row * scene.n0 + col, {"prim": prim, "lam": lam})
+    radiance = make_radiance(scene, values, row * scene.n0 + col, {"prim": prim, "lam": lam, "uv": uv})
     wo_t = np.einsum("nij,nj->ni", frames, wo)
     for light in scene.lights:  # a loop over the few lights
         live, wi, e, r = lit_points(light, p, ng, view_ok, caster, scene.ray_eps)

@@ -29,6 +29,7 @@ from texelbake.baselines.filtered_maps import slope_covariance
 from texelbake.brdf.evaluate import PREVIEW_BRDF_INPUTS, material_inputs
 from texelbake.brdf.widened import preview_leadr, widen_material
 from texelbake.geometry.basis import tangent_frames
+from texelbake.render.albedo import baseline_albedo
 from texelbake.render.filtered import RadianceFn, field, shade_filtered
 from texelbake.render.normalmap import _normalmap_tables
 from texelbake.render.scene import RenderScene
@@ -49,7 +50,9 @@ def leadr_radiance(scene: RenderScene, values: np.ndarray, texel: np.ndarray, hi
     n_mu /= np.linalg.norm(n_mu, axis=1, keepdims=True)
     var_axis = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
     nbar = field(values, "nbar")
-    albedo = field(values, "albedo") * (field(values, "ao") if ao else 1.0)
+    fine = baseline_albedo(scene, hits["uv"], hits["lam"])  # the texture's page, if finer
+    albedo = (field(values, "albedo") if fine is None else fine) * (
+        field(values, "ao") if ao else 1.0)
 
     def radiance(sel: np.ndarray, wi_t: np.ndarray, wo_t: np.ndarray) -> np.ndarray:
         frames = tangent_frames(n_mu[sel])

@@ -9,6 +9,7 @@ from texelbake import brdf as brdf_mod
 from texelbake.baselines.normal_maps import face_tangent_space
 from texelbake.errors import StageError
 from texelbake.geometry.texels import bilinear_texels
+from texelbake.render.albedo import baseline_albedo
 from texelbake.render.scene import RenderScene, hit_m1, m1_arrays
 from texelbake.tol import TOL
 from texelbake.trace.camera import PinholeCamera
@@ -107,7 +108,8 @@ def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray
     if idx.size == 0:
         return out, rays, hit
     albedo_map, normal_map = baseline_maps(scene)
-    albedo = _bilinear_map(albedo_map, uv)
+    fine = baseline_albedo(scene, uv)  # the texture's page where it is finer than the atlas
+    albedo = _bilinear_map(albedo_map, uv) if fine is None else fine
     local = _bilinear_map(normal_map, uv)
     ns = np.einsum("nji,nj->ni", nm["frames"][prim], local)  # tangent space -> world
     ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)

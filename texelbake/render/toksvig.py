@@ -27,6 +27,7 @@ from texelbake import brdf as brdf_mod
 from texelbake.baselines.filtered_maps import toksvig_variance
 from texelbake.brdf.widened import toksvig_phong_exponent, widen_material
 from texelbake.geometry.basis import tangent_frames
+from texelbake.render.albedo import baseline_albedo
 from texelbake.render.filtered import RadianceFn, field, shade_filtered
 from texelbake.render.normalmap import _normalmap_tables
 from texelbake.render.scene import RenderScene
@@ -46,7 +47,9 @@ def toksvig_radiance(scene: RenderScene, values: np.ndarray, texel: np.ndarray, 
     up = np.tile([0.0, 0.0, 1.0], (nbar.shape[0], 1))
     n_hat = np.divide(nbar, length[:, None], out=up, where=length[:, None] > 0)
     sigma2 = toksvig_variance(length)
-    albedo = field(values, "albedo") * (field(values, "ao") if ao else 1.0)
+    fine = baseline_albedo(scene, hits["uv"], hits["lam"])  # the texture's page, if finer
+    albedo = (field(values, "albedo") if fine is None else fine) * (
+        field(values, "ao") if ao else 1.0)
 
     def radiance(sel: np.ndarray, wi_t: np.ndarray, wo_t: np.ndarray) -> np.ndarray:
         frames = tangent_frames(n_hat[sel])
