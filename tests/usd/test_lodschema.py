@@ -115,3 +115,24 @@ def test_switch_sizes_continue_the_last_ratio():
     assert switch_sizes((100.0,), 2) == [100.0, 25.0]
     with pytest.raises(SettingsError, match="'lod_switch_px'"):
         switch_sizes((0.0,), 1)
+
+
+def test_the_normal_map_validator_sees_every_lods_normal_texture(baked):
+    # the stock run above is not vacuous for usdShadeValidators:NormalMapTextureValidator:
+    # every LOD's UsdPreviewSurface reads its normal from an 8-bit UsdUVTexture, the case that
+    # validator checks (raw colour space, scale (2, 2, 2, 1), bias (-1, -1, -1, 0))
+    from pxr import Usd, UsdGeom, UsdShade
+
+    stage = Usd.Stage.Open(str(baked))
+    seen = 0
+    for prim in stage.Traverse():
+        if not prim.GetPath().HasPrefix("/Cylinder/Baked") or not prim.IsA(UsdShade.Shader) \
+                or UsdShade.Shader(prim).GetShaderId() != "UsdPreviewSurface":
+            continue
+        src = UsdShade.Shader(prim).GetInput("normal").GetConnectedSources()[0][0].source
+        tex = UsdShade.Shader(src.GetPrim())
+        assert tex.GetShaderId() == "UsdUVTexture"
+        assert tex.GetInput("file").Get().path.endswith(".png")
+        seen += 1
+    assert seen == len([p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)
+                        and p.GetPath().HasPrefix("/Cylinder/Baked")])
