@@ -32,6 +32,38 @@ silhouette IoU (alpha or coverage >= 0.5) and the object's mean radiance over it
 silhouette as a ratio to the original's (the bolt's acceptance: within 25 %). Screenshots
 (original | each variant, per asset and LOD) go to `--renders` (default: `fallback_renders/`
 beside the JSON).
+
+Measured 2026-12-05 (benchmarks/results/fallback.json; scenes full size; bakes at `BAKE`, 31-210 s
+each, some stages from the artifact store; Cycles 256² at 256 spp, no denoiser, 10-100 s per
+render at load 20-33; texelbake preview-surface 16 spp against gt 256 spp, 256²). PSNR (dB) and
+FLIP over the object, IoU, and mean radiance as a ratio to the original's:
+
+| asset        | LOD | px  | Blender PSNR | FLIP  | IoU   | mean | tb PSNR | FLIP  | IoU   | mean | mesh |
+|--------------|----:|----:|-------------:|------:|------:|-----:|--------:|------:|------:|-----:|-----:|
+| bolt         |   1 | 256 |        30.89 | 0.237 | 1.000 | 0.81 |   42.00 | 0.025 | 0.998 | 1.02 | M1 |
+| bolt         |   2 |  64 |         7.84 | 0.368 | 0.993 | 0.97 |   36.69 | 0.079 | 0.998 | 1.00 | M1 |
+| cylinder     |   1 | 256 |        24.54 | 0.259 | 1.000 | 0.98 |   23.05 | 0.259 | 0.999 | 1.00 | M1 |
+| cylinder     |   2 |  64 |        22.73 | 0.339 | 0.996 | 0.97 |   16.07 | 0.414 | 0.996 | 1.09 | M2 |
+| wall         |   1 | 256 |        22.09 | 0.214 | 0.998 | 1.02 |   22.75 | 0.164 | 0.999 | 1.00 | M1 |
+| wall         |   2 |  64 |        11.63 | 0.572 | 0.953 | 0.68 |   16.17 | 0.336 | 0.950 | 1.20 | M2 |
+| cloisonne    |   1 | 256 |        18.43 | 0.341 | 0.996 | 0.98 |   43.91 | 0.354 | 0.996 | 1.14 | M1 |
+| cloisonne    |   2 |  64 |        20.09 | 0.300 | 0.985 | 0.93 |   32.24 | 0.288 | 0.982 | 1.14 | M2 |
+| teapot       |   1 | 256 |        30.89 | 0.157 | 0.997 | 1.00 |   38.33 | 0.137 | 0.996 | 1.00 | M1 |
+| teapot       |   2 |  64 |        27.69 | 0.211 | 0.981 | 0.98 |   27.83 | 0.178 | 0.973 | 1.01 | M2 |
+| box_animated |   1 | 256 |        13.78 | 0.369 | 0.998 | 1.22 |   22.83 | 0.110 | 0.998 | 1.01 | M1 |
+
+Only today's averaged fallback (the fitted one is another column once it lands). What the
+screenshots show: the bolt's LOD2 in Cycles sparkles (saturated specular pixels where the
+original has none: 7.8 dB with the mean radiance within 3 %; Cycles samples the full-resolution
+normal map with no mip filtering, so the widened roughness meets unfiltered normals), and its
+LOD1 head's top face renders black; the wall's LOD2 shows a dark X across its quad (the coarse
+mesh's shading frame); BoxAnimated's original has dark triangles of its own in Cycles (its
+geometry, lods.py) and the LOD's pink lid bleeds onto the box's side. Blender's cloisonne
+original is its preview surface (Blender cannot evaluate texelbake's cellular shader); texelbake's
+gt is the real shader, hence the 18-44 dB spread between the renderers there. On the bolt, at
+these views, the averaged fallback's mean radiance is already within 25 % of the original's in
+both renderers (0.81 / 0.97 Blender, 1.02 / 1.00 texelbake); the 5x over-brightness measured
+with benchmarks/render.py comes from the scene's own close sphere light and camera.
 """
 
 from __future__ import annotations
