@@ -5,9 +5,11 @@
     python import_render.py -- SPEC.json
 
 SPEC: {"files": [{"name", "path"}, ...], "out_dir", "resolution", "samples",
-"frame": null | [[xmin, ymin, zmin], [xmax, ymax, zmax]]}. Each file is imported into an empty
-scene. The camera and the sun are placed from `frame` (Blender world space; when null, from the
-first file's imported bounds), so every file is seen from the same view. Per file the last
+"frame": null | [[xmin, ymin, zmin], [xmax, ymax, zmax]], "diag_px": null | pixels}. Each file
+is imported into an empty scene. The camera and the sun are placed from `frame` (Blender world
+space; when null, from the first file's imported bounds), so every file is seen from the same
+view: at the distance where the frame fits the image, or, with `diag_px`, where the frame box's
+diagonal covers that many pixels (a LOD's switch distance; the small-angle size). Per file the last
 stdout line's JSON holds: the mesh objects (name, triangles, world-space bounds), the materials
 they use, the images those materials read (size, whether pixels loaded), the world bounds of
 all meshes, the render's PNG path and seconds.
@@ -109,7 +111,8 @@ def _describe() -> dict:
     return {"meshes": meshes, "materials": mats, "bounds": _exact_bounds(objs)}
 
 
-def _setup_view(frame, resolution: int, samples: int) -> None:
+def _setup_view(frame, resolution: int, samples: int, diag_px: float | None = None
+                ) -> None:
     scene = bpy.context.scene
     for o in list(scene.objects):
         if o.type in ("LIGHT", "CAMERA"):
@@ -129,6 +132,8 @@ def _setup_view(frame, resolution: int, samples: int) -> None:
     d = float(np.max(corners @ view + np.maximum(np.abs(corners @ right),
                                                  np.abs(corners @ up)) / t))
     radius = float(np.linalg.norm(hi - lo) / 2) or 1.0
+    if diag_px:  # at the distance where the frame box's diagonal covers diag_px pixels
+        d = 2.0 * radius * resolution / (2.0 * float(diag_px) * math.tan(fov / 2))
     cam_data = bpy.data.cameras.new("DccCamera")
     cam_data.angle = fov
     cam_data.clip_start = max(d - 2 * radius, 1e-4) * 0.5
@@ -195,7 +200,8 @@ def main() -> None:
             frame = info["bounds"]
         png = out_dir / f"{f['name']}.png"
         if spec.get("render", True) and info["bounds"] is not None:
-            _setup_view(frame, int(spec.get("resolution", 160)), int(spec.get("samples", 16)))
+            _setup_view(frame, int(spec.get("resolution", 160)), int(spec.get("samples", 16)),
+                        spec.get("diag_px"))
             bpy.context.scene.render.filepath = str(png)
             t0 = time.perf_counter()
             bpy.ops.render.render(write_still=True)

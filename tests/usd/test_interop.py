@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdLux, UsdShade
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
 
-from tests.helpers.usd_validation import stock_errors
+from tests.helpers.usd_validation import stock_check, stock_errors
 from texelbake.model import SHADER_CELLULAR, SHADER_LAMBERT
 from texelbake.usd.shaderdefs import (
     ALL_SHADER_INPUTS,
@@ -37,20 +37,31 @@ def test_generated_scenes_pass_stock_validation(scenes):
     assert (scenes[0].parent / DEFINITIONS_FILE).is_file()
 
 
-def test_stock_pxr_type_checks_texelbake_shaders_through_the_definitions(tmp_path):
-    # without the definitions a stock validator could not know the inputs' types; a wrong type
-    # on a texelbake shader is an error there, so the definitions really are read
+def test_texelbake_shaders_open_silently_and_type_check_when_a_tool_opts_in(tmp_path):
+    # as authored, a stock pxr resolves no Sdr node for a texelbake shader: nothing is printed
+    # (an asset-based node would print "Invalid prim name" per id) and nothing is an error.
+    # A tool that opts in (implementationSource = sourceAsset over the shader) reads the
+    # definitions beside the file: a wrong input type is then an error there, so the
+    # definitions really are complete and found
     stage = Usd.Stage.CreateNew(str(tmp_path / "bad.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     mat = UsdShade.Material.Define(stage, "/Looks/M")
+    stage.SetDefaultPrim(stage.GetPrimAtPath("/Looks"))
     sh = author_shader(stage, "/Looks/M/S", SHADER_CELLULAR)
     sh.CreateInput("seed", Sdf.ValueTypeNames.Float).Set(3.0)  # declared int
     mat.CreateSurfaceOutput("texelbake").ConnectToSource(
         sh.CreateOutput("surface", Sdf.ValueTypeNames.Token))
     stage.GetRootLayer().Save()
-    write_definitions(tmp_path)
-    errors = stock_errors(tmp_path / "bad.usda")[str(tmp_path / "bad.usda")]
+    assert (tmp_path / DEFINITIONS_FILE).is_file()
+    assert stock_errors(tmp_path / "bad.usda") == {str(tmp_path / "bad.usda"): []}
+    sh.GetImplementationSourceAttr().Set(UsdShade.Tokens.sourceAsset)
+    stage.GetRootLayer().Save()
+    errors, printed = stock_check(tmp_path / "bad.usda")
+    errors = errors[str(tmp_path / "bad.usda")]
     assert any(e.startswith("MismatchedPropertyType") and "seed" in e for e in errors), errors
-    assert not any(e.startswith("MissingShaderIdInRegistry") for e in errors)
+    assert not any(e.startswith(("MissingShaderIdInRegistry", "MissingSourceType")) for e in errors)
+    assert "Invalid prim name" in printed  # why the opt-in is not the default
 
 
 def test_definitions_file_is_deterministic_and_complete(tmp_path):
@@ -75,7 +86,16 @@ def test_shader_id_reads_both_forms():
     plain = UsdShade.Shader.Define(stage, "/C")
     assert shader_id(new) == shader_id(old) == SHADER_LAMBERT
     assert shader_id(plain) is None
-    assert new.GetSourceAsset("texelbake").path == f"./{DEFINITIONS_FILE}"
+    assert new.GetPrim().GetAttribute("info:texelbake:sourceAsset").Get().path == \
+        f"./{DEFINITIONS_FILE}"
+    # no info:id and no authored implementation source: no tool asks Sdr for a node
+    assert not new.GetIdAttr().HasAuthoredValue()
+    assert not new.GetImplementationSourceAttr().HasAuthoredValue()
+    # files written with implementationSource = sourceAsset still read
+    opted = UsdShade.Shader.Define(stage, "/D")
+    opted.SetSourceAsset(Sdf.AssetPath(f"./{DEFINITIONS_FILE}"), "texelbake")
+    opted.SetSourceAssetSubIdentifier("texelbake_phong", "texelbake")
+    assert shader_id(opted) == "texelbake:phong"
 
 
 def test_ingest_reads_a_source_asset_shader_like_an_id_shader(scenes):

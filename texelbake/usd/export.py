@@ -12,6 +12,8 @@ one layer and keeps only what that LOD shows:
   are the CPM arrays, texelbake's own shaders inside `Baked` (the CPM and BTF render-context
   shaders, which only texelbake reads) with the material outputs that lead to them, and
   materials no remaining prim binds. The UsdPreviewSurface fallback stays.
+- The USD LOD schema (`texelbake.usd.lodschema`: the heuristic, `LODRootAPI` on `Baked` and its
+  empty `LOD0` item) selects among LODs; with one LOD in the file it is dropped.
 
 Texture files are copied beside the output (`<stem>_maps/`, paths made relative) for `.usda`
 and `.usdc`, or packed into the archive for `.usdz` (`UsdUtils.CreateNewUsdzPackage`). Files
@@ -28,6 +30,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdUtils
 
 from texelbake.errors import AssetError, SettingsError
 from texelbake.io.atomic import atomic_path
+from texelbake.usd.lodschema import HEURISTIC_NAME
 from texelbake.usd.shaderdefs import SOURCE_TYPE
 
 SUFFIXES = (".usda", ".usdc", ".usdz")
@@ -88,9 +91,15 @@ def _prune(layer: Sdf.Layer, root: Sdf.Path, lod: int) -> None:
     # the whole file here
     drop: list[Sdf.Path] = [root.AppendChild("Proxy")] if layer.GetPrimAtPath(
         root.AppendChild("Proxy")) else []
+    # the LOD schema (texelbake.usd.lodschema) selects among LODs: one LOD is the whole file
+    heuristic = root.AppendChild(HEURISTIC_NAME)
+    if layer.GetPrimAtPath(heuristic):
+        drop.append(heuristic)
     if lod == 0:
         drop.append(baked)
     else:
+        drop.append(baked.AppendChild("LOD0"))
+        _drop_lod_root(layer, baked)
         drop.append(baked.AppendChild("CPM"))
 
         def visit(spec: Sdf.PrimSpec) -> None:
@@ -113,6 +122,24 @@ def _prune(layer: Sdf.Layer, root: Sdf.Path, lod: int) -> None:
     if lod:
         _drop_texelbake_outputs(layer, baked)
         _drop_unbound_materials(layer)
+
+
+def _drop_lod_root(layer: Sdf.Layer, baked: Sdf.Path) -> None:
+    """`LODRootAPI` and its `lod:` properties off the `Baked` prim spec."""
+    spec = layer.GetPrimAtPath(baked)
+    if spec is None:
+        return
+    schemas = spec.GetInfo("apiSchemas") if spec.HasInfo("apiSchemas") else None
+    if schemas is not None:
+        kept = [n for n in schemas.ApplyOperations([]) if n != "LODRootAPI"]
+        if kept:
+            spec.SetInfo("apiSchemas", Sdf.TokenListOp.CreateExplicit(kept))
+        else:
+            spec.ClearInfo("apiSchemas")
+    for prop in [p for p in spec.properties if p.name.startswith("lod:")]:
+        spec.RemoveProperty(prop)
+    if spec.HasInfo("primOrder"):
+        spec.ClearInfo("primOrder")
 
 
 def _remove(layer: Sdf.Layer, paths: list[Sdf.Path]) -> None:

@@ -6,24 +6,30 @@ texelbake authors shaders of its own (`texelbake:lambert`, `texelbake:phong`,
 them: a shader whose `info:id` is not in its Sdr registry fails pxr's validator
 `usdShadeValidators:ShaderSdrCompliance` (`MissingShaderIdInRegistry`).
 
-How they are authored so that any tool accepts them (`author_shader`): the shader names its
-definition by *source asset* instead of by id — `info:implementationSource = "sourceAsset"`,
-`info:texelbake:sourceAsset = @./texelbake_shaders.usda@` and
-`info:texelbake:sourceAsset:subIdentifier = "texelbake_lambert"` — and the definitions file
-(`DEFINITIONS_FILE`, `write_definitions`) is written beside the layer. A stock pxr resolves the
-asset, parses it with usdShade's own `usda` shader-definition parser and checks every authored
-input against the declared type (`MismatchedPropertyType`), with no plug-in path, environment
-variable or texelbake import. (A `plugInfo.json` plug-in would need `PXR_PLUGINPATH_NAME` in
-every studio tool's environment; an id with a colon cannot be found by Sdr's file-system
-discovery either, since a definition's identifier comes from its file or prim name.)
-`shader_id` reads a shader's texelbake id back from either form; files written before this
-change, with `info:id = "texelbake:…"`, still read, and `register_shader_definitions()` adds
-the ids to a process's own registry so that they validate there too.
+How they are authored so that any tool opens them silently and without a validation error
+(`author_shader`): the shader carries no `info:id` and leaves `info:implementationSource` at
+its fallback (`id`), so no tool asks Sdr for a node, and it names its definition in
+texelbake's own source-type attributes — `info:texelbake:sourceAsset =
+@./texelbake_shaders.usda@` and `info:texelbake:sourceAsset:subIdentifier =
+"texelbake_lambert"` — with the definitions file (`DEFINITIONS_FILE`, `write_definitions`)
+written beside the layer. Why not `implementationSource = "sourceAsset"` (which made a stock
+pxr type-check the inputs): Sdr names an asset-based node `<hash><subIdentifier><sourceType>`,
+and usdShade's `usda` parser first looks that identifier up as a prim name, so every stock
+process that resolves such a shader (UsdValidation's `ShaderSdrCompliance`, a Hydra material
+network) prints one "Invalid prim name" warning per shader id; there is no spelling of an
+asset-based node that avoids it. A tool that wants the inputs' types opts in by authoring
+`info:implementationSource = "sourceAsset"` over the shader (the definitions resolve as
+before; a test does exactly that). (A `plugInfo.json` plug-in would need
+`PXR_PLUGINPATH_NAME` in every studio tool's environment; an id with a colon cannot be found
+by Sdr's file-system discovery either, since a definition's identifier comes from its file or
+prim name.) `shader_id` reads a shader's texelbake id back from any form: files written with
+`info:id = "texelbake:…"` or with `implementationSource = "sourceAsset"` still read, and
+`register_shader_definitions()` adds the ids to a process's own registry so that the
+`info:id` form validates there too.
 
 The definitions are UsdShade.Shader prims (the convention of usd-core's
 `usdShaders/shaderDefs.usda`), one per id, named with the colon replaced by an underscore
-(`texelbake_cellular`) because a colon is not allowed in a prim name. pxr prints one harmless
-"Invalid prim name" warning per id when it first parses them.
+(`texelbake_cellular`) because a colon is not allowed in a prim name.
 """
 
 from __future__ import annotations
@@ -110,6 +116,9 @@ def definition_prim_name(shader_id: str) -> str:
 
 _ID_OF_PRIM_NAME: Mapping[str, str] = MappingProxyType(
     {definition_prim_name(sid): sid for sid in ALL_SHADER_INPUTS})
+#: the attributes a texelbake shader names its definition by (UsdShade's source-asset names)
+_ASSET_ATTR = f"info:{SOURCE_TYPE}:sourceAsset"
+_SUB_ATTR = f"info:{SOURCE_TYPE}:sourceAsset:subIdentifier"
 
 
 def build_definitions_layer(source_asset: str = f"./{DEFINITIONS_FILE}") -> Sdf.Layer:
@@ -157,9 +166,11 @@ def write_definitions(folder: str | Path) -> Path:
 
 
 def author_shader(stage: Usd.Stage, path: str, shader_id: str) -> UsdShade.Shader:
-    """Define a texelbake shader at `path` that names its definition by source asset
-    (`./texelbake_shaders.usda`, relative to the layer being authored; the file is written
-    beside that layer when it is on disk, else by the caller with `write_definitions`). Raises SettingsError for an id texelbake does not define."""
+    """Define a texelbake shader at `path` that names its definition in texelbake's
+    source-type attributes (`./texelbake_shaders.usda`, relative to the layer being authored;
+    the file is written beside that layer when it is on disk, else by the caller with
+    `write_definitions`), with no `info:id` and no authored implementation source (module
+    docstring). Raises SettingsError for an id texelbake does not define."""
     if shader_id not in ALL_SHADER_INPUTS:
         raise SettingsError(f"field 'shader_id': {shader_id!r} is not a texelbake shader id "
                             f"(expected one of {sorted(ALL_SHADER_INPUTS)})")
@@ -167,21 +178,26 @@ def author_shader(stage: Usd.Stage, path: str, shader_id: str) -> UsdShade.Shade
     layer = stage.GetEditTarget().GetLayer()
     if layer.realPath:  # a layer on disk: its definitions beside it (in-memory: the caller's)
         write_definitions(Path(layer.realPath).parent)
-    shader.SetSourceAsset(Sdf.AssetPath(f"./{DEFINITIONS_FILE}"), SOURCE_TYPE)
-    shader.SetSourceAssetSubIdentifier(definition_prim_name(shader_id), SOURCE_TYPE)
+    prim = shader.GetPrim()
+    prim.CreateAttribute(_ASSET_ATTR, Sdf.ValueTypeNames.Asset, custom=False,
+                         variability=Sdf.VariabilityUniform).Set(
+        Sdf.AssetPath(f"./{DEFINITIONS_FILE}"))
+    prim.CreateAttribute(_SUB_ATTR, Sdf.ValueTypeNames.Token, custom=False,
+                         variability=Sdf.VariabilityUniform).Set(definition_prim_name(shader_id))
     return shader
 
 
 def shader_id(shader: UsdShade.Shader) -> str | None:
-    """A shader's id: `info:id` when authored, else the texelbake id its `texelbake` source
-    asset names (`author_shader`); None when it has neither."""
+    """A shader's id: `info:id` when authored, else the texelbake id its `texelbake`
+    source-asset sub-identifier names (`author_shader`, whatever its implementation source);
+    None when it has neither."""
     sid = shader.GetShaderId()
     if sid:
         return str(sid)
-    if shader.GetImplementationSource() == UsdShade.Tokens.sourceAsset:
-        sub = shader.GetSourceAssetSubIdentifier(SOURCE_TYPE)
-        if sub:
-            return _ID_OF_PRIM_NAME.get(str(sub), str(sub))
+    sub = shader.GetPrim().GetAttribute(_SUB_ATTR)
+    value = sub.Get() if sub else None
+    if value:
+        return _ID_OF_PRIM_NAME.get(str(value), str(value))
     return None
 
 

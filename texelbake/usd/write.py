@@ -12,9 +12,10 @@ from typing import Any
 import numpy as np
 from pxr import Kind, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
+from schemas.settings import BakeSettings
 from texelbake.errors import AssetError, ShapeError
 from texelbake.io.atomic import replace
-from texelbake.usd import variants
+from texelbake.usd import lodschema, variants
 from texelbake.usd.baked import ARRAY_NS, USD_ARRAY_TYPES, BakedAsset
 from texelbake.usd.fallback import author_preview_material, fallback_material_path
 from texelbake.usd.lodmesh import author_mesh, extent_of
@@ -207,6 +208,8 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
                 img.CreateVisibilityAttr(
                     UsdGeom.Tokens.inherited if v == 0 else UsdGeom.Tokens.invisible
                 )
+            if n_lod:  # the LOD schema's default item follows the selection
+                lodschema.author_variant_index(stage, baked_prim.GetPath(), v)
     # the asset as authored by default: a client without a variant picker (Blender's
     # importer) shows the original, not a LOD it did not ask for
     vset.SetVariantSelection("LOD0")
@@ -229,9 +232,13 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     if n_lod:  # with payloads unloaded, clients size the asset by this: every LOD inside it,
         # and the proxy at every time code (an animated asset moves beyond its rest bounds)
         lo, hi = _lod_extent(stage, root.GetPrim(), vset, n_lod)
-        UsdGeom.ModelAPI(root.GetPrim()).SetExtentsHint(
-            extent_of(np.concatenate([np.stack([lo, hi])] + [pts for _, pts in motion])))
+        hint = extent_of(np.concatenate([np.stack([lo, hi])] + [pts for _, pts in motion]))
+        UsdGeom.ModelAPI(root.GetPrim()).SetExtentsHint(hint)
         vset.SetVariantSelection("LOD0")
+        # the USD LOD schema beside the variant set (texelbake.usd.lodschema)
+        lodschema.author_lod_root(stage, root.GetPrim(), n_lod,
+                                  baked.metadata.get("settings", {}).get("lod_switch_px")
+                                  or BakeSettings().lod_switch_px, np.asarray(hint))
     _commit_stage(stage, root_file)
     return root_file
 

@@ -1,0 +1,302 @@
+"""The UsdPreviewSurface fallback judged in another renderer: per asset and LOD, the original
+and that LOD with each fallback variant the bake holds, rendered in Blender 5.0.1 (Cycles,
+headless bpy, the dcc virtualenv) from one camera and sun at the LOD's switch distance, and the
+same LOD in texelbake's own `preview-surface` mode against its `gt` reference.
+
+    python benchmarks/fallback.py --json benchmarks/results/fallback.json
+        [--assets cylinder bolt ...] [--size full] [--resolution 256] [--samples 256]
+        [--tb-spp 16] [--tb-ref-spp 256] [--renders DIR] [--no-blender]
+
+Assets: the four generated scenes at `--size` (full), the Teapot and BoxAnimated.usdz from
+../shared/assets. Each is baked once per fallback variant (`FALLBACKS`: a column name and the
+BakeSettings that select it; adding a variant is one line there) at `BAKE` (a light CPM that
+leaves the geometry and the filtered maps — all the fallback reads — as at defaults; printed).
+
+Blender: each LOD N >= 1 exported with `texelbake export --lod N` (.usdz), imported with
+Blender's USD importer at its defaults beside the original, rendered by
+tests/blender/import_render.py through tests/helpers/dcc (Cycles CPU, `--resolution`² pixels,
+`--samples` per pixel, no denoiser, no adaptive sampling, fixed seed; one sun plus a dim world;
+the film transparent) with the camera where the original's bounding-box diagonal covers the
+LOD's switch size in pixels (`lod_switch_px`; at 256² LOD1's 256 px fill the frame). The
+original there is what Blender makes of the source (its UsdPreviewSurface where it has one:
+Blender cannot evaluate texelbake's own shaders). texelbake: `preview-surface` (what a USD viewer
+without texelbake's shader shows: each LOD's fallback as authored) at `--tb-spp` against `gt`
+(the original's true materials) at `--tb-ref-spp`, the same resolution, auto-framed so the
+bounding sphere's diameter covers the switch size (its own camera and lights: the two
+renderers' figures are each against their own reference, not against each other).
+
+Figures per (asset, LOD, variant), over the object's pixels (`metrics.object_mask`: the union
+of both silhouettes, dilated by a pixel): PSNR (dB, linear radiance, peak the reference's;
+Blender's 8-bit sRGB PNGs decoded to linear), FLIP (`metrics.flip_map`, mean over the object),
+silhouette IoU (alpha or coverage >= 0.5) and the object's mean radiance over its own
+silhouette as a ratio to the original's (the bolt's acceptance: within 25 %). Screenshots
+(original | each variant, per asset and LOD) go to `--renders` (default: `fallback_renders/`
+beside the JSON).
+
+Measured 2026-12-05 (benchmarks/results/fallback.json; scenes full size; bakes at `BAKE`, 31-210 s
+each, some stages from the artifact store; Cycles 256² at 256 spp, no denoiser, 10-100 s per
+render at load 20-33; texelbake preview-surface 16 spp against gt 256 spp, 256²). PSNR (dB) and
+FLIP over the object, IoU, and mean radiance as a ratio to the original's:
+
+| asset        | LOD | px  | Blender PSNR | FLIP  | IoU   | mean | tb PSNR | FLIP  | IoU   | mean | mesh |
+|--------------|----:|----:|-------------:|------:|------:|-----:|--------:|------:|------:|-----:|-----:|
+| bolt         |   1 | 256 |        30.89 | 0.237 | 1.000 | 0.81 |   42.00 | 0.025 | 0.998 | 1.02 | M1 |
+| bolt         |   2 |  64 |         7.84 | 0.368 | 0.993 | 0.97 |   36.69 | 0.079 | 0.998 | 1.00 | M1 |
+| cylinder     |   1 | 256 |        24.54 | 0.259 | 1.000 | 0.98 |   23.05 | 0.259 | 0.999 | 1.00 | M1 |
+| cylinder     |   2 |  64 |        22.73 | 0.339 | 0.996 | 0.97 |   16.07 | 0.414 | 0.996 | 1.09 | M2 |
+| wall         |   1 | 256 |        22.09 | 0.214 | 0.998 | 1.02 |   22.75 | 0.164 | 0.999 | 1.00 | M1 |
+| wall         |   2 |  64 |        11.63 | 0.572 | 0.953 | 0.68 |   16.17 | 0.336 | 0.950 | 1.20 | M2 |
+| cloisonne    |   1 | 256 |        18.43 | 0.341 | 0.996 | 0.98 |   43.91 | 0.354 | 0.996 | 1.14 | M1 |
+| cloisonne    |   2 |  64 |        20.09 | 0.300 | 0.985 | 0.93 |   32.24 | 0.288 | 0.982 | 1.14 | M2 |
+| teapot       |   1 | 256 |        30.89 | 0.157 | 0.997 | 1.00 |   38.33 | 0.137 | 0.996 | 1.00 | M1 |
+| teapot       |   2 |  64 |        27.69 | 0.211 | 0.981 | 0.98 |   27.83 | 0.178 | 0.973 | 1.01 | M2 |
+| box_animated |   1 | 256 |        13.78 | 0.369 | 0.998 | 1.22 |   22.83 | 0.110 | 0.998 | 1.01 | M1 |
+
+Only today's averaged fallback (the fitted one is another column once it lands). What the
+screenshots show: the bolt's LOD2 in Cycles sparkles (saturated specular pixels where the
+original has none: 7.8 dB with the mean radiance within 3 %; Cycles samples the full-resolution
+normal map with no mip filtering, so the widened roughness meets unfiltered normals), and its
+LOD1 head's top face renders black; the wall's LOD2 shows a dark X across its quad (the coarse
+mesh's shading frame); BoxAnimated's original has dark triangles of its own in Cycles (its
+geometry, lods.py) and the LOD's pink lid bleeds onto the box's side. Blender's cloisonne
+original is its preview surface (Blender cannot evaluate texelbake's cellular shader); texelbake's
+gt is the real shader, hence the 18-44 dB spread between the renderers there. On the bolt, at
+these views, the averaged fallback's mean radiance is already within 25 % of the original's in
+both renderers (0.81 / 0.97 Blender, 1.02 / 1.00 texelbake); the 5x over-brightness measured
+with benchmarks/render.py comes from the scene's own close sphere light and camera.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from schemas.settings import BakeSettings
+from texelbake.io.images import read_pixels, srgb_to_linear
+from texelbake.pipeline.run import bake
+from texelbake.render import metrics
+from texelbake.testscenes import write_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+ASSETS = ROOT.parent / "shared" / "assets"
+SCENES = ("cylinder", "wall", "bolt", "cloisonne")
+#: fallback variant (a column) -> the BakeSettings fields that select it
+FALLBACKS: dict[str, dict[str, Any]] = {
+    "averaged": {},  # today's fallback: averaged inputs, widened roughness, normal map, AO
+}
+#: the bakes: a light CPM (the fallback maps come from the geometry and filtered-map stages,
+#: which these fields leave as at defaults)
+BAKE = {"samples_per_texel": 8, "n_light_dirs": 8, "n_view_dirs": 8, "n_heldout": 16,
+        "c_max": 8}
+TB_FOV_DEG = 27.0  # texelbake.trace.camera.auto_frame's default field of view
+
+
+def image_figures(img: np.ndarray, ref: np.ndarray, cov_img: np.ndarray, cov_ref: np.ndarray
+                  ) -> dict[str, float]:
+    """PSNR / FLIP over the object, silhouette IoU and the mean-radiance ratio of one render
+    (linear (h, w, 3), coverage (h, w) in [0, 1]) against the original's."""
+    mask = metrics.object_mask(cov_ref >= 0.5, cov_img >= 0.5)
+    err = metrics.object_errors(img, ref, mask)
+    a, b = cov_ref >= 0.5, cov_img >= 0.5
+    union = int(np.logical_or(a, b).sum())
+    mean_ref = float(ref[a].mean()) if a.any() else float("nan")
+    mean_img = float(img[b].mean()) if b.any() else float("nan")
+    return {"psnr_db_object": round(float(err["psnr_db_object"]), 3),
+            "flip_object": round(float(err["flip_mean_object"]), 4),
+            "iou": round(int(np.logical_and(a, b).sum()) / union, 4) if union else 1.0,
+            "object_pixels": int(err["object_pixels"]),
+            "mean_radiance": round(mean_img, 5), "mean_radiance_original": round(mean_ref, 5),
+            "mean_ratio": round(mean_img / mean_ref, 4) if mean_ref > 0 else float("nan")}
+
+
+def _png(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Linear RGB (colour over black: OpenImageIO hands associated alpha) and alpha."""
+    px = read_pixels(path)[0].astype(np.float64)
+    return srgb_to_linear(px[..., :3]).astype(np.float64), px[..., 3]
+
+
+def bake_variants(name: str, src: Path, work: Path) -> dict[str, dict[str, Any]]:
+    """{variant: {"root", "seconds", "switch_px"}}: one bake per fallback variant."""
+    out = {}
+    for variant, fields in FALLBACKS.items():  # a loop over the few variants
+        settings = BakeSettings(**{**BAKE, **fields})
+        dest = work / f"{name}_{variant}"
+        t0 = time.perf_counter()
+        root = bake(src, dest, settings, progress=False,
+                    workdir=dest.with_name(dest.name + "_work"))
+        seconds = time.perf_counter() - t0
+        report = json.loads((root.parent / "report.json").read_text())
+        levels = report["lods"]["levels"]
+        px = [lv["switch_px"] if lv["switch_px"] is not None else
+              settings.lod_switch_px[min(i, len(settings.lod_switch_px) - 1)]
+              for i, lv in enumerate(levels)]
+        out[variant] = {"root": root, "seconds": round(seconds, 1), "switch_px": px}
+    return out
+
+
+def blender_lod(name: str, src: Path, bakes: dict[str, dict[str, Any]], lod: int, px: float,
+                renders: Path, args: argparse.Namespace) -> dict[str, dict[str, float]] | str:
+    """Blender's figures of each variant at LOD `lod` ({variant: figures}), or why not run."""
+    import pytest
+
+    from tests.helpers.dcc import import_and_render, side_by_side
+    from texelbake.usd.export import export_lod
+
+    files: dict[str, Path] = {"original": src}
+    for variant, b in bakes.items():
+        root = b["root"]
+        files[variant] = export_lod(root, lod, root.parent.with_name(
+            f"{root.parent.name}_export") / f"lod{lod}.usdz")
+    try:
+        got = import_and_render(files, renders / name / f"lod{lod}", resolution=args.resolution,
+                                samples=args.samples, diag_px=px, timeout=3600.0)
+    except (Exception, pytest.fail.Exception, pytest.skip.Exception) as e:
+        return f"Blender not run: {str(e).splitlines()[0]}"
+    pngs = {k: Path(got["files"][k]["png"]) for k in files}
+    ref, a_ref = _png(pngs["original"])
+    out = {}
+    for variant in bakes:
+        img, a_img = _png(pngs[variant])
+        out[variant] = image_figures(img, ref, a_img, a_ref)
+        out[variant]["render_seconds"] = round(got["files"][variant]["render_seconds"], 1)
+    side_by_side([pngs[k] for k in files], renders / f"{name}_lod{lod}.png")
+    return out
+
+
+def texelbake_lod(root: Path, lod: int, px: float, args: argparse.Namespace
+                  ) -> dict[str, Any]:
+    """texelbake's preview-surface against its gt at the switch distance of `lod`."""
+    from texelbake.render.cpm import choose_mesh
+    from texelbake.render.frame import render_frame
+    from texelbake.render.scene import load_scene, resolve_camera
+
+    scene = load_scene(root)
+    res = args.resolution
+    # auto_frame's distance factor f puts the camera at f R / sin(atan(tan(fov/2))); the
+    # bounding sphere's diameter 2R then covers R res / (dist tan(fov/2)) pixels = px when
+    # f = res cos(atan(tan(fov/2))) / px
+    tan_x = math.tan(math.radians(TB_FOV_DEG) / 2.0)
+    factor = res * math.cos(math.atan(tan_x)) / px
+    cam = resolve_camera(scene, factor, res, res)
+    gt = render_frame(scene, "gt", cam, args.tb_ref_spp, 1000)
+    ps = render_frame(scene, "preview-surface", cam, args.tb_spp, 0)
+    fig = image_figures(ps.image, gt.image, np.asarray(ps.coverage, dtype=np.float64),
+                        np.asarray(gt.coverage, dtype=np.float64))
+    fig["mesh"] = f"M{choose_mesh(scene, cam, 1.0) + 1}"  # the LOD preview-surface drew
+    fig["seconds"] = round(ps.seconds, 3)
+    return fig
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--json", type=Path, help="write the rows here")
+    ap.add_argument("--size", default="full")
+    ap.add_argument("--assets", nargs="*", help="subset of the asset names")
+    ap.add_argument("--resolution", type=int, default=256)
+    ap.add_argument("--samples", type=int, default=256, help="Cycles samples per pixel")
+    ap.add_argument("--tb-spp", type=int, default=16, help="preview-surface eye rays per px")
+    ap.add_argument("--tb-ref-spp", type=int, default=256, help="gt eye rays per pixel")
+    ap.add_argument("--renders", type=Path, help="keep the renders and screenshots here")
+    ap.add_argument("--no-blender", action="store_true", help="skip the Blender columns")
+    args = ap.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="fallback_bench_"))
+    cases: dict[str, Path] = {}
+    for name in SCENES:
+        if not args.assets or name in args.assets:
+            cases[name] = write_scene(name, work / f"{name}.usda", args.size)
+    cases["teapot"] = ASSETS / "Teapot" / "Teapot.usd"
+    cases["box_animated"] = ASSETS / "BoxAnimated.usdz"
+    renders = args.renders or (args.json.parent / "fallback_renders" if args.json
+                               else work / "renders")
+    print(f"bake settings (BakeSettings defaults otherwise): {BAKE}; variants: "
+          f"{FALLBACKS}")
+    print(f"Blender: Cycles CPU {args.resolution}^2, {args.samples} spp, no denoiser; "
+          f"texelbake: preview-surface {args.tb_spp} spp against gt {args.tb_ref_spp} spp")
+    rows: list[dict[str, Any]] = []
+    notes: list[str] = []
+    order = args.assets or list(cases)  # the order asked for
+    for name in order:
+        src = cases.get(name)
+        if src is None or not src.is_file():
+            notes.append(f"{name}: {src} is missing, skipped")
+            continue
+        if renders.exists() and (renders / name).exists():
+            shutil.rmtree(renders / name)
+        bakes = bake_variants(name, src, work)
+        first = next(iter(bakes.values()))
+        for lod, px in enumerate(first["switch_px"], start=1):
+            bl = "--no-blender" if args.no_blender else blender_lod(
+                name, src, bakes, lod, px, renders, args)
+            if isinstance(bl, str):
+                notes.append(f"{name} LOD{lod}: {bl}")
+            for variant, b in bakes.items():
+                rows.append({"asset": name, "lod": lod, "switch_px": px, "variant": variant,
+                             "bake_seconds": b["seconds"],
+                             "blender": None if isinstance(bl, str) else bl[variant],
+                             "texelbake": texelbake_lod(b["root"], lod, px, args)})
+            _print_row_block(rows[-len(bakes):])
+        if args.json:  # after every asset: a long run interrupted keeps what it measured
+            _write_json(args, rows, notes)
+    print()
+    _print_table(rows)
+    for n in notes:
+        print(n)
+    bolt = [r for r in rows if r["asset"] == "bolt"]
+    for r in bolt:
+        for who in ("blender", "texelbake"):
+            if r[who]:
+                print(f"bolt LOD{r['lod']} {r['variant']} ({who}): object mean radiance "
+                      f"{r[who]['mean_radiance']:.4f} vs original {r[who]['mean_radiance_original']:.4f}"
+                      f" (ratio {r[who]['mean_ratio']:.3f}; the fitted fallback's bar: 0.75-1.25)")
+    print(f"screenshots (original | {' | '.join(FALLBACKS)}): {renders}/<asset>_lod<N>.png")
+    if args.json:
+        _write_json(args, rows, notes)
+
+
+def _write_json(args: argparse.Namespace, rows: list[dict[str, Any]], notes: list[str]) -> None:
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps({
+        "size": args.size, "bake": BAKE, "fallbacks": FALLBACKS,
+        "blender": {"engine": "CYCLES", "device": "CPU", "resolution": args.resolution,
+                    "samples": args.samples, "denoiser": False},
+        "texelbake": {"mode": "preview-surface", "spp": args.tb_spp,
+                      "reference": "gt", "ref_spp": args.tb_ref_spp},
+        "rows": rows, "notes": notes}, indent=1, sort_keys=True, default=str))
+
+
+def _fmt(fig: dict[str, Any] | None) -> str:
+    if not fig:
+        return f"{'-':>8}{'-':>7}{'-':>7}{'-':>7}"
+    return (f"{fig['psnr_db_object']:>8.2f}{fig['flip_object']:>7.3f}{fig['iou']:>7.3f}"
+            f"{fig['mean_ratio']:>7.2f}")
+
+
+def _print_row_block(rows: list[dict[str, Any]]) -> None:
+    for r in rows:
+        print(f"  {r['asset']} LOD{r['lod']} ({r['switch_px']:g} px) {r['variant']}: "
+              f"Blender {_fmt(r['blender'])} | texelbake {_fmt(r['texelbake'])}", flush=True)
+
+
+def _print_table(rows: list[dict[str, Any]]) -> None:
+    head = (f"{'asset':<13}{'lod':>4}{'px':>6} {'variant':<10}|{'Blender PSNR':>13}{'FLIP':>7}"
+            f"{'IoU':>7}{'mean':>7} |{'tb PSNR':>9}{'FLIP':>7}{'IoU':>7}{'mean':>7}{'mesh':>6}")
+    print(head)
+    for r in rows:
+        tb = r["texelbake"]
+        print(f"{r['asset']:<13}{r['lod']:>4}{r['switch_px']:>6g} {r['variant']:<10}|"
+              f"{_fmt(r['blender']):>34} |{_fmt(tb)}{str(tb.get('mesh')):>6}")
+
+
+if __name__ == "__main__":
+    main()
