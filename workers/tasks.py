@@ -109,6 +109,11 @@ def _hang_failpoint(stage: str) -> None:
         time.sleep(3600)
 
 
+def _public(text: str) -> str:
+    """A job's or shard's error as its client reads it: no server path (`storage.public_text`)."""
+    return storage.public_text(text, get_settings().artifact_root)
+
+
 def _backoff(retries: int) -> float:
     st = get_settings()
     base = min(float(st.retry_backoff_max), 2.0**retries)
@@ -142,15 +147,15 @@ def plan_job(self, job_id: str) -> None:
                                    ledger.policy_from(get_settings()))
         _dispatch(sends)
     except TexelbakeError as exc:
-        ledger.fail_job(_sm(), job_id, f"plan: {exc}")
+        ledger.fail_job(_sm(), job_id, _public(f"plan: {exc}"))
     except TRANSIENT as exc:
         st = get_settings()
         if self.request.retries >= st.max_retries:
-            ledger.fail_job(_sm(), job_id, f"plan: transient fault persisted: {exc!r}")
+            ledger.fail_job(_sm(), job_id, _public(f"plan: transient fault persisted: {exc!r}"))
             return
         raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
     except Exception as exc:  # a bug: the job fails with the reason instead of hanging
-        ledger.fail_job(_sm(), job_id, f"plan: {type(exc).__name__}: {exc}")
+        ledger.fail_job(_sm(), job_id, _public(f"plan: {type(exc).__name__}: {exc}"))
         raise
 
 
@@ -232,7 +237,7 @@ def shard_body(
     try:
         key = execute_shard(job_id, stage, shard)
     except TexelbakeError as exc:  # bad input: no retry
-        ledger.fail_shard(sm, job_id, stage, shard, f"{type(exc).__name__}: {exc}")
+        ledger.fail_shard(sm, job_id, stage, shard, _public(f"{type(exc).__name__}: {exc}"))
         return "failed"
     except TRANSIENT as exc:
         if retries >= st.max_retries:
@@ -241,15 +246,16 @@ def shard_body(
                 job_id,
                 stage,
                 shard,
-                f"transient fault persisted after "
-                f"{st.max_retries} retries: {type(exc).__name__}: {exc}",
+                _public(f"transient fault persisted after "
+                        f"{st.max_retries} retries: {type(exc).__name__}: {exc}"),
             )
             return "failed"
-        ledger.release_shard(sm, job_id, stage, shard, f"retrying: {exc!r}")
+        ledger.release_shard(sm, job_id, stage, shard, _public(f"retrying: {exc!r}"))
         raise retry(exc, _backoff(retries)) from exc
     except Exception as exc:  # a bug, not bad input: fail loudly with the traceback's tail
         tail = traceback.format_exc(limit=3)
-        ledger.fail_shard(sm, job_id, stage, shard, f"{type(exc).__name__}: {exc}\n{tail}")
+        ledger.fail_shard(sm, job_id, stage, shard,
+                          _public(f"{type(exc).__name__}: {exc}\n{tail}"))
         raise
     finally:
         stop.set()
