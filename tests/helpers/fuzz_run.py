@@ -71,13 +71,13 @@ def _send(client: httpx.Client, case: Case, port: int) -> tuple[int, str]:
             return 0, ""
         return int(head[9:12]), head.decode("latin-1").split("\r\n\r\n", 1)[-1]
     url = API + case.path
-    if case.stream:
-        try:
-            with client.stream(case.method, url, headers=case.headers, timeout=10) as r:
-                return r.status_code, ""
-        except httpx.ReadTimeout:
-            return 0, ""
     try:
+        if case.stream:
+            try:
+                with client.stream(case.method, url, headers=case.headers, timeout=10) as r:
+                    return r.status_code, ""
+            except httpx.ReadTimeout:
+                return 0, ""
         files = {"file": case.files} if case.files else None
         r = client.request(case.method, url, headers=case.headers, content=case.body,
                            files=files)  # fmt: skip
