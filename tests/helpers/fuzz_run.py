@@ -83,6 +83,8 @@ def _send(client: httpx.Client, case: Case, port: int) -> tuple[int, str]:
                            files=files)  # fmt: skip
     except (httpx.LocalProtocolError, UnicodeEncodeError):
         return -1, "the client refused to send it"
+    except httpx.TransportError as exc:  # reset, closed or timed out: no answer
+        return 0, repr(exc)
     return r.status_code, r.text if r.status_code < 300 else r.text[:300]
 
 
