@@ -7,6 +7,7 @@ from __future__ import annotations
 import struct
 import zipfile
 import zlib
+from functools import cache
 
 from tests.helpers.service import make_zip, usda
 
@@ -46,6 +47,7 @@ def set_cd_offset(z: bytes, offset: int) -> bytes:
     return bytes(out)
 
 
+@cache
 def understated(n_mib: int, declared: int = 100) -> bytes:
     """A bundle whose `pad.bin` inflates to `n_mib` MiB of zeros while its headers say
     `declared` bytes (deflate packs 1 MiB of zeros into ~1 kB: a tiny upload that would
