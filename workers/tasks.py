@@ -109,6 +109,20 @@ def _hang_failpoint(stage: str) -> None:
         time.sleep(3600)
 
 
+def _pxr_input_error(exc: BaseException, job_id: str) -> str | None:
+    """The job error for a pxr error raised reading the asset (a truncated or corrupted crate
+    layer the upload check let through): bad input naming the root layer, or None for any
+    other exception."""
+    if not type(exc).__module__.startswith("pxr"):
+        return None
+    reason = " ".join(storage.public_text(str(exc), get_settings().artifact_root).split())
+    try:
+        layer = load_job(job_id)[1].root_layer
+    except TexelbakeError:
+        layer = "the asset"
+    return f"pxr cannot read {layer} or a layer it uses: {reason.strip(chr(39))}"
+
+
 def _public(text: str) -> str:
     """A job's or shard's error as its client reads it: no server path (`storage.public_text`)."""
     return storage.public_text(text, get_settings().artifact_root)
@@ -155,6 +169,9 @@ def plan_job(self, job_id: str) -> None:
             return
         raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
     except Exception as exc:  # a bug: the job fails with the reason instead of hanging
+        if (why := _pxr_input_error(exc, job_id)) is not None:
+            ledger.fail_job(_sm(), job_id, f"plan: {why}")
+            return
         ledger.fail_job(_sm(), job_id, _public(f"plan: {type(exc).__name__}: {exc}"))
         raise
 
@@ -253,6 +270,9 @@ def shard_body(
         ledger.release_shard(sm, job_id, stage, shard, _public(f"retrying: {exc!r}"))
         raise retry(exc, _backoff(retries)) from exc
     except Exception as exc:  # a bug, not bad input: fail loudly with the traceback's tail
+        if (why := _pxr_input_error(exc, job_id)) is not None:
+            ledger.fail_shard(sm, job_id, stage, shard, why)
+            return "failed"
         tail = traceback.format_exc(limit=3)
         ledger.fail_shard(sm, job_id, stage, shard,
                           _public(f"{type(exc).__name__}: {exc}\n{tail}"))
