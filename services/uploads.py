@@ -1,12 +1,12 @@
 """Uploads are hostile until proven otherwise: size caps, safe unpacking, the pxr check.
 
-Flow: stream to a staging file under `<root>/tmp` (size cap, SHA-256 while reading) -> unpack
-into a staging bundle (`.zip`/`.usdz`: member names, links, member count, unpacked size and
-compression ratio checked before and while extracting) -> `services.validate` in a subprocess
--> one atomic rename into `<root>/assets/<sha256>/`. Any rejection deletes the staging folder:
-nothing is stored for a rejected upload.
+Flow: stream to a staging file under `<root>/tmp` (size cap, SHA-256 while reading) -> a
+checker forked from the warm check server (`services.checkserver`, under CPU and address-space
+rlimits) unpacks a `.zip`/`.usdz` into the staging bundle (`services.archive`: every member
+checked, inflated bytes counted) and runs `services.validate` -> one atomic rename into
+`<root>/assets/<sha256>/`. This process never inflates or parses an upload's bytes. Any
+rejection deletes the staging folder: nothing is stored for a rejected upload.
 """
-
 from __future__ import annotations
 
 import contextlib
