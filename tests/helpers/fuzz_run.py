@@ -111,12 +111,14 @@ def run(stack: Stack, token: str, n: int, seed: int, *, threads: int = 3,
     failures: list[dict] = []
     accepted_assets, created_jobs = {asset_id}, {job_id}
     lock = threading.Lock()
+    answers: list[list] = [[] for _ in cases]  # per case: family, status, the 4xx's start
     t0 = time.perf_counter()
 
     def one(i_case: tuple[int, Case]) -> None:
         i, case = i_case
         status, text = _send(client, case, port)
         with lock:
+            answers[i] = [case.family, status, text[:120] if status >= 300 else ""]
             if secret and secret in text:
                 failures.append({"case": i, "family": case.family, "status": status,
                                  "canary": True})  # fmt: skip
@@ -156,6 +158,7 @@ def run(stack: Stack, token: str, n: int, seed: int, *, threads: int = 3,
         "api_rss_max_mib": round(max(probe.rss), 1) if probe.rss else None,
         "api_rss_growth_mib": round(max(probe.rss) - probe.rss[0], 1) if probe.rss else None,
         "failures": failures[:50],
+        "answers": answers,
     })  # fmt: skip
     out["passed"] = (out["responses_5xx"] == 0 and out["no_answer"] == 0
                      and out["canary_leaks"] == 0
