@@ -62,7 +62,7 @@ bench: setup
 	$(PY) benchmarks/btf.py --synthetic --json bench_out/btf.json
 	$(PY) benchmarks/render.py --scene cylinder --scene-size full --btf \
 		--json bench_out/render_cylinder.json
-	$(PY) benchmarks/fuzz_uploads.py --examples 1000 --json bench_out/fuzz_uploads.json
+	$(PY) benchmarks/fuzz_uploads.py --cases 2000 --json bench_out/fuzz_uploads.json
 	$(PY) benchmarks/dashboard.py --json bench_out/dashboard.json
 
 scenes: setup

@@ -36,6 +36,9 @@ class Settings(BaseSettings):
     max_zip_ratio: float = Field(100.0, gt=1.0, description="Zip/usdz: unpacked/packed cap.")
     max_zip_members: int = Field(4096, ge=1)
     validate_timeout: float = Field(120.0, gt=0, description="Seconds for the pxr check.")
+    check_memory_bytes: int = Field(
+        2 << 30, ge=64 << 20, description="Address space one upload check (unpacking and pxr) "
+        "may map beyond the warm checker's own; past it the check fails, not the machine.")
     validate_concurrency: int | None = Field(
         None, ge=1, description="Upload checks (pxr child processes) at once per API process; "
         "more wait their turn. Default: the CPU count.")

@@ -11,6 +11,9 @@
 from __future__ import annotations
 
 import hashlib
+import os
+import re
+import sys
 from pathlib import Path
 
 
@@ -43,3 +46,22 @@ def job_out(root: Path, job_id: str) -> Path:
 
 def batch_dir(root: Path, batch_id: str) -> Path:
     return Path(root) / "batches" / batch_id
+
+
+#: pxr's error preamble: the C++ function, line and build path before the commentary
+_PXR_PREAMBLE = re.compile(r"Error in '[^']*' at line \d+ in file [^ ]+ : ")
+
+
+def public_text(text: str, root: Path) -> str:
+    """`text` (an error a client will read) without server paths: a file of an asset's bundle
+    is named relative to the bundle, other paths under `root` relative to it, paths of the
+    code and the interpreter by their tail; pxr's preamble goes."""
+    text = _PXR_PREAMBLE.sub("", text)
+    roots = {str(root), os.path.realpath(root)}
+    for base in sorted(roots, key=len, reverse=True):
+        text = re.sub(re.escape(f"{base}/assets/") + r"[0-9a-f]{64}/bundle/", "", text)
+        text = text.replace(f"{base}/", "").replace(base, "<storage>")
+    code = str(Path(__file__).resolve().parents[1])
+    for base in sorted({code, sys.prefix, sys.base_prefix}, key=len, reverse=True):
+        text = text.replace(f"{base}/", "…/")
+    return text

@@ -67,33 +67,38 @@ class TokenCache:
         self._d[digest] = (tenant, time.monotonic() + self.ttl)
 
 
+def tenant_of_token(state, token: str) -> str | None:  # noqa: ANN001 - the app's state
+    """The tenant of a bearer token, or None: from the process's token cache, else one
+    indexed database read (on the event loop, on its own small pool)."""
+    digest = token_digest(state.settings.secret_key, token)
+    cache: TokenCache = state.token_cache
+    tenant = cache.get(digest)
+    if tenant is None:
+        tenant = retry_disconnect(lambda: tenant_by_digest(state.inline, digest))
+        if tenant is not None:
+            cache.put(digest, tenant)
+    return tenant
+
+
+def unauthenticated(detail: str = NOT_AUTHENTICATED) -> ApiError:
+    """The 401 of a request without a valid token (`detail`: NOT_AUTHENTICATED or
+    INVALID_TOKEN)."""
+    code = ErrorCode.NOT_AUTHENTICATED if detail == NOT_AUTHENTICATED else ErrorCode.INVALID_TOKEN
+    return ApiError(status.HTTP_401_UNAUTHORIZED, detail, code,
+                    headers={"WWW-Authenticate": "Bearer"})  # fmt: skip
+
+
 async def get_current_tenant(
     request: Request,
     creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> str:
+    """The tenant of the request's bearer token. The scheme is matched case-insensitively
+    (`bearer` is `Bearer`, RFC 7235 section 2.1), for every method alike."""
     if creds is None or not creds.credentials:
-        raise ApiError(
-            status.HTTP_401_UNAUTHORIZED,
-            NOT_AUTHENTICATED,
-            ErrorCode.NOT_AUTHENTICATED,
-            headers={"WWW-Authenticate": "Bearer"},
-        )
-    st: Settings = request.app.state.settings
-    cache: TokenCache = request.app.state.token_cache
-    digest = token_digest(st.secret_key, creds.credentials)
-    tenant = cache.get(digest)
+        raise unauthenticated(NOT_AUTHENTICATED)
+    tenant = tenant_of_token(request.app.state, creds.credentials)
     if tenant is None:
-        inline = request.app.state.inline  # on the event loop: its own small pool
-        tenant = retry_disconnect(lambda: tenant_by_digest(inline, digest))
-        if tenant is not None:
-            cache.put(digest, tenant)
-    if tenant is None:
-        raise ApiError(
-            status.HTTP_401_UNAUTHORIZED,
-            INVALID_TOKEN,
-            ErrorCode.INVALID_TOKEN,
-            headers={"WWW-Authenticate": "Bearer"},
-        )
+        raise unauthenticated(INVALID_TOKEN)
     return tenant
 
 

@@ -8,7 +8,9 @@ import json
 import threading
 import time
 
+from farm.config import API_V1
 from schemas.common import ErrorCode
+from services.deps import INVALID_TOKEN, NOT_AUTHENTICATED, tenant_of_token
 from services.uploads import TOO_LARGE
 
 #: multipart framing and form fields around the file
@@ -77,6 +79,40 @@ async def _too_large(send, cap: int) -> None:  # noqa: ANN001
         }
     )
     await send({"type": "http.response.body", "body": body})
+
+
+class AuthFirst:
+    """A request with a body (POST, PUT, PATCH) under the API is refused 401 from its
+    `Authorization` header alone, before a byte of its body is read: an unauthenticated
+    upload costs no disk, no parsing, and (with `Expect: 100-continue`) no transfer, since
+    the server sends `100 Continue` only when the app first reads the body. The scheme is
+    matched case-insensitively, as the routes' own check (`services.deps`) does."""
+
+    def __init__(self, app, state):  # noqa: ANN001
+        self.app = app
+        self.state = state  # the FastAPI app's state: settings, token cache, inline sessions
+
+    async def __call__(self, scope, receive, send):  # noqa: ANN001
+        if (scope["type"] != "http" or scope.get("method") not in ("POST", "PUT", "PATCH")
+                or not scope["path"].startswith(API_V1 + "/")):  # fmt: skip
+            return await self.app(scope, receive, send)
+        auth = next((v for k, v in scope["headers"] if k == b"authorization"), b"")
+        scheme, _, token = auth.decode("latin-1").partition(" ")
+        detail = None
+        if scheme.lower() != "bearer" or not token:
+            detail = NOT_AUTHENTICATED
+        elif tenant_of_token(self.state, token) is None:
+            detail = INVALID_TOKEN
+        if detail is None:
+            return await self.app(scope, receive, send)
+        code = (ErrorCode.NOT_AUTHENTICATED if detail == NOT_AUTHENTICATED
+                else ErrorCode.INVALID_TOKEN)  # fmt: skip
+        body = json.dumps({"detail": detail, "code": code.value}).encode()
+        await send({"type": "http.response.start", "status": 401, "headers": [
+            (b"content-type", b"application/json"), (b"www-authenticate", b"Bearer"),
+            (b"content-length", str(len(body)).encode()), (b"connection", b"close")]})  # fmt: skip
+        await send({"type": "http.response.body", "body": body})
+        return None
 
 
 class ServerTiming:

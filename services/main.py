@@ -29,7 +29,7 @@ from services.auth import ensure_tokens
 from services.deps import TokenCache
 from services.errors import ApiError
 from services.fastpath import StatusFastPath
-from services.limits import BodyLimit, ServerTiming
+from services.limits import AuthFirst, BodyLimit, ServerTiming
 from services.routers import assets, batches, events, farm, job_files, jobs, utils, viewer
 from services.routers.jobs import JobCache, VersionCache
 from texelbake.estimate import machinespeed
@@ -131,6 +131,7 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     mount_dashboard(app, settings.web_dist or WEB_DIST)
     errors.install(app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_upload_bytes)
+    app.add_middleware(AuthFirst, state=app.state)  # a 401 before a body is read or limited
     if settings.status_fast_path:
         app.add_middleware(StatusFastPath, state=app.state)  # cached status reads
     app.add_middleware(ServerTiming)  # outermost: times the whole app

@@ -1,12 +1,12 @@
 """Uploads are hostile until proven otherwise: size caps, safe unpacking, the pxr check.
 
-Flow: stream to a staging file under `<root>/tmp` (size cap, SHA-256 while reading) -> unpack
-into a staging bundle (`.zip`/`.usdz`: member names, links, member count, unpacked size and
-compression ratio checked before and while extracting) -> `services.validate` in a subprocess
--> one atomic rename into `<root>/assets/<sha256>/`. Any rejection deletes the staging folder:
-nothing is stored for a rejected upload.
+Flow: stream to a staging file under `<root>/tmp` (size cap, SHA-256 while reading) -> a
+checker forked from the warm check server (`services.checkserver`, under CPU and address-space
+rlimits) unpacks a `.zip`/`.usdz` into the staging bundle (`services.archive`: every member
+checked, inflated bytes counted) and runs `services.validate` -> one atomic rename into
+`<root>/assets/<sha256>/`. This process never inflates or parses an upload's bytes. Any
+rejection deletes the staging folder: nothing is stored for a rejected upload.
 """
-
 from __future__ import annotations
 
 import contextlib
@@ -17,36 +17,30 @@ import re
 import shutil
 import signal
 import socket
-import stat
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-import zipfile
 from dataclasses import dataclass
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 from farm import storage
 from schemas.common import ErrorCode
+from services import archive
 from texelbake.io.atomic import replace
 
 KINDS = {".usda": "usda", ".usdc": "usdc", ".usd": "usdc", ".usdz": "usdz", ".zip": "zip"}
-LAYER_SUFFIXES = (".usd", ".usda", ".usdc")
+LAYER_SUFFIXES = archive.LAYER_SUFFIXES
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
-# stable `detail` prefixes (asserted by the tests)
+# stable `detail` prefixes (asserted by the tests); the archive's own come from the checker
 UNSUPPORTED = "unsupported file type"
 TOO_LARGE = "upload exceeds"
-BOMB_SIZE = "bundle unpacks to more than"
-BOMB_RATIO = "compression ratio above"
-LYING = "bundle member inflates beyond its declared size"
-TOO_MANY = "bundle has more than"
-BAD_ZIP = "not a valid zip archive"
-BAD_MEMBER = "bundle member path is not allowed"
-LINK_MEMBER = "bundle member is a link"
-NO_ROOT = "bundle has no root layer"
 VALIDATE_FAILED = "asset could not be checked"
+BOMB_SIZE, BOMB_RATIO, LYING = archive.BOMB_SIZE, archive.BOMB_RATIO, archive.LYING
+TOO_MANY, BAD_ZIP, BAD_MEMBER = archive.TOO_MANY, archive.BAD_ZIP, archive.BAD_MEMBER
+LINK_MEMBER, NO_ROOT = archive.LINK_MEMBER, archive.NO_ROOT
 
 
 #: `detail` prefix -> the stable `code` of the error body
@@ -61,6 +55,10 @@ CODES: dict[str, ErrorCode] = {
     BAD_MEMBER: ErrorCode.BAD_MEMBER_PATH,
     LINK_MEMBER: ErrorCode.LINK_MEMBER,
     NO_ROOT: ErrorCode.NO_ROOT_LAYER,
+    archive.NAME_TOO_LONG: ErrorCode.BAD_MEMBER_PATH,
+    archive.FILE_AND_FOLDER: ErrorCode.BAD_MEMBER_PATH,
+    archive.ENCRYPTED: ErrorCode.BAD_ZIP,
+    archive.UNSUPPORTED_ENTRY: ErrorCode.BAD_ZIP,
     VALIDATE_FAILED: ErrorCode.ASSET_CHECK_FAILED,
 }
 
@@ -107,109 +105,6 @@ def safe_name(filename: str, kind: str) -> str:
     return f"{stem[:100]}{Path(filename).suffix.lower()}"
 
 
-def _check_member(info: zipfile.ZipInfo) -> PurePosixPath:
-    name = info.filename
-    mode = info.external_attr >> 16
-    if stat.S_ISLNK(mode):
-        raise UploadRejected(422, f"{LINK_MEMBER}: {name}")
-    norm = name.replace("\\", "/")
-    p = PurePosixPath(norm)
-    if (
-        not norm
-        or norm.startswith("/")
-        or re.match(r"^[A-Za-z]:", norm)
-        or any(part in ("..",) for part in p.parts)
-        or "\x00" in norm
-    ):
-        raise UploadRejected(422, f"{BAD_MEMBER}: {name}")
-    return p
-
-
-def unpack_zip(
-    src: Path,
-    dest: Path,
-    *,
-    max_unpacked: int,
-    max_ratio: float,
-    max_members: int,
-    display: str | None = None,
-) -> list[str]:
-    """Extract a zip/usdz into `dest` with every hostile case refused; returns member names in
-    archive order (files only)."""
-    packed = max(os.path.getsize(src), 1)
-    shown = display or src.name
-    try:
-        zf = zipfile.ZipFile(src)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise UploadRejected(422, f"{BAD_ZIP}: {shown} ({exc})") from exc
-    with zf:
-        infos = zf.infolist()
-        if len(infos) > max_members:
-            raise UploadRejected(413, f"{TOO_MANY} {max_members} members: {shown}")
-        declared = sum(i.file_size for i in infos)
-        if declared > max_unpacked:
-            raise UploadRejected(413, f"{BOMB_SIZE} {max_unpacked} bytes: {shown}")
-        if declared / packed > max_ratio:
-            raise UploadRejected(413, f"{BOMB_RATIO} {max_ratio:g}: {shown}")
-        seen: set[str] = set()
-        files: list[str] = []
-        total = 0
-        for info in infos:
-            p = _check_member(info)
-            key = str(p).lower()
-            if key in seen:
-                raise UploadRejected(422, f"{BAD_MEMBER}: {info.filename} (duplicate)")
-            seen.add(key)
-            if info.file_size / max(info.compress_size, 1) > max_ratio and info.file_size > 4096:
-                raise UploadRejected(413, f"{BOMB_RATIO} {max_ratio:g}: {info.filename}")
-            target = dest.joinpath(*p.parts)
-            if info.is_dir():
-                target.mkdir(parents=True, exist_ok=True)
-                continue
-            target.parent.mkdir(parents=True, exist_ok=True)
-            written = 0
-            try:
-                with zf.open(info) as fin, open(target, "wb") as fout:
-                    while block := fin.read(1 << 20):
-                        written += len(block)
-                        total += len(block)
-                        # the header can lie: count what actually comes out
-                        if written > info.file_size:
-                            raise UploadRejected(413, f"{LYING}: {info.filename}")
-                        if total > max_unpacked:
-                            raise UploadRejected(
-                                413, f"{BOMB_SIZE} {max_unpacked} bytes: {info.filename}"
-                            )
-                        fout.write(block)
-            except (zipfile.BadZipFile, zlib_error(), NotImplementedError, EOFError) as exc:
-                raise UploadRejected(422, f"{BAD_ZIP}: {info.filename} ({exc})") from exc
-            files.append(str(p))
-    return files
-
-
-def zlib_error() -> type[Exception]:
-    import zlib
-
-    return zlib.error
-
-
-def _root_of_zip(files: list[str], upload_name: str) -> str:
-    top = sorted(f for f in files if "/" not in f and f.lower().endswith(LAYER_SUFFIXES))
-    if len(top) == 1:
-        return top[0]
-    stem = Path(upload_name).stem.lower()
-    named = [f for f in top if Path(f).stem.lower() == stem]
-    if len(named) == 1:
-        return named[0]
-    if not top:
-        raise UploadRejected(422, f"{NO_ROOT}: no top-level .usd/.usda/.usdc in {upload_name}")
-    raise UploadRejected(
-        422,
-        f"{NO_ROOT}: several top-level layers in {upload_name} ({', '.join(top)}); name the "
-        f"root like the zip file",
-    )
-
-
 def stream_to_file(chunks, dest: Path, max_bytes: int, filename: str) -> tuple[str, int]:  # noqa: ANN001
     """Write an iterable of byte chunks to `dest`, hashing; 413 past `max_bytes`."""
     h = hashlib.sha256()
@@ -237,13 +132,34 @@ def _check_slots(n: int) -> threading.BoundedSemaphore:
         return _checks.setdefault(n, threading.BoundedSemaphore(n))
 
 
+#: address space one check may map above the warm checker's own (`Settings.check_memory_bytes`
+#: overrides it): a corrupted crate layer or a bomb fails the check, not the machine
+CHECK_MEMORY = 2 << 30
+
+
 def run_validator(
     bundle: Path, root_rel: str, timeout: float, concurrency: int | None = None
 ) -> list[tuple[str, str]]:
-    """`services.validate` in a child process (pxr stays out of the API), at most
-    `concurrency` (default: the CPU count) at once, at a lower CPU priority."""
+    """The pxr check of an unpacked bundle by a forked checker: its problems, [] if none."""
+    req = {"staging": str(bundle.parent), "bundle": str(bundle), "kind": "layer",
+           "root": root_rel, "filename": root_rel}  # fmt: skip
+    return run_check(req, timeout, concurrency)["problems"]
+
+
+def run_check(req: dict, timeout: float, concurrency: int | None = None,
+              memory: int = CHECK_MEMORY) -> dict:  # fmt: skip
+    """One check (`services.checkserver.check_upload`) by a checker forked from the warm
+    server (pxr stays out of the API), at most `concurrency` (default: the CPU count) at once,
+    at a lower CPU priority, under a CPU rlimit of `timeout` and `memory` bytes of address
+    space. Returns `{"files", "root", "problems"}`; raises UploadRejected."""
+    req = {**req, "cpu": int(timeout), "memory": int(memory)}
     with _check_slots(concurrency or os.cpu_count() or 1):
-        return _run_validator(bundle, root_rel, timeout)
+        out = _run_checker(req, timeout)
+    if "rejected" in out:
+        status, detail = out["rejected"]
+        raise UploadRejected(int(status), str(detail))
+    out["problems"] = [(str(a), str(b)) for a, b in out["problems"]]
+    return out
 
 
 class _CheckServer:
@@ -279,8 +195,9 @@ class _CheckServer:
 _server = _CheckServer()
 
 
-def _run_validator(bundle: Path, root_rel: str, timeout: float) -> list[tuple[str, str]]:
-    """One check by a checker forked from the warm server; killed past `timeout` + 5 s."""
+def _run_checker(req: dict, timeout: float) -> dict:
+    """Send `req` to a checker forked from the warm server; killed past `timeout` + 5 s."""
+    shown = req.get("filename", "")
     for attempt in range(2):
         path = _server.socket_path()
         conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -290,11 +207,10 @@ def _run_validator(bundle: Path, root_rel: str, timeout: float) -> list[tuple[st
         except OSError:  # the server died since: start a new one, once
             conn.close()
             if attempt:
-                raise UploadRejected(422, f"{VALIDATE_FAILED}: {root_rel} (no checker)") from None
+                raise UploadRejected(422, f"{VALIDATE_FAILED}: {shown} (no checker)") from None
     deadline = time.monotonic() + timeout + 5
     pid = None
     with conn, conn.makefile("rwb") as f:
-        req = {"bundle": str(bundle), "root": root_rel, "cpu": int(timeout)}
         f.write(json.dumps(req).encode() + b"\n")
         f.flush()
         try:
@@ -306,18 +222,23 @@ def _run_validator(bundle: Path, root_rel: str, timeout: float) -> list[tuple[st
             if pid:
                 with contextlib.suppress(OSError):
                     os.kill(pid, signal.SIGKILL)
-            raise UploadRejected(422, f"{VALIDATE_FAILED}: {root_rel} (timed out)") from None
+            raise UploadRejected(422, f"{VALIDATE_FAILED}: {shown} (timed out)") from None
     out = None
     try:
         out = json.loads(raw.decode())
-        return [(str(a), str(b)) for a, b in out["problems"]]
-    except (ValueError, KeyError, TypeError) as exc:
-        why = out.get("error", "") if isinstance(out, dict) else "the checker died"
-        raise UploadRejected(422, f"{VALIDATE_FAILED}: {root_rel} ({why})") from exc
+        if "rejected" in out or isinstance(out["problems"], list):
+            return out
+    except (ValueError, KeyError, TypeError):
+        pass
+    why = out.get("error", "") if isinstance(out, dict) else ""
+    why = why or "the checker ended: out of memory or CPU time, or a crash"
+    raise UploadRejected(422, f"{VALIDATE_FAILED}: {shown} ({why})")
 
 
 def stage_upload(chunks, filename: str, root: Path, settings) -> Staged:  # noqa: ANN001
-    """Receive, unpack and check an upload; on any rejection nothing is left on disk."""
+    """Receive an upload and have a checker unpack and check it; on any rejection nothing is
+    left on disk. This process only streams the bytes to a file: inflating and parsing them
+    happen in the checker, under its memory and CPU limits."""
     kind = kind_of(filename)
     staging = storage.tmp_dir(root) / f"up-{os.urandom(8).hex()}"
     staging.mkdir()
@@ -326,30 +247,17 @@ def stage_upload(chunks, filename: str, root: Path, settings) -> Staged:  # noqa
         sha, size = stream_to_file(chunks, raw, settings.max_upload_bytes, filename)
         bundle = staging / "bundle"
         bundle.mkdir()
-        if kind in ("zip", "usdz"):
-            files = unpack_zip(
-                raw,
-                bundle,
-                max_unpacked=settings.max_unpacked_bytes,
-                max_ratio=settings.max_zip_ratio,
-                max_members=settings.max_zip_members,
-                display=filename,
-            )
-            if kind == "usdz":  # the first member is the default layer (usdz spec)
-                if not files or not files[0].lower().endswith(LAYER_SUFFIXES):
-                    raise UploadRejected(
-                        422, f"{NO_ROOT}: the first member of {filename} is not a USD layer"
-                    )
-                root_rel = files[0]
-            else:
-                root_rel = _root_of_zip(files, filename)
-            raw.unlink()
-        else:
-            root_rel = safe_name(filename, kind)
-            replace(raw, bundle / root_rel, mode=None)
-            files = [root_rel]
-        problems = run_validator(bundle, root_rel, settings.validate_timeout,
-                                 getattr(settings, "validate_concurrency", None))
+        req = {"staging": str(staging), "bundle": str(bundle), "kind": kind,
+               "filename": filename, "max_unpacked": settings.max_unpacked_bytes,
+               "max_ratio": settings.max_zip_ratio, "max_members": settings.max_zip_members}
+        if kind not in ("zip", "usdz"):
+            req["root"] = safe_name(filename, kind)
+            replace(raw, bundle / req["root"], mode=None)
+        out = run_check(req, settings.validate_timeout,
+                        getattr(settings, "validate_concurrency", None),
+                        getattr(settings, "check_memory_bytes", CHECK_MEMORY))  # fmt: skip
+        root_rel, files = str(out["root"]), list(out["files"])
+        problems = out["problems"]
         if problems:
             shown = "; ".join(f"{reason}: {path}" for path, reason in problems[:5])
             more = f" (+{len(problems) - 5} more)" if len(problems) > 5 else ""

@@ -30,6 +30,7 @@ ESCAPES = "asset path escapes the bundle"
 LINK = "asset path is a link"
 MISSING = "asset path does not exist"
 BAD_PATH = "asset path is not allowed"
+UNREADABLE = "pxr cannot read a value"
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 #: what composition opens as a layer (a MaterialX document through its translation)
@@ -106,6 +107,9 @@ def check_bundle(bundle: Path, root_rel: str) -> list[tuple[str, str]]:
         except Tf.ErrorException:
             problems.add((rel_layer, CANNOT_OPEN))
             continue
+        if (bad := unreadable_value(layer)) is not None:
+            problems.add((f"{rel_layer} at {bad[0]}", f"{UNREADABLE} ({bad[1]})"))
+            continue
         for raw in sorted(set(subs) | set(refs) | set(payloads)):
             if (os.path.realpath(layer_path), raw) in unreached:
                 continue  # only unselected variants name it: never read
@@ -147,6 +151,38 @@ def _unreachable_only(root_layer: Path) -> set[tuple[str, str]]:
         return set(scan_asset_paths(root_layer).unreachable_only)
     except AssetError:
         return set()
+
+
+def pxr_reason(exc: BaseException) -> str:
+    """The commentary of a pxr error without its C++ function, line and build path."""
+    found = re.findall(r" : '(.*?)'\s*$", str(exc), flags=re.MULTILINE)
+    return (found[-1] if found else f"{exc}".strip().splitlines()[-1])[:200]
+
+
+def unreadable_value(layer) -> tuple[str, str] | None:  # noqa: ANN001 - an Sdf.Layer
+    """(spec path, pxr's reason) of the first field or time sample of a binary (crate) layer
+    that pxr cannot read, or None. A crate layer opens without reading its values, so a
+    truncated or corrupted one (an array range out of bounds, a bad compressed block) would
+    otherwise pass the check and fail the bake; a text layer is parsed whole on open."""
+    from pxr import Sdf, Tf
+
+    if layer.GetFileFormat().formatId == "usda":
+        return None
+    paths: list = []
+    layer.Traverse(Sdf.Path.absoluteRootPath, paths.append)
+    for path in sorted(paths):
+        try:
+            spec = layer.GetObjectAtPath(path)
+            if spec is None:
+                continue
+            for key in spec.ListInfoKeys():
+                spec.GetInfo(key)
+            if path.IsPropertyPath():
+                for t in layer.ListTimeSamplesForPath(path):
+                    layer.QueryTimeSample(path, t)
+        except (Tf.ErrorException, RuntimeError, ValueError) as exc:
+            return str(path), pxr_reason(exc)
+    return None
 
 
 def _core_check(root_layer: Path, bundle: Path) -> list[tuple[str, str]]:

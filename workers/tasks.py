@@ -109,6 +109,25 @@ def _hang_failpoint(stage: str) -> None:
         time.sleep(3600)
 
 
+def _pxr_input_error(exc: BaseException, job_id: str) -> str | None:
+    """The job error for a pxr error raised reading the asset (a truncated or corrupted crate
+    layer the upload check let through): bad input naming the root layer, or None for any
+    other exception."""
+    if not type(exc).__module__.startswith("pxr"):
+        return None
+    reason = " ".join(storage.public_text(str(exc), get_settings().artifact_root).split())
+    try:
+        layer = load_job(job_id)[1].root_layer
+    except TexelbakeError:
+        layer = "the asset"
+    return f"pxr cannot read {layer} or a layer it uses: {reason.strip(chr(39))}"
+
+
+def _public(text: str) -> str:
+    """A job's or shard's error as its client reads it: no server path (`storage.public_text`)."""
+    return storage.public_text(text, get_settings().artifact_root)
+
+
 def _backoff(retries: int) -> float:
     st = get_settings()
     base = min(float(st.retry_backoff_max), 2.0**retries)
@@ -142,15 +161,18 @@ def plan_job(self, job_id: str) -> None:
                                    ledger.policy_from(get_settings()))
         _dispatch(sends)
     except TexelbakeError as exc:
-        ledger.fail_job(_sm(), job_id, f"plan: {exc}")
+        ledger.fail_job(_sm(), job_id, _public(f"plan: {exc}"))
     except TRANSIENT as exc:
         st = get_settings()
         if self.request.retries >= st.max_retries:
-            ledger.fail_job(_sm(), job_id, f"plan: transient fault persisted: {exc!r}")
+            ledger.fail_job(_sm(), job_id, _public(f"plan: transient fault persisted: {exc!r}"))
             return
         raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
     except Exception as exc:  # a bug: the job fails with the reason instead of hanging
-        ledger.fail_job(_sm(), job_id, f"plan: {type(exc).__name__}: {exc}")
+        if (why := _pxr_input_error(exc, job_id)) is not None:
+            ledger.fail_job(_sm(), job_id, f"plan: {why}")
+            return
+        ledger.fail_job(_sm(), job_id, _public(f"plan: {type(exc).__name__}: {exc}"))
         raise
 
 
@@ -232,7 +254,7 @@ def shard_body(
     try:
         key = execute_shard(job_id, stage, shard)
     except TexelbakeError as exc:  # bad input: no retry
-        ledger.fail_shard(sm, job_id, stage, shard, f"{type(exc).__name__}: {exc}")
+        ledger.fail_shard(sm, job_id, stage, shard, _public(f"{type(exc).__name__}: {exc}"))
         return "failed"
     except TRANSIENT as exc:
         if retries >= st.max_retries:
@@ -241,15 +263,19 @@ def shard_body(
                 job_id,
                 stage,
                 shard,
-                f"transient fault persisted after "
-                f"{st.max_retries} retries: {type(exc).__name__}: {exc}",
+                _public(f"transient fault persisted after "
+                        f"{st.max_retries} retries: {type(exc).__name__}: {exc}"),
             )
             return "failed"
-        ledger.release_shard(sm, job_id, stage, shard, f"retrying: {exc!r}")
+        ledger.release_shard(sm, job_id, stage, shard, _public(f"retrying: {exc!r}"))
         raise retry(exc, _backoff(retries)) from exc
     except Exception as exc:  # a bug, not bad input: fail loudly with the traceback's tail
+        if (why := _pxr_input_error(exc, job_id)) is not None:
+            ledger.fail_shard(sm, job_id, stage, shard, why)
+            return "failed"
         tail = traceback.format_exc(limit=3)
-        ledger.fail_shard(sm, job_id, stage, shard, f"{type(exc).__name__}: {exc}\n{tail}")
+        ledger.fail_shard(sm, job_id, stage, shard,
+                          _public(f"{type(exc).__name__}: {exc}\n{tail}"))
         raise
     finally:
         stop.set()

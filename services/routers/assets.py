@@ -10,6 +10,7 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
+from farm import storage
 from farm.db import Asset
 from schemas.asset import AssetPublic, AssetsPublic
 from schemas.common import ErrorCode
@@ -90,7 +91,7 @@ async def create_asset(
         )
         folder = await run_in_threadpool(uploads.commit_staged, staged, root)
     except uploads.UploadRejected as exc:
-        raise ApiError(exc.status, exc.detail, exc.code) from exc
+        raise ApiError(exc.status, storage.public_text(exc.detail, root), exc.code) from exc
     meta = uploads.read_meta(folder)
     asset, created = await run_in_threadpool(
         _record_asset, writer, tenant, staged, file.filename or "", meta

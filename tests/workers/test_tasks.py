@@ -34,20 +34,21 @@ def env(tmp_path, monkeypatch):
     get_settings.cache_clear()
 
 
-def make_job(st, sm, layer_text: str) -> str:
+def make_job(st, sm, layer_text: str | bytes, name: str = "a.usda") -> str:
     sha = "f" * 64
     bundle = storage.asset_bundle(st.artifact_root, sha)
     bundle.mkdir(parents=True)
-    (bundle / "a.usda").write_text(layer_text)
+    data = layer_text.encode() if isinstance(layer_text, str) else layer_text
+    (bundle / name).write_bytes(data)
     with sm.begin() as s:
         s.add(
             Asset(
                 id="a1",
                 tenant="t",
                 sha256=sha,
-                filename="a.usda",
+                filename=name,
                 kind="usda",
-                root_layer="a.usda",
+                root_layer=name,
                 size_bytes=1,
                 n_files=1,
             )
@@ -71,7 +72,40 @@ def test_bad_input_fails_without_retry(env):
         j = s.get(Job, job)
         assert j.state == "failed"
         assert "AssetError" in j.error and "a.usda" in j.error
+        assert str(st.artifact_root) not in j.error and "/assets/" not in j.error, j.error
         assert s.scalar(select(Shard.attempts).where(Shard.stage == "ingest")) == 1
+
+
+def test_corrupt_crate_fails_naming_the_file_without_server_paths(env, tmp_path):
+    """A crate layer whose array count points past the file (pxr: "Zero-copy data range
+    out-of-bounds" when the value is read) that reached a worker: the job fails with pxr's
+    reason naming the layer, as bad input (no retry, no traceback), without pxr's C++
+    preamble or any server path."""
+    import numpy as np
+    from pxr import Usd, UsdGeom, Vt
+
+    from workers.tasks import shard_body
+
+    st, sm = env
+    stage = Usd.Stage.CreateNew(str(tmp_path / "m.usdc"))
+    pts = np.arange(9000, dtype=np.float32).reshape(3000, 3)
+    mesh = UsdGeom.Mesh.Define(stage, "/Root/M")
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
+    mesh.CreateFaceVertexCountsAttr([3] * 1000)
+    mesh.CreateFaceVertexIndicesAttr(list(range(3000)))
+    stage.SetDefaultPrim(stage.GetPrimAtPath("/Root"))
+    stage.Save()
+    data = bytearray((tmp_path / "m.usdc").read_bytes())
+    at = data.find(pts.tobytes()[:64])
+    data[at - 8 : at] = (3000 * 100_000).to_bytes(8, "little")
+    job = make_job(st, sm, bytes(data), name="broken.usdc")
+    assert shard_body(job, "ingest", 0, retries=0, retry=no_retry) == "failed"
+    with sm() as s:
+        j = s.get(Job, job)
+    assert j.state == "failed" and "pxr cannot read broken.usdc" in j.error, j.error
+    assert "Zero-copy data range out-of-bounds" in j.error and "Traceback" not in j.error
+    for server in (str(tmp_path), "Error in '", "/opt/", ".cpp"):
+        assert server not in j.error, j.error
 
 
 def test_transient_fault_retries_with_backoff_then_fails(env, monkeypatch):
