@@ -166,9 +166,11 @@ def execute_shard(job_id: str, stage: str, shard: int) -> str:
     out_dir = storage.job_out(root, job_id)
     if stage == "export":
         baked = finalize(
-            workdir, asset_path, settings, out_dir,
-            stage_seconds=ledger.stage_seconds(_sm(), job_id),  # the farm's own timings
-            plan=plan_bake(asset_path, settings),
+            workdir, asset_path, settings, out_dir, plan=plan_bake(asset_path, settings),
+            # the farm's own timings, outside the result (they differ between runs)
+            run_path=storage.job_run(root, job_id),
+            stage_seconds=ledger.stage_seconds(_sm(), job_id), job_id=job_id,
+            worker=_worker_name(),
         )
         return str(Path(baked).relative_to(out_dir))
     if stage in ("render", "deformed"):
