@@ -5,14 +5,18 @@
 
 Per database (SQLite, and PostgreSQL in its own cluster on a free port under /tmp), one stack
 of real processes stays up across trials (`tests/helpers/farm.farm`: redis-server on a
-free port, uvicorn, one prep and one numeric Celery prefork worker). An uninterrupted job of the
-small cylinder (`tests/helpers/service.CHEAP_SETTINGS`) first gives the job's duration and the bytes
-of every artifact it wrote. Each trial then deletes the content-keyed work folder (so the job
+free port, uvicorn, `--workers` (2) prep and numeric Celery prefork workers each). An
+uninterrupted job of the small cylinder (`tests/helpers/service.CHEAP_SETTINGS`) first gives the
+job's duration, the bytes of every artifact it wrote and the sha256 of its result archive; a
+second uninterrupted job and an in-process bake of the same file (`source="copy"`, zipped
+without its `run.json`) must give the same archive. Each trial then deletes the content-keyed work folder (so the job
 really runs), submits the job, and at a seeded moment in [5 %, 85 %] of that duration injects
 one fault of its kind:
 
-- `worker_child`: kill -9 of the pool child of a random worker (the prefork parent replaces it);
-- `worker_whole`: kill -9 of a worker's whole process group, restarted after a seeded pause;
+- `worker_child`: kill -9 of a pool child holding a shard (of a random worker when none holds
+  one; the prefork parent replaces it);
+- `worker_whole`: kill -9 of the whole process group of a worker holding a shard (else of a
+  random one), restarted after a seeded pause;
 - `api`: kill -9 of uvicorn, restarted; `redis`: kill -9 of redis-server (no persistence: the
   queued messages are gone), restarted; `postgres`: an immediate stop of the cluster (its
   crash-restart path), restarted;
@@ -26,12 +30,16 @@ one fault of its kind:
 
 Recovery is the stack's own (Celery redelivery, the API's sweeper, retries); the suite only
 restarts what it killed, as an operator would. A trial passes when the job succeeds; its
-result equals the in-process bake of the same file and settings, every file
-(`tests/helpers/service.assert_same_bake`); every shard row is `done` with completions == 1; every
+result archive has the uninterrupted run's sha256, and equals the in-process bake of the same
+file and settings, every file (`tests/helpers/service.assert_same_bake`); every shard row is `done` with completions == 1; every
 artifact has the bytes of the uninterrupted run and none was ever rewritten with other bytes
 (a watcher hashes each file whenever it changes); and nothing is left behind: no temporary
 files under the artifact root, no shard rows without a job, no shard or stage row still
 queued or running.
+
+Recovery: for a worker kill that hit a shard, the seconds from the kill -9 to the ledger's next
+start of every shard the killed processes held (its `running` events), per kind with the median
+in the table.
 
 Trial seeds are derived from `--seed`, the database, the kind and the trial index; the JSON
 names the failing ones (`--only-trial db:kind:i` replays one). Loopback only.

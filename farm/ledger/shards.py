@@ -7,7 +7,6 @@ after the commit (`farm.ledger.sweep.dispatch`).
 
 from __future__ import annotations
 
-import os
 import socket
 from dataclasses import dataclass
 from datetime import timedelta
@@ -18,30 +17,19 @@ from sqlalchemy.orm import Session, sessionmaker
 from farm.admission import NO_LIMITS, Policy, Send, admit, rowcount, serialize
 from farm.db import Job, Shard, Stage, utcnow
 from farm.ledger.jobs import add_event, lock_job, promote_ready, set_job_state
+from texelbake.io.spool import pid_alive
 
 
 def holder_alive(worker: str | None) -> bool | None:
     """Whether the process named by a shard's `worker` ("host:pid", `workers.tasks`) lives:
-    True or False for a process of this host (a zombie is dead), None for another host's
-    (only its heartbeats tell). Worker names are unique per host and pid namespace."""
+    True or False for a process of this host (a zombie is dead: `pid_alive`), None for another
+    host's (only its heartbeats tell). Worker names are unique per host and pid namespace."""
     if not worker or ":" not in worker:
         return None
     host, _, pid = worker.rpartition(":")
     if host != socket.gethostname() or not pid.isdigit():
         return None
-    try:
-        with open(f"/proc/{int(pid)}/stat", "rb") as f:
-            return f.read().rsplit(b")", 1)[1].split()[0] != b"Z"
-    except (FileNotFoundError, ProcessLookupError, IndexError):
-        return False
-    except OSError:
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-        return True
+    return pid_alive(int(pid))
 
 
 @dataclass(frozen=True)
