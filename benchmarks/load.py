@@ -320,8 +320,7 @@ def bake_overlap(jobs: list[dict], start: float, stop: float) -> float:
 
 def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0, *,
         pollers: int = 50, uploads: int = 20, submits: int = 20, client_nice: int = 0,
-        api_workers: int = 1, stagger: bool = False, bake: bool = True,
-        worker_nice: int = 0) -> dict:
+        api_workers: int = 1, stagger: bool = False, bake: bool = True) -> dict:
     drop = None
     url = None
     if db == "postgresql":
@@ -330,7 +329,7 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
     # with a bake: one prep and one numeric worker (the farm's smallest), on the same 2 cores
     stack = stack_up(stack_dir, redis_url=f"redis://127.0.0.1:{free_port()}/0",
                      database_url=url, workers={"prep": 1, "numeric": 1} if bake else {},
-                     tokens=TOKENS, environment="test", worker_nice=worker_nice,
+                     tokens=TOKENS, environment="test",
                      artifact_root=work / f"artifacts-{db}", api_workers=api_workers)
     api = stack.api_url + "/api/v1"
     rec, base = Recorder(), Recorder()
@@ -432,7 +431,6 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
             "baseline_1_client": base.table().get(STATUS, {}), "status_split": status_split,
             "bake": None if baker is None else {
                 "settings": BAKE_SETTINGS, "jobs": baker.jobs, "error": baker.error,
-                "worker_nice": worker_nice,
                 "in_flight_fraction": bake_overlap(baker.jobs, start_at, start_at + seconds)},
             "cpu_seconds": {"pollers": cpu["polls"], "writers": cpu["writes"],
                             "api": cpu["api"], "api_children (upload checks)": cpu["api_children"]},
@@ -465,16 +463,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="spread the pollers' first reads over one poll interval (default: all "
                     "50 start at once and stay roughly in step, the harder case)")
     ap.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes")
-    ap.add_argument("--worker-nice", type=int, default=0,
-                    help="run the bake's workers at this niceness (reported): the API keeps "
-                    "the CPU it needs while they bake on the same cores")
     ap.add_argument("--no-bake", action="store_true",
                     help="no workers and no bake (by default one prep and one numeric worker "
                     "keep a bake running through the clock)")
     args = ap.parse_args(argv)
     kw = {"stagger": args.stagger, "pollers": args.pollers, "uploads": args.uploads, "submits": args.submits,
               "client_nice": args.client_nice, "api_workers": args.api_workers,
-              "bake": not args.no_bake, "worker_nice": args.worker_nice}
+              "bake": not args.no_bake}
     dbs = ("sqlite", "postgresql") if args.db == "both" else (args.db,)
     if args.keep is not None:
         args.keep.mkdir(parents=True, exist_ok=True)
@@ -504,8 +499,7 @@ def main(argv: list[str] | None = None) -> int:
             done = ", ".join(f"{j.get('state', '?')} {j.get('seconds', 0):.0f} s"
                              for j in bk["jobs"])
             print(f"{r['db']:>10} bake: {len(bk['jobs'])} job(s) ({done}), in flight "
-                  f"{bk['in_flight_fraction']:.0%} of the clock, workers at nice "
-                  f"{bk['worker_nice']}"
+                  f"{bk['in_flight_fraction']:.0%} of the clock"
                   f"{'; error ' + bk['error'] if bk['error'] else ''}")
         rows = [("GET /jobs/{id} alone", r["baseline_1_client"]), *r["endpoints"].items()]
         for ep, e in rows:

@@ -222,7 +222,6 @@ def stack_up(
     queues: dict[str, tuple[str, ...]] | None = None,
     pin_cpus: dict[str, int] | None = None,
     api_workers: int = 1,
-    worker_nice: int = 0,
     timeout: float = 60.0,
 ) -> Stack:
     """Start the stack as local processes and wait until the API is healthy.
@@ -242,8 +241,6 @@ def stack_up(
         (`taskset`), so one process uses one core even where a library starts a thread per
         core (open3d's ray casting).
     api_workers : uvicorn worker processes of the API.
-    worker_nice : niceness of the Celery workers (`nice -n`): on a machine that also serves the
-        API, bakes then take the CPU the API leaves (`benchmarks/load.py --worker-nice`).
     Returns the Stack; its `env` is the environment every process got.
     """
     families = dict(QUEUE_FAMILIES) | dict(queues or {})
@@ -302,9 +299,6 @@ def stack_up(
         for i in range(n):
             name = f"worker-{fam}-{i}"
             commands[name] = worker_command(name, families[fam])
-            if worker_nice:
-                commands[name] = [shutil.which("nice") or "nice", "-n", str(int(worker_nice)),
-                                  *commands[name]]
             if pin_cpus and fam in pin_cpus:
                 cpu = (pin_cpus[fam] + i) % ncpu
                 commands[name] = [shutil.which("taskset") or "taskset", "-c", str(cpu)] + commands[
