@@ -170,16 +170,17 @@ def run_one(scene: Path, settings: BakeSettings, out: Path, with_avis_ref: bool)
     root = bake(scene, out, settings, progress=False, jobs=JOBS, workdir=out / ".work")
     total = time.perf_counter() - t0
     report = json.loads((out / "report.json").read_text())
+    run = json.loads((out / "run.json").read_text())  # the run's seconds (not in the report)
     rays = report["rays"]["cpm"] + report["rays"]["avis"]  # counted in every process
     l0 = report["levels"][0]
     result = {
         "total_seconds": total,
-        "stage_seconds": report["stage_seconds"],
+        "stage_seconds": run["stage_seconds"],
         "rays_cast": int(rays),
-        "rays_per_second": rays / max(report["stage_seconds"].get("cpm", 0)
-                                      + report["stage_seconds"].get("cpm_top", 0)
-                                      + report["stage_seconds"].get("avis", 0)
-                                      + report["stage_seconds"].get("avis_top", 0), 1e-9),
+        "rays_per_second": rays / max(run["stage_seconds"].get("cpm", 0)
+                                      + run["stage_seconds"].get("cpm_top", 0)
+                                      + run["stage_seconds"].get("avis", 0)
+                                      + run["stage_seconds"].get("avis_top", 0), 1e-9),
         "heldout_snr_db_mean": l0["snr_heldout_db"].get("mean"),
         "heldout_snr_db_p5": l0["snr_heldout_db"].get("p5"),
         "insample_snr_db_mean": l0["snr_insample_db"].get("mean"),
@@ -234,7 +235,7 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
         raise SystemExit(f"bake by {tree} failed:\n{proc.stderr[-3000:]}")
     total = json.loads((out / "bake_total.json").read_text())["total_seconds"]
     recs = [json.loads(line) for line in timings.read_text().splitlines()]
-    report = json.loads((out / "bake" / "report.json").read_text())
+    run = json.loads((out / "bake" / "run.json").read_text())  # seconds and estimate
     levels = []
     for lv in sorted({r["level"] for r in recs}):
         rs = [r for r in recs if r["level"] == lv]
@@ -248,8 +249,8 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
                        "texels_per_cpu_second": n / max(cpu, 1e-9),
                        "heldout_db_median": ho.get("p50"), "heldout_db_p5": ho.get("p5")})
     return {"tree": str(tree), "total_seconds": total, "load_before": load0,
-            "load_after": _uptime(), "stage_seconds": report.get("stage_seconds"),
-            "estimate": report.get("estimate"), "levels": levels}
+            "load_after": _uptime(), "stage_seconds": run.get("stage_seconds"),
+            "estimate": run.get("estimate"), "levels": levels}
 
 
 def scene_file(name: str, size: str, work: Path) -> Path:

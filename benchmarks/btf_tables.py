@@ -51,7 +51,7 @@ def measure(scene: str, table: str, work: Path, atlas: int, size: int, spp: int,
     flip = metrics.flip_map(img.image, ref.image)
     return {
         "scene": scene, "table": table, "bake_seconds": wall,
-        "cpm_seconds": rep["stage_seconds"]["cpm"],
+        "cpm_seconds": json.loads((root.parent / "run.json").read_text())["stage_seconds"]["cpm"],
         "psnr_db": metrics.psnr_db(img.image[mask], ref.image[mask], peak),
         "flip": float(flip[mask].mean()),
         "light_ratio": float(img.image[mask].sum() / max(ref.image[mask].sum(), 1e-30)),

@@ -5,14 +5,18 @@
 
 Per database (SQLite, and PostgreSQL in its own cluster on a free port under /tmp), one stack
 of real processes stays up across trials (`tests/helpers/farm.farm`: redis-server on a
-free port, uvicorn, one prep and one numeric Celery prefork worker). An uninterrupted job of the
-small cylinder (`tests/helpers/service.CHEAP_SETTINGS`) first gives the job's duration and the bytes
-of every artifact it wrote. Each trial then deletes the content-keyed work folder (so the job
+free port, uvicorn, `--workers` (2) prep and numeric Celery prefork workers each). An
+uninterrupted job of the small cylinder (`tests/helpers/service.CHEAP_SETTINGS`) first gives the
+job's duration, the bytes of every artifact it wrote and the sha256 of its result archive; a
+second uninterrupted job and an in-process bake of the same file (`source="copy"`, zipped
+without its `run.json`) must give the same archive. Each trial then deletes the content-keyed work folder (so the job
 really runs), submits the job, and at a seeded moment in [5 %, 85 %] of that duration injects
 one fault of its kind:
 
-- `worker_child`: kill -9 of the pool child of a random worker (the prefork parent replaces it);
-- `worker_whole`: kill -9 of a worker's whole process group, restarted after a seeded pause;
+- `worker_child`: kill -9 of a pool child holding a shard (of a random worker when none holds
+  one; the prefork parent replaces it);
+- `worker_whole`: kill -9 of the whole process group of a worker holding a shard (else of a
+  random one), restarted after a seeded pause;
 - `api`: kill -9 of uvicorn, restarted; `redis`: kill -9 of redis-server (no persistence: the
   queued messages are gone), restarted; `postgres`: an immediate stop of the cluster (its
   crash-restart path), restarted;
@@ -26,12 +30,16 @@ one fault of its kind:
 
 Recovery is the stack's own (Celery redelivery, the API's sweeper, retries); the suite only
 restarts what it killed, as an operator would. A trial passes when the job succeeds; its
-result equals the in-process bake of the same file and settings, every file
-(`tests/helpers/service.assert_same_bake`); every shard row is `done` with completions == 1; every
+result archive has the uninterrupted run's sha256, and equals the in-process bake of the same
+file and settings, every file (`tests/helpers/service.assert_same_bake`); every shard row is `done` with completions == 1; every
 artifact has the bytes of the uninterrupted run and none was ever rewritten with other bytes
 (a watcher hashes each file whenever it changes); and nothing is left behind: no temporary
 files under the artifact root, no shard rows without a job, no shard or stage row still
 queued or running.
+
+Recovery: for a worker kill that hit a shard, the seconds from the kill -9 to the ledger's next
+start of every shard the killed processes held (its `running` events), per kind with the median
+in the table.
 
 Trial seeds are derived from `--seed`, the database, the kind and the trial index; the JSON
 names the failing ones (`--only-trial db:kind:i` replays one). Loopback only.
@@ -76,15 +84,20 @@ from texelbake.io.atomic import FAILPOINT_ENV  # noqa: E402
 
 KINDS = ("worker_child", "worker_whole", "api", "redis", "postgres", "enospc", "eacces",
          "disk_full", "hang")
-WORKERS = ("worker-prep-0", "worker-numeric-0")
+#: worker processes per queue family (prep: ingest, geometry, export; numeric: cpm, avis). Two
+#: per family: a worker killed whole takes tens of seconds to come back (its imports, on a
+#: loaded machine), and a shard it held is then run again by its family's other worker, as
+#: in a farm of more than one worker per family
+WORKERS_PER_FAMILY = 2
 #: retries of a transient fault: 4, backoff capped at 2 s (0.5..2 s each, jittered, plus the
 #: shard's own run each time): a write fault of up to 3 s is survived, a permanent one fails
 #: the job within ~15 s
-#: the small cylinder's longest shard takes a few seconds: a 20 s limit ends a hang quickly
-SHARD_TIME_LIMIT = 20
+#: the small cylinder's longest shard, the export, takes 3.5-5 s on a quiet machine and 18-21 s
+#: on one at load average 35 (two cores): a 30 s limit ends a hang, and spares a healthy shard
+SHARD_TIME_LIMIT = 30
 FARM_ENV = {"TEXELBAKE_MAX_RETRIES": "4", "TEXELBAKE_RETRY_BACKOFF_MAX": "2",
             "TEXELBAKE_SHARD_TIME_LIMIT": str(SHARD_TIME_LIMIT),
-            "TEXELBAKE_SHARD_KILL_GRACE": "3"}
+            "TEXELBAKE_SHARD_KILL_GRACE": "2"}  # below the 3 s lease
 PG_BIN = sorted(Path("/usr/lib/postgresql").glob("*/bin"))
 
 
@@ -214,10 +227,12 @@ class Farm:
         self.cylinder, self.reference = cylinder, reference
         self.hang_control = control.with_name("hang")
         self.root = Path(stack.env["TEXELBAKE_ARTIFACT_ROOT"])
+        self.workers = sorted(n for n in stack.commands if n.startswith("worker-"))
         self.http = httpx.Client(base_url=stack.api_url + "/api/v1", headers=AUTH, timeout=30)
         self.asset_id = self._call("post", "/assets", files={"file": _package(cylinder)})["id"]
         self.baseline_seconds = 0.0
         self.baseline_hashes: dict[str, str] = {}
+        self.baseline_archive = ""  # sha256 of the uninterrupted job's result zip
 
     def _call(self, method: str, url: str, ok=(200, 201, 202), tries: int = 300, **kw) -> dict:
         last = None
@@ -273,7 +288,7 @@ class Farm:
                 self.pg.start()
             except subprocess.CalledProcessError:
                 pass  # already running
-        for name in ("api", *WORKERS):
+        for name in ("api", *self.workers):
             self.stack.start(name)
         self.stack.wait_healthy()
 
@@ -297,24 +312,49 @@ def _sm(stack):  # noqa: ANN001, ANN202
 # ---------------------------------------------------------------- faults
 
 
-def inject(f: Farm, kind: str, rng: random.Random, job_id: str) -> str:
-    """Inject one fault of `kind` now; returns what was done."""
+def held_shards(f: Farm, job_id: str) -> dict[int, list[tuple[str, int]]]:
+    """Pool child pid -> the (stage, shard)s of the job it holds (running in the ledger)."""
+    out: dict[int, list[tuple[str, int]]] = {}
+    for r in ledger_rows(f.stack, job_id):
+        if r.state == "running" and r.worker:
+            out.setdefault(int(r.worker.rsplit(":", 1)[1]), []).append((r.stage, r.shard))
+    return out
+
+
+def _victim(f: Farm, rng: random.Random, job_id: str) -> tuple[str, list[int], list]:
+    """The worker to kill: one whose pool child holds a shard of the job (a worker lost
+    mid-shard), else a random one. Returns its name, its pool children, the shards they hold."""
+    held = held_shards(f, job_id)
+    kids = {name: sorted(child_pids(f.stack.pids[name])) for name in f.workers
+            if name in f.stack.pids}
+    busy = [name for name in sorted(kids) if any(k in held for k in kids[name])]
+    name = rng.choice(busy or sorted(kids))
+    return name, kids[name], [sh for k in kids[name] for sh in held.get(k, [])]
+
+
+def inject(f: Farm, kind: str, rng: random.Random, job_id: str, lost: dict | None = None) -> str:
+    """Inject one fault of `kind` now; returns what was done. A worker kill records in `lost`
+    the shards the killed processes held and the wall time of the kill (`recovery_seconds`)."""
     st = f.stack
     pause = rng.uniform(0.2, 1.5)
+    lost = {} if lost is None else lost
     if kind == "worker_child":
-        name = rng.choice(WORKERS)
-        kids = sorted(child_pids(st.pids[name]))
+        name, kids, held = _victim(f, rng, job_id)
         if not kids:
             return f"{name}: no pool child to kill"
-        pid = rng.choice(kids)
+        held_pids = held_shards(f, job_id)
+        pid = next((k for k in kids if k in held_pids), rng.choice(kids))
+        lost.update(shards=held_pids.get(pid, []), at=_utcnow())
         os.kill(pid, signal.SIGKILL)
-        return f"kill -9 pool child {pid} of {name}"
+        return f"kill -9 pool child {pid} of {name} holding {lost['shards'] or 'no shard'}"
     if kind == "worker_whole":
-        name = rng.choice(WORKERS)
+        name, _kids, held = _victim(f, rng, job_id)
+        lost.update(shards=held, at=_utcnow())
         st.kill(name)
         time.sleep(pause)
         st.start(name)
-        return f"kill -9 {name} (group), restarted after {pause:.2f} s"
+        return (f"kill -9 {name} (group) holding {held or 'no shard'}, restarted after "
+                f"{pause:.2f} s")
     if kind == "api":
         st.kill("api")
         time.sleep(pause)
@@ -370,6 +410,58 @@ def inject(f: Farm, kind: str, rng: random.Random, job_id: str) -> str:
 # ---------------------------------------------------------------- checks
 
 
+def _utcnow():  # noqa: ANN202 - the ledger's clock (naive UTC, `farm.db.utcnow`)
+    from farm.db import utcnow
+
+    return utcnow()
+
+
+def recovery_seconds(f: Farm, job_id: str, lost: dict) -> float | None:
+    """Seconds from the kill to the first start of a shard the killed worker held (the
+    ledger's `running` events after the kill: the worst of the lost shards, or None when the
+    kill hit no shard)."""
+    if not lost.get("shards"):
+        return None
+    from sqlalchemy import select
+
+    from farm.db import Event
+
+    first: dict[tuple[str, int], float] = {}
+    with _sm(f.stack)() as s:
+        for data, at in s.execute(select(Event.data_json, Event.at).where(
+                Event.job_id == job_id, Event.kind == "shard", Event.at >= lost["at"])):
+            d = json.loads(data)
+            key = (d.get("stage"), d.get("shard"))
+            if d.get("state") == "running" and key in set(map(tuple, lost["shards"])):
+                first[key] = min(first.get(key, 1e9), (at - lost["at"]).total_seconds())
+    if len(first) < len(lost["shards"]):
+        return None
+    return round(max(first.values()), 3)
+
+
+def archive_sha256(f: Farm, job_id: str) -> str:
+    """sha256 of the job's whole result archive (`GET /jobs/{id}/result`)."""
+    r = f.http.get(f"/jobs/{job_id}/result")
+    if r.status_code != 200:
+        raise TrialFailure(f"GET /jobs/{job_id}/result: {r.status_code} {r.text[:200]}")
+    return hashlib.sha256(r.content).hexdigest()
+
+
+def local_archive_sha256(cylinder: Path, out: Path) -> str:
+    """sha256 of the archive the farm would serve for an in-process bake of the same file and
+    settings (`source="copy"`, as the farm's result): every file of the output folder but the
+    run's facts (`run.json`), zipped as `services.routers.job_files.build_result_zip` does."""
+    from schemas.settings import BakeSettings
+    from texelbake.io.archive import folder_members, zip_bytes
+    from texelbake.pipeline.run import RUN_JSON, bake
+
+    shutil.rmtree(out, ignore_errors=True)
+    bake(cylinder, out, BakeSettings(**CHEAP_SETTINGS), progress=False, source="copy",
+         workdir=out.with_name(out.name + "_work"))
+    members = [(n, p.read_bytes()) for n, p in folder_members(out) if n != RUN_JSON]
+    return hashlib.sha256(zip_bytes(members)).hexdigest()
+
+
 def leftovers(f: Farm) -> list[str]:
     found = []
     for d, _, files in os.walk(f.root):
@@ -413,11 +505,17 @@ def run_trial(f: Farm, db: str, kind: str, i: int, seed: int, out: Path) -> dict
         at = rng.uniform(0.05, last) * f.baseline_seconds
         time.sleep(max(0.0, at - (time.monotonic() - t0)))
         rec["fault_at_s"] = round(time.monotonic() - t0, 3)
-        rec["fault"] = inject(f, kind, rng, job_id)
+        lost: dict = {}
+        rec["fault"] = inject(f, kind, rng, job_id, lost)
         f.wait(job_id, ("succeeded",))
         rec["seconds"] = round(time.monotonic() - t0, 3)
+        rec["recovery_s"] = recovery_seconds(f, job_id, lost)
         watcher.stop()
         problems = []
+        rec["archive_sha256"] = archive_sha256(f, job_id)
+        if rec["archive_sha256"] != f.baseline_archive:
+            problems.append(f"result archive {rec['archive_sha256'][:12]} is not the "
+                            f"uninterrupted run's {f.baseline_archive[:12]}")
         res = out / f"{db}-{kind}-{i}"
         shutil.rmtree(res, ignore_errors=True)
         try:
@@ -454,7 +552,8 @@ def run_trial(f: Farm, db: str, kind: str, i: int, seed: int, out: Path) -> dict
 
 
 @contextmanager
-def open_farm(db: str, base: Path, cylinder: Path, reference: Path):
+def open_farm(db: str, base: Path, cylinder: Path, reference: Path,
+              workers_per_family: int = 1):
     with ExitStack() as es:
         pg = None
         url = None
@@ -463,19 +562,29 @@ def open_farm(db: str, base: Path, cylinder: Path, reference: Path):
             url = pg.init()
             es.callback(pg.stop, "fast")
         control = base / "failpoint"
-        stack = es.enter_context(farm(base / "stack", database_url=url, **FARM_ENV,
+        n = workers_per_family
+        stack = es.enter_context(farm(base / "stack", database_url=url,
+                                      workers={"prep": n, "numeric": n}, **FARM_ENV,
                                       **{FAILPOINT_ENV: str(control),
                                          "TEXELBAKE_FAILPOINT_HANG": str(base / "hang")}))
         f = Farm(stack, base, control, pg, cylinder, reference)
         es.callback(f.http.close)
         # the uninterrupted run: the job's duration and the bytes of every artifact
+        archives = []
         for _ in range(2):  # the first one warms the workers' imports and caches
             shutil.rmtree(f.workdir(), ignore_errors=True)
             t0 = time.monotonic()
             job_id = f.submit()
             f.wait(job_id, ("succeeded",))
             f.baseline_seconds = time.monotonic() - t0
+            archives.append(archive_sha256(f, job_id))
         f.baseline_hashes = tree_hashes(f.workdir())
+        # a clean run and its rerun serve one archive, and so does the in-process bake
+        f.baseline_archive = archives[-1]
+        local = local_archive_sha256(cylinder, base / "local")
+        if len({*archives, local}) != 1:
+            raise TrialFailure(f"result archives differ without a fault: farm {archives}, "
+                               f"in-process {local}")
         assert_same_bake(download(stack, job_id, base / "baseline"), reference)
         yield f
 
@@ -490,6 +599,12 @@ def make_scene(base: Path) -> tuple[Path, Path]:
     return cylinder, reference
 
 
+def _median(xs: list[float]) -> float | None:
+    import statistics
+
+    return round(statistics.median(xs), 3) if xs else None
+
+
 def summary(recs: list[dict]) -> dict:
     return {
         "trials": len(recs),
@@ -499,6 +614,12 @@ def summary(recs: list[dict]) -> dict:
                      for r in recs if not r["passed"]],
         "seconds_mean": round(sum(r.get("seconds", 0) for r in recs) / max(1, len(recs)), 3),
         "reruns": sum(r.get("reruns", 0) for r in recs),
+        # seconds from a worker's kill -9 to the shards it held running again (trials whose
+        # kill hit a shard)
+        "recovery_s": sorted(r["recovery_s"] for r in recs if r.get("recovery_s") is not None),
+        "recovery_median_s": _median([r["recovery_s"] for r in recs
+                                      if r.get("recovery_s") is not None]),
+        "archives": sorted({r["archive_sha256"] for r in recs if r.get("archive_sha256")}),
         # trials whose fault cost at least one shard a re-run (it hit work)
         "hit": sum(1 for r in recs if r.get("reruns", 0) > 0),
         "records": recs,
@@ -507,15 +628,16 @@ def summary(recs: list[dict]) -> dict:
 
 def run(dbs: list[str], kinds: list[str], trials: int, seed: int, base: Path,
         only: tuple[str, str, int] | None = None, log=print,  # noqa: ANN001
-        on_trial=None) -> dict:  # noqa: ANN001
+        on_trial=None, workers_per_family: int = WORKERS_PER_FAMILY) -> dict:  # noqa: ANN001
     cylinder, reference = make_scene(base)
     results: dict = {"seed": seed, "trials_per_kind": trials, "settings": CHEAP_SETTINGS,
-                     "dbs": {}}
+                     "workers_per_family": workers_per_family, "dbs": {}}
     for db in dbs:
         if only and only[0] != db:
             continue
-        with open_farm(db, base / db, cylinder, reference) as f:
-            per: dict = {"baseline_seconds": round(f.baseline_seconds, 3), "kinds": {}}
+        with open_farm(db, base / db, cylinder, reference, workers_per_family) as f:
+            per: dict = {"baseline_seconds": round(f.baseline_seconds, 3),
+                         "baseline_archive": f.baseline_archive, "kinds": {}}
             results["dbs"][db] = per
             log(f"{db}: uninterrupted job {f.baseline_seconds:.1f} s")
             recs: dict[str, list[dict]] = {}
@@ -530,6 +652,7 @@ def run(dbs: list[str], kinds: list[str], trials: int, seed: int, base: Path,
                     recs.setdefault(kind, []).append(rec)
                     log(f"  {db:10s} {kind:12s} #{i:<3d} seed {rec['seed']:>10d} "
                         f"{'pass' if rec['passed'] else 'FAIL'} {rec.get('seconds', '-')} s "
+                        f"recovery {rec.get('recovery_s', '-')} s "
                         f"{rec.get('fault', '')} {rec.get('reason', '')[:300]}", flush=True)
                     per["kinds"][kind] = summary(recs[kind])
                     if on_trial:
@@ -539,12 +662,19 @@ def run(dbs: list[str], kinds: list[str], trials: int, seed: int, base: Path,
 
 def table(results: dict) -> str:
     lines = [f"{'db':11s} {'fault':13s} {'trials':>6s} {'passed':>6s} {'mean s':>7s} "
-             f"{'reruns':>6s} {'hit':>4s}  failed seeds"]
+             f"{'reruns':>6s} {'hit':>4s} {'recovery s (median; each)':>26s} {'archive':>8s}"
+             "  failed seeds"]
     for db, per in results["dbs"].items():
         for kind, k in per["kinds"].items():
+            rec = ("-" if k["recovery_median_s"] is None else
+                   f"{k['recovery_median_s']:.2f}; " + ",".join(f"{x:.1f}" for x in k["recovery_s"]))
+            same = ("same" if k["archives"] == [per["baseline_archive"]] else
+                    "DIFFERS" if k["archives"] else "-")
             lines.append(f"{db:11s} {kind:13s} {k['trials']:6d} {k['passed']:6d} "
-                         f"{k['seconds_mean']:7.1f} {k['reruns']:6d} {k['hit']:4d}  "
-                         f"{','.join(map(str, k['failed_seeds'])) or '-'}")
+                         f"{k['seconds_mean']:7.1f} {k['reruns']:6d} {k['hit']:4d} {rec:>26s} "
+                         f"{same:>8s}  {','.join(map(str, k['failed_seeds'])) or '-'}")
+        lines.append(f"{db:11s} archive sha256 of the clean run, its rerun and the in-process "
+                     f"bake: {per['baseline_archive']}")
     return "\n".join(lines)
 
 
@@ -557,6 +687,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kinds", default=",".join(KINDS))
     ap.add_argument("--only-trial", help="db:kind:index — replay one trial of --seed")
     ap.add_argument("--keep", action="store_true", help="keep the work folder under /tmp")
+    ap.add_argument("--workers", type=int, default=WORKERS_PER_FAMILY,
+                    help="worker processes per queue family (prep, numeric)")
     a = ap.parse_args(argv)
     dbs = [d for d in a.db.split(",") if d]
     kinds = [k for k in a.kinds.split(",") if k]
@@ -583,7 +715,8 @@ def main(argv: list[str] | None = None) -> int:
             a.json.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
 
     try:
-        results = run(dbs, kinds, trials, a.seed, base, only, on_trial=dump)
+        results = run(dbs, kinds, trials, a.seed, base, only, on_trial=dump,
+                      workers_per_family=a.workers)
     finally:
         if not a.keep:
             shutil.rmtree(base, ignore_errors=True)

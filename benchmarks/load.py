@@ -3,9 +3,12 @@
 
     .venv/bin/python benchmarks/load.py --json bench_out/load.json [--seconds 20] [--db sqlite]
 
-Method: a real stack per backend (`farm.stack.stack_up`: uvicorn, its own redis-server, no
-workers, so submitted jobs stay queued and every request is the API's and the database's own
-work), two tenants. Before the clock: one asset and one job per tenant, then one client polls
+Method: a real stack per backend (`farm.stack.stack_up`: uvicorn, its own redis-server, one
+prep and one numeric Celery worker on the same cores), two tenants. A bake runs through the
+clock (`Baker`: the small cylinder at the chaos suite's cheap settings, a new seed per job so
+each really bakes, the next submitted when one ends; the table says what fraction of the clock
+a bake was in flight); the 20 submitted jobs queue behind it. `--no-bake`: no workers, so
+submitted jobs stay queued and every request is the API's and the database's own work. Before the clock: one asset and one job per tenant, then one client polls
 alone for `--baseline` seconds (the floor the machine sets today). Then, at once, on loopback
 only and bounded in count and time:
 - 50 pollers, each with its own connection, `GET /jobs/{id}` of their tenant's job every
@@ -52,8 +55,7 @@ import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT))  # first: before benchmarks/ (whose farm.py is not the package)
 
 from farm.stack import free_port, stack_down, stack_up  # noqa: E402
 from tests.helpers.service import proc_cpu  # noqa: E402
@@ -61,6 +63,10 @@ from tests.helpers.service import proc_cpu  # noqa: E402
 TOKENS = {"load-token-a-0123456789abcdef": "team-a", "load-token-b-0123456789abcdef": "team-b"}
 PG_ADMIN = "postgresql+psycopg2://postgres@127.0.0.1:5432/test"
 SETTINGS = {"atlas_resolution": 8, "samples_per_texel": 4, "c_max": 4}
+#: the bake kept running through the clock (`Baker`): the chaos suite's cheap sharded bake
+BAKE_SETTINGS = {"atlas_resolution": 32, "shard_texels": 16, "n_light_dirs": 8,
+                 "n_view_dirs": 8, "samples_per_texel": 8, "n_heldout": 8, "c_max": 8,
+                 "n_trials": 1, "avis_resolution": 4}
 STATUS = "GET /jobs/{id}"
 
 
@@ -269,16 +275,61 @@ def fresh_pg() -> tuple[str, object]:
     return PG_ADMIN.rsplit("/", 1)[0] + "/" + name, drop
 
 
+class Baker(threading.Thread):
+    """Keeps one bake running on the stack's workers until `stop_at`: the small cylinder at
+    `BAKE_SETTINGS`, a new seed per job (a new content key, so every job really bakes), the
+    next submitted when the last ends; its status read every half second (one more light
+    client). Records each job's id, state and wall seconds."""
+
+    def __init__(self, api: str, token: str, asset_id: str, stop_at: float):
+        super().__init__(daemon=True)
+        self.api, self.token, self.asset_id, self.stop_at = api, token, asset_id, stop_at
+        self.jobs: list[dict] = []
+        self.error: str | None = None
+
+    def run(self) -> None:
+        try:
+            with httpx.Client(base_url=self.api, timeout=60, headers={
+                    "Authorization": f"Bearer {self.token}"}) as c:
+                seed = 1
+                while time.time() < self.stop_at:
+                    t0 = time.time()
+                    r = c.post("/jobs", json={"asset_id": self.asset_id, "priority": 10,
+                                              "settings": {**BAKE_SETTINGS, "seed": seed}})
+                    r.raise_for_status()
+                    job = {"id": r.json()["id"], "seed": seed, "submitted": t0}
+                    self.jobs.append(job)
+                    while True:
+                        state = c.get(f"/jobs/{job['id']}").json()["state"]
+                        job["state"] = state
+                        if state in ("succeeded", "failed", "cancelled"):
+                            break
+                        time.sleep(0.5)
+                    job["seconds"] = time.time() - t0
+                    seed += 1
+        except Exception as exc:  # noqa: BLE001 - reported with the run
+            self.error = f"{type(exc).__name__}: {exc}"
+
+
+def bake_overlap(jobs: list[dict], start: float, stop: float) -> float:
+    """Fraction of [start, stop] during which a bake job was in flight."""
+    busy = sum(max(0.0, min(stop, j["submitted"] + j.get("seconds", stop - j["submitted"]))
+                   - max(start, j["submitted"])) for j in jobs)
+    return busy / max(stop - start, 1e-9)
+
+
 def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0, *,
         pollers: int = 50, uploads: int = 20, submits: int = 20, client_nice: int = 0,
-        api_workers: int = 1, stagger: bool = False) -> dict:
+        api_workers: int = 1, stagger: bool = False, bake: bool = True) -> dict:
     drop = None
     url = None
     if db == "postgresql":
         url, drop = fresh_pg()
     stack_dir = work / f"stack-{db}"
+    # with a bake: one prep and one numeric worker (the farm's smallest), on the same 2 cores
     stack = stack_up(stack_dir, redis_url=f"redis://127.0.0.1:{free_port()}/0",
-                     database_url=url, workers={}, tokens=TOKENS, environment="test",
+                     database_url=url, workers={"prep": 1, "numeric": 1} if bake else {},
+                     tokens=TOKENS, environment="test",
                      artifact_root=work / f"artifacts-{db}", api_workers=api_workers)
     api = stack.api_url + "/api/v1"
     rec, base = Recorder(), Recorder()
@@ -293,6 +344,17 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
                 job.raise_for_status()
                 seed[token] = (aid.json()["id"], job.json()["id"])
         tokens = list(TOKENS)
+        baker = None
+        if bake:
+            from texelbake.testscenes import write_scene
+            from texelbake_client.submit import package
+
+            scene = write_scene("cylinder", work / f"scene-{db}" / "cylinder.usda", "small")
+            with httpx.Client(base_url=api, timeout=120, headers={
+                    "Authorization": f"Bearer {tokens[0]}"}) as c:
+                r = c.post("/assets", files={"file": package(scene)})
+                r.raise_for_status()
+                bake_asset = r.json()["id"]
         # the floor: one client alone polls the same job back to back
         with httpx.Client(base_url=api, headers={"Authorization": f"Bearer {tokens[0]}"},
                           timeout=30) as c:
@@ -312,6 +374,9 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
             q, client_nice, ready))
         polls.start()
         writes.start()
+        if bake:  # started at once: its first stages run before the clock
+            baker = Baker(api, tokens[0], bake_asset, start_at + seconds)
+            baker.start()
         if not ready.wait(max(0.0, start_at - time.time())):
             raise RuntimeError("the writers were not ready before the clock; raise the delay")
         t0 = time.perf_counter()
@@ -333,6 +398,8 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
         polls.join(timeout=30)
         writes.join(timeout=30)
         wall = time.perf_counter() - t0
+        if baker is not None:
+            baker.join(timeout=600)
         load_after = os.getloadavg()
     finally:
         stack_down(stack_dir)
@@ -362,6 +429,9 @@ def run(db: str, seconds: float, poll: float, work: Path, baseline: float = 3.0,
                         "submits": submits, "nice": client_nice,
                         "staggered": stagger}, "api_workers": api_workers,
             "baseline_1_client": base.table().get(STATUS, {}), "status_split": status_split,
+            "bake": None if baker is None else {
+                "settings": BAKE_SETTINGS, "jobs": baker.jobs, "error": baker.error,
+                "in_flight_fraction": bake_overlap(baker.jobs, start_at, start_at + seconds)},
             "cpu_seconds": {"pollers": cpu["polls"], "writers": cpu["writes"],
                             "api": cpu["api"], "api_children (upload checks)": cpu["api_children"]},
             "loadavg_before": list(load_before), "loadavg_after": list(load_after),
@@ -393,9 +463,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="spread the pollers' first reads over one poll interval (default: all "
                     "50 start at once and stay roughly in step, the harder case)")
     ap.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes")
+    ap.add_argument("--no-bake", action="store_true",
+                    help="no workers and no bake (by default one prep and one numeric worker "
+                    "keep a bake running through the clock)")
     args = ap.parse_args(argv)
     kw = {"stagger": args.stagger, "pollers": args.pollers, "uploads": args.uploads, "submits": args.submits,
-              "client_nice": args.client_nice, "api_workers": args.api_workers}
+              "client_nice": args.client_nice, "api_workers": args.api_workers,
+              "bake": not args.no_bake}
     dbs = ("sqlite", "postgresql") if args.db == "both" else (args.db,)
     if args.keep is not None:
         args.keep.mkdir(parents=True, exist_ok=True)
@@ -420,6 +494,13 @@ def main(argv: list[str] | None = None) -> int:
               f"{sp['during_writes']['p50_ms'] or 0:.1f} p99 {sp['during_writes']['p99_ms'] or 0:.1f}"
               f" ms; after: n {sp['after_writes']['n']} p50 {sp['after_writes']['p50_ms'] or 0:.1f}"
               f" p99 {sp['after_writes']['p99_ms'] or 0:.1f} ms")
+        if r["bake"]:
+            bk = r["bake"]
+            done = ", ".join(f"{j.get('state', '?')} {j.get('seconds', 0):.0f} s"
+                             for j in bk["jobs"])
+            print(f"{r['db']:>10} bake: {len(bk['jobs'])} job(s) ({done}), in flight "
+                  f"{bk['in_flight_fraction']:.0%} of the clock"
+                  f"{'; error ' + bk['error'] if bk['error'] else ''}")
         rows = [("GET /jobs/{id} alone", r["baseline_1_client"]), *r["endpoints"].items()]
         for ep, e in rows:
             if not e:

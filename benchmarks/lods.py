@@ -78,7 +78,8 @@ def run(asset: str, src: Path, out: Path, settings: BakeSettings) -> list[dict]:
             "hausdorff_rel": lv["hausdorff_rel"], "bound_rel": lv["bound_rel"],
             "within_bound": lv["within_bound"], "switch_px": lv["switch_px"],
             "method": lv["method"], "enclosed": lv["enclosed"],
-            "geometry_seconds": report["stage_seconds"].get("geometry"),
+            "geometry_seconds": json.loads((root.parent / "run.json").read_text())[
+                "stage_seconds"].get("geometry"),
             "bake_seconds": round(total, 3),
             "atlas_is_lod1": lods.get("atlas_mesh", {}).get("is_lod1"),
             "stopped": lods.get("stopped", ""),

@@ -43,6 +43,6 @@ def celery_config(settings: Settings | None = None) -> dict:
         "accept_content": ["json"],
         "worker_send_task_events": False,
         "worker_hijack_root_logger": False,
-        "worker_proc_alive_timeout": 120.0,  # pool children import torch/open3d/pxr at start
+        "worker_proc_alive_timeout": 120.0,  # a child imports torch/open3d/pxr when its parent did not
         "enable_utc": True,
     }

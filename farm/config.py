@@ -6,6 +6,7 @@ placeholder secret `changethis` is refused outside `environment=development`.
 
 from __future__ import annotations
 
+from datetime import timedelta
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -53,11 +54,13 @@ class Settings(BaseSettings):
         300.0, gt=0, description="An events stream closes after this long; clients reconnect."
     )
     heartbeat_interval: float = Field(
-        10.0, gt=0, description="Seconds between a running shard's heartbeats."
+        0.5, gt=0, description="Seconds between a running shard's heartbeats (from a thread "
+        "of the process that runs it)."
     )
     heartbeat_timeout: float = Field(
-        60.0, gt=0, description="A running shard silent this long is re-queued (worker gone)."
-    )
+        3.0, gt=0, description="A running shard's lease: silent this long, it is re-queued "
+        "(worker gone). At least 4 heartbeat intervals; the longest gap between beats of a "
+        "busy worker on a loaded machine is logged per shard (docs/decisions.md).")
     shard_time_limit: float | None = Field(
         None, gt=0, description="A shard running longer than this is presumed stuck (a "
         "heartbeat proves its process lives, not that it progresses): it stops beating, "
@@ -68,7 +71,7 @@ class Settings(BaseSettings):
         None, gt=0, description="Seconds between a shard's time limit and Celery's hard kill "
         "of its pool child (the time to record why); below heartbeat_timeout. Default: 10 s "
         "or half the heartbeat_timeout if that is less.")
-    sweep_interval: float = Field(2.0, gt=0, description="Seconds between ledger sweeps (API).")
+    sweep_interval: float = Field(0.5, gt=0, description="Seconds between ledger sweeps (API).")
     # scheduling: the shard ledger admits ready shards to the broker
     queue_backlog: int = Field(
         2, ge=0, description="Admitted shards per queue group waiting unstarted in the broker; the "
@@ -141,11 +144,18 @@ class Settings(BaseSettings):
         """Celery's hard limit on one task: the shard time limit and its grace."""
         return self.shard_time_limit + self.shard_kill_grace
 
+    @property
+    def lease(self) -> timedelta:
+        """A running shard's lease (`heartbeat_timeout`) as the ledger takes it."""
+        return timedelta(seconds=self.heartbeat_timeout)
+
     @model_validator(mode="after")
     def _heartbeats(self) -> Settings:
-        if self.heartbeat_timeout <= 2 * self.heartbeat_interval:
+        # four beats may be late or lost (a loaded machine, a busy database) before a live
+        # worker's shard is taken for lost
+        if self.heartbeat_timeout < 4 * self.heartbeat_interval:
             raise ValueError(
-                f"heartbeat_timeout ({self.heartbeat_timeout}) must exceed twice "
+                f"heartbeat_timeout ({self.heartbeat_timeout}) must be at least four times "
                 f"heartbeat_interval ({self.heartbeat_interval})"
             )
         return self

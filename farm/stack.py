@@ -1,6 +1,8 @@
 """`texelbake stack up` / `down`: the compose stack as local processes, for development and tests.
 
-Starts redis-server (only when no Redis is reachable at the given URL), one uvicorn API and one
+Starts redis-server (its own on a free port, unless a Redis URL is given: the `redis_url`
+argument or `TEXELBAKE_REDIS_URL`, as the server reads it; a local one that does not answer there
+is started), one uvicorn API and one
 Celery worker per queue family (`prep`: ingest, geometry, export; `numeric`: cpm, avis, btf;
 `render`: render), each in its own process group with its log under `<workdir>/logs/`. The pids,
 URLs and environment go to `<workdir>/stack.json`; `stack_down(workdir)` stops exactly those
@@ -60,6 +62,20 @@ class Stack:
     commands: dict[str, list[str]]
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     pids: dict[str, int] = field(default_factory=dict)
+    #: where the tokens came from: "argument", "TEXELBAKE_TOKENS" or "new"
+    tokens_from: str = "argument"
+
+    def describe(self) -> list[str]:
+        """What `texelbake stack up` prints: the API, which Redis (started or not), the tokens."""
+        started = "started by this stack" if "redis" in self.commands else (
+            "already running: not started, and not stopped, by this stack")
+        tokens = json.loads(self.env.get("TEXELBAKE_TOKENS", "{}"))
+        tenants = ", ".join(sorted(set(tokens.values())))
+        src = {"new": f"a new token for tenant {tenants} (in {self.workdir / 'stack.json'})",
+               "TEXELBAKE_TOKENS": f"from TEXELBAKE_TOKENS: tenants {tenants}",
+               "argument": f"given: tenants {tenants}"}[self.tokens_from]
+        return [f"api: {self.api_url}", f"redis: {self.redis_url} ({started})",
+                f"tokens: {src}", f"logs: {self.workdir / 'logs'}"]
 
     # ---------------------------------------------------------------- processes
     def start(self, name: str) -> int:
@@ -212,8 +228,13 @@ def stack_up(
 
     workers : worker process count per queue family (default one each of prep, numeric,
         render); `{}` starts none. Names are `worker-<family>-<i>`.
-    tokens : bearer token -> tenant (default: one fresh token for tenant `dev`, written to
-        stack.json under env TEXELBAKE_TOKENS).
+    redis_url : default `TEXELBAKE_REDIS_URL`, else a redis-server of the stack's own on a free
+        port (never one it did not start unless named). A local URL where nothing answers gets
+        a redis-server of the stack's own there.
+    tokens : bearer token -> tenant (default `TEXELBAKE_TOKENS`, JSON as the server reads it,
+        else one fresh token for tenant `dev`; written to stack.json under env
+        TEXELBAKE_TOKENS). `secret_key`, `database_url` and `artifact_root` default to their
+        `TEXELBAKE_*` variables too.
     queues : queue family -> queues, overriding `QUEUE_FAMILIES` (e.g. a family serving only
         `cpm`, for benchmarks).
     pin_cpus : family -> first CPU: worker i of that family runs on CPU (first + i) % ncpu
@@ -231,14 +252,15 @@ def stack_up(
             raise SettingsError(f"unknown queue family {fam!r}; expected one of {sorted(families)}")
     commands: dict[str, list[str]] = {}
     start_redis = False
-    if redis_url is None:
-        default = "redis://127.0.0.1:6379/0"
-        if redis_ping(default):
-            redis_url = default
-        else:
-            rport = free_port()
-            redis_url = f"redis://127.0.0.1:{rport}/0"
-            start_redis = True
+    tokens, tokens_from = _tokens(tokens)
+    redis_url = redis_url or os.environ.get("TEXELBAKE_REDIS_URL") or None
+    secret_key = secret_key or os.environ.get("TEXELBAKE_SECRET_KEY") or None
+    database_url = database_url or os.environ.get("TEXELBAKE_DATABASE_URL") or None
+    artifact_root = artifact_root or os.environ.get("TEXELBAKE_ARTIFACT_ROOT") or None
+    if redis_url is None:  # a Redis of our own: never one another program relies on
+        rport = free_port()
+        redis_url = f"redis://127.0.0.1:{rport}/0"
+        start_redis = True
     elif not redis_ping(redis_url):
         u = urlparse(redis_url)
         if u.hostname not in ("127.0.0.1", "localhost"):
@@ -260,7 +282,7 @@ def stack_up(
             "TEXELBAKE_SECRET_KEY": secret_key or secrets.token_hex(16),
             "TEXELBAKE_REDIS_URL": redis_url,
             "TEXELBAKE_ARTIFACT_ROOT": str(Path(artifact_root or workdir / "artifacts").resolve()),
-            "TEXELBAKE_TOKENS": json.dumps(tokens or {secrets.token_urlsafe(16): "dev"}),
+            "TEXELBAKE_TOKENS": json.dumps(tokens),
             "OMP_NUM_THREADS": env.get("OMP_NUM_THREADS", "1"),
         }
     )
@@ -282,7 +304,8 @@ def stack_up(
                 commands[name] = [shutil.which("taskset") or "taskset", "-c", str(cpu)] + commands[
                     name
                 ]
-    stack = Stack(workdir, f"http://127.0.0.1:{port}", redis_url, env, commands)
+    stack = Stack(workdir, f"http://127.0.0.1:{port}", redis_url, env, commands,
+                  tokens_from=tokens_from)
     try:
         if start_redis:
             stack.start("redis")
@@ -297,6 +320,26 @@ def stack_up(
         stack_down(workdir)
         raise
     return stack
+
+
+def _tokens(tokens: dict[str, str] | None) -> tuple[dict[str, str], str]:
+    """The stack's bearer tokens and where they came from: the argument, `TEXELBAKE_TOKENS`
+    (a JSON object token -> tenant, as `farm.config.Settings` reads it) or a new one."""
+    if tokens is not None:
+        return dict(tokens), "argument"
+    raw = os.environ.get("TEXELBAKE_TOKENS", "").strip()
+    if not raw:
+        return {secrets.token_urlsafe(16): "dev"}, "new"
+    try:
+        parsed = json.loads(raw)
+    except ValueError as exc:
+        raise SettingsError(f"TEXELBAKE_TOKENS: expected a JSON object token -> tenant, got "
+                            f"invalid JSON ({exc})") from exc
+    if not isinstance(parsed, dict) or not parsed or not all(
+            isinstance(k, str) and k and isinstance(v, str) and v for k, v in parsed.items()):
+        raise SettingsError("TEXELBAKE_TOKENS: expected a non-empty JSON object of token -> "
+                            "tenant strings")
+    return parsed, "TEXELBAKE_TOKENS"
 
 
 def stack_down(workdir: str | Path, timeout: float = 20.0) -> list[str]:

@@ -4,6 +4,8 @@
 <root>/work/<key>/artifacts/...        stage artifacts; key = hash(asset sha, settings)
 <root>/jobs/<job id>/out/...           the baked USD bundle, report.json, previews/
 <root>/jobs/<job id>/result.zip        the bundle as one download (built on first request)
+<root>/jobs/<job id>/run.json          the run's facts (stage seconds, worker, date): they differ
+                                       between runs, so they stay out of out/ and result.zip
 <root>/batches/<id>/result-<digest>.zip a finished batch as one download (per batch.json)
 <root>/tmp/                            staging of uploads (same filesystem: atomic renames)
 """
@@ -38,6 +40,11 @@ def work_dir(root: Path, asset_sha256: str, settings_digest: str) -> Path:
 
 def job_dir(root: Path, job_id: str) -> Path:
     return Path(root) / "jobs" / job_id
+
+
+def job_run(root: Path, job_id: str) -> Path:
+    """The job's run facts (`texelbake.stages.write_run`), beside its result zip."""
+    return job_dir(root, job_id) / "run.json"
 
 
 def job_out(root: Path, job_id: str) -> Path:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from contextlib import asynccontextmanager
 from datetime import timedelta
 from pathlib import Path
@@ -44,12 +45,13 @@ def custom_generate_unique_id(route: APIRoute) -> str:
     return f"{route.tags[0]}-{route.name}"
 
 
-def sweep_once(app: FastAPI) -> int:
+def sweep_once(app: FastAPI, grace: float = 0.0) -> int:
+    """One sweep (`farm.ledger.sweep`); `grace` seconds lengthen the lease (`_sweeper`)."""
     st: Settings = app.state.settings
     run_id = broker_run_id(st.redis_url)
     if run_id is None:
         return 0
-    sends = ledger.sweep(app.state.writer, run_id, timedelta(seconds=st.heartbeat_timeout),
+    sends = ledger.sweep(app.state.writer, run_id, st.lease + timedelta(seconds=grace),
                          policy=ledger.policy_from(st), max_attempts=st.max_attempts)
     if not sends:
         return 0
@@ -57,9 +59,15 @@ def sweep_once(app: FastAPI) -> int:
 
 
 def _sweeper(app: FastAPI, stop: threading.Event) -> None:
-    while not stop.wait(app.state.settings.sweep_interval):
+    """Sweep every `sweep_interval` s. After sweeps that failed (the database or Redis was
+    out: the workers' heartbeats could not be written either), the next one lengthens the
+    lease by the outage, so live shards are not taken for lost for the database's silence."""
+    interval = app.state.settings.sweep_interval
+    last_ok = time.monotonic()
+    while not stop.wait(interval):
         try:
-            n = sweep_once(app)
+            n = sweep_once(app, grace=max(0.0, time.monotonic() - last_ok - 2 * interval))
+            last_ok = time.monotonic()
             if n:
                 log.info("sweeper re-sent %d messages", n)
         except Exception as exc:  # noqa: BLE001 - keep sweeping; the next tick retries

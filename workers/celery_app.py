@@ -6,8 +6,10 @@ the tasks module is loaded by workers only (`include`).
 
 from __future__ import annotations
 
+import os
+
 from celery import Celery
-from celery.signals import worker_process_init
+from celery.signals import worker_init, worker_process_init
 
 from farm.celeryconfig import celery_config
 
@@ -15,14 +17,28 @@ app = Celery("texelbake", include=["workers.tasks"])
 app.conf.update(celery_config())
 
 
+def _warm() -> bool:
+    return os.environ.get("TEXELBAKE_WARM_IMPORT", "1") != "0"
+
+
+@worker_init.connect
+def _init_worker(**_kwargs) -> None:
+    """The worker's parent imports the core pipeline (torch, open3d, pxr) once, before its
+    prefork pool forks: every pool child, the first and the one that replaces a child lost
+    mid-shard, starts warm in the time of a fork instead of re-importing (seconds, and tens of
+    seconds on a loaded machine) before the shard it should run again. Importing starts no
+    computation (no thread pool of BLAS, OpenMP or TBB is up yet), so forking after it is safe."""
+    if _warm():
+        import texelbake.pipeline.run  # noqa: F401
+
+
 @worker_process_init.connect
 def _init_pool_child(**_kwargs) -> None:
-    """A forked pool child must not share the parent's pooled DB connections; it imports the
-    core pipeline (torch, open3d, pxr) once here, not inside its first shard's time."""
-    import os
-
+    """A forked pool child must not share the parent's pooled DB connections; the core
+    pipeline is already imported (`_init_worker`), or is imported here, not inside its first
+    shard's time."""
     from farm.db import dispose_engines
 
     dispose_engines()
-    if os.environ.get("TEXELBAKE_WARM_IMPORT", "1") != "0":
+    if _warm():
         import texelbake.pipeline.run  # noqa: F401

@@ -71,9 +71,13 @@ def _heartbeats(
     for at most `limit` s. A heartbeat proves the process lives, not that it progresses (the
     chaos suite found a pool child hung in native code, beating for ever): past the limit it
     records why and stops beating, so the lease expires; Celery's hard time limit
-    (`task_time_limit`, the limit plus `shard_kill_grace`) kills the pool child."""
+    (`task_time_limit`, the limit plus `shard_kill_grace`) kills the pool child. When the shard
+    ends it logs the longest gap between two recorded beats: what the lease
+    (`Settings.heartbeat_timeout`) must exceed with room on a loaded machine."""
     me = _worker_name()
     deadline = time.monotonic() + limit
+    last = time.monotonic()
+    worst = 0.0
     while not stop.wait(max(0.0, min(interval, deadline - time.monotonic()))):
         if time.monotonic() >= deadline:
             log.error("shard %s/%s/%s passed its time limit of %g s; no more heartbeats",
@@ -88,6 +92,11 @@ def _heartbeats(
             ledger.heartbeat(sm, job_id, stage, shard, me)
         except TRANSIENT as exc:  # a missed beat is not fatal; a silent worker is re-queued
             log.warning("heartbeat of %s/%s/%s failed: %r", job_id, stage, shard, exc)
+            continue
+        now = time.monotonic()
+        worst, last = max(worst, now - last), now
+    log.info("shard %s/%s/%s: longest heartbeat gap %.3f s (interval %g s)", job_id, stage,
+             shard, max(worst, time.monotonic() - last), interval)
 
 
 #: the hang failpoint (chaos suite and tests): a control file naming a stage ("*": any),
@@ -188,9 +197,11 @@ def execute_shard(job_id: str, stage: str, shard: int) -> str:
     out_dir = storage.job_out(root, job_id)
     if stage == "export":
         baked = finalize(
-            workdir, asset_path, settings, out_dir,
-            stage_seconds=ledger.stage_seconds(_sm(), job_id),  # the farm's own timings
-            plan=plan_bake(asset_path, settings),
+            workdir, asset_path, settings, out_dir, plan=plan_bake(asset_path, settings),
+            # the farm's own timings, outside the result (they differ between runs)
+            run_path=storage.job_run(root, job_id),
+            stage_seconds=ledger.stage_seconds(_sm(), job_id), job_id=job_id,
+            worker=_worker_name(),
         )
         return str(Path(baked).relative_to(out_dir))
     if stage in ("render", "deformed"):
@@ -236,7 +247,7 @@ def shard_body(
     sm = _sm()
     try:
         start = ledger.start_shard(sm, job_id, stage, shard, _worker_name(), st.max_attempts,
-                                   ledger.policy_from(st))
+                                   ledger.policy_from(st), lease=st.lease)
     except TRANSIENT as exc:
         raise retry(exc, _backoff(retries)) from exc
     _dispatch(list(start.sends))  # shards admitted in this one's place in the broker

@@ -10,7 +10,8 @@ Sending to the broker happens *after* the commit: a shard is first marked `queue
 (broker down) or a broker that restarted (its run id changed: queued messages are gone) leaves
 rows the sweeper re-sends. A running shard whose lease expired (worker killed, message lost) is
 re-queued by the sweeper too (a running shard sends heartbeats; one silent for
-`heartbeat_timeout` has lost its worker). Re-running a shard is harmless: stage outputs are idempotent.
+`heartbeat_timeout`, its lease, has lost its worker); a delivery of a shard still held by a live
+worker does not run it (`start_shard`: "held"). Re-running a shard is harmless: stage outputs are idempotent.
 """
 
 from farm.admission import (
@@ -43,6 +44,7 @@ from farm.ledger.shards import (
     fail_shard,
     finish_shard,
     heartbeat,
+    holder_alive,
     mark_failed,
     note_time_limit,
     release_shard,
@@ -54,7 +56,7 @@ __all__ = [
     "ADMISSION_LOCK", "NO_LIMITS", "PLAN_JOB_TASK", "PLAN_QUEUE", "RUN_SHARD_TASK", "Policy",
     "Send", "Sender", "StartResult", "add_event", "add_job", "cancel_job", "cancel_jobs",
     "create_job", "dispatch", "fail_job", "fail_shard", "finish_shard", "heartbeat",
-    "lock_job", "mark_failed", "new_task_id", "note_time_limit", "policy_from",
+    "holder_alive", "lock_job", "mark_failed", "new_task_id", "note_time_limit", "policy_from",
     "promote_ready", "record_plan", "release_shard", "set_job_state", "stage_seconds",
     "start_shard", "sweep",
 ]

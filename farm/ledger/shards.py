@@ -7,7 +7,9 @@ after the commit (`farm.ledger.sweep.dispatch`).
 
 from __future__ import annotations
 
+import socket
 from dataclasses import dataclass
+from datetime import timedelta
 
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
@@ -15,11 +17,24 @@ from sqlalchemy.orm import Session, sessionmaker
 from farm.admission import NO_LIMITS, Policy, Send, admit, rowcount, serialize
 from farm.db import Job, Shard, Stage, utcnow
 from farm.ledger.jobs import add_event, lock_job, promote_ready, set_job_state
+from texelbake.io.spool import pid_alive
+
+
+def holder_alive(worker: str | None) -> bool | None:
+    """Whether the process named by a shard's `worker` ("host:pid", `workers.tasks`) lives:
+    True or False for a process of this host (a zombie is dead: `pid_alive`), None for another
+    host's (only its heartbeats tell). Worker names are unique per host and pid namespace."""
+    if not worker or ":" not in worker:
+        return None
+    host, _, pid = worker.rpartition(":")
+    if host != socket.gethostname() or not pid.isdigit():
+        return None
+    return pid_alive(int(pid))
 
 
 @dataclass(frozen=True)
 class StartResult:
-    action: str  # "run" | "done" | "inactive" | "exceeded"
+    action: str  # "run" | "done" | "inactive" | "exceeded" | "held"
     attempts: int = 0
     sends: tuple[Send, ...] = ()  # admitted now that this shard left the broker's backlog
 
@@ -37,10 +52,18 @@ def start_shard(
     worker: str,
     max_attempts: int,
     policy: Policy = NO_LIMITS,
+    lease: timedelta | None = None,
 ) -> StartResult:
     """Claim a shard for this delivery. Counts the attempt; past `max_attempts` the shard and the
     job fail (the redelivery cap for a shard that kills its worker). A started shard frees a
-    slot of its queue's backlog: the shards admitted in its place come back in `sends`."""
+    slot of its queue's backlog: the shards admitted in its place come back in `sends`.
+
+    A shard still `running` under another worker is taken over only when that worker is gone:
+    a dead process of this host (a killed pool child whose message Celery redelivered: at
+    once), or a holder whose last heartbeat is older than `lease`. Otherwise ("held") this
+    delivery does nothing: the holder runs it, and if it dies the sweeper re-queues the shard
+    when its lease expires. So a shard never runs twice at once (short of a live holder silent
+    for a whole lease)."""
     with sm.begin() as s:
         serialize(s)
         job = s.get(Job, job_id)
@@ -53,6 +76,12 @@ def start_shard(
             return StartResult("done", row.attempts)
         if job.state != "running" or row.state not in ("queued", "running"):
             return StartResult("inactive", row.attempts)
+        if row.state == "running" and row.worker != worker:
+            alive = holder_alive(row.worker)
+            beat = row.heartbeat_at or row.started_at
+            fresh = lease is not None and beat is not None and beat >= utcnow() - lease
+            if alive or (alive is None and fresh):
+                return StartResult("held", row.attempts)
         attempts = row.attempts + 1
         # state "running" here means the previous delivery never finished: its worker died
         lost = row.lost + (1 if row.state == "running" else 0)

@@ -135,7 +135,7 @@ def read_job_preview(
 def read_job_report(
     job_id: str, session: SessionDep, tenant: CurrentTenant, settings: SettingsDep
 ) -> JSONResponse:
-    """The bake report (timings, errors, skipped stages) of a finished job."""
+    """The bake report (measurements, quality, warnings, skipped stages) of a finished job."""
     job = _own_job(session, job_id, tenant)
     _require_done(job)
     path = storage.job_out(settings.artifact_root, job.id) / "report.json"

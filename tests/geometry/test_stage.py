@@ -74,6 +74,33 @@ def test_a_dead_workers_spool_is_swept(tmp_path):
     live.close()
 
 
+def test_a_killed_workers_spool_is_swept_before_it_is_reaped(tmp_path):
+    """A worker killed mid-stage is a zombie until its parent reaps it, and its shard is taken
+    over at once (`farm.ledger.start_shard`): the rerun's sweep must count it as gone."""
+    import time
+
+    from texelbake.io.spool import pid_alive
+
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from texelbake.io.spool import FileSpool; "
+         "s = FileSpool(sys.argv[1]); s.allocate('a', 'f8', (10,)); print(s.dir, flush=True); "
+         "time.sleep(60)", str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        dead = tmp_path / os.path.basename(child.stdout.readline().strip())
+        assert dead.is_dir() and pid_alive(child.pid)
+        child.kill()  # not reaped (no wait yet): a zombie
+        deadline = time.monotonic() + 10
+        while b") Z " not in open(f"/proc/{child.pid}/stat", "rb").read():
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        assert not pid_alive(child.pid)
+        assert FileSpool.sweep(tmp_path) == [dead]
+    finally:
+        child.kill()
+        child.wait()
+        child.stdout.close()
+
+
 def test_chunk_follows_the_worker_memory_setting():
     small, big = (geometry_chunk(BakeSettings(worker_memory_mb=mb)) for mb in (64, 4096))
     assert small == 1 << 14 and big == 4096 * 2**20 // 4 // build_mod.GEOMETRY_BYTES_PER_SAMPLE

@@ -1,6 +1,6 @@
 """A farm of real processes for the service tests (and benchmarks/chaos.py): redis-server on a
 free port, Celery prefork workers and uvicorn (`farm.stack`), with the sweeper and the
-heartbeats at test speed; and what the tests read back from it (job status, result, ledger)."""
+heartbeats at their default speed; and what the tests read back from it (job status, result, ledger)."""
 
 from __future__ import annotations
 
@@ -29,10 +29,9 @@ def farm(workdir: Path, database_url: str | None = None, **kw):
         workers=kw.pop("workers", {"prep": 1, "numeric": 1}),
         environment="test",
         extra_env={
-            "TEXELBAKE_SWEEP_INTERVAL": "1",
+            # the sweep period, heartbeat interval and lease are the defaults (0.5 s, 0.5 s,
+            # 3 s): what a farm runs is what the tests run
             "TEXELBAKE_VISIBILITY_TIMEOUT": "120",
-            "TEXELBAKE_HEARTBEAT_INTERVAL": "1",
-            "TEXELBAKE_HEARTBEAT_TIMEOUT": "6",
             **kw,
         },
     )

@@ -376,13 +376,18 @@ def test_shard_time_limit_must_stay_below_the_visibility_timeout():
     limit (plus its kill grace) at or above it would let a live shard run twice."""
     base = {"secret_key": "changethis", "redis_url": "redis://x"}
     assert Settings(**base).shard_time_limit == 1800  # half the default visibility timeout
-    assert Settings(**base).shard_kill_grace == 10
+    assert Settings(**base).shard_kill_grace == 1.5  # half the default 3 s lease
     assert Settings(**base, heartbeat_interval=1, heartbeat_timeout=6).shard_kill_grace == 3
     with pytest.raises(ValueError, match="must stay below visibility_timeout"):
         Settings(**base, visibility_timeout=600, shard_time_limit=595, shard_kill_grace=10)
     with pytest.raises(ValueError, match="must stay below heartbeat_timeout"):
         Settings(**base, shard_kill_grace=60, heartbeat_timeout=60)
-    st = Settings(**base, visibility_timeout=600, shard_time_limit=500, shard_kill_grace=10)
+    # the lease outlasts four beats: a loaded machine's late beats do not lose a live shard
+    with pytest.raises(ValueError, match="at least four times heartbeat_interval"):
+        Settings(**base, heartbeat_interval=1, heartbeat_timeout=3.5)
+    assert Settings(**base).lease.total_seconds() == 3.0
+    st = Settings(**base, visibility_timeout=600, shard_time_limit=500, shard_kill_grace=10,
+                  heartbeat_timeout=20)
     from farm.celeryconfig import celery_config
 
     assert celery_config(st)["task_time_limit"] == 510

@@ -7,6 +7,7 @@ identical to the in-process `texelbake.pipeline.run.bake` of the same file with 
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import time
@@ -16,6 +17,7 @@ import httpx
 import pytest
 from sqlalchemy import select
 
+from farm import storage
 from farm.db import Shard, session_factory
 from tests.helpers.farm import (
     AUTH,
@@ -96,7 +98,14 @@ def test_end_to_end(db, cylinder, reference, tmp_path):
             assert n > 10
             assert_ledger_clean(stack, job_id)
             r = httpx.get(f"{stack.api_url}/api/v1/jobs/{job_id}/report", headers=AUTH)
-            assert r.status_code == 200 and "stage_seconds" in r.json()
+            # the report is the result's (the same bytes on every run); the run's seconds are
+            # in the job record and in run.json beside the result zip
+            assert r.status_code == 200 and "stage_seconds" not in r.json()
+            assert all(s["seconds"] is not None for s in job["stages"])
+            run = json.loads(storage.job_run(Path(stack.env["TEXELBAKE_ARTIFACT_ROOT"]),
+                                             job_id).read_text())
+            assert {"ingest", "geometry", "cpm", "avis"} <= set(run["stage_seconds"])
+            assert run["job_id"] == job_id and run["worker"]
             # the quality gate (issue 22): the job says what `texelbake bake` would print
             missed = r.json()["quality"]["missed"]
             assert job["warnings"] == missed

@@ -357,3 +357,59 @@ def test_priority_spans_the_queues_of_a_group(sm):
     assert order(grouped, "g") == ["lo a0", "hi a0", "hi a1", "lo b0", "hi b0"]
     assert order(ledger.Policy(queue_backlog=1), "q") == [
         "lo a0", "hi a0", "lo b0", "hi a1", "hi b0"]
+
+
+def test_a_held_shard_is_not_run_twice_and_a_dead_holder_is_taken_over_at_once(sm):
+    """A second delivery of a running shard (Celery's redelivery, a sweep of a lease that
+    expired in a busy moment) runs it only when its holder is gone: a live process of this host
+    holds it ("held"), a dead one (a killed pool child, a zombie) is taken over at once, and a
+    holder on another host holds it while its heartbeats are within the lease."""
+    import os
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    job = new_job(sm)
+    ledger.dispatch(sm, ledger.record_plan(sm, job, PLAN, []), Recorder(), "r1")
+    lease = timedelta(seconds=3)
+    host = socket.gethostname()
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        alive = f"{host}:{child.pid}"
+        assert ledger.holder_alive(alive) is True
+        assert ledger.start_shard(sm, job, "ingest", 0, alive, 3, lease=lease).action == "run"
+        me = f"{host}:{os.getpid()}"
+        # its holder lives: held, however old its heartbeat (this host sees the process)
+        assert ledger.start_shard(sm, job, "ingest", 0, me, 3, lease=lease).action == "held"
+        assert ledger.start_shard(sm, job, "ingest", 0, me, 3, lease=timedelta(0)).action \
+            == "held"
+        child.kill()  # not reaped yet: a zombie, dead to the ledger
+        deadline = time.monotonic() + 10
+        while b") Z " not in open(f"/proc/{child.pid}/stat", "rb").read():
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        assert ledger.holder_alive(alive) is False
+        child.wait()
+        assert ledger.holder_alive(alive) is False
+        res = ledger.start_shard(sm, job, "ingest", 0, me, 3, lease=lease)
+        assert (res.action, res.attempts) == ("run", 2)  # at once, within the lease
+    finally:
+        child.kill()
+        child.wait()
+    with sm() as s:
+        row = s.scalar(select(Shard).where(Shard.job_id == job, Shard.stage == "ingest"))
+        assert (row.state, row.worker, row.lost) == ("running", me, 1)
+    # another host's holder: its heartbeats decide
+    other = "another-host.invalid:12345"
+    assert ledger.holder_alive(other) is None
+    ledger.finish_shard(sm, job, "ingest", 0, "ingest/0", 0.01)
+    assert ledger.start_shard(sm, job, "cpm", 0, other, 3, lease=lease).action == "run"
+    assert ledger.heartbeat(sm, job, "cpm", 0, other)
+    assert ledger.start_shard(sm, job, "cpm", 0, me, 3, lease=lease).action == "held"
+    with sm.begin() as s:  # its last beat 4 s ago: past the 3 s lease
+        s.execute(Shard.__table__.update().where(
+            Shard.job_id == job, Shard.stage == "cpm", Shard.shard == 0).values(
+            heartbeat_at=utcnow() - timedelta(seconds=4)))
+    assert ledger.start_shard(sm, job, "cpm", 0, me, 3, lease=lease).action == "run"
+

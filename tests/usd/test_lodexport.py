@@ -122,11 +122,37 @@ def test_the_output_folder_holds_the_result_only(baked, tmp_path):
     names = [p.name for p in entries]
     maps = [n for n in names if n.startswith("cylinder_") and n.endswith((".png", ".exr"))]
     assert sorted(set(names) - set(maps)) == [
-        "cylinder_baked.usda", "cylinder_payload.usdc", "report.json", "texelbake_shaders.usda"]
+        "cylinder_baked.usda", "cylinder_payload.usdc", "report.json", "run.json",
+        "texelbake_shaders.usda"]
     assert "cylinder_albedo.png" in maps
     stage = Usd.Stage.Open(str(baked))
     refs = stage.GetRootLayer().GetPrimAtPath("/Cylinder").referenceList.prependedItems
     assert [r.assetPath for r in refs] == ["./../cylinder.usda"]
+
+
+def test_a_rerun_writes_the_same_bytes_and_only_run_json_varies(baked):
+    # the run's facts (seconds, estimate, host, date) are in run.json, never in report.json:
+    # a rerun (its stages found in the artifact store) writes every other file byte for byte
+    import json
+
+    from schemas.settings import BakeSettings
+    from texelbake.pipeline.run import bake
+
+    report = json.loads((baked.parent / "report.json").read_text())
+    run = json.loads((baked.parent / "run.json").read_text())
+    assert not {"stage_seconds", "total_seconds", "estimate"} & set(report)
+    assert "projected_seconds_for_lod1" not in report["cpm_atlas"]
+    assert set(run["stage_seconds"]) >= {"ingest", "geometry", "cpm", "export"}
+    assert run["total_seconds"] == pytest.approx(sum(run["stage_seconds"].values()), abs=0.01)
+    assert {"host", "pid", "written_at", "estimate"} <= set(run)
+    settings = BakeSettings.model_validate(report["settings"])
+    again = bake(baked.parent.parent / "cylinder.usda", baked.parent.parent / "out_again",
+                 settings, progress=False)
+    files = sorted(p.name for p in baked.parent.iterdir())
+    assert files == sorted(p.name for p in again.parent.iterdir())
+    differ = [n for n in files
+              if (baked.parent / n).read_bytes() != (again.parent / n).read_bytes()]
+    assert set(differ) <= {"run.json"}, differ
 
 
 def test_packed_usdz_carries_the_source_and_passes_stock_validation(baked, tmp_path):

@@ -42,8 +42,10 @@ def _duration(seconds: float | None) -> str:
 
 def _print_summary(root: Path) -> None:
     report = json.loads((root.parent / "report.json").read_text())
+    run = root.parent / "run.json"  # this run's seconds (texelbake.stages.write_run)
+    total = json.loads(run.read_text()).get("total_seconds", 0) if run.is_file() else 0
     print(f"baked: {root}")
-    print(f"report: {root.parent / 'report.json'}  (total {report.get('total_seconds', 0):.1f} s)")
+    print(f"report: {root.parent / 'report.json'}  (total {total:.1f} s, {run.name})")
     # "merged": candidates fitted as copies of identical others (identical_columns="merge")
     print(f"{'level':>5} {'texels':>7} {'valid':>6} {'c mean':>7} {'SNR in':>7} {'SNR ho':>7} "
           f"{'ho p5':>6} {'avis err':>8} {'merged':>7}")

@@ -51,7 +51,10 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from farm import stack
 
     if args.action == "up":
-        stack.stack_up(Path(args.dir))
+        # tokens, Redis, database, artifact root and secret from TEXELBAKE_* as the server
+        # reads them (farm.stack.stack_up); it says which Redis it uses and whether it started it
+        for line in stack.stack_up(Path(args.dir)).describe():
+            print(line)
     else:
         stack.stack_down(Path(args.dir))
     return 0
@@ -70,7 +73,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     add_settings_args(p)
     p.set_defaults(func=cmd_submit)
 
-    p = sub.add_parser("stack", help="start/stop redis, the API and workers as local processes")
+    p = sub.add_parser("stack", help="start/stop redis, the API and workers as local processes "
+                       "(TEXELBAKE_TOKENS, TEXELBAKE_REDIS_URL and the other TEXELBAKE_* settings "
+                       "from the environment, as the server reads them)")
     p.add_argument("action", choices=["up", "down"])
     p.add_argument("--dir", default="var/stack", help="state folder (pids, logs, database)")
     p.set_defaults(func=cmd_stack)

@@ -71,7 +71,7 @@ class FileSpool:
         removed = []
         for d in Path(parent).glob(f"{_prefix()}*"):
             pid = d.name[len(_prefix()):].split("-", 1)[0]
-            if pid.isdigit() and not _alive(int(pid)):
+            if pid.isdigit() and not pid_alive(int(pid)):
                 shutil.rmtree(d, ignore_errors=True)
                 removed.append(d)
         return removed
@@ -136,14 +136,22 @@ def _prefix() -> str:
     return f".spool-{socket.gethostname()}-"
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process `pid` of this host runs: a zombie (killed, not yet reaped by its
+    parent) is dead, so what a killed worker left is taken over at once."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        with open(f"/proc/{int(pid)}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0] != b"Z"
+    except FileNotFoundError:
         return False
-    except PermissionError:  # another user's process
+    except (OSError, IndexError):  # no /proc: ask the kernel (a zombie then counts as alive)
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:  # another user's process
+            return True
         return True
-    return True
 
 
 def spooled_file(arr: np.ndarray) -> tuple[str, int] | None:

@@ -48,6 +48,10 @@ def run_shard(
     return _RUNNERS[stage](ctx, shard)
 
 
+#: a run's facts (seconds, estimate, host, date: `stages.write_run`), beside the result
+RUN_JSON = "run.json"
+
+
 @dataclass
 class BakeResult:
     root_layer: Path
@@ -55,15 +59,17 @@ class BakeResult:
 
 
 def finalize(workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: Path, *,
-             stage_seconds: dict[str, float] | None = None, plan: Plan | None = None) -> Path:
-    """The export stage's body: write the baked USD, maps and report.json into `out_dir`
-    (`stage_seconds`: the farm's timings per stage, for the report)."""
+             plan: Plan | None = None, run_path: Path | None = None,
+             stage_seconds: dict[str, float] | None = None, **run_extra) -> Path:
+    """The export stage's body: write the baked USD, maps and report.json into `out_dir`;
+    with `run_path`, this run's facts there (`stages.write_run`: `stage_seconds`, the farm's
+    timings per stage, and `run_extra`), outside the result."""
     setup_bake_process()
     ctx = stages.StageContext.create(Path(workdir), Path(asset_path), settings)
     plan = plan or plan_bake(asset_path, settings)
-    root = stages.export_to(ctx, Path(out_dir), stage_seconds=stage_seconds, plan=plan)
-    if stage_seconds:
-        stages.update_report_seconds(Path(out_dir), stage_seconds)
+    root = stages.export_to(ctx, Path(out_dir), plan=plan)
+    if run_path is not None:
+        stages.write_run(run_path, ctx, stage_seconds or {}, **run_extra)
     return root
 
 
@@ -101,6 +107,9 @@ def bake(
     `default_workdir()`, outside out_dir: the output holds the result only).
     source : "reference" (the baked root references the source where it lies, by a relative
         path) or "copy" (copied into out_dir/source: a folder that travels alone).
+    Besides the result, out_dir gets `run.json` (`RUN_JSON`): the seconds per stage, the cost
+    model's estimate, host and date, which differ between runs; every other file is
+    byte-identical on a rerun.
     jobs : processes for the sharded stages (cpm, avis); 1 runs everything in this process.
         The result does not depend on it (per-texel seeds, content-derived artifacts).
     """
@@ -157,7 +166,8 @@ def bake(
             pool.shutdown(cancel_futures=True)
     if root is None:
         raise StageError("the plan has no export stage")
-    stages.update_report_seconds(out_dir, seconds, est)
+    # the run's facts beside report.json: the one file of out_dir that differs between runs
+    stages.write_run(out_dir / RUN_JSON, ctx, seconds, est, jobs=jobs)
     return root
 
 

@@ -13,7 +13,7 @@ from texelbake.stages.avis import avis_levels, run_avis_tile, run_avis_top
 from texelbake.stages.btf import run_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels, run_cpm_tile, run_cpm_top
-from texelbake.stages.export import export_to, run_export, update_report_seconds
+from texelbake.stages.export import export_to, run_export, write_run
 from texelbake.stages.geometry import run_geometry
 from texelbake.stages.ingest import run_ingest
 from texelbake.stages.render import run_deformed, run_render
@@ -22,5 +22,5 @@ from texelbake.stages.srf import run_srf_shard, run_srf_top
 __all__ = [
     "StageContext", "avis_levels", "cpm_levels", "export_to", "run_avis_tile", "run_avis_top",
     "run_btf", "run_cpm_tile", "run_cpm_top", "run_deformed", "run_export", "run_geometry", "run_ingest",
-    "run_render", "run_srf_shard", "run_srf_top", "update_report_seconds",
+    "run_render", "run_srf_shard", "run_srf_top", "write_run",
 ]

@@ -1,4 +1,11 @@
-"""The export stage: the baked USD bundle (root layer, payload, maps) and report.json."""
+"""The export stage: the baked USD bundle (root layer, payload, maps) and report.json.
+
+report.json holds what the bake computed, a function of the source and the settings only:
+a rerun, a farm run and a run that survived faults write it byte for byte the same. What
+varies from run to run (stage seconds, the cost model's estimate and ETA, the host, the
+process, the date) goes to `run.json` (`write_run`), which is never part of the result
+archive: a local bake writes it beside report.json, the farm beside the job's result zip.
+"""
 
 from __future__ import annotations
 
@@ -48,8 +55,7 @@ def lod_animation(asset, meshes) -> str:
     return ""
 
 
-def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = None,
-              plan=None, source: str = "copy") -> Path:
+def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "copy") -> Path:
     """Write the baked USD bundle and report.json into out_dir (the export stage).
     source : "copy" (the source and its files under out_dir/source: the farm's downloadable
     result) or "reference" (the source referenced where it lies)."""
@@ -108,14 +114,13 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
         "surface_area": float(geo["sample_area"].sum()),
         "lods": lod_report(geo),
-        # where the CPM maps apply, and what the atlas LOD1 asks for would cost
-        "cpm_atlas": atlas_trade(s, lod_report(geo),
-                                 measured_seconds=sum((stage_seconds or {}).values()) or None),
+        # where the CPM maps apply, and what the atlas LOD1 asks for would cost (the
+        # projection from this run's measured seconds is a run fact: `write_run`)
+        "cpm_atlas": _without(atlas_trade(s, lod_report(geo)), "projected_seconds_for_lod1"),
         # how the LOD meshes follow M_org's animation (texelbake.deform.skinbind)
         "lod_animation": ("usdskel" if skeleton else "time_samples" if asset.has_deformation
                           else "static"),
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
-        "stage_seconds": dict(stage_seconds or {}),
         "fallback_levels": fallback["levels"],
         "fallback_resolution": fallback["resolution"],
         # paths only unselected variants name (never read) and textures missing from the asset
@@ -168,17 +173,40 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
     return root
 
 
-def update_report_seconds(out_dir: Path, seconds: dict[str, float],
-                          estimate: dict | None = None) -> None:
-    """Stage seconds (and the cost model's prediction, `texelbake.estimate.costmodel`) into report.json."""
+def _without(d: dict, key: str) -> dict:
+    return {k: v for k, v in d.items() if k != key}
 
-    path = Path(out_dir) / "report.json"
-    report = json.loads(path.read_text())
-    report["stage_seconds"] = {k: round(v, 3) for k, v in seconds.items()}
-    report["total_seconds"] = round(sum(seconds.values()), 3)
+
+def run_facts(ctx: StageContext, seconds: dict[str, float],
+              estimate: dict | None = None) -> dict:
+    """What varies between two runs of the same bake (`write_run`): stage seconds and their
+    sum, the projection of the atlas LOD1's cost from them (`estimate.costmodel.atlas_trade`),
+    the cost model's prediction (`estimate`), the host, process and time that wrote it."""
+    import datetime
+    import os
+    import socket
+
+    total = float(sum(seconds.values()))
+    trade = atlas_trade(ctx.settings, lod_report(ctx.geometry()), measured_seconds=total or None)
+    facts = {
+        "stage_seconds": {k: round(v, 3) for k, v in seconds.items()},
+        "total_seconds": round(total, 3),
+        "cpm_atlas_projected_seconds_for_lod1": trade["projected_seconds_for_lod1"],
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+        "written_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
     if estimate is not None:
-        report["estimate"] = estimate
-    atomic_json(path, report)
+        facts["estimate"] = estimate
+    return facts
+
+
+def write_run(path: Path, ctx: StageContext, seconds: dict[str, float],
+              estimate: dict | None = None, **extra) -> Path:
+    """`run.json` at `path`: this run's facts (`run_facts`, and `extra`), documented as
+    differing between runs; never a member of the result archive."""
+    atomic_json(Path(path), {**run_facts(ctx, seconds, estimate), **extra})
+    return Path(path)
 
 
 def run_export(ctx: StageContext, shard: int = 0) -> str:

@@ -17,7 +17,11 @@ A baked asset is a folder:
                              the fallback's own when its textures are finer than the atlas):
                              material /Baked/Looks/BakedPreview for LOD1, BakedPreview_LOD<i>
                              for the others
-    report.json              what the bake measured
+    report.json              what the bake computed (a function of source and settings:
+                             byte-identical on every run, farm or local)
+    run.json                 a local bake's run facts (seconds, estimate, host, date): the
+                             one file that differs between runs (the farm keeps it beside
+                             the result zip, outside the archive)
 
 Array attributes live in the `texelbake:` namespace, flattened, each with an int[] companion
 `<name>:shape`; the dtype maps one-to-one onto a USD value type (float16 -> half[],
