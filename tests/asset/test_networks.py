@@ -119,14 +119,47 @@ def test_many_distinct_values_are_bounded(tmp_path):
     assert any("distinct primvar values" in w for w in asset.warnings)
 
 
-def test_subdivision_mesh_is_baked_as_its_cage_with_a_warning(tmp_path):
+def test_subdivision_mesh_is_baked_from_its_limit_surface(tmp_path):
+    # a flat 4 x 2 grid, scheme unauthored (UsdGeom's fallback is catmullClark), UVs = xy
+    # face-varying, two materials by GeomSubset; and the same grid as a loop surface
     stage = new_stage(tmp_path / "a.usda")
-    m = grid_mesh(stage, "/Root/A", 1, 1)
-    m.GetSubdivisionSchemeAttr().Clear()  # unauthored: UsdGeom's fallback is catmullClark
+    m = grid_mesh(stage, "/Root/A", 4, 2)
+    m.GetSubdivisionSchemeAttr().Clear()
+    pts = np.asarray(m.GetPointsAttr().Get(), dtype=np.float64)
+    idx = np.asarray(m.GetFaceVertexIndicesAttr().Get())
+    st = UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                               UsdGeom.Tokens.faceVarying)
+    st.Set(Vt.Vec2fArray.FromNumpy(pts[idx, :2].astype(np.float32)))
+    red = _display_color_material(stage, "/Root/Looks/Red")
+    blue = _display_color_material(stage, "/Root/Looks/Blue")
+    for name, faces, mat in (("left", [0, 1, 4, 5], red), ("right", [2, 3, 6, 7], blue)):
+        subset = UsdGeom.Subset.CreateGeomSubset(m, name, UsdGeom.Tokens.face, faces,
+                                                 UsdShade.Tokens.materialBind)
+        bind(subset, mat)
+    loop = grid_mesh(stage, "/Root/L", 1, 1, z=5.0)
+    loop.GetSubdivisionSchemeAttr().Set(UsdGeom.Tokens.loop)
     stage.Save()
-    with pytest.warns(UserWarning, match="catmullClark.*control cage"):
+    with pytest.warns(UserWarning, match="'loop'.*control cage"):
         asset = load_asset(tmp_path / "a.usda")
-    assert asset.num_faces == 2  # the cage's triangles
+    on_a = asset.face_mesh == 0
+    # two levels: 8 quads -> 128 quads -> 256 triangles; the loop cage as authored (2 tris)
+    assert on_a.sum() == 256 and (~on_a).sum() == 2
+    tri = asset.points[asset.faces[on_a]]  # (256, 3, 3)
+    # a flat cage stays flat, and its outline: the limit of a planar grid is the grid's
+    # rectangle (boundary curves of collinear points, corners kept)
+    np.testing.assert_allclose(tri[..., 2], 0.0, atol=1e-6)
+    np.testing.assert_allclose([tri[..., 0].min(), tri[..., 0].max(), tri[..., 1].min(),
+                                tri[..., 1].max()], [0, 4, 0, 2], atol=1e-6)
+    # UVs linear in xy stay so on the refined flat grid (bilinear face-varying refinement)
+    np.testing.assert_allclose(asset.corner_uvs[on_a], tri[..., :2], atol=1e-6)
+    # each refined triangle keeps its cage face's material: left half red, right half blue
+    centre_x = tri[..., 0].mean(axis=1)
+    mats = asset.face_material[on_a]
+    assert len(set(mats[centre_x < 2].tolist())) == 1
+    assert len(set(mats[centre_x > 2].tolist())) == 1
+    assert mats[centre_x < 2][0] != mats[centre_x > 2][0]
+    # smooth shading: normals computed from the refined surface, +z everywhere on the flat grid
+    np.testing.assert_allclose(asset.corner_normals[on_a][..., 2], 1.0, atol=1e-9)
 
 
 # ---- MaterialX surface shaders (texelbake.asset.mtlx) ---------------------------------------

@@ -275,10 +275,11 @@ def _time_samples(mesh_prims: list[Any | None], meshes: list[MeshData],
                 continue
             raw = UsdGeom.Mesh(prim).GetPointsAttr().Get(tc)
             pts = np.asarray(raw if raw is not None else [], dtype=np.float64).reshape(-1, 3)
-            if pts.shape[0] != m.points.shape[0]:
+            expected = m.points.shape[0] if m.refine is None else m.refine.shape[1]
+            if pts.shape[0] != expected:
                 raise AssetError(
                     f"mesh {m.path}: {pts.shape[0]} points at time {t:g}, expected "
-                    f"{m.points.shape[0]} (changing topology is not supported)",
+                    f"{expected} (changing topology is not supported)",
                     path=source, prim=m.path)
             bad = ~np.isfinite(pts).all(axis=1)
             if bad.any():
@@ -286,6 +287,8 @@ def _time_samples(mesh_prims: list[Any | None], meshes: list[MeshData],
                     f"mesh {m.path} has NaN/Inf points at time {t:g} (first at index "
                     f"{int(np.flatnonzero(bad)[0])})", path=source, prim=m.path)
             world_pts, _ = world_points(prim, pts, tc, xcache, skins.get(m.path), source)
+            if m.refine is not None:  # a subdivision surface: refined as at the rest time
+                world_pts = m.refine @ world_pts
             per_mesh.append(world_pts)
         frames.append(np.concatenate(per_mesh, axis=0))
     return codes, np.stack(frames)
