@@ -4,9 +4,9 @@
 
     python import_render.py -- SPEC.json
 
-SPEC: {"files": [{"name", "path"}, ...], "out_dir", "resolution", "samples",
+SPEC: {"files": [{"name", "path", "options"?}, ...], "out_dir", "resolution", "samples",
 "frame": null | [[xmin, ymin, zmin], [xmax, ymax, zmax]]}. Each file is imported into an empty
-scene. The camera and the sun are placed from `frame` (Blender world space; when null, from the
+scene (`options`: importer keywords, e.g. {"import_subdivision": True}). The camera and the sun are placed from `frame` (Blender world space; when null, from the
 first file's imported bounds), so every file is seen from the same view. Per file the last
 stdout line's JSON holds: the mesh objects (name, triangles, world-space bounds), the materials
 they use, the images those materials read (size, whether pixels loaded), the world bounds of
@@ -181,7 +181,7 @@ def main() -> None:
     for f in spec["files"]:
         _reset()
         t0 = time.perf_counter()
-        res = bpy.ops.wm.usd_import(filepath=str(f["path"]))
+        res = bpy.ops.wm.usd_import(filepath=str(f["path"]), **f.get("options", {}))
         info = {"name": f["name"], "path": str(f["path"]), "import": sorted(res),
                 "import_seconds": time.perf_counter() - t0}
         # the importer sets the frame range from the stage's start and end time codes and
