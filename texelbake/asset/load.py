@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from texelbake.asset.dome import read_dome
 from texelbake.asset.instancers import instancer_meshes
 from texelbake.asset.lights import read_camera, read_light
 from texelbake.asset.materials import DEFAULT_MATERIAL, MaterialReader, face_materials
@@ -123,6 +124,9 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
                 warn(warns, f"mesh {prim.GetPath()}: invisible or guide purpose; skipped")
         elif prim.IsA(UsdGeom.Camera):
             cameras.append(read_camera(prim, time, xcache, warns))
+        elif _is_dome(prim):  # environment light: importance-sampled distant lights
+            lights.extend(read_dome(prim, time, xcache, str(UsdGeom.GetStageUpAxis(stage)),
+                                    warns))
         elif _is_light(prim):
             light = read_light(prim, time, xcache, warns)
             if light is not None:
@@ -216,6 +220,12 @@ def load_asset(path: str | Path, *, time_code: float | None = None) -> AssetMode
         warnings=tuple(warns),
         skin=skin,
     )
+
+
+def _is_dome(prim: Any) -> bool:
+    from pxr import UsdLux
+
+    return bool(prim.IsA(UsdLux.DomeLight) or prim.IsA(UsdLux.DomeLight_1))
 
 
 def _is_light(prim: Any) -> bool:
