@@ -162,6 +162,27 @@ def test_subdivision_mesh_is_baked_from_its_limit_surface(tmp_path):
     np.testing.assert_allclose(asset.corner_normals[on_a][..., 2], 1.0, atol=1e-9)
 
 
+def test_time_sampled_subdivision_mesh_is_refined_at_every_time(tmp_path):
+    # points authored at t = 0 and t = 1 (lifted by 0.5): each frame is refined by the same
+    # operator, so the refined frames differ by the same lift (refinement is affine-invariant)
+    stage = new_stage(tmp_path / "a.usda")
+    m = grid_mesh(stage, "/Root/A", 2, 2)
+    m.GetSubdivisionSchemeAttr().Set(UsdGeom.Tokens.catmullClark)
+    pts = np.asarray(m.GetPointsAttr().Get(), dtype=np.float64)
+    pts[4, 2] = 0.3  # a bump in the middle, so the refined surface is not flat
+    for t, lift in ((0.0, 0.0), (1.0, 0.5)):
+        m.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy((pts + [0, 0, lift]).astype(np.float32)),
+                              t)
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    frames = asset.points_over_time
+    assert frames.shape == (2, asset.points.shape[0], 3) and asset.points.shape[0] > 9
+    np.testing.assert_allclose(frames[0], asset.points, atol=1e-6)
+    np.testing.assert_allclose(frames[1] - frames[0], np.tile([0, 0, 0.5], (frames.shape[1], 1)),
+                               atol=1e-6)
+    assert 0.0 < asset.points[:, 2].max() < 0.3  # the bump, smoothed
+
+
 # ---- MaterialX surface shaders (texelbake.asset.mtlx) ---------------------------------------
 
 

@@ -32,7 +32,8 @@ class CutoutTest(Protocol):
     cut_uv(prim (k,) int64, uv (k, 2) float64) -> (k,) bool: the point at the mesh's uv is cut
     """
 
-    faces: np.ndarray
+    @property
+    def faces(self) -> np.ndarray: ...
 
     def cut(self, prim: np.ndarray, bary: np.ndarray) -> np.ndarray: ...
 
