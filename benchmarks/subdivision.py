@@ -4,7 +4,9 @@ its control cage (the same asset with `subdivisionScheme = "none"` over it: what
 baked before), each LOD1 exported (.usdz) and rendered in Blender 5.0.1 beside the original
 (tests/blender/import_render.py: Cycles CPU, 160 px, 32 samples, deterministic).
 
-Blender's USD importer does not subdivide at its defaults (`import_subdivision` off: it shows
+First a table per refinement level (0: the cage) of the Teapot's triangles and its largest
+distance from the limit surface (level 4's points) over the diagonal: LOD1's default error
+bound is 1/256 = 0.0039. Blender's USD importer does not subdivide at its defaults (`import_subdivision` off: it shows
 the cage shaded smooth); with `import_subdivision` on it adds a Subdivision Surface modifier
 at render level 2 with limit positions. Both originals are rendered; `MAD` is the mean absolute
 difference over the object's pixels (8-bit sRGB, [0, 1]), `IoU` the silhouettes' overlap.
@@ -56,6 +58,44 @@ def cage_copy(src: Path, folder: Path) -> Path:
     return out
 
 
+def level_deviation(src: Path, levels=(0, 1, 2, 3), reference: int = 4) -> list[dict]:
+    """Per refinement level of every catmullClark mesh of `src` (with limit positions; 0: the
+    cage): triangles and the largest distance from the points of level `reference` (on the
+    limit surface to ~1e-5 of the diagonal) to that mesh, over the bounding-box diagonal."""
+    import numpy as np
+    from pxr import Usd, UsdGeom
+
+    from texelbake.asset.meshes import fan_triangles
+    from texelbake.geometry.mesh import bbox_diagonal
+    from texelbake.geometry.raycast import RayCaster
+    from texelbake.geometry.subdivision import catmull_clark
+
+    rows = []
+    stage = Usd.Stage.Open(str(src))
+    for prim in stage.Traverse():
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        m = UsdGeom.Mesh(prim)
+        if str(m.GetSubdivisionSchemeAttr().Get()) != "catmullClark":
+            continue
+        pts = np.asarray(m.GetPointsAttr().Get(), dtype=np.float64)
+        counts = np.asarray(m.GetFaceVertexCountsAttr().Get(), dtype=np.int64)
+        idx = np.asarray(m.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)
+        ref = catmull_clark(counts, idx, len(pts), reference).vertex_matrix @ pts
+        diag = bbox_diagonal(ref)
+        for k in levels:
+            if k == 0:
+                v, c, i = pts, counts, idx
+            else:
+                r = catmull_clark(counts, idx, len(pts), k)
+                v, c, i = r.vertex_matrix @ pts, r.counts, r.indices
+            tris = fan_triangles(c, i)
+            cp, _, _ = RayCaster(v, tris).closest_points(ref)
+            rows.append({"mesh": str(prim.GetPath()), "level": k, "triangles": int(len(tris)),
+                         "max_dev_rel": float(np.linalg.norm(cp - ref, axis=1).max() / diag)})
+    return rows
+
+
 def bake_one(src: Path, out: Path) -> dict:
     from schemas.settings import BakeSettings
     from texelbake.asset import load_asset
@@ -92,6 +132,11 @@ def main() -> None:
 
     work = args.work or Path(tempfile.mkdtemp(prefix="tb_subdiv_"))
     work.mkdir(parents=True, exist_ok=True)
+    levels = level_deviation(TEAPOT)
+    print(f"{'mesh':20} {'level':>5} {'triangles':>9} {'max dev/diag':>12}")
+    for r in levels:
+        print(f"{r['mesh']:20} {r['level']:>5} {r['triangles']:>9} {r['max_dev_rel']:>12.6f}")
+    print()
     bakes = {"limit": bake_one(TEAPOT, work / "limit"),
              "cage": bake_one(cage_copy(TEAPOT, work / "teapot_cage"), work / "cage")}
     files = {"original": TEAPOT, "original_subdiv": TEAPOT,
@@ -123,7 +168,7 @@ def main() -> None:
     print(f"\nrenders: {renders}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"bakes": bakes, "blender": rows,
+        args.json.write_text(json.dumps({"levels": levels, "bakes": bakes, "blender": rows,
                                          "renders": str(renders)}, indent=1))
 
 

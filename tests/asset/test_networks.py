@@ -11,6 +11,7 @@ from pxr import Sdf, UsdGeom, UsdShade, Vt
 
 from tests.helpers.usd_stages import bind, grid_mesh, new_stage
 from texelbake.asset import load_asset
+from texelbake.geometry.subdivision import SUBDIVISION_LEVELS
 
 
 def _display_color_material(stage, path, reader_id="UsdPrimvarReader_float3", fallback=None,
@@ -142,9 +143,10 @@ def test_subdivision_mesh_is_baked_from_its_limit_surface(tmp_path):
     with pytest.warns(UserWarning, match="'loop'.*control cage"):
         asset = load_asset(tmp_path / "a.usda")
     on_a = asset.face_mesh == 0
-    # two levels: 8 quads -> 128 quads -> 256 triangles; the loop cage as authored (2 tris)
-    assert on_a.sum() == 256 and (~on_a).sum() == 2
-    tri = asset.points[asset.faces[on_a]]  # (256, 3, 3)
+    # one level (SUBDIVISION_LEVELS): 8 quads -> 32 quads -> 64 triangles; the loop cage as
+    # authored (2 triangles)
+    assert on_a.sum() == 32 * 2 * 4 ** (SUBDIVISION_LEVELS - 1) and (~on_a).sum() == 2
+    tri = asset.points[asset.faces[on_a]]  # (t, 3, 3)
     # a flat cage stays flat, and its outline: the limit of a planar grid is the grid's
     # rectangle (boundary curves of collinear points, corners kept)
     np.testing.assert_allclose(tri[..., 2], 0.0, atol=1e-6)

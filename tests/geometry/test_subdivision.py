@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from texelbake.errors import ShapeError
-from texelbake.geometry.subdivision import catmull_clark, refinement_levels
+from texelbake.geometry.subdivision import SUBDIVISION_LEVELS, catmull_clark, refinement_levels
 
 
 def _grid(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -91,8 +91,9 @@ def test_refinement_shapes_parents_and_affine_weights():
 
 
 def test_levels_are_capped_by_the_quad_budget_and_bad_input_is_refused():
-    assert refinement_levels(np.full(1000, 4)) == 2
-    assert refinement_levels(np.full(1000, 4), max_quads=10_000) == 1  # 16k > 10k at level 2
+    assert refinement_levels(np.full(1000, 4)) == SUBDIVISION_LEVELS
+    assert refinement_levels(np.full(1000, 4), levels=2) == 2
+    assert refinement_levels(np.full(1000, 4), 2, max_quads=10_000) == 1  # 16k > 10k at 2
     assert refinement_levels(np.full(10**6, 4), max_quads=10) == 1  # never below one level
     with pytest.raises(ShapeError, match="sum"):
         catmull_clark([4], [0, 1, 2], 3)

@@ -47,6 +47,13 @@ def _fan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([s, s + k, s + k + 1], axis=1), tri_face
 
 
+def fan_triangles(counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """(T, 3) int64 vertex ids of the fan triangulation of polygons (counts (F,), indices
+    (C,) faceVertexIndices), as `read_mesh` triangulates them."""
+    tri_fv, _ = _fan(np.asarray(counts, dtype=np.int64))
+    return np.asarray(indices, dtype=np.int64)[tri_fv]
+
+
 def _expand(values: np.ndarray, interp: str, tri_fv: np.ndarray, tri_vid: np.ndarray,
             tri_face: np.ndarray, n_points: int, n_faces: int, n_fv: int) -> np.ndarray | None:
     """Primvar values of any interpolation -> (T, 3, k) per triangle corner; None on mismatch."""
