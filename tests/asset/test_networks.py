@@ -11,7 +11,7 @@ from pxr import Sdf, UsdGeom, UsdShade, Vt
 
 from tests.helpers.usd_stages import bind, grid_mesh, new_stage
 from texelbake.asset import load_asset
-from texelbake.geometry.subdivision import SUBDIVISION_LEVELS
+from texelbake.geometry.subdivision import refinement_levels
 
 
 def _display_color_material(stage, path, reader_id="UsdPrimvarReader_float3", fallback=None,
@@ -143,9 +143,10 @@ def test_subdivision_mesh_is_baked_from_its_limit_surface(tmp_path):
     with pytest.warns(UserWarning, match="'loop'.*control cage"):
         asset = load_asset(tmp_path / "a.usda")
     on_a = asset.face_mesh == 0
-    # one level (SUBDIVISION_LEVELS): 8 quads -> 32 quads -> 64 triangles; the loop cage as
-    # authored (2 triangles)
-    assert on_a.sum() == 32 * 2 * 4 ** (SUBDIVISION_LEVELS - 1) and (~on_a).sum() == 2
+    # 8 quads refined until 4096 quads (refinement_levels: 32 corners, five levels); the
+    # loop cage as authored (2 triangles)
+    assert on_a.sum() == 2 * 32 * 4 ** (refinement_levels(np.full(8, 4)) - 1) == 16384
+    assert (~on_a).sum() == 2
     tri = asset.points[asset.faces[on_a]]  # (t, 3, 3)
     # a flat cage stays flat, and its outline: the limit of a planar grid is the grid's
     # rectangle (boundary curves of collinear points, corners kept)

@@ -91,7 +91,10 @@ def test_refinement_shapes_parents_and_affine_weights():
 
 
 def test_levels_are_capped_by_the_quad_budget_and_bad_input_is_refused():
-    assert refinement_levels(np.full(1000, 4)) == SUBDIVISION_LEVELS
+    # the Teapot's 1236 quads: one level (4944 quads); a cube's 6: five (6144 quads)
+    assert refinement_levels(np.full(1236, 4)) == SUBDIVISION_LEVELS == 1
+    assert refinement_levels(np.full(6, 4)) == 5
+    assert refinement_levels(np.full(6, 4), max_levels=3) == 3
     assert refinement_levels(np.full(1000, 4), levels=2) == 2
     assert refinement_levels(np.full(1000, 4), 2, max_quads=10_000) == 1  # 16k > 10k at 2
     assert refinement_levels(np.full(10**6, 4), max_quads=10) == 1  # never below one level
