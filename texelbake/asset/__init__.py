@@ -7,9 +7,10 @@ Public entry points:
   folder (or its `.usdz` package) or name files that do not exist. Also used by the upload
   service.
 - `load_asset(path, *, time_code=None) -> AssetModel`: flattens transforms, fan-triangulates
-  n-gons, reads normals (authored or computed), UVs, material bindings (GeomSubsets included),
-  UsdPreviewSurface and texelbake shader networks with their textures, UsdLux distant and
-  sphere lights, cameras and time-sampled points.
+  n-gons, refines catmullClark surfaces to their limit surface, reads normals (authored or
+  computed), UVs, material bindings (GeomSubsets included), UsdPreviewSurface and texelbake
+  shader networks with their textures, UsdLux distant and sphere lights, dome lights (as
+  importance-sampled distant lights), cameras and time-sampled points.
 - `describe(asset) -> str`: the report `texelbake inspect FILE` prints.
 
 The AssetModel fields are documented in `texelbake.model`. This module is pure I/O: nothing
@@ -17,7 +18,7 @@ here is from the seeds' equations; the reflectance it hands on is what seed 000 
 f_r(x, wi, wo) per sample (a material per face, textures per corner UV).
 
 Modules: `paths` (asset-path safety), `load` (load_asset), `meshes`, `materials`, `lights`
-(lights and cameras), `files` (textures and MERL tables, .usdz members), `values` (USD value
+(lights and cameras), `dome` (DomeLight), `files` (textures and MERL tables, .usdz members), `values` (USD value
 helpers, the sRGB decode), `describe`.
 
 USD conventions used throughout: USD matrices act on *row* vectors (`p_world = p @ M`,

@@ -1,5 +1,5 @@
-"""Meshes: points in world space (transforms, UsdSkel skinning), fan triangulation, normals
-(authored or computed), UVs."""
+"""Meshes: points in world space (transforms, UsdSkel skinning), catmullClark surfaces refined
+(`texelbake.geometry.subdivision`), fan triangulation, normals (authored or computed), UVs."""
 
 from __future__ import annotations
 
