@@ -97,8 +97,12 @@ def dcc(request, tmp_path_factory):
     for n in range(1, n_lods + 1):
         for suffix in (".usdc", ".usdz"):
             files[f"lod{n}{suffix[1:]}"] = export_lod(root, n, d / "export" / f"lod{n}{suffix}")
+    # the original as Blender smooths a subdivision surface when asked (its Subdivision
+    # Surface modifier, render level 2 on the limit surface; the Teapot is catmullClark)
+    files["original_subdiv"] = src
     renders = d / "renders"
-    got = import_and_render(files, renders, resolution=160, samples=32)
+    got = import_and_render(files, renders, resolution=160, samples=32,
+                            options={"original_subdiv": {"import_subdivision": True}})
     rows = [Path(got["files"][k]["png"]) for k in ["original", "root"]
             + [f"lod{n}usdz" for n in range(1, n_lods + 1)]]
     side_by_side(rows, renders / "row.png")
@@ -165,3 +169,14 @@ def test_renders_of_the_lods_match_the_original(dcc):
     assert compare_renders(files["lod1usdc"]["png"], files["lod1usdz"]["png"])["mad"] == 0.0
     assert lod1["iou"] >= IOU_MIN, lod1
     assert lod1["mad"] <= MAD_MAX, (lod1, f"renders in {dcc['renders']}")
+
+
+def test_teapot_lod1_matches_the_original_as_blender_smooths_it(dcc):
+    # the Teapot bakes from its limit surface: its LOD1 against the original rendered with
+    # Blender's subdivision (measured 0.0141; baked as its cage 0.0191, benchmarks/
+    # subdivision.py); the bar is the acceptance's 0.02
+    if dcc["name"] != "teapot":
+        pytest.skip("the cylinder is not a subdivision surface")
+    files = dcc["got"]["files"]
+    c = compare_renders(files["original_subdiv"]["png"], files["lod1usdz"]["png"])
+    assert c["iou"] >= IOU_MIN and c["mad"] <= 0.02, (c, f"renders in {dcc['renders']}")
