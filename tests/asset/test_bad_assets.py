@@ -105,6 +105,7 @@ def test_degenerate_faces_dropped_with_warning(tmp_path):
     two.CreatePointsAttr([(0, 0, 1), (1, 0, 1), (0, 1, 1)])
     two.CreateFaceVertexCountsAttr([2, 3])
     two.CreateFaceVertexIndicesAttr([0, 1, 0, 1, 2])
+    two.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     stage.Save()
     with pytest.warns(AssetWarning) as record:
         asset = load_asset(tmp_path / "a.usda")

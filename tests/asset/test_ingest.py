@@ -77,6 +77,7 @@ def test_ngon_fan_triangulation(tmp_path):
     mesh.CreatePointsAttr(pts)
     mesh.CreateFaceVertexCountsAttr([5, 4])
     mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3, 4, 5, 6, 7, 8])
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     stage.Save()
     asset = load_asset(tmp_path / "a.usda")
     assert isinstance(asset, AssetModel)

@@ -11,6 +11,7 @@ from pxr import Sdf, UsdGeom, UsdShade, Vt
 
 from tests.helpers.usd_stages import bind, grid_mesh, new_stage
 from texelbake.asset import load_asset
+from texelbake.geometry.subdivision import refinement_levels
 
 
 def _display_color_material(stage, path, reader_id="UsdPrimvarReader_float3", fallback=None,
@@ -119,14 +120,70 @@ def test_many_distinct_values_are_bounded(tmp_path):
     assert any("distinct primvar values" in w for w in asset.warnings)
 
 
-def test_subdivision_mesh_is_baked_as_its_cage_with_a_warning(tmp_path):
+def test_subdivision_mesh_is_baked_from_its_limit_surface(tmp_path):
+    # a flat 4 x 2 grid, scheme unauthored (UsdGeom's fallback is catmullClark), UVs = xy
+    # face-varying, two materials by GeomSubset; and the same grid as a loop surface
     stage = new_stage(tmp_path / "a.usda")
-    m = grid_mesh(stage, "/Root/A", 1, 1)
-    m.GetSubdivisionSchemeAttr().Clear()  # unauthored: UsdGeom's fallback is catmullClark
+    m = grid_mesh(stage, "/Root/A", 4, 2)
+    m.GetSubdivisionSchemeAttr().Clear()
+    pts = np.asarray(m.GetPointsAttr().Get(), dtype=np.float64)
+    idx = np.asarray(m.GetFaceVertexIndicesAttr().Get())
+    st = UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                               UsdGeom.Tokens.faceVarying)
+    st.Set(Vt.Vec2fArray.FromNumpy(pts[idx, :2].astype(np.float32)))
+    red = _display_color_material(stage, "/Root/Looks/Red")
+    blue = _display_color_material(stage, "/Root/Looks/Blue")
+    for name, faces, mat in (("left", [0, 1, 4, 5], red), ("right", [2, 3, 6, 7], blue)):
+        subset = UsdGeom.Subset.CreateGeomSubset(m, name, UsdGeom.Tokens.face, faces,
+                                                 UsdShade.Tokens.materialBind)
+        bind(subset, mat)
+    loop = grid_mesh(stage, "/Root/L", 1, 1, z=5.0)
+    loop.GetSubdivisionSchemeAttr().Set(UsdGeom.Tokens.loop)
     stage.Save()
-    with pytest.warns(UserWarning, match="catmullClark.*control cage"):
+    with pytest.warns(UserWarning, match="'loop'.*control cage"):
         asset = load_asset(tmp_path / "a.usda")
-    assert asset.num_faces == 2  # the cage's triangles
+    on_a = asset.face_mesh == 0
+    # 8 quads refined until 4096 quads (refinement_levels: 32 corners, five levels); the
+    # loop cage as authored (2 triangles)
+    assert on_a.sum() == 2 * 32 * 4 ** (refinement_levels(np.full(8, 4)) - 1) == 16384
+    assert (~on_a).sum() == 2
+    tri = asset.points[asset.faces[on_a]]  # (t, 3, 3)
+    # a flat cage stays flat, and its outline: the limit of a planar grid is the grid's
+    # rectangle (boundary curves of collinear points, corners kept)
+    np.testing.assert_allclose(tri[..., 2], 0.0, atol=1e-6)
+    np.testing.assert_allclose([tri[..., 0].min(), tri[..., 0].max(), tri[..., 1].min(),
+                                tri[..., 1].max()], [0, 4, 0, 2], atol=1e-6)
+    # UVs linear in xy stay so on the refined flat grid (bilinear face-varying refinement)
+    np.testing.assert_allclose(asset.corner_uvs[on_a], tri[..., :2], atol=1e-6)
+    # each refined triangle keeps its cage face's material: left half red, right half blue
+    centre_x = tri[..., 0].mean(axis=1)
+    mats = asset.face_material[on_a]
+    assert len(set(mats[centre_x < 2].tolist())) == 1
+    assert len(set(mats[centre_x > 2].tolist())) == 1
+    assert mats[centre_x < 2][0] != mats[centre_x > 2][0]
+    # smooth shading: normals computed from the refined surface, +z everywhere on the flat grid
+    np.testing.assert_allclose(asset.corner_normals[on_a][..., 2], 1.0, atol=1e-9)
+
+
+def test_time_sampled_subdivision_mesh_is_refined_at_every_time(tmp_path):
+    # points authored at t = 0 and t = 1 (lifted by 0.5): each frame is refined by the same
+    # operator, so the refined frames differ by the same lift (refinement is affine-invariant)
+    stage = new_stage(tmp_path / "a.usda")
+    m = grid_mesh(stage, "/Root/A", 2, 2)
+    m.GetSubdivisionSchemeAttr().Set(UsdGeom.Tokens.catmullClark)
+    pts = np.asarray(m.GetPointsAttr().Get(), dtype=np.float64)
+    pts[4, 2] = 0.3  # a bump in the middle, so the refined surface is not flat
+    for t, lift in ((0.0, 0.0), (1.0, 0.5)):
+        m.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy((pts + [0, 0, lift]).astype(np.float32)),
+                              t)
+    stage.Save()
+    asset = load_asset(tmp_path / "a.usda")
+    frames = asset.points_over_time
+    assert frames.shape == (2, asset.points.shape[0], 3) and asset.points.shape[0] > 9
+    np.testing.assert_allclose(frames[0], asset.points, atol=1e-6)
+    np.testing.assert_allclose(frames[1] - frames[0], np.tile([0, 0, 0.5], (frames.shape[1], 1)),
+                               atol=1e-6)
+    assert 0.0 < asset.points[:, 2].max() < 0.3  # the bump, smoothed
 
 
 # ---- MaterialX surface shaders (texelbake.asset.mtlx) ---------------------------------------

@@ -4,12 +4,13 @@
 
     python import_render.py -- SPEC.json
 
-SPEC: {"files": [{"name", "path"}, ...], "out_dir", "resolution", "samples",
+SPEC: {"files": [{"name", "path", "options"?}, ...], "out_dir", "resolution", "samples",
 "frame": null | [[xmin, ymin, zmin], [xmax, ymax, zmax]], "diag_px": null | pixels}. Each file
-is imported into an empty scene. The camera and the sun are placed from `frame` (Blender world
-space; when null, from the first file's imported bounds), so every file is seen from the same
-view: at the distance where the frame fits the image, or, with `diag_px`, where the frame box's
-diagonal covers that many pixels (a LOD's switch distance; the small-angle size). Per file the last
+is imported into an empty scene (`options`: importer keywords, e.g. {"import_subdivision":
+True}). The camera and the sun are placed from `frame` (Blender world space; when null, from
+the first file's imported bounds), so every file is seen from the same view: at the distance
+where the frame fits the image, or, with `diag_px`, where the frame box's diagonal covers that
+many pixels (a LOD's switch distance; the small-angle size). Per file the last
 stdout line's JSON holds: the mesh objects (name, triangles, world-space bounds), the materials
 they use, the images those materials read (size, whether pixels loaded), the world bounds of
 all meshes, the render's PNG path and seconds.
@@ -186,7 +187,7 @@ def main() -> None:
     for f in spec["files"]:
         _reset()
         t0 = time.perf_counter()
-        res = bpy.ops.wm.usd_import(filepath=str(f["path"]))
+        res = bpy.ops.wm.usd_import(filepath=str(f["path"]), **f.get("options", {}))
         info = {"name": f["name"], "path": str(f["path"]), "import": sorted(res),
                 "import_seconds": time.perf_counter() - t0}
         # the importer sets the frame range from the stage's start and end time codes and

@@ -81,6 +81,21 @@ def _source_bounds_in_blender(src: Path) -> np.ndarray:
     return np.stack([lo, hi]) * UsdGeom.GetStageMetersPerUnit(stage)
 
 
+def _org_bounds_in_blender(src: Path) -> np.ndarray:
+    """The bounds of M_org (`load_asset`: subdivision surfaces refined) placed as Blender's
+    importer places the source (Y-up turned Z-up, units scaled to metres)."""
+    from pxr import Usd, UsdGeom
+
+    from texelbake.asset import load_asset
+
+    pts = load_asset(src).points
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    stage = Usd.Stage.Open(str(src))
+    if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y:
+        lo, hi = np.array([lo[0], -hi[2], lo[1]]), np.array([hi[0], -lo[2], hi[1]])
+    return np.stack([lo, hi]) * UsdGeom.GetStageMetersPerUnit(stage)
+
+
 @pytest.fixture(scope="module", params=["teapot", "cylinder"])
 def dcc(request, tmp_path_factory):
     """Bake, export every LOD as .usdc and .usdz, import and render everything in Blender."""
@@ -97,8 +112,12 @@ def dcc(request, tmp_path_factory):
     for n in range(1, n_lods + 1):
         for suffix in (".usdc", ".usdz"):
             files[f"lod{n}{suffix[1:]}"] = export_lod(root, n, d / "export" / f"lod{n}{suffix}")
+    # the original as Blender smooths a subdivision surface when asked (its Subdivision
+    # Surface modifier, render level 2 on the limit surface; the Teapot is catmullClark)
+    files["original_subdiv"] = src
     renders = d / "renders"
-    got = import_and_render(files, renders, resolution=160, samples=32)
+    got = import_and_render(files, renders, resolution=160, samples=32,
+                            options={"original_subdiv": {"import_subdivision": True}})
     rows = [Path(got["files"][k]["png"]) for k in ["original", "root"]
             + [f"lod{n}usdz" for n in range(1, n_lods + 1)]]
     side_by_side(rows, renders / "row.png")
@@ -125,7 +144,9 @@ def test_the_root_imports_as_the_original(dcc):
 def test_each_lod_export_imports_with_its_mesh_material_and_textures(dcc, suffix):
     from texelbake.io.images import read_pixels
 
-    orig = np.asarray(dcc["got"]["files"]["original"]["bounds"])
+    # M_org as the bake reads it (the Teapot's limit surface, not the cage Blender's default
+    # import shows), where Blender's importer places it
+    orig = _org_bounds_in_blender(dcc["src"])
     for n, lod in enumerate(dcc["report"]["lods"]["levels"], start=1):
         f = dcc["got"]["files"][f"lod{n}{suffix}"]
         assert f["import"] == ["FINISHED"]
@@ -165,3 +186,14 @@ def test_renders_of_the_lods_match_the_original(dcc):
     assert compare_renders(files["lod1usdc"]["png"], files["lod1usdz"]["png"])["mad"] == 0.0
     assert lod1["iou"] >= IOU_MIN, lod1
     assert lod1["mad"] <= MAD_MAX, (lod1, f"renders in {dcc['renders']}")
+
+
+def test_teapot_lod1_matches_the_original_as_blender_smooths_it(dcc):
+    # the Teapot bakes from its limit surface: its LOD1 against the original rendered with
+    # Blender's subdivision (measured 0.0141; baked as its cage 0.0191, benchmarks/
+    # subdivision.py); the bar is the acceptance's 0.02
+    if dcc["name"] != "teapot":
+        pytest.skip("the cylinder is not a subdivision surface")
+    files = dcc["got"]["files"]
+    c = compare_renders(files["original_subdiv"]["png"], files["lod1usdz"]["png"])
+    assert c["iou"] >= IOU_MIN and c["mad"] <= 0.02, (c, f"renders in {dcc['renders']}")

@@ -100,10 +100,13 @@ def _author_quad_grid(stage, path: str, rect, cells: int):
 
 
 def write_plane_usd(path: Path, rho=RHO, light_dir=(0.3, 0.2, 0.9), intensity=3.0,
-                    cells: int = 4, occluder=None) -> Path:
+                    cells: int = 4, occluder=None, occluder_cutout: bool = False) -> Path:
     """A flat unit plane (cells x cells quads in z = 0, facing +z) with one Lambertian
     texelbake material, a distant light and a camera looking down at it; with occluder =
-    (x0, x1, y0, y1, z) a second mesh, a quad floating above it that casts a shadow."""
+    (x0, x1, y0, y1, z) a second mesh, a quad floating above it that casts a shadow. With
+    `occluder_cutout` the occluder is a UsdPreviewSurface cut-out: opacity from the alpha of
+    an 8 x 8 RGBA PNG beside the layer (`cutout_alpha.png`: 0 on its left half, s < 0.5,
+    1 on its right), opacityThreshold 0.5, so only the quad's half toward +x is there."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -120,6 +123,18 @@ def write_plane_usd(path: Path, rho=RHO, light_dir=(0.3, 0.2, 0.9), intensity=3.
         sh.CreateOutput("surface", Sdf.ValueTypeNames.Token))
     for mesh in meshes:
         UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+    if occluder_cutout:
+        from tests.helpers.usd_stages import preview_material, write_png
+
+        px = np.zeros((8, 8, 4), dtype=np.uint8)
+        px[..., :3] = (np.asarray(rho) * 255).astype(np.uint8)
+        px[:, 4:, 3] = 255
+        write_png(Path(path).parent / "cutout_alpha.png", px)
+        card = preview_material(stage, "/Root/Looks/Card", diffuse=rho,
+                                texture="./cutout_alpha.png", output="a", connect_to="opacity")
+        surface = UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/Card/Surface"))
+        surface.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
+        UsdShade.MaterialBindingAPI.Apply(meshes[1].GetPrim()).Bind(card)
     light = UsdLux.DistantLight.Define(stage, "/Root/Sun")
     d = np.asarray(light_dir, dtype=np.float64)
     d /= np.linalg.norm(d)

@@ -44,6 +44,7 @@ def triangle_mesh(stage: Usd.Stage, path: str, points, indices) -> UsdGeom.Mesh:
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
     mesh.CreateFaceVertexCountsAttr([3] * (len(indices) // 3))
     mesh.CreateFaceVertexIndicesAttr(indices)
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)  # flat (unauthored: catmullClark)
     return mesh
 
 

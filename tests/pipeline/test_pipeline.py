@@ -44,6 +44,7 @@ def write_plane(path: Path, albedo=(0.6, 0.4, 0.2), n=8) -> Path:
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray([4] * len(quads)))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(quads.ravel().astype(np.int32)))
     mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-1, -1, 0), Gf.Vec3f(1, 1, 0)]))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)  # flat (unauthored: catmullClark)
     mat = UsdShade.Material.Define(stage, "/Plane/Looks/Matte")
     # exactly Lambertian: texelbake's own id (UsdPreviewSurface keeps a Fresnel edge even with
     # specularColor 0, so it is not Lambertian at grazing angles)

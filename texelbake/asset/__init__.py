@@ -8,9 +8,10 @@ Public entry points:
   only unselected variants name are left unread (`paths.scan_asset_paths` lists them, and
   missing textures). Also used by the upload service.
 - `load_asset(path, *, time_code=None) -> AssetModel`: flattens transforms, fan-triangulates
-  n-gons, reads normals (authored or computed), UVs, material bindings (GeomSubsets included),
-  UsdPreviewSurface and texelbake shader networks with their textures, UsdLux distant and
-  sphere lights, cameras and time-sampled points.
+  n-gons, refines catmullClark surfaces to their limit surface, reads normals (authored or
+  computed), UVs, material bindings (GeomSubsets included), UsdPreviewSurface and texelbake
+  shader networks with their textures, UsdLux distant and sphere lights, dome lights (as
+  importance-sampled distant lights), cameras and time-sampled points.
 - `describe(asset) -> str`: the report `texelbake inspect FILE` prints.
 
 The AssetModel fields are documented in `texelbake.model`. This module is pure I/O: nothing
@@ -19,7 +20,8 @@ f_r(x, wi, wo) per sample (a material per face, textures per corner UV).
 
 Modules: `paths` (asset-path safety), `compose` (the composed stage, MaterialX documents
 through `mtlx_document`), `load` (load_asset), `meshes`, `materials`, `uvtexture`, `lights`
-(lights and cameras), `files` (textures and MERL tables, .usdz members), `values` (USD value
+(lights and cameras), `dome` (DomeLight), `files` (textures and MERL tables, .usdz members),
+`values` (USD value
 helpers, the sRGB decode), `describe`.
 
 USD conventions used throughout: USD matrices act on *row* vectors (`p_world = p @ M`,

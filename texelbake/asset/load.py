@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from texelbake.asset.compose import read_composed
+from texelbake.asset.dome import read_dome
 from texelbake.asset.instancers import instancer_meshes
 from texelbake.asset.lights import read_camera, read_light
 from texelbake.asset.materials import DEFAULT_MATERIAL, MaterialReader, face_materials
@@ -130,6 +131,9 @@ def _read_stage(stage: Any, source: str, time_code: float | None, warns: list[st
                 warn(warns, f"mesh {prim.GetPath()}: invisible or guide purpose; skipped")
         elif prim.IsA(UsdGeom.Camera):
             cameras.append(read_camera(prim, time, xcache, warns))
+        elif _is_dome(prim):  # environment light: importance-sampled distant lights
+            lights.extend(read_dome(prim, time, xcache, str(UsdGeom.GetStageUpAxis(stage)),
+                                    warns))
         elif _is_light(prim):
             light = read_light(prim, time, xcache, warns)
             if light is not None:
@@ -227,6 +231,12 @@ def _read_stage(stage: Any, source: str, time_code: float | None, warns: list[st
     )
 
 
+def _is_dome(prim: Any) -> bool:
+    from pxr import UsdLux
+
+    return bool(prim.IsA(UsdLux.DomeLight) or prim.IsA(UsdLux.DomeLight_1))
+
+
 def _is_light(prim: Any) -> bool:
     from pxr import UsdLux
 
@@ -284,10 +294,11 @@ def _time_samples(mesh_prims: list[Any | None], meshes: list[MeshData],
                 continue
             raw = UsdGeom.Mesh(prim).GetPointsAttr().Get(tc)
             pts = np.asarray(raw if raw is not None else [], dtype=np.float64).reshape(-1, 3)
-            if pts.shape[0] != m.points.shape[0]:
+            expected = m.points.shape[0] if m.refine is None else m.refine.shape[1]
+            if pts.shape[0] != expected:
                 raise AssetError(
                     f"mesh {m.path}: {pts.shape[0]} points at time {t:g}, expected "
-                    f"{m.points.shape[0]} (changing topology is not supported)",
+                    f"{expected} (changing topology is not supported)",
                     path=source, prim=m.path)
             bad = ~np.isfinite(pts).all(axis=1)
             if bad.any():
@@ -295,6 +306,8 @@ def _time_samples(mesh_prims: list[Any | None], meshes: list[MeshData],
                     f"mesh {m.path} has NaN/Inf points at time {t:g} (first at index "
                     f"{int(np.flatnonzero(bad)[0])})", path=source, prim=m.path)
             world_pts, _ = world_points(prim, pts, tc, xcache, skins.get(m.path), source)
+            if m.refine is not None:  # a subdivision surface: refined as at the rest time
+                world_pts = m.refine @ world_pts
             per_mesh.append(world_pts)
         frames.append(np.concatenate(per_mesh, axis=0))
     return codes, np.stack(frames)

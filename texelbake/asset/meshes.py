@@ -1,5 +1,5 @@
-"""Meshes: points in world space (transforms, UsdSkel skinning), fan triangulation, normals
-(authored or computed), UVs."""
+"""Meshes: points in world space (transforms, UsdSkel skinning), catmullClark surfaces refined
+(`texelbake.geometry.subdivision`), fan triangulation, normals (authored or computed), UVs."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import numpy as np
 
 from texelbake.asset.values import usd_matrix, warn
 from texelbake.errors import AssetError
+from texelbake.geometry.subdivision import Refinement, catmull_clark, refinement_levels
 
 
 @dataclass
@@ -23,6 +24,9 @@ class MeshData:
     has_uvs: bool
     tri_material: np.ndarray  # (t,) int32
     bad_polygons: int  # polygons with < 3 vertices
+    # (n, n_cage) sparse: points = refine @ the cage's world points (a subdivision surface);
+    # None: the points are the prim's own
+    refine: Any = None
 
 
 def _fan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -41,6 +45,13 @@ def _fan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     k = np.arange(tri_face.shape[0], dtype=np.int64) - first_tri[tri_face] + 1  # (T,)
     s = starts[tri_face]
     return np.stack([s, s + k, s + k + 1], axis=1), tri_face
+
+
+def fan_triangles(counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """(T, 3) int64 vertex ids of the fan triangulation of polygons (counts (F,), indices
+    (C,) faceVertexIndices), as `read_mesh` triangulates them."""
+    tri_fv, _ = _fan(np.asarray(counts, dtype=np.int64))
+    return np.asarray(indices, dtype=np.int64)[tri_fv]
 
 
 def _expand(values: np.ndarray, interp: str, tri_fv: np.ndarray, tri_vid: np.ndarray,
@@ -209,19 +220,21 @@ def read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | No
     bad_polygons = int((counts < 3).sum())
     if bad_polygons:
         warn(warns, f"mesh {path}: dropped {bad_polygons} polygon(s) with fewer than 3 vertices")
-    scheme = str(mesh.GetSubdivisionSchemeAttr().Get(time) or "none")
-    if scheme != "none":
-        # no well-kept Python library refines USD's subdivision schemes (OpenSubdiv has no
-        # wheel on PyPI); the cage is what texelbake bakes, and the report says so
-        warn(warns, f"mesh {path}: subdivisionScheme is {scheme!r} (UsdGeom's fallback when "
-                    "unauthored); baked as its control cage, not refined")
+    refinement = _refinement(mesh, path, counts, fvi, n_points, time, skin, warns)
+    if refinement is not None:
+        counts, fvi = refinement.counts, refinement.indices
+        n_points = refinement.num_points  # n_faces stays the cage's: tri_face is its polygons
     tri_fv, tri_face = _fan(counts)  # (T, 3), (T,)
+    if refinement is not None:  # the cage's polygon each refined face lies in
+        tri_face = refinement.face_parent[tri_face]
     holes = np.asarray(mesh.GetHoleIndicesAttr().Get(time) or [], dtype=np.int64)
     if holes.size:
         keep = ~np.isin(tri_face, holes)
         tri_fv, tri_face = tri_fv[keep], tri_face[keep]
 
     points_w, lin = world_points(prim, points, time, xcache, skin, source)  # (n, 3), (3, 3)
+    if refinement is not None:
+        points_w = refinement.vertex_matrix @ points_w  # (n', 3) on the limit surface
     det = float(np.linalg.det(lin))
     left = mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded
     if left != (det < 0):  # either flips the winding; both cancel
@@ -232,7 +245,14 @@ def read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | No
     corner_normals = None
     pv_api = UsdGeom.PrimvarsAPI(prim)
     nrm_pv = pv_api.GetPrimvar("normals")
-    if skin is not None:
+    if refinement is not None:
+        # UsdGeomMesh: normals are not authored on subdivision surfaces, a renderer computes
+        # them from the limit surface; the refined mesh's area-weighted normals are that
+        if (nrm_pv and nrm_pv.HasAuthoredValue()) or mesh.GetNormalsAttr().HasAuthoredValue():
+            warn(warns, f"mesh {path}: authored normals ignored on a subdivision surface; "
+                         "computed from its limit surface")
+        values, interp, label = None, "", ""
+    elif skin is not None:
         # UsdSkel in Python skins points only: normals are computed from the skinned surface
         if (nrm_pv and nrm_pv.HasAuthoredValue()) or mesh.GetNormalsAttr().HasAuthoredValue():
             warn(warns, f"mesh {path}: skinned by UsdSkel; its authored (rest-pose) normals are "
@@ -287,6 +307,8 @@ def read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | No
     if chosen is not None:
         values = _primvar_values(chosen, time, 2)
         interp = chosen.GetInterpolation()
+        if refinement is not None and values is not None:
+            values = refine_primvar(refinement, values, interp)
         expanded = None if values is None else _expand(
             values, interp, tri_fv, tri_vid, tri_face, n_points, n_faces, fvi.shape[0])
         if expanded is None:
@@ -302,7 +324,56 @@ def read_mesh(prim: Any, time: Any, xcache: Any, face_materials: np.ndarray | No
     tri_material = (np.zeros(tri_face.shape[0], np.int32) if face_materials is None
                     else face_materials[tri_face].astype(np.int32))
     return MeshData(path, points_w, tri_vid, tri_face, corner_normals, corner_uvs, has_uvs,
-                     tri_material, bad_polygons)
+                     tri_material, bad_polygons,
+                     None if refinement is None else refinement.vertex_matrix)
+
+
+def _refinement(mesh: Any, path: str, counts: np.ndarray, fvi: np.ndarray, n_points: int,
+                time: Any, skin: tuple[Any, Any] | None, warns: list[str]
+                ) -> Refinement | None:
+    """The Catmull–Clark refinement a subdivision mesh is baked from, or None (the points as
+    authored): `subdivisionScheme` none or bilinear (flat polygons, fan-triangulated), loop
+    (not refined: warned), a skinned mesh (its joint influences belong to the cage's points:
+    warned) or a cage with a polygon of fewer than 3 vertices (warned with it)."""
+    scheme = str(mesh.GetSubdivisionSchemeAttr().Get(time) or "none")
+    if scheme in ("none", "bilinear") or counts.shape[0] == 0:
+        return None
+    if scheme != "catmullClark":
+        warn(warns, f"mesh {path}: subdivisionScheme is {scheme!r}; baked as its control "
+                    "cage, not refined (texelbake refines catmullClark)")
+        return None
+    if skin is not None:
+        warn(warns, f"mesh {path}: a skinned catmullClark surface; baked as its control "
+                    "cage, which its joint influences are authored on")
+        return None
+    if (counts < 3).any():
+        warn(warns, f"mesh {path}: a catmullClark cage with polygons of fewer than 3 "
+                    "vertices; baked as its control cage")
+        return None
+    for attr, what in ((mesh.GetCreaseIndicesAttr(), "creases"),
+                       (mesh.GetCornerIndicesAttr(), "corners")):
+        if len(attr.Get(time) or []):
+            warn(warns, f"mesh {path}: its authored {what} are not applied (refined smooth)")
+    boundary = str(mesh.GetInterpolateBoundaryAttr().Get(time) or "edgeAndCorner")
+    if boundary not in ("edgeAndCorner", "edgeOnly"):
+        warn(warns, f"mesh {path}: interpolateBoundary {boundary!r} refined as 'edgeOnly' "
+                    "(its boundary faces are kept)")
+        boundary = "edgeOnly"
+    # face-varying values (UVs) are refined bilinearly whatever faceVaryingLinearInterpolation
+    # says (texelbake.geometry.subdivision: why)
+    return catmull_clark(counts, fvi, n_points, refinement_levels(counts), boundary=boundary)
+
+
+def refine_primvar(refinement: Refinement, values: np.ndarray, interp: str) -> np.ndarray:
+    """Cage primvar values (k, w) of `interp` -> the refined mesh's values of the same
+    interpolation: vertex/varying smooth (the points' matrix), faceVarying bilinear; uniform
+    and constant as they are (the refined triangles keep their cage polygon). Values whose count does not match the cage are
+    returned unchanged (the caller's topology check then rejects them)."""
+    mats = {"vertex": refinement.vertex_matrix, "varying": refinement.vertex_matrix,
+            "faceVarying": refinement.fv_matrix}
+    if interp in mats and values.shape[0] == mats[interp].shape[1]:
+        return np.asarray(mats[interp] @ values)
+    return values
 
 
 def is_rendered(prim: Any, time: Any) -> bool:

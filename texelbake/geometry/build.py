@@ -16,7 +16,7 @@ from texelbake.geometry.atlas import build_atlas, map_into_atlas
 from texelbake.geometry.hierarchy import enclose, n_parts, needs_wrap, simplify_hierarchy
 from texelbake.geometry.lodchain import build_lod_chain, hausdorff
 from texelbake.geometry.mesh import Mesh, bbox_diagonal, compact, face_normals, weld
-from texelbake.geometry.raycast import RayCaster
+from texelbake.geometry.raycast import CutoutTest, RayCaster
 from texelbake.geometry.sampling import SurfaceSampler, surface_sampler
 from texelbake.geometry.texel_frames import FrameSums
 from texelbake.geometry.texels import assign_rows, morton, uv_to_texel
@@ -55,7 +55,7 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
         face_material=asset.face_material,
     )
     chunk = geometry_chunk(s)
-    probes = _spool_samples(sampler, asset, spool, chunk, (200_000, 20_000))
+    probes = _spool_samples(sampler, asset, spool, chunk, (200_000, 20_000), caster.cutout)
     probe = probes[200_000]
     atlas = None
     wrap_offset = None
@@ -150,9 +150,12 @@ _ASSIGN_ARRAYS = {
 
 
 def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int,
-                   probe_sizes: tuple[int, ...]) -> dict[int, np.ndarray]:
+                   probe_sizes: tuple[int, ...], cutout: CutoutTest | None = None
+                   ) -> dict[int, np.ndarray]:
     """First pass: the samples into the spool, a chunk at a time; returns, per size p, every
-    (m // p)-th sample position (the probes the LOD chain and the atlas search measure on)."""
+    (m // p)-th sample position (the probes the LOD chain and the atlas search measure on).
+    A sample on a cut-out (`cutout`) holds no surface: its area is 0, so it weighs nothing in
+    the maps (R, a_vis, the baselines' sums)."""
     m = sampler.m
     for name, (dt, tail) in _SAMPLE_ARRAYS.items():
         spool.allocate(name, dt, (m, *tail))
@@ -160,10 +163,13 @@ def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int
     strides = {p: max(1, m // p) for p in probe_sizes}
     probes: dict[int, list[np.ndarray]] = {p: [] for p in probe_sizes}
     for a, smp in sampler.chunks(chunk):  # loop over chunks (memory bound)
+        area = smp.area
+        if cutout is not None:
+            area = np.where(cutout.cut_uv(smp.face, smp.uv), 0.0, area)
         for name, arr in (("sample_pos", smp.positions), ("sample_nrm", smp.normals),
                           ("sample_gnrm", face_n[smp.face]), ("sample_face", smp.face),
                           ("sample_uv", smp.uv), ("sample_mat", smp.material),
-                          ("sample_area", smp.area)):
+                          ("sample_area", area)):
             spool.write(name, a, arr)
         for p, st in strides.items():  # global ids 0, st, 2 st, ... that fall in the chunk
             probes[p].append(smp.positions[(-a) % st::st].copy())  # not a view of the chunk

@@ -8,6 +8,7 @@ every distance is in scene units along a unit direction.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import open3d as o3d
@@ -18,6 +19,25 @@ from texelbake.geometry.mesh import bbox_diagonal, check_faces, check_points
 from texelbake.tol import TOL
 
 DEFAULT_BATCH = 2**20
+#: rounds of re-casting past cut-out hits: a ray still on a cut surface after this many
+#: layers is taken to pass them all (stacked foliage cards are a few layers deep)
+MAX_CUTOUT_ROUNDS = 16
+
+
+class CutoutTest(Protocol):
+    """What a caster asks of cut-out surfaces (`texelbake.brdf.opacity.Cutout`).
+
+    faces : (f,) bool, the faces that can be cut
+    cut(prim (k,) int64, bary (k, 2) float64) -> (k,) bool: the hit is on a cut point
+    cut_uv(prim (k,) int64, uv (k, 2) float64) -> (k,) bool: the point at the mesh's uv is cut
+    """
+
+    @property
+    def faces(self) -> np.ndarray: ...
+
+    def cut(self, prim: np.ndarray, bary: np.ndarray) -> np.ndarray: ...
+
+    def cut_uv(self, prim: np.ndarray, uv: np.ndarray) -> np.ndarray: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,12 +162,22 @@ class RayCaster:
 
     points : (n, 3) float64, faces : (f, 3) int64. Stored in Embree as float32.
     nthreads : 0 = open3d's default (all cores).
+    cutout : a `CutoutTest` (None: every face is opaque). With one, `cast` and `occluded` pass
+        through cut points: open3d's Embree scene takes no any-hit filter, so a ray whose
+        hit is cut is cast again from just past it, the rays of a batch together, for at most
+        `MAX_CUTOUT_ROUNDS` rounds; an occlusion test's occluded rays are cast to find their
+        first uncut hit. Without one every query is the plain Embree call.
     Attributes `rays_cast` and `points_queried` count the work done, for rays/s figures.
     """
 
-    def __init__(self, points: object, faces: object, *, nthreads: int = 0) -> None:
+    def __init__(self, points: object, faces: object, *, nthreads: int = 0,
+                 cutout: CutoutTest | None = None) -> None:
         pts = check_points(points)
         fcs = check_faces(faces, pts.shape[0])
+        if cutout is not None and np.asarray(cutout.faces).shape != (fcs.shape[0],):
+            raise ShapeError(f"cutout.faces must be ({fcs.shape[0]},), got "
+                             f"{np.asarray(cutout.faces).shape}")
+        self.cutout = cutout
         self.points = pts
         self.faces = fcs
         self.nthreads = int(nthreads)
@@ -184,6 +214,16 @@ class RayCaster:
             NaN or <= 0 means not occluded)
         returns : (n,) bool
         """
+        out = self._occluded_opaque(origins, dirs, tmax, batch)
+        if self.cutout is not None and out.any():
+            o, d = _coerce_rays(origins, dirs)
+            idx = np.flatnonzero(out)
+            tm = np.broadcast_to(np.asarray(tmax, dtype=np.float64), (o.shape[0],))
+            out[idx] = self._cast_through(o[idx], d[idx], batch).t < tm[idx]
+        return out
+
+    def _occluded_opaque(self, origins: object, dirs: object, tmax: float | np.ndarray,
+                         batch: int) -> np.ndarray:
         o, d = _coerce_rays(origins, dirs)
         n = o.shape[0]
         tm = np.asarray(tmax, dtype=np.float64)
@@ -257,6 +297,9 @@ class RayCaster:
             np.take(d_item, dd[sl], out=items[:, 1], mode="clip")
             rays = items.view(np.float32).reshape(-1, 6)
             out[sl] = self._test(rays, np.inf) & live_o[jj[sl]] & live_d[dd[sl]]
+        if self.cutout is not None and out.any():
+            idx = np.flatnonzero(out)
+            out[idx] = self._cast_through(o[jj[idx]], d[dd[idx]], batch).hit
         return out
 
     def _test(self, rays: np.ndarray, tfar: float) -> np.ndarray:
@@ -270,6 +313,41 @@ class RayCaster:
 
         origins, dirs : (n, 3) float64 (dirs need not be unit; zero / non-finite rays miss)
         """
+        if self.cutout is None:
+            return self._cast_opaque(origins, dirs, batch)
+        o, d = _coerce_rays(origins, dirs)
+        return self._cast_through(o, d, batch)
+
+    def _cast_through(self, o: np.ndarray, d: np.ndarray, batch: int) -> RayHits:
+        """First uncut hits: the rays whose hit is cut are cast again from past it (t is
+        still measured from the original origin); after MAX_CUTOUT_ROUNDS they miss."""
+        cutout = self.cutout
+        assert cutout is not None  # only called with one
+        hits = self._cast_opaque(o, d, batch)
+        t, prim, bary, normal = hits.t.copy(), hits.prim.copy(), hits.bary.copy(), \
+            hits.normal.copy()
+        length = _ray_lengths(o, d)
+        unit = d / np.where(length > 0, length, 1.0)[:, None]
+        step = TOL.ray_offset * self.bbox_diag
+        todo = np.flatnonzero(prim >= 0)
+        for _ in range(MAX_CUTOUT_ROUNDS):  # a few rounds, each one batch of every ray left
+            todo = todo[cutout.faces[prim[todo]]]
+            todo = todo[cutout.cut(prim[todo], bary[todo])]
+            if todo.size == 0:
+                break
+            start = t[todo] + step
+            again = self._cast_opaque(o[todo] + start[:, None] * unit[todo], unit[todo], batch)
+            t[todo] = start + again.t
+            prim[todo], bary[todo], normal[todo] = again.prim, again.bary, again.normal
+            todo = todo[again.prim >= 0]
+        else:
+            todo = todo[cutout.faces[prim[todo]]]
+            todo = todo[cutout.cut(prim[todo], bary[todo])]
+        if todo.size:  # still on a cut surface: passes them all
+            t[todo], prim[todo], bary[todo], normal[todo] = np.inf, -1, 0.0, 0.0
+        return RayHits(t, prim, bary, normal)
+
+    def _cast_opaque(self, origins: object, dirs: object, batch: int) -> RayHits:
         o, d, length = _check_rays(origins, dirs)
         n = o.shape[0]
         t = np.full(n, np.inf)

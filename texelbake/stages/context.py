@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from schemas.settings import BakeSettings
+from texelbake.brdf.opacity import asset_cutout
 from texelbake.cpm.level import FitInputs
 from texelbake.errors import StageError
 from texelbake.geometry.raycast import RayCaster
@@ -75,7 +76,7 @@ class StageContext:
 
     def caster(self) -> RayCaster:
         a = self.asset()
-        return _caster_cached(self.asset_hash, a.points, a.faces)
+        return _caster_cached(self.asset_hash, a)
 
     def fit_inputs(self) -> FitInputs:
         """What `texelbake.cpm.level` reads to fit a level."""
@@ -117,8 +118,9 @@ def _read_cached(root: str, key: str) -> dict[str, np.ndarray]:
 _CASTERS: dict[str, RayCaster] = {}
 
 
-def _caster_cached(digest: str, points: np.ndarray, faces: np.ndarray) -> RayCaster:
+def _caster_cached(digest: str, asset: AssetModel) -> RayCaster:
     if digest not in _CASTERS:
         _CASTERS.clear()
-        _CASTERS[digest] = RayCaster(points, faces)
+        # M_org's visibility rays (a_vis, the fit's R) pass through cut-outs
+        _CASTERS[digest] = RayCaster(asset.points, asset.faces, cutout=asset_cutout(asset))
     return _CASTERS[digest]

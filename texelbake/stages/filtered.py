@@ -138,6 +138,48 @@ def _nearest_fill(img: np.ndarray, filled: np.ndarray) -> np.ndarray:
     return img[idx[0], idx[1]]
 
 
+def _fallback_samples(ctx: StageContext, res: int):
+    """The fallback page's dense samples on M_org (FALLBACK_SAMPLES_PER_TEXEL per texel of a
+    res x res page), their geometric normals (m, 3) and their texels on M_T's layout (the
+    geometry stage's rule, the bent-normal rule on wraps)."""
+    from texelbake.geometry.atlas import Atlas
+    from texelbake.geometry.mesh import Mesh, face_normals
+    from texelbake.geometry.sampling import sample_surface
+    from texelbake.geometry.texels import assign_texels
+
+    geo = ctx.geometry()
+    asset = ctx.asset()
+    smp = sample_surface(asset.points, asset.faces, res * res * FALLBACK_SAMPLES_PER_TEXEL,
+                         ctx.settings.seed * 1000 + _TAG_FALLBACK,
+                         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
+                         face_material=asset.face_material)
+    gnrm = face_normals(asset.points, asset.faces)[smp.face]
+    m_t = Mesh(geo["m1_vertices"], geo["m1_faces"])
+    atlas = Atlas(m_t, geo["m1_corner_uvs"], res, np.arange(m_t.num_vertices),
+                  np.zeros(m_t.num_faces, np.int64), 1)
+    wrapped = float(geo["m1_wrap_offset"]) > 0.0
+    asg = assign_texels(smp.positions, m_t, atlas, 1, normals=gnrm,
+                        occluder=ctx.caster() if wrapped else None)
+    return smp, gnrm, asg
+
+
+def fallback_opacity(ctx: StageContext, res: int) -> np.ndarray | None:
+    """(res, res) float32 the fraction of each fallback texel's area that is not cut out
+    (M_org's cut-outs, `brdf.opacity`), or None when nothing can be cut. The fallback cuts
+    where it is below one half (its opacityThreshold), as a viewer's alpha test would. Texels
+    no sample reaches are 1."""
+    cutout = ctx.caster().cutout
+    if cutout is None:
+        return None
+    smp, _, asg = _fallback_samples(ctx, res)
+    kept = ~cutout.cut_uv(smp.face, smp.uv)
+    t0 = asg.row * res + asg.col
+    area = np.bincount(t0, weights=smp.area, minlength=res * res)
+    solid = np.bincount(t0, weights=smp.area * kept, minlength=res * res)
+    out = np.divide(solid, area, out=np.ones(res * res), where=area > 0)
+    return out.reshape(res, res).astype(np.float32)
+
+
 def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray], np.ndarray]:
     """The filtered maps (CHANNELS) of every level of a res x res page on the atlas layout,
     from FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on M_org placed on M_T like the
@@ -145,11 +187,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
     artifact store."""
     from texelbake.baselines.filtered_maps import CHANNELS, FIELDS
-    from texelbake.geometry.atlas import Atlas
-    from texelbake.geometry.mesh import Mesh, face_normals
     from texelbake.geometry.raycast import RayCaster
-    from texelbake.geometry.sampling import sample_surface
-    from texelbake.geometry.texels import assign_texels
 
     n_levels = int(np.log2(res)) + 1
     key = ctx.key("filtered", f"fallback-v3-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
@@ -161,16 +199,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     geo = ctx.geometry()
     asset = ctx.asset()
     caster = ctx.caster()
-    smp = sample_surface(asset.points, asset.faces, res * res * FALLBACK_SAMPLES_PER_TEXEL,
-                         s.seed * 1000 + _TAG_FALLBACK, corner_normals=asset.corner_normals,
-                         corner_uvs=asset.corner_uvs, face_material=asset.face_material)
-    gnrm = face_normals(asset.points, asset.faces)[smp.face]
-    m_t = Mesh(geo["m1_vertices"], geo["m1_faces"])
-    atlas = Atlas(m_t, geo["m1_corner_uvs"], res, np.arange(m_t.num_vertices),
-                  np.zeros(m_t.num_faces, np.int64), 1)
-    wrapped = float(geo["m1_wrap_offset"]) > 0.0
-    asg = assign_texels(smp.positions, m_t, atlas, 1, normals=gnrm,
-                        occluder=caster if wrapped else None)
+    smp, gnrm, asg = _fallback_samples(ctx, res)
     from texelbake.baselines.normal_maps import face_tangent_space
     from texelbake.geometry.build import lod_meshes
 
@@ -268,4 +297,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
            "resolution": int(res)}
     if normal is not None:
         out["normal"] = normal
+    opacity = fallback_opacity(ctx, res)
+    if opacity is not None:
+        out["opacity"] = opacity
     return out

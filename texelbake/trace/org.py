@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from texelbake import brdf as brdf_mod
+from texelbake.brdf.opacity import asset_cutout
 from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.raycast import RayCaster
 from texelbake.model import AssetModel
@@ -35,7 +36,9 @@ class OrgScene:
             centre = np.asarray(asset.bounds, dtype=np.float64).mean(axis=0)
             view = self.default_camera(64, 64).position - centre
             self.lights = default_light_rig(view, asset.up_axis)
-        self.org = RayCaster(asset.points, asset.faces)
+        # cut-outs (opacity below opacityThreshold) are passed through by every ray: eye,
+        # shadow and coverage
+        self.org = RayCaster(asset.points, asset.faces, cutout=asset_cutout(asset))
         self.org_face_normals = face_normals(asset.points, asset.faces)
         self.diag = self.org.bbox_diag
         self.ray_eps = TOL.ray_offset * self.diag

@@ -76,7 +76,8 @@ class BakedAsset:
     fallback : the UsdPreviewSurface fallback: "base" (R, R, 3) diffuseColor, "occlusion"
         (R, R), "roughness" a list of (n_i, n_i) maps, one per LOD, "constants" (inputs
         carried from the source material) and, when R > N, "normal" (R, R, 3) its own normal
-        map (else it shares `normal`); R = `stages.filtered.fallback_resolution`; empty: the albedo/normal material of old bakes.
+        map (else it shares `normal`), and for cut-outs "opacity" (R, R) the uncut fraction
+        of each texel; R = `stages.filtered.fallback_resolution`; empty: the albedo/normal material of old bakes.
         `read_baked` returns each LOD's material as authored, under "materials".
     """
 

@@ -74,6 +74,10 @@ def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
             files["fallback_normal"] = f"{name}_fallback_normal.png"
             _write_png(out_dir / files["fallback_normal"], 0.5 * (np.asarray(fb["normal"]) + 1.0),
                        srgb=False)
+        if fb.get("opacity") is not None:  # cut-outs: what is left of each texel
+            files["opacity"] = f"{name}_opacity.png"
+            _write_png(out_dir / files["opacity"], np.asarray(fb["opacity"])[..., None],
+                       srgb=False)
         for i, r in enumerate(fb["roughness"], start=1):
             files["roughness"].append(f"{name}_roughness_lod{i}.png")
             _write_png(out_dir / files["roughness"][-1], np.asarray(r)[..., None], srgb=False)
@@ -152,7 +156,8 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
                 pstage, fallback_material_path(i), f"./{files['base']}",
                 f"./{files['fallback_normal']}",
                 "/Baked/CPM", f"./{files['roughness'][i - 1]}", f"./{files['occlusion']}",
-                baked.fallback.get("constants"))
+                baked.fallback.get("constants"),
+                opacity_file=f"./{files['opacity']}" if "opacity" in files else None)
         elif i == 1:
             mat = author_preview_material(
                 pstage, fallback_material_path(1), f"./{files['albedo']}",
