@@ -121,11 +121,11 @@ def test_many_distinct_values_are_bounded(tmp_path):
 
 
 def test_subdivision_mesh_is_baked_from_its_limit_surface(tmp_path):
-    # a flat 4 x 2 grid, scheme unauthored (UsdGeom's fallback is catmullClark), UVs = xy
-    # face-varying, two materials by GeomSubset; and the same grid as a loop surface
+    # a flat 4 x 2 grid, catmullClark, UVs = xy face-varying, two materials by GeomSubset;
+    # the same grid as a loop surface, and one with its scheme unauthored
     stage = new_stage(tmp_path / "a.usda")
     m = grid_mesh(stage, "/Root/A", 4, 2)
-    m.GetSubdivisionSchemeAttr().Clear()
+    m.GetSubdivisionSchemeAttr().Set(UsdGeom.Tokens.catmullClark)
     pts = np.asarray(m.GetPointsAttr().Get(), dtype=np.float64)
     idx = np.asarray(m.GetFaceVertexIndicesAttr().Get())
     st = UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
@@ -139,14 +139,17 @@ def test_subdivision_mesh_is_baked_from_its_limit_surface(tmp_path):
         bind(subset, mat)
     loop = grid_mesh(stage, "/Root/L", 1, 1, z=5.0)
     loop.GetSubdivisionSchemeAttr().Set(UsdGeom.Tokens.loop)
+    plain = grid_mesh(stage, "/Root/P", 1, 1, z=9.0)
+    plain.GetSubdivisionSchemeAttr().Clear()  # UsdGeom's fallback: catmullClark
     stage.Save()
     with pytest.warns(UserWarning, match="'loop'.*control cage"):
         asset = load_asset(tmp_path / "a.usda")
+    assert any("/Root/P: subdivisionScheme not authored" in w for w in asset.warnings)
     on_a = asset.face_mesh == 0
     # 8 quads refined until 4096 quads (refinement_levels: 32 corners, five levels); the
-    # loop cage as authored (2 triangles)
+    # loop cage and the unauthored one as authored (2 triangles each)
     assert on_a.sum() == 2 * 32 * 4 ** (refinement_levels(np.full(8, 4)) - 1) == 16384
-    assert (~on_a).sum() == 2
+    assert (asset.face_mesh == 1).sum() == (asset.face_mesh == 2).sum() == 2
     tri = asset.points[asset.faces[on_a]]  # (t, 3, 3)
     # a flat cage stays flat, and its outline: the limit of a planar grid is the grid's
     # rectangle (boundary curves of collinear points, corners kept)

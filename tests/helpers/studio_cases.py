@@ -94,12 +94,12 @@ def write_dome_lit(folder: Path) -> Path:
 
 
 def write_subdivision_cube(folder: Path) -> Path:
-    """A 6-quad cube cage (edge 0.8) with subdivisionScheme unauthored (catmullClark): its
-    limit surface is a rounded blob."""
+    """A 6-quad catmullClark cube cage (edge 0.8): its limit surface is a rounded blob."""
     stage = _stage(folder / "subdiv.usda")
     c = np.array([[x, y, z] for x in (-0.4, 0.4) for y in (0.0, 0.8) for z in (-0.4, 0.4)])
     quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
-    blob = _mesh(stage, "/Root/Blob", c, [4] * 6, np.asarray(quads).ravel(), scheme=None)
+    blob = _mesh(stage, "/Root/Blob", c, [4] * 6, np.asarray(quads).ravel(),
+                 scheme="catmullClark")
     _bind(blob, preview_material(stage, "/Root/Looks/Blob", diffuse=(0.3, 0.45, 0.7)))
     stage.GetRootLayer().Save()
     return folder / "subdiv.usda"

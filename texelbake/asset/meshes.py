@@ -332,11 +332,21 @@ def _refinement(mesh: Any, path: str, counts: np.ndarray, fvi: np.ndarray, n_poi
                 time: Any, skin: tuple[Any, Any] | None, warns: list[str]
                 ) -> Refinement | None:
     """The Catmull–Clark refinement a subdivision mesh is baked from, or None (the points as
-    authored): `subdivisionScheme` none or bilinear (flat polygons, fan-triangulated), loop
+    authored): `subdivisionScheme` none, bilinear or not authored (flat polygons,
+    fan-triangulated), loop
     (not refined: warned), a skinned mesh (its joint influences belong to the cage's points:
     warned) or a cage with a polygon of fewer than 3 vertices (warned with it)."""
-    scheme = str(mesh.GetSubdivisionSchemeAttr().Get(time) or "none")
+    attr = mesh.GetSubdivisionSchemeAttr()
+    scheme = str(attr.Get(time) or "none")
     if scheme in ("none", "bilinear") or counts.shape[0] == 0:
+        return None
+    if not attr.HasAuthoredValue():
+        # UsdGeom's fallback is catmullClark, but meshes converted from polygon formats
+        # (glTF, OBJ) leave it unauthored and mean their polygons, which is what Blender's
+        # importer and usdview show at their defaults: only an authored scheme is refined
+        warn(warns, f"mesh {path}: subdivisionScheme not authored (UsdGeom's fallback is "
+                    "catmullClark); baked as its polygons, as Blender and usdview show it by "
+                    "default; author catmullClark to bake its limit surface")
         return None
     if scheme != "catmullClark":
         warn(warns, f"mesh {path}: subdivisionScheme is {scheme!r}; baked as its control "
