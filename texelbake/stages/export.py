@@ -118,6 +118,8 @@ def export_to(ctx: StageContext, out_dir: Path, *, stage_seconds: dict | None = 
         "stage_seconds": dict(stage_seconds or {}),
         "fallback_levels": fallback["levels"],
         "fallback_resolution": fallback["resolution"],
+        "fallback": {"mode": s.fallback, **({"fit": fallback["fit"]} if "fit" in fallback
+                                            else {})},
         "warnings": [f"asset: {w}" for w in dict.fromkeys(asset.warnings)] + [
             f"level {r['level']}: {r['avis']['texels_above_tolerance']} of "
             f"{r['avis']['ray_texels']} ray-traced texels have a compressed a_vis table more "

@@ -138,25 +138,20 @@ def _nearest_fill(img: np.ndarray, filled: np.ndarray) -> np.ndarray:
     return img[idx[0], idx[1]]
 
 
-def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """The filtered maps (CHANNELS) of every level of a res x res page on the atlas layout,
-    from FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on M_org placed on M_T like the
-    geometry stage's (`assign_texels`, the bent-normal rule on wraps), and the level-0 tangent-
-    space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
-    artifact store."""
-    from texelbake.baselines.filtered_maps import CHANNELS, FIELDS
+def fallback_samples(ctx: StageContext, res: int) -> dict:
+    """The fallback page's dense samples: FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on
+    M_org (seeded), placed on M_T like the geometry stage's (`assign_texels`, the bent-normal
+    rule on wraps): {"smp" (geometry.sampling samples), "gnrm" (m, 3) their triangles'
+    normals, "row", "col" (m,) their texel on the res² page, "prim" (m,) the LOD1 face they
+    show on, "frames" (f, 3, 3) LOD1's tangent frames, "lod1_vertices", "lod1_faces"}."""
+    from texelbake.baselines.normal_maps import face_tangent_space
     from texelbake.geometry.atlas import Atlas
+    from texelbake.geometry.build import lod_meshes
     from texelbake.geometry.mesh import Mesh, face_normals
     from texelbake.geometry.raycast import RayCaster
     from texelbake.geometry.sampling import sample_surface
     from texelbake.geometry.texels import assign_texels
 
-    n_levels = int(np.log2(res)) + 1
-    key = ctx.key("filtered", f"fallback-v3-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
-                  f"-ao{FALLBACK_AO_RAYS}.npz", GEOMETRY_FIELDS)
-    if ctx.store.exists(key):
-        data = ctx.store.read_arrays(key)
-        return [data[f"L{lvl:02d}"] for lvl in range(n_levels)], data["normal"]
     s = ctx.settings
     geo = ctx.geometry()
     asset = ctx.asset()
@@ -171,18 +166,39 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     wrapped = float(geo["m1_wrap_offset"]) > 0.0
     asg = assign_texels(smp.positions, m_t, atlas, 1, normals=gnrm,
                         occluder=caster if wrapped else None)
-    from texelbake.baselines.normal_maps import face_tangent_space
-    from texelbake.geometry.build import lod_meshes
-
     v, f, uv = lod_meshes(geo)[0]
-    frames = face_tangent_space(v, f, uv)
     prim = asg.prim if bool(geo["lod_exact"]) else RayCaster(v, f).closest_points(
         smp.positions)[1]
-    local = np.einsum("mij,mj->mi", frames[prim], smp.normals)
+    return {"smp": smp, "gnrm": gnrm, "row": asg.row, "col": asg.col, "prim": prim,
+            "frames": face_tangent_space(v, f, uv), "lod1_vertices": v, "lod1_faces": f}
+
+
+def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """The filtered maps (CHANNELS) of every level of a res x res page on the atlas layout,
+    from FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on M_org placed on M_T like the
+    geometry stage's (`assign_texels`, the bent-normal rule on wraps), and the level-0 tangent-
+    space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
+    artifact store."""
+    from texelbake.baselines.filtered_maps import CHANNELS, FIELDS
+
+    n_levels = int(np.log2(res)) + 1
+    key = ctx.key("filtered", f"fallback-v3-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
+                  f"-ao{FALLBACK_AO_RAYS}.npz", GEOMETRY_FIELDS)
+    if ctx.store.exists(key):
+        data = ctx.store.read_arrays(key)
+        return [data[f"L{lvl:02d}"] for lvl in range(n_levels)], data["normal"]
+    s = ctx.settings
+    asset = ctx.asset()
+    caster = ctx.caster()
+    fs = fallback_samples(ctx, res)
+    smp, gnrm, prim = fs["smp"], fs["gnrm"], fs["prim"]
+    v, f = fs["lod1_vertices"], fs["lod1_faces"]
+    asg_row, asg_col = fs["row"], fs["col"]
+    local = np.einsum("mij,mj->mi", fs["frames"][prim], smp.normals)
     ao = ambient_occlusion(smp.positions, gnrm, caster.occluded, n_rays=FALLBACK_AO_RAYS,
                            seed=s.seed, ray_eps=TOL.ray_offset * caster.bbox_diag)
     albedo, base, alpha2 = material_base(asset.materials, smp.material.astype(np.int32), smp.uv)
-    texels = [(asg.row >> lvl) * (res >> lvl) + (asg.col >> lvl) for lvl in range(n_levels)]
+    texels = [(asg_row >> lvl) * (res >> lvl) + (asg_col >> lvl) for lvl in range(n_levels)]
     # bake_filtered_levels fills empty texels by repeated 4-neighbour passes (fine at 16²);
     # here one nearest-texel fill per level, so the filled flags are recomputed
     maps = []
@@ -268,4 +284,21 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
            "resolution": int(res)}
     if normal is not None:
         out["normal"] = normal
+    if ctx.settings.fallback == "fitted":
+        out.update(_fitted(ctx, res, len(errors), out["constants"]))
     return out
+
+
+def _fitted(ctx: StageContext, res: int, n_lods: int, constants: dict) -> dict:
+    """The fitted inputs (`stages.fallback.fitted_fallback`) replacing the averaged ones: per
+    LOD diffuse, specular and roughness maps at its level, the fit's own normal map, the
+    specular workflow, and the residual statistics for the report."""
+    from texelbake.stages.fallback import fitted_fallback
+
+    fit = fitted_fallback(ctx, res, n_lods)
+    keep = {k: v for k, v in constants.items() if k in ("opacity", "emissiveColor")}
+    return {"diffuse": fit["diffuse"], "specular": fit["specular"],
+            "roughness": fit["roughness"], "normal": fit["normal"],
+            "constants": {**keep, "useSpecularWorkflow": 1},
+            "levels": fit["levels"], "mode": "fitted",
+            "fit": {"residual": fit["stats"], "seconds": fit["seconds"]}}

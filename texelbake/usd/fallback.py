@@ -18,12 +18,12 @@ from texelbake.usd.shaderdefs import author_shader
 def author_preview_material(
     stage: Usd.Stage, path: str, albedo_file: str, normal_file: str, cpm_scope: str,
     roughness_file: str | None = None, occlusion_file: str | None = None,
-    constants: dict[str, Any] | None = None,
+    constants: dict[str, Any] | None = None, specular_file: str | None = None,
 ) -> UsdShade.Material:
     """UsdPreviewSurface with the baked maps (what any viewer shows): diffuseColor and normal,
     and when given roughness and occlusion (single-channel) textures and constant inputs
-    carried from the source material; texelbake's CPM shader on the `texelbake` render
-    context."""
+    carried from the source material, and a specularColor texture (sRGB, for the specular
+    workflow) when given; texelbake's CPM shader on the `texelbake` render context."""
     mat = UsdShade.Material.Define(stage, path)
     reader = UsdShade.Shader.Define(stage, f"{path}/stReader")
     reader.CreateIdAttr("UsdPrimvarReader_float2")
@@ -46,6 +46,9 @@ def author_preview_material(
         ("normal", normal_file, "raw", "rgb", Sdf.ValueTypeNames.Float3,
          Sdf.ValueTypeNames.Normal3f, (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0)),
     ]
+    if specular_file is not None:
+        textures.append(("specularColor", specular_file, "sRGB", "rgb", Sdf.ValueTypeNames.Float3,
+                         Sdf.ValueTypeNames.Color3f, None, None))
     for name, file in (("roughness", roughness_file), ("occlusion", occlusion_file)):
         if file is not None:
             textures.append((name, file, "raw", "r", Sdf.ValueTypeNames.Float,
