@@ -18,14 +18,24 @@ BRDF (`brdf.analytic.preview_surface`, the specification's) is, at a fixed rough
 
     f = d' (1 − w)/π + s (1 − w) DG + w DG,   w = (1 − v·h)⁵,  DG = D G / (4 (n·l)(n·v))
 
-so per texel and per roughness of a grid the least-squares inputs are closed form (a convex
-2-variable QP per channel over d' ≥ 0, s ≥ 0, d' + s ≤ 1, i.e. diffuseColor, specularColor in
-[0, 1]); the roughness is the grid's best, refined once between its neighbours. The
-objective is the linear radiance residual Σ_(l,v) Σ_rgb (L_fit − T)², equal weight per
-direction pair of the set (pairs whose view sees nothing of the texel left out); the residual
-reported per texel is its RMS over the pairs divided by the RMS of T (0 is exact; 1 is no
-better than black). A mix of a metal and a dielectric at one roughness is exactly such a
-surface (f is linear in both materials' (d', s)), which the metallic workflow cannot express;
+so per texel the least-squares inputs at its roughness are closed form (a convex 2-variable
+QP per channel over d' ≥ 0, s ≥ 0, d' + s ≤ 1, i.e. diffuseColor, specularColor in [0, 1]).
+The roughness is not searched: the direction set samples a narrow lobe only at its mirror
+pairs, so a search matches the peaks with a wider, brighter lobe (measured on the bolt: the
+object 2.9x too bright at LOD1, 12x at LOD2); the texel's slope statistics give the width
+(`filtered_maps.fallback_roughness`, the widened roughness) and the fit gives the colours,
+which carry the shadowing and masking that the widened lobe lacks. The
+objective is the relative radiance residual Σ_(l,v) Σ_rgb ((L_fit − T) / (T + τ))², τ the
+texel's mean T over the set per channel (`relative_weights`), equal weight per direction pair
+(pairs whose view sees nothing of the texel left out): a linear residual is all mirror peaks
+(on the bolt a peak is 10⁵ times the off-peak radiance) and leaves the diffuse free to take
+anything, so the fit made a metal's diffuseColor 1 (object 4.7x too bright at LOD1). It stays
+a weighted linear least squares (the weights are the target's), so still closed form. The
+residual reported per texel is that objective's RMS over the pairs and channels (0 is exact,
+1 is an error the size of the target). A mix of a metal and a dielectric at one roughness is such a
+surface but for the metal's tinted Fresnel edge (F90 = its colour, white in the specular
+workflow): both F0s go to specularColor, the dielectric's share to diffuseColor, where the
+metallic workflow's one metallic would blend the two colours into both lobes;
 a texel no lobe can match (deep grooves whose masking darkens grazing views) gets the
 inputs of least residual, and its residual says how far it is.
 
@@ -41,9 +51,6 @@ from texelbake.errors import ShapeError
 from texelbake.geometry.basis import tangent_frames
 from texelbake.tol import TOL
 
-#: the roughness grid the fit searches (spec's [0, 1]; below 0.05 a lobe falls between the
-#: directions of the set)
-ROUGHNESS_GRID = np.linspace(0.05, 1.0, 20)
 #: pairs whose view sees less of the texel than this (projected-area fraction) are left out
 VIEW_FLOOR = 1e-6
 
@@ -88,9 +95,10 @@ def targets(num: np.ndarray, den: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     return np.where(valid[..., None], tgt, 0.0), valid.copy()
 
 
-def _basis(normal: np.ndarray, dirs: np.ndarray, roughness: float
+def _basis(normal: np.ndarray, dirs: np.ndarray, roughness: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The specular workflow's terms a, b, c (t, k, k) of L = d' a + s b + c at one roughness,
+    """The specular workflow's terms a, b, c (t, k, k) of L = d' a + s b + c at each texel's
+    roughness (t,),
     radiance per unit irradiance (n·l)⁺ included, from `preview_surface` itself (f at
     (d, s) = (1, 0), (0, 1), (0, 0)): a texel's shading normal (t, 3) unit, dirs (k, 3)."""
     t, k = normal.shape[0], dirs.shape[0]
@@ -102,7 +110,7 @@ def _basis(normal: np.ndarray, dirs: np.ndarray, roughness: float
     out = []
     for d, s in ((1.0, 0.0), (0.0, 1.0), (0.0, 0.0)):  # three evaluations of the spec's BRDF
         p = {"useSpecularWorkflow": 1, "diffuseColor": (d, d, d), "specularColor": (s, s, s),
-             "roughness": roughness}
+             "roughness": np.repeat(roughness, k * k)}
         out.append(preview_surface(p, wi, wo)[:, 0] * cos_l)
     a, b, c = out[0] - out[2], out[1] - out[2], out[2]
     return a.reshape(t, k, k), b.reshape(t, k, k), c.reshape(t, k, k)
@@ -133,73 +141,61 @@ def _qp_triangle(gaa, gab, gbb, ra, rb):
     return best_x, best_y, best
 
 
+def relative_weights(tgt: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The objective's weights 1 / (T + τ) (t, k, k, 3), τ the texel's mean T over its valid
+    pairs per channel (a floor, relative to the texel's own level), 0 on invalid pairs."""
+    wv = valid.astype(np.float64)[..., None]
+    n = np.maximum(wv.sum(axis=(1, 2)), 1.0)  # (t, 1)
+    tau = (tgt * wv).sum(axis=(1, 2)) / n  # (t, 3)
+    tau = np.maximum(tau, 1e-12)[:, None, None, :]
+    return wv / (np.maximum(tgt, 0.0) + tau)
+
+
 def _fit_at(tgt, valid, normal, dirs, roughness):
-    """Closed-form (d', s) per channel at one roughness; returns (x, y, residual² (t,))."""
+    """Closed-form (d', s) per channel at each texel's roughness (t,); returns (x, y,
+    weighted residual² (t,) summed over pairs and channels)."""
     a, b, c = _basis(normal, dirs, roughness)
-    wv = valid.astype(np.float64)
-    a, b, c = a * wv, b * wv, c * wv
-    r = (tgt - c[..., None]) * wv[..., None]  # (t, k, k, 3)
-    gaa = np.einsum("tij,tij->t", a, a)[:, None]
-    gab = np.einsum("tij,tij->t", a, b)[:, None]
-    gbb = np.einsum("tij,tij->t", b, b)[:, None]
-    ra = np.einsum("tij,tijc->tc", a, r)
-    rb = np.einsum("tij,tijc->tc", b, r)
+    w = relative_weights(tgt, valid)  # (t, k, k, 3)
+    aw, bw = a[..., None] * w, b[..., None] * w
+    r = (tgt - c[..., None]) * w  # (t, k, k, 3)
+    gaa = np.einsum("tijc,tijc->tc", aw, aw)
+    gab = np.einsum("tijc,tijc->tc", aw, bw)
+    gbb = np.einsum("tijc,tijc->tc", bw, bw)
+    ra = np.einsum("tijc,tijc->tc", aw, r)
+    rb = np.einsum("tijc,tijc->tc", bw, r)
     x, y, q = _qp_triangle(gaa, gab, gbb, ra, rb)
     res2 = np.einsum("tijc,tijc->t", r, r) + q.sum(axis=1)
     return x, y, np.maximum(res2, 0.0)
 
 
 def fit_preview(target: np.ndarray, valid: np.ndarray, normal: np.ndarray,
-                dirs: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                roughness: np.ndarray, dirs: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The specular-workflow UsdPreviewSurface inputs of least radiance residual (module
-    docstring) for each texel.
+    docstring) for each texel, at its given roughness.
 
     target : (t, k, k, 3) float64 T(light i, view o); valid : (t, k, k) bool pairs that count
     normal : (t, 3) the shading normal in the tangent frame (unit; the normal map's)
+    roughness : (t,) the lobe's roughness (the texel's widened one, `filtered_maps.
+        fallback_roughness`: a sparse direction set samples a narrow lobe only at its peak,
+        so it cannot tell its width; the slope statistics can)
     dirs : (k, 3) the directions of the set (`fit_directions()` when None)
     returns : diffuseColor (t, 3), specularColor (t, 3), roughness (t,), residual (t,) (relative
         RMS), all float64"""
     dirs = fit_directions() if dirs is None else np.asarray(dirs, dtype=np.float64)
     tgt = np.asarray(target, dtype=np.float64)
+    rough = np.clip(np.asarray(roughness, dtype=np.float64), 0.0, 1.0)
     t, k = tgt.shape[0], dirs.shape[0]
-    if tgt.shape != (t, k, k, 3) or valid.shape != (t, k, k) or normal.shape != (t, 3):
+    if (tgt.shape != (t, k, k, 3) or valid.shape != (t, k, k) or normal.shape != (t, 3)
+            or rough.shape != (t,)):
         raise ShapeError(f"fit_preview: target {tgt.shape}, valid {valid.shape}, normal "
-                         f"{normal.shape} do not match ({t}, {k}, {k}, 3)")
-    nrm = np.asarray(normal, dtype=np.float64)
-    grid = ROUGHNESS_GRID
-    res = np.stack([_fit_at(tgt, valid, nrm, dirs, float(r))[2] for r in grid])  # (g, t)
-    j = np.argmin(res, axis=0)
-    step = 0.5 * (grid[1] - grid[0])
-    # one refinement: half a step either side of the grid's best (clipped to the grid)
-    cand = np.stack([grid[j], np.clip(grid[j] - step, grid[0], 1.0),
-                     np.clip(grid[j] + step, grid[0], 1.0)])  # (3, t)
-    best = None
-    for row in cand:  # three candidates per texel, evaluated per distinct roughness
-        out = _fit_rows(tgt, valid, nrm, dirs, row)
-        if best is None:
-            best = out
-        else:
-            take = out[3] < best[3]
-            best = tuple(np.where(take[:, None] if o.ndim == 2 else take, o, b)
-                         for o, b in zip(out, best, strict=True))
-    assert best is not None
-    x, y, rough, res2 = best
+                         f"{normal.shape}, roughness {rough.shape} do not match "
+                         f"({t}, {k}, {k}, 3)")
+    x, y, res2 = _fit_at(tgt, valid, np.asarray(normal, dtype=np.float64), dirs, rough)
     diffuse = np.where(y < 1.0, x / np.maximum(1.0 - y, 1e-12), 0.0)
-    norm2 = np.einsum("tijc,tijc->t", tgt * valid[..., None], tgt)
-    rel = np.sqrt(res2 / np.maximum(norm2, 1e-300))
+    count = 3.0 * valid.sum(axis=(1, 2))
+    rel = np.sqrt(res2 / np.maximum(count, 1.0))
     return {"diffuseColor": np.clip(diffuse, 0.0, 1.0), "specularColor": y,
-            "roughness": rough, "residual": np.where(norm2 > 0, rel, 0.0)}
-
-
-def _fit_rows(tgt, valid, nrm, dirs, rough):
-    """`_fit_at` with a roughness per texel (t,): the texels grouped by value."""
-    t = tgt.shape[0]
-    x, y = np.zeros((t, 3)), np.zeros((t, 3))
-    res2 = np.zeros(t)
-    for r in np.unique(rough):  # a loop over the few distinct roughness values
-        sel = np.flatnonzero(rough == r)
-        x[sel], y[sel], res2[sel] = _fit_at(tgt[sel], valid[sel], nrm[sel], dirs, float(r))
-    return x, y, rough.astype(np.float64), res2
+            "roughness": rough, "residual": np.where(count > 0, rel, 0.0)}
 
 
 def render_fit(params: dict[str, np.ndarray], normal: np.ndarray,

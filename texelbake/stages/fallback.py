@@ -11,6 +11,7 @@ import numpy as np
 from texelbake.baselines.fitted_fallback import fit_directions, fit_preview, sample_terms, targets
 from texelbake.brdf.evaluate import evaluate_by_face
 from texelbake.cpm.level import segment_sum
+from texelbake.errors import StageError
 from texelbake.geometry.basis import tangent_frames
 from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
 from texelbake.tol import TOL
@@ -19,7 +20,7 @@ from texelbake.tol import TOL
 SAMPLE_CHUNK = 8192
 #: texels per chunk of the fit (81 pairs x 3 BRDF evaluations per roughness each)
 TEXEL_CHUNK = 4096
-FIT_VERSION = "fit-v1"
+FIT_VERSION = "fit-v3"
 
 
 def lod_texture_levels(ctx: StageContext, res: int, n_lods: int) -> list[int]:
@@ -85,11 +86,15 @@ def _sample_sums(ctx: StageContext, fs: dict, res: int, dirs: np.ndarray):
     return covered, total[:, :kk], total[:, kk:kk + k], total[:, kk + k:kk + k + 3], total[:, -1]
 
 
-def fitted_fallback(ctx: StageContext, res: int, n_lods: int) -> dict:
-    """Per LOD the fitted specular-workflow inputs on its level of the res² page, empty texels
+def fitted_fallback(ctx: StageContext, res: int, n_lods: int,
+                    roughness: list[np.ndarray] | None = None) -> dict:
+    """Per LOD the fitted specular-workflow inputs on its level of the res² page, at the
+    widened roughness `roughness[lvl]` ((n_l, n_l), every level of the page; None: read back
+    from the store only), empty texels
     filled from the nearest covered one (chart padding: mip levels never blend the page's
     background): {"diffuse": [(n_i, n_i, 3)], "specular": [(n_i, n_i, 3)], "roughness":
-    [(n_i, n_i)], "residual": [(n_i, n_i)] (0 where uncovered), "levels": [int], "normal"
+    [(n_i, n_i)], "residual": [(n_i, n_i)] (0 where uncovered), "covered": [(n_i, n_i) bool]
+    the texels samples fell in, "levels": [int], "normal"
     (res, res, 3) the level-0 unit normal map the fit shaded with, "stats": per LOD
     residual quantiles, "seconds": the fit's time (None when read from the store)}."""
     import time
@@ -102,9 +107,12 @@ def fitted_fallback(ctx: StageContext, res: int, n_lods: int) -> dict:
         d = ctx.store.read_arrays(key)
         out = {n: [d[f"{n}{i}"] for i in range(n_lods)] for n in names}
         return {**out, "levels": levels, "normal": d["normal"],
+                "covered": [d[f"covered{i}"] for i in range(n_lods)],
                 "stats": [_stats(d[f"residual{i}"], d[f"covered{i}"]) for i in range(n_lods)],
                 "seconds": None}
-    from texelbake.stages.filtered import _nearest_fill, fallback_samples
+    if roughness is None:
+        raise StageError(f"fitted fallback {key} is not in the store and no roughness was given")
+    from texelbake.stages.filtered import fallback_samples, nearest_fill
 
     start = time.perf_counter()
     dirs = fit_directions()
@@ -118,7 +126,7 @@ def fitted_fallback(ctx: StageContext, res: int, n_lods: int) -> dict:
     img0[covered] = n0 / np.linalg.norm(n0, axis=1, keepdims=True)
     filled0 = np.zeros(res * res, bool)
     filled0[covered] = True
-    arrays["normal"] = _nearest_fill(img0.reshape(res, res, 3),
+    arrays["normal"] = nearest_fill(img0.reshape(res, res, 3),
                                      filled0.reshape(res, res)).astype(np.float32)
     for i, lvl in enumerate(levels):  # a loop over the few LODs
         n_l = res >> lvl
@@ -132,10 +140,11 @@ def fitted_fallback(ctx: StageContext, res: int, n_lods: int) -> dict:
         ok = (np.linalg.norm(n_l3, axis=1) > 0) & (n_l3[:, 2] > 0)
         nrm = np.where(ok[:, None], n_l3, [0.0, 0.0, 1.0])
         nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        rough = np.asarray(roughness[lvl], dtype=np.float64).reshape(-1)[uniq]
         fit = {n: [] for n in ("diffuseColor", "specularColor", "roughness", "residual")}
         for a in range(0, uniq.size, TEXEL_CHUNK):  # chunks of texels (memory bound)
             tgt, valid = targets(num_l[a:a + TEXEL_CHUNK], den_l[a:a + TEXEL_CHUNK], k)
-            part = fit_preview(tgt, valid, nrm[a:a + TEXEL_CHUNK], dirs)
+            part = fit_preview(tgt, valid, nrm[a:a + TEXEL_CHUNK], rough[a:a + TEXEL_CHUNK], dirs)
             for n in fit:
                 fit[n].append(part[n])
         filled = np.zeros(n_l * n_l, bool)
@@ -148,12 +157,38 @@ def fitted_fallback(ctx: StageContext, res: int, n_lods: int) -> dict:
             img[uniq] = vals.reshape(-1, c)
             img = img.reshape(n_l, n_l, c)
             if n != "residual":
-                img = _nearest_fill(img, filled.reshape(n_l, n_l))
+                img = nearest_fill(img, filled.reshape(n_l, n_l))
             arrays[f"{n}{i}"] = (img if c == 3 else img[..., 0]).astype(np.float32)
         arrays[f"covered{i}"] = filled.reshape(n_l, n_l)
     ctx.store.write_arrays(key, arrays)
-    out = fitted_fallback(ctx, res, n_lods)  # as a rerun reads it
+    out = fitted_fallback(ctx, res, n_lods, roughness)  # as a rerun reads it
     return {**out, "seconds": round(time.perf_counter() - start, 1)}
+
+
+def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
+    """The fitted inputs replacing the averaged fallback's (`filtered.fallback_maps`, whose
+    page and constants they share): per LOD diffuse, specular and roughness maps at its
+    level (the roughness widened from each level's filtered maps, as the averaged fallback's),
+    the fit's own normal map, the specular workflow, and the residual statistics for the
+    report."""
+    from texelbake.baselines.filtered_maps import FIELDS, fallback_roughness, slope_covariance
+    from texelbake.stages.filtered import dense_fallback_levels, filtered_levels
+
+    res = int(averaged["resolution"])
+    maps = (dense_fallback_levels(ctx, res)[0] if res > ctx.settings.atlas_resolution
+            else filtered_levels(ctx))
+    rough = []
+    for m_l in maps:  # a loop over the few levels
+        m = m_l.reshape(-1, m_l.shape[2]).astype(np.float64)
+        cov = slope_covariance(m[:, FIELDS["m1"]], m[:, FIELDS["m2"]])
+        rough.append(fallback_roughness(m[:, FIELDS["alpha2"]][:, 0], cov).reshape(
+            m_l.shape[:2]))
+    fit = fitted_fallback(ctx, res, len(averaged["roughness"]), rough)
+    keep = {k: v for k, v in averaged["constants"].items() if k in ("opacity", "emissiveColor")}
+    return {**averaged, "diffuse": fit["diffuse"], "specular": fit["specular"],
+            "roughness": fit["roughness"], "normal": fit["normal"],
+            "constants": {**keep, "useSpecularWorkflow": 1}, "levels": fit["levels"],
+            "fit": {"residual": fit["stats"], "seconds": fit["seconds"]}}
 
 
 def _stats(residual: np.ndarray, covered: np.ndarray) -> dict:

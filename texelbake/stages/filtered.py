@@ -126,7 +126,7 @@ def fallback_resolution(ctx: StageContext) -> int:
     return int(min(max(side, n), max(FALLBACK_MAX_RESOLUTION, n)))
 
 
-def _nearest_fill(img: np.ndarray, filled: np.ndarray) -> np.ndarray:
+def nearest_fill(img: np.ndarray, filled: np.ndarray) -> np.ndarray:
     """Empty texels take the value of the nearest filled one (one Euclidean distance
     transform: the chart padding and the page between charts, so a viewer's bilinear and mip
     look-ups never blend in empty texels)."""
@@ -173,7 +173,7 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
             "frames": face_tangent_space(v, f, uv), "lod1_vertices": v, "lod1_faces": f}
 
 
-def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray], np.ndarray]:
+def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray], np.ndarray]:
     """The filtered maps (CHANNELS) of every level of a res x res page on the atlas layout,
     from FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on M_org placed on M_T like the
     geometry stage's (`assign_texels`, the bent-normal rule on wraps), and the level-0 tangent-
@@ -207,7 +207,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
         img = bake_filtered_levels(n_l, 1, [texels[lvl]], smp.area, local, ao, albedo, base,
                                    alpha2, fill=False)[0]
         filled = np.bincount(texels[lvl], weights=smp.area, minlength=n_l * n_l) > 0
-        maps.append(_nearest_fill(img, filled.reshape(n_l, n_l)).astype(np.float32))
+        maps.append(nearest_fill(img, filled.reshape(n_l, n_l)).astype(np.float32))
     # the base colour as seen from outside: a sample counts only when a ray from it along the
     # normal of the LOD1 face it shows on leaves M_org (so a part enclosed by another, like
     # BoxAnimated's inner box whose samples project onto the outer walls, does not tint what
@@ -226,7 +226,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     filled0 = np.bincount(t0, weights=smp.area, minlength=res * res) > 0
     top = maps[0].reshape(res * res, -1)
     top[seen, FIELDS["base"]] = base_seen[seen]
-    maps[0] = _nearest_fill(np.where(filled0[:, None], top, 0.0).reshape(res, res, -1),
+    maps[0] = nearest_fill(np.where(filled0[:, None], top, 0.0).reshape(res, res, -1),
                             filled0.reshape(res, res)).astype(np.float32)
     nbar = maps[0][..., FIELDS["nbar"]].astype(np.float64)
     normal = nbar / np.maximum(np.linalg.norm(nbar, axis=2, keepdims=True), 1e-12)
@@ -244,7 +244,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
 
     The textures' side is `fallback_resolution`: when it is above the
     atlas resolution the maps are baked from their own dense samples on the same layout
-    (`_dense_fallback_levels`) and the fallback gets its own normal map ("normal"); else
+    (`dense_fallback_levels`) and the fallback gets its own normal map ("normal"); else
     they are the filtered levels `maps` and the normal map is the baseline's."""
     from texelbake.baselines.filtered_maps import (
         FIELDS,
@@ -261,7 +261,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     res = fallback_resolution(ctx)
     normal = None
     if res > ctx.settings.atlas_resolution:
-        maps, normal = _dense_fallback_levels(ctx, res)
+        maps, normal = dense_fallback_levels(ctx, res)
     texel = _texel_size(geo, res)  # world size of a texel of the fallback page on M1
     errors = [0.0]
     for v, f, _ in lod_meshes(geo)[1:]:  # a loop over the few LODs (the lod{i} keys)
@@ -284,21 +284,4 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
            "resolution": int(res)}
     if normal is not None:
         out["normal"] = normal
-    if ctx.settings.fallback == "fitted":
-        out.update(_fitted(ctx, res, len(errors), out["constants"]))
     return out
-
-
-def _fitted(ctx: StageContext, res: int, n_lods: int, constants: dict) -> dict:
-    """The fitted inputs (`stages.fallback.fitted_fallback`) replacing the averaged ones: per
-    LOD diffuse, specular and roughness maps at its level, the fit's own normal map, the
-    specular workflow, and the residual statistics for the report."""
-    from texelbake.stages.fallback import fitted_fallback
-
-    fit = fitted_fallback(ctx, res, n_lods)
-    keep = {k: v for k, v in constants.items() if k in ("opacity", "emissiveColor")}
-    return {"diffuse": fit["diffuse"], "specular": fit["specular"],
-            "roughness": fit["roughness"], "normal": fit["normal"],
-            "constants": {**keep, "useSpecularWorkflow": 1},
-            "levels": fit["levels"], "mode": "fitted",
-            "fit": {"residual": fit["stats"], "seconds": fit["seconds"]}}
