@@ -122,3 +122,36 @@ def test_rerun_in_a_fresh_store_is_byte_identical(cylinder, tmp_path):
     for name in files:
         a = (cylinder["fitted"].parent / name).read_bytes()
         assert (again.parent / name).read_bytes() == a, name
+
+
+def test_shading_variant_selected_is_the_one_baked(tmp_path):
+    # an asset with a `shadingVariant` set: the bake composes the stage as authored, so each
+    # LOD's fallback (and the CPM maps) are of the selected variant; the others are not baked
+    from pxr import Gf, Sdf
+
+    from tests.helpers.render import write_plane_usd
+    from texelbake.usd.read import read_baked
+
+    src = write_plane_usd(tmp_path / "plane.usda", rho=(0.7, 0.1, 0.1))
+    stage = Usd.Stage.Open(str(src))
+    blue = UsdShade.Material.Define(stage, "/Root/Looks/Blue")
+    sh = UsdShade.Shader.Define(stage, "/Root/Looks/Blue/Surface")
+    sh.CreateIdAttr("texelbake:lambert")
+    sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.1, 0.1, 0.7))
+    blue.CreateSurfaceOutput("texelbake").ConnectToSource(
+        sh.CreateOutput("surface", Sdf.ValueTypeNames.Token))
+    plane = stage.GetPrimAtPath("/Root/Plane")
+    plane.RemoveProperty("material:binding")  # the variants carry the binding
+    vset = plane.GetVariantSets().AddVariantSet("shadingVariant")
+    for name, mat in (("red", "/Root/Looks/Lambert"), ("blue", "/Root/Looks/Blue")):
+        vset.AddVariant(name)
+        vset.SetVariantSelection(name)
+        with vset.GetVariantEditContext():
+            UsdShade.MaterialBindingAPI.Apply(plane).Bind(
+                UsdShade.Material(stage.GetPrimAtPath(mat)))
+    vset.SetVariantSelection("blue")
+    stage.GetRootLayer().Save()
+    root = _bake(src, tmp_path / "out", mesh_levels=1, lod_switch_px=(32.0,))
+    diffuse = read_baked(root).fallback["materials"][0]["textures"]["diffuseColor"]
+    mean = diffuse.reshape(-1, 3).mean(axis=0)
+    assert mean[2] > 0.5 and mean[0] < 0.2, mean  # the selected variant's blue, not red
