@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from texelbake.baselines.fitted_fallback import (
+    basis_views,
+    cell_views,
     fit_directions,
     fit_preview,
     render_fit,
@@ -19,19 +21,24 @@ from texelbake.geometry.basis import tangent_frames
 
 
 def _radiance(params: dict, normal: np.ndarray) -> np.ndarray:
-    """L(l, v) = f_ps (n·l)⁺ of one set of inputs on every texel's normal (t, k, k, 3)."""
-    dirs = fit_directions()
-    t, k = normal.shape[0], dirs.shape[0]
-    loc = np.einsum("tij,kj->tki", tangent_frames(normal), dirs)
-    wi = np.broadcast_to(loc[:, :, None], (t, k, k, 3)).reshape(-1, 3)
-    wo = np.broadcast_to(loc[:, None, :], (t, k, k, 3)).reshape(-1, 3)
-    return (preview_surface(params, wi, wo) * np.maximum(wi[:, 2:3], 0.0)).reshape(t, k, k, 3)
+    """L(l, v) = f_ps (n·l)⁺ of one set of inputs on every texel's normal (t, k, k, 3), each
+    view the mean over its cell's stratified views (the objective's definition)."""
+    dirs, views = fit_directions(), basis_views()
+    t, k, m = normal.shape[0], dirs.shape[0], views.shape[1]
+    fr = tangent_frames(normal)
+    li = np.einsum("tij,kj->tki", fr, dirs)
+    vo = np.einsum("tij,kmj->tkmi", fr, views)
+    out = np.zeros((t, k, k, 3))
+    for i in range(k):  # light by light, every view of every cell at once
+        wi = np.broadcast_to(li[:, i, None, None, :], (t, k, m, 3)).reshape(-1, 3)
+        f = preview_surface(params, wi, vo.reshape(-1, 3)).reshape(t, k, m, 3).mean(axis=2)
+        out[:, i] = f * np.maximum(li[:, i, 2], 0.0)[:, None, None]
+    return out
 
 
 def _wrms(fit_l: np.ndarray, tgt: np.ndarray) -> np.ndarray:
-    """The objective's RMS per texel, restated: ((L - T) / (T + τ)), τ = mean T per channel."""
-    tau = tgt.mean(axis=(1, 2), keepdims=True)
-    return np.sqrt((((fit_l - tgt) / (tgt + tau)) ** 2).mean(axis=(1, 2, 3)))
+    """The objective's relative RMS per texel, restated: |L - T| / |T| over pairs and channels."""
+    return np.sqrt(((fit_l - tgt) ** 2).sum(axis=(1, 2, 3)) / (tgt ** 2).sum(axis=(1, 2, 3)))
 
 
 def _normals(t: int, rng) -> np.ndarray:
@@ -114,8 +121,9 @@ def test_coarse_texel_fits_the_sum_of_its_children_not_one_of_them(rng):
     dirs = fit_directions()
     k = dirs.shape[0]
     albedo = np.array([0.0, 0.8, 0.8, 0.0])
-    f = np.stack([_radiance({"useSpecularWorkflow": 1, "diffuseColor": (a, a, a)}, nrm[:1])[0]
-                  / np.maximum(dirs[:, None, 2:3], 1e-300) for a in albedo])  # f_r (4, k, k, 3)
+    f = np.stack([_radiance({"useSpecularWorkflow": 1, "diffuseColor": (a, a, a),
+                             "roughness": 0.5}, nrm[:1])[0]
+                  / np.maximum(dirs[:, None, None, 2], 1e-300) for a in albedo])  # (4, k, k, 3)
     vis = np.tile(dirs[:, 2], (4, 1))  # unshadowed, cosines on the flat texels
     num, den = sample_terms(f, vis, vis, np.ones(4))
     tgt, valid = targets(num.sum(0, keepdims=True), den.sum(0, keepdims=True), k)
@@ -131,6 +139,24 @@ def test_bad_shapes_name_the_arrays():
                     np.zeros(2))
     with pytest.raises(ShapeError, match="sample_terms"):
         sample_terms(np.zeros((2, k, k, 3)), np.zeros((2, k)), np.zeros((3, k)), np.ones(2))
+
+
+def test_cell_views_lie_in_their_cells(rng):
+    # each view drawn for cell o lies in o's ring band (0-20°, 20-50°, 50-80° from the normal)
+    # and within ±45° in azimuth of direction o; the stratified views average near it
+    dirs = fit_directions()
+    k = dirs.shape[0]
+    v = cell_views(rng.random((500, k, 2)))
+    np.testing.assert_allclose(np.linalg.norm(v, axis=2), 1.0, atol=1e-12)
+    theta = np.degrees(np.arccos(v[..., 2]))
+    band = np.array([(0, 20)] + [(20, 50)] * 4 + [(50, 80)] * 4)
+    assert np.all((theta >= band[:, 0] - 1e-9) & (theta <= band[:, 1] + 1e-9))
+    dphi = np.angle(np.exp(1j * (np.arctan2(v[..., 1], v[..., 0])
+                                 - np.arctan2(dirs[:, 1], dirs[:, 0]))))
+    assert np.all(np.abs(np.degrees(dphi[:, 1:])) <= 45.0 + 1e-9)
+    mean = basis_views().mean(axis=1)
+    cos = np.einsum("kj,kj->k", mean / np.linalg.norm(mean, axis=1, keepdims=True), dirs)
+    assert np.all(cos > np.cos(np.radians(6.0)))
 
 
 def test_fit_is_deterministic_bit_for_bit(rng):

@@ -1,8 +1,9 @@
 """UsdPreviewSurface inputs fitted to a texel's filtered appearance (the fitted fallback).
 
-The target of a texel is its filtered reflectance over a fixed set of light and view
-directions in the tangent frame of the LOD surface (`fit_directions`), from dense samples of
-M_org with shadowing and masking (seed 000, Eq. 7 evaluated on the samples):
+The target of a texel is its filtered reflectance over a fixed set of light directions and
+view cells in the tangent frame of the LOD surface (`fit_directions`, `cell_views`: each
+sample sees a view drawn in each cell, the basis averages a stratified set), from dense
+samples of M_org with shadowing and masking (seed 000, Eq. 7 evaluated on the samples):
 
     T(l, v) = Σ_s A_s f_s(l, v) V_s(l) (n_s·l)⁺ V_s(v) (n_g,s·v)⁺ / Σ_s A_s V_s(v) (n_g,s·v)⁺
 
@@ -25,14 +26,13 @@ pairs, so a search matches the peaks with a wider, brighter lobe (measured on th
 object 2.9x too bright at LOD1, 12x at LOD2); the texel's slope statistics give the width
 (`filtered_maps.fallback_roughness`, the widened roughness) and the fit gives the colours,
 which carry the shadowing and masking that the widened lobe lacks. The
-objective is the relative radiance residual Σ_(l,v) Σ_rgb ((L_fit − T) / (T + τ))², τ the
-texel's mean T over the set per channel (`relative_weights`), equal weight per direction pair
-(pairs whose view sees nothing of the texel left out): a linear residual is all mirror peaks
-(on the bolt a peak is 10⁵ times the off-peak radiance) and leaves the diffuse free to take
-anything, so the fit made a metal's diffuseColor 1 (object 4.7x too bright at LOD1). It stays
-a weighted linear least squares (the weights are the target's), so still closed form. The
-residual reported per texel is that objective's RMS over the pairs and channels (0 is exact,
-1 is an error the size of the target). A mix of a metal and a dielectric at one roughness is such a
+objective is the linear radiance residual Σ_(l,v) Σ_rgb (L_fit − T)², equal weight per
+(light, view cell) pair (pairs whose view sees nothing of the texel left out): what an
+image's PSNR measures. Point views instead of cells made it match a metal's mirror peaks
+with the diffuse (the bolt's object 2.9x too bright at LOD1); a relative residual
+((L − T)/(T + τ))² with point views left the object 0.16-0.75x as bright as the original. The
+residual reported per texel is the fit's RMS over the pairs and channels divided by the
+RMS of T (0 is exact; 1 is no better than black). A mix of a metal and a dielectric at one roughness is such a
 surface but for the metal's tinted Fresnel edge (F90 = its colour, white in the specular
 workflow): both F0s go to specularColor, the dielectric's share to diffuseColor, where the
 metallic workflow's one metallic would blend the two colours into both lobes;
@@ -68,6 +68,57 @@ def fit_directions() -> np.ndarray:
     return np.stack(out)
 
 
+#: the view cells: (θ from, θ to, azimuth half-width) in degrees per ring of `fit_directions`
+_CELLS = ((0.0, 20.0, 180.0), (20.0, 50.0, 45.0), (50.0, 80.0, 45.0))
+#: stratified views per cell of the basis (4 x 4)
+CELL_STRATA = 4
+
+
+def cell_views(u: np.ndarray) -> np.ndarray:
+    """Views inside each view cell of the set, uniform in solid angle: u (..., k, 2) in [0, 1)²
+    -> (..., k, 3) unit, tangent frame. Cell o is the part of the hemisphere nearest
+    `fit_directions()[o]` within its ring (the normal's cap to 20°, the 35° ring's cells
+    20°-50°, the 65° ring's 50°-80°, each ±45° in azimuth around its direction): a view is a
+    cell's average, so a lobe narrower than the set's spacing counts by its energy, not by
+    whether a direction hits its peak."""
+    u = np.asarray(u, dtype=np.float64)
+    centre = fit_directions()
+    k = centre.shape[0]
+    ring = np.array([0] + [1] * 4 + [2] * 4)
+    lo = np.cos(np.radians([_CELLS[r][0] for r in ring]))
+    hi = np.cos(np.radians([_CELLS[r][1] for r in ring]))
+    half = np.radians([_CELLS[r][2] for r in ring])
+    phi0 = np.arctan2(centre[:, 1], centre[:, 0])
+    if u.shape[-2:] != (k, 2):
+        raise ShapeError(f"cell_views: u must be (..., {k}, 2), got {u.shape}")
+    cos_t = lo + (hi - lo) * u[..., 0]
+    phi = phi0 + half * (2.0 * u[..., 1] - 1.0)
+    sin_t = np.sqrt(np.maximum(1.0 - cos_t * cos_t, 0.0))
+    return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+
+
+def basis_views() -> np.ndarray:
+    """The basis's stratified views (k, CELL_STRATA², 3) of every cell (`cell_views`)."""
+    g = (np.arange(CELL_STRATA) + 0.5) / CELL_STRATA
+    uu = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)  # (M, 2)
+    k = fit_directions().shape[0]
+    return cell_views(np.broadcast_to(uu[:, None, :], (uu.shape[0], k, 2))).transpose(1, 0, 2)
+
+
+def _pair_dirs(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(wi, wo) (t·k·k·M, 3) in each texel's shading frame: light i of the set, view m of
+    cell o, in (t, i, o, m) order."""
+    dirs = fit_directions()
+    views = basis_views()  # (k, M, 3)
+    t, k, m = normal.shape[0], dirs.shape[0], views.shape[1]
+    fr = tangent_frames(np.asarray(normal, dtype=np.float64))  # rows (t, b, n) of n's frame
+    li = np.einsum("tij,kj->tki", fr, dirs)  # (t, k, 3)
+    vo = np.einsum("tij,kmj->tkmi", fr, views)  # (t, k, M, 3)
+    wi = np.broadcast_to(li[:, :, None, None, :], (t, k, k, m, 3)).reshape(-1, 3)
+    wo = np.broadcast_to(vo[:, None, :, :, :], (t, k, k, m, 3)).reshape(-1, 3)
+    return wi, wo
+
+
 def sample_terms(f: np.ndarray, vis_l: np.ndarray, vis_v: np.ndarray, area: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
     """One chunk of samples' contributions to the target sums.
@@ -95,25 +146,22 @@ def targets(num: np.ndarray, den: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     return np.where(valid[..., None], tgt, 0.0), valid.copy()
 
 
-def _basis(normal: np.ndarray, dirs: np.ndarray, roughness: np.ndarray
+def _basis(normal: np.ndarray, roughness: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The specular workflow's terms a, b, c (t, k, k) of L = d' a + s b + c at each texel's
-    roughness (t,),
-    radiance per unit irradiance (n·l)⁺ included, from `preview_surface` itself (f at
-    (d, s) = (1, 0), (0, 1), (0, 0)): a texel's shading normal (t, 3) unit, dirs (k, 3)."""
-    t, k = normal.shape[0], dirs.shape[0]
-    fr = tangent_frames(normal)  # (t, 3, 3) rows (t, b, n): the BRDF in n's frame
-    loc = np.einsum("tij,kj->tki", fr, dirs)  # (t, k, 3)
-    wi = np.broadcast_to(loc[:, :, None, :], (t, k, k, 3)).reshape(-1, 3)
-    wo = np.broadcast_to(loc[:, None, :, :], (t, k, k, 3)).reshape(-1, 3)
-    cos_l = np.broadcast_to(np.maximum(loc[:, :, None, 2], 0.0), (t, k, k)).reshape(-1)
+    roughness (t,), each a view cell's mean (`basis_views`), radiance per unit irradiance
+    (n·l)⁺ included, from `preview_surface` itself (f at (d, s) = (1, 0), (0, 1), (0, 0)):
+    a texel's shading normal (t, 3) unit."""
+    t, k = normal.shape[0], fit_directions().shape[0]
+    wi, wo = _pair_dirs(normal)
+    m = wi.shape[0] // (t * k * k)
+    cos_l = np.maximum(wi[:, 2], 0.0)
     out = []
     for d, s in ((1.0, 0.0), (0.0, 1.0), (0.0, 0.0)):  # three evaluations of the spec's BRDF
         p = {"useSpecularWorkflow": 1, "diffuseColor": (d, d, d), "specularColor": (s, s, s),
-             "roughness": np.repeat(roughness, k * k)}
-        out.append(preview_surface(p, wi, wo)[:, 0] * cos_l)
-    a, b, c = out[0] - out[2], out[1] - out[2], out[2]
-    return a.reshape(t, k, k), b.reshape(t, k, k), c.reshape(t, k, k)
+             "roughness": np.repeat(roughness, k * k * m)}
+        out.append((preview_surface(p, wi, wo)[:, 0] * cos_l).reshape(t, k, k, m).mean(axis=3))
+    return out[0] - out[2], out[1] - out[2], out[2]
 
 
 def _qp_triangle(gaa, gab, gbb, ra, rb):
@@ -141,21 +189,11 @@ def _qp_triangle(gaa, gab, gbb, ra, rb):
     return best_x, best_y, best
 
 
-def relative_weights(tgt: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """The objective's weights 1 / (T + τ) (t, k, k, 3), τ the texel's mean T over its valid
-    pairs per channel (a floor, relative to the texel's own level), 0 on invalid pairs."""
-    wv = valid.astype(np.float64)[..., None]
-    n = np.maximum(wv.sum(axis=(1, 2)), 1.0)  # (t, 1)
-    tau = (tgt * wv).sum(axis=(1, 2)) / n  # (t, 3)
-    tau = np.maximum(tau, 1e-12)[:, None, None, :]
-    return wv / (np.maximum(tgt, 0.0) + tau)
-
-
-def _fit_at(tgt, valid, normal, dirs, roughness):
+def _fit_at(tgt, valid, normal, roughness):
     """Closed-form (d', s) per channel at each texel's roughness (t,); returns (x, y,
-    weighted residual² (t,) summed over pairs and channels)."""
-    a, b, c = _basis(normal, dirs, roughness)
-    w = relative_weights(tgt, valid)  # (t, k, k, 3)
+    residual² (t,) summed over pairs and channels)."""
+    a, b, c = _basis(normal, roughness)
+    w = np.broadcast_to(valid[..., None], tgt.shape).astype(np.float64)  # (t, k, k, 3)
     aw, bw = a[..., None] * w, b[..., None] * w
     r = (tgt - c[..., None]) * w  # (t, k, k, 3)
     gaa = np.einsum("tijc,tijc->tc", aw, aw)
@@ -169,7 +207,7 @@ def _fit_at(tgt, valid, normal, dirs, roughness):
 
 
 def fit_preview(target: np.ndarray, valid: np.ndarray, normal: np.ndarray,
-                roughness: np.ndarray, dirs: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                roughness: np.ndarray) -> dict[str, np.ndarray]:
     """The specular-workflow UsdPreviewSurface inputs of least radiance residual (module
     docstring) for each texel, at its given roughness.
 
@@ -178,10 +216,9 @@ def fit_preview(target: np.ndarray, valid: np.ndarray, normal: np.ndarray,
     roughness : (t,) the lobe's roughness (the texel's widened one, `filtered_maps.
         fallback_roughness`: a sparse direction set samples a narrow lobe only at its peak,
         so it cannot tell its width; the slope statistics can)
-    dirs : (k, 3) the directions of the set (`fit_directions()` when None)
     returns : diffuseColor (t, 3), specularColor (t, 3), roughness (t,), residual (t,) (relative
         RMS), all float64"""
-    dirs = fit_directions() if dirs is None else np.asarray(dirs, dtype=np.float64)
+    dirs = fit_directions()
     tgt = np.asarray(target, dtype=np.float64)
     rough = np.clip(np.asarray(roughness, dtype=np.float64), 0.0, 1.0)
     t, k = tgt.shape[0], dirs.shape[0]
@@ -190,26 +227,22 @@ def fit_preview(target: np.ndarray, valid: np.ndarray, normal: np.ndarray,
         raise ShapeError(f"fit_preview: target {tgt.shape}, valid {valid.shape}, normal "
                          f"{normal.shape}, roughness {rough.shape} do not match "
                          f"({t}, {k}, {k}, 3)")
-    x, y, res2 = _fit_at(tgt, valid, np.asarray(normal, dtype=np.float64), dirs, rough)
+    x, y, res2 = _fit_at(tgt, valid, np.asarray(normal, dtype=np.float64), rough)
     diffuse = np.where(y < 1.0, x / np.maximum(1.0 - y, 1e-12), 0.0)
-    count = 3.0 * valid.sum(axis=(1, 2))
-    rel = np.sqrt(res2 / np.maximum(count, 1.0))
+    norm2 = np.einsum("tijc,tijc->t", tgt * valid[..., None], tgt)
+    rel = np.sqrt(res2 / np.maximum(norm2, 1e-300))
     return {"diffuseColor": np.clip(diffuse, 0.0, 1.0), "specularColor": y,
-            "roughness": rough, "residual": np.where(count > 0, rel, 0.0)}
+            "roughness": rough, "residual": np.where(norm2 > 0, rel, 0.0)}
 
 
-def render_fit(params: dict[str, np.ndarray], normal: np.ndarray,
-               dirs: np.ndarray | None = None) -> np.ndarray:
+def render_fit(params: dict[str, np.ndarray], normal: np.ndarray) -> np.ndarray:
     """L(l, v) (t, k, k, 3) of fitted specular-workflow inputs (`fit_preview`'s keys) on the
-    set, from `preview_surface` per texel: what the fit reproduces."""
-    dirs = fit_directions() if dirs is None else np.asarray(dirs, dtype=np.float64)
-    t, k = normal.shape[0], dirs.shape[0]
-    fr = tangent_frames(np.asarray(normal, dtype=np.float64))
-    loc = np.einsum("tij,kj->tki", fr, dirs)
-    wi = np.broadcast_to(loc[:, :, None, :], (t, k, k, 3)).reshape(-1, 3)
-    wo = np.broadcast_to(loc[:, None, :, :], (t, k, k, 3)).reshape(-1, 3)
-    rep = np.repeat(np.arange(t), k * k)
+    set, each view cell's mean, from `preview_surface` per texel: what the fit reproduces."""
+    t, k = normal.shape[0], fit_directions().shape[0]
+    wi, wo = _pair_dirs(normal)
+    m = wi.shape[0] // (t * k * k)
+    rep = np.repeat(np.arange(t), k * k * m)
     p = {"useSpecularWorkflow": 1, "diffuseColor": params["diffuseColor"][rep],
          "specularColor": params["specularColor"][rep], "roughness": params["roughness"][rep]}
     cos_l = np.maximum(wi[:, 2], 0.0)
-    return (preview_surface(p, wi, wo) * cos_l[:, None]).reshape(t, k, k, 3)
+    return (preview_surface(p, wi, wo) * cos_l[:, None]).reshape(t, k, k, m, 3).mean(axis=3)

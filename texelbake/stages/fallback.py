@@ -8,7 +8,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from texelbake.baselines.fitted_fallback import fit_directions, fit_preview, sample_terms, targets
+from texelbake.baselines.fitted_fallback import (
+    cell_views,
+    fit_directions,
+    fit_preview,
+    sample_terms,
+    targets,
+)
 from texelbake.brdf.evaluate import evaluate_by_face
 from texelbake.cpm.level import segment_sum
 from texelbake.errors import StageError
@@ -18,9 +24,10 @@ from texelbake.tol import TOL
 
 #: samples per chunk of the target sums (k² = 81 BRDF rows and k rays per sample)
 SAMPLE_CHUNK = 8192
-#: texels per chunk of the fit (81 pairs x 3 BRDF evaluations per roughness each)
-TEXEL_CHUNK = 4096
-FIT_VERSION = "fit-v3"
+#: texels per chunk of the fit (81 pairs x 16 views x 3 BRDF evaluations each)
+TEXEL_CHUNK = 1024
+FIT_VERSION = "fit-v6"
+_TAG_VIEWS = 0x6F
 
 
 def lod_texture_levels(ctx: StageContext, res: int, n_lods: int) -> list[int]:
@@ -52,6 +59,8 @@ def _sample_sums(ctx: StageContext, fs: dict, res: int, dirs: np.ndarray):
     caster = ctx.caster()
     mats = ctx.asset().materials
     eps = TOL.ray_offset * caster.bbox_diag
+    # each sample's view in each cell, seeded (the same draws whatever the chunking)
+    u_view = np.random.default_rng([ctx.settings.seed, _TAG_VIEWS]).random((t0.size, k, 2))
     g = TOL.grazing_cos
     kk = k * k * 3
     total = np.zeros((covered.size, kk + k + 4))
@@ -59,23 +68,29 @@ def _sample_sums(ctx: StageContext, fs: dict, res: int, dirs: np.ndarray):
         sel = order[a:a + SAMPLE_CHUNK]
         m = sel.size
         fr = fs["frames"][fs["prim"][sel]]  # (m, 3, 3) rows (t, b, n) of LOD1's face
-        dw = np.einsum("mji,kj->mki", fr, dirs)  # (m, k, 3) world
+        dl = np.einsum("mji,kj->mki", fr, dirs)  # (m, k, 3) world lights
+        dv = np.einsum("mji,mkj->mki", fr, cell_views(u_view[sel]))  # a view in each cell
         nrm, gn = smp.normals[sel], fs["gnrm"][sel]
-        cos_s = np.einsum("mj,mkj->mk", nrm, dw)
-        cos_g = np.einsum("mj,mkj->mk", gn, dw)
-        live = (cos_s > g) & (cos_g > g)
-        pi, di = np.nonzero(live)
-        occ = caster.occluded_pairs(smp.positions[sel] + eps * gn, dw.reshape(-1, 3), pi,
-                                    pi * k + di)
-        vis = live.astype(np.float64)
-        vis[pi[occ], di[occ]] = 0.0
-        vis_l, vis_v = vis * cos_s, vis * cos_g
-        loc = np.einsum("mij,mkj->mki", tangent_frames(nrm), dw)  # sample's shading frame
+        origins = smp.positions[sel] + eps * gn
+        vis = []
+        for dw in (dl, dv):  # lights, then views
+            cos_s = np.einsum("mj,mkj->mk", nrm, dw)
+            cos_g = np.einsum("mj,mkj->mk", gn, dw)
+            live = (cos_s > g) & (cos_g > g)
+            pi, di = np.nonzero(live)
+            occ = caster.occluded_pairs(origins, dw.reshape(-1, 3), pi, pi * k + di)
+            v = live.astype(np.float64)
+            v[pi[occ], di[occ]] = 0.0
+            vis.append(v * (cos_s if dw is dl else cos_g))
+        vis_l, vis_v = vis
+        sf = tangent_frames(nrm)  # each sample's shading frame
+        loc_l = np.einsum("mij,mkj->mki", sf, dl)
+        loc_v = np.einsum("mij,mkj->mki", sf, dv)
         s_i, i_i, o_i = np.nonzero((vis_l[:, :, None] > 0) & (vis_v[:, None, :] > 0))
         f = np.zeros((m, k, k, 3))
         if s_i.size:
             f[s_i, i_i, o_i] = evaluate_by_face(
-                mats, smp.material[sel][s_i].astype(np.int64), loc[s_i, i_i], loc[s_i, o_i],
+                mats, smp.material[sel][s_i].astype(np.int64), loc_l[s_i, i_i], loc_v[s_i, o_i],
                 smp.uv[sel], sample_index=s_i)
         num, den = sample_terms(f, vis_l, vis_v, smp.area[sel])
         n_loc = np.einsum("mij,mj->mi", fr, nrm) * smp.area[sel][:, None]
@@ -144,7 +159,7 @@ def fitted_fallback(ctx: StageContext, res: int, n_lods: int,
         fit = {n: [] for n in ("diffuseColor", "specularColor", "roughness", "residual")}
         for a in range(0, uniq.size, TEXEL_CHUNK):  # chunks of texels (memory bound)
             tgt, valid = targets(num_l[a:a + TEXEL_CHUNK], den_l[a:a + TEXEL_CHUNK], k)
-            part = fit_preview(tgt, valid, nrm[a:a + TEXEL_CHUNK], rough[a:a + TEXEL_CHUNK], dirs)
+            part = fit_preview(tgt, valid, nrm[a:a + TEXEL_CHUNK], rough[a:a + TEXEL_CHUNK])
             for n in fit:
                 fit[n].append(part[n])
         filled = np.zeros(n_l * n_l, bool)
