@@ -174,8 +174,8 @@ class BakeSettings(BaseModel):
         4, "optional stages",
         "Extra BRDF draws per direction cell when btf_table is 'cell'.", ge=1, le=256)
     previews: bool = _field(False, "optional stages", "Render previews after export.")
-    fallback: Literal["fitted", "averaged"] = _field(
-        "fitted", "optional stages",
+    fallback: Literal["averaged", "fitted"] = _field(
+        "averaged", "optional stages",
         "How each LOD's UsdPreviewSurface fallback gets its inputs: 'fitted' per texel so that "
         "the preview surface reproduces the texel's filtered reflectance, 'averaged' from the "
         "area means of the source material's inputs with a widened roughness.")

@@ -284,9 +284,8 @@ def test_fallback_materials_pass_stock_validation(tmp_path):
     assert got["errors"] == []
     assert set(got["materials"]) == {"LOD1", "LOD2"}
     for _, (path, inputs) in got["materials"].items():
-        # the fitted fallback (the default): the specular workflow's specularColor too
-        assert inputs == {"diffuseColor": True, "specularColor": True, "normal": True,
-                          "roughness": True, "occlusion": True}, path
+        assert inputs == {"diffuseColor": True, "normal": True, "roughness": True,
+                          "occlusion": True}, path
     for lod in (1, 2):
         exported = _check(export_lod(root, lod, tmp_path / f"lod{lod}.usdz"))
         assert exported["errors"] == [] and len(exported["materials"]) == 1

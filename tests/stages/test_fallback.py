@@ -28,7 +28,7 @@ def cylinder(tmp_path_factory) -> dict:
 
     d = tmp_path_factory.mktemp("fitted")
     src = write_scene("cylinder", d / "cylinder.usda", "small")
-    return {"src": src, "dir": d, "fitted": _bake(src, d / "fitted"),
+    return {"src": src, "dir": d, "fitted": _bake(src, d / "fitted", fallback="fitted"),
             "averaged": _bake(src, d / "averaged", fallback="averaged")}
 
 
@@ -95,7 +95,8 @@ def test_chart_padding_holds_covered_values_only(cylinder):
     from texelbake.stages.fallback import fitted_fallback
 
     report = json.loads((cylinder["fitted"].parent / "report.json").read_text())
-    ctx = StageContext.create(default_workdir(), cylinder["src"], BakeSettings(**SMALL))
+    ctx = StageContext.create(default_workdir(), cylinder["src"],
+                              BakeSettings(**SMALL, fallback="fitted"))
     fit = fitted_fallback(ctx, report["fallback_resolution"], 2)
     for lod in range(2):
         cov = fit["covered"][lod]
@@ -116,7 +117,8 @@ def test_averaged_stays_an_option(cylinder):
 
 
 def test_rerun_in_a_fresh_store_is_byte_identical(cylinder, tmp_path):
-    again = _bake(cylinder["src"], tmp_path / "again", workdir=tmp_path / "store")
+    again = _bake(cylinder["src"], tmp_path / "again", workdir=tmp_path / "store",
+                  fallback="fitted")
     files = sorted(p.name for p in cylinder["fitted"].parent.glob("*.png"))
     assert any("specular_lod2" in f for f in files)
     for name in files:
@@ -151,7 +153,7 @@ def test_shading_variant_selected_is_the_one_baked(tmp_path):
                 UsdShade.Material(stage.GetPrimAtPath(mat)))
     vset.SetVariantSelection("blue")
     stage.GetRootLayer().Save()
-    root = _bake(src, tmp_path / "out", mesh_levels=1, lod_switch_px=(32.0,))
+    root = _bake(src, tmp_path / "out", mesh_levels=1, lod_switch_px=(32.0,), fallback="fitted")
     diffuse = read_baked(root).fallback["materials"][0]["textures"]["diffuseColor"]
     mean = diffuse.reshape(-1, 3).mean(axis=0)
     assert mean[2] > 0.5 and mean[0] < 0.2, mean  # the selected variant's blue, not red

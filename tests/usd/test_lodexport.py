@@ -51,8 +51,7 @@ def baked(tmp_path_factory):
     d = tmp_path_factory.mktemp("lods")
     src = write_scene("cylinder", d / "cylinder.usda", "small")
     settings = BakeSettings(samples_per_texel=4, n_light_dirs=4, n_view_dirs=4, n_heldout=4,
-                            c_max=4, lod_switch_px=(32.0, 8.0),  # two LODs (issue 22)
-                            fallback="averaged")
+                            c_max=4, lod_switch_px=(32.0, 8.0))  # two LODs (issue 22)
     return bake(src, d / "out", settings, progress=False)
 
 
