@@ -47,6 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from texelbake.brdf.analytic import preview_surface
+from texelbake.brdf.common import PREVIEW_MIN_ROUGHNESS
 from texelbake.errors import ShapeError
 from texelbake.geometry.basis import tangent_frames
 from texelbake.tol import TOL
@@ -70,8 +71,10 @@ def fit_directions() -> np.ndarray:
 
 #: the view cells: (θ from, θ to, azimuth half-width) in degrees per ring of `fit_directions`
 _CELLS = ((0.0, 20.0, 180.0), (20.0, 50.0, 45.0), (50.0, 80.0, 45.0))
-#: stratified views per cell of the basis (4 x 4)
+#: stratified views per cell of the basis's diffuse term (4 x 4)
 CELL_STRATA = 4
+#: importance-sampled half vectors per texel and light of the basis's lobe (16 x 16)
+IS_STRATA = 16
 
 
 def cell_views(u: np.ndarray) -> np.ndarray:
@@ -146,22 +149,82 @@ def targets(num: np.ndarray, den: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     return np.where(valid[..., None], tgt, 0.0), valid.copy()
 
 
+def cell_of(v: np.ndarray) -> np.ndarray:
+    """The view cell (`cell_views`) of tangent-frame unit directions v (n, 3): (n,) int, -1
+    outside every cell (below 10° of elevation)."""
+    theta = np.degrees(np.arccos(np.clip(v[:, 2], -1.0, 1.0)))
+    phi = np.degrees(np.arctan2(v[:, 1], v[:, 0]))
+    j1 = np.mod(np.round(phi / 90.0), 4).astype(np.int64)
+    j2 = np.mod(np.round((phi - 45.0) / 90.0), 4).astype(np.int64)
+    return np.where(theta < _CELLS[0][1], 0, np.where(
+        theta < _CELLS[1][1], 1 + j1, np.where(theta <= _CELLS[2][1], 5 + j2, -1)))
+
+
+def cell_solid_angles() -> np.ndarray:
+    """(k,) the solid angle of each view cell, sr."""
+    out = []
+    for lo, hi, half in (_CELLS[0],) + (_CELLS[1],) * 4 + (_CELLS[2],) * 4:
+        out.append(2.0 * np.radians(half) * (np.cos(np.radians(lo)) - np.cos(np.radians(hi))))
+    return np.asarray(out)
+
+
+def _specular_cells(normal: np.ndarray, roughness: np.ndarray, params: dict) -> np.ndarray:
+    """Each view cell's mean of f_ps (n·l)⁺ (t, k, k) for specular-only inputs `params` (no
+    diffuse), by importance sampling the GGX lobe (IS_STRATA² stratified half vectors per
+    texel and light, v the reflection of l, pdf D (n·h) / (4 v·h)): the lobe is as narrow as
+    the roughness makes it, which a uniform quadrature of a cell misses."""
+    dirs = fit_directions()
+    t, k = normal.shape[0], dirs.shape[0]
+    g = (np.arange(IS_STRATA) + 0.5) / IS_STRATA
+    u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)  # (S, 2)
+    ns = u.shape[0]
+    fr = tangent_frames(np.asarray(normal, dtype=np.float64))  # rows (t, b, n)
+    li = np.einsum("tij,kj->tki", fr, dirs)  # (t, k, 3) lights in n's frame
+    alpha = np.clip(roughness, PREVIEW_MIN_ROUGHNESS, 1.0) ** 2  # (t,)
+    a2 = (alpha * alpha)[:, None]
+    cos2 = (1.0 - u[None, :, 0]) / (1.0 + (a2 - 1.0) * u[None, :, 0])  # (t, S) GGX cos²θh
+    ch = np.sqrt(cos2)
+    sh = np.sqrt(np.maximum(1.0 - cos2, 0.0))
+    ph = 2.0 * np.pi * u[None, :, 1]
+    h = np.stack([sh * np.cos(ph), sh * np.sin(ph), ch], axis=-1)  # (t, S, 3)
+    lh = np.einsum("tki,tsi->tks", li, h)  # (t, k, S)
+    v = 2.0 * lh[..., None] * h[:, None] - li[:, :, None]  # (t, k, S, 3) reflections
+    d = a2[:, :, None] / (np.pi * (cos2[:, None] * (a2[:, :, None] - 1.0) + 1.0) ** 2)
+    pdf = d * ch[:, None] / np.maximum(4.0 * lh, 1e-300)  # (t, k, S)
+    v_tex = np.einsum("tji,tksj->tksi", fr, v)  # back to the texel frame
+    cell = cell_of(v_tex.reshape(-1, 3)).reshape(t, k, ns)
+    ok = (lh > 0.0) & (v[..., 2] > 0.0) & (cell >= 0)
+    wi = np.broadcast_to(li[:, :, None], v.shape).reshape(-1, 3)
+    rows = {key: np.repeat(val, k * ns) if np.ndim(val) == 1 and len(val) == t else val
+            for key, val in params.items()}
+    f = preview_surface(rows, wi, v.reshape(-1, 3))[:, 0].reshape(t, k, ns)
+    est = np.where(ok, f * np.maximum(li[:, :, None, 2], 0.0) / np.where(ok, pdf, 1.0), 0.0)
+    out = np.zeros((t, k, k))
+    ti, ii, si = np.nonzero(ok)
+    np.add.at(out, (ti, ii, cell[ti, ii, si]), est[ti, ii, si])
+    return out / (ns * cell_solid_angles()[None, None, :])
+
+
 def _basis(normal: np.ndarray, roughness: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The specular workflow's terms a, b, c (t, k, k) of L = d' a + s b + c at each texel's
-    roughness (t,), each a view cell's mean (`basis_views`), radiance per unit irradiance
-    (n·l)⁺ included, from `preview_surface` itself (f at (d, s) = (1, 0), (0, 1), (0, 0)):
-    a texel's shading normal (t, 3) unit."""
+    roughness (t,), each a view cell's mean, radiance per unit irradiance (n·l)⁺ included,
+    from `preview_surface` itself: a (the diffuse, smooth: f at (d, s) = (1, 0) minus (0, 0) on
+    the stratified `basis_views`), b and c (the lobe: f at (0, 1) minus (0, 0), and (0, 0),
+    importance-sampled, `_specular_cells`); a texel's shading normal (t, 3) unit."""
     t, k = normal.shape[0], fit_directions().shape[0]
     wi, wo = _pair_dirs(normal)
     m = wi.shape[0] // (t * k * k)
     cos_l = np.maximum(wi[:, 2], 0.0)
-    out = []
-    for d, s in ((1.0, 0.0), (0.0, 1.0), (0.0, 0.0)):  # three evaluations of the spec's BRDF
-        p = {"useSpecularWorkflow": 1, "diffuseColor": (d, d, d), "specularColor": (s, s, s),
+    diffuse = []
+    for d in (1.0, 0.0):  # the diffuse part on the stratified views
+        p = {"useSpecularWorkflow": 1, "diffuseColor": (d, d, d), "specularColor": (0, 0, 0),
              "roughness": np.repeat(roughness, k * k * m)}
-        out.append((preview_surface(p, wi, wo)[:, 0] * cos_l).reshape(t, k, k, m).mean(axis=3))
-    return out[0] - out[2], out[1] - out[2], out[2]
+        diffuse.append((preview_surface(p, wi, wo)[:, 0] * cos_l).reshape(t, k, k, m).mean(3))
+    lobe = [_specular_cells(normal, roughness, {"useSpecularWorkflow": 1, "diffuseColor": (0, 0, 0),
+                                                "specularColor": (s, s, s),
+                                                "roughness": roughness}) for s in (1.0, 0.0)]
+    return diffuse[0] - diffuse[1], lobe[0] - lobe[1], lobe[1]
 
 
 def _qp_triangle(gaa, gab, gbb, ra, rb):
@@ -237,12 +300,8 @@ def fit_preview(target: np.ndarray, valid: np.ndarray, normal: np.ndarray,
 
 def render_fit(params: dict[str, np.ndarray], normal: np.ndarray) -> np.ndarray:
     """L(l, v) (t, k, k, 3) of fitted specular-workflow inputs (`fit_preview`'s keys) on the
-    set, each view cell's mean, from `preview_surface` per texel: what the fit reproduces."""
-    t, k = normal.shape[0], fit_directions().shape[0]
-    wi, wo = _pair_dirs(normal)
-    m = wi.shape[0] // (t * k * k)
-    rep = np.repeat(np.arange(t), k * k * m)
-    p = {"useSpecularWorkflow": 1, "diffuseColor": params["diffuseColor"][rep],
-         "specularColor": params["specularColor"][rep], "roughness": params["roughness"][rep]}
-    cos_l = np.maximum(wi[:, 2], 0.0)
-    return (preview_surface(p, wi, wo) * cos_l[:, None]).reshape(t, k, k, m, 3).mean(axis=3)
+    set, each view cell's mean as the fit computes it (`_basis`): what the fit reproduces."""
+    a, b, c = _basis(np.asarray(normal, dtype=np.float64), params["roughness"])
+    s = params["specularColor"]
+    x = params["diffuseColor"] * (1.0 - s)
+    return a[..., None] * x[:, None, None] + b[..., None] * s[:, None, None] + c[..., None]

@@ -26,7 +26,7 @@ from texelbake.tol import TOL
 SAMPLE_CHUNK = 8192
 #: texels per chunk of the fit (81 pairs x 16 views x 3 BRDF evaluations each)
 TEXEL_CHUNK = 1024
-FIT_VERSION = "fit-v6"
+FIT_VERSION = "fit-v7"
 _TAG_VIEWS = 0x6F
 
 
