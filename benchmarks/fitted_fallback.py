@@ -111,13 +111,18 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", type=Path, default=Path("bench_out/fitted_fallback"))
     ap.add_argument("--json", type=Path, default=ROOT / "benchmarks/results/fitted_fallback.json")
     args = ap.parse_args(argv)
-    results = []
+    results: list[dict] = []
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    partial = args.json.with_suffix(".partial.json")
     for sc in [s for s in args.scenes.split(",") if s]:
         src = write_scene(sc, args.work / "src" / f"{sc}_full.usda", "full")
         results.append(bench_asset(sc, src, args.work / sc, args.size, args.ref_spp, args.spp))
+        partial.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")  # so far
     for path in args.asset:
         results.append(bench_asset(path.stem, path, args.work / path.stem, args.size,
                                    args.ref_spp, args.spp))
+        partial.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
+    partial.unlink(missing_ok=True)
     notes = []
     for r in results:
         for row in r["lods"]:

@@ -2,7 +2,8 @@
 
 The target of a texel is its filtered reflectance over a fixed set of light directions and
 view cells in the tangent frame of the LOD surface (`fit_directions`, `cell_views`: each
-sample sees a view drawn in each cell, the basis averages a stratified set), from dense
+sample sees a view drawn in each cell; the fit's basis takes each cell's mean, the diffuse on
+a stratified set of views, the lobe by importance sampling, `_specular_cells`), from dense
 samples of M_org with shadowing and masking (seed 000, Eq. 7 evaluated on the samples):
 
     T(l, v) = Σ_s A_s f_s(l, v) V_s(l) (n_s·l)⁺ V_s(v) (n_g,s·v)⁺ / Σ_s A_s V_s(v) (n_g,s·v)⁺

@@ -156,7 +156,8 @@ def fitted_fallback(ctx: StageContext, res: int, n_lods: int,
         nrm = np.where(ok[:, None], n_l3, [0.0, 0.0, 1.0])
         nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
         rough = np.asarray(roughness[lvl], dtype=np.float64).reshape(-1)[uniq]
-        fit = {n: [] for n in ("diffuseColor", "specularColor", "roughness", "residual")}
+        fit: dict[str, list[np.ndarray]] = {
+            n: [] for n in ("diffuseColor", "specularColor", "roughness", "residual")}
         for a in range(0, uniq.size, TEXEL_CHUNK):  # chunks of texels (memory bound)
             tgt, valid = targets(num_l[a:a + TEXEL_CHUNK], den_l[a:a + TEXEL_CHUNK], k)
             part = fit_preview(tgt, valid, nrm[a:a + TEXEL_CHUNK], rough[a:a + TEXEL_CHUNK])
@@ -168,9 +169,9 @@ def fitted_fallback(ctx: StageContext, res: int, n_lods: int,
                           strict=True):
             vals = np.concatenate(fit[src]) if fit[src] else np.zeros((0,))
             c = 3 if src in ("diffuseColor", "specularColor") else 1
-            img = np.zeros((n_l * n_l, c))
-            img[uniq] = vals.reshape(-1, c)
-            img = img.reshape(n_l, n_l, c)
+            flat = np.zeros((n_l * n_l, c))
+            flat[uniq] = vals.reshape(-1, c)
+            img = flat.reshape(n_l, n_l, c)
             if n != "residual":
                 img = nearest_fill(img, filled.reshape(n_l, n_l))
             arrays[f"{n}{i}"] = (img if c == 3 else img[..., 0]).astype(np.float32)
