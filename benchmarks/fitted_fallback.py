@@ -79,7 +79,7 @@ def bench_asset(name: str, src: Path, work: Path, size: int, ref_spp: int, spp: 
         row["modes"]["cpm"] = _errors(cpm.image, ref.image, ref.coverage, cpm.coverage)
         for mode, sc in scenes.items():
             t0 = time.perf_counter()
-            img, _, cov = accumulate(cam, spp, 0, lambda o, d, sc=sc, cam=cam:
+            img, _, cov = accumulate(cam, spp, 0, lambda o, d, sc=sc, cam=cam, lod=lod:
                                      shade_preview_surface(sc, cam, lod, o, d, spp))
             row["modes"][f"preview-{mode}"] = {
                 **_errors(img, ref.image, ref.coverage, cov),
