@@ -174,6 +174,11 @@ class BakeSettings(BaseModel):
         4, "optional stages",
         "Extra BRDF draws per direction cell when btf_table is 'cell'.", ge=1, le=256)
     previews: bool = _field(False, "optional stages", "Render previews after export.")
+    fallback: Literal["averaged", "fitted"] = _field(
+        "averaged", "optional stages",
+        "How each LOD's UsdPreviewSurface fallback gets its inputs: 'fitted' per texel so that "
+        "the preview surface reproduces the texel's filtered reflectance, 'averaged' from the "
+        "area means of the source material's inputs with a widened roughness.")
     # deformed frames (seed 002 §4): an animated preview after export, when there is motion
     warp: str = _field(
         "", "optional stages",

@@ -27,6 +27,9 @@ from texelbake.model import AssetModel
 LAYOUT_ONLY = {"previews", "warp", "deform_frames", "worker_memory_mb", "gate_snr_median_db",
                "gate_snr_p5_db", "gate_avis_rel_error"}  # the gate's targets are re-checked on
 # every export; warp and deform_frames change the deformed previews only
+#: settings only the export reads (the fallback material): no other stage's key holds them, so
+#: exports that differ in them share every other artifact
+EXPORT_ONLY = {"fallback"}
 GEOMETRY_FIELDS = (
     "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",
     "enclose_meshes", "m1_method", "lod_mode", "lod_switch_px", "lod_error_px",
@@ -62,7 +65,8 @@ class StageContext:
 
     def key(self, stage: str, name: str, fields: tuple[str, ...] | None = None) -> str:
         if fields is None:
-            fields = tuple(sorted(set(BakeSettings.model_fields) - LAYOUT_ONLY))
+            skip = LAYOUT_ONLY | (set() if stage == "export" else EXPORT_ONLY)
+            fields = tuple(sorted(set(BakeSettings.model_fields) - skip))
         return f"{self.asset_hash[:16]}/{stage}-{self.settings.digest(*fields)}/{name}"
 
     def geometry_key(self) -> str:

@@ -25,6 +25,7 @@ from texelbake.stages.avis import avis_level_chunks, avis_rays
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
+from texelbake.stages.fallback import fitted_inputs
 from texelbake.stages.filtered import fallback_maps, filtered_levels, lod1_frames
 from texelbake.stages.quality import quality_gate
 from texelbake.stages.srf import export_srf
@@ -97,6 +98,8 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
                         "atlas_corner_uvs": geo["m1_corner_uvs"]}
     filtered = filtered_levels(ctx)  # the filtered baseline maps of every level
     fallback = fallback_maps(ctx, filtered)
+    if s.fallback == "fitted":
+        fallback = fitted_inputs(ctx, fallback)
     from texelbake.deform.impostor import impostor_params
 
     for m in meshes:  # seed 002 Table 1 on every vertex of M1..Mn
@@ -126,6 +129,8 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
         # paths only unselected variants name (never read) and textures missing from the asset
         "unreachable_paths": list(asset.unreachable_paths),
         "missing_paths": list(asset.missing_paths),
+        "fallback": {"mode": s.fallback, **({"fit": fallback["fit"]} if "fit" in fallback
+                                            else {})},
         "warnings": [f"asset: {w}" for w in dict.fromkeys(asset.warnings)] + [
             f"level {r['level']}: {r['avis']['texels_above_tolerance']} of "
             f"{r['avis']['ray_texels']} ray-traced texels have a compressed a_vis table more "

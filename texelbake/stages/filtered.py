@@ -126,7 +126,7 @@ def fallback_resolution(ctx: StageContext) -> int:
     return int(min(max(side, n), max(FALLBACK_MAX_RESOLUTION, n)))
 
 
-def _nearest_fill(img: np.ndarray, filled: np.ndarray) -> np.ndarray:
+def nearest_fill(img: np.ndarray, filled: np.ndarray) -> np.ndarray:
     """Empty texels take the value of the nearest filled one (one Euclidean distance
     transform: the chart padding and the page between charts, so a viewer's bilinear and mip
     look-ups never blend in empty texels)."""
@@ -138,29 +138,39 @@ def _nearest_fill(img: np.ndarray, filled: np.ndarray) -> np.ndarray:
     return img[idx[0], idx[1]]
 
 
-def _fallback_samples(ctx: StageContext, res: int):
-    """The fallback page's dense samples on M_org (FALLBACK_SAMPLES_PER_TEXEL per texel of a
-    res x res page), their geometric normals (m, 3) and their texels on M_T's layout (the
-    geometry stage's rule, the bent-normal rule on wraps)."""
+def fallback_samples(ctx: StageContext, res: int) -> dict:
+    """The fallback page's dense samples: FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on
+    M_org (seeded), placed on M_T like the geometry stage's (`assign_texels`, the bent-normal
+    rule on wraps): {"smp" (geometry.sampling samples), "gnrm" (m, 3) their triangles'
+    normals, "row", "col" (m,) their texel on the res² page, "prim" (m,) the LOD1 face they
+    show on, "frames" (f, 3, 3) LOD1's tangent frames, "lod1_vertices", "lod1_faces"}."""
+    from texelbake.baselines.normal_maps import face_tangent_space
     from texelbake.geometry.atlas import Atlas
+    from texelbake.geometry.build import lod_meshes
     from texelbake.geometry.mesh import Mesh, face_normals
+    from texelbake.geometry.raycast import RayCaster
     from texelbake.geometry.sampling import sample_surface
     from texelbake.geometry.texels import assign_texels
 
+    s = ctx.settings
     geo = ctx.geometry()
     asset = ctx.asset()
+    caster = ctx.caster()
     smp = sample_surface(asset.points, asset.faces, res * res * FALLBACK_SAMPLES_PER_TEXEL,
-                         ctx.settings.seed * 1000 + _TAG_FALLBACK,
-                         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
-                         face_material=asset.face_material)
+                         s.seed * 1000 + _TAG_FALLBACK, corner_normals=asset.corner_normals,
+                         corner_uvs=asset.corner_uvs, face_material=asset.face_material)
     gnrm = face_normals(asset.points, asset.faces)[smp.face]
     m_t = Mesh(geo["m1_vertices"], geo["m1_faces"])
     atlas = Atlas(m_t, geo["m1_corner_uvs"], res, np.arange(m_t.num_vertices),
                   np.zeros(m_t.num_faces, np.int64), 1)
     wrapped = float(geo["m1_wrap_offset"]) > 0.0
     asg = assign_texels(smp.positions, m_t, atlas, 1, normals=gnrm,
-                        occluder=ctx.caster() if wrapped else None)
-    return smp, gnrm, asg
+                        occluder=caster if wrapped else None)
+    v, f, uv = lod_meshes(geo)[0]
+    prim = asg.prim if bool(geo["lod_exact"]) else RayCaster(v, f).closest_points(
+        smp.positions)[1]
+    return {"smp": smp, "gnrm": gnrm, "row": asg.row, "col": asg.col, "prim": prim,
+            "frames": face_tangent_space(v, f, uv), "lod1_vertices": v, "lod1_faces": f}
 
 
 def fallback_opacity(ctx: StageContext, res: int) -> np.ndarray | None:
@@ -171,23 +181,23 @@ def fallback_opacity(ctx: StageContext, res: int) -> np.ndarray | None:
     cutout = ctx.caster().cutout
     if cutout is None:
         return None
-    smp, _, asg = _fallback_samples(ctx, res)
+    fs = fallback_samples(ctx, res)
+    smp = fs["smp"]
     kept = ~cutout.cut_uv(smp.face, smp.uv)
-    t0 = asg.row * res + asg.col
+    t0 = fs["row"] * res + fs["col"]
     area = np.bincount(t0, weights=smp.area, minlength=res * res)
     solid = np.bincount(t0, weights=smp.area * kept, minlength=res * res)
     out = np.divide(solid, area, out=np.ones(res * res), where=area > 0)
     return out.reshape(res, res).astype(np.float32)
 
 
-def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray], np.ndarray]:
+def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray], np.ndarray]:
     """The filtered maps (CHANNELS) of every level of a res x res page on the atlas layout,
     from FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on M_org placed on M_T like the
     geometry stage's (`assign_texels`, the bent-normal rule on wraps), and the level-0 tangent-
     space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
     artifact store."""
     from texelbake.baselines.filtered_maps import CHANNELS, FIELDS
-    from texelbake.geometry.raycast import RayCaster
 
     n_levels = int(np.log2(res)) + 1
     key = ctx.key("filtered", f"fallback-v3-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
@@ -196,22 +206,17 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
         data = ctx.store.read_arrays(key)
         return [data[f"L{lvl:02d}"] for lvl in range(n_levels)], data["normal"]
     s = ctx.settings
-    geo = ctx.geometry()
     asset = ctx.asset()
     caster = ctx.caster()
-    smp, gnrm, asg = _fallback_samples(ctx, res)
-    from texelbake.baselines.normal_maps import face_tangent_space
-    from texelbake.geometry.build import lod_meshes
-
-    v, f, uv = lod_meshes(geo)[0]
-    frames = face_tangent_space(v, f, uv)
-    prim = asg.prim if bool(geo["lod_exact"]) else RayCaster(v, f).closest_points(
-        smp.positions)[1]
-    local = np.einsum("mij,mj->mi", frames[prim], smp.normals)
+    fs = fallback_samples(ctx, res)
+    smp, gnrm, prim = fs["smp"], fs["gnrm"], fs["prim"]
+    v, f = fs["lod1_vertices"], fs["lod1_faces"]
+    asg_row, asg_col = fs["row"], fs["col"]
+    local = np.einsum("mij,mj->mi", fs["frames"][prim], smp.normals)
     ao = ambient_occlusion(smp.positions, gnrm, caster.occluded, n_rays=FALLBACK_AO_RAYS,
                            seed=s.seed, ray_eps=TOL.ray_offset * caster.bbox_diag)
     albedo, base, alpha2 = material_base(asset.materials, smp.material.astype(np.int32), smp.uv)
-    texels = [(asg.row >> lvl) * (res >> lvl) + (asg.col >> lvl) for lvl in range(n_levels)]
+    texels = [(asg_row >> lvl) * (res >> lvl) + (asg_col >> lvl) for lvl in range(n_levels)]
     # bake_filtered_levels fills empty texels by repeated 4-neighbour passes (fine at 16²);
     # here one nearest-texel fill per level, so the filled flags are recomputed
     maps = []
@@ -220,7 +225,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
         img = bake_filtered_levels(n_l, 1, [texels[lvl]], smp.area, local, ao, albedo, base,
                                    alpha2, fill=False)[0]
         filled = np.bincount(texels[lvl], weights=smp.area, minlength=n_l * n_l) > 0
-        maps.append(_nearest_fill(img, filled.reshape(n_l, n_l)).astype(np.float32))
+        maps.append(nearest_fill(img, filled.reshape(n_l, n_l)).astype(np.float32))
     # the base colour as seen from outside: a sample counts only when a ray from it along the
     # normal of the LOD1 face it shows on leaves M_org (so a part enclosed by another, like
     # BoxAnimated's inner box whose samples project onto the outer walls, does not tint what
@@ -239,7 +244,7 @@ def _dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray
     filled0 = np.bincount(t0, weights=smp.area, minlength=res * res) > 0
     top = maps[0].reshape(res * res, -1)
     top[seen, FIELDS["base"]] = base_seen[seen]
-    maps[0] = _nearest_fill(np.where(filled0[:, None], top, 0.0).reshape(res, res, -1),
+    maps[0] = nearest_fill(np.where(filled0[:, None], top, 0.0).reshape(res, res, -1),
                             filled0.reshape(res, res)).astype(np.float32)
     nbar = maps[0][..., FIELDS["nbar"]].astype(np.float64)
     normal = nbar / np.maximum(np.linalg.norm(nbar, axis=2, keepdims=True), 1e-12)
@@ -257,7 +262,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
 
     The textures' side is `fallback_resolution`: when it is above the
     atlas resolution the maps are baked from their own dense samples on the same layout
-    (`_dense_fallback_levels`) and the fallback gets its own normal map ("normal"); else
+    (`dense_fallback_levels`) and the fallback gets its own normal map ("normal"); else
     they are the filtered levels `maps` and the normal map is the baseline's."""
     from texelbake.baselines.filtered_maps import (
         FIELDS,
@@ -274,7 +279,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     res = fallback_resolution(ctx)
     normal = None
     if res > ctx.settings.atlas_resolution:
-        maps, normal = _dense_fallback_levels(ctx, res)
+        maps, normal = dense_fallback_levels(ctx, res)
     texel = _texel_size(geo, res)  # world size of a texel of the fallback page on M1
     errors = [0.0]
     for v, f, _ in lod_meshes(geo)[1:]:  # a loop over the few LODs (the lod{i} keys)

@@ -18,12 +18,14 @@ from texelbake.usd.shaderdefs import author_shader
 def author_preview_material(
     stage: Usd.Stage, path: str, albedo_file: str, normal_file: str, cpm_scope: str,
     roughness_file: str | None = None, occlusion_file: str | None = None,
-    constants: dict[str, Any] | None = None, *, opacity_file: str | None = None,
+    constants: dict[str, Any] | None = None, specular_file: str | None = None, *,
+    opacity_file: str | None = None,
 ) -> UsdShade.Material:
     """UsdPreviewSurface with the baked maps (what any viewer shows): diffuseColor and normal,
     and when given roughness and occlusion (single-channel) textures and constant inputs
-    carried from the source material; texelbake's CPM shader on the `texelbake` render
-    context. With `opacity_file` (single-channel) the surface is a cut-out: opacity from it,
+    carried from the source material, and a specularColor texture (sRGB, for the specular
+    workflow) when given; texelbake's CPM shader on the `texelbake` render context. With
+    `opacity_file` (single-channel) the surface is a cut-out: opacity from it,
     opacityThreshold 0.5."""
     mat = UsdShade.Material.Define(stage, path)
     reader = UsdShade.Shader.Define(stage, f"{path}/stReader")
@@ -47,6 +49,9 @@ def author_preview_material(
         ("normal", normal_file, "raw", "rgb", Sdf.ValueTypeNames.Float3,
          Sdf.ValueTypeNames.Normal3f, (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0)),
     ]
+    if specular_file is not None:
+        textures.append(("specularColor", specular_file, "sRGB", "rgb", Sdf.ValueTypeNames.Float3,
+                         Sdf.ValueTypeNames.Color3f, None, None))
     if opacity_file is not None:
         surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
     for name, file in (("roughness", roughness_file), ("occlusion", occlusion_file),

@@ -81,6 +81,12 @@ def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
         for i, r in enumerate(fb["roughness"], start=1):
             files["roughness"].append(f"{name}_roughness_lod{i}.png")
             _write_png(out_dir / files["roughness"][-1], np.asarray(r)[..., None], srgb=False)
+        # fitted: each LOD its own diffuse and specular colour (specular workflow)
+        for key in ("diffuse", "specular"):
+            files[key] = []
+            for i, img in enumerate(fb.get(key) or [], start=1):
+                files[key].append(f"{name}_{key}_lod{i}.png")
+                _write_png(out_dir / files[key][-1], np.asarray(img), srgb=True)
     return files
 
 
@@ -152,11 +158,14 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     UsdGeom.Scope.Define(pstage, "/Baked/Looks")
     for i, mesh in enumerate(baked.meshes, start=1):
         if baked.fallback:  # one fallback per LOD: its roughness is widened for that LOD
+            fitted = bool(files["diffuse"])
             mat = author_preview_material(
-                pstage, fallback_material_path(i), f"./{files['base']}",
+                pstage, fallback_material_path(i),
+                f"./{files['diffuse'][i - 1]}" if fitted else f"./{files['base']}",
                 f"./{files['fallback_normal']}",
                 "/Baked/CPM", f"./{files['roughness'][i - 1]}", f"./{files['occlusion']}",
                 baked.fallback.get("constants"),
+                specular_file=f"./{files['specular'][i - 1]}" if fitted else None,
                 opacity_file=f"./{files['opacity']}" if "opacity" in files else None)
         elif i == 1:
             mat = author_preview_material(

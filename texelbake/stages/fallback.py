@@ -1,0 +1,218 @@
+"""The fitted UsdPreviewSurface fallback of every LOD (`texelbake.baselines.fitted_fallback`):
+the filtered reflectance of the fallback page's dense samples (`filtered.fallback_samples`)
+over the fit's direction set, shadowing and masking by rays against M_org, summed per texel
+of level 0 and box-summed to each LOD's level, then fitted per texel. Kept in the artifact
+store (the rays and the fit are the cost)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from texelbake.baselines.fitted_fallback import (
+    cell_views,
+    fit_directions,
+    fit_preview,
+    sample_terms,
+    targets,
+)
+from texelbake.brdf.evaluate import evaluate_by_face
+from texelbake.cpm.level import segment_sum
+from texelbake.errors import StageError
+from texelbake.geometry.basis import tangent_frames
+from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
+from texelbake.tol import TOL
+
+#: samples per chunk of the target sums (k² = 81 BRDF rows and k rays per sample)
+SAMPLE_CHUNK = 8192
+#: texels per chunk of the fit (81 pairs x 16 views x 3 BRDF evaluations each)
+TEXEL_CHUNK = 1024
+FIT_VERSION = "fit-v7"
+_TAG_VIEWS = 0x6F
+
+
+def lod_texture_levels(ctx: StageContext, res: int, n_lods: int) -> list[int]:
+    """The level of the res² page whose texels each LOD's fitted textures carry: the side at
+    which a texel is at most a pixel where LOD i switches in (`lod_switch_px[i - 1]`, the
+    rule of `filtered.fallback_resolution` for LOD1), as a power of two ≤ res; a LOD past the
+    switch sizes (or 'atlas' mode) takes the last one's level."""
+    n_levels = int(np.log2(res)) + 1
+    px = list(ctx.settings.lod_switch_px) if ctx.settings.lod_mode == "error" else []
+    out = []
+    for i in range(n_lods):  # a loop over the few LODs
+        if not px:
+            out.append(0)
+            continue
+        sw = float(px[min(i, len(px) - 1)])
+        lvl = int(np.floor(np.log2(float(px[0]) / sw)))  # the page is sized for LOD1
+        out.append(int(np.clip(lvl, 0, n_levels - 1)))
+    return out
+
+
+def _sample_sums(ctx: StageContext, fs: dict, res: int, dirs: np.ndarray):
+    """Level-0 sums over the page's covered texels: (covered (c,) texel ids, num (c, k·k·3),
+    den (c, k), normal sums (c, 3) in the LOD1 tangent frame, area (c,))."""
+    smp = fs["smp"]
+    k = dirs.shape[0]
+    t0 = fs["row"].astype(np.int64) * res + fs["col"]
+    order = np.argsort(t0, kind="stable")
+    covered = np.unique(t0)
+    caster = ctx.caster()
+    mats = ctx.asset().materials
+    eps = TOL.ray_offset * caster.bbox_diag
+    # each sample's view in each cell, seeded (the same draws whatever the chunking)
+    u_view = np.random.default_rng([ctx.settings.seed, _TAG_VIEWS]).random((t0.size, k, 2))
+    g = TOL.grazing_cos
+    kk = k * k * 3
+    total = np.zeros((covered.size, kk + k + 4))
+    for a in range(0, order.size, SAMPLE_CHUNK):  # chunks of samples (memory bound)
+        sel = order[a:a + SAMPLE_CHUNK]
+        m = sel.size
+        fr = fs["frames"][fs["prim"][sel]]  # (m, 3, 3) rows (t, b, n) of LOD1's face
+        dl = np.einsum("mji,kj->mki", fr, dirs)  # (m, k, 3) world lights
+        dv = np.einsum("mji,mkj->mki", fr, cell_views(u_view[sel]))  # a view in each cell
+        nrm, gn = smp.normals[sel], fs["gnrm"][sel]
+        origins = smp.positions[sel] + eps * gn
+        vis = []
+        for dw in (dl, dv):  # lights, then views
+            cos_s = np.einsum("mj,mkj->mk", nrm, dw)
+            cos_g = np.einsum("mj,mkj->mk", gn, dw)
+            live = (cos_s > g) & (cos_g > g)
+            pi, di = np.nonzero(live)
+            occ = caster.occluded_pairs(origins, dw.reshape(-1, 3), pi, pi * k + di)
+            v = live.astype(np.float64)
+            v[pi[occ], di[occ]] = 0.0
+            vis.append(v * (cos_s if dw is dl else cos_g))
+        vis_l, vis_v = vis
+        sf = tangent_frames(nrm)  # each sample's shading frame
+        loc_l = np.einsum("mij,mkj->mki", sf, dl)
+        loc_v = np.einsum("mij,mkj->mki", sf, dv)
+        s_i, i_i, o_i = np.nonzero((vis_l[:, :, None] > 0) & (vis_v[:, None, :] > 0))
+        f = np.zeros((m, k, k, 3))
+        if s_i.size:
+            f[s_i, i_i, o_i] = evaluate_by_face(
+                mats, smp.material[sel][s_i].astype(np.int64), loc_l[s_i, i_i], loc_v[s_i, o_i],
+                smp.uv[sel], sample_index=s_i)
+        num, den = sample_terms(f, vis_l, vis_v, smp.area[sel])
+        n_loc = np.einsum("mij,mj->mi", fr, nrm) * smp.area[sel][:, None]
+        rows = np.searchsorted(covered, t0[sel])  # ascending: the samples are in texel order
+        starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+        total[rows[starts]] += np.add.reduceat(
+            np.concatenate([num, den, n_loc, smp.area[sel][:, None]], axis=1), starts, axis=0)
+    return covered, total[:, :kk], total[:, kk:kk + k], total[:, kk + k:kk + k + 3], total[:, -1]
+
+
+def fitted_fallback(ctx: StageContext, res: int, n_lods: int,
+                    roughness: list[np.ndarray] | None = None) -> dict:
+    """Per LOD the fitted specular-workflow inputs on its level of the res² page, at the
+    widened roughness `roughness[lvl]` ((n_l, n_l), every level of the page; None: read back
+    from the store only), empty texels
+    filled from the nearest covered one (chart padding: mip levels never blend the page's
+    background): {"diffuse": [(n_i, n_i, 3)], "specular": [(n_i, n_i, 3)], "roughness":
+    [(n_i, n_i)], "residual": [(n_i, n_i)] (0 where uncovered), "covered": [(n_i, n_i) bool]
+    the texels samples fell in, "levels": [int], "normal"
+    (res, res, 3) the level-0 unit normal map the fit shaded with, "stats": per LOD
+    residual quantiles, "seconds": the fit's time (None when read from the store)}."""
+    import time
+
+    levels = lod_texture_levels(ctx, res, n_lods)
+    key = ctx.key("filtered", f"{FIT_VERSION}-{res}-s{'-'.join(map(str, levels))}.npz",
+                  GEOMETRY_FIELDS)
+    names = ("diffuse", "specular", "roughness", "residual")
+    if ctx.store.exists(key):
+        d = ctx.store.read_arrays(key)
+        out = {n: [d[f"{n}{i}"] for i in range(n_lods)] for n in names}
+        return {**out, "levels": levels, "normal": d["normal"],
+                "covered": [d[f"covered{i}"] for i in range(n_lods)],
+                "stats": [_stats(d[f"residual{i}"], d[f"covered{i}"]) for i in range(n_lods)],
+                "seconds": None}
+    if roughness is None:
+        raise StageError(f"fitted fallback {key} is not in the store and no roughness was given")
+    from texelbake.stages.filtered import fallback_samples, nearest_fill
+
+    start = time.perf_counter()
+    dirs = fit_directions()
+    k = dirs.shape[0]
+    fs = fallback_samples(ctx, res)
+    covered, num, den, nsum, area = _sample_sums(ctx, fs, res, dirs)
+    arrays: dict[str, np.ndarray] = {}
+    ok0 = (np.linalg.norm(nsum, axis=1) > 0) & (nsum[:, 2] > 0)
+    n0 = np.where(ok0[:, None], nsum, [0.0, 0.0, 1.0])
+    img0 = np.zeros((res * res, 3))
+    img0[covered] = n0 / np.linalg.norm(n0, axis=1, keepdims=True)
+    filled0 = np.zeros(res * res, bool)
+    filled0[covered] = True
+    arrays["normal"] = nearest_fill(img0.reshape(res, res, 3),
+                                     filled0.reshape(res, res)).astype(np.float32)
+    for i, lvl in enumerate(levels):  # a loop over the few LODs
+        n_l = res >> lvl
+        ids = (covered // res >> lvl) * n_l + (covered % res >> lvl)
+        order = np.argsort(ids, kind="stable")
+        uniq = np.unique(ids)
+        seg = np.searchsorted(uniq, ids[order])
+        num_l = segment_sum(num[order], seg, uniq.size, 0)
+        den_l = segment_sum(den[order], seg, uniq.size, 0)
+        n_l3 = segment_sum(nsum[order], seg, uniq.size, 0)
+        ok = (np.linalg.norm(n_l3, axis=1) > 0) & (n_l3[:, 2] > 0)
+        nrm = np.where(ok[:, None], n_l3, [0.0, 0.0, 1.0])
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        rough = np.asarray(roughness[lvl], dtype=np.float64).reshape(-1)[uniq]
+        fit: dict[str, list[np.ndarray]] = {
+            n: [] for n in ("diffuseColor", "specularColor", "roughness", "residual")}
+        for a in range(0, uniq.size, TEXEL_CHUNK):  # chunks of texels (memory bound)
+            tgt, valid = targets(num_l[a:a + TEXEL_CHUNK], den_l[a:a + TEXEL_CHUNK], k)
+            part = fit_preview(tgt, valid, nrm[a:a + TEXEL_CHUNK], rough[a:a + TEXEL_CHUNK])
+            for n in fit:
+                fit[n].append(part[n])
+        filled = np.zeros(n_l * n_l, bool)
+        filled[uniq] = True
+        for n, src in zip(names, ("diffuseColor", "specularColor", "roughness", "residual"),
+                          strict=True):
+            vals = np.concatenate(fit[src]) if fit[src] else np.zeros((0,))
+            c = 3 if src in ("diffuseColor", "specularColor") else 1
+            flat = np.zeros((n_l * n_l, c))
+            flat[uniq] = vals.reshape(-1, c)
+            img = flat.reshape(n_l, n_l, c)
+            if n != "residual":
+                img = nearest_fill(img, filled.reshape(n_l, n_l))
+            arrays[f"{n}{i}"] = (img if c == 3 else img[..., 0]).astype(np.float32)
+        arrays[f"covered{i}"] = filled.reshape(n_l, n_l)
+    ctx.store.write_arrays(key, arrays)
+    out = fitted_fallback(ctx, res, n_lods, roughness)  # as a rerun reads it
+    return {**out, "seconds": round(time.perf_counter() - start, 1)}
+
+
+def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
+    """The fitted inputs replacing the averaged fallback's (`filtered.fallback_maps`, whose
+    page and constants they share): per LOD diffuse, specular and roughness maps at its
+    level (the roughness widened from each level's filtered maps, as the averaged fallback's),
+    the fit's own normal map, the specular workflow, and the residual statistics for the
+    report."""
+    from texelbake.baselines.filtered_maps import FIELDS, fallback_roughness, slope_covariance
+    from texelbake.stages.filtered import dense_fallback_levels, filtered_levels
+
+    res = int(averaged["resolution"])
+    maps = (dense_fallback_levels(ctx, res)[0] if res > ctx.settings.atlas_resolution
+            else filtered_levels(ctx))
+    rough = []
+    for m_l in maps:  # a loop over the few levels
+        m = m_l.reshape(-1, m_l.shape[2]).astype(np.float64)
+        cov = slope_covariance(m[:, FIELDS["m1"]], m[:, FIELDS["m2"]])
+        rough.append(fallback_roughness(m[:, FIELDS["alpha2"]][:, 0], cov).reshape(
+            m_l.shape[:2]))
+    fit = fitted_fallback(ctx, res, len(averaged["roughness"]), rough)
+    keep = {k: v for k, v in averaged["constants"].items() if k in ("opacity", "emissiveColor")}
+    return {**averaged, "diffuse": fit["diffuse"], "specular": fit["specular"],
+            "roughness": fit["roughness"], "normal": fit["normal"],
+            "constants": {**keep, "useSpecularWorkflow": 1}, "levels": fit["levels"],
+            "fit": {"residual": fit["stats"], "seconds": fit["seconds"]}}
+
+
+def _stats(residual: np.ndarray, covered: np.ndarray) -> dict:
+    """Quantiles of the relative RMS residual over a LOD's covered texels."""
+    r = np.asarray(residual, dtype=np.float64)[np.asarray(covered, bool)]
+    if r.size == 0:
+        return {"texels": 0}
+    q = np.quantile(r, [0.5, 0.95])
+    return {"texels": int(r.size), "median": round(float(q[0]), 4),
+            "p95": round(float(q[1]), 4), "max": round(float(r.max()), 4),
+            "above_0.5": round(float(np.mean(r > 0.5)), 4)}
