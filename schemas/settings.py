@@ -130,6 +130,10 @@ class BakeSettings(BaseModel):
         "batched", "fit",
         "'batched' fits many texels at once from their Gram matrices, 'per_texel' fits one "
         "texel at a time on its matrix as the seed.")
+    texel_classes: Literal["by_need", "points"] = _field(
+        "by_need", "fit",
+        "'by_need' stores a texel with one facet, one material response and one visibility "
+        "pattern as one exact point before any fit, 'points' fits every texel as the seed.")
     identical_columns: Literal["keep", "merge"] = _field(
         "merge", "fit",
         "'merge' fits candidates with identical columns as one weighted column, 'keep' fits "
