@@ -68,7 +68,11 @@ def _exact_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np
                            minlength=n_e)
         snr = np.array([heldout_snr(ref[t], apx[t], avis_h[t], area[t])
                         for t in range(n_e)])  # loop over texels: one SNR each
-    return {
+    s = lp.src.settings
+    # the batched fit's optional arrays, so that every tile's level has the same keys
+    extra = {"merged": np.zeros(n_e, np.int32)} \
+        if s.identical_columns == "merge" and s.fit_method == "batched" else {}
+    return extra | {
         "texel": texels[ex], "offsets": np.arange(n_e + 1, dtype=np.int64),
         "point_sample": point.astype(np.int64), "point_weight": w32,
         "k": np.ones(n_e, np.int32), "c": np.ones(n_e, np.int32),
