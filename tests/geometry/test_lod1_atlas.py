@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from texelbake.geometry.build import CHART_COVER, lod1_atlas
 from tests.helpers.meshes import plane_grid
+from texelbake.geometry.build import CHART_COVER, lod1_atlas
 
 
 def _need(area: float, diag: float, px: float) -> int:

@@ -103,7 +103,7 @@ def merge_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
                                              for p, b in zip(parts, base, strict=False)])
     for k in LEVEL_TOTALS:
         if any(k in p for p in parts):
-            out[k] = sum(p[k] for p in parts if k in p)
+            out[k] = np.sum([p[k] for p in parts if k in p], axis=0)
     return sort_by_texel(out)
 
 
