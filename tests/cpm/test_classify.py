@@ -221,3 +221,26 @@ def test_setting_chooses_the_path(mode, tmp_path):
     out = fit_level(src, 0, texels, level_candidates(src, 0, texels, None))
     assert np.any(out["skip"] == EXACT_SKIP) == (mode == "by_need")
     assert out["valid"].all()
+
+
+def test_classes_do_not_depend_on_the_memory_chunks(monkeypatch):
+    """`classes_bounded` with one texel per chunk (a huge per-entry size) gives the classes,
+    points and weights of one chunk (the whole scene with a shadowed and a folded texel)."""
+    from texelbake.cpm import level_by_need
+
+    p, f = SQUARE
+    wall = np.array([[0.3, 0, 0], [0.3, 0.5, 0], [0.3, 0.5, 0.4], [0.3, 0, 0.4]], float)
+    mesh = (np.concatenate([p, wall]), np.concatenate([f, [[4, 5, 6], [4, 6, 7]]]))
+    pos = _grid_samples()
+    nrm = _up(len(pos))
+    nrm[(pos[:, 0] > 0.75) & (pos[:, 1] > 0.5)] = [0.0, np.sin(0.3), np.cos(0.3)]
+    src = _inputs(pos, nrm, mesh=mesh)
+    lp = LevelPass.of(src, 0)
+    texels = np.arange(4, dtype=np.int64)
+    dense, dseg = dense_of(lp, texels)
+    whole = level_by_need.classes_bounded(lp, texels, dense, dseg)
+    monkeypatch.setattr(level_by_need, "BYTES_PER_CLASS_ENTRY", 10**12)
+    parts = level_by_need.classes_bounded(lp, texels, dense, dseg)
+    for a, b in zip(whole, parts, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert not whole[0][0] and not whole[0][3]

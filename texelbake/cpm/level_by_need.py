@@ -14,12 +14,17 @@ from collections.abc import Callable
 
 import numpy as np
 
-from texelbake.cpm.classify import classify_texels
+from texelbake.cpm.classify import CHECK_LIGHTS, CHECK_VIEWS, classify_texels
 from texelbake.cpm.dense import LevelPass, dense_of, heldout_from_samples, heldout_snr
 from texelbake.cpm.level import LEVEL_TOTALS, FitInputs, PointSet, sort_by_texel
+from texelbake.cpm.level_batched import chunk_bounds
 
 #: the `skip` code of an exact texel (after level_batched.SKIP_CODES' 0-3)
 EXACT_SKIP = 4
+
+#: bytes per (sample, direction or check pair) while texels are classed: world directions,
+#: visibility and cosines, the BRDF and its copies (float64)
+BYTES_PER_CLASS_ENTRY = 8 * 12
 
 FitFn = Callable[[np.ndarray, PointSet], dict[str, np.ndarray]]
 
@@ -33,11 +38,11 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     t0 = time.perf_counter()
     lp = LevelPass.of(src, level)
     dense, dseg = dense_of(lp, texels)
-    cls = classify_texels(lp, texels, dense, dseg)
-    ex = np.flatnonzero(cls.exact)
-    exact = _exact_arrays(lp, texels, dense, dseg, ex, cls.point[ex], cls.weight[ex])
+    is_exact, point, weight = classes_bounded(lp, texels, dense, dseg)
+    ex = np.flatnonzero(is_exact)
+    exact = _exact_arrays(lp, texels, dense, dseg, ex, point[ex], weight[ex])
     t1 = time.perf_counter()
-    rest = texels[~cls.exact]
+    rest = texels[~is_exact]
     parts = [exact]
     if rest.size:
         keep = np.isin(candidates.texel, rest)
@@ -46,6 +51,27 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     out = merge_levels(parts)
     out["class_seconds"] = np.array([t1 - t0, t2 - t1])
     return out
+
+
+def classes_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`classify_texels` over chunks of texels whose samples' temporaries fit the worker's
+    memory budget (a texel's samples are never split): (exact (t,) bool, point (t,) int64,
+    weight (t, 3) float64)."""
+    n_t = len(texels)
+    n_dense = np.bincount(dseg, minlength=n_t)
+    starts = np.r_[0, np.cumsum(n_dense)]
+    n_dirs = len(lp.dirs["dirs_i"]) + len(lp.dirs["dirs_o"])
+    cap = max(lp.budget // (BYTES_PER_CLASS_ENTRY * (n_dirs + 3 * CHECK_LIGHTS * CHECK_VIEWS)),
+              1)
+    exact = np.zeros(n_t, bool)
+    point = np.full(n_t, -1, np.int64)
+    weight = np.zeros((n_t, 3))
+    for a, b in chunk_bounds(n_dense, cap):  # loop over chunks (memory bound)
+        sl = slice(starts[a], starts[b])
+        c = classify_texels(lp, texels[a:b], dense[sl], dseg[sl] - a)
+        exact[a:b], point[a:b], weight[a:b] = c.exact, c.point, c.weight
+    return exact, point, weight
 
 
 def _exact_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
