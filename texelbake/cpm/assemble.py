@@ -52,7 +52,8 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
 def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     """The level's texels by class (`texelbake.cpm.level_by_need`): "exact" (one point, no
     fit) and "points" (the seed's fit), each with its texels, its seconds and its held-out
-    SNR. Empty when the bake classed no texel (texel_classes="points", or a top level)."""
+    SNR. Empty when the bake classed no texel (texel_classes="points", or a coarse level:
+    texels are classed at the finest)."""
     if "class_seconds" not in data:
         return {}
     exact = data["skip"][valid] == EXACT_SKIP

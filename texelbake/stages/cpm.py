@@ -64,9 +64,12 @@ def fit_level(
         return fit_level_batched(src, level, tex, cands, sums, counts)
 
     with threadpool_limits(limits=1):
-        # the exact class needs the texels' dense samples (not the top levels' sums) and
-        # no BTF table (an exact texel builds no F to sum)
-        if s.texel_classes == "by_need" and sums is None and not s.btf:
+        # texels are classed at the finest level, which every tiling holds inside its tiles
+        # (a coarse level is a top level for small tiles, fitted from sums without its dense
+        # samples: classing it would make the result depend on shard_texels); the coarse
+        # levels choose among their children's points, an exact child's one point included.
+        # No BTF table: an exact texel builds no F to sum
+        if s.texel_classes == "by_need" and level == 0 and sums is None and not s.btf:
             out = fit_level_by_need(src, level, texels, candidates, seed_fit)
         else:
             out = seed_fit(texels, candidates)
