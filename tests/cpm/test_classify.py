@@ -49,6 +49,7 @@ def _inputs(pos: np.ndarray, nrm: np.ndarray, mesh=SQUARE, materials=(LAMBERT,),
         "sample_area": np.full(m, 1.0 / m) if area is None else area,
         "sample_row": row, "sample_col": col,
         "frames_L0": tangent_frames(np.tile([[0.0, 0.0, 1.0]], (4, 1))),
+        "frames_L1": tangent_frames(np.array([[0.0, 0.0, 1.0]])),
     }
     return FitInputs(SETTINGS, geo, RayCaster(*mesh), list(materials))
 
@@ -221,6 +222,11 @@ def test_setting_chooses_the_path(mode, tmp_path):
     out = fit_level(src, 0, texels, level_candidates(src, 0, texels, None))
     assert np.any(out["skip"] == EXACT_SKIP) == (mode == "by_need")
     assert out["valid"].all()
+    # the report's per-class seconds: classing and the exact texels, then the fit of the rest
+    assert ("class_seconds" in out) == (mode == "by_need")
+    # a coarse level is never classed (its texels are a top level for small tiles)
+    coarse = fit_level(src, 1, np.zeros(1, np.int64), level_candidates(src, 1, np.zeros(1, np.int64), out))
+    assert not np.any(coarse["skip"] == EXACT_SKIP)
 
 
 def test_classes_do_not_depend_on_the_memory_chunks(monkeypatch):
