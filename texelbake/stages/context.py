@@ -95,7 +95,6 @@ def _asset_digest(path: str, mtime_ns: int) -> str:
     return h.hexdigest()
 
 
-@functools.lru_cache(maxsize=2)
 def asset_of(asset_path: Path) -> AssetModel:
     """The asset at `asset_path` as every stage reads it (cached per file and mtime)."""
     path = Path(asset_path).resolve()
@@ -104,6 +103,7 @@ def asset_of(asset_path: Path) -> AssetModel:
     return _load_asset_cached(str(path), _asset_digest(str(path), path.stat().st_mtime_ns))
 
 
+@functools.lru_cache(maxsize=2)
 def _load_asset_cached(path: str, digest: str) -> AssetModel:
     """The asset as every stage reads it, its warnings kept in `AssetModel.warnings` and not
     shown: the ingest stage shows them once (`run_ingest`), the report lists them, and a
