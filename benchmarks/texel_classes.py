@@ -71,8 +71,8 @@ def main() -> None:
                      "snr_heldout_fitted": percentiles(np.array(ho_pt), SNR_EXACT_DB),
                      "snr_heldout_all": percentiles(np.array(ho_ex + ho_pt), SNR_EXACT_DB)}
         a = out[mode]["snr_heldout_all"]
-        print(f"{args.scene} {args.atlas}^2 L0 {len(tiles)} tiles  {mode:8s} {sec:8.1f} s  "
-              f"exact {ex:5d}  fitted {len(ho_pt):5d}  held-out all: median "
+        print(f"{args.scene} {args.atlas}^2 L0 {len(tiles)} tiles  {mode:8s} {sec:8.1f} s "
+              f"({cpu:7.1f} CPU s)  exact {ex:5d}  fitted {len(ho_pt):5d}  held-out all: median "
               f"{a.get('p50', float('nan')):7.2f} p5 {a.get('p5', float('nan')):7.2f} dB  "
               f"exact min {min(ho_ex) if ho_ex else float('nan'):7.2f} dB", flush=True)
     if args.json:
