@@ -67,7 +67,10 @@ if __name__ == "__main__":
     from pathlib import Path
 
     from schemas.settings import BakeSettings
-    from texelbake.pipeline.run import bake
+    try:
+        from texelbake.pipeline.run import bake  # today's layout
+    except ImportError:
+        from texelbake.pipeline import bake  # 982477e: one pipeline module
 
     scene, out, settings_json, timings, jobs = sys.argv[1:6]
     summary = sys.argv[7] if len(sys.argv) > 7 and sys.argv[6] == "--json" else None

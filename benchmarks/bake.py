@@ -264,6 +264,18 @@ def scene_file(name: str, size: str, work: Path) -> Path:
     return write_scene(name, work / f"{name}_{size}.usda", size)
 
 
+def _sets(items: list[str]) -> dict:
+    """`--set FIELD=VALUE` items as settings fields (JSON values, else strings)."""
+    out: dict = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value  # a string field, e.g. hierarchy=dense
+    return out
+
+
 def compare(args: argparse.Namespace) -> None:
     """This tree against an older one (`--against`, e.g. a worktree of c15cea2), back to back
     in one session on the same scene and settings: texels/s per level (fitted texels over the
@@ -276,7 +288,8 @@ def compare(args: argparse.Namespace) -> None:
     settings = {"atlas_resolution": atlas, "shard_texels": min(BakeSettings().shard_texels, atlas)}
     here = Path(__file__).resolve().parents[1]
     old = run_child(args.against.resolve(), scene, work / "old", settings, JOBS)
-    new = run_child(here, scene, work / "new", settings, JOBS)
+    # --set: fields for this tree's bake only (the older tree may not know them)
+    new = run_child(here, scene, work / "new", settings | _sets(args.set), JOBS)
     print(f"\n{args.scene} ({args.size}) {atlas}x{atlas}, {JOBS} processes; load (1-min) "
           f"old {old['load_before']}->{old['load_after']}, new {new['load_before']}->"
           f"{new['load_after']} on 2 cores")
@@ -383,7 +396,8 @@ def main() -> None:
     ap.add_argument("--spt", type=int, default=None,
                     help="samples per finest texel (default: the bake's default)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                    help="a BakeSettings field for the main bake (repeatable), e.g. eps_db=40")
+                    help="a BakeSettings field for the main bake (repeatable), e.g. eps_db=40; "
+                    "with --against, for this tree's bake only")
     ap.add_argument("--sweep", action="store_true", help="also vary each main knob alone")
     ap.add_argument("--workdir", type=Path, default=None)
     ap.add_argument("--compare-hierarchy", action="store_true",
@@ -409,12 +423,7 @@ def main() -> None:
                     shard_texels=min(BakeSettings().shard_texels, args.atlas))
     if args.spt is not None:
         base["samples_per_texel"] = args.spt
-    for item in args.set:
-        key, _, value = item.partition("=")
-        try:
-            base[key] = json.loads(value)
-        except json.JSONDecodeError:
-            base[key] = value  # a string field, e.g. hierarchy=dense
+    base.update(_sets(args.set))
     settings = BakeSettings(**base)
     defaults = BakeSettings().model_dump()
     changed = sorted(k for k, v in settings.model_dump().items()

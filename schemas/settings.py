@@ -50,7 +50,15 @@ class BakeSettings(BaseModel):
         0, "geometry", "Seed of every random choice of the bake, so reruns are byte-identical.",
         ge=0, le=MAX_SEED)
     atlas_resolution: int = _field(
-        16, "geometry", "Side of the finest CPM level in texels over the atlas (a power of two).",
+        16, "geometry", "Side of the finest CPM level in texels over the atlas (a power of two), "
+        "baked as given when atlas_mode is 'fixed'.",
+        ge=2, le=4096)
+    atlas_mode: Literal["fixed", "lod1"] = _field(
+        "fixed", "geometry",
+        "'fixed' bakes atlas_resolution, 'lod1' the smallest power of two at which a finest "
+        "texel is at most one pixel where LOD1 switches in, up to atlas_cap.")
+    atlas_cap: int = _field(
+        1024, "geometry", "Largest atlas side atlas_mode 'lod1' may choose (a power of two).",
         ge=2, le=4096)
     lod_mode: Literal["error", "atlas"] = _field(
         "error", "geometry",
@@ -130,6 +138,10 @@ class BakeSettings(BaseModel):
         "batched", "fit",
         "'batched' fits many texels at once from their Gram matrices, 'per_texel' fits one "
         "texel at a time on its matrix as the seed.")
+    texel_classes: Literal["by_need", "points"] = _field(
+        "by_need", "fit",
+        "'by_need' stores a texel with one facet, one material response and one visibility "
+        "pattern as one exact point before any fit, 'points' fits every texel as the seed.")
     identical_columns: Literal["keep", "merge"] = _field(
         "merge", "fit",
         "'merge' fits candidates with identical columns as one weighted column, 'keep' fits "
@@ -204,7 +216,7 @@ class BakeSettings(BaseModel):
 
     @model_validator(mode="after")
     def _check(self) -> BakeSettings:
-        for name in ("atlas_resolution", "avis_resolution", "shard_texels"):
+        for name in ("atlas_resolution", "atlas_cap", "avis_resolution", "shard_texels"):
             v = getattr(self, name)
             if v & (v - 1):
                 raise ValueError(f"{name} must be a power of two, got {v}")

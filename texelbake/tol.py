@@ -21,6 +21,10 @@ class Tolerances:
     # visible projected area
     avis_floor: float = 1e-9          # relative to texel area: a_vis below is "fully masked"
     exact_fit_db: float = 100.0       # a fit this close to the grid's Eq. 7 is exact (rank 1)
+    # one-point texels (texelbake.cpm.classify): normals within 1e-6 rad (1 - cos) change each
+    # cosine of Eq. 7 by at most 1e-6 relative, 20 dB under exact_fit_db's 1e-5 amplitude
+    exact_normal: float = 5e-13
+    exact_brdf: float = 1e-6          # relative residual of f_r(x_j) - s_j f_r(x_ref): 120 dB
     # directions
     grazing_cos: float = 1e-6         # n.w below this counts as below the horizon
     # brdf

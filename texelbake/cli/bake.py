@@ -68,8 +68,11 @@ def _print_summary(root: Path) -> None:
         print(f"LOD chain: {report['lods']['stopped']}")
     cpm = report.get("cpm_atlas") or {}
     if cpm.get("max_px"):
-        line = (f"CPM atlas {cpm['resolution']}²: its maps serve the asset up to "
-                f"{cpm['max_px']:.0f} px across (larger on screen: M_org)")
+        line = (f"CPM atlas {cpm['resolution']}² (atlas_mode {cpm.get('mode', 'fixed')}"
+                + (f", cap {cpm['cap']}²{': reached' if cpm.get('cap_reached') else ''}"
+                   if cpm.get("mode") == "lod1" else "")
+                + f"): its maps serve the asset up to {cpm['max_px']:.0f} px across (larger "
+                f"on screen: M_org)")
         if cpm.get("for_lod1") and cpm["for_lod1"] > cpm["resolution"]:
             line += (f"; to serve LOD1's switch size it would need {cpm['for_lod1']}², "
                      f"{cpm['cost_ratio']:.0f}x this bake's cost by the cost model")

@@ -10,6 +10,7 @@ import numpy as np
 from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.avis.compress import LevelChunks, chunks_of, compress_chunks
 from texelbake.cpm.avis.table import avis_table_arrays
+from texelbake.cpm.level_by_need import EXACT_SKIP
 
 #: an SNR of +inf (an exact reproduction) enters the report's percentiles as this many dB:
 #: float64 round-off alone stays below ~313 dB, so no measured value reaches it
@@ -46,6 +47,21 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     return {name: {"texels": int(np.sum(skip == code)),
                    "snr_heldout_db": percentiles(ho[skip == code], SNR_EXACT_DB)}
             for code, name in ((2, "per_texel"), (3, "all_points"))}
+
+
+def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
+    """The level's texels by class (`texelbake.cpm.level_by_need`): "exact" (one point, no
+    fit) and "points" (the seed's fit), each with its texels, its seconds and its held-out
+    SNR. Empty when the bake classed no texel (texel_classes="points", or a coarse level:
+    texels are classed at the finest)."""
+    if "class_seconds" not in data:
+        return {}
+    exact = data["skip"][valid] == EXACT_SKIP
+    ho = data["snr_ho"][valid]
+    sec = data["class_seconds"]
+    return {name: {"texels": int(np.sum(sel)), "seconds": round(float(t), 3),
+                   "snr_heldout_db": percentiles(ho[sel], SNR_EXACT_DB)}
+            for name, sel, t in (("exact", exact, sec[0]), ("points", ~exact, sec[1]))}
 
 
 def _merged(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
@@ -122,6 +138,8 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "snr_heldout_db": percentiles(data["snr_ho"][valid], SNR_EXACT_DB),
         "per_channel_texels": int(np.sum(data["mode"][valid] == 1)),
         "skips": _skips(data, valid),
+        # texels classed by need: exact ones stored as one point, the rest fitted
+        "classes": _classes(data, valid),
         # identical_columns="merge": texels with identical candidates, and the candidates
         # fitted as copies of others (columns the Grams and eigendecompositions did not hold)
         "merged": _merged(data, valid),

@@ -235,8 +235,14 @@ def level_candidates(
     )
 
 
+#: a level's per-level totals (the rays its fit cast, the seconds per texel class of
+#: `texelbake.cpm.level_by_need`): summed over tiles, never reordered by texel
+LEVEL_TOTALS = ("rays", "class_seconds")
+
+
 def concat_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """Concatenate per-tile results of one level (CSR offsets re-based)."""
+    """Concatenate per-tile results of one level (CSR offsets re-based; `LEVEL_TOTALS`
+    summed)."""
     out: dict[str, np.ndarray] = {}
     base = 0
     offs = [np.zeros(1, np.int64)]
@@ -247,6 +253,8 @@ def concat_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     for k in parts[0]:
         if k == "rays":
             out[k] = np.array([sum(int(p[k].sum()) for p in parts if k in p)], np.int64)
+        elif k in LEVEL_TOTALS:
+            out[k] = np.sum([p[k] for p in parts if k in p], axis=0)
         elif k != "offsets":
             out[k] = np.concatenate([p[k] for p in parts])
     return out
@@ -261,9 +269,8 @@ def sort_by_texel(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     point_idx = (np.arange(int(counts.sum())) - np.repeat(base, counts)
                  + np.repeat(starts, counts))
     out = {k: v[order] for k, v in data.items()
-           if k not in ("offsets", "point_sample", "point_weight", "rays")}
-    if "rays" in data:
-        out["rays"] = data["rays"]
+           if k not in ("offsets", "point_sample", "point_weight", *LEVEL_TOTALS)}
+    out.update({k: data[k] for k in LEVEL_TOTALS if k in data})
     out["offsets"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     out["point_sample"] = data["point_sample"][point_idx.astype(np.int64)]
     out["point_weight"] = data["point_weight"][point_idx.astype(np.int64)]

@@ -239,7 +239,10 @@ def atlas_trade(settings: BakeSettings, lod_report: dict,
     need = atlas.get("atlas_resolution_for_lod1")
     n = settings.atlas_resolution
     est = estimate(settings).seconds
+    # atlas_mode "lod1" bakes `for_lod1` up to the cap: the cap is reached when it bakes less
     out = {"resolution": n, "max_px": atlas.get("cpm_max_px"), "for_lod1": need,
+           "mode": settings.atlas_mode, "cap": settings.atlas_cap,
+           "cap_reached": bool(settings.atlas_mode == "lod1" and need and need > n),
            "estimated_seconds": est, "estimated_seconds_for_lod1": None, "cost_ratio": None,
            "projected_seconds_for_lod1": None}
     if need:

@@ -247,11 +247,28 @@ def _zorder_spooled(spool, m: int, n: int, counts: np.ndarray, chunk: int) -> np
 def _resolution_needed(area: float, diag: float, switch_px: float | None) -> int | None:
     """The atlas side at which a finest texel is at most one pixel where LOD1 switches in
     (its diagonal covers switch_px pixels): N >= switch_px sqrt(area / CHART_COVER) / diag,
-    rounded up to a power of two. Reported, not applied: atlas_resolution stays a setting."""
+    rounded up to a power of two. Applied by atlas_mode "lod1" (`lod1_atlas`), reported
+    always."""
     if not switch_px or not diag > 0 or not area > 0:
         return None
     need = float(switch_px) * math.sqrt(area / CHART_COVER) / diag
     return int(2 ** math.ceil(math.log2(max(need, 2.0))))
+
+
+def lod1_atlas(points: np.ndarray, faces: np.ndarray, switch_px: float, cap: int
+               ) -> tuple[int, int | None]:
+    """(n, need): the atlas side `need` at which a finest texel of M_org (points (v, 3),
+    faces (f, 3)) is at most one pixel where LOD1 switches in (`_resolution_needed`, None for
+    an empty or flat-to-a-point asset), and the side baked: need capped at `cap` (a power of
+    two), the largest size the cap allows."""
+    pts = np.asarray(points, dtype=np.float64)
+    tri = pts[np.asarray(faces, dtype=np.int64)]  # (f, 3, 3)
+    area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
+                                      axis=1).sum()) if len(tri) else 0.0
+    need = _resolution_needed(area, bbox_diagonal(pts) if len(pts) else 0.0, switch_px)
+    if need is None:
+        return int(cap), None
+    return int(min(need, cap)), need
 
 
 def _cpm_max_px(area: float, diag: float, n: int) -> float | None:

@@ -19,6 +19,8 @@ from pathlib import Path
 from schemas.queues import STAGE_QUEUES
 from schemas.settings import BakeSettings
 from texelbake.errors import AssetError, StageError
+from texelbake.geometry.build import lod1_atlas
+from texelbake.stages.context import asset_of
 from texelbake.stages.srf import n_srf_shards
 
 
@@ -47,8 +49,42 @@ def n_tiles(settings: BakeSettings) -> int:
     return side * side
 
 
+def resolve_settings(asset_path: Path, settings: BakeSettings) -> BakeSettings:
+    """The settings a bake runs with: atlas_mode "lod1" replaced by its atlas side (the size
+    at which a finest texel is at most one pixel where LOD1 switches in, capped at atlas_cap;
+    `texelbake.geometry.build.lod1_atlas`), shard_texels kept within it; other settings as
+    given. A deterministic function of the asset and the settings, so every process of a bake
+    (the CLI's, the farm's workers) resolves the same."""
+    if settings.atlas_mode != "lod1":
+        return settings
+    asset = asset_of(asset_path)
+    n, _need = lod1_atlas(asset.points, asset.faces, settings.lod_switch_px[0],
+                          settings.atlas_cap)
+    return BakeSettings.model_validate(settings.model_dump() | {
+        "atlas_resolution": n, "shard_texels": min(settings.shard_texels, n)})
+
+
+def atlas_note(asset_path: Path, settings: BakeSettings) -> str:
+    """One line on the atlas a bake runs with: its side, how it was chosen, whether the cap
+    was reached (atlas_mode "lod1": serving the largest size the cap allows)."""
+    n = resolve_settings(asset_path, settings).atlas_resolution
+    if settings.atlas_mode != "lod1":
+        return f"atlas: {n}x{n} (atlas_mode fixed)"
+    asset = asset_of(asset_path)
+    _n, need = lod1_atlas(asset.points, asset.faces, settings.lod_switch_px[0],
+                          settings.atlas_cap)
+    text = (f"atlas: {n}x{n} (atlas_mode lod1: {need}x{need} puts a finest texel at one pixel "
+            f"at LOD1's switch size, {settings.lod_switch_px[0]:g} px; cap {settings.atlas_cap})")
+    if need is not None and need > n:
+        text += (f"; the cap is reached: serving {n}x{n}, the largest size the cap allows, "
+                 f"which serves LOD1 up to {settings.lod_switch_px[0] * n / need:g} px")
+    return text
+
+
 def plan_bake(asset_path: Path, settings: BakeSettings) -> Plan:
-    """The stages this asset and these settings need, in execution order, with what is skipped."""
+    """The stages this asset and these settings (`resolve_settings`) need, in execution
+    order, with what is skipped."""
+    settings = resolve_settings(asset_path, settings)
     tiles = n_tiles(settings)
     has_top = settings.shard_texels < settings.atlas_resolution
     plan = [

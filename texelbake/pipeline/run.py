@@ -14,7 +14,7 @@ from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.errors import SettingsError, StageError
 from texelbake.pipeline.estimate import bake_estimate
-from texelbake.pipeline.plan import Plan, StagePlan, plan_bake
+from texelbake.pipeline.plan import Plan, StagePlan, atlas_note, plan_bake, resolve_settings
 from texelbake.pipeline.process import setup_bake_process
 
 #: stage -> shard body (the render stage needs the exported folder: `bake` and the farm call
@@ -38,6 +38,7 @@ def run_shard(
 ) -> str:
     """Run one shard of one stage; idempotent. Returns the artifact key it wrote (or found)."""
     setup_bake_process()  # every process that runs shards: local pools, Celery workers
+    settings = resolve_settings(asset_path, settings)
     plan = plan_bake(asset_path, settings)
     sp = plan.stage(stage)
     if not 0 <= shard < sp.n_shards:
@@ -65,6 +66,7 @@ def finalize(workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: P
     with `run_path`, this run's facts there (`stages.write_run`: `stage_seconds`, the farm's
     timings per stage, and `run_extra`), outside the result."""
     setup_bake_process()
+    settings = resolve_settings(asset_path, settings)
     ctx = stages.StageContext.create(Path(workdir), Path(asset_path), settings)
     plan = plan or plan_bake(asset_path, settings)
     root = stages.export_to(ctx, Path(out_dir), plan=plan)
@@ -120,6 +122,9 @@ def bake(
     asset_path = Path(asset_path)
     out_dir = Path(out_dir)
     workdir = Path(workdir) if workdir is not None else default_workdir()
+    if progress:
+        print(atlas_note(asset_path, settings))
+    settings = resolve_settings(asset_path, settings)
     plan = plan_bake(asset_path, settings)
     ctx = stages.StageContext.create(workdir, asset_path, settings)
     seconds: dict[str, float] = {}

@@ -100,6 +100,14 @@ def _asset_digest(path: str, mtime_ns: int) -> str:
     return h.hexdigest()
 
 
+def asset_of(asset_path: Path) -> AssetModel:
+    """The asset at `asset_path` as every stage reads it (cached per file and mtime)."""
+    path = Path(asset_path).resolve()
+    if not path.is_file():
+        raise StageError(f"asset file {path} does not exist")
+    return _load_asset_cached(str(path), _asset_digest(str(path), path.stat().st_mtime_ns))
+
+
 @functools.lru_cache(maxsize=2)
 def _load_asset_cached(path: str, digest: str) -> AssetModel:
     """The asset as every stage reads it, its warnings kept in `AssetModel.warnings` and not

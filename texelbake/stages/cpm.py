@@ -10,7 +10,8 @@ artifact beside its levels), and the top shard adds the tiles' sums in tile orde
 being one worker's serial pass over the whole atlas per top level. A store whose tiles
 predate the sums (or lack one) has the top shard read the samples itself.
 
-`fit_level` is where `BakeSettings.fit_method` chooses the level fit: many texels at once from
+`fit_level` is where `BakeSettings.texel_classes` stores the exact texels as one point each
+(`texelbake.cpm.level_by_need`) and `BakeSettings.fit_method` chooses the level fit of the rest: many texels at once from
 their Gram matrices (`texelbake.cpm.level_batched`) or one texel at a time on its R, the
 seed's loop (`texelbake.cpm.level_per_texel`); same arrays either way."""
 
@@ -32,6 +33,7 @@ from texelbake.cpm.level import (
     tile_texels,
 )
 from texelbake.cpm.level_batched import fit_level_batched
+from texelbake.cpm.level_by_need import fit_level_by_need
 from texelbake.cpm.level_per_texel import cell_fbar_per_texel, fit_level_per_texel
 from texelbake.cpm.texel_fit import FitCounts
 from texelbake.stages.context import StageContext
@@ -56,11 +58,21 @@ def fit_level(
     # multi-threaded OpenBLAS). Parallelism comes from shards / worker processes instead.
     torch.set_num_threads(1)
     rays0 = src.caster.rays_cast
-    with threadpool_limits(limits=1):
+    def seed_fit(tex: np.ndarray, cands: PointSet) -> dict[str, np.ndarray]:
         if s.fit_method == "per_texel":
-            out = fit_level_per_texel(src, level, texels, candidates)
+            return fit_level_per_texel(src, level, tex, cands)
+        return fit_level_batched(src, level, tex, cands, sums, counts)
+
+    with threadpool_limits(limits=1):
+        # texels are classed at the finest level, which every tiling holds inside its tiles
+        # (a coarse level is a top level for small tiles, fitted from sums without its dense
+        # samples: classing it would make the result depend on shard_texels); the coarse
+        # levels choose among their children's points, an exact child's one point included.
+        # No BTF table: an exact texel builds no F to sum
+        if s.texel_classes == "by_need" and level == 0 and sums is None and not s.btf:
+            out = fit_level_by_need(src, level, texels, candidates, seed_fit)
         else:
-            out = fit_level_batched(src, level, texels, candidates, sums, counts)
+            out = seed_fit(texels, candidates)
     out["rays"] = np.array([src.caster.rays_cast - rays0], np.int64)  # work done, for rays/s
     if s.fit_method == "per_texel" and "fbar" in out and level == 0 and s.btf_table == "cell":
         out["fbar"] = cell_fbar_per_texel(src, texels, candidates)

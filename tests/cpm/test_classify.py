@@ -1,0 +1,252 @@
+"""Texels classed by need (`texelbake.cpm.classify`, `texelbake.cpm.level_by_need`): the exact
+class on small hand-built scenes whose truth is known, and each hard case's behaviour.
+
+The scenes: the unit square z = 0 (two coplanar triangles, one chart), a 2 x 2 atlas (texel
+(r, c) is the quadrant floor(2y), floor(2x)), 16 samples per texel on a regular grid."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from schemas.settings import BakeSettings
+from texelbake.brdf.evaluate import diffuse_albedo
+from texelbake.cpm.classify import REASONS, classify_texels
+from texelbake.cpm.dense import LevelPass, dense_of
+from texelbake.cpm.level import FitInputs, level_candidates
+from texelbake.cpm.level_batched import fit_level_batched
+from texelbake.cpm.level_by_need import EXACT_SKIP, fit_level_by_need
+from texelbake.geometry.basis import tangent_frames
+from texelbake.geometry.raycast import RayCaster
+from texelbake.model import Material, Texture
+from texelbake.tol import TOL
+
+SQUARE = (np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float),
+          np.array([[0, 1, 2], [0, 2, 3]]))
+LAMBERT = Material("/m/lambert", "lambert", {"diffuseColor": (0.5, 0.3, 0.2)})
+SETTINGS = BakeSettings(atlas_resolution=2, shard_texels=2, n_light_dirs=16, n_view_dirs=16,
+                        n_heldout=64, c_max=8, n_trials=2, mesh_levels=1)
+
+
+def _grid_samples(k: int = 4) -> np.ndarray:
+    """(4 k^2, 3) sample positions: k x k per quadrant, cell centres."""
+    t = (np.arange(2 * k) + 0.5) / (2 * k)
+    x, y = np.meshgrid(t, t, indexing="xy")
+    return np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+
+
+def _inputs(pos: np.ndarray, nrm: np.ndarray, mesh=SQUARE, materials=(LAMBERT,),
+            mat: np.ndarray | None = None, area: np.ndarray | None = None) -> FitInputs:
+    """FitInputs of samples at `pos` (m, 3) with normals `nrm` (m, 3) (geometric = shading), uv
+    = (x, y), on the 2 x 2 atlas; texel frames about +z; a caster over `mesh`."""
+    m = len(pos)
+    row = np.clip((pos[:, 1] * 2).astype(np.int64), 0, 1)
+    col = np.clip((pos[:, 0] * 2).astype(np.int64), 0, 1)
+    geo = {
+        "sample_pos": pos, "sample_gnrm": nrm, "sample_nrm": nrm.copy(),
+        "sample_mat": np.zeros(m, np.int64) if mat is None else mat,
+        "sample_uv": pos[:, :2].copy(),
+        "sample_area": np.full(m, 1.0 / m) if area is None else area,
+        "sample_row": row, "sample_col": col,
+        "frames_L0": tangent_frames(np.tile([[0.0, 0.0, 1.0]], (4, 1))),
+        "frames_L1": tangent_frames(np.array([[0.0, 0.0, 1.0]])),
+    }
+    return FitInputs(SETTINGS, geo, RayCaster(*mesh), list(materials))
+
+
+def _up(m: int) -> np.ndarray:
+    return np.tile([[0.0, 0.0, 1.0]], (m, 1))
+
+
+def _classes(src: FitInputs):
+    lp = LevelPass.of(src, 0)
+    texels = np.arange(4, dtype=np.int64)
+    dense, dseg = dense_of(lp, texels)
+    return classify_texels(lp, texels, dense, dseg)
+
+
+def _by_need(src: FitInputs) -> dict[str, np.ndarray]:
+    texels = np.arange(4, dtype=np.int64)
+    cands = level_candidates(src, 0, texels, None)
+    return fit_level_by_need(src, 0, texels, cands,
+                             lambda t, c: fit_level_batched(src, 0, t, c))
+
+
+def test_flat_square_every_texel_exact_by_the_geometric_bound():
+    """One facet (two coplanar triangles: the diagonal is a chart-internal border crossing
+    texels 0 and 3), one material, nothing above the plane: every texel is one point of
+    weight its area (0.25, closed form), no ray cast (bounded from the geometry), and the
+    held-out Eq. 7 measures it exact (>= TOL.exact_fit_db)."""
+    pos = _grid_samples()
+    src = _inputs(pos, _up(len(pos)))
+    cls = _classes(src)
+    assert cls.exact.all() and cls.rays == 0
+    np.testing.assert_allclose(cls.weight, 0.25, rtol=1e-12)
+    out = _by_need(src)
+    assert np.all(out["skip"] == EXACT_SKIP) and np.all(np.diff(out["offsets"]) == 1)
+    assert np.all(out["snr_ho"] >= TOL.exact_fit_db)
+
+
+def test_seam_of_two_facets_is_not_exact():
+    """A texel on a fold (two facets of one chart, normals 30 degrees apart) holds samples of
+    both facets: not one facet, so fitted; the flat texels beside it stay exact."""
+    pos = _grid_samples()
+    nrm = _up(len(pos))
+    tilt = np.array([np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))])
+    # texel 0 (x, y < 0.5): its half x > 0.25 is the second facet
+    second = (pos[:, 0] > 0.25) & (pos[:, 0] < 0.5) & (pos[:, 1] < 0.5)
+    nrm[second] = tilt
+    cls = _classes(_inputs(pos, nrm))
+    assert cls.reason[0] == REASONS["facets"]
+    assert cls.exact[1:].all()
+
+
+def test_thin_sheet_seen_from_both_sides():
+    """A two-sided sheet (the square and its back, 1e-4 below): a texel whose samples are one
+    side is exact and measures so; a texel holding samples of both sides (opposite normals)
+    is not one facet, so fitted."""
+    top, back = SQUARE
+    pts = np.concatenate([top, top - [0, 0, 1e-4]])
+    faces = np.concatenate([back, back[:, ::-1] + 4])
+    pos = _grid_samples()
+    nrm = _up(len(pos))
+    # texel 3 (x, y > 0.5): every other sample on the back side, facing down
+    t3 = np.flatnonzero((pos[:, 0] > 0.5) & (pos[:, 1] > 0.5))[::2]
+    pos[t3, 2] = -1e-4
+    nrm[t3] = [0.0, 0.0, -1.0]
+    src = _inputs(pos, nrm, mesh=(pts, faces))
+    cls = _classes(src)
+    assert cls.reason[3] == REASONS["facets"]
+    assert cls.exact[:3].all()
+    out = _by_need(src)
+    ex = out["skip"] == EXACT_SKIP
+    assert np.all(out["snr_ho"][ex] >= TOL.exact_fit_db)
+
+
+def test_partly_shadowed_flat_texel_is_not_exact():
+    """A wall standing on texel 0 (x = 0.3, y < 0.5, 0.4 high): its samples on either side see
+    different directions (two visibility patterns, found by their own rays), so it is fitted;
+    without the wall the same texel is exact."""
+    p, f = SQUARE
+    wall = np.array([[0.3, 0, 0], [0.3, 0.5, 0], [0.3, 0.5, 0.4], [0.3, 0, 0.4]], float)
+    mesh = (np.concatenate([p, wall]), np.concatenate([f, [[4, 5, 6], [4, 6, 7]]]))
+    pos = _grid_samples()
+    cls = _classes(_inputs(pos, _up(len(pos)), mesh=mesh))
+    assert cls.reason[0] == REASONS["visibility"] and cls.rays > 0
+    assert _classes(_inputs(pos, _up(len(pos)))).exact[0]
+
+
+def _ramp(channels: int) -> Texture:
+    """An 8 x 8 texture rising along x (row 0 the top of the image)."""
+    ramp = np.linspace(0.1, 0.9, 8, dtype=np.float32)
+    px = np.broadcast_to(ramp[None, :, None], (8, 8, channels)).copy()
+    if channels == 3:
+        px *= np.array([1.0, 0.7, 0.4], np.float32)
+    return Texture("ramp.png", px, source_color_space="raw")
+
+
+def test_varying_albedo_is_exact_with_the_mean_albedo():
+    """A Lambert albedo texture varying inside each texel: f_r is linear in the albedo, so one
+    point holds the texel with weight A mean(rho) / rho_ref per channel (closed form from the
+    albedo at the samples) and measures exact on the held-out pairs."""
+    mat = Material("/m/tex", "lambert", {}, {"diffuseColor": _ramp(3)})
+    pos = _grid_samples()
+    src = _inputs(pos, _up(len(pos)), materials=(mat,))
+    cls = _classes(src)
+    assert cls.exact.all()
+    rho = diffuse_albedo(mat, pos[:, :2])  # (m, 3)
+    assert np.ptp(rho[:, 0]) > 0.1  # the texture does vary inside a texel
+    tex = src.geo["sample_row"] * 2 + src.geo["sample_col"]
+    for t in range(4):  # four texels
+        own = tex == t
+        expect = src.geo["sample_area"][own] @ rho[own] / rho[cls.point[t]]
+        np.testing.assert_allclose(cls.weight[t], expect, rtol=1e-6)
+    out = _by_need(src)
+    assert np.all(out["skip"] == EXACT_SKIP)
+    assert np.all(out["snr_ho"] >= TOL.exact_fit_db)
+
+
+def test_varying_roughness_is_not_exact():
+    """A UsdPreviewSurface whose roughness (an input f_r is not linear in) varies inside the
+    texels: not one point, so fitted; the same material with a constant roughness is exact."""
+    tex = Material("/m/rough", "preview", {"diffuseColor": (0.4, 0.4, 0.4)},
+                   {"roughness": _ramp(1)})
+    const = Material("/m/const", "preview", {"diffuseColor": (0.4, 0.4, 0.4),
+                                             "roughness": 0.3})
+    pos = _grid_samples()
+    assert np.all(_classes(_inputs(pos, _up(len(pos)), materials=(tex,))).reason
+                  == REASONS["inputs"])
+    src = _inputs(pos, _up(len(pos)), materials=(const,))
+    assert _classes(src).exact.all()
+    assert np.all(_by_need(src)["snr_ho"] >= TOL.exact_fit_db)
+
+
+def test_two_materials_and_a_single_sample():
+    """Texel 0 holds two materials (fitted); texel 1 holds one sample (exact: that sample,
+    its area); texels 2 and 3 stay exact; an empty texel is none."""
+    red = Material("/m/red", "lambert", {"diffuseColor": (0.8, 0.1, 0.1)})
+    pos = _grid_samples()
+    in1 = np.flatnonzero((pos[:, 0] > 0.5) & (pos[:, 1] < 0.5))
+    keep = np.ones(len(pos), bool)
+    keep[in1[1:]] = False  # texel 1 keeps its first sample only
+    pos = pos[keep]
+    mat = np.zeros(len(pos), np.int64)
+    mat[(pos[:, 0] < 0.25) & (pos[:, 1] < 0.5)] = 1
+    area = np.full(len(pos), 1.0 / 64)
+    src = _inputs(pos, _up(len(pos)), materials=(LAMBERT, red), mat=mat, area=area)
+    cls = _classes(src)
+    assert cls.reason[0] == REASONS["material"]
+    assert cls.exact[1:].all()
+    one = np.flatnonzero((pos[:, 0] > 0.5) & (pos[:, 1] < 0.5))
+    assert cls.point[1] == one[0]
+    np.testing.assert_allclose(cls.weight[1], 1.0 / 64)
+    out = _by_need(src)
+    assert out["skip"][0] != EXACT_SKIP and np.all(out["skip"][1:] == EXACT_SKIP)
+    assert np.all(out["snr_ho"][1:] >= TOL.exact_fit_db)
+    empty = _inputs(pos[pos[:, 1] < 0.5], _up(int(np.sum(pos[:, 1] < 0.5))),
+                    materials=(LAMBERT, red), mat=mat[pos[:, 1] < 0.5])
+    assert np.all(_classes(empty).reason[2:] == REASONS["empty"])
+
+
+@pytest.mark.parametrize("mode", ["points", "by_need"])
+def test_setting_chooses_the_path(mode, tmp_path):
+    """`texel_classes="points"` is the seed's fit for every texel (no exact texel stored)."""
+    import dataclasses
+
+    from texelbake.stages.cpm import fit_level
+
+    pos = _grid_samples()
+    src = _inputs(pos, _up(len(pos)))
+    src = dataclasses.replace(src, settings=SETTINGS.model_copy(update={"texel_classes": mode}))
+    texels = np.arange(4, dtype=np.int64)
+    out = fit_level(src, 0, texels, level_candidates(src, 0, texels, None))
+    assert np.any(out["skip"] == EXACT_SKIP) == (mode == "by_need")
+    assert out["valid"].all()
+    # the report's per-class seconds: classing and the exact texels, then the fit of the rest
+    assert ("class_seconds" in out) == (mode == "by_need")
+    # a coarse level is never classed (its texels are a top level for small tiles)
+    coarse = fit_level(src, 1, np.zeros(1, np.int64), level_candidates(src, 1, np.zeros(1, np.int64), out))
+    assert not np.any(coarse["skip"] == EXACT_SKIP)
+
+
+def test_classes_do_not_depend_on_the_memory_chunks(monkeypatch):
+    """`classes_bounded` with one texel per chunk (a huge per-entry size) gives the classes,
+    points and weights of one chunk (the whole scene with a shadowed and a folded texel)."""
+    from texelbake.cpm import level_by_need
+
+    p, f = SQUARE
+    wall = np.array([[0.3, 0, 0], [0.3, 0.5, 0], [0.3, 0.5, 0.4], [0.3, 0, 0.4]], float)
+    mesh = (np.concatenate([p, wall]), np.concatenate([f, [[4, 5, 6], [4, 6, 7]]]))
+    pos = _grid_samples()
+    nrm = _up(len(pos))
+    nrm[(pos[:, 0] > 0.75) & (pos[:, 1] > 0.5)] = [0.0, np.sin(0.3), np.cos(0.3)]
+    src = _inputs(pos, nrm, mesh=mesh)
+    lp = LevelPass.of(src, 0)
+    texels = np.arange(4, dtype=np.int64)
+    dense, dseg = dense_of(lp, texels)
+    whole = level_by_need.classes_bounded(lp, texels, dense, dseg)
+    monkeypatch.setattr(level_by_need, "BYTES_PER_CLASS_ENTRY", 10**12)
+    parts = level_by_need.classes_bounded(lp, texels, dense, dseg)
+    for a, b in zip(whole, parts, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert not whole[0][0] and not whole[0][3]

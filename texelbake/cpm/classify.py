@@ -1,0 +1,183 @@
+"""Texels classed by what they need, before any R is built (DESIGN.md, "model only what a
+scene needs"): a texel whose dense samples share one facet, one material response up to a
+per-channel factor and one visibility pattern is exactly one characteristic point (the
+rank-1 case of seed 000 Eq. 7), so it needs no R, Gram or trial; every other texel goes to
+the seed's fit.
+
+Why one point is exact for such a texel: Eq. 7's numerator is
+sum_j a_j f_r(x_j, w_i, w_o) V(x_j, w_i) (n_j . w_i)+ V(x_j, w_o) (n_j . w_o)+. With every
+n_j equal (one facet: the geometric and the shading normal), V(x_j, .) equal (one visibility
+pattern) and f_r(x_j) = s_j * f_r(x_ref) per channel (one material whose varying inputs f_r is
+proportional to: a constant material, s_j = 1, or a Lambert albedo texture, s_j = rho_j /
+rho_ref), the sum is f_r(x_ref) V (n . w_i)+ V (n . w_o)+ sum_j a_j s_j: one point x_ref
+with weight sum_j a_j s_j per channel (the area times the mean of the linear inputs, relative
+to the point's own), and a_vis = A (n . w_o)+ V(w_o) in closed form. A non-linear input that
+varies (a roughness texture) breaks the proportionality on the check pairs, and the texel is
+fitted.
+
+The tests are sampled, never assumed: the BRDF on `CHECK_LIGHTS` x `CHECK_VIEWS` pairs of the
+training grid, visibility on every training direction (the texel's own rays) unless the
+geometry bounds it (`texelbake.cpm.avis.closed_form.unoccluded_samples`: the whole mesh below
+every sample's tangent plane); the held-out pairs, independent of both, then measure each
+exact texel (`TOL.exact_fit_db`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from texelbake.cpm.avis.closed_form import unoccluded_samples
+from texelbake.cpm.brdf_product import brdf_product
+from texelbake.cpm.dense import LevelPass
+from texelbake.cpm.level import segment_sum, visibility_cos, world_dirs
+from texelbake.tol import TOL
+
+#: light and view directions of the training grid on whose product the BRDF's
+#: proportionality is checked (16 pairs: a varying non-linear input changes f_r's shape over
+#: directions, so it shows on generic pairs)
+CHECK_LIGHTS = 4
+CHECK_VIEWS = 4
+
+#: why a texel is not exact, as stored in `TexelClasses.reason`
+REASONS = {"exact": 0, "empty": 1, "facets": 2, "material": 3, "inputs": 4, "visibility": 5}
+
+
+@dataclass(frozen=True)
+class TexelClasses:
+    """The class of each texel of a chunk: exact (t,) bool; point (t,) int64 the exact
+    texel's one sample (-1 otherwise); weight (t, 3) float64 its per-channel weight; reason
+    (t,) int8 (`REASONS`); rays (int) the visibility rays the test cast."""
+
+    exact: np.ndarray
+    point: np.ndarray
+    weight: np.ndarray
+    reason: np.ndarray
+    rays: int
+
+
+def _seg_all(ok: np.ndarray, seg: np.ndarray, n_t: int) -> np.ndarray:
+    """(n_t,) bool: every row of each segment is ok (an empty segment is True)."""
+    return np.bincount(seg[~ok], minlength=n_t) == 0
+
+
+def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
+                    ) -> TexelClasses:
+    """Class the `texels` (flat ids at lp.level) from their dense samples (`dense` (n,) int64
+    grouped by texel, `dseg` (n,) their texel positions, ascending), module docstring."""
+    src, geo = lp.src, lp.src.geo
+    n_t = len(texels)
+    reason = np.full(n_t, REASONS["exact"], np.int8)
+    count = np.bincount(dseg, minlength=n_t)
+    reason[count == 0] = REASONS["empty"]
+    point = np.full(n_t, -1, np.int64)
+    weight = np.zeros((n_t, 3))
+    if dense.size == 0:
+        return TexelClasses(np.zeros(n_t, bool), point, weight, reason, 0)
+    area = geo["sample_area"][dense]
+    pos = geo["sample_pos"][dense]
+    # the reference sample: the one nearest the texel's area-weighted centroid (lowest id on a
+    # tie), where the renderer shades the point
+    tot = segment_sum(area, dseg, n_t, 0)
+    cen = segment_sum(pos * area[:, None], dseg, n_t, 0) / np.maximum(tot, 1e-300)[:, None]
+    dist = np.einsum("ij,ij->i", pos - cen[dseg], pos - cen[dseg])
+    order = np.lexsort((dense, dist, dseg))
+    first = order[np.r_[True, dseg[order][1:] != dseg[order][:-1]]]  # one row per texel
+    ref_row = np.zeros(n_t, np.int64)
+    ref_row[dseg[first]] = first
+    ref = ref_row[dseg]  # (n,) each sample's reference row
+    # one facet: geometric and shading normals equal to the reference's within the tolerance
+    for name in ("sample_gnrm", "sample_nrm"):
+        nrm = geo[name][dense]
+        ok = np.einsum("ij,ij->i", nrm, nrm[ref]) >= 1.0 - TOL.exact_normal
+        reason[(reason == 0) & ~_seg_all(ok, dseg, n_t)] = REASONS["facets"]
+    mat = geo["sample_mat"][dense]
+    reason[(reason == 0) & ~_seg_all(mat == mat[ref], dseg, n_t)] = REASONS["material"]
+    # one material response up to a per-channel factor s_j, on the check pairs
+    live_t = reason == 0
+    rows = np.flatnonzero(live_t[dseg])
+    s_ratio = np.ones((dense.size, 3))
+    if rows.size:
+        s_rows, ok_f, has = _proportional(lp, texels, dense, dseg, rows, ref)
+        s_ratio[rows] = s_rows
+        bad = ~_seg_all(ok_f, dseg[rows], n_t) | ~(
+            np.bincount(dseg[rows], weights=has.astype(float), minlength=n_t) > 0)
+        reason[(reason == 0) & bad] = REASONS["inputs"]
+    # one visibility pattern: bounded from the geometry, else the texel's own rays
+    rays = 0
+    rows = np.flatnonzero((reason == 0)[dseg])
+    if rows.size:
+        bound = unoccluded_samples(pos[rows], geo["sample_gnrm"][dense[rows]],
+                                   src.caster.points,
+                                   eps=TOL.ray_offset * src.caster.bbox_diag)
+        open_t = _seg_all(bound, dseg[rows], n_t)
+        cast = rows[~open_t[dseg[rows]]]
+        if cast.size:
+            same, rays = _one_pattern(lp, texels, dense, dseg, cast, ref)
+            reason[(reason == 0) & ~_seg_all(same, dseg[cast], n_t)] = REASONS["visibility"]
+    exact = reason == 0
+    point[exact] = dense[ref_row[exact]]
+    # weight: sum_j a_j s_j per channel (the area when the inputs are constant)
+    weight[:] = segment_sum(area[:, None] * s_ratio, dseg, n_t, 0)
+    weight[~exact] = 0.0
+    return TexelClasses(exact, point, weight, reason, rays)
+
+
+def _proportional(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                  rows: np.ndarray, ref: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For the samples `rows` (positions in `dense`): (s (r, 3) the least-squares factor of
+    f_r(x_j) against its reference's per channel on the check pairs, ok (r,) every channel
+    within TOL.exact_brdf of s_j f_r(x_ref), has (r,) the reference is nonzero on some pair)."""
+    src, dirs = lp.src, lp.dirs
+    di = dirs["dirs_i"][:CHECK_LIGHTS]
+    do = dirs["dirs_o"][:CHECK_VIEWS]
+    # every sample of these rows and its reference, evaluated once each
+    need = np.unique(np.r_[rows, ref[rows]])
+    smp = dense[need]
+    tex = texels[dseg[need]]
+    wi = world_dirs(lp.frames, tex, di)
+    wo = world_dirs(lp.frames, tex, do)
+    live = np.ones((len(di), len(do), len(smp)), bool)
+    f = brdf_product(src.geo, src.materials, smp, wi, wo, live)  # (3, p, A, B)
+    # the pairs below a sample's shading or geometric horizon add nothing to Eq. 7
+    sn = src.geo["sample_nrm"][smp]
+    gn = src.geo["sample_gnrm"][smp]
+    up_i = (np.einsum("pk,pak->pa", sn, wi) > TOL.grazing_cos) & \
+        (np.einsum("pk,pak->pa", gn, wi) > TOL.grazing_cos)
+    up_o = (np.einsum("pk,pbk->pb", sn, wo) > TOL.grazing_cos) & \
+        (np.einsum("pk,pbk->pb", gn, wo) > TOL.grazing_cos)
+    f = np.where((up_i[:, :, None] & up_o[:, None, :])[None], f, 0.0)
+    f = f.reshape(3, len(smp), -1).transpose(1, 0, 2)  # (p, 3, K)
+    at = np.searchsorted(need, rows)
+    at_ref = np.searchsorted(need, ref[rows])
+    fj, fr = f[at], f[at_ref]  # (r, 3, K)
+    rr = np.einsum("rck,rck->rc", fr, fr)
+    s = np.einsum("rck,rck->rc", fj, fr) / np.where(rr > 0, rr, 1.0)
+    s = np.where(rr > 0, s, 0.0)
+    res = np.einsum("rck->rc", (fj - s[..., None] * fr) ** 2)
+    scale = np.einsum("rck->r", fj * fj + fr * fr)  # the pair's energy (0: both black)
+    ok = np.all(res <= TOL.exact_brdf ** 2 * np.maximum(scale, 1e-300)[:, None], axis=1)
+    return s, ok, rr.sum(axis=1) > 0
+
+
+def _one_pattern(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                 rows: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, int]:
+    """(same (r,) bool: sample rows[j] is visible on exactly the training directions its
+    reference is, light and view; rays cast), by the samples' own rays."""
+    src, dirs = lp.src, lp.dirs
+    need = np.unique(np.r_[rows, ref[rows]])
+    smp = dense[need]
+    tex = texels[dseg[need]]
+    rays0 = src.caster.rays_cast
+    vis = np.concatenate([
+        visibility_cos(src, smp, world_dirs(lp.frames, tex, dirs["dirs_i"])) > 0,
+        visibility_cos(src, smp, world_dirs(lp.frames, tex, dirs["dirs_o"]), "geometric") > 0,
+    ], axis=1)  # (p, n_i + n_o)
+    at = np.searchsorted(need, rows)
+    at_ref = np.searchsorted(need, ref[rows])
+    return np.all(vis[at] == vis[at_ref], axis=1), src.caster.rays_cast - rays0
+
+
+__all__ = ["CHECK_LIGHTS", "CHECK_VIEWS", "REASONS", "TexelClasses", "classify_texels"]

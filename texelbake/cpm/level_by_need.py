@@ -1,0 +1,136 @@
+"""One CPM level with its texels classed by need first (`texelbake.cpm.classify`): the exact
+texels stored as one point each, measured on the held-out pairs, and only the others given to
+the seed's fit (`level_batched` or `level_per_texel`, as BakeSettings.fit_method chooses).
+
+The level's arrays are those of the fit, for every texel, in texel order, plus
+`class_seconds` (2,) float64: the seconds spent on the exact texels (classing every texel and
+measuring the exact ones) and on the fitted ones. A stored `skip` of `EXACT_SKIP` marks an
+exact texel."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from texelbake.cpm.classify import CHECK_LIGHTS, CHECK_VIEWS, classify_texels
+from texelbake.cpm.dense import LevelPass, dense_of, heldout_from_samples, heldout_snr
+from texelbake.cpm.level import LEVEL_TOTALS, FitInputs, PointSet, sort_by_texel
+from texelbake.cpm.level_batched import chunk_bounds
+
+#: the `skip` code of an exact texel (after level_batched.SKIP_CODES' 0-3)
+EXACT_SKIP = 4
+
+#: bytes per (sample, direction or check pair) while texels are classed: world directions,
+#: visibility and cosines, the BRDF and its copies (float64)
+BYTES_PER_CLASS_ENTRY = 8 * 12
+
+FitFn = Callable[[np.ndarray, PointSet], dict[str, np.ndarray]]
+
+
+def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
+                      fit: FitFn) -> dict[str, np.ndarray]:
+    """The level's arrays for `texels` (flat ids at `level`, ascending): exact texels as one
+    point (`classify_texels`), the rest by `fit(texels, candidates)` (the seed's fit of those
+    texels among their candidates)."""
+    texels = np.asarray(texels, np.int64)
+    t0 = time.perf_counter()
+    lp = LevelPass.of(src, level)
+    dense, dseg = dense_of(lp, texels)
+    is_exact, point, weight = classes_bounded(lp, texels, dense, dseg)
+    ex = np.flatnonzero(is_exact)
+    exact = _exact_arrays(lp, texels, dense, dseg, ex, point[ex], weight[ex])
+    t1 = time.perf_counter()
+    rest = texels[~is_exact]
+    parts = [exact]
+    if rest.size:
+        keep = np.isin(candidates.texel, rest)
+        parts.append(fit(rest, candidates.take(np.flatnonzero(keep))))
+    t2 = time.perf_counter()
+    out = merge_levels(parts)
+    out["class_seconds"] = np.array([t1 - t0, t2 - t1])
+    return out
+
+
+def classes_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`classify_texels` over chunks of texels whose samples' temporaries fit the worker's
+    memory budget (a texel's samples are never split): (exact (t,) bool, point (t,) int64,
+    weight (t, 3) float64)."""
+    n_t = len(texels)
+    n_dense = np.bincount(dseg, minlength=n_t)
+    starts = np.r_[0, np.cumsum(n_dense)]
+    n_dirs = len(lp.dirs["dirs_i"]) + len(lp.dirs["dirs_o"])
+    cap = max(lp.budget // (BYTES_PER_CLASS_ENTRY * (n_dirs + 3 * CHECK_LIGHTS * CHECK_VIEWS)),
+              1)
+    exact = np.zeros(n_t, bool)
+    point = np.full(n_t, -1, np.int64)
+    weight = np.zeros((n_t, 3))
+    for a, b in chunk_bounds(n_dense, cap):  # loop over chunks (memory bound)
+        sl = slice(starts[a], starts[b])
+        c = classify_texels(lp, texels[a:b], dense[sl], dseg[sl] - a)
+        exact[a:b], point[a:b], weight[a:b] = c.exact, c.point, c.weight
+    return exact, point, weight
+
+
+def _exact_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                  ex: np.ndarray, point: np.ndarray, weight: np.ndarray
+                  ) -> dict[str, np.ndarray]:
+    """The fit's arrays for the exact texels at positions `ex` of `texels`: one point each,
+    its held-out SNR against brute-force Eq. 7 over the texel's dense samples."""
+    n_e = ex.size
+    snr = np.full(n_e, np.inf)
+    w32 = weight.astype(np.float32)
+    if n_e and len(lp.dirs["held_i"]):
+        pos = np.full(len(texels), -1, np.int64)
+        pos[ex] = np.arange(n_e)
+        rows = np.flatnonzero(pos[dseg] >= 0)
+        sub_dense, sub_seg = dense[rows], pos[dseg[rows]]
+        # the stored (float32) weights: what the renderer reads
+        ref, apx, avis_h = heldout_from_samples(lp, texels[ex], sub_dense, sub_seg, point,
+                                                np.arange(n_e), w32.astype(np.float64))
+        area = np.bincount(sub_seg, weights=lp.src.geo["sample_area"][sub_dense],
+                           minlength=n_e)
+        snr = np.array([heldout_snr(ref[t], apx[t], avis_h[t], area[t])
+                        for t in range(n_e)])  # loop over texels: one SNR each
+    s = lp.src.settings
+    # the batched fit's optional arrays, so that every tile's level has the same keys
+    extra = {"merged": np.zeros(n_e, np.int32)} \
+        if s.identical_columns == "merge" and s.fit_method == "batched" else {}
+    return extra | {
+        "texel": texels[ex], "offsets": np.arange(n_e + 1, dtype=np.int64),
+        "point_sample": point.astype(np.int64), "point_weight": w32,
+        "k": np.ones(n_e, np.int32), "c": np.ones(n_e, np.int32),
+        # exact on the grid by construction (one facet, one pattern, proportional f_r on the
+        # check pairs); the held-out pairs are the measurement
+        "snr_in": np.full(n_e, np.inf, np.float32), "snr_ho": snr.astype(np.float32),
+        "mode": np.zeros(n_e, np.int8), "valid": np.ones(n_e, bool),
+        "skip": np.full(n_e, EXACT_SKIP, np.int8),
+    }
+
+
+def merge_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Disjoint texel sets' arrays of one level as one, sorted by texel (CSR offsets
+    re-based); a per-texel array one part lacks (the per-texel loop's `skip`, `merged`) is
+    zero there, per-level totals (`LEVEL_TOTALS`) are summed."""
+    n = [len(p["texel"]) for p in parts]
+    keys = sorted({k for p in parts for k in p} - {"offsets", *LEVEL_TOTALS})
+    out: dict[str, np.ndarray] = {}
+    for k in keys:
+        like = next(p[k] for p in parts if k in p)
+        out[k] = np.concatenate([
+            p[k] if k in p else np.zeros((m if k not in ("point_sample", "point_weight")
+                                          else int(p["offsets"][-1]),) + like.shape[1:],
+                                         like.dtype)
+            for p, m in zip(parts, n, strict=True)])
+    base = np.cumsum([0] + [int(p["offsets"][-1]) for p in parts])
+    out["offsets"] = np.concatenate([[0]] + [p["offsets"][1:] + b
+                                             for p, b in zip(parts, base, strict=False)])
+    for k in LEVEL_TOTALS:
+        if any(k in p for p in parts):
+            out[k] = np.sum([p[k] for p in parts if k in p], axis=0)
+    return sort_by_texel(out)
+
+
+__all__ = ["EXACT_SKIP", "fit_level_by_need", "merge_levels"]
