@@ -140,6 +140,11 @@ class BakeSettings(BaseModel):
     avis_keep_fraction: float = _field(
         0.03, "a_vis", "Fraction of a level's dense cube pixels kept as Haar coefficients.",
         gt=0.0, le=1.0)
+    avis_coarse: Literal["children", "dense"] = _field(
+        "children", "a_vis",
+        "Where the fit of a coarse level gets its a_vis: 'children' from its children's summed "
+        "cube maps read at its own directions, 'dense' from rays of every dense sample as the "
+        "seed.")
     avis_selection: Literal["texel", "face"] = _field(
         "texel", "a_vis",
         "How the Haar coefficients are chosen: 'texel' evens the relative error over texels, "

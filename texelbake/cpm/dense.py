@@ -136,11 +136,12 @@ def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
 
 
 def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
-               samples: np.ndarray | None = None) -> DenseSums:
+               samples: np.ndarray | None = None, *, avis: bool = True) -> DenseSums:
     """`DenseSums` of `texels` (flat ids at `level`) over `samples` (ascending ids of samples
     of those texels; default all of them), in sample batches bounded by worker_memory_mb. The
     same passes as the fit's own (`avis_sums`, `held_pass`), so a texel's sums over all its
-    samples equal the fit's."""
+    samples equal the fit's. avis=False leaves `avis_o` zero and casts none of its rays (the
+    caller has it from the children's maps, BakeSettings.avis_coarse)."""
     lp = LevelPass.of(src, level)
     s, geo = src.settings, src.geo
     texels = np.asarray(texels, np.int64)
@@ -153,7 +154,11 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
     order = np.argsort(pos, kind="stable")
     dense, dseg = samples[order], pos[order]
     n_t = len(texels)
-    avis_o, area = avis_sums(lp, texels, dense, dseg)
+    if avis:
+        avis_o, area = avis_sums(lp, texels, dense, dseg)
+    else:
+        avis_o = np.zeros((n_t, len(lp.dirs["dirs_o"])))
+        area = segment_sum(geo["sample_area"][dense], dseg, n_t, 0)
     out = DenseSums.zeros(n_t, lp.dirs)
     ref, avis_h = out.ref, out.avis_h
     if len(lp.dirs["held_i"]):
