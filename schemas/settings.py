@@ -93,6 +93,10 @@ class BakeSettings(BaseModel):
     n_heldout: int = _field(
         256, "fit", "Number of held-out direction pairs per texel on which the fit is scored.",
         ge=0, le=65536)
+    heldout_texels: int = _field(
+        256, "fit",
+        "Number of texels per level, a seeded sample, on which the held-out SNR is measured "
+        "(every texel of a level that has fewer); 0 measures every texel.", ge=0, le=1 << 30)
     psi: float = _field(
         0.97, "fit", "Energy fraction of the selection matrix that fixes its rank k.",
         gt=0.0, le=1.0)
