@@ -34,8 +34,8 @@ def _check(what: str, value: float | None, target: float, higher_is_better: bool
     judged = ci[1] if ci else value
     ok = (value is not None and math.isfinite(value) and judged is not None
           and (judged >= target if higher_is_better else judged <= target))
-    out = {"what": what, "value": value, "target": target,
-           "rule": ">=" if higher_is_better else "<=", "passed": bool(ok)}
+    out: dict[str, object] = {"what": what, "value": value, "target": target,
+                              "rule": ">=" if higher_is_better else "<=", "passed": bool(ok)}
     if ci:
         out["ci"] = list(ci)
         out["judged_on"] = "ci_high"
