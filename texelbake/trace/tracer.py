@@ -73,11 +73,49 @@ def well_stratified(n: int) -> int:
     return 1
 
 
-def accumulate(cam: PinholeCamera, spp: int, seed: int, shade
+def enters_box(o: np.ndarray, d: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(n,) bool: the rays o + t d (t >= 0) meet the axis-aligned box (2, 3) [lo, hi]
+    (the slab test; a zero direction component is inside its slab iff the origin is)."""
+    lo, hi = box[0], box[1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t0 = (lo - o) * inv
+        t1 = (hi - o) * inv
+    # 0 * inf (a zero component with the origin on a slab plane) is NaN: that slab is open
+    near = np.where(np.isnan(t0) | np.isnan(t1), -np.inf, np.minimum(t0, t1)).max(axis=1)
+    far = np.where(np.isnan(t0) | np.isnan(t1), np.inf, np.maximum(t0, t1)).min(axis=1)
+    return (near <= far) & (far >= 0.0)
+
+
+def culled(shade, box: np.ndarray | None):
+    """`shade` on the eye rays that enter `box` (2, 3) only (everything the frame can show
+    lies inside it): the others are background, radiance 0 and no hit, and count as one ray
+    each (the eye ray) without being traced. At the sizes the maps serve most of a frame's
+    eye rays miss the object (an object of 64 px in a 512² frame: ~1 % hit), and tracing and
+    shading them was the frame's cost. box None: `shade` itself."""
+    if box is None:
+        return shade
+
+    def inner(o: np.ndarray, d: np.ndarray):
+        m = enters_box(o, d, box)
+        rad = np.zeros((o.shape[0], 3))
+        hit = np.zeros(o.shape[0], dtype=bool)
+        rays = int(o.shape[0] - m.sum())
+        if m.any():
+            rad[m], r, hit[m] = shade(o[m], d[m])
+            rays += r
+        return rad, rays, hit
+
+    return inner
+
+
+def accumulate(cam: PinholeCamera, spp: int, seed: int, shade, box: np.ndarray | None = None
                ) -> tuple[np.ndarray, int, np.ndarray]:
     """Box-filtered image of `shade(o, d) -> (radiance (n, 3), rays, hit (n,) bool)` over the
-    stratified eye rays of every pass, in slices (no loop per pixel).
+    stratified eye rays of every pass, in slices (no loop per pixel); with `box` (2, 3) the
+    eye rays that miss it are not shaded (`culled`).
     returns (image (h, w, 3), rays cast, coverage (h, w): fraction of eye rays that hit)"""
+    shade = culled(shade, box)
     n_pix = cam.height * cam.width
     acc = np.zeros((n_pix, 3))
     cov = np.zeros(n_pix)
@@ -111,7 +149,8 @@ BUDGET_STEP = 0.5
 MIN_CHUNK_RAYS = 512
 
 
-def progressive(cam: PinholeCamera, seed: int, shade, budget_seconds: float
+def progressive(cam: PinholeCamera, seed: int, shade, budget_seconds: float,
+                box: np.ndarray | None = None
                 ) -> tuple[np.ndarray, int, np.ndarray, float, float]:
     """Render until `budget_seconds` of wall time are spent: every pixel gets one sample, then
     further samples are added in chunks of pixels (whole rows in a seeded random order, so a
@@ -129,6 +168,7 @@ def progressive(cam: PinholeCamera, seed: int, shade, budget_seconds: float
     returns (image (h, w, 3), rays cast, coverage (h, w), mean samples per pixel, seconds)
     """
     t0 = time.perf_counter()
+    shade = culled(shade, box)  # eye rays that miss `box` are not shaded
     n_pix = cam.width * cam.height
     rng = np.random.default_rng([int(seed), 0x52])
     # a partial pass covers whole rows in a random order: spread over the image, and
