@@ -232,10 +232,11 @@ def main(argv: list[str] | None = None) -> dict:
 
         if args.frame < 512:
             ap.error("--frame must be 512 or larger")
+        args.json.parent.mkdir(parents=True, exist_ok=True)
         rep = run(args.scenes.split(","), [int(x) for x in args.object_px.split(",")],
                   args.frame, args.work, args.profile,
-                  lambda name, work: bake_default(name, work, bake_scene))
-        args.json.parent.mkdir(parents=True, exist_ok=True)
+                  lambda name, work: bake_default(name, work, bake_scene),
+                  lambda partial: _write_json(args.json, partial))
         _write_json(args.json, rep)
         return rep
 

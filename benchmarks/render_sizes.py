@@ -10,7 +10,7 @@ along its axis until the bounding box's diagonal spans P pixels (the measure of
 `lod_switch_px`), in a frame of `--frame`² pixels (512² or larger). Every mode (cpm, gt,
 equal-time, normalmap, the filtered baselines leadr+ao etc., preview-surface) at 4 eye rays
 per pixel against a gt reference at `REF_SPP[P]` (fewer eye rays where the object covers
-more pixels: the reference's own noise stays >= 12 dB below gt@4's), PSNR and FLIP over the
+more pixels: the reference's noise power is 1/4 to 1/16 of gt@4's), PSNR and FLIP over the
 object's pixels, the gt sweep and its crossover with cpm@4. `--profile` also profiles gt and
 cpm at every size (cProfile, the renderer's own functions by cumulative time). The JSON's
 `notes` say where cpm@4 does not beat equal-time or leadr+ao, with the measured reason.
@@ -34,7 +34,7 @@ from texelbake.render.scene import load_scene, lod_camera
 from texelbake.trace.camera import dolly
 
 #: reference eye rays per pixel by object size (px)
-REF_SPP = {64: 256, 256: 64, 512: 32}
+REF_SPP = {64: 64, 256: 32, 512: 16}
 SPP = 4
 
 
@@ -63,6 +63,22 @@ def _profile(scene, cam, mode: str, top: int = 12) -> dict:
     return {"mode": mode, "wall_s": round(wall, 4), "top_own": rows[:top]}
 
 
+def _cull_gain(scene, cam) -> dict:
+    """gt@SPP's seconds with the renderer's cull of eye rays that miss the object's box
+    (`trace.tracer.culled`, what every mode does) and without it (every eye ray traced and
+    shaded, as before it), and whether the images are identical."""
+    from texelbake.trace.org import shade_org
+    from texelbake.trace.tracer import accumulate
+
+    with_cull = render_frame(scene, "gt", cam, SPP, 0)
+    t0 = time.perf_counter()
+    img, _, _ = accumulate(cam, SPP, 0, lambda o, d: shade_org(scene, o, d))
+    without = time.perf_counter() - t0
+    return {"gt_seconds_culled": round(with_cull.seconds, 4),
+            "gt_seconds_uncull": round(without, 4),
+            "identical": bool(np.array_equal(with_cull.image, img.astype(np.float32)))}
+
+
 def _notes(scene_name: str, px: int, rep: dict) -> list[str]:
     m = rep["modes"]
     cpm = m["cpm"]
@@ -89,8 +105,9 @@ def _notes(scene_name: str, px: int, rep: dict) -> list[str]:
 
 
 def run(scenes: list[str], sizes: list[int], frame: int, work: Path, profile: bool,
-        bake_fn) -> dict:
-    """Every scene at every size: the report (JSON-ready) and the printed table."""
+        bake_fn, save=None) -> dict:
+    """Every scene at every size: the report (JSON-ready) and the printed table; `save(out)`
+    after every size (a long run keeps what it measured)."""
     out = {"frame": frame, "spp": SPP, "ref_spp": REF_SPP, "sizes": sizes, "scenes": [],
            "notes": [], "bake_settings": "texelbake bake defaults (BakeSettings())"}
     for name in scenes:  # a loop over scenes
@@ -112,6 +129,7 @@ def run(scenes: list[str], sizes: list[int], frame: int, work: Path, profile: bo
             rep["wall_s"] = round(time.perf_counter() - t1, 1)
             rep["object_px"] = px
             rep["atlas"] = scene.n0
+            rep["renderer_cost"] = _cull_gain(scene, cam)
             if profile:
                 rep["profile"] = [_profile(scene, cam, m) for m in ("gt", "cpm")]
             notes = _notes(label, px, rep)
@@ -119,6 +137,8 @@ def run(scenes: list[str], sizes: list[int], frame: int, work: Path, profile: bo
             out["notes"] += notes
             entry["sizes"].append(rep)
             _print(label, px, rep)
+            if save is not None:
+                save({**out, "scenes": out["scenes"] + [entry]})
         out["scenes"].append(entry)
     return out
 
@@ -139,6 +159,10 @@ def _print(label: str, px: int, rep: dict) -> None:
     else:
         print(f"  crossover: gt@{co['gt_spp']} ({co['gt_psnr_db_object']:.2f} dB, "
               f"{co['seconds_ratio']:.2f}x cpm's time)")
+    rc = rep["renderer_cost"]
+    print(f"  renderer: gt@{SPP} {rc['gt_seconds_culled']:.3f} s with the cull, "
+          f"{rc['gt_seconds_uncull']:.3f} s tracing every eye ray (images identical: "
+          f"{rc['identical']})")
     for p in rep.get("profile", []):
         top = ", ".join(f"{r['function'].rsplit(':', 1)[-1]} {r['own_s']:.2f}"
                         for r in p["top_own"][:4])

@@ -71,7 +71,7 @@ def heldout_stats(snr: np.ndarray, population: int) -> dict:
     intervals of the median and the 5th percentile (`quantile_ci`)."""
     x = np.asarray(snr, np.float64)
     x = np.where(np.isposinf(x), SNR_EXACT_DB, x)
-    out = percentiles(x, SNR_EXACT_DB)
+    out: dict = dict(percentiles(x, SNR_EXACT_DB))
     fin = x[np.isfinite(x)]
     out["population"] = int(population)
     if fin.size:

@@ -39,7 +39,7 @@ class OrgScene:
         self.org_face_normals = face_normals(asset.points, asset.faces)
         self.diag = self.org.bbox_diag
         self.ray_eps = TOL.ray_offset * self.diag
-        self.eye_box = self.box_around(np.asarray(asset.points, np.float64))
+        self.eye_box: np.ndarray | None = self.box_around(np.asarray(asset.points, np.float64))
 
     def box_around(self, *points: np.ndarray) -> np.ndarray:
         """(2, 3) [lo, hi] around every point given, padded by 1e-3 of M_org's diagonal:
