@@ -40,3 +40,29 @@ def test_a_small_object_renders_the_same_with_and_without_the_cull():
     np.testing.assert_array_equal(culled.coverage, cov.astype(np.float32))
     assert culled.rays_cast == rays  # a culled eye ray counts as one ray
     assert 0.0 < cov.mean() < 0.1  # the object is small in the frame, and seen
+
+
+def test_box_pixels_hold_every_eye_ray_that_enters_the_box(rng):
+    from texelbake.trace.camera import box_pixels
+    from texelbake.trace.tracer import progressive
+
+    box = np.array([[-0.4, -0.3, -0.2], [0.5, 0.2, 0.3]])
+    cam = cam_mod.look_at((1.0, 2.0, 6.0), (0.2, 0.0, 0.0), 64, 48, fov_deg=40.0)
+    pix = box_pixels(cam, box)
+    off = rng.random((8, 64 * 48, 2))  # eight random eye rays through every pixel
+    o, d = cam_mod.eye_rays(cam, off)
+    enters = enters_box(o, d, box).reshape(8, -1).any(axis=0)
+    assert enters.sum() > 20 and np.all(np.isin(np.flatnonzero(enters), pix))
+    assert pix.size < 0.5 * 64 * 48  # and the rectangle is much smaller than the frame
+    behind = cam_mod.look_at((0.0, 0.0, 0.0), (0.0, 0.0, 5.0), 16, 16, fov_deg=40.0)
+    assert box_pixels(behind, box) is None  # the camera inside the box: every pixel
+    # the budgeted frames (equal-time) see the object only inside the rectangle, and the
+    # rest of the frame is background
+    pts, faces = icosphere(2)
+    scene = OrgScene(model(pts * 0.2, faces, normals=pts,
+                           lights=[distant(np.array([0.3, 0.2, 0.9]), 3.0)]))
+    img, _, cov, spp, _ = progressive(cam, 1, lambda oo, dd: shade_org(scene, oo, dd), 0.05,
+                                      scene.eye_box)
+    inside = np.zeros(64 * 48, bool)
+    inside[box_pixels(cam, scene.eye_box)] = True
+    assert cov.reshape(-1)[~inside].max() == 0 and cov.max() > 0 and spp >= 1
