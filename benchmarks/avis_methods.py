@@ -25,6 +25,7 @@ Three measurements, time and error side by side (DESIGN.md "Measuring"):
 
     .venv/bin/python benchmarks/avis_methods.py --json avis.json [--quick] [--haar-res 64]
     .venv/bin/python benchmarks/avis_methods.py --identity-only --json avis_identity.json
+    .venv/bin/python benchmarks/avis_methods.py --coarse cylinder:full:32 --json coarse.json
 
 Measured 2026-11-25 (`--identity-only`; storage = bytes as the payload stores them
 (`AvisTable.stored_bytes`): uint16 counts two to a uint32, int32 index + float32 value ('face')
@@ -378,8 +379,20 @@ def main() -> None:
                          "'RES:K,K;RES:K' (default %(default)s)")
     ap.add_argument("--tables", default="seed,face+corr,texel",
                     help="the identity table's variants (default %(default)s)")
+    ap.add_argument("--coarse", default="",
+                    help="only the coarse levels' a_vis for the fit, children's maps against "
+                         "the seed's rebuild (BakeSettings.avis_coarse), on "
+                         "'SCENE:SIZE:ATLAS[,...]' (benchmarks/avis_coarse.py)")
+    ap.add_argument("--work", type=Path, default=Path("bench_out/avis_coarse"))
     args = ap.parse_args()
     quick = args.quick
+    if args.coarse:
+        from benchmarks.avis_coarse import coarse_table
+
+        rows = coarse_table(args.coarse.split(","), args.work)
+        if args.json:
+            args.json.write_text(json.dumps({"coarse": rows}, indent=1))
+        return
     if args.identity_only:
         res_keeps = [(int(r), tuple(float(k) for k in ks.split(",")))
                      for r, ks in (part.split(":") for part in args.res_keeps.split(";"))]

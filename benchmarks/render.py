@@ -4,6 +4,8 @@
         [--size 512] [--ref-spp 1024] [--spp 4] [--atlas 64] [--baked PATH]
         [--camera lod|asset] [--eps 30] [--out DIR] [--scene-size small|full]
         [--quality fast|high] [--m1-faces N] [--btf]
+    .venv/bin/python benchmarks/render.py --object-px 64,256,512 --scenes cylinder,wall \
+        --json out.json [--frame 512] [--profile]   (benchmarks/render_sizes.py)
 
 Bakes the scene (texelbake.testscenes, small size, `--atlas` finest texels per side) unless
 `--baked` names a baked USD, renders the reference `gt` at `--ref-spp` eye rays per pixel,
@@ -215,7 +217,28 @@ def main(argv: list[str] | None = None) -> dict:
                     help="faces of M1 (default: the bake's rule); non-default, labelled")
     ap.add_argument("--btf", action="store_true", help="bake BTF maps and add the btf mode")
     ap.add_argument("--work", type=Path, default=Path("bench_out/render"))
+    ap.add_argument("--object-px", default="",
+                    help="comma-separated object sizes in pixels (e.g. 64,256,512): every "
+                         "scene of --scenes at each size, at the bake defaults "
+                         "(benchmarks/render_sizes.py)")
+    ap.add_argument("--scenes", default="cylinder,wall,bolt,cloisonne",
+                    help="with --object-px: generated scene names or asset paths")
+    ap.add_argument("--frame", type=int, default=512, help="with --object-px: frame side")
+    ap.add_argument("--profile", action="store_true",
+                    help="with --object-px: profile gt and cpm at every size")
     args = ap.parse_args(argv)
+    if args.object_px:
+        from render_sizes import bake_default, run
+
+        if args.frame < 512:
+            ap.error("--frame must be 512 or larger")
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        rep = run(args.scenes.split(","), [int(x) for x in args.object_px.split(",")],
+                  args.frame, args.work, args.profile,
+                  lambda name, work: bake_default(name, work, bake_scene),
+                  lambda partial: _write_json(args.json, partial))
+        _write_json(args.json, rep)
+        return rep
 
     eps_list = [float(e) for e in args.eps.split(",") if e] or [None]
     work = args.work / args.scene

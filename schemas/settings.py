@@ -101,6 +101,10 @@ class BakeSettings(BaseModel):
     n_heldout: int = _field(
         256, "fit", "Number of held-out direction pairs per texel on which the fit is scored.",
         ge=0, le=65536)
+    heldout_texels: int = _field(
+        256, "fit",
+        "Number of texels per level, a seeded sample, on which the held-out SNR is measured "
+        "(every texel of a level that has fewer); 0 measures every texel.", ge=0, le=1 << 30)
     psi: float = _field(
         0.97, "fit", "Energy fraction of the selection matrix that fixes its rank k.",
         gt=0.0, le=1.0)
@@ -152,6 +156,11 @@ class BakeSettings(BaseModel):
     avis_keep_fraction: float = _field(
         0.03, "a_vis", "Fraction of a level's dense cube pixels kept as Haar coefficients.",
         gt=0.0, le=1.0)
+    avis_coarse: Literal["children", "dense"] = _field(
+        "children", "a_vis",
+        "Where the fit of a coarse level gets its a_vis: 'children' from its children's summed "
+        "cube maps read at its own directions, 'dense' from rays of every dense sample as the "
+        "seed.")
     avis_selection: Literal["texel", "face"] = _field(
         "texel", "a_vis",
         "How the Haar coefficients are chosen: 'texel' evens the relative error over texels, "

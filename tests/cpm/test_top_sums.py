@@ -18,10 +18,13 @@ from texelbake.cpm.level import PointSet, direction_sets, samples_in, tile_texel
 from texelbake.stages import cpm as cpm_stage
 from texelbake.testscenes import write_scene
 
-#: a 32^2 atlas in 8^2 tiles: levels 0-3 inside a tile, levels 4-5 (2 x 2 texels, 1) above
+#: a 32^2 atlas in 8^2 tiles: levels 0-3 inside a tile, levels 4-5 (2 x 2 texels, 1) above.
+#: avis_coarse="dense": these tests are about the sums of every dense sample (a_vis among
+#: them) and run the cpm stages alone; the children's maps need the a_vis stage first
+#: (tests/pipeline/test_pipeline.py bakes with them)
 SETTINGS = {"atlas_resolution": 32, "shard_texels": 8, "samples_per_texel": 8,
             "n_light_dirs": 12, "n_view_dirs": 12, "n_heldout": 16, "c_max": 12, "n_trials": 2,
-            "mesh_levels": 1}
+            "mesh_levels": 1, "avis_coarse": "dense"}
 
 
 def _ctx(root, scene, **extra):

@@ -314,8 +314,13 @@ def test_plan_lists_stages_and_skips(tmp_path):
     src = write_plane(tmp_path / "plane.usda")
     plan = plan_bake(src, BakeSettings(**SMALL))
     names = [s.name for s in plan.stages]
-    assert names == ["ingest", "geometry", "cpm", "cpm_top", "avis", "avis_top", "export"]
+    assert names == ["ingest", "geometry", "avis", "avis_top", "cpm", "cpm_top", "export"]
     assert plan.stage("cpm").n_shards == 4
+    # a coarse level's fit reads the a_vis stage's maps (avis_coarse="children", the default)
+    assert "avis" in plan.stage("cpm").depends_on
+    assert "avis_top" in plan.stage("cpm_top").depends_on
+    seed = plan_bake(src, BakeSettings(**SMALL, avis_coarse="dense"))
+    assert seed.stage("cpm").depends_on == ("geometry",)
     assert {s for s, _ in plan.skipped} >= {"btf", "render", "deformed"}
 
 

@@ -31,6 +31,57 @@ def percentiles(x: np.ndarray, posinf: float | None = None) -> dict[str, float]:
             "min": float(x.min()), "max": float(x.max())}
 
 
+#: two-sided confidence of the held-out SNR's quantile intervals in the report
+HELDOUT_CONFIDENCE = 0.95
+
+
+def quantile_ci(x: np.ndarray, q: float, population: int, *,
+                confidence: float = HELDOUT_CONFIDENCE) -> tuple[float, float]:
+    """Distribution-free interval for the population's q-quantile from a sample x (n,) of it:
+    the order statistics x_(r) and x_(s) with r, s the binomial (n, q) quantiles at
+    (1 -+ confidence) / 2 (coverage >= confidence for i.i.d. draws of any continuous
+    distribution; sampling without replacement from a finite population only concentrates
+    the count below the quantile, so it stays conservative). No resampling: the bootstrap's
+    interval of a low quantile from a few hundred values is too narrow (it never sees values
+    below the sample's minimum). -inf / +inf where the sample is too small to bound that side;
+    (v, v) when the sample is the whole population (nothing is estimated).
+
+    x : (n,) float64 finite; population : size of what was sampled (>= n)
+    returns : (low, high) float
+    """
+    from scipy.stats import binom
+
+    x = np.sort(np.asarray(x, np.float64))
+    n = x.size
+    if n == 0:
+        return (float("nan"), float("nan"))
+    if n >= population:
+        v = float(np.percentile(x, 100 * q))
+        return (v, v)
+    a = (1.0 - confidence) / 2
+    r = int(binom.ppf(a, n, q))  # x_(r), 1-based: F(r - 1) < a
+    s = int(binom.ppf(1.0 - a, n, q)) + 1  # x_(s): F(s - 1) >= 1 - a
+    low = float(x[r - 1]) if r >= 1 else -np.inf
+    high = float(x[s - 1]) if s <= n else np.inf
+    return (low, high)
+
+
+def heldout_stats(snr: np.ndarray, population: int) -> dict:
+    """The report's held-out SNR of one level: `percentiles` over the measured texels (the
+    seeded sample, `cpm.dense.measured_texels`; NaN entries are the others) and the
+    intervals of the median and the 5th percentile (`quantile_ci`)."""
+    x = np.asarray(snr, np.float64)
+    x = np.where(np.isposinf(x), SNR_EXACT_DB, x)
+    out: dict = dict(percentiles(x, SNR_EXACT_DB))
+    fin = x[np.isfinite(x)]
+    out["population"] = int(population)
+    if fin.size:
+        out["confidence"] = HELDOUT_CONFIDENCE
+        out["p50_ci"] = list(quantile_ci(fin, 0.5, population))
+        out["p5_ci"] = list(quantile_ci(fin, 0.05, population))
+    return out
+
+
 #: a texel's compressed a_vis table may differ from its uncompressed maps by this relative L2
 #: (over its six faces) before the bake report flags it (the per-texel bound)
 AVIS_TEXEL_TOLERANCE = 0.02
@@ -135,7 +186,7 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "k": percentiles(data["k"][valid]),
         "c": percentiles(data["c"][valid]),
         "snr_insample_db": percentiles(data["snr_in"][valid], SNR_EXACT_DB),
-        "snr_heldout_db": percentiles(data["snr_ho"][valid], SNR_EXACT_DB),
+        "snr_heldout_db": heldout_stats(data["snr_ho"][valid], int(valid.sum())),
         "per_channel_texels": int(np.sum(data["mode"][valid] == 1)),
         "skips": _skips(data, valid),
         # texels classed by need: exact ones stored as one point, the rest fitted

@@ -5,6 +5,12 @@ samples taken in batches bounded by the worker's memory (`LevelPass.budget`).
 
 A coarse texel's sums do not depend on the fit, so a tile shard can sum its own samples for
 the texels above it (`DenseSums`, `dense_sums`) and the top shard add the tiles' sums.
+
+The held-out truth is measured on a seeded sample of each level's texels
+(`BakeSettings.heldout_texels`, `measured_texels`): the same texels whichever tile or chunk
+holds them, every texel of a level that has fewer occupied texels than the sample. A texel
+outside the sample has its held-out a_vis NaN and its SNR NaN (not measured), which the
+report's percentiles leave out.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from texelbake.cpm.level import (
 )
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
 from texelbake.errors import ShapeError
+from texelbake.geometry.texels import morton
 
 #: bytes per (dense sample, held-out pair, channel) in the held-out pass
 BYTES_PER_HELD_ENTRY = 8 * 12
@@ -108,6 +115,51 @@ def dense_of(lp: LevelPass, texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return ids[np.argsort(pos, kind="stable")], np.sort(pos, kind="stable")
 
 
+def _mix64(x: np.ndarray) -> np.ndarray:
+    """splitmix64's finalizer on uint64: a stateless random key per index (numpy's generators
+    draw sequences, not a value at an arbitrary index, which a texel in any tile needs)."""
+    x = np.asarray(x, np.uint64).copy()
+    with np.errstate(over="ignore"):
+        x ^= x >> np.uint64(30)
+        x *= np.uint64(0xBF58476D1CE4E5B9)
+        x ^= x >> np.uint64(27)
+        x *= np.uint64(0x94D049BB133111EB)
+        x ^= x >> np.uint64(31)
+    return x
+
+
+def _texel_keys(seed: int, level: int, first_codes: np.ndarray) -> np.ndarray:
+    """(k,) uint64 random keys of level texels named by their first finest Z-order code."""
+    salt = _mix64(np.array([(int(seed) << 8) + int(level) + 0x5EED], np.uint64))[0]
+    with np.errstate(over="ignore"):
+        return _mix64(np.asarray(first_codes, np.uint64) ^ salt)
+
+
+def measured_texels(src: FitInputs, level: int, texels: np.ndarray) -> np.ndarray:
+    """(t,) bool: which of `texels` (flat ids at `level`) carry the held-out measurement, a
+    seeded sample of `BakeSettings.heldout_texels` of the level's occupied texels (all of
+    them when there are no more than that, or when it is 0). Depends only on (seed, level,
+    texel), so every tile and chunk agrees."""
+    s, geo = src.settings, src.geo
+    texels = np.asarray(texels, np.int64)
+    want = int(s.heldout_texels)
+    n = int(s.atlas_resolution)
+    if want == 0 or texels.size == 0:
+        return np.ones(texels.size, bool)
+    if "texel_zoffsets" in geo:
+        zoff = np.asarray(geo["texel_zoffsets"])
+        occupied = np.flatnonzero(np.diff(zoff[::1 << (2 * level)]) > 0) << (2 * level)
+    else:  # artifacts from before the Z-order index
+        row, col = geo["sample_row"] >> level, geo["sample_col"] >> level
+        occupied = np.unique(morton(row << level, col << level))
+    if occupied.size <= want:
+        return np.ones(texels.size, bool)
+    keys = _texel_keys(s.seed, level, occupied)
+    threshold = np.partition(keys, want - 1)[want - 1]
+    r, c = np.divmod(texels, n >> level)
+    return _texel_keys(s.seed, level, morton(r << level, c << level)) <= threshold
+
+
 def inv_avis(avis_o: np.ndarray, area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(valid (t, n_o) bool, 1 / a_vis (t, n_o), 0 where invalid): a_vis above each texel's
     floor (`avis_floor` of its area (t,))."""
@@ -136,11 +188,12 @@ def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
 
 
 def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
-               samples: np.ndarray | None = None) -> DenseSums:
+               samples: np.ndarray | None = None, *, avis: bool = True) -> DenseSums:
     """`DenseSums` of `texels` (flat ids at `level`) over `samples` (ascending ids of samples
     of those texels; default all of them), in sample batches bounded by worker_memory_mb. The
     same passes as the fit's own (`avis_sums`, `held_pass`), so a texel's sums over all its
-    samples equal the fit's."""
+    samples equal the fit's. avis=False leaves `avis_o` zero and casts none of its rays (the
+    caller has it from the children's maps, BakeSettings.avis_coarse)."""
     lp = LevelPass.of(src, level)
     s, geo = src.settings, src.geo
     texels = np.asarray(texels, np.int64)
@@ -153,13 +206,20 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
     order = np.argsort(pos, kind="stable")
     dense, dseg = samples[order], pos[order]
     n_t = len(texels)
-    avis_o, area = avis_sums(lp, texels, dense, dseg)
+    if avis:
+        avis_o, area = avis_sums(lp, texels, dense, dseg)
+    else:
+        avis_o = np.zeros((n_t, len(lp.dirs["dirs_o"])))
+        area = segment_sum(geo["sample_area"][dense], dseg, n_t, 0)
     out = DenseSums.zeros(n_t, lp.dirs)
     ref, avis_h = out.ref, out.avis_h
     if len(lp.dirs["held_i"]):
         none = np.zeros(0, np.int64)
-        ref, _, avis_h = held_pass(lp, texels, dense, dseg, none, none, np.zeros((0, 3)),
-                                   want_ref=True)
+        meas = measured_texels(src, level, texels)
+        keep = meas[dseg]
+        ref, _, avis_h = held_pass(lp, texels, dense[keep], dseg[keep], none, none,
+                                   np.zeros((0, 3)), want_ref=True)
+        avis_h[~meas] = np.nan
     return DenseSums(np.bincount(dseg, minlength=n_t).astype(np.int64), area, avis_o, ref,
                      avis_h)
 
@@ -208,12 +268,19 @@ def heldout_from_samples(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
     """Held-out (ref, apx, avis_h) of `held_pass` for texels whose dense samples are read:
     brute-force Eq. 7 over all of them against their characteristic points (sample ids smp
     (p,), texel positions pseg (p,), stored weights pw (p, 3)), each a sample of its texel."""
+    # only the texels of the held-out sample (`measured_texels`); the others' a_vis NaN
+    meas = measured_texels(lp.src, lp.level, texels)
+    keep, pkeep = meas[dseg], meas[pseg]
+    dense, dseg, smp, pseg, pw = dense[keep], dseg[keep], smp[pkeep], pseg[pkeep], pw[pkeep]
     # the points as positions in `dense`: `dense` is ascending within each texel and dseg
     # ascending, so (texel, sample) keys are sorted
     span = int(max(dense.max(initial=0), smp.max(initial=0))) + 1
     pos = np.searchsorted(dseg * span + dense, pseg * span + smp)
     order = np.argsort(pos, kind="stable")
-    return held_pass(lp, texels, dense, dseg, pos[order], pseg[order], pw[order], want_ref=True)
+    ref, apx, avis_h = held_pass(lp, texels, dense, dseg, pos[order], pseg[order], pw[order],
+                                 want_ref=True)
+    avis_h[~meas] = np.nan
+    return ref, apx, avis_h
 
 
 def heldout_from_sums(lp: LevelPass, texels: np.ndarray, sums: DenseSums, smp: np.ndarray,
@@ -229,7 +296,10 @@ def heldout_from_sums(lp: LevelPass, texels: np.ndarray, sums: DenseSums, smp: n
 
 def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: float) -> float:
     """SNR (dB) of one texel's held-out Eq. 7: ref, apx (h_i, h_o, 3) the summed truth and
-    approximation, avis_h (h_o,) a_vis on the held-out views, area its texel area."""
+    approximation, avis_h (h_o,) a_vis on the held-out views, area its texel area. NaN when
+    avis_h is (a texel outside the held-out sample: not measured)."""
+    if np.isnan(avis_h).any():
+        return float("nan")
     eps = avis_floor(float(area))
     rows = np.tile(avis_h, ref.shape[0])
     f_ref, ok = filtered_reflectance(ref.reshape(-1, 3), rows, eps)
@@ -239,4 +309,4 @@ def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: floa
 
 __all__ = ["BYTES_PER_HELD_ENTRY", "DenseSums", "LevelPass", "avis_sums", "dense_of",
            "dense_sums", "held_pass", "heldout_from_samples", "heldout_from_sums",
-           "heldout_snr", "inv_avis", "positions"]
+           "heldout_snr", "inv_avis", "measured_texels", "positions"]

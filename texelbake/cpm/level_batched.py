@@ -98,13 +98,15 @@ class Chunk:
 def fit_level_batched(
     src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
     sums: DenseSums | None = None, counts: FitCounts | None = None,
+    avis_o: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """`level_per_texel.fit_level_per_texel`'s arrays (and `skip` (t,) int8, `SKIP_CODES`) for
     `texels` (flat ids at `level`) chosen among `candidates`, in memory-bounded chunks. With
     `sums` (`DenseSums` of `texels`, already summed: the top levels' from the tile shards) no
     dense sample is read: a_vis and the held-out truth come from them, the held-out
     approximation from the points themselves. counts : `FitCounts` to add the search's work
-    to."""
+    to. avis_o : (t, n_o) a_vis of `texels` on the view grid given by the caller (a coarse
+    level's from its children's maps, `stages.avis.fit_avis_o`): no a_vis ray is cast."""
     s = src.settings
     lp = LevelPass.of(src, level)
     d = len(lp.dirs["dirs_i"]) * len(lp.dirs["dirs_o"])
@@ -132,11 +134,15 @@ def fit_level_batched(
         if sums is None:
             dense = samp_all[cb_all[a]:cb_all[b]]
             dseg = seg_all[cb_all[a]:cb_all[b]] - a
-            avis_o, area = avis_sums(lp, texels[a:b], dense, dseg)
+            if avis_o is None:
+                avis_c, area = avis_sums(lp, texels[a:b], dense, dseg)
+            else:
+                avis_c = avis_o[a:b]
+                area = segment_sum(src.geo["sample_area"][dense], dseg, b - a, 0)
         else:
-            avis_o, area = sums.avis_o[a:b], sums.area[a:b]
+            avis_c, area = sums.avis_o[a:b], sums.area[a:b]
         chunk = Chunk(texels[a:b], candidates.take(rows), seg_c[cb_c[a]:cb_c[b]] - a,
-                      n_cand[a:b], n_dense[a:b], avis_o, area, a)
+                      n_cand[a:b], n_dense[a:b], avis_c, area, a)
         fits = _fit_chunk(lp, chunk, res, counts)
         if not len(lp.dirs["held_i"]):
             continue

@@ -90,14 +90,18 @@ def plan_bake(asset_path: Path, settings: BakeSettings) -> Plan:
     plan = [
         StagePlan("ingest", STAGE_QUEUES["ingest"], 1),
         StagePlan("geometry", STAGE_QUEUES["geometry"], 1, ("ingest",)),
-        StagePlan("cpm", STAGE_QUEUES["cpm"], tiles, ("geometry",)),
+        StagePlan("avis", STAGE_QUEUES["avis"], tiles, ("geometry",)),
     ]
     skipped: list[tuple[str, str]] = []
     if has_top:
-        plan.append(StagePlan("cpm_top", STAGE_QUEUES["cpm_top"], 1, ("cpm",)))
-    plan.append(StagePlan("avis", STAGE_QUEUES["avis"], tiles, ("geometry",)))
-    if has_top:
         plan.append(StagePlan("avis_top", STAGE_QUEUES["avis_top"], 1, ("avis",)))
+    # a coarse level's fit reads its a_vis from the a_vis stage's maps (the children's summed)
+    children = settings.avis_coarse == "children" and settings.fit_method == "batched"
+    plan.append(StagePlan("cpm", STAGE_QUEUES["cpm"], tiles,
+                          ("geometry", "avis") if children else ("geometry",)))
+    if has_top:
+        plan.append(StagePlan("cpm_top", STAGE_QUEUES["cpm_top"], 1,
+                              ("cpm", "avis_top") if children else ("cpm",)))
     cpm_deps = ("cpm_top",) if has_top else ("cpm",)
     avis_deps = ("avis_top",) if has_top else ("avis",)
     if settings.btf:

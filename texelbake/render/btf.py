@@ -95,4 +95,5 @@ def shade_btf(scene: RenderScene, cam: PinholeCamera, o: np.ndarray, d: np.ndarr
 
 
 def render_btf(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw):
-    return accumulate(cam, spp, seed, lambda o, d: shade_btf(scene, cam, o, d, **kw))
+    return accumulate(cam, spp, seed, lambda o, d: shade_btf(scene, cam, o, d, **kw),
+                      scene.eye_box)

@@ -16,7 +16,7 @@ from texelbake.render.texel_radiance import texel_radiance
 from texelbake.trace.camera import PinholeCamera
 from texelbake.trace.org import shade_org
 from texelbake.trace.shade import light_at
-from texelbake.trace.tracer import eye_passes, ray_slices
+from texelbake.trace.tracer import enters_box, eye_passes, frame_pixels, ray_slices
 
 
 def choose_mesh(scene: RenderScene, cam: PinholeCamera, max_error_px: float = 1.0) -> int:
@@ -338,7 +338,8 @@ def render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw
     filtering = kw.pop("filtering", "projected")
     _check_cpm_options(filtering, kw.get("footprint", "sample"), kw.get("uv_from", "ray"))
     # a caller's CpmFrame (the deformed modes: `texelbake.render.deformed`) or this frame's
-    frame = kw.pop("frame", None) or cpm_frame(scene, cam, max_error_px)
+    frame_given = kw.pop("frame", None)
+    frame = frame_given or cpm_frame(scene, cam, max_error_px)
     n_pix = cam.height * cam.width
     acc = np.zeros((n_pix, 3))
     lvl_sum = np.zeros(n_pix)
@@ -348,25 +349,41 @@ def render_cpm(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, **kw
     rays = 0
     # two phases, so that the texel radiance of the whole frame is computed in one batch per
     # level (`CpmFrame.flush`): every eye ray first, then every look-up
+    # eye rays that miss every mesh's box are background (`tracer.culled`): not traced
+    box = getattr(scene, "eye_box", None) if frame_given is None else None
+    pixels = frame_pixels(cam, box)  # eye rays only where the box projects
+    n_eff = n_pix if pixels is None else pixels.size
+    at = slice(None) if pixels is None else pixels
     passes = []
-    for _, o, d in eye_passes(cam, spp, seed):
-        passes.append((o, d, [(sl, _cpm_prepare(scene, frame, cam, o[sl], d[sl], spp=spp,
-                                                **kw))
-                              for sl in ray_slices(o.shape[0])]))
+    for _, o, d in eye_passes(cam, spp, seed, pixels):
+        parts = []
+        for sl in ray_slices(o.shape[0]):  # slices of many rays
+            idx = np.arange(sl.start, sl.stop)
+            if box is not None:
+                idx = idx[enters_box(o[sl], d[sl], box)]
+                rays += sl.stop - sl.start - idx.size
+            if idx.size:
+                parts.append((idx, _cpm_prepare(scene, frame, cam, o[idx], d[idx], spp=spp,
+                                                **kw)))
+        passes.append((o, d, parts))
     frame.flush()
     for o, d, prepared in passes:
         rad = np.zeros_like(o)
         lvl = np.full(o.shape[0], np.nan)
         hit = np.zeros(o.shape[0], dtype=bool)
-        for sl, h in prepared:
-            rad[sl], lvl[sl], r, hit[sl] = _cpm_finish(scene, frame, o[sl], d[sl], h, filtering)
+        for idx, h in prepared:
+            rad[idx], lvl[idx], r, hit[idx] = _cpm_finish(scene, frame, o[idx], d[idx], h,
+                                                          filtering)
             rays += r
-        acc += rad.reshape(-1, n_pix, 3).sum(axis=0)
-        cov += hit.reshape(-1, n_pix).sum(axis=0)
-        lv = lvl.reshape(-1, n_pix)
+        if not n_eff:
+            continue
+        rays += (n_pix - n_eff) * (o.shape[0] // n_eff)  # the other pixels' eye rays
+        acc[at] += rad.reshape(-1, n_eff, 3).sum(axis=0)
+        cov[at] += hit.reshape(-1, n_eff).sum(axis=0)
+        lv = lvl.reshape(-1, n_eff)
         hit = np.isfinite(lv)
-        lvl_sum += np.where(hit, lv, 0.0).sum(axis=0)
-        lvl_cnt += hit.sum(axis=0)
+        lvl_sum[at] += np.where(hit, lv, 0.0).sum(axis=0)
+        lvl_cnt[at] += hit.sum(axis=0)
         fallback += int(np.sum(lv == -1.0))
     rays += frame.rays
     level_img = np.divide(lvl_sum, lvl_cnt, out=np.full(n_pix, np.nan), where=lvl_cnt > 0)

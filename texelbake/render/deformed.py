@@ -182,6 +182,7 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     corner = deform_normals(jac_v[a.faces.reshape(-1)],
                             a.corner_normals.reshape(-1, 3)).reshape(a.corner_normals.shape)
     d.asset = dataclasses.replace(a, points=pts, corner_normals=corner)
+    d.eye_box = None  # the rest pose's box does not hold the warped meshes: no eye-ray cull
     d.org = RayCaster(pts, a.faces, cutout=scene.org.cutout)  # cut-outs move with the surface
     d.org_face_normals = face_normals(d.asset.points, d.asset.faces)
     # diag and ray_eps stay the rest scene's: a length of the object, not of its axis-aligned

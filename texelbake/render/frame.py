@@ -208,7 +208,8 @@ def render_frame(scene: RenderScene, mode: str, cam: PinholeCamera, spp: int, se
         if not budget_seconds >= 0:  # 0: the first pass only (one sample per pixel)
             raise SettingsError(f"field 'budget_seconds': must be >= 0, got {budget_seconds}")
         img, rays, cov, mean_spp, seconds = progressive(
-            cam, seed, lambda o, d: shade_org(scene, o, d), float(budget_seconds))
+            cam, seed, lambda o, d: shade_org(scene, o, d), float(budget_seconds),
+            None if deformed else scene.eye_box)
         extras = {"budget_seconds": float(budget_seconds), "mean_spp": float(mean_spp)}
         return RenderResult(img.astype(np.float32), seconds, int(rays), int(mean_spp), mode,
                             extras, cov.astype(np.float32))

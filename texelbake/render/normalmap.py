@@ -121,4 +121,4 @@ def shade_normalmap(scene: RenderScene, o: np.ndarray, d: np.ndarray
 
 
 def render_normalmap(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int):
-    return accumulate(cam, spp, seed, lambda o, d: shade_normalmap(scene, o, d))
+    return accumulate(cam, spp, seed, lambda o, d: shade_normalmap(scene, o, d), scene.eye_box)

@@ -141,4 +141,5 @@ def render_preview_surface(scene: RenderScene, cam: PinholeCamera, spp: int, see
                            max_error_px: float = 1.0):
     lod = choose_mesh(scene, cam, max_error_px)
     return accumulate(cam, spp, seed,
-                      lambda o, d: shade_preview_surface(scene, cam, lod, o, d, spp))
+                      lambda o, d: shade_preview_surface(scene, cam, lod, o, d, spp),
+                      scene.eye_box)

@@ -66,6 +66,9 @@ class RenderScene(OrgScene):
               for i, m in enumerate(self.baked.meshes)),
             strict=True)
         set_atlas_surface(self)
+        # eye rays meet M_org, or an M_i (moved outward to enclose M_org's outline)
+        self.eye_box = self.box_around(self.asset.points, self.atlas_arrays[0],
+                                       *(m.vertices for m in self.baked.meshes))
         self.lod_error = [_hausdorff(self.org, c, self.asset.points, m.vertices)
                           for c, m in zip(self.lods, self.baked.meshes, strict=True)]
         self._tables = [_avis_table(lv) for lv in self.baked.levels]

@@ -80,4 +80,5 @@ def render_toksvig(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, 
     def make(sc, values, texel, hits):
         return toksvig_radiance(sc, values, texel, hits, ao=ao)
 
-    return accumulate(cam, spp, seed, lambda o, d: shade_filtered(scene, cam, o, d, spp, make))
+    return accumulate(cam, spp, seed, lambda o, d: shade_filtered(scene, cam, o, d, spp, make),
+                      scene.eye_box)

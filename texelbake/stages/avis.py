@@ -7,7 +7,8 @@ import numpy as np
 
 from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.avis.compress import CHUNK_ROWS, LevelChunks, chunks_of
-from texelbake.cpm.level import samples_in
+from texelbake.cpm.avis.resample import avis_at
+from texelbake.cpm.level import direction_sets, samples_in
 from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
 from texelbake.tol import TOL
 
@@ -132,3 +133,29 @@ def avis_level_chunks(ctx: StageContext, lvl: int) -> LevelChunks:
 
     return LevelChunks(level, np.concatenate(ids) if ids else np.zeros(0, np.int64), bounds,
                        read)
+
+
+def fit_avis_o(ctx: StageContext, level: int, texels: np.ndarray, tile: int | None
+               ) -> np.ndarray:
+    """a_vis on the fit's view grid of `texels` (flat ids at `level`, all in tile `tile`, or
+    None for the levels above a tile) from this stage's maps of that level, i.e. its children's
+    summed (`cpm.avis.resample.avis_at`): what `BakeSettings.avis_coarse = "children"` hands
+    the fit of a coarse level instead of recasting every dense sample's rays.
+
+    returns : (t, n_o) float64, texel-frame directions `direction_sets(settings)["dirs_o"]`
+    """
+    s = ctx.settings
+    texels = np.asarray(texels, np.int64)
+    prefix = f"L{level:02d}_"
+    if tile is None or level >= ctx.tile_levels:
+        local = texels
+        arrays = ctx.store.read_arrays(_avis_key(ctx, None), lambda k: k.startswith(prefix))
+    else:
+        n_l, side_l = s.atlas_resolution >> level, s.shard_texels >> level
+        tr, tc = divmod(int(tile), s.atlas_resolution // s.shard_texels)
+        row, col = np.divmod(texels, n_l)
+        local = (row - tr * side_l) * side_l + (col - tc * side_l)
+        arrays = ctx.store.read_arrays(_avis_key(ctx, tile), lambda k: k.startswith(prefix))
+    frames = ctx.geometry()[f"frames_L{level}"][texels]
+    return avis_at(_avis_level_from(arrays, prefix), local, frames,
+                   direction_sets(s)["dirs_o"])

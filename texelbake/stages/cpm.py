@@ -17,6 +17,8 @@ seed's loop (`texelbake.cpm.level_per_texel`); same arrays either way."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
@@ -36,12 +38,14 @@ from texelbake.cpm.level_batched import fit_level_batched
 from texelbake.cpm.level_by_need import fit_level_by_need
 from texelbake.cpm.level_per_texel import cell_fbar_per_texel, fit_level_per_texel
 from texelbake.cpm.texel_fit import FitCounts
+from texelbake.stages.avis import fit_avis_o
 from texelbake.stages.context import StageContext
 
 
 def fit_level(
     src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
     sums: DenseSums | None = None, counts: FitCounts | None = None,
+    avis_o: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """One level's fit of `texels` (flat ids at `level`) among `candidates`, by
     BakeSettings.fit_method: "batched" (`level_batched.fit_level_batched`) or "per_texel"
@@ -50,7 +54,10 @@ def fit_level(
 
     sums : the texels' `DenseSums`, already summed (the top levels' from the tile shards):
         the batched fit then reads no dense sample; the per-texel loop computes its own.
-    counts : `FitCounts` the batched fit adds its search's work to."""
+    counts : `FitCounts` the batched fit adds its search's work to.
+    avis_o : (t, n_o) the texels' a_vis on the view grid from the children's maps
+        (`stages.avis.fit_avis_o`, BakeSettings.avis_coarse = "children"): the batched fit
+        casts no a_vis ray; the per-texel loop (the seed's) ignores it."""
     s = src.settings
     # Per-texel matrices are small (d x m, m ~ tens to hundreds): BLAS and torch thread pools
     # only add contention (measured on a loaded 2-core machine: a 1024 x 16 SVD takes 1.5 ms on
@@ -61,7 +68,11 @@ def fit_level(
     def seed_fit(tex: np.ndarray, cands: PointSet) -> dict[str, np.ndarray]:
         if s.fit_method == "per_texel":
             return fit_level_per_texel(src, level, tex, cands)
-        return fit_level_batched(src, level, tex, cands, sums, counts)
+        sub = avis_o
+        if avis_o is not None and tex is not texels:  # a subset (the texels not exact)
+            order = np.argsort(texels, kind="stable")
+            sub = avis_o[order[np.searchsorted(texels, tex, sorter=order)]]
+        return fit_level_batched(src, level, tex, cands, sums, counts, sub)
 
     with threadpool_limits(limits=1):
         # texels are classed at the finest level, which every tiling holds inside its tiles
@@ -122,8 +133,15 @@ def top_sums(ctx: StageContext, tile: int) -> dict[str, np.ndarray]:
 
 def top_level_sums(src, level: int, texels: np.ndarray, samples: np.ndarray) -> DenseSums:
     """One top level's share of a tile's sums (its own function so that benchmarks time it
-    as that level's work, `benchmarks/_bake_child.py`)."""
-    return dense_sums(src, level, texels, samples)
+    as that level's work, `benchmarks/_bake_child.py`); without a_vis when the top levels take
+    theirs from the children's maps (`coarse_avis`)."""
+    return dense_sums(src, level, texels, samples, avis=not coarse_avis(src.settings))
+
+
+def coarse_avis(settings) -> bool:
+    """Whether coarse levels take their fit's a_vis from the a_vis stage's maps (the
+    children's summed) rather than from rays of every dense sample."""
+    return settings.avis_coarse == "children" and settings.fit_method == "batched"
 
 
 def run_cpm_tile(ctx: StageContext, shard: int) -> str:
@@ -143,7 +161,9 @@ def run_cpm_tile(ctx: StageContext, shard: int) -> str:
             continue
         texels = tile_texels(s.atlas_resolution, s.shard_texels, shard, level)
         cands = level_candidates(ctx.fit_inputs(), level, texels, children)
-        children = fit_level(ctx.fit_inputs(), level, texels, cands)
+        avis_o = (fit_avis_o(ctx, level, texels, shard)
+                  if level > 0 and coarse_avis(s) else None)
+        children = fit_level(ctx.fit_inputs(), level, texels, cands, avis_o=avis_o)
         ctx.store.write_arrays(key, children)
     return last
 
@@ -197,8 +217,11 @@ def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
         n_l = s.atlas_resolution >> level
         texels = np.arange(n_l * n_l, dtype=np.int64)
         cands = level_candidates(ctx.fit_inputs(), level, texels, children)
-        children = fit_level(ctx.fit_inputs(), level, texels, cands,
-                             sums[level] if sums is not None else None)
+        avis_o = fit_avis_o(ctx, level, texels, None) if coarse_avis(s) else None
+        lsums = sums[level] if sums is not None else None
+        if lsums is not None and avis_o is not None:
+            lsums = dataclasses.replace(lsums, avis_o=avis_o)
+        children = fit_level(ctx.fit_inputs(), level, texels, cands, lsums, avis_o=avis_o)
         ctx.store.write_arrays(key, children)
     return last
 

@@ -6,7 +6,13 @@ Targets (schemas.settings.BakeSettings, `gate_*`):
 - each LOD's two-sided Hausdorff distance to M_org within its bound (error_px pixels at its
   switch size, `geometry.lodchain`); LODs of `lod_mode="atlas"` have no bound and are not gated;
 - each CPM level's held-out SNR (seed 000, Eq. 7 on held-out direction pairs) median and 5th
-  percentile over its texels at or above `gate_snr_median_db` / `gate_snr_p5_db`;
+  percentile over its texels at or above `gate_snr_median_db` / `gate_snr_p5_db`. They are
+  measured on a seeded sample of the level's texels (`BakeSettings.heldout_texels`), so the
+  check reads the upper end of each statistic's 95 % interval (`cpm.assemble.quantile_ci`):
+  a level fails when its population median (p5) is below the target with at least 97.5 %
+  confidence, so sampling alone fails a level that meets its target at most 2.5 % of the
+  time. Where the sample is the whole level the interval is the value itself (the rule as
+  it was). The point estimate is reported beside it (`value`, `ci`);
 - each CPM level's a_vis relative L2 error (compressed against uncompressed, seed 000 §3.4)
   at most `gate_avis_rel_error`.
 A level with no texel that has samples has nothing to measure and is not gated.
@@ -22,11 +28,18 @@ from schemas.settings import BakeSettings
 QUALITY_EXIT = 3
 
 
-def _check(what: str, value: float | None, target: float, higher_is_better: bool) -> dict:
-    ok = value is not None and math.isfinite(value) and (
-        value >= target if higher_is_better else value <= target)
-    return {"what": what, "value": value, "target": target,
-            "rule": ">=" if higher_is_better else "<=", "passed": bool(ok)}
+def _check(what: str, value: float | None, target: float, higher_is_better: bool,
+           ci: list | None = None) -> dict:
+    """One check; with `ci` (low, high) the rule reads its upper end (module docstring)."""
+    judged = ci[1] if ci else value
+    ok = (value is not None and math.isfinite(value) and judged is not None
+          and (judged >= target if higher_is_better else judged <= target))
+    out: dict[str, object] = {"what": what, "value": value, "target": target,
+                              "rule": ">=" if higher_is_better else "<=", "passed": bool(ok)}
+    if ci:
+        out["ci"] = list(ci)
+        out["judged_on"] = "ci_high"
+    return out
 
 
 def quality_gate(report: dict, settings: BakeSettings) -> dict:
@@ -46,9 +59,9 @@ def quality_gate(report: dict, settings: BakeSettings) -> dict:
         held = lv.get("snr_heldout_db", {})
         if held.get("n"):
             checks.append(_check(f"{name} held-out SNR median (dB)", held.get("p50"),
-                                 s.gate_snr_median_db, higher_is_better=True))
+                                 s.gate_snr_median_db, True, held.get("p50_ci")))
             checks.append(_check(f"{name} held-out SNR p5 (dB)", held.get("p5"),
-                                 s.gate_snr_p5_db, higher_is_better=True))
+                                 s.gate_snr_p5_db, True, held.get("p5_ci")))
         avis = lv.get("avis", {})
         if "rel_error" in avis:
             checks.append(_check(f"{name} a_vis relative error", avis["rel_error"],

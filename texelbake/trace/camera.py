@@ -169,6 +169,27 @@ def eye_rays_at(cam: PinholeCamera, pixels: np.ndarray, offsets: np.ndarray
     return np.broadcast_to(cam.position, d.shape).copy(), d
 
 
+def box_pixels(cam: PinholeCamera, box: np.ndarray) -> np.ndarray | None:
+    """(p,) int64 row-major ids, ascending, of the pixels of the screen rectangle that holds the
+    projection of the axis-aligned box (2, 3) [lo, hi] (its eight corners' bounds, one pixel
+    of margin): no eye ray through another pixel meets the box. None when a corner is not in
+    front of the camera (the projection is unbounded: every pixel)."""
+    lo, hi = np.asarray(box, np.float64)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    p = (corners - cam.position) @ cam.rotation  # camera frame: x right, y up, -z forward
+    depth = -p[:, 2]
+    if np.any(depth <= 1e-12):
+        return None
+    col = (p[:, 0] / (depth * cam.tan_half_x) + 1.0) * 0.5 * cam.width
+    row = (1.0 - p[:, 1] / (depth * cam.tan_half_y)) * 0.5 * cam.height
+    c0, c1 = max(int(np.floor(col.min())) - 1, 0), min(int(np.ceil(col.max())) + 1, cam.width)
+    r0, r1 = max(int(np.floor(row.min())) - 1, 0), min(int(np.ceil(row.max())) + 1, cam.height)
+    if c0 >= c1 or r0 >= r1:
+        return np.zeros(0, np.int64)
+    return (np.arange(r0, r1)[:, None] * cam.width + np.arange(c0, c1)[None, :]).reshape(-1)
+
+
 def dolly(cam: PinholeCamera, centre: object, distance: float) -> PinholeCamera:
     """The same camera moved along its viewing axis so that `centre`'s depth along the axis
     becomes `distance` (orientation and field of view kept: the same view from farther)."""

@@ -42,6 +42,14 @@ class OrgScene:
         self.org_face_normals = face_normals(asset.points, asset.faces)
         self.diag = self.org.bbox_diag
         self.ray_eps = TOL.ray_offset * self.diag
+        self.eye_box: np.ndarray | None = self.box_around(np.asarray(asset.points, np.float64))
+
+    def box_around(self, *points: np.ndarray) -> np.ndarray:
+        """(2, 3) [lo, hi] around every point given, padded by 1e-3 of M_org's diagonal:
+        what eye rays must enter to meet anything the frame shows (`tracer.culled`)."""
+        pts = np.concatenate([np.asarray(p, np.float64).reshape(-1, 3) for p in points])
+        pad = 1e-3 * self.diag
+        return np.stack([pts.min(axis=0) - pad, pts.max(axis=0) + pad])
 
     def default_camera(self, width: int, height: int) -> PinholeCamera:
         if self.asset.cameras:
@@ -79,7 +87,7 @@ def shade_org(scene: OrgScene, o: np.ndarray, d: np.ndarray
 
 def render_org(scene: OrgScene, cam: PinholeCamera, spp: int, seed: int
                ) -> tuple[np.ndarray, int, np.ndarray]:
-    return accumulate(cam, spp, seed, lambda o, d: shade_org(scene, o, d))
+    return accumulate(cam, spp, seed, lambda o, d: shade_org(scene, o, d), scene.eye_box)
 
 
 def render_model(asset: AssetModel, cam: PinholeCamera, spp: int, seed: int = 0
