@@ -19,7 +19,7 @@ The tests are sampled, never assumed: the BRDF on `CHECK_LIGHTS` x `CHECK_VIEWS`
 training grid, visibility on every training direction (the texel's own rays) unless the
 geometry bounds it (`texelbake.cpm.avis.closed_form.unoccluded_samples`: the whole mesh below
 every sample's tangent plane); the held-out pairs, independent of both, then measure each
-exact texel (`TOL.exact_fit_db`).
+exact texel (`TOL.exact_fit_db`). A texel with a sample on a cut-out (no area) is fitted.
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ CHECK_LIGHTS = 4
 CHECK_VIEWS = 4
 
 #: why a texel is not exact, as stored in `TexelClasses.reason`
-REASONS = {"exact": 0, "empty": 1, "facets": 2, "material": 3, "inputs": 4, "visibility": 5}
+REASONS = {"exact": 0, "empty": 1, "facets": 2, "material": 3, "inputs": 4, "visibility": 5,
+           "cut": 6}
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,10 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
         return TexelClasses(np.zeros(n_t, bool), point, weight, reason, 0)
     area = geo["sample_area"][dense]
     pos = geo["sample_pos"][dense]
+    # a sample on a cut-out (brdf.opacity) carries no area: a texel cut in part or whole is
+    # fitted by the seed's path, which weighs by area (its reference sample could be a cut
+    # one, and a wholly cut texel holds no surface, which one stored point would paint black)
+    reason[(reason == 0) & ~_seg_all(area > 0, dseg, n_t)] = REASONS["cut"]
     # the reference sample: the one nearest the texel's area-weighted centroid (lowest id on a
     # tie), where the renderer shades the point
     tot = segment_sum(area, dseg, n_t, 0)
