@@ -1,6 +1,5 @@
 import os
 
-import numpy as np
 import pytest
 
 # Under pytest-xdist (`make test` runs two workers) each worker gets its share of the cores, so
@@ -41,4 +40,8 @@ def _artifact_store(tmp_path_factory):
 
 @pytest.fixture
 def rng():
+    # numpy imported here, not at the top: the xdist controller loads this file and runs no
+    # test, so it need not load numpy (and its OpenBLAS threads) at all
+    import numpy as np
+
     return np.random.default_rng(12345)

@@ -204,7 +204,8 @@ def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
     return {**averaged, "diffuse": fit["diffuse"], "specular": fit["specular"],
             "roughness": fit["roughness"], "normal": fit["normal"],
             "constants": {**keep, "useSpecularWorkflow": 1}, "levels": fit["levels"],
-            "fit": {"residual": fit["stats"], "seconds": fit["seconds"]}}
+            # the report holds what the source and settings determine: no seconds
+            "fit": {"residual": fit["stats"]}}
 
 
 def _stats(residual: np.ndarray, covered: np.ndarray) -> dict:
