@@ -36,3 +36,13 @@ class NumericalError(TexelbakeError):
 
 class StageError(TexelbakeError):
     """A pipeline stage is missing its inputs or cannot run for this asset."""
+
+
+class AssetWarning(UserWarning):
+    """A recoverable problem in an asset (dropped faces, unsupported shader network, ...).
+
+    Defined here, in a module that imports nothing, because a warning's class is imported
+    wherever it is reported: pytest-xdist's controller re-imports it to show a worker's
+    warning, and importing `texelbake.asset` there loaded pxr and the ray caster into a process
+    that then aborted at exit."""
+

@@ -8,9 +8,7 @@ from typing import Any
 
 import numpy as np
 
-
-class AssetWarning(UserWarning):
-    """A recoverable problem in an asset (dropped faces, unsupported shader network, ...)."""
+from texelbake.errors import AssetWarning
 
 
 def first_line(exc: BaseException) -> str:
