@@ -222,8 +222,8 @@ def test_setting_chooses_the_path(mode, tmp_path):
     out = fit_level(src, 0, texels, level_candidates(src, 0, texels, None))
     assert np.any(out["skip"] == EXACT_SKIP) == (mode == "by_need")
     assert out["valid"].all()
-    # the report's per-class seconds: classing and the exact texels, then the fit of the rest
-    assert ("class_seconds" in out) == (mode == "by_need")
+    # the report's classes are read where the level says it was classed
+    assert ("classed" in out) == (mode == "by_need")
     # a coarse level is never classed (its texels are a top level for small tiles)
     coarse = fit_level(src, 1, np.zeros(1, np.int64), level_candidates(src, 1, np.zeros(1, np.int64), out))
     assert not np.any(coarse["skip"] == EXACT_SKIP)

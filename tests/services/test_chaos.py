@@ -22,7 +22,7 @@ def test_chaos_trials_enospc_and_disk_full_then_resume(cylinder, reference, tmp_
     # cylinder, reference: tests/services/conftest.py, the same as chaos.make_scene's
     with chaos.open_farm("sqlite", tmp_path / "sqlite", cylinder, reference) as f:
         rec = chaos.run_trial(f, "sqlite", "enospc", 0, 1, tmp_path / "out")
-        assert rec["passed"], rec
+        assert rec["passed"], repr(rec)
         assert "ENOSPC on artifact writes" in rec["fault"]
         # resume is for failed jobs only: a clear 409 for a finished one (the trial's job
         # succeeded), 404 for none
@@ -32,7 +32,7 @@ def test_chaos_trials_enospc_and_disk_full_then_resume(cylinder, reference, tmp_
         assert r.status_code == 404 and r.json()["code"] == "job_not_found", r.text
 
         rec = chaos.run_trial(f, "sqlite", "disk_full", 0, 1, tmp_path / "out")
-        assert rec["passed"], rec
+        assert rec["passed"], repr(rec)
         # the fault struck while writes remained: the job failed, then resumed to success
         assert "No space left on device" in rec["fault"] and "resumed" in rec["fault"], rec
         assert rec["reruns"] > 0

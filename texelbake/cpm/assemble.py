@@ -102,11 +102,10 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
 
 def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     """The level's texels by class (`texelbake.cpm.level_by_need`): "exact" (one point, no
-    fit) and "points" (the seed's fit), each with its texels and its held-out SNR (their
-    seconds vary from run to run: `class_seconds`, in the run's facts). Empty when the bake
-    classed no texel (texel_classes="points", or a coarse level: texels are classed at the
-    finest)."""
-    if "class_seconds" not in data:
+    fit) and "points" (the seed's fit), each with its texels and its held-out SNR. Empty when
+    the bake classed no texel (texel_classes="points", or a coarse level: texels are classed
+    at the finest)."""
+    if "classed" not in data:
         return {}
     exact = data["skip"][valid] == EXACT_SKIP
     ho = data["snr_ho"][valid]
@@ -114,14 +113,6 @@ def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
                    "snr_heldout_db": percentiles(ho[sel], SNR_EXACT_DB)}
             for name, sel in (("exact", exact), ("points", ~exact))}
 
-
-def class_seconds(data: Mapping[str, np.ndarray]) -> dict[str, float] | None:
-    """{"exact", "points"}: the seconds a level spent on each texel class, or None when it
-    classed none (`_classes`)."""
-    if "class_seconds" not in data:
-        return None
-    sec = data["class_seconds"]
-    return {"exact": round(float(sec[0]), 3), "points": round(float(sec[1]), 3)}
 
 
 def _merged(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:

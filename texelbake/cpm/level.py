@@ -237,7 +237,7 @@ def level_candidates(
 
 #: a level's per-level totals (the rays its fit cast, the seconds per texel class of
 #: `texelbake.cpm.level_by_need`): summed over tiles, never reordered by texel
-LEVEL_TOTALS = ("rays", "class_seconds")
+LEVEL_TOTALS = ("rays", "classed")
 
 
 def concat_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -2,14 +2,13 @@
 texels stored as one point each, measured on the held-out pairs, and only the others given to
 the seed's fit (`level_batched` or `level_per_texel`, as BakeSettings.fit_method chooses).
 
-The level's arrays are those of the fit, for every texel, in texel order, plus
-`class_seconds` (2,) float64: the seconds spent on the exact texels (classing every texel and
-measuring the exact ones) and on the fitted ones. A stored `skip` of `EXACT_SKIP` marks an
-exact texel."""
+The level's arrays are those of the fit, for every texel, in texel order, plus `classed`
+(1,) int64 = 1 (summed over a level's tiles: that the level was classed). A stored `skip` of
+`EXACT_SKIP` marks an exact texel. No seconds are stored: artifacts are byte-identical from
+run to run (`benchmarks/texel_classes.py` times the classes)."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -35,21 +34,18 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     point (`classify_texels`), the rest by `fit(texels, candidates)` (the seed's fit of those
     texels among their candidates)."""
     texels = np.asarray(texels, np.int64)
-    t0 = time.perf_counter()
     lp = LevelPass.of(src, level)
     dense, dseg = dense_of(lp, texels)
     is_exact, point, weight = classes_bounded(lp, texels, dense, dseg)
     ex = np.flatnonzero(is_exact)
     exact = _exact_arrays(lp, texels, dense, dseg, ex, point[ex], weight[ex])
-    t1 = time.perf_counter()
     rest = texels[~is_exact]
     parts = [exact]
     if rest.size:
         keep = np.isin(candidates.texel, rest)
         parts.append(fit(rest, candidates.take(np.flatnonzero(keep))))
-    t2 = time.perf_counter()
     out = merge_levels(parts)
-    out["class_seconds"] = np.array([t1 - t0, t2 - t1])
+    out["classed"] = np.ones(1, np.int64)
     return out
 
 

@@ -186,8 +186,7 @@ def run_facts(ctx: StageContext, seconds: dict[str, float],
               estimate: dict | None = None) -> dict:
     """What varies between two runs of the same bake (`write_run`): stage seconds and their
     sum, the projection of the atlas LOD1's cost from them (`estimate.costmodel.atlas_trade`),
-    the seconds of each level's texel classes, the cost model's prediction (`estimate`), the
-    host, process and time that wrote it."""
+    the cost model's prediction (`estimate`), the host, process and time that wrote it."""
     import datetime
     import os
     import socket
@@ -202,12 +201,6 @@ def run_facts(ctx: StageContext, seconds: dict[str, float],
         "pid": os.getpid(),
         "written_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
-    from texelbake.cpm.assemble import class_seconds
-
-    by_level = {str(lvl): sec for lvl, data in enumerate(cpm_levels(ctx))
-                if (sec := class_seconds(data)) is not None}
-    if by_level:
-        facts["class_seconds"] = by_level  # per level: the texel classes' seconds
     if estimate is not None:
         facts["estimate"] = estimate
     return facts
