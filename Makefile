@@ -40,7 +40,7 @@ test: setup
 	$(PY) -m pytest -q -p no:cacheprovider --timeout=900 --durations=25 -n 2 --dist loadgroup
 
 test-fast: setup
-	$(PY) -m pytest -q -x -m "not service and not browser and not slow"
+	$(PY) -m pytest -q -x -m "not service and not browser and not slow" -n 2 --dist loadgroup
 
 lint: setup
 	$(VENV)/bin/ruff check texelbake schemas farm texelbake_client workers services tests benchmarks blender scripts
