@@ -1,7 +1,9 @@
 """A coarse level's a_vis for its fit: from the children's maps against the seed's per-level
 rebuild from every dense sample (BakeSettings.avis_coarse), time beside error.
 
-Run through `benchmarks/avis_methods.py --coarse SCENE:SIZE:ATLAS[,...]`. For each scene it
+    .venv/bin/python benchmarks/avis_coarse.py cylinder:full:32 --json coarse.json
+
+(or `benchmarks/avis_methods.py --coarse SCENE:SIZE:ATLAS[,...]`). For each scene it
 bakes twice in one artifact store (geometry and the a_vis stage shared, only the cpm stages
 differ) and reports, per variant, the cpm stages' wall seconds and every level's held-out SNR
 (median, p5: what the fit gains or loses); then, on a seeded sample of texels of every coarse
@@ -113,3 +115,21 @@ def coarse_table(specs: list[str], work: Path) -> list[dict]:
 
 def _f(x) -> str:
     return "n/a" if x is None else f"{x:.2f}"
+
+
+def main() -> None:
+    import argparse
+    import json
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("specs", help="'SCENE:SIZE:ATLAS[,...]', e.g. cylinder:full:32")
+    ap.add_argument("--json", type=Path, help="write the rows as JSON here")
+    ap.add_argument("--work", type=Path, default=Path("bench_out/avis_coarse"))
+    args = ap.parse_args()
+    rows = coarse_table(args.specs.split(","), args.work)  # prints its table
+    if args.json:
+        args.json.write_text(json.dumps({"coarse": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
