@@ -10,17 +10,12 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, Vt
 
-from tests.helpers.usd_stages import preview_material, write_png
+from tests.helpers.usd_stages import new_stage, preview_material, write_png
 
 
 def _stage(path: Path) -> Usd.Stage:
     path.parent.mkdir(parents=True, exist_ok=True)
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    root = UsdGeom.Xform.Define(stage, "/Root")
-    stage.SetDefaultPrim(root.GetPrim())
-    return stage
+    return new_stage(path)
 
 
 def _mesh(stage, path: str, points, counts, indices, st=None, scheme: str | None = "none"):
