@@ -159,23 +159,27 @@ class Camera:
 class SkinData:
     """UsdSkel linear-blend skinning of the whole asset by one skeleton, as a map from the
     rest points (`AssetModel.points`) to the points at each time code (seed 002: the LOD meshes
-    get skin bindings transferred from these weights, `texelbake.deform.skinbind`).
+    get skin bindings transferred from these weights, `texelbake.deform.skinbind`). A point p
+    with weights w is at p'(t) = M_t M_r⁻¹ p, M_t = Σ_j w_j transforms[t, j], M_r = Σ_j w_j
+    rest[j] (`deform.lbs.skin_blend`): M_r⁻¹ p is its point in the skeleton's bind space.
 
     skeleton : path of the UsdSkel.Skeleton prim (in the source's namespace)
     joints : joint names, the skeleton's order (joint indices refer to it)
-    weights : (n, j) float64 per vertex of `points`, each row sums to 1
+    weights : (n, j) float64 per vertex of `points`, each row sums to 1 (a mesh no skeleton
+        skins is bound rigidly to a joint that moves as it does: a one-hot row)
     transforms : (t, j, 4, 4) float64 per time code of `AssetModel.time_codes`, column-vector
-        convention, world rest -> world deformed: p'(t) = Σ_j w_j (A_j(t) p), p homogeneous
-        (UsdSkel's skinning transforms with the skeleton's world transform and the rest pose
-        folded in: A_j = (W(r)⁻¹ C⁻¹ S_j(t) W(t))ᵀ, C the common skinning transform at rest)
-    bind : (4, 4) float64 row-vector convention, world rest -> skeleton bind space
-        ((C W(r))⁻¹): the geomBindTransform of a mesh whose points are rest-world points
+        convention, skeleton bind space -> world: (S_j(t) W(t))ᵀ, UsdSkel's skinning
+        transform S_j and the skeleton's local-to-world W
+    rest : (j, 4, 4) float64 the same at the time the rest points were read
+    bind : (4, 4) float64 row-vector convention, the geomBindTransform the LOD meshes carry:
+        W(rest)⁻¹, their points being the bind-space points placed by W(rest)
     """
 
     skeleton: str
     joints: tuple[str, ...]
     weights: np.ndarray
     transforms: np.ndarray
+    rest: np.ndarray
     bind: np.ndarray
 
 

@@ -34,6 +34,14 @@ class Tolerances:
     phong_alpha_min: float = 1e-3     # Phong exponent outside [min, max]: fit diverged
     phong_alpha_max: float = 1e4
     dir_match: float = 1e-6           # directions closer than this (chord) are the same sample
+    # skinning: a point's blended rest transform with sigma_min / sigma_max below this is
+    # near-singular; its bind-space point M_r^-1 p would carry its rounding and weight-transfer
+    # error amplified by more than 1 / 0.05 = 20 (two joints 50/50 at 174 degrees apart)
+    skin_blend_cond: float = 0.05
+    # skinning: a joint's motion matches an unskinned mesh's within this (matrix entries,
+    # translations relative to the asset's size): the bar the skinned points are checked to,
+    # 100x the ~1e-7 float32 joint transforms carry
+    skin_match: float = 1e-5
 
 
 TOL = Tolerances()

@@ -10,6 +10,7 @@ import pytest
 
 from tests.helpers.render import icosphere
 from texelbake.deform import impostor as imp
+from texelbake.deform.lbs import SkinWarp, transfer_weights
 from texelbake.deform.lookup import (
     deformed_tangents,
     interpolate,
@@ -20,10 +21,8 @@ from texelbake.deform.lookup import (
 from texelbake.deform.warps import (
     AffineWarp,
     MeshWarp,
-    SkinWarp,
     central_jacobian,
     parse_warp,
-    transfer_weights,
     triangle_jacobians,
 )
 from texelbake.errors import SettingsError, ShapeError

@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from texelbake.deform.warps import SkinWarp, triangle_jacobians
+from texelbake.deform.lbs import SkinWarp
+from texelbake.deform.warps import triangle_jacobians
 from texelbake.errors import SettingsError
 from texelbake.render.deformed_report import warp_at_time
 from texelbake.testscenes.arm import (

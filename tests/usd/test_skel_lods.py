@@ -371,9 +371,9 @@ def test_refined_lods_follow_the_bent_m_org(baked_arm):
     # up to 10 % of the diagonal off the bent M_org (the 64² arm bent 90°: 0.38 of 3.8):
     # linear blending of averaged weights is not the skinning of the surface between two
     # vertices whose weights differ. Here: M1's largest departure 0.27 against 0.58.
+    from texelbake.deform.lbs import SkinWarp
     from texelbake.deform.refine import refine_levels, subdivide
     from texelbake.deform.skinbind import dense_weights
-    from texelbake.deform.warps import SkinWarp
     from texelbake.render.deformed import _refined_lods
 
     scene = load_scene(baked_arm)
@@ -389,7 +389,8 @@ def test_refined_lods_follow_the_bent_m_org(baked_arm):
     for _ in range(refine_levels(va, fa, scene.diag / 16.0)):
         va, fa, ca, (wa,), _ = subdivide(va, fa, ca, (wa,))
     np.testing.assert_allclose(va, v)
-    averaged = SkinWarp(np.asarray(warp.transforms), va, fa, wa).positions(va)
+    averaged = SkinWarp(np.asarray(warp.transforms), va, fa, wa,
+                        rest_transforms=warp.rest_transforms).positions(va)
     old = float(np.linalg.norm(averaged - follow, axis=1).max())
     assert got < 0.6 * old, (got, old)
 

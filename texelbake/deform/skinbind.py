@@ -2,13 +2,19 @@
 so that any USD viewer animates every LOD, and what the renderer's deformed frame does with it.
 
 - A skinned asset (`model.SkinData`): each LOD vertex gets joint weights transferred from
-  M_org (`warps.transfer_weights`: closest point, barycentric blend of the triangle's vertex
+  M_org (`lbs.transfer_weights`: closest point, barycentric blend of the triangle's vertex
   weights, the `MAX_INFLUENCES` largest kept, renormalised), stored as UsdSkel
   `primvars:skel:jointIndices` / `jointWeights` (vertex interpolation, element size
-  `MAX_INFLUENCES`, float32) with the skeleton's joint order. UsdSkel then computes
-  Σ_j w_j (p G S_j(t)) W(t) for the LOD, which is `SkinData.transforms` applied to the rest
-  points: the renderer deforms the LOD meshes with the same weights (as read back from the
-  payload) and the same blend (`lod_skin_positions`).
+  `MAX_INFLUENCES`, float32) with the skeleton's joint order. The LOD was built at the rest
+  pose, which need not be the bind pose (an animation's first frame, restTransforms other than
+  the bind pose): its points are authored in bind space, q = M_r⁻¹ p with M_r = Σ_j w_j B_j
+  the vertex's own blend of the joints' rest transforms (`lod_bind_points`), placed by the
+  skeleton's rest-time world transform W(r) with geomBindTransform W(r)⁻¹. UsdSkel then poses
+  the LOD at M_t q: p itself at the rest time (exact for linear blend skinning at those
+  weights), the rig's motion at every other. The renderer deforms the LOD meshes with the same
+  weights (as read back from the payload) and the same map (`lbs.skin_blend`). A vertex whose
+  M_r is near-singular (`TOL.skin_blend_cond`) has no usable bind-space point: the export then
+  gives every LOD time samples instead, and says so.
 - Time-sampled points without one skeleton: each LOD vertex is bound to its closest rest
   triangle of M_org and follows that triangle's affine map (`warps.MeshWarp`: barycentrics and
   normal offset, the deformed normal scaled by sqrt(area ratio)); the LOD's `points` carry
@@ -19,12 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from texelbake.deform.warps import (
-    MAX_INFLUENCES,
-    bind_to_mesh,
-    transfer_weights,
-    triangle_jacobians,
-)
+from texelbake.deform.lbs import MAX_INFLUENCES, bind_points, transfer_weights
+from texelbake.deform.warps import bind_to_mesh, triangle_jacobians
 from texelbake.errors import SettingsError, ShapeError
 from texelbake.model import AssetModel, SkinData
 
@@ -76,16 +78,16 @@ def transforms_at(skin: SkinData, time_codes: np.ndarray, time: float) -> np.nda
     return (1.0 - a) * skin.transforms[k] + a * skin.transforms[k + 1]
 
 
-def lod_skin_positions(transforms: np.ndarray, weights: np.ndarray, rest: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Linear-blend skinning of rest points (n, 3) with dense weights (n, j): positions (n, 3)
-    and the exact Jacobian Σ_j w_j A_j (n, 3, 3). Rows of weights sum to 1 here (lod_skin)."""
-    m = np.asarray(transforms, dtype=np.float64)
-    w = np.asarray(weights, dtype=np.float64)
-    p = np.asarray(rest, dtype=np.float64)
-    blend = np.einsum("nj,jab->nab", w, m[:, :3, :])  # (n, 3, 4)
-    return (np.einsum("nab,nb->na", blend[:, :, :3], p) + blend[:, :, 3],
-            blend[:, :, :3].copy())
+def lod_bind_points(skin: SkinData, indices: np.ndarray, weights: np.ndarray,
+                    vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points a LOD mesh bound by (indices, weights) (n, k) carries (module docstring): its
+    rest vertices (n, 3) taken to bind space by their own blended rest transform and placed by
+    the skeleton's rest-time world transform (inverse of `skin.bind`). returns points (n, 3)
+    float64, valid (n,) bool (False: the blend is near-singular there, `lbs.rest_inverse`)."""
+    dense = dense_weights(indices, weights, len(skin.joints))
+    q, valid = bind_points(skin.rest, dense, vertices)
+    place = np.linalg.inv(np.asarray(skin.bind, dtype=np.float64))  # row convention: W(r)
+    return q @ place[:3, :3] + place[3, :3], valid
 
 
 def lod_time_samples(asset: AssetModel, vertices: np.ndarray) -> np.ndarray:

@@ -11,9 +11,7 @@ characteristic points all follow the same Ψ:
 - `MeshWarp`: time-sampled points of a mesh; each rest point is bound to its closest rest
   triangle (barycentrics and a normal offset) and follows it; the Jacobian is the triangle's
   affine deformation gradient;
-- `SkinWarp`: linear-blend skinning p' = Σ_j w_j (A_j p + t_j) with the exact Jacobian
-  J = Σ_j w_j A_j; weights of points other than the skinned vertices are transferred by
-  closest point (`transfer_weights`).
+- linear-blend skinning (`SkinWarp`, `transfer_weights`) lives in `texelbake.deform.lbs`.
 """
 
 from __future__ import annotations
@@ -33,8 +31,6 @@ from texelbake.errors import SettingsError, ShapeError
 #: Ψ varies (for our procedural warps, the object's size), giving ~δ^(2/3) ≈ 4e-11 relative
 #: error in u, v — far below what the float32 geometry can show. 1e-5 sits at that optimum.
 CD_STEP = 1e-5
-#: at most this many joints influence a point after weight transfer (UsdSkel's usual bound)
-MAX_INFLUENCES = 4
 
 
 def _points(x: object, name: str = "points") -> np.ndarray:
@@ -279,69 +275,14 @@ class MeshWarp(Warp):
 
 @dataclass
 class SkinnedMeshWarp(MeshWarp):
-    """A skinned asset's time samples at one time (`MeshWarp`) with its skin's rest → deformed
-    joint transforms at that time, `transforms` (j, 4, 4) float64 (`model.SkinData`): the
-    deformed frame moves M_org and the characteristic points by the samples, and LOD meshes
-    bound to the skeleton by their own weights (`render.deformed.deform_scene`)."""
+    """A skinned asset's time samples at one time (`MeshWarp`) with its skin's joint transforms
+    (`model.SkinData`): `transforms` (j, 4, 4) float64 bind space -> world at that time and
+    `rest_transforms` (j, 4, 4) the same at the rest time. The deformed frame moves M_org and
+    the characteristic points by the samples, and LOD meshes bound to the skeleton by their own
+    weights (`lbs.SkinWarp`, `render.deformed.deform_scene`)."""
 
     transforms: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
-
-
-def transfer_weights(points: np.ndarray, rest_vertices: np.ndarray, faces: np.ndarray,
-                     weights: np.ndarray, max_influences: int = MAX_INFLUENCES) -> np.ndarray:
-    """Skin weights of arbitrary points from a skinned mesh: closest point, barycentric blend
-    of the triangle's vertex weights, the `max_influences` largest kept, renormalised (rows
-    that sum to 0 stay 0: no influence).
-
-    weights : (v, j) float64 per vertex; returns (n, j) float64"""
-    w = np.asarray(weights, dtype=np.float64)
-    prim, bary, _ = bind_to_mesh(points, rest_vertices, faces)
-    out = np.einsum("nk,nkj->nj", bary, w[np.asarray(faces)[prim]])
-    if out.shape[1] > max_influences:
-        drop = np.argsort(-out, axis=1, kind="stable")[:, max_influences:]
-        np.put_along_axis(out, drop, 0.0, axis=1)
-    s = out.sum(axis=1, keepdims=True)
-    return np.divide(out, s, out=np.zeros_like(out), where=s > 0)
-
-
-@dataclass
-class SkinWarp(Warp):
-    """Linear-blend skinning: p' = Σ_j w_j(p) (A_j p + t_j), J = Σ_j w_j A_j (exact).
-
-    transforms : (j, 4, 4) float64 per joint, skinning transform (animated world ·
-        inverse bind), column-vector convention; rest_vertices, faces, weights (v, j): the
-    skinned mesh at rest, whose weights are transferred to other points (`transfer_weights`).
-    A point without influence (all weights 0) stays at rest: p' = p, J = I."""
-
-    transforms: np.ndarray
-    rest_vertices: np.ndarray
-    faces: np.ndarray
-    weights: np.ndarray
-    name: str = "skin"
-    scale: float = 1.0
-
-    def _weights(self, p: np.ndarray) -> np.ndarray:
-        rv = np.asarray(self.rest_vertices)
-        if p.shape == rv.shape and np.array_equal(p, rv):
-            w = np.asarray(self.weights, dtype=np.float64)
-            s = w.sum(axis=1, keepdims=True)
-            return np.divide(w, s, out=np.zeros_like(w), where=s > 0)
-        return transfer_weights(p, rv, self.faces, self.weights)
-
-    def positions(self, points: np.ndarray) -> np.ndarray:
-        p = _points(points)
-        w = self._weights(p)
-        m = np.asarray(self.transforms, dtype=np.float64)
-        moved = np.einsum("jab,nb->nja", m[:, :3, :3], p) + m[None, :, :3, 3]  # (n, j, 3)
-        free = 1.0 - w.sum(axis=1)  # 1 where no influence
-        return np.einsum("nj,nja->na", w, moved) + free[:, None] * p
-
-    def jacobian(self, points: np.ndarray) -> np.ndarray:
-        p = _points(points)
-        w = self._weights(p)
-        m = np.asarray(self.transforms, dtype=np.float64)
-        free = 1.0 - w.sum(axis=1)
-        return np.einsum("nj,jab->nab", w, m[:, :3, :3]) + free[:, None, None] * np.eye(3)
+    rest_transforms: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- spec strings

@@ -55,6 +55,7 @@ import numpy as np
 
 from texelbake import brdf as brdf_mod
 from texelbake.deform.impostor import ImpostorParams, decode_frames, impostor_params
+from texelbake.deform.lbs import SkinWarp, transfer_weights
 from texelbake.deform.lookup import (
     align_quarter_turns,
     deformed_tangents,
@@ -64,7 +65,7 @@ from texelbake.deform.lookup import (
 from texelbake.deform.normals import cofactor, deform_normals
 from texelbake.deform.refine import refine_levels, subdivide
 from texelbake.deform.skinbind import dense_weights
-from texelbake.deform.warps import MeshWarp, SkinWarp, Warp, transfer_weights
+from texelbake.deform.warps import MeshWarp, Warp
 from texelbake.errors import SettingsError
 from texelbake.geometry.basis import tangent_frames
 from texelbake.geometry.mesh import face_normals
@@ -171,6 +172,7 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     # the asset's own skinning (`warp_at_time` of a skinned asset): LOD meshes with a UsdSkel
     # binding in the payload follow it with their own weights, as UsdSkel animates them
     skin_xf = getattr(warp, "transforms", None)
+    skin_rest = getattr(warp, "rest_transforms", None)
     n_joints = 0 if skin_xf is None else int(np.shape(skin_xf)[0])
     d = copy.copy(scene)
     a = scene.asset
@@ -190,7 +192,7 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     rest_lods, exact, frames0, lod_w = _refined_lods(scene, refine, n_joints)
     lod_warps: list[Warp] = [
         warp if w is None else SkinWarp(np.asarray(skin_xf), v, f, w, name=warp.name,
-                                        scale=warp.scale)
+                                        scale=warp.scale, rest_transforms=skin_rest)
         for (v, f, _), w in zip(rest_lods, lod_w, strict=True)]
     meshes = [LodMesh(lw.positions(v), f, cuv)
               for (v, f, cuv), lw in zip(rest_lods, lod_warps, strict=True)]

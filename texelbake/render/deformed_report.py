@@ -46,7 +46,8 @@ def warp_at_time(asset: AssetModel, time: float) -> Warp:
     if asset.skin is not None:  # the LODs bound to the skeleton follow its transforms
         return SkinnedMeshWarp(asset.points, pts, asset.faces, name=f"time:{time:g}",
                                scale=asset.bbox_diag,
-                               transforms=transforms_at(asset.skin, codes, t))
+                               transforms=transforms_at(asset.skin, codes, t),
+                               rest_transforms=asset.skin.rest)
     return MeshWarp(asset.points, pts, asset.faces, name=f"time:{time:g}",
                     scale=asset.bbox_diag)
 

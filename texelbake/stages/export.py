@@ -35,25 +35,39 @@ from texelbake.usd.package import copy_source
 from texelbake.usd.write import write_baked_asset
 
 
-def lod_animation(asset, meshes) -> str:
+def lod_animation(asset, meshes) -> tuple[str, list[str]]:
     """The LOD meshes follow M_org (`texelbake.deform.skinbind`): skin bindings transferred
-    from a skinned asset, else time samples of an animated one. The LOD vertices are taken as
-    the payload will store them (float32), so that the renderer, which reads them back,
-    deforms the same points. Returns the skeleton's path ("" when unskinned)."""
-    from texelbake.deform.skinbind import lod_skin, lod_time_samples
+    from a skinned asset (their points in bind space), else time samples of an animated one.
+    The LOD vertices are taken as the payload will store them (float32), so that the renderer,
+    which reads them back, deforms the same points. Returns the skeleton's path ("" when not
+    bound) and the warnings of a skinned asset whose LODs could not be bound."""
+    from texelbake.deform.skinbind import lod_bind_points, lod_skin, lod_time_samples
 
+    warnings: list[str] = []
     if asset.skin is not None:
-        for m in meshes:
+        bound = []
+        for i, m in enumerate(meshes, start=1):
             v32 = m.vertices.astype(np.float32).astype(np.float64)
             idx, wgt = lod_skin(asset.skin, asset.points, asset.faces, v32)
-            m.skin = {"indices": idx, "weights": wgt, "bind": asset.skin.bind}
-        return asset.skin.skeleton
+            pts, valid = lod_bind_points(asset.skin, idx, wgt.astype(np.float64), v32)
+            if not valid.all():
+                warnings.append(
+                    f"lod: UsdSkel skinning not transferred to the LOD meshes (LOD{i}: "
+                    f"{int((~valid).sum())} vertices' blended rest transform is near-singular)"
+                    "; they carry time samples of the skinned points instead")
+                break
+            bound.append({"indices": idx, "weights": wgt, "bind": asset.skin.bind,
+                          "points": pts})
+        else:
+            for m, skin in zip(meshes, bound, strict=True):
+                m.skin = skin
+            return asset.skin.skeleton, warnings
     if asset.has_deformation:
         for m in meshes:
             v32 = m.vertices.astype(np.float32).astype(np.float64)
             m.time_codes = np.asarray(asset.time_codes, dtype=np.float64)
             m.points_over_time = lod_time_samples(asset, v32)
-    return ""
+    return "", warnings
 
 
 def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "copy") -> Path:
@@ -104,7 +118,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
 
     for m in meshes:  # seed 002 Table 1 on every vertex of M1..Mn
         m.impostor = impostor_params(m.vertices, m.faces, m.corner_uvs).as_arrays()
-    skeleton = lod_animation(asset, meshes)
+    skeleton, lod_warnings = lod_animation(asset, meshes)
     name = ctx.asset_path.stem
     skipped = list(plan.skipped) if plan is not None else []
     report = {
@@ -135,7 +149,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
             f"level {r['level']}: {r['avis']['texels_above_tolerance']} of "
             f"{r['avis']['ray_texels']} ray-traced texels have a compressed a_vis table more "
             f"than {r['avis']['tolerance']:.0%} (relative L2) from their uncompressed maps"
-            for r in level_reports if r["avis"].get("texels_above_tolerance")],
+            for r in level_reports if r["avis"].get("texels_above_tolerance")] + lod_warnings,
     }
     l0 = level_reports[0]
     metadata = {

@@ -25,7 +25,9 @@ class LodMesh:
     (`lodchain.transfer_corner_normals`; None: none authored, as in bakes before it).
     skin: the UsdSkel binding transferred from M_org (`texelbake.deform.skinbind`):
     "indices" (n, k) int32 and "weights" (n, k) float32 per vertex, "bind" (4, 4) float64
-    the geomBindTransform (row-vector convention); empty when the asset is not skinned.
+    the geomBindTransform (row-vector convention), "points" (n, 3) float64 the points the
+    mesh carries for UsdSkel (its bind pose; `vertices` stay the rest positions, which the
+    payload holds as the impostor's p0); empty when the asset is not skinned.
     time_codes, points_over_time: (t,) and (t, n, 3) float64 time samples of the vertices
     (an animated asset without one skeleton); empty otherwise."""
 
@@ -44,7 +46,8 @@ def author_mesh(stage: Usd.Stage, path: str, mesh: LodMesh) -> UsdGeom.Mesh:
     geom = UsdGeom.Mesh.Define(stage, path)
     # aligned copies where needed: a mapped artifact's arrays may be unaligned, which
     # Vt.*.FromNumpy refuses (see usd.write.author_array)
-    v = np.require(mesh.vertices, dtype=np.float32, requirements=["C", "A"])
+    v = np.require(mesh.skin.get("points", mesh.vertices), dtype=np.float32,
+                   requirements=["C", "A"])
     f = np.require(mesh.faces, dtype=np.int32, requirements=["C", "A"])
     geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(v))
     geom.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(f)))
@@ -135,7 +138,9 @@ def read_impostor(geom: UsdGeom.Mesh, n_points: int) -> dict[str, np.ndarray]:
 
 def read_animation(geom: UsdGeom.Mesh, mesh: LodMesh, skeleton: str) -> str:
     """Fill mesh.skin / mesh.time_codes from the LOD prim (`_author_animation`); returns the
-    bound skeleton's path on the baked stage (or `skeleton` unchanged when unskinned)."""
+    bound skeleton's path on the baked stage (or `skeleton` unchanged when unskinned). A bound
+    LOD's `points` are its bind pose: mesh.vertices become its rest positions, the impostor's
+    p0 (AssetError when it has none)."""
     prim = geom.GetPrim()
     n = mesh.vertices.shape[0]
     if prim.HasAPI(UsdSkel.BindingAPI):
@@ -152,9 +157,14 @@ def read_animation(geom: UsdGeom.Mesh, mesh: LodMesh, skeleton: str) -> str:
         targets = api.GetSkeletonRel().GetTargets()
         if not targets:
             raise AssetError("skinned LOD has no skel:skeleton target", prim=str(prim.GetPath()))
+        if "p0" not in mesh.impostor:
+            raise AssetError("skinned LOD has no primvars:texelbake:p0 (its rest positions)",
+                             prim=str(prim.GetPath()))
         mesh.skin = {"indices": idx.reshape(n, k), "weights": wgt.reshape(n, k),
                      "bind": np.array(bind if bind is not None else Gf.Matrix4d(1.0),
-                                      dtype=np.float64).reshape(4, 4)}
+                                      dtype=np.float64).reshape(4, 4),
+                     "points": mesh.vertices}
+        mesh.vertices = mesh.impostor["p0"].copy()
         skeleton = str(targets[0])
     times = geom.GetPointsAttr().GetTimeSamples()
     if len(times) > 1:
