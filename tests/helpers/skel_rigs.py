@@ -1,0 +1,145 @@
+"""Small UsdSkel rigs for the LOD-binding tests (tests/usd/test_skel_rigs.py), authored with pxr
+only: a leg of two tube meshes on one skeleton, built the way exporters write characters.
+
+- Skeleton `Root/Hip/Knee/Ankle` (bind pose: joints at y = 0, 0, 1, 2 in skeleton space, no
+  rotation); `restTransforms` with the Knee bent 20° (not the bind pose); an animation over
+  time codes 0..24 that bends Knee and Ankle and swings and moves the Hip, whose first frame is
+  not the bind pose either. `Root` is never animated (a static joint).
+- `Lower` (y 0 .. 1.2) and `Upper` (y 1.2 .. 2.6): tubes whose points are authored in their own
+  frame with a non-identity `geomBindTransform`, each with a joint subset (`skel:joints`):
+  Lower [Hip, Knee], Upper [Knee, Ankle], weights blending linearly over ±0.2 around the knee
+  (y = 1) and the ankle (y = 2), two influences per point.
+- The SkelRoot `Char` is translated, so the skeleton's world transform is not the identity.
+- options: `prop` adds `Prop`, a box beside the leg under the SkelRoot with no binding (static);
+  `moving_prop` gives it an xform animation no joint follows; `method` sets
+  `skel:skinningMethod` on Upper (e.g. "dualQuaternion").
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+
+JOINTS = ("Root", "Root/Hip", "Root/Hip/Knee", "Root/Hip/Knee/Ankle")
+BIND_Y = (0.0, 0.0, 1.0, 2.0)
+TIME_CODES = (0.0, 6.0, 12.0, 18.0, 24.0)
+BLEND = 0.2
+#: geomBindTransforms (row convention: skeleton-space point = authored point · G)
+BIND_LOWER = Gf.Matrix4d(1.0).SetRotate(Gf.Rotation(Gf.Vec3d(1, 0, 0), 90.0)) * \
+    Gf.Matrix4d(1.0).SetTranslate(Gf.Vec3d(0.3, -0.5, 0.2))
+BIND_UPPER = Gf.Matrix4d(1.0).SetRotate(Gf.Rotation(Gf.Vec3d(0, 1, 1), -35.0)) * \
+    Gf.Matrix4d(1.0).SetTranslate(Gf.Vec3d(-0.4, 0.1, 0.6))
+CHAR_OFFSET = (0.7, 0.0, -0.3)
+
+
+def tube(y0: float, y1: float, rings: int, segs: int = 16, radius: float = 0.25
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """An open tube along +y with slightly ridged walls: points (n, 3), quads (q, 4)."""
+    ys = np.linspace(y0, y1, rings + 1)
+    a = 2 * np.pi * np.arange(segs) / segs
+    r = radius * (1.0 + 0.08 * np.cos(4 * a))  # ridges: QEM keeps some rings
+    pts = np.array([[ri * math.cos(ai), y, ri * math.sin(ai)] for y in ys
+                    for ai, ri in zip(a, r, strict=True)])
+    quads = [[k * segs + i, k * segs + (i + 1) % segs, (k + 1) * segs + (i + 1) % segs,
+              (k + 1) * segs + i] for k in range(rings) for i in range(segs)]
+    return pts, np.asarray(quads, dtype=np.int64)
+
+
+def leg_weights(y: np.ndarray) -> np.ndarray:
+    """(n, 4) weights over JOINTS by height: Hip below the knee's blend, Knee between, Ankle
+    above the ankle's blend; linear over ±BLEND around y = 1 and y = 2."""
+    t1 = np.clip((y - (1.0 - BLEND)) / (2 * BLEND), 0.0, 1.0)
+    t2 = np.clip((y - (2.0 - BLEND)) / (2 * BLEND), 0.0, 1.0)
+    w = np.zeros((y.shape[0], 4))
+    w[:, 1] = 1.0 - t1
+    w[:, 2] = t1 * (1.0 - t2)
+    w[:, 3] = t2
+    return w
+
+
+def _quat(axis, deg: float) -> Gf.Quatf:
+    q = Gf.Rotation(Gf.Vec3d(*axis), deg).GetQuat()
+    return Gf.Quatf(float(q.GetReal()), Gf.Vec3f(*map(float, q.GetImaginary())))
+
+
+def _pose(s: float) -> tuple[list, list]:
+    """Local (translations, rotations) of JOINTS at animation phase s in [0, 1]."""
+    trans = [Gf.Vec3f(0, 0, 0), Gf.Vec3f(0.5 * s, 0.0, 0.2 * s), Gf.Vec3f(0, 1, 0),
+             Gf.Vec3f(0, 1, 0)]
+    rots = [_quat((0, 1, 0), 0.0), _quat((0, 1, 0), 10.0 + 50.0 * s),
+            _quat((0, 0, 1), 30.0 + 70.0 * s), _quat((1, 0, 0), -15.0 - 45.0 * s)]
+    return trans, rots
+
+
+def _mesh(stage: Usd.Stage, path: str, pts_skel: np.ndarray, quads: np.ndarray,
+          bind: Gf.Matrix4d, joints: list[str], method: str | None) -> None:
+    inv = np.array(bind.GetInverse(), dtype=np.float64)
+    local = pts_skel @ inv[:3, :3] + inv[3, :3]  # authored so that local · G = skeleton space
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(local.astype(np.float32)))
+    mesh.CreateFaceVertexCountsAttr([4] * len(quads))
+    mesh.CreateFaceVertexIndicesAttr([int(i) for i in quads.reshape(-1)])
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    api = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    api.CreateSkeletonRel().SetTargets([Sdf.Path("/Root/Char/Skel")])
+    api.CreateJointsAttr(Vt.TokenArray(joints))
+    w = leg_weights(pts_skel[:, 1])[:, [JOINTS.index(j) for j in joints]]  # subset order
+    order = np.argsort(-w, axis=1, kind="stable")[:, :2]
+    api.CreateJointIndicesPrimvar(False, 2).Set(Vt.IntArray(order.reshape(-1).tolist()))
+    api.CreateJointWeightsPrimvar(False, 2).Set(
+        Vt.FloatArray(np.take_along_axis(w, order, axis=1).reshape(-1).tolist()))
+    api.CreateGeomBindTransformAttr(bind)
+    if method is not None:
+        api.CreateSkinningMethodAttr(method)
+
+
+def write_rig(path: Path, *, prop: bool = False, moving_prop: bool = False,
+              method: str | None = None) -> Path:
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, "/Root")
+    stage.SetDefaultPrim(root.GetPrim())
+    char = UsdSkel.Root.Define(stage, "/Root/Char")
+    char.AddTranslateOp().Set(Gf.Vec3d(*CHAR_OFFSET))
+    skel = UsdSkel.Skeleton.Define(stage, "/Root/Char/Skel")
+    skel.CreateJointsAttr(Vt.TokenArray(list(JOINTS)))
+    skel.CreateBindTransformsAttr(Vt.Matrix4dArray(
+        [Gf.Matrix4d(1.0).SetTranslate(Gf.Vec3d(0, y, 0)) for y in BIND_Y]))
+    rest = [Gf.Matrix4d(1.0), Gf.Matrix4d(1.0),
+            Gf.Matrix4d(1.0).SetRotate(Gf.Rotation(Gf.Vec3d(0, 0, 1), 20.0))
+            * Gf.Matrix4d(1.0).SetTranslate(Gf.Vec3d(0, 1, 0)),
+            Gf.Matrix4d(1.0).SetTranslate(Gf.Vec3d(0, 1, 0))]
+    skel.CreateRestTransformsAttr(Vt.Matrix4dArray(rest))
+    anim = UsdSkel.Animation.Define(stage, "/Root/Char/Skel/Anim")
+    anim.CreateJointsAttr(Vt.TokenArray(list(JOINTS)))
+    anim.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(JOINTS)))
+    tr, rot = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr()
+    for t in TIME_CODES:
+        trans, rots = _pose(t / TIME_CODES[-1])
+        tr.Set(Vt.Vec3fArray(trans), Usd.TimeCode(t))
+        rot.Set(Vt.QuatfArray(rots), Usd.TimeCode(t))
+    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets(
+        [anim.GetPath()])
+    lower, lq = tube(0.0, 1.2, rings=12)
+    upper, uq = tube(1.2, 2.6, rings=14, radius=0.22)
+    _mesh(stage, "/Root/Char/Lower", lower, lq, BIND_LOWER, [JOINTS[1], JOINTS[2]], None)
+    _mesh(stage, "/Root/Char/Upper", upper, uq, BIND_UPPER, [JOINTS[2], JOINTS[3]], method)
+    if prop or moving_prop:
+        pts, quads = tube(0.0, 0.6, rings=3, segs=8, radius=0.2)
+        box = UsdGeom.Mesh.Define(stage, "/Root/Char/Prop")
+        box.CreatePointsAttr(Vt.Vec3fArray.FromNumpy((pts + [1.0, 0.0, 0.0]).astype(np.float32)))
+        box.CreateFaceVertexCountsAttr([4] * len(quads))
+        box.CreateFaceVertexIndicesAttr([int(i) for i in quads.reshape(-1)])
+        box.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        if moving_prop:
+            op = box.AddTranslateOp()
+            for t in TIME_CODES:
+                op.Set(Gf.Vec3d(0.0, 0.02 * t, 0.0), Usd.TimeCode(t))
+    stage.SetStartTimeCode(TIME_CODES[0])
+    stage.SetEndTimeCode(TIME_CODES[-1])
+    stage.GetRootLayer().Save()
+    return path
