@@ -12,7 +12,8 @@ only: a leg of two tube meshes on one skeleton, built the way exporters write ch
 - The SkelRoot `Char` is translated, so the skeleton's world transform is not the identity.
 - options: `prop` adds `Prop`, a box beside the leg under the SkelRoot with no binding (static);
   `moving_prop` gives it an xform animation no joint follows; `method` sets
-  `skel:skinningMethod` on Upper (e.g. "dualQuaternion").
+  `skel:skinningMethod` on Upper (e.g. "dualQuaternion"); `knee` is the Knee's bend at the
+  first frame (180: the knee's 50/50 ring is folded flat at the rest time).
 """
 
 from __future__ import annotations
@@ -65,12 +66,13 @@ def _quat(axis, deg: float) -> Gf.Quatf:
     return Gf.Quatf(float(q.GetReal()), Gf.Vec3f(*map(float, q.GetImaginary())))
 
 
-def _pose(s: float) -> tuple[list, list]:
-    """Local (translations, rotations) of JOINTS at animation phase s in [0, 1]."""
+def _pose(s: float, knee: float = 30.0) -> tuple[list, list]:
+    """Local (translations, rotations) of JOINTS at animation phase s in [0, 1] (the Knee bent
+    `knee` degrees at s = 0)."""
     trans = [Gf.Vec3f(0, 0, 0), Gf.Vec3f(0.5 * s, 0.0, 0.2 * s), Gf.Vec3f(0, 1, 0),
              Gf.Vec3f(0, 1, 0)]
     rots = [_quat((0, 1, 0), 0.0), _quat((0, 1, 0), 10.0 + 50.0 * s),
-            _quat((0, 0, 1), 30.0 + 70.0 * s), _quat((1, 0, 0), -15.0 - 45.0 * s)]
+            _quat((0, 0, 1), knee + 70.0 * s), _quat((1, 0, 0), -15.0 - 45.0 * s)]
     return trans, rots
 
 
@@ -97,7 +99,7 @@ def _mesh(stage: Usd.Stage, path: str, pts_skel: np.ndarray, quads: np.ndarray,
 
 
 def write_rig(path: Path, *, prop: bool = False, moving_prop: bool = False,
-              method: str | None = None) -> Path:
+              method: str | None = None, knee: float = 30.0) -> Path:
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -119,7 +121,7 @@ def write_rig(path: Path, *, prop: bool = False, moving_prop: bool = False,
     anim.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(JOINTS)))
     tr, rot = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr()
     for t in TIME_CODES:
-        trans, rots = _pose(t / TIME_CODES[-1])
+        trans, rots = _pose(t / TIME_CODES[-1], knee)
         tr.Set(Vt.Vec3fArray(trans), Usd.TimeCode(t))
         rot.Set(Vt.QuatfArray(rots), Usd.TimeCode(t))
     UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets(

@@ -300,6 +300,19 @@ def test_a_rig_that_cannot_be_carried_gives_time_samples_and_says_why(tmp_path, 
     assert stock_errors(root) == {str(root): []}
 
 
+def test_a_rest_pose_that_folds_a_blend_flat_is_not_carried(tmp_path):
+    """The Knee bent 180° at the first frame: the ring weighted 50/50 Hip/Knee is collapsed
+    onto the axis at the rest time, where no bind-space point can be recovered from it
+    (`lbs.rest_inverse`); ingest says so and describes no skin."""
+    from texelbake.asset import load_asset
+
+    src = write_rig(tmp_path / "rig.usda", knee=180.0)
+    with pytest.warns(Warning, match="near-singular"):
+        asset = load_asset(str(src))
+    assert asset.skin is None and asset.has_deformation
+    assert load_asset(str(write_rig(tmp_path / "ok.usda", knee=150.0))).skin is not None
+
+
 def test_skinned_rig_bakes_pass_stock_validation(baked_leg, baked_prop):
     assert stock_errors(baked_leg) == {str(baked_leg): []}
     assert stock_errors(baked_prop) == {str(baked_prop): []}
