@@ -111,7 +111,7 @@ def _refined_lods(scene: RenderScene, refine: float, n_joints: int = 0
     M1's own vertices, a new one — `impostor_params` of the refined mesh — on the added), and
     per LOD its dense skin weights (n, n_joints) from the payload's binding on the LOD's own
     vertices and, on the added ones, transferred from M_org's skin as the payload's binding
-    was (`warps.transfer_weights`: closest point, barycentric blend, ≤ 4 influences) (None:
+    was (`lbs.transfer_weights`: closest point, barycentric blend, ≤ 4 influences) (None:
     no binding, or n_joints = 0). The mean of an edge's ends' weights would put the added vertices of the arm's long M1 edges up to 0.38 (10 % of the
     diagonal) off the bent M_org: linear blending of averaged weights is not the skinning of
     the surface between two vertices whose weights differ."""

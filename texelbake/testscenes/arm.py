@@ -62,7 +62,7 @@ def joint_angles(time: float) -> np.ndarray:
 
 def skinning_transforms(time: float) -> np.ndarray:
     """Closed form of the skinning transforms (world at `time` · inverse bind), (3, 4, 4)
-    float64, column-vector convention (`deform.warps.SkinWarp`)."""
+    float64, column-vector convention (`deform.lbs.SkinWarp`)."""
     jy = joint_heights()
     out = np.zeros((3, 4, 4))
     world = np.eye(4)
