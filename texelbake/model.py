@@ -171,8 +171,12 @@ class SkinData:
         convention, skeleton bind space -> world: (S_j(t) W(t))ᵀ, UsdSkel's skinning
         transform S_j and the skeleton's local-to-world W
     rest : (j, 4, 4) float64 the same at the time the rest points were read
-    bind : (4, 4) float64 row-vector convention, the geomBindTransform the LOD meshes carry:
-        W(rest)⁻¹, their points being the bind-space points placed by W(rest)
+    placement : (4, 4) float64 row-vector convention, the transform of the LODs' SkelRoot
+        `Baked` under the asset's root prim, W(rest) R⁻¹ (R the root prim's local-to-world):
+        the LODs' points are in the skeleton's bind space (geomBindTransform the identity),
+        which UsdSkel skins and places by W(t) whatever the skinned prim's ancestors are, while
+        a tool that places a skinned mesh by its parent (Blender's importer: parent · geomBind)
+        and one that reads it as a plain mesh see the bind pose where the skeleton stands
     """
 
     skeleton: str
@@ -180,7 +184,7 @@ class SkinData:
     weights: np.ndarray
     transforms: np.ndarray
     rest: np.ndarray
-    bind: np.ndarray
+    placement: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)

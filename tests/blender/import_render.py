@@ -4,7 +4,7 @@
 
     python import_render.py -- SPEC.json
 
-SPEC: {"files": [{"name", "path", "options"?}, ...], "out_dir", "resolution", "samples",
+SPEC: {"files": [{"name", "path", "options"?, "scene_frame"?}, ...], "out_dir", "resolution", "samples",
 "frame": null | [[xmin, ymin, zmin], [xmax, ymax, zmax]], "diag_px": null | pixels}. Each file
 is imported into an empty scene (`options`: importer keywords, e.g. {"import_subdivision":
 True}). The camera and the sun are placed from `frame` (Blender world space; when null, from
@@ -192,9 +192,10 @@ def main() -> None:
                 "import_seconds": time.perf_counter() - t0}
         # the importer sets the frame range from the stage's start and end time codes and
         # leaves the current frame at 1; texelbake bakes the earliest time (the start), so
-        # the render is made there (BoxAnimated's lid has moved by frame 1)
+        # the render is made there (BoxAnimated's lid has moved by frame 1), unless the file
+        # names its frame ("scene_frame": an animated asset posed elsewhere)
         scene = bpy.context.scene
-        scene.frame_set(scene.frame_start)
+        scene.frame_set(int(f.get("scene_frame", scene.frame_start)))
         info["frame_current"] = scene.frame_current
         info.update(_describe())
         if frame is None:

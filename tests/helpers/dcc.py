@@ -49,10 +49,12 @@ def run_blender(script: Path | str, *args: str, timeout: float = 600.0) -> dict:
 def import_and_render(files: dict[str, Path], out_dir: Path, *, frame=None,
                       resolution: int = 160, samples: int = 32, timeout: float = 600.0,
                       diag_px: float | None = None,
-                      options: dict[str, dict] | None = None) -> dict:
+                      options: dict[str, dict] | None = None,
+                      scene_frames: dict[str, int] | None = None) -> dict:
     """Import each of `files` ({name: USD path}) into an empty Blender scene with the USD
     importer at its defaults (or `options[name]`, keywords of `bpy.ops.wm.usd_import` such as
-    {"import_subdivision": True}) and render it (tests/blender/import_render.py) from one camera
+    {"import_subdivision": True}) and render it (tests/blender/import_render.py), at the scene
+    frame `scene_frames[name]` if given (else the animation's start), from one camera
     and sun, placed from `frame` ([lo, hi] in Blender's world space) or, when None, from the
     first file's imported bounds; with `diag_px` the camera is where the frame box's diagonal
     covers that many pixels (a LOD's switch distance). Returns {"frame", "files": {name: what
@@ -61,7 +63,9 @@ def import_and_render(files: dict[str, Path], out_dir: Path, *, frame=None,
     out_dir.mkdir(parents=True, exist_ok=True)
     spec = out_dir / "dcc_spec.json"
     opts = options or {}
-    spec.write_text(json.dumps({"files": [{"name": k, "path": str(v), "options": opts.get(k, {})}
+    frames = scene_frames or {}
+    spec.write_text(json.dumps({"files": [{"name": k, "path": str(v), "options": opts.get(k, {}),
+                                           **({"scene_frame": frames[k]} if k in frames else {})}
                                           for k, v in files.items()],
                                 "out_dir": str(out_dir), "frame": frame,
                                 "resolution": resolution, "samples": samples,

@@ -10,6 +10,7 @@ only: a leg of two tube meshes on one skeleton, built the way exporters write ch
   Lower [Hip, Knee], Upper [Knee, Ankle], weights blending linearly over ±0.2 around the knee
   (y = 1) and the ankle (y = 2), two influences per point.
 - The SkelRoot `Char` is translated, so the skeleton's world transform is not the identity.
+- Every mesh is bound to one grey UsdPreviewSurface (what Blender renders too).
 - options: `prop` adds `Prop`, a box beside the leg under the SkelRoot with no binding (static);
   `moving_prop` gives it an xform animation no joint follows; `method` sets
   `skel:skinningMethod` on Upper (e.g. "dualQuaternion"); `knee` is the Knee's bend at the
@@ -22,7 +23,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
 JOINTS = ("Root", "Root/Hip", "Root/Hip/Knee", "Root/Hip/Knee/Ankle")
 BIND_Y = (0.0, 0.0, 1.0, 2.0)
@@ -37,16 +38,26 @@ CHAR_OFFSET = (0.7, 0.0, -0.3)
 
 
 def tube(y0: float, y1: float, rings: int, segs: int = 16, radius: float = 0.25
-         ) -> tuple[np.ndarray, np.ndarray]:
-    """An open tube along +y with slightly ridged walls: points (n, 3), quads (q, 4)."""
+         ) -> tuple[np.ndarray, list[list[int]]]:
+    """A closed tube along +y with slightly ridged walls, capped by a triangle fan at each end:
+    points (n, 3), polygons (quads and the caps' triangles)."""
     ys = np.linspace(y0, y1, rings + 1)
     a = 2 * np.pi * np.arange(segs) / segs
     r = radius * (1.0 + 0.08 * np.cos(4 * a))  # ridges: QEM keeps some rings
     pts = np.array([[ri * math.cos(ai), y, ri * math.sin(ai)] for y in ys
-                    for ai, ri in zip(a, r, strict=True)])
-    quads = [[k * segs + i, k * segs + (i + 1) % segs, (k + 1) * segs + (i + 1) % segs,
-              (k + 1) * segs + i] for k in range(rings) for i in range(segs)]
-    return pts, np.asarray(quads, dtype=np.int64)
+                    for ai, ri in zip(a, r, strict=True)] + [[0.0, y0, 0.0], [0.0, y1, 0.0]])
+    quads = [[k * segs + i, (k + 1) * segs + i, (k + 1) * segs + (i + 1) % segs,
+              k * segs + (i + 1) % segs] for k in range(rings) for i in range(segs)]  # outward
+    lo, hi, top = len(pts) - 2, len(pts) - 1, rings * segs
+    quads += [[lo, i, (i + 1) % segs] for i in range(segs)]  # facing -y
+    quads += [[hi, top + (i + 1) % segs, top + i] for i in range(segs)]  # facing +y
+    return pts, quads
+
+
+def _topology(mesh: UsdGeom.Mesh, polys: list[list[int]]) -> None:
+    mesh.CreateFaceVertexCountsAttr([len(p) for p in polys])
+    mesh.CreateFaceVertexIndicesAttr([int(i) for p in polys for i in p])
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
 
 
 def leg_weights(y: np.ndarray) -> np.ndarray:
@@ -76,15 +87,13 @@ def _pose(s: float, knee: float = 30.0) -> tuple[list, list]:
     return trans, rots
 
 
-def _mesh(stage: Usd.Stage, path: str, pts_skel: np.ndarray, quads: np.ndarray,
+def _mesh(stage: Usd.Stage, path: str, pts_skel: np.ndarray, polys: list[list[int]],
           bind: Gf.Matrix4d, joints: list[str], method: str | None) -> None:
     inv = np.array(bind.GetInverse(), dtype=np.float64)
     local = pts_skel @ inv[:3, :3] + inv[3, :3]  # authored so that local · G = skeleton space
     mesh = UsdGeom.Mesh.Define(stage, path)
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(local.astype(np.float32)))
-    mesh.CreateFaceVertexCountsAttr([4] * len(quads))
-    mesh.CreateFaceVertexIndicesAttr([int(i) for i in quads.reshape(-1)])
-    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    _topology(mesh, polys)
     api = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
     api.CreateSkeletonRel().SetTargets([Sdf.Path("/Root/Char/Skel")])
     api.CreateJointsAttr(Vt.TokenArray(joints))
@@ -96,6 +105,17 @@ def _mesh(stage: Usd.Stage, path: str, pts_skel: np.ndarray, quads: np.ndarray,
     api.CreateGeomBindTransformAttr(bind)
     if method is not None:
         api.CreateSkinningMethodAttr(method)
+    _bind_grey(stage, mesh.GetPrim())
+
+
+def _bind_grey(stage: Usd.Stage, prim: Usd.Prim) -> None:
+    mat = UsdShade.Material.Define(stage, "/Root/Looks/Grey")
+    shader = UsdShade.Shader.Define(stage, "/Root/Looks/Grey/Surface")
+    shader.CreateIdAttr("UsdPreviewSurface")
+    shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set((0.5, 0.5, 0.5))
+    shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.5)
+    mat.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(prim).Bind(mat)
 
 
 def write_rig(path: Path, *, prop: bool = False, moving_prop: bool = False,
@@ -131,12 +151,11 @@ def write_rig(path: Path, *, prop: bool = False, moving_prop: bool = False,
     _mesh(stage, "/Root/Char/Lower", lower, lq, BIND_LOWER, [JOINTS[1], JOINTS[2]], None)
     _mesh(stage, "/Root/Char/Upper", upper, uq, BIND_UPPER, [JOINTS[2], JOINTS[3]], method)
     if prop or moving_prop:
-        pts, quads = tube(0.0, 0.6, rings=3, segs=8, radius=0.2)
+        pts, polys = tube(0.0, 0.6, rings=3, segs=8, radius=0.2)
         box = UsdGeom.Mesh.Define(stage, "/Root/Char/Prop")
         box.CreatePointsAttr(Vt.Vec3fArray.FromNumpy((pts + [1.0, 0.0, 0.0]).astype(np.float32)))
-        box.CreateFaceVertexCountsAttr([4] * len(quads))
-        box.CreateFaceVertexIndicesAttr([int(i) for i in quads.reshape(-1)])
-        box.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        _topology(box, polys)
+        _bind_grey(stage, box.GetPrim())
         if moving_prop:
             op = box.AddTranslateOp()
             for t in TIME_CODES:

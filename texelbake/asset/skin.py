@@ -99,9 +99,12 @@ def skin_data(mesh_prims: list[Any | None], n_points: list[int], skins: dict[str
         err = max(err, float(np.abs(lbs - points_over_time[k]).max()))
     if err > 1e-5 * size:
         return unsupported(f"the linear blend is {err:.3g} from UsdSkel's skinned points")
-    w_rest = usd_matrix(UsdGeom.XformCache(rest_time).GetLocalToWorldTransform(skel_prim))
+    xcache = UsdGeom.XformCache(rest_time)
+    w_rest = usd_matrix(xcache.GetLocalToWorldTransform(skel_prim))
+    root = skel_prim.GetStage().GetDefaultPrim()
+    r_rest = usd_matrix(xcache.GetLocalToWorldTransform(root)) if root else np.eye(4)
     return SkinData(str(skel_prim.GetPath()), joints, weights, transforms, rest,
-                    np.linalg.inv(w_rest))
+                    w_rest @ np.linalg.inv(r_rest))
 
 
 def _skinned_rows(sq: Any, path: str, n: int, joints: tuple[str, ...], rest_time: Any

@@ -8,8 +8,10 @@ so that any USD viewer animates every LOD, and what the renderer's deformed fram
   `MAX_INFLUENCES`, float32) with the skeleton's joint order. The LOD was built at the rest
   pose, which need not be the bind pose (an animation's first frame, restTransforms other than
   the bind pose): its points are authored in bind space, q = M_r⁻¹ p with M_r = Σ_j w_j B_j
-  the vertex's own blend of the joints' rest transforms (`lod_bind_points`), placed by the
-  skeleton's rest-time world transform W(r) with geomBindTransform W(r)⁻¹. UsdSkel then poses
+  the vertex's own blend of the joints' rest transforms (`lod_bind_points`), with the identity
+  geomBindTransform; the transform of their SkelRoot `Baked` (which UsdSkel ignores) puts that
+  bind pose where the skeleton stands for tools that place a skinned mesh by its parent
+  (`SkinData.placement`: Blender's importer). UsdSkel then poses
   the LOD at M_t q: p itself at the rest time (exact for linear blend skinning at those
   weights), the rig's motion at every other. The renderer deforms the LOD meshes with the same
   weights (as read back from the payload) and the same map (`lbs.skin_blend`). A vertex whose
@@ -81,13 +83,10 @@ def transforms_at(skin: SkinData, time_codes: np.ndarray, time: float) -> np.nda
 def lod_bind_points(skin: SkinData, indices: np.ndarray, weights: np.ndarray,
                     vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The points a LOD mesh bound by (indices, weights) (n, k) carries (module docstring): its
-    rest vertices (n, 3) taken to bind space by their own blended rest transform and placed by
-    the skeleton's rest-time world transform (inverse of `skin.bind`). returns points (n, 3)
-    float64, valid (n,) bool (False: the blend is near-singular there, `lbs.rest_inverse`)."""
-    dense = dense_weights(indices, weights, len(skin.joints))
-    q, valid = bind_points(skin.rest, dense, vertices)
-    place = np.linalg.inv(np.asarray(skin.bind, dtype=np.float64))  # row convention: W(r)
-    return q @ place[:3, :3] + place[3, :3], valid
+    rest vertices (n, 3) taken to the skeleton's bind space by their own blended rest
+    transform. returns points (n, 3) float64, valid (n,) bool (False: the blend is
+    near-singular there, `lbs.rest_inverse`)."""
+    return bind_points(skin.rest, dense_weights(indices, weights, len(skin.joints)), vertices)
 
 
 def lod_time_samples(asset: AssetModel, vertices: np.ndarray) -> np.ndarray:

@@ -56,8 +56,8 @@ def lod_animation(asset, meshes) -> tuple[str, list[str]]:
                     f"{int((~valid).sum())} vertices' blended rest transform is near-singular)"
                     "; they carry time samples of the skinned points instead")
                 break
-            bound.append({"indices": idx, "weights": wgt, "bind": asset.skin.bind,
-                          "points": pts})
+            bound.append({"indices": idx, "weights": wgt, "bind": np.eye(4), "points": pts,
+                          "xform": asset.skin.placement})
         else:
             for m, skin in zip(meshes, bound, strict=True):
                 m.skin = skin

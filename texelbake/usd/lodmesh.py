@@ -27,7 +27,9 @@ class LodMesh:
     "indices" (n, k) int32 and "weights" (n, k) float32 per vertex, "bind" (4, 4) float64
     the geomBindTransform (row-vector convention), "points" (n, 3) float64 the points the
     mesh carries for UsdSkel (its bind pose; `vertices` stay the rest positions, which the
-    payload holds as the impostor's p0); empty when the asset is not skinned.
+    payload holds as the impostor's p0), "xform" (4, 4) float64 the transform of `Baked`, the
+    LODs' SkelRoot (row-vector convention; `model.SkinData.placement`: UsdSkel ignores it,
+    other tools place the bind pose with it); empty when the asset is not skinned.
     time_codes, points_over_time: (t,) and (t, n, 3) float64 time samples of the vertices
     (an animated asset without one skeleton); empty otherwise."""
 
@@ -163,7 +165,9 @@ def read_animation(geom: UsdGeom.Mesh, mesh: LodMesh, skeleton: str) -> str:
         mesh.skin = {"indices": idx.reshape(n, k), "weights": wgt.reshape(n, k),
                      "bind": np.array(bind if bind is not None else Gf.Matrix4d(1.0),
                                       dtype=np.float64).reshape(4, 4),
-                     "points": mesh.vertices}
+                     "points": mesh.vertices,
+                     "xform": np.array(UsdGeom.Xformable(prim.GetParent()).GetLocalTransformation(
+                         Usd.TimeCode.Default()), dtype=np.float64).reshape(4, 4)}
         mesh.vertices = mesh.impostor["p0"].copy()
         skeleton = str(targets[0])
     times = geom.GetPointsAttr().GetTimeSamples()

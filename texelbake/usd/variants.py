@@ -86,8 +86,9 @@ def author_proxy(stage: Usd.Stage, root_name: str, vertices: np.ndarray, faces: 
 
 def proxy_motion(stage: Usd.Stage, lod_path: str, time_codes: np.ndarray,
                  points_over_time: np.ndarray, skinned: bool) -> list[tuple[float, np.ndarray]]:
-    """[(time code, points)] of the LOD mesh at `lod_path` over its animation, in its parent's
-    space (the proxy's: `Baked` carries no transform): its time samples as given, or — bound
+    """[(time code, points)] of the LOD mesh at `lod_path` over its animation, in the space of
+    the proxy's parent (the asset root: a time-sampled LOD's parent `Baked` carries no
+    transform; a skinned one's may, which UsdSkel ignores): its time samples as given, or — bound
     to a skeleton — UsdSkel's skinning of it on `stage` (the payload loaded) at every time
     sample of the skeleton's animation, the way any USD tool will pose it. [] when static."""
     if time_codes.shape[0] > 1:
@@ -117,9 +118,9 @@ def proxy_motion(stage: Usd.Stage, lod_path: str, time_codes: np.ndarray,
         pts = Vt.Vec3fArray(rest)
         if not query.ComputeSkinnedPoints(skel.ComputeSkinningTransforms(t), pts, t):
             raise AssetError(f"UsdSkel could not skin the LOD mesh at time {t}", path=lod_path)
-        # skinned points are in the skeleton's space: to world, then to the LOD's parent
+        # skinned points are in the skeleton's space: to world, then to the SkelRoot's parent
         to_parent = (np.array(xc.GetLocalToWorldTransform(skel.GetPrim()))
-                     @ np.linalg.inv(np.array(xc.GetParentToWorldTransform(prim))))
+                     @ np.linalg.inv(np.array(xc.GetParentToWorldTransform(root.GetPrim()))))
         a = np.array(pts, dtype=np.float64)
         out.append((float(t), a @ to_parent[:3, :3] + to_parent[3, :3]))
     return out

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Kind, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
+from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
 from schemas.settings import BakeSettings
 from texelbake.errors import AssetError, ShapeError
@@ -150,6 +150,10 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     # the skeleton they bind to stays the source's, in its SkelRoot
     baked_root = (UsdSkel.Root if skinned else UsdGeom.Scope).Define(pstage, "/Baked")
     pstage.SetDefaultPrim(baked_root.GetPrim())
+    place = np.asarray(baked.meshes[0].skin.get("xform", np.eye(4)) if skinned else np.eye(4),
+                       dtype=np.float64)
+    if not np.array_equal(place, np.eye(4)):  # model.SkinData.placement
+        UsdGeom.Xformable(baked_root).AddTransformOp().Set(Gf.Matrix4d(place.tolist()))
     cpm_scope = UsdGeom.Scope.Define(pstage, "/Baked/CPM")
     _author_arrays(cpm_scope.GetPrim(), baked.arrays)
     for lvl, arrays in enumerate(baked.levels):
