@@ -313,6 +313,40 @@ def test_a_rest_pose_that_folds_a_blend_flat_is_not_carried(tmp_path):
     assert load_asset(str(write_rig(tmp_path / "ok.usda", knee=150.0))).skin is not None
 
 
+def test_a_lod_vertex_with_a_near_singular_rest_blend_gives_every_lod_time_samples(tmp_path):
+    """The export's own check (`stages.export.lod_animation`): M_org's blends are all fine but
+    a LOD vertex's is not (here the Knee's rest transform replaced by the Hip's turned 180°
+    about z, so a LOD vertex weighted 50/50 Hip/Knee folds flat): no LOD is bound, each
+    carries time samples, and the warning names the LOD and the count."""
+    import dataclasses
+
+    from texelbake.asset import load_asset
+    from texelbake.stages.export import lod_animation
+    from texelbake.usd.lodmesh import LodMesh
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        asset = load_asset(str(write_rig(tmp_path / "rig.usda")))
+    rest = asset.skin.rest.copy()
+    turn = np.diag([-1.0, -1.0, 1.0, 1.0])  # 180° about z
+    rest[2] = rest[1] @ turn
+    asset = dataclasses.replace(asset, skin=dataclasses.replace(asset.skin, rest=rest))
+    knee = asset.points[np.argmin(np.abs(asset.skin.weights[:, 1] - 0.5)
+                                  + np.abs(asset.skin.weights[:, 2] - 0.5))]
+    far = asset.points[np.argmax(asset.skin.weights[:, 1])]  # all Hip
+    meshes = [LodMesh(np.stack([knee, far, far + 1e-3]), np.array([[0, 1, 2]]),
+                      np.zeros((1, 3, 2))) for _ in range(2)]
+    skeleton, warned = lod_animation(asset, meshes)
+    assert skeleton == ""
+    assert warned == ["lod: UsdSkel skinning not transferred to the LOD meshes (LOD1: 1 "
+                      "vertices' blended rest transform is near-singular); they carry time "
+                      "samples of the skinned points instead"]
+    for m in meshes:
+        assert not m.skin
+        np.testing.assert_array_equal(m.time_codes, asset.time_codes)
+        assert m.points_over_time.shape == (len(asset.time_codes), 3, 3)
+
+
 def test_skinned_rig_bakes_pass_stock_validation(baked_leg, baked_prop):
     assert stock_errors(baked_leg) == {str(baked_leg): []}
     assert stock_errors(baked_prop) == {str(baked_prop): []}
