@@ -1,5 +1,7 @@
 """Small UsdSkel rigs for the LOD-binding tests (tests/usd/test_skel_rigs.py), authored with pxr
-only: a leg of two tube meshes on one skeleton, built the way exporters write characters.
+only: a leg of two tube meshes on one skeleton, built the way exporters write characters; and
+how a baked skinned asset is read back by a plain pxr process (`plain_pxr`) and measured
+against its original (`surface_distance`, `blend_deviation`; benchmarks/skel_rigs.py too).
 
 - Skeleton `Root/Hip/Knee/Ankle` (bind pose: joints at y = 0, 0, 1, 2 in skeleton space, no
   rotation); `restTransforms` with the Knee bent 20° (not the bind pose); an animation over
@@ -19,10 +21,15 @@ only: a leg of two tube meshes on one skeleton, built the way exporters write ch
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
 JOINTS = ("Root", "Root/Hip", "Root/Hip/Knee", "Root/Hip/Knee/Ankle")
@@ -164,3 +171,135 @@ def write_rig(path: Path, *, prop: bool = False, moving_prop: bool = False,
     stage.SetEndTimeCode(TIME_CODES[-1])
     stage.GetRootLayer().Save()
     return path
+
+
+# ------------------------------------------------------------ reading a baked rig back
+
+#: stock pxr: every mesh of the baked stage at each time (world space; skinned by UsdSkel where
+#: bound), its triangles, the LODs' p0, and per skeleton its joints' bind -> world transforms at
+#: each time and each skinned mesh's dense weights (the skeleton's joint order).
+PLAIN_PXR = r"""
+import json, sys
+import numpy as np
+from pxr import Usd, UsdGeom, UsdSkel
+stage = Usd.Stage.Open(sys.argv[1])
+times = list(map(float, sys.argv[2:]))
+out = {"meshes": {}, "p0": {}, "skel": {}}
+cache = UsdSkel.Cache()
+bound = {}
+for prim in stage.Traverse():
+    if prim.IsA(UsdSkel.Root):
+        root = UsdSkel.Root(prim)
+        cache.Populate(root, Usd.PrimDefaultPredicate)
+        for binding in cache.ComputeSkelBindings(root, Usd.PrimDefaultPredicate):
+            skel = cache.GetSkelQuery(binding.GetSkeleton())
+            for sq in binding.GetSkinningTargets():
+                bound[str(sq.GetPrim().GetPath())] = (sq, skel)
+for prim in stage.Traverse():
+    if not prim.IsA(UsdGeom.Mesh) or prim.GetName() == "Proxy":
+        continue
+    path = str(prim.GetPath())
+    mesh = UsdGeom.Mesh(prim)
+    counts = np.array(mesh.GetFaceVertexCountsAttr().Get())
+    idx = np.array(mesh.GetFaceVertexIndicesAttr().Get())
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    tris = [[idx[s], idx[s + k], idx[s + k + 1]] for s, c in zip(starts, counts)
+            for k in range(1, c - 1)]
+    entry = {"faces": np.array(tris).tolist(), "t": {}}
+    for t in times:
+        pts = mesh.GetPointsAttr().Get(t)
+        if path in bound:
+            sq, skel = bound[path]
+            assert sq.ComputeSkinnedPoints(skel.ComputeSkinningTransforms(t), pts, t)
+            w = np.array(UsdGeom.XformCache(t).GetLocalToWorldTransform(skel.GetPrim()))
+        else:
+            w = np.array(UsdGeom.XformCache(t).GetLocalToWorldTransform(prim))
+        a = np.array(pts, dtype=np.float64)
+        entry["t"][str(t)] = (a @ w[:3, :3] + w[3, :3]).tolist()
+    if path in bound:
+        sq, skel = bound[path]
+        key = str(skel.GetPrim().GetPath())
+        if key not in out["skel"]:
+            out["skel"][key] = {"joints": [str(j) for j in skel.GetJointOrder()], "t": {
+                str(t): [(np.array(m) @ np.array(UsdGeom.XformCache(t)
+                          .GetLocalToWorldTransform(skel.GetPrim()))).tolist()
+                         for m in skel.ComputeSkinningTransforms(t)] for t in times}}
+        n = len(mesh.GetPointsAttr().Get())
+        ji, jw = sq.ComputeVaryingJointInfluences(n, times[0])
+        ji = np.array(ji).reshape(n, -1)
+        order = sq.GetJointOrder()
+        names = list(order) if order is not None else list(skel.GetJointOrder())
+        joints = [str(j) for j in skel.GetJointOrder()]
+        ji = np.array([joints.index(str(j)) for j in names])[ji]
+        dense = np.zeros((n, len(joints)))
+        np.add.at(dense, (np.repeat(np.arange(n), ji.shape[1]), ji.ravel()),
+                  np.array(jw).ravel())
+        entry["weights"] = (dense / dense.sum(1, keepdims=True)).tolist()
+    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("texelbake:p0")
+    if pv:
+        out["p0"][path] = np.array(pv.Get(), dtype=np.float64).tolist()
+    out["meshes"][path] = entry
+assert not [m for m in sys.modules if m.split(".")[0] in ("texelbake", "schemas")]
+print(json.dumps(out))
+"""
+
+
+def plain_pxr(root: Path, times: tuple[float, ...]) -> dict:
+    """`PLAIN_PXR` on the baked root at `times` (the first: the rest time)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PXR_", "PYTHONPATH"))}
+    r = subprocess.run([sys.executable, "-c", PLAIN_PXR, str(root), *map(str, times)],
+                       capture_output=True, text=True, timeout=300, env=env, cwd="/")
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def original_surface(got: dict, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """The source's meshes at t, one triangle soup: points (n, 3), triangles (f, 3)."""
+    pts, tris, off = [], [], 0
+    for path in sorted(got["meshes"]):
+        if "/Baked/" in path:
+            continue
+        m = got["meshes"][path]
+        p = np.array(m["t"][str(t)])
+        pts.append(p)
+        tris.append(np.array(m["faces"]) + off)
+        off += len(p)
+    return np.concatenate(pts), np.concatenate(tris)
+
+
+def surface_distance(points: np.ndarray, verts: np.ndarray, tris: np.ndarray
+                     ) -> np.ndarray:
+    """Unsigned distance of points (n, 3) to the triangle soup (verts, tris): (n,) float32."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(verts.astype(np.float32)),
+                        o3d.core.Tensor(tris.astype(np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
+
+
+def blend_deviation(got: dict, t: float, rest_time: float) -> tuple[float, float]:
+    """(dev_t, κ_t) of tests/usd/test_skel_rigs.py's docstring over every skinned original
+    triangle (weights: the barycentric blend of its corners', as LOD weights are transferred);
+    unskinned meshes (bound rigidly, one joint) move rigidly: no deviation, no stretch."""
+    (skel,) = got["skel"].values()
+    rest = np.transpose(np.array(skel["t"][str(rest_time)]), (0, 2, 1))  # (j, 4, 4) column
+    now = np.transpose(np.array(skel["t"][str(t)]), (0, 2, 1))
+    g = np.linspace(0.0, 1.0, 9)
+    b1, b2 = np.meshgrid(g, g, indexing="ij")
+    keep = (b1 + b2) <= 1.0 + 1e-12
+    bary = np.stack([1.0 - b1[keep] - b2[keep], b1[keep], b2[keep]], axis=1)  # (s, 3)
+    surf_v, surf_f = original_surface(got, t)
+    dev, kappa = 0.0, 1.0
+    for path, m in got["meshes"].items():
+        if "weights" not in m or "/Baked/" in path:
+            continue
+        f = np.array(m["faces"])
+        w = np.array(m["weights"])[f]  # (f, 3, j)
+        ws = np.einsum("sk,fkj->fsj", bary, w).reshape(-1, w.shape[2])
+        x = np.einsum("sk,fkc->fsc", bary, np.array(m["t"][str(rest_time)])[f]).reshape(-1, 3)
+        m_r = np.einsum("nj,jab->nab", ws, rest[:, :3, :])
+        m_t = np.einsum("nj,jab->nab", ws, now[:, :3, :])
+        a = np.einsum("nab,nbc->nac", m_t[:, :, :3], np.linalg.inv(m_r[:, :, :3]))
+        moved = np.einsum("nab,nb->na", a, x - m_r[:, :, 3]) + m_t[:, :, 3]
+        dev = max(dev, float(surface_distance(moved, surf_v, surf_f).max()))
+        kappa = max(kappa, float(np.linalg.norm(a, ord=2, axis=(1, 2)).max()))
+    return dev, kappa

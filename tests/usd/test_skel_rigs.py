@@ -23,97 +23,22 @@ products, with margin.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 import pytest
 
-from tests.helpers.skel_rigs import write_rig
+from tests.helpers.skel_rigs import (
+    blend_deviation,
+    original_surface,
+    plain_pxr,
+    surface_distance,
+    write_rig,
+)
 from tests.helpers.usd_validation import stock_errors
 
 TIMES = (0.0, 12.0, 24.0)
-
-#: stock pxr: every mesh of the baked stage at each time (world space; skinned by UsdSkel where
-#: bound), its triangles, the LODs' p0, and per skeleton its joints' bind -> world transforms at
-#: each time and each skinned mesh's dense weights (the skeleton's joint order).
-PLAIN_PXR = r"""
-import json, sys
-import numpy as np
-from pxr import Usd, UsdGeom, UsdSkel
-stage = Usd.Stage.Open(sys.argv[1])
-times = list(map(float, sys.argv[2:]))
-out = {"meshes": {}, "p0": {}, "skel": {}}
-cache = UsdSkel.Cache()
-bound = {}
-for prim in stage.Traverse():
-    if prim.IsA(UsdSkel.Root):
-        root = UsdSkel.Root(prim)
-        cache.Populate(root, Usd.PrimDefaultPredicate)
-        for binding in cache.ComputeSkelBindings(root, Usd.PrimDefaultPredicate):
-            skel = cache.GetSkelQuery(binding.GetSkeleton())
-            for sq in binding.GetSkinningTargets():
-                bound[str(sq.GetPrim().GetPath())] = (sq, skel)
-for prim in stage.Traverse():
-    if not prim.IsA(UsdGeom.Mesh) or prim.GetName() == "Proxy":
-        continue
-    path = str(prim.GetPath())
-    mesh = UsdGeom.Mesh(prim)
-    counts = np.array(mesh.GetFaceVertexCountsAttr().Get())
-    idx = np.array(mesh.GetFaceVertexIndicesAttr().Get())
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    tris = [[idx[s], idx[s + k], idx[s + k + 1]] for s, c in zip(starts, counts)
-            for k in range(1, c - 1)]
-    entry = {"faces": np.array(tris).tolist(), "t": {}}
-    for t in times:
-        pts = mesh.GetPointsAttr().Get(t)
-        if path in bound:
-            sq, skel = bound[path]
-            assert sq.ComputeSkinnedPoints(skel.ComputeSkinningTransforms(t), pts, t)
-            w = np.array(UsdGeom.XformCache(t).GetLocalToWorldTransform(skel.GetPrim()))
-        else:
-            w = np.array(UsdGeom.XformCache(t).GetLocalToWorldTransform(prim))
-        a = np.array(pts, dtype=np.float64)
-        entry["t"][str(t)] = (a @ w[:3, :3] + w[3, :3]).tolist()
-    if path in bound:
-        sq, skel = bound[path]
-        key = str(skel.GetPrim().GetPath())
-        if key not in out["skel"]:
-            out["skel"][key] = {"joints": [str(j) for j in skel.GetJointOrder()], "t": {
-                str(t): [(np.array(m) @ np.array(UsdGeom.XformCache(t)
-                          .GetLocalToWorldTransform(skel.GetPrim()))).tolist()
-                         for m in skel.ComputeSkinningTransforms(t)] for t in times}}
-        n = len(mesh.GetPointsAttr().Get())
-        ji, jw = sq.ComputeVaryingJointInfluences(n, times[0])
-        ji = np.array(ji).reshape(n, -1)
-        order = sq.GetJointOrder()
-        names = list(order) if order is not None else list(skel.GetJointOrder())
-        joints = [str(j) for j in skel.GetJointOrder()]
-        ji = np.array([joints.index(str(j)) for j in names])[ji]
-        dense = np.zeros((n, len(joints)))
-        np.add.at(dense, (np.repeat(np.arange(n), ji.shape[1]), ji.ravel()),
-                  np.array(jw).ravel())
-        entry["weights"] = (dense / dense.sum(1, keepdims=True)).tolist()
-    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("texelbake:p0")
-    if pv:
-        out["p0"][path] = np.array(pv.Get(), dtype=np.float64).tolist()
-    out["meshes"][path] = entry
-assert not [m for m in sys.modules if m.split(".")[0] in ("texelbake", "schemas")]
-print(json.dumps(out))
-"""
-
-
-def plain_pxr(root: Path, times: tuple[float, ...] = TIMES) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PXR_", "PYTHONPATH"))}
-    r = subprocess.run([sys.executable, "-c", PLAIN_PXR, str(root), *map(str, times)],
-                       capture_output=True, text=True, timeout=300, env=env, cwd="/")
-    assert r.returncode == 0, r.stderr
-    return json.loads(r.stdout.strip().splitlines()[-1])
-
 
 def _settings():
     from schemas.settings import BakeSettings
@@ -142,69 +67,21 @@ def baked_prop(tmp_path_factory) -> Path:
     return _bake(tmp_path_factory.mktemp("prop"), prop=True)
 
 
-def _original(got: dict, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """The source's meshes at t, one triangle soup: points (n, 3), triangles (f, 3)."""
-    pts, tris, off = [], [], 0
-    for path in sorted(got["meshes"]):
-        if "/Baked/" in path:
-            continue
-        m = got["meshes"][path]
-        p = np.array(m["t"][str(t)])
-        pts.append(p)
-        tris.append(np.array(m["faces"]) + off)
-        off += len(p)
-    return np.concatenate(pts), np.concatenate(tris)
-
-
-def _distance(points: np.ndarray, verts: np.ndarray, tris: np.ndarray) -> np.ndarray:
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(verts.astype(np.float32)),
-                        o3d.core.Tensor(tris.astype(np.uint32)))
-    return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
-
-
-def _blend_deviation(got: dict, t: float) -> tuple[float, float]:
-    """(dev_t, κ_t) of the module docstring, over every skinned original triangle; unskinned
-    meshes (bound rigidly, one joint) move rigidly: no deviation, no stretch."""
-    (skel,) = got["skel"].values()
-    rest = np.transpose(np.array(skel["t"][str(TIMES[0])]), (0, 2, 1))  # (j, 4, 4) column
-    now = np.transpose(np.array(skel["t"][str(t)]), (0, 2, 1))
-    g = np.linspace(0.0, 1.0, 9)
-    b1, b2 = np.meshgrid(g, g, indexing="ij")
-    keep = (b1 + b2) <= 1.0 + 1e-12
-    bary = np.stack([1.0 - b1[keep] - b2[keep], b1[keep], b2[keep]], axis=1)  # (s, 3)
-    surf_v, surf_f = _original(got, t)
-    dev, kappa = 0.0, 1.0
-    for path, m in got["meshes"].items():
-        if "weights" not in m or "/Baked/" in path:
-            continue
-        f = np.array(m["faces"])
-        w = np.array(m["weights"])[f]  # (f, 3, j)
-        ws = np.einsum("sk,fkj->fsj", bary, w).reshape(-1, w.shape[2])
-        x = np.einsum("sk,fkc->fsc", bary, np.array(m["t"][str(TIMES[0])])[f]).reshape(-1, 3)
-        m_r = np.einsum("nj,jab->nab", ws, rest[:, :3, :])
-        m_t = np.einsum("nj,jab->nab", ws, now[:, :3, :])
-        a = np.einsum("nab,nbc->nac", m_t[:, :, :3], np.linalg.inv(m_r[:, :, :3]))
-        moved = np.einsum("nab,nb->na", a, x - m_r[:, :, 3]) + m_t[:, :, 3]
-        dev = max(dev, float(_distance(moved, surf_v, surf_f).max()))
-        kappa = max(kappa, float(np.linalg.norm(a, ord=2, axis=(1, 2)).max()))
-    return dev, kappa
-
-
 def _check_lods_on_surface(got: dict, *, skinned: bool) -> None:
     """The module docstring's bar, per LOD vertex, at every time (e_rest: that vertex's own
     distance at the rest time); the LODs moved far more than the bar."""
     lods = sorted(p for p in got["meshes"] if "/Baked/LOD" in p)
     assert len(lods) >= 2
-    v0, f0 = _original(got, TIMES[0])
+    v0, f0 = original_surface(got, TIMES[0])
     diag = float(np.linalg.norm(v0.max(0) - v0.min(0)))
-    e_rest = {p: _distance(np.array(got["meshes"][p]["t"][str(TIMES[0])]), v0, f0) for p in lods}
+    e_rest = {p: surface_distance(np.array(got["meshes"][p]["t"][str(TIMES[0])]), v0, f0)
+              for p in lods}
     for t in TIMES:
-        dev, kappa = _blend_deviation(got, t) if skinned else (0.0, 1.5)
-        vt, ft = _original(got, t)
+        dev, kappa = blend_deviation(got, t, TIMES[0]) if skinned else (0.0, 1.5)
+        vt, ft = original_surface(got, t)
         for p in lods:
             bar = kappa * e_rest[p] + 1.05 * dev + 1e-5 * diag
-            d_t = _distance(np.array(got["meshes"][p]["t"][str(t)]), vt, ft)
+            d_t = surface_distance(np.array(got["meshes"][p]["t"][str(t)]), vt, ft)
             worst = int(np.argmax(d_t - bar))
             assert d_t[worst] <= bar[worst], (p, t, d_t[worst], bar[worst], dev, kappa)
     lod1 = got["meshes"][lods[0]]["t"]
@@ -224,7 +101,7 @@ def test_a_leg_whose_rest_pose_is_not_its_bind_pose_keeps_its_skeleton(baked_leg
     assert not [w for w in report["warnings"] if "not transferred" in w]
     baked = read_baked(baked_leg)
     assert baked.skeleton.endswith("/Char/Skel")
-    got = plain_pxr(baked_leg)
+    got = plain_pxr(baked_leg, TIMES)
     for i, m in enumerate(baked.meshes, start=1):
         assert not m.points_over_time.size
         path = next(p for p in got["meshes"] if p.endswith(f"/Baked/LOD{i}"))
@@ -243,7 +120,7 @@ def test_the_renderer_deforms_the_leg_lods_as_usdskel_does(baked_leg):
     from texelbake.render.scene import load_scene
 
     scene = load_scene(baked_leg)
-    got = plain_pxr(baked_leg)
+    got = plain_pxr(baked_leg, TIMES)
     for t in TIMES:
         d = deform_scene(scene, warp_at_time(scene.asset, t))
         for i in range(1, len(scene.baked.meshes) + 1):
@@ -260,15 +137,15 @@ def test_an_unskinned_static_prop_is_bound_to_a_static_joint(baked_prop):
 
     report = json.loads((baked_prop.parent / "report.json").read_text())
     assert report["lod_animation"] == "usdskel"
-    got = plain_pxr(baked_prop)
+    got = plain_pxr(baked_prop, TIMES)
     _check_lods_on_surface(got, skinned=True)
     prop, leg = ([got["meshes"][p] for p in got["meshes"] if "/Baked/" not in p
                   and p.endswith("/Prop") == want] for want in (True, False))
     for i, m in enumerate(read_baked(baked_prop).meshes, start=1):
         # LOD vertices whose closest original triangle is the prop's
-        d_prop = _distance(m.vertices, np.array(prop[0]["t"][str(TIMES[0])]),
+        d_prop = surface_distance(m.vertices, np.array(prop[0]["t"][str(TIMES[0])]),
                            np.array(prop[0]["faces"]))
-        d_leg = np.min([_distance(m.vertices, np.array(x["t"][str(TIMES[0])]),
+        d_leg = np.min([surface_distance(m.vertices, np.array(x["t"][str(TIMES[0])]),
                                   np.array(x["faces"])) for x in leg], axis=0)
         near = d_prop < d_leg
         assert near.sum() >= (4 if i == 1 else 0)
@@ -294,7 +171,7 @@ def test_a_rig_that_cannot_be_carried_gives_time_samples_and_says_why(tmp_path, 
     assert report["lod_animation"] == "time_samples"
     assert [w for w in report["warnings"]
             if "UsdSkel skinning not transferred" in w and reason in w]
-    got = plain_pxr(root)
+    got = plain_pxr(root, TIMES)
     assert not [p for p in got["meshes"] if "/Baked/LOD" in p and "weights" in got["meshes"][p]]
     _check_lods_on_surface(got, skinned=False)
     assert stock_errors(root) == {str(root): []}
