@@ -220,3 +220,51 @@ def test_lod_corner_normals_keep_sharp_edges_sharp_and_smooth_surfaces_smooth():
     assert np.einsum("fkd,fkd->fk", got, want).min() > 0.99
     # not the face normals: the three corners of a LOD face differ (smooth shading)
     assert np.einsum("fkd,fkd->fk", got[:, :1], got[:, 1:]).min() < 0.999
+
+
+def _recorded_collapses(monkeypatch):
+    """The face counts of the meshes `_decimate` starts from, in call order."""
+    import texelbake.geometry.lodchain as lodchain
+
+    seen: list[int] = []
+    real = lodchain._decimate
+
+    def recording(mesh, target, level):
+        seen.append(mesh.num_faces)
+        return real(mesh, target, level)
+
+    monkeypatch.setattr(lodchain, "_decimate", recording)
+    return seen
+
+
+def test_a_large_mesh_is_searched_from_one_proxy_collapse_within_the_bound(monkeypatch):
+    # a bumpy sphere of 20,480 faces stands in for a million-triangle asset: with the proxy at
+    # 2,000 faces, one collapse starts from M_org and every other from the proxy, and the
+    # level is still within its bound by the independent, denser distance
+    import texelbake.geometry.lodchain as lodchain
+
+    v, f = bumpy_sphere(5)
+    org = Mesh(v, f)
+    monkeypatch.setattr(lodchain, "PROXY_FACES", 2_000)
+    seen = _recorded_collapses(monkeypatch)
+    chain = build_lod_chain(v, f, (64.0,), 1.0)
+    lv = chain.levels[0]
+    assert seen.count(org.num_faces) == 1 and seen[0] == org.num_faces, seen
+    assert len(seen) > 3 and all(n <= 2_000 for n in seen[1:]), seen
+    assert lv.mesh.num_faces < 2_000
+    assert lv.hausdorff <= lv.bound
+    diag = bbox_diagonal(org.vertices)
+    assert _brute_hausdorff(lv.mesh, org) <= lv.bound + 0.01 * diag
+
+
+def test_a_proxy_too_far_from_the_original_is_not_searched_from(monkeypatch):
+    # at a bound tighter than the proxy's own distance over PROXY_SHARE the search runs on
+    # M_org as before: every collapse starts from its 20,480 faces
+    import texelbake.geometry.lodchain as lodchain
+
+    v, f = bumpy_sphere(5)
+    monkeypatch.setattr(lodchain, "PROXY_FACES", 200)
+    seen = _recorded_collapses(monkeypatch)
+    chain = build_lod_chain(v, f, (256.0,), 1.0)
+    assert seen[0] == len(f) and seen.count(len(f)) == len(seen), seen
+    assert chain.levels[0].hausdorff <= chain.levels[0].bound

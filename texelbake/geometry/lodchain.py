@@ -58,6 +58,11 @@ KEEP_FRACTION = 0.8
 HAUSDORFF_SAMPLES = 20_000
 #: bisection over the face count stops when the bracket is narrower than this ratio
 SEARCH_RATIO = 1.08
+#: a level searched from a mesh of more faces than this is searched from one collapse of it to
+#: this many faces (`_proxy`), when that collapse lies within PROXY_SHARE of the level's
+#: bound: the search's collapses then cost what they cost on an asset of this size
+PROXY_FACES = 200_000
+PROXY_SHARE = 0.25
 #: the wrap tried on assets of many parts uses a marching-cubes grid of at most this many
 #: cells along the longest side (400, the M_T wrap's, took 15 s on 36 boxes at 64 px; the
 #: distance check rejects a wrap the coarse grid makes too crude)
@@ -199,6 +204,25 @@ def _within(cand, bound: float) -> bool:
     return cand is not None and max(cand[1], cand[2]) <= bound
 
 
+def _proxy(ev: _Evaluator, prev: Mesh, bound: float, level: int):
+    """(source, candidate): a mesh whose levels keep fewer than PROXY_FACES faces anyway
+    (KEEP_FRACTION of it is more) is collapsed once to PROXY_FACES, and when that collapse lies within PROXY_SHARE of the bound the search's
+    candidates are collapsed from it (source) with it as the first candidate; else (prev,
+    None). Every candidate is still measured against M_org, so a level found from the proxy
+    is within its bound like any other; only the search's cost changes (each of its ~10
+    quadric collapses starts from PROXY_FACES faces, not from a million)."""
+    if math.floor(KEEP_FRACTION * prev.num_faces) <= PROXY_FACES:
+        return prev, None
+    try:
+        proxy = _decimate(prev, PROXY_FACES, level)
+    except StageError:
+        return prev, None
+    cand = ev.measure(proxy, bound)
+    if max(cand[1], cand[2]) > PROXY_SHARE * bound:
+        return prev, None
+    return proxy, cand
+
+
 def _search(ev: _Evaluator, prev: Mesh, bound: float, level: int):
     """The smallest collapse of `prev` within `bound`: (mesh, d_lo, d_ol, enclosed) or None
     when no collapse to at most KEEP_FRACTION of prev's faces stays within it. A collapse with
@@ -208,18 +232,22 @@ def _search(ev: _Evaluator, prev: Mesh, bound: float, level: int):
     hi = max(MIN_FACES, keep)
     if hi >= prev.num_faces:
         return None
-    best = ev.collapse(prev, hi, level, bound)
+    source, best = _proxy(ev, prev, bound, level)
+    if best is None:
+        best = ev.collapse(prev, hi, level, bound)
+    else:
+        hi = best[0].num_faces
     if not _within(best, bound):
         return None
     lo = MIN_FACES
-    low = ev.collapse(prev, lo, level, bound)
+    low = ev.collapse(source, lo, level, bound)
     if _within(low, bound):
         best, hi = low, lo
     while hi / lo > SEARCH_RATIO:  # a bisection over the face count (log space), ~8 steps
         mid = int(round(math.sqrt(hi * lo)))
         if mid in (hi, lo):
             break
-        cand = ev.collapse(prev, mid, level, bound)
+        cand = ev.collapse(source, mid, level, bound)
         if _within(cand, bound):
             hi = mid
             if cand[0].num_faces < best[0].num_faces:

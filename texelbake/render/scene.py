@@ -16,11 +16,52 @@ from texelbake.cpm.avis.table import AvisTable, avis_table_from
 from texelbake.errors import SettingsError, ShapeError, StageError
 from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.raycast import RayCaster
-from texelbake.geometry.texels import uv_to_texel
+from texelbake.geometry.texels import bilinear_texels, uv_to_texel
 from texelbake.model import Camera
 from texelbake.trace import camera as cam_mod
 from texelbake.trace.camera import PinholeCamera
 from texelbake.trace.org import OrgScene
+
+
+class MapCutout:
+    """The cut-out test of a LOD mesh from its fallback's opacity texture (`geometry.raycast.
+    CutoutTest`): a point is cut where the texture, bilinearly filtered at its uv, is below
+    the material's opacityThreshold, as a viewer's alpha test on the finest mip level.
+
+    opacity : (n, n) float64 texel values; corner_uvs : (f, 3, 2); threshold in (0, 1]
+    """
+
+    def __init__(self, opacity: np.ndarray, corner_uvs: np.ndarray, threshold: float) -> None:
+        op = np.asarray(opacity, dtype=np.float64)
+        if op.ndim != 2 or op.shape[0] != op.shape[1]:
+            raise ShapeError(f"opacity map must be square (n, n), got {op.shape}")
+        self.opacity = op.reshape(-1)
+        self.resolution = int(op.shape[0])
+        self.corner_uvs = np.asarray(corner_uvs, dtype=np.float64)
+        self.threshold = float(threshold)
+        self.faces = np.ones(self.corner_uvs.shape[0], dtype=bool)
+
+    def cut_uv(self, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        tex, w = bilinear_texels(np.asarray(uv, dtype=np.float64), self.resolution)
+        return np.einsum("nk,nk->n", w, self.opacity[tex]) < self.threshold
+
+    def cut(self, prim: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        prim = np.asarray(prim, dtype=np.int64)
+        b = np.asarray(bary, dtype=np.float64)
+        wts = np.column_stack([1.0 - b[:, 0] - b[:, 1], b])
+        return self.cut_uv(prim, np.einsum("nk,nkj->nj", wts, self.corner_uvs[prim]))
+
+
+def lod_cutout(baked: Any, lod: int) -> MapCutout | None:
+    """LOD `lod`'s (0 = M1) cut-out test from its fallback material, or None when it does not
+    cut (no opacity texture, or no threshold above 0: the spec's opaque surface)."""
+    mats = baked.fallback.get("materials", [])
+    mat = mats[lod] if lod < len(mats) else {}
+    op = (mat.get("textures") or {}).get("opacity") if mat else None
+    thr = (mat.get("constants") or {}).get("opacityThreshold") if mat else None
+    if op is None or thr is None or not float(thr) > 0.0:
+        return None
+    return MapCutout(np.asarray(op)[..., 0], baked.meshes[lod].corner_uvs, float(thr))
 
 
 class RenderScene(OrgScene):
@@ -45,7 +86,10 @@ class RenderScene(OrgScene):
         if not self.baked.levels:
             raise StageError(f"baked asset {self.root} has no CPM levels")
         super().__init__(load_asset(self.baked.source_layer))
-        self.lods = [RayCaster(m.vertices, m.faces) for m in self.baked.meshes]
+        # a LOD whose fallback cuts (an opacity texture under its opacityThreshold) is cut
+        # for every ray cast against it, eye and shadow rays alike, as a viewer's alpha test
+        self.lods = [RayCaster(m.vertices, m.faces, cutout=lod_cutout(self.baked, i))
+                     for i, m in enumerate(self.baked.meshes)]
         self.lod_face_normals = [face_normals(m.vertices, m.faces) for m in self.baked.meshes]
         self.n0 = int(round(math.sqrt(len(self.baked.levels[0]["texel_offsets"]) - 1)))
         # the atlas mesh M_T: LOD1 itself, or (LOD1 too fine for the atlas) the

@@ -177,14 +177,23 @@ def _author_light(stage: Usd.Stage, path: str, spec: LightSpec, centre: np.ndarr
         light.CreateAngleAttr(DISTANT_ANGLE_DEGREES)
 
 
-def build_stage(name: str, size: str = "small") -> tuple[Usd.Stage, dict[str, np.ndarray]]:
+def build_stage(name: str, size: str = "small", params: Mapping[str, int] | None = None
+                ) -> tuple[Usd.Stage, dict[str, np.ndarray]]:
     """The scene as an in-memory stage plus its textures {file name: (h, w, 3) uint8}.
 
-    Texture file names are relative to the folder the layer will be written to. Raises
-    SettingsError for an unknown name or size.
+    Texture file names are relative to the folder the layer will be written to. `params`
+    overrides entries of the size's row of the parameter table (a scaled scene for a
+    benchmark; the layer's customLayerData records them). Raises SettingsError for an unknown
+    name, size or parameter.
     """
     check_scene(name, size)
-    spec = _BUILDERS[name](SCENE_PARAMS[name][size], np.random.default_rng(SEEDS[name]))
+    table = dict(SCENE_PARAMS[name][size])
+    unknown = sorted(set(params or {}) - set(table))
+    if unknown:
+        raise SettingsError(f"field 'params': {unknown} are not parameters of scene {name!r}; "
+                            f"expected some of {', '.join(sorted(table))}")
+    table.update({k: int(v) for k, v in (params or {}).items()})
+    spec = _BUILDERS[name](table, np.random.default_rng(SEEDS[name]))
     tex_files = {role: f"{name}_{size}_{role}.png" for role in sorted(spec.textures)}
 
     stage = Usd.Stage.CreateInMemory(f"{name}_{size}.usda")
@@ -192,7 +201,10 @@ def build_stage(name: str, size: str = "small") -> tuple[Usd.Stage, dict[str, np
     UsdGeom.SetStageMetersPerUnit(stage, METERS_PER_UNIT[name])
     layer = stage.GetRootLayer()
     layer.documentation = f"texelbake test scene '{name}' ({size}), written by texelbake.testscenes"
-    layer.customLayerData = {"texelbake": {"scene": name, "size": size, "seed": SEEDS[name]}}
+    info: dict[str, object] = {"scene": name, "size": size, "seed": SEEDS[name]}
+    if params:
+        info["params"] = {k: int(v) for k, v in sorted(params.items())}
+    layer.customLayerData = {"texelbake": info}
     root_path = f"/{spec.root}"
     root = UsdGeom.Xform.Define(stage, root_path)
     Usd.ModelAPI(root.GetPrim()).SetKind(Kind.Tokens.component)
@@ -219,7 +231,8 @@ def build_stage(name: str, size: str = "small") -> tuple[Usd.Stage, dict[str, np
     return stage, {tex_files[role]: spec.textures[role] for role in tex_files}
 
 
-def write_scene(name: str, path: str | Path, size: str = "small") -> Path:
+def write_scene(name: str, path: str | Path, size: str = "small",
+                params: Mapping[str, int] | None = None) -> Path:
     """Write test scene `name` at `size` to `path` (.usda, .usdc or .usd) and its PNG
     textures beside it; return the layer's path.
 
@@ -234,7 +247,7 @@ def write_scene(name: str, path: str | Path, size: str = "small") -> Path:
             f"field 'path': {str(path)!r} has suffix {path.suffix!r}; expected one of "
             f"{', '.join(LAYER_SUFFIXES)}"
         )
-    stage, textures = build_stage(name, size)
+    stage, textures = build_stage(name, size, params)
     path.parent.mkdir(parents=True, exist_ok=True)
     for file_name in sorted(textures):  # textures first: the layer must resolve them
         write_png(path.parent / file_name, textures[file_name])
