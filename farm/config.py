@@ -96,7 +96,8 @@ class Settings(BaseSettings):
         "before the framework (services/fastpath.py); false: always through the route.")
     cpu_route_concurrency: int = Field(
         2, ge=0, description="POST /jobs requests (Python CPU work in the thread pool) served "
-        "at once per API process, the rest wait without the GIL; 0: no limit.")
+        "at once per API process, the rest wait on the event loop without a thread; 0: no "
+        "limit.")
     estimate_workers: int = Field(
         2, ge=1, description="Worker processes the cost model assumes for a job's estimate."
     )

@@ -170,14 +170,15 @@ _engines: dict[tuple[str, str], Engine] = {}
 _lock = threading.RLock()
 
 #: engine roles: `write` (ledger transitions; SQLite `BEGIN IMMEDIATE`), `read` (the API's
-#: reads in worker threads), `inline` (reads on the API's event loop: one at a time)
+#: reads in worker threads), `inline` (the reads the API's event loop awaits, on its own threads)
 ROLES = ("write", "read", "inline")
 
 #: PostgreSQL pools per role: (pool_size, max_overflow). The API runs sync routes in anyio's
 #: thread pool (40 threads); a route holds at most one read and one write connection, and the
 #: writes are short transactions, so 20 each cover it without taking half of a default server's
-#: `max_connections` (100) from one process. The inline role serves the event loop, which runs
-#: one query at a time: a pool of its own that thread-held connections can never exhaust.
+#: `max_connections` (100) from one process. The inline role serves the event loop's reads,
+#: which run on two threads of their own (`services.status_cache.LoopReads`): a pool of its own
+#: that thread-held connections can never exhaust.
 PG_POOLS = {"write": (5, 15), "read": (5, 15), "inline": (2, 2)}
 
 
