@@ -5,9 +5,9 @@ The event loop never waits on the database. On PostgreSQL a read is a round trip
 process that shares the machine's cores: under load a version read on the loop stalled every
 request the API was serving for 20-60 ms, once per job per `status_cache_seconds`
 (benchmarks/load.py). Reads the loop needs run on `LoopReads`' own threads; the versions of the
-jobs being polled are re-read in one query every `status_cache_seconds` by a background task,
-so a poller finds a fresh version instead of waiting for a read, and a request whose version is
-not cached joins the read in flight for it, if any.
+jobs being polled are re-read in one query every half `status_cache_seconds` by a background
+task, so a poller finds a fresh version instead of waiting for a read, and a request whose
+version is not cached joins the read in flight for it, if any.
 """
 
 from __future__ import annotations
@@ -175,11 +175,14 @@ class VersionCache:
         return rows
 
     async def refresh(self, reads: LoopReads) -> None:
-        """Forever: every `ttl` seconds, re-read in one query the versions of the jobs asked
-        for within the last `keep` seconds. A failed read is logged; the requests' own reads
-        report the database's errors."""
+        """Forever: every `ttl / 2` seconds, re-read in one query the versions of the jobs
+        asked for within the last `keep` seconds, so their entries are renewed before they
+        expire (a refresh every `ttl` left each entry expired for the length of a read, and the
+        requests then waited for it). A failed read is logged; the requests' own reads report
+        the database's errors."""
         if self.ttl <= 0:
             return
+        period = self.ttl / 2
         while True:
             t0 = time.monotonic()
             asked = {j: t for j, t in self._asked.items() if t0 - t <= self.keep}
@@ -190,4 +193,4 @@ class VersionCache:
                     await self._read(reads, ids)
                 except Exception as exc:  # noqa: BLE001 - keep refreshing; the next tick retries
                     log.debug("status version refresh failed: %r", exc)
-            await asyncio.sleep(max(0.0, self.ttl - (time.monotonic() - t0)))
+            await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
