@@ -25,6 +25,7 @@ from sqlalchemy import (
     UniqueConstraint,
     create_engine,
     event,
+    text,
 )
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import (
@@ -34,7 +35,7 @@ from sqlalchemy.exc import (
     ProgrammingError,
 )
 from sqlalchemy.exc import TimeoutError as SATimeoutError
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
 T = TypeVar("T")
 
@@ -278,6 +279,17 @@ def _create_tables(eng: Engine, tries: int = 5) -> None:
 
 def session_factory(url: str, *, readonly: bool = False, role: str | None = None) -> sessionmaker:
     return sessionmaker(bind=get_engine(url, readonly=readonly, role=role), expire_on_commit=False)
+
+
+def relaxed_commit(s: Session) -> None:
+    """Let this transaction's commit return before its WAL record is flushed to disk
+    (PostgreSQL `synchronous_commit = off` for this transaction; nothing on SQLite, whose
+    writers use `synchronous=NORMAL`). Only for writes whose loss in a database crash is
+    repaired by the ledger itself: the marks that a message was sent (the sweeper sends an
+    unmarked message again, and every task is idempotent). A flush cost a submission 4 ms
+    median and 12 ms p90 on a loaded 2-core machine."""
+    if s.get_bind().dialect.name == "postgresql":
+        s.execute(text("SET LOCAL synchronous_commit TO OFF"))
 
 
 def retry_disconnect(fn: Callable[[], T]) -> T:
