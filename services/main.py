@@ -13,7 +13,6 @@ import threading
 import time
 from contextlib import asynccontextmanager
 from datetime import timedelta
-from functools import partial
 from pathlib import Path
 
 from celery import Celery
@@ -34,8 +33,7 @@ from services.errors import ApiError
 from services.fastpath import StatusFastPath
 from services.limits import AuthFirst, BodyLimit, CpuSlots, ServerTiming
 from services.routers import assets, batches, events, farm, job_files, jobs, utils, viewer
-from services.routers.jobs import status_body
-from services.status_cache import JobCache, LoopReads, VersionCache, body_key
+from services.status_cache import JobCache, LoopReads, VersionCache
 from texelbake.estimate import machinespeed
 
 log = logging.getLogger("texelbake.api")
@@ -114,14 +112,8 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
         # so no job's first status read pays it
         threading.Thread(target=machinespeed.this_machine, daemon=True,
                          name="machine-speed").start()
-        # the versions of the jobs being polled, re-read off the loop, a changed one cached
-        # once its status is built (services/status_cache.py)
-        async def prebuild(job_id: str, row: tuple) -> None:
-            await app.state.job_cache.build(body_key(job_id, row),
-                                            partial(status_body, app.state, job_id))
-
-        refresh = asyncio.create_task(
-            app.state.version_cache.refresh(app.state.loop_reads, prebuild))
+        # the versions of the jobs being polled, re-read off the loop (services/status_cache.py)
+        refresh = asyncio.create_task(app.state.version_cache.refresh(app.state.loop_reads))
         yield
         refresh.cancel()
         stop.set()

@@ -16,7 +16,7 @@ import asyncio
 import logging
 import threading
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import TypeVar
@@ -32,8 +32,6 @@ log = logging.getLogger("texelbake.api")
 
 #: a job's version: (tenant, state, newest event seq)
 Version = tuple
-#: what the refresh awaits before it caches a changed version: (job id, version) -> awaitable
-Prepare = Callable[[str, Version], Awaitable[object]]
 
 
 class LoopReads:
@@ -72,11 +70,6 @@ def job_versions(sessions: sessionmaker, job_ids: list[str]) -> dict[str, Versio
                              .where(Job.id.in_(job_ids[i:i + CHUNK])))  # fmt: skip
             out.update((r[0], tuple(r[1:])) for r in rows)
     return out
-
-
-def body_key(job_id: str, row: Version) -> tuple[str, int, str]:
-    """`JobCache`'s key of a job's status at version `row`: (job id, newest event seq, state)."""
-    return (job_id, int(row[2] or 0), str(row[1]))
 
 
 class JobCache:
@@ -166,8 +159,7 @@ class VersionCache:
             return (await self._read(reads, [job_id])).get(job_id)
         return (await asyncio.shield(pending)).get(job_id)
 
-    async def _read(self, reads: LoopReads, job_ids: list[str],
-                    prepare: Prepare | None = None) -> dict[str, Version]:
+    async def _read(self, reads: LoopReads, job_ids: list[str]) -> dict[str, Version]:
         epoch = self._epoch
         fut = asyncio.ensure_future(reads.run(partial(job_versions, job_ids=job_ids)))
         for j in job_ids:
@@ -179,32 +171,15 @@ class VersionCache:
                 if self._pending.get(j) is fut:
                     del self._pending[j]
         for j, row in rows.items():
-            old = self._d.get(j)
-            if prepare is not None and old is not None and old[0] != row:
-                asyncio.ensure_future(self._prepared(prepare, j, row, epoch))
-            else:
-                self.put(j, row, epoch)
+            self.put(j, row, epoch)
         return rows
 
-    async def _prepared(self, prepare: Prepare, job_id: str, row: Version, epoch: int) -> None:
-        """Cache a changed version once `prepare` (the new status's build) is done: until then
-        the old version answers, while it is valid, with its body at hand."""
-        try:
-            await prepare(job_id, row)
-        except Exception as exc:  # noqa: BLE001 - the requests' own builds report it
-            log.debug("status build of %s failed: %r", job_id, exc)
-        old = self._d.get(job_id)
-        if old is None or int(old[0][2] or 0) <= int(row[2] or 0):  # never an older version
-            self.put(job_id, row, epoch)
-
-    async def refresh(self, reads: LoopReads, prepare: Prepare | None = None) -> None:
+    async def refresh(self, reads: LoopReads) -> None:
         """Forever: every `ttl / 2` seconds, re-read in one query the versions of the jobs
         asked for within the last `keep` seconds, so their entries are renewed before they
         expire (a refresh every `ttl` left each entry expired for the length of a read, and the
-        requests then waited for it). A version that changed is cached once `prepare(job id,
-        version)` is done (the app builds the new status): the pollers of a job that changed
-        waited for that build. A failed read is logged; the requests' own reads report the
-        database's errors."""
+        requests then waited for it). A failed read is logged; the requests' own reads report
+        the database's errors."""
         if self.ttl <= 0:
             return
         period = self.ttl / 2
@@ -215,7 +190,7 @@ class VersionCache:
             ids = [j for j in asked if j not in self._pending]
             if ids:
                 try:
-                    await self._read(reads, ids, prepare)
+                    await self._read(reads, ids)
                 except Exception as exc:  # noqa: BLE001 - keep refreshing; the next tick retries
                     log.debug("status version refresh failed: %r", exc)
             await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response, status
@@ -39,7 +38,7 @@ from services.deps import (
 from services.errors import ApiError, errors
 from services.job_view import job_public, progress_percent
 from services.routers.assets import ASSET_404
-from services.status_cache import JobCache, VersionCache, body_key
+from services.status_cache import JobCache, VersionCache
 from services.submission import JobSpec, create_jobs, own_asset
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -96,19 +95,9 @@ def _create_job(body: JobCreate, request: Request, session: Session, tenant: str
 def _read_public(request: Request, job_id: str) -> JobPublic:
     """A job's status from a fresh read session: the response is built outside any write
     transaction (it used to hold SQLite's write lock while it was built)."""
-    return read_status(request.app.state, job_id)
-
-
-def read_status(state, job_id: str) -> JobPublic:  # noqa: ANN001 - the app's state
-    """`_read_public` from the app's state (the status builds of `services.status_cache`)."""
-    st = state.settings
-    with state.reader() as s:
+    st = request.app.state.settings
+    with request.app.state.reader() as s:
         return job_public(s, s.get(Job, job_id), st.artifact_root, st.estimate_workers)
-
-
-def status_body(state, job_id: str) -> bytes:  # noqa: ANN001 - the app's state
-    """The JSON body of `GET /jobs/{id}` (what `JobCache` holds)."""
-    return read_status(state, job_id).model_dump_json().encode()
 
 
 @router.get("", response_model=JobsPublic, operation_id="list_jobs", responses=errors(401, 422))
@@ -189,7 +178,8 @@ async def read_job(job_id: str, request: Request, tenant: CurrentTenant) -> Resp
     if row is None or row[0] != tenant:
         raise ApiError(status.HTTP_404_NOT_FOUND, JOB_NOT_FOUND, ErrorCode.JOB_NOT_FOUND)
     cache: JobCache = st.job_cache
-    body = await cache.build(body_key(job_id, row), partial(status_body, st, job_id))
+    body = await cache.build((job_id, int(row[2] or 0), str(row[1])),
+                             lambda: _read_public(request, job_id).model_dump_json().encode())
     return Response(content=body, media_type="application/json")
 
 
