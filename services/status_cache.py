@@ -94,15 +94,15 @@ class JobCache:
         miss the same key meanwhile await that one build (when a polled job changed, its 25
         pollers each built the status at once: 25 threads taking turns at the GIL, while the
         event loop waited for its own turns)."""
-        body = self._d.get(key)
-        if body is not None:
-            return body
+        cached = self._d.get(key)
+        if cached is not None:
+            return cached
         fut = self._pending.get(key)
         if fut is None:
             fut = asyncio.ensure_future(run_in_threadpool(fn))
             self._pending[key] = fut
             try:
-                body = await asyncio.shield(fut)
+                body: bytes = await asyncio.shield(fut)
             finally:
                 del self._pending[key]
             self.put(key, body)
