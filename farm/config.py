@@ -89,14 +89,16 @@ class Settings(BaseSettings):
         default_factory=dict, description="Per-tenant overrides of tenant_max_running_shards "
         "(JSON: tenant -> limit; 0: no limit).")
     status_cache_seconds: float = Field(
-        0.05, ge=0, description="A job's status version (state, newest event) is re-read from "
-        "the database at most this often per API process; 0: on every read.")
+        0.05, ge=0, description="Seconds a job's status version (state, newest event), once "
+        "read from the database, answers status reads in an API process (the versions of "
+        "polled jobs are re-read in the background twice as often); 0: read on every request.")
     status_fast_path: bool = Field(
         True, description="Answer a status read whose token, job version and body are cached "
         "before the framework (services/fastpath.py); false: always through the route.")
     cpu_route_concurrency: int = Field(
         2, ge=0, description="POST /jobs requests (Python CPU work in the thread pool) served "
-        "at once per API process, the rest wait without the GIL; 0: no limit.")
+        "at once per API process, the rest wait on the event loop without a thread; 0: no "
+        "limit.")
     estimate_workers: int = Field(
         2, ge=1, description="Worker processes the cost model assumes for a job's estimate."
     )

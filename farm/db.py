@@ -25,6 +25,7 @@ from sqlalchemy import (
     UniqueConstraint,
     create_engine,
     event,
+    text,
 )
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import (
@@ -34,7 +35,7 @@ from sqlalchemy.exc import (
     ProgrammingError,
 )
 from sqlalchemy.exc import TimeoutError as SATimeoutError
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
 T = TypeVar("T")
 
@@ -170,14 +171,15 @@ _engines: dict[tuple[str, str], Engine] = {}
 _lock = threading.RLock()
 
 #: engine roles: `write` (ledger transitions; SQLite `BEGIN IMMEDIATE`), `read` (the API's
-#: reads in worker threads), `inline` (reads on the API's event loop: one at a time)
+#: reads in worker threads), `inline` (the reads the API's event loop awaits, on its own threads)
 ROLES = ("write", "read", "inline")
 
 #: PostgreSQL pools per role: (pool_size, max_overflow). The API runs sync routes in anyio's
 #: thread pool (40 threads); a route holds at most one read and one write connection, and the
 #: writes are short transactions, so 20 each cover it without taking half of a default server's
-#: `max_connections` (100) from one process. The inline role serves the event loop, which runs
-#: one query at a time: a pool of its own that thread-held connections can never exhaust.
+#: `max_connections` (100) from one process. The inline role serves the event loop's reads,
+#: which run on two threads of their own (`services.status_cache.LoopReads`): a pool of its own
+#: that thread-held connections can never exhaust.
 PG_POOLS = {"write": (5, 15), "read": (5, 15), "inline": (2, 2)}
 
 
@@ -277,6 +279,17 @@ def _create_tables(eng: Engine, tries: int = 5) -> None:
 
 def session_factory(url: str, *, readonly: bool = False, role: str | None = None) -> sessionmaker:
     return sessionmaker(bind=get_engine(url, readonly=readonly, role=role), expire_on_commit=False)
+
+
+def relaxed_commit(s: Session) -> None:
+    """Let this transaction's commit return before its WAL record is flushed to disk
+    (PostgreSQL `synchronous_commit = off` for this transaction; nothing on SQLite, whose
+    writers use `synchronous=NORMAL`). Only for writes whose loss in a database crash is
+    repaired by the ledger itself: the marks that a message was sent (the sweeper sends an
+    unmarked message again, and every task is idempotent). A flush cost a submission 4 ms
+    median and 12 ms p90 on a loaded 2-core machine."""
+    if s.get_bind().dialect.name == "postgresql":
+        s.execute(text("SET LOCAL synchronous_commit TO OFF"))
 
 
 def retry_disconnect(fn: Callable[[], T]) -> T:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import AsyncIterator
+from functools import partial
 from typing import Annotated
 
 from fastapi import Depends, Header, Query, Request, status
@@ -12,7 +13,6 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
 from farm.config import Settings
-from farm.db import retry_disconnect
 from schemas.common import ErrorCode
 from services.auth import tenant_by_digest, token_digest
 from services.errors import ApiError
@@ -67,14 +67,14 @@ class TokenCache:
         self._d[digest] = (tenant, time.monotonic() + self.ttl)
 
 
-def tenant_of_token(state, token: str) -> str | None:  # noqa: ANN001 - the app's state
+async def tenant_of_token(state, token: str) -> str | None:  # noqa: ANN001 - the app's state
     """The tenant of a bearer token, or None: from the process's token cache, else one
-    indexed database read (on the event loop, on its own small pool)."""
+    indexed database read on the loop's read threads (`services.status_cache.LoopReads`)."""
     digest = token_digest(state.settings.secret_key, token)
     cache: TokenCache = state.token_cache
     tenant = cache.get(digest)
     if tenant is None:
-        tenant = retry_disconnect(lambda: tenant_by_digest(state.inline, digest))
+        tenant = await state.loop_reads.run(partial(tenant_by_digest, digest=digest))
         if tenant is not None:
             cache.put(digest, tenant)
     return tenant
@@ -96,7 +96,7 @@ async def get_current_tenant(
     (`bearer` is `Bearer`, RFC 7235 section 2.1), for every method alike."""
     if creds is None or not creds.credentials:
         raise unauthenticated(NOT_AUTHENTICATED)
-    tenant = tenant_of_token(request.app.state, creds.credentials)
+    tenant = await tenant_of_token(request.app.state, creds.credentials)
     if tenant is None:
         raise unauthenticated(INVALID_TOKEN)
     return tenant

@@ -2,9 +2,9 @@
 
 Under 50 polling clients the API's event loop spent about 60 % of a status read in Starlette's
 and FastAPI's middleware, routing and dependency resolution, for a body that was already
-cached. This ASGI layer answers a read whose token, job version (`VersionCache`, re-read from
-the database at most every `status_cache_seconds`) and serialized status (`JobCache`) are all
-cached in this process, with the same body and headers the route sends; anything else (first
+cached. This ASGI layer answers a read whose token, job version (`VersionCache`, valid for
+`status_cache_seconds` after its read and renewed off the loop: `services.status_cache`) and
+serialized status (`JobCache`) are all cached in this process, with the same body and headers the route sends; anything else (first
 read, a changed or stale version, an unknown token, another tenant's job, any other path or
 method) goes to the route, which fills the caches. No thread-pool hop, no database read.
 `Server-Timing` carries `status;desc=hit` on such a response (`desc=route` is never added).

@@ -3,9 +3,8 @@ before a route runs, so the upload cap must act on the raw byte stream, not in t
 
 from __future__ import annotations
 
-import contextlib
+import asyncio
 import json
-import threading
 import time
 
 from farm.config import API_V1
@@ -90,7 +89,7 @@ class AuthFirst:
 
     def __init__(self, app, state):  # noqa: ANN001
         self.app = app
-        self.state = state  # the FastAPI app's state: settings, token cache, inline sessions
+        self.state = state  # the FastAPI app's state: settings, token cache, loop reads
 
     async def __call__(self, scope, receive, send):  # noqa: ANN001
         if (scope["type"] != "http" or scope.get("method") not in ("POST", "PUT", "PATCH")
@@ -101,7 +100,7 @@ class AuthFirst:
         detail = None
         if scheme.lower() != "bearer" or not token:
             detail = NOT_AUTHENTICATED
-        elif tenant_of_token(self.state, token) is None:
+        elif await tenant_of_token(self.state, token) is None:
             detail = INVALID_TOKEN
         if detail is None:
             return await self.app(scope, receive, send)
@@ -139,15 +138,24 @@ class ServerTiming:
         return await self.app(scope, receive, timed_send)
 
 
-_slots: dict[int, threading.BoundedSemaphore] = {}
-_slots_lock = threading.Lock()
+class CpuSlots:
+    """At most `n` requests of this process at once inside (0: no limit), the rest waiting on
+    the event loop: a route whose Python work (POST /jobs: the ledger, pydantic) runs in the
+    thread pool holds the GIL, and 20 of them at once left the event loop one turn in 21 at the
+    GIL, which every status read waited for. They wait holding no thread: waiting in the pool
+    took a thread each, and a burst's 20 new threads stalled the loop (a thread's start waits
+    until the new thread runs, which it does only when it gets the GIL)."""
 
+    def __init__(self, n: int):
+        self.n = n
+        self._sem: asyncio.Semaphore | None = None  # made on the loop that first enters
 
-def cpu_slot(n: int):  # noqa: ANN201
-    """At most `n` threads of this process at once inside (0: no limit): a sync route that is
-    Python CPU work (POST /jobs: the ledger, pydantic) holds the GIL, and 20 of them at once
-    left the event loop one turn in 21 at the GIL, which every status read waited for."""
-    if n <= 0:
-        return contextlib.nullcontext()
-    with _slots_lock:
-        return _slots.setdefault(n, threading.BoundedSemaphore(n))
+    async def __aenter__(self) -> None:
+        if self.n > 0:
+            if self._sem is None:
+                self._sem = asyncio.Semaphore(self.n)
+            await self._sem.acquire()
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._sem is not None:
+            self._sem.release()

@@ -7,6 +7,7 @@ pxr in a child process (`services.validate`). A background thread sweeps the sha
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
 import time
@@ -30,9 +31,9 @@ from services.auth import ensure_tokens
 from services.deps import TokenCache
 from services.errors import ApiError
 from services.fastpath import StatusFastPath
-from services.limits import AuthFirst, BodyLimit, ServerTiming
+from services.limits import AuthFirst, BodyLimit, CpuSlots, ServerTiming
 from services.routers import assets, batches, events, farm, job_files, jobs, utils, viewer
-from services.routers.jobs import JobCache, VersionCache
+from services.status_cache import JobCache, LoopReads, VersionCache
 from texelbake.estimate import machinespeed
 
 log = logging.getLogger("texelbake.api")
@@ -111,10 +112,14 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
         # so no job's first status read pays it
         threading.Thread(target=machinespeed.this_machine, daemon=True,
                          name="machine-speed").start()
+        # the versions of the jobs being polled, re-read off the loop (services/status_cache.py)
+        refresh = asyncio.create_task(app.state.version_cache.refresh(app.state.loop_reads))
         yield
+        refresh.cancel()
         stop.set()
         if thread is not None:
             thread.join(timeout=5)
+        app.state.loop_reads.close()
 
     app = FastAPI(
         title="texelbake",
@@ -126,10 +131,12 @@ def create_app(settings: Settings | None = None, *, sweeper: bool = True) -> Fas
     app.state.settings = settings
     app.state.writer = session_factory(settings.db_url)
     app.state.reader = session_factory(settings.db_url, readonly=True)
-    app.state.inline = session_factory(settings.db_url, role="inline")  # event-loop reads
+    # the event loop's reads, on threads and connections of their own
+    app.state.loop_reads = LoopReads(session_factory(settings.db_url, role="inline"))
     app.state.token_cache = TokenCache()
     app.state.job_cache = JobCache()
     app.state.version_cache = VersionCache(settings.status_cache_seconds)
+    app.state.cpu_slots = CpuSlots(settings.cpu_route_concurrency)
     celery = Celery("texelbake")
     celery.conf.update(celery_config(settings))
     app.state.celery = celery

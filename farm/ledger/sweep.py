@@ -19,7 +19,7 @@ from farm.admission import (
     rowcount,
     serialize,
 )
-from farm.db import Job, Shard, utcnow
+from farm.db import Job, Shard, relaxed_commit, utcnow
 from farm.ledger.jobs import PLAN_JOB_TASK, Sender, add_event
 from farm.ledger.shards import mark_failed
 from schemas.queues import PLAN_QUEUE
@@ -51,6 +51,7 @@ def dispatch(sm: sessionmaker, sends: list[Send], sender: Sender, run_id: str | 
             _unadmit(sm, [x.row_id for x in sends[i:] if x.row_id is not None])
             raise
         with sm.begin() as s:
+            relaxed_commit(s)  # a mark lost with a crash only makes the sweeper send it again
             if send.row_id is None:
                 s.execute(
                     update(Job)

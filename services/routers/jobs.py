@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import time
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response, status
@@ -16,7 +15,7 @@ from sqlalchemy.orm import Session
 
 from farm import ledger
 from farm.broker import broker_run_id, celery_sender
-from farm.db import Event, Job, Shard, Stage, retry_disconnect
+from farm.db import Event, Job, Shard, Stage
 from farm.resume import resume_job
 from schemas.common import ErrorCode
 from schemas.job import (
@@ -38,8 +37,8 @@ from services.deps import (
 )
 from services.errors import ApiError, errors
 from services.job_view import job_public, progress_percent
-from services.limits import cpu_slot
 from services.routers.assets import ASSET_404
+from services.status_cache import JobCache, VersionCache
 from services.submission import JobSpec, create_jobs, own_asset
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -72,16 +71,17 @@ def _own_job(session: Session, job_id: str, tenant: str) -> Job:
     operation_id="create_job",
     responses=errors(401, ASSET_404, 413, 422),
 )
-def create_job(
+async def create_job(
     body: JobCreate,
     request: Request,
     session: SessionDep,
     tenant: CurrentTenant,
-    settings: SettingsDep,
 ) -> JobPublic:
     """Create a bake job for one of this tenant's assets; its stages are planned by a worker."""
-    with cpu_slot(settings.cpu_route_concurrency):  # its Python work, bounded per process
-        return _create_job(body, request, session, tenant)
+    # its Python work runs in the thread pool, a bounded number at once per process; the rest
+    # wait on the event loop, holding no thread (`services.limits.CpuSlots`)
+    async with request.app.state.cpu_slots:
+        return await run_in_threadpool(_create_job, body, request, session, tenant)
 
 
 def _create_job(body: JobCreate, request: Request, session: Session, tenant: str) -> JobPublic:
@@ -159,49 +159,6 @@ def read_jobs(
     return JobsPublic(data=data, count=count)
 
 
-class JobCache:
-    """Serialized `JobPublic` per (job id, last event seq, state): every ledger transition
-    appends an event, so a new seq means a new status. Bounded; cleared when full."""
-
-    def __init__(self, size: int = 2048):
-        self.size = size
-        self._d: dict[tuple[str, int, str], bytes] = {}
-
-    def get(self, key: tuple[str, int, str]) -> bytes | None:
-        return self._d.get(key)
-
-    def put(self, key: tuple[str, int, str], body: bytes) -> None:
-        if len(self._d) >= self.size:
-            self._d.clear()
-        self._d[key] = body
-
-
-class VersionCache:
-    """job id -> (tenant, state, newest event seq) for `ttl` seconds: 50 clients polling one
-    job share one database read per `ttl` (a status may be that much older than the ledger;
-    this process's own create and cancel drop the entry)."""
-
-    def __init__(self, ttl: float, size: int = 4096):
-        self.ttl, self.size = ttl, size
-        self._d: dict[str, tuple[tuple, float]] = {}
-
-    def get(self, job_id: str) -> tuple | None:
-        hit = self._d.get(job_id)
-        if hit is None or hit[1] < time.monotonic():
-            return None
-        return hit[0]
-
-    def put(self, job_id: str, row: tuple) -> None:
-        if self.ttl <= 0:
-            return
-        if len(self._d) >= self.size:
-            self._d.clear()
-        self._d[job_id] = (row, time.monotonic() + self.ttl)
-
-    def drop(self, job_id: str) -> None:
-        self._d.pop(job_id, None)
-
-
 @router.get(
     "/{job_id}",
     response_model=JobPublic,
@@ -210,31 +167,20 @@ class VersionCache:
 )
 async def read_job(job_id: str, request: Request, tenant: CurrentTenant) -> Response:
     """State, per-stage and per-shard progress, timings and errors of one job."""
-    # on the event loop: one indexed query (owner, state, newest event) answers a cache hit
-    # with no thread-pool hop; a miss builds the status in a worker thread
-    versions: VersionCache = request.app.state.version_cache
+    # a cached version (owner, state, newest event) answers a cache hit with no thread-pool hop;
+    # a miss waits for its read on the loop's read threads (`services.status_cache`) and builds
+    # the status in a worker thread
+    st = request.app.state
+    versions: VersionCache = st.version_cache
     row = versions.get(job_id)
     if row is None:
-        row = retry_disconnect(lambda: _job_version(request.app.state.inline, job_id))
-        if row is not None:
-            versions.put(job_id, tuple(row))
+        row = await versions.load(st.loop_reads, job_id)
     if row is None or row[0] != tenant:
         raise ApiError(status.HTTP_404_NOT_FOUND, JOB_NOT_FOUND, ErrorCode.JOB_NOT_FOUND)
-    cache: JobCache = request.app.state.job_cache
-    key = (job_id, int(row[2] or 0), str(row[1]))
-    body = cache.get(key)
-    if body is None:
-        body = await run_in_threadpool(
-            lambda: _read_public(request, job_id).model_dump_json().encode())
-        cache.put(key, body)
+    cache: JobCache = st.job_cache
+    body = await cache.build((job_id, int(row[2] or 0), str(row[1])),
+                             lambda: _read_public(request, job_id).model_dump_json().encode())
     return Response(content=body, media_type="application/json")
-
-
-def _job_version(inline, job_id: str):  # noqa: ANN001, ANN202
-    """(tenant, state, newest event seq) of a job in one statement, or None."""
-    newest = select(func.max(Event.seq)).where(Event.job_id == job_id).scalar_subquery()
-    with inline() as s:
-        return s.execute(select(Job.tenant, Job.state, newest).where(Job.id == job_id)).first()
 
 
 def _events_after(reader, job_id: str, after: int) -> tuple[list[Event], str | None]:  # noqa: ANN001
