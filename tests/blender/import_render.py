@@ -4,7 +4,8 @@
 
     python import_render.py -- SPEC.json
 
-SPEC: {"files": [{"name", "path", "options"?, "scene_frame"?}, ...], "out_dir", "resolution", "samples",
+SPEC: {"files": [{"name", "path", "options"?, "scene_frame"?, "keep"?}, ...], "out_dir",
+"resolution", "samples",
 "frame": null | [[xmin, ymin, zmin], [xmax, ymax, zmax]], "diag_px": null | pixels}. Each file
 is imported into an empty scene (`options`: importer keywords, e.g. {"import_subdivision":
 True}). The camera and the sun are placed from `frame` (Blender world space; when null, from
@@ -19,7 +20,14 @@ The render is Cycles on the CPU (the only engine that runs in headless bpy witho
 context), a fixed seed, no denoiser, no adaptive sampling: the same file gives the same pixels.
 Lights and cameras the file carries are removed (so the original and a LOD are lit alike): one
 sun of 3 W/m² from over the camera's left shoulder plus a dim uniform world (0.05), the film
-transparent (alpha = coverage), the Standard view transform (8-bit sRGB PNG, RGBA).
+transparent (alpha = coverage), the Standard view transform (8-bit sRGB PNG, RGBA), exposure 0.
+
+A file's `keep` (a list) overrides that: with "lights" its own lights stay and the scene gets a
+world before the import, so the importer turns the file's first DomeLight into the world's
+background (`create_world_material`: an Environment Texture, or the constant colour, times the
+light's colour and intensity), no sun or dim world is added, and Cycles computes direct light
+only (max bounces 0: what texelbake's `gt` computes); with "camera" the file's first camera is
+the one rendered from.
 """
 
 from __future__ import annotations
@@ -112,12 +120,41 @@ def _describe() -> dict:
     return {"meshes": meshes, "materials": mats, "bounds": _exact_bounds(objs)}
 
 
-def _setup_view(frame, resolution: int, samples: int, diag_px: float | None = None
-                ) -> None:
+def _world_for_a_dome(scene) -> None:
+    """A world for the importer to turn the file's DomeLight into (it converts one only into
+    an existing world): its Background white (UsdLux's default colour, which the importer
+    leaves when the dome authors none) at strength 0, which the importer sets to the dome's
+    intensity, so a file without a dome is lit by its other lights alone."""
+    world = bpy.data.worlds.new("FileWorld")
+    world.use_nodes = True
+    bg = next(n for n in world.node_tree.nodes if n.type == "BACKGROUND")
+    bg.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    bg.inputs["Strength"].default_value = 0.0
+    scene.world = world
+
+
+def _setup_view(frame, resolution: int, samples: int, diag_px: float | None = None,
+                keep: tuple[str, ...] = ()) -> None:
     scene = bpy.context.scene
+    gone = ("CAMERA",) * ("camera" not in keep) + ("LIGHT",) * ("lights" not in keep)
     for o in list(scene.objects):
-        if o.type in ("LIGHT", "CAMERA"):
+        if o.type in gone:
             bpy.data.objects.remove(o, do_unlink=True)
+    _render_settings(scene, resolution, samples)
+    if "lights" in keep:
+        scene.cycles.max_bounces = 0  # direct light only, as texelbake's gt
+    if "camera" in keep:
+        cams = sorted((o for o in scene.objects if o.type == "CAMERA"), key=lambda o: o.name)
+        if not cams:
+            raise SystemExit("keep 'camera': the file has no camera")
+        scene.camera = cams[0]
+    else:
+        _place_camera(scene, frame, resolution, diag_px)
+    if "lights" not in keep:
+        _add_sun_and_world(scene)
+
+
+def _place_camera(scene, frame, resolution: int, diag_px: float | None) -> None:
     lo, hi = np.asarray(frame[0]), np.asarray(frame[1])
     center = (lo + hi) / 2
     # camera: azimuth 30 deg, elevation 25 deg (Blender is Z-up), 40 deg field of view, at
@@ -144,6 +181,10 @@ def _setup_view(frame, resolution: int, samples: int, diag_px: float | None = No
     cam.location = Vector((center + d * view).tolist())
     cam.rotation_euler = Vector((-view).tolist()).to_track_quat("-Z", "Y").to_euler()
     scene.camera = cam
+
+
+def _add_sun_and_world(scene) -> None:
+    az = math.radians(30.0)  # the camera's azimuth (`_place_camera`)
     sun_data = bpy.data.lights.new("DccSun", type="SUN")
     sun_data.energy = 3.0
     sun_data.angle = math.radians(2.0)
@@ -159,6 +200,9 @@ def _setup_view(frame, resolution: int, samples: int, diag_px: float | None = No
     bg.inputs["Color"].default_value = (0.05, 0.05, 0.05, 1.0)
     bg.inputs["Strength"].default_value = 1.0
     scene.world = world
+
+
+def _render_settings(scene, resolution: int, samples: int) -> None:
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"
     scene.cycles.samples = samples
@@ -172,6 +216,8 @@ def _setup_view(frame, resolution: int, samples: int, diag_px: float | None = No
     scene.render.resolution_percentage = 100
     scene.view_settings.view_transform = "Standard"
     scene.view_settings.look = "None"
+    scene.view_settings.exposure = 0.0
+    scene.view_settings.gamma = 1.0
     scene.render.image_settings.file_format = "PNG"
     scene.render.image_settings.color_mode = "RGBA"
     scene.render.image_settings.color_depth = "8"
@@ -186,6 +232,9 @@ def main() -> None:
     results = []
     for f in spec["files"]:
         _reset()
+        keep = tuple(f.get("keep", ()))
+        if "lights" in keep:
+            _world_for_a_dome(bpy.context.scene)
         t0 = time.perf_counter()
         res = bpy.ops.wm.usd_import(filepath=str(f["path"]), **f.get("options", {}))
         info = {"name": f["name"], "path": str(f["path"]), "import": sorted(res),
@@ -203,7 +252,7 @@ def main() -> None:
         png = out_dir / f"{f['name']}.png"
         if spec.get("render", True) and info["bounds"] is not None:
             _setup_view(frame, int(spec.get("resolution", 160)), int(spec.get("samples", 16)),
-                        spec.get("diag_px"))
+                        spec.get("diag_px"), keep)
             bpy.context.scene.render.filepath = str(png)
             t0 = time.perf_counter()
             bpy.ops.render.render(write_still=True)

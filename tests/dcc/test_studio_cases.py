@@ -9,7 +9,7 @@ with `import_subdivision` on (Blender's Subdivision Surface modifier, render lev
 surface: how Blender smooths it; at its defaults the importer shows the cage). The harness
 replaces the files' lights with its own sun, so the dome-lit case checks the bake of an asset
 whose only light is a dome (texelbake's dome lighting itself is checked against closed forms in
-tests/asset/test_dome.py). The cut-out's LOD1 carries the bake's opacity map (the uncut
+tests/asset/test_dome.py, and against Cycles rendering the dome in tests/dcc/test_dome_light.py). The cut-out's LOD1 carries the bake's opacity map (the uncut
 fraction of each texel) with threshold 0.5: without it the card renders as an opaque quad
 (IoU 0.87).
 """

@@ -50,21 +50,28 @@ def import_and_render(files: dict[str, Path], out_dir: Path, *, frame=None,
                       resolution: int = 160, samples: int = 32, timeout: float = 600.0,
                       diag_px: float | None = None,
                       options: dict[str, dict] | None = None,
-                      scene_frames: dict[str, int] | None = None) -> dict:
+                      scene_frames: dict[str, int] | None = None,
+                      keep: dict[str, tuple[str, ...]] | None = None) -> dict:
     """Import each of `files` ({name: USD path}) into an empty Blender scene with the USD
     importer at its defaults (or `options[name]`, keywords of `bpy.ops.wm.usd_import` such as
     {"import_subdivision": True}) and render it (tests/blender/import_render.py), at the scene
     frame `scene_frames[name]` if given (else the animation's start), from one camera
     and sun, placed from `frame` ([lo, hi] in Blender's world space) or, when None, from the
     first file's imported bounds; with `diag_px` the camera is where the frame box's diagonal
-    covers that many pixels (a LOD's switch distance). Returns {"frame", "files": {name: what
+    covers that many pixels (a LOD's switch distance). `keep[name]` keeps what the file carries
+    instead: "lights" (its lights, its DomeLight as the world; Cycles direct light only, as
+    texelbake's gt) and/or "camera" (its first camera). Returns {"frame", "files": {name: what
     Blender made, "png"}}.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     spec = out_dir / "dcc_spec.json"
-    opts = options or {}
+    opts, kept = options or {}, keep or {}
     frames = scene_frames or {}
+    bad = {k: v for k, v in kept.items() if set(v) - {"lights", "camera"}}
+    if bad:
+        raise ValueError(f"keep takes 'lights' and 'camera', got {bad}")
     spec.write_text(json.dumps({"files": [{"name": k, "path": str(v), "options": opts.get(k, {}),
+                                           "keep": list(kept.get(k, ())),
                                            **({"scene_frame": frames[k]} if k in frames else {})}
                                           for k, v in files.items()],
                                 "out_dir": str(out_dir), "frame": frame,
@@ -105,6 +112,23 @@ def compare_renders(reference_png: Path | str, png: Path | str) -> dict[str, flo
             "object_pixels": int(mask.sum())}
 
 
+def write_render_png(path: Path, image, coverage) -> Path:
+    """A texelbake render as Blender writes its transparent film: 8-bit sRGB RGBA, the colour
+    straight (divided by the coverage), alpha = coverage; `compare_renders` reads both alike.
+
+    image : (h, w, 3) linear, averaged over the pixel's samples with misses black (colour
+    over black); coverage : (h, w) fraction of the pixel's samples that met the object
+    """
+    import numpy as np
+
+    from texelbake.io.images import linear_to_srgb, write_pixels
+
+    cov = np.asarray(coverage, dtype=np.float64)
+    rgb = np.asarray(image, dtype=np.float64) / np.maximum(cov, 1e-12)[..., None]
+    rgba = np.concatenate([linear_to_srgb(rgb), np.clip(cov, 0.0, 1.0)[..., None]], axis=2)
+    return write_pixels(path, np.round(rgba * 255.0).astype(np.uint8), "uint8")
+
+
 def side_by_side(pngs: list[Path], out: Path) -> Path:
     """One PNG of the renders in a row over a grey background, for a person to look at."""
     import numpy as np
@@ -134,4 +158,4 @@ def keep_artifacts(paths: list[Path], subdir: str) -> Path | None:
 
 
 __all__ = ["ARTIFACTS_ENV", "bpy_python", "compare_renders", "import_and_render",
-           "keep_artifacts", "run_blender", "side_by_side"]
+           "keep_artifacts", "run_blender", "side_by_side", "write_render_png"]

@@ -66,26 +66,70 @@ def write_cutout_card(folder: Path) -> Path:
     return folder / "card.usda"
 
 
-def write_dome_lit(folder: Path) -> Path:
-    """A box on a floor lit only by a DomeLight whose lat-long PNG (32 x 64) is a dim blue
-    sky with a bright warm patch above +X."""
+def write_dome_lit(folder: Path, sky: str = "patch", camera: bool = False,
+                   turn_deg: float = 0.0, flat: bool = False) -> Path:
+    """A box on a floor lit only by a DomeLight. `sky`: "patch", a lat-long PNG (32 x 64) of
+    a dim blue sky with a bright warm patch above +X; "band", a dim blue sky with a broad
+    bright warm band (longitude +45…+135 degrees, latitude +10…+60) on the +X side, so the
+    box's +X face is lit and its shadow falls toward -X (a mirrored or turned dome shows);
+    "constant", no texture, the light's colour alone. With `camera`, a UsdGeom.Camera
+    /Root/Camera (24 mm, 20.955 mm aperture) looks at the box from +X+Z, above; `turn_deg`
+    turns the dome about +Y (a rotateY op on the light); with `flat` the box carries its
+    faces' normals (faceVarying), else none (renderers smooth it)."""
     stage = _stage(folder / "dome.usda")
     _floor(stage)
     c = np.array([[x, y, z] for x in (-0.3, 0.3) for y in (0.0, 0.6) for z in (-0.3, 0.3)])
     quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
     box = _mesh(stage, "/Root/Box", c, [4] * 6, np.asarray(quads).ravel())
+    if flat:
+        q = c[np.asarray(quads)]  # (6, 4, 3)
+        n = np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        box.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.repeat(n, 4, axis=0).astype(np.float32)))
+        box.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying)
     _bind(box, preview_material(stage, "/Root/Looks/Box", diffuse=(0.7, 0.3, 0.2)))
-    sky = np.zeros((32, 64, 3), dtype=np.uint8)
-    sky[..., 0], sky[..., 1], sky[..., 2] = 60, 80, 120
-    sky[6:10, 14:20] = 255  # latitude ~55 degrees, longitude ~+90 degrees: above +X
-    write_png(folder / "sky.png", sky)
     dome = UsdLux.DomeLight.Define(stage, "/Root/Sky")
-    dome.CreateTextureFileAttr(Sdf.AssetPath("./sky.png"))
-    dome.CreateTextureFormatAttr(UsdLux.Tokens.latlong)
-    dome.CreateIntensityAttr(1.0)
-    dome.CreateColorAttr(Gf.Vec3f(1.0, 1.0, 1.0))
+    if turn_deg:
+        dome.AddRotateYOp().Set(float(turn_deg))
+    if sky in ("patch", "band"):
+        px = np.zeros((32, 64, 3), dtype=np.uint8)
+        px[..., 0], px[..., 1], px[..., 2] = (60, 80, 120) if sky == "patch" else (20, 26, 40)
+        if sky == "patch":
+            px[6:10, 14:20] = 255  # latitude ~55 degrees, longitude ~+90 degrees: above +X
+        else:  # rows 5..13: latitude +61…+11; columns 8..23: longitude +135…+45 (+X is col 16)
+            px[5:14, 8:24] = (255, 230, 180)
+        write_png(folder / "sky.png", px)
+        dome.CreateTextureFileAttr(Sdf.AssetPath("./sky.png"))
+        dome.CreateTextureFormatAttr(UsdLux.Tokens.latlong)
+        dome.CreateIntensityAttr(1.0 if sky == "patch" else 2.0)
+        dome.CreateColorAttr(Gf.Vec3f(1.0, 1.0, 1.0))
+    elif sky == "constant":
+        dome.CreateIntensityAttr(0.5)
+        dome.CreateColorAttr(Gf.Vec3f(0.6, 0.7, 0.9))
+    else:
+        raise ValueError(f"sky must be 'patch', 'band' or 'constant', got {sky!r}")
+    if camera:
+        _look_at_camera(stage, "/Root/Camera", eye=(2.0, 1.9, 2.6), target=(0.0, 0.2, 0.0))
     stage.GetRootLayer().Save()
     return folder / "dome.usda"
+
+
+def _look_at_camera(stage, path: str, eye, target) -> UsdGeom.Camera:
+    """A UsdGeom.Camera at `eye` looking at `target` (+Y up), 24 mm lens, 20.955 mm aperture."""
+    eye_v, target_v = np.asarray(eye, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    z = (eye_v - target_v) / np.linalg.norm(eye_v - target_v)  # the camera looks down -Z
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3], m[3, :3] = x, y, z, eye_v  # USD: row vectors
+    cam = UsdGeom.Camera.Define(stage, path)
+    cam.AddTransformOp().Set(Gf.Matrix4d(*m.ravel().tolist()))
+    cam.CreateFocalLengthAttr(24.0)
+    cam.CreateHorizontalApertureAttr(20.955)
+    cam.CreateVerticalApertureAttr(20.955)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
+    return cam
 
 
 def write_subdivision_cube(folder: Path) -> Path:
