@@ -306,3 +306,66 @@ def render_fit(params: dict[str, np.ndarray], normal: np.ndarray) -> np.ndarray:
     s = params["specularColor"]
     x = params["diffuseColor"] * (1.0 - s)
     return a[..., None] * x[:, None, None] + b[..., None] * s[:, None, None] + c[..., None]
+
+
+def _rows(per_texel: dict, t: int, reps: int) -> dict:
+    """Per-texel inputs (t,) or (t, 3) repeated for `reps` consecutive rows each."""
+    out = {}
+    for key, val in per_texel.items():
+        val = np.asarray(val, dtype=np.float64)
+        if val.shape[0] != t:
+            raise ShapeError(f"per-texel input {key} has {val.shape[0]} rows, expected {t}")
+        out[key] = np.repeat(val, reps, axis=0)
+    return out
+
+
+def model_cells(const: dict, per_texel: dict, normal: np.ndarray, lobe: bool) -> np.ndarray:
+    """Each (light, view cell) mean of f_ps (n·l)⁺ (t, k, k, 3) of UsdPreviewSurface inputs
+    `const` (constants) and `per_texel` ((t,) or (t, 3) arrays) on the shading normals (t, 3):
+    lobe False by the stratified views of `basis_views` (a diffuse term: smooth over a cell),
+    lobe True by importance sampling the GGX lobe at per_texel["roughness"] (`_lobe_cells`:
+    a narrow lobe, which a uniform quadrature of a cell misses)."""
+    normal = np.asarray(normal, dtype=np.float64)
+    t, k = normal.shape[0], fit_directions().shape[0]
+    if lobe:
+        return _lobe_cells(normal, const, per_texel)
+    wi, wo = _pair_dirs(normal)
+    m = wi.shape[0] // max(t * k * k, 1)
+    f = preview_surface({**const, **_rows(per_texel, t, k * k * m)}, wi, wo)
+    return (f * np.maximum(wi[:, 2:3], 0.0)).reshape(t, k, k, m, 3).mean(axis=3)
+
+
+def _lobe_cells(normal: np.ndarray, const: dict, per_texel: dict) -> np.ndarray:
+    """`model_cells` of a lobe: IS_STRATA² stratified GGX half vectors per texel and light at
+    per_texel["roughness"], v the reflection of l, pdf D (n·h) / (4 v·h), each estimate added
+    to the cell v falls in; (t, k, k, 3)."""
+    dirs = fit_directions()
+    t, k = normal.shape[0], dirs.shape[0]
+    g = (np.arange(IS_STRATA) + 0.5) / IS_STRATA
+    u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)  # (S, 2)
+    ns = u.shape[0]
+    fr = tangent_frames(normal)  # rows (t, b, n)
+    li = np.einsum("tij,kj->tki", fr, dirs)  # (t, k, 3) lights in n's frame
+    rough = np.asarray(per_texel["roughness"], dtype=np.float64)
+    alpha = np.clip(rough, PREVIEW_MIN_ROUGHNESS, 1.0) ** 2  # (t,)
+    a2 = (alpha * alpha)[:, None]
+    cos2 = (1.0 - u[None, :, 0]) / (1.0 + (a2 - 1.0) * u[None, :, 0])  # (t, S) GGX cos²θh
+    ch = np.sqrt(cos2)
+    sh = np.sqrt(np.maximum(1.0 - cos2, 0.0))
+    ph = 2.0 * np.pi * u[None, :, 1]
+    h = np.stack([sh * np.cos(ph), sh * np.sin(ph), ch], axis=-1)  # (t, S, 3)
+    lh = np.einsum("tki,tsi->tks", li, h)  # (t, k, S)
+    v = 2.0 * lh[..., None] * h[:, None] - li[:, :, None]  # (t, k, S, 3) reflections
+    d = a2[:, :, None] / (np.pi * (cos2[:, None] * (a2[:, :, None] - 1.0) + 1.0) ** 2)
+    pdf = d * ch[:, None] / np.maximum(4.0 * lh, 1e-300)  # (t, k, S)
+    v_tex = np.einsum("tji,tksj->tksi", fr, v)  # back to the texel frame
+    cell = cell_of(v_tex.reshape(-1, 3)).reshape(t, k, ns)
+    ok = (lh > 0.0) & (v[..., 2] > 0.0) & (cell >= 0)
+    wi = np.broadcast_to(li[:, :, None], v.shape).reshape(-1, 3)
+    f = preview_surface({**const, **_rows(per_texel, t, k * ns)}, wi, v.reshape(-1, 3))
+    f = f.reshape(t, k, ns, 3)
+    w = np.where(ok, np.maximum(li[:, :, None, 2], 0.0) / np.where(ok, pdf, 1.0), 0.0)
+    out = np.zeros((t, k, k, 3))
+    ti, ii, si = np.nonzero(ok)
+    np.add.at(out, (ti, ii, cell[ti, ii, si]), f[ti, ii, si] * w[ti, ii, si, None])
+    return out / (ns * cell_solid_angles()[None, None, :, None])

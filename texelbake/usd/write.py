@@ -165,7 +165,8 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
                 f"./{files['fallback_normal']}",
                 "/Baked/CPM", f"./{files['roughness'][i - 1]}", f"./{files['occlusion']}",
                 baked.fallback.get("constants"),
-                specular_file=f"./{files['specular'][i - 1]}" if fitted else None,
+                specular_file=(f"./{files['specular'][i - 1]}" if files["specular"]
+                               else None),
                 opacity_file=f"./{files['opacity']}" if "opacity" in files else None)
         elif i == 1:
             mat = author_preview_material(
