@@ -147,7 +147,9 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     from texelbake.baselines.normal_maps import face_tangent_space
     from texelbake.geometry.atlas import Atlas
     from texelbake.geometry.build import lod_meshes
+    from texelbake.geometry.lodchain import transfer_corner_normals
     from texelbake.geometry.mesh import Mesh, face_normals
+    from texelbake.geometry.mikktspace import frames_at, mikk_tangents
     from texelbake.geometry.raycast import RayCaster
     from texelbake.geometry.sampling import sample_surface
     from texelbake.geometry.texels import assign_texels
@@ -167,10 +169,27 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     asg = assign_texels(smp.positions, m_t, atlas, 1, normals=gnrm,
                         occluder=caster if wrapped else None)
     v, f, uv = lod_meshes(geo)[0]
-    prim = asg.prim if bool(geo["lod_exact"]) else RayCaster(v, f).closest_points(
-        smp.positions)[1]
-    return {"smp": smp, "gnrm": gnrm, "row": asg.row, "col": asg.col, "prim": prim,
-            "frames": face_tangent_space(v, f, uv), "lod1_vertices": v, "lod1_faces": f}
+    _, near, bary = RayCaster(v, f).closest_points(smp.positions)
+    if bool(geo["lod_exact"]):  # the texel's face; the point projected on its plane
+        near = asg.prim
+        bary = plane_bary(v[f[near]], smp.positions)
+    cnrm = transfer_corner_normals(v, f, asset.corner_normals, caster)
+    tangent, sign = mikk_tangents(v, f, cnrm, uv)
+    return {"smp": smp, "gnrm": gnrm, "row": asg.row, "col": asg.col, "prim": near,
+            "frames": face_tangent_space(v, f, uv), "lod1_vertices": v, "lod1_faces": f,
+            "mikk": frames_at(tangent, sign, cnrm, near, np.column_stack(
+                [1.0 - bary[:, 0] - bary[:, 1], bary]))}
+
+
+def plane_bary(tri: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(u, v) (m, 2) of points q (m, 3) projected on the planes of triangles tri (m, 3, 3)
+    (point = (1 − u − v) p0 + u p1 + v p2; outside the triangle when q projects outside)."""
+    e1, e2, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], q - tri[:, 0]
+    g11, g12, g22 = (np.einsum("mj,mj->m", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
+    r1, r2 = np.einsum("mj,mj->m", d, e1), np.einsum("mj,mj->m", d, e2)
+    det = g11 * g22 - g12 * g12
+    safe = np.where(np.abs(det) > 0, det, 1.0)
+    return np.column_stack([(r1 * g22 - r2 * g12) / safe, (r2 * g11 - r1 * g12) / safe])
 
 
 def fallback_opacity(ctx: StageContext, res: int) -> np.ndarray | None:
@@ -198,9 +217,10 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
     artifact store."""
     from texelbake.baselines.filtered_maps import CHANNELS, FIELDS
+    from texelbake.geometry.mikktspace import encode
 
     n_levels = int(np.log2(res)) + 1
-    key = ctx.key("filtered", f"fallback-v3-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
+    key = ctx.key("filtered", f"fallback-v4-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
                   f"-ao{FALLBACK_AO_RAYS}.npz", GEOMETRY_FIELDS)
     if ctx.store.exists(key):
         data = ctx.store.read_arrays(key)
@@ -212,7 +232,7 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     smp, gnrm, prim = fs["smp"], fs["gnrm"], fs["prim"]
     v, f = fs["lod1_vertices"], fs["lod1_faces"]
     asg_row, asg_col = fs["row"], fs["col"]
-    local = np.einsum("mij,mj->mi", fs["frames"][prim], smp.normals)
+    local = encode(fs["mikk"], smp.normals)  # MikkTSpace frames: what other tools decode
     ao = ambient_occlusion(smp.positions, gnrm, caster.occluded, n_rays=FALLBACK_AO_RAYS,
                            seed=s.seed, ray_eps=TOL.ray_offset * caster.bbox_diag)
     albedo, base, alpha2 = material_base(asset.materials, smp.material.astype(np.int32), smp.uv)
