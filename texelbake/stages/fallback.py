@@ -1,8 +1,21 @@
-"""The fitted UsdPreviewSurface fallback of every LOD (`texelbake.baselines.fitted_fallback`):
-the filtered reflectance of the fallback page's dense samples (`filtered.fallback_samples`)
-over the fit's direction set, shadowing and masking by rays against M_org, summed per texel
-of level 0 and box-summed to each LOD's level, then fitted per texel. Kept in the artifact
-store (the rays and the fit are the cost)."""
+"""The fitted UsdPreviewSurface fallback of every LOD: the averaged fallback
+(`filtered.fallback_maps`) with its diffuseColor times a smooth per-LOD gain, so that its
+preview surface on the LOD reproduces the filtered reflectance of M_org (shadowing and masking
+included) over the direction set of `baselines.fitted_fallback`, least squares.
+
+The targets: the fallback page's dense samples (`filtered.fallback_samples`) over the direction
+set, shadowing and masking by rays against M_org, summed per texel of level 0 in two disjoint
+halves of the samples. The model: the averaged inputs' preview surface, L(g) = L0 + g ΔL per
+pair and channel for diffuseColor g·base (`_model_terms`). The gain per channel is estimated
+on a coarse level c (many samples a texel), shrunk toward 1 with weight λ
+(argmin Σ(L0 + g ΔL − T)² + λ Σ ΔL² (g − 1)²), magnified bilinearly to the page and multiplied
+into the level-0 base colour; c and λ (λ = ∞: the averaged inputs unchanged) are chosen per LOD
+on held-out samples: the gain of one half judged against the other half's targets on texels
+of the LOD's own level (`lod_texture_levels`), both ways. The workflow, roughness, normal and
+constants stay the averaged fallback's (a renderer maps them as it maps the averaged ones:
+Blender's importer turns a specular workflow's specularColor into Principled BSDF's Specular
+Tint of an IOR-1.5 dielectric, not into F0). Kept in the artifact store (the rays are the
+cost); deterministic (fixed directions, seeded views, no iteration)."""
 
 from __future__ import annotations
 
@@ -11,14 +24,14 @@ import numpy as np
 from texelbake.baselines.fitted_fallback import (
     cell_views,
     fit_directions,
-    fit_preview,
+    gain_sums,
     model_cells,
     sample_terms,
+    shrunk_gain,
     targets,
 )
 from texelbake.brdf.evaluate import evaluate_by_face
 from texelbake.cpm.level import segment_sum
-from texelbake.errors import StageError
 from texelbake.geometry.basis import tangent_frames
 from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
 from texelbake.tol import TOL
@@ -27,7 +40,6 @@ from texelbake.tol import TOL
 SAMPLE_CHUNK = 8192
 #: texels per chunk of the fit (81 pairs x 16 views x 3 BRDF evaluations each)
 TEXEL_CHUNK = 1024
-FIT_VERSION = "fit-v7"
 _TAG_VIEWS = 0x6F
 
 
@@ -106,124 +118,6 @@ def _sample_sums(ctx: StageContext, fs: dict, res: int, dirs: np.ndarray):
         total[..., -1]
 
 
-def fitted_fallback(ctx: StageContext, res: int, n_lods: int,
-                    roughness: list[np.ndarray] | None = None) -> dict:
-    """Per LOD the fitted specular-workflow inputs on its level of the res² page, at the
-    widened roughness `roughness[lvl]` ((n_l, n_l), every level of the page; None: read back
-    from the store only), empty texels
-    filled from the nearest covered one (chart padding: mip levels never blend the page's
-    background): {"diffuse": [(n_i, n_i, 3)], "specular": [(n_i, n_i, 3)], "roughness":
-    [(n_i, n_i)], "residual": [(n_i, n_i)] (0 where uncovered), "covered": [(n_i, n_i) bool]
-    the texels samples fell in, "levels": [int], "normal"
-    (res, res, 3) the level-0 unit normal map the fit shaded with, "stats": per LOD
-    residual quantiles, "seconds": the fit's time (None when read from the store)}."""
-    import time
-
-    levels = lod_texture_levels(ctx, res, n_lods)
-    key = ctx.key("filtered", f"{FIT_VERSION}-{res}-s{'-'.join(map(str, levels))}.npz",
-                  GEOMETRY_FIELDS)
-    names = ("diffuse", "specular", "roughness", "residual")
-    if ctx.store.exists(key):
-        d = ctx.store.read_arrays(key)
-        out = {n: [d[f"{n}{i}"] for i in range(n_lods)] for n in names}
-        return {**out, "levels": levels, "normal": d["normal"],
-                "covered": [d[f"covered{i}"] for i in range(n_lods)],
-                "stats": [_stats(d[f"residual{i}"], d[f"covered{i}"]) for i in range(n_lods)],
-                "seconds": None}
-    if roughness is None:
-        raise StageError(f"fitted fallback {key} is not in the store and no roughness was given")
-    from texelbake.stages.filtered import fallback_samples, nearest_fill
-
-    start = time.perf_counter()
-    dirs = fit_directions()
-    k = dirs.shape[0]
-    fs = fallback_samples(ctx, res)
-    covered, num, den, nsum, area = (a.sum(axis=0) if a.ndim > 1 else a
-                                     for a in _sample_sums(ctx, fs, res, dirs))
-    arrays: dict[str, np.ndarray] = {}
-    ok0 = (np.linalg.norm(nsum, axis=1) > 0) & (nsum[:, 2] > 0)
-    n0 = np.where(ok0[:, None], nsum, [0.0, 0.0, 1.0])
-    img0 = np.zeros((res * res, 3))
-    img0[covered] = n0 / np.linalg.norm(n0, axis=1, keepdims=True)
-    filled0 = np.zeros(res * res, bool)
-    filled0[covered] = True
-    arrays["normal"] = nearest_fill(img0.reshape(res, res, 3),
-                                     filled0.reshape(res, res)).astype(np.float32)
-    for i, lvl in enumerate(levels):  # a loop over the few LODs
-        n_l = res >> lvl
-        ids = (covered // res >> lvl) * n_l + (covered % res >> lvl)
-        order = np.argsort(ids, kind="stable")
-        uniq = np.unique(ids)
-        seg = np.searchsorted(uniq, ids[order])
-        num_l = segment_sum(num[order], seg, uniq.size, 0)
-        den_l = segment_sum(den[order], seg, uniq.size, 0)
-        n_l3 = segment_sum(nsum[order], seg, uniq.size, 0)
-        ok = (np.linalg.norm(n_l3, axis=1) > 0) & (n_l3[:, 2] > 0)
-        nrm = np.where(ok[:, None], n_l3, [0.0, 0.0, 1.0])
-        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-        rough = np.asarray(roughness[lvl], dtype=np.float64).reshape(-1)[uniq]
-        fit: dict[str, list[np.ndarray]] = {
-            n: [] for n in ("diffuseColor", "specularColor", "roughness", "residual")}
-        for a in range(0, uniq.size, TEXEL_CHUNK):  # chunks of texels (memory bound)
-            tgt, valid = targets(num_l[a:a + TEXEL_CHUNK], den_l[a:a + TEXEL_CHUNK], k)
-            part = fit_preview(tgt, valid, nrm[a:a + TEXEL_CHUNK], rough[a:a + TEXEL_CHUNK])
-            for n in fit:
-                fit[n].append(part[n])
-        filled = np.zeros(n_l * n_l, bool)
-        filled[uniq] = True
-        for n, src in zip(names, ("diffuseColor", "specularColor", "roughness", "residual"),
-                          strict=True):
-            vals = np.concatenate(fit[src]) if fit[src] else np.zeros((0,))
-            c = 3 if src in ("diffuseColor", "specularColor") else 1
-            flat = np.zeros((n_l * n_l, c))
-            flat[uniq] = vals.reshape(-1, c)
-            img = flat.reshape(n_l, n_l, c)
-            if n != "residual":
-                img = nearest_fill(img, filled.reshape(n_l, n_l))
-            arrays[f"{n}{i}"] = (img if c == 3 else img[..., 0]).astype(np.float32)
-        arrays[f"covered{i}"] = filled.reshape(n_l, n_l)
-    ctx.store.write_arrays(key, arrays)
-    out = fitted_fallback(ctx, res, n_lods, roughness)  # as a rerun reads it
-    return {**out, "seconds": round(time.perf_counter() - start, 1)}
-
-
-def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
-    """The fitted inputs replacing the averaged fallback's (`filtered.fallback_maps`, whose
-    page and constants they share): per LOD diffuse, specular and roughness maps at its
-    level (the roughness widened from each level's filtered maps, as the averaged fallback's),
-    the fit's own normal map, the specular workflow, and the residual statistics for the
-    report."""
-    from texelbake.baselines.filtered_maps import FIELDS, fallback_roughness, slope_covariance
-    from texelbake.stages.filtered import dense_fallback_levels, filtered_levels
-
-    res = int(averaged["resolution"])
-    maps = (dense_fallback_levels(ctx, res)[0] if res > ctx.settings.atlas_resolution
-            else filtered_levels(ctx))
-    rough = []
-    for m_l in maps:  # a loop over the few levels
-        m = m_l.reshape(-1, m_l.shape[2]).astype(np.float64)
-        cov = slope_covariance(m[:, FIELDS["m1"]], m[:, FIELDS["m2"]])
-        rough.append(fallback_roughness(m[:, FIELDS["alpha2"]][:, 0], cov).reshape(
-            m_l.shape[:2]))
-    fit = fitted_fallback(ctx, res, len(averaged["roughness"]), rough)
-    keep = {k: v for k, v in averaged["constants"].items() if k in ("opacity", "emissiveColor")}
-    return {**averaged, "diffuse": fit["diffuse"], "specular": fit["specular"],
-            "roughness": fit["roughness"], "normal": fit["normal"],
-            "constants": {**keep, "useSpecularWorkflow": 1}, "levels": fit["levels"],
-            # the report holds what the source and settings determine: no seconds
-            "fit": {"residual": fit["stats"]}}
-
-
-def _stats(residual: np.ndarray, covered: np.ndarray) -> dict:
-    """Quantiles of the relative RMS residual over a LOD's covered texels."""
-    r = np.asarray(residual, dtype=np.float64)[np.asarray(covered, bool)]
-    if r.size == 0:
-        return {"texels": 0}
-    q = np.quantile(r, [0.5, 0.95])
-    return {"texels": int(r.size), "median": round(float(q[0]), 4),
-            "p95": round(float(q[1]), 4), "max": round(float(r.max()), 4),
-            "above_0.5": round(float(np.mean(r > 0.5)), 4)}
-
 
 #: coarse levels above a LOD's own where its gain may be estimated, and the gain's shrinkage
 #: weights toward 1 (inf: the averaged inputs unchanged); both chosen on held-out samples
@@ -279,21 +173,6 @@ def _model_terms(const: dict, metal: bool, base: np.ndarray, rough: np.ndarray,
     return (np.concatenate(l0s) if l0s else empty), (np.concatenate(dls) if dls else empty)
 
 
-def _gain_stats(l0: np.ndarray, dl: np.ndarray, tgt: np.ndarray, valid: np.ndarray):
-    """Per texel and channel Σ ΔL² and Σ ΔL (T − L0) over the pairs that count: (t, 3) each."""
-    w = valid[..., None]
-    return (np.einsum("tijc,tijc->tc", dl * w, dl), np.einsum("tijc,tijc->tc", dl * w,
-                                                              tgt - l0))
-
-
-def _gain(sdd: np.ndarray, sdr: np.ndarray, lam: float) -> np.ndarray:
-    """The least-squares gain shrunk toward 1: argmin Σ(L0 + g ΔL − T)² + λ Σ ΔL² (g − 1)²."""
-    if not np.isfinite(lam):
-        return np.ones_like(sdd)
-    ok = sdd > 1e-12 * max(float(sdd.max(initial=0.0)), 1e-300)
-    g = np.where(ok, (sdr + lam * sdd) / np.where(ok, (1.0 + lam) * sdd, 1.0), 1.0)
-    return np.maximum(g, 0.0)
-
 
 def _gain_image(g: np.ndarray, uniq: np.ndarray, n_c: int, n: int) -> np.ndarray:
     """Coarse per-texel gains (t, 3) at texels `uniq` of an n_c² level -> (n, n, 3) by
@@ -343,11 +222,11 @@ def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndar
         if c > n_levels - 1:
             break
         c_uniq, _, l0, dl, tg = at(c)
-        stats = [_gain_stats(l0, dl, *tg[h]) for h in (0, 1)]
+        stats = [gain_sums(l0, dl, *tg[h]) for h in (0, 1)]
         for lam in GAIN_LAMBDAS:  # the few shrinkage weights
             err = 0.0
             for h in (0, 1):  # fit on one half, judge on the other
-                g = _gain_image(_gain(*stats[h], lam), c_uniq, res >> c, n_f)
+                g = _gain_image(shrunk_gain(*stats[h], lam), c_uniq, res >> c, n_f)
                 g = g.reshape(-1, 3)[f_uniq[f_sel]]
                 t_o, v_o = f_tg[1 - h]
                 r = (f_l0 + g[:, None, None, :] * f_dl - t_o) * v_o[..., None]
@@ -359,7 +238,7 @@ def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndar
     _, lam, c = best
     if np.isfinite(lam):
         c_uniq, _, l0, dl, tg = at(c)
-        g = _gain_image(_gain(*_gain_stats(l0, dl, *tg[2]), lam), c_uniq, res >> c, res)
+        g = _gain_image(shrunk_gain(*gain_sums(l0, dl, *tg[2]), lam), c_uniq, res >> c, res)
     else:
         g = np.ones((res, res, 3))
     info = {"level": int(c), "lambda": lam, "heldout_vs_averaged": round(
@@ -367,10 +246,10 @@ def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndar
     return g, info
 
 
-GAIN_VERSION = "gain-v1"
+GAIN_VERSION = "gain-v2"
 
 
-def corrected_inputs(ctx: StageContext, averaged: dict) -> dict:
+def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
     """The averaged fallback with each LOD's diffuseColor times a smooth gain (module
     docstring): per LOD its own level-0 diffuse texture, everything else the averaged one's.
     Kept in the artifact store (the rays are the cost)."""
