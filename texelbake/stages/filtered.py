@@ -274,6 +274,46 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     return maps, normal.astype(np.float32)
 
 
+def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
+    """The fallback's tangent-space normal map of each LOD after LOD1 (res, res, 3) float32
+    unit: the dense samples' normals (`fallback_samples`, on the shared layout) encoded in the
+    MikkTSpace frame of that LOD's own surface at the sample's closest point (its authored
+    corner normals and uvs: what a viewer decodes it with), area means per texel, empty texels
+    filled from the nearest covered one. A map baked in LOD1's frames does not decode on a
+    coarser LOD: its normals there are not LOD1's. Kept in the artifact store."""
+    from texelbake.geometry.build import lod_meshes
+    from texelbake.geometry.lodchain import transfer_corner_normals
+    from texelbake.geometry.mikktspace import encode, frames_at, mikk_tangents
+    from texelbake.geometry.raycast import RayCaster
+
+    geo = ctx.geometry()
+    lods = lod_meshes(geo)[1:]
+    key = ctx.key("filtered", f"fallback-normals-v1-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}.npz",
+                  GEOMETRY_FIELDS)
+    if ctx.store.exists(key):
+        d = ctx.store.read_arrays(key)
+        return [d[f"lod{i}"] for i in range(len(lods))]
+    fs = fallback_samples(ctx, res)
+    smp = fs["smp"]
+    t0 = fs["row"].astype(np.int64) * res + fs["col"]
+    filled = (np.bincount(t0, weights=smp.area, minlength=res * res) > 0).reshape(res, res)
+    out = {}
+    for i, (v, f, uv) in enumerate(lods):  # a loop over the few LODs
+        cnrm = transfer_corner_normals(v, f, ctx.asset().corner_normals, ctx.caster())
+        tangent, sign = mikk_tangents(v, f, cnrm, uv)
+        _, prim, bary = RayCaster(v, f).closest_points(smp.positions)
+        fr = frames_at(tangent, sign, cnrm, prim, np.column_stack(
+            [1.0 - bary[:, 0] - bary[:, 1], bary]))
+        local = encode(fr, smp.normals) * smp.area[:, None]
+        acc = np.stack([np.bincount(t0, weights=local[:, c], minlength=res * res)
+                        for c in range(3)], axis=1)
+        length = np.linalg.norm(acc, axis=1, keepdims=True)
+        nrm = np.where(length > 0, acc / np.maximum(length, 1e-300), [0.0, 0.0, 1.0])
+        out[f"lod{i}"] = nearest_fill(nrm.reshape(res, res, 3), filled).astype(np.float32)
+    ctx.store.write_arrays(key, out)
+    return [out[f"lod{i}"] for i in range(len(lods))]
+
+
 def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     """The UsdPreviewSurface fallback of every LOD (`usd.baked.BakedAsset.fallback`): base
     colour and occlusion of level 0 (a viewer mip-maps them itself), and per LOD the roughness
@@ -322,6 +362,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
            "resolution": int(res)}
     if normal is not None:
         out["normal"] = normal
+        out["lod_normals"] = [normal, *lod_normal_maps(ctx, res)]
     opacity = fallback_opacity(ctx, res)
     if opacity is not None:
         out["opacity"] = opacity
