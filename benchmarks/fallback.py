@@ -94,6 +94,7 @@ SCENES = ("cylinder", "wall", "bolt", "cloisonne")
 #: fallback variant (a column) -> the BakeSettings fields that select it
 FALLBACKS: dict[str, dict[str, Any]] = {
     "averaged": {},  # today's fallback: averaged inputs, widened roughness, normal map, AO
+    "fitted": {"fallback": "fitted"},  # the averaged inputs with a held-out-chosen gain
 }
 #: the bakes: a light CPM (the fallback maps come from the geometry and filtered-map stages,
 #: which these fields leave as at defaults)

@@ -277,10 +277,11 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
 def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
     """The fallback's tangent-space normal map of each LOD after LOD1 (res, res, 3) float32
     unit: the dense samples' normals (`fallback_samples`, on the shared layout) encoded in the
-    MikkTSpace frame of that LOD's own surface at the sample's closest point (its authored
-    corner normals and uvs: what a viewer decodes it with), area means per texel, empty texels
+    MikkTSpace frame of that LOD's own surface (its authored corner normals and uvs: what a
+    viewer decodes it with) at the centre of the sample's texel there, area means per texel, empty texels
     filled from the nearest covered one. A map baked in LOD1's frames does not decode on a
     coarser LOD: its normals there are not LOD1's. Kept in the artifact store."""
+    from texelbake.geometry.atlas import rasterize_atlas
     from texelbake.geometry.build import lod_meshes
     from texelbake.geometry.lodchain import transfer_corner_normals
     from texelbake.geometry.mikktspace import encode, frames_at, mikk_tangents
@@ -288,7 +289,7 @@ def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
 
     geo = ctx.geometry()
     lods = lod_meshes(geo)[1:]
-    key = ctx.key("filtered", f"fallback-normals-v1-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}.npz",
+    key = ctx.key("filtered", f"fallback-normals-v2-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}.npz",
                   GEOMETRY_FIELDS)
     if ctx.store.exists(key):
         d = ctx.store.read_arrays(key)
@@ -301,9 +302,15 @@ def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
     for i, (v, f, uv) in enumerate(lods):  # a loop over the few LODs
         cnrm = transfer_corner_normals(v, f, ctx.asset().corner_normals, ctx.caster())
         tangent, sign = mikk_tangents(v, f, cnrm, uv)
-        _, prim, bary = RayCaster(v, f).closest_points(smp.positions)
-        fr = frames_at(tangent, sign, cnrm, prim, np.column_stack(
-            [1.0 - bary[:, 0] - bary[:, 1], bary]))
+        # the frame where a viewer decodes the sample's texel: at the texel's centre on
+        # this LOD (its uvs); texels this LOD's charts miss: at the sample's closest point
+        face, bary3, _ = rasterize_atlas(uv, res)
+        on = face[t0] >= 0
+        fr = frames_at(tangent, sign, cnrm, np.maximum(face[t0], 0), bary3[t0])
+        if not on.all():
+            _, prim, bary = RayCaster(v, f).closest_points(smp.positions[~on])
+            fr[~on] = frames_at(tangent, sign, cnrm, prim, np.column_stack(
+                [1.0 - bary[:, 0] - bary[:, 1], bary]))
         local = encode(fr, smp.normals) * smp.area[:, None]
         acc = np.stack([np.bincount(t0, weights=local[:, c], minlength=res * res)
                         for c in range(3)], axis=1)
