@@ -128,7 +128,8 @@ def shade_preview_surface(scene: RenderScene, cam: PinholeCamera, lod: int, o: n
     ok = (length[:, 0] > 0) & (n_local[:, 2] > 0)
     n_local = np.where(ok[:, None], n_local / np.where(ok, length[:, 0], 1.0)[:, None],
                        [0.0, 0.0, 1.0])
-    ns = decode(frames_at(*tb["mikk"][:2], tb["mikk"][2], prim, b), n_local)
+    tangent, sign, cn = tb["mikk"]
+    ns = decode(frames_at(tangent, sign, cn, prim, b), n_local)
 
     def brdf(sel: np.ndarray, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
         rows = {k: (v[sel] if np.ndim(v) and np.shape(v)[0] == idx.size else v)

@@ -226,7 +226,7 @@ def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndar
         for lam in GAIN_LAMBDAS:  # the few shrinkage weights
             err = 0.0
             for h in (0, 1):  # fit on one half, judge on the other
-                g = _gain_image(shrunk_gain(*stats[h], lam), c_uniq, res >> c, n_f)
+                g = _gain_image(shrunk_gain(stats[h][0], stats[h][1], lam), c_uniq, res >> c, n_f)
                 g = g.reshape(-1, 3)[f_uniq[f_sel]]
                 t_o, v_o = f_tg[1 - h]
                 r = (f_l0 + g[:, None, None, :] * f_dl - t_o) * v_o[..., None]
@@ -238,7 +238,8 @@ def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndar
     _, lam, c = best
     if np.isfinite(lam):
         c_uniq, _, l0, dl, tg = at(c)
-        g = _gain_image(shrunk_gain(*gain_sums(l0, dl, *tg[2]), lam), c_uniq, res >> c, res)
+        sdd, sdr = gain_sums(l0, dl, *tg[2])
+        g = _gain_image(shrunk_gain(sdd, sdr, lam), c_uniq, res >> c, res)
     else:
         g = np.ones((res, res, 3))
     info = {"level": int(c), "lambda": lam, "heldout_vs_averaged": round(
