@@ -106,6 +106,22 @@ def bench_asset(name: str, src: Path, work: Path, size: int, ref_spp: int, spp: 
     return out
 
 
+def notes_for(results: list[dict]) -> list[str]:
+    """A note per LOD below the +3 dB bar, with the gain's held-out choice."""
+    notes = []
+    for r in results:
+        for row in r["lods"]:
+            d = row["fitted_minus_averaged_db"]
+            if d is None or d < 3.0:
+                gain = ((r.get("fit") or {}).get("gain") or [{}] * row["lod"])[row["lod"] - 1]
+                notes.append(f"{r['asset']} LOD{row['lod']}: fitted is {d} dB over averaged "
+                             f"(below the 3 dB bar); held-out residual of the gain over none "
+                             f"{gain.get('heldout_vs_averaged')} (level {gain.get('gain_level')},"
+                             f" lambda {gain.get('lambda')}): the direction set's measure sees "
+                             "little a diffuse gain can fix (docs/decisions.md)")
+    return notes
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default="bolt,cylinder,wall,cloisonne")
@@ -128,17 +144,7 @@ def main(argv: list[str] | None = None) -> dict:
                                    args.ref_spp, args.spp))
         partial.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
     partial.unlink(missing_ok=True)
-    notes = []
-    for r in results:
-        for row in r["lods"]:
-            d = row["fitted_minus_averaged_db"]
-            if d is None or d < 3.0:
-                gain = ((r.get("fit") or {}).get("gain") or [{}] * row["lod"])[row["lod"] - 1]
-                notes.append(f"{r['asset']} LOD{row['lod']}: fitted is {d} dB over averaged "
-                             f"(below the 3 dB bar); held-out residual of the gain over none "
-                             f"{gain.get('heldout_vs_averaged')} (level {gain.get('gain_level')},"
-                             f" lambda {gain.get('lambda')}): the direction set's measure sees "
-                             "little a diffuse gain can fix (docs/decisions.md)")
+    notes = notes_for(results)
     report = {"settings": "texelbake bake defaults, fallback averaged vs fitted",
               "size": args.size, "ref_spp": args.ref_spp, "spp": args.spp,
               "results": results, "notes": notes}
