@@ -114,11 +114,15 @@ def notes_for(results: list[dict]) -> list[str]:
             d = row["fitted_minus_averaged_db"]
             if d is None or d < 3.0:
                 gain = ((r.get("fit") or {}).get("gain") or [{}] * row["lod"])[row["lod"] - 1]
+                ratio = gain.get("heldout_vs_averaged")
+                why = ("the direction set's measure sees little a diffuse gain can fix"
+                       if ratio is None or ratio >= 0.95 else
+                       "the gain fits the direction set's oblique pairs (shadowing and masking) "
+                       "but one gain for every direction does not fit this view")
                 notes.append(f"{r['asset']} LOD{row['lod']}: fitted is {d} dB over averaged "
                              f"(below the 3 dB bar); held-out residual of the gain over none "
-                             f"{gain.get('heldout_vs_averaged')} (level {gain.get('gain_level')},"
-                             f" lambda {gain.get('lambda')}): the direction set's measure sees "
-                             "little a diffuse gain can fix (docs/decisions.md)")
+                             f"{ratio} (level {gain.get('gain_level')}, lambda "
+                             f"{gain.get('lambda')}): {why} (docs/decisions.md)")
     return notes
 
 
