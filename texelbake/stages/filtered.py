@@ -220,7 +220,7 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     from texelbake.geometry.mikktspace import encode
 
     n_levels = int(np.log2(res)) + 1
-    key = ctx.key("filtered", f"fallback-v4-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
+    key = ctx.key("filtered", f"fallback-v5-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
                   f"-ao{FALLBACK_AO_RAYS}.npz", GEOMETRY_FIELDS)
     if ctx.store.exists(key):
         data = ctx.store.read_arrays(key)
@@ -232,7 +232,11 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     smp, gnrm, prim = fs["smp"], fs["gnrm"], fs["prim"]
     v, f = fs["lod1_vertices"], fs["lod1_faces"]
     asg_row, asg_col = fs["row"], fs["col"]
-    local = encode(fs["mikk"], smp.normals)  # MikkTSpace frames: what other tools decode
+    # the slope statistics (roughness widening) in the flat frame of the LOD1 face, where
+    # z is the face's normal; the normal map in MikkTSpace frames (what other tools decode),
+    # whose interpolated normal a transferred corner normal may tilt far from the face's
+    local = np.einsum("mij,mj->mi", fs["frames"][prim], smp.normals)
+    mikk = encode(fs["mikk"], smp.normals) * smp.area[:, None]
     ao = ambient_occlusion(smp.positions, gnrm, caster.occluded, n_rays=FALLBACK_AO_RAYS,
                            seed=s.seed, ray_eps=TOL.ray_offset * caster.bbox_diag)
     albedo, base, alpha2 = material_base(asset.materials, smp.material.astype(np.int32), smp.uv)
@@ -266,8 +270,11 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     top[seen, FIELDS["base"]] = base_seen[seen]
     maps[0] = nearest_fill(np.where(filled0[:, None], top, 0.0).reshape(res, res, -1),
                             filled0.reshape(res, res)).astype(np.float32)
-    nbar = maps[0][..., FIELDS["nbar"]].astype(np.float64)
-    normal = nbar / np.maximum(np.linalg.norm(nbar, axis=2, keepdims=True), 1e-12)
+    nbar = np.stack([np.bincount(t0, weights=mikk[:, c], minlength=res * res)
+                     for c in range(3)], axis=1)
+    length = np.linalg.norm(nbar, axis=1, keepdims=True)
+    nbar = np.where(length > 0, nbar / np.maximum(length, 1e-300), [0.0, 0.0, 1.0])
+    normal = nearest_fill(nbar.reshape(res, res, 3), filled0.reshape(res, res))
     assert maps[0].shape[2] == len(CHANNELS)
     ctx.store.write_arrays(key, {**{f"L{lvl:02d}": m for lvl, m in enumerate(maps)},
                                  "normal": normal.astype(np.float32)})
@@ -278,8 +285,8 @@ def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
     """The fallback's tangent-space normal map of each LOD after LOD1 (res, res, 3) float32
     unit: the dense samples' normals (`fallback_samples`, on the shared layout) encoded in the
     MikkTSpace frame of that LOD's own surface (its authored corner normals and uvs: what a
-    viewer decodes it with) at the centre of the sample's texel there, area means per texel, empty texels
-    filled from the nearest covered one. A map baked in LOD1's frames does not decode on a
+    viewer decodes it with) at the centre of the sample's texel there, area means per texel,
+    empty texels filled from the nearest covered one. A map baked in LOD1's frames does not decode on a
     coarser LOD: its normals there are not LOD1's. Kept in the artifact store."""
     from texelbake.geometry.atlas import rasterize_atlas
     from texelbake.geometry.build import lod_meshes
