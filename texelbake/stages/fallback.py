@@ -257,8 +257,10 @@ def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
     res = int(averaged["resolution"])
     n_lods = len(averaged["roughness"])
     levels = lod_texture_levels(ctx, res, n_lods)
-    key = ctx.key("filtered", f"{GAIN_VERSION}-{res}-s{'-'.join(map(str, levels))}.npz",
-                  GEOMETRY_FIELDS)
+    from texelbake.stages.filtered import FALLBACK_VERSION
+
+    key = ctx.key("filtered", f"{GAIN_VERSION}-{FALLBACK_VERSION}-{res}-s"
+                  f"{'-'.join(map(str, levels))}.npz", GEOMETRY_FIELDS)
     const = {k: v for k, v in averaged["constants"].items()
              if k not in ("opacity", "emissiveColor")}
     metal = (int(const.get("useSpecularWorkflow", 0)) == 0

@@ -93,6 +93,8 @@ FALLBACK_SAMPLES_PER_TEXEL = 1
 #: AO rays per dense sample (the texel averages ~2.5 samples: ~20 rays per texel)
 FALLBACK_AO_RAYS = 8
 _TAG_FALLBACK = 0x5F
+#: the dense fallback maps' artifact version (what the fitted gain is computed from too)
+FALLBACK_VERSION = "fallback-v5"
 
 
 def _texel_size(geo: dict[str, np.ndarray], n: int) -> float:
@@ -220,7 +222,7 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     from texelbake.geometry.mikktspace import encode
 
     n_levels = int(np.log2(res)) + 1
-    key = ctx.key("filtered", f"fallback-v5-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
+    key = ctx.key("filtered", f"{FALLBACK_VERSION}-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
                   f"-ao{FALLBACK_AO_RAYS}.npz", GEOMETRY_FIELDS)
     if ctx.store.exists(key):
         data = ctx.store.read_arrays(key)
