@@ -33,37 +33,46 @@ silhouette as a ratio to the original's (the bolt's acceptance: within 25 %). Sc
 (original | each variant, per asset and LOD) go to `--renders` (default: `fallback_renders/`
 beside the JSON).
 
-Measured 2026-12-05 (benchmarks/results/fallback.json; scenes full size; bakes at `BAKE`, 31-210 s
-each, some stages from the artifact store; Cycles 256² at 256 spp, no denoiser, 10-100 s per
-render at load 20-33; texelbake preview-surface 16 spp against gt 256 spp, 256²). PSNR (dB) and
-FLIP over the object, IoU, and mean radiance as a ratio to the original's:
+Measured (benchmarks/results/fallback.json; scenes full size; bakes at `BAKE`; Cycles 256² at
+256 spp, no denoiser, 10-100 s per render at load 7-12; texelbake preview-surface 16 spp against
+gt 256 spp, 256²; normal maps in MikkTSpace frames, each LOD its own; two invocations,
+`--assets bolt cylinder wall` and `--assets cloisonne teapot box_animated`). PSNR (dB) and FLIP
+over the object, IoU, and mean radiance as a ratio to the original's:
 
-| asset        | LOD | px  | Blender PSNR | FLIP  | IoU   | mean | tb PSNR | FLIP  | IoU   | mean | mesh |
-|--------------|----:|----:|-------------:|------:|------:|-----:|--------:|------:|------:|-----:|-----:|
-| bolt         |   1 | 256 |        30.89 | 0.237 | 1.000 | 0.81 |   42.00 | 0.025 | 0.998 | 1.02 | M1 |
-| bolt         |   2 |  64 |         7.84 | 0.368 | 0.993 | 0.97 |   36.69 | 0.079 | 0.998 | 1.00 | M1 |
-| cylinder     |   1 | 256 |        24.54 | 0.259 | 1.000 | 0.98 |   23.05 | 0.259 | 0.999 | 1.00 | M1 |
-| cylinder     |   2 |  64 |        22.73 | 0.339 | 0.996 | 0.97 |   16.07 | 0.414 | 0.996 | 1.09 | M2 |
-| wall         |   1 | 256 |        22.09 | 0.214 | 0.998 | 1.02 |   22.75 | 0.164 | 0.999 | 1.00 | M1 |
-| wall         |   2 |  64 |        11.63 | 0.572 | 0.953 | 0.68 |   16.17 | 0.336 | 0.950 | 1.20 | M2 |
-| cloisonne    |   1 | 256 |        18.43 | 0.341 | 0.996 | 0.98 |   43.91 | 0.354 | 0.996 | 1.14 | M1 |
-| cloisonne    |   2 |  64 |        20.09 | 0.300 | 0.985 | 0.93 |   32.24 | 0.288 | 0.982 | 1.14 | M2 |
-| teapot       |   1 | 256 |        30.89 | 0.157 | 0.997 | 1.00 |   38.33 | 0.137 | 0.996 | 1.00 | M1 |
-| teapot       |   2 |  64 |        27.69 | 0.211 | 0.981 | 0.98 |   27.83 | 0.178 | 0.973 | 1.01 | M2 |
-| box_animated |   1 | 256 |        13.78 | 0.369 | 0.998 | 1.22 |   22.83 | 0.110 | 0.998 | 1.01 | M1 |
+| asset        | LOD | px  | variant  | Blender PSNR | FLIP  | IoU   | mean | tb PSNR | FLIP  | IoU   | mean |
+|--------------|----:|----:|----------|-------------:|------:|------:|-----:|--------:|------:|------:|-----:|
+| bolt         |   1 | 256 | averaged |        31.27 | 0.233 | 1.000 | 0.81 |   42.15 | 0.031 | 0.998 | 0.84 |
+| bolt         |   1 | 256 | fitted   |        29.88 | 0.289 | 1.000 | 0.70 |   40.51 | 0.039 | 0.998 | 0.75 |
+| bolt         |   2 |  64 | averaged |        12.71 | 0.368 | 0.993 | 0.72 |   31.23 | 0.079 | 0.998 | 1.03 |
+| bolt         |   2 |  64 | fitted   |        12.64 | 0.408 | 0.993 | 0.64 |   30.92 | 0.103 | 0.998 | 0.96 |
+| cylinder     |   1 | 256 | averaged |        24.54 | 0.259 | 1.000 | 0.98 |   23.04 | 0.261 | 0.999 | 1.00 |
+| cylinder     |   1 | 256 | fitted   |        24.56 | 0.258 | 1.000 | 1.01 |   22.90 | 0.267 | 0.999 | 1.03 |
+| cylinder     |   2 |  64 | averaged |        21.59 | 0.366 | 0.996 | 0.94 |   16.94 | 0.395 | 0.996 | 0.99 |
+| cylinder     |   2 |  64 | fitted   |        21.77 | 0.365 | 0.996 | 0.97 |   16.98 | 0.389 | 0.996 | 1.03 |
+| wall         |   1 | 256 | averaged |        20.21 | 0.253 | 0.998 | 0.96 |   19.94 | 0.225 | 0.999 | 0.98 |
+| wall         |   1 | 256 | fitted   |        17.91 | 0.363 | 0.998 | 0.78 |   17.73 | 0.333 | 0.999 | 0.81 |
+| wall         |   2 |  64 | averaged |         9.52 | 0.604 | 0.953 | 0.53 |   12.05 | 0.480 | 0.950 | 0.78 |
+| wall         |   2 |  64 | fitted   |         9.35 | 0.658 | 0.953 | 0.43 |   12.00 | 0.473 | 0.950 | 0.63 |
+| cloisonne    |   1 | 256 | averaged |        19.98 | 0.310 | 0.996 | 0.95 |   43.91 | 0.347 | 0.996 | 1.13 |
+| cloisonne    |   1 | 256 | fitted   |        19.46 | 0.395 | 0.996 | 1.00 |   43.90 | 0.436 | 0.996 | 1.18 |
+| cloisonne    |   2 |  64 | averaged |        20.21 | 0.243 | 0.985 | 0.96 |   33.39 | 0.247 | 0.982 | 1.13 |
+| cloisonne    |   2 |  64 | fitted   |        19.65 | 0.366 | 0.985 | 1.03 |   33.31 | 0.405 | 0.982 | 1.21 |
+| teapot       |   1 | 256 | averaged |        29.62 | 0.159 | 0.982 | 1.01 |   38.21 | 0.087 | 0.996 | 1.00 |
+| teapot       |   1 | 256 | fitted   |        26.22 | 0.254 | 0.982 | 0.92 |   35.53 | 0.214 | 0.996 | 0.93 |
+| teapot       |   2 |  64 | averaged |        25.18 | 0.266 | 0.969 | 0.92 |   24.56 | 0.270 | 0.981 | 0.93 |
+| teapot       |   2 |  64 | fitted   |        23.55 | 0.332 | 0.969 | 0.86 |   23.56 | 0.337 | 0.981 | 0.88 |
+| box_animated |   1 | 256 | averaged |        13.78 | 0.374 | 0.998 | 1.22 |   22.89 | 0.111 | 0.998 | 1.01 |
+| box_animated |   1 | 256 | fitted   |        13.65 | 0.386 | 0.998 | 1.19 |   21.75 | 0.129 | 0.998 | 0.99 |
 
-Only today's averaged fallback (the fitted one is another column once it lands). What the
-screenshots show: the bolt's LOD2 in Cycles sparkles (saturated specular pixels where the
-original has none: 7.8 dB with the mean radiance within 3 %; Cycles samples the full-resolution
-normal map with no mip filtering, so the widened roughness meets unfiltered normals), and its
-LOD1 head's top face renders black; the wall's LOD2 shows a dark X across its quad (the coarse
-mesh's shading frame); BoxAnimated's original has dark triangles of its own in Cycles (its
-geometry, lods.py) and the LOD's pink lid bleeds onto the box's side. Blender's cloisonne
-original is its preview surface (Blender cannot evaluate texelbake's cellular shader); texelbake's
-gt is the real shader, hence the 18-44 dB spread between the renderers there. On the bolt, at
-these views, the averaged fallback's mean radiance is already within 25 % of the original's in
-both renderers (0.81 / 0.97 Blender, 1.02 / 1.00 texelbake); the 5x over-brightness measured
-with benchmarks/render.py comes from the scene's own close sphere light and camera.
+The fitted fallback (the averaged inputs with a held-out-chosen diffuse gain) is nowhere 3 dB
+better than averaged in either renderer (−3.4 to +0.2 dB in Blender, −2.7 to +0.04 in texelbake;
+why: docs/decisions.md), so averaged stays the default. On the bolt, the averaged fallback's
+mean radiance is within 25 % of the original's at LOD1 in both renderers (0.81 / 0.84) and at
+LOD2 in texelbake (1.03), not in Blender (0.72); the fitted one misses it at LOD1 (0.70 / 0.75)
+and in Blender at LOD2 (0.64). Blender's cloisonne original is its preview surface (Blender
+cannot evaluate texelbake's cellular shader); texelbake's gt is the real shader, hence the
+spread between the renderers there. BoxAnimated's original has dark triangles of its own in
+Cycles (its geometry, lods.py).
 """
 
 from __future__ import annotations
@@ -94,6 +103,7 @@ SCENES = ("cylinder", "wall", "bolt", "cloisonne")
 #: fallback variant (a column) -> the BakeSettings fields that select it
 FALLBACKS: dict[str, dict[str, Any]] = {
     "averaged": {},  # today's fallback: averaged inputs, widened roughness, normal map, AO
+    "fitted": {"fallback": "fitted"},  # the averaged inputs with a held-out-chosen gain
 }
 #: the bakes: a light CPM (the fallback maps come from the geometry and filtered-map stages,
 #: which these fields leave as at defaults)

@@ -197,9 +197,10 @@ class BakeSettings(BaseModel):
     previews: bool = _field(False, "optional stages", "Render previews after export.")
     fallback: Literal["averaged", "fitted"] = _field(
         "averaged", "optional stages",
-        "How each LOD's UsdPreviewSurface fallback gets its inputs: 'fitted' per texel so that "
-        "the preview surface reproduces the texel's filtered reflectance, 'averaged' from the "
-        "area means of the source material's inputs with a widened roughness.")
+        "How each LOD's UsdPreviewSurface fallback gets its inputs: 'averaged' from the area "
+        "means of the source material's inputs with a widened roughness; 'fitted' the same "
+        "with each LOD's diffuseColor times a smooth gain fitted to the texels' filtered "
+        "reflectance (shadowing and masking), chosen on held-out samples.")
     # deformed frames (seed 002 §4): an animated preview after export, when there is motion
     warp: str = _field(
         "", "optional stages",

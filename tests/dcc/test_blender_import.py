@@ -163,10 +163,12 @@ def test_each_lod_export_imports_with_its_mesh_material_and_textures(dcc, suffix
         images = f["materials"][mat]
         names = sorted(i["image"] for i in images)
         stem = dcc["root"].name.removesuffix("_baked.usda")
-        # the fallback's own normal map when its page is finer than the atlas (issue 22)
-        normal = (f"{stem}_fallback_normal.png"
-                  if dcc["report"]["fallback_resolution"] > dcc["report"]["settings"][
-                      "atlas_resolution"] else f"{stem}_normal.png")
+        # the fallback's own normal map when its page is finer than the atlas (issue 22),
+        # each LOD after LOD1 its own (in its own MikkTSpace frames)
+        own = dcc["report"]["fallback_resolution"] > dcc["report"]["settings"][
+            "atlas_resolution"]
+        normal = (f"{stem}_normal.png" if not own else f"{stem}_fallback_normal.png"
+                  if n == 1 else f"{stem}_fallback_normal_lod{n}.png")
         assert names == sorted([f"{stem}_basecolor.png", normal,
                                 f"{stem}_roughness_lod{n}.png"])
         for img in images:

@@ -59,52 +59,60 @@ def test_fitted_material_per_lod(cylinder):
 
     root = cylinder["fitted"]
     mats = _materials(root)
+    avg = _materials(cylinder["averaged"])
     report = json.loads((root.parent / "report.json").read_text())
     assert set(mats) == {"LOD1", "LOD2"}
     res = report["fallback_resolution"]
-    # LOD1's page is sized by its switch size; LOD2 switches in at a quarter of it: level 2
-    assert report["fallback_levels"] == [0, 2]
     for lod, inputs in mats.items():
-        assert inputs["useSpecularWorkflow"] == 1
-        assert {"diffuseColor", "specularColor", "roughness", "normal", "occlusion"} <= set(
-            inputs)
-        assert "metallic" not in inputs  # the specular workflow ignores it: not authored
-        # the normal texture as the validator checks it: raw, scale 2, bias -1 (alpha 1, 0)
-        nrm = inputs["normal"]
-        assert nrm["sourceColorSpace"] == "raw"
-        assert tuple(nrm["scale"]) == (2.0, 2.0, 2.0, 1.0)
-        assert tuple(nrm["bias"]) == (-1.0, -1.0, -1.0, 0.0)
-        for colour in ("diffuseColor", "specularColor"):
-            assert inputs[colour]["sourceColorSpace"] == "sRGB"
-        side = res >> (0 if lod == "LOD1" else 2)
-        for name in ("diffuseColor", "specularColor", "roughness"):
-            px = read_pixels(str(root.parent / inputs[name]["file"].path))[0]
-            assert px.shape[:2] == (side, side), (lod, name)
+        # the averaged inputs' workflow, constants, roughness and normal; its own diffuse
+        def authored(mat: dict) -> dict:  # asset paths as authored (relative)
+            return {k: ({i: getattr(x, "path", x) for i, x in v.items()}
+                        if isinstance(v, dict) else v)
+                    for k, v in mat.items() if k != "diffuseColor"}
+
+        assert authored(inputs) == authored(avg[lod])
+        assert inputs["diffuseColor"]["sourceColorSpace"] == "sRGB"
+        assert inputs["diffuseColor"]["file"].path.endswith(f"_diffuse_lod{lod[-1]}.png")
+        px = read_pixels(str(root.parent / inputs["diffuseColor"]["file"].path))[0]
+        assert px.shape[:2] == (res, res), lod
     fit = report["fallback"]["fit"]
     assert report["fallback"]["mode"] == "fitted"
-    assert [r["texels"] > 0 for r in fit["residual"]] == [True, True]
-    assert all(0.0 <= r["median"] <= r["p95"] <= r["max"] for r in fit["residual"])
+    assert len(fit["gain"]) == 2
+    for g in fit["gain"]:  # the held-out choice: the gain is never worse than none there
+        assert g["heldout_vs_averaged"] is None or 0.0 < g["heldout_vs_averaged"] <= 1.0
+        assert g["lambda"] is None or g["lambda"] >= 0.0
 
 
 def test_chart_padding_holds_covered_values_only(cylinder):
-    # every texel no sample fell in holds a covered texel's value (the nearest one's), so no
-    # mip level blends the page's background into a chart
+    # every texel of the fallback page that no sample fell in holds a covered texel's value
+    # (the nearest one's), so every mip level a viewer builds (box means) is a mean of chart
+    # values: no level blends the page's background into a chart
+    import numpy as np
+
     from schemas.settings import BakeSettings
     from texelbake.pipeline.run import default_workdir
     from texelbake.stages.context import StageContext
-    from texelbake.stages.fallback import fitted_fallback
+    from texelbake.stages.filtered import fallback_maps, fallback_samples, filtered_levels
 
-    report = json.loads((cylinder["fitted"].parent / "report.json").read_text())
     ctx = StageContext.create(default_workdir(), cylinder["src"],
-                              BakeSettings(**SMALL, fallback="fitted"))
-    fit = fitted_fallback(ctx, report["fallback_resolution"], 2)
-    for lod in range(2):
-        cov = fit["covered"][lod]
-        assert 0 < cov.sum() < cov.size  # charts and page between them
-        for name in ("diffuse", "specular", "roughness"):
-            img = fit[name][lod].reshape(cov.size, -1)
-            inside = {row.tobytes() for row in img[cov.ravel()]}
-            assert all(row.tobytes() in inside for row in img[~cov.ravel()]), (lod, name)
+                              BakeSettings(**SMALL, fallback="averaged"))
+    fb = fallback_maps(ctx, filtered_levels(ctx))
+    res = fb["resolution"]
+    fs = fallback_samples(ctx, res)
+    cov = np.bincount(fs["row"] * res + fs["col"], minlength=res * res) > 0
+    assert 0 < cov.sum() < cov.size  # charts and page between them
+    maps = {"base": fb["base"], "occlusion": fb["occlusion"], "normal": fb["normal"]}
+    for i, r in enumerate(fb["roughness"]):  # each at its LOD's level
+        n = r.shape[0]
+        f = res // n
+        maps[f"roughness{i}"] = (r, cov.reshape(n, f, n, f).any(axis=(1, 3)).ravel())
+    for name, img in maps.items():
+        c = cov
+        if isinstance(img, tuple):
+            img, c = img
+        flat = np.asarray(img).reshape(c.size, -1)
+        inside = {row.tobytes() for row in flat[c]}
+        assert all(row.tobytes() in inside for row in flat[~c]), name
 
 
 def test_averaged_stays_an_option(cylinder):
@@ -120,7 +128,7 @@ def test_rerun_in_a_fresh_store_is_byte_identical(cylinder, tmp_path):
     again = _bake(cylinder["src"], tmp_path / "again", workdir=tmp_path / "store",
                   fallback="fitted")
     files = sorted(p.name for p in cylinder["fitted"].parent.glob("*.png"))
-    assert any("specular_lod2" in f for f in files)
+    assert any("diffuse_lod2" in f for f in files)
     for name in files:
         a = (cylinder["fitted"].parent / name).read_bytes()
         assert (again.parent / name).read_bytes() == a, name

@@ -9,8 +9,8 @@ error projects under a pixel), eye rays hit that M_i, and its interpolated ``st`
 closest-point correction: a viewer has none) look up every texture trilinearly in a box-filtered
 mip chain at the pixel footprint (`cpm.footprint_level`, each of the spp samples at its 1/spp
 share of the pixel, as a GPU's texture unit under supersampling). The normal texture is
-decoded in M_i's own tangent space from its uvs (`normalmap.face_tangent_space`, what a
-viewer derives), falling back to the geometric normal where it points below the surface
+decoded in M_i's own MikkTSpace frame from its uvs and authored normals
+(`geometry.mikktspace`, what Blender and glTF viewers derive), falling back to the geometric normal where it points below the surface
 (`brdf.shading_normal`'s rule). Shadows on M_i. The ``occlusion`` input is, by the
 specification, for indirect light only; this renderer has direct light only, so it does not
 change the image (it is authored for the viewers that do have indirect light).
@@ -26,6 +26,7 @@ from texelbake import model
 from texelbake.baselines.normal_maps import face_tangent_space
 from texelbake.brdf.analytic import preview_surface
 from texelbake.errors import StageError
+from texelbake.geometry.mikktspace import decode, frames_at, mikk_tangents
 from texelbake.geometry.texels import bilinear_texels
 from texelbake.render.cpm import choose_mesh, footprint_level
 from texelbake.render.scene import RenderScene
@@ -85,8 +86,12 @@ def _tables(scene: RenderScene, lod: int) -> dict:
               if k in _BRDF_CONSTANTS and v is not None}
     chains = {k: mip_chain(v) for k, v in mat["textures"].items()}
     m = scene.baked.meshes[lod]
-    cache[lod] = {"constants": consts, "chains": chains,
-                  "frames": face_tangent_space(m.vertices, m.faces, m.corner_uvs),
+    cn = m.corner_normals
+    if cn is None:  # none authored: the face normals, as a viewer derives them
+        cn = np.repeat(face_tangent_space(m.vertices, m.faces, m.corner_uvs)[:, None, 2], 3,
+                       axis=1)
+    tangent, sign = mikk_tangents(m.vertices, m.faces, cn, m.corner_uvs)
+    cache[lod] = {"constants": consts, "chains": chains, "mikk": (tangent, sign, cn),
                   "path": mat["path"]}
     return cache[lod]
 
@@ -123,8 +128,8 @@ def shade_preview_surface(scene: RenderScene, cam: PinholeCamera, lod: int, o: n
     ok = (length[:, 0] > 0) & (n_local[:, 2] > 0)
     n_local = np.where(ok[:, None], n_local / np.where(ok, length[:, 0], 1.0)[:, None],
                        [0.0, 0.0, 1.0])
-    ns = np.einsum("nji,nj->ni", tb["frames"][prim], n_local)
-    ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
+    tangent, sign, cn = tb["mikk"]
+    ns = decode(frames_at(tangent, sign, cn, prim, b), n_local)
 
     def brdf(sel: np.ndarray, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
         rows = {k: (v[sel] if np.ndim(v) and np.shape(v)[0] == idx.size else v)

@@ -1,8 +1,21 @@
-"""The fitted UsdPreviewSurface fallback of every LOD (`texelbake.baselines.fitted_fallback`):
-the filtered reflectance of the fallback page's dense samples (`filtered.fallback_samples`)
-over the fit's direction set, shadowing and masking by rays against M_org, summed per texel
-of level 0 and box-summed to each LOD's level, then fitted per texel. Kept in the artifact
-store (the rays and the fit are the cost)."""
+"""The fitted UsdPreviewSurface fallback of every LOD: the averaged fallback
+(`filtered.fallback_maps`) with its diffuseColor times a smooth per-LOD gain, so that its
+preview surface on the LOD reproduces the filtered reflectance of M_org (shadowing and masking
+included) over the direction set of `baselines.fitted_fallback`, least squares.
+
+The targets: the fallback page's dense samples (`filtered.fallback_samples`) over the direction
+set, shadowing and masking by rays against M_org, summed per texel of level 0 in two disjoint
+halves of the samples. The model: the averaged inputs' preview surface, L(g) = L0 + g ΔL per
+pair and channel for diffuseColor g·base (`_model_terms`). The gain per channel is estimated
+on a coarse level c (many samples a texel), shrunk toward 1 with weight λ
+(argmin Σ(L0 + g ΔL − T)² + λ Σ ΔL² (g − 1)²), magnified bilinearly to the page and multiplied
+into the level-0 base colour; c and λ (λ = ∞: the averaged inputs unchanged) are chosen per LOD
+on held-out samples: the gain of one half judged against the other half's targets on texels
+of the LOD's own level (`lod_texture_levels`), both ways. The workflow, roughness, normal and
+constants stay the averaged fallback's (a renderer maps them as it maps the averaged ones:
+Blender's importer turns a specular workflow's specularColor into Principled BSDF's Specular
+Tint of an IOR-1.5 dielectric, not into F0). Kept in the artifact store (the rays are the
+cost); deterministic (fixed directions, seeded views, no iteration)."""
 
 from __future__ import annotations
 
@@ -11,13 +24,14 @@ import numpy as np
 from texelbake.baselines.fitted_fallback import (
     cell_views,
     fit_directions,
-    fit_preview,
+    gain_sums,
+    model_cells,
     sample_terms,
+    shrunk_gain,
     targets,
 )
 from texelbake.brdf.evaluate import evaluate_by_face
 from texelbake.cpm.level import segment_sum
-from texelbake.errors import StageError
 from texelbake.geometry.basis import tangent_frames
 from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
 from texelbake.tol import TOL
@@ -26,7 +40,6 @@ from texelbake.tol import TOL
 SAMPLE_CHUNK = 8192
 #: texels per chunk of the fit (81 pairs x 16 views x 3 BRDF evaluations each)
 TEXEL_CHUNK = 1024
-FIT_VERSION = "fit-v7"
 _TAG_VIEWS = 0x6F
 
 
@@ -54,7 +67,8 @@ def _sample_sums(ctx: StageContext, fs: dict, res: int, dirs: np.ndarray):
     smp = fs["smp"]
     k = dirs.shape[0]
     t0 = fs["row"].astype(np.int64) * res + fs["col"]
-    order = np.argsort(t0, kind="stable")
+    half = np.arange(t0.size) % 2  # two disjoint halves of the samples (held-out checks)
+    order = np.lexsort((half, t0))
     covered = np.unique(t0)
     caster = ctx.caster()
     mats = ctx.asset().materials
@@ -63,7 +77,7 @@ def _sample_sums(ctx: StageContext, fs: dict, res: int, dirs: np.ndarray):
     u_view = np.random.default_rng([ctx.settings.seed, _TAG_VIEWS]).random((t0.size, k, 2))
     g = TOL.grazing_cos
     kk = k * k * 3
-    total = np.zeros((covered.size, kk + k + 4))
+    total = np.zeros((2 * covered.size, kk + k + 4))
     for a in range(0, order.size, SAMPLE_CHUNK):  # chunks of samples (memory bound)
         sel = order[a:a + SAMPLE_CHUNK]
         m = sel.size
@@ -94,126 +108,184 @@ def _sample_sums(ctx: StageContext, fs: dict, res: int, dirs: np.ndarray):
                 smp.uv[sel], sample_index=s_i)
         num, den = sample_terms(f, vis_l, vis_v, smp.area[sel])
         n_loc = np.einsum("mij,mj->mi", fr, nrm) * smp.area[sel][:, None]
-        rows = np.searchsorted(covered, t0[sel])  # ascending: the samples are in texel order
+        # ascending: the samples are in (texel, half) order
+        rows = 2 * np.searchsorted(covered, t0[sel]) + half[sel]
         starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
         total[rows[starts]] += np.add.reduceat(
             np.concatenate([num, den, n_loc, smp.area[sel][:, None]], axis=1), starts, axis=0)
-    return covered, total[:, :kk], total[:, kk:kk + k], total[:, kk + k:kk + k + 3], total[:, -1]
+    total = total.reshape(covered.size, 2, -1).transpose(1, 0, 2)  # (half, texel, ...)
+    return covered, total[..., :kk], total[..., kk:kk + k], total[..., kk + k:kk + k + 3], \
+        total[..., -1]
 
 
-def fitted_fallback(ctx: StageContext, res: int, n_lods: int,
-                    roughness: list[np.ndarray] | None = None) -> dict:
-    """Per LOD the fitted specular-workflow inputs on its level of the res² page, at the
-    widened roughness `roughness[lvl]` ((n_l, n_l), every level of the page; None: read back
-    from the store only), empty texels
-    filled from the nearest covered one (chart padding: mip levels never blend the page's
-    background): {"diffuse": [(n_i, n_i, 3)], "specular": [(n_i, n_i, 3)], "roughness":
-    [(n_i, n_i)], "residual": [(n_i, n_i)] (0 where uncovered), "covered": [(n_i, n_i) bool]
-    the texels samples fell in, "levels": [int], "normal"
-    (res, res, 3) the level-0 unit normal map the fit shaded with, "stats": per LOD
-    residual quantiles, "seconds": the fit's time (None when read from the store)}."""
-    import time
 
-    levels = lod_texture_levels(ctx, res, n_lods)
-    key = ctx.key("filtered", f"{FIT_VERSION}-{res}-s{'-'.join(map(str, levels))}.npz",
-                  GEOMETRY_FIELDS)
-    names = ("diffuse", "specular", "roughness", "residual")
-    if ctx.store.exists(key):
-        d = ctx.store.read_arrays(key)
-        out = {n: [d[f"{n}{i}"] for i in range(n_lods)] for n in names}
-        return {**out, "levels": levels, "normal": d["normal"],
-                "covered": [d[f"covered{i}"] for i in range(n_lods)],
-                "stats": [_stats(d[f"residual{i}"], d[f"covered{i}"]) for i in range(n_lods)],
-                "seconds": None}
-    if roughness is None:
-        raise StageError(f"fitted fallback {key} is not in the store and no roughness was given")
-    from texelbake.stages.filtered import fallback_samples, nearest_fill
+#: coarse levels above a LOD's own where its gain may be estimated, and the gain's shrinkage
+#: weights toward 1 (inf: the averaged inputs unchanged); both chosen on held-out samples
+GAIN_LEVELS = (1, 2, 3, 4)
+GAIN_LAMBDAS = (0.0, 0.25, 1.0, 4.0, float("inf"))
+#: covered texels of a LOD's own level the held-out choice evaluates (an even subset)
+CV_TEXELS = 8192
 
-    start = time.perf_counter()
-    dirs = fit_directions()
-    k = dirs.shape[0]
-    fs = fallback_samples(ctx, res)
-    covered, num, den, nsum, area = _sample_sums(ctx, fs, res, dirs)
-    arrays: dict[str, np.ndarray] = {}
-    ok0 = (np.linalg.norm(nsum, axis=1) > 0) & (nsum[:, 2] > 0)
-    n0 = np.where(ok0[:, None], nsum, [0.0, 0.0, 1.0])
-    img0 = np.zeros((res * res, 3))
-    img0[covered] = n0 / np.linalg.norm(n0, axis=1, keepdims=True)
-    filled0 = np.zeros(res * res, bool)
-    filled0[covered] = True
-    arrays["normal"] = nearest_fill(img0.reshape(res, res, 3),
-                                     filled0.reshape(res, res)).astype(np.float32)
-    for i, lvl in enumerate(levels):  # a loop over the few LODs
-        n_l = res >> lvl
-        ids = (covered // res >> lvl) * n_l + (covered % res >> lvl)
-        order = np.argsort(ids, kind="stable")
-        uniq = np.unique(ids)
-        seg = np.searchsorted(uniq, ids[order])
-        num_l = segment_sum(num[order], seg, uniq.size, 0)
-        den_l = segment_sum(den[order], seg, uniq.size, 0)
-        n_l3 = segment_sum(nsum[order], seg, uniq.size, 0)
-        ok = (np.linalg.norm(n_l3, axis=1) > 0) & (n_l3[:, 2] > 0)
-        nrm = np.where(ok[:, None], n_l3, [0.0, 0.0, 1.0])
+
+def _to_side(img: np.ndarray, n: int) -> np.ndarray:
+    """An (m, m, ...) map box-averaged (m > n) or repeated (m < n) to (n, n, ...)."""
+    m = img.shape[0]
+    if m > n:
+        f = m // n
+        return img.reshape(n, f, n, f, *img.shape[2:]).mean(axis=(1, 3))
+    if m < n:
+        f = n // m
+        return np.repeat(np.repeat(img, f, axis=0), f, axis=1)
+    return img
+
+
+def _level(covered: np.ndarray, res: int, lvl: int, arrays: list[np.ndarray]):
+    """Box sums of per-level-0-texel rows `arrays` at level lvl: (texel ids, sums)."""
+    n_l = res >> lvl
+    ids = (covered // res >> lvl) * n_l + (covered % res >> lvl)
+    order = np.argsort(ids, kind="stable")
+    uniq = np.unique(ids)
+    seg = np.searchsorted(uniq, ids[order])
+    return uniq, [segment_sum(a[order], seg, uniq.size, 0) for a in arrays]
+
+
+def _model_terms(const: dict, metal: bool, base: np.ndarray, rough: np.ndarray,
+                 nrm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(L0, ΔL) (t, k, k, 3): each pair's cell mean of the averaged inputs' preview surface
+    with diffuseColor 0 and its growth from 0 to `base`, L(g) = L0 + g ΔL for diffuseColor
+    g·base (exact for the specular workflow and metallic 0 or 1; the base colour's part is the
+    lobe on a metal, the diffuse elsewhere)."""
+    l0s, dls = [], []
+    for a in range(0, nrm.shape[0], TEXEL_CHUNK):  # chunks of texels (memory bound)
+        sl = slice(a, a + TEXEL_CHUNK)
+        p1 = {"diffuseColor": base[sl], "roughness": rough[sl]}
+        p0 = {"diffuseColor": np.zeros_like(base[sl]), "roughness": rough[sl]}
+        l0 = model_cells(const, p0, nrm[sl], lobe=True)
+        if metal:
+            d = model_cells(const, p1, nrm[sl], lobe=True) - l0
+        else:
+            d = model_cells(const, p1, nrm[sl], lobe=False) - model_cells(const, p0, nrm[sl],
+                                                                         lobe=False)
+        l0s.append(l0)
+        dls.append(d)
+    k = fit_directions().shape[0]
+    empty = np.zeros((0, k, k, 3))
+    return (np.concatenate(l0s) if l0s else empty), (np.concatenate(dls) if dls else empty)
+
+
+
+def _gain_image(g: np.ndarray, uniq: np.ndarray, n_c: int, n: int) -> np.ndarray:
+    """Coarse per-texel gains (t, 3) at texels `uniq` of an n_c² level -> (n, n, 3) by
+    nearest fill and bilinear magnification (no seams between coarse texels)."""
+    from scipy.ndimage import zoom
+
+    from texelbake.stages.filtered import nearest_fill
+
+    img = np.ones((n_c * n_c, 3))
+    img[uniq] = g
+    filled = np.zeros(n_c * n_c, bool)
+    filled[uniq] = True
+    img = nearest_fill(img.reshape(n_c, n_c, 3), filled.reshape(n_c, n_c))
+    if n == n_c:
+        return img
+    return zoom(img, (n / n_c, n / n_c, 1), order=1, mode="nearest", grid_mode=True)
+
+
+def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndarray,
+              const: dict, metal: bool) -> tuple[np.ndarray, dict]:
+    """One LOD's diffuseColor gain (res, res, 3) and its choice (`corrected_inputs`)."""
+    covered, num, den, nsum = sums
+    k = fit_directions().shape[0]
+    n_levels = int(np.log2(res)) + 1
+
+    def at(level: int, pick: int = 1):
+        uniq, (n0, n1, d0, d1, ns) = _level(covered, res, level,
+                                            [num[0], num[1], den[0], den[1], nsum])
+        sel = np.arange(0, uniq.size, pick)
+        ok = (np.linalg.norm(ns, axis=1) > 0) & (ns[:, 2] > 0)
+        nrm = np.where(ok[:, None], ns, [0.0, 0.0, 1.0])[sel]
         nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-        rough = np.asarray(roughness[lvl], dtype=np.float64).reshape(-1)[uniq]
-        fit: dict[str, list[np.ndarray]] = {
-            n: [] for n in ("diffuseColor", "specularColor", "roughness", "residual")}
-        for a in range(0, uniq.size, TEXEL_CHUNK):  # chunks of texels (memory bound)
-            tgt, valid = targets(num_l[a:a + TEXEL_CHUNK], den_l[a:a + TEXEL_CHUNK], k)
-            part = fit_preview(tgt, valid, nrm[a:a + TEXEL_CHUNK], rough[a:a + TEXEL_CHUNK])
-            for n in fit:
-                fit[n].append(part[n])
-        filled = np.zeros(n_l * n_l, bool)
-        filled[uniq] = True
-        for n, src in zip(names, ("diffuseColor", "specularColor", "roughness", "residual"),
-                          strict=True):
-            vals = np.concatenate(fit[src]) if fit[src] else np.zeros((0,))
-            c = 3 if src in ("diffuseColor", "specularColor") else 1
-            flat = np.zeros((n_l * n_l, c))
-            flat[uniq] = vals.reshape(-1, c)
-            img = flat.reshape(n_l, n_l, c)
-            if n != "residual":
-                img = nearest_fill(img, filled.reshape(n_l, n_l))
-            arrays[f"{n}{i}"] = (img if c == 3 else img[..., 0]).astype(np.float32)
-        arrays[f"covered{i}"] = filled.reshape(n_l, n_l)
-    ctx.store.write_arrays(key, arrays)
-    out = fitted_fallback(ctx, res, n_lods, roughness)  # as a rerun reads it
-    return {**out, "seconds": round(time.perf_counter() - start, 1)}
+        n_l = res >> level
+        b = _to_side(base0, n_l).reshape(-1, 3)[uniq[sel]].astype(np.float64)
+        r = _to_side(rough, n_l).reshape(-1)[uniq[sel]].astype(np.float64)
+        l0, dl = _model_terms(const, metal, b, r, nrm)
+        tg = [targets(nn[sel], dd[sel], k) for nn, dd in ((n0, d0), (n1, d1), (n0 + n1, d0 + d1))]
+        return uniq, sel, l0, dl, tg
+
+    n_fine = max(covered.size >> (2 * lvl), 1)  # about the LOD level's covered texels
+    f_uniq, f_sel, f_l0, f_dl, f_tg = at(lvl, max(1, -(-n_fine // CV_TEXELS)))
+    n_f = res >> lvl
+    best = (np.inf, float("inf"), lvl)
+    base_err = None
+    for off in GAIN_LEVELS:  # the few coarse levels
+        c = lvl + off
+        if c > n_levels - 1:
+            break
+        c_uniq, _, l0, dl, tg = at(c)
+        stats = [gain_sums(l0, dl, *tg[h]) for h in (0, 1)]
+        for lam in GAIN_LAMBDAS:  # the few shrinkage weights
+            err = 0.0
+            for h in (0, 1):  # fit on one half, judge on the other
+                g = _gain_image(shrunk_gain(stats[h][0], stats[h][1], lam), c_uniq, res >> c, n_f)
+                g = g.reshape(-1, 3)[f_uniq[f_sel]]
+                t_o, v_o = f_tg[1 - h]
+                r = (f_l0 + g[:, None, None, :] * f_dl - t_o) * v_o[..., None]
+                err += float(np.einsum("tijc,tijc->", r, r))
+            if not np.isfinite(lam):
+                base_err = err
+            if err < best[0]:
+                best = (err, lam, c)
+    _, lam, c = best
+    if np.isfinite(lam):
+        c_uniq, _, l0, dl, tg = at(c)
+        sdd, sdr = gain_sums(l0, dl, *tg[2])
+        g = _gain_image(shrunk_gain(sdd, sdr, lam), c_uniq, res >> c, res)
+    else:
+        g = np.ones((res, res, 3))
+    info = {"level": int(c), "lambda": lam, "heldout_vs_averaged": round(
+        best[0] / base_err, 4) if base_err else None}
+    return g, info
+
+
+GAIN_VERSION = "gain-v2"
 
 
 def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
-    """The fitted inputs replacing the averaged fallback's (`filtered.fallback_maps`, whose
-    page and constants they share): per LOD diffuse, specular and roughness maps at its
-    level (the roughness widened from each level's filtered maps, as the averaged fallback's),
-    the fit's own normal map, the specular workflow, and the residual statistics for the
-    report."""
-    from texelbake.baselines.filtered_maps import FIELDS, fallback_roughness, slope_covariance
-    from texelbake.stages.filtered import dense_fallback_levels, filtered_levels
-
+    """The averaged fallback with each LOD's diffuseColor times a smooth gain (module
+    docstring): per LOD its own level-0 diffuse texture, everything else the averaged one's.
+    Kept in the artifact store (the rays are the cost)."""
     res = int(averaged["resolution"])
-    maps = (dense_fallback_levels(ctx, res)[0] if res > ctx.settings.atlas_resolution
-            else filtered_levels(ctx))
-    rough = []
-    for m_l in maps:  # a loop over the few levels
-        m = m_l.reshape(-1, m_l.shape[2]).astype(np.float64)
-        cov = slope_covariance(m[:, FIELDS["m1"]], m[:, FIELDS["m2"]])
-        rough.append(fallback_roughness(m[:, FIELDS["alpha2"]][:, 0], cov).reshape(
-            m_l.shape[:2]))
-    fit = fitted_fallback(ctx, res, len(averaged["roughness"]), rough)
-    keep = {k: v for k, v in averaged["constants"].items() if k in ("opacity", "emissiveColor")}
-    return {**averaged, "diffuse": fit["diffuse"], "specular": fit["specular"],
-            "roughness": fit["roughness"], "normal": fit["normal"],
-            "constants": {**keep, "useSpecularWorkflow": 1}, "levels": fit["levels"],
-            # the report holds what the source and settings determine: no seconds
-            "fit": {"residual": fit["stats"]}}
+    n_lods = len(averaged["roughness"])
+    levels = lod_texture_levels(ctx, res, n_lods)
+    from texelbake.stages.filtered import FALLBACK_VERSION
 
+    key = ctx.key("filtered", f"{GAIN_VERSION}-{FALLBACK_VERSION}-{res}-s"
+                  f"{'-'.join(map(str, levels))}.npz", GEOMETRY_FIELDS)
+    const = {k: v for k, v in averaged["constants"].items()
+             if k not in ("opacity", "emissiveColor")}
+    metal = (int(const.get("useSpecularWorkflow", 0)) == 0
+             and float(np.asarray(const.get("metallic", 0.0))) >= 0.5)
+    base0 = np.asarray(averaged["base"], dtype=np.float64)
+    if not ctx.store.exists(key):
+        from texelbake.stages.filtered import fallback_samples
 
-def _stats(residual: np.ndarray, covered: np.ndarray) -> dict:
-    """Quantiles of the relative RMS residual over a LOD's covered texels."""
-    r = np.asarray(residual, dtype=np.float64)[np.asarray(covered, bool)]
-    if r.size == 0:
-        return {"texels": 0}
-    q = np.quantile(r, [0.5, 0.95])
-    return {"texels": int(r.size), "median": round(float(q[0]), 4),
-            "p95": round(float(q[1]), 4), "max": round(float(r.max()), 4),
-            "above_0.5": round(float(np.mean(r > 0.5)), 4)}
+        covered, num, den, nsum, _ = _sample_sums(ctx, fallback_samples(ctx, res), res,
+                                                  fit_directions())
+        sums = (covered, num, den, nsum.sum(axis=0))
+        arrays: dict[str, np.ndarray] = {}
+        for i, lvl in enumerate(levels):  # a loop over the few LODs
+            g, info = _lod_gain(lvl, res, sums, base0, np.asarray(averaged["roughness"][i]),
+                                const, metal)
+            arrays[f"gain{i}"] = g.astype(np.float32)
+            arrays[f"choice{i}"] = np.array([info["level"], info["lambda"],
+                                             info["heldout_vs_averaged"] or np.nan])
+        ctx.store.write_arrays(key, arrays)
+    d = ctx.store.read_arrays(key)
+    diffuse = [np.clip(base0 * d[f"gain{i}"], 0.0, 1.0).astype(np.float32)
+               for i in range(n_lods)]
+    fit = [{"gain_level": int(d[f"choice{i}"][0]),
+            "lambda": (float(d[f"choice{i}"][1]) if np.isfinite(d[f"choice{i}"][1]) else None),
+            "heldout_vs_averaged": (None if np.isnan(d[f"choice{i}"][2])
+                                    else round(float(d[f"choice{i}"][2]), 4))}
+           for i in range(n_lods)]
+    return {**averaged, "diffuse": diffuse, "fit": {"gain": fit}}

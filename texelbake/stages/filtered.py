@@ -93,6 +93,8 @@ FALLBACK_SAMPLES_PER_TEXEL = 1
 #: AO rays per dense sample (the texel averages ~2.5 samples: ~20 rays per texel)
 FALLBACK_AO_RAYS = 8
 _TAG_FALLBACK = 0x5F
+#: the dense fallback maps' artifact version (what the fitted gain is computed from too)
+FALLBACK_VERSION = "fallback-v5"
 
 
 def _texel_size(geo: dict[str, np.ndarray], n: int) -> float:
@@ -147,7 +149,9 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     from texelbake.baselines.normal_maps import face_tangent_space
     from texelbake.geometry.atlas import Atlas
     from texelbake.geometry.build import lod_meshes
+    from texelbake.geometry.lodchain import transfer_corner_normals
     from texelbake.geometry.mesh import Mesh, face_normals
+    from texelbake.geometry.mikktspace import frames_at, mikk_tangents
     from texelbake.geometry.raycast import RayCaster
     from texelbake.geometry.sampling import sample_surface
     from texelbake.geometry.texels import assign_texels
@@ -167,10 +171,27 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     asg = assign_texels(smp.positions, m_t, atlas, 1, normals=gnrm,
                         occluder=caster if wrapped else None)
     v, f, uv = lod_meshes(geo)[0]
-    prim = asg.prim if bool(geo["lod_exact"]) else RayCaster(v, f).closest_points(
-        smp.positions)[1]
-    return {"smp": smp, "gnrm": gnrm, "row": asg.row, "col": asg.col, "prim": prim,
-            "frames": face_tangent_space(v, f, uv), "lod1_vertices": v, "lod1_faces": f}
+    _, near, bary = RayCaster(v, f).closest_points(smp.positions)
+    if bool(geo["lod_exact"]):  # the texel's face; the point projected on its plane
+        near = asg.prim
+        bary = plane_bary(v[f[near]], smp.positions)
+    cnrm = transfer_corner_normals(v, f, asset.corner_normals, caster)
+    tangent, sign = mikk_tangents(v, f, cnrm, uv)
+    return {"smp": smp, "gnrm": gnrm, "row": asg.row, "col": asg.col, "prim": near,
+            "frames": face_tangent_space(v, f, uv), "lod1_vertices": v, "lod1_faces": f,
+            "mikk": frames_at(tangent, sign, cnrm, near, np.column_stack(
+                [1.0 - bary[:, 0] - bary[:, 1], bary]))}
+
+
+def plane_bary(tri: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(u, v) (m, 2) of points q (m, 3) projected on the planes of triangles tri (m, 3, 3)
+    (point = (1 − u − v) p0 + u p1 + v p2; outside the triangle when q projects outside)."""
+    e1, e2, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], q - tri[:, 0]
+    g11, g12, g22 = (np.einsum("mj,mj->m", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
+    r1, r2 = np.einsum("mj,mj->m", d, e1), np.einsum("mj,mj->m", d, e2)
+    det = g11 * g22 - g12 * g12
+    safe = np.where(np.abs(det) > 0, det, 1.0)
+    return np.column_stack([(r1 * g22 - r2 * g12) / safe, (r2 * g11 - r1 * g12) / safe])
 
 
 def fallback_opacity(ctx: StageContext, res: int) -> np.ndarray | None:
@@ -198,9 +219,10 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
     artifact store."""
     from texelbake.baselines.filtered_maps import CHANNELS, FIELDS
+    from texelbake.geometry.mikktspace import encode
 
     n_levels = int(np.log2(res)) + 1
-    key = ctx.key("filtered", f"fallback-v3-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
+    key = ctx.key("filtered", f"{FALLBACK_VERSION}-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}"
                   f"-ao{FALLBACK_AO_RAYS}.npz", GEOMETRY_FIELDS)
     if ctx.store.exists(key):
         data = ctx.store.read_arrays(key)
@@ -212,7 +234,11 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     smp, gnrm, prim = fs["smp"], fs["gnrm"], fs["prim"]
     v, f = fs["lod1_vertices"], fs["lod1_faces"]
     asg_row, asg_col = fs["row"], fs["col"]
+    # the slope statistics (roughness widening) in the flat frame of the LOD1 face, where
+    # z is the face's normal; the normal map in MikkTSpace frames (what other tools decode),
+    # whose interpolated normal a transferred corner normal may tilt far from the face's
     local = np.einsum("mij,mj->mi", fs["frames"][prim], smp.normals)
+    mikk = encode(fs["mikk"], smp.normals) * smp.area[:, None]
     ao = ambient_occlusion(smp.positions, gnrm, caster.occluded, n_rays=FALLBACK_AO_RAYS,
                            seed=s.seed, ray_eps=TOL.ray_offset * caster.bbox_diag)
     albedo, base, alpha2 = material_base(asset.materials, smp.material.astype(np.int32), smp.uv)
@@ -246,12 +272,62 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     top[seen, FIELDS["base"]] = base_seen[seen]
     maps[0] = nearest_fill(np.where(filled0[:, None], top, 0.0).reshape(res, res, -1),
                             filled0.reshape(res, res)).astype(np.float32)
-    nbar = maps[0][..., FIELDS["nbar"]].astype(np.float64)
-    normal = nbar / np.maximum(np.linalg.norm(nbar, axis=2, keepdims=True), 1e-12)
+    nbar = np.stack([np.bincount(t0, weights=mikk[:, c], minlength=res * res)
+                     for c in range(3)], axis=1)
+    length = np.linalg.norm(nbar, axis=1, keepdims=True)
+    nbar = np.where(length > 0, nbar / np.maximum(length, 1e-300), [0.0, 0.0, 1.0])
+    normal = nearest_fill(nbar.reshape(res, res, 3), filled0.reshape(res, res))
     assert maps[0].shape[2] == len(CHANNELS)
     ctx.store.write_arrays(key, {**{f"L{lvl:02d}": m for lvl, m in enumerate(maps)},
                                  "normal": normal.astype(np.float32)})
     return maps, normal.astype(np.float32)
+
+
+def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
+    """The fallback's tangent-space normal map of each LOD after LOD1 (res, res, 3) float32
+    unit: the dense samples' normals (`fallback_samples`, on the shared layout) encoded in the
+    MikkTSpace frame of that LOD's own surface (its authored corner normals and uvs: what a
+    viewer decodes it with) at the centre of the sample's texel there, area means per texel,
+    empty texels filled from the nearest covered one. A map baked in LOD1's frames does not decode on a
+    coarser LOD: its normals there are not LOD1's. Kept in the artifact store."""
+    from texelbake.geometry.atlas import rasterize_atlas
+    from texelbake.geometry.build import lod_meshes
+    from texelbake.geometry.lodchain import transfer_corner_normals
+    from texelbake.geometry.mikktspace import encode, frames_at, mikk_tangents
+    from texelbake.geometry.raycast import RayCaster
+
+    geo = ctx.geometry()
+    lods = lod_meshes(geo)[1:]
+    key = ctx.key("filtered", f"fallback-normals-v2-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}.npz",
+                  GEOMETRY_FIELDS)
+    if ctx.store.exists(key):
+        d = ctx.store.read_arrays(key)
+        return [d[f"lod{i}"] for i in range(len(lods))]
+    fs = fallback_samples(ctx, res)
+    smp = fs["smp"]
+    t0 = fs["row"].astype(np.int64) * res + fs["col"]
+    filled = (np.bincount(t0, weights=smp.area, minlength=res * res) > 0).reshape(res, res)
+    out = {}
+    for i, (v, f, uv) in enumerate(lods):  # a loop over the few LODs
+        cnrm = transfer_corner_normals(v, f, ctx.asset().corner_normals, ctx.caster())
+        tangent, sign = mikk_tangents(v, f, cnrm, uv)
+        # the frame where a viewer decodes the sample's texel: at the texel's centre on
+        # this LOD (its uvs); texels this LOD's charts miss: at the sample's closest point
+        face, bary3, _ = rasterize_atlas(uv, res)
+        on = face[t0] >= 0
+        fr = frames_at(tangent, sign, cnrm, np.maximum(face[t0], 0), bary3[t0])
+        if not on.all():
+            _, prim, bary = RayCaster(v, f).closest_points(smp.positions[~on])
+            fr[~on] = frames_at(tangent, sign, cnrm, prim, np.column_stack(
+                [1.0 - bary[:, 0] - bary[:, 1], bary]))
+        local = encode(fr, smp.normals) * smp.area[:, None]
+        acc = np.stack([np.bincount(t0, weights=local[:, c], minlength=res * res)
+                        for c in range(3)], axis=1)
+        length = np.linalg.norm(acc, axis=1, keepdims=True)
+        nrm = np.where(length > 0, acc / np.maximum(length, 1e-300), [0.0, 0.0, 1.0])
+        out[f"lod{i}"] = nearest_fill(nrm.reshape(res, res, 3), filled).astype(np.float32)
+    ctx.store.write_arrays(key, out)
+    return [out[f"lod{i}"] for i in range(len(lods))]
 
 
 def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
@@ -302,6 +378,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
            "resolution": int(res)}
     if normal is not None:
         out["normal"] = normal
+        out["lod_normals"] = [normal, *lod_normal_maps(ctx, res)]
     opacity = fallback_opacity(ctx, res)
     if opacity is not None:
         out["opacity"] = opacity

@@ -12,7 +12,7 @@ A baked asset is a folder:
                              the filtered maps of each mip level (`texelbake.baselines.filtered_maps`:
                              mean normal, LEADR moments, AO, albedo, base colour, α²)
     <name>_basecolor.png, <name>_occlusion.png, <name>_roughness_lod<i>.png
-    [<name>_fallback_normal.png]
+    [<name>_fallback_normal.png, <name>_fallback_normal_lod<i>.png]
                              the UsdPreviewSurface fallback of each LOD i (with the normal map,
                              the fallback's own when its textures are finer than the atlas):
                              material /Baked/Looks/BakedPreview for LOD1, BakedPreview_LOD<i>
@@ -73,10 +73,12 @@ class BakedAsset:
     albedo, normal : (N, N, 3) float32 preview maps over M1's atlas (normal in [-1, 1])
     metadata : JSON-able dict written to customLayerData["texelbake"]
     filtered : per level an (N_l, N_l, C) float32 filtered map (`filtered_maps.CHANNELS`)
-    fallback : the UsdPreviewSurface fallback: "base" (R, R, 3) diffuseColor, "occlusion"
+    fallback : the UsdPreviewSurface fallback: "base" (R, R, 3) diffuseColor (or per LOD
+        "diffuse" (R, R, 3) when fitted), "occlusion"
         (R, R), "roughness" a list of (n_i, n_i) maps, one per LOD, "constants" (inputs
         carried from the source material) and, when R > N, "normal" (R, R, 3) its own normal
-        map (else it shares `normal`), and for cut-outs "opacity" (R, R) the uncut fraction
+        map (else it shares `normal`) and "lod_normals" each LOD's (LOD1's is "normal"; the
+        others' in their own MikkTSpace frames), and for cut-outs "opacity" (R, R) the uncut fraction
         of each texel; R = `stages.filtered.fallback_resolution`; empty: the albedo/normal material of old bakes.
         `read_baked` returns each LOD's material as authored, under "materials".
     """

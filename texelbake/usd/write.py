@@ -70,10 +70,16 @@ def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
                    srgb=False)
         files["roughness"] = []
         files["fallback_normal"] = files["normal"]
+        files["fallback_normals"] = []
         if fb.get("normal") is not None:  # the fallback's own, finer than the baseline's
             files["fallback_normal"] = f"{name}_fallback_normal.png"
             _write_png(out_dir / files["fallback_normal"], 0.5 * (np.asarray(fb["normal"]) + 1.0),
                        srgb=False)
+            # each LOD after LOD1 its own, in its own tangent frames
+            for i, img in enumerate(fb.get("lod_normals", [])[1:], start=2):
+                files["fallback_normals"].append(f"{name}_fallback_normal_lod{i}.png")
+                _write_png(out_dir / files["fallback_normals"][-1],
+                           0.5 * (np.asarray(img) + 1.0), srgb=False)
         if fb.get("opacity") is not None:  # cut-outs: what is left of each texel
             files["opacity"] = f"{name}_opacity.png"
             _write_png(out_dir / files["opacity"], np.asarray(fb["opacity"])[..., None],
@@ -166,10 +172,12 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
             mat = author_preview_material(
                 pstage, fallback_material_path(i),
                 f"./{files['diffuse'][i - 1]}" if fitted else f"./{files['base']}",
-                f"./{files['fallback_normal']}",
+                f"./{files['fallback_normal']}" if i < 2 or not files["fallback_normals"]
+                else f"./{files['fallback_normals'][i - 2]}",
                 "/Baked/CPM", f"./{files['roughness'][i - 1]}", f"./{files['occlusion']}",
                 baked.fallback.get("constants"),
-                specular_file=f"./{files['specular'][i - 1]}" if fitted else None,
+                specular_file=(f"./{files['specular'][i - 1]}" if files["specular"]
+                               else None),
                 opacity_file=f"./{files['opacity']}" if "opacity" in files else None)
         elif i == 1:
             mat = author_preview_material(
