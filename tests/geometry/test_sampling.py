@@ -11,6 +11,7 @@ from texelbake.geometry.closest import closest_point_on_triangles
 from texelbake.geometry.mesh import Mesh, bbox_diagonal, weld
 from texelbake.geometry.raycast import RayCaster
 from texelbake.geometry.sampling import (
+    SAMPLES_PER_REQUEST_CAP,
     allocate_counts,
     sample_surface,
     square_to_triangle,
@@ -65,10 +66,40 @@ def test_every_triangle_has_a_sample_and_counts_follow_area(bumpy):
 
 
 def test_fewer_samples_than_triangles_still_covers_every_triangle():
-    v, f = plane_grid(4, 4)
-    s = sample_surface(v, f, 3, seed=0)
+    v, f = plane_grid(4, 4)  # 32 triangles: up to SAMPLES_PER_REQUEST_CAP x 8 requested
+    assert f.shape[0] == SAMPLES_PER_REQUEST_CAP * 8
+    s = sample_surface(v, f, 8, seed=0)
     assert len(s) == f.shape[0]
     assert np.array_equal(np.bincount(s.face), np.ones(f.shape[0], dtype=np.int64))
+
+
+def test_a_mesh_far_finer_than_the_request_is_sampled_by_area():
+    # 20,480 triangles of uneven area, 500 requested: 2,000 samples (the cap), not one per
+    # triangle. Independent checks: the sample areas sum to the surface area (each stands for
+    # total / m); any run of consecutive faces gets the area it has to within one sample's
+    # share (systematic sampling of the cumulative area), so each eighth of the faces' area,
+    # by the cumulative sum computed here, is represented to within total / m
+    v, f = bumpy_sphere(5)
+    n_req = 500
+    m = SAMPLES_PER_REQUEST_CAP * n_req
+    s = sample_surface(v, f, n_req, seed=4)
+    assert len(s) == m < f.shape[0]
+    areas = Mesh(v, f).areas()
+    total = float(areas.sum())
+    assert abs(s.area.sum() - total) <= 1e-9 * total
+    np.testing.assert_allclose(s.area, total / m, rtol=1e-12)
+    cum = np.concatenate([[0.0], np.cumsum(areas)])
+    edges = np.searchsorted(cum, np.linspace(0.0, total, 9)[1:-1])  # face index per eighth
+    for a, b in zip(np.concatenate([[0], edges]), np.concatenate([edges, [f.shape[0]]]),
+                    strict=True):
+        got = s.area[(s.face >= a) & (s.face < b)].sum()
+        assert abs(got - (cum[b] - cum[a])) <= total / m * (1 + 1e-9)
+    # the samples lie on their faces, reruns are identical, and another seed moves them
+    rebuilt = np.einsum("mk,mkd->md", s.bary, v[f[s.face]])
+    np.testing.assert_allclose(rebuilt, s.positions, atol=1e-12 * bbox_diagonal(v))
+    again = sample_surface(v, f, n_req, seed=4)
+    assert np.array_equal(again.positions, s.positions)
+    assert not np.array_equal(sample_surface(v, f, n_req, seed=5).face, s.face)
 
 
 def test_allocation_is_largest_remainder():

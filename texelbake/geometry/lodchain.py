@@ -60,9 +60,14 @@ HAUSDORFF_SAMPLES = 20_000
 SEARCH_RATIO = 1.08
 #: a level searched from a mesh of more faces than this is searched from one collapse of it to
 #: this many faces (`_proxy`), when that collapse lies within PROXY_SHARE of the level's
-#: bound: the search's collapses then cost what they cost on an asset of this size
+#: bound: the search's collapses then cost what they cost on an asset of this size. The
+#: share is what the proxy may take of the bound (every candidate is measured against M_org:
+#: the level stays within its bound, it may keep more faces than a search from M_org would).
+#: A 1.5 M-triangle wall with jittered fronts (`benchmarks/million.py`) is 15 % of LOD1's
+#: bound away from M_org even at 80 % of its faces: a quarter of the bound rejected its
+#: 200k proxy
 PROXY_FACES = 200_000
-PROXY_SHARE = 0.25
+PROXY_SHARE = 0.5
 #: the wrap tried on assets of many parts uses a marching-cubes grid of at most this many
 #: cells along the longest side (400, the M_T wrap's, took 15 s on 36 boxes at 64 px; the
 #: distance check rejects a wrap the coarse grid makes too crude)

@@ -104,6 +104,35 @@ def allocate_counts(areas: np.ndarray, n_samples: int, eps_area: float = 0.0) ->
     return counts + base
 
 
+#: every triangle gets a sample while the triangles are at most this many times the requested
+#: count (small features stay represented); a finer mesh gets this many times the request, drawn
+#: by area (`systematic_counts`), so the samples, and every stage that reads them, follow the
+#: atlas and not the triangle count (a 1.5 M-triangle wall at a 16² atlas: 1.5 M samples, the
+#: a_vis tile ~9 G ray pairs, before; 65 k after, `benchmarks/million.py`)
+SAMPLES_PER_REQUEST_CAP = 4
+
+
+def systematic_counts(areas: np.ndarray, eps_area: float, m: int, seed: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """m samples over the triangles with area > eps_area by systematic sampling of their
+    cumulative area in face order: sample k falls at (k + o) / m of the total area (o in
+    [0, 1) from the seed), in the triangle whose share of the cumulative area holds it. Every
+    sample then stands for total / m of the surface: returns (counts (f,) int64 summing to m,
+    represented area (f,) float64 = counts · total / m, what `SurfaceSampler` splits among a
+    triangle's samples). Unbiased: a triangle's expected represented area is its area, and
+    any run of consecutive faces is represented to within total / m of its area."""
+    a = np.where(np.asarray(areas, dtype=np.float64) > eps_area, areas, 0.0)
+    cum = np.cumsum(a)
+    total = float(cum[-1]) if cum.size else 0.0
+    if m <= 0 or total <= 0.0:
+        return np.zeros(a.shape[0], np.int64), np.zeros(a.shape[0])
+    offset = float(np.random.default_rng([int(seed), 0x5359]).random())
+    u = (np.arange(m, dtype=np.float64) + offset) * (total / m)
+    face = np.minimum(np.searchsorted(cum, u, side="right"), a.shape[0] - 1)
+    counts = np.bincount(face, minlength=a.shape[0]).astype(np.int64)
+    return counts, counts * (total / m)
+
+
 def square_to_triangle(u: np.ndarray) -> np.ndarray:
     """Area-preserving map of the unit square onto the triangle (Heitz 2019, "A Low-Distortion
     Map Between Triangle and Square"), which keeps stratification better than the sqrt map.
@@ -242,7 +271,12 @@ def surface_sampler(
         counts, areas = np.zeros(f, np.int64), np.zeros(f)
     else:
         areas = triangle_areas(pts, fcs)  # (f,)
-        counts = allocate_counts(areas, int(n_samples), eps * bbox_diagonal(pts) ** 2)
+        eps_area = eps * bbox_diagonal(pts) ** 2
+        cap = SAMPLES_PER_REQUEST_CAP * int(n_samples)
+        if int(np.count_nonzero(areas > eps_area)) > cap:
+            counts, areas = systematic_counts(areas, eps_area, cap, seed)
+        else:
+            counts = allocate_counts(areas, int(n_samples), eps_area)
     return SurfaceSampler(pts, fcs, counts, areas, seed, corner_normals, corner_uvs,
                           face_material)
 
@@ -254,7 +288,8 @@ def sample_surface(points: object, faces: object, n_samples: int, seed: int, *,
     points : (n, 3) float64; faces : (f, 3) int64
     n_samples : requested count m; the result has max(m, #nondegenerate triangles) samples
         so every triangle with area > eps * bbox_diag**2 is represented (degenerate
-        triangles get none)
+        triangles get none), up to SAMPLES_PER_REQUEST_CAP · m: a mesh of more triangles
+        gets that many samples drawn by area (`systematic_counts`)
     seed : seeds the jitter and shifts; equal inputs give byte-identical output
     options : `surface_sampler`'s keywords:
     corner_normals : (f, 3, 3) float64 or None — shading normals per face corner; where the
@@ -264,7 +299,7 @@ def sample_surface(points: object, faces: object, n_samples: int, seed: int, *,
     chunk : samples whose attributes are computed at a time (memory only: the result does
         not depend on it; `surface_sampler` gives the chunks without the whole)
     returns : Samples, grouped by triangle in face order; ΔA of a triangle's samples is
-        its area / its count. Empty (typed) when nothing has area or n_samples <= 0.
+        its area / its count (its represented area / its count when drawn by area). Empty (typed) when nothing has area or n_samples <= 0.
     """
     sampler = surface_sampler(points, faces, n_samples, seed, **options)
     parts = [smp for _, smp in sampler.chunks(chunk)]
