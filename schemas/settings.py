@@ -161,11 +161,6 @@ class BakeSettings(BaseModel):
         "Where the fit of a coarse level gets its a_vis: 'children' from its children's summed "
         "cube maps read at its own directions, 'dense' from rays of every dense sample as the "
         "seed.")
-    avis_samples_per_facet: int = _field(
-        0, "a_vis",
-        "Most dense samples per texel and M_org triangle whose a_vis rays are cast, evenly "
-        "spaced and carrying the triangle's area; 0 casts rays from every dense sample as the "
-        "seed.", ge=0, le=65536)
     avis_selection: Literal["texel", "face"] = _field(
         "texel", "a_vis",
         "How the Haar coefficients are chosen: 'texel' evens the relative error over texels, "

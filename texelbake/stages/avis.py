@@ -25,8 +25,7 @@ def _avis_level_from(data: dict[str, np.ndarray], prefix: str, *, maps: bool = T
 
 
 def _avis_key(ctx: StageContext, tile: int | None) -> str:
-    fields = GEOMETRY_FIELDS + ("avis_resolution", "avis_samples_per_facet",
-                                "shard_texels")  # tiles named by layout
+    fields = GEOMETRY_FIELDS + ("avis_resolution", "shard_texels")  # tiles named by layout
     name = f"tile{tile:05d}-s{ctx.settings.shard_texels}.npz" if tile is not None else "top.npz"
     return ctx.key("avis", name, fields)
 
@@ -51,7 +50,6 @@ def run_avis_tile(ctx: StageContext, shard: int) -> str:
         geo["sample_pos"][idx], geo["sample_gnrm"][idx], geo["sample_area"][idx], local, side,
         s.avis_resolution, caster.occluded, ctx.asset().points,
         ray_eps=TOL.ray_offset * caster.bbox_diag,
-        faces=geo["sample_face"][idx], per_facet=s.avis_samples_per_facet,
     )
     out = _avis_level_arrays(level, "L00_")
     out["rays"] = np.array([caster.rays_cast - rays0], np.int64)

@@ -16,8 +16,7 @@ from texelbake.cpm.avis.closed_form import (
 )
 from texelbake.cpm.avis.cube import OccludedFn
 from texelbake.cpm.avis.maps import avis_cube_maps, coerce_samples, default_eps
-from texelbake.cpm.avis.subsample import facet_subsample
-from texelbake.errors import SettingsError, ShapeError
+from texelbake.errors import ShapeError
 
 # --------------------------------------------------------------------------------------------
 # hierarchy
@@ -176,8 +175,7 @@ def tile_layout(tiles: list[AvisLevel], tiles_per_side: int
 def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                texel_of_sample: np.ndarray, n_side: int, res: int, occluded_fn: OccludedFn,
                mesh_points: np.ndarray, *, closed_form: bool = True, max_terms: int = 256,
-               ray_eps: float | None = None, max_rays: int = 1 << 21,
-               faces: np.ndarray | None = None, per_facet: int = 0) -> AvisLevel:
+               ray_eps: float | None = None, max_rays: int = 1 << 21) -> AvisLevel:
     """a_vis of one atlas level: closed form where `unoccluded_samples` proves every sample of
     a texel free, rays (avis_cube_maps, world directions) elsewhere, none from a free sample.
 
@@ -190,9 +188,6 @@ def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
         `default_eps(positions)`. When a level is computed in tiles (texel ids local to the
         tile, see `stack_tiles`), pass one scene-wide value so that every tile casts the rays
         the whole level would.
-    faces : (m,) int64 M_org triangle of each sample; with per_facet > 0, the samples that
-        cast rays are at most per_facet per (texel, triangle), carrying its area
-        (`subsample.facet_subsample`); per_facet 0 casts from every sample (the seed's)
     returns : AvisLevel
     """
     pos, nrm, ar, tex, n_texels = coerce_samples(normals, areas, texel_of_sample,
@@ -209,13 +204,7 @@ def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     cf, bounded = _bounded_terms(closed_form_terms(nrm, ar, tex, n_texels), closed,
                                  int(max_terms))
     ray_texels = np.flatnonzero(~closed)
-    ray_ar = ar
-    if per_facet:
-        if faces is None:
-            raise SettingsError("per_facet needs the samples' faces")
-        ray_ar = facet_subsample(tex, faces, ar, per_facet,
-                                 cast=None if free is None else ~free)
-    maps = avis_cube_maps(pos, nrm, ray_ar, tex, n_texels, None, res, occluded_fn,
+    maps = avis_cube_maps(pos, nrm, ar, tex, n_texels, None, res, occluded_fn,
                           skip_texels=closed, free_samples=free, ray_eps=eps,
                           max_rays=max_rays, dtype=np.float64)
     area = np.bincount(tex, weights=ar, minlength=n_texels)
