@@ -15,6 +15,10 @@ also in the spawned workers), and prints texels/s per level (fitted texels over 
 seconds of the level's fit calls; "cpu x" is the same ratio on CPU seconds, less sensitive to
 the other engineers' load) and held-out SNR median and p5 per level:
 
+With `--set atlas_mode=lod1` (and `--set atlas_cap=N`) this tree bakes LOD1's atlas against the
+other tree's 16^2 default: levels are paired by texel size (side), stage seconds and peak RSS
+are printed for both.
+
     git worktree add /work/wt-c15 c15cea2
     python benchmarks/bake.py --scene cylinder --size full --atlas 32 --against /work/wt-c15 \
         --json benchmarks/results/bake_compare_cylinder_32.json
@@ -336,7 +340,11 @@ def compare(args: argparse.Namespace) -> None:
               f"{b['texels_per_cpu_second'] / a['texels_per_cpu_second']:>9.2f} "
               f"{f(a['heldout_db_median']):>7.2f} {f(b['heldout_db_median']):>7.2f} "
               f"{f(a['heldout_db_p5']):>7.2f} {f(b['heldout_db_p5']):>7.2f}")
-    bars = print_bars(args.scene, atlas, old, new)
+    if old["atlas"] == new["atlas"]:
+        bars = print_bars(args.scene, atlas, old, new)
+    else:  # issue 15's bars pair levels by index: meaningless across atlas sizes
+        bars = {"skipped": f"atlases differ ({old['atlas']} and {new['atlas']})"}
+        print(f"bars: {bars['skipped']}; levels above are paired by texel size")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"scene": args.scene, "size": args.size, "atlas": atlas,
