@@ -15,13 +15,13 @@ also in the spawned workers), and prints texels/s per level (fitted texels over 
 seconds of the level's fit calls; "cpu x" is the same ratio on CPU seconds, less sensitive to
 the other engineers' load) and held-out SNR median and p5 per level:
 
-With `--set atlas_mode=lod1` (and `--set atlas_cap=N`) this tree bakes LOD1's atlas against the
-other tree's 16^2 default: levels are paired by texel size (side), stage seconds and peak RSS
-are printed for both.
-
     git worktree add /work/wt-c15 c15cea2
     python benchmarks/bake.py --scene cylinder --size full --atlas 32 --against /work/wt-c15 \
         --json benchmarks/results/bake_compare_cylinder_32.json
+
+With `--set atlas_mode=lod1` (and `--set atlas_cap=N`) this tree bakes LOD1's atlas against the
+other tree's 16^2 default: levels are paired by texel size (side), stage seconds and peak RSS
+are printed for both.
 
 Measured 2026-11-25 at a953eb0 against c15cea2 (2 cores shared with four other engineers;
 the 1-min load is printed with each run: the old bake ran under load 4-8, the new one under
