@@ -34,9 +34,9 @@ def _install() -> None:
         import texelbake.stages as mod  # c15cea2: one stages module
     inner = mod.fit_level
 
-    def timed(src, level, texels, candidates, *rest):
+    def timed(src, level, texels, candidates, *rest, **kw):
         w0, c0 = time.perf_counter(), time.process_time()
-        out = inner(src, level, texels, candidates, *rest)
+        out = inner(src, level, texels, candidates, *rest, **kw)
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
         valid = np.asarray(out["valid"], bool)
         rec = {"level": int(level), "texels": int(valid.sum()), "wall": wall, "cpu": cpu,
@@ -81,7 +81,13 @@ if __name__ == "__main__":
     settings = BakeSettings(**{k: v for k, v in fields.items() if k in known})
     t0 = time.perf_counter()
     bake(Path(scene), Path(out), settings, progress=False, jobs=int(jobs))
-    result = json.dumps({"total_seconds": time.perf_counter() - t0})
+    import resource
+
+    # peak resident set of this process and of the largest worker it reaped (KiB on Linux)
+    peak = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+               resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+    result = json.dumps({"total_seconds": time.perf_counter() - t0,
+                         "peak_rss_mib": peak / 1024})
     print(result)
     if summary is not None:
         Path(summary).write_text(result)

@@ -19,6 +19,10 @@ the other engineers' load) and held-out SNR median and p5 per level:
     python benchmarks/bake.py --scene cylinder --size full --atlas 32 --against /work/wt-c15 \
         --json benchmarks/results/bake_compare_cylinder_32.json
 
+With `--set atlas_mode=lod1` (and `--set atlas_cap=N`) this tree bakes LOD1's atlas against the
+other tree's 16^2 default: levels are paired by texel size (side), stage seconds and peak RSS
+are printed for both.
+
 Measured 2026-11-25 at a953eb0 against c15cea2 (2 cores shared with four other engineers;
 the 1-min load is printed with each run: the old bake ran under load 4-8, the new one under
 4-8 too, but the load fell during the cylinder's new run, which inflates its wall ratios; the
@@ -233,7 +237,8 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
         env=env, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise SystemExit(f"bake by {tree} failed:\n{proc.stderr[-3000:]}")
-    total = json.loads((out / "bake_total.json").read_text())["total_seconds"]
+    summary = json.loads((out / "bake_total.json").read_text())
+    total = summary["total_seconds"]
     recs = [json.loads(line) for line in timings.read_text().splitlines()]
     run = json.loads((out / "bake" / "run.json").read_text())  # seconds and estimate
     levels = []
@@ -248,7 +253,13 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
                        "texels_per_second": n / max(wall, 1e-9),
                        "texels_per_cpu_second": n / max(cpu, 1e-9),
                        "heldout_db_median": ho.get("p50"), "heldout_db_p5": ho.get("p5")})
+    report = json.loads((out / "bake" / "report.json").read_text()) \
+        if (out / "bake" / "report.json").exists() else {}
     return {"tree": str(tree), "total_seconds": total, "load_before": load0,
+            "peak_rss_mib": summary.get("peak_rss_mib"),
+            "atlas": int((report.get("cpm_atlas") or {}).get("resolution")
+                         or settings["atlas_resolution"]),
+            "cpm_atlas": report.get("cpm_atlas"),
             "load_after": _uptime(), "stage_seconds": run.get("stage_seconds"),
             "estimate": run.get("estimate"), "levels": levels}
 
@@ -299,18 +310,41 @@ def compare(args: argparse.Namespace) -> None:
     if est:
         print(f"cost model: predicted {est['seconds']:.1f} s, measured {new['total_seconds']:.1f}"
               f" s ({est['seconds'] / new['total_seconds']:.2f}x)")
-    print(f"{'lvl':>3} {'texels':>6} {'old tex/s':>9} {'new tex/s':>9} {'ratio':>6} "
-          f"{'cpu ratio':>9} {'old med':>7} {'new med':>7} {'old p5':>7} {'new p5':>7}")
-    for a, b in zip(old["levels"], new["levels"], strict=False):
+    peaks = f"peak RSS MiB: old {old.get('peak_rss_mib', float('nan')):.0f}, new " \
+        f"{new.get('peak_rss_mib', float('nan')):.0f}"
+    print(f"atlas: old {old['atlas']}x{old['atlas']}, new {new['atlas']}x{new['atlas']}; {peaks}")
+    stages_old, stages_new = old.get("stage_seconds") or {}, new.get("stage_seconds") or {}
+    print(f"{'stage':>9} {'old s':>8} {'new s':>8} {'ratio':>7}")
+    for name in sorted(set(stages_old) | set(stages_new)):  # loop over stages
+        a, b = stages_old.get(name, float("nan")), stages_new.get(name, float("nan"))
+        print(f"{name:>9} {a:>8.1f} {b:>8.1f} {b / a if a else float('nan'):>7.2f}")
+    # levels paired by texel size (side of the level): a lod1 atlas has more, finer levels
+    print(f"{'side':>5} {'lvl':>7} {'texels':>13} {'old tex/s':>9} {'new tex/s':>9} "
+          f"{'ratio':>6} {'cpu ratio':>9} {'old med':>7} {'new med':>7} {'old p5':>7} "
+          f"{'new p5':>7}")
+    by_side_old = {old["atlas"] >> lv["level"]: lv for lv in old["levels"]}
+    for b in new["levels"]:  # loop over the new bake's levels, finest first
+        side = new["atlas"] >> b["level"]
+        a = by_side_old.get(side)
+
         def f(x):
             return float("nan") if x is None else x
-        print(f"{a['level']:>3} {b['texels']:>6} {a['texels_per_second']:>9.2f} "
-              f"{b['texels_per_second']:>9.2f} "
+        if a is None:
+            print(f"{side:>5} {'-':>3}/{b['level']:<3} {'-':>6}/{b['texels']:<6} {'-':>9} "
+                  f"{b['texels_per_second']:>9.2f} {'-':>6} {'-':>9} {'-':>7} "
+                  f"{f(b['heldout_db_median']):>7.2f} {'-':>7} {f(b['heldout_db_p5']):>7.2f}")
+            continue
+        print(f"{side:>5} {a['level']:>3}/{b['level']:<3} {a['texels']:>6}/{b['texels']:<6} "
+              f"{a['texels_per_second']:>9.2f} {b['texels_per_second']:>9.2f} "
               f"{b['texels_per_second'] / a['texels_per_second']:>6.2f} "
               f"{b['texels_per_cpu_second'] / a['texels_per_cpu_second']:>9.2f} "
               f"{f(a['heldout_db_median']):>7.2f} {f(b['heldout_db_median']):>7.2f} "
               f"{f(a['heldout_db_p5']):>7.2f} {f(b['heldout_db_p5']):>7.2f}")
-    bars = print_bars(args.scene, atlas, old, new)
+    if old["atlas"] == new["atlas"]:
+        bars = print_bars(args.scene, atlas, old, new)
+    else:  # issue 15's bars pair levels by index: meaningless across atlas sizes
+        bars = {"skipped": f"atlases differ ({old['atlas']} and {new['atlas']})"}
+        print(f"bars: {bars['skipped']}; levels above are paired by texel size")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"scene": args.scene, "size": args.size, "atlas": atlas,
