@@ -114,17 +114,23 @@ def write_dome_lit(folder: Path, sky: str = "patch", camera: bool = False,
     return folder / "dome.usda"
 
 
-def _look_at_camera(stage, path: str, eye, target) -> UsdGeom.Camera:
-    """A UsdGeom.Camera at `eye` looking at `target` (+Y up), 24 mm lens, 20.955 mm aperture."""
+def look_at_matrix(eye, target) -> Gf.Matrix4d:
+    """The transform that puts a prim at `eye` with its -Z toward `target` (+Y up), as a
+    camera looks and a distant light shines."""
     eye_v, target_v = np.asarray(eye, dtype=np.float64), np.asarray(target, dtype=np.float64)
-    z = (eye_v - target_v) / np.linalg.norm(eye_v - target_v)  # the camera looks down -Z
+    z = (eye_v - target_v) / np.linalg.norm(eye_v - target_v)
     x = np.cross([0.0, 1.0, 0.0], z)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     m = np.eye(4)
     m[0, :3], m[1, :3], m[2, :3], m[3, :3] = x, y, z, eye_v  # USD: row vectors
+    return Gf.Matrix4d(*m.ravel().tolist())
+
+
+def _look_at_camera(stage, path: str, eye, target) -> UsdGeom.Camera:
+    """A UsdGeom.Camera at `eye` looking at `target` (+Y up), 24 mm lens, 20.955 mm aperture."""
     cam = UsdGeom.Camera.Define(stage, path)
-    cam.AddTransformOp().Set(Gf.Matrix4d(*m.ravel().tolist()))
+    cam.AddTransformOp().Set(look_at_matrix(eye, target))
     cam.CreateFocalLengthAttr(24.0)
     cam.CreateHorizontalApertureAttr(20.955)
     cam.CreateVerticalApertureAttr(20.955)
@@ -142,3 +148,35 @@ def write_subdivision_cube(folder: Path) -> Path:
     _bind(blob, preview_material(stage, "/Root/Looks/Blob", diffuse=(0.3, 0.45, 0.7)))
     stage.GetRootLayer().Save()
     return folder / "subdiv.usda"
+
+
+def with_camera_and_sun(src: Path, out: Path, *, view=(1.0, 0.75, 1.4),
+                        sun=(0.5, 1.0, 0.7), irradiance: float = 3.0) -> Path:
+    """A root layer at `out` that sublayers `src` and adds a camera framing its bounds from
+    direction `view` and a normalized DistantLight of `irradiance` shining from direction `sun`
+    (both under `src`'s default prim), so that texelbake and Blender, each keeping the file's
+    camera and lights, render the same view of the same asset."""
+    import os
+
+    src_stage = Usd.Stage.Open(str(src))
+    box = UsdGeom.BBoxCache(Usd.TimeCode.EarliestTime(), [UsdGeom.Tokens.default_]
+                            ).ComputeWorldBound(src_stage.GetPseudoRoot()).ComputeAlignedRange()
+    lo, hi = np.array(box.GetMin()), np.array(box.GetMax())
+    root = src_stage.GetDefaultPrim().GetPath()
+    del src_stage
+    centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+    stage = _stage(out)
+    stage.GetRootLayer().subLayerPaths.append(os.path.relpath(src, out.parent))
+    stage.GetRootLayer().defaultPrim = root.name
+    view_v = np.asarray(view, dtype=np.float64) / np.linalg.norm(view)
+    # 24 mm over 20.955 mm: a 47 degree field; the bounding sphere fills ~60 % of it
+    _look_at_camera(stage, str(root.AppendChild("GtCamera")), eye=centre + 3.2 * radius * view_v,
+                    target=centre)
+    light = UsdLux.DistantLight.Define(stage, root.AppendChild("GtSun"))
+    light.AddTransformOp().Set(look_at_matrix(centre + np.asarray(sun, dtype=np.float64),
+                                              centre))
+    light.CreateIntensityAttr(float(irradiance))
+    light.CreateNormalizeAttr(True)
+    light.CreateAngleAttr(0.53)
+    stage.GetRootLayer().Save()
+    return out
