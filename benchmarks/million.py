@@ -27,6 +27,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import psutil
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -96,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
         from pxr import Usd, UsdGeom
 
         stage = Usd.Stage.Open(str(layer))
-        triangles = sum(int(sum(c - 2 for c in UsdGeom.Mesh(p).GetFaceVertexCountsAttr().Get()))
+        triangles = sum(int((np.asarray(UsdGeom.Mesh(p).GetFaceVertexCountsAttr().Get())
+                             - 2).sum())
                         for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
         del stage
         out = Path(tmp) / "out"

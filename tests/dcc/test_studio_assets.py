@@ -29,6 +29,7 @@ import pytest
 
 from tests.helpers.dcc import compare_renders, import_and_render, keep_artifacts, side_by_side
 from tests.helpers.studio_assets import (
+    fallback_colour_box,
     kit_asset,
     mtlx_asset,
     textured_box,
@@ -55,17 +56,8 @@ def _build(case: str, d: Path) -> tuple[Path, Path]:
         return mtlx_asset(d / "rook"), textured_box(d / "same_as_preview")
     # missing: the reference shows the fallback colour as the constant
     fallback = (0.2, 0.4, 0.6)
-    ref = textured_box(d / "ref", "./print.png")
-    from pxr import Usd, UsdShade
-
-    stage = Usd.Stage.Open(str(ref))
-    surface = UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/Print/Surface"))
-    surface.GetInput("diffuseColor").GetAttr().Clear()
-    surface.GetInput("diffuseColor").GetAttr().Set(fallback)
-    stage.RemovePrim("/Root/Looks/Print/Texture")
-    stage.Save()
-    del stage
-    return textured_box(d / "missing", "./gone.png", fallback=(*fallback, 1.0)), ref
+    return (textured_box(d / "missing", "./gone.png", fallback=(*fallback, 1.0)),
+            fallback_colour_box(d / "ref", fallback))
 
 
 @pytest.fixture(scope="module", params=["kit", "variants", "mtlx", "missing"])

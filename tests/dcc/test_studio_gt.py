@@ -35,7 +35,13 @@ from tests.helpers.dcc import (
     write_render_png,
 )
 from tests.helpers.skel_rigs import write_rig
-from tests.helpers.studio_assets import kit_asset, mtlx_asset, textured_box, wheel_variants_asset
+from tests.helpers.studio_assets import (
+    fallback_colour_box,
+    kit_asset,
+    mtlx_asset,
+    textured_box,
+    wheel_variants_asset,
+)
 from tests.helpers.studio_cases import (
     with_camera_and_sun,
     write_cutout_card,
@@ -53,33 +59,20 @@ FALLBACK = (0.2, 0.4, 0.6)
 SUN_SCALE = 0.25
 
 
-def _missing_reference(d: Path) -> Path:
-    """The textured box with the missing texture's fallback colour as its constant."""
-    from pxr import Usd, UsdShade
-
-    ref = textured_box(d, "./print.png")
-    stage = Usd.Stage.Open(str(ref))
-    surface = UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/Print/Surface"))
-    surface.GetInput("diffuseColor").GetAttr().Clear()
-    surface.GetInput("diffuseColor").GetAttr().Set(FALLBACK)
-    stage.RemovePrim("/Root/Looks/Print/Texture")
-    stage.Save()
-    return ref
-
-
 def _cases(d: Path) -> dict[str, tuple[Path, Path]]:
     """{case: (the original texelbake renders, the file Blender renders as its reference)}."""
     kit = kit_asset(d / "kit")
     car, _ = wheel_variants_asset(d / "car")
     cut = write_cutout_card(d / "cutout")
     sub = write_subdivision_cube(d / "subdivision")
-    rig = write_rig((d / "rig").mkdir() or d / "rig" / "rig.usda")
+    (d / "rig").mkdir()
+    rig = write_rig(d / "rig" / "rig.usda")
     return {
         "kit": (kit, kit), "variants": (car, car), "cutout": (cut, cut),
         "subdivision": (sub, sub), "rig": (rig, rig),
         "mtlx": (mtlx_asset(d / "rook"), textured_box(d / "same_as_preview")),
         "missing": (textured_box(d / "missing", "./gone.png", fallback=(*FALLBACK, 1.0)),
-                    _missing_reference(d / "ref")),
+                    fallback_colour_box(d / "ref", FALLBACK)),
     }
 
 

@@ -244,13 +244,19 @@ print(json.dumps(out))
 """
 
 
-def plain_pxr(root: Path, times: tuple[float, ...]) -> dict:
-    """`PLAIN_PXR` on the baked root at `times` (the first: the rest time)."""
+def run_plain_pxr(script: str, root: Path, times: tuple[float, ...]) -> dict:
+    """The JSON a read-back `script` prints last, run on `root` at `times` by a Python that
+    never imports texelbake (no PYTHONPATH, no PXR_ overrides, another working folder)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PXR_", "PYTHONPATH"))}
-    r = subprocess.run([sys.executable, "-c", PLAIN_PXR, str(root), *map(str, times)],
+    r = subprocess.run([sys.executable, "-c", script, str(root), *map(str, times)],
                        capture_output=True, text=True, timeout=300, env=env, cwd="/")
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def plain_pxr(root: Path, times: tuple[float, ...]) -> dict:
+    """`PLAIN_PXR` on the baked root at `times` (the first: the rest time)."""
+    return run_plain_pxr(PLAIN_PXR, root, times)
 
 
 def original_surface(got: dict, t: float) -> tuple[np.ndarray, np.ndarray]:

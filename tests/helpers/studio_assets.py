@@ -105,6 +105,20 @@ def textured_box(folder: Path, texture: str = "./print.png", *, fallback=None) -
     return folder / "box.usda"
 
 
+def fallback_colour_box(folder: Path, fallback) -> Path:
+    """The textured box with `fallback` (rgb) as its constant diffuseColor and no texture:
+    what a renderer shows of `textured_box(..., "./gone.png", fallback=...)` (Blender paints a
+    missing image magenta, so this is the reference its render is compared with)."""
+    ref = textured_box(folder, "./print.png")
+    stage = Usd.Stage.Open(str(ref))
+    surface = UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/Print/Surface"))
+    surface.GetInput("diffuseColor").GetAttr().Clear()
+    surface.GetInput("diffuseColor").GetAttr().Set(tuple(fallback))
+    stage.RemovePrim("/Root/Looks/Print/Texture")
+    stage.Save()
+    return ref
+
+
 def wheel_variants_asset(folder: Path) -> tuple[Path, Path]:
     """`folder/car/root.usda`: a body and a `wheels` variant set whose selected variant
     `stock` is local; `sport` references `../../../wheels/wheelVariants.usda` (a real file

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import shutil
 
+import pytest
 from pxr import Usd
 
 from services.validate import ESCAPES, MISSING, check_bundle
@@ -27,24 +28,18 @@ def test_unselected_variant_escape_and_missing_file_are_accepted(tmp_path):
     assert check_bundle(bundle, "root.usda") == []
 
 
-def test_selected_variant_escape_is_refused(tmp_path):
+@pytest.mark.parametrize(("variant", "problem"), [
+    ("sport", ("../../../wheels/wheelVariants.usda (in root.usda)", ESCAPES)),
+    ("racing", ("./parts/racing_wheels.usda (in root.usda)", MISSING)),
+], ids=["escape", "missing_layer"])
+def test_a_selected_variant_reading_outside_or_missing_is_refused(tmp_path, variant, problem):
     bundle = _bundle_of(tmp_path)
     stage = Usd.Stage.Open(str(bundle / "root.usda"))
-    stage.GetPrimAtPath("/Root").GetVariantSet("wheels").SetVariantSelection("sport")
+    stage.GetPrimAtPath("/Root").GetVariantSet("wheels").SetVariantSelection(variant)
     stage.Save()
     del stage
     problems = check_bundle(bundle, "root.usda")
-    assert ("../../../wheels/wheelVariants.usda (in root.usda)", ESCAPES) in problems
-
-
-def test_selected_variant_missing_layer_is_refused(tmp_path):
-    bundle = _bundle_of(tmp_path)
-    stage = Usd.Stage.Open(str(bundle / "root.usda"))
-    stage.GetPrimAtPath("/Root").GetVariantSet("wheels").SetVariantSelection("racing")
-    stage.Save()
-    del stage
-    problems = check_bundle(bundle, "root.usda")
-    assert ("./parts/racing_wheels.usda (in root.usda)", MISSING) in problems
+    assert problem in problems
 
 
 def test_missing_texture_is_accepted_and_an_escaping_one_refused(tmp_path):

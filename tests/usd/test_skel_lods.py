@@ -8,7 +8,6 @@ UsdValidation of the result."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.helpers.skel_rigs import run_plain_pxr
 from tests.helpers.usd_validation import stock_errors
 from texelbake.render.deformed import deform_scene
 from texelbake.render.deformed_report import warp_at_time
@@ -71,11 +71,7 @@ TIMES = (0.0, 12.0, 24.0)
 
 
 def plain_pxr(root: Path, times: tuple[float, ...]) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PXR_", "PYTHONPATH"))}
-    r = subprocess.run([sys.executable, "-c", PLAIN_PXR, str(root), *map(str, times)],
-                       capture_output=True, text=True, timeout=300, env=env, cwd="/")
-    assert r.returncode == 0, r.stderr
-    return json.loads(r.stdout.strip().splitlines()[-1])
+    return run_plain_pxr(PLAIN_PXR, root, times)
 
 
 def _settings():
@@ -399,8 +395,6 @@ def test_an_asset_warning_is_shown_once_and_kept_in_the_report(tmp_path):
     """The asset's warnings (here: the skinned arm's authored rest-pose normals, replaced) are
     shown once by the ingest stage, not again by each shard process that reads the asset,
     and listed in report.json; `texelbake`'s terminal shows them as "warning: <message>"."""
-    import subprocess
-    import sys
     import warnings
 
     from texelbake.pipeline.run import bake

@@ -78,12 +78,18 @@ class Cutout:
         """(k,) bool: the hit at barycentrics `bary` (k, 2) float64 (open3d's (u, v), weights
         (1 - u - v, u, v)) of face `prim` (k,) int64 is cut."""
         prim = np.asarray(prim, dtype=np.int64)
-        b = np.asarray(bary, dtype=np.float64)
-        if b.shape != (prim.shape[0], 2):
-            raise ShapeError(f"bary must be ({prim.shape[0]}, 2), got {b.shape}")
-        w = np.column_stack([1.0 - b[:, 0] - b[:, 1], b])  # (k, 3)
-        uv = np.einsum("nk,nkj->nj", w, self.corner_uvs[prim])
-        return self.cut_uv(prim, uv)
+        return self.cut_uv(prim, hit_uv(self.corner_uvs, prim, bary))
+
+
+def hit_uv(corner_uvs: np.ndarray, prim: np.ndarray, bary: Any) -> np.ndarray:
+    """(k, 2) uv of ray hits at barycentrics `bary` (k, 2) (open3d's (u, v), weights
+    (1 - u - v, u, v)) of faces `prim` (k,) int64, from the mesh's (f, 3, 2) corner uvs: what
+    every cut-out test (`geometry.raycast.CutoutTest.cut`) looks its opacity up at."""
+    b = np.asarray(bary, dtype=np.float64)
+    if b.shape != (prim.shape[0], 2):
+        raise ShapeError(f"bary must be ({prim.shape[0]}, 2), got {b.shape}")
+    w = np.column_stack([1.0 - b[:, 0] - b[:, 1], b])  # (k, 3)
+    return np.einsum("nk,nkj->nj", w, corner_uvs[prim])
 
 
 def asset_cutout(asset: model.AssetModel) -> Cutout | None:

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from texelbake.brdf.opacity import hit_uv
 from texelbake.cpm.avis.table import AvisTable, avis_table_from
 from texelbake.errors import SettingsError, ShapeError, StageError
 from texelbake.geometry.mesh import face_normals
@@ -47,9 +48,7 @@ class MapCutout:
 
     def cut(self, prim: np.ndarray, bary: np.ndarray) -> np.ndarray:
         prim = np.asarray(prim, dtype=np.int64)
-        b = np.asarray(bary, dtype=np.float64)
-        wts = np.column_stack([1.0 - b[:, 0] - b[:, 1], b])
-        return self.cut_uv(prim, np.einsum("nk,nkj->nj", wts, self.corner_uvs[prim]))
+        return self.cut_uv(prim, hit_uv(self.corner_uvs, prim, bary))
 
 
 def lod_cutout(baked: Any, lod: int) -> MapCutout | None:
