@@ -231,3 +231,19 @@ def test_chunked_passes_give_the_one_pass_maps_and_ao():
                                               seed=4, first=a, total=m)
                             for a, b in chunk_ranges(m, 37)])
     assert whole.tobytes() == parts.tobytes() and 0 < whole.mean() < 1
+
+
+def test_carried_constants_name_specular_color_only_in_the_specular_workflow():
+    from texelbake.baselines.filtered_maps import dominant_constants
+
+    metal = model.Material("/M", "preview", {**model.PREVIEW_DEFAULTS, "metallic": 1.0})
+    spec = model.Material("/S", "preview", {**model.PREVIEW_DEFAULTS, "useSpecularWorkflow": 1,
+                                            "specularColor": (0.3, 0.2, 0.1)})
+    area = np.array([1.0, 3.0])
+    # the material covering the most area wins
+    assert dominant_constants([metal, spec], np.array([0, 1]), area)["specularColor"] == (
+        0.3, 0.2, 0.1)
+    got = dominant_constants([metal, spec], np.array([0, 1]), area[::-1].copy())
+    # the metallic workflow ignores specularColor; an authored one is Blender's Specular Tint
+    assert "specularColor" not in got
+    assert got["metallic"] == 1.0 and got["useSpecularWorkflow"] == 0

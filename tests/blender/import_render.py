@@ -4,7 +4,7 @@
 
     python import_render.py -- SPEC.json
 
-SPEC: {"files": [{"name", "path", "options"?, "scene_frame"?, "keep"?}, ...], "out_dir",
+SPEC: {"files": [{"name", "path", "options"?, "scene_frame"?, "keep"?, "seed"?}, ...], "out_dir",
 "resolution", "samples",
 "frame": null | [[xmin, ymin, zmin], [xmax, ymax, zmax]], "diag_px": null | pixels}. Each file
 is imported into an empty scene (`options`: importer keywords, e.g. {"import_subdivision":
@@ -13,11 +13,13 @@ the first file's imported bounds), so every file is seen from the same view: at 
 where the frame fits the image, or, with `diag_px`, where the frame box's diagonal covers that
 many pixels (a LOD's switch distance; the small-angle size). Per file the last
 stdout line's JSON holds: the mesh objects (name, triangles, world-space bounds), the materials
-they use, the images those materials read (size, whether pixels loaded), the world bounds of
-all meshes, the render's PNG path and seconds.
+they use, the images those materials read (size, whether pixels loaded), each material's
+Principled BSDF inputs ("bsdf": what the importer made of a UsdPreviewSurface), the world
+bounds of all meshes, the render's PNG path and seconds.
 
 The render is Cycles on the CPU (the only engine that runs in headless bpy without a GPU
-context), a fixed seed, no denoiser, no adaptive sampling: the same file gives the same pixels.
+context), a fixed seed (the file's `seed`, default 0), no denoiser, no adaptive sampling: the
+same file and seed give the same pixels; one file under two seeds measures Cycles' noise.
 Lights and cameras the file carries are removed (so the original and a LOD are lit alike): one
 sun of 3 W/m² from over the camera's left shoulder plus a dim uniform world (0.05), the film
 transparent (alpha = coverage), the Standard view transform (8-bit sRGB PNG, RGBA), exposure 0.
@@ -106,18 +108,42 @@ def _images_of(mat) -> list[dict]:
     return out
 
 
+#: the Principled BSDF inputs `_bsdf_of` reports
+BSDF_INPUTS = ("Base Color", "Metallic", "Roughness", "IOR", "Specular IOR Level",
+               "Specular Tint", "Coat Weight", "Alpha")
+
+
+def _bsdf_of(mat) -> dict:
+    """The first Principled BSDF's inputs (`BSDF_INPUTS`): a value (a list for colours) where
+    the input is unlinked, "linked" where a node drives it."""
+    if not mat or not mat.use_nodes:
+        return {}
+    for node in mat.node_tree.nodes:
+        if node.type == "BSDF_PRINCIPLED":
+            out = {}
+            for name in BSDF_INPUTS:
+                inp = node.inputs[name]
+                v = inp.default_value
+                out[name] = "linked" if inp.is_linked else (
+                    [float(x) for x in v] if hasattr(v, "__len__") else float(v))
+            return out
+    return {}
+
+
 def _describe() -> dict:
     objs = _mesh_objects()
     mats: dict[str, list] = {}
+    bsdfs: dict[str, dict] = {}
     meshes = []
     for o in objs:
         used = [s.material.name for s in o.material_slots if s.material is not None]
         for s in o.material_slots:
             if s.material is not None and s.material.name not in mats:
                 mats[s.material.name] = _images_of(s.material)
+                bsdfs[s.material.name] = _bsdf_of(s.material)
         meshes.append({"name": o.name, "triangles": _triangles(o), "materials": used,
                        "bounds": _exact_bounds([o])})
-    return {"meshes": meshes, "materials": mats, "bounds": _exact_bounds(objs)}
+    return {"meshes": meshes, "materials": mats, "bsdf": bsdfs, "bounds": _exact_bounds(objs)}
 
 
 def _world_for_a_dome(scene) -> None:
@@ -134,13 +160,13 @@ def _world_for_a_dome(scene) -> None:
 
 
 def _setup_view(frame, resolution: int, samples: int, diag_px: float | None = None,
-                keep: tuple[str, ...] = ()) -> None:
+                keep: tuple[str, ...] = (), seed: int = 0) -> None:
     scene = bpy.context.scene
     gone = ("CAMERA",) * ("camera" not in keep) + ("LIGHT",) * ("lights" not in keep)
     for o in list(scene.objects):
         if o.type in gone:
             bpy.data.objects.remove(o, do_unlink=True)
-    _render_settings(scene, resolution, samples)
+    _render_settings(scene, resolution, samples, seed)
     if "lights" in keep:
         scene.cycles.max_bounces = 0  # direct light only, as texelbake's gt
     if "camera" in keep:
@@ -202,13 +228,13 @@ def _add_sun_and_world(scene) -> None:
     scene.world = world
 
 
-def _render_settings(scene, resolution: int, samples: int) -> None:
+def _render_settings(scene, resolution: int, samples: int, seed: int = 0) -> None:
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"
     scene.cycles.samples = samples
     scene.cycles.use_adaptive_sampling = False
     scene.cycles.use_denoising = False
-    scene.cycles.seed = 0
+    scene.cycles.seed = seed
     scene.cycles.max_bounces = 4
     scene.render.film_transparent = True
     scene.render.resolution_x = resolution
@@ -252,7 +278,7 @@ def main() -> None:
         png = out_dir / f"{f['name']}.png"
         if spec.get("render", True) and info["bounds"] is not None:
             _setup_view(frame, int(spec.get("resolution", 160)), int(spec.get("samples", 16)),
-                        spec.get("diag_px"), keep)
+                        spec.get("diag_px"), keep, int(f.get("seed", 0)))
             bpy.context.scene.render.filepath = str(png)
             t0 = time.perf_counter()
             bpy.ops.render.render(write_still=True)

@@ -51,7 +51,8 @@ def import_and_render(files: dict[str, Path], out_dir: Path, *, frame=None,
                       diag_px: float | None = None,
                       options: dict[str, dict] | None = None,
                       scene_frames: dict[str, int] | None = None,
-                      keep: dict[str, tuple[str, ...]] | None = None) -> dict:
+                      keep: dict[str, tuple[str, ...]] | None = None,
+                      seeds: dict[str, int] | None = None) -> dict:
     """Import each of `files` ({name: USD path}) into an empty Blender scene with the USD
     importer at its defaults (or `options[name]`, keywords of `bpy.ops.wm.usd_import` such as
     {"import_subdivision": True}) and render it (tests/blender/import_render.py), at the scene
@@ -61,7 +62,8 @@ def import_and_render(files: dict[str, Path], out_dir: Path, *, frame=None,
     covers that many pixels (a LOD's switch distance). `keep[name]` keeps what the file carries
     instead: "lights" (its lights, its DomeLight as the world; Cycles direct light only, as
     texelbake's gt) and/or "camera" (its first camera). Returns {"frame", "files": {name: what
-    Blender made, "png"}}.
+    Blender made, "png"}}. `seeds[name]` is Cycles' seed for that file (default 0): one file
+    under two names and seeds measures the render's noise.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     spec = out_dir / "dcc_spec.json"
@@ -72,7 +74,9 @@ def import_and_render(files: dict[str, Path], out_dir: Path, *, frame=None,
         raise ValueError(f"keep takes 'lights' and 'camera', got {bad}")
     spec.write_text(json.dumps({"files": [{"name": k, "path": str(v), "options": opts.get(k, {}),
                                            "keep": list(kept.get(k, ())),
-                                           **({"scene_frame": frames[k]} if k in frames else {})}
+                                           **({"scene_frame": frames[k]} if k in frames else {}),
+                                           **({"seed": int(seeds[k])} if seeds and k in seeds
+                                              else {})}
                                           for k, v in files.items()],
                                 "out_dir": str(out_dir), "frame": frame,
                                 "resolution": resolution, "samples": samples,

@@ -325,15 +325,17 @@ def dominant_constants(materials: Sequence[Material], sample_material: np.ndarra
                        area: np.ndarray) -> dict[str, object]:
     """UsdPreviewSurface inputs carried from the material covering the most area (the
     fallback's base parameters): a preview material's metallic, specular workflow,
-    specularColor, ior, clearcoat; Phong's ks as the specular workflow's specularColor;
-    otherwise the specular workflow with specularColor 0 (a diffuse material; UsdPreviewSurface
-    keeps its Fresnel edge)."""
+    specularColor (only in the specular workflow: the metallic one ignores it, and Blender's
+    importer would make it a metal's edge tint), ior, clearcoat; Phong's ks as the specular
+    workflow's specularColor; otherwise the specular workflow with specularColor 0 (a diffuse
+    material; UsdPreviewSurface keeps its Fresnel edge)."""
     w = np.bincount(sample_material, weights=area, minlength=len(materials))
     mat = materials[int(np.argmax(w))]
     p = mat.params
     if mat.model == "preview":
-        keep = ("metallic", "useSpecularWorkflow", "specularColor", "ior", "clearcoat",
-                "clearcoatRoughness")
+        keep = ["metallic", "useSpecularWorkflow", "ior", "clearcoat", "clearcoatRoughness"]
+        if int(p.get("useSpecularWorkflow", 0)):
+            keep.append("specularColor")
         return {k: p[k] for k in keep if k in p and k not in mat.textures}
     if mat.model == "phong":
         return {"useSpecularWorkflow": 1,

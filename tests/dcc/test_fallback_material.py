@@ -1,0 +1,161 @@
+"""Blender reads the fallback material as it reads the source's (tests/blender/import_render.py,
+Blender 5.0.1's USD importer at its defaults, Cycles): a gold metal sphere whose
+UsdPreviewSurface (metallic workflow) is the source, and the same sphere with the fallback
+texelbake authors for it (`author_preview_material` with `dominant_constants` of the source as
+`load_asset` reads it, and constant textures of the source's values). The two must import to
+the same Principled BSDF and render alike.
+
+Blender's importer turns an authored `specularColor` into Specular Tint whatever the workflow;
+for a metal that is the edge (F82) tint, so the fallback's old spec-default specularColor
+(0, 0, 0) darkened every rim of a metal LOD (the bolt's LOD2 in benchmarks/fallback.py: mean
+radiance 0.69 of the original's, 0.84 with only Specular Tint set white).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.helpers.dcc import compare_renders, import_and_render, keep_artifacts, side_by_side
+
+pytestmark = [pytest.mark.dcc, pytest.mark.slow]  # Blender and Cycles: not for test-fast
+
+GOLD = (0.9, 0.6, 0.2)
+ROUGHNESS = 0.3
+# 64² at 16 spp, the harness's sun and dim world (the sphere covers ~1200 px); the fallback's
+# textures are 8-bit (sRGB base colour, raw roughness). Measured: object MAD 0.0016 and mean
+# ratio 0.992 as it is; with the metallic workflow's specularColor (0, 0, 0) authored (Specular
+# Tint black) 0.016 and 0.948, the rims dark
+MAD_MAX = 0.006
+RATIO_TOL = 0.02
+
+
+def _sphere(stage, path: str, n_lat: int = 24, n_lon: int = 48):
+    """A unit UV sphere (vertex normals, `st` from longitude and latitude, seam duplicated)."""
+    from pxr import Gf, Sdf, UsdGeom, Vt
+
+    lat = np.linspace(0.0, math.pi, n_lat + 1)
+    lon = np.linspace(0.0, 2.0 * math.pi, n_lon + 1)
+    th, ph = np.meshgrid(lat, lon, indexing="ij")  # (n_lat + 1, n_lon + 1)
+    pts = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], axis=-1)
+    st = np.stack([ph / (2.0 * math.pi), 1.0 - th / math.pi], axis=-1)
+    idx = np.arange(pts.shape[0] * pts.shape[1]).reshape(pts.shape[:2])
+    a, b = idx[:-1, :-1], idx[:-1, 1:]
+    c, d = idx[1:, 1:], idx[1:, :-1]
+    # counter-clockwise seen from outside; triangles at the poles (two corners meet there)
+    quads = np.stack([a, d, c, b], axis=-1)  # (n_lat, n_lon, 4)
+    faces = ([q[[0, 1, 2]] for q in quads[0]] + [q for row in quads[1:-1] for q in row]
+             + [q[[0, 1, 3]] for q in quads[-1]])
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    flat = pts.reshape(-1, 3)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(flat, dtype=np.float32)))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([len(f) for f in faces]))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for f in faces for i in f]))
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(flat, dtype=np.float32)))
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateExtentAttr([Gf.Vec3f(-1.0), Gf.Vec3f(1.0)])
+    pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                 UsdGeom.Tokens.vertex)
+    pv.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(st.reshape(-1, 2), dtype=np.float32)))
+    return mesh
+
+
+def _stage(path: Path):
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, "/Sphere")
+    stage.SetDefaultPrim(root.GetPrim())
+    return stage, _sphere(stage, "/Sphere/Geom")
+
+
+def _bind(mesh, mat) -> None:
+    from pxr import UsdShade
+
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+
+
+def _source(path: Path) -> Path:
+    from pxr import Gf, Sdf, UsdShade
+
+    stage, mesh = _stage(path)
+    mat = UsdShade.Material.Define(stage, "/Sphere/Looks/Gold")
+    surf = UsdShade.Shader.Define(stage, "/Sphere/Looks/Gold/PreviewSurface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*GOLD))
+    surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(1.0)
+    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(ROUGHNESS)
+    mat.CreateSurfaceOutput().ConnectToSource(surf.CreateOutput("surface",
+                                                                Sdf.ValueTypeNames.Token))
+    _bind(mesh, mat)
+    stage.Save()
+    return path
+
+
+def _fallback(src: Path, path: Path) -> Path:
+    """The sphere with the fallback texelbake authors for `src`'s material: its carried
+    constants and 4² textures of the source's own values (base colour, a flat normal,
+    roughness, no occlusion)."""
+    from texelbake.asset import load_asset
+    from texelbake.baselines.filtered_maps import dominant_constants
+    from texelbake.io.images import linear_to_srgb, write_pixels
+    from texelbake.usd.fallback import author_preview_material
+
+    d = path.parent
+    const = dominant_constants(load_asset(src).materials, np.zeros(1, dtype=np.int64),
+                               np.ones(1))
+    full = np.ones((4, 4, 1))
+    write_pixels(d / "albedo.png", np.round(linear_to_srgb(full * GOLD) * 255).astype(np.uint8),
+                 "uint8")
+    write_pixels(d / "normal.png", np.round(full * (0.5, 0.5, 1.0) * 255).astype(np.uint8),
+                 "uint8")
+    write_pixels(d / "roughness.png", np.round(full * ROUGHNESS * 255).astype(np.uint8), "uint8")
+    write_pixels(d / "occlusion.png", np.full((4, 4, 1), 255, dtype=np.uint8), "uint8")
+    stage, mesh = _stage(path)
+    mat = author_preview_material(stage, "/Sphere/Looks/Fallback", "./albedo.png", "./normal.png",
+                                  "/Sphere/CPM", "./roughness.png", "./occlusion.png", const)
+    _bind(mesh, mat)
+    stage.Save()
+    return path
+
+
+@pytest.fixture(scope="module")
+def gold(tmp_path_factory):
+    d = tmp_path_factory.mktemp("dcc_fallback_material")
+    src = _source(d / "source.usda")
+    fb = _fallback(src, d / "fallback.usda")
+    renders = d / "renders"
+    got = import_and_render({"source": src, "fallback": fb}, renders, resolution=64, samples=16)
+    pngs = [Path(got["files"][k]["png"]) for k in ("source", "fallback")]
+    side_by_side(pngs, renders / "row.png")
+    keep_artifacts(sorted(renders.glob("*.png")), "dcc/fallback_material")
+    return got, pngs
+
+
+def test_the_fallback_imports_to_the_source_principled_bsdf(gold):
+    got, _ = gold
+    src = next(iter(got["files"]["source"]["bsdf"].values()))
+    fb = next(iter(got["files"]["fallback"]["bsdf"].values()))
+    assert src["Metallic"] == fb["Metallic"] == 1.0
+    # the source authors no specularColor: Blender's default tint (white) for both
+    np.testing.assert_allclose(fb["Specular Tint"], src["Specular Tint"], atol=1e-6)
+    assert fb["Base Color"] == fb["Roughness"] == "linked"  # the fallback's textures
+
+
+def test_the_fallback_renders_as_the_source(gold):
+    from texelbake.io.images import read_pixels, srgb_to_linear
+
+    _, (src_png, fb_png) = gold
+    cmp = compare_renders(src_png, fb_png)
+    assert cmp["iou"] > 0.99 and cmp["mad"] < MAD_MAX, cmp
+    means = []
+    for p in (src_png, fb_png):
+        px = read_pixels(p)[0].astype(np.float64)
+        means.append(float(srgb_to_linear(px[..., :3])[px[..., 3] >= 0.5].mean()))
+    assert abs(means[1] / means[0] - 1.0) < RATIO_TOL, means
