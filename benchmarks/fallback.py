@@ -90,6 +90,7 @@ from typing import Any
 import numpy as np
 
 from schemas.settings import BakeSettings
+from texelbake.asset import load_asset
 from texelbake.io.images import read_pixels, srgb_to_linear
 from texelbake.pipeline.run import bake
 from texelbake.render import metrics
@@ -155,32 +156,104 @@ def bake_variants(name: str, src: Path, work: Path) -> dict[str, dict[str, Any]]
     return out
 
 
+def twin_triangles(src: Path, dest: Path) -> tuple[Path, int]:
+    """The asset with its coplanar overlapping twin triangles removed, for Blender's reference.
+
+    A twin is a triangle that shares an edge with another, lies in its plane and on the same
+    side of that edge (the two overlap). Cycles keeps a ray from re-hitting the triangle it
+    leaves but not its twin, so a shadow or bounce ray from one stops on the other at distance
+    ~0 and the overlap renders black (or, without shadows, too bright): BoxAnimated's every
+    quad is three such triangles. Keeping, in face order, each triangle that overlaps no kept
+    one leaves the covered surface as it was. Returns (`src`, 0) when no all-triangle mesh has
+    a twin, else (`dest`, the number removed): the flattened stage at the bake's time with
+    those meshes' faces cut to the kept ones."""
+    from pxr import Usd, UsdGeom, Vt
+
+    stage = Usd.Stage.Open(str(src))
+    flat = Usd.Stage.Open(stage.Flatten())
+    removed = 0
+    for prim in flat.Traverse():
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        mesh = UsdGeom.Mesh(prim)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+        if not counts.size or np.any(counts != 3):
+            continue
+        tri = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
+        pts = np.asarray(mesh.GetPointsAttr().Get(Usd.TimeCode.EarliestTime()), dtype=np.float64)
+        nrm = np.cross(pts[tri[:, 1]] - pts[tri[:, 0]], pts[tri[:, 2]] - pts[tri[:, 0]])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        by_edge: dict[tuple[int, int], list[int]] = {}
+        kept: list[int] = []
+        for f, t in enumerate(tri.tolist()):  # a loop over the asset's triangles
+            twin = False
+            for a, b, c in ((t[0], t[1], t[2]), (t[1], t[2], t[0]), (t[2], t[0], t[1])):
+                edge = (min(a, b), max(a, b))
+                for g in by_edge.get(edge, ()):
+                    if abs(float(nrm[f] @ nrm[g])) < 0.999:
+                        continue
+                    other = next(v for v in tri[g].tolist() if v not in edge)
+                    side = np.cross(pts[b] - pts[a], pts[c] - pts[a]) @ nrm[f]
+                    if side * (np.cross(pts[b] - pts[a], pts[other] - pts[a]) @ nrm[f]) > 0:
+                        twin = True
+            if twin:
+                continue
+            kept.append(f)
+            for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0])):
+                by_edge.setdefault((min(a, b), max(a, b)), []).append(f)
+        if len(kept) < len(tri):
+            removed += len(tri) - len(kept)
+            mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray([3] * len(kept)))
+            mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray(tri[kept].ravel().tolist()))
+    if not removed:
+        return src, 0
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    flat.GetRootLayer().Export(str(dest))
+    return dest, removed
+
+
 def blender_lod(name: str, src: Path, bakes: dict[str, dict[str, Any]], lod: int, px: float,
                 renders: Path, args: argparse.Namespace) -> dict[str, dict[str, float]] | str:
-    """Blender's figures of each variant at LOD `lod` ({variant: figures}), or why not run."""
+    """Blender's figures of each variant at LOD `lod` ({variant: figures}), or why not run.
+
+    The reference is the original without its twin triangles (`twin_triangles`; the
+    as-shipped original's figures are kept under "as_shipped" when it has some); the
+    original rendered again under another Cycles seed gives the noise floor
+    (`psnr_floor_db`, `flip_floor`: what the same scene scores against itself)."""
     import pytest
 
     from tests.helpers.dcc import import_and_render, side_by_side
     from texelbake.usd.export import export_lod
 
-    files: dict[str, Path] = {"original": src}
+    ref_src, n_twins = twin_triangles(src, renders / name / "original_without_twins.usda")
+    files: dict[str, Path] = {"original": ref_src, "original_seed1": ref_src}
+    if n_twins:
+        files["original_as_shipped"] = src
     for variant, b in bakes.items():
         root = b["root"]
         files[variant] = export_lod(root, lod, root.parent.with_name(
             f"{root.parent.name}_export") / f"lod{lod}.usdz")
     try:
         got = import_and_render(files, renders / name / f"lod{lod}", resolution=args.resolution,
-                                samples=args.samples, diag_px=px, timeout=3600.0)
+                                samples=args.samples, diag_px=px, timeout=3600.0,
+                                seeds={"original_seed1": 1})
     except (Exception, pytest.fail.Exception, pytest.skip.Exception) as e:
         return f"Blender not run: {str(e).splitlines()[0]}"
     pngs = {k: Path(got["files"][k]["png"]) for k in files}
     ref, a_ref = _png(pngs["original"])
+    floor = image_figures(*_png(pngs["original_seed1"]), ref, a_ref)
     out = {}
     for variant in bakes:
         img, a_img = _png(pngs[variant])
         out[variant] = image_figures(img, ref, a_img, a_ref)
         out[variant]["render_seconds"] = round(got["files"][variant]["render_seconds"], 1)
-    side_by_side([pngs[k] for k in files], renders / f"{name}_lod{lod}.png")
+        out[variant]["psnr_floor_db"] = floor["psnr_db_object"]
+        out[variant]["flip_floor"] = floor["flip_object"]
+        out[variant]["twin_triangles_removed"] = n_twins
+        if n_twins:
+            shipped, a_shipped = _png(pngs["original_as_shipped"])
+            out[variant]["as_shipped"] = image_figures(img, shipped, a_img, a_shipped)
+    side_by_side([pngs[k] for k in files if k != "original_seed1"], renders / f"{name}_lod{lod}.png")
     return out
 
 
@@ -227,7 +300,7 @@ def main() -> None:
             cases[name] = write_scene(name, work / f"{name}.usda", args.size)
     cases["teapot"] = ASSETS / "Teapot" / "Teapot.usd"
     cases["box_animated"] = ASSETS / "BoxAnimated.usdz"
-    renders = args.renders or (args.json.parent / "fallback_renders" if args.json
+    renders = args.renders or (args.json.parent / f"{args.json.stem}_renders" if args.json
                                else work / "renders")
     print(f"bake settings (BakeSettings defaults otherwise): {BAKE}; variants: "
           f"{FALLBACKS}")
@@ -245,6 +318,9 @@ def main() -> None:
             shutil.rmtree(renders / name)
         bakes = bake_variants(name, src, work)
         first = next(iter(bakes.values()))
+        # what Blender shows for the original: UsdPreviewSurface, or the stand-in a material
+        # with a texelbake shader carries on its universal output
+        stand_ins = sorted({m.model for m in load_asset(src).materials} - {"preview"})
         for lod, px in enumerate(first["switch_px"], start=1):
             bl = "--no-blender" if args.no_blender else blender_lod(
                 name, src, bakes, lod, px, renders, args)
@@ -252,7 +328,7 @@ def main() -> None:
                 notes.append(f"{name} LOD{lod}: {bl}")
             for variant, b in bakes.items():
                 rows.append({"asset": name, "lod": lod, "switch_px": px, "variant": variant,
-                             "bake_seconds": b["seconds"],
+                             "bake_seconds": b["seconds"], "blender_stand_ins": stand_ins,
                              "blender": None if isinstance(bl, str) else bl[variant],
                              "texelbake": texelbake_lod(b["root"], lod, px, args)})
             _print_row_block(rows[-len(bakes):])
@@ -288,8 +364,9 @@ def _write_json(args: argparse.Namespace, rows: list[dict[str, Any]], notes: lis
 def _fmt(fig: dict[str, Any] | None) -> str:
     if not fig:
         return f"{'-':>8}{'-':>7}{'-':>7}{'-':>7}"
+    floor = f"{fig['psnr_floor_db']:>7.1f}" if "psnr_floor_db" in fig else ""
     return (f"{fig['psnr_db_object']:>8.2f}{fig['flip_object']:>7.3f}{fig['iou']:>7.3f}"
-            f"{fig['mean_ratio']:>7.2f}")
+            f"{fig['mean_ratio']:>7.2f}{floor}")
 
 
 def _print_row_block(rows: list[dict[str, Any]]) -> None:
@@ -300,12 +377,13 @@ def _print_row_block(rows: list[dict[str, Any]]) -> None:
 
 def _print_table(rows: list[dict[str, Any]]) -> None:
     head = (f"{'asset':<13}{'lod':>4}{'px':>6} {'variant':<10}|{'Blender PSNR':>13}{'FLIP':>7}"
-            f"{'IoU':>7}{'mean':>7} |{'tb PSNR':>9}{'FLIP':>7}{'IoU':>7}{'mean':>7}{'mesh':>6}")
+            f"{'IoU':>7}{'mean':>7}{'floor':>7} |{'tb PSNR':>9}{'FLIP':>7}{'IoU':>7}{'mean':>7}"
+            f"{'mesh':>6}")
     print(head)
     for r in rows:
         tb = r["texelbake"]
         print(f"{r['asset']:<13}{r['lod']:>4}{r['switch_px']:>6g} {r['variant']:<10}|"
-              f"{_fmt(r['blender']):>34} |{_fmt(tb)}{str(tb.get('mesh')):>6}")
+              f"{_fmt(r['blender']):>41} |{_fmt(tb)}{str(tb.get('mesh')):>6}")
 
 
 if __name__ == "__main__":
