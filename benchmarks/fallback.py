@@ -20,11 +20,12 @@ the film transparent) with the camera where the original's bounding-box diagonal
 LOD's switch size in pixels (`lod_switch_px`; at 256² LOD1's 256 px fill the frame). The
 original there is what Blender makes of the source (its UsdPreviewSurface where it has one:
 Blender cannot evaluate texelbake's own shaders and shows their stand-in, listed per row as
-`blender_stand_ins`), without coplanar overlapping twin triangles (`twin_triangles`: Cycles
-renders their overlap black; the as-shipped figures stay under `as_shipped`). The original
-rendered again under a second Cycles seed gives the noise floor (`psnr_floor_db`, `flip_floor`,
-per asset and LOD). The JSON's notes say, per asset and LOD, where the fitted fallback misses
-the 3 dB bar, the floor, and what Blender's reference is (`bar_notes`). texelbake: `preview-surface` (what a USD viewer
+`blender_stand_ins`), without coplanar overlapping twin triangles
+(`tests.helpers.dcc.without_twin_triangles`: Cycles renders their overlap black; the
+as-shipped figures stay under `as_shipped`). The original rendered again under a second Cycles
+seed gives the noise floor (`psnr_floor_db`, `flip_floor`, per asset and LOD). The JSON's
+notes say, per asset and LOD, where the fitted fallback misses the 3 dB bar, the floor, and
+what Blender's reference is (`bar_notes`). texelbake: `preview-surface` (what a USD viewer
 without texelbake's shader shows: each LOD's fallback as authored) at `--tb-spp` against `gt`
 (the original's true materials) at `--tb-ref-spp`, the same resolution, auto-framed so the
 bounding sphere's diameter covers the switch size (its own camera and lights: the two
@@ -78,6 +79,26 @@ and in Blender at LOD2 (0.64). Blender's cloisonne original is its preview surfa
 cannot evaluate texelbake's cellular shader); texelbake's gt is the real shader, hence the
 spread between the renderers there. BoxAnimated's original has dark triangles of its own in
 Cycles (its geometry, lods.py).
+
+Why Blender's figures were far below texelbake's (docs/decisions.md, measured): not noise (the
+floor, 29-57 dB, is 13-35 dB above every LOD figure); the fallback authored the metallic
+workflow's specularColor (0, 0, 0), which Blender's importer makes Specular Tint (a metal's
+black rims; fixed: `dominant_constants`); BoxAnimated's coplanar twin triangles, which Cycles
+renders black (the reference is now the original without them); and the cloisonne's reference,
+the scene's one-colour stand-in. Re-run with those (benchmarks/results/fallback_gap.json,
+`--assets bolt teapot box_animated` and `--assets cloisonne`, rows joined), Blender, averaged /
+fitted:
+
+| asset        | LOD | Blender PSNR    | mean        | floor | tb PSNR       |
+|--------------|----:|----------------:|------------:|------:|--------------:|
+| bolt         |   1 |   32.09 / 32.17 | 1.06 / 0.91 |  44.0 | 42.26 / 40.59 |
+| bolt         |   2 |   13.63 / 13.63 | 0.84 / 0.77 |  29.0 | 30.96 / 30.57 |
+| teapot       |   1 |   29.89 / 26.39 | 1.00 / 0.92 |  46.3 | 37.78 / 35.40 |
+| teapot       |   2 |   25.20 / 23.58 | 0.92 / 0.86 |  42.9 | 24.64 / 23.69 |
+| box_animated |   1 |   22.36 / 21.24 | 1.02 / 1.00 |  55.1 | 22.89 / 21.75 |
+CLOISONNE_ROWS
+The bolt's LOD2 is one sun glint on its head (1 % of the pixels, 68 % of the squared error),
+from the LOD itself (it stays with the normal map off and with flat shading), not the mapping.
 """
 
 from __future__ import annotations
@@ -161,76 +182,20 @@ def bake_variants(name: str, src: Path, work: Path) -> dict[str, dict[str, Any]]
     return out
 
 
-def twin_triangles(src: Path, dest: Path) -> tuple[Path, int]:
-    """The asset with its coplanar overlapping twin triangles removed, for Blender's reference.
-
-    A twin is a triangle that shares an edge with another, lies in its plane and on the same
-    side of that edge (the two overlap). Cycles keeps a ray from re-hitting the triangle it
-    leaves but not its twin, so a shadow or bounce ray from one stops on the other at distance
-    ~0 and the overlap renders black (or, without shadows, too bright): BoxAnimated's every
-    quad is three such triangles. Keeping, in face order, each triangle that overlaps no kept
-    one leaves the covered surface as it was. Returns (`src`, 0) when no all-triangle mesh has
-    a twin, else (`dest`, the number removed): the flattened stage at the bake's time with
-    those meshes' faces cut to the kept ones."""
-    from pxr import Usd, UsdGeom, Vt
-
-    stage = Usd.Stage.Open(str(src))
-    flat = Usd.Stage.Open(stage.Flatten())
-    removed = 0
-    for prim in flat.Traverse():
-        if not prim.IsA(UsdGeom.Mesh):
-            continue
-        mesh = UsdGeom.Mesh(prim)
-        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
-        if not counts.size or np.any(counts != 3):
-            continue
-        tri = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
-        pts = np.asarray(mesh.GetPointsAttr().Get(Usd.TimeCode.EarliestTime()), dtype=np.float64)
-        nrm = np.cross(pts[tri[:, 1]] - pts[tri[:, 0]], pts[tri[:, 2]] - pts[tri[:, 0]])
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-        by_edge: dict[tuple[int, int], list[int]] = {}
-        kept: list[int] = []
-        for f, t in enumerate(tri.tolist()):  # a loop over the asset's triangles
-            twin = False
-            for a, b, c in ((t[0], t[1], t[2]), (t[1], t[2], t[0]), (t[2], t[0], t[1])):
-                edge = (min(a, b), max(a, b))
-                for g in by_edge.get(edge, ()):
-                    if abs(float(nrm[f] @ nrm[g])) < 0.999:
-                        continue
-                    other = next(v for v in tri[g].tolist() if v not in edge)
-                    side = np.cross(pts[b] - pts[a], pts[c] - pts[a]) @ nrm[f]
-                    if side * (np.cross(pts[b] - pts[a], pts[other] - pts[a]) @ nrm[f]) > 0:
-                        twin = True
-            if twin:
-                continue
-            kept.append(f)
-            for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0])):
-                by_edge.setdefault((min(a, b), max(a, b)), []).append(f)
-        if len(kept) < len(tri):
-            removed += len(tri) - len(kept)
-            mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray([3] * len(kept)))
-            mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray(tri[kept].ravel().tolist()))
-    if not removed:
-        return src, 0
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    flat.GetRootLayer().Export(str(dest))
-    return dest, removed
-
-
 def blender_lod(name: str, src: Path, bakes: dict[str, dict[str, Any]], lod: int, px: float,
                 renders: Path, args: argparse.Namespace) -> dict[str, dict[str, float]] | str:
     """Blender's figures of each variant at LOD `lod` ({variant: figures}), or why not run.
 
-    The reference is the original without its twin triangles (`twin_triangles`; the
+    The reference is the original without its twin triangles (`without_twin_triangles`; the
     as-shipped original's figures are kept under "as_shipped" when it has some); the
     original rendered again under another Cycles seed gives the noise floor
     (`psnr_floor_db`, `flip_floor`: what the same scene scores against itself)."""
     import pytest
 
-    from tests.helpers.dcc import import_and_render, side_by_side
+    from tests.helpers.dcc import import_and_render, side_by_side, without_twin_triangles
     from texelbake.usd.export import export_lod
 
-    ref_src, n_twins = twin_triangles(src, renders / name / "original_without_twins.usda")
+    ref_src, n_twins = without_twin_triangles(src, renders / name / "original_without_twins.usda")
     files: dict[str, Path] = {"original": ref_src, "original_seed1": ref_src}
     if n_twins:
         files["original_as_shipped"] = src

@@ -147,6 +147,63 @@ def side_by_side(pngs: list[Path], out: Path) -> Path:
     return write_pixels(out, np.round(np.clip(row, 0, 1) * 255).astype(np.uint8), "uint8")
 
 
+def without_twin_triangles(src: Path, dest: Path) -> tuple[Path, int]:
+    """The asset with its coplanar overlapping twin triangles removed, for Blender's reference.
+
+    A twin is a triangle that shares an edge with another, lies in its plane and on the same
+    side of that edge (the two overlap). Cycles keeps a ray from re-hitting the triangle it
+    leaves but not its twin, so a shadow or bounce ray from one stops on the other at distance
+    ~0 and the overlap renders black (or, without shadows, too bright): BoxAnimated's every
+    quad is three such triangles. Keeping, in face order, each triangle that overlaps no kept
+    one leaves the covered surface as it was. Returns (`src`, 0) when no all-triangle mesh has
+    a twin, else (`dest`, the number removed): the flattened stage at the bake's time with
+    those meshes' faces cut to the kept ones."""
+    import numpy as np
+    from pxr import Usd, UsdGeom, Vt
+
+    stage = Usd.Stage.Open(str(src))
+    flat = Usd.Stage.Open(stage.Flatten())
+    removed = 0
+    for prim in flat.Traverse():
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        mesh = UsdGeom.Mesh(prim)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+        if not counts.size or np.any(counts != 3):
+            continue
+        tri = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
+        pts = np.asarray(mesh.GetPointsAttr().Get(Usd.TimeCode.EarliestTime()), dtype=np.float64)
+        nrm = np.cross(pts[tri[:, 1]] - pts[tri[:, 0]], pts[tri[:, 2]] - pts[tri[:, 0]])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        by_edge: dict[tuple[int, int], list[int]] = {}
+        kept: list[int] = []
+        for f, t in enumerate(tri.tolist()):  # a loop over the asset's triangles
+            twin = False
+            for a, b, c in ((t[0], t[1], t[2]), (t[1], t[2], t[0]), (t[2], t[0], t[1])):
+                edge = (min(a, b), max(a, b))
+                for g in by_edge.get(edge, ()):
+                    if abs(float(nrm[f] @ nrm[g])) < 0.999:
+                        continue
+                    other = next(v for v in tri[g].tolist() if v not in edge)
+                    side = np.cross(pts[b] - pts[a], pts[c] - pts[a]) @ nrm[f]
+                    if side * (np.cross(pts[b] - pts[a], pts[other] - pts[a]) @ nrm[f]) > 0:
+                        twin = True
+            if twin:
+                continue
+            kept.append(f)
+            for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0])):
+                by_edge.setdefault((min(a, b), max(a, b)), []).append(f)
+        if len(kept) < len(tri):
+            removed += len(tri) - len(kept)
+            mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray([3] * len(kept)))
+            mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray(tri[kept].ravel().tolist()))
+    if not removed:
+        return src, 0
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    flat.GetRootLayer().Export(str(dest))
+    return dest, removed
+
+
 def keep_artifacts(paths: list[Path], subdir: str) -> Path | None:
     """Copy `paths` to $TEXELBAKE_TEST_ARTIFACTS/<subdir>/ when that variable is set."""
     import shutil
@@ -162,4 +219,5 @@ def keep_artifacts(paths: list[Path], subdir: str) -> Path | None:
 
 
 __all__ = ["ARTIFACTS_ENV", "bpy_python", "compare_renders", "import_and_render",
-           "keep_artifacts", "run_blender", "side_by_side", "write_render_png"]
+           "keep_artifacts", "run_blender", "side_by_side", "without_twin_triangles",
+           "write_render_png"]
