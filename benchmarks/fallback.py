@@ -36,8 +36,8 @@ of both silhouettes, dilated by a pixel): PSNR (dB, linear radiance, peak the re
 Blender's 8-bit sRGB PNGs decoded to linear), FLIP (`metrics.flip_map`, mean over the object),
 silhouette IoU (alpha or coverage >= 0.5) and the object's mean radiance over its own
 silhouette as a ratio to the original's (the bolt's acceptance: within 25 %). Screenshots
-(original | each variant, per asset and LOD) go to `--renders` (default: `fallback_renders/`
-beside the JSON).
+(original | the as-shipped original where twins were removed | each variant, per asset and
+LOD) go to `--renders` (default: `<json stem>_renders/` beside the JSON).
 
 Measured (benchmarks/results/fallback.json; scenes full size; bakes at `BAKE`; Cycles 256² at
 256 spp, no denoiser, 10-100 s per render at load 7-12; texelbake preview-surface 16 spp against
@@ -322,7 +322,8 @@ def main() -> None:
                 print(f"bolt LOD{r['lod']} {r['variant']} ({who}): object mean radiance "
                       f"{r[who]['mean_radiance']:.4f} vs original {r[who]['mean_radiance_original']:.4f}"
                       f" (ratio {r[who]['mean_ratio']:.3f}; the fitted fallback's bar: 0.75-1.25)")
-    print(f"screenshots (original | {' | '.join(FALLBACKS)}): {renders}/<asset>_lod<N>.png")
+    print(f"screenshots (original | the original as shipped, where twins were removed | "
+          f"{' | '.join(FALLBACKS)}): {renders}/<asset>_lod<N>.png")
     if args.json:
         _write_json(args, rows, notes)
 
