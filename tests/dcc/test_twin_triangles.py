@@ -34,8 +34,10 @@ CORNERS = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in
 
 
 def _cube(path: Path, triangles: tuple[tuple[int, int, int], ...]) -> Path:
-    """A cube of 24 points (four a face, the face's normal on each), each face's quad
-    (0, 1, 2, 3) written as `triangles` of those corners; one grey UsdPreviewSurface."""
+    """A cube of 24 points (four a face), each face's quad (0, 1, 2, 3) written as `triangles`
+    of those corners, the face's normal on each corner (faceVarying), `st` the quad corner's
+    (faceVarying, indexed), a GeomSubset of the +z face's triangles; one grey
+    UsdPreviewSurface."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
     stage = Usd.Stage.CreateNew(str(path))
@@ -43,16 +45,24 @@ def _cube(path: Path, triangles: tuple[tuple[int, int, int], ...]) -> Path:
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     root = UsdGeom.Xform.Define(stage, "/Cube")
     stage.SetDefaultPrim(root.GetPrim())
-    pts, nrm, idx = [], [], []
+    pts, nrm, idx, st_idx, top = [], [], [], [], []
     for quad, n in FACES:
         base = len(pts)
         pts += [CORNERS[i] for i in quad]
-        nrm += [n] * 4
+        if n == (0, 0, 1):
+            top += range(len(idx) // 3, len(idx) // 3 + len(triangles))
+        nrm += [n] * 3 * len(triangles)
         idx += [base + i for t in triangles for i in t]
+        st_idx += [i for t in triangles for i in t]
     mesh = UsdGeom.Mesh.Define(stage, "/Cube/Geom")
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(pts, dtype=np.float32)))
     mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(nrm, dtype=np.float32)))
-    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying)
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                 UsdGeom.Tokens.faceVarying)
+    st.Set(Vt.Vec2fArray([(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)]))
+    st.SetIndices(Vt.IntArray(st_idx))
+    UsdGeom.Subset.CreateGeomSubset(mesh, "top", UsdGeom.Tokens.face, Vt.IntArray(top))
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * (len(idx) // 3)))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(idx))
     mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
@@ -85,9 +95,14 @@ def test_the_twins_are_found_and_the_cover_kept(cubes):
 
     def faces(path):
         stage = Usd.Stage.Open(str(path))
-        return list(UsdGeom.Mesh(stage.GetPrimAtPath("/Cube/Geom")).GetFaceVertexIndicesAttr()
-                    .Get())
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Cube/Geom"))
+        st = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st")
+        return {"faces": list(mesh.GetFaceVertexIndicesAttr().Get()),
+                "normals": np.asarray(mesh.GetNormalsAttr().Get()).tolist(),
+                "st": np.asarray(st.ComputeFlattened()).tolist(),
+                "top": list(UsdGeom.Subset.GetAllGeomSubsets(mesh)[0].GetIndicesAttr().Get())}
 
+    # topology, corner normals, the indexed st and the subset: the cube written cleanly
     assert faces(cubes["repaired"]) == faces(cubes["clean"])
     # a mesh without twins is handed back as it is
     assert without_twin_triangles(cubes["clean"], cubes["dir"] / "again.usda") == (

@@ -156,10 +156,10 @@ def without_twin_triangles(src: Path, dest: Path) -> tuple[Path, int]:
     ~0 and the overlap renders black (or, without shadows, too bright): BoxAnimated's every
     quad is three such triangles. Keeping, in face order, each triangle that overlaps no kept
     one leaves the covered surface as it was. Returns (`src`, 0) when no all-triangle mesh has
-    a twin, else (`dest`, the number removed): the flattened stage at the bake's time with
-    those meshes' faces cut to the kept ones."""
+    a twin, else (`dest`, the number removed): the flattened stage with those meshes cut to
+    the kept faces (`_keep_faces`), the twins found at the stage's earliest time."""
     import numpy as np
-    from pxr import Usd, UsdGeom, Vt
+    from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.Open(str(src))
     flat = Usd.Stage.Open(stage.Flatten())
@@ -195,13 +195,46 @@ def without_twin_triangles(src: Path, dest: Path) -> tuple[Path, int]:
                 by_edge.setdefault((min(a, b), max(a, b)), []).append(f)
         if len(kept) < len(tri):
             removed += len(tri) - len(kept)
-            mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray([3] * len(kept)))
-            mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray(tri[kept].ravel().tolist()))
+            _keep_faces(mesh, np.asarray(kept, dtype=np.int64), len(tri))
     if not removed:
         return src, 0
     dest.parent.mkdir(parents=True, exist_ok=True)
     flat.GetRootLayer().Export(str(dest))
     return dest, removed
+
+
+def _keep_faces(mesh, kept, n_faces: int) -> None:
+    """Cut an all-triangle UsdGeom.Mesh to its faces `kept` ((k,) int64, ascending): the
+    topology, per-face (uniform) and per-corner (faceVarying) primvars and normals, their
+    indices where indexed, and GeomSubsets' face indices."""
+    import numpy as np
+    from pxr import UsdGeom, Vt
+
+    corners = (kept[:, None] * 3 + np.arange(3)).ravel()  # (3 k,) the kept corners
+    tri = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)
+    mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray([3] * len(kept)))
+    mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray(tri[corners].tolist()))
+    rows = {UsdGeom.Tokens.uniform: kept, UsdGeom.Tokens.faceVarying: corners}
+    for pv in UsdGeom.PrimvarsAPI(mesh).GetPrimvars():
+        sel = rows.get(pv.GetInterpolation())
+        if sel is None:
+            continue
+        if pv.IsIndexed():
+            pv.SetIndices(Vt.IntArray(np.asarray(pv.GetIndices())[sel].tolist()))
+        else:
+            attr = pv.GetAttr()
+            values = attr.Get()
+            attr.Set(type(values).FromNumpy(np.ascontiguousarray(np.asarray(values)[sel])))
+    normals = mesh.GetNormalsAttr()
+    sel = rows.get(mesh.GetNormalsInterpolation())
+    if normals.HasAuthoredValue() and sel is not None:
+        normals.Set(Vt.Vec3fArray.FromNumpy(
+            np.ascontiguousarray(np.asarray(normals.Get(), dtype=np.float32)[sel])))
+    new_index = np.full(n_faces, -1, dtype=np.int64)
+    new_index[kept] = np.arange(len(kept))
+    for subset in UsdGeom.Subset.GetAllGeomSubsets(mesh):
+        faces = new_index[np.asarray(subset.GetIndicesAttr().Get(), dtype=np.int64)]
+        subset.GetIndicesAttr().Set(Vt.IntArray(faces[faces >= 0].tolist()))
 
 
 def keep_artifacts(paths: list[Path], subdir: str) -> Path | None:
