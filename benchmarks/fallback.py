@@ -6,6 +6,7 @@ same LOD in texelbake's own `preview-surface` mode against its `gt` reference.
     python benchmarks/fallback.py --json benchmarks/results/fallback.json
         [--assets cylinder bolt ...] [--size full] [--resolution 256] [--samples 256]
         [--tb-spp 16] [--tb-ref-spp 256] [--renders DIR] [--no-blender]
+        [--variants averaged ...]
 
 Assets: the four generated scenes at `--size` (full), the Teapot and BoxAnimated.usdz from
 ../shared/assets. Each is baked once per fallback variant (`FALLBACKS`: a column name and the
@@ -169,10 +170,11 @@ def _png(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return srgb_to_linear(px[..., :3]).astype(np.float64), px[..., 3]
 
 
-def bake_variants(name: str, src: Path, work: Path) -> dict[str, dict[str, Any]]:
+def bake_variants(name: str, src: Path, work: Path, variants: dict[str, dict[str, Any]]
+                  ) -> dict[str, dict[str, Any]]:
     """{variant: {"root", "seconds", "switch_px"}}: one bake per fallback variant."""
     out = {}
-    for variant, fields in FALLBACKS.items():  # a loop over the few variants
+    for variant, fields in variants.items():  # a loop over the few variants
         settings = BakeSettings(**{**BAKE, **fields})
         dest = work / f"{name}_{variant}"
         t0 = time.perf_counter()
@@ -269,7 +271,11 @@ def main() -> None:
     ap.add_argument("--tb-ref-spp", type=int, default=256, help="gt eye rays per pixel")
     ap.add_argument("--renders", type=Path, help="keep the renders and screenshots here")
     ap.add_argument("--no-blender", action="store_true", help="skip the Blender columns")
+    ap.add_argument("--variants", nargs="*", choices=list(FALLBACKS),
+                    help="subset of the fallback variants (default: all)")
     args = ap.parse_args()
+    args.fallbacks = {k: v for k, v in FALLBACKS.items()
+                      if not args.variants or k in args.variants}
     work = Path(tempfile.mkdtemp(prefix="fallback_bench_"))
     cases: dict[str, Path] = {}
     for name in SCENES:
@@ -280,7 +286,7 @@ def main() -> None:
     renders = args.renders or (args.json.parent / f"{args.json.stem}_renders" if args.json
                                else work / "renders")
     print(f"bake settings (BakeSettings defaults otherwise): {BAKE}; variants: "
-          f"{FALLBACKS}")
+          f"{args.fallbacks}")
     print(f"Blender: Cycles CPU {args.resolution}^2, {args.samples} spp, no denoiser; "
           f"texelbake: preview-surface {args.tb_spp} spp against gt {args.tb_ref_spp} spp")
     rows: list[dict[str, Any]] = []
@@ -293,7 +299,7 @@ def main() -> None:
             continue
         if renders.exists() and (renders / name).exists():
             shutil.rmtree(renders / name)
-        bakes = bake_variants(name, src, work)
+        bakes = bake_variants(name, src, work, args.fallbacks)
         first = next(iter(bakes.values()))
         # what Blender shows for the original: UsdPreviewSurface, or the stand-in a material
         # with a texelbake shader carries on its universal output
@@ -323,7 +329,7 @@ def main() -> None:
                       f"{r[who]['mean_radiance']:.4f} vs original {r[who]['mean_radiance_original']:.4f}"
                       f" (ratio {r[who]['mean_ratio']:.3f}; the fitted fallback's bar: 0.75-1.25)")
     print(f"screenshots (original | the original as shipped, where twins were removed | "
-          f"{' | '.join(FALLBACKS)}): {renders}/<asset>_lod<N>.png")
+          f"{' | '.join(args.fallbacks)}): {renders}/<asset>_lod<N>.png")
     if args.json:
         _write_json(args, rows, notes)
 
@@ -360,7 +366,7 @@ def _write_json(args: argparse.Namespace, rows: list[dict[str, Any]], notes: lis
     notes = [*notes, *bar_notes(rows)]
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({
-        "size": args.size, "bake": BAKE, "fallbacks": FALLBACKS,
+        "size": args.size, "bake": BAKE, "fallbacks": args.fallbacks,
         "blender": {"engine": "CYCLES", "device": "CPU", "resolution": args.resolution,
                     "samples": args.samples, "denoiser": False},
         "texelbake": {"mode": "preview-surface", "spp": args.tb_spp,

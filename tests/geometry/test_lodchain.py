@@ -194,32 +194,122 @@ def test_bad_switch_sizes_are_named():
         BakeSettings(lod_switch_px=(64.0, 64.0))
 
 
+def _face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    fn = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
+    return fn / np.linalg.norm(fn, axis=1, keepdims=True)
+
+
+def _prism(sides: int, rings: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """An open regular prism about z (radius 1, height 1), outward faces."""
+    phi = 2.0 * np.pi * np.arange(sides) / sides
+    z = np.linspace(0.0, 1.0, rings + 1)
+    v = np.stack([np.tile(np.cos(phi), rings + 1), np.tile(np.sin(phi), rings + 1),
+                  np.repeat(z, sides)], axis=1)
+    i, k = np.meshgrid(np.arange(rings), np.arange(sides), indexing="ij")
+    a, b = i * sides + k, i * sides + (k + 1) % sides
+    c, d = a + sides, b + sides
+    f = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3),
+                        np.stack([a, d, c], -1).reshape(-1, 3)])
+    return v, f.astype(np.int64)
+
+
+def test_smooth_corner_normals_match_a_per_vertex_loop_and_split_at_the_crease(monkeypatch):
+    # the vectorized pairs against a plain loop over each corner's vertex, on a bumpy sphere
+    # whose vertices are also duplicated (a soup: vertices at one position are one); in
+    # chunks of a few pairs the same
+    import texelbake.geometry.lodchain as lodchain
+    from tests.helpers.meshes import soup
+
+    v, f = bumpy_sphere(2, amplitude=0.15, freq=5)
+    fn = _face_normals(v, f)
+    tri = v[f]
+    want = np.zeros((len(f), 3, 3))
+    for c in (20.0, 60.0):
+        for fi in range(len(f)):  # the independent computation: one corner at a time
+            for k in range(3):
+                acc = np.zeros(3)
+                for fj, kj in zip(*np.nonzero(f == f[fi, k]), strict=True):
+                    if fn[fi] @ fn[fj] >= np.cos(np.radians(c)):
+                        e1, e2 = tri[fj, (kj + 1) % 3] - tri[fj, kj], tri[fj, (kj + 2) % 3] - tri[fj, kj]
+                        acc += np.arccos(e1 @ e2 / np.linalg.norm(e1) / np.linalg.norm(e2)) * fn[fj]
+                want[fi, k] = acc / np.linalg.norm(acc)
+        sv, sf = soup(v, f)
+        got = lodchain.smooth_corner_normals(sv, sf, crease_deg=c)
+        np.testing.assert_allclose(got, want, atol=1e-12)
+        monkeypatch.setattr(lodchain, "PAIR_CHUNK", 7)
+        np.testing.assert_array_equal(lodchain.smooth_corner_normals(sv, sf, crease_deg=c), got)
+        monkeypatch.undo()
+    # a box's edges (90 degrees) are creases at 60: every corner keeps its face's normal
+    bv, bf = box()
+    np.testing.assert_array_equal(lodchain.smooth_corner_normals(bv, bf),
+                                  np.repeat(_face_normals(bv, bf)[:, None], 3, axis=1))
+    assert lodchain.smooth_corner_normals(bv, bf[:0]).shape == (0, 3, 3)
+    with pytest.raises(SettingsError, match="crease_deg"):
+        lodchain.smooth_corner_normals(bv, bf, crease_deg=0.0)
+
+
 def test_lod_corner_normals_keep_sharp_edges_sharp_and_smooth_surfaces_smooth():
     # issue 22: a DCC shades a LOD with the normals it carries. A box (M_org's corner normals
     # its face normals, sharp) onto a box LOD: every corner takes its own face's normal
     # exactly; a fine sphere with radial (smooth) corner normals onto a coarser sphere: each
-    # corner's normal is the radial direction at its inset point (closed form), within the
-    # interpolation error of the fine mesh's normals (edge ~0.1 rad: cos error < 1e-2)
+    # corner's normal is the radial direction at its vertex within the coarse sphere's
+    # asymmetry (its angle-weighted vertex normals: cos error < 1e-3), equal at a vertex
     from tests.helpers.meshes import icosphere
-    from texelbake.geometry.lodchain import CORNER_INSET, transfer_corner_normals
+    from texelbake.geometry.lodchain import lod_corner_normals
 
     v, f = box()
-    fn = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
-    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
-    got = transfer_corner_normals(v, f, np.repeat(fn[:, None], 3, axis=1),
-                                  RayCaster(v, f))
+    fn = _face_normals(v, f)
+    got = lod_corner_normals(v, f, np.repeat(fn[:, None], 3, axis=1), RayCaster(v, f))
     np.testing.assert_allclose(got, np.repeat(fn[:, None], 3, axis=1), atol=1e-9)
 
     fine_v, fine_f = icosphere(4)
     radial = fine_v[fine_f] / np.linalg.norm(fine_v[fine_f], axis=2, keepdims=True)
     lod_v, lod_f = icosphere(2)
-    got = transfer_corner_normals(lod_v, lod_f, radial, RayCaster(fine_v, fine_f))
-    tri = lod_v[lod_f]
-    q = tri + CORNER_INSET * (tri.mean(axis=1, keepdims=True) - tri)
-    want = q / np.linalg.norm(q, axis=2, keepdims=True)
-    assert np.einsum("fkd,fkd->fk", got, want).min() > 0.99
-    # not the face normals: the three corners of a LOD face differ (smooth shading)
-    assert np.einsum("fkd,fkd->fk", got[:, :1], got[:, 1:]).min() < 0.999
+    got = lod_corner_normals(lod_v, lod_f, radial, RayCaster(fine_v, fine_f))
+    want = lod_v[lod_f] / np.linalg.norm(lod_v[lod_f], axis=2, keepdims=True)
+    assert np.einsum("fkd,fkd->fk", got, want).min() > 0.999
+    per_vertex = np.zeros((len(lod_v), 3))
+    per_vertex[lod_f.ravel()] = got.reshape(-1, 3)  # the last corner's
+    np.testing.assert_allclose(got, per_vertex[lod_f], atol=1e-12)
+
+
+def test_lod_corner_normals_follow_the_lods_surface_not_m_orgs_bumps():
+    # a bumpy plane (bumps sloped up to ~50 degrees, smooth-shaded by their analytic normals)
+    # under a flat 4x4 LOD: the LOD's corners face +z (the bumps belong to the normal map);
+    # M_org's normal at the corner, the old rule, is up to the bumps' slope off
+    from texelbake.geometry.lodchain import lod_corner_normals, org_corner_normals
+
+    a, k = 0.02, 2.0 * np.pi * 9.5  # height a sin(kx) sin(ky): slope a k = 1.19
+    v, f = plane_grid(120, 120)
+    v[:, 2] = a * np.sin(k * v[:, 0]) * np.sin(k * v[:, 1])
+    grad = np.stack([a * k * np.cos(k * v[:, 0]) * np.sin(k * v[:, 1]),
+                     a * k * np.sin(k * v[:, 0]) * np.cos(k * v[:, 1])], axis=1)
+    n_org = np.column_stack([-grad, np.ones(len(v))])
+    n_org = (n_org / np.linalg.norm(n_org, axis=1, keepdims=True))[f]
+    lod_v, lod_f = plane_grid(4, 4)
+    caster = RayCaster(v, f)
+    off = np.degrees(np.arccos(lod_corner_normals(lod_v, lod_f, n_org, caster)[..., 2]))
+    assert off.max() < 1e-6
+    old = np.degrees(np.arccos(org_corner_normals(lod_v, lod_f, n_org, caster)[..., 2]))
+    assert np.median(old) > 10.0
+
+
+@pytest.mark.parametrize("sides", [12, 64])
+def test_a_prisms_edges_stay_sharp_where_m_org_is_flat_shaded(sides):
+    # the same prism as M_org and as its LOD: flat-shaded (corner normals = face normals, the
+    # cylinder's ridges, the bolt's bumps on LOD1) every corner keeps its face's normal even
+    # where the edge (30 degrees at 12 sides, 5.6 at 64) is below the crease angle; smooth-
+    # shaded (radial corner normals) the corners are the prism's vertex normals, radial
+    from texelbake.geometry.lodchain import lod_corner_normals
+
+    v, f = _prism(sides)
+    fn = _face_normals(v, f)
+    flat = np.repeat(fn[:, None], 3, axis=1)
+    caster = RayCaster(v, f)
+    np.testing.assert_allclose(lod_corner_normals(v, f, flat, caster), flat, atol=1e-9)
+    radial = v[f] * [1.0, 1.0, 0.0]
+    got = lod_corner_normals(v, f, radial, caster)
+    np.testing.assert_allclose(got, radial, atol=1e-9)
 
 
 def _recorded_collapses(monkeypatch):

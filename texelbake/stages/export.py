@@ -18,7 +18,7 @@ from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
 from texelbake.estimate.costmodel import atlas_trade
 from texelbake.geometry.build import geometry_chunk, lod_meshes, lod_report
-from texelbake.geometry.lodchain import transfer_corner_normals
+from texelbake.geometry.lodchain import lod_corner_normals
 from texelbake.io.atomic import atomic_json
 from texelbake.io.chunks import chunk_ranges, sample_rows
 from texelbake.stages.avis import avis_level_chunks, avis_rays
@@ -94,9 +94,11 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
         levels.append(arrays)
         level_reports.append(rep)
     dirs = direction_sets(s)
-    # shading normals from M_org for the tools that shade the LOD meshes themselves
-    meshes = [LodMesh(v, f, uv, corner_normals=transfer_corner_normals(
-        v, f, asset.corner_normals, ctx.caster())) for v, f, uv in lod_meshes(geo)]
+    # shading normals of each LOD's own surface for the tools that shade the LOD meshes
+    # themselves (M_org's detail is in the normal maps, baked in these normals' frames)
+    meshes = [LodMesh(v, f, uv, corner_normals=lod_corner_normals(
+        v, f, asset.corner_normals, ctx.caster()))
+              for v, f, uv in lod_meshes(geo)]
     # the normal map is in the tangent frames of the mesh that carries it, LOD1
     frames1, prim_of = lod1_frames(geo)
     preview = PreviewSums(s.atlas_resolution)

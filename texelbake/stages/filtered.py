@@ -94,7 +94,7 @@ FALLBACK_SAMPLES_PER_TEXEL = 1
 FALLBACK_AO_RAYS = 8
 _TAG_FALLBACK = 0x5F
 #: the dense fallback maps' artifact version (what the fitted gain is computed from too)
-FALLBACK_VERSION = "fallback-v5"
+FALLBACK_VERSION = "fallback-v6"
 
 
 def _texel_size(geo: dict[str, np.ndarray], n: int) -> float:
@@ -149,7 +149,7 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     from texelbake.baselines.normal_maps import face_tangent_space
     from texelbake.geometry.atlas import Atlas
     from texelbake.geometry.build import lod_meshes
-    from texelbake.geometry.lodchain import transfer_corner_normals
+    from texelbake.geometry.lodchain import lod_corner_normals
     from texelbake.geometry.mesh import Mesh, face_normals
     from texelbake.geometry.mikktspace import frames_at, mikk_tangents
     from texelbake.geometry.raycast import RayCaster
@@ -175,7 +175,7 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     if bool(geo["lod_exact"]):  # the texel's face; the point projected on its plane
         near = asg.prim
         bary = plane_bary(v[f[near]], smp.positions)
-    cnrm = transfer_corner_normals(v, f, asset.corner_normals, caster)
+    cnrm = lod_corner_normals(v, f, asset.corner_normals, caster)
     tangent, sign = mikk_tangents(v, f, cnrm, uv)
     return {"smp": smp, "gnrm": gnrm, "row": asg.row, "col": asg.col, "prim": near,
             "frames": face_tangent_space(v, f, uv), "lod1_vertices": v, "lod1_faces": f,
@@ -292,13 +292,13 @@ def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
     coarser LOD: its normals there are not LOD1's. Kept in the artifact store."""
     from texelbake.geometry.atlas import rasterize_atlas
     from texelbake.geometry.build import lod_meshes
-    from texelbake.geometry.lodchain import transfer_corner_normals
+    from texelbake.geometry.lodchain import lod_corner_normals
     from texelbake.geometry.mikktspace import encode, frames_at, mikk_tangents
     from texelbake.geometry.raycast import RayCaster
 
     geo = ctx.geometry()
     lods = lod_meshes(geo)[1:]
-    key = ctx.key("filtered", f"fallback-normals-v2-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}.npz",
+    key = ctx.key("filtered", f"fallback-normals-v3-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}.npz",
                   GEOMETRY_FIELDS)
     if ctx.store.exists(key):
         d = ctx.store.read_arrays(key)
@@ -309,7 +309,7 @@ def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
     filled = (np.bincount(t0, weights=smp.area, minlength=res * res) > 0).reshape(res, res)
     out = {}
     for i, (v, f, uv) in enumerate(lods):  # a loop over the few LODs
-        cnrm = transfer_corner_normals(v, f, ctx.asset().corner_normals, ctx.caster())
+        cnrm = lod_corner_normals(v, f, ctx.asset().corner_normals, ctx.caster())
         tangent, sign = mikk_tangents(v, f, cnrm, uv)
         # the frame where a viewer decodes the sample's texel: at the texel's centre on
         # this LOD (its uvs); texels this LOD's charts miss: at the sample's closest point
