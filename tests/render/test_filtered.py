@@ -123,6 +123,25 @@ def test_preview_surface_reproduces_the_plane_material(specular_plane, tmp_path)
     assert {"normalmap", "preview-surface", "leadr"} <= set(rep["modes"])
 
 
+def test_preview_surface_draws_the_lod_asked_for(specular_plane):
+    """A benchmark judging one LOD draws that mesh: `lod=` given the mesh the camera's error
+    selects renders the same image bit for bit, and a mesh the scene lacks is refused by
+    name."""
+    from texelbake.errors import SettingsError
+    from texelbake.render.cpm import choose_mesh
+    from texelbake.render.preview_surface import render_preview_surface
+    from texelbake.render.scene import load_scene, resolve_camera
+
+    scene = load_scene(specular_plane)
+    cam = resolve_camera(scene, 2.0, 16, 16)
+    picked = choose_mesh(scene, cam, 1.0)
+    auto = render_preview_surface(scene, cam, 2, 0)
+    forced = render_preview_surface(scene, cam, 2, 0, lod=picked)
+    np.testing.assert_array_equal(auto[0], forced[0])
+    with pytest.raises(SettingsError, match=f"lod {len(scene.lods)} is not one of"):
+        render_preview_surface(scene, cam, 2, 0, lod=len(scene.lods))
+
+
 def _write_vgroove(path: Path, period: float, slope_deg: float, params: dict) -> Path:
     """A unit plane of V-grooves along y (period `period`, facets at ±slope_deg), faceted
     normals, one UsdPreviewSurface, the helper's light and camera."""

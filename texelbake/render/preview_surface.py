@@ -25,7 +25,7 @@ import numpy as np
 from texelbake import model
 from texelbake.baselines.normal_maps import face_tangent_space
 from texelbake.brdf.analytic import preview_surface
-from texelbake.errors import StageError
+from texelbake.errors import SettingsError, StageError
 from texelbake.geometry.mikktspace import decode, frames_at, mikk_tangents
 from texelbake.geometry.texels import bilinear_texels
 from texelbake.render.cpm import choose_mesh, footprint_level
@@ -143,8 +143,14 @@ def shade_preview_surface(scene: RenderScene, cam: PinholeCamera, lod: int, o: n
 
 
 def render_preview_surface(scene: RenderScene, cam: PinholeCamera, spp: int, seed: int, *,
-                           max_error_px: float = 1.0):
-    lod = choose_mesh(scene, cam, max_error_px)
+                           max_error_px: float = 1.0, lod: int | None = None):
+    """The LODs' UsdPreviewSurface fallback as authored: the mesh the camera's projected error
+    selects (`choose_mesh`), or mesh `lod` (0 = M1) when given (a benchmark judging one LOD)."""
+    if lod is None:
+        lod = choose_mesh(scene, cam, max_error_px)
+    elif not 0 <= lod < len(scene.lods):
+        raise SettingsError(f"preview-surface: lod {lod} is not one of the scene's "
+                            f"{len(scene.lods)} meshes (0 = M1)")
     return accumulate(cam, spp, seed,
                       lambda o, d: shade_preview_surface(scene, cam, lod, o, d, spp),
                       scene.eye_box)
