@@ -28,6 +28,7 @@ import numpy as np
 
 from schemas.settings import BakeSettings
 from texelbake import stages
+from texelbake.cpm.dense import dense_sums
 from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
 from texelbake.cpm.texel_fit import FitCounts
 from texelbake.io.atomic import atomic_json
@@ -141,10 +142,13 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
 
     def timed_sums(src_, level, texels, samples):
         """A top level's share of a tile's sums (`run_cpm_tile`'s `top_sums` calls it per top
-        level), timed as that level's work."""
+        level), timed as that level's work. With a_vis from the dense samples, as every coarse
+        level here: this benchmark runs no a_vis stage, whose maps a bake's top levels read
+        (`avis_coarse="children"`), and sums without a_vis would leave every top texel
+        invalid."""
         CURRENT["level"] = level
         c0 = time.process_time()
-        out = inner_sums(src_, level, texels, samples)
+        out = dense_sums(src_, level, texels, samples)
         sums_cpu[level] = sums_cpu.get(level, 0.0) + time.process_time() - c0
         return out
 
