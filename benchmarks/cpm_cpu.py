@@ -28,6 +28,7 @@ import numpy as np
 
 from schemas.settings import BakeSettings
 from texelbake import stages
+from texelbake.cpm.assemble import heldout_stats
 from texelbake.cpm.dense import dense_sums
 from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
 from texelbake.cpm.texel_fit import FitCounts
@@ -212,6 +213,10 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
             "heldout_db_median": float(np.median(ho)) if ho.size else None,
             "heldout_db_p5": float(np.percentile(ho, 5)) if ho.size else None,
             "c_mean": float(data["c"][v].mean()) if v.any() else None,
+            # intervals of the median and p5 as the report's (`heldout_stats`): the measured
+            # texels as a sample of the level's occupied texels in the whole atlas
+            "heldout": heldout_stats(data["snr_ho"][v], int(np.unique(tex_l[level]).size)),
+            "rays": int(data["rays"].sum()) if "rays" in data else None,
             "skip_counts": {str(int(k)): int(n) for k, n in
                             zip(*np.unique(skip, return_counts=True), strict=True)},
             "digest": digest(data),
@@ -240,14 +245,20 @@ def print_table(res: dict) -> None:
           f"CPU seconds of fit_level (process time), total {res['cpu_seconds']:.2f} s")
     print(f"trials: {res['trial_counts']}")
     print(f"{'lvl':>3} {'texels':>6} {'cpu s':>8} {'tex/cpu s':>9} {'ho med':>7} "
-          f"{'ho p5':>7} {'c':>6}  skips            digest")
+          f"{'ho p5':>7} {'c':>6}  skips            digest            "
+          f"{'med 95% CI':>15} {'p5 95% CI':>15} {'rays':>10}")
     for lv in res["levels"]:
         def f(x):
             return float("nan") if x is None else x
+
+        def ci(key, lv=lv):
+            lo, hi = lv.get("heldout", {}).get(key, (float("nan"),) * 2)
+            return f"[{lo:6.2f},{hi:6.2f}]"
         print(f"{lv['level']:>3} {lv['texels']:>6} {lv['cpu_seconds']:>8.2f} "
               f"{lv['texels_per_cpu_second']:>9.2f} {f(lv['heldout_db_median']):>7.2f} "
               f"{f(lv['heldout_db_p5']):>7.2f} {f(lv['c_mean']):>6.1f}  "
-              f"{json.dumps(lv['skip_counts']):<16} {lv['digest']}")
+              f"{json.dumps(lv['skip_counts']):<16} {lv['digest']}  {ci('p50_ci'):>15} "
+              f"{ci('p5_ci'):>15} {lv.get('rays') or 0:>10}")
 
 
 def seed_summary(runs: list[dict]) -> list[dict]:

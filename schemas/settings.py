@@ -134,7 +134,7 @@ class BakeSettings(BaseModel):
     n_batch: int = _field(
         1024, "fit", "Most candidate columns in one selection; wider texels are selected in "
         "batches.", ge=16, le=1 << 20)
-    hierarchy: Literal["children", "stratified", "probed", "dense"] = _field(
+    hierarchy: Literal["children", "stratified", "dense"] = _field(
         "children", "fit",
         "Where a coarse texel's candidates come from: 'children' its children's weighted "
         "points, 'stratified' a seeded stratified sample of at most 4 c_max of its dense "

@@ -23,7 +23,6 @@ import numpy as np
 
 from schemas.settings import BakeSettings
 from texelbake import brdf as brdf_mod
-from texelbake.cpm.brdf_product import brdf_product
 from texelbake.geometry import directions
 from texelbake.geometry.basis import grid_to_local, grid_to_world, tangent_frames
 from texelbake.geometry.raycast import RayCaster
@@ -232,7 +231,7 @@ def stratified_samples(
     ordered by finest texel), so k // 2 equal parts of the run are strata in space; two
     distinct samples are drawn uniformly in each, and each carries its area times half its
     stratum's size (Horvitz-Thompson). Two draws per stratum let the sample's own variance be
-    estimated (`probed_choice`). A texel of N < k samples draws all of them at their own area
+    estimated. A texel of N < k samples draws all of them at their own area
     (its dense candidates). Only the drawn entries of the index are read, so the work is O(k)
     per texel whatever N. The draws depend on (seed, level, texel) only.
 
@@ -281,94 +280,6 @@ def stratified_samples(
     return PointSet(sample, np.repeat(weight[:, None], 3, axis=1), np.repeat(texels, take))
 
 
-#: the probe of hierarchy="probed": every PROBE_STEP-th light and view direction of the grid
-PROBE_STEP = 4
-#: bytes per (point, probe pair, channel) while a probe is evaluated (values and temporaries)
-BYTES_PER_PROBE_ENTRY = 8 * 8
-
-
-def probe_values(src: FitInputs, level: int, points: PointSet) -> np.ndarray:
-    """Eq. 9's numerator of each weighted point on the probe pairs (every `PROBE_STEP`-th
-    light and view direction of the training grid, in its texel's frame).
-
-    returns : (p, a, b, 3) float64 — weight * f_r * V cos (light) * V cos (view, geometric)"""
-    dirs = direction_sets(src.settings)
-    d_i, d_o = dirs["dirs_i"][::PROBE_STEP], dirs["dirs_o"][::PROBE_STEP]
-    frames = src.geo[f"frames_L{level}"]
-    wi = world_dirs(frames, points.texel, d_i)
-    wo = world_dirs(frames, points.texel, d_o)
-    vi = visibility_cos(src, points.sample, wi)
-    vo = visibility_cos(src, points.sample, wo, "geometric")
-    live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)  # (a, b, p)
-    f = brdf_product(src.geo, src.materials, points.sample, wi, wo, live)  # (3, p, a, b)
-    f *= (vi[None, :, :] * points.weight.T[:, :, None])[..., None]
-    f *= vo[None, :, None, :]
-    return f.transpose(1, 2, 3, 0)
-
-
-def probed_choice(src: FitInputs, level: int, texels: np.ndarray, kids: PointSet,
-                  strata: PointSet) -> np.ndarray:
-    """(t,) bool, per texel of `texels` whether its stratified sample (`stratified_samples`,
-    one draw per stratum, in stratum order) is the better estimate of its Eq. 7 than its
-    children's points, on the probe pairs (`probe_values`).
-
-    The children's sum C carries their fits' error b; the stratified sum T carries its
-    sampling error v, whose square the strata's two draws estimate without bias. Since T is
-    unbiased, E|C - T|^2 = b^2 + v^2, so b^2 ~ |C - T|^2 - v^2, and the stratified sample is
-    chosen where that exceeds v^2 (a texel of fewer than k samples draws them all: v = 0).
-    Each row is weighted by 1 / a_vis^2 (a_vis estimated from the strata), as the SNR weighs
-    it. The probe casts 2 x 16 rays and evaluates 16 x 16 pairs per point (1/4 of the rays
-    and 1/16 of the BRDF of the fit's R, for both candidate sets)."""
-    texels = np.asarray(texels, np.int64)
-    n_t = len(texels)
-    pos_k = np.searchsorted(texels, kids.texel, sorter=np.argsort(texels))
-    pos_s = np.searchsorted(texels, strata.texel, sorter=np.argsort(texels))
-    order = np.argsort(texels)
-    pos_k, pos_s = order[pos_k], order[pos_s]
-    n_k = np.bincount(pos_k, minlength=n_t)
-    n_s = np.bincount(pos_s, minlength=n_t)
-    dirs = direction_sets(src.settings)
-    a, b = len(dirs["dirs_i"][::PROBE_STEP]), len(dirs["dirs_o"][::PROBE_STEP])
-    cap = max(int(src.settings.worker_memory_mb) * 2**20 // (BYTES_PER_PROBE_ENTRY * a * b * 3),
-              1)
-    ok_k, ok_s = np.argsort(pos_k, kind="stable"), np.argsort(pos_s, kind="stable")
-    cb_k, cb_s = np.r_[0, np.cumsum(n_k)], np.r_[0, np.cumsum(n_s)]
-    choose = np.zeros(n_t, bool)
-    t0 = 0
-    while t0 < n_t:  # loop over chunks of whole texels (memory bound)
-        t1 = t0 + 1
-        while t1 < n_t and cb_k[t1 + 1] - cb_k[t0] + cb_s[t1 + 1] - cb_s[t0] <= cap:
-            t1 += 1
-        rk, rs = ok_k[cb_k[t0]:cb_k[t1]], ok_s[cb_s[t0]:cb_s[t1]]
-        yk = probe_values(src, level, kids.take(rk))  # (pk, a, b, 3)
-        ys = probe_values(src, level, strata.take(rs))
-        seg_k, seg_s = pos_k[rk] - t0, pos_s[rs] - t0
-        c_sum = segment_sum(yk, seg_k, t1 - t0, 0)  # (t', a, b, 3)
-        t_sum = segment_sum(ys, seg_s, t1 - t0, 0)
-        # a_vis on the probe views from the strata: sum of weight * V cos over the draws
-        frames = src.geo[f"frames_L{level}"]
-        st = strata.take(rs)
-        vo = visibility_cos(src, st.sample, world_dirs(frames, st.texel,
-                                                       dirs["dirs_o"][::PROBE_STEP]),
-                            "geometric") * st.weight[:, :1]
-        avis = segment_sum(vo, seg_s, t1 - t0, 0)  # (t', b)
-        inv2 = np.where(avis > 0, 1.0 / np.where(avis > 0, avis, 1.0) ** 2, 0.0)
-        d2 = np.einsum("tabc,tb->t", (c_sum - t_sum) ** 2, inv2)
-        # a stratum's two draws (consecutive; a stratum of width w, each draw at area w / 2):
-        # Var = (1 - 2 / w) (y_1 - y_2)^2 unbiased; strata of one sample (every sample drawn)
-        # have none
-        width = 2.0 * st.weight[:, 0] / src.geo["sample_area"][st.sample]
-        first = np.r_[0, np.cumsum(np.bincount(seg_s, minlength=t1 - t0))][:-1]
-        rank = np.arange(len(seg_s)) - first[seg_s]
-        pair = (width > 1.5) & (rank % 2 == 0) & np.r_[seg_s[1:] == seg_s[:-1], False]
-        j = np.flatnonzero(pair)
-        diff2 = np.einsum("pabc,pb->p", (ys[j] - ys[j + 1]) ** 2, inv2[seg_s[j]])
-        v2 = np.bincount(seg_s[j], weights=diff2 * (1.0 - 2.0 / width[j]), minlength=t1 - t0)
-        choose[t0:t1] = d2 - v2 > v2
-        t0 = t1
-    return choose
-
-
 def level_candidates(
     src: FitInputs, level: int, texels: np.ndarray, children: dict[str, np.ndarray] | None
 ) -> PointSet:
@@ -382,17 +293,6 @@ def level_candidates(
     n = s.atlas_resolution
     if level > 0 and s.hierarchy == "stratified":
         return stratified_samples(geo, n, level, texels, s.seed, stratified_count(s))
-    if level > 0 and s.hierarchy == "probed" and children is not None:
-        strata = stratified_samples(geo, n, level, texels, s.seed, stratified_count(s))
-        texels = np.asarray(texels, np.int64)
-        kids = children_points(children, n, level)
-        kids = kids.take(np.flatnonzero(np.isin(kids.texel, texels)))
-        pick = probed_choice(src, level, texels, kids, strata)
-        chosen = np.r_[np.flatnonzero(~np.isin(kids.texel, texels[pick])),
-                       len(kids.sample) + np.flatnonzero(np.isin(strata.texel, texels[pick]))]
-        both = PointSet(np.r_[kids.sample, strata.sample], np.r_[kids.weight, strata.weight],
-                        np.r_[kids.texel, strata.texel]).take(chosen)
-        return both.take(np.argsort(both.texel, kind="stable"))
     if level == 0 or s.hierarchy == "dense" or children is None:
         idx = samples_in(geo, n, level, texels)
         area = geo["sample_area"][idx]
