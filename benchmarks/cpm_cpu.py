@@ -12,7 +12,9 @@ top levels, `top_level_sums`, timed as the top level's work), each `fit_level`
 call timed with `time.process_time()` (CPU seconds of this process: the machine is shared, so
 wall time is not comparable between runs). Prints per level: texels fitted, CPU seconds,
 texels per CPU second, held-out SNR median and p5, the skip counts (what the fit did not
-model fully) and a digest of the level's arrays (equal digests: byte-identical results).
+model fully), a digest of the level's arrays (equal digests: byte-identical results), the
+intervals of the median and p5 as the bake report gives them, and the rays cast. No a_vis stage
+runs: every coarse level's a_vis comes from its dense samples' rays (`avis_coarse="dense"`'s).
 """
 
 from __future__ import annotations

@@ -211,99 +211,18 @@ def texel_seed(seed: int, level: int, texel: int) -> int:
     )
 
 
-#: tag of the stratified candidates' per-texel offset (apart from the fit's own draws)
-_TAG_STRATA = 0x55
-
-
-def stratified_count(settings: BakeSettings) -> int:
-    """Most dense samples a coarse texel draws as candidates under hierarchy="stratified":
-    4 c_max, the most its four children's points can be."""
-    return 4 * int(settings.c_max)
-
-
-def stratified_samples(
-    geo: Mapping[str, np.ndarray], n: int, level: int, texels: np.ndarray, seed: int, k: int
-) -> PointSet:
-    """A seeded stratified sample of at most `k` dense samples of each of `texels` (flat ids at
-    `level`), weighted so that their weighted sum estimates the texel's without bias.
-
-    A texel's samples are one run of the geometry stage's Z-order index (`sample_zorder`,
-    ordered by finest texel), so k // 2 equal parts of the run are strata in space; two
-    distinct samples are drawn uniformly in each, and each carries its area times half its
-    stratum's size (Horvitz-Thompson). Two draws per stratum let the sample's own variance be
-    estimated. A texel of N < k samples draws all of them at their own area
-    (its dense candidates). Only the drawn entries of the index are read, so the work is O(k)
-    per texel whatever N. The draws depend on (seed, level, texel) only.
-
-    returns : `PointSet` grouped by texel in the order of `texels`, a stratum's two draws
-        consecutive and the strata in run order within a texel: sample (p,) int64, weight
-        (p, 3) float64, texel (p,) int64."""
-    texels = np.asarray(texels, dtype=np.int64)
-    if "sample_zorder" in geo:
-        order = geo["sample_zorder"]
-        zoff = geo["texel_zoffsets"]
-        r, c = np.divmod(texels, n >> level)
-        first = morton(r << level, c << level)
-        lo = np.asarray(zoff[first], np.int64)
-        size = np.asarray(zoff[first + (1 << (2 * level))], np.int64) - lo
-    else:  # artifacts from before the Z-order index: the texels' samples, grouped by texel
-        ids = samples_in(geo, n, level, texels)
-        tid = texel_ids(geo, n, level, ids)
-        grp = np.argsort(tid, kind="stable")
-        order, tid = ids[grp], tid[grp]
-        lo = np.searchsorted(tid, texels)
-        size = np.searchsorted(tid, texels, side="right") - lo
-    k2 = max(int(k) // 2, 1)
-    every = size < 2 * k2  # too few to stratify: every sample, each its own stratum
-    strata = np.where(every, size, k2)
-    per = np.where(every, 1, 2)  # draws per stratum
-    take = strata * per
-    total = int(take.sum())
-    u = np.concatenate([np.random.default_rng((texel_seed(seed, level, int(t)), _TAG_STRATA))
-                        .random(int(m)) for t, m in zip(texels, take, strict=True)]
-                       + [np.zeros(0)])  # loop over texels: one number per draw
-    # draw j of a texel: stratum h = j // per, positions [floor(h N / s), floor((h + 1) N / s))
-    j = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(take) - take, take)
-    per_r, s_r, n_r = np.repeat(per, take), np.repeat(np.maximum(strata, 1), take), \
-        np.repeat(size, take)
-    h = j // per_r
-    a = (h * n_r) // s_r
-    width = ((h + 1) * n_r) // s_r - a  # 1 (every sample) or >= 2
-    second = (per_r == 2) & (j % 2 == 1)
-    # the second draw among the width - 1 positions the first left, without replacement
-    slots = np.where(second, width - 1, width)
-    pick = np.minimum((u * slots).astype(np.int64), slots - 1)
-    first_pick = np.r_[0, pick[:-1]]  # a second draw's partner: the draw before it
-    pick = np.where(second & (pick >= first_pick), pick + 1, pick)
-    sample = np.asarray(order[np.repeat(lo, take) + a + pick], dtype=np.int64)
-    weight = geo["sample_area"][sample] * width / per_r
-    return PointSet(sample, np.repeat(weight[:, None], 3, axis=1), np.repeat(texels, take))
-
-
 def level_candidates(
     src: FitInputs, level: int, texels: np.ndarray, children: dict[str, np.ndarray] | None
 ) -> PointSet:
-    """Candidates of `texels` at `level`: all dense samples (level 0, or hierarchy="dense"),
-    the union of the children's weighted characteristic points (hierarchy="children"), or a
-    seeded stratified sample of at most `stratified_count` dense samples per texel whose
-    weighted sum estimates the texel's Eq. 7 without bias (hierarchy="stratified",
-    `stratified_samples`)."""
+    """Candidates of `texels` at `level`: all dense samples (level 0, or hierarchy="dense"), or
+    the union of the children's weighted characteristic points (hierarchy="children")."""
     geo = src.geo
-    s = src.settings
-    n = s.atlas_resolution
-    if level > 0 and s.hierarchy == "stratified":
-        return stratified_samples(geo, n, level, texels, s.seed, stratified_count(s))
-    if level == 0 or s.hierarchy == "dense" or children is None:
+    n = src.settings.atlas_resolution
+    if level == 0 or src.settings.hierarchy == "dense" or children is None:
         idx = samples_in(geo, n, level, texels)
         area = geo["sample_area"][idx]
         return PointSet(idx, np.repeat(area[:, None], 3, axis=1),
                         texel_ids(geo, n, level, idx))
-    return children_points(children, n, level)
-
-
-def children_points(children: Mapping[str, np.ndarray], n: int, level: int) -> PointSet:
-    """The characteristic points of a level-1 fit (`children`: its arrays, CSR by texel) as
-    candidates of their parents at `level`."""
     counts = np.diff(children["offsets"])
     child_tex = np.repeat(children["texel"], counts)  # (p,) child texel ids at level-1
     n_c = n >> (level - 1)
