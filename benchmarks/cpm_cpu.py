@@ -185,19 +185,21 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
                 cpm_stage.add_tile_sums(ctx, top_sums, t, cpm_stage.top_sums(ctx, t))
             finally:
                 cpm_stage.top_level_sums = inner_sums
-        children = None
+        children = grandchildren = None
         for level in range(ctx.tile_levels):
             texels = tile_texels(s.atlas_resolution, s.shard_texels, t, level)
-            cands = level_candidates(src, level, texels, children)
-            children = timed(level, texels, cands)
-        tops.append(children)
+            cands = level_candidates(src, level, texels, children, grandchildren)
+            grandchildren, children = children, timed(level, texels, cands)
+        tops.append((grandchildren, children))
     if len(tiles) == n_tiles:
-        children = concat_levels(tops)
+        children = concat_levels([c for _, c in tops])
+        grandchildren = (concat_levels([g for g, _ in tops]) if tops[0][0] is not None
+                         else None)
         for level in range(ctx.tile_levels, ctx.n_levels):
             n_l = s.atlas_resolution >> level
             texels = np.arange(n_l * n_l, dtype=np.int64)
-            cands = level_candidates(src, level, texels, children)
-            children = timed(level, texels, cands)
+            cands = level_candidates(src, level, texels, children, grandchildren)
+            grandchildren, children = children, timed(level, texels, cands)
     levels = []
     for level in sorted(per_level):
         runs = per_level[level]
