@@ -244,8 +244,8 @@ def descendants_points(fit: Mapping[str, np.ndarray], n: int, level: int, down: 
     tex = np.repeat(np.asarray(fit["texel"], np.int64), counts)  # (p,) ids at level - down
     r, c = np.divmod(tex, n >> (level - down))
     return PointSet(
-        np.asarray(fit["point_sample"], np.int64),
-        np.asarray(fit["point_weight"], np.float64),
+        np.asarray(fit["point_sample"]).astype(np.int64),
+        np.asarray(fit["point_weight"]).astype(np.float64),
         ((r >> down) * (n >> level) + (c >> down)).astype(np.int64),
     )
 
