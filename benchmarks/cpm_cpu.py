@@ -12,7 +12,9 @@ top levels, `top_level_sums`, timed as the top level's work), each `fit_level`
 call timed with `time.process_time()` (CPU seconds of this process: the machine is shared, so
 wall time is not comparable between runs). Prints per level: texels fitted, CPU seconds,
 texels per CPU second, held-out SNR median and p5, the skip counts (what the fit did not
-model fully) and a digest of the level's arrays (equal digests: byte-identical results).
+model fully), a digest of the level's arrays (equal digests: byte-identical results), the
+intervals of the median and p5 as the bake report gives them, and the rays cast. No a_vis stage
+runs: every coarse level's a_vis comes from its dense samples' rays (`avis_coarse="dense"`'s).
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ import numpy as np
 
 from schemas.settings import BakeSettings
 from texelbake import stages
+from texelbake.cpm.assemble import heldout_stats
+from texelbake.cpm.dense import dense_sums
 from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
 from texelbake.cpm.texel_fit import FitCounts
 from texelbake.io.atomic import atomic_json
@@ -141,10 +145,13 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
 
     def timed_sums(src_, level, texels, samples):
         """A top level's share of a tile's sums (`run_cpm_tile`'s `top_sums` calls it per top
-        level), timed as that level's work."""
+        level), timed as that level's work. With a_vis from the dense samples, as every coarse
+        level here: this benchmark runs no a_vis stage, whose maps a bake's top levels read
+        (`avis_coarse="children"`), and sums without a_vis would leave every top texel
+        invalid."""
         CURRENT["level"] = level
         c0 = time.process_time()
-        out = inner_sums(src_, level, texels, samples)
+        out = dense_sums(src_, level, texels, samples)
         sums_cpu[level] = sums_cpu.get(level, 0.0) + time.process_time() - c0
         return out
 
@@ -178,19 +185,21 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
                 cpm_stage.add_tile_sums(ctx, top_sums, t, cpm_stage.top_sums(ctx, t))
             finally:
                 cpm_stage.top_level_sums = inner_sums
-        children = None
+        children = grandchildren = None
         for level in range(ctx.tile_levels):
             texels = tile_texels(s.atlas_resolution, s.shard_texels, t, level)
-            cands = level_candidates(src, level, texels, children)
-            children = timed(level, texels, cands)
-        tops.append(children)
+            cands = level_candidates(src, level, texels, children, grandchildren)
+            grandchildren, children = children, timed(level, texels, cands)
+        tops.append((grandchildren, children))
     if len(tiles) == n_tiles:
-        children = concat_levels(tops)
+        children = concat_levels([c for _, c in tops])
+        grandchildren = (concat_levels([g for g, _ in tops]) if tops[0][0] is not None
+                         else None)
         for level in range(ctx.tile_levels, ctx.n_levels):
             n_l = s.atlas_resolution >> level
             texels = np.arange(n_l * n_l, dtype=np.int64)
-            cands = level_candidates(src, level, texels, children)
-            children = timed(level, texels, cands)
+            cands = level_candidates(src, level, texels, children, grandchildren)
+            grandchildren, children = children, timed(level, texels, cands)
     levels = []
     for level in sorted(per_level):
         runs = per_level[level]
@@ -208,6 +217,10 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
             "heldout_db_median": float(np.median(ho)) if ho.size else None,
             "heldout_db_p5": float(np.percentile(ho, 5)) if ho.size else None,
             "c_mean": float(data["c"][v].mean()) if v.any() else None,
+            # intervals of the median and p5 as the report's (`heldout_stats`): the measured
+            # texels as a sample of the level's occupied texels in the whole atlas
+            "heldout": heldout_stats(data["snr_ho"][v], int(np.unique(tex_l[level]).size)),
+            "rays": int(data["rays"].sum()) if "rays" in data else None,
             "skip_counts": {str(int(k)): int(n) for k, n in
                             zip(*np.unique(skip, return_counts=True), strict=True)},
             "digest": digest(data),
@@ -236,14 +249,20 @@ def print_table(res: dict) -> None:
           f"CPU seconds of fit_level (process time), total {res['cpu_seconds']:.2f} s")
     print(f"trials: {res['trial_counts']}")
     print(f"{'lvl':>3} {'texels':>6} {'cpu s':>8} {'tex/cpu s':>9} {'ho med':>7} "
-          f"{'ho p5':>7} {'c':>6}  skips            digest")
+          f"{'ho p5':>7} {'c':>6}  skips            digest            "
+          f"{'med 95% CI':>15} {'p5 95% CI':>15} {'rays':>10}")
     for lv in res["levels"]:
         def f(x):
             return float("nan") if x is None else x
+
+        def ci(key, lv=lv):
+            lo, hi = lv.get("heldout", {}).get(key, (float("nan"),) * 2)
+            return f"[{lo:6.2f},{hi:6.2f}]"
         print(f"{lv['level']:>3} {lv['texels']:>6} {lv['cpu_seconds']:>8.2f} "
               f"{lv['texels_per_cpu_second']:>9.2f} {f(lv['heldout_db_median']):>7.2f} "
               f"{f(lv['heldout_db_p5']):>7.2f} {f(lv['c_mean']):>6.1f}  "
-              f"{json.dumps(lv['skip_counts']):<16} {lv['digest']}")
+              f"{json.dumps(lv['skip_counts']):<16} {lv['digest']}  {ci('p50_ci'):>15} "
+              f"{ci('p5_ci'):>15} {lv.get('rays') or 0:>10}")
 
 
 def seed_summary(runs: list[dict]) -> list[dict]:

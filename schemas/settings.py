@@ -134,10 +134,11 @@ class BakeSettings(BaseModel):
     n_batch: int = _field(
         1024, "fit", "Most candidate columns in one selection; wider texels are selected in "
         "batches.", ge=16, le=1 << 20)
-    hierarchy: Literal["children", "dense"] = _field(
+    hierarchy: Literal["children", "grandchildren", "dense"] = _field(
         "children", "fit",
         "Where a coarse texel's candidates come from: 'children' its children's weighted "
-        "points, 'dense' all its dense samples as the seed.")
+        "points, 'grandchildren' the weighted points two levels down, 'dense' all its dense "
+        "samples as the seed.")
     fit_method: Literal["batched", "per_texel"] = _field(
         "batched", "fit",
         "'batched' fits many texels at once from their Gram matrices, 'per_texel' fits one "

@@ -212,10 +212,15 @@ def texel_seed(seed: int, level: int, texel: int) -> int:
 
 
 def level_candidates(
-    src: FitInputs, level: int, texels: np.ndarray, children: dict[str, np.ndarray] | None
+    src: FitInputs, level: int, texels: np.ndarray, children: Mapping[str, np.ndarray] | None,
+    grandchildren: Mapping[str, np.ndarray] | None = None,
 ) -> PointSet:
-    """Candidates of `texels` at `level`: all dense samples (level 0, or hierarchy="dense"), or
-    the union of the children's weighted characteristic points (hierarchy="children")."""
+    """Candidates of `texels` at `level`: all dense samples (level 0, or hierarchy="dense"),
+    the union of the children's weighted characteristic points (hierarchy="children"), or of
+    the points two levels down (hierarchy="grandchildren", from level 2 on: `grandchildren`,
+    the level - 2 fit of the same texels, by texel and sample id; level 1, or no grandchildren
+    given, takes the children's). children, grandchildren : a level fit's arrays (`point_sample`,
+    `point_weight`, CSR `offsets` by `texel`)."""
     geo = src.geo
     n = src.settings.atlas_resolution
     if level == 0 or src.settings.hierarchy == "dense" or children is None:
@@ -223,15 +228,25 @@ def level_candidates(
         area = geo["sample_area"][idx]
         return PointSet(idx, np.repeat(area[:, None], 3, axis=1),
                         texel_ids(geo, n, level, idx))
-    counts = np.diff(children["offsets"])
-    child_tex = np.repeat(children["texel"], counts)  # (p,) child texel ids at level-1
-    n_c = n >> (level - 1)
-    r, c = np.divmod(child_tex, n_c)
-    parent = (r >> 1) * (n_c >> 1) + (c >> 1)
+    if src.settings.hierarchy == "grandchildren" and level >= 2 and grandchildren is not None:
+        pts = descendants_points(grandchildren, n, level, 2)
+        # by texel, then sample id: grandchildren that kept every dense sample give the
+        # dense candidates in their order, so the fit equals hierarchy="dense"'s
+        return pts.take(np.lexsort((pts.sample, pts.texel)))
+    return descendants_points(children, n, level, 1)
+
+
+def descendants_points(fit: Mapping[str, np.ndarray], n: int, level: int, down: int
+                       ) -> PointSet:
+    """The characteristic points of a fit `down` levels below `level` (its arrays, CSR by
+    texel) as candidates of the texels at `level` that hold them (n : atlas side)."""
+    counts = np.diff(fit["offsets"])
+    tex = np.repeat(np.asarray(fit["texel"], np.int64), counts)  # (p,) ids at level - down
+    r, c = np.divmod(tex, n >> (level - down))
     return PointSet(
-        children["point_sample"].astype(np.int64),
-        children["point_weight"].astype(np.float64),
-        parent.astype(np.int64),
+        np.asarray(fit["point_sample"]).astype(np.int64),
+        np.asarray(fit["point_weight"]).astype(np.float64),
+        ((r >> down) * (n >> level) + (c >> down)).astype(np.int64),
     )
 
 

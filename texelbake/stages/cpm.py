@@ -153,16 +153,17 @@ def run_cpm_tile(ctx: StageContext, shard: int) -> str:
     last = level_key(ctx, ctx.tile_levels - 1, shard)
     if ctx.store.exists(last):
         return last
-    children = None
+    children = grandchildren = None
     for level in range(ctx.tile_levels):
         key = level_key(ctx, level, shard)
         if ctx.store.exists(key):
-            children = ctx.store.read_arrays(key)
+            grandchildren, children = children, ctx.store.read_arrays(key)
             continue
         texels = tile_texels(s.atlas_resolution, s.shard_texels, shard, level)
-        cands = level_candidates(ctx.fit_inputs(), level, texels, children)
+        cands = level_candidates(ctx.fit_inputs(), level, texels, children, grandchildren)
         avis_o = (fit_avis_o(ctx, level, texels, shard)
                   if level > 0 and coarse_avis(s) else None)
+        grandchildren = children
         children = fit_level(ctx.fit_inputs(), level, texels, cands, avis_o=avis_o)
         ctx.store.write_arrays(key, children)
     return last
@@ -208,15 +209,20 @@ def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
     children = concat_levels(
         [ctx.store.read_arrays(level_key(ctx, lvl, t)) for t in range(n_tiles)]
     )
+    grandchildren = None
+    if s.hierarchy == "grandchildren" and lvl >= 1:  # the tiles' level below their last
+        grandchildren = concat_levels(
+            [ctx.store.read_arrays(level_key(ctx, lvl - 1, t)) for t in range(n_tiles)])
     sums = gathered_sums(ctx)
     for level in range(ctx.tile_levels, ctx.n_levels):
         key = level_key(ctx, level, None)
         if ctx.store.exists(key):
-            children = ctx.store.read_arrays(key)
+            grandchildren, children = children, ctx.store.read_arrays(key)
             continue
         n_l = s.atlas_resolution >> level
         texels = np.arange(n_l * n_l, dtype=np.int64)
-        cands = level_candidates(ctx.fit_inputs(), level, texels, children)
+        cands = level_candidates(ctx.fit_inputs(), level, texels, children, grandchildren)
+        grandchildren = children
         avis_o = fit_avis_o(ctx, level, texels, None) if coarse_avis(s) else None
         lsums = sums[level] if sums is not None else None
         if lsums is not None and avis_o is not None:
