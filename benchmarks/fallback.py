@@ -40,72 +40,51 @@ silhouette as a ratio to the original's (the bolt's acceptance: within 25 %). Sc
 (original | the as-shipped original where twins were removed | each variant, per asset and
 LOD) go to `--renders` (default: `<json stem>_renders/` beside the JSON).
 
-Measured (benchmarks/results/fallback.json; scenes full size; bakes at `BAKE`; Cycles 256² at
-256 spp, no denoiser, 10-100 s per render at load 7-12; texelbake preview-surface 16 spp against
-gt 256 spp, 256²; normal maps in MikkTSpace frames, each LOD its own; two invocations,
-`--assets bolt cylinder wall` and `--assets cloisonne teapot box_animated`). PSNR (dB) and FLIP
-over the object, IoU, and mean radiance as a ratio to the original's:
+Measured (benchmarks/results/fallback.json: one invocation, `python benchmarks/fallback.py --json
+benchmarks/results/fallback.json`, on the tree with the LODs' own corner normals
+(`lodchain.lod_corner_normals`), specularColor only in the specular workflow and BoxAnimated's
+reference without its twin triangles; scenes full size; bakes at `BAKE`; Cycles 256² at 256 spp,
+no denoiser; texelbake preview-surface 16 spp on the LOD's own mesh against gt 256 spp, 256²;
+machine load 4-5). PSNR (dB) and FLIP over the object, IoU, mean radiance as a ratio to the
+original's, and Cycles' noise floor (the original under a second seed):
 
-| asset        | LOD | px  | variant  | Blender PSNR | FLIP  | IoU   | mean | tb PSNR | FLIP  | IoU   | mean |
-|--------------|----:|----:|----------|-------------:|------:|------:|-----:|--------:|------:|------:|-----:|
-| bolt         |   1 | 256 | averaged |        31.27 | 0.233 | 1.000 | 0.81 |   42.15 | 0.031 | 0.998 | 0.84 |
-| bolt         |   1 | 256 | fitted   |        29.88 | 0.289 | 1.000 | 0.70 |   40.51 | 0.039 | 0.998 | 0.75 |
-| bolt         |   2 |  64 | averaged |        12.71 | 0.368 | 0.993 | 0.72 |   31.23 | 0.079 | 0.998 | 1.03 |
-| bolt         |   2 |  64 | fitted   |        12.64 | 0.408 | 0.993 | 0.64 |   30.92 | 0.103 | 0.998 | 0.96 |
-| cylinder     |   1 | 256 | averaged |        24.54 | 0.259 | 1.000 | 0.98 |   23.04 | 0.261 | 0.999 | 1.00 |
-| cylinder     |   1 | 256 | fitted   |        24.56 | 0.258 | 1.000 | 1.01 |   22.90 | 0.267 | 0.999 | 1.03 |
-| cylinder     |   2 |  64 | averaged |        21.59 | 0.366 | 0.996 | 0.94 |   16.94 | 0.395 | 0.996 | 0.99 |
-| cylinder     |   2 |  64 | fitted   |        21.77 | 0.365 | 0.996 | 0.97 |   16.98 | 0.389 | 0.996 | 1.03 |
-| wall         |   1 | 256 | averaged |        20.21 | 0.253 | 0.998 | 0.96 |   19.94 | 0.225 | 0.999 | 0.98 |
-| wall         |   1 | 256 | fitted   |        17.91 | 0.363 | 0.998 | 0.78 |   17.73 | 0.333 | 0.999 | 0.81 |
-| wall         |   2 |  64 | averaged |         9.52 | 0.604 | 0.953 | 0.53 |   12.05 | 0.480 | 0.950 | 0.78 |
-| wall         |   2 |  64 | fitted   |         9.35 | 0.658 | 0.953 | 0.43 |   12.00 | 0.473 | 0.950 | 0.63 |
-| cloisonne    |   1 | 256 | averaged |        19.98 | 0.310 | 0.996 | 0.95 |   43.91 | 0.347 | 0.996 | 1.13 |
-| cloisonne    |   1 | 256 | fitted   |        19.46 | 0.395 | 0.996 | 1.00 |   43.90 | 0.436 | 0.996 | 1.18 |
-| cloisonne    |   2 |  64 | averaged |        20.21 | 0.243 | 0.985 | 0.96 |   33.39 | 0.247 | 0.982 | 1.13 |
-| cloisonne    |   2 |  64 | fitted   |        19.65 | 0.366 | 0.985 | 1.03 |   33.31 | 0.405 | 0.982 | 1.21 |
-| teapot       |   1 | 256 | averaged |        29.62 | 0.159 | 0.982 | 1.01 |   38.21 | 0.087 | 0.996 | 1.00 |
-| teapot       |   1 | 256 | fitted   |        26.22 | 0.254 | 0.982 | 0.92 |   35.53 | 0.214 | 0.996 | 0.93 |
-| teapot       |   2 |  64 | averaged |        25.18 | 0.266 | 0.969 | 0.92 |   24.56 | 0.270 | 0.981 | 0.93 |
-| teapot       |   2 |  64 | fitted   |        23.55 | 0.332 | 0.969 | 0.86 |   23.56 | 0.337 | 0.981 | 0.88 |
-| box_animated |   1 | 256 | averaged |        13.78 | 0.374 | 0.998 | 1.22 |   22.89 | 0.111 | 0.998 | 1.01 |
-| box_animated |   1 | 256 | fitted   |        13.65 | 0.386 | 0.998 | 1.19 |   21.75 | 0.129 | 0.998 | 0.99 |
+| asset        | LOD | px  | variant  | Blender PSNR | FLIP  | IoU   | mean | floor | tb PSNR | FLIP  | IoU   | mean |
+|--------------|----:|----:|----------|-------------:|------:|------:|-----:|------:|--------:|------:|------:|-----:|
+| cylinder     |   1 | 256 | averaged |        24.54 | 0.259 | 1.000 | 0.98 |  49.1 |   23.05 | 0.259 | 0.999 | 1.00 |
+| cylinder     |   1 | 256 | fitted   |        24.57 | 0.258 | 1.000 | 1.01 |  49.1 |   22.93 | 0.265 | 0.999 | 1.02 |
+| cylinder     |   2 |  64 | averaged |        24.50 | 0.305 | 0.996 | 1.01 |  47.8 |   19.55 | 0.365 | 0.996 | 1.07 |
+| cylinder     |   2 |  64 | fitted   |        24.83 | 0.302 | 0.996 | 1.03 |  47.8 |   19.73 | 0.354 | 0.996 | 1.11 |
+| wall         |   1 | 256 | averaged |        25.52 | 0.157 | 0.999 | 0.99 |  45.1 |   22.51 | 0.165 | 0.999 | 1.00 |
+| wall         |   1 | 256 | fitted   |        19.62 | 0.333 | 0.999 | 0.80 |  45.1 |   18.73 | 0.313 | 0.999 | 0.83 |
+| wall         |   2 |  64 | averaged |         9.72 | 0.586 | 0.953 | 0.57 |  40.2 |   16.60 | 0.298 | 0.950 | 1.16 |
+| wall         |   2 |  64 | fitted   |         9.60 | 0.627 | 0.953 | 0.46 |  40.2 |   18.47 | 0.186 | 0.950 | 0.95 |
+| bolt         |   1 | 256 | averaged |        32.83 | 0.083 | 1.000 | 1.05 |  44.0 |   42.33 | 0.026 | 0.998 | 1.06 |
+| bolt         |   1 | 256 | fitted   |        32.32 | 0.151 | 1.000 | 0.90 |  44.0 |   43.41 | 0.030 | 0.998 | 0.94 |
+| bolt         |   2 |  64 | averaged |        17.47 | 0.261 | 0.995 | 0.78 |  29.0 |   24.92 | 0.297 | 0.995 | 0.67 |
+| bolt         |   2 |  64 | fitted   |        17.25 | 0.287 | 0.995 | 0.71 |  29.0 |   25.70 | 0.298 | 0.995 | 0.58 |
+| cloisonne    |   1 | 256 | averaged |        20.13 | 0.302 | 0.996 | 0.96 |  57.5 |   43.91 | 0.349 | 0.996 | 1.14 |
+| cloisonne    |   1 | 256 | fitted   |        19.57 | 0.390 | 0.996 | 1.01 |  57.5 |   43.90 | 0.441 | 0.996 | 1.19 |
+| cloisonne    |   2 |  64 | averaged |        21.17 | 0.236 | 0.985 | 0.96 |  55.3 |   33.64 | 0.255 | 0.982 | 1.13 |
+| cloisonne    |   2 |  64 | fitted   |        20.43 | 0.364 | 0.985 | 1.03 |  55.3 |   33.55 | 0.415 | 0.982 | 1.21 |
+| teapot       |   1 | 256 | averaged |        30.06 | 0.156 | 0.982 | 1.01 |  46.3 |   37.42 | 0.093 | 0.996 | 1.00 |
+| teapot       |   1 | 256 | fitted   |        26.46 | 0.261 | 0.982 | 0.92 |  46.3 |   35.07 | 0.216 | 0.996 | 0.93 |
+| teapot       |   2 |  64 | averaged |        24.67 | 0.300 | 0.969 | 0.91 |  42.9 |   24.92 | 0.266 | 0.981 | 0.93 |
+| teapot       |   2 |  64 | fitted   |        23.13 | 0.364 | 0.969 | 0.85 |  42.9 |   23.77 | 0.333 | 0.981 | 0.88 |
+| box_animated |   1 | 256 | averaged |        22.36 | 0.146 | 0.998 | 1.02 |  55.1 |   22.84 | 0.113 | 0.998 | 1.01 |
+| box_animated |   1 | 256 | fitted   |        21.25 | 0.163 | 0.998 | 1.00 |  55.1 |   21.72 | 0.131 | 0.998 | 0.99 |
 
 The fitted fallback (the averaged inputs with a held-out-chosen diffuse gain) is nowhere 3 dB
-better than averaged in either renderer (−3.4 to +0.2 dB in Blender, −2.7 to +0.04 in texelbake;
-why: docs/decisions.md), so averaged stays the default. On the bolt, the averaged fallback's
-mean radiance is within 25 % of the original's at LOD1 in both renderers (0.81 / 0.84) and at
-LOD2 in texelbake (1.03), not in Blender (0.72); the fitted one misses it at LOD1 (0.70 / 0.75)
-and in Blender at LOD2 (0.64). Blender's cloisonne original is its preview surface (Blender
-cannot evaluate texelbake's cellular shader); texelbake's gt is the real shader, hence the
-spread between the renderers there. BoxAnimated's original has dark triangles of its own in
-Cycles (its geometry, lods.py).
-
-Why Blender's figures were far below texelbake's (docs/decisions.md, measured): not noise (the
-floor, 29-57 dB, is 13-35 dB above every LOD figure); the fallback authored the metallic
-workflow's specularColor (0, 0, 0), which Blender's importer makes Specular Tint (a metal's
-black rims; fixed: `dominant_constants`); BoxAnimated's coplanar twin triangles, which Cycles
-renders black (the reference is now the original without them); and the cloisonne's reference,
-the scene's one-colour stand-in. Re-run with those (benchmarks/results/fallback_gap.json,
-`--assets bolt teapot box_animated` and `--assets cloisonne`, rows joined), Blender, averaged /
-fitted:
-
-| asset        | LOD | Blender PSNR    | mean        | floor | tb PSNR       |
-|--------------|----:|----------------:|------------:|------:|--------------:|
-| bolt         |   1 |   32.09 / 32.17 | 1.06 / 0.91 |  44.0 | 42.26 / 40.59 |
-| bolt         |   2 |   13.63 / 13.63 | 0.84 / 0.77 |  29.0 | 30.96 / 30.57 |
-| teapot       |   1 |   29.89 / 26.39 | 1.00 / 0.92 |  46.3 | 37.78 / 35.40 |
-| teapot       |   2 |   25.20 / 23.58 | 0.92 / 0.86 |  42.9 | 24.64 / 23.69 |
-| box_animated |   1 |   22.36 / 21.24 | 1.02 / 1.00 |  55.1 | 22.89 / 21.75 |
-| cloisonne    |   1 |   20.13 / 19.57 | 0.96 / 1.01 |  57.5 | 43.90 / 43.89 |
-| cloisonne    |   2 |   21.18 / 20.43 | 0.96 / 1.03 |  55.3 | 33.49 / 33.40 |
-
-Cylinder and wall were not re-run (their fallbacks take the specular workflow, which keeps its
-specularColor). The cloisonne's Blender figures measure its stand-in: the LOD with its baked
-base colour replaced by the stand-in's one colour scores 26.8 / 29.9 dB (LOD1 / LOD2).
-The bolt's mean radiance is now within 25 % of the original's in Blender too, both variants at
-both LODs (0.77-1.06). The bolt's LOD2 PSNR is one sun glint on its head (1 % of the pixels, 68 % of the squared error),
-from the LOD itself (it stays with the normal map off and with flat shading), not the mapping.
+better than averaged (Blender −5.9 to +0.3 dB, texelbake −3.8 to +1.9; why: docs/decisions.md),
+so averaged stays the default. The bolt's mean radiance in Blender is within 25 % of the
+original's with the averaged fallback at both LODs (1.05, 0.78), with the fitted one at LOD1
+(0.90), not at LOD2 (0.71). Blender's cloisonne original is the scene's one-colour stand-in
+(Blender cannot evaluate texelbake's cellular shader): those rows measure the stand-in (the LOD
+with its base colour replaced by the stand-in's scores 26.8 / 29.9 dB at LOD1 / LOD2). Why
+Blender's figures were far below texelbake's before (noise floor, specularColor as Specular Tint,
+BoxAnimated's twins, the stand-in) and where the bolt's LOD2 and the Teapot's LOD1 lose: docs/
+decisions.md. The wall's LOD2 in Blender keeps a black triangle: its slab's back face maps onto
+its front in uv, so part of the front's normal-map texels are encoded in the back face's frames
+(texelbake's preview-surface falls back to the geometric normal there; not fixed).
 """
 
 from __future__ import annotations
