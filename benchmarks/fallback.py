@@ -244,6 +244,19 @@ def texelbake_lod(root: Path, lod: int, px: float, args: argparse.Namespace
     return fig
 
 
+def asset_cases(work: Path, size: str, assets: list[str] | None) -> dict[str, Path]:
+    """The benchmark's assets by name: the generated scenes asked for (all when `assets` is
+    empty) written at `size` under `work`, then the Teapot and BoxAnimated from
+    ../shared/assets (their paths; a caller skips one that is missing)."""
+    cases: dict[str, Path] = {}
+    for name in SCENES:
+        if not assets or name in assets:
+            cases[name] = write_scene(name, work / f"{name}.usda", size)
+    cases["teapot"] = ASSETS / "Teapot" / "Teapot.usd"
+    cases["box_animated"] = ASSETS / "BoxAnimated.usdz"
+    return cases
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, help="write the rows here")
@@ -261,12 +274,7 @@ def main() -> None:
     args.fallbacks = {k: v for k, v in FALLBACKS.items()
                       if not args.variants or k in args.variants}
     work = Path(tempfile.mkdtemp(prefix="fallback_bench_"))
-    cases: dict[str, Path] = {}
-    for name in SCENES:
-        if not args.assets or name in args.assets:
-            cases[name] = write_scene(name, work / f"{name}.usda", args.size)
-    cases["teapot"] = ASSETS / "Teapot" / "Teapot.usd"
-    cases["box_animated"] = ASSETS / "BoxAnimated.usdz"
+    cases = asset_cases(work, args.size, args.assets)
     renders = args.renders or (args.json.parent / f"{args.json.stem}_renders" if args.json
                                else work / "renders")
     print(f"bake settings (BakeSettings defaults otherwise): {BAKE}; variants: "

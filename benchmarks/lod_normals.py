@@ -27,12 +27,11 @@ from texelbake import stages
 from texelbake.geometry.build import lod_meshes
 from texelbake.geometry.lodchain import lod_corner_normals, org_corner_normals
 from texelbake.pipeline.plan import resolve_settings
-from texelbake.testscenes import write_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-from benchmarks.fallback import ASSETS, BAKE, SCENES  # noqa: E402  (the same bakes)
+from benchmarks.fallback import BAKE, asset_cases  # noqa: E402  (the same bakes)
 
 BINS = (0, 5, 10, 20, 30, 40, 50, 60, 70, 80, 95, 120, 180)
 CREASES = (45.0, 60.0, 80.0)
@@ -94,12 +93,7 @@ def main() -> None:
     ap.add_argument("--assets", nargs="*", help="subset of the asset names")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="lod_normals_"))
-    cases: dict[str, Path] = {}
-    for name in SCENES:
-        if not args.assets or name in args.assets:
-            cases[name] = write_scene(name, work / f"{name}.usda", args.size)
-    cases["teapot"] = ASSETS / "Teapot" / "Teapot.usd"
-    cases["box_animated"] = ASSETS / "BoxAnimated.usdz"
+    cases = asset_cases(work, args.size, args.assets)
     rows: list[dict] = []
     for name in args.assets or list(cases):
         src = cases.get(name)
