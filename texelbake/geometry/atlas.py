@@ -44,7 +44,7 @@ SEAM_PULL = 1e-3
 #: other side's faces, closest point alone gives both sides one uv chart
 FACING_MIN_COS = -0.5
 #: point-triangle pairs per chunk of the facing-restricted closest-point search
-_FACING_PAIRS = 1 << 21
+_FACING_PAIRS = 1 << 18
 #: assumed fraction of the square the packed charts cover, for the first density guess
 _FIRST_UTILIZATION = 0.8
 
