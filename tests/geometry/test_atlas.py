@@ -193,3 +193,27 @@ def test_charts_that_never_fit_are_refused_after_one_probe(monkeypatch):
     calls.clear()
     v2, f2 = bumpy_sphere(2)
     assert build_atlas(Mesh(v2, f2), 64, padding_texels=1).resolution == 64
+
+
+def test_a_thin_slab_keeps_its_back_off_its_front_in_uv():
+    # M_T: a box whose front sheet (z = 0.2) is nearer the slab's back (z = -0.1) than its own
+    # back sheet (z = -1) is: by closest point alone the slab's back lands on the front's chart
+    from tests.helpers.meshes import box
+
+    mt = Mesh(*box((0.0, 0.0, -1.0), (4.0, 4.0, 0.2)))
+    atlas = build_atlas(mt, 64, padding_texels=2)
+    slab = Mesh(*box((0.5, 0.5, -0.1), (3.5, 3.5, 0.1)))
+    uv, _ = map_into_atlas(slab, mt, atlas)
+    nz = slab.face_normals()[:, 2]
+    front, back = nz > 0.9, nz < -0.9
+    assert front.sum() == 2 and back.sum() == 2
+    res = 256
+    _, _, cf = rasterize_atlas(uv[front], res, eps=-1e-9)
+    _, _, cb = rasterize_atlas(uv[back], res, eps=-1e-9)
+    assert (cf > 0).sum() > 0 and (cb > 0).sum() > 0
+    assert not ((cf > 0) & (cb > 0)).any()
+    # each side lies in the chart of M_T's sheet facing the same way
+    face_t, _, _ = rasterize_atlas(atlas.corner_uvs, res, eps=-1e-9)
+    nz_t = mt.face_normals()[:, 2]
+    assert (nz_t[face_t[cf > 0]] > 0.9).mean() > 0.9
+    assert (nz_t[face_t[cb > 0]] < -0.9).mean() > 0.9

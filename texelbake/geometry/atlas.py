@@ -39,6 +39,12 @@ MAX_COLLAPSED_AREA = 0.01
 COLLAPSED_RATIO = 0.01
 #: fraction of the way from a corner of M_i to its face's centroid used to pick its chart
 SEAM_PULL = 1e-3
+#: a coarser mesh's face never takes an atlas triangle more than 120° from its own normal
+#: (`map_into_atlas`): where M_T's sheet on one side of a thin part is the nearer to the
+#: other side's faces, closest point alone gives both sides one uv chart
+FACING_MIN_COS = -0.5
+#: point-triangle pairs per chunk of the facing-restricted closest-point search
+_FACING_PAIRS = 1 << 18
 #: assumed fraction of the square the packed charts cover, for the first density guess
 _FIRST_UTILIZATION = 0.8
 
@@ -256,6 +262,38 @@ def atlas_uv_of_points(
     return _interp_uv(atlas, prim, bary), prim, np.linalg.norm(closest - pts, axis=1)
 
 
+def _closest_facing(caster: RayCaster, mesh: Mesh, points: np.ndarray, normals: np.ndarray
+                    ) -> np.ndarray:
+    """(n,) int64 closest triangle of `mesh` to each point among those facing its normal
+    (cos >= FACING_MIN_COS): the caster's closest triangle, re-searched exhaustively (in
+    chunks of point-triangle pairs) where that one faces away. Points whose normal no
+    triangle faces keep the caster's.
+
+    points, normals : (n, 3) float64 (unit normals)
+    """
+    _, prim, _ = caster.closest_points(points)
+    prim = np.array(prim, dtype=np.int64)
+    fn = mesh.face_normals()  # (F, 3)
+    away = np.flatnonzero(np.einsum("nd,nd->n", fn[prim], normals) < FACING_MIN_COS)
+    if away.shape[0] == 0:
+        return prim
+    tri = mesh.triangles()  # (F, 3, 3)
+    nf = tri.shape[0]
+    step = max(1, _FACING_PAIRS // nf)
+    for s in range(0, away.shape[0], step):
+        idx = away[s: s + step]
+        k = idx.shape[0]
+        p = np.repeat(points[idx], nf, axis=0)  # (k F, 3)
+        t = np.tile(tri, (k, 1, 1))  # (k F, 3, 3)
+        q, _ = closest_point_on_triangles(p, t[:, 0], t[:, 1], t[:, 2])
+        d2 = np.einsum("nd,nd->n", q - p, q - p).reshape(k, nf)
+        ok = normals[idx] @ fn.T >= FACING_MIN_COS  # (k, F)
+        d2 = np.where(ok, d2, np.inf)
+        best = d2.argmin(axis=1)
+        prim[idx] = np.where(ok.any(axis=1), best, prim[idx])
+    return prim
+
+
 def map_into_atlas(
     mesh_i: Mesh, m1: Mesh, atlas: Atlas, caster: RayCaster | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -289,12 +327,13 @@ def map_into_atlas(
     # face's centroid to break the tie toward the face's interior, then project the corner
     # itself onto the chosen triangle in float64 (so the pull does not move the uv).
     pulled = corners3 + SEAM_PULL * (centroids[:, None, :] - corners3)
-    _, prim, _ = caster.closest_points(pulled.reshape(-1, 3))
+    fnorm = mesh_i.face_normals()  # (f_i, 3)
+    prim = _closest_facing(caster, atlas.mesh, pulled.reshape(-1, 3), np.repeat(fnorm, 3, axis=0))
     tri_all = atlas.mesh.triangles()[prim]  # (3 f_i, 3, 3)
     _, w = closest_point_on_triangles(corners, tri_all[:, 0], tri_all[:, 1], tri_all[:, 2])
     uv = np.einsum("nk,nkd->nd", w, atlas.corner_uvs[prim]).reshape(f_i, 3, 2)
     chart = atlas.face_chart[prim].reshape(f_i, 3)
-    _, cprim, _ = caster.closest_points(centroids)
+    cprim = _closest_facing(caster, atlas.mesh, centroids, fnorm)
     cchart = atlas.face_chart[cprim]
     one_chart = (chart == cchart[:, None]).all(axis=1)
     fix = np.flatnonzero(~one_chart)
