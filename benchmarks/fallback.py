@@ -82,9 +82,13 @@ original's with the averaged fallback at both LODs (1.05, 0.78), with the fitted
 with its base colour replaced by the stand-in's scores 26.8 / 29.9 dB at LOD1 / LOD2). Why
 Blender's figures were far below texelbake's before (noise floor, specularColor as Specular Tint,
 BoxAnimated's twins, the stand-in) and where the bolt's LOD2 and the Teapot's LOD1 lose: docs/
-decisions.md. The wall's LOD2 in Blender keeps a black triangle: its slab's back face maps onto
-its front in uv, so part of the front's normal-map texels are encoded in the back face's frames
-(texelbake's preview-surface falls back to the geometric normal there; not fixed).
+decisions.md. The wall's LOD2 in this run keeps a black triangle in Blender: its slab's back face took the
+front's uv chart (`atlas.map_into_atlas` by closest point), so part of the front's normal-map
+texels were encoded in the back face's frames. Since then a LOD face takes no atlas triangle
+more than 120° from its normal: the wall's LOD2 in Blender 9.72 → 20.05 dB, mean 0.57 → 1.03×
+(texelbake 16.60 → 16.97; `--assets wall --variants averaged`). The bolt's LOD2 texelbake mean
+(0.67) is 16 spp sampling its normal map's sparkles: 0.82 at `--tb-spp 256`, 0.89 at 1024
+(docs/decisions.md).
 """
 
 from __future__ import annotations
