@@ -42,7 +42,7 @@ LOD) go to `--renders` (default: `<json stem>_renders/` beside the JSON).
 
 Measured (benchmarks/results/fallback.json: one invocation, `python benchmarks/fallback.py --json
 benchmarks/results/fallback.json`, on the tree with the LODs' own corner normals
-(`lodchain.lod_corner_normals`), specularColor only in the specular workflow and BoxAnimated's
+(`lodnormals.lod_corner_normals`), specularColor only in the specular workflow and BoxAnimated's
 reference without its twin triangles; scenes full size; bakes at `BAKE`; Cycles 256² at 256 spp,
 no denoiser; texelbake preview-surface 16 spp on the LOD's own mesh against gt 256 spp, 256²;
 machine load 4-5). PSNR (dB) and FLIP over the object, IoU, mean radiance as a ratio to the

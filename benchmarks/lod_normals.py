@@ -1,7 +1,7 @@
 """The LODs' corner normals (docs/decisions.md "The LOD meshes carry their own shading normals"):
 per asset and LOD, the dihedral angles between the LOD's faces and how far each corner's normal
-lies from its face's, for M_org's normal at the corner (`lodchain.org_corner_normals`, the
-rule before) and for `lodchain.lod_corner_normals` at crease angles of 45, 60 and 80 degrees.
+lies from its face's, for M_org's normal at the corner (`lodnormals.org_corner_normals`, the
+rule before) and for `lodnormals.lod_corner_normals` at crease angles of 45, 60 and 80 degrees.
 
     python benchmarks/lod_normals.py --json benchmarks/results/lod_normals.json
         [--assets bolt wall ...] [--size full]
@@ -25,7 +25,7 @@ import numpy as np
 from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.geometry.build import lod_meshes
-from texelbake.geometry.lodchain import lod_corner_normals, org_corner_normals
+from texelbake.geometry.lodnormals import lod_corner_normals, org_corner_normals
 from texelbake.pipeline.plan import resolve_settings
 
 ROOT = Path(__file__).resolve().parents[1]

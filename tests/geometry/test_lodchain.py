@@ -217,7 +217,7 @@ def test_smooth_corner_normals_match_a_per_vertex_loop_and_split_at_the_crease(m
     # the vectorized pairs against a plain loop over each corner's vertex, on a bumpy sphere
     # whose vertices are also duplicated (a soup: vertices at one position are one); in
     # chunks of a few pairs the same
-    import texelbake.geometry.lodchain as lodchain
+    import texelbake.geometry.lodnormals as lodnormals
     from tests.helpers.meshes import soup
 
     v, f = bumpy_sphere(2, amplitude=0.15, freq=5)
@@ -234,18 +234,18 @@ def test_smooth_corner_normals_match_a_per_vertex_loop_and_split_at_the_crease(m
                         acc += np.arccos(e1 @ e2 / np.linalg.norm(e1) / np.linalg.norm(e2)) * fn[fj]
                 want[fi, k] = acc / np.linalg.norm(acc)
         sv, sf = soup(v, f)
-        got = lodchain.smooth_corner_normals(sv, sf, crease_deg=c)
+        got = lodnormals.smooth_corner_normals(sv, sf, crease_deg=c)
         np.testing.assert_allclose(got, want, atol=1e-12)
-        monkeypatch.setattr(lodchain, "PAIR_CHUNK", 7)
-        np.testing.assert_array_equal(lodchain.smooth_corner_normals(sv, sf, crease_deg=c), got)
+        monkeypatch.setattr(lodnormals, "PAIR_CHUNK", 7)
+        np.testing.assert_array_equal(lodnormals.smooth_corner_normals(sv, sf, crease_deg=c), got)
         monkeypatch.undo()
     # a box's edges (90 degrees) are creases at 60: every corner keeps its face's normal
     bv, bf = box()
-    np.testing.assert_array_equal(lodchain.smooth_corner_normals(bv, bf),
+    np.testing.assert_array_equal(lodnormals.smooth_corner_normals(bv, bf),
                                   np.repeat(_face_normals(bv, bf)[:, None], 3, axis=1))
-    assert lodchain.smooth_corner_normals(bv, bf[:0]).shape == (0, 3, 3)
+    assert lodnormals.smooth_corner_normals(bv, bf[:0]).shape == (0, 3, 3)
     with pytest.raises(SettingsError, match="crease_deg"):
-        lodchain.smooth_corner_normals(bv, bf, crease_deg=0.0)
+        lodnormals.smooth_corner_normals(bv, bf, crease_deg=0.0)
 
 
 def test_lod_corner_normals_keep_sharp_edges_sharp_and_smooth_surfaces_smooth():
@@ -255,7 +255,7 @@ def test_lod_corner_normals_keep_sharp_edges_sharp_and_smooth_surfaces_smooth():
     # corner's normal is the radial direction at its vertex within the coarse sphere's
     # asymmetry (its angle-weighted vertex normals: cos error < 1e-3), equal at a vertex
     from tests.helpers.meshes import icosphere
-    from texelbake.geometry.lodchain import lod_corner_normals
+    from texelbake.geometry.lodnormals import lod_corner_normals
 
     v, f = box()
     fn = _face_normals(v, f)
@@ -277,7 +277,7 @@ def test_lod_corner_normals_follow_the_lods_surface_not_m_orgs_bumps():
     # a bumpy plane (bumps sloped up to ~50 degrees, smooth-shaded by their analytic normals)
     # under a flat 4x4 LOD: the LOD's corners face +z (the bumps belong to the normal map);
     # M_org's normal at the corner, the old rule, is up to the bumps' slope off
-    from texelbake.geometry.lodchain import lod_corner_normals, org_corner_normals
+    from texelbake.geometry.lodnormals import lod_corner_normals, org_corner_normals
 
     a, k = 0.02, 2.0 * np.pi * 9.5  # height a sin(kx) sin(ky): slope a k = 1.19
     v, f = plane_grid(120, 120)
@@ -300,7 +300,7 @@ def test_a_prisms_edges_stay_sharp_where_m_org_is_flat_shaded(sides):
     # cylinder's ridges, the bolt's bumps on LOD1) every corner keeps its face's normal even
     # where the edge (30 degrees at 12 sides, 5.6 at 64) is below the crease angle; smooth-
     # shaded (radial corner normals) the corners are the prism's vertex normals, radial
-    from texelbake.geometry.lodchain import lod_corner_normals
+    from texelbake.geometry.lodnormals import lod_corner_normals
 
     v, f = _prism(sides)
     fn = _face_normals(v, f)

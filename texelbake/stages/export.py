@@ -18,7 +18,7 @@ from texelbake.cpm.assemble import assemble_level
 from texelbake.cpm.level import direction_sets, texel_ids
 from texelbake.estimate.costmodel import atlas_trade
 from texelbake.geometry.build import geometry_chunk, lod_meshes, lod_report
-from texelbake.geometry.lodchain import lod_corner_normals
+from texelbake.geometry.lodnormals import lod_corner_normals
 from texelbake.io.atomic import atomic_json
 from texelbake.io.chunks import chunk_ranges, sample_rows
 from texelbake.stages.avis import avis_level_chunks, avis_rays

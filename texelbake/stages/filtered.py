@@ -149,7 +149,7 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     from texelbake.baselines.normal_maps import face_tangent_space
     from texelbake.geometry.atlas import Atlas
     from texelbake.geometry.build import lod_meshes
-    from texelbake.geometry.lodchain import lod_corner_normals
+    from texelbake.geometry.lodnormals import lod_corner_normals
     from texelbake.geometry.mesh import Mesh, face_normals
     from texelbake.geometry.mikktspace import frames_at, mikk_tangents
     from texelbake.geometry.raycast import RayCaster
@@ -292,7 +292,7 @@ def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
     coarser LOD: its normals there are not LOD1's. Kept in the artifact store."""
     from texelbake.geometry.atlas import rasterize_atlas
     from texelbake.geometry.build import lod_meshes
-    from texelbake.geometry.lodchain import lod_corner_normals
+    from texelbake.geometry.lodnormals import lod_corner_normals
     from texelbake.geometry.mikktspace import encode, frames_at, mikk_tangents
     from texelbake.geometry.raycast import RayCaster
 

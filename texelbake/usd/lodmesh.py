@@ -22,7 +22,7 @@ class LodMesh:
     impostor: the local impostor parameterization of seed 002 Table 1 (`IMPOSTOR_PRIMVARS`,
     each (n, 3) float64 per vertex; empty when the bake wrote none); corner_normals: (f, 3, 3)
     shading normals per face corner, authored as faceVarying `normals` for other tools
-    (`lodchain.lod_corner_normals`; None: none authored, as in bakes before it).
+    (`lodnormals.lod_corner_normals`; None: none authored, as in bakes before it).
     skin: the UsdSkel binding transferred from M_org (`texelbake.deform.skinbind`):
     "indices" (n, k) int32 and "weights" (n, k) float32 per vertex, "bind" (4, 4) float64
     the geomBindTransform (row-vector convention), "points" (n, 3) float64 the points the
