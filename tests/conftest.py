@@ -18,7 +18,10 @@ _FARM_MARKERS = ("service", "browser")
 def pytest_collection_modifyitems(config, items):
     """With `--dist loadgroup`, a module's tests stay together on one worker (its module
     fixtures are built once) and the farm tests form one group (see `_FARM_MARKERS`)."""
-    if config.getoption("dist", "no") != "loadgroup":
+    # an xdist worker runs with `dist` "no" and keeps the choice in `loadgroup`; the worker
+    # is where the marks count (it names each test's group in the ids it sends)
+    if config.getoption("dist", "no") != "loadgroup" and not getattr(config.option,
+                                                                         "loadgroup", False):
         return
     for item in items:
         farm = any(item.get_closest_marker(m) for m in _FARM_MARKERS)

@@ -86,6 +86,8 @@ def iter_events(
     """Server-sent events of a job, reconnecting (with Last-Event-ID) until the stream ends
     after the job's terminal event."""
     last = None
+    final = False
+    ev_kind = ev_state = None
     while True:
         headers: dict[str, str] = {"Last-Event-ID": str(last)} if last is not None else {}
         try:
@@ -105,11 +107,16 @@ def iter_events(
                         ev = json.loads("\n".join(data))
                         data = []
                         last = ev["seq"]
+                        ev_kind, ev_state = ev["kind"], ev["data"].get("state")
                         yield ev
+            if final or (ev_kind == "job" and ev_state in TERMINAL):
+                return  # drained, or the stream ended on the job's terminal event
             r = client.get(f"{API}/jobs/{job_id}")
-            if r.status_code != 200 or r.json()["state"] in TERMINAL:
-                return  # the job is finished (or gone): no more events
-            # the server closed a long stream while the job runs: reconnect
+            if r.status_code != 200:
+                return  # the job is gone: no more events
+            # the server closed a long stream: reconnect. A job that finished since is read
+            # once more, for the events its last transaction wrote after this stream's read.
+            final = r.json()["state"] in TERMINAL
         except (httpx.TransportError, httpx.RemoteProtocolError):
             if deadline is not None and time.monotonic() > deadline:
                 raise

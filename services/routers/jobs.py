@@ -184,14 +184,18 @@ async def read_job(job_id: str, request: Request, tenant: CurrentTenant) -> Resp
 
 
 def _events_after(reader, job_id: str, after: int) -> tuple[list[Event], str | None]:  # noqa: ANN001
+    """The job's events after `after` and its state, the state read first: under READ
+    COMMITTED each statement sees the commits before it, so a terminal state read here comes
+    with every event its transaction wrote (read the other way round, a commit landing between
+    the two reads ends the stream before its last events)."""
     with reader() as s:
+        state = s.scalar(select(Job.state).where(Job.id == job_id))
         rows = s.scalars(
             select(Event)
             .where(Event.job_id == job_id, Event.seq > after)
             .order_by(Event.seq)
             .limit(500)
         ).all()
-        state = s.scalar(select(Job.state).where(Job.id == job_id))
     return list(rows), state
 
 
