@@ -37,6 +37,10 @@ from texelbake.errors import ShapeError
 ROUGHNESS_GRID = (0.05, 0.08, 0.12, 0.17, 0.24, 0.33, 0.45, 0.6, 0.8, 1.0)
 #: the prior's weights toward the averaged inputs, chosen per LOD on held-out rows
 FIT_LAMBDAS = (0.0, 0.1, 0.3, 1.0, 3.0, float("inf"))
+#: the sharpest candidate a texel may take, as a fraction of its averaged roughness
+SHARPEN = 0.8
+#: the pairs a lobe must hold to be fitted (`resolvable_roughness`)
+MIN_LOBE_HITS = 8.0
 #: a texel whose Σ w B² is below this fraction of the largest keeps d0 (no light reaches it)
 _B_FLOOR = 1e-12
 
@@ -114,16 +118,39 @@ def solve(sums: np.ndarray, d0: np.ndarray, lam: float) -> tuple[np.ndarray, np.
     return d, data.sum(axis=-1)
 
 
-def pick(sums: np.ndarray, d0: np.ndarray, r0: np.ndarray, grid: np.ndarray, lam: float
-         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def resolvable_roughness(n_pairs: np.ndarray, min_hits: float = MIN_LOBE_HITS) -> np.ndarray:
+    """(t,) the narrowest roughness whose lobe n_pairs cosine-distributed (light, view) pairs
+    resolve: a GGX lobe of width α holds about the fraction 4α² of such pairs (a cone of
+    half-angle 2α about the mirror direction, by projected solid angle), so it holds min_hits
+    of them when α = sqrt(min_hits / (4 n)); roughness = sqrt(α). A narrower lobe's least
+    squares over the pairs is ruled by whether a pair hits its peak (noise), not by its
+    energy."""
+    n = np.maximum(np.asarray(n_pairs, dtype=np.float64), 1.0)
+    return np.sqrt(np.minimum(np.sqrt(min_hits / (4.0 * n)), 1.0))
+
+
+def pick(sums: np.ndarray, d0: np.ndarray, r0: np.ndarray, grid: np.ndarray, lam: float,
+         n_pairs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The fit of each texel at λ: sums (c, t, 4, 3) over candidates [r0, *grid]
     (candidate 0 each texel's averaged roughness r0 (t,)) -> (roughness (t,), d (t, 3),
-    candidate index (t,) int)."""
+    candidate index (t,) int). With n_pairs (t,) (the texel's rows), a texel whose averaged
+    lobe is narrower than its pairs resolve (`resolvable_roughness`) keeps the averaged
+    inputs, and no texel takes a grid roughness below that, nor below SHARPEN x r0 (filtering
+    widens a lobe, never sharpens it)."""
     t = d0.shape[0]
     if not np.isfinite(lam):
         return r0.copy(), d0.copy(), np.zeros(t, np.int64)
     d, e = solve(sums, d0, lam)
+    floor = SHARPEN * r0
+    keep = np.zeros(t, bool)
+    if n_pairs is not None:
+        r_res = resolvable_roughness(n_pairs)
+        floor = np.maximum(floor, r_res)
+        keep = r0 < r_res
+    e = np.where(np.concatenate([keep[None], grid[:, None] < floor[None]]), np.inf, e)
     best = np.argmin(e, axis=0)  # (t,) ties: the first, r0
+    best[keep] = 0
+    d[0, keep] = d0[keep]
     rough = np.concatenate([r0[None], np.broadcast_to(grid[:, None], (grid.size, t))])
     return rough[best, np.arange(t)], d[best, np.arange(t)], best
 
@@ -135,12 +162,13 @@ def residual(sums: np.ndarray, d: np.ndarray, best: np.ndarray) -> np.ndarray:
 
 
 def choose_lambda(sums_half: np.ndarray, d0: np.ndarray, r0: np.ndarray, grid: np.ndarray,
-                  lambdas=FIT_LAMBDAS) -> np.ndarray:
+                  n_pairs: np.ndarray | None = None, lambdas=FIT_LAMBDAS) -> np.ndarray:
     """Held-out error of each λ (len(lambdas),): the fit on one half of the rows judged on the
-    other's data term, both ways. sums_half (2, c, t, 4, 3)."""
+    other's data term, both ways. sums_half (2, c, t, 4, 3); n_pairs (2, t) or None."""
     out = np.zeros(len(lambdas))
     for i, lam in enumerate(lambdas):  # the few λ
         for h in (0, 1):
-            _, d, best = pick(sums_half[h], d0, r0, grid, lam)
+            _, d, best = pick(sums_half[h], d0, r0, grid, lam,
+                              None if n_pairs is None else n_pairs[h])
             out[i] += float(residual(sums_half[1 - h], d, best).sum())
     return out

@@ -134,20 +134,24 @@ def _lod_fit(lvl: int, res: int, rows: dict, base0: np.ndarray, rough: np.ndarra
     t_lvl = (rows["t0"] // res >> lvl) * n + (rows["t0"] % res >> lvl)
     uniq, inv = np.unique(t_lvl, return_inverse=True)
     t = uniq.size
-    nsum = np.zeros((t, 3))
-    for c in range(3):
-        nsum[:, c] = np.bincount(inv, weights=rows["normal"][:, c] * rows["area"], minlength=t)
+    # each row's shading normal: its level-0 texel's mean normal, what the normal map a viewer
+    # decodes holds there (a LOD's coarse texel is seen through the page's level-0 normals, so
+    # its fitted roughness must not absorb their spread a second time)
+    u0, inv0 = np.unique(rows["t0"], return_inverse=True)
+    nsum = np.stack([np.bincount(inv0, weights=rows["normal"][:, c] * rows["area"],
+                                 minlength=u0.size) for c in range(3)], axis=1)
     length = np.linalg.norm(nsum, axis=1, keepdims=True)
-    nrm = np.where(length > 0, nsum / np.maximum(length, 1e-300), [0.0, 0.0, 1.0])
-    frames = tangent_frames(nrm)  # (t, 3, 3) rows (t, b, n) of each texel's shading frame
+    frames = tangent_frames(np.where(length > 0, nsum / np.maximum(length, 1e-300),
+                                     [0.0, 0.0, 1.0]))  # (t0, 3, 3) rows (t, b, n)
     d0 = _to_side(base0, n).reshape(-1, 3)[uniq].astype(np.float64)
     r0 = _to_side(rough, n).reshape(-1)[uniq].astype(np.float64)
     grid = np.asarray(ROUGHNESS_GRID)
     n_l, n_v = N_LIGHTS, N_VIEWS
     order = np.argsort(inv, kind="stable")
+    n_samp = np.bincount(inv, minlength=t)  # samples a texel
     bounds = np.searchsorted(inv[order], np.arange(t + 1))
     per = max(1, ROW_CHUNK // (n_l * n_v))  # samples per chunk
-    half = np.broadcast_to((np.arange(n_v) >= n_v // 2)[None, None], (1, n_l, n_v))
+    half = (np.arange(n_v) % 2)[None, None]  # the views' lattice interleaved in elevation
     cv = np.zeros(len(FIT_LAMBDAS))
     fits = [(np.zeros(t), np.zeros((t, 3)), np.zeros(t)) for _ in FIT_LAMBDAS]
     energy = np.zeros(t)
@@ -158,7 +162,7 @@ def _lod_fit(lvl: int, res: int, rows: dict, base0: np.ndarray, rough: np.ndarra
         smp = order[bounds[a]:bounds[b]]
         loc = inv[smp] - a  # (s,) texel within the chunk
         tc = b - a
-        fr = frames[inv[smp]]
+        fr = frames[inv0[smp]]
         wi = np.einsum("sij,slj->sli", fr, rows["dl"][smp].astype(np.float64))
         wo = np.einsum("sij,svj->svi", fr, rows["dv"][smp].astype(np.float64))
         wi = np.broadcast_to(wi[:, :, None], (smp.size, n_l, n_v, 3)).reshape(-1, 3)
@@ -178,10 +182,11 @@ def _lod_fit(lvl: int, res: int, rows: dict, base0: np.ndarray, rough: np.ndarra
         wy2 = (w[:, None] * y * y).sum(axis=1).reshape(smp.size, -1).sum(axis=1)
         energy[a:b] = np.bincount(loc, weights=wy2, minlength=tc)
         halves = sums.reshape(len(grid) + 1, tc, 2, 4, 3).transpose(2, 0, 1, 3, 4)
-        cv += choose_lambda(halves, d0[a:b], r0[a:b], grid)
+        n_full = n_samp[a:b] * (n_l * n_v)
+        cv += choose_lambda(halves, d0[a:b], r0[a:b], grid, np.stack([n_full // 2] * 2))
         full = halves[0] + halves[1]
         for i, lam in enumerate(FIT_LAMBDAS):  # the few λ
-            r_fit, d_fit, best = pick(full, d0[a:b], r0[a:b], grid, lam)
+            r_fit, d_fit, best = pick(full, d0[a:b], r0[a:b], grid, lam, n_full)
             fits[i][0][a:b], fits[i][1][a:b] = r_fit, d_fit
             fits[i][2][a:b] = residual(full, d_fit, best)
         a = b
@@ -217,7 +222,7 @@ def _to_side(img: np.ndarray, n: int) -> np.ndarray:
     return img
 
 
-FIT_VERSION = "texelfit-v1"
+FIT_VERSION = "texelfit-v4"
 
 
 def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
