@@ -9,11 +9,13 @@ import pytest
 
 from texelbake.baselines.texel_fit import (
     ROUGHNESS_GRID,
+    SHARPEN,
     affine_terms,
     choose_lambda,
     cosine_dirs,
     pick,
     residual,
+    resolvable_roughness,
     row_sums,
     shifted_dirs,
 )
@@ -79,7 +81,8 @@ def test_affine_terms_are_the_preview_surface(rng, metallic):
 @pytest.mark.parametrize("metallic", [0.0, 1.0])
 def test_fit_recovers_known_inputs(rng, metallic):
     # targets: the preview surface itself at known roughness and diffuseColor; fitted from
-    # averaged inputs far off (r0 0.5, d0 0.5) with no prior (λ = 0)
+    # averaged inputs off (r0 0.055, below every truth: the fit may widen, not sharpen; d0
+    # 0.5) with no prior (λ = 0)
     t = 40
     wi, wo, tex, _ = _pairs(rng, t)
     const = {"metallic": metallic, "ior": 1.5}
@@ -89,9 +92,9 @@ def test_fit_recovers_known_inputs(rng, metallic):
     y = preview_surface({**const, "diffuseColor": d_true[tex], "roughness": r_true[tex]},
                         wi, wo) * wi[:, 2:3]
     w = rng.uniform(0.5, 1.5, tex.size)
-    d0, r0 = np.full((t, 3), 0.5), np.full(t, 0.5)
+    d0, r0 = np.full((t, 3), 0.5), np.full(t, 0.055)
     rough, d, best, sums = _fit(const, wi, wo, y, w, tex, d0, r0, 0.0)
-    on = np.isin(r_true, GRID) & (r_true != 0.5)
+    on = np.isin(r_true, GRID)
     # on the grid: the target is in the model, least squares returns it (float64 rounding)
     assert np.array_equal(rough[on], r_true[on])
     assert np.abs(d[on] - d_true[on]).max() < 1e-8
@@ -100,7 +103,7 @@ def test_fit_recovers_known_inputs(rng, metallic):
     # ≤ 0.012 over seeds 0-2, bound 0.03), on a metal d trades against the lobe's peak
     # (1/α²; d off by up to 0.21), so there the bound is on the radiance: relative residual
     # ≤ 5 % (measured ≤ 3.3 %; a dielectric's ≤ 0.8 %)
-    cand = np.unique(np.r_[GRID, r0])  # the grid and the averaged roughness
+    cand = GRID
     lo = cand[np.clip(np.searchsorted(cand, r_true[~on]) - 1, 0, cand.size - 1)]
     hi = cand[np.clip(np.searchsorted(cand, r_true[~on]), 0, cand.size - 1)]
     assert ((rough[~on] == lo) | (rough[~on] == hi)).all()
@@ -126,6 +129,28 @@ def test_prior_pulls_to_the_averaged_inputs(rng):
         if not np.isfinite(lam):
             assert np.array_equal(rough, r0) and np.array_equal(d, d0)
     assert gaps[0] > gaps[1] > gaps[2] > gaps[3] == 0.0
+
+
+def test_unresolved_or_sharper_lobes_are_not_fitted(rng):
+    t = 4
+    wi, wo, tex, _ = _pairs(rng, t)  # 144 pairs a texel: lobes from roughness ~0.35 resolve
+    const = {"metallic": 1.0, "ior": 1.5}
+    r_res = float(resolvable_roughness(np.array([144]))[0])
+    assert 0.3 < r_res < 0.4  # sqrt(sqrt(8 / 576))
+    y = preview_surface({**const, "diffuseColor": np.full((tex.size, 3), 0.9),
+                         "roughness": np.full(tex.size, 0.6)}, wi, wo) * wi[:, 2:3]
+    w = np.ones(tex.size)
+    d0 = np.full((t, 3), 0.5)
+    r0 = np.array([0.2, 0.2, 0.9, 0.9])  # two below what the pairs resolve, two above
+    n_pairs = np.bincount(tex)
+    a0, b0 = affine_terms(const, r0[tex], wi, wo)
+    sums = np.stack([row_sums(*((a0, b0) if r is None else affine_terms(
+        const, np.full(tex.size, r), wi, wo)), y, w, a0 + d0[tex] * b0, d0[tex], tex, t)
+        for r in [None, *GRID]])
+    rough, d, _ = pick(sums, d0, r0, GRID, 0.0, n_pairs)
+    assert np.array_equal(rough[:2], r0[:2]) and np.array_equal(d[:2], d0[:2])  # kept
+    # above: fitted, never below SHARPEN x r0 (0.72): the truth 0.6 is out of reach
+    assert (rough[2:] >= SHARPEN * 0.9).all() and (rough[2:] <= 0.8).all()
 
 
 def _vgroove(wi: np.ndarray, wo: np.ndarray, theta: float, rho: float) -> tuple:
