@@ -12,7 +12,7 @@ from tests.helpers.avis_scenes import (
     tile3x3,
 )
 from texelbake.cpm.avis import avis_level, cube_directions, default_eps, unoccluded_samples
-from texelbake.cpm.avis.by_need import PATTERN_RES, need_samples
+from texelbake.cpm.avis.by_need import need_samples, pattern_directions
 from texelbake.errors import SettingsError
 from texelbake.geometry.raycast import RayCaster
 from texelbake.tol import TOL
@@ -70,8 +70,7 @@ def test_exact_texel_one_sample_equals_every_sample():
         assert np.isclose(need.weight[tex[need.rows] == t].sum(), ar[tex == t].sum(),
                           rtol=1e-12)
     facing = int((nrm[:1] @ cube_directions(RES).reshape(-1, 3).T > TOL.grazing_cos).sum())
-    facing_p = int((nrm[:1] @ cube_directions(PATTERN_RES).reshape(-1, 3).T
-                    > TOL.grazing_cos).sum())
+    facing_p = int((nrm[:1] @ pattern_directions().T > TOL.grazing_cos).sum())
     assert sum(calls) == n * facing + len(pos) * facing_p  # cubes + the pattern test
     assert sum(calls) * 3 < len(pos) * facing  # against one cube per sample
 
@@ -108,12 +107,12 @@ def _plate():
 
 def test_partly_shadowed_flat_texel_is_not_one_sample():
     """A flat texel the plate shadows in part is one facet but not one visibility pattern:
-    it gets K samples, not one. The truth: every sample's own rays on the pattern cube."""
+    it gets K samples, not one. The truth: every sample's own rays on the pattern directions."""
     pts, caster, pos, nrm, ar, tex = _plate()
     eps = default_eps(pos)
     free = unoccluded_samples(pos, nrm, pts, eps=eps)
     need = need_samples(pos, nrm, ar, tex, 16, ~free, caster.occluded, eps=eps, k=4)
-    dirs = cube_directions(PATTERN_RES).reshape(-1, 3)
+    dirs = pattern_directions()
     vis = np.stack([~caster.occluded(np.repeat((p + eps * n)[None], len(dirs), 0), dirs)
                     for p, n in zip(pos, nrm, strict=True)]) & (nrm @ dirs.T > TOL.grazing_cos)
     mixed = np.array([len({v.tobytes() for v in vis[(tex == t) & ~free]}) > 1

@@ -10,8 +10,8 @@ rays in either rebuild; they are kept whole, with their own areas.
 
 How many samples a texel's rays come from (`need_samples`):
 * one, when its ray-casting samples share one facet (geometric normals within
-  `TOL.exact_normal`) and one visibility pattern on the facing directions of a coarse cube
-  (`PATTERN_RES`, the samples' own rays): then every sample's term is
+  `TOL.exact_normal`) and one visibility pattern on `PATTERN_DIRS` facing directions (the
+  samples' own rays): then every sample's term is
   V(w) (n . w)^+ dA_j with the same V and n, and the sum is A (n . w)^+ V(w) from any one of
   them (the a_vis of `texelbake.cpm.classify`'s exact class; material does not enter a_vis,
   and the a_vis stage runs before the cpm stage classes its texels). Exact wherever the
@@ -25,15 +25,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from texelbake.cpm.avis.cube import OccludedFn, cube_directions
+from texelbake.cpm.avis.cube import OccludedFn
 from texelbake.cpm.avis.maps import pairs_fn
 from texelbake.tol import TOL
 
 #: ray-casting samples per texel that is not one facet and one visibility pattern (measured:
 #: `benchmarks/avis_level0.py`, docs/decisions.md "a_vis level 0")
 K_SAMPLES = 4
-#: face side of the world cube whose facing directions test the visibility pattern
-PATTERN_RES = 4
+#: world directions that test the visibility pattern (a Fibonacci sphere: even over the
+#: sphere down to the horizon, where shadows of rims and ridges fall and a coarse cube's
+#: centres are not; measured against 4 x 4 cube faces, docs/decisions.md "a_vis level 0")
+PATTERN_DIRS = 64
+
+
+def pattern_directions(n: int = PATTERN_DIRS) -> np.ndarray:
+    """(n, 3) float64 unit directions spread evenly over the sphere (Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * i
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
 @dataclass(frozen=True)
@@ -71,9 +82,9 @@ def _morton_in_texel(pos: np.ndarray, tex: np.ndarray, n_texels: int) -> np.ndar
 
 def _pattern_same(pos: np.ndarray, nrm: np.ndarray, tex: np.ndarray, ref: np.ndarray,
                   occluded_fn: OccludedFn, eps: float) -> tuple[np.ndarray, int]:
-    """(same (c,) bool: sample c is visible on exactly the facing PATTERN_RES cube directions
-    its texel's reference sample `ref[c]` (a row of the same arrays) is; rays cast)."""
-    dirs = cube_directions(PATTERN_RES).reshape(-1, 3)  # (d, 3)
+    """(same (c,) bool: sample c is visible on exactly the facing `pattern_directions` its
+    texel's reference sample `ref[c]` (a row of the same arrays) is; rays cast)."""
+    dirs = pattern_directions()  # (d, 3)
     facing = nrm @ dirs.T > TOL.grazing_cos  # (c, d)
     jj, dd = np.nonzero(facing)
     vis = np.zeros(facing.shape, bool)
@@ -144,4 +155,4 @@ def need_samples(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     return NeedSamples(rows[order], weight[order], one, rays)
 
 
-__all__ = ["K_SAMPLES", "PATTERN_RES", "NeedSamples", "need_samples"]
+__all__ = ["K_SAMPLES", "PATTERN_DIRS", "NeedSamples", "need_samples", "pattern_directions"]
