@@ -17,6 +17,14 @@ How many samples a texel's rays come from (`need_samples`):
   and the a_vis stage runs before the cpm stage classes its texels). Exact wherever the
   pattern holds at the fine cube's directions too;
 * `K_SAMPLES` strata for every other texel (all its samples when it has fewer).
+
+The maps (`by_need_maps`) are a ratio estimate: the unoccluded projected area
+U(w) = sum_j (n_j . w)^+ dA_j is known without rays (the closed-form terms, or every
+sample's cosines), so only the visible fraction comes from the strata,
+a_vis(w) ~ U(w) * sum_S V (n . w)^+ w_i / sum_S (n . w)^+ w_i. Over one facet the two sums'
+cosines cancel and this is the plain area-weighted estimate; over many facets (a bolt's
+threads) the strata's normals stand for the texel's only through the fraction (measured:
+the bolt's median per-texel error at K = 4 from 25 % to 14 %).
 """
 
 from __future__ import annotations
@@ -25,8 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from texelbake.cpm.avis.closed_form import ClosedForm, closed_form_maps
 from texelbake.cpm.avis.cube import OccludedFn
-from texelbake.cpm.avis.maps import pairs_fn
+from texelbake.cpm.avis.maps import avis_cube_maps, pairs_fn
 from texelbake.tol import TOL
 
 #: ray-casting samples per texel that is not one facet and one visibility pattern (measured:
@@ -155,4 +164,48 @@ def need_samples(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     return NeedSamples(rows[order], weight[order], one, rays)
 
 
-__all__ = ["K_SAMPLES", "PATTERN_DIRS", "NeedSamples", "need_samples", "pattern_directions"]
+def _never(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    return np.zeros(len(origins), dtype=bool)
+
+
+def by_need_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
+                 tex: np.ndarray, n_texels: int, res: int, occluded_fn: OccludedFn,
+                 closed: np.ndarray, free: np.ndarray | None, cf: ClosedForm,
+                 bounded: np.ndarray, *, eps: float, max_rays: int = 1 << 21,
+                 k: int = K_SAMPLES) -> np.ndarray:
+    """Level-0 a_vis maps by need (module doc): the strata's rays, scaled to the texel's
+    unoccluded projected area.
+
+    positions, normals : (m, 3) float64 (unit normals); areas : (m,) float64
+    tex : (m,) int64 in [0, n_texels); res : cube face side
+    closed : (n_texels,) bool texels in closed form (left at zero, no rays)
+    free : (m,) bool samples proven unoccluded, or None
+    cf, bounded : the level's closed-form terms and the texels they are complete for
+        (`levels._bounded_terms`): U of a bounded texel from its terms, of the others from
+        every sample's cosines
+    returns : (n_texels, 6, res, res) float64 world-direction maps
+    """
+    cast = ~closed[tex] if free is None else ~closed[tex] & ~free
+    need = need_samples(positions, normals, areas, tex, n_texels, cast, occluded_fn, eps=eps,
+                        k=k)
+    r = need.rows
+    kw = {"skip_texels": closed, "ray_eps": eps, "max_rays": max_rays, "dtype": np.float64}
+    est = avis_cube_maps(positions[r], normals[r], need.weight, tex[r], n_texels, None, res,
+                         occluded_fn, free_samples=None if free is None else free[r], **kw)
+    u_est = avis_cube_maps(positions[r], normals[r], need.weight, tex[r], n_texels, None, res,
+                           _never, **kw)
+    u = np.zeros_like(est)
+    ids = np.flatnonzero(~closed & bounded)
+    u[ids] = closed_form_maps(cf, res, ids)
+    rest = ~closed & ~bounded
+    if rest.any():
+        js = np.flatnonzero(rest[tex])
+        u += avis_cube_maps(positions[js], normals[js], areas[js], tex[js], n_texels, None,
+                            res, _never, **kw)
+    ok = u_est > 0
+    # where no stratum faces w the fraction is unknown: the plain estimate (0) stays
+    return np.where(ok, u * est / np.where(ok, u_est, 1.0), est)
+
+
+__all__ = ["K_SAMPLES", "PATTERN_DIRS", "NeedSamples", "by_need_maps", "need_samples",
+           "pattern_directions"]

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from texelbake.cpm.avis.by_need import K_SAMPLES, need_samples
+from texelbake.cpm.avis.by_need import K_SAMPLES, by_need_maps
 from texelbake.cpm.avis.closed_form import (
     ClosedForm,
     closed_form_maps,
@@ -211,16 +211,14 @@ def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     ray_texels = np.flatnonzero(~closed)
     area = np.bincount(tex, weights=ar, minlength=n_texels)
     if samples == "by_need":
-        cast = ~closed[tex] if free is None else ~closed[tex] & ~free
-        need = need_samples(pos, nrm, ar, tex, n_texels, cast, occluded_fn, eps=eps,
-                            k=k_samples)
-        pos, nrm, ar, tex = pos[need.rows], nrm[need.rows], need.weight, tex[need.rows]
-        free = None if free is None else free[need.rows]
-    elif samples != "dense":
+        maps = by_need_maps(pos, nrm, ar, tex, n_texels, res, occluded_fn, closed, free, cf,
+                            bounded, eps=eps, max_rays=max_rays, k=k_samples)
+    elif samples == "dense":
+        maps = avis_cube_maps(pos, nrm, ar, tex, n_texels, None, res, occluded_fn,
+                              skip_texels=closed, free_samples=free, ray_eps=eps,
+                              max_rays=max_rays, dtype=np.float64)
+    else:
         raise SettingsError(f"samples must be 'dense' or 'by_need', got {samples!r}")
-    maps = avis_cube_maps(pos, nrm, ar, tex, n_texels, None, res, occluded_fn,
-                          skip_texels=closed, free_samples=free, ray_eps=eps,
-                          max_rays=max_rays, dtype=np.float64)
     return AvisLevel(int(n_side), int(res), closed, bounded, cf, ray_texels, maps[ray_texels],
                      area, int(max_terms))
 
