@@ -165,7 +165,7 @@ class BakeSettings(BaseModel):
     avis_level0: Literal["dense", "by_need"] = _field(
         "dense", "a_vis",
         "Which samples cast the finest level's a_vis rays: 'dense' every dense sample, "
-        "'by_need' one sample of a one-facet texel with one visibility pattern and a few "
+        "'by_need' one sample of a one-facet texel with one visibility pattern and 16 "
         "area-weighted samples of any other texel.")
     avis_selection: Literal["texel", "face"] = _field(
         "texel", "a_vis",

@@ -8,7 +8,7 @@ from texelbake.stages.context import StageContext
 from texelbake.stages.geometry import run_geometry
 from texelbake.testscenes import write_scene
 
-SMALL = {"atlas_resolution": 16, "shard_texels": 8, "samples_per_texel": 16, "mesh_levels": 1}
+SMALL = {"atlas_resolution": 16, "shard_texels": 8, "mesh_levels": 1}
 
 
 def test_by_need_tile_casts_fewer_rays_and_keeps_the_level(tmp_path):
@@ -29,7 +29,7 @@ def test_by_need_tile_casts_fewer_rays_and_keeps_the_level(tmp_path):
     for name in d:
         if name.endswith(("closed", "bounded", "texel_area", "cf_normals", "cf_areas")):
             assert np.array_equal(d[name], n[name]), name
-    assert n["rays"][0] * 3 < d["rays"][0]  # K = 4 of 16 samples: at most 4x
+    assert n["rays"][0] * 2 < d["rays"][0]  # K_SAMPLES = 16 of ~64 samples: at most 4x
     md, mn = d["L00_ray_maps"], n["L00_ray_maps"]
     assert md.shape == mn.shape and md.shape[0] > 0
     assert abs(mn.sum() - md.sum()) <= 0.05 * md.sum()

@@ -38,12 +38,13 @@ from texelbake.cpm.avis.cube import OccludedFn
 from texelbake.cpm.avis.maps import avis_cube_maps, pairs_fn
 from texelbake.tol import TOL
 
-#: ray-casting samples per texel that is not one facet and one visibility pattern (measured:
-#: `benchmarks/avis_level0.py`, docs/decisions.md "a_vis level 0")
-K_SAMPLES = 4
+#: ray-casting samples per texel that is not one facet and one visibility pattern: the
+#: smallest K within ~6 % of the dense maps per texel (median) on the cylinder and the bolt at
+#: 64²–128², 9–12x fewer rays (`benchmarks/avis_level0.py`, docs/decisions.md "Level 0's a_vis")
+K_SAMPLES = 16
 #: world directions that test the visibility pattern (a Fibonacci sphere: even over the
 #: sphere down to the horizon, where shadows of rims and ridges fall and a coarse cube's
-#: centres are not; measured against 4 x 4 cube faces, docs/decisions.md "a_vis level 0")
+#: centres are not; measured against 4 x 4 cube faces, docs/decisions.md "Level 0's a_vis")
 PATTERN_DIRS = 64
 
 
