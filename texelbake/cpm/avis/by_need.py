@@ -25,6 +25,10 @@ a_vis(w) ~ U(w) * sum_S V (n . w)^+ w_i / sum_S (n . w)^+ w_i. Over one facet th
 cosines cancel and this is the plain area-weighted estimate; over many facets (a bolt's
 threads) the strata's normals stand for the texel's only through the fraction (measured:
 the bolt's median per-texel error at K = 4 from 25 % to 14 %).
+
+Not the default (`BakeSettings.avis_level0`): a coarse level's fit divides R, from every
+dense sample's rays, by its children's a_vis, and an estimate of the shadows that R does not
+share costs the coarse levels' held-out tails (docs/decisions.md "Level 0's a_vis").
 """
 
 from __future__ import annotations
