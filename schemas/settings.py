@@ -162,6 +162,11 @@ class BakeSettings(BaseModel):
         "Where the fit of a coarse level gets its a_vis: 'children' from its children's summed "
         "cube maps read at its own directions, 'dense' from rays of every dense sample as the "
         "seed.")
+    avis_level0: Literal["dense", "by_need"] = _field(
+        "dense", "a_vis",
+        "Which samples cast the finest level's a_vis rays: 'dense' every dense sample, "
+        "'by_need' one sample of a one-facet texel with one visibility pattern and 16 "
+        "area-weighted samples of any other texel.")
     avis_selection: Literal["texel", "face"] = _field(
         "texel", "a_vis",
         "How the Haar coefficients are chosen: 'texel' evens the relative error over texels, "

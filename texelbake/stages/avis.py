@@ -25,7 +25,8 @@ def _avis_level_from(data: dict[str, np.ndarray], prefix: str, *, maps: bool = T
 
 
 def _avis_key(ctx: StageContext, tile: int | None) -> str:
-    fields = GEOMETRY_FIELDS + ("avis_resolution", "shard_texels")  # tiles named by layout
+    # tiles named by layout
+    fields = GEOMETRY_FIELDS + ("avis_resolution", "avis_level0", "shard_texels")
     name = f"tile{tile:05d}-s{ctx.settings.shard_texels}.npz" if tile is not None else "top.npz"
     return ctx.key("avis", name, fields)
 
@@ -49,7 +50,7 @@ def run_avis_tile(ctx: StageContext, shard: int) -> str:
     level = avis_mod.avis_level(
         geo["sample_pos"][idx], geo["sample_gnrm"][idx], geo["sample_area"][idx], local, side,
         s.avis_resolution, caster.occluded, ctx.asset().points,
-        ray_eps=TOL.ray_offset * caster.bbox_diag,
+        ray_eps=TOL.ray_offset * caster.bbox_diag, samples=s.avis_level0,
     )
     out = _avis_level_arrays(level, "L00_")
     out["rays"] = np.array([caster.rays_cast - rays0], np.int64)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from texelbake.cpm.avis.by_need import K_SAMPLES, by_need_maps
 from texelbake.cpm.avis.closed_form import (
     ClosedForm,
     closed_form_maps,
@@ -16,7 +17,7 @@ from texelbake.cpm.avis.closed_form import (
 )
 from texelbake.cpm.avis.cube import OccludedFn
 from texelbake.cpm.avis.maps import avis_cube_maps, coerce_samples, default_eps
-from texelbake.errors import ShapeError
+from texelbake.errors import SettingsError, ShapeError
 
 # --------------------------------------------------------------------------------------------
 # hierarchy
@@ -175,7 +176,8 @@ def tile_layout(tiles: list[AvisLevel], tiles_per_side: int
 def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                texel_of_sample: np.ndarray, n_side: int, res: int, occluded_fn: OccludedFn,
                mesh_points: np.ndarray, *, closed_form: bool = True, max_terms: int = 256,
-               ray_eps: float | None = None, max_rays: int = 1 << 21) -> AvisLevel:
+               ray_eps: float | None = None, max_rays: int = 1 << 21,
+               samples: str = "dense", k_samples: int = K_SAMPLES) -> AvisLevel:
     """a_vis of one atlas level: closed form where `unoccluded_samples` proves every sample of
     a texel free, rays (avis_cube_maps, world directions) elsewhere, none from a free sample.
 
@@ -188,6 +190,9 @@ def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
         `default_eps(positions)`. When a level is computed in tiles (texel ids local to the
         tile, see `stack_tiles`), pass one scene-wide value so that every tile casts the rays
         the whole level would.
+    samples : "dense" casts every sample's rays; "by_need" a texel's from one sample when its
+        ray-casting samples are one facet and one visibility pattern, else from `k_samples`
+        strata, each weighted by its area (`texelbake.cpm.avis.by_need`)
     returns : AvisLevel
     """
     pos, nrm, ar, tex, n_texels = coerce_samples(normals, areas, texel_of_sample,
@@ -204,10 +209,16 @@ def avis_level(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     cf, bounded = _bounded_terms(closed_form_terms(nrm, ar, tex, n_texels), closed,
                                  int(max_terms))
     ray_texels = np.flatnonzero(~closed)
-    maps = avis_cube_maps(pos, nrm, ar, tex, n_texels, None, res, occluded_fn,
-                          skip_texels=closed, free_samples=free, ray_eps=eps,
-                          max_rays=max_rays, dtype=np.float64)
     area = np.bincount(tex, weights=ar, minlength=n_texels)
+    if samples == "by_need":
+        maps = by_need_maps(pos, nrm, ar, tex, n_texels, res, occluded_fn, closed, free, cf,
+                            bounded, eps=eps, max_rays=max_rays, k=k_samples)
+    elif samples == "dense":
+        maps = avis_cube_maps(pos, nrm, ar, tex, n_texels, None, res, occluded_fn,
+                              skip_texels=closed, free_samples=free, ray_eps=eps,
+                              max_rays=max_rays, dtype=np.float64)
+    else:
+        raise SettingsError(f"samples must be 'dense' or 'by_need', got {samples!r}")
     return AvisLevel(int(n_side), int(res), closed, bounded, cf, ray_texels, maps[ray_texels],
                      area, int(max_terms))
 
