@@ -1,7 +1,8 @@
 """Validated on the way in, the same on the way out, against a real uvicorn on PostgreSQL (no
 workers): settings with NaN or Infinity inside a list, a lone surrogate in any string, an
 out-of-range `Last-Event-ID`. Each is a 422 naming the field (or, for the header, ignored),
-nothing is stored, and every job the requests left behind reads back."""
+nothing is stored, and every job the requests left behind reads back. Also the events client's
+last read of a job that ends between two of its streams."""
 
 from __future__ import annotations
 
@@ -152,6 +153,28 @@ def test_a_stored_row_that_does_not_read_back_still_reads(stack, c, asset):
     assert r.json()["settings"]["seed"] == 7 and r.json()["settings"]["lod_switch_px"] == [256, 64]
     assert c.delete(f"/jobs/{jid}").status_code == 202
     assert c.get(f"/batches/{bid}").status_code == 200
+
+
+def test_events_client_drains_a_job_that_ends_between_streams(stack, c, asset):
+    """The job's stream closes (`sse_max_seconds`, 1 s here) while the job is queued, and the
+    job is cancelled after that stream's last read, before the client asks for its state: the
+    client reads the events once more and yields the cancellation, the stream's last event."""
+    from texelbake_client.submit import API, iter_events
+
+    jid = c.post("/jobs", json={"asset_id": asset}).json()["id"]
+    state_url = f"{API}/jobs/{jid}"
+    cancelled: list[int] = []
+
+    def cancel_before_state_check(request: httpx.Request) -> None:
+        if request.method == "GET" and request.url.path == state_url and not cancelled:
+            cancelled.append(c.delete(f"/jobs/{jid}").status_code)
+
+    with httpx.Client(base_url=stack.api_url, headers=AUTH, timeout=60,
+                      event_hooks={"request": [cancel_before_state_check]}) as client:
+        events = list(iter_events(client, jid))
+    assert cancelled == [202]
+    assert events[-1]["kind"] == "job" and events[-1]["data"]["state"] == "cancelled", events
+    assert [e["seq"] for e in events] == sorted({e["seq"] for e in events})
 
 
 def test_every_job_reads_back(c, asset):
