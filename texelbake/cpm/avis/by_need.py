@@ -194,19 +194,22 @@ def by_need_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     need = need_samples(positions, normals, areas, tex, n_texels, cast, occluded_fn, eps=eps,
                         k=k)
     r = need.rows
-    kw = {"skip_texels": closed, "ray_eps": eps, "max_rays": max_rays, "dtype": np.float64}
-    est = avis_cube_maps(positions[r], normals[r], need.weight, tex[r], n_texels, None, res,
-                         occluded_fn, free_samples=None if free is None else free[r], **kw)
-    u_est = avis_cube_maps(positions[r], normals[r], need.weight, tex[r], n_texels, None, res,
-                           _never, **kw)
+
+    def maps(rows: np.ndarray, weight: np.ndarray, occluded: OccludedFn,
+             free_rows: np.ndarray | None = None) -> np.ndarray:
+        return avis_cube_maps(positions[rows], normals[rows], weight, tex[rows], n_texels, None,
+                              res, occluded, skip_texels=closed, free_samples=free_rows,
+                              ray_eps=eps, max_rays=max_rays, dtype=np.float64)
+
+    est = maps(r, need.weight, occluded_fn, None if free is None else free[r])
+    u_est = maps(r, need.weight, _never)
     u = np.zeros_like(est)
     ids = np.flatnonzero(~closed & bounded)
     u[ids] = closed_form_maps(cf, res, ids)
     rest = ~closed & ~bounded
     if rest.any():
         js = np.flatnonzero(rest[tex])
-        u += avis_cube_maps(positions[js], normals[js], areas[js], tex[js], n_texels, None,
-                            res, _never, **kw)
+        u += maps(js, areas[js], _never)
     ok = u_est > 0
     # where no stratum faces w the fraction is unknown: the plain estimate (0) stays
     return np.where(ok, u * est / np.where(ok, u_est, 1.0), est)
