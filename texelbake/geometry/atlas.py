@@ -282,13 +282,12 @@ def _closest_facing(caster: RayCaster, mesh: Mesh, points: np.ndarray, normals: 
     step = max(1, _FACING_PAIRS // nf)
     for s in range(0, away.shape[0], step):
         idx = away[s: s + step]
-        k = idx.shape[0]
-        p = np.repeat(points[idx], nf, axis=0)  # (k F, 3)
-        t = np.tile(tri, (k, 1, 1))  # (k F, 3, 3)
-        q, _ = closest_point_on_triangles(p, t[:, 0], t[:, 1], t[:, 2])
-        d2 = np.einsum("nd,nd->n", q - p, q - p).reshape(k, nf)
         ok = normals[idx] @ fn.T >= FACING_MIN_COS  # (k, F)
-        d2 = np.where(ok, d2, np.inf)
+        pi, ti = np.nonzero(ok)  # only the facing pairs are measured
+        p = points[idx][pi]
+        q, _ = closest_point_on_triangles(p, tri[ti, 0], tri[ti, 1], tri[ti, 2])
+        d2 = np.full(ok.shape, np.inf)
+        d2[pi, ti] = np.einsum("nd,nd->n", q - p, q - p)
         best = d2.argmin(axis=1)
         prim[idx] = np.where(ok.any(axis=1), best, prim[idx])
     return prim

@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from texelbake.errors import SettingsError
+from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.raycast import RayCaster
 
 #: a LOD edge whose faces' normals are more than this apart is a crease of the LOD's smooth
@@ -49,10 +50,7 @@ def lod_corner_normals(vertices: np.ndarray, faces: np.ndarray,
         return np.zeros((0, 3, 3))
     smooth = smooth_corner_normals(v, f, crease_deg=crease_deg).reshape(-1, 3)
     org = org_corner_normals(v, f, org_faces_normals, caster).reshape(-1, 3)
-    tri = v[f]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(fn, axis=1, keepdims=True)
-    face = np.repeat(np.divide(fn, length, out=np.zeros_like(fn), where=length > 0), 3, axis=0)
+    face = np.repeat(face_normals(v, f), 3, axis=0)
     lo, hi = (math.cos(math.radians(d)) for d in FACET_DEG)
     cos_face = np.einsum("md,md->m", org, face)
     w = np.clip((cos_face - hi) / (lo - hi), 0.0, 1.0)  # (3f,)
@@ -77,11 +75,10 @@ def org_corner_normals(vertices: np.ndarray, faces: np.ndarray,
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    tri = v[f]  # (f, 3, 3)
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    fn = fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
     if not len(f):
         return np.zeros((0, 3, 3))
+    tri = v[f]  # (f, 3, 3)
+    fn = face_normals(v, f)
     q = tri + CORNER_INSET * (tri.mean(axis=1, keepdims=True) - tri)
     _, prim, b2 = caster.closest_points(q.reshape(-1, 3))
     bary = np.column_stack([1.0 - b2[:, 0] - b2[:, 1], b2])
@@ -111,10 +108,8 @@ def smooth_corner_normals(vertices: np.ndarray, faces: np.ndarray, *,
     if not 0.0 < float(crease_deg) < 180.0:
         raise SettingsError(f"crease_deg must be in (0, 180), got {crease_deg}")
     tri = v[f]  # (f, 3, 3)
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(fn, axis=1, keepdims=True)
-    fn = np.divide(fn, length, out=np.zeros_like(fn), where=length > 0)
-    degenerate = length[:, 0] == 0
+    fn = face_normals(v, f)
+    degenerate = np.all(fn == 0.0, axis=1)  # (f,) zero rows of `face_normals`
     to_next, to_prev = np.roll(tri, -1, axis=1) - tri, np.roll(tri, 1, axis=1) - tri
     angle = np.arctan2(np.linalg.norm(np.cross(to_next, to_prev), axis=2),
                        np.einsum("fkd,fkd->fk", to_next, to_prev)).ravel()  # (3f,)

@@ -94,8 +94,8 @@ def _morton_in_texel(pos: np.ndarray, tex: np.ndarray, n_texels: int) -> np.ndar
     return code
 
 
-def _pattern_same(pos: np.ndarray, nrm: np.ndarray, tex: np.ndarray, ref: np.ndarray,
-                  occluded_fn: OccludedFn, eps: float) -> tuple[np.ndarray, int]:
+def _pattern_same(pos: np.ndarray, nrm: np.ndarray, ref: np.ndarray, occluded_fn: OccludedFn,
+                  eps: float) -> tuple[np.ndarray, int]:
     """(same (c,) bool: sample c is visible on exactly the facing `pattern_directions` its
     texel's reference sample `ref[c]` (a row of the same arrays) is; rays cast)."""
     dirs = pattern_directions()  # (d, 3)
@@ -144,8 +144,8 @@ def need_samples(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     rows_t = np.flatnonzero(test[seg])
     if rows_t.size:
         local_ref = np.searchsorted(rows_t, ref[rows_t])  # reference rows are in rows_t
-        same, rays = _pattern_same(positions[c[rows_t]], nrm[rows_t], tc[rows_t], local_ref,
-                                   occluded_fn, eps)
+        same, rays = _pattern_same(positions[c[rows_t]], nrm[rows_t], local_ref, occluded_fn,
+                                   eps)
         one_u |= test & (np.bincount(seg[rows_t][~same], minlength=first.size) == 0)
     one[tc[first]] = one_u
     # strata: k_t equal shares of the texel's cumulative area, each sample in the stratum of
