@@ -1,6 +1,7 @@
 """Texels classed by need against the seed's fit of every texel, on one level's tiles: the
-seconds of the cpm stage's `fit_level` (classes and fit), the exact texels, and the held-out
-SNR of each class, for `texel_classes="by_need"` and `"points"` on the same geometry.
+seconds of the cpm stage's `fit_level` (classes and fit), the exact and grouped texels, and the
+held-out SNR and stored points of each class, for `texel_classes="by_need"` and `"points"` on
+the same geometry; the "points" run also scores the seed's fit on the texels by need groups.
 
     python benchmarks/texel_classes.py --scene cylinder --size full --atlas 64 --tiles 4 \
         --json benchmarks/results/texel_classes_cylinder_64.json
@@ -24,7 +25,7 @@ from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm.assemble import SNR_EXACT_DB, percentiles
 from texelbake.cpm.level import level_candidates, tile_texels
-from texelbake.cpm.level_by_need import EXACT_SKIP
+from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP
 from texelbake.stages.cpm import fit_level
 from texelbake.testscenes import write_scene
 
@@ -51,9 +52,12 @@ def main() -> None:
     tiles = list(range(0, n_tiles, args.tiles))
     out: dict = {"scene": str(args.scene), "size": args.size, "atlas": args.atlas,
                  "tiles": tiles, "geometry_seconds": geo_s}
-    for mode in ("points", "by_need"):  # the two paths, same tiles
+    grouped_texels: set[int] = set()
+    for mode in ("by_need", "points"):  # the two paths, same tiles
         src_m = dataclasses.replace(src, settings=s.model_copy(update={"texel_classes": mode}))
-        sec, cpu, ex, ho_ex, ho_pt = 0.0, 0.0, 0, [], []
+        sec, cpu = 0.0, 0.0
+        cls: dict[str, list] = {k: [] for k in ("exact", "grouped", "fitted", "seed_on_grouped")}
+        pts: dict[str, list] = {k: [] for k in cls}
         for tile in tiles:  # loop over tiles
             texels = tile_texels(args.atlas, s.shard_texels, tile, 0)
             cands = level_candidates(src_m, 0, texels, None)
@@ -63,18 +67,33 @@ def main() -> None:
             cpu += time.process_time() - c  # less sensitive to the other processes' load
             v = res["valid"].astype(bool)
             e = v & (res["skip"] == EXACT_SKIP)
-            ex += int(e.sum())
-            ho_ex += res["snr_ho"][e].tolist()
-            ho_pt += res["snr_ho"][v & ~e].tolist()
-        out[mode] = {"seconds": sec, "cpu_seconds": cpu, "exact_texels": ex, "fitted_texels": len(ho_pt),
-                     "snr_heldout_exact": percentiles(np.array(ho_ex), SNR_EXACT_DB),
-                     "snr_heldout_fitted": percentiles(np.array(ho_pt), SNR_EXACT_DB),
-                     "snr_heldout_all": percentiles(np.array(ho_ex + ho_pt), SNR_EXACT_DB)}
+            g = v & (res["skip"] == GROUPED_SKIP)
+            grouped_texels |= set(res["texel"][g].tolist())
+            on_g = v & np.isin(res["texel"], list(grouped_texels)) if mode == "points" \
+                else np.zeros_like(v)
+            for name, sel in (("exact", e), ("grouped", g), ("fitted", v & ~e & ~g),
+                              ("seed_on_grouped", on_g)):
+                cls[name] += res["snr_ho"][sel].tolist()
+                pts[name] += res["c"][sel].tolist()
+        out[mode] = {"seconds": sec, "cpu_seconds": cpu} | {
+            f"{k}_texels": len(v) for k, v in cls.items()} | {
+            f"snr_heldout_{k}": percentiles(np.array(v), SNR_EXACT_DB) for k, v in cls.items()} | {
+            f"points_mean_{k}": float(np.mean(v)) if v else None for k, v in pts.items()} | {
+            "snr_heldout_all": percentiles(np.array(cls["exact"] + cls["grouped"]
+                                                    + cls["fitted"]), SNR_EXACT_DB)}
+        for name in cls:
+            a = out[mode][f"snr_heldout_{name}"]
+            if not cls[name]:
+                continue
+            print(f"{args.scene} {args.atlas}^2 L0 {len(tiles)} tiles  {mode:8s} {name:16s} "
+                  f"{len(cls[name]):5d} texels, {out[mode][f'points_mean_{name}']:6.1f} points, "
+                  f"held-out median {a.get('p50', np.nan):7.2f} p5 {a.get('p5', np.nan):7.2f} "
+                  f"min {a.get('min', np.nan):7.2f} dB",
+                  flush=True)
         a = out[mode]["snr_heldout_all"]
-        print(f"{args.scene} {args.atlas}^2 L0 {len(tiles)} tiles  {mode:8s} {sec:8.1f} s "
-              f"({cpu:7.1f} CPU s)  exact {ex:5d}  fitted {len(ho_pt):5d}  held-out all: median "
-              f"{a.get('p50', float('nan')):7.2f} p5 {a.get('p5', float('nan')):7.2f} dB  "
-              f"exact min {min(ho_ex) if ho_ex else float('nan'):7.2f} dB", flush=True)
+        print(f"{args.scene} {args.atlas}^2 L0 {mode:8s} {sec:8.1f} s ({cpu:7.1f} CPU s)  "
+              f"held-out all: median {a.get('p50', float('nan')):7.2f} "
+              f"p5 {a.get('p5', float('nan')):7.2f} dB", flush=True)
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))
 

@@ -6,6 +6,8 @@ The scenes: the unit square z = 0 (two coplanar triangles, one chart), a 2 x 2 a
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -15,7 +17,7 @@ from texelbake.cpm.classify import REASONS, classify_texels
 from texelbake.cpm.dense import LevelPass, dense_of
 from texelbake.cpm.level import FitInputs, level_candidates
 from texelbake.cpm.level_batched import fit_level_batched
-from texelbake.cpm.level_by_need import EXACT_SKIP, fit_level_by_need
+from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP, fit_level_by_need
 from texelbake.geometry.basis import tangent_frames
 from texelbake.geometry.raycast import RayCaster
 from texelbake.model import Material, Texture
@@ -123,17 +125,74 @@ def test_thin_sheet_seen_from_both_sides():
     assert np.all(out["snr_ho"][ex] >= TOL.exact_fit_db)
 
 
-def test_partly_shadowed_flat_texel_is_not_exact():
-    """A wall standing on texel 0 (x = 0.3, y < 0.5, 0.4 high): its samples on either side see
-    different directions (two visibility patterns, found by their own rays), so it is fitted;
-    without the wall the same texel is exact."""
+def _walled(height: float, y0: float, y1: float) -> tuple[np.ndarray, np.ndarray]:
+    """The square with a wall standing on it at x = 0.3, from y0 to y1, `height` high."""
     p, f = SQUARE
-    wall = np.array([[0.3, 0, 0], [0.3, 0.5, 0], [0.3, 0.5, 0.4], [0.3, 0, 0.4]], float)
-    mesh = (np.concatenate([p, wall]), np.concatenate([f, [[4, 5, 6], [4, 6, 7]]]))
+    wall = np.array([[0.3, y0, 0], [0.3, y1, 0], [0.3, y1, height], [0.3, y0, height]], float)
+    return np.concatenate([p, wall]), np.concatenate([f, [[4, 5, 6], [4, 6, 7]]])
+
+
+def _with(src: FitInputs, **update) -> FitInputs:
+    return dataclasses.replace(src, settings=src.settings.model_copy(update=update))
+
+
+def test_partly_shadowed_flat_texel_is_grouped_by_pattern():
+    """A wall taller and longer than the scene stands across texels 0 and 2 (x = 0.3): a
+    sample left of it sees only directions with x <= 0, one right of it only x >= 0, so those
+    texels hold two visibility patterns (found by their own rays) and are stored as two
+    points, each its half's sample nearest the half's centroid, weight the half's area (8 of
+    the texel's 16 samples of area 1/64: 0.125, closed form); the open texels 1 and 3 stay
+    one point. Both halves see exactly their half-spaces on the held-out pairs too, so every
+    texel measures exact. With c_max = 1 the two-pattern texels go to the fit."""
     pos = _grid_samples()
-    cls = _classes(_inputs(pos, _up(len(pos)), mesh=mesh))
-    assert cls.reason[0] == REASONS["visibility"] and cls.rays > 0
-    assert _classes(_inputs(pos, _up(len(pos)))).exact[0]
+    src = _inputs(pos, _up(len(pos)), mesh=_walled(100.0, -100.0, 100.0))
+    cls = _classes(src)
+    assert list(cls.grouped) == [True, False, True, False]
+    assert list(cls.exact) == [False, True, False, True] and cls.rays > 0
+    assert list(np.diff(cls.offsets)) == [2, 1, 2, 1]
+    tex = src.geo["sample_row"] * 2 + src.geo["sample_col"]
+    for t in (0, 2):
+        pts = cls.points[cls.offsets[t]:cls.offsets[t + 1]]
+        np.testing.assert_allclose(cls.weights[cls.offsets[t]:cls.offsets[t + 1]], 0.125,
+                                   rtol=1e-12)
+        for side in (pos[:, 0] < 0.3, pos[:, 0] > 0.3):  # each half: its nearest-centroid
+            own = np.flatnonzero(side & (tex == t))
+            d = np.linalg.norm(pos[own] - pos[own].mean(axis=0), axis=1)
+            assert own[np.argmin(d)] in pts
+    out = _by_need(src)
+    assert list(out["skip"]) == [GROUPED_SKIP, EXACT_SKIP, GROUPED_SKIP, EXACT_SKIP]
+    assert list(out["c"]) == [2, 1, 2, 1]
+    assert np.all(out["snr_ho"] >= TOL.exact_fit_db)
+    capped = _classes(_with(src, c_max=1))
+    assert list(capped.reason) == [REASONS["visibility"], 0, REASONS["visibility"], 0]
+    assert not capped.grouped.any()
+
+
+def test_grouped_texel_matches_the_brute_force_on_the_grid():
+    """A short wall (0.4 high) on texel 0 splits texels into many visibility patterns: with
+    c_max at least their count each texel stores a point per pattern, and on the training
+    grid the points' Eq. 7 is the brute-force sum over the texel's samples (the grouping is
+    lossless there, relative residual < 1e-6); with c_max = 8 the texels with more
+    patterns are fitted."""
+    from texelbake.cpm.dense import held_pass
+
+    pos = _grid_samples()
+    src = _with(_inputs(pos, _up(len(pos)), mesh=_walled(0.4, 0.0, 0.5)), c_max=64)
+    cls = _classes(src)
+    assert cls.grouped.all() and np.all(np.diff(cls.offsets) > 8)
+    # the training grid as the "held-out" pairs: Eq. 7 of the samples against the points'
+    lp = LevelPass.of(src, 0)
+    lp = dataclasses.replace(lp, dirs=lp.dirs | {"held_i": lp.dirs["dirs_i"],
+                                                 "held_o": lp.dirs["dirs_o"]})
+    texels = np.arange(4, dtype=np.int64)
+    dense, dseg = dense_of(lp, texels)
+    pseg = np.repeat(np.arange(4), np.diff(cls.offsets))
+    at = np.searchsorted(dseg * (len(pos) + 1) + dense, pseg * (len(pos) + 1) + cls.points)
+    ref, apx, _ = held_pass(lp, texels, dense, dseg, at, pseg, cls.weights, want_ref=True)
+    assert np.abs(ref).max() > 0
+    np.testing.assert_allclose(apx, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+    fitted = _classes(_with(src, c_max=8)).reason
+    assert np.all(fitted[np.diff(cls.offsets) > 8] == REASONS["visibility"])
 
 
 def _ramp(channels: int) -> Texture:
@@ -211,8 +270,6 @@ def test_two_materials_and_a_single_sample():
 @pytest.mark.parametrize("mode", ["points", "by_need"])
 def test_setting_chooses_the_path(mode, tmp_path):
     """`texel_classes="points"` is the seed's fit for every texel (no exact texel stored)."""
-    import dataclasses
-
     from texelbake.stages.cpm import fit_level
 
     pos = _grid_samples()
@@ -231,22 +288,21 @@ def test_setting_chooses_the_path(mode, tmp_path):
 
 def test_classes_do_not_depend_on_the_memory_chunks(monkeypatch):
     """`classes_bounded` with one texel per chunk (a huge per-entry size) gives the classes,
-    points and weights of one chunk (the whole scene with a shadowed and a folded texel)."""
+    points and weights of one chunk (the whole scene with two grouped texels, an exact and a
+    folded one)."""
     from texelbake.cpm import level_by_need
 
-    p, f = SQUARE
-    wall = np.array([[0.3, 0, 0], [0.3, 0.5, 0], [0.3, 0.5, 0.4], [0.3, 0, 0.4]], float)
-    mesh = (np.concatenate([p, wall]), np.concatenate([f, [[4, 5, 6], [4, 6, 7]]]))
     pos = _grid_samples()
     nrm = _up(len(pos))
     nrm[(pos[:, 0] > 0.75) & (pos[:, 1] > 0.5)] = [0.0, np.sin(0.3), np.cos(0.3)]
-    src = _inputs(pos, nrm, mesh=mesh)
+    src = _inputs(pos, nrm, mesh=_walled(100.0, -100.0, 100.0))
     lp = LevelPass.of(src, 0)
     texels = np.arange(4, dtype=np.int64)
     dense, dseg = dense_of(lp, texels)
     whole = level_by_need.classes_bounded(lp, texels, dense, dseg)
     monkeypatch.setattr(level_by_need, "BYTES_PER_CLASS_ENTRY", 10**12)
     parts = level_by_need.classes_bounded(lp, texels, dense, dseg)
-    for a, b in zip(whole, parts, strict=True):
-        np.testing.assert_array_equal(a, b)
-    assert not whole[0][0] and not whole[0][3]
+    for f in dataclasses.fields(whole):
+        np.testing.assert_array_equal(getattr(whole, f.name), getattr(parts, f.name))
+    assert list(whole.grouped) == [True, False, True, False]
+    assert list(whole.exact) == [False, True, False, False]

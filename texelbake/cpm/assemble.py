@@ -10,7 +10,7 @@ import numpy as np
 from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.avis.compress import LevelChunks, chunks_of, compress_chunks
 from texelbake.cpm.avis.table import avis_table_arrays
-from texelbake.cpm.level_by_need import EXACT_SKIP
+from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP
 
 #: an SNR of +inf (an exact reproduction) enters the report's percentiles as this many dB:
 #: float64 round-off alone stays below ~313 dB, so no measured value reaches it
@@ -102,17 +102,21 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
 
 def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     """The level's texels by class (`texelbake.cpm.level_by_need`): "exact" (one point, no
-    fit) and "points" (the seed's fit), each with its texels and its held-out SNR. Empty when
-    the bake classed no texel (texel_classes="points", or a coarse level: texels are classed
-    at the finest)."""
+    fit), "grouped" (a point per visibility pattern, no fit) and "points" (the seed's fit),
+    each with its texels, its mean stored points and its held-out SNR. Empty when the bake
+    classed no texel (texel_classes="points", or a coarse level: texels are classed at the
+    finest)."""
     if "classed" not in data:
         return {}
-    exact = data["skip"][valid] == EXACT_SKIP
+    skip = data["skip"][valid]
+    exact, grouped = skip == EXACT_SKIP, skip == GROUPED_SKIP
     ho = data["snr_ho"][valid]
+    c = data["c"][valid]
     return {name: {"texels": int(np.sum(sel)),
+                   "points_mean": float(c[sel].mean()) if sel.any() else 0.0,
                    "snr_heldout_db": percentiles(ho[sel], SNR_EXACT_DB)}
-            for name, sel in (("exact", exact), ("points", ~exact))}
-
+            for name, sel in (("exact", exact), ("grouped", grouped),
+                              ("points", ~exact & ~grouped))}
 
 
 def _merged(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:

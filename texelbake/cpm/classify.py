@@ -15,6 +15,13 @@ to the point's own), and a_vis = A (n . w_o)+ V(w_o) in closed form. A non-linea
 varies (a roughness texture) breaks the proportionality on the check pairs, and the texel is
 fitted.
 
+A texel that passes every test but visibility, its samples split among P visibility patterns
+(a shadow edge across one facet), is exact on the training grid as P points, one per pattern:
+the sum above splits over the patterns, each group's rows of R equal up to s_j. It is stored
+so ("grouped", P <= BakeSettings.c_max), each group's point the sample nearest its centroid
+with weight sum_{j in g} a_j s_j / s_rep; the held-out pairs, whose directions lie between
+the grid's, measure how well a group's point stands for its samples there.
+
 The tests are sampled, never assumed: the BRDF on `CHECK_LIGHTS` x `CHECK_VIEWS` pairs of the
 training grid, visibility on every training direction (the texel's own rays) unless the
 geometry bounds it (`texelbake.cpm.avis.closed_form.unoccluded_samples`: the whole mesh below
@@ -47,13 +54,20 @@ REASONS = {"exact": 0, "empty": 1, "facets": 2, "material": 3, "inputs": 4, "vis
 
 @dataclass(frozen=True)
 class TexelClasses:
-    """The class of each texel of a chunk: exact (t,) bool; point (t,) int64 the exact
-    texel's one sample (-1 otherwise); weight (t, 3) float64 its per-channel weight; reason
-    (t,) int8 (`REASONS`); rays (int) the visibility rays the test cast."""
+    """The class of each texel of a chunk: exact (t,) bool one point; grouped (t,) bool one
+    point per visibility pattern; point (t,) int64 the exact texel's one sample (-1
+    otherwise); weight (t, 3) float64 its per-channel weight; offsets (t + 1,) int64, points
+    (p,) int64 and weights (p, 3) float64 the stored points of the exact and grouped texels
+    (CSR over the texels, none for the others); reason (t,) int8 (`REASONS`, "exact" for
+    both stored classes); rays (int) the visibility rays the test cast."""
 
     exact: np.ndarray
+    grouped: np.ndarray
     point: np.ndarray
     weight: np.ndarray
+    offsets: np.ndarray
+    points: np.ndarray
+    weights: np.ndarray
     reason: np.ndarray
     rays: int
 
@@ -75,7 +89,9 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     point = np.full(n_t, -1, np.int64)
     weight = np.zeros((n_t, 3))
     if dense.size == 0:
-        return TexelClasses(np.zeros(n_t, bool), point, weight, reason, 0)
+        return TexelClasses(np.zeros(n_t, bool), np.zeros(n_t, bool), point, weight,
+                            np.zeros(n_t + 1, np.int64), np.zeros(0, np.int64),
+                            np.zeros((0, 3)), reason, 0)
     area = geo["sample_area"][dense]
     pos = geo["sample_pos"][dense]
     # a sample on a cut-out (brdf.opacity) carries no area: a texel cut in part or whole is
@@ -109,8 +125,9 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
         bad = ~_seg_all(ok_f, dseg[rows], n_t) | ~(
             np.bincount(dseg[rows], weights=has.astype(float), minlength=n_t) > 0)
         reason[(reason == 0) & bad] = REASONS["inputs"]
-    # one visibility pattern: bounded from the geometry, else the texel's own rays
+    # visibility patterns: bounded from the geometry (one), else the texel's own rays
     rays = 0
+    group = np.zeros(dense.size, np.int64)  # a sample's pattern, numbered over the chunk
     rows = np.flatnonzero((reason == 0)[dseg])
     if rows.size:
         bound = unoccluded_samples(pos[rows], geo["sample_gnrm"][dense[rows]],
@@ -118,15 +135,72 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
                                    eps=TOL.ray_offset * src.caster.bbox_diag)
         open_t = _seg_all(bound, dseg[rows], n_t)
         cast = rows[~open_t[dseg[rows]]]
+        group[rows] = dseg[rows]  # an open texel: one pattern, numbered by its texel
         if cast.size:
-            same, rays = _one_pattern(lp, texels, dense, dseg, cast, ref)
-            reason[(reason == 0) & ~_seg_all(same, dseg[cast], n_t)] = REASONS["visibility"]
-    exact = reason == 0
+            vis, rays = _patterns(lp, texels, dense, dseg, cast)
+            # (texel, pattern bits) as one key per row: big-endian texel bytes sort first
+            key = np.concatenate([dseg[cast].astype(">i8").view(np.uint8).reshape(-1, 8),
+                                  np.packbits(vis, axis=1)], axis=1)
+            _, inv = np.unique(key, axis=0, return_inverse=True)
+            group[cast] = n_t + inv.ravel()
+    live = (reason == 0)[dseg]
+    g_ids, g_of = np.unique(group[live], return_inverse=True)
+    g_texel = np.zeros(g_ids.size, np.int64)
+    g_texel[g_of] = dseg[live]
+    n_pat = np.bincount(g_texel, minlength=n_t)
+    c_max = src.settings.c_max
+    reason[(reason == 0) & (n_pat > max(c_max, 1))] = REASONS["visibility"]
+    # each sample's weight relative to the texel's reference: a_j s_j per channel
+    aw = area[:, None] * s_ratio
+    exact = (reason == 0) & (n_pat == 1)
     point[exact] = dense[ref_row[exact]]
     # weight: sum_j a_j s_j per channel (the area when the inputs are constant)
-    weight[:] = segment_sum(area[:, None] * s_ratio, dseg, n_t, 0)
+    weight[:] = segment_sum(aw, dseg, n_t, 0)
     weight[~exact] = 0.0
-    return TexelClasses(exact, point, weight, reason, rays)
+    grouped = (reason == 0) & (n_pat > 1)
+    g_pts, g_w, g_t = _group_points(dense, dseg, pos, area, aw, s_ratio, group,
+                                    grouped[dseg])
+    # a group whose point is black in a channel the group is not cannot carry it: fitted
+    bad = np.bincount(g_t, weights=(~np.isfinite(g_w).all(axis=1)).astype(float),
+                      minlength=n_t) > 0
+    reason[grouped & bad] = REASONS["inputs"]
+    grouped &= ~bad
+    keep = grouped[g_t]
+    t_of = np.r_[np.flatnonzero(exact), g_t[keep]]
+    order = np.lexsort((np.r_[point[exact], g_pts[keep]], t_of))
+    pts = np.r_[point[exact], g_pts[keep]][order]
+    wts = np.concatenate([weight[exact], g_w[keep]])[order]
+    offsets = np.r_[0, np.cumsum(np.bincount(t_of, minlength=n_t))].astype(np.int64)
+    return TexelClasses(exact, grouped, point, weight, offsets, pts, wts, reason, rays)
+
+
+def _group_points(dense: np.ndarray, dseg: np.ndarray, pos: np.ndarray, area: np.ndarray,
+                  aw: np.ndarray, s_ratio: np.ndarray, group: np.ndarray, on: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One point per visibility group of the rows `on`: (sample ids (g,), weights (g, 3)
+    sum_{j in g} a_j s_j / s_rep, inf where the point is black in a channel the group is not;
+    texel positions (g,)). The point is the group's sample nearest its area-weighted
+    centroid (lowest id on a tie), where the renderer shades and traces it."""
+    rows = np.flatnonzero(on)
+    if rows.size == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)
+    _, g = np.unique(group[rows], return_inverse=True)
+    n_g = int(g.max()) + 1
+    a = area[rows]
+    tot = np.bincount(g, weights=a, minlength=n_g)
+    cen = np.stack([np.bincount(g, weights=pos[rows, k] * a, minlength=n_g)
+                    for k in range(3)], axis=1) / np.maximum(tot, 1e-300)[:, None]
+    d = pos[rows] - cen[g]
+    dist = np.einsum("ij,ij->i", d, d)
+    order = np.lexsort((dense[rows], dist, g))
+    first = order[np.r_[True, g[order][1:] != g[order][:-1]]]  # one row per group, by g
+    rep = rows[first]
+    w = np.stack([np.bincount(g, weights=aw[rows, k], minlength=n_g) for k in range(3)],
+                 axis=1)
+    s_rep = s_ratio[rep]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(w > 0, np.where(s_rep > 0, w / s_rep, np.inf), 0.0)
+    return dense[rep], w, dseg[rep]
 
 
 def _proportional(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
@@ -167,22 +241,19 @@ def _proportional(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np
     return s, ok, rr.sum(axis=1) > 0
 
 
-def _one_pattern(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-                 rows: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, int]:
-    """(same (r,) bool: sample rows[j] is visible on exactly the training directions its
-    reference is, light and view; rays cast), by the samples' own rays."""
+def _patterns(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+              rows: np.ndarray) -> tuple[np.ndarray, int]:
+    """(vis (r, n_i + n_o) bool: sample rows[j] visible on each training direction, light
+    then view; rays cast), by the samples' own rays."""
     src, dirs = lp.src, lp.dirs
-    need = np.unique(np.r_[rows, ref[rows]])
-    smp = dense[need]
-    tex = texels[dseg[need]]
+    smp = dense[rows]
+    tex = texels[dseg[rows]]
     rays0 = src.caster.rays_cast
     vis = np.concatenate([
         visibility_cos(src, smp, world_dirs(lp.frames, tex, dirs["dirs_i"])) > 0,
         visibility_cos(src, smp, world_dirs(lp.frames, tex, dirs["dirs_o"]), "geometric") > 0,
-    ], axis=1)  # (p, n_i + n_o)
-    at = np.searchsorted(need, rows)
-    at_ref = np.searchsorted(need, ref[rows])
-    return np.all(vis[at] == vis[at_ref], axis=1), src.caster.rays_cast - rays0
+    ], axis=1)
+    return vis, src.caster.rays_cast - rays0
 
 
 __all__ = ["CHECK_LIGHTS", "CHECK_VIEWS", "REASONS", "TexelClasses", "classify_texels"]

@@ -4,7 +4,8 @@ the seed's fit (`level_batched` or `level_per_texel`, as BakeSettings.fit_method
 
 The level's arrays are those of the fit, for every texel, in texel order, plus `classed`
 (1,) int64 = 1 (summed over a level's tiles: that the level was classed). A stored `skip` of
-`EXACT_SKIP` marks an exact texel. No seconds are stored: artifacts are byte-identical from
+`EXACT_SKIP` marks an exact texel, `GROUPED_SKIP` a texel stored as one point per visibility
+pattern. No seconds are stored: artifacts are byte-identical from
 run to run (`benchmarks/texel_classes.py` times the classes)."""
 
 from __future__ import annotations
@@ -13,13 +14,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from texelbake.cpm.classify import CHECK_LIGHTS, CHECK_VIEWS, classify_texels
+from texelbake.cpm.classify import CHECK_LIGHTS, CHECK_VIEWS, TexelClasses, classify_texels
 from texelbake.cpm.dense import LevelPass, dense_of, heldout_from_samples, heldout_snr
 from texelbake.cpm.level import LEVEL_TOTALS, FitInputs, PointSet, sort_by_texel
 from texelbake.cpm.level_batched import chunk_bounds
 
-#: the `skip` code of an exact texel (after level_batched.SKIP_CODES' 0-3)
+#: the `skip` codes of an exact texel and of a grouped one (after level_batched.SKIP_CODES' 0-3)
 EXACT_SKIP = 4
+GROUPED_SKIP = 5
 
 #: bytes per (sample, direction or check pair) while texels are classed: world directions,
 #: visibility and cosines, the BRDF and its copies (float64)
@@ -31,15 +33,15 @@ FitFn = Callable[[np.ndarray, PointSet], dict[str, np.ndarray]]
 def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
                       fit: FitFn) -> dict[str, np.ndarray]:
     """The level's arrays for `texels` (flat ids at `level`, ascending): exact texels as one
-    point (`classify_texels`), the rest by `fit(texels, candidates)` (the seed's fit of those
+    point and grouped ones as a point per visibility pattern (`classify_texels`), the rest by `fit(texels, candidates)` (the seed's fit of those
     texels among their candidates)."""
     texels = np.asarray(texels, np.int64)
     lp = LevelPass.of(src, level)
     dense, dseg = dense_of(lp, texels)
-    is_exact, point, weight = classes_bounded(lp, texels, dense, dseg)
-    ex = np.flatnonzero(is_exact)
-    exact = _exact_arrays(lp, texels, dense, dseg, ex, point[ex], weight[ex])
-    rest = texels[~is_exact]
+    cls = classes_bounded(lp, texels, dense, dseg)
+    stored = cls.exact | cls.grouped
+    exact = _stored_arrays(lp, texels, dense, dseg, cls)
+    rest = texels[~stored]
     parts = [exact]
     if rest.size:
         keep = np.isin(candidates.texel, rest)
@@ -50,42 +52,48 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
 
 
 def classes_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    ) -> TexelClasses:
     """`classify_texels` over chunks of texels whose samples' temporaries fit the worker's
-    memory budget (a texel's samples are never split): (exact (t,) bool, point (t,) int64,
-    weight (t, 3) float64)."""
+    memory budget (a texel's samples are never split), joined as one."""
     n_t = len(texels)
     n_dense = np.bincount(dseg, minlength=n_t)
     starts = np.r_[0, np.cumsum(n_dense)]
     n_dirs = len(lp.dirs["dirs_i"]) + len(lp.dirs["dirs_o"])
     cap = max(lp.budget // (BYTES_PER_CLASS_ENTRY * (n_dirs + 3 * CHECK_LIGHTS * CHECK_VIEWS)),
               1)
-    exact = np.zeros(n_t, bool)
-    point = np.full(n_t, -1, np.int64)
-    weight = np.zeros((n_t, 3))
-    for a, b in chunk_bounds(n_dense, cap):  # loop over chunks (memory bound)
-        sl = slice(starts[a], starts[b])
-        c = classify_texels(lp, texels[a:b], dense[sl], dseg[sl] - a)
-        exact[a:b], point[a:b], weight[a:b] = c.exact, c.point, c.weight
-    return exact, point, weight
+    parts = [classify_texels(lp, texels[a:b], dense[starts[a]:starts[b]],
+                             dseg[starts[a]:starts[b]] - a)
+             for a, b in chunk_bounds(n_dense, cap)]  # loop over chunks (memory bound)
+    if not parts:
+        return classify_texels(lp, texels, dense, dseg)
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([getattr(c, name) for c in parts])
+
+    counts = np.concatenate([np.diff(c.offsets) for c in parts])
+    return TexelClasses(
+        exact=cat("exact"), grouped=cat("grouped"), point=cat("point"), weight=cat("weight"),
+        offsets=np.r_[0, np.cumsum(counts)].astype(np.int64), points=cat("points"),
+        weights=cat("weights"), reason=cat("reason"), rays=sum(c.rays for c in parts))
 
 
-def _exact_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-                  ex: np.ndarray, point: np.ndarray, weight: np.ndarray
-                  ) -> dict[str, np.ndarray]:
-    """The fit's arrays for the exact texels at positions `ex` of `texels`: one point each,
-    its held-out SNR against brute-force Eq. 7 over the texel's dense samples."""
+def _stored_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                   cls: TexelClasses) -> dict[str, np.ndarray]:
+    """The fit's arrays for the exact and grouped texels (`cls`): their points, and their
+    held-out SNR against brute-force Eq. 7 over each texel's dense samples."""
+    ex = np.flatnonzero(cls.exact | cls.grouped)
     n_e = ex.size
+    counts = np.diff(cls.offsets)[ex]
+    pseg = np.repeat(np.arange(n_e), counts)
     snr = np.full(n_e, np.inf)
-    w32 = weight.astype(np.float32)
+    w32 = cls.weights.astype(np.float32)
     if n_e and len(lp.dirs["held_i"]):
         pos = np.full(len(texels), -1, np.int64)
         pos[ex] = np.arange(n_e)
         rows = np.flatnonzero(pos[dseg] >= 0)
         sub_dense, sub_seg = dense[rows], pos[dseg[rows]]
         # the stored (float32) weights: what the renderer reads
-        ref, apx, avis_h = heldout_from_samples(lp, texels[ex], sub_dense, sub_seg, point,
-                                                np.arange(n_e), w32.astype(np.float64))
+        ref, apx, avis_h = heldout_from_samples(lp, texels[ex], sub_dense, sub_seg,
+                                                cls.points, pseg, w32.astype(np.float64))
         area = np.bincount(sub_seg, weights=lp.src.geo["sample_area"][sub_dense],
                            minlength=n_e)
         snr = np.array([heldout_snr(ref[t], apx[t], avis_h[t], area[t])
@@ -95,14 +103,14 @@ def _exact_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np
     extra = {"merged": np.zeros(n_e, np.int32)} \
         if s.identical_columns == "merge" and s.fit_method == "batched" else {}
     return extra | {
-        "texel": texels[ex], "offsets": np.arange(n_e + 1, dtype=np.int64),
-        "point_sample": point.astype(np.int64), "point_weight": w32,
-        "k": np.ones(n_e, np.int32), "c": np.ones(n_e, np.int32),
-        # exact on the grid by construction (one facet, one pattern, proportional f_r on the
-        # check pairs); the held-out pairs are the measurement
+        "texel": texels[ex], "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
+        "point_sample": cls.points.astype(np.int64), "point_weight": w32,
+        "k": counts.astype(np.int32), "c": counts.astype(np.int32),
+        # exact on the grid by construction (one facet, proportional f_r on the check pairs,
+        # a point per visibility pattern); the held-out pairs are the measurement
         "snr_in": np.full(n_e, np.inf, np.float32), "snr_ho": snr.astype(np.float32),
         "mode": np.zeros(n_e, np.int8), "valid": np.ones(n_e, bool),
-        "skip": np.full(n_e, EXACT_SKIP, np.int8),
+        "skip": np.where(cls.grouped[ex], GROUPED_SKIP, EXACT_SKIP).astype(np.int8),
     }
 
 
@@ -129,4 +137,4 @@ def merge_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return sort_by_texel(out)
 
 
-__all__ = ["EXACT_SKIP", "fit_level_by_need", "merge_levels"]
+__all__ = ["EXACT_SKIP", "GROUPED_SKIP", "classes_bounded", "fit_level_by_need", "merge_levels"]
