@@ -145,9 +145,9 @@ class BakeSettings(BaseModel):
         "texel at a time on its matrix as the seed.")
     texel_classes: Literal["by_need", "points"] = _field(
         "by_need", "fit",
-        "'by_need' stores a texel with one facet and one material response before any fit: "
-        "as one exact point where its samples share one visibility pattern, as a point per "
-        "pattern where they hold at most c_max; 'points' fits every texel as the seed.")
+        "'by_need' stores a texel whose samples form at most c_max groups of one facet, one "
+        "material response and one visibility pattern as a point per group before any fit "
+        "(one exact point for one group); 'points' fits every texel as the seed.")
     identical_columns: Literal["keep", "merge"] = _field(
         "merge", "fit",
         "'merge' fits candidates with identical columns as one weighted column, 'keep' fits "

@@ -89,24 +89,33 @@ def test_flat_square_every_texel_exact_by_the_geometric_bound():
     assert np.all(out["snr_ho"] >= TOL.exact_fit_db)
 
 
-def test_seam_of_two_facets_is_not_exact():
+def test_seam_of_two_facets_is_a_point_per_facet():
     """A texel on a fold (two facets of one chart, normals 30 degrees apart) holds samples of
-    both facets: not one facet, so fitted; the flat texels beside it stay exact."""
+    both facets: stored as one point per facet, each weighing its half's area (8 samples of
+    1/64: 0.125), exact on the held-out pairs (nothing occludes, each facet's samples answer
+    alike); the flat texels beside it stay one point. With c_max = 1 the fold is fitted."""
     pos = _grid_samples()
     nrm = _up(len(pos))
     tilt = np.array([np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))])
     # texel 0 (x, y < 0.5): its half x > 0.25 is the second facet
     second = (pos[:, 0] > 0.25) & (pos[:, 0] < 0.5) & (pos[:, 1] < 0.5)
     nrm[second] = tilt
-    cls = _classes(_inputs(pos, nrm))
-    assert cls.reason[0] == REASONS["facets"]
-    assert cls.exact[1:].all()
+    src = _inputs(pos, nrm)
+    cls = _classes(src)
+    assert cls.grouped[0] and cls.exact[1:].all()
+    assert cls.offsets[1] == 2
+    np.testing.assert_allclose(cls.weights[:2], 0.125, rtol=1e-12)
+    assert {bool(second[p]) for p in cls.points[:2]} == {True, False}
+    out = _by_need(src)
+    assert out["skip"][0] == GROUPED_SKIP and np.all(out["snr_ho"] >= TOL.exact_fit_db)
+    assert _classes(_with(src, c_max=1)).reason[0] == REASONS["facets"]
 
 
 def test_thin_sheet_seen_from_both_sides():
     """A two-sided sheet (the square and its back, 1e-4 below): a texel whose samples are one
     side is exact and measures so; a texel holding samples of both sides (opposite normals)
-    is not one facet, so fitted."""
+    has a facet black on every check pair (below the texel's horizon), whose factor cannot
+    be found: fitted."""
     top, back = SQUARE
     pts = np.concatenate([top, top - [0, 0, 1e-4]])
     faces = np.concatenate([back, back[:, ::-1] + 4])
@@ -118,10 +127,11 @@ def test_thin_sheet_seen_from_both_sides():
     nrm[t3] = [0.0, 0.0, -1.0]
     src = _inputs(pos, nrm, mesh=(pts, faces))
     cls = _classes(src)
-    assert cls.reason[3] == REASONS["facets"]
+    assert cls.reason[3] == REASONS["inputs"]
     assert cls.exact[:3].all()
     out = _by_need(src)
     ex = out["skip"] == EXACT_SKIP
+    assert list(ex) == [True, True, True, False]
     assert np.all(out["snr_ho"][ex] >= TOL.exact_fit_db)
 
 
@@ -241,8 +251,9 @@ def test_varying_roughness_is_not_exact():
 
 
 def test_two_materials_and_a_single_sample():
-    """Texel 0 holds two materials (fitted); texel 1 holds one sample (exact: that sample,
-    its area); texels 2 and 3 stay exact; an empty texel is none."""
+    """Texel 0 holds two materials: a point per material, each weighing its area (8 samples
+    of 1/64); texel 1 holds one sample (exact: that sample, its area); texels 2 and 3 stay
+    exact; all measure exact held out; an empty texel is none."""
     red = Material("/m/red", "lambert", {"diffuseColor": (0.8, 0.1, 0.1)})
     pos = _grid_samples()
     in1 = np.flatnonzero((pos[:, 0] > 0.5) & (pos[:, 1] < 0.5))
@@ -254,14 +265,15 @@ def test_two_materials_and_a_single_sample():
     area = np.full(len(pos), 1.0 / 64)
     src = _inputs(pos, _up(len(pos)), materials=(LAMBERT, red), mat=mat, area=area)
     cls = _classes(src)
-    assert cls.reason[0] == REASONS["material"]
-    assert cls.exact[1:].all()
+    assert cls.grouped[0] and cls.exact[1:].all()
+    assert sorted(mat[cls.points[:2]]) == [0, 1]
+    np.testing.assert_allclose(cls.weights[:2], 8 / 64, rtol=1e-12)
     one = np.flatnonzero((pos[:, 0] > 0.5) & (pos[:, 1] < 0.5))
     assert cls.point[1] == one[0]
     np.testing.assert_allclose(cls.weight[1], 1.0 / 64)
     out = _by_need(src)
-    assert out["skip"][0] != EXACT_SKIP and np.all(out["skip"][1:] == EXACT_SKIP)
-    assert np.all(out["snr_ho"][1:] >= TOL.exact_fit_db)
+    assert out["skip"][0] == GROUPED_SKIP and np.all(out["skip"][1:] == EXACT_SKIP)
+    assert np.all(out["snr_ho"] >= TOL.exact_fit_db)
     empty = _inputs(pos[pos[:, 1] < 0.5], _up(int(np.sum(pos[:, 1] < 0.5))),
                     materials=(LAMBERT, red), mat=mat[pos[:, 1] < 0.5])
     assert np.all(_classes(empty).reason[2:] == REASONS["empty"])
@@ -288,8 +300,8 @@ def test_setting_chooses_the_path(mode, tmp_path):
 
 def test_classes_do_not_depend_on_the_memory_chunks(monkeypatch):
     """`classes_bounded` with one texel per chunk (a huge per-entry size) gives the classes,
-    points and weights of one chunk (the whole scene with two grouped texels, an exact and a
-    folded one)."""
+    points and weights of one chunk (the whole scene: two texels split by a wall, an exact
+    one and a folded one)."""
     from texelbake.cpm import level_by_need
 
     pos = _grid_samples()
@@ -304,5 +316,5 @@ def test_classes_do_not_depend_on_the_memory_chunks(monkeypatch):
     parts = level_by_need.classes_bounded(lp, texels, dense, dseg)
     for f in dataclasses.fields(whole):
         np.testing.assert_array_equal(getattr(whole, f.name), getattr(parts, f.name))
-    assert list(whole.grouped) == [True, False, True, False]
+    assert list(whole.grouped) == [True, False, True, True]
     assert list(whole.exact) == [False, True, False, False]

@@ -1,8 +1,8 @@
 """Texels classed by what they need, before any R is built (DESIGN.md, "model only what a
 scene needs"): a texel whose dense samples share one facet, one material response up to a
 per-channel factor and one visibility pattern is exactly one characteristic point (the
-rank-1 case of seed 000 Eq. 7), so it needs no R, Gram or trial; every other texel goes to
-the seed's fit.
+rank-1 case of seed 000 Eq. 7), and one of a few such groups a point per group, so neither
+needs R, Gram or trial; every other texel goes to the seed's fit.
 
 Why one point is exact for such a texel: Eq. 7's numerator is
 sum_j a_j f_r(x_j, w_i, w_o) V(x_j, w_i) (n_j . w_i)+ V(x_j, w_o) (n_j . w_o)+. With every
@@ -15,12 +15,15 @@ to the point's own), and a_vis = A (n . w_o)+ V(w_o) in closed form. A non-linea
 varies (a roughness texture) breaks the proportionality on the check pairs, and the texel is
 fitted.
 
-A texel that passes every test but visibility, its samples split among P visibility patterns
-(a shadow edge across one facet), is exact on the training grid as P points, one per pattern:
-the sum above splits over the patterns, each group's rows of R equal up to s_j. It is stored
-so ("grouped", P <= BakeSettings.c_max), each group's point the sample nearest its centroid
-with weight sum_{j in g} a_j s_j / s_rep; the held-out pairs, whose directions lie between
-the grid's, measure how well a group's point stands for its samples there.
+The same sum splits over any partition of a texel's samples into groups that are each one
+facet and one material (proportional within the group) and one visibility pattern: every
+group's rows of R are equal up to s_j, so one point per group is exact on the training grid
+(a ridge's shadow edge across one facet, a fold between two facets, two materials). A texel
+of at most BakeSettings.c_max such groups is stored so ("grouped"), each group's point the
+sample nearest its centroid with weight sum_{j in g} a_j s_j / s_point (s relative to its
+facet's reference; a facet whose reference is black on every check pair, below the
+texel's horizon there, is fitted). The held-out pairs, whose directions lie between the
+grid's, measure how well a group's point stands for its samples there.
 
 The tests are sampled, never assumed: the BRDF on `CHECK_LIGHTS` x `CHECK_VIEWS` pairs of the
 training grid, visibility on every training direction (the texel's own rays) unless the
@@ -48,8 +51,9 @@ CHECK_LIGHTS = 4
 CHECK_VIEWS = 4
 
 #: why a texel is not exact, as stored in `TexelClasses.reason`
-REASONS = {"exact": 0, "empty": 1, "facets": 2, "material": 3, "inputs": 4, "visibility": 5,
-           "cut": 6}
+#: ("facets": more facets, each one material, than c_max; "visibility": more groups of a facet
+#: and a visibility pattern than c_max; "exact" also for a grouped texel)
+REASONS = {"exact": 0, "empty": 1, "facets": 2, "inputs": 4, "visibility": 5, "cut": 6}
 
 
 @dataclass(frozen=True)
@@ -108,22 +112,29 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     ref_row = np.zeros(n_t, np.int64)
     ref_row[dseg[first]] = first
     ref = ref_row[dseg]  # (n,) each sample's reference row
-    # one facet: geometric and shading normals equal to the reference's within the tolerance
-    for name in ("sample_gnrm", "sample_nrm"):
-        nrm = geo[name][dense]
-        ok = np.einsum("ij,ij->i", nrm, nrm[ref]) >= 1.0 - TOL.exact_normal
-        reason[(reason == 0) & ~_seg_all(ok, dseg, n_t)] = REASONS["facets"]
+    # facets: the samples partitioned by material and both normals (within the tolerance of
+    # each part's first sample, the texel's reference first); each part's reference is its
+    # sample nearest its centroid (the texel's own where the texel is one part)
+    c_max = max(src.settings.c_max, 1)
     mat = geo["sample_mat"][dense]
-    reason[(reason == 0) & ~_seg_all(mat == mat[ref], dseg, n_t)] = REASONS["material"]
-    # one material response up to a per-channel factor s_j, on the check pairs
-    live_t = reason == 0
-    rows = np.flatnonzero(live_t[dseg])
+    fac, n_fac = _facet_groups(geo["sample_nrm"][dense], geo["sample_gnrm"][dense], mat, dseg,
+                               np.where(reason == 0, ref_row, -1), c_max)
+    reason[(reason == 0) & (n_fac > c_max)] = REASONS["facets"]
+    live = (reason == 0)[dseg]
+    ref = ref_row[dseg]  # (n,) each sample's reference row: its facet's
+    multi = live & (n_fac[dseg] > 1)
+    if multi.any():
+        f_rep, f_of = _nearest_centroid(fac, np.flatnonzero(multi), pos, area, dense)
+        ref[multi] = f_rep[f_of]
+    # one material response per facet up to a per-channel factor s_j, on the check pairs
+    rows = np.flatnonzero(live)
     s_ratio = np.ones((dense.size, 3))
     if rows.size:
         s_rows, ok_f, has = _proportional(lp, texels, dense, dseg, rows, ref)
         s_ratio[rows] = s_rows
-        bad = ~_seg_all(ok_f, dseg[rows], n_t) | ~(
-            np.bincount(dseg[rows], weights=has.astype(float), minlength=n_t) > 0)
+        # a facet whose reference is black on every check pair (below the texel's horizon
+        # there) gives no factor to scale by: fitted
+        bad = ~_seg_all(ok_f & has, dseg[rows], n_t)
         reason[(reason == 0) & bad] = REASONS["inputs"]
     # visibility patterns: bounded from the geometry (one), else the texel's own rays
     rays = 0
@@ -135,29 +146,28 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
                                    eps=TOL.ray_offset * src.caster.bbox_diag)
         open_t = _seg_all(bound, dseg[rows], n_t)
         cast = rows[~open_t[dseg[rows]]]
-        group[rows] = dseg[rows]  # an open texel: one pattern, numbered by its texel
+        group[rows] = fac[rows]  # an open texel: one pattern, a group per facet
         if cast.size:
             vis, rays = _patterns(lp, texels, dense, dseg, cast)
-            # (texel, pattern bits) as one key per row: big-endian texel bytes sort first
-            key = np.concatenate([dseg[cast].astype(">i8").view(np.uint8).reshape(-1, 8),
+            # (facet, pattern bits) as one key per row: big-endian facet bytes sort first
+            key = np.concatenate([fac[cast].astype(">i8").view(np.uint8).reshape(-1, 8),
                                   np.packbits(vis, axis=1)], axis=1)
             _, inv = np.unique(key, axis=0, return_inverse=True)
-            group[cast] = n_t + inv.ravel()
+            group[cast] = int(fac.max()) + 1 + inv.ravel()
     live = (reason == 0)[dseg]
     g_ids, g_of = np.unique(group[live], return_inverse=True)
     g_texel = np.zeros(g_ids.size, np.int64)
     g_texel[g_of] = dseg[live]
     n_pat = np.bincount(g_texel, minlength=n_t)
-    c_max = src.settings.c_max
-    reason[(reason == 0) & (n_pat > max(c_max, 1))] = REASONS["visibility"]
-    # each sample's weight relative to the texel's reference: a_j s_j per channel
+    reason[(reason == 0) & (n_pat > c_max)] = REASONS["visibility"]
+    # each sample's weight relative to its facet's reference: a_j s_j per channel
     aw = area[:, None] * s_ratio
-    exact = (reason == 0) & (n_pat == 1)
+    exact = (reason == 0) & (n_pat == 1) & (n_fac == 1)
     point[exact] = dense[ref_row[exact]]
     # weight: sum_j a_j s_j per channel (the area when the inputs are constant)
     weight[:] = segment_sum(aw, dseg, n_t, 0)
     weight[~exact] = 0.0
-    grouped = (reason == 0) & (n_pat > 1)
+    grouped = (reason == 0) & ~exact
     g_pts, g_w, g_t = _group_points(dense, dseg, pos, area, aw, s_ratio, group,
                                     grouped[dseg])
     # a group whose point is black in a channel the group is not cannot carry it: fitted
@@ -174,6 +184,55 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     return TexelClasses(exact, grouped, point, weight, offsets, pts, wts, reason, rays)
 
 
+def _facet_groups(nrm: np.ndarray, gnrm: np.ndarray, mat: np.ndarray, dseg: np.ndarray,
+                  seed: np.ndarray, cap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each texel's samples partitioned into facets: one material, shading and geometric
+    normals within TOL.exact_normal of the facet's first sample. `seed` (t,) the first
+    sample row of each texel (-1: not partitioned); each next facet starts at the texel's
+    lowest unassigned row. Returns (facet (n,) int64, ids round x n_t + texel, -1 where not
+    partitioned; count (t,) facets per texel, cap + 1 where there are more than cap)."""
+    n_t = len(seed)
+    fac = np.full(len(dseg), -1, np.int64)
+    count = np.zeros(n_t, np.int64)
+    todo = (seed >= 0)[dseg]
+    for r in range(cap + 1):  # loop over facets: one per texel and round, vectorized
+        on = seed >= 0
+        if not on.any():
+            break
+        count[on] += 1
+        rows = np.flatnonzero(todo & on[dseg])
+        s = seed[dseg[rows]]
+        ok = ((np.einsum("ij,ij->i", nrm[rows], nrm[s]) >= 1.0 - TOL.exact_normal)
+              & (np.einsum("ij,ij->i", gnrm[rows], gnrm[s]) >= 1.0 - TOL.exact_normal)
+              & (mat[rows] == mat[s])) | (rows == s)
+        fac[rows[ok]] = r * n_t + dseg[rows[ok]]
+        todo[rows[ok]] = False
+        left = np.flatnonzero(todo)
+        seed = np.full(n_t, -1, np.int64)
+        first = left[np.r_[True, dseg[left][1:] != dseg[left][:-1]]] if left.size else left
+        seed[dseg[first]] = first
+    count[np.bincount(dseg[todo], minlength=n_t) > 0] = cap + 1
+    return fac, count
+
+
+def _nearest_centroid(group: np.ndarray, rows: np.ndarray, pos: np.ndarray, area: np.ndarray,
+                      dense: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For the rows `rows` labelled `group`: (rep (g,) the row of each group's sample nearest
+    its area-weighted centroid, lowest id on a tie; g_of (r,) each row's group 0..g-1)."""
+    _, g = np.unique(group[rows], return_inverse=True)
+    g = g.ravel()
+    n_g = int(g.max()) + 1
+    a = area[rows]
+    tot = np.bincount(g, weights=a, minlength=n_g)
+    cen = np.stack([np.bincount(g, weights=pos[rows, k] * a, minlength=n_g)
+                    for k in range(3)], axis=1) / np.maximum(tot, 1e-300)[:, None]
+    d = pos[rows] - cen[g]
+    dist = np.einsum("ij,ij->i", d, d)
+    order = np.lexsort((dense[rows], dist, g))
+    first = order[np.r_[True, g[order][1:] != g[order][:-1]]]  # one row per group, by g
+    return rows[first], g
+
+
 def _group_points(dense: np.ndarray, dseg: np.ndarray, pos: np.ndarray, area: np.ndarray,
                   aw: np.ndarray, s_ratio: np.ndarray, group: np.ndarray, on: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -184,17 +243,8 @@ def _group_points(dense: np.ndarray, dseg: np.ndarray, pos: np.ndarray, area: np
     rows = np.flatnonzero(on)
     if rows.size == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)
-    _, g = np.unique(group[rows], return_inverse=True)
-    n_g = int(g.max()) + 1
-    a = area[rows]
-    tot = np.bincount(g, weights=a, minlength=n_g)
-    cen = np.stack([np.bincount(g, weights=pos[rows, k] * a, minlength=n_g)
-                    for k in range(3)], axis=1) / np.maximum(tot, 1e-300)[:, None]
-    d = pos[rows] - cen[g]
-    dist = np.einsum("ij,ij->i", d, d)
-    order = np.lexsort((dense[rows], dist, g))
-    first = order[np.r_[True, g[order][1:] != g[order][:-1]]]  # one row per group, by g
-    rep = rows[first]
+    rep, g = _nearest_centroid(group, rows, pos, area, dense)
+    n_g = rep.size
     w = np.stack([np.bincount(g, weights=aw[rows, k], minlength=n_g) for k in range(3)],
                  axis=1)
     s_rep = s_ratio[rep]
