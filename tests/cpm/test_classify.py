@@ -178,6 +178,23 @@ def test_partly_shadowed_flat_texel_is_grouped_by_pattern():
     assert not capped.grouped.any()
 
 
+def test_the_report_counts_each_class():
+    """The level's report entry (`assemble._classes`) counts the exact, grouped and fitted
+    texels with their mean stored points: the tall wall's scene has two one-point texels and
+    two of two points; with c_max = 1 those two are fitted."""
+    from texelbake.cpm.assemble import _classes as report_classes
+
+    pos = _grid_samples()
+    src = _inputs(pos, _up(len(pos)), mesh=_walled(100.0, -100.0, 100.0))
+    for c_max, grouped in ((8, 2), (1, 0)):
+        out = _by_need(_with(src, c_max=c_max))
+        rep = report_classes(out, out["valid"].astype(bool))
+        assert (rep["exact"]["texels"], rep["grouped"]["texels"], rep["points"]["texels"]) \
+            == (2, grouped, 2 - grouped)
+        assert rep["exact"]["points_mean"] == 1.0
+        assert rep["grouped"]["points_mean"] == (2.0 if grouped else 0.0)
+
+
 def test_grouped_texel_matches_the_brute_force_on_the_grid():
     """A short wall (0.4 high) on texel 0 splits texels into many visibility patterns: with
     c_max at least their count each texel stores a point per pattern, and on the training
