@@ -59,11 +59,12 @@ REASONS = {"exact": 0, "empty": 1, "facets": 2, "inputs": 4, "visibility": 5, "c
 @dataclass(frozen=True)
 class TexelClasses:
     """The class of each texel of a chunk: exact (t,) bool one point; grouped (t,) bool one
-    point per group of one facet, material and visibility pattern; point (t,) int64 the exact texel's one sample (-1
-    otherwise); weight (t, 3) float64 its per-channel weight; offsets (t + 1,) int64, points
-    (p,) int64 and weights (p, 3) float64 the stored points of the exact and grouped texels
-    (CSR over the texels, none for the others); reason (t,) int8 (`REASONS`, "exact" for
-    both stored classes); rays (int) the visibility rays the test cast."""
+    point per group of one facet, material and visibility pattern; point (t,) int64 the exact
+    texel's one sample (-1 otherwise); weight (t, 3) float64 its per-channel weight; offsets
+    (t + 1,) int64, points (p,) int64 and weights (p, 3) float64 the stored points of the
+    exact and grouped texels (CSR over the texels, none for the others); reason (t,) int8
+    (`REASONS`, "exact" for both stored classes); rays (int) the visibility rays the test
+    cast."""
 
     exact: np.ndarray
     grouped: np.ndarray
@@ -236,10 +237,11 @@ def _nearest_centroid(group: np.ndarray, rows: np.ndarray, pos: np.ndarray, area
 def _group_points(dense: np.ndarray, dseg: np.ndarray, pos: np.ndarray, area: np.ndarray,
                   aw: np.ndarray, s_ratio: np.ndarray, group: np.ndarray, on: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One point per group (`group`: facet and visibility pattern) of the rows `on`: (sample ids (g,), weights (g, 3)
-    sum_{j in g} a_j s_j / s_rep, inf where the point is black in a channel the group is not;
-    texel positions (g,)). The point is the group's sample nearest its area-weighted
-    centroid (lowest id on a tie), where the renderer shades and traces it."""
+    """One point per group (`group`: facet and visibility pattern) of the rows `on`: (sample
+    ids (g,), weights (g, 3) sum_{j in g} a_j s_j / s_rep, inf where the point is black in a
+    channel the group is not; texel positions (g,)). The point is the group's sample nearest
+    its area-weighted centroid (lowest id on a tie), where the renderer shades and traces
+    it."""
     rows = np.flatnonzero(on)
     if rows.size == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)

@@ -1,12 +1,13 @@
 """One CPM level with its texels classed by need first (`texelbake.cpm.classify`): the exact
-texels stored as one point each, measured on the held-out pairs, and only the others given to
-the seed's fit (`level_batched` or `level_per_texel`, as BakeSettings.fit_method chooses).
+texels stored as one point each and the grouped ones as a point per group, measured on the
+held-out pairs, and only the others given to the seed's fit (`level_batched` or
+`level_per_texel`, as BakeSettings.fit_method chooses).
 
 The level's arrays are those of the fit, for every texel, in texel order, plus `classed`
 (1,) int64 = 1 (summed over a level's tiles: that the level was classed). A stored `skip` of
-`EXACT_SKIP` marks an exact texel, `GROUPED_SKIP` a texel stored as one point per visibility
-pattern. No seconds are stored: artifacts are byte-identical from
-run to run (`benchmarks/texel_classes.py` times the classes)."""
+`EXACT_SKIP` marks an exact texel, `GROUPED_SKIP` a texel stored as a point per group of one
+facet, material and visibility pattern. No seconds are stored: artifacts are byte-identical
+from run to run (`benchmarks/texel_classes.py` times the classes)."""
 
 from __future__ import annotations
 
@@ -33,16 +34,16 @@ FitFn = Callable[[np.ndarray, PointSet], dict[str, np.ndarray]]
 def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates: PointSet,
                       fit: FitFn) -> dict[str, np.ndarray]:
     """The level's arrays for `texels` (flat ids at `level`, ascending): exact texels as one
-    point and grouped ones as a point per visibility pattern (`classify_texels`), the rest by `fit(texels, candidates)` (the seed's fit of those
+    point and grouped ones as a point per group (`classify_texels`), the rest by
+    `fit(texels, candidates)` (the seed's fit of those
     texels among their candidates)."""
     texels = np.asarray(texels, np.int64)
     lp = LevelPass.of(src, level)
     dense, dseg = dense_of(lp, texels)
     cls = classes_bounded(lp, texels, dense, dseg)
     stored = cls.exact | cls.grouped
-    exact = _stored_arrays(lp, texels, dense, dseg, cls)
     rest = texels[~stored]
-    parts = [exact]
+    parts = [_stored_arrays(lp, texels, dense, dseg, cls)]
     if rest.size:
         keep = np.isin(candidates.texel, rest)
         parts.append(fit(rest, candidates.take(np.flatnonzero(keep))))
@@ -106,8 +107,8 @@ def _stored_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: n
         "texel": texels[ex], "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
         "point_sample": cls.points.astype(np.int64), "point_weight": w32,
         "k": counts.astype(np.int32), "c": counts.astype(np.int32),
-        # exact on the grid by construction (one facet, proportional f_r on the check pairs,
-        # a point per visibility pattern); the held-out pairs are the measurement
+        # exact on the grid by construction (a point per group of one facet, one pattern and
+        # f_r proportional on the check pairs); the held-out pairs are the measurement
         "snr_in": np.full(n_e, np.inf, np.float32), "snr_ho": snr.astype(np.float32),
         "mode": np.zeros(n_e, np.int8), "valid": np.ones(n_e, bool),
         "skip": np.where(cls.grouped[ex], GROUPED_SKIP, EXACT_SKIP).astype(np.int8),
