@@ -59,22 +59,32 @@ REASONS = {"exact": 0, "empty": 1, "facets": 2, "inputs": 4, "visibility": 5, "c
 @dataclass(frozen=True)
 class TexelClasses:
     """The class of each texel of a chunk: exact (t,) bool one point; grouped (t,) bool one
-    point per group of one facet, material and visibility pattern; point (t,) int64 the exact
-    texel's one sample (-1 otherwise); weight (t, 3) float64 its per-channel weight; offsets
-    (t + 1,) int64, points (p,) int64 and weights (p, 3) float64 the stored points of the
-    exact and grouped texels (CSR over the texels, none for the others); reason (t,) int8
-    (`REASONS`, "exact" for both stored classes); rays (int) the visibility rays the test
-    cast."""
+    point per group of one facet, material and visibility pattern; offsets (t + 1,) int64,
+    points (p,) int64 and weights (p, 3) float64 the stored points of the exact and grouped
+    texels (CSR over the texels, none for the others); reason (t,) int8 (`REASONS`, "exact"
+    for both stored classes); rays (int) the visibility rays the test cast."""
 
     exact: np.ndarray
     grouped: np.ndarray
-    point: np.ndarray
-    weight: np.ndarray
     offsets: np.ndarray
     points: np.ndarray
     weights: np.ndarray
     reason: np.ndarray
     rays: int
+
+    @property
+    def point(self) -> np.ndarray:
+        """(t,) int64 the exact texel's one sample, -1 for the others."""
+        out = np.full(len(self.exact), -1, np.int64)
+        out[self.exact] = self.points[self.offsets[:-1][self.exact]]
+        return out
+
+    @property
+    def weight(self) -> np.ndarray:
+        """(t, 3) float64 the exact texel's weight, 0 for the others."""
+        out = np.zeros((len(self.exact), 3))
+        out[self.exact] = self.weights[self.offsets[:-1][self.exact]]
+        return out
 
 
 def _seg_all(ok: np.ndarray, seg: np.ndarray, n_t: int) -> np.ndarray:
@@ -91,10 +101,8 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     reason = np.full(n_t, REASONS["exact"], np.int8)
     count = np.bincount(dseg, minlength=n_t)
     reason[count == 0] = REASONS["empty"]
-    point = np.full(n_t, -1, np.int64)
-    weight = np.zeros((n_t, 3))
     if dense.size == 0:
-        return TexelClasses(np.zeros(n_t, bool), np.zeros(n_t, bool), point, weight,
+        return TexelClasses(np.zeros(n_t, bool), np.zeros(n_t, bool),
                             np.zeros(n_t + 1, np.int64), np.zeros(0, np.int64),
                             np.zeros((0, 3)), reason, 0)
     area = geo["sample_area"][dense]
@@ -105,11 +113,7 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     reason[(reason == 0) & ~_seg_all(area > 0, dseg, n_t)] = REASONS["cut"]
     # the reference sample: the one nearest the texel's area-weighted centroid (lowest id on a
     # tie), where the renderer shades the point
-    tot = segment_sum(area, dseg, n_t, 0)
-    cen = segment_sum(pos * area[:, None], dseg, n_t, 0) / np.maximum(tot, 1e-300)[:, None]
-    dist = np.einsum("ij,ij->i", pos - cen[dseg], pos - cen[dseg])
-    order = np.lexsort((dense, dist, dseg))
-    first = order[np.r_[True, dseg[order][1:] != dseg[order][:-1]]]  # one row per texel
+    first, _ = _nearest_centroid(dseg, np.arange(dense.size), pos, area, dense)
     ref_row = np.zeros(n_t, np.int64)
     ref_row[dseg[first]] = first
     ref = ref_row[dseg]  # (n,) each sample's reference row
@@ -164,10 +168,9 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     # each sample's weight relative to its facet's reference: a_j s_j per channel
     aw = area[:, None] * s_ratio
     exact = (reason == 0) & (n_pat == 1) & (n_fac == 1)
-    point[exact] = dense[ref_row[exact]]
-    # weight: sum_j a_j s_j per channel (the area when the inputs are constant)
-    weight[:] = segment_sum(aw, dseg, n_t, 0)
-    weight[~exact] = 0.0
+    point = dense[ref_row[exact]]
+    # an exact texel's weight: sum_j a_j s_j per channel (the area when the inputs are constant)
+    weight = segment_sum(aw, dseg, n_t, 0)[exact]
     grouped = (reason == 0) & ~exact
     g_pts, g_w, g_t = _group_points(dense, dseg, pos, area, aw, s_ratio, group,
                                     grouped[dseg])
@@ -178,11 +181,11 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     grouped &= ~bad
     keep = grouped[g_t]
     t_of = np.r_[np.flatnonzero(exact), g_t[keep]]
-    order = np.lexsort((np.r_[point[exact], g_pts[keep]], t_of))
-    pts = np.r_[point[exact], g_pts[keep]][order]
-    wts = np.concatenate([weight[exact], g_w[keep]])[order]
+    order = np.lexsort((np.r_[point, g_pts[keep]], t_of))
+    pts = np.r_[point, g_pts[keep]][order]
+    wts = np.concatenate([weight, g_w[keep]])[order]
     offsets = np.r_[0, np.cumsum(np.bincount(t_of, minlength=n_t))].astype(np.int64)
-    return TexelClasses(exact, grouped, point, weight, offsets, pts, wts, reason, rays)
+    return TexelClasses(exact, grouped, offsets, pts, wts, reason, rays)
 
 
 def _facet_groups(nrm: np.ndarray, gnrm: np.ndarray, mat: np.ndarray, dseg: np.ndarray,
