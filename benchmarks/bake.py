@@ -123,6 +123,7 @@ from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.assemble import SNR_EXACT_DB, percentiles
 from texelbake.cpm.avis.table import avis_table_from
 from texelbake.cpm.level import texel_ids
+from texelbake.pipeline.plan import resolve_settings
 from texelbake.pipeline.run import bake
 from texelbake.testscenes import write_scene
 from texelbake.usd.read import read_baked
@@ -201,7 +202,8 @@ def run_one(scene: Path, settings: BakeSettings, out: Path, with_avis_ref: bool)
                    for lv in report["levels"]],
     }
     if with_avis_ref:
-        ctx = stages.StageContext.create(out / ".work", scene, settings)
+        # the settings the bake ran with (atlas_mode "lod1" resolved to its side)
+        ctx = stages.StageContext.create(out / ".work", scene, resolve_settings(scene, settings))
         ref = avis_reference_error(root, ctx)
         result["avis_vs_reference"] = ref
         result["avis_rel_error_mean"] = ref["rel_error_mean"]
@@ -463,8 +465,8 @@ def main() -> None:
     changed = sorted(k for k, v in settings.model_dump().items()
                      if v != defaults[k] and k != "shard_texels")
     main_run = run_one(scene, settings, work / "main", with_avis_ref=True)
-    print(f"\n{args.scene} ({args.size}), {settings.atlas_resolution}x"
-          f"{settings.atlas_resolution} texels, {settings.n_light_dirs}x{settings.n_view_dirs} "
+    side = resolve_settings(scene, settings).atlas_resolution  # atlas_mode "lod1": its side
+    print(f"\n{args.scene} ({args.size}), {side}x{side} texels, {settings.n_light_dirs}x{settings.n_view_dirs} "
           f"pairs, c_max {settings.c_max}, eps {settings.eps_db:g} dB; bake settings: "
           f"{'texelbake bake defaults' if not changed else 'NON-DEFAULT ' + ', '.join(changed)}")
     print(f"{'stage':<10} {'seconds':>8}")

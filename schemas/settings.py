@@ -148,6 +148,11 @@ class BakeSettings(BaseModel):
         "'by_need' stores a texel whose samples form at most c_max groups of one facet, one "
         "material response and one visibility pattern as a point per group before any fit "
         "(one exact point for one group); 'points' fits every texel as the seed.")
+    classed_levels: int = _field(
+        3, "fit",
+        "Levels, from the finest, whose texels 'by_need' classes (the coarser ones are fitted); "
+        "each must lie inside a shard's tile: shard_texels >= 2^(classed_levels - 1) or the "
+        "atlas side.", ge=1, le=13)
     identical_columns: Literal["keep", "merge"] = _field(
         "merge", "fit",
         "'merge' fits candidates with identical columns as one weighted column, 'keep' fits "
@@ -243,6 +248,15 @@ class BakeSettings(BaseModel):
             raise ValueError(f"lod_switch_px must be 1 to 8 decreasing positive sizes, got {px}")
         if self.warp:
             check_warp_spec(self.warp)
+        tile_needs = min(1 << (self.classed_levels - 1), self.atlas_resolution)
+        if self.texel_classes == "by_need" and self.shard_texels < tile_needs:
+            # a classed level must be inside the tiles: a top level is fitted from the tiles'
+            # sums without its samples, so classing it would make the result depend on the
+            # tiling
+            raise ValueError(
+                f"shard_texels ({self.shard_texels}) must be at least {tile_needs} for "
+                f"classed_levels {self.classed_levels} (texel_classes 'by_need'): a classed "
+                "level must lie inside a shard's tile")
         if self.shard_texels > self.atlas_resolution:
             raise ValueError(
                 f"shard_texels ({self.shard_texels}) must not exceed atlas_resolution "

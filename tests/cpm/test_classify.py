@@ -310,9 +310,30 @@ def test_setting_chooses_the_path(mode, tmp_path):
     assert out["valid"].all()
     # the report's classes are read where the level says it was classed
     assert ("classed" in out) == (mode == "by_need")
-    # a coarse level is never classed (its texels are a top level for small tiles)
-    coarse = fit_level(src, 1, np.zeros(1, np.int64), level_candidates(src, 1, np.zeros(1, np.int64), out))
-    assert not np.any(coarse["skip"] == EXACT_SKIP)
+
+    # the coarse level (the flat square's one texel: one facet, one material, nothing above)
+    # is classed while classed_levels holds it, and fitted from its children's points beyond
+    one = np.zeros(1, np.int64)
+    for classed, stored in ((2, mode == "by_need"), (1, False)):
+        src_c = dataclasses.replace(src, settings=src.settings.model_copy(
+            update={"classed_levels": classed}))
+        coarse = fit_level(src_c, 1, one, level_candidates(src_c, 1, one, out))
+        assert bool(np.any(coarse["skip"] == EXACT_SKIP)) == stored, classed
+        assert coarse["valid"].all()
+        if stored:  # one point of weight the whole square's area
+            assert coarse["c"][0] == 1
+            assert np.allclose(coarse["point_weight"], 1.0, rtol=1e-6)
+            assert coarse["snr_ho"][0] >= TOL.exact_fit_db
+
+
+def test_a_classed_level_must_lie_inside_the_tiles():
+    """A top level is fitted from the tiles' sums without its samples: settings that would class
+    one are refused with the fields named; 'points' or a small atlas need no such tile."""
+    with pytest.raises(ValueError, match="shard_texels .* classed_levels 3"):
+        BakeSettings(atlas_resolution=16, shard_texels=2, classed_levels=3)
+    BakeSettings(atlas_resolution=16, shard_texels=4, classed_levels=3)
+    BakeSettings(atlas_resolution=16, shard_texels=2, classed_levels=3, texel_classes="points")
+    BakeSettings(atlas_resolution=2, shard_texels=2, classed_levels=5)
 
 
 def test_classes_do_not_depend_on_the_memory_chunks(monkeypatch):

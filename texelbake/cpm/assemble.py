@@ -104,8 +104,8 @@ def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     """The level's texels by class (`texelbake.cpm.level_by_need`): "exact" (one point, no
     fit), "grouped" (a point per group of one facet, material and visibility pattern, no fit)
     and "points" (the seed's fit), each with its texels, its mean stored points and its
-    held-out SNR. Empty when the bake classed no texel (texel_classes="points", or a coarse
-    level: texels are classed at the finest)."""
+    held-out SNR. Empty when the bake classed no texel (texel_classes="points", or a level
+    coarser than classed_levels)."""
     if "classed" not in data:
         return {}
     skip = data["skip"][valid]

@@ -75,12 +75,13 @@ def fit_level(
         return fit_level_batched(src, level, tex, cands, sums, counts, sub)
 
     with threadpool_limits(limits=1):
-        # texels are classed at the finest level, which every tiling holds inside its tiles
-        # (a coarse level is a top level for small tiles, fitted from sums without its dense
-        # samples: classing it would make the result depend on shard_texels); the coarse
-        # levels choose among their children's points, an exact child's one point included.
+        # texels are classed at the finest `classed_levels` levels, which the settings keep
+        # inside every tile (a top level is fitted from sums without its dense samples:
+        # classing one would make the result depend on shard_texels); the coarser levels
+        # choose among their children's points, an exact child's one point included.
         # No BTF table: an exact texel builds no F to sum
-        if s.texel_classes == "by_need" and level == 0 and sums is None and not s.btf:
+        if s.texel_classes == "by_need" and level < s.classed_levels and not s.btf:
+            assert sums is None, "a classed level is inside the tiles (BakeSettings._check)"
             out = fit_level_by_need(src, level, texels, candidates, seed_fit)
         else:
             out = seed_fit(texels, candidates)
