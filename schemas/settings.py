@@ -105,6 +105,11 @@ class BakeSettings(BaseModel):
         256, "fit",
         "Number of texels per level, a seeded sample, on which the held-out SNR is measured "
         "(every texel of a level that has fewer); 0 measures every texel.", ge=0, le=1 << 30)
+    heldout_samples: int = _field(
+        16384, "fit",
+        "Dense samples per measured texel over which its held-out truth is summed: a texel "
+        "with more sums a seeded subset of about this many, scaled by its area over theirs; "
+        "0 sums every sample.", ge=0, le=1 << 30)
     psi: float = _field(
         0.97, "fit", "Energy fraction of the selection matrix that fixes its rank k.",
         gt=0.0, le=1.0)

@@ -56,10 +56,13 @@ def test_tile_ancestors_hold_their_tiles(scene, tmp_path):
                 assert ids.tolist() == [cpm_stage.tile_ancestor(ctx, tile, level)]
 
 
-def test_dense_sums_add_over_disjoint_samples(scene, tmp_path):
+@pytest.mark.parametrize("heldout_samples", [0, 64])
+def test_dense_sums_add_over_disjoint_samples(scene, tmp_path, heldout_samples):
     """Sums over every sample of the coarse texels equal the tiles' shares added (same rays,
-    same BRDF values; only the order of the floating-point sums differs: 1e-12 relative)."""
-    ctx = _ctx(tmp_path, scene)
+    same BRDF values; only the order of the floating-point sums differs: 1e-12 relative),
+    also where the truth is summed over a seeded subset of a texel's samples (64 of its
+    hundreds: each tile draws its share of the same subset, with the same weights)."""
+    ctx = _ctx(tmp_path, scene, heldout_samples=heldout_samples)
     src = ctx.fit_inputs()
     level = ctx.tile_levels
     texels = np.arange((32 >> level) ** 2, dtype=np.int64)

@@ -10,7 +10,11 @@ The held-out truth is measured on a seeded sample of each level's texels
 (`BakeSettings.heldout_texels`, `measured_texels`): the same texels whichever tile or chunk
 holds them, every texel of a level that has fewer occupied texels than the sample. A texel
 outside the sample has its held-out a_vis NaN and its SNR NaN (not measured), which the
-report's percentiles leave out.
+report's percentiles leave out. Within a measured texel of more than
+`BakeSettings.heldout_samples` dense samples the truth is summed over a seeded subset of them
+(`truth_samples`) and scaled by the texel's area over the subset's (`held_scale`): a coarse
+texel's truth costs a bounded number of samples instead of every sample below it, once per
+level.
 """
 
 from __future__ import annotations
@@ -61,7 +65,8 @@ class DenseSums:
     """What the fit needs from a texel's dense samples and that does not depend on the fit:
     per texel the samples' count and area, a_vis on the grid's view directions (Eq. 3) and the
     held-out truth (Eq. 7's numerator on the held-out pairs, a_vis on the held-out view
-    directions). Every field is a sum over samples, so the sums of disjoint sample sets of the
+    directions), summed over the truth's samples (`truth_samples`, their area `area_held`;
+    `held_scale` scales it to the texel). Every field is a sum over samples, so the sums of disjoint sample sets of the
     same texels add up to the whole set's (up to the order of the floating-point sums): a tile
     shard sums its own samples for the coarse texels above it, and the top shard adds the
     tiles' (`texelbake.stages.cpm`) instead of reading every sample of the atlas again."""
@@ -71,12 +76,13 @@ class DenseSums:
     avis_o: np.ndarray  # (t, n_o)
     ref: np.ndarray  # (t, h_i, h_o, 3)
     avis_h: np.ndarray  # (t, h_o)
+    area_held: np.ndarray  # (t,)
 
-    FIELDS = ("count", "area", "avis_o", "ref", "avis_h")
+    FIELDS = ("count", "area", "avis_o", "ref", "avis_h", "area_held")
 
     def add_row(self, i: int, part: DenseSums) -> None:
         """Add `part`'s one texel into texel i of these sums, in place."""
-        for f in self.FIELDS:  # five fields
+        for f in self.FIELDS:  # six fields
             getattr(self, f)[i] += getattr(part, f)[0]
 
     def rows(self, idx) -> DenseSums:
@@ -86,7 +92,7 @@ class DenseSums:
     def zeros(cls, n_t: int, dirs: dict[str, np.ndarray]) -> DenseSums:
         n_o, h_i, h_o = len(dirs["dirs_o"]), len(dirs["held_i"]), len(dirs["held_o"])
         return cls(np.zeros(n_t, np.int64), np.zeros(n_t), np.zeros((n_t, n_o)),
-                   np.zeros((n_t, h_i, h_o, 3)), np.zeros((n_t, h_o)))
+                   np.zeros((n_t, h_i, h_o, 3)), np.zeros((n_t, h_o)), np.zeros(n_t))
 
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
         return {f"{prefix}{f}": getattr(self, f) for f in self.FIELDS}
@@ -133,6 +139,51 @@ def _texel_keys(seed: int, level: int, first_codes: np.ndarray) -> np.ndarray:
     salt = _mix64(np.array([(int(seed) << 8) + int(level) + 0x5EED], np.uint64))[0]
     with np.errstate(over="ignore"):
         return _mix64(np.asarray(first_codes, np.uint64) ^ salt)
+
+
+def _sample_keys(seed: int, level: int, samples: np.ndarray) -> np.ndarray:
+    """(n,) uint64 random keys of dense samples at a level (their draw for the truth)."""
+    salt = _mix64(np.array([(int(seed) << 8) + int(level) + 0x7A0B], np.uint64))[0]
+    with np.errstate(over="ignore"):
+        return _mix64(np.asarray(samples, np.uint64) ^ salt)
+
+
+def texel_counts(geo, n: int, level: int, texels: np.ndarray) -> np.ndarray:
+    """(t,) int64 dense samples of each of `texels` (flat ids at `level`) in the whole atlas
+    (a tile holds only its part of a top level's texel)."""
+    texels = np.asarray(texels, np.int64)
+    if "texel_zoffsets" not in geo:  # artifacts from before the Z-order index
+        return np.bincount(texel_ids(geo, n, level), minlength=(n >> level) ** 2)[texels]
+    zoff = geo["texel_zoffsets"]
+    r, c = np.divmod(texels, n >> level)
+    first = morton(r << level, c << level)
+    return (np.asarray(zoff[first + (1 << (2 * level))], np.int64)
+            - np.asarray(zoff[first], np.int64))
+
+
+def truth_samples(src: FitInputs, level: int, texels: np.ndarray, dense: np.ndarray,
+                  dseg: np.ndarray) -> np.ndarray:
+    """(n,) bool: which of the dense samples `dense` (of texels[dseg]) the held-out truth sums.
+    A sample is kept when its seeded key (seed, level, sample id) falls below
+    p = heldout_samples / its texel's samples in the whole atlas, so every tile and chunk that
+    holds it agrees (p >= 1, or heldout_samples 0: every sample)."""
+    k = int(src.settings.heldout_samples)
+    if k == 0 or dense.size == 0:
+        return np.ones(dense.size, bool)
+    s = src.settings
+    n_t = texel_counts(src.geo, s.atlas_resolution, level, texels)
+    p = (k / np.maximum(n_t, 1).astype(np.float64))[dseg]
+    u = (_sample_keys(s.seed, level, dense) >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
+    return u < p
+
+
+def held_scale(area: np.ndarray, area_held: np.ndarray) -> np.ndarray:
+    """(t,) the factor from a truth summed over the kept samples (`truth_samples`, of area
+    `area_held` (t,)) to the texel (area (t,)): the ratio estimator, exact whenever the texel's
+    Eq. 7 terms per unit area are equal (a flat texel's one point) and 1 where every sample is
+    kept; NaN where none is (the texel is then not measured)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(area_held > 0, area / area_held, np.nan)
 
 
 def measured_texels(src: FitInputs, level: int, texels: np.ndarray) -> np.ndarray:
@@ -216,28 +267,33 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
     if len(lp.dirs["held_i"]):
         none = np.zeros(0, np.int64)
         meas = measured_texels(src, level, texels)
-        keep = meas[dseg]
-        ref, _, avis_h = held_pass(lp, texels, dense[keep], dseg[keep], none, none,
-                                   np.zeros((0, 3)), want_ref=True)
+        d_m, s_m = dense[meas[dseg]], dseg[meas[dseg]]
+        keep = truth_samples(src, level, texels, d_m, s_m)
+        d_m, s_m = d_m[keep], s_m[keep]
+        ref, _, avis_h = held_pass(lp, texels, d_m, s_m, none, none, np.zeros((0, 3)),
+                                   want_ref=True)
         avis_h[~meas] = np.nan
+        out.area_held[:] = segment_sum(geo["sample_area"][d_m], s_m, n_t, 0)
     return DenseSums(np.bincount(dseg, minlength=n_t).astype(np.int64), area, avis_o, ref,
-                     avis_h)
+                     avis_h, out.area_held)
 
 
 def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-              pos: np.ndarray, pseg: np.ndarray, pw: np.ndarray, *, want_ref: bool
+              pos: np.ndarray, pseg: np.ndarray, pw: np.ndarray, *, want_ref: bool,
+              truth_w: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One pass over `dense` samples (grouped by texel, `dseg` ascending) on the held-out pairs:
     the truth (Eq. 7's numerator `ref` (t, h_i, h_o, 3) and a_vis on the held-out views
-    `avis_h` (t, h_o)) when `want_ref`, and the points' approximation `apx` (t, h_i, h_o, 3)
-    from the rows at positions `pos` (ascending; texel `pseg`, weights `pw` (p, 3))."""
+    `avis_h` (t, h_o)) when `want_ref`, each sample weighted by `truth_w` (n,) (default its
+    area; 0 leaves a sample out of the truth), and the points' approximation `apx` (t, h_i, h_o, 3) from the rows
+    at positions `pos` (ascending; texel `pseg`, weights `pw` (p, 3))."""
     src, dirs, n_t = lp.src, lp.dirs, len(texels)
     h_i, h_o = len(dirs["held_i"]), len(dirs["held_o"])
     tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
     ref = np.zeros((n_t, h_i, h_o, 3))
     apx = np.zeros((n_t, h_i, h_o, 3))
     avis_h = np.zeros((n_t, h_o))
-    area_all = src.geo["sample_area"][dense]
+    area_all = src.geo["sample_area"][dense] if truth_w is None else truth_w
     step = max(lp.budget // (BYTES_PER_HELD_ENTRY * h_i * h_o * 3), 1)
     for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
         sl = slice(s0, s0 + step)
@@ -276,11 +332,19 @@ def heldout_from_samples(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
     # ascending, so (texel, sample) keys are sorted
     span = int(max(dense.max(initial=0), smp.max(initial=0))) + 1
     pos = np.searchsorted(dseg * span + dense, pseg * span + smp)
+    # the rows the truth sums (`truth_samples`) and the points' own, nothing else evaluated
+    truth = truth_samples(lp.src, lp.level, texels, dense, dseg)
+    rows = truth.copy()
+    rows[pos] = True
+    pos = (np.cumsum(rows) - 1)[pos]
     order = np.argsort(pos, kind="stable")
-    ref, apx, avis_h = held_pass(lp, texels, dense, dseg, pos[order], pseg[order], pw[order],
-                                 want_ref=True)
+    area = lp.src.geo["sample_area"][dense]
+    ref, apx, avis_h = held_pass(lp, texels, dense[rows], dseg[rows], pos[order], pseg[order],
+                                 pw[order], want_ref=True, truth_w=(area * truth)[rows])
+    n_t = len(texels)
+    scale = held_scale(segment_sum(area, dseg, n_t, 0), segment_sum(area * truth, dseg, n_t, 0))
     avis_h[~meas] = np.nan
-    return ref, apx, avis_h
+    return ref * scale[:, None, None, None], apx, avis_h * scale[:, None]
 
 
 def heldout_from_sums(lp: LevelPass, texels: np.ndarray, sums: DenseSums, smp: np.ndarray,
@@ -291,7 +355,8 @@ def heldout_from_sums(lp: LevelPass, texels: np.ndarray, sums: DenseSums, smp: n
     order = np.lexsort((smp, pseg))
     smp, pseg, pw = smp[order], pseg[order], pw[order]
     _, apx, _ = held_pass(lp, texels, smp, pseg, np.arange(smp.size), pseg, pw, want_ref=False)
-    return sums.ref, apx, sums.avis_h
+    scale = held_scale(sums.area, sums.area_held)
+    return sums.ref * scale[:, None, None, None], apx, sums.avis_h * scale[:, None]
 
 
 def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: float) -> float:
@@ -309,4 +374,5 @@ def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: floa
 
 __all__ = ["BYTES_PER_HELD_ENTRY", "DenseSums", "LevelPass", "avis_sums", "dense_of",
            "dense_sums", "held_pass", "heldout_from_samples", "heldout_from_sums",
+           "held_scale", "texel_counts", "truth_samples",
            "heldout_snr", "inv_avis", "measured_texels", "positions"]
