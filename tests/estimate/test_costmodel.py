@@ -125,8 +125,9 @@ def test_levels_above_a_tile_are_one_serial_shard():
     """The levels coarser than a shard's tile run as one shard (`run_cpm_top`) on one worker,
     except their dense samples' sums (a_vis and the held-out truth, the held term), which the
     tile shards make: more workers divide the tiles' levels and those sums only. By hand from
-    the per-level prediction: on the uniform prediction every level holds all N^2 spt samples."""
-    s = BakeSettings(atlas_resolution=64, shard_texels=8)
+    the per-level prediction: on the uniform prediction every level holds all N^2 spt samples
+    (each measured in full: heldout_samples 0)."""
+    s = BakeSettings(atlas_resolution=64, shard_texels=8, heldout_samples=0)
     one, two = costmodel.estimate(s, 1, cores=2), costmodel.estimate(s, 2, cores=2)
     top = sum(lv["seconds"] for lv in two.per_level if lv["level"] >= 4)  # 8 = 0b1000: L0-3 tile
     c = costmodel.Coefficients()
@@ -198,7 +199,7 @@ def test_machine_speed_scales_each_term_by_its_kind_of_work():
     speed = MachineSpeed(factors=factors, seconds=dict.fromkeys(factors, 1.0))
     zero = Coefficients(**{f.name: (1.0 if f.name in ratios else 0.0)
                            for f in fields(Coefficients)})
-    s = BakeSettings(atlas_resolution=32)
+    s = BakeSettings(atlas_resolution=32, avis_coarse="dense")  # every term priced
     for name, part in PART_OF.items():
         one = replace(zero, **{name: getattr(Coefficients(), name) or 1e-9})
         base = costmodel.estimate(s, 1, coef=one, ggx_fraction=0.0)
@@ -235,7 +236,7 @@ def test_the_cell_table_is_priced_at_level_0():
     btf_cell x r_entry each (by hand from the uniform sizes); "point" and btf off add nothing."""
     c = costmodel.Coefficients()
     point = BakeSettings(atlas_resolution=32, btf=True)
-    off = BakeSettings(atlas_resolution=32)
+    off = BakeSettings(atlas_resolution=32, texel_classes="points")  # a BTF bake classes none
     cell = BakeSettings(atlas_resolution=32, btf=True, btf_table="cell", btf_cell_draws=6)
     m, _, mult = costmodel._uniform_sizes(32, point.samples_per_texel, point.c_max)[0]
     d = point.n_light_dirs * point.n_view_dirs
@@ -245,3 +246,57 @@ def test_the_cell_table_is_priced_at_level_0():
     assert costmodel.estimate(off, 2).cpm_seconds == e_point.cpm_seconds
     assert e_cell.cpm_seconds - e_point.cpm_seconds == pytest.approx(extra, rel=1e-9)
     assert e_cell.per_level[1] == e_point.per_level[1]
+
+
+def _only(**nonzero):
+    """Coefficients with every seconds field 0 but `nonzero` (the ratio fields 1)."""
+    from dataclasses import fields
+
+    ratios = {"brdf_ggx", "held_ggx", "btf_cell"}
+    return costmodel.Coefficients(**{f.name: nonzero.get(f.name, 1.0 if f.name in ratios
+                                                         else 0.0)
+                                     for f in fields(costmodel.Coefficients)})
+
+
+def test_classed_levels_price_the_classing_and_the_fitted_share():
+    """By hand on an even 8^2 atlas of 10 samples a texel: each classed level costs `classify`
+    x its samples x (N_i + N_o), every level; the fit's terms (here R alone) are paid by the
+    `fitted` share of a classed level's texels, in full above the classed levels and without a
+    measured share; texel_classes "points" classes nothing."""
+    n, spt = 8, 10
+    s = BakeSettings(atlas_resolution=n, shard_texels=8, samples_per_texel=spt,
+                     classed_levels=2, c_max=64)
+    counts = np.full((n, n), spt)
+    d = s.n_light_dirs * s.n_view_dirs
+    cls = costmodel.estimate(s, 1, counts, coef=_only(classify=1e-6), ggx_fraction=0.0)
+    for lv in cls.per_level:
+        want = 1e-6 * (s.n_light_dirs + s.n_view_dirs) * n * n * spt if lv["level"] < 2 else 0
+        assert lv["seconds"] == pytest.approx(want, rel=1e-12), lv
+    sizes = costmodel.level_sizes(counts, s.c_max)
+    r = costmodel.estimate(s, 1, counts, coef=_only(r_entry=1e-6), ggx_fraction=0.0,
+                           fitted=[0.25, 0.5])
+    full = costmodel.estimate(s, 1, counts, coef=_only(r_entry=1e-6), ggx_fraction=0.0)
+    for lv, lf, (m, _) in zip(r.per_level, full.per_level, sizes, strict=True):
+        whole = 1e-6 * d * m.sum()
+        assert lf["seconds"] == pytest.approx(whole, rel=1e-12)
+        share = (0.25, 0.5, 1.0, 1.0)[lv["level"]]
+        assert lv["seconds"] == pytest.approx(share * whole, rel=1e-12), lv
+    points = s.model_copy(update={"texel_classes": "points"})
+    assert costmodel.estimate(points, 1, counts, coef=_only(classify=1e-6)).seconds == 0.0
+
+
+def test_the_held_out_truth_is_priced_on_its_samples():
+    """The held-out term counts the measured texels (`heldout_texels` of a level's occupied
+    ones) and at most `heldout_samples` samples of each: on an even 16^2 atlas of 64 samples a
+    texel, level 0 measures 8 of 256 texels over all 64 samples, level 3 all 4 texels over
+    1,000 of their 4,096."""
+    n, spt = 16, 64
+    s = BakeSettings(atlas_resolution=n, samples_per_texel=spt, heldout_texels=8,
+                     heldout_samples=1000)
+    counts = np.full((n, n), spt)
+    e = costmodel.estimate(s, 1, counts, coef=_only(held=1e-6), ggx_fraction=0.0)
+    n_h = int(round(np.sqrt(s.n_heldout))) ** 2
+    per = {lv["level"]: lv["seconds"] for lv in e.per_level}
+    assert per[0] == pytest.approx(1e-6 * n_h * 8 * 64, rel=1e-12)
+    assert per[3] == pytest.approx(1e-6 * n_h * 4 * 1000, rel=1e-12)
+    assert per[4] == pytest.approx(1e-6 * n_h * 1000, rel=1e-12)

@@ -7,8 +7,14 @@ fit, `texelbake.cpm.level_batched`):
     r_entry m d    building R (BRDF evaluation, visibility products, F = R / a_vis)
     gram m^2 d     the Gram matrices (4 per texel in luminance mode)
     eigh m^3       their eigendecompositions
-    held n H       the held-out truth over its n dense samples on H held-out pairs
+    held n H       the held-out truth over its n dense samples on H held-out pairs (a measured
+                   texel's: `heldout_texels` of a level's, each over at most `heldout_samples`)
     texel          draws, bisection and NNLS on the reduced r x c systems
+
+With texel_classes "by_need" every texel of the finest `classed_levels` levels is first classed
+(its n dense samples' visibility on the N_i + N_o grid directions: `classify` n (N_i + N_o)),
+and only the fraction the classes send to the fit (`fitted`, measured on a sample of texels by
+the caller, `texelbake.pipeline.estimate`; 1 when not known) pays the fit's terms.
 
 Level 0's m are the dense samples per texel (known exactly once the geometry stage has placed
 them: `sample_counts`; before that the n^2 spt samples spread over an assumed atlas fill); a coarser
@@ -26,6 +32,7 @@ re-fitted for another machine.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import TYPE_CHECKING
 
@@ -58,6 +65,14 @@ class Coefficients:
     texel: float = 3.28e-3  # s per fitted texel
     brdf_ggx: float = 1.25  # R cost of a GGX (preview, merl, cellular) material, x r_entry
     held_ggx: float = 1.43  # held-out cost of such a material, x held
+    # classing a texel by need (`cpm.classify`): s per (dense sample, grid direction), its
+    # visibility rays and pattern tests; fitted to the classed levels' CPU seconds less the
+    # fitted texels' terms (benchmarks/results/cpm_cpu_cylinder_128_heldout_samples_16384.json)
+    classify: float = 1.1e-7
+    # a coarse level's a_vis cast by the fit over its fitted texels' samples (avis_coarse
+    # "dense"; "children" reads the a_vis stage's maps): s per (dense sample, grid view
+    # direction); fitted to levels 5-7 of the same run, whose cost is nearly all this
+    fit_avis: float = 5.5e-8
     # level 0's cell-averaged BTF table (btf_table "cell", `cpm.cell_table`): one BRDF grid per
     # draw and the pair's own, x r_entry per (sample, pair, grid); fitted to the cpm stage's
     # seconds cell / point (benchmarks/btf_tables.py)
@@ -156,6 +171,7 @@ def estimate(
     load: float = 0.0,
     cores: int | None = None,
     speed: MachineSpeed | None = None,
+    fitted: Sequence[float] | None = None,
 ) -> Estimate:
     """Predict a bake's seconds.
 
@@ -171,6 +187,8 @@ def estimate(
         the atlas, spread evenly (a prediction before the geometry exists; O(log N) work)
     speed : this machine against the coefficients' (`texelbake.estimate.machinespeed.this_machine()`);
         None: the coefficients' machine (deterministic, for tests and ratios of estimates)
+    fitted : per classed level, the fraction of its texels the classes leave to the fit
+        (texel_classes "by_need"); None or a level beyond it: every texel (an upper bound)
     """
     coef = coef or Coefficients()
     if speed is not None:
@@ -191,13 +209,26 @@ def estimate(
     cpm = 0.0
     serial = 0.0  # levels above a tile: `run_cpm_top`, one shard on one worker
     tile_levels = int(s.shard_texels).bit_length()
+    classed = s.classed_levels if s.texel_classes == "by_need" and not s.btf else 0
+    n_dirs = s.n_light_dirs + s.n_view_dirs
+    k_held = float(s.heldout_samples) if s.heldout_samples else np.inf
     texels = 0
     for level, (m, dense, mult) in enumerate(sizes):
-        held = mult * float(brdf_h * coef.held * (dense * n_h).sum())
-        sec = held + mult * float(brdf * coef.r_entry * (m * d).sum()
-                                  + coef.gram * (m * m * d).sum()
-                                  + coef.eigh * (m ** 3).sum()
-                                  + coef.texel * m.size)
+        n_occ = mult * m.size
+        measured = min(1.0, s.heldout_texels / max(n_occ, 1.0)) if s.heldout_texels else 1.0
+        held = measured * mult * float(
+            brdf_h * coef.held * (np.minimum(dense, k_held) * n_h).sum())
+        phi = 1.0
+        if level < classed and fitted is not None and level < len(fitted):
+            phi = float(np.clip(fitted[level], 0.0, 1.0))
+        sec = held + phi * mult * float(brdf * coef.r_entry * (m * d).sum()
+                                        + coef.gram * (m * m * d).sum()
+                                        + coef.eigh * (m ** 3).sum()
+                                        + coef.texel * m.size)
+        if level < classed:
+            sec += mult * coef.classify * n_dirs * float(dense.sum())
+        if level > 0 and s.avis_coarse == "dense":
+            sec += phi * mult * coef.fit_avis * s.n_view_dirs * float(dense.sum())
         if level == 0 and cell_grids:
             sec += mult * cell_grids * coef.btf_cell * brdf * coef.r_entry * float((m * d).sum())
         n_tex = int(round(mult * m.size))

@@ -1,4 +1,6 @@
-"""A bake's estimate while it runs: the cost model priced on this machine, under its load now.
+"""A bake's estimate while it runs: the cost model priced on this machine, under its load now,
+with the share of each classed level's texels that the classes leave to the fit measured on a
+seeded sample of its texels (`fitted_fractions`).
 """
 
 from __future__ import annotations
@@ -7,7 +9,13 @@ import os
 import time
 from pathlib import Path
 
+import numpy as np
+
 from texelbake import stages
+
+#: texels classed per classed level to measure the share the fit gets (its standard error at
+#: most 0.5 / sqrt(16) = 0.125; the bake's classes are the whole level's)
+CLASS_SAMPLE = 16
 
 
 def _other_runnable(samples: int = 5, interval: float = 0.05) -> float:
@@ -57,6 +65,36 @@ def runnable_tasks(exclude_pid: int | None = None, proc: Path = Path("/proc")
     return out
 
 
+def fitted_fractions(ctx: stages.StageContext) -> list[float] | None:
+    """Per classed level (texel_classes "by_need", the finest `classed_levels`), the fraction
+    of a seeded sample of `CLASS_SAMPLE` occupied texels (all when fewer) that the classes
+    (`texelbake.cpm.classify`) leave to the fit: what the cost model's fit terms are priced
+    on. None when the bake classes no texel. Costs the sample's classing rays (a few seconds at
+    a 128^2 atlas) and the ray caster's build."""
+    from texelbake.cpm.dense import LevelPass, dense_of
+    from texelbake.cpm.level_by_need import classes_bounded
+
+    s = ctx.settings
+    if s.texel_classes != "by_need" or s.btf:
+        return None
+    src = ctx.fit_inputs()
+    geo, n = src.geo, s.atlas_resolution
+    rng = np.random.default_rng(s.seed)
+    out = []
+    for level in range(min(s.classed_levels, ctx.n_levels)):  # a loop over a few levels
+        occupied = np.unique((np.asarray(geo["sample_row"], np.int64) >> level) * (n >> level)
+                             + (np.asarray(geo["sample_col"], np.int64) >> level))
+        if not occupied.size:
+            out.append(1.0)
+            continue
+        texels = np.sort(rng.choice(occupied, min(CLASS_SAMPLE, occupied.size), replace=False))
+        lp = LevelPass.of(src, level)
+        dense, dseg = dense_of(lp, texels)
+        cls = classes_bounded(lp, texels, dense, dseg)
+        out.append(float(np.mean(~(cls.exact | cls.grouped))))
+    return out
+
+
 def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> dict:
     """The cost model's prediction (`texelbake.estimate.costmodel`) from the placed samples: total
     seconds, the cpm and avis stages' wall seconds on `jobs` workers, and the ETA (UTC) of the
@@ -70,9 +108,10 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
     cores = os.cpu_count() or 1
     speed = machinespeed.this_machine()  # before the load reading: ~1 s of this process's CPU
     other = _other_runnable()
+    fitted = fitted_fractions(ctx)
     e = costmodel.estimate(s, jobs, costmodel.sample_counts(geo, s.atlas_resolution),
                            ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
-                           load=other, cores=cores, speed=speed)
+                           load=other, cores=cores, speed=speed, fitted=fitted)
     w = max(int(jobs), 1)
     # made after the geometry stage: its measured seconds (`elapsed`, with ingest) replace the
     # model's geometry term (the bolt's xatlas packing took 42 s where the model says 1)
@@ -85,4 +124,5 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
                               "avis": round(e.avis_wall_seconds, 1),
                               "export": round(e.export_seconds * e.stretch, 1)},
             "per_level": e.per_level, "eta": eta.strftime("%H:%M:%S UTC"),
+            "fitted_fraction": None if fitted is None else [round(f, 3) for f in fitted],
             "machine_speed": e.speed}

@@ -1,0 +1,48 @@
+"""The bake's estimate prices the classed levels on a sample of their texels
+(`texelbake.pipeline.estimate.fitted_fractions`): each classed level's share of texels left to
+the fit, from CLASS_SAMPLE texels, against the share over every texel of the level (the
+classes of the whole level, a second run of the classifier)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from schemas.settings import BakeSettings
+from texelbake import stages
+from texelbake.cpm.dense import LevelPass, dense_of
+from texelbake.cpm.level_by_need import classes_bounded
+from texelbake.pipeline.estimate import CLASS_SAMPLE, fitted_fractions
+from texelbake.testscenes import write_scene
+
+
+def test_the_sampled_share_matches_the_whole_level(tmp_path):
+    """The small cylinder at 16^2: a level of at most CLASS_SAMPLE occupied texels is sampled
+    whole (the share is exact); a larger one within 3 standard errors of a sample of 16
+    drawn without replacement. texel_classes "points" prices no class."""
+    scene = write_scene("cylinder", tmp_path / "c.usda", "small")
+    s = BakeSettings(atlas_resolution=16, samples_per_texel=16, n_light_dirs=16, n_view_dirs=16)
+    ctx = stages.StageContext.create(tmp_path / "w", scene, s)
+    stages.run_ingest(ctx, 0)
+    stages.run_geometry(ctx, 0)
+    got = fitted_fractions(ctx)
+    assert got is not None and len(got) == s.classed_levels
+    src, geo = ctx.fit_inputs(), ctx.geometry()
+    whole_sampled = False
+    for level, phi in enumerate(got):
+        n_l = 16 >> level
+        occ = np.unique((geo["sample_row"] >> level) * n_l + (geo["sample_col"] >> level))
+        lp = LevelPass.of(src, level)
+        dense, dseg = dense_of(lp, occ)
+        cls = classes_bounded(lp, occ, dense, dseg)
+        truth = float(np.mean(~(cls.exact | cls.grouped)))
+        if occ.size <= CLASS_SAMPLE:
+            assert phi == truth, level
+            whole_sampled = True
+        else:
+            fpc = (occ.size - CLASS_SAMPLE) / (occ.size - 1)
+            se = np.sqrt(max(truth * (1 - truth), 1.0 / CLASS_SAMPLE) / CLASS_SAMPLE * fpc)
+            assert abs(phi - truth) <= 3 * se, (level, phi, truth)
+    assert whole_sampled
+    points = stages.StageContext.create(tmp_path / "w", scene,
+                                        s.model_copy(update={"texel_classes": "points"}))
+    assert fitted_fractions(points) is None
