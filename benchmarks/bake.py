@@ -242,7 +242,10 @@ def run_child(tree: Path, scene: Path, out: Path, settings: dict, jobs: int) -> 
     summary = json.loads((out / "bake_total.json").read_text())
     total = summary["total_seconds"]
     recs = [json.loads(line) for line in timings.read_text().splitlines()]
-    run = json.loads((out / "bake" / "run.json").read_text())  # seconds and estimate
+    # seconds and estimate: run.json, or the report of a tree from before run.json
+    run_path = out / "bake" / "run.json"
+    run = json.loads((run_path if run_path.exists() else out / "bake" / "report.json")
+                     .read_text())
     levels = []
     for lv in sorted({r["level"] for r in recs}):
         rs = [r for r in recs if r["level"] == lv]

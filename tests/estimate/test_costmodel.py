@@ -300,3 +300,22 @@ def test_the_held_out_truth_is_priced_on_its_samples():
     assert per[0] == pytest.approx(1e-6 * n_h * 8 * 64, rel=1e-12)
     assert per[3] == pytest.approx(1e-6 * n_h * 4 * 1000, rel=1e-12)
     assert per[4] == pytest.approx(1e-6 * n_h * 1000, rel=1e-12)
+
+
+def test_a_vis_rays_are_priced_on_the_samples_that_cast_them():
+    """avis_level0 "by_need" casts level 0's cube from a few strata per texel: the a_vis
+    stage's ray term scales with the samples given (`avis_ray_samples`), its per-sample maps
+    term does not; the pipeline counts at most K_SAMPLES per texel."""
+    from texelbake.pipeline.estimate import avis_ray_samples
+
+    n, spt = 8, 40
+    s = BakeSettings(atlas_resolution=n, samples_per_texel=spt, avis_level0="by_need")
+    counts = np.full((n, n), spt)
+    k = avis_ray_samples(s, counts)
+    assert k == 16 * n * n and avis_ray_samples(s.model_copy(
+        update={"avis_level0": "dense"}), counts) is None
+    rays = costmodel.estimate(s, 1, counts, coef=_only(avis=1e-6), avis_ray_samples=k)
+    every = costmodel.estimate(s, 1, counts, coef=_only(avis=1e-6))
+    assert rays.avis_seconds == pytest.approx(every.avis_seconds * 16 / spt, rel=1e-12)
+    maps = costmodel.estimate(s, 1, counts, coef=_only(avis_fixed=1e-6), avis_ray_samples=k)
+    assert maps.avis_seconds == pytest.approx(1e-6 * n * n * spt, rel=1e-12)

@@ -172,6 +172,7 @@ def estimate(
     cores: int | None = None,
     speed: MachineSpeed | None = None,
     fitted: Sequence[float] | None = None,
+    avis_ray_samples: float | None = None,
 ) -> Estimate:
     """Predict a bake's seconds.
 
@@ -189,6 +190,8 @@ def estimate(
         None: the coefficients' machine (deterministic, for tests and ratios of estimates)
     fitted : per classed level, the fraction of its texels the classes leave to the fit
         (texel_classes "by_need"); None or a level beyond it: every texel (an upper bound)
+    avis_ray_samples : the samples that cast level 0's a_vis rays (avis_level0 "by_need": a
+        few strata per texel, `texelbake.pipeline.estimate`); None: every dense sample
     """
     coef = coef or Coefficients()
     if speed is not None:
@@ -241,7 +244,8 @@ def estimate(
         texels += n_tex
     total_samples = float(sizes[0][1].sum() * sizes[0][2])
     faces = (s.avis_resolution / 32.0) ** 2
-    avis = (coef.avis * faces + coef.avis_fixed) * total_samples
+    ray_samples = total_samples if avis_ray_samples is None else float(avis_ray_samples)
+    avis = coef.avis * faces * ray_samples + coef.avis_fixed * total_samples
     export = coef.export * faces * total_samples
     geom = coef.geometry * total_samples
     par = min(workers, cores or workers)

@@ -95,6 +95,17 @@ def fitted_fractions(ctx: stages.StageContext) -> list[float] | None:
     return out
 
 
+def avis_ray_samples(settings, counts: np.ndarray) -> float | None:
+    """The samples that cast level 0's a_vis rays with avis_level0 "by_need": at most
+    `K_SAMPLES` strata of each texel (one for a one-facet, one-pattern texel: an upper bound);
+    None with "dense" (every sample)."""
+    from texelbake.cpm.avis.by_need import K_SAMPLES
+
+    if settings.avis_level0 != "by_need":
+        return None
+    return float(np.minimum(np.asarray(counts), K_SAMPLES).sum())
+
+
 def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> dict:
     """The cost model's prediction (`texelbake.estimate.costmodel`) from the placed samples: total
     seconds, the cpm and avis stages' wall seconds on `jobs` workers, and the ETA (UTC) of the
@@ -109,9 +120,11 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
     speed = machinespeed.this_machine()  # before the load reading: ~1 s of this process's CPU
     other = _other_runnable()
     fitted = fitted_fractions(ctx)
-    e = costmodel.estimate(s, jobs, costmodel.sample_counts(geo, s.atlas_resolution),
+    counts = costmodel.sample_counts(geo, s.atlas_resolution)
+    e = costmodel.estimate(s, jobs, counts,
                            ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
-                           load=other, cores=cores, speed=speed, fitted=fitted)
+                           load=other, cores=cores, speed=speed, fitted=fitted,
+                           avis_ray_samples=avis_ray_samples(s, counts))
     w = max(int(jobs), 1)
     # made after the geometry stage: its measured seconds (`elapsed`, with ingest) replace the
     # model's geometry term (the bolt's xatlas packing took 42 s where the model says 1)
