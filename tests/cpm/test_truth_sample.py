@@ -9,10 +9,9 @@ import dataclasses
 
 import numpy as np
 
+from tests.cpm.test_classify import _grid_samples, _inputs, _up, _walled
 from texelbake.cpm.dense import LevelPass, dense_of, dense_sums, held_scale, truth_samples
 from texelbake.tol import TOL
-
-from tests.cpm.test_classify import _grid_samples, _inputs, _up, _walled
 
 ONE = np.zeros(1, np.int64)
 

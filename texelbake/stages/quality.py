@@ -7,8 +7,9 @@ Targets (schemas.settings.BakeSettings, `gate_*`):
   switch size, `geometry.lodchain`); LODs of `lod_mode="atlas"` have no bound and are not gated;
 - each CPM level's held-out SNR (seed 000, Eq. 7 on held-out direction pairs) median and 5th
   percentile over its texels at or above `gate_snr_median_db` / `gate_snr_p5_db`. They are
-  measured on a seeded sample of the level's texels (`BakeSettings.heldout_texels`), so the
-  check reads the upper end of each statistic's 95 % interval (`cpm.assemble.quantile_ci`):
+  measured on a seeded sample of the level's texels (`BakeSettings.heldout_texels`; each
+  texel's truth over at most ~`heldout_samples` of its samples, whose noise adds to the error
+  read), so the check reads the upper end of each statistic's 95 % interval (`cpm.assemble.quantile_ci`):
   a level fails when its population median (p5) is below the target with at least 97.5 %
   confidence, so sampling alone fails a level that meets its target at most 2.5 % of the
   time. Where the sample is the whole level the interval is the value itself (the rule as
