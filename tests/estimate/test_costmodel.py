@@ -319,3 +319,29 @@ def test_a_vis_rays_are_priced_on_the_samples_that_cast_them():
     assert rays.avis_seconds == pytest.approx(every.avis_seconds * 16 / spt, rel=1e-12)
     maps = costmodel.estimate(s, 1, counts, coef=_only(avis_fixed=1e-6), avis_ray_samples=k)
     assert maps.avis_seconds == pytest.approx(1e-6 * n * n * spt, rel=1e-12)
+
+
+def test_atlas_trade_prices_the_classes_by_texel_size():
+    """The LOD1 projection with this bake's classed shares: this atlas priced at them, the
+    larger atlas's classed levels at the share of this bake's level of the same texel size, a
+    smaller texel at this bake's finest share (an upper bound); by hand against `estimate`.
+    Without shares every texel is priced as fitted, so the shares can only lower both."""
+    s = BakeSettings(atlas_resolution=16)
+    lods = {"atlas_mesh": {"atlas_resolution_for_lod1": 64, "cpm_max_px": 10.0}}
+    shares = [0.5, 0.7, 0.9]
+    t = costmodel.atlas_trade(s, lods, fitted=shares)
+    big = s.model_copy(update={"atlas_resolution": 64})
+    # 64^2 level L has the texel size of 16^2 level L - 2: levels 0-2 are smaller than 16^2's
+    # finest
+    assert t["estimated_seconds"] == costmodel.estimate(s, fitted=shares).seconds
+    assert t["estimated_seconds_for_lod1"] == costmodel.estimate(big, fitted=[0.5] * 3).seconds
+    assert t["fitted_shares"] == shares
+    plain = costmodel.atlas_trade(s, lods)
+    assert plain["fitted_shares"] is None
+    assert t["estimated_seconds_for_lod1"] < plain["estimated_seconds_for_lod1"]
+    assert t["estimated_seconds"] < plain["estimated_seconds"]
+    # twice the side: 32^2 level 1 is 16^2 level 0, level 2 is level 1
+    half = costmodel.atlas_trade(s, {"atlas_mesh": {"atlas_resolution_for_lod1": 32}},
+                                 fitted=shares)
+    assert half["estimated_seconds_for_lod1"] == costmodel.estimate(
+        s.model_copy(update={"atlas_resolution": 32}), fitted=[0.5, 0.5, 0.7]).seconds

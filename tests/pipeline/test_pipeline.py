@@ -232,6 +232,12 @@ def test_payload_round_trip_and_report(cylinder_bake):
     assert cpm["resolution"] == n and cpm["for_lod1"] == want
     assert cpm["max_px"] == pytest.approx(n * diag / np.sqrt(area / 0.4), rel=1e-3)
     assert (cpm["estimated_seconds_for_lod1"] > cpm["estimated_seconds"]) == (want > n)
+    # priced at the classed levels' shares left to the fit, as the report's classes count them
+    for share, lv in zip(cpm["fitted_shares"], report["levels"], strict=False):
+        cls = lv["classes"]
+        total = sum(c["texels"] for c in cls.values())
+        assert share == pytest.approx(cls["points"]["texels"] / total, abs=1e-4)
+    assert len(cpm["fitted_shares"]) == min(settings.classed_levels, len(report["levels"]))
     for lvl, level in enumerate(baked.levels):
         n_l = settings.atlas_resolution >> lvl
         assert level["texel_offsets"].shape == (n_l * n_l + 1,)

@@ -3,7 +3,7 @@ the compressed a_vis table) and its report entry (percentiles, a_vis compression
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -117,6 +117,21 @@ def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
                    "snr_heldout_db": percentiles(ho[sel], SNR_EXACT_DB)}
             for name, sel in (("exact", exact), ("grouped", grouped),
                               ("points", ~exact & ~grouped))}
+
+
+def fitted_shares(levels: Sequence[Mapping[str, np.ndarray]]) -> list[float] | None:
+    """Per classed level from the finest (its arrays carry "classed"), the share of its valid
+    texels the classes left to the fit (neither exact nor grouped): what the cost model's fit
+    terms are priced on (`texelbake.estimate.costmodel.atlas_trade`). None when no level was
+    classed."""
+    out = []
+    for data in levels:  # a loop over the few classed levels
+        if "classed" not in data:
+            break
+        skip = np.asarray(data["skip"])[np.asarray(data["valid"], bool)]
+        out.append(float(np.mean((skip != EXACT_SKIP) & (skip != GROUPED_SKIP)))
+                   if skip.size else 1.0)
+    return out or None
 
 
 def _merged(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:

@@ -262,27 +262,40 @@ def estimate(
 
 
 def atlas_trade(settings: BakeSettings, lod_report: dict,
-                measured_seconds: float | None = None) -> dict:
+                measured_seconds: float | None = None,
+                fitted: Sequence[float] | None = None) -> dict:
     """What the CPM atlas covers and what the atlas LOD1 asks for would cost: the
     baked resolution, the largest screen size it serves (`max_px`, the bbox diagonal in pixels
     at which a finest texel is one pixel; larger on screen texelbake's renderer shades from
     M_org), the resolution at which a finest texel is one pixel where LOD1 switches in, the
     cost model's one-worker seconds of both (uniform fill, a quiet machine) and their ratio;
     with `measured_seconds` (this bake's stages), the projection measured x ratio. The ratio
-    of one model's two predictions is what is trusted here, not its absolute seconds."""
+    of one model's two predictions is what is trusted here, not its absolute seconds.
+
+    fitted : this bake's classed levels' shares of texels left to the fit
+        (`texelbake.cpm.assemble.fitted_shares`), priced for this atlas as they are; the
+        larger atlas's classed level of the same texel size gets the same share, and a
+        smaller texel than this bake's finest gets the finest's (a smaller texel spans fewer
+        facets and patterns: an upper bound). None: every texel priced as fitted."""
     atlas = lod_report.get("atlas_mesh", {})
     need = atlas.get("atlas_resolution_for_lod1")
     n = settings.atlas_resolution
-    est = estimate(settings).seconds
+    est = estimate(settings, fitted=fitted).seconds
     # atlas_mode "lod1" bakes `for_lod1` up to the cap: the cap is reached when it bakes less
     out = {"resolution": n, "max_px": atlas.get("cpm_max_px"), "for_lod1": need,
            "mode": settings.atlas_mode, "cap": settings.atlas_cap,
            "cap_reached": bool(settings.atlas_mode == "lod1" and need and need > n),
            "estimated_seconds": est, "estimated_seconds_for_lod1": None, "cost_ratio": None,
-           "projected_seconds_for_lod1": None}
+           "projected_seconds_for_lod1": None,
+           "fitted_shares": None if fitted is None else [round(float(f), 4) for f in fitted]}
     if need:
+        shift = int(need).bit_length() - int(n).bit_length()  # levels between the two
+        need_fitted = None if not fitted else [
+            fitted[min(max(level - shift, 0), len(fitted) - 1)] if level - shift < len(fitted)
+            else 1.0 for level in range(settings.classed_levels)]
         est_need = est if need == n else estimate(
-            settings.model_copy(update={"atlas_resolution": int(need)})).seconds
+            settings.model_copy(update={"atlas_resolution": int(need)}),
+            fitted=need_fitted).seconds
         out["estimated_seconds_for_lod1"] = est_need
         out["cost_ratio"] = est_need / est
         if measured_seconds:

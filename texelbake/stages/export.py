@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texelbake.cpm.assemble import assemble_level
+from texelbake.cpm.assemble import assemble_level, fitted_shares
 from texelbake.cpm.level import direction_sets, texel_ids
 from texelbake.estimate.costmodel import atlas_trade
 from texelbake.geometry.build import geometry_chunk, lod_meshes, lod_report
@@ -135,7 +135,8 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
         "lods": lod_report(geo),
         # where the CPM maps apply, and what the atlas LOD1 asks for would cost (the
         # projection from this run's measured seconds is a run fact: `write_run`)
-        "cpm_atlas": _without(atlas_trade(s, lod_report(geo)), "projected_seconds_for_lod1"),
+        "cpm_atlas": _without(atlas_trade(s, lod_report(geo), fitted=fitted_shares(cpm_lv)),
+                              "projected_seconds_for_lod1"),
         # how the LOD meshes follow M_org's animation (texelbake.deform.skinbind)
         "lod_animation": ("usdskel" if skeleton else "time_samples" if asset.has_deformation
                           else "static"),
@@ -208,7 +209,8 @@ def run_facts(ctx: StageContext, seconds: dict[str, float],
     import socket
 
     total = float(sum(seconds.values()))
-    trade = atlas_trade(ctx.settings, lod_report(ctx.geometry()), measured_seconds=total or None)
+    trade = atlas_trade(ctx.settings, lod_report(ctx.geometry()), measured_seconds=total or None,
+                        fitted=fitted_shares(cpm_levels(ctx)))
     facts = {
         "stage_seconds": {k: round(v, 3) for k, v in seconds.items()},
         "total_seconds": round(total, 3),
