@@ -1,5 +1,5 @@
 """The bake's estimate prices the classed levels on a sample of their texels
-(`texelbake.pipeline.estimate.fitted_fractions`): each classed level's share of texels left to
+(`texelbake.pipeline.estimate.sampled_fitted_shares`): each classed level's share of texels left to
 the fit, from CLASS_SAMPLE texels, against the share over every texel of the level (the
 classes of the whole level, a second run of the classifier)."""
 
@@ -11,7 +11,7 @@ from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm.dense import LevelPass, dense_of
 from texelbake.cpm.level_by_need import classes_bounded
-from texelbake.pipeline.estimate import CLASS_SAMPLE, fitted_fractions
+from texelbake.pipeline.estimate import CLASS_SAMPLE, sampled_fitted_shares
 from texelbake.testscenes import write_scene
 
 
@@ -24,7 +24,7 @@ def test_the_sampled_share_matches_the_whole_level(tmp_path):
     ctx = stages.StageContext.create(tmp_path / "w", scene, s)
     stages.run_ingest(ctx, 0)
     stages.run_geometry(ctx, 0)
-    got = fitted_fractions(ctx)
+    got = sampled_fitted_shares(ctx)
     assert got is not None and len(got) == s.classed_levels
     src, geo = ctx.fit_inputs(), ctx.geometry()
     whole_sampled = False
@@ -45,4 +45,4 @@ def test_the_sampled_share_matches_the_whole_level(tmp_path):
     assert whole_sampled
     points = stages.StageContext.create(tmp_path / "w", scene,
                                         s.model_copy(update={"texel_classes": "points"}))
-    assert fitted_fractions(points) is None
+    assert sampled_fitted_shares(points) is None

@@ -1,6 +1,6 @@
 """A bake's estimate while it runs: the cost model priced on this machine, under its load now,
 with the share of each classed level's texels that the classes leave to the fit measured on a
-seeded sample of its texels (`fitted_fractions`).
+seeded sample of its texels (`sampled_fitted_shares`).
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def runnable_tasks(exclude_pid: int | None = None, proc: Path = Path("/proc")
     return out
 
 
-def fitted_fractions(ctx: stages.StageContext) -> list[float] | None:
+def sampled_fitted_shares(ctx: stages.StageContext) -> list[float] | None:
     """Per classed level (texel_classes "by_need", the finest `classed_levels`), the fraction
     of a seeded sample of `CLASS_SAMPLE` occupied texels (all when fewer) that the classes
     (`texelbake.cpm.classify`) leave to the fit: what the cost model's fit terms are priced
@@ -119,7 +119,7 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
     cores = os.cpu_count() or 1
     speed = machinespeed.this_machine()  # before the load reading: ~1 s of this process's CPU
     other = _other_runnable()
-    fitted = fitted_fractions(ctx)
+    fitted = sampled_fitted_shares(ctx)
     counts = costmodel.sample_counts(geo, s.atlas_resolution)
     e = costmodel.estimate(s, jobs, counts,
                            ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
@@ -137,5 +137,5 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
                               "avis": round(e.avis_wall_seconds, 1),
                               "export": round(e.export_seconds * e.stretch, 1)},
             "per_level": e.per_level, "eta": eta.strftime("%H:%M:%S UTC"),
-            "fitted_fraction": None if fitted is None else [round(f, 3) for f in fitted],
+            "fitted_shares": None if fitted is None else [round(f, 3) for f in fitted],
             "machine_speed": e.speed}
