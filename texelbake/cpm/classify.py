@@ -116,7 +116,6 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     first, _ = _nearest_centroid(dseg, np.arange(dense.size), pos, area, dense)
     ref_row = np.zeros(n_t, np.int64)
     ref_row[dseg[first]] = first
-    ref = ref_row[dseg]  # (n,) each sample's reference row
     # facets: the samples partitioned by material and both normals (within the tolerance of
     # each part's first sample, the texel's reference first); each part's reference is its
     # sample nearest its centroid (the texel's own where the texel is one part)

@@ -29,6 +29,7 @@ from texelbake.cpm.level import (
     direction_sets,
     samples_in,
     segment_sum,
+    texel_counts,
     texel_ids,
     visibility_cos,
     world_dirs,
@@ -66,8 +67,9 @@ class DenseSums:
     per texel the samples' count and area, a_vis on the grid's view directions (Eq. 3) and the
     held-out truth (Eq. 7's numerator on the held-out pairs, a_vis on the held-out view
     directions), summed over the truth's samples (`truth_samples`, their area `area_held`;
-    `held_scale` scales it to the texel). Every field is a sum over samples, so the sums of disjoint sample sets of the
-    same texels add up to the whole set's (up to the order of the floating-point sums): a tile
+    `held_scale` scales it to the texel). Every field is a sum over samples, so the sums of
+    disjoint sample sets of the same texels add up to the whole set's (up to the order of the
+    floating-point sums): a tile
     shard sums its own samples for the coarse texels above it, and the top shard adds the
     tiles' (`texelbake.stages.cpm`) instead of reading every sample of the atlas again."""
 
@@ -148,19 +150,6 @@ def _sample_keys(seed: int, level: int, samples: np.ndarray) -> np.ndarray:
         return _mix64(np.asarray(samples, np.uint64) ^ salt)
 
 
-def texel_counts(geo, n: int, level: int, texels: np.ndarray) -> np.ndarray:
-    """(t,) int64 dense samples of each of `texels` (flat ids at `level`) in the whole atlas
-    (a tile holds only its part of a top level's texel)."""
-    texels = np.asarray(texels, np.int64)
-    if "texel_zoffsets" not in geo:  # artifacts from before the Z-order index
-        return np.bincount(texel_ids(geo, n, level), minlength=(n >> level) ** 2)[texels]
-    zoff = geo["texel_zoffsets"]
-    r, c = np.divmod(texels, n >> level)
-    first = morton(r << level, c << level)
-    return (np.asarray(zoff[first + (1 << (2 * level))], np.int64)
-            - np.asarray(zoff[first], np.int64))
-
-
 def truth_samples(src: FitInputs, level: int, texels: np.ndarray, dense: np.ndarray,
                   dseg: np.ndarray) -> np.ndarray:
     """(n,) bool: which of the dense samples `dense` (of texels[dseg]) the held-out truth sums.
@@ -184,6 +173,14 @@ def held_scale(area: np.ndarray, area_held: np.ndarray) -> np.ndarray:
     kept; NaN where none is (the texel is then not measured)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(area_held > 0, area / area_held, np.nan)
+
+
+def _to_texel(ref: np.ndarray, avis_h: np.ndarray, area: np.ndarray, area_held: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The truth (ref (t, h_i, h_o, 3), avis_h (t, h_o)) summed over the kept samples, scaled
+    to each texel (`held_scale`)."""
+    scale = held_scale(area, area_held)
+    return ref * scale[:, None, None, None], avis_h * scale[:, None]
 
 
 def measured_texels(src: FitInputs, level: int, texels: np.ndarray) -> np.ndarray:
@@ -263,7 +260,7 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
         avis_o = np.zeros((n_t, len(lp.dirs["dirs_o"])))
         area = segment_sum(geo["sample_area"][dense], dseg, n_t, 0)
     out = DenseSums.zeros(n_t, lp.dirs)
-    ref, avis_h = out.ref, out.avis_h
+    ref, avis_h, area_held = out.ref, out.avis_h, out.area_held
     if len(lp.dirs["held_i"]):
         none = np.zeros(0, np.int64)
         meas = measured_texels(src, level, texels)
@@ -273,9 +270,9 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
         ref, _, avis_h = held_pass(lp, texels, d_m, s_m, none, none, np.zeros((0, 3)),
                                    want_ref=True)
         avis_h[~meas] = np.nan
-        out.area_held[:] = segment_sum(geo["sample_area"][d_m], s_m, n_t, 0)
+        area_held = segment_sum(geo["sample_area"][d_m], s_m, n_t, 0)
     return DenseSums(np.bincount(dseg, minlength=n_t).astype(np.int64), area, avis_o, ref,
-                     avis_h, out.area_held)
+                     avis_h, area_held)
 
 
 def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
@@ -285,8 +282,9 @@ def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
     """One pass over `dense` samples (grouped by texel, `dseg` ascending) on the held-out pairs:
     the truth (Eq. 7's numerator `ref` (t, h_i, h_o, 3) and a_vis on the held-out views
     `avis_h` (t, h_o)) when `want_ref`, each sample weighted by `truth_w` (n,) (default its
-    area; 0 leaves a sample out of the truth), and the points' approximation `apx` (t, h_i, h_o, 3) from the rows
-    at positions `pos` (ascending; texel `pseg`, weights `pw` (p, 3))."""
+    area; 0 leaves a sample out of the truth), and the points' approximation `apx`
+    (t, h_i, h_o, 3) from the rows at positions `pos` (ascending; texel `pseg`, weights `pw`
+    (p, 3))."""
     src, dirs, n_t = lp.src, lp.dirs, len(texels)
     h_i, h_o = len(dirs["held_i"]), len(dirs["held_o"])
     tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
@@ -339,12 +337,14 @@ def heldout_from_samples(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
     pos = (np.cumsum(rows) - 1)[pos]
     order = np.argsort(pos, kind="stable")
     area = lp.src.geo["sample_area"][dense]
+    kept = area * truth  # a sample's weight in the truth: its area, 0 left out
     ref, apx, avis_h = held_pass(lp, texels, dense[rows], dseg[rows], pos[order], pseg[order],
-                                 pw[order], want_ref=True, truth_w=(area * truth)[rows])
+                                 pw[order], want_ref=True, truth_w=kept[rows])
     n_t = len(texels)
-    scale = held_scale(segment_sum(area, dseg, n_t, 0), segment_sum(area * truth, dseg, n_t, 0))
     avis_h[~meas] = np.nan
-    return ref * scale[:, None, None, None], apx, avis_h * scale[:, None]
+    ref, avis_h = _to_texel(ref, avis_h, segment_sum(area, dseg, n_t, 0),
+                            segment_sum(kept, dseg, n_t, 0))
+    return ref, apx, avis_h
 
 
 def heldout_from_sums(lp: LevelPass, texels: np.ndarray, sums: DenseSums, smp: np.ndarray,
@@ -355,8 +355,8 @@ def heldout_from_sums(lp: LevelPass, texels: np.ndarray, sums: DenseSums, smp: n
     order = np.lexsort((smp, pseg))
     smp, pseg, pw = smp[order], pseg[order], pw[order]
     _, apx, _ = held_pass(lp, texels, smp, pseg, np.arange(smp.size), pseg, pw, want_ref=False)
-    scale = held_scale(sums.area, sums.area_held)
-    return sums.ref * scale[:, None, None, None], apx, sums.avis_h * scale[:, None]
+    ref, avis_h = _to_texel(sums.ref, sums.avis_h, sums.area, sums.area_held)
+    return ref, apx, avis_h
 
 
 def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: float) -> float:
@@ -374,5 +374,5 @@ def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: floa
 
 __all__ = ["BYTES_PER_HELD_ENTRY", "DenseSums", "LevelPass", "avis_sums", "dense_of",
            "dense_sums", "held_pass", "heldout_from_samples", "heldout_from_sums",
-           "held_scale", "texel_counts", "truth_samples",
+           "held_scale", "truth_samples",
            "heldout_snr", "inv_avis", "measured_texels", "positions"]

@@ -55,6 +55,28 @@ def texel_ids(geo: Mapping[str, np.ndarray], n: int, level: int,
     return (row >> level) * n_l + (col >> level)
 
 
+def _zorder_runs(geo: Mapping[str, np.ndarray], n: int, level: int,
+                 texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (t,) int64: each of `texels` (flat ids at `level`) as its run
+    sample_zorder[lo:hi] of the geometry stage's Z-order index (4^level finest codes)."""
+    zoff = geo["texel_zoffsets"]
+    r, c = np.divmod(texels, n >> level)
+    first = morton(r << level, c << level)
+    return (np.asarray(zoff[first], np.int64),
+            np.asarray(zoff[first + (1 << (2 * level))], np.int64))
+
+
+def texel_counts(geo: Mapping[str, np.ndarray], n: int, level: int,
+                 texels: np.ndarray) -> np.ndarray:
+    """(t,) int64 dense samples of each of `texels` (flat ids at `level`) in the whole atlas
+    (a tile holds only its part of a top level's texel)."""
+    texels = np.asarray(texels, np.int64)
+    if "sample_zorder" not in geo:  # artifacts from before the Z-order index
+        return np.bincount(texel_ids(geo, n, level), minlength=(n >> level) ** 2)[texels]
+    lo, hi = _zorder_runs(geo, n, level, texels)
+    return hi - lo
+
+
 def samples_in(geo: Mapping[str, np.ndarray], n: int, level: int,
                texels: np.ndarray) -> np.ndarray:
     """(k,) int64 ids of the samples of `texels` (flat ids at `level`), ascending, as
@@ -65,10 +87,7 @@ def samples_in(geo: Mapping[str, np.ndarray], n: int, level: int,
     texels = np.unique(np.asarray(texels, dtype=np.int64))
     if "sample_zorder" not in geo:
         return np.flatnonzero(np.isin(texel_ids(geo, n, level), texels))
-    zoff = geo["texel_zoffsets"]
-    r, c = np.divmod(texels, n >> level)
-    first = morton(r << level, c << level)
-    lo, hi = zoff[first], zoff[first + (1 << (2 * level))]
+    lo, hi = _zorder_runs(geo, n, level, texels)
     size = hi - lo
     if not size.sum():
         return np.zeros(0, np.int64)

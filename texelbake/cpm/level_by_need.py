@@ -72,7 +72,8 @@ def classes_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
 
     counts = np.concatenate([np.diff(c.offsets) for c in parts])
     return TexelClasses(
-        exact=cat("exact"), grouped=cat("grouped"), offsets=np.r_[0, np.cumsum(counts)].astype(np.int64), points=cat("points"),
+        exact=cat("exact"), grouped=cat("grouped"),
+        offsets=np.r_[0, np.cumsum(counts)].astype(np.int64), points=cat("points"),
         weights=cat("weights"), reason=cat("reason"), rays=sum(c.rays for c in parts))
 
 

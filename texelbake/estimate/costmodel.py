@@ -291,8 +291,8 @@ def atlas_trade(settings: BakeSettings, lod_report: dict,
     if need:
         shift = int(need).bit_length() - int(n).bit_length()  # levels between the two
         need_fitted = None if not fitted else [
-            fitted[min(max(level - shift, 0), len(fitted) - 1)] if level - shift < len(fitted)
-            else 1.0 for level in range(settings.classed_levels)]
+            fitted[max(level - shift, 0)] if level - shift < len(fitted) else 1.0
+            for level in range(settings.classed_levels)]
         est_need = est if need == n else estimate(
             settings.model_copy(update={"atlas_resolution": int(need)}),
             fitted=need_fitted).seconds

@@ -72,6 +72,7 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> list[float] | None:
     on. None when the bake classes no texel. Costs the sample's classing rays (a few seconds at
     a 128^2 atlas) and the ray caster's build."""
     from texelbake.cpm.dense import LevelPass, dense_of
+    from texelbake.cpm.level import texel_ids
     from texelbake.cpm.level_by_need import classes_bounded
 
     s = ctx.settings
@@ -82,8 +83,7 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> list[float] | None:
     rng = np.random.default_rng(s.seed)
     out = []
     for level in range(min(s.classed_levels, ctx.n_levels)):  # a loop over a few levels
-        occupied = np.unique((np.asarray(geo["sample_row"], np.int64) >> level) * (n >> level)
-                             + (np.asarray(geo["sample_col"], np.int64) >> level))
+        occupied = np.unique(texel_ids(geo, n, level))
         if not occupied.size:
             out.append(1.0)
             continue

@@ -71,7 +71,7 @@ def finalize(workdir: Path, asset_path: Path, settings: BakeSettings, out_dir: P
     plan = plan or plan_bake(asset_path, settings)
     root = stages.export_to(ctx, Path(out_dir), plan=plan)
     if run_path is not None:
-        stages.write_run(run_path, ctx, stage_seconds or {}, **run_extra)
+        stages.write_run(run_path, Path(out_dir), stage_seconds or {}, **run_extra)
     return root
 
 
@@ -172,7 +172,7 @@ def bake(
     if root is None:
         raise StageError("the plan has no export stage")
     # the run's facts beside report.json: the one file of out_dir that differs between runs
-    stages.write_run(out_dir / RUN_JSON, ctx, seconds, est, jobs=jobs)
+    stages.write_run(out_dir / RUN_JSON, out_dir, seconds, est, jobs=jobs)
     return root
 
 

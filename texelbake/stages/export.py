@@ -123,6 +123,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
     skeleton, lod_warnings = lod_animation(asset, meshes)
     name = ctx.asset_path.stem
     skipped = list(plan.skipped) if plan is not None else []
+    lods = lod_report(geo)
     report = {
         "texelbake_version": __import__("texelbake").__version__,
         "source": ctx.asset_path.name,
@@ -132,10 +133,10 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
         "samples": int(len(geo["sample_area"])),
         "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
         "surface_area": float(geo["sample_area"].sum()),
-        "lods": lod_report(geo),
+        "lods": lods,
         # where the CPM maps apply, and what the atlas LOD1 asks for would cost (the
         # projection from this run's measured seconds is a run fact: `write_run`)
-        "cpm_atlas": _without(atlas_trade(s, lod_report(geo), fitted=fitted_shares(cpm_lv)),
+        "cpm_atlas": _without(atlas_trade(s, lods, fitted=fitted_shares(cpm_lv)),
                               "projected_seconds_for_lod1"),
         # how the LOD meshes follow M_org's animation (texelbake.deform.skinbind)
         "lod_animation": ("usdskel" if skeleton else "time_samples" if asset.has_deformation
@@ -199,22 +200,22 @@ def _without(d: dict, key: str) -> dict:
     return {k: v for k, v in d.items() if k != key}
 
 
-def run_facts(ctx: StageContext, seconds: dict[str, float],
+def run_facts(seconds: dict[str, float], cpm_atlas: dict,
               estimate: dict | None = None) -> dict:
     """What varies between two runs of the same bake (`write_run`): stage seconds and their
-    sum, the projection of the atlas LOD1's cost from them (`estimate.costmodel.atlas_trade`),
-    the cost model's prediction (`estimate`), the host, process and time that wrote it."""
+    sum, the projection of the atlas LOD1's cost from them (the report's `cpm_atlas`
+    cost ratio, `estimate.costmodel.atlas_trade`, times the measured seconds), the cost
+    model's prediction (`estimate`), the host, process and time that wrote it."""
     import datetime
     import os
     import socket
 
     total = float(sum(seconds.values()))
-    trade = atlas_trade(ctx.settings, lod_report(ctx.geometry()), measured_seconds=total or None,
-                        fitted=fitted_shares(cpm_levels(ctx)))
+    ratio = cpm_atlas.get("cost_ratio")
     facts = {
         "stage_seconds": {k: round(v, 3) for k, v in seconds.items()},
         "total_seconds": round(total, 3),
-        "cpm_atlas_projected_seconds_for_lod1": trade["projected_seconds_for_lod1"],
+        "cpm_atlas_projected_seconds_for_lod1": total * ratio if total and ratio else None,
         "host": socket.gethostname(),
         "pid": os.getpid(),
         "written_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
@@ -224,11 +225,13 @@ def run_facts(ctx: StageContext, seconds: dict[str, float],
     return facts
 
 
-def write_run(path: Path, ctx: StageContext, seconds: dict[str, float],
+def write_run(path: Path, result_dir: Path, seconds: dict[str, float],
               estimate: dict | None = None, **extra) -> Path:
     """`run.json` at `path`: this run's facts (`run_facts`, and `extra`), documented as
-    differing between runs; never a member of the result archive."""
-    atomic_json(Path(path), {**run_facts(ctx, seconds, estimate), **extra})
+    differing between runs; never a member of the result archive. result_dir : where
+    `export_to` wrote report.json (its `cpm_atlas` projects the seconds)."""
+    report = json.loads((Path(result_dir) / "report.json").read_text())
+    atomic_json(Path(path), {**run_facts(seconds, report["cpm_atlas"], estimate), **extra})
     return Path(path)
 
 
