@@ -15,22 +15,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 from pathlib import Path
 
-from schemas.settings import BakeSettings
-from texelbake import stages
-from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP
-from texelbake.estimate import costmodel, machinespeed
-from texelbake.testscenes import write_scene
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bake import scene_file  # noqa: E402
+
+from schemas.settings import BakeSettings  # noqa: E402
+from texelbake import stages  # noqa: E402
+from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP  # noqa: E402
+from texelbake.estimate import costmodel, machinespeed  # noqa: E402
 
 
 def price(run: dict, work: Path, speed: machinespeed.MachineSpeed) -> dict:
     """Per level: the run's CPU seconds, the model's with and without the classes."""
     s = BakeSettings(**{**run["settings"], "avis_coarse": "dense"})
     work.mkdir(parents=True, exist_ok=True)
-    scene = Path(run["scene"]) if Path(run["scene"]).is_file() else \
-        write_scene(run["scene"], work / f"{run['scene']}.usda", run["size"])
+    scene = scene_file(run["scene"], run["size"], work)
     ctx = stages.StageContext.create(work / "w", scene, s)
     stages.run_ingest(ctx, 0)
     stages.run_geometry(ctx, 0)
