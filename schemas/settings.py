@@ -158,6 +158,12 @@ class BakeSettings(BaseModel):
         "Levels, from the finest, whose texels 'by_need' classes (the coarser ones are fitted); "
         "each must lie inside a shard's tile: shard_texels >= 2^(classed_levels - 1) or the "
         "atlas side.", ge=1, le=13)
+    point_lobe: Literal["narrow", "widened"] = _field(
+        "narrow", "fit",
+        "'widened' gives each fitted characteristic point the normal spread of the surface "
+        "it stands for (its GGX or Phong lobe widened by the slope variance of its cell); "
+        "'narrow' keeps the sample's own lobe as the seed. 'widened' needs fit_method "
+        "'batched'.")
     identical_columns: Literal["keep", "merge"] = _field(
         "merge", "fit",
         "'merge' fits candidates with identical columns as one weighted column, 'keep' fits "
@@ -262,6 +268,9 @@ class BakeSettings(BaseModel):
                 f"shard_texels ({self.shard_texels}) must be at least {tile_needs} for "
                 f"classed_levels {self.classed_levels} (texel_classes 'by_need'): a classed "
                 "level must lie inside a shard's tile")
+        if self.point_lobe == "widened" and self.fit_method != "batched":
+            raise ValueError("point_lobe 'widened' needs fit_method 'batched' (the seed's "
+                             "per-texel loop keeps the narrow lobe)")
         if self.shard_texels > self.atlas_resolution:
             raise ValueError(
                 f"shard_texels ({self.shard_texels}) must not exceed atlas_resolution "

@@ -56,13 +56,15 @@ def test_tile_ancestors_hold_their_tiles(scene, tmp_path):
                 assert ids.tolist() == [cpm_stage.tile_ancestor(ctx, tile, level)]
 
 
-@pytest.mark.parametrize("heldout_samples", [0, 64])
-def test_dense_sums_add_over_disjoint_samples(scene, tmp_path, heldout_samples):
+@pytest.mark.parametrize(("heldout_samples", "point_lobe"),
+                         [(0, "narrow"), (64, "narrow"), (64, "widened")])
+def test_dense_sums_add_over_disjoint_samples(scene, tmp_path, heldout_samples, point_lobe):
     """Sums over every sample of the coarse texels equal the tiles' shares added (same rays,
     same BRDF values; only the order of the floating-point sums differs: 1e-12 relative),
     also where the truth is summed over a seeded subset of a texel's samples (64 of its
-    hundreds: each tile draws its share of the same subset, with the same weights)."""
-    ctx = _ctx(tmp_path, scene, heldout_samples=heldout_samples)
+    hundreds: each tile draws its share of the same subset, with the same weights), and the
+    validation pairs' truth of widened lobes with it."""
+    ctx = _ctx(tmp_path, scene, heldout_samples=heldout_samples, point_lobe=point_lobe)
     src = ctx.fit_inputs()
     level = ctx.tile_levels
     texels = np.arange((32 >> level) ** 2, dtype=np.int64)
@@ -75,18 +77,27 @@ def test_dense_sums_add_over_disjoint_samples(scene, tmp_path, heldout_samples):
         parts.add_row(anc, dense_sums(src, level, np.array([anc]), smp))
     np.testing.assert_array_equal(parts.count, whole.count)
     assert whole.count.sum() == len(src.geo["sample_area"])
-    for f in ("area", "avis_o", "ref", "avis_h"):
+    fields = ["area", "avis_o", "ref", "avis_h"]
+    if point_lobe == "widened":
+        fields += ["val_ref", "val_avis", "val_area"]
+        assert whole.val_ref.max() > 0
+    else:
+        assert whole.val_ref.size == 0 and not any(
+            k.startswith("val_") for k in whole.to_arrays(""))  # stored as before
+    for f in fields:
         a, b = getattr(parts, f), getattr(whole, f)
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max(), err_msg=f)
     assert whole.ref.max() > 0 and whole.avis_o.max() > 0
 
 
-def test_top_shard_from_tile_sums_reads_no_sample(scene, tmp_path, monkeypatch):
+@pytest.mark.parametrize("point_lobe", ["narrow", "widened"])
+def test_top_shard_from_tile_sums_reads_no_sample(scene, tmp_path, monkeypatch, point_lobe):
     """The same bake's top shard twice: from the tiles' sums (with `samples_in` made to fail:
     it reads no dense sample) and, one tile's sums removed, from every sample itself. The sums
     differ by the order of their floating-point additions only, so the same points, weights
-    to 1e-6 and held-out SNR to 1e-4 dB."""
-    ctx = _ctx(tmp_path / "a", scene)
+    to 1e-6 and held-out SNR to 1e-4 dB; with widened lobes the same choices (their lobes'
+    variances equal) from the validation pairs' truth in the sums."""
+    ctx = _ctx(tmp_path / "a", scene, point_lobe=point_lobe)
     for tile in range(16):  # the tile shards
         cpm_stage.run_cpm_tile(ctx, tile)
         assert ctx.store.exists(cpm_stage.sums_key(ctx, tile))
@@ -100,21 +111,26 @@ def test_top_shard_from_tile_sums_reads_no_sample(scene, tmp_path, monkeypatch):
         cpm_stage.run_cpm_top(ctx, 0)
     from_sums = cpm_stage.cpm_levels(ctx)
 
-    ctx_b = _ctx(tmp_path / "b", scene)
+    ctx_b = _ctx(tmp_path / "b", scene, point_lobe=point_lobe)
     for tile in range(16):
         cpm_stage.run_cpm_tile(ctx_b, tile)
     ctx_b.store.path(cpm_stage.sums_key(ctx_b, 5)).unlink()  # one tile's sums missing
     assert cpm_stage.gathered_sums(ctx_b) is None
     cpm_stage.run_cpm_top(ctx_b, 0)
     read_all = cpm_stage.cpm_levels(ctx_b)
+    widened = 0
     for level in range(ctx.tile_levels, ctx.n_levels):
         a, b = from_sums[level], read_all[level]
         for k in ("texel", "offsets", "point_sample", "k", "c", "valid", "mode"):
             np.testing.assert_array_equal(a[k], b[k], err_msg=f"L{level} {k}")
+        if point_lobe == "widened":
+            np.testing.assert_allclose(a["point_var"], b["point_var"], rtol=1e-6)
+            widened += int(np.sum(a["point_var"] > 0))
         np.testing.assert_allclose(a["point_weight"], b["point_weight"], rtol=1e-6)
         v = a["valid"]
         assert v.any()
         np.testing.assert_allclose(a["snr_ho"][v], b["snr_ho"][v], atol=1e-4)
+    assert (widened > 0) == (point_lobe == "widened")  # the top levels carry widened lobes
 
 
 def test_rerun_tile_writes_missing_sums_only(scene, tmp_path):

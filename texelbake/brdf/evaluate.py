@@ -30,6 +30,7 @@ from texelbake.brdf.common import (
 )
 from texelbake.brdf.merl import merl_lookup, merl_table_from_file
 from texelbake.brdf.textures import sample_texture
+from texelbake.brdf.widened import widen_material
 from texelbake.errors import SettingsError, ShapeError
 from texelbake.tol import TOL
 
@@ -284,9 +285,12 @@ def evaluate_by_face(
     *,
     sample_index: Any = None,
     eps: float = TOL.grazing_cos,
+    var: np.ndarray | None = None,
 ) -> np.ndarray:
     """Evaluate many (sample, direction-pair) entries with a material per entry: groups by
     material index (a loop over the few materials present, vectorized within each).
+    var : (n,) each entry's lobe widened by this slope variance per axis
+        (`texelbake.brdf.widened.widen_material`; not with sample_index), None for none
 
     materials : sequence of model.Material; material_index : (n,) int
     wi, wo : (n, 3) float64; uv : (n, 2) float64 or None
@@ -316,9 +320,13 @@ def evaluate_by_face(
     # material gives, without sorting n entries: a mask per material, O(n) each; a bake
     # spent 3 s of 46 in that argsort)
     present = np.flatnonzero(np.bincount(idx, minlength=hi + 1))
+    if var is not None and rows is not None:
+        raise ShapeError("var (widened lobes) is per evaluation row: not with sample_index")
     for m_i in present:  # a loop over the few materials
         group = np.flatnonzero(idx == m_i) if present.size > 1 else np.arange(n)
         mat = materials[int(m_i)]
+        if var is not None:
+            mat = widen_material(mat, np.asarray(var, np.float64)[group])
         if rows is None:
             out[group] = evaluate(
                 mat, wi[group], wo[group], None if uv_a is None else uv_a[group], eps=eps

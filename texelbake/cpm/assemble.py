@@ -189,6 +189,8 @@ def assemble_level(geo: Mapping[str, np.ndarray], atlas_resolution: int, avis_ke
         "texel_mode": dense("mode", 0, np.uint8),
         "frames": frames.astype(np.float64),
     }
+    if "point_var" in data:  # widened lobes (BakeSettings.point_lobe): their slope variance
+        arrays["point_var"] = data["point_var"].astype(np.float32)
     arrays.update(avis_table_arrays(table))
     # a_vis compression error against the uncompressed maps, relative L2 over the ray-based
     # texels' cube pixels, of a_vis as the renderer reads it (U times the corrected fraction

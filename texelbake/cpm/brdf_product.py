@@ -34,9 +34,14 @@ from texelbake import brdf as brdf_mod
 from texelbake.brdf.analytic import preview_surface_params, schlick_weight
 from texelbake.brdf.common import INV_PI, as_color, as_scalar
 from texelbake.brdf.evaluate import PREVIEW_BRDF_INPUTS, material_inputs
+from texelbake.brdf.widened import widen_material
 from texelbake.errors import NumericalError, SettingsError
 from texelbake.geometry.basis import grid_to_local, tangent_frames
 from texelbake.tol import TOL
+
+#: the models whose lobe `widen_material` widens (per-sample inputs, read by the product
+#: kernel's paths below); the others keep their own lobe
+WIDENED_MODELS = ("preview", "phong")
 
 #: below this fraction of live entries a material's samples are evaluated on the live entries
 #: only (gathered, as `level.brdf_grid`); above it densely (no gather / scatter)
@@ -69,10 +74,13 @@ def brdf_product(
     wo_world: np.ndarray,
     live: np.ndarray,
     kernel: str = "product",
+    var: np.ndarray | None = None,
 ) -> np.ndarray:
     """f_r in each sample's shading frame on a product of direction sets.
 
     sample : (p,) int64; wi_world : (p, A, 3); wo_world : (p, B, 3); live : (A, B, p) bool
+    var : (p,) each sample's lobe widened by this slope variance per axis
+        (`texelbake.brdf.widened.widen_material`), None for the samples' own lobes
     returns : (3, p, A, B) float64 (channel-major: a sample's rows are contiguous), equal to
         `level.brdf_grid` (A, B, p, 3) on live entries (0 elsewhere up to the caller's
         visibility product)
@@ -93,6 +101,10 @@ def brdf_product(
         material = materials[int(m_i)]
         sel = np.flatnonzero(mat == m_i)
         n_s = sel.size
+        if var is not None and material.model in WIDENED_MODELS:
+            if kernel != "product":
+                raise SettingsError("widened lobes are evaluated by the product kernel only")
+            material = widen_material(material, var[sel])  # per-sample inputs (n_s,)
         if material.model == "lambert":
             up = np.zeros((n_s, 3))
             up[:, 2] = 1.0

@@ -61,6 +61,11 @@ class LevelPass:
                    int(s.worker_memory_mb) * 2**20)
 
 
+#: the held-out pairs' and the validation pairs' keys in `LevelPass.dirs`
+HELD_KEYS = ("held_i", "held_o")
+VAL_KEYS = ("val_i", "val_o")
+
+
 @dataclass(frozen=True)
 class DenseSums:
     """What the fit needs from a texel's dense samples and that does not depend on the fit:
@@ -79,12 +84,18 @@ class DenseSums:
     ref: np.ndarray  # (t, h_i, h_o, 3)
     avis_h: np.ndarray  # (t, h_o)
     area_held: np.ndarray  # (t,)
+    # the truth on the validation pairs (`level.VALIDATION`, widened lobes only; empty
+    # otherwise) over every texel's truth samples, and their area
+    val_ref: np.ndarray  # (t, v_i, v_o, 3)
+    val_avis: np.ndarray  # (t, v_o)
+    val_area: np.ndarray  # (t,)
 
-    FIELDS = ("count", "area", "avis_o", "ref", "avis_h", "area_held")
+    FIELDS = ("count", "area", "avis_o", "ref", "avis_h", "area_held", "val_ref", "val_avis",
+              "val_area")
 
     def add_row(self, i: int, part: DenseSums) -> None:
         """Add `part`'s one texel into texel i of these sums, in place."""
-        for f in self.FIELDS:  # six fields
+        for f in self.FIELDS:  # nine fields
             getattr(self, f)[i] += getattr(part, f)[0]
 
     def rows(self, idx) -> DenseSums:
@@ -93,15 +104,26 @@ class DenseSums:
     @classmethod
     def zeros(cls, n_t: int, dirs: dict[str, np.ndarray]) -> DenseSums:
         n_o, h_i, h_o = len(dirs["dirs_o"]), len(dirs["held_i"]), len(dirs["held_o"])
+        v_i, v_o = len(dirs["val_i"]), len(dirs["val_o"])
         return cls(np.zeros(n_t, np.int64), np.zeros(n_t), np.zeros((n_t, n_o)),
-                   np.zeros((n_t, h_i, h_o, 3)), np.zeros((n_t, h_o)), np.zeros(n_t))
+                   np.zeros((n_t, h_i, h_o, 3)), np.zeros((n_t, h_o)), np.zeros(n_t),
+                   np.zeros((n_t, v_i, v_o, 3)), np.zeros((n_t, v_o)), np.zeros(n_t))
 
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        return {f"{prefix}{f}": getattr(self, f) for f in self.FIELDS}
+        """The arrays to store (the validation fields only where there are validation pairs:
+        narrow-lobe sums are stored as before)."""
+        return {f"{prefix}{f}": getattr(self, f) for f in self.FIELDS
+                if not (f.startswith("val_") and self.val_ref.shape[1] == 0)}
 
     @classmethod
     def from_arrays(cls, arrays, prefix: str) -> DenseSums:
-        return cls(*(np.asarray(arrays[f"{prefix}{f}"]) for f in cls.FIELDS))
+        got = {f: np.asarray(arrays[f"{prefix}{f}"]) for f in cls.FIELDS
+               if f"{prefix}{f}" in arrays}
+        n_t = len(got["count"])
+        got.setdefault("val_ref", np.zeros((n_t, 0, 0, 3)))
+        got.setdefault("val_avis", np.zeros((n_t, 0)))
+        got.setdefault("val_area", np.zeros(n_t))
+        return cls(**got)
 
 
 def positions(texels: np.ndarray, ids: np.ndarray) -> np.ndarray:
@@ -175,8 +197,8 @@ def held_scale(area: np.ndarray, area_held: np.ndarray) -> np.ndarray:
         return np.where(area_held > 0, area / area_held, np.nan)
 
 
-def _to_texel(ref: np.ndarray, avis_h: np.ndarray, area: np.ndarray, area_held: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray]:
+def to_texel(ref: np.ndarray, avis_h: np.ndarray, area: np.ndarray, area_held: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
     """The truth (ref (t, h_i, h_o, 3), avis_h (t, h_o)) summed over the kept samples, scaled
     to each texel (`held_scale`)."""
     scale = held_scale(area, area_held)
@@ -261,6 +283,9 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
         area = segment_sum(geo["sample_area"][dense], dseg, n_t, 0)
     out = DenseSums.zeros(n_t, lp.dirs)
     ref, avis_h, area_held = out.ref, out.avis_h, out.area_held
+    val_ref, val_avis, val_area = out.val_ref, out.val_avis, out.val_area
+    if len(lp.dirs["val_i"]):
+        val_ref, val_avis, val_area = validation_sums(lp, texels, dense, dseg)
     if len(lp.dirs["held_i"]):
         none = np.zeros(0, np.int64)
         meas = measured_texels(src, level, texels)
@@ -272,20 +297,47 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
         avis_h[~meas] = np.nan
         area_held = segment_sum(geo["sample_area"][d_m], s_m, n_t, 0)
     return DenseSums(np.bincount(dseg, minlength=n_t).astype(np.int64), area, avis_o, ref,
-                     avis_h, area_held)
+                     avis_h, area_held, val_ref, val_avis, val_area)
+
+
+def validation_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The truth on the validation pairs (`level.VALIDATION`) of every one of `texels`
+    (their dense samples `dense`, positions `dseg` ascending), summed over the truth's
+    samples (`truth_samples`): (ref (t, v_i, v_o, 3), a_vis (t, v_o), their area (t,)), which
+    `to_texel` scales to each texel."""
+    none = np.zeros(0, np.int64)
+    keep = truth_samples(lp.src, lp.level, texels, dense, dseg)
+    ref, _, avis = held_pass(lp, texels, dense[keep], dseg[keep], none, none, np.zeros((0, 3)),
+                             want_ref=True, keys=VAL_KEYS)
+    return ref, avis, segment_sum(lp.src.geo["sample_area"][dense[keep]], dseg[keep],
+                                  len(texels), 0)
+
+
+def points_on(lp: LevelPass, texels: np.ndarray, smp: np.ndarray, pseg: np.ndarray,
+              pw: np.ndarray, pvar: np.ndarray | None, keys: tuple[str, str]) -> np.ndarray:
+    """Eq. 7's numerator of the points alone on the pairs `keys`: (t, a, b, 3)."""
+    order = np.lexsort((smp, pseg))
+    _, apx, _ = held_pass(lp, texels, smp[order], pseg[order], np.arange(smp.size),
+                          pseg[order], pw[order], want_ref=False,
+                          pvar=None if pvar is None else pvar[order], keys=keys)
+    return apx
 
 
 def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
               pos: np.ndarray, pseg: np.ndarray, pw: np.ndarray, *, want_ref: bool,
-              truth_w: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              truth_w: np.ndarray | None = None, pvar: np.ndarray | None = None,
+              keys: tuple[str, str] = HELD_KEYS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One pass over `dense` samples (grouped by texel, `dseg` ascending) on the held-out pairs:
     the truth (Eq. 7's numerator `ref` (t, h_i, h_o, 3) and a_vis on the held-out views
     `avis_h` (t, h_o)) when `want_ref`, each sample weighted by `truth_w` (n,) (default its
     area; 0 leaves a sample out of the truth), and the points' approximation `apx`
     (t, h_i, h_o, 3) from the rows at positions `pos` (ascending; texel `pseg`, weights `pw`
-    (p, 3))."""
-    src, dirs, n_t = lp.src, lp.dirs, len(texels)
+    (p, 3), lobes widened by `pvar` (p,) when given: their BRDF evaluated again); on the
+    light and view directions `keys` of `lp.dirs` (the held-out pairs, or the validation
+    pairs)."""
+    src, n_t = lp.src, len(texels)
+    dirs = {"held_i": lp.dirs[keys[0]], "held_o": lp.dirs[keys[1]]}
     h_i, h_o = len(dirs["held_i"]), len(dirs["held_o"])
     tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
     ref = np.zeros((n_t, h_i, h_o, 3))
@@ -307,7 +359,16 @@ def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
         f *= vo[None, :, None, :]  # (3, p, h_i, h_o)
         a_, b_ = np.searchsorted(pos, [s0, s0 + len(smp)])
         if b_ > a_:
-            apx += segment_sum(f[:, pos[a_:b_] - s0] * pw.T[:, a_:b_, None, None], pseg[a_:b_],
+            at = pos[a_:b_] - s0
+            fp = f[:, at]
+            if pvar is not None:  # the points' own lobes, widened
+                fp = brdf_product(src.geo, src.materials, smp[at],
+                                  world_dirs(lp.frames, tex_l[sl][at], dirs["held_i"]),
+                                  world_dirs(lp.frames, tex_l[sl][at], dirs["held_o"]),
+                                  live[:, :, at], var=pvar[a_:b_])
+                fp *= vi[at][None, :, :, None]
+                fp *= vo[at][None, :, None, :]
+            apx += segment_sum(fp * pw.T[:, a_:b_, None, None], pseg[a_:b_],
                                n_t, 1).transpose(1, 2, 3, 0)
         if want_ref:
             avis_h += segment_sum(vo * area_all[sl, None], seg, n_t, 0)
@@ -317,15 +378,18 @@ def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
 
 
 def heldout_from_samples(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
-                         dseg: np.ndarray, smp: np.ndarray, pseg: np.ndarray, pw: np.ndarray
+                         dseg: np.ndarray, smp: np.ndarray, pseg: np.ndarray, pw: np.ndarray,
+                         pvar: np.ndarray | None = None
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Held-out (ref, apx, avis_h) of `held_pass` for texels whose dense samples are read:
     brute-force Eq. 7 over all of them against their characteristic points (sample ids smp
-    (p,), texel positions pseg (p,), stored weights pw (p, 3)), each a sample of its texel."""
+    (p,), texel positions pseg (p,), stored weights pw (p, 3), lobe variances pvar (p,) or
+    None), each a sample of its texel."""
     # only the texels of the held-out sample (`measured_texels`); the others' a_vis NaN
     meas = measured_texels(lp.src, lp.level, texels)
     keep, pkeep = meas[dseg], meas[pseg]
     dense, dseg, smp, pseg, pw = dense[keep], dseg[keep], smp[pkeep], pseg[pkeep], pw[pkeep]
+    pvar = None if pvar is None else pvar[pkeep]
     # the points as positions in `dense`: `dense` is ascending within each texel and dseg
     # ascending, so (texel, sample) keys are sorted
     span = int(max(dense.max(initial=0), smp.max(initial=0))) + 1
@@ -339,23 +403,22 @@ def heldout_from_samples(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
     area = lp.src.geo["sample_area"][dense]
     kept = area * truth  # a sample's weight in the truth: its area, 0 left out
     ref, apx, avis_h = held_pass(lp, texels, dense[rows], dseg[rows], pos[order], pseg[order],
-                                 pw[order], want_ref=True, truth_w=kept[rows])
+                                 pw[order], want_ref=True, truth_w=kept[rows],
+                                 pvar=None if pvar is None else pvar[order])
     n_t = len(texels)
     avis_h[~meas] = np.nan
-    ref, avis_h = _to_texel(ref, avis_h, segment_sum(area, dseg, n_t, 0),
-                            segment_sum(kept, dseg, n_t, 0))
+    ref, avis_h = to_texel(ref, avis_h, segment_sum(area, dseg, n_t, 0),
+                           segment_sum(kept, dseg, n_t, 0))
     return ref, apx, avis_h
 
 
 def heldout_from_sums(lp: LevelPass, texels: np.ndarray, sums: DenseSums, smp: np.ndarray,
-                      pseg: np.ndarray, pw: np.ndarray
+                      pseg: np.ndarray, pw: np.ndarray, pvar: np.ndarray | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`heldout_from_samples` with the truth already summed (`DenseSums`): only the points
     are evaluated."""
-    order = np.lexsort((smp, pseg))
-    smp, pseg, pw = smp[order], pseg[order], pw[order]
-    _, apx, _ = held_pass(lp, texels, smp, pseg, np.arange(smp.size), pseg, pw, want_ref=False)
-    ref, avis_h = _to_texel(sums.ref, sums.avis_h, sums.area, sums.area_held)
+    apx = points_on(lp, texels, smp, pseg, pw, pvar, HELD_KEYS)
+    ref, avis_h = to_texel(sums.ref, sums.avis_h, sums.area, sums.area_held)
     return ref, apx, avis_h
 
 
@@ -374,5 +437,5 @@ def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: floa
 
 __all__ = ["BYTES_PER_HELD_ENTRY", "DenseSums", "LevelPass", "avis_sums", "dense_of",
            "dense_sums", "held_pass", "heldout_from_samples", "heldout_from_sums",
-           "held_scale", "truth_samples",
-           "heldout_snr", "inv_avis", "measured_texels", "positions"]
+           "held_scale", "points_on", "to_texel", "truth_samples", "validation_sums",
+           "HELD_KEYS", "VAL_KEYS", "heldout_snr", "inv_avis", "measured_texels", "positions"]

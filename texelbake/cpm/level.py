@@ -31,6 +31,12 @@ from texelbake.model import Material
 from texelbake.tol import TOL
 
 _TAG_LIGHT, _TAG_VIEW, _TAG_HELD_I, _TAG_HELD_O = 0x11, 0x22, 0x33, 0x44
+_TAG_VAL_I, _TAG_VAL_O = 0x55, 0x66
+
+#: light and view directions of the validation pairs (VALIDATION x VALIDATION), on which
+#: point_lobe="widened" chooses each texel's lobes (`texelbake.cpm.lobe`): independent of the
+#: training grid and of the held-out pairs, which stay the measure
+VALIDATION = 8
 
 
 @dataclass(frozen=True)
@@ -112,14 +118,18 @@ def tile_texels(n: int, s: int, tile: int, level: int) -> np.ndarray:
 
 def direction_sets(settings: BakeSettings) -> dict[str, np.ndarray]:
     """The texel-frame direction sets of the bake: the N_i x N_o training grid and a held-out
-    product grid of independent directions (16 x 16 by default: n_heldout pairs)."""
+    product grid of independent directions (16 x 16 by default: n_heldout pairs); with
+    widened lobes a VALIDATION x VALIDATION product grid of others (else empty)."""
     s = settings
     n_h = max(1, int(round(np.sqrt(s.n_heldout)))) if s.n_heldout else 0
+    n_v = VALIDATION if s.point_lobe == "widened" else 0
     return {
         "dirs_i": directions.hemisphere_directions(s.n_light_dirs, seed=s.seed * 1000 + _TAG_LIGHT),
         "dirs_o": directions.hemisphere_directions(s.n_view_dirs, seed=s.seed * 1000 + _TAG_VIEW),
         "held_i": directions.heldout_pairs(n_h, seed=s.seed * 1000 + _TAG_HELD_I)[0],
         "held_o": directions.heldout_pairs(n_h, seed=s.seed * 1000 + _TAG_HELD_O)[1],
+        "val_i": directions.heldout_pairs(n_v, seed=s.seed * 1000 + _TAG_VAL_I)[0],
+        "val_o": directions.heldout_pairs(n_v, seed=s.seed * 1000 + _TAG_VAL_O)[1],
     }
 
 
@@ -130,9 +140,13 @@ class PointSet:
     sample: np.ndarray  # (p,) int64 index into the geometry samples
     weight: np.ndarray  # (p, 3) float64 area-like weight per channel
     texel: np.ndarray  # (p,) int64 texel id (at the level being fitted)
+    # (p,) float64 the slope variance per axis each one's lobe is widened by (a child point's
+    # `point_var`, `texelbake.cpm.lobe`); None: 0, every lobe a dense sample's own
+    var: np.ndarray | None = None
 
     def take(self, idx: np.ndarray) -> PointSet:
-        return PointSet(self.sample[idx], self.weight[idx], self.texel[idx])
+        return PointSet(self.sample[idx], self.weight[idx], self.texel[idx],
+                        None if self.var is None else self.var[idx])
 
 
 def visibility_cos(
@@ -266,8 +280,13 @@ def descendants_points(fit: Mapping[str, np.ndarray], n: int, level: int, down: 
         np.asarray(fit["point_sample"]).astype(np.int64),
         np.asarray(fit["point_weight"]).astype(np.float64),
         ((r >> down) * (n >> level) + (c >> down)).astype(np.int64),
+        np.asarray(fit["point_var"]).astype(np.float64) if "point_var" in fit else None,
     )
 
+
+#: a level's per-point arrays (CSR rows by `offsets`); `point_var` (the lobe's variance) only
+#: where lobes may be widened
+POINT_KEYS = ("point_sample", "point_weight", "point_var")
 
 #: a level's per-level totals (the rays its fit cast, the seconds per texel class of
 #: `texelbake.cpm.level_by_need`): summed over tiles, never reordered by texel
@@ -303,9 +322,10 @@ def sort_by_texel(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     point_idx = (np.arange(int(counts.sum())) - np.repeat(base, counts)
                  + np.repeat(starts, counts))
     out = {k: v[order] for k, v in data.items()
-           if k not in ("offsets", "point_sample", "point_weight", *LEVEL_TOTALS)}
+           if k not in ("offsets", *POINT_KEYS, *LEVEL_TOTALS)}
     out.update({k: data[k] for k in LEVEL_TOTALS if k in data})
     out["offsets"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    out["point_sample"] = data["point_sample"][point_idx.astype(np.int64)]
-    out["point_weight"] = data["point_weight"][point_idx.astype(np.int64)]
+    for k in POINT_KEYS:
+        if k in data:
+            out[k] = data[k][point_idx.astype(np.int64)]
     return out

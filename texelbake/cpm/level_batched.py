@@ -19,7 +19,9 @@ the full SVD) still builds a texel's whole R.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -47,6 +49,7 @@ from texelbake.cpm.level import (
     visibility_cos,
     world_dirs,
 )
+from texelbake.cpm.lobe import cell_spread, validation_truth, widen_fit, wider_wins
 from texelbake.cpm.texel_fit import FitCounts, FitParams, TexelFit
 from texelbake.errors import NumericalError, ShapeError
 from texelbake.tol import TOL
@@ -126,7 +129,8 @@ def fit_level_batched(
     n_cand = np.bincount(seg_c, minlength=n_t)
     cb_c = np.r_[0, np.cumsum(n_cand)]
 
-    res = _Results(n_t, d if s.btf else 0, s.identical_columns == "merge")
+    res = _Results(n_t, d if s.btf else 0, s.identical_columns == "merge",
+                   s.point_lobe == "widened")
     cap = max(lp.budget // (BYTES_PER_R_ENTRY * d * 3), 1)
     # a texel wider than n_batch holds one block of n_batch columns at a time (`Columns`)
     for a, b in chunk_bounds(np.minimum(n_cand, s.n_batch), cap):  # loop over chunks
@@ -144,21 +148,31 @@ def fit_level_batched(
         chunk = Chunk(texels[a:b], candidates.take(rows), seg_c[cb_c[a]:cb_c[b]] - a,
                       n_cand[a:b], n_dense[a:b], avis_c, area, a)
         fits = _fit_chunk(lp, chunk, res, counts)
+        if res.wide:
+            _choose_lobes(lp, chunk, res, fits, partial(
+                validation_truth, lp, texels[a:b], None if sums is None else
+                sums.rows(slice(a, b)), *((dense, dseg) if sums is None else (None, None))))
         if not len(lp.dirs["held_i"]):
             continue
-        smp, pseg, pw = _points_of(res, fits, a)
+        smp, pseg, pw, pvar = _points_of(res, fits, a)
         if sums is None:
-            held = heldout_from_samples(lp, texels[a:b], dense, dseg, smp, pseg, pw)
+            held = heldout_from_samples(lp, texels[a:b], dense, dseg, smp, pseg, pw, pvar)
         else:
-            held = heldout_from_sums(lp, texels[a:b], sums.rows(slice(a, b)), smp, pseg, pw)
+            held = heldout_from_sums(lp, texels[a:b], sums.rows(slice(a, b)), smp, pseg, pw,
+                                     pvar)
         _held_snr(res, fits, area, *held, a)
     return res.arrays(texels)
 
 
 class _Results:
-    def __init__(self, n_t: int, d_btf: int, merged: bool = False):
+    def __init__(self, n_t: int, d_btf: int, merged: bool = False, widened: bool = False):
         self.pts: list[list[np.ndarray]] = [[] for _ in range(n_t)]
         self.w: list[list[np.ndarray]] = [[] for _ in range(n_t)]
+        # point_lobe="widened" only: each point's lobe variance per axis (0: a dense
+        # sample's own lobe), and a texel's widened alternative until it is chosen or not:
+        # (fit, var, candidates, skip)
+        self.var: list[list[np.ndarray]] | None = [[] for _ in range(n_t)] if widened else None
+        self.wide: dict[int, tuple] = {}
         self.k = np.zeros(n_t)
         self.c = np.zeros(n_t)
         self.snr_in = np.full(n_t, np.nan)
@@ -185,6 +199,10 @@ class _Results:
             "snr_in": self.snr_in.astype(np.float32), "snr_ho": self.snr_ho.astype(np.float32),
             "mode": self.mode, "valid": self.valid, "skip": self.skip,
         }
+        if self.var is not None:
+            flat_v = [v for vs in self.var for v in vs]
+            out["point_var"] = (np.concatenate(flat_v) if flat_v else np.zeros(0)
+                                ).astype(np.float32)
         if self.fbar is not None:
             out["fbar"] = self.fbar
         if self.merged is not None:
@@ -220,7 +238,8 @@ def build_R(lp: LevelPass, cset: PointSet, inv_o: np.ndarray | None = None,
         vi = visibility_cos(src, part.sample, wi)
         vo = visibility_cos(src, part.sample, wo, "geometric")
         live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)  # (n_i, n_o, p)
-        f = brdf_product(src.geo, src.materials, part.sample, wi, wo, live)  # (3, p, n_i, n_o)
+        f = brdf_product(src.geo, src.materials, part.sample, wi, wo, live,
+                         var=part.var)  # (3, p, n_i, n_o)
         f *= (vi[None, :, :] * part.weight.T[:, :, None])[..., None]
         f *= vo[None, :, None, :]
         f2 = f.reshape(3, p, -1)
@@ -304,8 +323,43 @@ def _fit_chunk(lp: LevelPass, chunk: Chunk, res: _Results, counts: FitCounts | N
                             texel_area=float(chunk.area[t]))
             skip = "per_texel" if (t in done or too_wide(b - a, d, s)) else ""
         fits[t] = fit
-        _store(res, chunk.base + t, fit, cset.take(np.arange(a, b)), SKIP_CODES[skip])
+        own = cset.take(np.arange(a, b))
+        _store(res, chunk.base + t, fit, own, SKIP_CODES[skip],
+               None if own.var is None else own.var[fit.columns])
+        if res.var is not None:  # the widened alternative, chosen or not by `_choose_lobes`
+            alt = widen_fit(fit, own, cell_spread(lp.src.geo, own, fit), Fs[t], valid[t], lp,
+                            partial(_columns_of, lp, inv_o, t))
+            if alt is not None:
+                res.wide[chunk.base + t] = (*alt, own, SKIP_CODES[skip])
     return fits
+
+
+def _columns_of(lp: LevelPass, inv_o: np.ndarray, t: int, pts: PointSet) -> np.ndarray:
+    """F (3, p, d) of points `pts` of the chunk's texel t."""
+    return build_R(lp, pts, inv_o, np.full(len(pts.sample), t))[0]
+
+
+def _choose_lobes(lp: LevelPass, chunk: Chunk, res: _Results, fits: list[TexelFit | None],
+                  truth: Callable[[np.ndarray], tuple[np.ndarray, ...]]) -> None:
+    """Store the widened alternative (`res.wide`) of each texel of the chunk whose widened
+    points reproduce it better on the validation pairs (`lobe.wider_wins`; `truth(positions)`
+    gives those texels' `dense.validation_sums`)."""
+    alts = sorted(i for i in res.wide if chunk.base <= i < chunk.base + len(chunk.texels))
+    if not alts:
+        return
+    loc = np.array(alts) - chunk.base
+    has = set(loc.tolist())
+    own = _points_of(res, [fits[t] if t in has else None for t in range(len(fits))],
+                     chunk.base)
+    seg = np.searchsorted(loc, own[1])  # the own points' texels among the alternatives'
+    wins = wider_wins(lp, chunk.texels[loc], chunk.area[loc], truth(loc),
+                      (own[0], seg, own[2], own[3]), [res.wide[i][:3] for i in alts])
+    for j in np.flatnonzero(wins):  # loop over the texels whose widened points win
+        fit, var, cset, skip = res.wide[alts[j]]
+        fits[loc[j]] = fit
+        _store(res, alts[j], fit, cset, skip, var)
+    for i in alts:  # loop over the chunk's alternatives: chosen or not, done
+        del res.wide[i]
 
 
 def _check_finite(Ft: np.ndarray, texel: np.ndarray, level: int) -> None:
@@ -345,10 +399,15 @@ def too_wide(m: int, d: int, s) -> bool:
     return d < 2 * min(m, s.n_batch)
 
 
-def _store(res: _Results, i: int, fit: TexelFit, cset: PointSet, skip: int) -> None:
+def _store(res: _Results, i: int, fit: TexelFit, cset: PointSet, skip: int,
+           var: np.ndarray | None = None) -> None:
+    """Texel i's fit (`cset` its candidates) into res, with its points' lobe variances
+    (None: 0) where lobes may be widened."""
     w_eff = fit.weights.astype(np.float64) * cset.weight[fit.columns]
     res.pts[i] = [cset.sample[fit.columns]]
     res.w[i] = [w_eff]
+    if res.var is not None:
+        res.var[i] = [np.zeros(fit.c) if var is None else var]
     res.k[i], res.c[i] = fit.k, fit.c
     res.snr_in[i] = fit.snr_db_insample
     res.mode[i] = 1 if fit.colour_mode == "per_channel" else 0
@@ -360,9 +419,10 @@ def _store(res: _Results, i: int, fit: TexelFit, cset: PointSet, skip: int) -> N
 
 def _points_of(res: _Results, fits, base: int):
     """The characteristic points of the chunk's fitted texels: sample ids, their texel (position
-    in the chunk) and their weights as stored (float32: a texel that keeps all its candidates at
-    their own weights would otherwise reproduce the reference bit for bit, +inf dB)."""
-    pts, seg, w = [], [], []
+    in the chunk), their weights and their lobes' variances (None: narrow lobes) as stored
+    (float32: a texel that keeps all its candidates at their own weights would otherwise
+    reproduce the reference bit for bit, +inf dB)."""
+    pts, seg, w, var = [], [], [], []
     for t, fit in enumerate(fits):  # loop over texels
         if fit is None or not fit.valid or fit.c == 0:
             continue
@@ -370,9 +430,13 @@ def _points_of(res: _Results, fits, base: int):
         pts.append(res.pts[i][0])
         seg.append(np.full(len(res.pts[i][0]), t))
         w.append(res.w[i][0].astype(np.float32).astype(np.float64))
+        if res.var is not None:
+            var.append(res.var[i][0].astype(np.float32).astype(np.float64))
     if not pts:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
-    return np.concatenate(pts), np.concatenate(seg), np.concatenate(w)
+        return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)),
+                None if res.var is None else np.zeros(0))
+    return (np.concatenate(pts), np.concatenate(seg), np.concatenate(w),
+            np.concatenate(var) if res.var is not None else None)
 
 
 def _held_snr(res: _Results, fits: list[TexelFit | None], area: np.ndarray, ref: np.ndarray,

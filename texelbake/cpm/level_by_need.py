@@ -17,7 +17,7 @@ import numpy as np
 
 from texelbake.cpm.classify import CHECK_LIGHTS, CHECK_VIEWS, TexelClasses, classify_texels
 from texelbake.cpm.dense import LevelPass, dense_of, heldout_from_samples, heldout_snr
-from texelbake.cpm.level import LEVEL_TOTALS, FitInputs, PointSet, sort_by_texel
+from texelbake.cpm.level import LEVEL_TOTALS, POINT_KEYS, FitInputs, PointSet, sort_by_texel
 from texelbake.cpm.level_batched import chunk_bounds
 
 #: the `skip` codes of an exact texel and of a grouped one (after level_batched.SKIP_CODES' 0-3)
@@ -118,14 +118,15 @@ def _stored_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: n
 def merge_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     """Disjoint texel sets' arrays of one level as one, sorted by texel (CSR offsets
     re-based); a per-texel array one part lacks (the per-texel loop's `skip`, `merged`) is
-    zero there, per-level totals (`LEVEL_TOTALS`) are summed."""
+    zero there (a stored texel's `point_var`: its one facet's lobe is the sample's own),
+    per-level totals (`LEVEL_TOTALS`) are summed."""
     n = [len(p["texel"]) for p in parts]
     keys = sorted({k for p in parts for k in p} - {"offsets", *LEVEL_TOTALS})
     out: dict[str, np.ndarray] = {}
     for k in keys:
         like = next(p[k] for p in parts if k in p)
         out[k] = np.concatenate([
-            p[k] if k in p else np.zeros((m if k not in ("point_sample", "point_weight")
+            p[k] if k in p else np.zeros((m if k not in POINT_KEYS
                                           else int(p["offsets"][-1]),) + like.shape[1:],
                                          like.dtype)
             for p, m in zip(parts, n, strict=True)])

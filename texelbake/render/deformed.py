@@ -409,7 +409,9 @@ def deformed_texel_radiance(d: RenderScene, level: int, cam_pos: np.ndarray,
                 "nij,nj->ni", lpt[seen[idx]], wo_d_tex[tex[seen[idx]]]))
             wo_l = np.einsum("nij,nj->ni", fr, wo_b)
             f = brdf_mod.evaluate_by_face(d.materials, mat[seen[idx]], wi_l, wo_l,
-                                          uv[seen[idx]])
+                                          uv[seen[idx]],
+                                          var=None if cp["var"] is None
+                                          else cp["var"][pt][seen[idx]])
             lit[seen[idx]] += e[idx] * f * cos_s[idx, None]
     contrib = np.where(view[:, None], lit * w * cos_go[:, None], 0.0)
     num = np.stack([np.bincount(tex, contrib[:, c], n_tex) for c in range(3)], axis=1)

@@ -115,7 +115,7 @@ class RenderScene(OrgScene):
         self.lod_error = [_hausdorff(self.org, c, self.asset.points, m.vertices)
                           for c, m in zip(self.lods, self.baked.meshes, strict=True)]
         self._tables = [_avis_table(lv) for lv in self.baked.levels]
-        self._points: dict[int, dict[str, np.ndarray]] = {}
+        self._points: dict[int, dict[str, Any]] = {}
         self._nm: dict[str, np.ndarray] | None = None
         self._btf: Any = None
         # the per-scene layout of the maps, like the ray-tracing structures: float64 points of
@@ -131,9 +131,11 @@ class RenderScene(OrgScene):
         """The level's a_vis table (texelbake.cpm.avis.AvisTable), rebuilt once at load."""
         return self._tables[level]
 
-    def points(self, level: int) -> dict[str, np.ndarray]:
+    def points(self, level: int) -> dict[str, Any]:
         """The level's characteristic points in float64, unit normals (converted once):
-        position, geom_normal, normal (P, 3); weight (P, 3); material (P,) int64; uv (P, 2)."""
+        position, geom_normal, normal (P, 3); weight (P, 3); material (P,) int64; uv (P, 2);
+        var (P,) their lobes' slope variance per axis (`texelbake.cpm.lobe`), None when the
+        bake kept the narrow lobes (no `point_var`)."""
         if level not in self._points:
             lv = self.baked.levels[level]
             ng = lv["point_geom_normal"].astype(np.float64)
@@ -144,7 +146,8 @@ class RenderScene(OrgScene):
                 "position": lv["point_position"].astype(np.float64), "geom_normal": ng,
                 "normal": ns, "weight": lv["point_weight"].astype(np.float64),
                 "material": lv["point_material"].astype(np.int64),
-                "uv": lv["point_uv"].astype(np.float64)}
+                "uv": lv["point_uv"].astype(np.float64),
+                "var": lv["point_var"].astype(np.float64) if "point_var" in lv else None}
         return self._points[level]
 
 

@@ -70,9 +70,11 @@ def texel_radiance(scene: RenderScene, level: int, cam_pos: np.ndarray,
         rays += vi.size
         view[vi[occ]] = False
     mat, uv = cp["material"][pt], cp["uv"][pt]
+    var = None if cp["var"] is None else cp["var"][pt]
 
     def brdf(sel: np.ndarray, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
-        return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi_l, wo_l, uv[sel])
+        return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi_l, wo_l, uv[sel],
+                                         var=None if var is None else var[sel])
 
     # Σ_l E_l V_i f_r cos_i (the shading of `direct_radiance`, at the points, toward ωo),
     # for the points that see the camera (the others add nothing)
