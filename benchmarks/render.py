@@ -226,6 +226,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--frame", type=int, default=512, help="with --object-px: frame side")
     ap.add_argument("--profile", action="store_true",
                     help="with --object-px: profile gt and cpm at every size")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="with --object-px: a non-default bake setting (JSON value, else a "
+                         "string), labelled in the JSON; repeatable")
     args = ap.parse_args(argv)
     if args.object_px:
         from render_sizes import bake_default, run
@@ -233,10 +236,13 @@ def main(argv: list[str] | None = None) -> dict:
         if args.frame < 512:
             ap.error("--frame must be 512 or larger")
         args.json.parent.mkdir(parents=True, exist_ok=True)
+        from bake import _sets
+
+        sets = _sets(args.set)
         rep = run(args.scenes.split(","), [int(x) for x in args.object_px.split(",")],
                   args.frame, args.work, args.profile,
-                  lambda name, work: bake_default(name, work, bake_scene),
-                  lambda partial: _write_json(args.json, partial))
+                  lambda name, work: bake_default(name, work, bake_scene, sets),
+                  lambda partial: _write_json(args.json, partial), sets)
         _write_json(args.json, rep)
         return rep
 

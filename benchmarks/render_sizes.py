@@ -105,11 +105,13 @@ def _notes(scene_name: str, px: int, rep: dict) -> list[str]:
 
 
 def run(scenes: list[str], sizes: list[int], frame: int, work: Path, profile: bool,
-        bake_fn, save=None) -> dict:
+        bake_fn, save=None, overrides: dict | None = None) -> dict:
     """Every scene at every size: the report (JSON-ready) and the printed table; `save(out)`
-    after every size (a long run keeps what it measured)."""
+    after every size (a long run keeps what it measured). `overrides`: the non-default bake
+    settings `bake_fn` was given (labelled in the JSON)."""
     out = {"frame": frame, "spp": SPP, "ref_spp": REF_SPP, "sizes": sizes, "scenes": [],
-           "notes": [], "bake_settings": "texelbake bake defaults (BakeSettings())"}
+           "notes": [], "bake_settings": "texelbake bake defaults (BakeSettings())"
+           if not overrides else f"NON-DEFAULT {overrides}"}
     for name in scenes:  # a loop over scenes
         t0 = time.perf_counter()
         root = bake_fn(name, work)
@@ -171,10 +173,10 @@ def _print(label: str, px: int, rep: dict) -> None:
         print(f"  NOTE {n}")
 
 
-def bake_default(name: str, work: Path, bake_scene) -> Path:
+def bake_default(name: str, work: Path, bake_scene, overrides: dict | None = None) -> Path:
     """A generated scene at size full through `bake_scene` (render.py's cache), or an asset
-    file baked at the defaults."""
-    settings = BakeSettings()
+    file baked at the defaults (with `overrides`: those fields changed)."""
+    settings = BakeSettings(**(overrides or {}))
     if Path(name).suffix in (".usd", ".usda", ".usdc", ".usdz"):
         out = work / Path(name).stem / f"baked_{settings.digest()[:10]}"
         root = out / f"{Path(name).stem}_baked.usda"
