@@ -160,10 +160,10 @@ class BakeSettings(BaseModel):
         "atlas side.", ge=1, le=13)
     point_lobe: Literal["narrow", "widened"] = _field(
         "narrow", "fit",
-        "'widened' gives each fitted characteristic point the normal spread of the surface "
-        "it stands for (its GGX or Phong lobe widened by the slope variance of its cell); "
-        "'narrow' keeps the sample's own lobe as the seed. 'widened' needs fit_method "
-        "'batched'.")
+        "'widened' gives a fitted characteristic point the normal spread of the surface it "
+        "stands for where validation pairs favour it (its GGX or Phong lobe widened by its "
+        "cell's slope variance; fit_method 'batched' only), 'narrow' keeps the sample's own "
+        "lobe as the seed.")
     identical_columns: Literal["keep", "merge"] = _field(
         "merge", "fit",
         "'merge' fits candidates with identical columns as one weighted column, 'keep' fits "

@@ -20,12 +20,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import xatlas
 
 from texelbake.errors import SettingsError, ShapeError, StageError
 from texelbake.geometry.closest import closest_point_on_triangles
 from texelbake.geometry.mesh import Mesh, face_components, triangle_areas
 from texelbake.geometry.raycast import RayCaster
+from texelbake.geometry.xatlas_child import Packed, xatlas_pack
 
 #: xatlas packing is retried with a texel density shrunk by _STEP until one N × N page holds
 #: all charts, then bisected between the last density that did not fit and the first that did
@@ -93,19 +93,9 @@ def corner_uv_areas(corner_uvs: np.ndarray) -> np.ndarray:
 
 def _xatlas_pack(
     vertices: np.ndarray, faces: np.ndarray, resolution: int, padding: int, tpu: float
-) -> xatlas.Atlas:
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(
-        np.ascontiguousarray(vertices, dtype=np.float32),
-        np.ascontiguousarray(faces, dtype=np.uint32),
-    )
-    pack = xatlas.PackOptions()
-    pack.resolution = int(resolution)
-    pack.padding = int(padding)
-    pack.bilinear = True
-    pack.texels_per_unit = float(tpu)
-    atlas.generate(pack_options=pack)
-    return atlas
+) -> Packed:
+    """One xatlas pack, in a child process (`geometry.xatlas_child`: xatlas can hang)."""
+    return xatlas_pack(vertices, faces, resolution, padding, tpu)
 
 
 def collapsed_area_fraction(vertices: np.ndarray, faces: np.ndarray,
@@ -159,7 +149,7 @@ def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
     if not area > 0:
         raise StageError(f"geometry: M1 has surface area {area}; expected > 0")
 
-    def fits(candidate: xatlas.Atlas) -> bool:
+    def fits(candidate: Packed) -> bool:
         return candidate.atlas_count == 1 and candidate.width == n and candidate.height == n
 
     # 1) pack at a first-guess density with no page limit; 2) scale the density so the
@@ -173,7 +163,7 @@ def build_atlas(mesh: Mesh, resolution: int, padding_texels: int = 2) -> Atlas:
     floor = tpu * _MIN_DENSITY
     # the search's lowest density: the last of its steps down that is not under the floor
     lowest = tpu * _STEP ** math.floor(math.log(_MIN_DENSITY) / math.log(_STEP) + 1e-9)
-    best: xatlas.Atlas | None = None
+    best: Packed | None = None
     too_dense = None  # the lowest density seen that did not fit
     probed = False
     while True:  # packing attempts (~10), each over all charts at once
