@@ -82,3 +82,25 @@ def test_a_child_that_never_answers_fails_the_stage(monkeypatch):
     with pytest.raises(xc.StageError, match="xatlas hung or died"):
         xc.xatlas_pack(v, f, 64, 2, 40.0)
     assert len(started) == xc.PACK_TRIES and all(p.poll() is not None for p in started)
+
+
+def test_a_forked_process_starts_its_own_child():
+    """A process forked after a pack (a bake's worker processes) never writes to its parent's
+    child: it starts its own, and the parent's keeps answering."""
+    v, f = _grid()
+    ref = _direct(v, f, 64, 2, 40.0)
+    _same(xc.xatlas_pack(v, f, 64, 2, 40.0), ref)
+    parents = xc._child.proc.pid
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the forked process: pack, report, leave without running pytest's teardown
+        try:
+            got = xc.xatlas_pack(v, f, 64, 2, 40.0)
+            ok = xc._child.proc.pid != parents and got.width == ref[1]
+            os.write(w, b"1" if ok else b"0")
+        finally:
+            os._exit(0)
+    os.waitpid(pid, 0)
+    assert os.read(r, 1) == b"1"
+    _same(xc.xatlas_pack(v, f, 64, 2, 40.0), ref)
+    assert xc._child.proc.pid == parents

@@ -23,6 +23,15 @@ degrees from its point adds `VAR_MAX` (the slope is unbounded; the widened rough
 clipped to 1 anyway). Composed level by level this way, a coarse point's variance is the
 parallel-axis sum over its children's cells, up to the tan^2 of composed angles not adding
 exactly.
+
+The widened points keep the seed's selection (the points of its fit); their weights are
+fitted again by NNLS per channel on the widened columns of the training grid. They replace
+the seed's in a texel only where they reproduce it better on the validation pairs
+(`level.VALIDATION` x `level.VALIDATION` directions of their own seeds, `wider_wins`): a
+widened lobe spreads energy where the surface shadows and masks itself, and there the seed's
+points stay. A coarser level's candidates carry their children's chosen variance. A
+roughness (or Phong exponent) texture is not widened: `widen_material` widens a constant
+input only.
 """
 
 from __future__ import annotations

@@ -107,6 +107,7 @@ class _Child:
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      env={**os.environ, "PYTHONPATH": path})
         self.dropped = True  # the previous pack's Atlas acknowledged dropped
+        self.owner = os.getpid()  # a forked process starts its own child, never shares this
 
     def kill(self) -> None:
         self.proc.kill()
@@ -143,7 +144,7 @@ def xatlas_pack(vertices: np.ndarray, faces: np.ndarray, resolution: int, paddin
             float(tpu))
     with _lock:
         for _ in range(PACK_TRIES):  # loop over children: a hung one is replaced
-            if _child is None or _child.proc.poll() is not None:
+            if _child is None or _child.owner != os.getpid() or _child.proc.poll() is not None:
                 _child = _Child()
             try:
                 return _child.request(args)
