@@ -349,8 +349,7 @@ def _choose_lobes(lp: LevelPass, chunk: Chunk, res: _Results, fits: list[TexelFi
         return
     loc = np.array(alts) - chunk.base
     has = set(loc.tolist())
-    own = _points_of(res, [fits[t] if t in has else None for t in range(len(fits))],
-                     chunk.base)
+    own = _points_of(res, [fits[t] if t in has else None for t in range(len(fits))], chunk.base)
     seg = np.searchsorted(loc, own[1])  # the own points' texels among the alternatives'
     wins = wider_wins(lp, chunk.texels[loc], chunk.area[loc], truth(loc),
                       (own[0], seg, own[2], own[3]), [res.wide[i][:3] for i in alts])
