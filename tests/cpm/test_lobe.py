@@ -13,7 +13,6 @@ from texelbake import brdf as brdf_mod
 from texelbake.brdf.widened import widen_material
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.lobe import VAR_MAX, cell_variance
-from texelbake.errors import ShapeError
 from texelbake.geometry.basis import tangent_frames
 from texelbake.model import Material
 
@@ -133,9 +132,52 @@ def test_evaluate_by_face_widened_rows():
         ref = brdf_mod.evaluate(widen_material(mats[mat[r]], var[r:r + 1]), wi[r:r + 1],
                                 wo[r:r + 1])
         np.testing.assert_allclose(got[r:r + 1], ref, rtol=1e-12)
-    with pytest.raises(ShapeError, match="sample_index"):
-        brdf_mod.evaluate_by_face(mats, mat, wi, wo, np.zeros((2, 2)),
-                                  sample_index=np.zeros(n, np.int64), var=var)
+    # with sample_index (the inputs resolved per surface sample, then gathered to the rows)
+    uv = rng.uniform(size=(2, 2))
+    idx = np.array([0, 1, 1, 0, 1, 0])
+    got = brdf_mod.evaluate_by_face(mats, mat, wi, wo, uv, sample_index=idx, var=var)
+    for r in range(n):  # loop over rows: the reference
+        ref = brdf_mod.evaluate(widen_material(mats[mat[r]], var[r:r + 1]), wi[r:r + 1],
+                                wo[r:r + 1], uv[idx[r]:idx[r] + 1])
+        np.testing.assert_allclose(got[r:r + 1], ref, rtol=1e-12)
+
+
+def test_a_roughness_texture_is_widened():
+    """A UsdPreviewSurface whose roughness is a texture: the fit's product kernel and the
+    renderer's rows widen each sample's own roughness, against `widen_material` of a constant
+    material at the roughness the texture gives that sample."""
+    from texelbake.brdf import sample_texture
+    from texelbake.model import Texture
+
+    px = np.linspace(0.1, 0.8, 16, dtype=np.float32).reshape(4, 4, 1)
+    tex = Texture("rough.png", px, source_color_space="raw")
+    mat = Material("/m/rough", "preview", {"metallic": 1.0, "diffuseColor": (0.6, 0.5, 0.4)},
+                   textures={"roughness": tex})
+    p, A, B = 4, 2, 3
+    rng = np.random.default_rng(7)
+    uv = rng.uniform(size=(p, 2))
+    nrm = np.tile([0.0, 0.0, 1.0], (p, 1))
+    geo = {"sample_nrm": nrm, "sample_mat": np.zeros(p, np.int64), "sample_uv": uv}
+    wi_l, wo_l = _frame_dirs(p, A, 8), _frame_dirs(p, B, 9)
+    frames = tangent_frames(nrm)
+    wi = np.einsum("pji,paj->pai", frames, wi_l)
+    wo = np.einsum("pji,pbj->pbi", frames, wo_l)
+    var = np.array([0.0, 0.02, 0.1, 0.4])
+    got = brdf_product(geo, [mat], np.arange(p), wi, wo, np.ones((A, B, p), bool), var=var)
+    rough = sample_texture(tex, uv)[:, 0]
+    for s in range(p):  # loops over samples and pairs: the reference
+        const = Material("/m/c", "preview", {"metallic": 1.0, "diffuseColor": (0.6, 0.5, 0.4),
+                                              "roughness": float(rough[s])})
+        m = widen_material(const, var[s:s + 1])
+        for a in range(A):
+            for b in range(B):
+                ref = brdf_mod.evaluate(m, wi_l[s, a:a + 1], wo_l[s, b:b + 1])[0]
+                np.testing.assert_allclose(got[:, s, a, b], ref, rtol=1e-9)
+                row = brdf_mod.evaluate_by_face([mat], np.zeros(1, np.int64), wi_l[s, a:a + 1],
+                                                wo_l[s, b:b + 1], uv[s:s + 1], var=var[s:s + 1])
+                np.testing.assert_allclose(row[0], ref, rtol=1e-9)
+    narrow = brdf_product(geo, [mat], np.arange(p), wi, wo, np.ones((A, B, p), bool))
+    assert np.array_equal(got[:, 0], narrow[:, 0]) and not np.allclose(got[:, 3], narrow[:, 3])
 
 
 def test_widened_needs_the_batched_fit():

@@ -30,7 +30,7 @@ from texelbake.brdf.common import (
 )
 from texelbake.brdf.merl import merl_lookup, merl_table_from_file
 from texelbake.brdf.textures import sample_texture
-from texelbake.brdf.widened import widen_material
+from texelbake.brdf.widened import widen_inputs
 from texelbake.errors import SettingsError, ShapeError
 from texelbake.tol import TOL
 
@@ -114,6 +114,7 @@ def evaluate(
     *,
     sample_index: Any = None,
     eps: float = TOL.grazing_cos,
+    var: np.ndarray | None = None,
 ) -> np.ndarray:
     """Evaluate a material's BRDF.
 
@@ -128,6 +129,8 @@ def evaluate(
     sample_index : (n,) int into uv, or None. The CPM layout (many direction pairs per sample):
         textures and the cellular pattern are then evaluated once per sample (m rows) and
         gathered, instead of once per (sample, direction pair) row.
+    var : (n,) each row's lobe widened by this slope variance per axis
+        (`texelbake.brdf.widened.widen_inputs`, textured inputs included), None for none
     returns : (n, 3) float64, 1/sr
     raises SettingsError (naming material.path) for an unknown model, ShapeError for bad shapes
     """
@@ -144,10 +147,14 @@ def evaluate(
         return lambert(p["diffuseColor"], wi, wo, eps=eps)
     if kind == "phong":
         p = material_inputs(material, ("diffuseColor", "specularColor", "exponent"), uv_a, rows)
+        if var is not None:
+            p = widen_inputs(kind, p, var)
         return phong(p["diffuseColor"], p["specularColor"], p["exponent"], wi, wo, eps=eps)
     if kind == "preview":
-        return preview_surface(material_inputs(material, PREVIEW_BRDF_INPUTS, uv_a, rows), wi, wo,
-                               eps=eps)
+        p = material_inputs(material, PREVIEW_BRDF_INPUTS, uv_a, rows)
+        if var is not None:
+            p = widen_inputs(kind, p, var)
+        return preview_surface(p, wi, wo, eps=eps)
     if kind == "merl":
         scale = as_scalar(material_inputs(material, ("scale",), uv_a, rows)["scale"], n, "scale")
         return merl_lookup(_merl_table(material), wi, wo, eps=eps) * scale[:, None]
@@ -290,7 +297,7 @@ def evaluate_by_face(
     """Evaluate many (sample, direction-pair) entries with a material per entry: groups by
     material index (a loop over the few materials present, vectorized within each).
     var : (n,) each entry's lobe widened by this slope variance per axis
-        (`texelbake.brdf.widened.widen_material`; not with sample_index), None for none
+        (`texelbake.brdf.widened.widen_inputs`), None for none
 
     materials : sequence of model.Material; material_index : (n,) int
     wi, wo : (n, 3) float64; uv : (n, 2) float64 or None
@@ -320,16 +327,14 @@ def evaluate_by_face(
     # material gives, without sorting n entries: a mask per material, O(n) each; a bake
     # spent 3 s of 46 in that argsort)
     present = np.flatnonzero(np.bincount(idx, minlength=hi + 1))
-    if var is not None and rows is not None:
-        raise ShapeError("var (widened lobes) is per evaluation row: not with sample_index")
     for m_i in present:  # a loop over the few materials
         group = np.flatnonzero(idx == m_i) if present.size > 1 else np.arange(n)
         mat = materials[int(m_i)]
-        if var is not None:
-            mat = widen_material(mat, np.asarray(var, np.float64)[group])
+        vg = None if var is None else np.asarray(var, np.float64)[group]
         if rows is None:
             out[group] = evaluate(
-                mat, wi[group], wo[group], None if uv_a is None else uv_a[group], eps=eps
+                mat, wi[group], wo[group], None if uv_a is None else uv_a[group], eps=eps,
+                var=vg,
             )
             continue
         # only the samples this material uses: resolve inputs on them, then gather (what
@@ -337,6 +342,6 @@ def evaluate_by_face(
         used, local = _used_rows(rows[group], uv_a.shape[0] if uv_a is not None else 0)
         out[group] = evaluate(
             mat, wi[group], wo[group], None if uv_a is None else uv_a[used],
-            sample_index=local, eps=eps,
+            sample_index=local, eps=eps, var=vg,
         )
     return out

@@ -67,6 +67,25 @@ def widen_material(material: model.Material, var_axis: np.ndarray) -> model.Mate
     return material
 
 
+def widen_inputs(kind: str, inputs: Mapping[str, Any], var_axis: np.ndarray) -> dict[str, Any]:
+    """`widen_material`'s widening on a material's resolved inputs (`brdf.evaluate.
+    material_inputs`: constants, or per-row arrays where a texture gave them), so that a
+    roughness or exponent texture is widened too: `kind` the model ("phong", "preview"; any
+    other is returned as is), var_axis (n,) the rows' variance per axis; the widened input
+    comes back per row (n,). Equal to `widen_material` where the input is a constant."""
+    v = np.maximum(np.nan_to_num(np.asarray(var_axis, dtype=np.float64), nan=0.0), 0.0)
+    out = dict(inputs)
+    if kind == "phong":
+        s = np.asarray(inputs["exponent"], dtype=np.float64)
+        a2 = 2.0 / (s + 2.0) + 2.0 * v
+        out["exponent"] = np.where(v > 0, np.maximum(2.0 / a2 - 2.0, 0.0), s)
+    elif kind == "preview":
+        r = np.maximum(np.asarray(inputs.get("roughness", model.PREVIEW_DEFAULTS["roughness"]),
+                                  dtype=np.float64), PREVIEW_MIN_ROUGHNESS)
+        out["roughness"] = np.where(v > 0, np.clip(r ** 4 + 2.0 * v, 0.0, 1.0) ** 0.25, r)
+    return out
+
+
 def toksvig_phong_exponent(s: float | np.ndarray, nbar_length: np.ndarray) -> np.ndarray:
     """Toksvig's exponent s' = f_t s, f_t = |n̄| / (|n̄| + s (1 − |n̄|)) (Toksvig 2005,
     §"Eliminating Aliasing of Specular Highlights");

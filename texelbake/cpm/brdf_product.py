@@ -34,12 +34,12 @@ from texelbake import brdf as brdf_mod
 from texelbake.brdf.analytic import preview_surface_params, schlick_weight
 from texelbake.brdf.common import INV_PI, as_color, as_scalar
 from texelbake.brdf.evaluate import PREVIEW_BRDF_INPUTS, material_inputs
-from texelbake.brdf.widened import widen_material
+from texelbake.brdf.widened import widen_inputs
 from texelbake.errors import NumericalError, SettingsError
 from texelbake.geometry.basis import grid_to_local, tangent_frames
 from texelbake.tol import TOL
 
-#: the models whose lobe `widen_material` widens (per-sample inputs, read by the product
+#: the models whose lobe `widen_inputs` widens (per-sample inputs, read by the product
 #: kernel's paths below); the others keep their own lobe
 WIDENED_MODELS = ("preview", "phong")
 
@@ -80,7 +80,7 @@ def brdf_product(
 
     sample : (p,) int64; wi_world : (p, A, 3); wo_world : (p, B, 3); live : (A, B, p) bool
     var : (p,) each sample's lobe widened by this slope variance per axis
-        (`texelbake.brdf.widened.widen_material`), None for the samples' own lobes
+        (`texelbake.brdf.widened.widen_inputs`), None for the samples' own lobes
     returns : (3, p, A, B) float64 (channel-major: a sample's rows are contiguous), equal to
         `level.brdf_grid` (A, B, p, 3) on live entries (0 elsewhere up to the caller's
         visibility product)
@@ -101,10 +101,9 @@ def brdf_product(
         material = materials[int(m_i)]
         sel = np.flatnonzero(mat == m_i)
         n_s = sel.size
-        if var is not None and material.model in WIDENED_MODELS:
-            if kernel != "product":
-                raise SettingsError("widened lobes are evaluated by the product kernel only")
-            material = widen_material(material, var[sel])  # per-sample inputs (n_s,)
+        wide = var is not None and material.model in WIDENED_MODELS
+        if wide and kernel != "product":
+            raise SettingsError("widened lobes are evaluated by the product kernel only")
         if material.model == "lambert":
             up = np.zeros((n_s, 3))
             up[:, 2] = 1.0
@@ -116,7 +115,10 @@ def brdf_product(
                 out[c, sel] = ok * rho_pi[:, c, None, None]
             continue
         if material.model == "preview" and kernel == "product":
-            prm = preview_surface_params(material_inputs(material, PREVIEW_BRDF_INPUTS, uv[sel], None), n_s)
+            inp = material_inputs(material, PREVIEW_BRDF_INPUTS, uv[sel], None)
+            if wide and var is not None:  # per-sample inputs (n_s,), textured ones included
+                inp = widen_inputs("preview", inp, var[sel])
+            prm = preview_surface_params(inp, n_s)
             for b0 in range(0, n_s, GRID_BLOCK):  # loop over sample blocks (cache-sized)
                 blk = sel[b0:b0 + GRID_BLOCK]
                 pb = {k: (v if v.shape[0] == 1 else v[b0:b0 + GRID_BLOCK]) for k, v in prm.items()}
@@ -126,6 +128,8 @@ def brdf_product(
             continue
         if material.model == "phong" and kernel == "product":
             prm = material_inputs(material, ("diffuseColor", "specularColor", "exponent"), uv[sel], None)
+            if wide and var is not None:
+                prm = widen_inputs("phong", prm, var[sel])
             kd = as_color(prm["diffuseColor"], n_s, "diffuseColor")
             ks = as_color(prm["specularColor"], n_s, "specularColor")
             ex = as_scalar(prm["exponent"], n_s, "exponent")
