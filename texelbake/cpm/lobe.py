@@ -9,7 +9,7 @@ where the held-out pairs lie. Each point here gets the slope statistics of its c
 surface it stands for), as LEAN/LEADR filter a normal map (Olano & Baker 2010; Dupuy et al.
 2013): the lobe of a point at normal n_p over samples at normals n_j is, to second order, the
 point's own lobe convolved with the distribution of the slopes of n_j in n_p's frame, i.e. its
-GGX slope variance per axis raised by their variance (`texelbake.brdf.widened.widen_material`:
+GGX slope variance per axis raised by their variance (`texelbake.brdf.widened.widen_inputs`:
 alpha'^2 = alpha^2 + 2 var for UsdPreviewSurface, the Phong exponent through the
 Phong <-> Beckmann mapping; Lambert, cellular and MERL materials are unchanged).
 
@@ -30,8 +30,8 @@ the seed's in a texel only where they reproduce it better on the validation pair
 (`level.VALIDATION` x `level.VALIDATION` directions of their own seeds, `wider_wins`): a
 widened lobe spreads energy where the surface shadows and masks itself, and there the seed's
 points stay. A coarser level's candidates carry their children's chosen variance. A
-roughness (or Phong exponent) texture is not widened: `widen_material` widens a constant
-input only.
+roughness (or Phong exponent) texture is widened per sample (`widen_inputs` on the resolved
+inputs).
 """
 
 from __future__ import annotations
