@@ -1,20 +1,27 @@
 """Widened characteristic points (`texelbake.cpm.lobe`, BakeSettings.point_lobe="widened"): a
-cell's variance against a brute-force loop and closed forms, the widened BRDF in the fit's product kernel and in the renderer's per-row path
-against `widen_material` evaluated row by row, and on a curved glossy square the held-out
-SNR the widened points reach against the narrow ones."""
+cell's variance against a brute-force loop and closed forms, the widened BRDF in the fit's
+product kernel and in the renderer's per-row path against `widen_material` evaluated row by
+row (a roughness texture included), and on a curved glossy square the held-out SNR the
+widened points reach against the narrow ones."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 
 from schemas.settings import BakeSettings
+from tests.cpm.test_classify import SETTINGS, _grid_samples, _inputs
 from texelbake import brdf as brdf_mod
+from texelbake.brdf import sample_texture
 from texelbake.brdf.widened import widen_material
 from texelbake.cpm.brdf_product import brdf_product
+from texelbake.cpm.level import level_candidates
+from texelbake.cpm.level_batched import fit_level_batched
 from texelbake.cpm.lobe import VAR_MAX, cell_variance
 from texelbake.geometry.basis import tangent_frames
-from texelbake.model import Material
+from texelbake.model import Material, Texture
 
 GLOSS = Material("/m/gloss", "preview", {"diffuseColor": (0.05, 0.05, 0.05), "roughness": 0.25,
                                           "metallic": 1.0})
@@ -146,9 +153,6 @@ def test_a_roughness_texture_is_widened():
     """A UsdPreviewSurface whose roughness is a texture: the fit's product kernel and the
     renderer's rows widen each sample's own roughness, against `widen_material` of a constant
     material at the roughness the texture gives that sample."""
-    from texelbake.brdf import sample_texture
-    from texelbake.model import Texture
-
     px = np.linspace(0.1, 0.8, 16, dtype=np.float32).reshape(4, 4, 1)
     tex = Texture("rough.png", px, source_color_space="raw")
     mat = Material("/m/rough", "preview", {"metallic": 1.0, "diffuseColor": (0.6, 0.5, 0.4)},
@@ -189,12 +193,6 @@ def _curved_square(lobe: str, c_max: int = 2):
     """The 2 x 2 square of test_classify with its shading and geometric normals turning about
     y across it (+-0.8 rad: a cylinder's strip seen flat), one glossy metal, 64 samples per
     texel, fitted at level 0 with at most `c_max` points per texel."""
-    import dataclasses
-
-    from tests.cpm.test_classify import SETTINGS, _grid_samples, _inputs
-    from texelbake.cpm.level import level_candidates
-    from texelbake.cpm.level_batched import fit_level_batched
-
     pos = _grid_samples(8)
     a = 1.6 * (pos[:, 0] - 0.5)
     nrm = np.stack([np.sin(a), np.zeros_like(a), np.cos(a)], axis=1)
