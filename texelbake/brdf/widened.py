@@ -52,18 +52,13 @@ def widen_material(material: model.Material, var_axis: np.ndarray) -> model.Mate
     Phong: s' = 2/α'² − 2 with α'² = 2/(s+2) + 2 var (equal to Toksvig's s f_t when
     var = σ² up to the Phong ↔ Beckmann mapping; exact at var = 0); preview: roughness' =
     (α² + 2 var)^¼ clipped to [0.001, 1]. Other families unchanged."""
-    v = np.maximum(np.nan_to_num(np.asarray(var_axis, dtype=np.float64), nan=0.0), 0.0)
     p = dict(material.params)
     if material.model == "phong":
-        s = float(p.get("exponent", 32.0))
-        a2 = 2.0 / (s + 2.0) + 2.0 * v
-        p["exponent"] = np.where(v > 0, np.maximum(2.0 / a2 - 2.0, 0.0), s)
-        return replace(material, params=p)
+        p["exponent"] = float(p.get("exponent", 32.0))
+        return replace(material, params=widen_inputs("phong", p, var_axis))
     if material.model == "preview" and "roughness" not in material.textures:
-        r = float(p.get("roughness", model.PREVIEW_DEFAULTS["roughness"]))
-        r = max(r, PREVIEW_MIN_ROUGHNESS)
-        p["roughness"] = np.where(v > 0, np.clip(r ** 4 + 2.0 * v, 0.0, 1.0) ** 0.25, r)
-        return replace(material, params=p)
+        p["roughness"] = float(p.get("roughness", model.PREVIEW_DEFAULTS["roughness"]))
+        return replace(material, params=widen_inputs("preview", p, var_axis))
     return material
 
 

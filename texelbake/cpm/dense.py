@@ -337,8 +337,8 @@ def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
     light and view directions `keys` of `lp.dirs` (the held-out pairs, or the validation
     pairs)."""
     src, n_t = lp.src, len(texels)
-    dirs = {"held_i": lp.dirs[keys[0]], "held_o": lp.dirs[keys[1]]}
-    h_i, h_o = len(dirs["held_i"]), len(dirs["held_o"])
+    d_i, d_o = lp.dirs[keys[0]], lp.dirs[keys[1]]
+    h_i, h_o = len(d_i), len(d_o)
     tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
     ref = np.zeros((n_t, h_i, h_o, 3))
     apx = np.zeros((n_t, h_i, h_o, 3))
@@ -348,13 +348,12 @@ def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
     for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
         sl = slice(s0, s0 + step)
         smp, seg = dense[sl], dseg[sl]
-        vi = visibility_cos(src, smp, world_dirs(lp.frames, tex_l[sl], dirs["held_i"]))
-        vo = visibility_cos(src, smp, world_dirs(lp.frames, tex_l[sl], dirs["held_o"]),
-                            "geometric")
+        wi = world_dirs(lp.frames, tex_l[sl], d_i)  # (p, h_i, 3), once per batch
+        wo = world_dirs(lp.frames, tex_l[sl], d_o)
+        vi = visibility_cos(src, smp, wi)
+        vo = visibility_cos(src, smp, wo, "geometric")
         live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)
-        f = brdf_product(src.geo, src.materials, smp,
-                         world_dirs(lp.frames, tex_l[sl], dirs["held_i"]),
-                         world_dirs(lp.frames, tex_l[sl], dirs["held_o"]), live)
+        f = brdf_product(src.geo, src.materials, smp, wi, wo, live)
         f *= vi[None, :, :, None]
         f *= vo[None, :, None, :]  # (3, p, h_i, h_o)
         a_, b_ = np.searchsorted(pos, [s0, s0 + len(smp)])
@@ -362,9 +361,7 @@ def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
             at = pos[a_:b_] - s0
             fp = f[:, at]
             if pvar is not None:  # the points' own lobes, widened
-                fp = brdf_product(src.geo, src.materials, smp[at],
-                                  world_dirs(lp.frames, tex_l[sl][at], dirs["held_i"]),
-                                  world_dirs(lp.frames, tex_l[sl][at], dirs["held_o"]),
+                fp = brdf_product(src.geo, src.materials, smp[at], wi[at], wo[at],
                                   live[:, :, at], var=pvar[a_:b_])
                 fp *= vi[at][None, :, :, None]
                 fp *= vo[at][None, :, None, :]

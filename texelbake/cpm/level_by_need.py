@@ -103,6 +103,8 @@ def _stored_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: n
     # the batched fit's optional arrays, so that every tile's level has the same keys
     extra = {"merged": np.zeros(n_e, np.int32)} \
         if s.identical_columns == "merge" and s.fit_method == "batched" else {}
+    if s.point_lobe == "widened":  # one facet per point: each keeps its sample's own lobe
+        extra["point_var"] = np.zeros(len(cls.points), np.float32)
     return extra | {
         "texel": texels[ex], "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
         "point_sample": cls.points.astype(np.int64), "point_weight": w32,

@@ -85,8 +85,6 @@ def fit_level(
             out = fit_level_by_need(src, level, texels, candidates, seed_fit)
         else:
             out = seed_fit(texels, candidates)
-    if s.point_lobe == "widened":  # a texel stored exact keeps its one facet's own lobe
-        out.setdefault("point_var", np.zeros(len(out["point_sample"]), np.float32))
     out["rays"] = np.array([src.caster.rays_cast - rays0], np.int64)  # work done, for rays/s
     if s.fit_method == "per_texel" and "fbar" in out and level == 0 and s.btf_table == "cell":
         out["fbar"] = cell_fbar_per_texel(src, texels, candidates)
