@@ -93,6 +93,11 @@ class BakeSettings(BaseModel):
     samples_per_texel: int = _field(
         64, "geometry", "Average number of dense samples on the original mesh per finest texel.",
         ge=1, le=65536)
+    sample_density: Literal["area", "detail"] = _field(
+        "area", "geometry",
+        "'detail' samples a flat, constant-material face of at least a texel's area at a "
+        "quarter of the density and every other face at samples_per_texel, 'area' samples "
+        "every face at samples_per_texel as the seed.")
     # characteristic points (seed 000 §3)
     n_light_dirs: int = _field(
         64, "fit", "Number of light directions of the texel-frame grid.", ge=1, le=4096)

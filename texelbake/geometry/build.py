@@ -13,9 +13,17 @@ import numpy as np
 from schemas.settings import BakeSettings
 from texelbake.errors import StageError
 from texelbake.geometry.atlas import build_atlas, map_into_atlas
+from texelbake.geometry.density import face_density
 from texelbake.geometry.hierarchy import enclose, n_parts, needs_wrap, simplify_hierarchy
 from texelbake.geometry.lodchain import build_lod_chain, hausdorff
-from texelbake.geometry.mesh import Mesh, bbox_diagonal, compact, face_normals, weld
+from texelbake.geometry.mesh import (
+    Mesh,
+    bbox_diagonal,
+    compact,
+    face_normals,
+    triangle_areas,
+    weld,
+)
 from texelbake.geometry.raycast import CutoutTest, RayCaster
 from texelbake.geometry.sampling import SurfaceSampler, surface_sampler
 from texelbake.geometry.texel_frames import FrameSums
@@ -52,7 +60,7 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
     sampler = surface_sampler(
         asset.points, asset.faces, n * n * s.samples_per_texel, s.seed,
         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
-        face_material=asset.face_material,
+        face_material=asset.face_material, face_density=sample_density(asset, s),
     )
     chunk = geometry_chunk(s)
     probes = _spool_samples(sampler, asset, spool, chunk, (200_000, 20_000), caster.cutout)
@@ -123,6 +131,16 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
 
 #: fraction of the page xatlas' charts cover (geometry.atlas: ~40-45 % measured)
 CHART_COVER = 0.4
+
+
+def sample_density(asset: AssetModel, s: BakeSettings) -> np.ndarray | None:
+    """Each face's sample density relative to samples_per_texel (`geometry.density`), None
+    for settings.sample_density 'area'. A finest texel's area on the surface is the surface's
+    over the N² texels at CHART_COVER of the page."""
+    if s.sample_density == "area":
+        return None
+    area = float(triangle_areas(asset.points, asset.faces).sum())
+    return face_density(asset, area / (s.atlas_resolution ** 2 * CHART_COVER))
 
 
 #: the geometry stage's working bytes per sample in a chunk (the sample's attributes, the

@@ -248,6 +248,7 @@ def surface_sampler(
     corner_normals: object | None = None,
     corner_uvs: object | None = None,
     face_material: object | None = None,
+    face_density: object | None = None,
     eps: float = TOL.zero_area,
 ) -> SurfaceSampler:
     """`sample_surface`'s samples as a `SurfaceSampler` (same arguments, checked here)."""
@@ -267,6 +268,11 @@ def surface_sampler(
         if face_material.shape != (f,):
             raise ShapeError(f"face_material must be ({f},), got {face_material.shape}")
         face_material = face_material.astype(np.int32)
+    if face_density is not None:
+        face_density = np.asarray(face_density, dtype=np.float64)
+        if face_density.shape != (f,) or not np.all((face_density > 0) & (face_density <= 1)):
+            raise ShapeError(f"face_density must be ({f},) in (0, 1], got shape "
+                             f"{face_density.shape}")
     if f == 0 or int(n_samples) <= 0:
         counts, areas = np.zeros(f, np.int64), np.zeros(f)
     else:
@@ -275,8 +281,13 @@ def surface_sampler(
         cap = SAMPLES_PER_REQUEST_CAP * int(n_samples)
         if int(np.count_nonzero(areas > eps_area)) > cap:
             counts, areas = systematic_counts(areas, eps_area, cap, seed)
-        else:
+        elif face_density is None:
             counts = allocate_counts(areas, int(n_samples), eps_area)
+        else:
+            live = areas > eps_area
+            dense = np.where(live, areas * face_density, 0.0)  # the density-weighted areas
+            scale = float(dense.sum() / areas[live].sum()) if live.any() else 1.0
+            counts = allocate_counts(dense, int(round(int(n_samples) * scale)), 0.0)
     return SurfaceSampler(pts, fcs, counts, areas, seed, corner_normals, corner_uvs,
                           face_material)
 
@@ -296,6 +307,10 @@ def sample_surface(points: object, faces: object, n_samples: int, seed: int, *,
         interpolated normal is zero or not finite the sample takes the geometric normal
     corner_uvs : (f, 3, 2) float64 or None
     face_material : (f,) int32 or None
+    face_density : (f,) float64 in (0, 1] or None — each face's sample density relative to the
+        request's (`geometry.density`): the m · Σ d a / Σ a samples are split by d · area, and
+        a face's samples still share its area, so Σ ΔA is the surface area. Not applied when the
+        triangles outnumber SAMPLES_PER_REQUEST_CAP · m (they are drawn by area)
     chunk : samples whose attributes are computed at a time (memory only: the result does
         not depend on it; `surface_sampler` gives the chunks without the whole)
     returns : Samples, grouped by triangle in face order; ΔA of a triangle's samples is
