@@ -16,6 +16,7 @@ from sqlalchemy.orm import sessionmaker
 from farm.db import Event, Job
 from services.deps import CurrentTenant, LastEventId
 from services.errors import errors
+from services.event_order import SCAN, SettledMark
 
 router = APIRouter(prefix="/events", tags=["events"])
 
@@ -23,22 +24,30 @@ router = APIRouter(prefix="/events", tags=["events"])
 BATCH = 500
 
 
-def tenant_events_after(reader: sessionmaker, tenant: str, after: int) -> list[Event]:
+def tenant_events_after(reader: sessionmaker, tenant: str, after: int, mark: SettledMark
+                        ) -> tuple[list[Event], int]:
+    """(this tenant's events in (after, settled], settled): `event_order` says why a stream
+    never reads past the settled mark."""
     with reader() as s:
-        return list(
+        upto, _ = mark.read(s, after)
+        rows = list(
             s.scalars(
                 select(Event)
                 .join(Job, Job.id == Event.job_id)
-                .where(Job.tenant == tenant, Event.seq > after)
+                .where(Job.tenant == tenant, Event.seq > after, Event.seq <= upto)
                 .order_by(Event.seq)
                 .limit(BATCH)
             ).all()
         )
+    return rows, (upto if len(rows) < BATCH else rows[-1].seq)
 
 
-def last_seq(reader: sessionmaker) -> int:
+def start_seq(reader: sessionmaker, mark: SettledMark) -> int:
+    """Where a new stream starts: the settled mark over the newest SCAN sequence values (an
+    event still in flight below the newest committed one is sent when it commits)."""
     with reader() as s:
-        return int(s.scalar(select(func.max(Event.seq))) or 0)
+        top = int(s.scalar(select(func.max(Event.seq))) or 0)
+        return mark.read(s, max(top - SCAN, 0))[0]
 
 
 @router.get(
@@ -64,13 +73,15 @@ def read_events(request: Request, tenant: CurrentTenant, given: LastEventId) -> 
     max_seconds = request.app.state.settings.sse_max_seconds
 
     async def stream():
-        after = given if given is not None else await run_in_threadpool(last_seq, reader)
+        mark = SettledMark()
+        after = given if given is not None else await run_in_threadpool(start_seq, reader, mark)
         yield f"id: {after}\nevent: ready\ndata: {json.dumps({'after': after})}\n\n"
         loop = asyncio.get_running_loop()
         t_end = loop.time() + max_seconds
         idle = 0.0
         while True:
-            rows = await run_in_threadpool(tenant_events_after, reader, tenant, after)
+            rows, upto = await run_in_threadpool(tenant_events_after, reader, tenant, after,
+                                                 mark)
             for ev in rows:
                 after = ev.seq
                 payload = {
@@ -81,6 +92,7 @@ def read_events(request: Request, tenant: CurrentTenant, given: LastEventId) -> 
                     "at": ev.at.isoformat(),
                 }
                 yield f"id: {ev.seq}\nevent: {ev.kind}\ndata: {json.dumps(payload)}\n\n"
+            after = upto
             if rows:
                 idle = 0.0
                 continue

@@ -36,6 +36,7 @@ from services.deps import (
     WriterDep,
 )
 from services.errors import ApiError, errors
+from services.event_order import SettledMark
 from services.job_view import job_public, progress_percent
 from services.routers.assets import ASSET_404
 from services.status_cache import JobCache, VersionCache
@@ -183,20 +184,24 @@ async def read_job(job_id: str, request: Request, tenant: CurrentTenant) -> Resp
     return Response(content=body, media_type="application/json")
 
 
-def _events_after(reader, job_id: str, after: int) -> tuple[list[Event], str | None]:  # noqa: ANN001
-    """The job's events after `after` and its state, the state read first: under READ
+def _events_after(reader, job_id: str, after: int, mark: SettledMark  # noqa: ANN001
+                  ) -> tuple[list[Event], str | None, int, bool]:
+    """(the job's events in (after, settled], its state, settled, held): the state read
+    first, then the settled mark (`services.event_order`), then the events. Under READ
     COMMITTED each statement sees the commits before it, so a terminal state read here comes
     with every event its transaction wrote (read the other way round, a commit landing between
-    the two reads ends the stream before its last events)."""
+    the reads ends the stream before its last events); `held` says an event in flight may
+    still come below the mark's next gap, so the stream does not end on a terminal state."""
     with reader() as s:
         state = s.scalar(select(Job.state).where(Job.id == job_id))
+        upto, held = mark.read(s, after)
         rows = s.scalars(
             select(Event)
-            .where(Event.job_id == job_id, Event.seq > after)
+            .where(Event.job_id == job_id, Event.seq > after, Event.seq <= upto)
             .order_by(Event.seq)
             .limit(500)
         ).all()
-    return list(rows), state
+    return list(rows), state, (upto if len(rows) < 500 else rows[-1].seq), held
 
 
 @router.get(
@@ -229,11 +234,13 @@ def read_job_events(
 
     async def stream():
         nonlocal after
+        mark = SettledMark()
         idle = 0.0
         loop = asyncio.get_running_loop()
         t_end = loop.time() + max_seconds
         while True:
-            rows, state = await run_in_threadpool(_events_after, reader, job_id, after)
+            rows, state, upto, held = await run_in_threadpool(_events_after, reader, job_id,
+                                                              after, mark)
             for ev in rows:
                 after = ev.seq
                 payload = {
@@ -244,10 +251,11 @@ def read_job_events(
                     "at": ev.at.isoformat(),
                 }
                 yield f"id: {ev.seq}\nevent: {ev.kind}\ndata: {json.dumps(payload)}\n\n"
+            after = upto
             if rows:
                 idle = 0.0
                 continue
-            if state in TERMINAL_JOB_STATES or state is None:
+            if (state in TERMINAL_JOB_STATES or state is None) and not held:
                 return
             if await request.is_disconnected() or loop.time() > t_end:
                 return  # a client reconnects with Last-Event-ID
