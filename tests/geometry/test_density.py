@@ -11,11 +11,15 @@ import pytest
 from schemas.settings import BakeSettings
 from tests.helpers.render import lambert, model, quad
 from texelbake.errors import ShapeError
-from texelbake.geometry.build import CHART_COVER, sample_density
+from texelbake.geometry.build import CHART_COVER, _spool_samples, sample_density
 from texelbake.geometry.density import SIMPLE_DENSITY, face_density, simple_faces
 from texelbake.geometry.mesh import triangle_areas
 from texelbake.geometry.sampling import sample_surface, surface_sampler
+from texelbake.io.spool import MemorySpool
+from texelbake.io.store import ArtifactStore
 from texelbake.model import Material, Texture
+from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
+from texelbake.stages.filtered import filtered_key
 
 
 def _scene():
@@ -108,3 +112,30 @@ def test_the_setting_sizes_a_texel_by_the_atlas():
             == 1.0).all()
     assert sample_density(asset, BakeSettings(sample_density="detail",
                                               atlas_resolution=16))[0] == SIMPLE_DENSITY
+
+
+def test_the_density_keys_the_geometry_and_what_reads_its_samples(tmp_path):
+    ctx = [StageContext(ArtifactStore(tmp_path), tmp_path / "a.usda",
+                        BakeSettings(sample_density=d), "0" * 64) for d in ("area", "detail")]
+    assert ctx[0].geometry_key() != ctx[1].geometry_key()
+    assert filtered_key(ctx[0]) != filtered_key(ctx[1])
+    assert ctx[0].key("avis", "top.npz", GEOMETRY_FIELDS) != ctx[1].key("avis", "top.npz",
+                                                                         GEOMETRY_FIELDS)
+
+
+def test_probes_follow_the_area_whatever_the_density():
+    """The LOD chain and the atlas search measure on probes; with a density they are the
+    samples at equal steps of cumulative area, so each face holds its area's share of them."""
+    asset = _scene()
+    areas = triangle_areas(asset.points, asset.faces)
+    sampler = surface_sampler(asset.points, asset.faces, 40_000, seed=2,
+                              corner_normals=asset.corner_normals,
+                              face_density=face_density(asset, 0.5))
+    probes = _spool_samples(sampler, asset, MemorySpool(), 7_000, (2_000,))[2_000]
+    assert abs(len(probes) - 2_000) <= 1
+    quad0 = (probes[:, 0] <= 2.0) & (probes[:, 1] >= 0.0)
+    share = areas[:2].sum() / areas.sum()  # quad 0: simple, sampled at a quarter
+    assert abs(quad0.sum() - 2_000 * share) <= 2  # a systematic sample: within a step or two
+    smp = sample_surface(asset.points, asset.faces, 40_000, seed=2,
+                         face_density=face_density(asset, 0.5))
+    assert np.isin(smp.face, [0, 1]).mean() < 0.5 * share

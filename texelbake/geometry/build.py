@@ -171,7 +171,9 @@ def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int
                    probe_sizes: tuple[int, ...], cutout: CutoutTest | None = None
                    ) -> dict[int, np.ndarray]:
     """First pass: the samples into the spool, a chunk at a time; returns, per size p, every
-    (m // p)-th sample position (the probes the LOD chain and the atlas search measure on).
+    (m // p)-th sample position (the probes the LOD chain and the atlas search measure on), or,
+    when the sampler's density varies over the faces, the sample in which each multiple of
+    1/p of the cumulative area falls (area-uniform probes whatever the density).
     A sample on a cut-out (`cutout`) holds no surface: its area is 0, so it weighs nothing in
     the maps (R, a_vis, the baselines' sums)."""
     m = sampler.m
@@ -179,8 +181,16 @@ def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int
         spool.allocate(name, dt, (m, *tail))
     face_n = face_normals(asset.points, asset.faces)
     strides = {p: max(1, m // p) for p in probe_sizes}
+    steps = {p: sampler.total_area / min(p, max(m, 1)) for p in probe_sizes}
     probes: dict[int, list[np.ndarray]] = {p: [] for p in probe_sizes}
+    done = 0.0  # the samples' area before the chunk
     for a, smp in sampler.chunks(chunk):  # loop over chunks (memory bound)
+        if not sampler.uniform:
+            cum = done + np.cumsum(smp.area)
+            for p, step in steps.items():
+                k = np.floor(cum / step)
+                probes[p].append(smp.positions[k > np.r_[np.floor(done / step), k[:-1]]])
+            done = float(cum[-1])
         area = smp.area
         if cutout is not None:
             area = np.where(cutout.cut_uv(smp.face, smp.uv), 0.0, area)
@@ -189,7 +199,7 @@ def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int
                           ("sample_uv", smp.uv), ("sample_mat", smp.material),
                           ("sample_area", area)):
             spool.write(name, a, arr)
-        for p, st in strides.items():  # global ids 0, st, 2 st, ... that fall in the chunk
+        for p, st in strides.items() if sampler.uniform else ():  # ids 0, st, 2 st, ...
             probes[p].append(smp.positions[(-a) % st::st].copy())  # not a view of the chunk
     return {p: np.concatenate(v) if v else np.zeros((0, 3)) for p, v in probes.items()}
 

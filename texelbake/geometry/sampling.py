@@ -185,13 +185,15 @@ class SurfaceSampler:
     shift and its own jitter; the jitters are one PCG64 stream drawn in sample order, so any
     chunking gives the same samples bit for bit (a test holds it). m : the sample count;
     total_area : Σ ΔA_j, the area of the sampled triangles (summed per triangle, not per
-    sample, so it does not depend on the chunking either)."""
+    sample, so it does not depend on the chunking either); uniform : every triangle is
+    sampled at one density (no `face_density`)."""
 
     def __init__(self, pts, fcs, counts, areas, seed, corner_normals, corner_uvs,
-                 face_material) -> None:
+                 face_material, uniform: bool = True) -> None:
         self.pts, self.fcs, self.counts, self.areas = pts, fcs, counts, areas
         self.corner_normals, self.corner_uvs = corner_normals, corner_uvs
         self.face_material = face_material
+        self.uniform = bool(uniform)
         self.seed = int(seed)
         self.m = int(counts.sum())
         self.total_area = float(areas[counts > 0].sum())
@@ -289,7 +291,7 @@ def surface_sampler(
             scale = float(dense.sum() / areas[live].sum()) if live.any() else 1.0
             counts = allocate_counts(dense, int(round(int(n_samples) * scale)), 0.0)
     return SurfaceSampler(pts, fcs, counts, areas, seed, corner_normals, corner_uvs,
-                          face_material)
+                          face_material, uniform=face_density is None)
 
 
 def sample_surface(points: object, faces: object, n_samples: int, seed: int, *,

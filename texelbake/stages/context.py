@@ -32,7 +32,7 @@ LAYOUT_ONLY = {"previews", "warp", "deform_frames", "worker_memory_mb", "gate_sn
 EXPORT_ONLY = {"fallback"}
 GEOMETRY_FIELDS = (
     "seed", "atlas_resolution", "mesh_levels", "simplify_ratio", "m1_faces", "samples_per_texel",
-    "enclose_meshes", "m1_method", "lod_mode", "lod_switch_px", "lod_error_px",
+    "enclose_meshes", "m1_method", "lod_mode", "lod_switch_px", "lod_error_px", "sample_density",
 )
 _TAG_LIGHT, _TAG_VIEW, _TAG_HELD_I, _TAG_HELD_O = 0x11, 0x22, 0x33, 0x44
 
