@@ -94,7 +94,7 @@ class BakeSettings(BaseModel):
         64, "geometry", "Average number of dense samples on the original mesh per finest texel.",
         ge=1, le=65536)
     sample_density: Literal["area", "detail"] = _field(
-        "area", "geometry",
+        "detail", "geometry",
         "'detail' samples a flat, constant-material face of at least a texel's area at a "
         "quarter of the density and every other face at samples_per_texel, 'area' samples "
         "every face at samples_per_texel as the seed.")

@@ -101,15 +101,14 @@ def test_a_bad_density_names_the_field(bad):
 def test_the_setting_sizes_a_texel_by_the_atlas():
     asset = _scene()
     area = triangle_areas(asset.points, asset.faces).sum()
-    assert sample_density(asset, BakeSettings()) is None  # 'area': the seed's sampler
-    for n in (4, 16):
-        s = BakeSettings(sample_density="detail", atlas_resolution=n, shard_texels=4)
-        np.testing.assert_array_equal(sample_density(asset, s),
-                                      face_density(asset, area / (n * n * CHART_COVER)))
-    # at 4² a texel (~1.26) is larger than every face: nothing is simple; at 16² quad 0 is
-    assert (sample_density(asset, BakeSettings(sample_density="detail", atlas_resolution=4,
-                                         shard_texels=4))
-            == 1.0).all()
+    assert sample_density(asset, BakeSettings(sample_density="area")) is None  # the seed's
+    s = BakeSettings(sample_density="detail", atlas_resolution=16, shard_texels=4)
+    np.testing.assert_array_equal(sample_density(asset, s),
+                                  face_density(asset, area / (16 * 16 * CHART_COVER)))
+    # at 4² a texel (~1.26) is larger than every face: nothing is simple, and the sampler is
+    # the seed's (None: its probes too); at 16² quad 0 is simple
+    assert sample_density(asset, BakeSettings(sample_density="detail", atlas_resolution=4,
+                                              shard_texels=4)) is None
     assert sample_density(asset, BakeSettings(sample_density="detail",
                                               atlas_resolution=16))[0] == SIMPLE_DENSITY
 

@@ -135,12 +135,14 @@ CHART_COVER = 0.4
 
 def sample_density(asset: AssetModel, s: BakeSettings) -> np.ndarray | None:
     """Each face's sample density relative to samples_per_texel (`geometry.density`), None
-    for settings.sample_density 'area'. A finest texel's area on the surface is the surface's
-    over the N² texels at CHART_COVER of the page."""
+    for settings.sample_density 'area' and where no face is simple (the seed's samples, bit
+    for bit). A finest texel's area on the surface is the surface's over the N² texels at
+    CHART_COVER of the page."""
     if s.sample_density == "area":
         return None
     area = float(triangle_areas(asset.points, asset.faces).sum())
-    return face_density(asset, area / (s.atlas_resolution ** 2 * CHART_COVER))
+    density = face_density(asset, area / (s.atlas_resolution ** 2 * CHART_COVER))
+    return None if bool((density == 1.0).all()) else density
 
 
 #: the geometry stage's working bytes per sample in a chunk (the sample's attributes, the
