@@ -76,7 +76,30 @@ def _cull_gain(scene, cam) -> dict:
     without = time.perf_counter() - t0
     return {"gt_seconds_culled": round(with_cull.seconds, 4),
             "gt_seconds_uncull": round(without, 4),
-            "identical": bool(np.array_equal(with_cull.image, img.astype(np.float32)))}
+            "identical": bool(np.array_equal(with_cull.image, img.astype(np.float32))),
+            **_draw_gain(scene, cam)}
+
+
+def _draw_gain(scene, cam) -> dict:
+    """gt@SPP and cpm@SPP seconds (the better of 3 frames each) drawing only the traced
+    pixels' jitter (`camera.sample_offsets`, what every mode does) and drawing the whole
+    frame's as before it (SKIP_DRAWS_BELOW = 0), and whether the images are identical."""
+    from texelbake.trace import camera as cam_mod
+
+    out: dict = {}
+    keep = cam_mod.SKIP_DRAWS_BELOW
+    for mode in ("gt", "cpm"):
+        imgs = []
+        for share, key in ((keep, "skipped"), (0.0, "drawn")):
+            cam_mod.SKIP_DRAWS_BELOW = share
+            try:
+                runs = [render_frame(scene, mode, cam, SPP, 0) for _ in range(3)]
+            finally:
+                cam_mod.SKIP_DRAWS_BELOW = keep
+            out[f"{mode}_seconds_draws_{key}"] = round(min(r.seconds for r in runs), 4)
+            imgs.append(runs[0].image)
+        out[f"{mode}_draws_identical"] = bool(np.array_equal(*imgs))
+    return out
 
 
 def _notes(scene_name: str, px: int, rep: dict) -> list[str]:
@@ -165,6 +188,10 @@ def _print(label: str, px: int, rep: dict) -> None:
     print(f"  renderer: gt@{SPP} {rc['gt_seconds_culled']:.3f} s with the cull, "
           f"{rc['gt_seconds_uncull']:.3f} s tracing every eye ray (images identical: "
           f"{rc['identical']})")
+    print(f"  jitter drawn for the traced pixels only: gt@{SPP} {rc['gt_seconds_draws_skipped']:.3f}"
+          f" s against {rc['gt_seconds_draws_drawn']:.3f} s for the whole frame's, cpm@{SPP} "
+          f"{rc['cpm_seconds_draws_skipped']:.3f} against {rc['cpm_seconds_draws_drawn']:.3f} s "
+          f"(images identical: {rc['gt_draws_identical'] and rc['cpm_draws_identical']})")
     for p in rep.get("profile", []):
         top = ", ".join(f"{r['function'].rsplit(':', 1)[-1]} {r['own_s']:.2f}"
                         for r in p["top_own"][:4])

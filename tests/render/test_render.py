@@ -121,6 +121,22 @@ def test_stratified_offsets_stay_in_their_strata():
         cam_mod.strata(0)
 
 
+@pytest.mark.parametrize("share", [0.01, 0.2, 0.6])
+def test_a_frames_pixels_get_the_whole_frames_offsets(share):
+    """A frame that traces only some pixels (the box's rectangle) draws their jitter alone,
+    skipping the stream between their runs; it must be the whole frame's there, bit for bit
+    (below and above SKIP_DRAWS_BELOW, runs and single pixels, every pass)."""
+    rng = np.random.default_rng(3)
+    n = 4000
+    pixels = np.flatnonzero(rng.random(n) < share)
+    rect = (np.arange(10, 20)[:, None] * 100 + np.arange(40, 47)[None, :]).reshape(-1)
+    for pix in (pixels, rect, np.array([0, n - 1]), np.zeros(0, np.int64)):
+        for start, stop in ((0, 8), (2, 6), (7, 8)):
+            np.testing.assert_array_equal(
+                cam_mod.sample_offsets(8, n, 11, start, stop, pix),
+                cam_mod.sample_offsets(8, n, 11, start, stop)[:, pix])
+
+
 def test_centre_pixel_ray_is_the_view_direction():
     cam = cam_mod.look_at((1.0, 2.0, 3.0), (0.0, 0.0, 0.0), 33, 33, fov_deg=40.0)
     o, d = _centre_rays(cam)

@@ -114,14 +114,21 @@ def strata(spp: int) -> tuple[int, int]:
     return nx, spp // nx
 
 
+#: a frame draws the jitter of only the pixels it traces when they are at most this share
+#: of it (skipping the rest of the stream, `_run_jitter`); a larger share draws every pixel's
+SKIP_DRAWS_BELOW = 0.25
+
+
 def sample_offsets(spp: int, n_pixels: int, seed: int, start: int = 0,
-                   stop: int | None = None) -> np.ndarray:
-    """Stratified jittered sub-pixel positions of samples start..stop-1 of every pixel:
-    (stop - start, n_pixels, 2) float64 in [0, 1).
+                   stop: int | None = None, pixels: np.ndarray | None = None) -> np.ndarray:
+    """Stratified jittered sub-pixel positions of samples start..stop-1 of every pixel, or of
+    the row-major `pixels` (p,) only (ascending): (stop - start, n_pixels or p, 2) float64 in
+    [0, 1).
 
     Sample s of every pixel lies in stratum s of an nx x ny grid (`strata`), jittered
     independently per pixel by a generator seeded with (seed, start), so a pass of samples
-    can be generated on its own (memory stays bounded at 1024 samples per pixel).
+    can be generated on its own (memory stays bounded at 1024 samples per pixel). The jitter
+    of `pixels` is the whole frame's at those pixels, bit for bit, whichever way it is drawn.
     """
     nx, ny = strata(spp)
     stop = spp if stop is None else int(stop)
@@ -130,8 +137,37 @@ def sample_offsets(spp: int, n_pixels: int, seed: int, start: int = 0,
     rng = np.random.default_rng([int(seed), int(start)])
     s = np.arange(start, stop)
     cell = np.stack([s % nx, s // nx], axis=1).astype(np.float64)  # (k, 2)
-    jitter = rng.random((stop - start, n_pixels, 2))
+    if pixels is None:
+        jitter = rng.random((stop - start, n_pixels, 2))
+    elif pixels.size > SKIP_DRAWS_BELOW * n_pixels:
+        jitter = rng.random((stop - start, n_pixels, 2))[:, pixels]
+    else:
+        jitter = _run_jitter(rng, stop - start, n_pixels, np.asarray(pixels, np.int64))
     return (cell[:, None, :] + jitter) / np.array([nx, ny], dtype=np.float64)
+
+
+def _run_jitter(rng: np.random.Generator, k: int, n_pixels: int, pixels: np.ndarray
+                ) -> np.ndarray:
+    """`rng.random((k, n_pixels, 2))[:, pixels]` without drawing the other pixels' values:
+    for each sample, each run of consecutive pixel ids (a row of `box_pixels`' rectangle) is
+    drawn after advancing the generator past the values before it (PCG64's `advance`: one
+    64-bit draw per float64). numpy's generators give a stream in order only, so the runs are
+    a loop, each drawn at once; a 32 px object in a 512² frame drew 2 M values for ~2 k pixels
+    (5 ms of its 8 ms gt frame)."""
+    out = np.empty((k, pixels.size, 2))
+    if pixels.size == 0:
+        return out
+    cut = np.flatnonzero(np.diff(pixels) != 1) + 1
+    heads, ends = np.r_[0, cut], np.r_[cut, pixels.size]
+    bits = rng.bit_generator
+    at = 0  # values drawn so far
+    for s in range(k):  # a loop over the pass's samples and the pixels' runs
+        for a, b in zip(heads.tolist(), ends.tolist(), strict=True):
+            first = (s * n_pixels + int(pixels[a])) * 2
+            bits.advance(first - at)
+            out[s, a:b] = rng.random((b - a, 2))
+            at = first + 2 * (b - a)
+    return out
 
 
 def eye_rays(cam: PinholeCamera, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -52,11 +52,10 @@ def eye_passes(cam: PinholeCamera, spp: int, seed: int, pixels: np.ndarray | Non
     per_pass = max(1, PASS_RAYS // n_pix)
     for start in range(0, spp, per_pass):  # a loop over passes of many rays
         stop = min(spp, start + per_pass)
-        off = cam_mod.sample_offsets(spp, n_pix, seed, start, stop)
         if pixels is None:
-            o, d = cam_mod.eye_rays(cam, off)
+            o, d = cam_mod.eye_rays(cam, cam_mod.sample_offsets(spp, n_pix, seed, start, stop))
         else:
-            sub = off[:, pixels]  # (k, p, 2)
+            sub = cam_mod.sample_offsets(spp, n_pix, seed, start, stop, pixels)  # (k, p, 2)
             pix = np.broadcast_to(pixels, sub.shape[:2]).reshape(-1)
             o, d = cam_mod.eye_rays_at(cam, pix, sub.reshape(-1, 2))
         yield start, o, d
