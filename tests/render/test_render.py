@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tests.helpers.render import RHO, distant, icosphere, model, psnr_object, quad, write_plane_usd
-from texelbake.errors import SettingsError
+from texelbake.errors import SettingsError, ShapeError
 from texelbake.render import metrics
 from texelbake.trace import camera as cam_mod
 from texelbake.trace.org import OrgScene, render_model, shade_org
@@ -135,6 +135,12 @@ def test_a_frames_pixels_get_the_whole_frames_offsets(share):
             np.testing.assert_array_equal(
                 cam_mod.sample_offsets(8, n, 11, start, stop, pix),
                 cam_mod.sample_offsets(8, n, 11, start, stop)[:, pix])
+
+
+@pytest.mark.parametrize("bad", [[3, 2], [1, 1], [-1, 4], [5, 400]])
+def test_offsets_refuse_pixels_out_of_order_or_range(bad):
+    with pytest.raises(ShapeError, match="pixels"):
+        cam_mod.sample_offsets(4, 400, 0, pixels=np.array(bad))
 
 
 def test_centre_pixel_ray_is_the_view_direction():

@@ -26,8 +26,8 @@ from texelbake.geometry.mesh import face_normals, triangle_areas
 from texelbake.model import AssetModel
 from texelbake.tol import TOL
 
-#: a simple face's sample density relative to the request's (docs/decisions.md, "Samples
-#: where the detail is": measured against 1/2 and 1/8)
+#: a simple face's sample density relative to the request's (docs/decisions.md, "Dense samples
+#: follow the detail": measured against 1/2 and 1/8)
 SIMPLE_DENSITY = 0.25
 
 

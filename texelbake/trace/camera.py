@@ -139,10 +139,15 @@ def sample_offsets(spp: int, n_pixels: int, seed: int, start: int = 0,
     cell = np.stack([s % nx, s // nx], axis=1).astype(np.float64)  # (k, 2)
     if pixels is None:
         jitter = rng.random((stop - start, n_pixels, 2))
-    elif pixels.size > SKIP_DRAWS_BELOW * n_pixels:
-        jitter = rng.random((stop - start, n_pixels, 2))[:, pixels]
     else:
-        jitter = _run_jitter(rng, stop - start, n_pixels, np.asarray(pixels, np.int64))
+        pixels = np.asarray(pixels, np.int64)
+        if pixels.ndim != 1 or np.any(np.diff(pixels) <= 0) or (
+                pixels.size and not 0 <= pixels[0] <= pixels[-1] < n_pixels):
+            raise ShapeError(f"pixels must be ascending ids in [0, {n_pixels})")
+        if pixels.size > SKIP_DRAWS_BELOW * n_pixels:
+            jitter = rng.random((stop - start, n_pixels, 2))[:, pixels]
+        else:
+            jitter = _run_jitter(rng, stop - start, n_pixels, pixels)
     return (cell[:, None, :] + jitter) / np.array([nx, ny], dtype=np.float64)
 
 
@@ -152,8 +157,9 @@ def _run_jitter(rng: np.random.Generator, k: int, n_pixels: int, pixels: np.ndar
     for each sample, each run of consecutive pixel ids (a row of `box_pixels`' rectangle) is
     drawn after advancing the generator past the values before it (PCG64's `advance`: one
     64-bit draw per float64). numpy's generators give a stream in order only, so the runs are
-    a loop, each drawn at once; a 32 px object in a 512² frame drew 2 M values for ~2 k pixels
-    (5 ms of its 8 ms gt frame)."""
+    a loop, each drawn at once: an object of a few dozen pixels in a 512² frame drew 2 M
+    values for ~2 k pixels (docs/decisions.md, "Eye rays are traced only where the object can
+    be")."""
     out = np.empty((k, pixels.size, 2))
     if pixels.size == 0:
         return out
