@@ -134,7 +134,8 @@ def sample_offsets(spp: int, n_pixels: int, seed: int, start: int = 0,
     stop = spp if stop is None else int(stop)
     if not 0 <= start < stop <= spp:
         raise SettingsError(f"sample range [{start}, {stop}) outside [0, {spp})")
-    rng = np.random.default_rng([int(seed), int(start)])
+    bits = np.random.PCG64([int(seed), int(start)])  # numpy's default_rng, its PCG64 at hand
+    rng = np.random.Generator(bits)
     s = np.arange(start, stop)
     cell = np.stack([s % nx, s // nx], axis=1).astype(np.float64)  # (k, 2)
     if pixels is None:
@@ -147,12 +148,12 @@ def sample_offsets(spp: int, n_pixels: int, seed: int, start: int = 0,
         if pixels.size > SKIP_DRAWS_BELOW * n_pixels:
             jitter = rng.random((stop - start, n_pixels, 2))[:, pixels]
         else:
-            jitter = _run_jitter(rng, stop - start, n_pixels, pixels)
+            jitter = _run_jitter(rng, bits, stop - start, n_pixels, pixels)
     return (cell[:, None, :] + jitter) / np.array([nx, ny], dtype=np.float64)
 
 
-def _run_jitter(rng: np.random.Generator, k: int, n_pixels: int, pixels: np.ndarray
-                ) -> np.ndarray:
+def _run_jitter(rng: np.random.Generator, bits: np.random.PCG64, k: int, n_pixels: int,
+                pixels: np.ndarray) -> np.ndarray:
     """`rng.random((k, n_pixels, 2))[:, pixels]` without drawing the other pixels' values:
     for each sample, each run of consecutive pixel ids (a row of `box_pixels`' rectangle) is
     drawn after advancing the generator past the values before it (PCG64's `advance`: one
@@ -165,7 +166,6 @@ def _run_jitter(rng: np.random.Generator, k: int, n_pixels: int, pixels: np.ndar
         return out
     cut = np.flatnonzero(np.diff(pixels) != 1) + 1
     heads, ends = np.r_[0, cut], np.r_[cut, pixels.size]
-    bits = rng.bit_generator
     at = 0  # values drawn so far
     for s in range(k):  # a loop over the pass's samples and the pixels' runs
         for a, b in zip(heads.tolist(), ends.tolist(), strict=True):
