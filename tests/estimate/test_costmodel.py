@@ -193,7 +193,7 @@ def test_machine_speed_scales_each_term_by_its_kind_of_work():
     from texelbake.estimate.costmodel import Coefficients
     from texelbake.estimate.machinespeed import PART_OF, MachineSpeed
 
-    ratios = {"brdf_ggx", "held_ggx", "btf_cell"}
+    ratios = {"brdf_ggx", "held_ggx", "btf_cell", "widened"}
     assert {f.name for f in fields(Coefficients)} == set(PART_OF) | ratios
     factors = {"grid": 2.0, "blas": 3.0, "rays": 5.0, "python": 7.0}
     speed = MachineSpeed(factors=factors, seconds=dict.fromkeys(factors, 1.0))
@@ -248,11 +248,24 @@ def test_the_cell_table_is_priced_at_level_0():
     assert e_cell.per_level[1] == e_point.per_level[1]
 
 
+def test_widened_lobes_price_the_fit_at_its_measured_ratio():
+    """point_lobe "widened" multiplies every level's fit seconds by `widened` and nothing
+    else (by hand against the narrow estimate)."""
+    c = costmodel.Coefficients()
+    narrow = BakeSettings(atlas_resolution=32)
+    wide = BakeSettings(atlas_resolution=32, point_lobe="widened")
+    e_n, e_w = (costmodel.estimate(s, 2) for s in (narrow, wide))
+    for a, b in zip(e_n.per_level, e_w.per_level, strict=True):
+        assert b["seconds"] == pytest.approx(c.widened * a["seconds"], rel=1e-12)
+    assert e_w.cpm_seconds == pytest.approx(c.widened * e_n.cpm_seconds, rel=1e-9)
+    assert e_w.avis_seconds == e_n.avis_seconds
+
+
 def _only(**nonzero):
     """Coefficients with every seconds field 0 but `nonzero` (the ratio fields 1)."""
     from dataclasses import fields
 
-    ratios = {"brdf_ggx", "held_ggx", "btf_cell"}
+    ratios = {"brdf_ggx", "held_ggx", "btf_cell", "widened"}
     return costmodel.Coefficients(**{f.name: nonzero.get(f.name, 1.0 if f.name in ratios
                                                          else 0.0)
                                      for f in fields(costmodel.Coefficients)})

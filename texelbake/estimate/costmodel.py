@@ -77,6 +77,10 @@ class Coefficients:
     # draw and the pair's own, x r_entry per (sample, pair, grid); fitted to the cpm stage's
     # seconds cell / point (benchmarks/btf_tables.py)
     btf_cell: float = 0.39
+    # point_lobe "widened" (`cpm.lobe`: the cells, the widened lobes' BRDF, the NNLS refit, the
+    # validation pairs): the whole fit's CPU seconds x narrow, the median of the measured
+    # ratios 1.06-1.26 (benchmarks/results/cpm_cpu_*_point_lobe_{narrow,widened}.json)
+    widened: float = 1.20
     avis: float = 1.76e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
     avis_fixed: float = 1.74e-5  # s per dense sample at any face resolution (maps, coarsening)
     avis_stage: float = 4.8  # wall s of the a_vis stage on any atlas (each worker's set-up)
@@ -234,6 +238,8 @@ def estimate(
             sec += phi * mult * coef.fit_avis * s.n_view_dirs * float(dense.sum())
         if level == 0 and cell_grids:
             sec += mult * cell_grids * coef.btf_cell * brdf * coef.r_entry * float((m * d).sum())
+        if s.point_lobe == "widened":
+            sec *= coef.widened
         n_tex = int(round(mult * m.size))
         per_level.append({"level": level, "texels": n_tex, "seconds": sec})
         cpm += sec
