@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from cpm_cpu import stages_asset
 
 from schemas.settings import BakeSettings
 from texelbake import stages
@@ -35,7 +36,6 @@ from texelbake.cpm.dense import (
 )
 from texelbake.cpm.level import segment_sum, texel_ids
 from texelbake.pipeline.process import setup_bake_process
-from texelbake.testscenes.author import write_scene
 
 #: the split's seed (any: the halves are a seeded draw per level)
 SPLIT_SEED = 7
@@ -85,9 +85,7 @@ def main() -> None:
     args = ap.parse_args()
     setup_bake_process()
     work = args.workdir or Path(tempfile.mkdtemp(prefix="texelbake-truth-"))
-    asset = Path(args.scene)
-    if asset.suffix not in (".usd", ".usda", ".usdc", ".usdz"):
-        asset = write_scene(args.scene, work / f"{args.scene}_full.usda", "full")
+    asset = stages_asset(args.scene, "full", work)
     over = {"atlas_resolution": args.atlas,
             "shard_texels": min(args.atlas, BakeSettings().shard_texels)}
     if args.spt is not None:

@@ -82,20 +82,24 @@ def _cull_gain(scene, cam) -> dict:
 
 def _draw_gain(scene, cam) -> dict:
     """gt@SPP and cpm@SPP seconds (the better of 3 frames each) drawing only the traced
-    pixels' jitter (`camera.sample_offsets`, what every mode does) and drawing the whole
-    frame's as before it (SKIP_DRAWS_BELOW = 0), and whether the images are identical."""
+    pixels' span of the jitter (`camera.sample_offsets`, what every mode does) and drawing
+    the whole frame's as before it, and whether the images are identical."""
     from texelbake.trace import camera as cam_mod
 
     out: dict = {}
-    keep = cam_mod.SKIP_DRAWS_BELOW
+    keep = cam_mod._span_jitter
+
+    def whole(rng, bits, k, n_pixels, pixels):  # the whole frame's draws, then the pixels
+        return rng.random((k, n_pixels, 2))[:, pixels]
+
     for mode in ("gt", "cpm"):
         imgs = []
-        for share, key in ((keep, "skipped"), (0.0, "drawn")):
-            cam_mod.SKIP_DRAWS_BELOW = share
+        for draw, key in ((keep, "skipped"), (whole, "drawn")):
+            cam_mod._span_jitter = draw
             try:
                 runs = [render_frame(scene, mode, cam, SPP, 0) for _ in range(3)]
             finally:
-                cam_mod.SKIP_DRAWS_BELOW = keep
+                cam_mod._span_jitter = keep
             out[f"{mode}_seconds_draws_{key}"] = round(min(r.seconds for r in runs), 4)
             imgs.append(runs[0].image)
         out[f"{mode}_draws_identical"] = bool(np.array_equal(*imgs))

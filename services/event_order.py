@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable
 from datetime import datetime, timedelta
 
-from sqlalchemy import select
+from sqlalchemy import Select, select
 from sqlalchemy.orm import Session
 
 from farm.db import Event, utcnow
@@ -72,3 +72,14 @@ class SettledMark:
         rows = session.execute(select(Event.seq, Event.at).where(Event.seq > after)
                                .order_by(Event.seq).limit(SCAN)).all()
         return self.settle([(int(q), at) for q, at in rows], after)
+
+
+def events_upto(session: Session, mark: SettledMark, query: Select, after: int, limit: int
+                ) -> tuple[list[Event], int, bool]:
+    """`query`'s events (a `select(Event)` with the stream's filters) in (after, settled], at
+    most `limit`, in seq order; the stream's next cursor (the settled mark, or the last event
+    read when `limit` cut the read short); and whether an open gap holds the mark."""
+    upto, held = mark.read(session, after)
+    rows = list(session.scalars(query.where(Event.seq > after, Event.seq <= upto)
+                                .order_by(Event.seq).limit(limit)).all())
+    return rows, (upto if len(rows) < limit else rows[-1].seq), held

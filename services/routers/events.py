@@ -16,7 +16,7 @@ from sqlalchemy.orm import sessionmaker
 from farm.db import Event, Job
 from services.deps import CurrentTenant, LastEventId
 from services.errors import errors
-from services.event_order import SCAN, SettledMark
+from services.event_order import SCAN, SettledMark, events_upto
 
 router = APIRouter(prefix="/events", tags=["events"])
 
@@ -29,17 +29,10 @@ def tenant_events_after(reader: sessionmaker, tenant: str, after: int, mark: Set
     """(this tenant's events in (after, settled], settled): `event_order` says why a stream
     never reads past the settled mark."""
     with reader() as s:
-        upto, _ = mark.read(s, after)
-        rows = list(
-            s.scalars(
-                select(Event)
-                .join(Job, Job.id == Event.job_id)
-                .where(Job.tenant == tenant, Event.seq > after, Event.seq <= upto)
-                .order_by(Event.seq)
-                .limit(BATCH)
-            ).all()
-        )
-    return rows, (upto if len(rows) < BATCH else rows[-1].seq)
+        rows, upto, _ = events_upto(
+            s, mark, select(Event).join(Job, Job.id == Event.job_id).where(Job.tenant == tenant),
+            after, BATCH)
+    return rows, upto
 
 
 def start_seq(reader: sessionmaker, mark: SettledMark) -> int:

@@ -36,7 +36,7 @@ from services.deps import (
     WriterDep,
 )
 from services.errors import ApiError, errors
-from services.event_order import SettledMark
+from services.event_order import SettledMark, events_upto
 from services.job_view import job_public, progress_percent
 from services.routers.assets import ASSET_404
 from services.status_cache import JobCache, VersionCache
@@ -194,14 +194,9 @@ def _events_after(reader, job_id: str, after: int, mark: SettledMark  # noqa: AN
     still come below the mark's next gap, so the stream does not end on a terminal state."""
     with reader() as s:
         state = s.scalar(select(Job.state).where(Job.id == job_id))
-        upto, held = mark.read(s, after)
-        rows = s.scalars(
-            select(Event)
-            .where(Event.job_id == job_id, Event.seq > after, Event.seq <= upto)
-            .order_by(Event.seq)
-            .limit(500)
-        ).all()
-    return list(rows), state, (upto if len(rows) < 500 else rows[-1].seq), held
+        rows, upto, held = events_upto(s, mark, select(Event).where(Event.job_id == job_id),
+                                       after, 500)
+    return rows, state, upto, held
 
 
 @router.get(

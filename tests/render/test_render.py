@@ -123,9 +123,9 @@ def test_stratified_offsets_stay_in_their_strata():
 
 @pytest.mark.parametrize("share", [0.01, 0.2, 0.6])
 def test_a_frames_pixels_get_the_whole_frames_offsets(share):
-    """A frame that traces only some pixels (the box's rectangle) draws their jitter alone,
-    skipping the stream between their runs; it must be the whole frame's there, bit for bit
-    (below and above SKIP_DRAWS_BELOW, runs and single pixels, every pass)."""
+    """A frame that traces only some pixels (the box's rectangle) draws the span of the stream
+    that holds them, skipping the rest; it must be the whole frame's there, bit for bit
+    (sparse and dense sets, a rectangle, the first and last pixels, none, every pass)."""
     rng = np.random.default_rng(3)
     n = 4000
     pixels = np.flatnonzero(rng.random(n) < share)

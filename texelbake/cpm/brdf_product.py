@@ -101,8 +101,8 @@ def brdf_product(
         material = materials[int(m_i)]
         sel = np.flatnonzero(mat == m_i)
         n_s = sel.size
-        wide = var is not None and material.model in WIDENED_MODELS
-        if wide and kernel != "product":
+        v_sel = var[sel] if var is not None and material.model in WIDENED_MODELS else None
+        if v_sel is not None and kernel != "product":
             raise SettingsError("widened lobes are evaluated by the product kernel only")
         if material.model == "lambert":
             up = np.zeros((n_s, 3))
@@ -116,8 +116,8 @@ def brdf_product(
             continue
         if material.model == "preview" and kernel == "product":
             inp = material_inputs(material, PREVIEW_BRDF_INPUTS, uv[sel], None)
-            if wide and var is not None:  # per-sample inputs (n_s,), textured ones included
-                inp = widen_inputs("preview", inp, var[sel])
+            if v_sel is not None:  # per-sample inputs (n_s,), textured ones included
+                inp = widen_inputs("preview", inp, v_sel)
             prm = preview_surface_params(inp, n_s)
             for b0 in range(0, n_s, GRID_BLOCK):  # loop over sample blocks (cache-sized)
                 blk = sel[b0:b0 + GRID_BLOCK]
@@ -128,8 +128,8 @@ def brdf_product(
             continue
         if material.model == "phong" and kernel == "product":
             prm = material_inputs(material, ("diffuseColor", "specularColor", "exponent"), uv[sel], None)
-            if wide and var is not None:
-                prm = widen_inputs("phong", prm, var[sel])
+            if v_sel is not None:
+                prm = widen_inputs("phong", prm, v_sel)
             kd = as_color(prm["diffuseColor"], n_s, "diffuseColor")
             ks = as_color(prm["specularColor"], n_s, "specularColor")
             ex = as_scalar(prm["exponent"], n_s, "exponent")

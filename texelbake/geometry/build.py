@@ -182,16 +182,20 @@ def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int
     for name, (dt, tail) in _SAMPLE_ARRAYS.items():
         spool.allocate(name, dt, (m, *tail))
     face_n = face_normals(asset.points, asset.faces)
-    strides = {p: max(1, m // p) for p in probe_sizes}
-    steps = {p: sampler.total_area / min(p, max(m, 1)) for p in probe_sizes}
     probes: dict[int, list[np.ndarray]] = {p: [] for p in probe_sizes}
     done = 0.0  # the samples' area before the chunk
     for a, smp in sampler.chunks(chunk):  # loop over chunks (memory bound)
-        if not sampler.uniform:
-            cum = done + np.cumsum(smp.area)
-            for p, step in steps.items():
+        cum = None if sampler.uniform else done + np.cumsum(smp.area)
+        for p in probe_sizes:
+            if cum is None:  # global ids 0, st, 2 st, ... that fall in the chunk
+                st = max(1, m // p)
+                pick = smp.positions[(-a) % st::st].copy()  # not a view of the chunk
+            else:  # the samples in which each multiple of the step falls
+                step = sampler.total_area / min(p, m)
                 k = np.floor(cum / step)
-                probes[p].append(smp.positions[k > np.r_[np.floor(done / step), k[:-1]]])
+                pick = smp.positions[k > np.r_[np.floor(done / step), k[:-1]]]
+            probes[p].append(pick)
+        if cum is not None:
             done = float(cum[-1])
         area = smp.area
         if cutout is not None:
@@ -201,8 +205,6 @@ def _spool_samples(sampler: SurfaceSampler, asset: AssetModel, spool, chunk: int
                           ("sample_uv", smp.uv), ("sample_mat", smp.material),
                           ("sample_area", area)):
             spool.write(name, a, arr)
-        for p, st in strides.items() if sampler.uniform else ():  # ids 0, st, 2 st, ...
-            probes[p].append(smp.positions[(-a) % st::st].copy())  # not a view of the chunk
     return {p: np.concatenate(v) if v else np.zeros((0, 3)) for p, v in probes.items()}
 
 

@@ -114,11 +114,6 @@ def strata(spp: int) -> tuple[int, int]:
     return nx, spp // nx
 
 
-#: a frame draws the jitter of only the pixels it traces when they are at most this share
-#: of it (skipping the rest of the stream, `_run_jitter`); a larger share draws every pixel's
-SKIP_DRAWS_BELOW = 0.25
-
-
 def sample_offsets(spp: int, n_pixels: int, seed: int, start: int = 0,
                    stop: int | None = None, pixels: np.ndarray | None = None) -> np.ndarray:
     """Stratified jittered sub-pixel positions of samples start..stop-1 of every pixel, or of
@@ -145,34 +140,28 @@ def sample_offsets(spp: int, n_pixels: int, seed: int, start: int = 0,
         if pixels.ndim != 1 or np.any(np.diff(pixels) <= 0) or (
                 pixels.size and not 0 <= pixels[0] <= pixels[-1] < n_pixels):
             raise ShapeError(f"pixels must be ascending ids in [0, {n_pixels})")
-        if pixels.size > SKIP_DRAWS_BELOW * n_pixels:
-            jitter = rng.random((stop - start, n_pixels, 2))[:, pixels]
-        else:
-            jitter = _run_jitter(rng, bits, stop - start, n_pixels, pixels)
+        jitter = _span_jitter(rng, bits, stop - start, n_pixels, pixels)
     return (cell[:, None, :] + jitter) / np.array([nx, ny], dtype=np.float64)
 
 
-def _run_jitter(rng: np.random.Generator, bits: np.random.PCG64, k: int, n_pixels: int,
-                pixels: np.ndarray) -> np.ndarray:
-    """`rng.random((k, n_pixels, 2))[:, pixels]` without drawing the other pixels' values:
-    for each sample, each run of consecutive pixel ids (a row of `box_pixels`' rectangle) is
-    drawn after advancing the generator past the values before it (PCG64's `advance`: one
-    64-bit draw per float64). numpy's generators give a stream in order only, so the runs are
-    a loop, each drawn at once: an object of a few dozen pixels in a 512² frame drew 2 M
-    values for ~2 k pixels (docs/decisions.md, "Eye rays are traced only where the object can
-    be")."""
+def _span_jitter(rng: np.random.Generator, bits: np.random.PCG64, k: int, n_pixels: int,
+                 pixels: np.ndarray) -> np.ndarray:
+    """`rng.random((k, n_pixels, 2))[:, pixels]` drawing, for each sample, only the span from
+    the first of `pixels` to the last (`box_pixels`' rectangle: its rows and what lies between
+    them), PCG64's `advance` stepping over the values before and after it (one 64-bit draw
+    per float64). numpy's generators give a stream in order only: a frame of an object a few
+    dozen pixels wide drew its whole 512² jitter before (docs/decisions.md, "Eye rays are
+    traced only where the object can be")."""
     out = np.empty((k, pixels.size, 2))
     if pixels.size == 0:
         return out
-    cut = np.flatnonzero(np.diff(pixels) != 1) + 1
-    heads, ends = np.r_[0, cut], np.r_[cut, pixels.size]
+    lo, hi = int(pixels[0]), int(pixels[-1]) + 1
     at = 0  # values drawn so far
-    for s in range(k):  # a loop over the pass's samples and the pixels' runs
-        for a, b in zip(heads.tolist(), ends.tolist(), strict=True):
-            first = (s * n_pixels + int(pixels[a])) * 2
-            bits.advance(first - at)
-            out[s, a:b] = rng.random((b - a, 2))
-            at = first + 2 * (b - a)
+    for s in range(k):  # a loop over the pass's samples: one span each
+        first = (s * n_pixels + lo) * 2
+        bits.advance(first - at)
+        out[s] = rng.random((hi - lo, 2))[pixels - lo]
+        at = first + 2 * (hi - lo)
     return out
 
 
