@@ -1,6 +1,7 @@
 """The fitted fallback as the export writes it: per LOD its specular-workflow UsdPreviewSurface
 with its own textures at its switch size's level, the normal texture decoded as the
-validator checks, chart padding, the residual in the report, reruns byte-identical."""
+validator checks, chart padding, the residual per texel in the report and as a map, stock
+validation, reruns byte-identical (every file)."""
 
 from __future__ import annotations
 
@@ -55,6 +56,8 @@ def _materials(root: Path) -> dict:
 
 
 def test_fitted_material_per_lod(cylinder):
+    import numpy as np
+
     from texelbake.io.images import read_pixels
 
     root = cylinder["fitted"]
@@ -78,9 +81,23 @@ def test_fitted_material_per_lod(cylinder):
     fit = report["fallback"]["fit"]
     assert report["fallback"]["mode"] == "fitted"
     assert len(fit["gain"]) == 2
-    for g in fit["gain"]:  # the held-out choice: the gain is never worse than none there
+    for i, g in enumerate(fit["gain"], start=1):
+        # the held-out choice: the gain is never worse than none there
         assert g["heldout_vs_averaged"] is None or 0.0 < g["heldout_vs_averaged"] <= 1.0
         assert g["lambda"] is None or g["lambda"] >= 0.0
+        # the residual per texel of the gain's level: in the report and as a map, NaN where
+        # no sample had a target, finite and non-negative where one did
+        r = g["residual"]
+        side = res >> g["gain_level"]
+        assert r["side"] == side and 0 < r["texels"] <= side * side
+        assert 0.0 <= r["fitted"]["p50"] <= r["fitted"]["p95"] <= r["fitted"]["max"]
+        assert 0.0 <= r["target_noise"]["p50"] <= r["target_noise"]["max"]
+        assert r["texels_above_flag"] == 0 or r["worst"][0]["residual"] > r["flag"]
+        img = read_pixels(str(root.parent / f"cylinder_fit_residual_lod{i}.exr"))[0]
+        assert img.shape == (side, side, 1)
+        seen = np.isfinite(img)
+        assert seen.sum() == r["texels"] and (img[seen] >= 0.0).all()
+        assert abs(float(np.max(img[seen])) - r["fitted"]["max"]) < 1e-4
 
 
 def test_chart_padding_holds_covered_values_only(cylinder):
@@ -124,11 +141,21 @@ def test_averaged_stays_an_option(cylinder):
     assert report["fallback"] == {"mode": "averaged"}
 
 
+def test_fitted_bake_passes_stock_validation(cylinder):
+    from tests.helpers.usd_validation import stock_errors
+
+    root = cylinder["fitted"]
+    assert stock_errors(root) == {str(root): []}
+
+
 def test_rerun_in_a_fresh_store_is_byte_identical(cylinder, tmp_path):
     again = _bake(cylinder["src"], tmp_path / "again", workdir=tmp_path / "store",
                   fallback="fitted")
-    files = sorted(p.name for p in cylinder["fitted"].parent.glob("*.png"))
+    files = sorted(p.name for p in cylinder["fitted"].parent.iterdir()
+                   if p.suffix in (".png", ".exr", ".usdc"))
     assert any("diffuse_lod2" in f for f in files)
+    assert any("fit_residual_lod2" in f for f in files)
+    # the maps and the payload (the root layer names the source by a path relative to it)
     for name in files:
         a = (cylinder["fitted"].parent / name).read_bytes()
         assert (again.parent / name).read_bytes() == a, name

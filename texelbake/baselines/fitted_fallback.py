@@ -212,6 +212,7 @@ def _lobe_cells(normal: np.ndarray, const: dict, per_texel: dict) -> np.ndarray:
     np.add.at(out, (ti, ii, cell[ti, ii, si]), f[ti, ii, si] * w[ti, ii, si, None])
     return out / (ns * cell_solid_angles()[None, None, :, None])
 
+
 def gain_sums(l0: np.ndarray, dl: np.ndarray, tgt: np.ndarray, valid: np.ndarray):
     """Per texel and channel Σ ΔL² and Σ ΔL (T − L0) over the pairs that count: (t, 3) each."""
     w = valid[..., None]
@@ -226,3 +227,16 @@ def shrunk_gain(sdd: np.ndarray, sdr: np.ndarray, lam: float) -> np.ndarray:
     ok = sdd > 1e-12 * max(float(sdd.max(initial=0.0)), 1e-300)
     g = np.where(ok, (sdr + lam * sdd) / np.where(ok, (1.0 + lam) * sdd, 1.0), 1.0)
     return np.maximum(g, 0.0)
+
+
+def gain_residual(l0: np.ndarray, dl: np.ndarray, tgt: np.ndarray, valid: np.ndarray,
+                  g: np.ndarray) -> np.ndarray:
+    """Per texel the relative residual of the gained model against its targets,
+    sqrt(Σ (L0 + g ΔL − T)²) / sqrt(Σ T²) over the pairs that count and the three channels:
+    (t,) float64, 0 for a texel the model reproduces, NaN where no pair counts or every
+    target is 0 (nothing to reproduce). g : (t, 3)."""
+    w = valid[..., None]
+    r = (l0 + np.asarray(g)[:, None, None, :] * dl - tgt) * w
+    num = np.einsum("tijc,tijc->t", r, r)
+    den = np.einsum("tijc,tijc->t", tgt * w, tgt)
+    return np.sqrt(np.divide(num, den, out=np.full(den.shape, np.nan), where=den > 0))

@@ -24,6 +24,7 @@ import numpy as np
 from texelbake.baselines.fitted_fallback import (
     cell_views,
     fit_directions,
+    gain_residual,
     gain_sums,
     model_cells,
     sample_terms,
@@ -236,18 +237,31 @@ def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndar
             if err < best[0]:
                 best = (err, lam, c)
     _, lam, c = best
+    c_uniq, _, l0, dl, tg = at(c)
     if np.isfinite(lam):
-        c_uniq, _, l0, dl, tg = at(c)
-        sdd, sdr = gain_sums(l0, dl, *tg[2])
-        g = _gain_image(shrunk_gain(sdd, sdr, lam), c_uniq, res >> c, res)
+        g_c = shrunk_gain(*gain_sums(l0, dl, *tg[2]), lam)
+        g = _gain_image(g_c, c_uniq, res >> c, res)
     else:
-        g = np.ones((res, res, 3))
+        g_c, g = np.ones((c_uniq.size, 3)), np.ones((res, res, 3))
+    # what the fit leaves, per texel of the level its gain is fitted on, against every
+    # sample's targets: the fitted model's and the averaged inputs' (NaN: nothing to fit),
+    # and the targets' own sampling noise on the same scale (half the two halves' difference
+    # has the variance of the whole's mean): a residual near it is noise, not the model
+    resid = np.full((3, (res >> c) ** 2), np.nan)
+    resid[0, c_uniq] = gain_residual(l0, dl, *tg[2], g_c)
+    resid[1, c_uniq] = gain_residual(l0, dl, *tg[2], np.ones_like(g_c))
+    half_d = 0.5 * (tg[0][0] - tg[1][0]) * (tg[0][1] & tg[1][1])[..., None]
+    t_all = tg[2][0] * tg[2][1][..., None]
+    n2 = np.einsum("tijc,tijc->t", t_all, t_all)
+    resid[2, c_uniq] = np.sqrt(np.divide(np.einsum("tijc,tijc->t", half_d, half_d), n2,
+                                         out=np.full(n2.shape, np.nan), where=n2 > 0))
     info = {"level": int(c), "lambda": lam, "heldout_vs_averaged": round(
-        best[0] / base_err, 4) if base_err else None}
+        best[0] / base_err, 4) if base_err else None,
+        "residual": resid.reshape(3, res >> c, res >> c)}
     return g, info
 
 
-GAIN_VERSION = "gain-v2"
+GAIN_VERSION = "gain-v3"
 
 
 def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
@@ -279,6 +293,7 @@ def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
             arrays[f"gain{i}"] = g.astype(np.float32)
             arrays[f"choice{i}"] = np.array([info["level"], info["lambda"],
                                              info["heldout_vs_averaged"] or np.nan])
+            arrays[f"residual{i}"] = info["residual"]
         ctx.store.write_arrays(key, arrays)
     d = ctx.store.read_arrays(key)
     diffuse = [np.clip(base0 * d[f"gain{i}"], 0.0, 1.0).astype(np.float32)
@@ -286,6 +301,39 @@ def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
     fit = [{"gain_level": int(d[f"choice{i}"][0]),
             "lambda": (float(d[f"choice{i}"][1]) if np.isfinite(d[f"choice{i}"][1]) else None),
             "heldout_vs_averaged": (None if np.isnan(d[f"choice{i}"][2])
-                                    else round(float(d[f"choice{i}"][2]), 4))}
+                                    else round(float(d[f"choice{i}"][2]), 4)),
+            "residual": residual_summary(d[f"residual{i}"])}
            for i in range(n_lods)]
-    return {**averaged, "diffuse": diffuse, "fit": {"gain": fit}}
+    return {**averaged, "diffuse": diffuse, "fit": {"gain": fit},
+            "residual": [d[f"residual{i}"][0].astype(np.float32) for i in range(n_lods)]}
+
+
+#: a texel whose relative residual exceeds this is one the preview surface cannot reproduce
+#: (its residual energy is more than a quarter of its targets')
+RESIDUAL_FLAG = 0.5
+
+
+def residual_summary(resid: np.ndarray) -> dict:
+    """The report's view of one LOD's per-texel residual maps (3, n, n): the fitted model's
+    and the averaged inputs' relative residual (`gain_residual`) and the targets' sampling
+    noise on the same scale, over the texels with targets: their percentiles, and the texels
+    above `RESIDUAL_FLAG` with the worst of them."""
+    fit, avg, noise = (r.reshape(-1) for r in resid)
+    ok = np.isfinite(fit)
+    n = int(resid.shape[-1])
+
+    def pct(x: np.ndarray) -> dict:
+        if not x.size:
+            return {}
+        q = np.percentile(x, [50, 95, 100])
+        return {"p50": round(float(q[0]), 4), "p95": round(float(q[1]), 4),
+                "max": round(float(q[2]), 4)}
+
+    ids = np.flatnonzero(ok)
+    worst = ids[np.argsort(-fit[ids], kind="stable")[:5]]
+    return {"texels": int(ok.sum()), "side": n, "fitted": pct(fit[ok]),
+            "averaged": pct(avg[ok]), "target_noise": pct(noise[ok & np.isfinite(noise)]),
+            "flag": RESIDUAL_FLAG,
+            "texels_above_flag": int(np.sum(fit[ok] > RESIDUAL_FLAG)),
+            "worst": [{"row": int(t // n), "col": int(t % n),
+                       "residual": round(float(fit[t]), 4)} for t in worst]}

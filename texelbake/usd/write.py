@@ -93,6 +93,11 @@ def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
             for i, img in enumerate(fb.get(key) or [], start=1):
                 files[key].append(f"{name}_{key}_lod{i}.png")
                 _write_png(out_dir / files[key][-1], np.asarray(img), srgb=True)
+        # fitted: what the fit could not reproduce, per texel of the level its gain is fitted
+        # on (relative residual; NaN where no sample had a target), for a person to look at
+        for i, img in enumerate(fb.get("residual") or [], start=1):
+            write_pixels(out_dir / f"{name}_fit_residual_lod{i}.exr",
+                         np.asarray(img, np.float32)[..., None], "float", channel_names=("Y",))
     return files
 
 
