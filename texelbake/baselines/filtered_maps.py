@@ -151,7 +151,8 @@ def material_base(materials: Sequence[Material], sample_material: np.ndarray,
     UsdPreviewSurface fallback takes as ``diffuseColor`` (preview: diffuseColor; others: their
     albedo) and the material's microfacet variance α² (preview: roughness⁴, UsdPreviewSurface's
     α = roughness²; phong: 2 / (s + 2), the Beckmann α of Phong exponent s (Walter et al. 2007,
-    §5.2); cellular: its borders' roughness⁴; lambert and measured: 1, the widest lobe).
+    §5.2); cellular: its borders' roughness⁴; lambert and measured: 1, the widest lobe), a
+    textured roughness or exponent read at the sample's uv.
 
     returns : (albedo (m, 3), base (m, 3), alpha2 (m,)) float64
     """
@@ -163,6 +164,13 @@ def material_base(materials: Sequence[Material], sample_material: np.ndarray,
         albedo[sel] = brdf.diffuse_albedo(mat, sample_uv[sel])
         base[sel] = albedo[sel]
         alpha2[sel] = base_alpha2(mat)
+        lobe = {"preview": "roughness", "phong": "exponent"}.get(mat.model)
+        if lobe in mat.textures:  # a textured lobe (an ARM map's roughness): per sample
+            from texelbake.brdf.textures import sample_texture
+
+            v = sample_texture(mat.textures[lobe], sample_uv[sel])[:, 0].astype(np.float64)
+            alpha2[sel] = (np.clip(v, 1e-3, 1.0) ** 4 if lobe == "roughness"
+                           else 2.0 / (np.maximum(v, 0.0) + 2.0))
         if mat.model == "preview":
             d = mat.params.get("diffuseColor", (0.18, 0.18, 0.18))
             if "diffuseColor" in mat.textures:
@@ -172,6 +180,28 @@ def material_base(materials: Sequence[Material], sample_material: np.ndarray,
             else:
                 base[sel] = np.asarray(d, dtype=np.float64).reshape(1, 3)
     return albedo, base, alpha2
+
+
+def material_metallic(materials: Sequence[Material], sample_material: np.ndarray,
+                      sample_uv: np.ndarray) -> np.ndarray:
+    """Per sample the UsdPreviewSurface metallic a fallback in the metallic workflow takes:
+    a metallic-workflow preview material's metallic (its texture sampled at uv, or its
+    constant), clipped to [0, 1]; 0 for every other material (a dielectric: the specular
+    workflow, Phong, Lambert, cellular, measured). returns (m,) float64."""
+    out = np.zeros(sample_material.shape[0])
+    for mi in np.unique(sample_material):  # a loop over the few materials
+        mat = materials[int(mi)]
+        if mat.model != "preview" or int(mat.params.get("useSpecularWorkflow", 0)):
+            continue
+        sel = sample_material == mi
+        if "metallic" in mat.textures:
+            from texelbake.brdf.textures import sample_texture
+
+            v = sample_texture(mat.textures["metallic"], sample_uv[sel])[:, 0]
+        else:
+            v = np.full(int(sel.sum()), float(mat.params.get("metallic", 0.0)))
+        out[sel] = np.clip(v.astype(np.float64), 0.0, 1.0)
+    return out
 
 
 def base_alpha2(material: Material) -> float:

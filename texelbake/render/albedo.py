@@ -33,9 +33,11 @@ def albedo_chain(scene: RenderScene) -> list[np.ndarray] | None:
     chain = None
     if base is not None and base.shape[0] > scene.n0:
         consts = mat.get("constants") or {}
-        metallic = float(consts.get("metallic") or 0.0)
+        metallic = (mat.get("textures") or {}).get("metallic")
+        if metallic is None or metallic.shape[:2] != base.shape[:2]:
+            metallic = float(consts.get("metallic") or 0.0)
         specular_workflow = bool(consts.get("useSpecularWorkflow") or 0)
-        kd = 1.0 if specular_workflow else 1.0 - min(max(metallic, 0.0), 1.0)
+        kd = 1.0 if specular_workflow else 1.0 - np.clip(metallic, 0.0, 1.0)
         chain = mip_chain(np.asarray(base, np.float64)[..., :3] * kd)
     cache.append(chain)
     return chain

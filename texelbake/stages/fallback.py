@@ -150,17 +150,34 @@ def _level(covered: np.ndarray, res: int, lvl: int, arrays: list[np.ndarray]):
     return uniq, [segment_sum(a[order], seg, uniq.size, 0) for a in arrays]
 
 
-def _model_terms(const: dict, metal: bool, base: np.ndarray, rough: np.ndarray,
+def _model_terms(const: dict, metal: bool | np.ndarray, base: np.ndarray, rough: np.ndarray,
                  nrm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(L0, ΔL) (t, k, k, 3): each pair's cell mean of the averaged inputs' preview surface
     with diffuseColor 0 and its growth from 0 to `base`, L(g) = L0 + g ΔL for diffuseColor
     g·base (exact for the specular workflow and metallic 0 or 1; the base colour's part is the
-    lobe on a metal, the diffuse elsewhere)."""
+    lobe on a metal, the diffuse elsewhere). `metal` : the constants' (bool), or (t,) each
+    texel's metallic m (a metallic map): ΔL = (1 − m) ΔL_dielectric + m ΔL_metal, each part
+    estimated as above (Schlick's F is affine in F0 = mix(0.04, g·base, m), the diffuse
+    term is scaled by 1 − m), L0 the lobe at the texel's m."""
+    per_texel = not isinstance(metal, bool)
     l0s, dls = [], []
     for a in range(0, nrm.shape[0], TEXEL_CHUNK):  # chunks of texels (memory bound)
         sl = slice(a, a + TEXEL_CHUNK)
         p1 = {"diffuseColor": base[sl], "roughness": rough[sl]}
         p0 = {"diffuseColor": np.zeros_like(base[sl]), "roughness": rough[sl]}
+        if per_texel:
+            m = np.asarray(metal, dtype=np.float64)[sl]
+            l0 = model_cells(const, {**p0, "metallic": m}, nrm[sl], lobe=True)
+            ones, zeros = np.ones_like(m), np.zeros_like(m)
+            d = (model_cells(const, {**p1, "metallic": ones}, nrm[sl], lobe=True)
+                 - model_cells(const, {**p0, "metallic": ones}, nrm[sl], lobe=True)
+                 ) * m[:, None, None, None]
+            d += (model_cells(const, {**p1, "metallic": zeros}, nrm[sl], lobe=False)
+                  - model_cells(const, {**p0, "metallic": zeros}, nrm[sl], lobe=False)
+                  ) * (1.0 - m)[:, None, None, None]
+            l0s.append(l0)
+            dls.append(d)
+            continue
         l0 = model_cells(const, p0, nrm[sl], lobe=True)
         if metal:
             d = model_cells(const, p1, nrm[sl], lobe=True) - l0
@@ -172,7 +189,6 @@ def _model_terms(const: dict, metal: bool, base: np.ndarray, rough: np.ndarray,
     k = fit_directions().shape[0]
     empty = np.zeros((0, k, k, 3))
     return (np.concatenate(l0s) if l0s else empty), (np.concatenate(dls) if dls else empty)
-
 
 
 def _gain_image(g: np.ndarray, uniq: np.ndarray, n_c: int, n: int) -> np.ndarray:
@@ -193,7 +209,7 @@ def _gain_image(g: np.ndarray, uniq: np.ndarray, n_c: int, n: int) -> np.ndarray
 
 
 def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndarray,
-              const: dict, metal: bool) -> tuple[np.ndarray, dict]:
+              const: dict, metal: bool | np.ndarray) -> tuple[np.ndarray, dict]:
     """One LOD's diffuseColor gain (res, res, 3) and its choice (`corrected_inputs`)."""
     covered, num, den, nsum = sums
     k = fit_directions().shape[0]
@@ -209,7 +225,9 @@ def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndar
         n_l = res >> level
         b = _to_side(base0, n_l).reshape(-1, 3)[uniq[sel]].astype(np.float64)
         r = _to_side(rough, n_l).reshape(-1)[uniq[sel]].astype(np.float64)
-        l0, dl = _model_terms(const, metal, b, r, nrm)
+        met = (metal if isinstance(metal, bool)
+               else _to_side(metal, n_l).reshape(-1)[uniq[sel]].astype(np.float64))
+        l0, dl = _model_terms(const, met, b, r, nrm)
         tg = [targets(nn[sel], dd[sel], k) for nn, dd in ((n0, d0), (n1, d1), (n0 + n1, d0 + d1))]
         return uniq, sel, l0, dl, tg
 
@@ -277,8 +295,10 @@ def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
                   f"{'-'.join(map(str, levels))}.npz", GEOMETRY_FIELDS)
     const = {k: v for k, v in averaged["constants"].items()
              if k not in ("opacity", "emissiveColor")}
-    metal = (int(const.get("useSpecularWorkflow", 0)) == 0
-             and float(np.asarray(const.get("metallic", 0.0))) >= 0.5)
+    metal: bool | np.ndarray = (int(const.get("useSpecularWorkflow", 0)) == 0
+                                and float(np.asarray(const.get("metallic", 0.0))) >= 0.5)
+    if averaged.get("metallic") is not None:  # a metallic map: each texel its own
+        metal = np.asarray(averaged["metallic"], dtype=np.float64)
     base0 = np.asarray(averaged["base"], dtype=np.float64)
     if not ctx.store.exists(key):
         from texelbake.stages.filtered import fallback_samples

@@ -25,7 +25,7 @@ from texelbake.tol import TOL
 
 
 def filtered_key(ctx: StageContext) -> str:
-    return ctx.key("filtered", f"maps-ao{FILTER_TOL.ao_rays}.npz", GEOMETRY_FIELDS)
+    return ctx.key("filtered", f"maps-v2-ao{FILTER_TOL.ao_rays}.npz", GEOMETRY_FIELDS)
 
 
 def run_filtered(ctx: StageContext, shard: int = 0) -> str:
@@ -94,7 +94,7 @@ FALLBACK_SAMPLES_PER_TEXEL = 1
 FALLBACK_AO_RAYS = 8
 _TAG_FALLBACK = 0x5F
 #: the dense fallback maps' artifact version (what the fitted gain is computed from too)
-FALLBACK_VERSION = "fallback-v6"
+FALLBACK_VERSION = "fallback-v7"
 
 
 def _texel_size(geo: dict[str, np.ndarray], n: int) -> float:
@@ -232,7 +232,6 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     caster = ctx.caster()
     fs = fallback_samples(ctx, res)
     smp, gnrm, prim = fs["smp"], fs["gnrm"], fs["prim"]
-    v, f = fs["lod1_vertices"], fs["lod1_faces"]
     asg_row, asg_col = fs["row"], fs["col"]
     # the slope statistics (roughness widening) in the flat frame of the LOD1 face, where
     # z is the face's normal; the normal map in MikkTSpace frames (what other tools decode),
@@ -257,16 +256,7 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     # BoxAnimated's inner box whose samples project onto the outer walls, does not tint what
     # covers it); texels none of whose samples is seen keep the area mean
     t0 = texels[0]
-    lod_n = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
-    lod_n /= np.maximum(np.linalg.norm(lod_n, axis=1, keepdims=True), 1e-300)
-    d = lod_n[prim]
-    eps = TOL.ray_offset * caster.bbox_diag
-    seen_s = ~caster.occluded(smp.positions + eps * d, d)
-    w = smp.area * seen_s
-    wsum = np.bincount(t0, weights=w, minlength=res * res)
-    seen = wsum > 1e-6 * np.bincount(t0, weights=smp.area, minlength=res * res).clip(1e-300)
-    base_seen = np.stack([np.bincount(t0, weights=w * base[:, c], minlength=res * res)
-                          for c in range(3)], axis=1) / np.where(seen, wsum, 1.0)[:, None]
+    seen, base_seen = _seen_means(ctx, fs, res, base)
     filled0 = np.bincount(t0, weights=smp.area, minlength=res * res) > 0
     top = maps[0].reshape(res * res, -1)
     top[seen, FIELDS["base"]] = base_seen[seen]
@@ -281,6 +271,66 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     ctx.store.write_arrays(key, {**{f"L{lvl:02d}": m for lvl, m in enumerate(maps)},
                                  "normal": normal.astype(np.float32)})
     return maps, normal.astype(np.float32)
+
+
+def _seen_means(ctx: StageContext, fs: dict, res: int, values: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Per texel of the res² fallback page (`fallback_samples` fs) the mean of per-sample
+    `values` (m, c) over the samples seen from outside: a sample counts only when a ray from
+    it along the normal of the LOD1 face it shows on leaves M_org. Returns (seen (res²,) bool:
+    some sample counted, means (res², c), meaningful where seen)."""
+    caster = ctx.caster()
+    smp, prim = fs["smp"], fs["prim"]
+    v, f = fs["lod1_vertices"], fs["lod1_faces"]
+    t0 = fs["row"].astype(np.int64) * res + fs["col"]
+    lod_n = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
+    lod_n /= np.maximum(np.linalg.norm(lod_n, axis=1, keepdims=True), 1e-300)
+    d = lod_n[prim]
+    eps = TOL.ray_offset * caster.bbox_diag
+    seen_s = ~caster.occluded(smp.positions + eps * d, d)
+    w = smp.area * seen_s
+    wsum = np.bincount(t0, weights=w, minlength=res * res)
+    seen = wsum > 1e-6 * np.bincount(t0, weights=smp.area, minlength=res * res).clip(1e-300)
+    means = np.stack([np.bincount(t0, weights=w * values[:, c], minlength=res * res)
+                      for c in range(values.shape[1])], axis=1) / np.where(seen, wsum,
+                                                                            1.0)[:, None]
+    return seen, means
+
+
+def fallback_metallic(ctx: StageContext, res: int) -> np.ndarray | None:
+    """(res, res) float32 each fallback texel's metallic (`filtered_maps.material_metallic`,
+    averaged like the base colour: over the samples seen from outside, else over all), the
+    page between charts filled from the nearest covered texel; None when every sample's
+    metallic is the same (the constant then says it). A texel where a metal and a dielectric
+    meet takes their area mix, which UsdPreviewSurface's metallic input interpolates (its
+    diffuse scaled by 1 − metallic, F0 between 0.04 and the base colour). Kept in the artifact
+    store."""
+    from texelbake.baselines.filtered_maps import material_metallic
+
+    mats = ctx.asset().materials
+    if not any(m.model == "preview" and not int(m.params.get("useSpecularWorkflow", 0))
+               and ("metallic" in m.textures or float(m.params.get("metallic", 0.0)) > 0.0)
+               for m in mats):
+        return None  # no sample can be metallic
+    key = ctx.key("filtered", f"fallback-metallic-v1-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}.npz",
+                  GEOMETRY_FIELDS)
+    if not ctx.store.exists(key):
+        fs = fallback_samples(ctx, res)
+        smp = fs["smp"]
+        met = material_metallic(mats, smp.material.astype(np.int32), smp.uv)
+        arrays = {"varies": np.array(float(np.ptp(met)) > 1e-6)}
+        if bool(arrays["varies"]):
+            t0 = fs["row"].astype(np.int64) * res + fs["col"]
+            area = np.bincount(t0, weights=smp.area, minlength=res * res)
+            mean = np.bincount(t0, weights=smp.area * met, minlength=res * res) / np.where(
+                area > 0, area, 1.0)
+            seen, seen_mean = _seen_means(ctx, fs, res, met[:, None])
+            mean[seen] = seen_mean[seen, 0]
+            arrays["metallic"] = nearest_fill(mean.reshape(res, res), (area > 0).reshape(
+                res, res)).astype(np.float32)
+        ctx.store.write_arrays(key, arrays)
+    d = ctx.store.read_arrays(key)
+    return d["metallic"] if bool(d["varies"]) else None
 
 
 def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
@@ -332,7 +382,9 @@ def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
 
 def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     """The UsdPreviewSurface fallback of every LOD (`usd.baked.BakedAsset.fallback`): base
-    colour and occlusion of level 0 (a viewer mip-maps them itself), and per LOD the roughness
+    colour and occlusion of level 0 (a viewer mip-maps them itself), a metallic map in the
+    metallic workflow where the samples' metallic differs (`fallback_metallic`; else the
+    dominant material's constants), and per LOD the roughness
     widened by the slope variance of the level where that LOD is shown
     (`filtered_maps.lod_levels`; a viewer filters textures but widens no lobe).
 
@@ -382,4 +434,10 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     opacity = fallback_opacity(ctx, res)
     if opacity is not None:
         out["opacity"] = opacity
+    metallic = fallback_metallic(ctx, res)
+    if metallic is not None:  # metals and dielectrics (or a metallic texture): a map
+        out["metallic"] = metallic
+        out["constants"] = {**{k: v for k, v in out["constants"].items()
+                               if k not in ("metallic", "specularColor")},
+                            "useSpecularWorkflow": 0}
     return out

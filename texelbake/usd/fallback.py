@@ -19,14 +19,14 @@ def author_preview_material(
     stage: Usd.Stage, path: str, albedo_file: str, normal_file: str, cpm_scope: str,
     roughness_file: str | None = None, occlusion_file: str | None = None,
     constants: dict[str, Any] | None = None, specular_file: str | None = None, *,
-    opacity_file: str | None = None,
+    opacity_file: str | None = None, metallic_file: str | None = None,
 ) -> UsdShade.Material:
     """UsdPreviewSurface with the baked maps (what any viewer shows): diffuseColor and normal,
     and when given roughness and occlusion (single-channel) textures and constant inputs
     carried from the source material, and a specularColor texture (sRGB, for the specular
     workflow) when given; texelbake's CPM shader on the `texelbake` render context. With
     `opacity_file` (single-channel) the surface is a cut-out: opacity from it,
-    opacityThreshold 0.5."""
+    opacityThreshold 0.5; with `metallic_file` (single-channel) metallic is read from it."""
     mat = UsdShade.Material.Define(stage, path)
     reader = UsdShade.Shader.Define(stage, f"{path}/stReader")
     reader.CreateIdAttr("UsdPrimvarReader_float2")
@@ -54,8 +54,8 @@ def author_preview_material(
                          Sdf.ValueTypeNames.Color3f, None, None))
     if opacity_file is not None:
         surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
-    for name, file in (("roughness", roughness_file), ("occlusion", occlusion_file),
-                       ("opacity", opacity_file)):
+    for name, file in (("roughness", roughness_file), ("metallic", metallic_file),
+                       ("occlusion", occlusion_file), ("opacity", opacity_file)):
         if file is not None:
             textures.append((name, file, "raw", "r", Sdf.ValueTypeNames.Float,
                              Sdf.ValueTypeNames.Float, None, None))

@@ -80,6 +80,10 @@ def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
                 files["fallback_normals"].append(f"{name}_fallback_normal_lod{i}.png")
                 _write_png(out_dir / files["fallback_normals"][-1],
                            0.5 * (np.asarray(img) + 1.0), srgb=False)
+        if fb.get("metallic") is not None:  # metals beside dielectrics: per texel
+            files["metallic"] = f"{name}_metallic.png"
+            _write_png(out_dir / files["metallic"], np.asarray(fb["metallic"])[..., None],
+                       srgb=False)
         if fb.get("opacity") is not None:  # cut-outs: what is left of each texel
             files["opacity"] = f"{name}_opacity.png"
             _write_png(out_dir / files["opacity"], np.asarray(fb["opacity"])[..., None],
@@ -183,7 +187,8 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
                 baked.fallback.get("constants"),
                 specular_file=(f"./{files['specular'][i - 1]}" if files["specular"]
                                else None),
-                opacity_file=f"./{files['opacity']}" if "opacity" in files else None)
+                opacity_file=f"./{files['opacity']}" if "opacity" in files else None,
+                metallic_file=f"./{files['metallic']}" if "metallic" in files else None)
         elif i == 1:
             mat = author_preview_material(
                 pstage, fallback_material_path(1), f"./{files['albedo']}",
