@@ -159,3 +159,103 @@ def test_the_fallback_renders_as_the_source(gold):
         px = read_pixels(p)[0].astype(np.float64)
         means.append(float(srgb_to_linear(px[..., :3])[px[..., 3] >= 0.5].mean()))
     assert abs(means[1] / means[0] - 1.0) < RATIO_TOL, means
+
+
+# A sphere whose metallic comes from a texture (stripes of gold metal and gold-coloured
+# dielectric in longitude): the fallback with a metallic map (`stages.filtered.fallback_metallic`)
+# against the one the dominant material's constants gave before (a textured metallic dropped:
+# metallic 0 everywhere). 16² textures, the seam at a texel edge.
+HALF = 16
+
+
+def _half_metal_png(d: Path) -> str:
+    from texelbake.io.images import write_pixels
+
+    px = np.zeros((HALF, HALF, 1), np.uint8)
+    px[:, (np.arange(HALF) // 2) % 2 == 0] = 255  # 8 stripes in longitude: any view sees both
+    write_pixels(d / "metallic.png", px, "uint8")
+    return "./metallic.png"
+
+
+def _half_metal_source(path: Path) -> Path:
+    from pxr import Gf, Sdf, UsdShade
+
+    stage, mesh = _stage(path)
+    metallic = _half_metal_png(path.parent)
+    mat = UsdShade.Material.Define(stage, "/Sphere/Looks/Half")
+    surf = UsdShade.Shader.Define(stage, "/Sphere/Looks/Half/PreviewSurface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*GOLD))
+    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(ROUGHNESS)
+    reader = UsdShade.Shader.Define(stage, "/Sphere/Looks/Half/StReader")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+    tex = UsdShade.Shader.Define(stage, "/Sphere/Looks/Half/Metallic")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(metallic)
+    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(),
+                                                                     "result")
+    tex.CreateOutput("r", Sdf.ValueTypeNames.Float)
+    surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).ConnectToSource(
+        tex.ConnectableAPI(), "r")
+    mat.CreateSurfaceOutput().ConnectToSource(surf.CreateOutput("surface",
+                                                                Sdf.ValueTypeNames.Token))
+    _bind(mesh, mat)
+    stage.Save()
+    return path
+
+
+def _half_metal_fallback(src: Path, path: Path, with_map: bool) -> Path:
+    """The fallback texelbake authors: with the metallic map, the metallic workflow and no
+    metallic constant (`fallback_maps`); without it, the dominant material's constants."""
+    from texelbake.asset import load_asset
+    from texelbake.baselines.filtered_maps import dominant_constants
+    from texelbake.io.images import linear_to_srgb, write_pixels
+    from texelbake.usd.fallback import author_preview_material
+
+    d = path.parent
+    const = dominant_constants(load_asset(src).materials, np.zeros(1, dtype=np.int64),
+                               np.ones(1))
+    if with_map:
+        const = {**{k: v for k, v in const.items() if k != "metallic"}, "useSpecularWorkflow": 0}
+    full = np.ones((4, 4, 1))
+    write_pixels(d / "albedo.png", np.round(linear_to_srgb(full * GOLD) * 255).astype(np.uint8),
+                 "uint8")
+    write_pixels(d / "normal.png", np.round(full * (0.5, 0.5, 1.0) * 255).astype(np.uint8),
+                 "uint8")
+    write_pixels(d / "roughness.png", np.round(full * ROUGHNESS * 255).astype(np.uint8), "uint8")
+    write_pixels(d / "occlusion.png", np.full((4, 4, 1), 255, dtype=np.uint8), "uint8")
+    stage, mesh = _stage(path)
+    mat = author_preview_material(
+        stage, "/Sphere/Looks/Fallback", "./albedo.png", "./normal.png", "/Sphere/CPM",
+        "./roughness.png", "./occlusion.png", const,
+        metallic_file=_half_metal_png(d) if with_map else None)
+    _bind(mesh, mat)
+    stage.Save()
+    return path
+
+
+def test_a_metallic_map_renders_as_the_source_in_blender(tmp_path):
+    d = {k: tmp_path / k for k in ("source", "map", "constants")}
+    for p in d.values():
+        p.mkdir()
+    src = _half_metal_source(d["source"] / "source.usda")
+    files = {"source": src,
+             "map": _half_metal_fallback(src, d["map"] / "fallback.usda", True),
+             "constants": _half_metal_fallback(src, d["constants"] / "fallback.usda", False)}
+    renders = tmp_path / "renders"
+    got = import_and_render(files, renders, resolution=64, samples=16)
+    pngs = {k: Path(got["files"][k]["png"]) for k in files}
+    side_by_side(list(pngs.values()), renders / "row.png")
+    keep_artifacts(sorted(renders.glob("*.png")), "dcc/fallback_metallic_map")
+    bsdf = next(iter(got["files"]["map"]["bsdf"].values()))
+    assert bsdf["Metallic"] == "linked"  # Blender reads the map
+    with_map = compare_renders(pngs["source"], pngs["map"])
+    without = compare_renders(pngs["source"], pngs["constants"])
+    # the map renders as the source (the bar of the constant gold sphere above); the
+    # constants, metallic 0 on the metal stripes, are far from it (measured: MAD 0.0029 and
+    # 0.098)
+    assert with_map["iou"] > 0.99 and with_map["mad"] < MAD_MAX, with_map
+    assert without["mad"] > 3.0 * MAD_MAX, without

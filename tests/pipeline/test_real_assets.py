@@ -175,17 +175,25 @@ def test_another_asset_variant_never_shows_the_bake(baked):
     assert [p for p in _visible_meshes(stage) if "/Baked/" in p] == [
         f"{top.GetPath()}/Baked/LOD1"]
     assert f"{top.GetPath()}/Geometry" not in _visible_meshes(stage)
-    model = top.GetVariantSets().GetVariantSet("modelVariant")
-    assert model.GetVariantSelection() == want[str(top.GetPath())]["modelVariant"]
-    baked_for = model.GetVariantSelection()
-    for other in model.GetVariantNames():
-        if other == baked_for:
-            continue
-        model.SetVariantSelection(other)
-        visible = _visible_meshes(stage)
-        # the other variant as authored: its own meshes, no baked LOD, whatever LOD says
-        assert not any("/Baked" in p or p.endswith("/Proxy") for p in visible), (other, visible)
-        assert f"{top.GetPath()}/Geometry" in visible, (other, visible)
+    # every asset variant set (the Teapot's modelVariant and shadingVariant): another
+    # selection shows the asset as authored, never the bake of the one baked
+    sets = want[str(top.GetPath())]
+    assert {"modelVariant", "shadingVariant"} <= set(sets)
+    for set_name, baked_for in sorted(sets.items()):
+        vset = top.GetVariantSets().GetVariantSet(set_name)
+        assert vset.GetVariantSelection() == baked_for
+        for other in vset.GetVariantNames():
+            if other == baked_for:
+                continue
+            vset.SetVariantSelection(other)
+            visible = _visible_meshes(stage)
+            # the other variant as authored: its own meshes, no baked LOD, whatever LOD says
+            assert not any("/Baked" in p or p.endswith("/Proxy") for p in visible), (
+                set_name, other, visible)
+            assert f"{top.GetPath()}/Geometry" in visible, (set_name, other, visible)
+        vset.SetVariantSelection(baked_for)
+        assert [p for p in _visible_meshes(stage) if "/Baked/" in p] == [
+            f"{top.GetPath()}/Baked/LOD1"]
 
 
 def test_lod_faces_across_atlas_seams_take_the_atlas_mesh_uv(baked):
