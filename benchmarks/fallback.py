@@ -309,7 +309,8 @@ def main() -> None:
                 rows.append({"asset": name, "lod": lod, "switch_px": px, "variant": variant,
                              "bake_seconds": b["seconds"], "blender_stand_ins": stand_ins,
                              "blender": None if isinstance(bl, str) else bl[variant],
-                             "texelbake": texelbake_lod(b["root"], lod, px, args)})
+                             "texelbake": texelbake_lod(b["root"], lod, px, args),
+                             "fit": _fit_entry(b["root"], lod)})
             _print_row_block(rows[-len(bakes):])
         if args.json:  # after every asset: a long run interrupted keeps what it measured
             _write_json(args, rows, notes)
@@ -328,6 +329,13 @@ def main() -> None:
           f"{' | '.join(args.fallbacks)}): {renders}/<asset>_lod<N>.png")
     if args.json:
         _write_json(args, rows, notes)
+
+
+def _fit_entry(root: Path, lod: int) -> dict[str, Any] | None:
+    """The bake's report of the fitted gain of LOD `lod` (its level, λ, held-out ratio and
+    the per-texel residual's summary), None for a fallback without a fit."""
+    fit = json.loads((root.parent / "report.json").read_text())["fallback"].get("fit")
+    return fit["gain"][lod - 1] if fit else None
 
 
 def bar_notes(rows: list[dict[str, Any]]) -> list[str]:
@@ -352,9 +360,17 @@ def bar_notes(rows: list[dict[str, Any]]) -> list[str]:
             ref += (f"; Blender shows the UsdPreviewSurface stand-in for "
                     f"{', '.join(a['blender_stand_ins'])}, not the material the LOD was baked from")
         verdict = "clears" if gain["blender"] >= 3.0 else "below"
+        res = (f["fit"] or {}).get("residual") or {}
+        why = ""
+        if res.get("fitted"):  # what the preview surface leaves per texel, beside the noise
+            why = (f"; per-texel residual of the fit (median) {res['fitted']['p50']:.2f} vs "
+                   f"averaged {res['averaged']['p50']:.2f}, target noise "
+                   f"{res['target_noise'].get('p50', float('nan')):.2f}, "
+                   f"{res['texels_above_flag']} of {res['texels']} texels above "
+                   f"{res['flag']}")
         out.append(f"{asset} LOD{lod}: fitted minus averaged {gain} dB: {verdict} the 3 dB bar; "
                    f"Blender noise floor {bl['psnr_floor_db']:.1f} dB (averaged "
-                   f"{bl['psnr_db_object']:.2f}); Blender's reference: {ref}")
+                   f"{bl['psnr_db_object']:.2f}){why}; Blender's reference: {ref}")
     return out
 
 
