@@ -155,7 +155,8 @@ def _png(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def bake_variants(name: str, src: Path, work: Path, variants: dict[str, dict[str, Any]]
                   ) -> dict[str, dict[str, Any]]:
-    """{variant: {"root", "seconds", "switch_px"}}: one bake per fallback variant."""
+    """{variant: {"root", "seconds", "switch_px", "export_seconds"}}: one bake per fallback
+    variant."""
     out = {}
     for variant, fields in variants.items():  # a loop over the few variants
         settings = BakeSettings(**{**BAKE, **fields})
@@ -169,7 +170,10 @@ def bake_variants(name: str, src: Path, work: Path, variants: dict[str, dict[str
         px = [lv["switch_px"] if lv["switch_px"] is not None else
               settings.lod_switch_px[min(i, len(settings.lod_switch_px) - 1)]
               for i, lv in enumerate(levels)]
-        out[variant] = {"root": root, "seconds": round(seconds, 1), "switch_px": px}
+        run = json.loads((root.parent / "run.json").read_text())
+        # the export stage holds the fit: fitted minus averaged export is the fit's cost
+        out[variant] = {"root": root, "seconds": round(seconds, 1), "switch_px": px,
+                        "export_seconds": run["stage_seconds"].get("export")}
     return out
 
 
@@ -307,7 +311,9 @@ def main() -> None:
                 notes.append(f"{name} LOD{lod}: {bl}")
             for variant, b in bakes.items():
                 rows.append({"asset": name, "lod": lod, "switch_px": px, "variant": variant,
-                             "bake_seconds": b["seconds"], "blender_stand_ins": stand_ins,
+                             "bake_seconds": b["seconds"],
+                             "export_seconds": b["export_seconds"],
+                             "blender_stand_ins": stand_ins,
                              "blender": None if isinstance(bl, str) else bl[variant],
                              "texelbake": texelbake_lod(b["root"], lod, px, args),
                              "fit": _fit_entry(b["root"], lod)})
