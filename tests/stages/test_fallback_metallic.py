@@ -87,7 +87,10 @@ def test_metallic_and_roughness_textures_reach_the_fallback(tmp_path):
     assert np.abs(met.reshape(-1)[ok] - want_m).max() < 0.6 / 255
     assert np.abs(rough.reshape(-1)[ok] - want_r).max() < 0.6 / 255 + 1e-3
     assert (want_m > 0.99).any() and (want_m < 0.01).any()  # both sides are checked
-    assert stock_errors(root) == {str(root): []}
+    from texelbake.usd.export import export_lod
+
+    outs = [export_lod(root, 1, tmp_path / f"lod1{suffix}") for suffix in (".usda", ".usdz")]
+    assert stock_errors(root, *outs) == {str(p): [] for p in (root, *outs)}
 
 
 def test_material_metallic_per_sample():
