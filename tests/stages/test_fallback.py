@@ -83,7 +83,7 @@ def test_fitted_material_per_lod(cylinder):
         side = res >> report["fallback_texture_levels"][int(lod[-1]) - 1]
         assert px.shape[:2] == (side, side), lod
         nrm = read_pixels(str(root.parent / inputs["normal"]["file"].path))[0]
-        assert nrm.shape[:2] == (side, side), lod
+        assert nrm.shape[:2] == (res, res), lod  # normals: the page's size (`lod_textures`)
     fit = report["fallback"]["fit"]
     assert report["fallback"]["mode"] == "fitted"
     assert len(fit["gain"]) == 2

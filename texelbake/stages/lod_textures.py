@@ -6,7 +6,7 @@ filled texels, so near a chart's border a coarse level mixes the page's padding 
 neighbouring chart in; a renderer that does not mip-map (Cycles) reads LOD1's texels on a LOD
 drawn 4-16x smaller. The LOD's own texture is each level-l texel's mean over the covered
 level-0 texels under it, weighted by their covered area (`box_down`), so neither happens at the
-LOD's own distance."""
+LOD's own distance. Only the inputs radiance is linear in are sized so (`per_lod`)."""
 
 from __future__ import annotations
 
@@ -33,11 +33,10 @@ def lod_texture_levels(ctx: StageContext, res: int, n_lods: int) -> list[int]:
     return out
 
 
-def box_down(img: np.ndarray, area: np.ndarray, level: int, unit: bool = False) -> np.ndarray:
+def box_down(img: np.ndarray, area: np.ndarray, level: int) -> np.ndarray:
     """A level-0 map (n, n, c) at `level`: each coarse texel the mean of the level-0 texels
     under it weighted by their covered area (n, n), texels no area covers filled from the
-    nearest covered one; `unit`: the mean renormalised (a normal map; a zero mean is +z).
-    Level 0 is the map itself, unchanged. float32."""
+    nearest covered one. Level 0 is the map itself, unchanged. float32."""
     from texelbake.stages.filtered import nearest_fill
 
     img = np.asarray(img)
@@ -50,23 +49,19 @@ def box_down(img: np.ndarray, area: np.ndarray, level: int, unit: bool = False) 
     num = (img.astype(np.float64).reshape(m, f, m, f, -1) * w[..., None]).sum(axis=(1, 3))
     den = w.sum(axis=(1, 3))
     out = num / np.where(den > 0, den, 1.0)[..., None]
-    if unit:
-        length = np.linalg.norm(out, axis=-1, keepdims=True)
-        out = np.where(length > 0, out / np.maximum(length, 1e-300), [0.0, 0.0, 1.0])
     out = nearest_fill(out, den > 0)
     return out.reshape(m, m, *img.shape[2:]).astype(np.float32)
 
 
 def per_lod(fb: dict, levels: list[int]) -> dict:
-    """The fallback's per-LOD textures (`box_down` of the page's at each LOD's level):
-    "lod_base" and, where the fallback has them, "lod_metallic" and "lod_normals" (each LOD's
-    own normal map, in its own frames, at its level), one entry per LOD."""
+    """The fallback's per-LOD textures (`box_down` of the page's at each LOD's level) of the
+    inputs the preview surface's radiance is linear in: "lod_base" and, where the fallback has
+    one, "lod_metallic", one entry per LOD. The normal maps stay at the page's size: radiance
+    is not linear in the normal, and a mean normal loses the glints of what it averages
+    (docs/decisions.md: "Each LOD's textures at its own size")."""
     area = fb["coverage"]
     out = {"lod_base": [box_down(fb["base"], area, lvl) for lvl in levels]}
     if fb.get("metallic") is not None:
         out["lod_metallic"] = [box_down(fb["metallic"][..., None], area, lvl)[..., 0]
                                for lvl in levels]
-    if fb.get("lod_normals") is not None:
-        out["lod_normals"] = [box_down(n, area, lvl, unit=True)
-                              for n, lvl in zip(fb["lod_normals"], levels, strict=True)]
     return out
