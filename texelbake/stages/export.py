@@ -144,9 +144,6 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
         "skipped": [{"stage": a, "reason": b} for a, b in skipped],
         "fallback_levels": fallback["levels"],
         "fallback_resolution": fallback["resolution"],
-        # the level of that page each LOD's own textures are (`stages.lod_textures`)
-        "fallback_texture_levels": fallback.get("texture_levels",
-                                                [0] * len(fallback["roughness"])),
         # paths only unselected variants name (never read) and textures missing from the asset
         "unreachable_paths": list(asset.unreachable_paths),
         "missing_paths": list(asset.missing_paths),

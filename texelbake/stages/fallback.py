@@ -35,7 +35,6 @@ from texelbake.brdf.evaluate import evaluate_by_face
 from texelbake.cpm.level import segment_sum
 from texelbake.geometry.basis import tangent_frames
 from texelbake.stages.context import GEOMETRY_FIELDS, StageContext
-from texelbake.stages.lod_textures import box_down, lod_texture_levels
 from texelbake.tol import TOL
 
 #: samples per chunk of the target sums (k² = 81 BRDF rows and k rays per sample)
@@ -43,6 +42,24 @@ SAMPLE_CHUNK = 8192
 #: texels per chunk of the fit (81 pairs x 16 views x 3 BRDF evaluations each)
 TEXEL_CHUNK = 1024
 _TAG_VIEWS = 0x6F
+
+
+def lod_texture_levels(ctx: StageContext, res: int, n_lods: int) -> list[int]:
+    """The level of the res² page whose texels each LOD's fitted textures carry: the side at
+    which a texel is at most a pixel where LOD i switches in (`lod_switch_px[i - 1]`, the
+    rule of `filtered.fallback_resolution` for LOD1), as a power of two ≤ res; a LOD past the
+    switch sizes (or 'atlas' mode) takes the last one's level."""
+    n_levels = int(np.log2(res)) + 1
+    px = list(ctx.settings.lod_switch_px) if ctx.settings.lod_mode == "error" else []
+    out = []
+    for i in range(n_lods):  # a loop over the few LODs
+        if not px:
+            out.append(0)
+            continue
+        sw = float(px[min(i, len(px) - 1)])
+        lvl = int(np.floor(np.log2(float(px[0]) / sw)))  # the page is sized for LOD1
+        out.append(int(np.clip(lvl, 0, n_levels - 1)))
+    return out
 
 
 def _sample_sums(ctx: StageContext, fs: dict, res: int, dirs: np.ndarray):
@@ -299,11 +316,7 @@ def fitted_inputs(ctx: StageContext, averaged: dict) -> dict:
             arrays[f"residual{i}"] = info["residual"]
         ctx.store.write_arrays(key, arrays)
     d = ctx.store.read_arrays(key)
-    # each LOD's at its own size (`lod_textures`), as the averaged fallback's base colour
-    tex_levels = averaged.get("texture_levels") or [0] * n_lods
-    diffuse = [box_down(np.clip(base0 * d[f"gain{i}"], 0.0, 1.0).astype(np.float32),
-                        averaged["coverage"], tex_levels[i]) if tex_levels[i]
-               else np.clip(base0 * d[f"gain{i}"], 0.0, 1.0).astype(np.float32)
+    diffuse = [np.clip(base0 * d[f"gain{i}"], 0.0, 1.0).astype(np.float32)
                for i in range(n_lods)]
     fit = [{"gain_level": int(d[f"choice{i}"][0]),
             "lambda": (float(d[f"choice{i}"][1]) if np.isfinite(d[f"choice{i}"][1]) else None),

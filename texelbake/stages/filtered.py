@@ -212,13 +212,12 @@ def fallback_opacity(ctx: StageContext, res: int) -> np.ndarray | None:
     return out.reshape(res, res).astype(np.float32)
 
 
-def dense_fallback_levels(ctx: StageContext, res: int
-                          ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray], np.ndarray]:
     """The filtered maps (CHANNELS) of every level of a res x res page on the atlas layout,
     from FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on M_org placed on M_T like the
     geometry stage's (`assign_texels`, the bent-normal rule on wraps), and the level-0 tangent-
-    space normal map (unit), and each level-0 texel's covered area (res, res) (the samples'
-    ΔA summed). Level 0's base colour is weighted by AO (below). Kept in the artifact store."""
+    space normal map (unit). Level 0's base colour is weighted by AO (below). Kept in the
+    artifact store."""
     from texelbake.baselines.filtered_maps import CHANNELS, FIELDS
     from texelbake.geometry.mikktspace import encode
 
@@ -227,8 +226,7 @@ def dense_fallback_levels(ctx: StageContext, res: int
                   f"-ao{FALLBACK_AO_RAYS}.npz", GEOMETRY_FIELDS)
     if ctx.store.exists(key):
         data = ctx.store.read_arrays(key)
-        return ([data[f"L{lvl:02d}"] for lvl in range(n_levels)], data["normal"],
-                data["coverage"])
+        return [data[f"L{lvl:02d}"] for lvl in range(n_levels)], data["normal"]
     s = ctx.settings
     asset = ctx.asset()
     caster = ctx.caster()
@@ -270,10 +268,9 @@ def dense_fallback_levels(ctx: StageContext, res: int
     nbar = np.where(length > 0, nbar / np.maximum(length, 1e-300), [0.0, 0.0, 1.0])
     normal = nearest_fill(nbar.reshape(res, res, 3), filled0.reshape(res, res))
     assert maps[0].shape[2] == len(CHANNELS)
-    coverage = np.bincount(t0, weights=smp.area, minlength=res * res).reshape(res, res)
     ctx.store.write_arrays(key, {**{f"L{lvl:02d}": m for lvl, m in enumerate(maps)},
-                                 "normal": normal.astype(np.float32), "coverage": coverage})
-    return maps, normal.astype(np.float32), coverage
+                                 "normal": normal.astype(np.float32)})
+    return maps, normal.astype(np.float32)
 
 
 def _seen_means(ctx: StageContext, fs: dict, res: int, values: np.ndarray
@@ -410,7 +407,7 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
     res = fallback_resolution(ctx)
     normal = None
     if res > ctx.settings.atlas_resolution:
-        maps, normal, coverage = dense_fallback_levels(ctx, res)
+        maps, normal = dense_fallback_levels(ctx, res)
     texel = _texel_size(geo, res)  # world size of a texel of the fallback page on M1
     errors = [0.0]
     for v, f, _ in lod_meshes(geo)[1:]:  # a loop over the few LODs (the lod{i} keys)
@@ -443,10 +440,4 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
         out["constants"] = {**{k: v for k, v in out["constants"].items()
                                if k not in ("metallic", "specularColor")},
                             "useSpecularWorkflow": 0}
-    if normal is not None:  # the dense page: each LOD's textures at its own size
-        from texelbake.stages.lod_textures import lod_texture_levels, per_lod
-
-        out["coverage"] = coverage
-        out["texture_levels"] = lod_texture_levels(ctx, res, len(rough))
-        out.update(per_lod(out, out["texture_levels"]))
     return out

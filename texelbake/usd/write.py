@@ -66,9 +66,6 @@ def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
         files["base"] = f"{name}_basecolor.png"
         files["occlusion"] = f"{name}_occlusion.png"
         _write_png(out_dir / files["base"], fb["base"], srgb=True)
-        # each LOD after LOD1 its own base colour and metallic at its size (`lod_textures`)
-        files["lod_base"] = _lod_files(out_dir, name, "basecolor", fb.get("lod_base"),
-                                       files["base"], srgb=True)
         _write_png(out_dir / files["occlusion"], np.asarray(fb["occlusion"])[..., None],
                    srgb=False)
         files["roughness"] = []
@@ -87,10 +84,6 @@ def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
             files["metallic"] = f"{name}_metallic.png"
             _write_png(out_dir / files["metallic"], np.asarray(fb["metallic"])[..., None],
                        srgb=False)
-            files["lod_metallic"] = _lod_files(
-                out_dir, name, "metallic", [np.asarray(m)[..., None] for m in
-                                            fb.get("lod_metallic") or []],
-                files["metallic"], srgb=False)
         if fb.get("opacity") is not None:  # cut-outs: what is left of each texel
             files["opacity"] = f"{name}_opacity.png"
             _write_png(out_dir / files["opacity"], np.asarray(fb["opacity"])[..., None],
@@ -110,21 +103,6 @@ def _write_maps(out_dir: Path, baked: BakedAsset) -> dict[str, Any]:
             write_pixels(out_dir / f"{name}_fit_residual_lod{i}.exr",
                          np.asarray(img, np.float32)[..., None], "float", channel_names=("Y",))
     return files
-
-
-def _lod_files(out_dir: Path, name: str, key: str, maps: list | None, lod1_file: str, *,
-               srgb: bool) -> list[str]:
-    """Per LOD the file of its `key` map: LOD1's is `lod1_file` (written by the caller); a
-    later LOD's map of another size than LOD1's is written as `<name>_<key>_lod<i>.png`, one
-    of the same size is LOD1's (the same texels)."""
-    out = [lod1_file]
-    for i, img in enumerate((maps or [])[1:], start=2):
-        if np.shape(img)[:2] == np.shape(maps[0])[:2]:
-            out.append(lod1_file)
-            continue
-        out.append(f"{name}_{key}_lod{i}.png")
-        _write_png(out_dir / out[-1], np.asarray(img), srgb=srgb)
-    return out
 
 
 def _new_stage(path: Path) -> Usd.Stage:
@@ -200,10 +178,9 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
     for i, mesh in enumerate(baked.meshes, start=1):
         if baked.fallback:  # one fallback per LOD: its roughness is widened for that LOD
             fitted = bool(files["diffuse"])
-            base = files["lod_base"][min(i, len(files["lod_base"])) - 1]
             mat = author_preview_material(
                 pstage, fallback_material_path(i),
-                f"./{files['diffuse'][i - 1]}" if fitted else f"./{base}",
+                f"./{files['diffuse'][i - 1]}" if fitted else f"./{files['base']}",
                 f"./{files['fallback_normal']}" if i < 2 or not files["fallback_normals"]
                 else f"./{files['fallback_normals'][i - 2]}",
                 "/Baked/CPM", f"./{files['roughness'][i - 1]}", f"./{files['occlusion']}",
@@ -211,8 +188,7 @@ def write_baked_asset(out_dir: Path, source_copy: Path, baked: BakedAsset,
                 specular_file=(f"./{files['specular'][i - 1]}" if files["specular"]
                                else None),
                 opacity_file=f"./{files['opacity']}" if "opacity" in files else None,
-                metallic_file=(f"./{files['lod_metallic'][min(i, len(files['lod_metallic'])) - 1]}"
-                               if "metallic" in files else None))
+                metallic_file=f"./{files['metallic']}" if "metallic" in files else None)
         elif i == 1:
             mat = author_preview_material(
                 pstage, fallback_material_path(1), f"./{files['albedo']}",
