@@ -132,6 +132,49 @@ def test_chart_padding_holds_covered_values_only(cylinder):
         assert all(row.tobytes() in inside for row in flat[~c]), name
 
 
+def test_no_mip_a_lod_reads_mixes_two_charts(cylinder):
+    # the page's padding is filled from the nearest covered texel, and charts are packed
+    # `padding_texels` atlas texels apart (a 32x wider gutter on a 512² page of a 16² atlas):
+    # every box-mip block a viewer reads up to LOD2's switch level (a texel a pixel where
+    # LOD2 switches in) takes its texels from one chart only
+    import numpy as np
+    from scipy.ndimage import distance_transform_edt, label
+
+    from schemas.settings import BakeSettings
+    from texelbake.geometry.atlas import rasterize_atlas
+    from texelbake.pipeline.run import default_workdir
+    from texelbake.stages.context import StageContext
+    from texelbake.stages.filtered import fallback_resolution, fallback_samples
+
+    s = BakeSettings(**SMALL, fallback="averaged")
+    ctx = StageContext.create(default_workdir(), cylinder["src"], s)
+    res = fallback_resolution(ctx)
+    geo = ctx.geometry()
+    chart, n_charts = label((rasterize_atlas(geo["m1_corner_uvs"], res)[0] >= 0
+                             ).reshape(res, res))
+    assert n_charts > 1
+    fs = fallback_samples(ctx, res)
+    cov = np.zeros(res * res, bool)
+    cov[fs["row"] * res + fs["col"]] = True
+    cov = cov.reshape(res, res)
+    # the chart each page texel's value comes from: every texel belongs to its nearest
+    # chart, and its value is its nearest covered texel's
+    near = distance_transform_edt(chart == 0, return_distances=False, return_indices=True)
+    chart_of = chart[near[0], near[1]]
+    idx = distance_transform_edt(~cov, return_distances=False, return_indices=True)
+    src = chart_of[idx[0], idx[1]]
+    lod2_level = int(np.log2(s.lod_switch_px[0] / s.lod_switch_px[1]))
+    assert lod2_level >= 2
+    for lvl in range(1, lod2_level + 1):  # the blocks a look-up inside a chart reads
+        f = 1 << lvl
+
+        def blocks(a, f=f):
+            return a.reshape(res // f, f, res // f, f).transpose(0, 2, 1, 3).reshape(-1, f * f)
+
+        b, inside = blocks(src), blocks(chart).max(axis=1) > 0
+        assert np.all(b[inside].min(axis=1) == b[inside].max(axis=1)), lvl
+
+
 def test_averaged_stays_an_option(cylinder):
     mats = _materials(cylinder["averaged"])
     for inputs in mats.values():
