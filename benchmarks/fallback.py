@@ -9,7 +9,8 @@ same LOD in texelbake's own `preview-surface` mode against its `gt` reference.
         [--variants averaged ...]
 
 Assets: the four generated scenes at `--size` (full), the Teapot and BoxAnimated.usdz from
-../shared/assets. Each is baked once per fallback variant (`FALLBACKS`: a column name and the
+../shared/assets, and by name only `teapot_fancy` (the Teapot's "Fancy" model variant: an ARM
+texture's roughness and metallic). Each is baked once per fallback variant (`FALLBACKS`: a column name and the
 BakeSettings that select it; adding a variant is one line there) at `BAKE` (a light CPM that
 leaves the geometry and the filtered maps — all the fallback reads — as at defaults; printed).
 
@@ -262,7 +263,25 @@ def asset_cases(work: Path, size: str, assets: list[str] | None) -> dict[str, Pa
             cases[name] = write_scene(name, work / f"{name}.usda", size)
     cases["teapot"] = ASSETS / "Teapot" / "Teapot.usd"
     cases["box_animated"] = ASSETS / "BoxAnimated.usdz"
+    if assets and "teapot_fancy" in assets:  # asked for by name only (a copy of the folder)
+        cases["teapot_fancy"] = fancy_teapot(work)
     return cases
+
+
+def fancy_teapot(work: Path) -> Path:
+    """The Teapot with its `modelVariant` "Fancy" selected (an ARM texture: roughness and a
+    metallic gold trim beside porcelain): a layer that references a copy of the asset's
+    folder (texelbake reads only paths inside the asset's own folder)."""
+    dest = work / "teapot_fancy"
+    if not dest.exists():
+        shutil.copytree(ASSETS / "Teapot", dest / "Teapot")
+    layer = dest / "teapot_fancy.usda"
+    layer.write_text('#usda 1.0\n(\n    defaultPrim = "Teapot"\n    metersPerUnit = 1\n'
+                     '    upAxis = "Y"\n)\n\ndef Xform "Teapot" (\n'
+                     '    prepend references = @./Teapot/Teapot.usd@\n'
+                     '    variants = {\n        string modelVariant = "Fancy"\n    }\n'
+                     '    prepend variantSets = "modelVariant"\n)\n{\n}\n')
+    return layer
 
 
 def main() -> None:
