@@ -24,6 +24,7 @@ from texelbake.geometry.mesh import (
     triangle_areas,
     weld,
 )
+from texelbake.geometry.normal_input import mapped_normals
 from texelbake.geometry.raycast import CutoutTest, RayCaster
 from texelbake.geometry.sampling import SurfaceSampler, surface_sampler
 from texelbake.geometry.texel_frames import FrameSums
@@ -61,6 +62,7 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
         asset.points, asset.faces, n * n * s.samples_per_texel, s.seed,
         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
         face_material=asset.face_material, face_density=sample_density(asset, s),
+        normal_input=mapped_normals(asset),
     )
     chunk = geometry_chunk(s)
     probes = _spool_samples(sampler, asset, spool, chunk, (200_000, 20_000), caster.cutout)

@@ -189,10 +189,11 @@ class SurfaceSampler:
     sampled at one density (no `face_density`)."""
 
     def __init__(self, pts, fcs, counts, areas, seed, corner_normals, corner_uvs,
-                 face_material, uniform: bool = True) -> None:
+                 face_material, uniform: bool = True, normal_input=None) -> None:
         self.pts, self.fcs, self.counts, self.areas = pts, fcs, counts, areas
         self.corner_normals, self.corner_uvs = corner_normals, corner_uvs
         self.face_material = face_material
+        self.normal_input = normal_input
         self.uniform = bool(uniform)
         self.seed = int(seed)
         self.m = int(counts.sum())
@@ -238,6 +239,8 @@ class SurfaceSampler:
               else np.zeros((len(fa), 2)))
         material = (np.zeros(len(fa), np.int32) if self.face_material is None
                     else self.face_material[fa])
+        if self.normal_input is not None:  # the materials' normal maps
+            normals = self.normal_input.apply(fa, ba, normals, uv, material)
         return Samples(positions, normals, fa.astype(np.int64), ba, uv, material, share[fa])
 
 
@@ -251,6 +254,7 @@ def surface_sampler(
     corner_uvs: object | None = None,
     face_material: object | None = None,
     face_density: object | None = None,
+    normal_input: object | None = None,
     eps: float = TOL.zero_area,
 ) -> SurfaceSampler:
     """`sample_surface`'s samples as a `SurfaceSampler` (same arguments, checked here)."""
@@ -291,7 +295,8 @@ def surface_sampler(
             scale = float(dense.sum() / areas[live].sum()) if live.any() else 1.0
             counts = allocate_counts(dense, int(round(int(n_samples) * scale)), 0.0)
     return SurfaceSampler(pts, fcs, counts, areas, seed, corner_normals, corner_uvs,
-                          face_material, uniform=face_density is None)
+                          face_material, uniform=face_density is None,
+                          normal_input=normal_input)
 
 
 def sample_surface(points: object, faces: object, n_samples: int, seed: int, *,
@@ -313,6 +318,8 @@ def sample_surface(points: object, faces: object, n_samples: int, seed: int, *,
         request's (`geometry.density`): the m · Σ d a / Σ a samples are split by d · area, and
         a face's samples still share its area, so Σ ΔA is the surface area. Not applied when the
         triangles outnumber SAMPLES_PER_REQUEST_CAP · m (they are drawn by area)
+    normal_input : a `geometry.normal_input.NormalInput` of the mesh (its materials' normal
+        maps decoded into the shading normals; needs face_material and corner_uvs) or None
     chunk : samples whose attributes are computed at a time (memory only: the result does
         not depend on it; `surface_sampler` gives the chunks without the whole)
     returns : Samples, grouped by triangle in face order; ΔA of a triangle's samples is

@@ -69,6 +69,7 @@ from texelbake.deform.warps import MeshWarp, Warp
 from texelbake.errors import SettingsError
 from texelbake.geometry.basis import tangent_frames
 from texelbake.geometry.mesh import face_normals
+from texelbake.geometry.normal_input import mapped_normals
 from texelbake.geometry.raycast import RayCaster
 from texelbake.render.cpm import CpmFrame
 from texelbake.render.scene import RenderScene, _hausdorff, _uv_ratio, set_atlas_surface
@@ -187,6 +188,8 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     d.eye_box = None  # the rest pose's box does not hold the warped meshes: no eye-ray cull
     d.org = RayCaster(pts, a.faces, cutout=scene.org.cutout)  # cut-outs move with the surface
     d.org_face_normals = face_normals(d.asset.points, d.asset.faces)
+    # the materials' normal maps decode in the deformed surface's own tangent frames
+    d.normal_input = mapped_normals(d.asset)
     # diag and ray_eps stay the rest scene's: a length of the object, not of its axis-aligned
     # box, which a rotation changes (a rigidly moved asset must render as the unmoved one)
     rest_lods, exact, frames0, lod_w = _refined_lods(scene, refine, n_joints)

@@ -152,6 +152,7 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     from texelbake.geometry.lodnormals import lod_corner_normals
     from texelbake.geometry.mesh import Mesh, face_normals
     from texelbake.geometry.mikktspace import frames_at, mikk_tangents
+    from texelbake.geometry.normal_input import mapped_normals
     from texelbake.geometry.raycast import RayCaster
     from texelbake.geometry.sampling import sample_surface
     from texelbake.geometry.texels import assign_texels
@@ -162,7 +163,8 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     caster = ctx.caster()
     smp = sample_surface(asset.points, asset.faces, res * res * FALLBACK_SAMPLES_PER_TEXEL,
                          s.seed * 1000 + _TAG_FALLBACK, corner_normals=asset.corner_normals,
-                         corner_uvs=asset.corner_uvs, face_material=asset.face_material)
+                         corner_uvs=asset.corner_uvs, face_material=asset.face_material,
+                         normal_input=mapped_normals(asset))
     gnrm = face_normals(asset.points, asset.faces)[smp.face]
     m_t = Mesh(geo["m1_vertices"], geo["m1_faces"])
     atlas = Atlas(m_t, geo["m1_corner_uvs"], res, np.arange(m_t.num_vertices),

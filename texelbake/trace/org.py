@@ -10,6 +10,7 @@ import numpy as np
 from texelbake import brdf as brdf_mod
 from texelbake.brdf.opacity import asset_cutout
 from texelbake.geometry.mesh import face_normals
+from texelbake.geometry.normal_input import mapped_normals
 from texelbake.geometry.raycast import RayCaster
 from texelbake.model import AssetModel
 from texelbake.tol import TOL
@@ -40,6 +41,8 @@ class OrgScene:
         # shadow and coverage
         self.org = RayCaster(asset.points, asset.faces, cutout=asset_cutout(asset))
         self.org_face_normals = face_normals(asset.points, asset.faces)
+        #: the materials' normal maps on M_org (None: no material has a normal input)
+        self.normal_input = mapped_normals(asset)
         self.diag = self.org.bbox_diag
         self.ray_eps = TOL.ray_offset * self.diag
         self.eye_box: np.ndarray | None = self.box_around(np.asarray(asset.points, np.float64))
@@ -75,6 +78,8 @@ def shade_org(scene: OrgScene, o: np.ndarray, d: np.ndarray
     ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-300)
     uv = np.einsum("nk,nkj->nj", b, a.corner_uvs[prim])
     mat = a.face_material[prim]
+    if scene.normal_input is not None:  # the materials' normal maps, as the samples see them
+        ns = scene.normal_input.apply(prim, b, ns, uv, mat)
 
     def brdf(sel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
         return brdf_mod.evaluate_by_face(scene.materials, mat[sel], wi, wo, uv[sel])
