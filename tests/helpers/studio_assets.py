@@ -105,6 +105,48 @@ def textured_box(folder: Path, texture: str = "./print.png", *, fallback=None) -
     return folder / "box.usda"
 
 
+def normal_mapped_box(folder: Path, with_map: bool = True) -> Path:
+    """A grey flat-shaded box whose UsdPreviewSurface reads a tangent-space normal map (raw,
+    scale 2, bias -1: 16x16 texels of vertical stripes tilted 35° toward +u and -u, 4 texels
+    wide) on every face; `with_map` False: the same box without the normal input."""
+    folder.mkdir(parents=True, exist_ok=True)
+    t = np.radians(35.0)
+    cols = (np.arange(16) // 4) % 2
+    nrm = np.stack([np.where(cols == 0, np.sin(t), -np.sin(t)), np.zeros(16),
+                    np.full(16, np.cos(t))], axis=1)
+    write_png(folder / "bumps.png", np.broadcast_to(
+        np.round((nrm * 0.5 + 0.5) * 255).astype(np.uint8), (16, 16, 3)))
+    stage = new_stage(folder / "box.usda")
+    mesh = box_mesh(stage, "/Root/Box")
+    # flat faces (faceVarying normals): without the map both renderers shade each face flat
+    quads = _BOX_POINTS[np.asarray(_BOX_QUADS)]  # (6, 4, 3)
+    fn = np.cross(quads[:, 1] - quads[:, 0], quads[:, 2] - quads[:, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.repeat(fn, 4, axis=0).astype(np.float32)))
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying)
+    mat = preview_material(stage, "/Root/Looks/Bumps", diffuse=(0.6, 0.6, 0.6))
+    if with_map:
+        surface = UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/Bumps/Surface"))
+        reader = UsdShade.Shader.Define(stage, "/Root/Looks/Bumps/StReader")
+        reader.CreateIdAttr("UsdPrimvarReader_float2")
+        reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+        reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+        tex = UsdShade.Shader.Define(stage, "/Root/Looks/Bumps/NormalMap")
+        tex.CreateIdAttr("UsdUVTexture")
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./bumps.png")
+        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+        tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set((2.0, 2.0, 2.0, 1.0))
+        tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set((-1.0, -1.0, -1.0, 0.0))
+        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
+            reader.ConnectableAPI(), "result")
+        tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+        surface.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
+            tex.ConnectableAPI(), "rgb")
+    bind(mesh, mat)
+    stage.Save()
+    return folder / "box.usda"
+
+
 def fallback_colour_box(folder: Path, fallback) -> Path:
     """The textured box with `fallback` (rgb) as its constant diffuseColor and no texture:
     what a renderer shows of `textured_box(..., "./gone.png", fallback=...)` (Blender paints a
