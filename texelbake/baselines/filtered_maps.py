@@ -165,7 +165,7 @@ def material_base(materials: Sequence[Material], sample_material: np.ndarray,
         base[sel] = albedo[sel]
         alpha2[sel] = base_alpha2(mat)
         lobe = {"preview": "roughness", "phong": "exponent"}.get(mat.model)
-        if lobe in mat.textures:  # a textured lobe (an ARM map's roughness): per sample
+        if lobe is not None and lobe in mat.textures:  # a textured lobe: per sample
             from texelbake.brdf.textures import sample_texture
 
             v = sample_texture(mat.textures[lobe], sample_uv[sel])[:, 0].astype(np.float64)

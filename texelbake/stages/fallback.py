@@ -256,8 +256,10 @@ def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndar
                 best = (err, lam, c)
     _, lam, c = best
     c_uniq, _, l0, dl, tg = at(c)
+    t_c, v_c = tg[2]  # every sample's targets at the gain's level
     if np.isfinite(lam):
-        g_c = shrunk_gain(*gain_sums(l0, dl, *tg[2]), lam)
+        sdd, sdr = gain_sums(l0, dl, t_c, v_c)
+        g_c = shrunk_gain(sdd, sdr, lam)
         g = _gain_image(g_c, c_uniq, res >> c, res)
     else:
         g_c, g = np.ones((c_uniq.size, 3)), np.ones((res, res, 3))
@@ -266,10 +268,10 @@ def _lod_gain(lvl: int, res: int, sums: tuple, base0: np.ndarray, rough: np.ndar
     # and the targets' own sampling noise on the same scale (half the two halves' difference
     # has the variance of the whole's mean): a residual near it is noise, not the model
     resid = np.full((3, (res >> c) ** 2), np.nan)
-    resid[0, c_uniq] = gain_residual(l0, dl, *tg[2], g_c)
-    resid[1, c_uniq] = gain_residual(l0, dl, *tg[2], np.ones_like(g_c))
+    resid[0, c_uniq] = gain_residual(l0, dl, t_c, v_c, g_c)
+    resid[1, c_uniq] = gain_residual(l0, dl, t_c, v_c, np.ones_like(g_c))
     half_d = 0.5 * (tg[0][0] - tg[1][0]) * (tg[0][1] & tg[1][1])[..., None]
-    t_all = tg[2][0] * tg[2][1][..., None]
+    t_all = t_c * v_c[..., None]
     n2 = np.einsum("tijc,tijc->t", t_all, t_all)
     resid[2, c_uniq] = np.sqrt(np.divide(np.einsum("tijc,tijc->t", half_d, half_d), n2,
                                          out=np.full(n2.shape, np.nan), where=n2 > 0))

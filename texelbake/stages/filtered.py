@@ -425,21 +425,20 @@ def fallback_maps(ctx: StageContext, maps: list[np.ndarray]) -> dict:
         r = fallback_roughness(m[:, FIELDS["alpha2"]][:, 0], cov)
         rough.append(r.reshape(maps[lvl].shape[:2]).astype(np.float32))
     top = maps[0]
+    constants = dominant_constants(asset.materials, geo["sample_mat"], geo["sample_area"])
+    metallic = fallback_metallic(ctx, res)
+    if metallic is not None:  # metals and dielectrics (or a metallic texture): a map
+        constants = {**{k: v for k, v in constants.items()
+                        if k not in ("metallic", "specularColor")}, "useSpecularWorkflow": 0}
     out = {"base": top[..., FIELDS["base"]], "occlusion": top[..., FIELDS["ao"]][..., 0],
            "roughness": rough, "levels": lod_levels(errors, texel, len(maps)),
-           "constants": dominant_constants(asset.materials, geo["sample_mat"],
-                                           geo["sample_area"]),
-           "resolution": int(res)}
+           "constants": constants, "resolution": int(res)}
     if normal is not None:
         out["normal"] = normal
         out["lod_normals"] = [normal, *lod_normal_maps(ctx, res)]
     opacity = fallback_opacity(ctx, res)
     if opacity is not None:
         out["opacity"] = opacity
-    metallic = fallback_metallic(ctx, res)
-    if metallic is not None:  # metals and dielectrics (or a metallic texture): a map
+    if metallic is not None:
         out["metallic"] = metallic
-        out["constants"] = {**{k: v for k, v in out["constants"].items()
-                               if k not in ("metallic", "specularColor")},
-                            "useSpecularWorkflow": 0}
     return out
