@@ -42,12 +42,10 @@ silhouette as a ratio to the original's (the bolt's acceptance: within 25 %). Sc
 LOD) go to `--renders` (default: `<json stem>_renders/` beside the JSON).
 
 Measured (benchmarks/results/fallback.json: one invocation, `python benchmarks/fallback.py --json
-benchmarks/results/fallback.json`, on the tree with the LODs' own corner normals
-(`lodnormals.lod_corner_normals`), specularColor only in the specular workflow and BoxAnimated's
-reference without its twin triangles; scenes full size; bakes at `BAKE`; Cycles 256² at 256 spp,
-no denoiser; texelbake preview-surface 16 spp on the LOD's own mesh against gt 256 spp, 256²;
-machine load 4-5). PSNR (dB) and FLIP over the object, IoU, mean radiance as a ratio to the
-original's, and Cycles' noise floor (the original under a second seed):
+benchmarks/results/fallback.json`; scenes full size; bakes at `BAKE`; Cycles 256² at 256 spp,
+no denoiser; texelbake preview-surface 16 spp on the LOD's own mesh against gt 256 spp, 256²).
+PSNR (dB) and FLIP over the object, IoU, mean radiance as a ratio to the original's, and
+Cycles' noise floor (the original under a second seed):
 
 | asset        | LOD | px  | variant  | Blender PSNR | FLIP  | IoU   | mean | floor | tb PSNR | FLIP  | IoU   | mean |
 |--------------|----:|----:|----------|-------------:|------:|------:|-----:|------:|--------:|------:|------:|-----:|
@@ -57,8 +55,8 @@ original's, and Cycles' noise floor (the original under a second seed):
 | cylinder     |   2 |  64 | fitted   |        24.83 | 0.302 | 0.996 | 1.03 |  47.8 |   19.73 | 0.354 | 0.996 | 1.11 |
 | wall         |   1 | 256 | averaged |        25.52 | 0.157 | 0.999 | 0.99 |  45.1 |   22.51 | 0.165 | 0.999 | 1.00 |
 | wall         |   1 | 256 | fitted   |        19.62 | 0.333 | 0.999 | 0.80 |  45.1 |   18.73 | 0.313 | 0.999 | 0.83 |
-| wall         |   2 |  64 | averaged |         9.72 | 0.586 | 0.953 | 0.57 |  40.2 |   16.60 | 0.298 | 0.950 | 1.16 |
-| wall         |   2 |  64 | fitted   |         9.60 | 0.627 | 0.953 | 0.46 |  40.2 |   18.47 | 0.186 | 0.950 | 0.95 |
+| wall         |   2 |  64 | averaged |        20.05 | 0.222 | 0.953 | 1.03 |  40.2 |   16.97 | 0.276 | 0.950 | 1.13 |
+| wall         |   2 |  64 | fitted   |        19.11 | 0.283 | 0.953 | 0.84 |  40.2 |   18.49 | 0.176 | 0.950 | 0.92 |
 | bolt         |   1 | 256 | averaged |        32.83 | 0.083 | 1.000 | 1.05 |  44.0 |   42.33 | 0.026 | 0.998 | 1.06 |
 | bolt         |   1 | 256 | fitted   |        32.32 | 0.151 | 1.000 | 0.90 |  44.0 |   43.41 | 0.030 | 0.998 | 0.94 |
 | bolt         |   2 |  64 | averaged |        17.47 | 0.261 | 0.995 | 0.78 |  29.0 |   24.92 | 0.297 | 0.995 | 0.67 |
@@ -67,29 +65,27 @@ original's, and Cycles' noise floor (the original under a second seed):
 | cloisonne    |   1 | 256 | fitted   |        19.57 | 0.390 | 0.996 | 1.01 |  57.5 |   43.90 | 0.441 | 0.996 | 1.19 |
 | cloisonne    |   2 |  64 | averaged |        21.17 | 0.236 | 0.985 | 0.96 |  55.3 |   33.64 | 0.255 | 0.982 | 1.13 |
 | cloisonne    |   2 |  64 | fitted   |        20.43 | 0.364 | 0.985 | 1.03 |  55.3 |   33.55 | 0.415 | 0.982 | 1.21 |
-| teapot       |   1 | 256 | averaged |        30.06 | 0.156 | 0.982 | 1.01 |  46.3 |   37.42 | 0.093 | 0.996 | 1.00 |
-| teapot       |   1 | 256 | fitted   |        26.46 | 0.261 | 0.982 | 0.92 |  46.3 |   35.07 | 0.216 | 0.996 | 0.93 |
-| teapot       |   2 |  64 | averaged |        24.67 | 0.300 | 0.969 | 0.91 |  42.9 |   24.92 | 0.266 | 0.981 | 0.93 |
-| teapot       |   2 |  64 | fitted   |        23.13 | 0.364 | 0.969 | 0.85 |  42.9 |   23.77 | 0.333 | 0.981 | 0.88 |
-| box_animated |   1 | 256 | averaged |        22.36 | 0.146 | 0.998 | 1.02 |  55.1 |   22.84 | 0.113 | 0.998 | 1.01 |
-| box_animated |   1 | 256 | fitted   |        21.25 | 0.163 | 0.998 | 1.00 |  55.1 |   21.72 | 0.131 | 0.998 | 0.99 |
+| teapot       |   1 | 256 | averaged |        30.09 | 0.155 | 0.982 | 1.00 |  46.3 |   37.35 | 0.098 | 0.996 | 1.00 |
+| teapot       |   1 | 256 | fitted   |        26.37 | 0.264 | 0.982 | 0.92 |  46.3 |   35.03 | 0.217 | 0.996 | 0.93 |
+| teapot       |   2 |  64 | averaged |        25.39 | 0.281 | 0.969 | 0.92 |  42.9 |   25.06 | 0.258 | 0.981 | 0.93 |
+| teapot       |   2 |  64 | fitted   |        23.63 | 0.349 | 0.969 | 0.86 |  42.9 |   23.91 | 0.326 | 0.981 | 0.88 |
+| box_animated |   1 | 256 | averaged |        23.17 | 0.136 | 0.998 | 1.02 |  55.1 |   23.98 | 0.099 | 0.998 | 1.01 |
+| box_animated |   1 | 256 | fitted   |        21.55 | 0.155 | 0.998 | 0.99 |  55.1 |   21.92 | 0.118 | 0.998 | 0.98 |
 
 The fitted fallback (the averaged inputs with a held-out-chosen diffuse gain) is nowhere 3 dB
-better than averaged (Blender −5.9 to +0.3 dB, texelbake −3.8 to +1.9; why: docs/decisions.md),
-so averaged stays the default. The bolt's mean radiance in Blender is within 25 % of the
-original's with the averaged fallback at both LODs (1.05, 0.78), with the fitted one at LOD1
-(0.90), not at LOD2 (0.71). Blender's cloisonne original is the scene's one-colour stand-in
-(Blender cannot evaluate texelbake's cellular shader): those rows measure the stand-in (the LOD
-with its base colour replaced by the stand-in's scores 26.8 / 29.9 dB at LOD1 / LOD2). Why
-Blender's figures were far below texelbake's before (noise floor, specularColor as Specular Tint,
-BoxAnimated's twins, the stand-in) and where the bolt's LOD2 and the Teapot's LOD1 lose: docs/
-decisions.md. The wall's LOD2 in this run keeps a black triangle in Blender: its slab's back face took the
-front's uv chart (`atlas.map_into_atlas` by closest point), so part of the front's normal-map
-texels were encoded in the back face's frames. Since then a LOD face takes no atlas triangle
-more than 120° from its normal: the wall's LOD2 in Blender 9.72 → 20.05 dB, mean 0.57 → 1.03×
-(texelbake 16.60 → 16.97; `--assets wall --variants averaged`). The bolt's LOD2 texelbake mean
-(0.67) is 16 spp sampling its normal map's sparkles: 0.82 at `--tb-spp 256`, 0.89 at 1024
-(docs/decisions.md).
+better than averaged (Blender −5.9 to +0.3 dB, texelbake −3.8 to +1.5), so averaged stays the
+default; the JSON's notes give, per asset and LOD, the gain in each renderer, the noise floor,
+the fit's per-texel residual beside the averaged inputs' and the targets' noise (it lowers the
+residual over the direction set where it loses in the image: docs/decisions.md says why). The
+fit costs 17–34 s of export (`export_seconds`, fitted minus averaged). The bolt's mean radiance
+in Blender is within 25 % of the original's with the averaged fallback at both LODs (1.05,
+0.78), with the fitted one at LOD1 (0.90), not at LOD2 (0.71). Blender's cloisonne original is
+the scene's one-colour stand-in (Blender cannot evaluate texelbake's cellular shader): those
+rows measure the stand-in (the LOD with its base colour replaced by the stand-in's scores 26.8 /
+29.9 dB at LOD1 / LOD2). Why Blender's figures were far below texelbake's before (noise floor,
+specularColor as Specular Tint, BoxAnimated's twins, the stand-in) and where the bolt's LOD2 and
+the Teapot's LOD1 lose: docs/decisions.md. The bolt's LOD2 texelbake mean (0.67) is 16 spp
+sampling its normal map's sparkles: 0.82 at `--tb-spp 256`, 0.89 at 1024 (docs/decisions.md).
 """
 
 from __future__ import annotations
