@@ -31,7 +31,9 @@ what Blender's reference is (`bar_notes`). texelbake: `preview-surface` (what a 
 without texelbake's shader shows: each LOD's fallback as authored) at `--tb-spp` against `gt`
 (the original's true materials) at `--tb-ref-spp`, the same resolution, auto-framed so the
 bounding sphere's diameter covers the switch size (its own camera and lights: the two
-renderers' figures are each against their own reference, not against each other).
+renderers' figures are each against their own reference, not against each other), and beside it
+texelbake's `cpm` mode from the same view at the same spp (the bake's CPM at `BAKE`, lighter
+than the defaults).
 
 Figures per (asset, LOD, variant), over the object's pixels (`metrics.object_mask`: the union
 of both silhouettes, dilated by a pixel): PSNR (dB, linear radiance, peak the reference's;
@@ -222,7 +224,8 @@ def blender_lod(name: str, src: Path, bakes: dict[str, dict[str, Any]], lod: int
 
 def texelbake_lod(root: Path, lod: int, px: float, args: argparse.Namespace
                   ) -> dict[str, Any]:
-    """texelbake's preview-surface against its gt at the switch distance of `lod`."""
+    """texelbake's preview-surface against its gt at the switch distance of `lod`, and its
+    cpm mode's figures beside it ("cpm")."""
     from texelbake.render.cpm import choose_mesh
     from texelbake.render.frame import render_frame
     from texelbake.render.preview_surface import render_preview_surface
@@ -246,6 +249,10 @@ def texelbake_lod(root: Path, lod: int, px: float, args: argparse.Namespace
     fig["mesh"] = f"M{lod}"
     fig["mesh_by_error"] = f"M{choose_mesh(scene, cam, 1.0) + 1}"  # what the mode would pick
     fig["seconds"] = round(seconds, 3)
+    # beside it, texelbake's own maps at the same view and spp (the bake's CPM at `BAKE`)
+    cpm = render_frame(scene, "cpm", cam, args.tb_spp, 0)
+    fig["cpm"] = image_figures(cpm.image, gt.image, np.asarray(cpm.coverage, np.float64),
+                               np.asarray(gt.coverage, dtype=np.float64))
     return fig
 
 
@@ -417,19 +424,22 @@ def _fmt(fig: dict[str, Any] | None) -> str:
 
 def _print_row_block(rows: list[dict[str, Any]]) -> None:
     for r in rows:
+        cpm = (r["texelbake"] or {}).get("cpm")
         print(f"  {r['asset']} LOD{r['lod']} ({r['switch_px']:g} px) {r['variant']}: "
-              f"Blender {_fmt(r['blender'])} | texelbake {_fmt(r['texelbake'])}", flush=True)
+              f"Blender {_fmt(r['blender'])} | texelbake {_fmt(r['texelbake'])}"
+              f" | cpm {_fmt(cpm)}", flush=True)
 
 
 def _print_table(rows: list[dict[str, Any]]) -> None:
     head = (f"{'asset':<13}{'lod':>4}{'px':>6} {'variant':<10}|{'Blender PSNR':>13}{'FLIP':>7}"
             f"{'IoU':>7}{'mean':>7}{'floor':>7} |{'tb PSNR':>9}{'FLIP':>7}{'IoU':>7}{'mean':>7}"
-            f"{'mesh':>6}")
+            f"{'mesh':>6} |{'cpm PSNR':>9}{'FLIP':>7}{'IoU':>7}{'mean':>7}")
     print(head)
     for r in rows:
         tb = r["texelbake"]
         print(f"{r['asset']:<13}{r['lod']:>4}{r['switch_px']:>6g} {r['variant']:<10}|"
-              f"{_fmt(r['blender']):>41} |{_fmt(tb)}{str(tb.get('mesh')):>6}")
+              f"{_fmt(r['blender']):>41} |{_fmt(tb)}{str(tb.get('mesh')):>6} |"
+              f"{_fmt(tb.get('cpm'))}")
 
 
 if __name__ == "__main__":

@@ -72,11 +72,12 @@ def _quad(path: Path, uv_map: str, normal=None, texture: str | None = None) -> P
 
 def _samples(src: Path):
     from texelbake.asset.load import load_asset
+    from texelbake.brdf.evaluate import shading_normal
     from texelbake.geometry.normal_input import mapped_normals
     from texelbake.geometry.sampling import sample_surface
 
     a = load_asset(src)
-    ni = mapped_normals(a)
+    ni = mapped_normals(a, shading_normal)
     return a, ni, sample_surface(a.points, a.faces, 64, 0, corner_normals=a.corner_normals,
                                  corner_uvs=a.corner_uvs, face_material=a.face_material,
                                  normal_input=ni)

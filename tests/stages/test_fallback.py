@@ -184,11 +184,14 @@ def test_averaged_stays_an_option(cylinder):
     assert report["fallback"] == {"mode": "averaged"}
 
 
-def test_fitted_bake_passes_stock_validation(cylinder):
+def test_fitted_bake_passes_stock_validation(cylinder, tmp_path):
     from tests.helpers.usd_validation import stock_errors
+    from texelbake.usd.export import export_lod
 
     root = cylinder["fitted"]
-    assert stock_errors(root) == {str(root): []}
+    outs = [export_lod(root, n, tmp_path / f"lod{n}{suffix}")
+            for n in (1, 2) for suffix in (".usda", ".usdz")]
+    assert stock_errors(root, *outs) == {str(p): [] for p in (root, *outs)}
 
 
 def test_rerun_in_a_fresh_store_is_byte_identical(cylinder, tmp_path):

@@ -24,7 +24,7 @@ from texelbake.geometry.mesh import (
     triangle_areas,
     weld,
 )
-from texelbake.geometry.normal_input import mapped_normals
+from texelbake.geometry.normal_input import NormalInput
 from texelbake.geometry.raycast import CutoutTest, RayCaster
 from texelbake.geometry.sampling import SurfaceSampler, surface_sampler
 from texelbake.geometry.texel_frames import FrameSums
@@ -34,8 +34,8 @@ from texelbake.model import AssetModel
 
 
 def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
-                   n_levels: int, spool: MemorySpool | FileSpool | None = None
-                   ) -> dict[str, np.ndarray]:
+                   n_levels: int, spool: MemorySpool | FileSpool | None = None,
+                   normal_input: NormalInput | None = None) -> dict[str, np.ndarray]:
     """The geometry stage's arrays: the LOD meshes, the atlas mesh M_T (the CPM's domain),
     dense samples on M_org with their texel (row, col) at the finest level, and the texel
     frames of every mip level.
@@ -50,6 +50,8 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
     corner uvs), lod{i}_* (LOD i: vertices, faces, corner_uvs, one_chart), lod_exact (LOD1 is
     M_T), lod_report (JSON), frames_L{l} (N_l^2, 3, 3) and frames_valid_L{l}, and the samples'
     Z-order index sample_zorder (m,) with texel_zoffsets (N^2 + 1,) (`_zorder_spooled`).
+    normal_input : the materials' normal maps on M_org (`geometry.normal_input`), decoded
+        into the samples' shading normals; None: the interpolated corner normals.
     spool : where the sample_* arrays are made, a chunk of samples at a time
     (`geometry_chunk`): a `FileSpool` keeps them on disk (the stage: memory bounded by
     settings.worker_memory_mb whatever the atlas size), None or a `MemorySpool` in memory.
@@ -62,7 +64,7 @@ def build_geometry(asset: AssetModel, settings: BakeSettings, caster: RayCaster,
         asset.points, asset.faces, n * n * s.samples_per_texel, s.seed,
         corner_normals=asset.corner_normals, corner_uvs=asset.corner_uvs,
         face_material=asset.face_material, face_density=sample_density(asset, s),
-        normal_input=mapped_normals(asset),
+        normal_input=normal_input,
     )
     chunk = geometry_chunk(s)
     probes = _spool_samples(sampler, asset, spool, chunk, (200_000, 20_000), caster.cutout)

@@ -2,19 +2,23 @@
 map through a UsdUVTexture, or a constant), decoded in the MikkTSpace frames of M_org's corner
 normals and uvs (`geometry.mikktspace`: what Blender's, Cycles' and glTF viewers' normal-map
 nodes build), so that the dense samples, the ground truth and every map baked from them see
-the bumps an asset's normal maps draw. A value `brdf.shading_normal` rejects (not finite,
-zero, at or below the tangent plane) is +z: the interpolated corner normal."""
+the bumps an asset's normal maps draw. The tangent-space normals are read by the caller's
+`local_normals` (`brdf.shading_normal`, which the layers above pass in: geometry does not
+evaluate materials); a value it rejects (not finite, zero, at or below the tangent plane) is +z,
+the interpolated corner normal."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from texelbake.brdf.evaluate import shading_normal
 from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.mikktspace import decode, frames_at, mikk_tangents
 from texelbake.model import AssetModel, Material
+
+#: a material's tangent-space shading normals at uvs (m, 2) -> (m, 3) (`brdf.shading_normal`)
+LocalNormals = Callable[[Material, np.ndarray], np.ndarray]
 
 
 def normal_materials(materials: Sequence[Material]) -> np.ndarray:
@@ -34,8 +38,9 @@ class NormalInput:
     """The normal inputs of an asset's materials on its surface (module docstring); `active`
     is False when no material has one, and `apply` then returns the normals it is given."""
 
-    def __init__(self, asset: AssetModel) -> None:
+    def __init__(self, asset: AssetModel, local_normals: LocalNormals) -> None:
         self.asset = asset
+        self.local_normals = local_normals
         self.mapped = normal_materials(asset.materials)
         self.active = bool(self.mapped.any()) and asset.corner_uvs is not None
         self._tangents: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -66,15 +71,16 @@ class NormalInput:
         local = np.zeros((sel.size, 3))
         for mi in np.unique(mats):  # a loop over the few mapped materials
             k = mats == mi
-            local[k] = shading_normal(self.asset.materials[int(mi)], np.asarray(uv)[sel][k])
+            local[k] = self.local_normals(self.asset.materials[int(mi)],
+                                          np.asarray(uv)[sel][k])
         out = np.array(normals, dtype=np.float64, copy=True)
         out[sel] = decode(frames_at(tangent, sign, cn, np.asarray(face)[sel],
                                     np.asarray(bary, np.float64)[sel]), local)
         return out
 
 
-def mapped_normals(asset: AssetModel) -> NormalInput | None:
+def mapped_normals(asset: AssetModel, local_normals: LocalNormals) -> NormalInput | None:
     """The asset's `NormalInput` when one of its materials has a normal input, else None
     (nothing to apply)."""
-    ni = NormalInput(asset)
+    ni = NormalInput(asset, local_normals)
     return ni if ni.active else None

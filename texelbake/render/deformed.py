@@ -54,6 +54,7 @@ import time
 import numpy as np
 
 from texelbake import brdf as brdf_mod
+from texelbake.brdf.evaluate import shading_normal
 from texelbake.deform.impostor import ImpostorParams, decode_frames, impostor_params
 from texelbake.deform.lbs import SkinWarp, transfer_weights
 from texelbake.deform.lookup import (
@@ -189,7 +190,7 @@ def deform_scene(scene: RenderScene, warp: Warp, *, follow: str = "mesh",
     d.org = RayCaster(pts, a.faces, cutout=scene.org.cutout)  # cut-outs move with the surface
     d.org_face_normals = face_normals(d.asset.points, d.asset.faces)
     # the materials' normal maps decode in the deformed surface's own tangent frames
-    d.normal_input = mapped_normals(d.asset)
+    d.normal_input = mapped_normals(d.asset, shading_normal)
     # diag and ray_eps stay the rest scene's: a length of the object, not of its axis-aligned
     # box, which a rotation changes (a rigidly moved asset must render as the unmoved one)
     rest_lods, exact, frames0, lod_w = _refined_lods(scene, refine, n_joints)

@@ -147,6 +147,7 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     normals, "row", "col" (m,) their texel on the res² page, "prim" (m,) the LOD1 face they
     show on, "frames" (f, 3, 3) LOD1's tangent frames, "lod1_vertices", "lod1_faces"}."""
     from texelbake.baselines.normal_maps import face_tangent_space
+    from texelbake.brdf.evaluate import shading_normal
     from texelbake.geometry.atlas import Atlas
     from texelbake.geometry.build import lod_meshes
     from texelbake.geometry.lodnormals import lod_corner_normals
@@ -164,7 +165,7 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     smp = sample_surface(asset.points, asset.faces, res * res * FALLBACK_SAMPLES_PER_TEXEL,
                          s.seed * 1000 + _TAG_FALLBACK, corner_normals=asset.corner_normals,
                          corner_uvs=asset.corner_uvs, face_material=asset.face_material,
-                         normal_input=mapped_normals(asset))
+                         normal_input=mapped_normals(asset, shading_normal))
     gnrm = face_normals(asset.points, asset.faces)[smp.face]
     m_t = Mesh(geo["m1_vertices"], geo["m1_faces"])
     atlas = Atlas(m_t, geo["m1_corner_uvs"], res, np.arange(m_t.num_vertices),

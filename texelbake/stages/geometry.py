@@ -3,7 +3,9 @@ their texel assignment at every mip level and the texel frames (`texelbake.geome
 
 from __future__ import annotations
 
+from texelbake.brdf.evaluate import shading_normal
 from texelbake.geometry.build import build_geometry
+from texelbake.geometry.normal_input import mapped_normals
 from texelbake.io.spool import FileSpool
 from texelbake.stages.context import StageContext
 
@@ -19,7 +21,8 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
     FileSpool.sweep(folder)  # a killed worker's spool (its pid is gone)
     spool = FileSpool(folder)
     try:
-        out = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels, spool)
+        out = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels, spool,
+                             normal_input=mapped_normals(ctx.asset(), shading_normal))
         key = ctx.store.write_arrays(key, out)
         del out
     finally:

@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from texelbake import brdf as brdf_mod
+from texelbake.brdf.evaluate import shading_normal
 from texelbake.brdf.opacity import asset_cutout
 from texelbake.geometry.mesh import face_normals
 from texelbake.geometry.normal_input import mapped_normals
@@ -42,7 +43,7 @@ class OrgScene:
         self.org = RayCaster(asset.points, asset.faces, cutout=asset_cutout(asset))
         self.org_face_normals = face_normals(asset.points, asset.faces)
         #: the materials' normal maps on M_org (None: no material has a normal input)
-        self.normal_input = mapped_normals(asset)
+        self.normal_input = mapped_normals(asset, shading_normal)
         self.diag = self.org.bbox_diag
         self.ray_eps = TOL.ray_offset * self.diag
         self.eye_box: np.ndarray | None = self.box_around(np.asarray(asset.points, np.float64))
