@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from tests.helpers.dcc import compare_renders, import_and_render, keep_artifacts, side_by_side
+from tests.helpers.usd_stages import uv_texture
 
 pytestmark = [pytest.mark.dcc, pytest.mark.slow]  # Blender and Cycles: not for test-fast
 
@@ -98,18 +99,11 @@ def _source(path: Path) -> Path:
     return path
 
 
-def _fallback(src: Path, path: Path) -> Path:
-    """The sphere with the fallback texelbake authors for `src`'s material: its carried
-    constants and 4² textures of the source's own values (base colour, a flat normal,
-    roughness, no occlusion)."""
-    from texelbake.asset import load_asset
-    from texelbake.baselines.filtered_maps import dominant_constants
+def _constant_textures(d: Path) -> None:
+    """4² textures of the source's own values beside the fallback layer: base colour (sRGB),
+    a flat normal, roughness, no occlusion."""
     from texelbake.io.images import linear_to_srgb, write_pixels
-    from texelbake.usd.fallback import author_preview_material
 
-    d = path.parent
-    const = dominant_constants(load_asset(src).materials, np.zeros(1, dtype=np.int64),
-                               np.ones(1))
     full = np.ones((4, 4, 1))
     write_pixels(d / "albedo.png", np.round(linear_to_srgb(full * GOLD) * 255).astype(np.uint8),
                  "uint8")
@@ -117,6 +111,20 @@ def _fallback(src: Path, path: Path) -> Path:
                  "uint8")
     write_pixels(d / "roughness.png", np.round(full * ROUGHNESS * 255).astype(np.uint8), "uint8")
     write_pixels(d / "occlusion.png", np.full((4, 4, 1), 255, dtype=np.uint8), "uint8")
+
+
+def _fallback(src: Path, path: Path) -> Path:
+    """The sphere with the fallback texelbake authors for `src`'s material: its carried
+    constants and 4² textures of the source's own values (base colour, a flat normal,
+    roughness, no occlusion)."""
+    from texelbake.asset import load_asset
+    from texelbake.baselines.filtered_maps import dominant_constants
+    from texelbake.usd.fallback import author_preview_material
+
+    d = path.parent
+    const = dominant_constants(load_asset(src).materials, np.zeros(1, dtype=np.int64),
+                               np.ones(1))
+    _constant_textures(d)
     stage, mesh = _stage(path)
     mat = author_preview_material(stage, "/Sphere/Looks/Fallback", "./albedo.png", "./normal.png",
                                   "/Sphere/CPM", "./roughness.png", "./occlusion.png", const)
@@ -187,17 +195,7 @@ def _half_metal_source(path: Path) -> Path:
     surf.CreateIdAttr("UsdPreviewSurface")
     surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*GOLD))
     surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(ROUGHNESS)
-    reader = UsdShade.Shader.Define(stage, "/Sphere/Looks/Half/StReader")
-    reader.CreateIdAttr("UsdPrimvarReader_float2")
-    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
-    tex = UsdShade.Shader.Define(stage, "/Sphere/Looks/Half/Metallic")
-    tex.CreateIdAttr("UsdUVTexture")
-    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(metallic)
-    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
-    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(),
-                                                                     "result")
-    tex.CreateOutput("r", Sdf.ValueTypeNames.Float)
+    tex = uv_texture(stage, "/Sphere/Looks/Half", "Metallic", metallic, "r")
     surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).ConnectToSource(
         tex.ConnectableAPI(), "r")
     mat.CreateSurfaceOutput().ConnectToSource(surf.CreateOutput("surface",
@@ -212,7 +210,6 @@ def _half_metal_fallback(src: Path, path: Path, with_map: bool) -> Path:
     metallic constant (`fallback_maps`); without it, the dominant material's constants."""
     from texelbake.asset import load_asset
     from texelbake.baselines.filtered_maps import dominant_constants
-    from texelbake.io.images import linear_to_srgb, write_pixels
     from texelbake.usd.fallback import author_preview_material
 
     d = path.parent
@@ -220,13 +217,7 @@ def _half_metal_fallback(src: Path, path: Path, with_map: bool) -> Path:
                                np.ones(1))
     if with_map:
         const = {**{k: v for k, v in const.items() if k != "metallic"}, "useSpecularWorkflow": 0}
-    full = np.ones((4, 4, 1))
-    write_pixels(d / "albedo.png", np.round(linear_to_srgb(full * GOLD) * 255).astype(np.uint8),
-                 "uint8")
-    write_pixels(d / "normal.png", np.round(full * (0.5, 0.5, 1.0) * 255).astype(np.uint8),
-                 "uint8")
-    write_pixels(d / "roughness.png", np.round(full * ROUGHNESS * 255).astype(np.uint8), "uint8")
-    write_pixels(d / "occlusion.png", np.full((4, 4, 1), 255, dtype=np.uint8), "uint8")
+    _constant_textures(d)
     stage, mesh = _stage(path)
     mat = author_preview_material(
         stage, "/Sphere/Looks/Fallback", "./albedo.png", "./normal.png", "/Sphere/CPM",

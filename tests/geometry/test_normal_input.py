@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, Vt
+from pxr import Gf, Sdf, UsdGeom, UsdLux, UsdShade, Vt
 
 TILT = np.array([0.5, 0.0, np.sqrt(0.75)])  # 30° toward the tangent
 
@@ -19,11 +19,10 @@ def _quad(path: Path, uv_map: str, normal=None, texture: str | None = None) -> P
     ("x": u = x, v = y; "y": u = y, v = -x, turned; "-x": u = -x, v = y, mirrored), with a
     UsdPreviewSurface (diffuse, specular workflow, specularColor 0) whose normal is the
     constant `normal` or a texture; a distant light straight down +z."""
-    stage = Usd.Stage.CreateNew(str(path))
+    from tests.helpers.usd_stages import new_stage
+
+    stage = new_stage(path)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    root = UsdGeom.Xform.Define(stage, "/Root")
-    stage.SetDefaultPrim(root.GetPrim())
     mesh = UsdGeom.Mesh.Define(stage, "/Root/Quad")
     pts = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]], np.float32)
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
@@ -46,19 +45,10 @@ def _quad(path: Path, uv_map: str, normal=None, texture: str | None = None) -> P
     if normal is not None:
         surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).Set(Gf.Vec3f(*map(float, normal)))
     if texture is not None:
-        reader = UsdShade.Shader.Define(stage, "/Root/Looks/M/St")
-        reader.CreateIdAttr("UsdPrimvarReader_float2")
-        reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-        reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
-        tex = UsdShade.Shader.Define(stage, "/Root/Looks/M/NormalMap")
-        tex.CreateIdAttr("UsdUVTexture")
-        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(texture)
-        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
-        tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(2, 2, 2, 1))
-        tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(-1, -1, -1, 0))
-        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
-            reader.ConnectableAPI(), "result")
-        tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+        from tests.helpers.usd_stages import uv_texture
+
+        tex = uv_texture(stage, "/Root/Looks/M", "NormalMap", texture, "rgb",
+                         scale=(2, 2, 2, 1), bias=(-1, -1, -1, 0))
         surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
             tex.ConnectableAPI(), "rgb")
     mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdShade, Vt
 
-from tests.helpers.usd_stages import bind, new_stage, preview_material, write_png
+from tests.helpers.usd_stages import bind, new_stage, preview_material, uv_texture, write_png
 
 #: the kit's swatches (8-bit sRGB) and the faces of the box each covers (GeomSubsets)
 KIT_SWATCHES = {"Red": (200, 30, 25), "Grey": (128, 128, 128), "Blue": (30, 60, 210)}
@@ -127,19 +127,8 @@ def normal_mapped_box(folder: Path, with_map: bool = True) -> Path:
     mat = preview_material(stage, "/Root/Looks/Bumps", diffuse=(0.6, 0.6, 0.6))
     if with_map:
         surface = UsdShade.Shader(stage.GetPrimAtPath("/Root/Looks/Bumps/Surface"))
-        reader = UsdShade.Shader.Define(stage, "/Root/Looks/Bumps/StReader")
-        reader.CreateIdAttr("UsdPrimvarReader_float2")
-        reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-        reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
-        tex = UsdShade.Shader.Define(stage, "/Root/Looks/Bumps/NormalMap")
-        tex.CreateIdAttr("UsdUVTexture")
-        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./bumps.png")
-        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
-        tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set((2.0, 2.0, 2.0, 1.0))
-        tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set((-1.0, -1.0, -1.0, 0.0))
-        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
-            reader.ConnectableAPI(), "result")
-        tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+        tex = uv_texture(stage, "/Root/Looks/Bumps", "NormalMap", "./bumps.png", "rgb",
+                         scale=(2, 2, 2, 1), bias=(-1, -1, -1, 0))
         surface.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
             tex.ConnectableAPI(), "rgb")
     bind(mesh, mat)

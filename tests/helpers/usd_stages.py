@@ -92,3 +92,31 @@ def preview_material(stage: Usd.Stage, path: str, diffuse=(0.5, 0.5, 0.5),
 def bind(prim_or_schema, material: UsdShade.Material) -> None:
     prim = prim_or_schema.GetPrim() if hasattr(prim_or_schema, "GetPrim") else prim_or_schema
     UsdShade.MaterialBindingAPI.Apply(prim).Bind(material)
+
+
+def uv_texture(stage: Usd.Stage, looks: str, name: str, file: str, output: str,
+               color_space: str = "raw", scale=None, bias=None) -> UsdShade.Shader:
+    """A UsdUVTexture `<looks>/<name>` reading `file` at the `st` primvar (a
+    UsdPrimvarReader_float2 `<looks>/StReader`, made once), with the output `output` ("r" a
+    float, "rgb" a float3) and optional scale and bias (4 floats each); connect a surface
+    input to it with `.ConnectableAPI()` and `output`."""
+    reader_path = f"{looks}/StReader"
+    reader = UsdShade.Shader(stage.GetPrimAtPath(reader_path))
+    if not reader:
+        reader = UsdShade.Shader.Define(stage, reader_path)
+        reader.CreateIdAttr("UsdPrimvarReader_float2")
+        reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+        reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+    tex = UsdShade.Shader.Define(stage, f"{looks}/{name}")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
+    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(color_space)
+    if scale is not None:
+        tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(tuple(map(float, scale)))
+    if bias is not None:
+        tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(tuple(map(float, bias)))
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(),
+                                                                     "result")
+    tex.CreateOutput(output, Sdf.ValueTypeNames.Float if len(output) == 1
+                     else Sdf.ValueTypeNames.Float3)
+    return tex

@@ -15,7 +15,7 @@ W = 64
 
 def _arm_plane(tmp_path):
     from tests.helpers.render import write_plane_usd
-    from tests.helpers.usd_stages import write_png
+    from tests.helpers.usd_stages import uv_texture, write_png
 
     src = write_plane_usd(tmp_path / "plane.usda")
     px = np.zeros((8, W, 3), np.uint8)
@@ -28,18 +28,9 @@ def _arm_plane(tmp_path):
     surf.CreateIdAttr("UsdPreviewSurface")
     surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set((0.9, 0.6, 0.2))
     mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
-    reader = UsdShade.Shader.Define(stage, "/Root/Looks/Arm/StReader")
-    reader.CreateIdAttr("UsdPrimvarReader_float2")
-    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
-    tex = UsdShade.Shader.Define(stage, "/Root/Looks/Arm/Texture")
-    tex.CreateIdAttr("UsdUVTexture")
-    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./arm.png")
-    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
-    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(),
-                                                                     "result")
+    tex = uv_texture(stage, "/Root/Looks/Arm", "Texture", "./arm.png", "g")
+    tex.CreateOutput("b", Sdf.ValueTypeNames.Float)
     for name, ch in (("roughness", "g"), ("metallic", "b")):
-        tex.CreateOutput(ch, Sdf.ValueTypeNames.Float)
         surf.CreateInput(name, Sdf.ValueTypeNames.Float).ConnectToSource(tex.ConnectableAPI(),
                                                                          ch)
     UsdShade.MaterialBindingAPI.Apply(stage.GetPrimAtPath("/Root/Plane")).Bind(mat)
