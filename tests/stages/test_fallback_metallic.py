@@ -94,3 +94,24 @@ def test_material_metallic_per_sample():
             Material("/d", "preview", {"metallic": 3.0})]
     got = material_metallic(mats, np.array([0, 1, 2, 3, 0]), np.zeros((5, 2)))
     np.testing.assert_array_equal(got, [0.7, 0.0, 0.0, 1.0, 0.7])
+
+
+def test_the_fitted_gains_model_takes_each_texels_metallic(rng):
+    # `fallback="fitted"` with a metallic map: L(g) = L0 + g ΔL with ΔL = (1 − m) ΔL_dielectric
+    # + m ΔL_metal. At m = 1 and m = 0 it is the constant workflow's model bit for bit (the
+    # metal's lobe, the dielectric's diffuse), and ΔL is affine in m between them
+    from texelbake.stages.fallback import _model_terms
+
+    t = 4
+    nrm = np.c_[0.2 * rng.standard_normal((t, 2)), np.ones(t)]
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    base = rng.uniform(0.2, 0.9, (t, 3))
+    rough = rng.uniform(0.3, 0.8, t)
+    for m, const in ((1.0, {"metallic": 1.0}), (0.0, {"metallic": 0.0})):
+        got = _model_terms({}, np.full(t, m), base, rough, nrm)
+        want = _model_terms(const, m == 1.0, base, rough, nrm)
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+    d0, d1 = (_model_terms({}, np.full(t, m), base, rough, nrm)[1] for m in (0.0, 1.0))
+    half = _model_terms({}, np.full(t, 0.5), base, rough, nrm)[1]
+    np.testing.assert_allclose(half, 0.5 * (d0 + d1), rtol=1e-12, atol=1e-15)

@@ -14,8 +14,11 @@ on held-out samples: the gain of one half judged against the other half's target
 of the LOD's own level (`lod_texture_levels`), both ways. The workflow, roughness, normal and
 constants stay the averaged fallback's (a renderer maps them as it maps the averaged ones:
 Blender's importer turns a specular workflow's specularColor into Principled BSDF's Specular
-Tint of an IOR-1.5 dielectric, not into F0). Kept in the artifact store (the rays are the
-cost); deterministic (fixed directions, seeded views, no iteration)."""
+Tint of an IOR-1.5 dielectric, not into F0); with a metallic map the model takes each
+texel's metallic (`_model_terms`). What the fit leaves is reported per texel of the gain's
+level (`residual_summary`: the fitted and the averaged inputs' relative residual beside the
+targets' own noise; the report and `<name>_fit_residual_lod<i>.exr`). Kept in the artifact
+store (the rays are the cost); deterministic (fixed directions, seeded views, no iteration)."""
 
 from __future__ import annotations
 
