@@ -106,11 +106,22 @@ def _draw_gain(scene, cam) -> dict:
     return out
 
 
+#: how far equal-time's seconds may be from cpm's for the comparison to count (its frames of
+#: a few hundred pixels are dominated by per-call overheads: `trace.tracer.progressive`)
+EQUAL_TIME_TOL = 0.05
+
+
 def _notes(scene_name: str, px: int, rep: dict) -> list[str]:
     m = rep["modes"]
     cpm = m["cpm"]
     fb = cpm.get("fallback_fraction") or 0.0
     out = []
+    eq = rep.get("equal_time") or {}
+    if eq and abs(eq["ratio"] - 1.0) > EQUAL_TIME_TOL:  # the comparison's premise
+        out.append(f"{scene_name} at {px} px: equal-time took {eq['equal_time_seconds']:.4f} s "
+                   f"for cpm's {eq['cpm_seconds']:.4f} s (ratio {eq['ratio']:.2f}, "
+                   f"{eq['mean_spp']:g} spp): not equal time, so its comparison with cpm does "
+                   f"not hold at this size")
     for other in ("equal-time", "leadr+ao"):
         if other not in m or cpm["psnr_db_object"] > m[other]["psnr_db_object"]:
             continue
