@@ -182,6 +182,11 @@ def material_base(materials: Sequence[Material], sample_material: np.ndarray,
     return albedo, base, alpha2
 
 
+def metallic_workflow(material: Material) -> bool:
+    """A UsdPreviewSurface in the metallic workflow (its metallic input applies)."""
+    return material.model == "preview" and not int(material.params.get("useSpecularWorkflow", 0))
+
+
 def material_metallic(materials: Sequence[Material], sample_material: np.ndarray,
                       sample_uv: np.ndarray) -> np.ndarray:
     """Per sample the UsdPreviewSurface metallic a fallback in the metallic workflow takes:
@@ -191,7 +196,7 @@ def material_metallic(materials: Sequence[Material], sample_material: np.ndarray
     out = np.zeros(sample_material.shape[0])
     for mi in np.unique(sample_material):  # a loop over the few materials
         mat = materials[int(mi)]
-        if mat.model != "preview" or int(mat.params.get("useSpecularWorkflow", 0)):
+        if not metallic_workflow(mat):
             continue
         sel = sample_material == mi
         if "metallic" in mat.textures:

@@ -211,3 +211,14 @@ def face_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     rank = np.empty_like(order)
     rank[order] = np.arange(order.shape[0])
     return rank[inverse].astype(np.int64)
+
+
+def plane_bary(tri: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(u, v) (m, 2) of points q (m, 3) projected on the planes of triangles tri (m, 3, 3)
+    (point = (1 − u − v) p0 + u p1 + v p2; outside the triangle when q projects outside)."""
+    e1, e2, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], q - tri[:, 0]
+    g11, g12, g22 = (np.einsum("mj,mj->m", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
+    r1, r2 = np.einsum("mj,mj->m", d, e1), np.einsum("mj,mj->m", d, e2)
+    det = g11 * g22 - g12 * g12
+    safe = np.where(np.abs(det) > 0, det, 1.0)
+    return np.column_stack([(r1 * g22 - r2 * g12) / safe, (r2 * g11 - r1 * g12) / safe])

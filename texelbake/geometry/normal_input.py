@@ -67,12 +67,11 @@ class NormalInput:
         if not sel.size:
             return normals
         tangent, sign, cn = self._frames()
-        mats = np.asarray(material)[sel]
+        mats, uv_sel = np.asarray(material)[sel], np.asarray(uv)[sel]
         local = np.zeros((sel.size, 3))
         for mi in np.unique(mats):  # a loop over the few mapped materials
             k = mats == mi
-            local[k] = self.local_normals(self.asset.materials[int(mi)],
-                                          np.asarray(uv)[sel][k])
+            local[k] = self.local_normals(self.asset.materials[int(mi)], uv_sel[k])
         out = np.array(normals, dtype=np.float64, copy=True)
         out[sel] = decode(frames_at(tangent, sign, cn, np.asarray(face)[sel],
                                     np.asarray(bary, np.float64)[sel]), local)

@@ -6,7 +6,7 @@ body where the asset is printed). The bake already writes such a page, on the sa
 layout: LOD1's UsdPreviewSurface fallback base colour (`stages.filtered.fallback_maps`, side
 `fallback_resolution`, 512² at most). When that page is finer than the atlas, the baselines take
 their albedo from it, diffuseColor × (1 − metallic) in the metallic workflow (the fallback's
-constants, `brdf.diffuse_albedo`'s rule), mip-mapped and looked up trilinearly at the level the
+metallic map or constant, `brdf.diffuse_albedo`'s rule), mip-mapped and looked up trilinearly at the level the
 filtered maps use shifted by log2(page / atlas), so both address the same footprint; else they
 keep the atlas-resolution albedo of the filtered maps.
 """
@@ -33,8 +33,8 @@ def albedo_chain(scene: RenderScene) -> list[np.ndarray] | None:
     chain = None
     if base is not None and base.shape[0] > scene.n0:
         consts = mat.get("constants") or {}
-        metallic = (mat.get("textures") or {}).get("metallic")
-        if metallic is None or metallic.shape[:2] != base.shape[:2]:
+        metallic = (mat.get("textures") or {}).get("metallic")  # the page's map, or
+        if metallic is None:  # the dominant material's constant
             metallic = float(consts.get("metallic") or 0.0)
         specular_workflow = bool(consts.get("useSpecularWorkflow") or 0)
         kd = 1.0 if specular_workflow else 1.0 - np.clip(metallic, 0.0, 1.0)

@@ -13,9 +13,11 @@ from pathlib import Path
 import numpy as np
 
 from schemas.settings import BakeSettings
+from texelbake.brdf.evaluate import shading_normal
 from texelbake.brdf.opacity import asset_cutout
 from texelbake.cpm.level import FitInputs
 from texelbake.errors import StageError
+from texelbake.geometry.normal_input import NormalInput, mapped_normals
 from texelbake.geometry.raycast import RayCaster
 from texelbake.io.store import ArtifactStore, file_sha256
 from texelbake.model import AssetModel
@@ -82,6 +84,15 @@ class StageContext:
         a = self.asset()
         return _caster_cached(self.asset_hash, a)
 
+    def normal_input(self) -> NormalInput | None:
+        """The materials' normal maps on M_org (`geometry.normal_input`), None when no
+        material has one; made once per asset in a process (M_org's MikkTSpace frames)."""
+        a = self.asset()
+        if self.asset_hash not in _NORMAL_INPUTS:
+            _NORMAL_INPUTS.clear()
+            _NORMAL_INPUTS[self.asset_hash] = mapped_normals(a, shading_normal)
+        return _NORMAL_INPUTS[self.asset_hash]
+
     def fit_inputs(self) -> FitInputs:
         """What `texelbake.cpm.level` reads to fit a level."""
         return FitInputs(self.settings, self.geometry(), self.caster(), self.asset().materials)
@@ -128,6 +139,7 @@ def _read_cached(root: str, key: str) -> dict[str, np.ndarray]:
 
 
 _CASTERS: dict[str, RayCaster] = {}
+_NORMAL_INPUTS: dict[str, NormalInput | None] = {}
 
 
 def _caster_cached(digest: str, asset: AssetModel) -> RayCaster:

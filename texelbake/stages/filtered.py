@@ -140,20 +140,37 @@ def nearest_fill(img: np.ndarray, filled: np.ndarray) -> np.ndarray:
     return img[idx[0], idx[1]]
 
 
+#: the last fallback page's samples drawn in this process (`fallback_samples`)
+_FALLBACK_SAMPLES: dict[tuple[str, str, int], dict] = {}
+
+
 def fallback_samples(ctx: StageContext, res: int) -> dict:
     """The fallback page's dense samples: FALLBACK_SAMPLES_PER_TEXEL x res² fresh samples on
     M_org (seeded), placed on M_T like the geometry stage's (`assign_texels`, the bent-normal
     rule on wraps): {"smp" (geometry.sampling samples), "gnrm" (m, 3) their triangles'
     normals, "row", "col" (m,) their texel on the res² page, "prim" (m,) the LOD1 face they
-    show on, "frames" (f, 3, 3) LOD1's tangent frames, "lod1_vertices", "lod1_faces"}."""
+    show on, "seen" (m,) bool whether a ray from it along that face's normal leaves M_org,
+    "frames" (f, 3, 3) LOD1's tangent frames, "lod1_vertices", "lod1_faces"}.
+    Drawn once per page in a process (the export's maps, opacity, metallic and fitted gain
+    all read them); the arrays are read-only."""
+    key = (str(ctx.store.root), ctx.geometry_key(), int(res))
+    if key not in _FALLBACK_SAMPLES:
+        _FALLBACK_SAMPLES.clear()
+        fs = _draw_fallback_samples(ctx, res)
+        for arr in [*vars(fs["smp"]).values(), *(v for k, v in fs.items() if k != "smp")]:
+            arr.flags.writeable = False
+        _FALLBACK_SAMPLES[key] = fs
+    return _FALLBACK_SAMPLES[key]
+
+
+def _draw_fallback_samples(ctx: StageContext, res: int) -> dict:
+    """`fallback_samples`' draw."""
     from texelbake.baselines.normal_maps import face_tangent_space
-    from texelbake.brdf.evaluate import shading_normal
     from texelbake.geometry.atlas import Atlas
     from texelbake.geometry.build import lod_meshes
     from texelbake.geometry.lodnormals import lod_corner_normals
-    from texelbake.geometry.mesh import Mesh, face_normals
+    from texelbake.geometry.mesh import Mesh, face_normals, plane_bary
     from texelbake.geometry.mikktspace import frames_at, mikk_tangents
-    from texelbake.geometry.normal_input import mapped_normals
     from texelbake.geometry.raycast import RayCaster
     from texelbake.geometry.sampling import sample_surface
     from texelbake.geometry.texels import assign_texels
@@ -165,7 +182,7 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
     smp = sample_surface(asset.points, asset.faces, res * res * FALLBACK_SAMPLES_PER_TEXEL,
                          s.seed * 1000 + _TAG_FALLBACK, corner_normals=asset.corner_normals,
                          corner_uvs=asset.corner_uvs, face_material=asset.face_material,
-                         normal_input=mapped_normals(asset, shading_normal))
+                         normal_input=ctx.normal_input())
     gnrm = face_normals(asset.points, asset.faces)[smp.face]
     m_t = Mesh(geo["m1_vertices"], geo["m1_faces"])
     atlas = Atlas(m_t, geo["m1_corner_uvs"], res, np.arange(m_t.num_vertices),
@@ -180,21 +197,16 @@ def fallback_samples(ctx: StageContext, res: int) -> dict:
         bary = plane_bary(v[f[near]], smp.positions)
     cnrm = lod_corner_normals(v, f, asset.corner_normals, caster)
     tangent, sign = mikk_tangents(v, f, cnrm, uv)
+    # seen from outside: a ray from the sample along the normal of the LOD1 face it shows on
+    # leaves M_org (`_seen_means`)
+    lod_n = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
+    d = (lod_n / np.maximum(np.linalg.norm(lod_n, axis=1, keepdims=True), 1e-300))[near]
+    seen = ~caster.occluded(smp.positions + TOL.ray_offset * caster.bbox_diag * d, d)
     return {"smp": smp, "gnrm": gnrm, "row": asg.row, "col": asg.col, "prim": near,
-            "frames": face_tangent_space(v, f, uv), "lod1_vertices": v, "lod1_faces": f,
+            "seen": seen, "frames": face_tangent_space(v, f, uv), "lod1_vertices": v,
+            "lod1_faces": f,
             "mikk": frames_at(tangent, sign, cnrm, near, np.column_stack(
                 [1.0 - bary[:, 0] - bary[:, 1], bary]))}
-
-
-def plane_bary(tri: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(u, v) (m, 2) of points q (m, 3) projected on the planes of triangles tri (m, 3, 3)
-    (point = (1 − u − v) p0 + u p1 + v p2; outside the triangle when q projects outside)."""
-    e1, e2, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], q - tri[:, 0]
-    g11, g12, g22 = (np.einsum("mj,mj->m", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
-    r1, r2 = np.einsum("mj,mj->m", d, e1), np.einsum("mj,mj->m", d, e2)
-    det = g11 * g22 - g12 * g12
-    safe = np.where(np.abs(det) > 0, det, 1.0)
-    return np.column_stack([(r1 * g22 - r2 * g12) / safe, (r2 * g11 - r1 * g12) / safe])
 
 
 def fallback_opacity(ctx: StageContext, res: int) -> np.ndarray | None:
@@ -259,7 +271,7 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     # BoxAnimated's inner box whose samples project onto the outer walls, does not tint what
     # covers it); texels none of whose samples is seen keep the area mean
     t0 = texels[0]
-    seen, base_seen = _seen_means(ctx, fs, res, base)
+    seen, base_seen = _seen_means(fs, res, base)
     filled0 = np.bincount(t0, weights=smp.area, minlength=res * res) > 0
     top = maps[0].reshape(res * res, -1)
     top[seen, FIELDS["base"]] = base_seen[seen]
@@ -276,22 +288,13 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     return maps, normal.astype(np.float32)
 
 
-def _seen_means(ctx: StageContext, fs: dict, res: int, values: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
+def _seen_means(fs: dict, res: int, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per texel of the res² fallback page (`fallback_samples` fs) the mean of per-sample
-    `values` (m, c) over the samples seen from outside: a sample counts only when a ray from
-    it along the normal of the LOD1 face it shows on leaves M_org. Returns (seen (res²,) bool:
+    `values` (m, c) over the samples seen from outside (`fs["seen"]`). Returns (seen (res²,) bool:
     some sample counted, means (res², c), meaningful where seen)."""
-    caster = ctx.caster()
-    smp, prim = fs["smp"], fs["prim"]
-    v, f = fs["lod1_vertices"], fs["lod1_faces"]
+    smp = fs["smp"]
     t0 = fs["row"].astype(np.int64) * res + fs["col"]
-    lod_n = np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0])
-    lod_n /= np.maximum(np.linalg.norm(lod_n, axis=1, keepdims=True), 1e-300)
-    d = lod_n[prim]
-    eps = TOL.ray_offset * caster.bbox_diag
-    seen_s = ~caster.occluded(smp.positions + eps * d, d)
-    w = smp.area * seen_s
+    w = smp.area * fs["seen"]
     wsum = np.bincount(t0, weights=w, minlength=res * res)
     seen = wsum > 1e-6 * np.bincount(t0, weights=smp.area, minlength=res * res).clip(1e-300)
     means = np.stack([np.bincount(t0, weights=w * values[:, c], minlength=res * res)
@@ -308,11 +311,11 @@ def fallback_metallic(ctx: StageContext, res: int) -> np.ndarray | None:
     meet takes their area mix, which UsdPreviewSurface's metallic input interpolates (its
     diffuse scaled by 1 − metallic, F0 between 0.04 and the base colour). Kept in the artifact
     store."""
-    from texelbake.baselines.filtered_maps import material_metallic
+    from texelbake.baselines.filtered_maps import material_metallic, metallic_workflow
 
     mats = ctx.asset().materials
-    if not any(m.model == "preview" and not int(m.params.get("useSpecularWorkflow", 0))
-               and ("metallic" in m.textures or float(m.params.get("metallic", 0.0)) > 0.0)
+    if not any(metallic_workflow(m) and ("metallic" in m.textures
+                                         or float(m.params.get("metallic", 0.0)) > 0.0)
                for m in mats):
         return None  # no sample can be metallic
     key = ctx.key("filtered", f"fallback-metallic-v1-{res}-s{FALLBACK_SAMPLES_PER_TEXEL}.npz",
@@ -327,7 +330,7 @@ def fallback_metallic(ctx: StageContext, res: int) -> np.ndarray | None:
             area = np.bincount(t0, weights=smp.area, minlength=res * res)
             mean = np.bincount(t0, weights=smp.area * met, minlength=res * res) / np.where(
                 area > 0, area, 1.0)
-            seen, seen_mean = _seen_means(ctx, fs, res, met[:, None])
+            seen, seen_mean = _seen_means(fs, res, met[:, None])
             mean[seen] = seen_mean[seen, 0]
             arrays["metallic"] = nearest_fill(mean.reshape(res, res), (area > 0).reshape(
                 res, res)).astype(np.float32)

@@ -3,9 +3,7 @@ their texel assignment at every mip level and the texel frames (`texelbake.geome
 
 from __future__ import annotations
 
-from texelbake.brdf.evaluate import shading_normal
 from texelbake.geometry.build import build_geometry
-from texelbake.geometry.normal_input import mapped_normals
 from texelbake.io.spool import FileSpool
 from texelbake.stages.context import StageContext
 
@@ -22,7 +20,7 @@ def run_geometry(ctx: StageContext, shard: int = 0) -> str:
     spool = FileSpool(folder)
     try:
         out = build_geometry(ctx.asset(), ctx.settings, ctx.caster(), ctx.n_levels, spool,
-                             normal_input=mapped_normals(ctx.asset(), shading_normal))
+                             normal_input=ctx.normal_input())
         key = ctx.store.write_arrays(key, out)
         del out
     finally:
