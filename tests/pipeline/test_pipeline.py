@@ -366,7 +366,7 @@ def test_export_reads_avis_tiles_like_the_stacked_levels(cylinder_bake):
     whole level in memory, ascending rows): the same per-texel arrays, the same maps row for
     row, a table whose look-ups agree, and the same report figures."""
     from texelbake.cpm.avis import compress_level
-    from texelbake.cpm.avis.compress import compress_chunks
+    from texelbake.cpm.avis.compress import CHUNK_ROWS, compress_chunks
     from texelbake.stages import StageContext
     from texelbake.stages.avis import avis_level_chunks, avis_levels
 
@@ -378,11 +378,17 @@ def test_export_reads_avis_tiles_like_the_stacked_levels(cylinder_bake):
     d = rng.normal(size=(200, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     assert ctx.tile_levels < ctx.n_levels  # both kinds of level are read
+    joined = False
     for lvl, lv in enumerate(stacked):  # a loop over the few levels
         src = avis_level_chunks(ctx, lvl)
         for name in ("closed", "bounded", "texel_area"):
             np.testing.assert_array_equal(getattr(src.level, name), getattr(lv, name))
         np.testing.assert_array_equal(np.sort(src.ray_texels), lv.ray_texels)
+        # tiles are joined into chunks of at most CHUNK_ROWS ray texels
+        assert np.diff(src.bounds).max(initial=0) <= CHUNK_ROWS
+        if 0 < len(src.ray_texels) <= CHUNK_ROWS:
+            assert src.n_chunks == 1
+            joined = joined or lvl < ctx.tile_levels
         rows = np.searchsorted(lv.ray_texels, src.ray_texels)
         got = [src.read(i) for i in range(src.n_chunks)]
         maps = np.concatenate(got) if got else np.zeros((0, 6, lv.res, lv.res))
@@ -400,6 +406,7 @@ def test_export_reads_avis_tiles_like_the_stacked_levels(cylinder_bake):
         norm = np.linalg.norm(lv.ray_maps.reshape(len(ref), -1), axis=1)
         np.testing.assert_allclose(errs.per_texel, (per / np.where(norm > 0, norm, 1))[rows],
                                    rtol=1e-3, atol=1e-9)
+    assert joined  # a level of several tiles read as one chunk
 
 
 def test_report_flags_texels_whose_avis_table_is_off(cylinder_bake):

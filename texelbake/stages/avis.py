@@ -121,16 +121,30 @@ def avis_level_chunks(ctx: StageContext, lvl: int) -> LevelChunks:
     level, ids = avis_mod.tile_layout(metas, per_row)
     pieces = [(t, a, min(a + CHUNK_ROWS, len(ids[t])))  # (tile, rows a..b of its maps)
               for t in range(len(ids)) for a in range(0, len(ids[t]), CHUNK_ROWS)]
-    bounds = np.zeros(len(pieces) + 1, np.int64)
-    np.cumsum([b - a for _, a, b in pieces], out=bounds[1:])
+    # consecutive pieces joined into chunks of at most CHUNK_ROWS rows: a level's tiles hold
+    # few ray texels each (a level-3 tile of 8² texels one), and every pass over the chunks
+    # pays a fixed cost per chunk
+    groups: list[list[tuple[int, int, int]]] = []
+    rows = CHUNK_ROWS
+    for piece in pieces:  # a loop over tiles' pieces
+        if rows + piece[2] - piece[1] > CHUNK_ROWS:
+            groups.append([])
+            rows = 0
+        groups[-1].append(piece)
+        rows += piece[2] - piece[1]
+    bounds = np.zeros(len(groups) + 1, np.int64)
+    np.cumsum([sum(b - a for _, a, b in g) for g in groups], out=bounds[1:])
     last: dict[int, np.ndarray] = {}  # the tile read last (its pieces come one after another)
 
-    def read(i: int) -> np.ndarray:
-        t, a, b = pieces[i]
+    def tile_rows(t: int, a: int, b: int) -> np.ndarray:
         if t not in last:
             last.clear()
             last[t] = ctx.store.read_arrays(keys[t], lambda name: name == maps_name)[maps_name]
         return last[t][a:b]
+
+    def read(i: int) -> np.ndarray:
+        parts = [tile_rows(t, a, b) for t, a, b in groups[i]]
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     return LevelChunks(level, np.concatenate(ids) if ids else np.zeros(0, np.int64), bounds,
                        read)

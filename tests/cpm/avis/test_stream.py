@@ -15,7 +15,7 @@ from tests.helpers.avis_scenes import grid_mesh, periodic_height, sample_faces, 
 from texelbake.cpm.avis import AvisLevel, avis_level, compress_level
 from texelbake.cpm.avis import compress as cz
 from texelbake.cpm.avis.closed_form import ClosedForm
-from texelbake.cpm.avis.correction import apply_correction, sum_correction
+from texelbake.cpm.avis.correction import _power_and_scale, apply_correction, sum_correction
 from texelbake.cpm.haar import budget_mask, decompress_haar
 from texelbake.geometry.raycast import RayCaster
 
@@ -168,3 +168,28 @@ def test_peak_memory_does_not_grow_with_the_level():
     big, big_bytes = peak(64)
     assert big < big_bytes / 4, (big, big_bytes)
     assert big - small < 0.15 * (big_bytes - small_bytes), (big, small)
+
+
+def test_correction_terms_sum_like_the_dense_rule(bumpy):
+    """The correction's totals from the gathered non-zero terms (`compress._Terms`) equal, bit
+    for bit, the dense sum over every texel of U F~^exp(g(c)) (`apply_correction`'s bounded
+    rule, its scale applied to the sum), at grid values below, at and above the power's cap
+    and at a c that varies per pixel; and that rule to rounding. The bumpy field has every
+    kind of term: U = 0 below a horizon, F~ = 0, F~ = 1 and between."""
+    c = cz._chunk(cz.chunks_of(bumpy, 10 ** 6), 0)
+    u = c.unocc[c.bounded]
+    a = np.clip(c.stored[c.bounded] + 0.02 * np.sin(np.arange(c.stored[c.bounded].size)
+                                                    ).reshape(u.shape), 0.0, 1.0)
+    assert np.any(u == 0) and np.any((u > 0) & (a == 0)) and np.any((u > 0) & (a == 1))
+    assert np.any((u > 0) & (a > 0) & (a < 1))
+    terms = cz._Terms(u, a)
+    rng = np.random.default_rng(5)
+    for cv in (-8.0, -0.5, 0.0, 3.0, 8.0, 12.5, 16.0, rng.uniform(-8, 16, u.shape[1:])):
+        cm = np.broadcast_to(cv, u.shape[1:])
+        g, scale = _power_and_scale(cm)
+        power = np.where(a > 0, np.exp(np.exp(g) * np.log(np.where(a > 0, a, 1.0))), 0.0)
+        dense = np.sum(u * power, axis=0) * scale
+        got = terms.total(np.array(cm))
+        np.testing.assert_array_equal(got, dense)
+        np.testing.assert_allclose(got, np.sum(u * apply_correction(a, cm, True), axis=0),
+                                   rtol=1e-12, atol=1e-15)

@@ -273,12 +273,42 @@ def _concat(parts: list[HaarCoeffs], res: int, r: int) -> HaarCoeffs:
                       np.concatenate([p.values for p in parts]).astype(np.float32))
 
 
-def _corrected_total(u: np.ndarray, logf: np.ndarray, pos: np.ndarray, c: np.ndarray
-                     ) -> np.ndarray:
-    """sum_t U F~^exp(g(c)) scale(c) at every pixel for c (6, res, res) (`apply_correction`'s
-    bounded rule with log F~ taken once)."""
-    g, scale = _power_and_scale(c)
-    return np.sum(u * np.where(pos, np.exp(np.exp(g)[None] * logf), 0.0), axis=0) * scale
+class _Terms:
+    """A chunk's bounded texels as the non-zero terms of the corrected total
+    sum_t U F~^exp(g(c)) scale(c) (`apply_correction`'s bounded rule), gathered once and
+    evaluated at every c of a pass.
+
+    A term is non-zero only where U > 0 and F~ > 0 (half the cube is below a texel's horizon,
+    U = 0 there), and a term with F~ = 1 is U whatever c is: only the others take the power.
+    The terms are kept in (texel, pixel) order and summed per pixel by `np.bincount`, which
+    adds in input order, so every pixel's total is the same sum, bit for bit, as the one
+    over the dense (texel, 6, res, res) arrays (which adds texel after texel and adds 0.0
+    for the dropped terms).
+    """
+
+    def __init__(self, u: np.ndarray, a: np.ndarray) -> None:
+        self.shape = u.shape[1:]
+        self.n_pix = int(np.prod(self.shape))
+        idx = np.flatnonzero((u > 0) & (a > 0))  # row-major: texel after texel
+        self.pix = idx % self.n_pix
+        self.u = u.reshape(-1)[idx]
+        logf = np.log(a.reshape(-1)[idx])
+        self.part = np.flatnonzero(logf < 0)  # the terms with F~ < 1
+        self.part_u = self.u[self.part]
+        self.part_pix = self.pix[self.part]
+        self.part_logf = logf[self.part]
+
+    def power_sum(self, g: np.ndarray) -> np.ndarray:
+        """sum_t U F~^exp(g) per pixel, g (6, res, res) the power's log-exponent."""
+        gamma = np.exp(g).reshape(-1)
+        terms = self.u.copy()
+        terms[self.part] = self.part_u * np.exp(gamma[self.part_pix] * self.part_logf)
+        return np.bincount(self.pix, weights=terms, minlength=self.n_pix).reshape(self.shape)
+
+    def total(self, c: np.ndarray) -> np.ndarray:
+        """The corrected total at every pixel for c (6, res, res)."""
+        g, scale = _power_and_scale(c)
+        return self.power_sum(g) * scale
 
 
 class _Sums:
@@ -300,10 +330,15 @@ class _Sums:
             self.has_bounded = True
             u, a = c.unocc[b], np.clip(approx[b], 0.0, 1.0)
             self.target_b += np.sum(u * c.stored[b], axis=0)
-            pos = a > 0
-            logf = np.log(np.where(pos, a, 1.0))
+            terms = _Terms(u, a)
+            same = None  # the grid values at and above the power's cap share one power sum
             for k, cv in enumerate(self.grid):  # a loop over the grid, each over the chunk
-                self.total_b[k] += _corrected_total(u, logf, pos, np.full(u.shape[1:], cv))
+                g, scale = _power_and_scale(np.full(u.shape[1:], cv))
+                if cv >= _LOG_GAMMA_MAX:
+                    same = terms.power_sum(g) if same is None else same
+                    self.total_b[k] += same * scale
+                else:
+                    self.total_b[k] += terms.power_sum(g) * scale
         if (~b).any():
             self.has_direct = True
             self.target_d += np.sum(c.stored[~b], axis=0)
@@ -335,10 +370,9 @@ class _Sums:
             u = closed_form_maps(lv.cf, lv.res, texels[b])
             a = np.clip(decompress_haar(map_range(haar, rows.start * 6, rows.stop * 6,
                                                 (rows.stop - rows.start, 6)))[b], 0.0, 1.0)
-            pos = a > 0
-            logf = np.log(np.where(pos, a, 1.0))
+            terms = _Terms(u, a)
             for j in range(C_REFINE + 1):  # a loop over the sub-grid, each over the chunk
-                tot[j] += _corrected_total(u, logf, pos, pts[j])
+                tot[j] += terms.total(pts[j])
         # the secant between the ends of the interval that holds the crossing
         j = np.clip(np.sum(tot > self.target_b[None], axis=0) - 1, 0, C_REFINE - 1)
         t0 = np.take_along_axis(tot, j[None], axis=0)[0]
