@@ -3,6 +3,8 @@ levels coarser than a tile (`run_avis_top`); the science is `texelbake.cpm.avis`
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from texelbake.cpm import avis as avis_mod
@@ -142,8 +144,11 @@ def avis_level_chunks(ctx: StageContext, lvl: int) -> LevelChunks:
             last[t] = ctx.store.read_arrays(keys[t], lambda name: name == maps_name)[maps_name]
         return last[t][a:b]
 
+    lock = threading.Lock()  # the passes read chunks from several threads
+
     def read(i: int) -> np.ndarray:
-        parts = [tile_rows(t, a, b) for t, a, b in groups[i]]
+        with lock:
+            parts = [tile_rows(t, a, b) for t, a, b in groups[i]]
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     return LevelChunks(level, np.concatenate(ids) if ids else np.zeros(0, np.int64), bounds,

@@ -17,6 +17,7 @@ from texelbake.cpm.avis import compress as cz
 from texelbake.cpm.avis.closed_form import ClosedForm
 from texelbake.cpm.avis.correction import _power_and_scale, apply_correction, sum_correction
 from texelbake.cpm.haar import budget_mask, decompress_haar
+from texelbake.errors import SettingsError
 from texelbake.geometry.raycast import RayCaster
 
 KEEP = 0.03
@@ -193,3 +194,24 @@ def test_correction_terms_sum_like_the_dense_rule(bumpy):
         np.testing.assert_array_equal(got, dense)
         np.testing.assert_allclose(got, np.sum(u * apply_correction(a, cm, True), axis=0),
                                    rtol=1e-12, atol=1e-15)
+
+
+def test_threads_do_not_change_the_table(bumpy, monkeypatch):
+    """One thread or three over chunks of 5 rows: the same table and errors, bit for bit
+    (each pass reduces its chunks' results in chunk order); a bad thread count is refused."""
+    out = []
+    for threads in ("1", "3"):
+        monkeypatch.setenv("TEXELBAKE_COMPRESS_THREADS", threads)
+        assert cz.compress_threads() == int(threads)
+        out.append(cz.compress_chunks(cz.chunks_of(bumpy, 5), _frames(bumpy), KEEP,
+                                      errors=True))
+    (t1, e1), (t3, e3) = out
+    for name, arr in t1.to_arrays().items():
+        np.testing.assert_array_equal(t3.to_arrays()[name], arr, err_msg=name)
+    assert e1 is not None and e3 is not None
+    assert e1.rel_error == e3.rel_error
+    np.testing.assert_array_equal(e1.per_texel, e3.per_texel)
+    for bad in ("0", "two"):
+        monkeypatch.setenv("TEXELBAKE_COMPRESS_THREADS", bad)
+        with pytest.raises(SettingsError, match="TEXELBAKE_COMPRESS_THREADS"):
+            cz.compress_threads()

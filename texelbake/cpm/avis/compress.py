@@ -22,15 +22,21 @@ one chunk at a time (a tile of the farm's a_vis stage, or rows of an in-memory l
    [1, 2)).
 4. (optional) every texel's error against its uncompressed maps, for the report.
 
-Peak memory: one chunk's maps and their ~12 temporaries (`CHUNK_ROWS` rows of 6 res^2
-float64: 12.6 MB per array at res 32), the accumulators (C_GRID x 6 res^2), and the kept
+Each pass maps its chunks on a few threads (`in_order`) and reduces their results in chunk
+order, so the table is the same bit for bit whatever the thread count. Peak memory: per
+thread one chunk's maps and their ~12 temporaries (`CHUNK_ROWS` rows of 6 res^2 float64:
+12.6 MB per array at res 32), the accumulators (C_GRID x 6 res^2), and the kept
 coefficients; nothing grows with the level but the table itself.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -51,6 +57,8 @@ from texelbake.cpm.haar import (
 )
 from texelbake.errors import SettingsError, ShapeError
 
+T = TypeVar("T")
+
 #: ray texels per chunk of an in-memory level (6 x 32 x 32 float64 maps: 12.6 MB per array)
 CHUNK_ROWS = 256
 #: the tau grid: 1e-30 .. 1e6 (shares are fractions of a texel's squared norm: the total is
@@ -62,6 +70,41 @@ TAU_GRID = np.geomspace(1e-30, 1e6, 6001)
 C_GRID = 25
 C_REFINE = 32
 _C_LO, _C_HI = -_LOG_GAMMA_MAX, _LOG_GAMMA_MAX + _SCALE_SPAN
+
+
+def compress_threads() -> int:
+    """Threads of a pass over a level's chunks: TEXELBAKE_COMPRESS_THREADS, else the cores this
+    process may run on, at most 4. The export runs after the bake's shard processes are gone,
+    and numpy releases the GIL in the array operations that take a chunk's time."""
+    raw = os.environ.get("TEXELBAKE_COMPRESS_THREADS", "").strip()
+    if raw:
+        try:
+            n = int(raw)
+        except ValueError:
+            raise SettingsError(f"TEXELBAKE_COMPRESS_THREADS must be an integer, got {raw!r}"
+                                ) from None
+        if n < 1:
+            raise SettingsError(f"TEXELBAKE_COMPRESS_THREADS must be at least 1, got {n}")
+        return n
+    return max(1, min(4, len(os.sched_getaffinity(0))))
+
+
+def in_order(fn: Callable[[int], T], n: int) -> Iterator[T]:
+    """fn(0), ..., fn(n - 1) in that order, computed on up to `compress_threads()` threads with
+    at most two results per thread waiting: a pass's reduction stays in chunk order (the same
+    float sums as one thread) and its memory a few chunks'."""
+    k = min(compress_threads(), n)
+    if k <= 1:
+        yield from map(fn, range(n))
+        return
+    with ThreadPoolExecutor(max_workers=k) as ex:
+        pending: deque[Future[T]] = deque()
+        for i in range(n):  # a loop over chunks, each vectorized
+            pending.append(ex.submit(fn, i))
+            if len(pending) >= 2 * k:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 @dataclass(frozen=True)
@@ -143,16 +186,21 @@ def compress_chunks(src: LevelChunks, frames: np.ndarray, keep_fraction: float, 
     tau = _level_tau(src, keep_fraction) if selection == "texel" and r else 0.0
     parts, scales = [], []
     sums = _Sums(res) if correct_sum and r else None
-    for i in range(src.n_chunks):  # pass 2: a loop over chunks, each vectorized
+
+    def pass2(i: int) -> tuple[HaarCoeffs, np.ndarray | None, _ChunkSums | None]:
         c = _chunk(src, i)
         if selection == "face":
-            haar = compress_haar(c.stored, keep_fraction)
+            haar, scale = compress_haar(c.stored, keep_fraction), None
         else:
             haar, scale = _select(c, tau)
-            scales.append(scale)
+        return haar, scale, (None if sums is None else sums.of_chunk(c, decompress_haar(haar)))
+
+    for haar, scale, part in in_order(pass2, src.n_chunks):  # pass 2, reduced in chunk order
         parts.append(haar)
-        if sums is not None:
-            sums.add(c, decompress_haar(haar))
+        if scale is not None:
+            scales.append(scale)
+        if sums is not None and part is not None:
+            sums.add(part)
     haar = _concat(parts, res, r)
     scale = np.concatenate(scales) if scales else np.zeros(0, np.float32)
     maps_c, groups = [], []
@@ -229,11 +277,17 @@ def _level_tau(src: LevelChunks, keep_fraction: float) -> float:
     h_all = np.zeros(g + 1, np.int64)
     h_first = np.zeros(g + 1, np.int64)
     keep_all = 0
-    for i in range(src.n_chunks):  # a loop over chunks, each vectorized
+
+    def histograms(i: int) -> tuple[np.ndarray, np.ndarray, int]:
         _, _, tail, nonzero = _shares(_chunk(src, i))
-        h_all += np.bincount(np.searchsorted(TAU_GRID, tail[tail > 0]), minlength=g + 1)
-        h_first += np.bincount(np.searchsorted(TAU_GRID, tail[:, 0]), minlength=g + 1)
-        keep_all += int(np.maximum(nonzero, 1).sum())
+        return (np.bincount(np.searchsorted(TAU_GRID, tail[tail > 0]), minlength=g + 1),
+                np.bincount(np.searchsorted(TAU_GRID, tail[:, 0]), minlength=g + 1),
+                int(np.maximum(nonzero, 1).sum()))
+
+    for part_all, part_first, part_keep in in_order(histograms, src.n_chunks):
+        h_all += part_all
+        h_first += part_first
+        keep_all += part_keep
     if keep_all <= budget:
         return 0.0
     above = np.cumsum(h_all[::-1])[::-1]  # above[b]: tails with b' >= b
@@ -311,6 +365,16 @@ class _Terms:
         return self.power_sum(g) * scale
 
 
+@dataclass
+class _ChunkSums:
+    """One chunk's share of `_Sums` (None where the chunk has no such texel)."""
+
+    target_b: np.ndarray | None = None
+    total_b: list[np.ndarray] | None = None
+    target_d: np.ndarray | None = None
+    have_d: np.ndarray | None = None
+
+
 class _Sums:
     """The sum correction's level-wide sums (`table.sum_correction`'s rule, streamed)."""
 
@@ -323,26 +387,40 @@ class _Sums:
         self.have_d = np.zeros(shape)
         self.has_bounded = self.has_direct = False
 
-    def add(self, c: _Chunk, approx: np.ndarray) -> None:
+    def of_chunk(self, c: _Chunk, approx: np.ndarray) -> _ChunkSums:
         """Pass 2: one chunk's share of the targets and of the totals on the c grid."""
         b = c.bounded
+        part = _ChunkSums()
         if b.any():
-            self.has_bounded = True
             u, a = c.unocc[b], np.clip(approx[b], 0.0, 1.0)
-            self.target_b += np.sum(u * c.stored[b], axis=0)
+            part.target_b = np.sum(u * c.stored[b], axis=0)
             terms = _Terms(u, a)
             same = None  # the grid values at and above the power's cap share one power sum
-            for k, cv in enumerate(self.grid):  # a loop over the grid, each over the chunk
+            part.total_b = []
+            for cv in self.grid:  # a loop over the grid, each over the chunk
                 g, scale = _power_and_scale(np.full(u.shape[1:], cv))
                 if cv >= _LOG_GAMMA_MAX:
                     same = terms.power_sum(g) if same is None else same
-                    self.total_b[k] += same * scale
+                    part.total_b.append(same * scale)
                 else:
-                    self.total_b[k] += terms.power_sum(g) * scale
+                    part.total_b.append(terms.power_sum(g) * scale)
         if (~b).any():
+            part.target_d = np.sum(c.stored[~b], axis=0)
+            part.have_d = np.sum(np.maximum(approx[~b], 0.0), axis=0)
+        return part
+
+    def add(self, part: _ChunkSums) -> None:
+        """A chunk's sums (`of_chunk`) added, in chunk order (the same float sums whatever
+        the threads)."""
+        if part.target_b is not None and part.total_b is not None:
+            self.has_bounded = True
+            self.target_b += part.target_b
+            for k, t in enumerate(part.total_b):  # a loop over the grid
+                self.total_b[k] += t
+        if part.target_d is not None and part.have_d is not None:
             self.has_direct = True
-            self.target_d += np.sum(c.stored[~b], axis=0)
-            self.have_d += np.sum(np.maximum(approx[~b], 0.0), axis=0)
+            self.target_d += part.target_d
+            self.have_d += part.have_d
 
     def direct(self) -> np.ndarray:
         """The direct texels' m = sum (a - a~) / sum a~, clipped to [-1, 1] (0 stays 0)."""
@@ -361,18 +439,23 @@ class _Sums:
         pts = lo[None] + step[None] * np.arange(C_REFINE + 1)[:, None, None, None]
         tot = np.zeros(pts.shape)
         lv = src.level
-        for i in range(src.n_chunks):  # a loop over chunks, each vectorized
+
+        def totals(i: int) -> np.ndarray | None:
             rows = slice(int(src.bounds[i]), int(src.bounds[i + 1]))
             texels = src.ray_texels[rows]
             b = lv.bounded[texels]
             if not b.any():
-                continue
+                return None
             u = closed_form_maps(lv.cf, lv.res, texels[b])
             a = np.clip(decompress_haar(map_range(haar, rows.start * 6, rows.stop * 6,
                                                 (rows.stop - rows.start, 6)))[b], 0.0, 1.0)
             terms = _Terms(u, a)
-            for j in range(C_REFINE + 1):  # a loop over the sub-grid, each over the chunk
-                tot[j] += terms.total(pts[j])
+            return np.stack([terms.total(pts[j]) for j in range(C_REFINE + 1)])
+
+        for part in in_order(totals, src.n_chunks):  # reduced in chunk order
+            if part is not None:
+                for j in range(C_REFINE + 1):  # a loop over the sub-grid
+                    tot[j] += part[j]
         # the secant between the ends of the interval that holds the crossing
         j = np.clip(np.sum(tot > self.target_b[None], axis=0) - 1, 0, C_REFINE - 1)
         t0 = np.take_along_axis(tot, j[None], axis=0)[0]
@@ -407,11 +490,16 @@ def _errors(src: LevelChunks, table: AvisTable) -> TableErrors:
     """Pass 4: the table's reconstruction (`AvisTable.ray_texel_maps`) against the maps."""
     per = np.zeros(src.ray_texels.shape[0])
     d2 = n2 = 0.0
-    for i in range(src.n_chunks):  # a loop over chunks, each vectorized
+
+    def errors(i: int) -> tuple[slice, float, float, np.ndarray]:
         rows = slice(int(src.bounds[i]), int(src.bounds[i + 1]))
         ref = np.asarray(src.read(i), dtype=np.float64)
         rec = table.ray_texel_maps(rows)
-        d2 += float(np.sum(np.square(rec - ref)))
-        n2 += float(np.sum(np.square(ref)))
-        per[rows] = texel_rel_errors(rec, ref)
+        return (rows, float(np.sum(np.square(rec - ref))), float(np.sum(np.square(ref))),
+                texel_rel_errors(rec, ref))
+
+    for rows, part_d2, part_n2, part_per in in_order(errors, src.n_chunks):
+        d2 += part_d2
+        n2 += part_n2
+        per[rows] = part_per
     return TableErrors(float(np.sqrt(d2) / max(np.sqrt(n2), 1e-300)), per)
