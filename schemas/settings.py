@@ -276,7 +276,8 @@ class BakeSettings(BaseModel):
         if self.point_lobe == "widened" and self.fit_method != "batched":
             raise ValueError("point_lobe 'widened' needs fit_method 'batched' (the seed's "
                              "per-texel loop keeps the narrow lobe)")
-        if self.shard_texels > self.atlas_resolution:
+        # atlas_mode "lod1" chooses the atlas and keeps the tiles within it (resolve_settings)
+        if self.atlas_mode == "fixed" and self.shard_texels > self.atlas_resolution:
             raise ValueError(
                 f"shard_texels ({self.shard_texels}) must not exceed atlas_resolution "
                 f"({self.atlas_resolution})"

@@ -40,6 +40,13 @@ def test_lod1_mode_bakes_the_need_within_the_cap(cylinder):
     assert "cap is reached" in note and f"{need}x{need}" in note and "8x8" in note
     # resolving is idempotent: every process of a bake resolves the same
     assert resolve_settings(cylinder, r) == r
+    # tiles larger than the fixed atlas_resolution's default: lod1 mode keeps them within the
+    # side it chooses; fixed mode refuses them
+    wide = resolve_settings(cylinder, BakeSettings(atlas_mode="lod1", atlas_cap=4096,
+                                                   shard_texels=32))
+    assert (wide.atlas_resolution, wide.shard_texels) == (need, min(32, need))
+    with pytest.raises(ValueError, match="must not exceed atlas_resolution"):
+        BakeSettings(shard_texels=32)
 
 
 def test_cap_must_be_a_power_of_two():
