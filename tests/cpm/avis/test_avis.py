@@ -38,6 +38,7 @@ from texelbake.cpm.avis import (
     unoccluded_texels,
     visible_fraction,
 )
+from texelbake.cpm.avis.maps import never_occluded
 from texelbake.errors import NumericalError, SettingsError, ShapeError
 from texelbake.geometry.raycast import RayCaster
 from texelbake.tol import TOL
@@ -148,6 +149,35 @@ def test_avis_from_visibility_brute_force(rng):
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
     per_sample = np.broadcast_to(dirs, (m, d, 3))
     np.testing.assert_allclose(avis_from_visibility(vis, nrm, ar, tex, nt, per_sample), want,
+                               rtol=1e-12, atol=1e-15)
+
+
+def test_never_occluded_is_the_unoccluded_area_without_rays(rng):
+    """`never_occluded` gives the same maps, bit for bit, as an occlusion test that answers
+    "never" for every ray it is handed, in world and texel frames, and hands no ray out."""
+    m, nt, res = 40, 3, 4
+    pos = rng.normal(size=(m, 3))
+    nrm = rng.normal(size=(m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    ar, tex = rng.random(m), rng.integers(0, nt, m)
+    frames = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(nt)])
+    asked = []
+
+    def answers_never(origins, dirs):
+        asked.append(len(origins))
+        return np.zeros(len(origins), dtype=bool)
+
+    for fr in (None, frames):
+        want = avis_cube_maps(pos, nrm, ar, tex, nt, fr, res, answers_never, dtype=np.float64)
+        got = avis_cube_maps(pos, nrm, ar, tex, nt, fr, res, never_occluded, dtype=np.float64)
+        np.testing.assert_array_equal(got, want)
+    assert sum(asked) > 0  # the other path did cast
+    cos = np.maximum(nrm @ cube_directions(res).reshape(-1, 3).T, 0.0)
+    cos[cos <= TOL.grazing_cos] = 0.0
+    ref = np.zeros((nt, cos.shape[1]))
+    np.add.at(ref, tex, ar[:, None] * cos)  # the definition, (n_j . w)^+ dA_j per texel
+    np.testing.assert_allclose(avis_cube_maps(pos, nrm, ar, tex, nt, None, res, never_occluded,
+                                              dtype=np.float64).reshape(nt, -1), ref,
                                rtol=1e-12, atol=1e-15)
 
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from texelbake.cpm.avis.closed_form import ClosedForm, closed_form_maps
 from texelbake.cpm.avis.cube import OccludedFn
-from texelbake.cpm.avis.maps import avis_cube_maps, pairs_fn
+from texelbake.cpm.avis.maps import avis_cube_maps, never_occluded, pairs_fn
 from texelbake.tol import TOL
 
 #: ray-casting samples per texel that is not one facet and one visibility pattern: the
@@ -169,10 +169,6 @@ def need_samples(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     return NeedSamples(rows[order], weight[order], one, rays)
 
 
-def _never(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    return np.zeros(len(origins), dtype=bool)
-
-
 def by_need_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                  tex: np.ndarray, n_texels: int, res: int, occluded_fn: OccludedFn,
                  closed: np.ndarray, free: np.ndarray | None, cf: ClosedForm,
@@ -202,14 +198,14 @@ def by_need_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                               ray_eps=eps, max_rays=max_rays, dtype=np.float64)
 
     est = maps(r, need.weight, occluded_fn, None if free is None else free[r])
-    u_est = maps(r, need.weight, _never)
+    u_est = maps(r, need.weight, never_occluded)
     u = np.zeros_like(est)
     ids = np.flatnonzero(~closed & bounded)
     u[ids] = closed_form_maps(cf, res, ids)
     rest = ~closed & ~bounded
     if rest.any():
         js = np.flatnonzero(rest[tex])
-        u += maps(js, areas[js], _never)
+        u += maps(js, areas[js], never_occluded)
     ok = u_est > 0
     # where no stratum faces w the fraction is unknown: the plain estimate (0) stays
     return np.where(ok, u * est / np.where(ok, u_est, 1.0), est)

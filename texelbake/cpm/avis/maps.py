@@ -136,6 +136,12 @@ def avis_from_visibility(visible: np.ndarray, normals: np.ndarray, areas: np.nda
 PairsFn = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
+def never_occluded(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """An occluded_fn under which nothing is occluded: `avis_cube_maps` with it is the
+    unoccluded projected area sum_j (n_j . w)^+ dA_j, and casts (and gathers) no ray."""
+    return np.zeros(len(origins), dtype=bool)
+
+
 def pairs_fn(occluded_fn: OccludedFn) -> PairsFn:
     """(origins (a, 3), dirs (b, 3), jj (k,), dd (k,)) -> (k,) bool: occlusion of the rays
     origins[jj] along dirs[dd]. A `RayCaster.occluded` is replaced by the caster's
@@ -209,7 +215,7 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
         return out.reshape(n_texels, 6, res, res).astype(dtype)
     eps = default_eps(pos) if ray_eps is None else float(ray_eps)
     origins = pos + eps * nrm
-    occluded_pairs = pairs_fn(occluded_fn)
+    occluded_pairs = None if occluded_fn is never_occluded else pairs_fn(occluded_fn)
     max_rays = max(int(max_rays), 1)
     mb = min(idx.size, max_rays)
     db = max(1, min(nd, max_rays // mb))
@@ -223,19 +229,22 @@ def avis_cube_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray
             if frames is None:
                 cos = nrm_js @ dl.T  # (mb, db)
                 face = cos > TOL.grazing_cos
-                # the facing pairs of samples not proven free, as flat (j, d) indices
-                flat = np.flatnonzero(face & cast_js)
-                occ = occluded_pairs(org_js, dl, *np.divmod(flat, dl.shape[0]))
+                if occluded_pairs is not None:
+                    # the facing pairs of samples not proven free, as flat (j, d) indices
+                    flat = np.flatnonzero(face & cast_js)
+                    occ = occluded_pairs(org_js, dl, *np.divmod(flat, dl.shape[0]))
             else:
                 dw = grid_to_world(frames[tex[js]], dl)  # (mb, db, 3) world
                 cos = np.einsum("jl,jdl->jd", nrm_js, dw)
                 face = cos > TOL.grazing_cos
-                flat = np.flatnonzero(face)  # also the row of each pair's direction in dw
-                occ = occluded_pairs(org_js, dw.reshape(-1, 3), flat // dl.shape[0], flat)
+                if occluded_pairs is not None:
+                    flat = np.flatnonzero(face)  # also the row of each pair's direction in dw
+                    occ = occluded_pairs(org_js, dw.reshape(-1, 3), flat // dl.shape[0], flat)
             # cos where the sample faces w and its ray escapes, else 0: the facing entries
             # kept whole and only the occluded ones scattered (most rays escape)
             contrib = np.where(face, cos, 0.0)
-            contrib.ravel()[flat[occ]] = 0.0
+            if occluded_pairs is not None:
+                contrib.ravel()[flat[occ]] = 0.0
             out[:, d0:d0 + db] += amat @ contrib
     return out.reshape(n_texels, 6, res, res).astype(dtype)
 
