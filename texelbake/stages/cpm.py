@@ -18,10 +18,11 @@ seed's loop (`texelbake.cpm.level_per_texel`); same arrays either way."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import torch
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from texelbake.cpm.dense import DenseSums, dense_sums
 from texelbake.cpm.level import (
@@ -74,7 +75,7 @@ def fit_level(
             sub = avis_o[order[np.searchsorted(texels, tex, sorter=order)]]
         return fit_level_batched(src, level, tex, cands, sums, counts, sub)
 
-    with threadpool_limits(limits=1):
+    with _blas_pools().limit(limits=1):
         # texels are classed at the finest `classed_levels` levels, which the settings keep
         # inside every tile (a top level is fitted from sums without its dense samples:
         # classing one would make the result depend on shard_texels); the coarser levels
@@ -89,6 +90,13 @@ def fit_level(
     if s.fit_method == "per_texel" and "fbar" in out and level == 0 and s.btf_table == "cell":
         out["fbar"] = cell_fbar_per_texel(src, texels, candidates)
     return out
+
+
+@functools.cache
+def _blas_pools() -> ThreadpoolController:
+    """The thread pools loaded in this process (numpy's BLAS, torch's), found once: a
+    `threadpool_limits` per fit scans the process's libraries again each time."""
+    return ThreadpoolController()
 
 
 def level_key(ctx: StageContext, level: int, tile: int | None) -> str:
