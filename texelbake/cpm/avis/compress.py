@@ -490,6 +490,7 @@ def _errors(src: LevelChunks, table: AvisTable) -> TableErrors:
     """Pass 4: the table's reconstruction (`AvisTable.ray_texel_maps`) against the maps."""
     per = np.zeros(src.ray_texels.shape[0])
     d2 = n2 = 0.0
+    _ = table.row_texels  # built here, once, before the threads read it
 
     def errors(i: int) -> tuple[slice, float, float, np.ndarray]:
         rows = slice(int(src.bounds[i]), int(src.bounds[i + 1]))
