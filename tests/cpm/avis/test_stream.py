@@ -14,8 +14,10 @@ import pytest
 from tests.helpers.avis_scenes import grid_mesh, periodic_height, sample_faces, texel_of_xy, tile3x3
 from texelbake.cpm.avis import AvisLevel, avis_level, compress_level
 from texelbake.cpm.avis import compress as cz
+from texelbake.cpm.avis.chunk_threads import compress_threads
 from texelbake.cpm.avis.closed_form import ClosedForm
 from texelbake.cpm.avis.correction import _power_and_scale, apply_correction, sum_correction
+from texelbake.cpm.avis.correction_sums import CorrectionTerms
 from texelbake.cpm.haar import budget_mask, decompress_haar
 from texelbake.errors import SettingsError
 from texelbake.geometry.raycast import RayCaster
@@ -172,7 +174,7 @@ def test_peak_memory_does_not_grow_with_the_level():
 
 
 def test_correction_terms_sum_like_the_dense_rule(bumpy):
-    """The correction's totals from the gathered non-zero terms (`compress._Terms`) equal, bit
+    """The correction's totals from the gathered non-zero terms (`correction_sums.CorrectionTerms`) equal, bit
     for bit, the dense sum over every texel of U F~^exp(g(c)) (`apply_correction`'s bounded
     rule, its scale applied to the sum), at grid values below, at and above the power's cap
     and at a c that varies per pixel; and that rule to rounding. The bumpy field has every
@@ -183,7 +185,7 @@ def test_correction_terms_sum_like_the_dense_rule(bumpy):
                                                     ).reshape(u.shape), 0.0, 1.0)
     assert np.any(u == 0) and np.any((u > 0) & (a == 0)) and np.any((u > 0) & (a == 1))
     assert np.any((u > 0) & (a > 0) & (a < 1))
-    terms = cz._Terms(u, a)
+    terms = CorrectionTerms(u, a)
     rng = np.random.default_rng(5)
     for cv in (-8.0, -0.5, 0.0, 3.0, 8.0, 12.5, 16.0, rng.uniform(-8, 16, u.shape[1:])):
         cm = np.broadcast_to(cv, u.shape[1:])
@@ -202,7 +204,7 @@ def test_threads_do_not_change_the_table(bumpy, monkeypatch):
     out = []
     for threads in ("1", "3"):
         monkeypatch.setenv("TEXELBAKE_COMPRESS_THREADS", threads)
-        assert cz.compress_threads() == int(threads)
+        assert compress_threads() == int(threads)
         out.append(cz.compress_chunks(cz.chunks_of(bumpy, 5), _frames(bumpy), KEEP,
                                       errors=True))
     (t1, e1), (t3, e3) = out
@@ -214,4 +216,4 @@ def test_threads_do_not_change_the_table(bumpy, monkeypatch):
     for bad in ("0", "two"):
         monkeypatch.setenv("TEXELBAKE_COMPRESS_THREADS", bad)
         with pytest.raises(SettingsError, match="TEXELBAKE_COMPRESS_THREADS"):
-            cz.compress_threads()
+            compress_threads()

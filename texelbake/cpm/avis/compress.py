@@ -22,26 +22,24 @@ one chunk at a time (a tile of the farm's a_vis stage, or rows of an in-memory l
    [1, 2)).
 4. (optional) every texel's error against its uncompressed maps, for the report.
 
-Each pass maps its chunks on a few threads (`in_order`) and reduces their results in chunk
-order, so the table is the same bit for bit whatever the thread count. Peak memory: per
-thread one chunk's maps and their ~12 temporaries (`CHUNK_ROWS` rows of 6 res^2 float64:
-12.6 MB per array at res 32), the accumulators (C_GRID x 6 res^2), and the kept
-coefficients; nothing grows with the level but the table itself.
+Passes 2 and 3's sums are `correction_sums.CorrectionSums`. Each pass maps its chunks on a
+few threads (`chunk_threads.in_order`) and reduces their results in chunk order, so the table
+is the same bit for bit whatever the thread count. Peak memory: per thread one chunk's maps
+and their ~12 temporaries (`CHUNK_ROWS` rows of 6 res^2 float64: 12.6 MB per array at res
+32), the accumulators (C_GRID x 6 res^2), and the kept coefficients; nothing grows with the
+level but the table itself.
 """
 
 from __future__ import annotations
 
-import os
-from collections import deque
-from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
 
 import numpy as np
 
+from texelbake.cpm.avis.chunk_threads import in_order
 from texelbake.cpm.avis.closed_form import closed_form_maps
-from texelbake.cpm.avis.correction import _LOG_GAMMA_MAX, _SCALE_SPAN, _power_and_scale
+from texelbake.cpm.avis.correction_sums import ChunkSums, CorrectionSums
 from texelbake.cpm.avis.levels import AvisLevel
 from texelbake.cpm.avis.table import AvisTable, visible_fraction
 from texelbake.cpm.haar import (
@@ -52,59 +50,15 @@ from texelbake.cpm.haar import (
     dequantize_values,
     haar_coefficients,
     haar_support_mean,
-    map_range,
     quantize_values,
 )
 from texelbake.errors import SettingsError, ShapeError
-
-T = TypeVar("T")
 
 #: ray texels per chunk of an in-memory level (6 x 32 x 32 float64 maps: 12.6 MB per array)
 CHUNK_ROWS = 256
 #: the tau grid: 1e-30 .. 1e6 (shares are fractions of a texel's squared norm: the total is
 #: ~1, tau of interest ~1e-4; the exact bisection searched 30 decades below the largest)
 TAU_GRID = np.geomspace(1e-30, 1e6, 6001)
-#: c values of the correction's first pass over [-8, 16] (every integer: the power's identity
-#: c = 0 and its kink at c = 8 are grid values, so no interval straddles the kink and an exact
-#: level keeps c = 0 exactly), then points inside the interval that holds the crossing
-C_GRID = 25
-C_REFINE = 32
-_C_LO, _C_HI = -_LOG_GAMMA_MAX, _LOG_GAMMA_MAX + _SCALE_SPAN
-
-
-def compress_threads() -> int:
-    """Threads of a pass over a level's chunks: TEXELBAKE_COMPRESS_THREADS, else the cores this
-    process may run on, at most 4. The export runs after the bake's shard processes are gone,
-    and numpy releases the GIL in the array operations that take a chunk's time."""
-    raw = os.environ.get("TEXELBAKE_COMPRESS_THREADS", "").strip()
-    if raw:
-        try:
-            n = int(raw)
-        except ValueError:
-            raise SettingsError(f"TEXELBAKE_COMPRESS_THREADS must be an integer, got {raw!r}"
-                                ) from None
-        if n < 1:
-            raise SettingsError(f"TEXELBAKE_COMPRESS_THREADS must be at least 1, got {n}")
-        return n
-    return max(1, min(4, len(os.sched_getaffinity(0))))
-
-
-def in_order(fn: Callable[[int], T], n: int) -> Iterator[T]:
-    """fn(0), ..., fn(n - 1) in that order, computed on up to `compress_threads()` threads with
-    at most two results per thread waiting: a pass's reduction stays in chunk order (the same
-    float sums as one thread) and its memory a few chunks'."""
-    k = min(compress_threads(), n)
-    if k <= 1:
-        yield from map(fn, range(n))
-        return
-    with ThreadPoolExecutor(max_workers=k) as ex:
-        pending: deque[Future[T]] = deque()
-        for i in range(n):  # a loop over chunks, each vectorized
-            pending.append(ex.submit(fn, i))
-            if len(pending) >= 2 * k:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
 
 
 @dataclass(frozen=True)
@@ -185,15 +139,15 @@ def compress_chunks(src: LevelChunks, frames: np.ndarray, keep_fraction: float, 
 
     tau = _level_tau(src, keep_fraction) if selection == "texel" and r else 0.0
     parts, scales = [], []
-    sums = _Sums(res) if correct_sum and r else None
+    sums = CorrectionSums(res) if correct_sum and r else None
 
-    def pass2(i: int) -> tuple[HaarCoeffs, np.ndarray | None, _ChunkSums | None]:
+    def pass2(i: int) -> tuple[HaarCoeffs, np.ndarray | None, ChunkSums | None]:
         c = _chunk(src, i)
         if selection == "face":
             haar, scale = compress_haar(c.stored, keep_fraction), None
         else:
             haar, scale = _select(c, tau)
-        return haar, scale, (None if sums is None else sums.of_chunk(c, decompress_haar(haar)))
+        return haar, scale, (None if sums is None else sums.of_chunk(c.bounded, c.unocc, c.stored, decompress_haar(haar)))
 
     for haar, scale, part in in_order(pass2, src.n_chunks):  # pass 2, reduced in chunk order
         parts.append(haar)
@@ -207,7 +161,7 @@ def compress_chunks(src: LevelChunks, frames: np.ndarray, keep_fraction: float, 
     if sums is not None:
         if sums.has_bounded:
             groups.append(0)
-            maps_c.append(sums.refine(src, haar))  # pass 3
+            maps_c.append(sums.refine(src.level, src.ray_texels, src.bounds, haar))  # pass 3
         if sums.has_direct:
             groups.append(1)
             maps_c.append(sums.direct())
@@ -325,155 +279,6 @@ def _concat(parts: list[HaarCoeffs], res: int, r: int) -> HaarCoeffs:
     return HaarCoeffs(res, (r, 6), np.concatenate(offs),
                       np.concatenate([p.indices for p in parts]).astype(np.int32),
                       np.concatenate([p.values for p in parts]).astype(np.float32))
-
-
-class _Terms:
-    """A chunk's bounded texels as the non-zero terms of the corrected total
-    sum_t U F~^exp(g(c)) scale(c) (`apply_correction`'s bounded rule), gathered once and
-    evaluated at every c of a pass.
-
-    A term is non-zero only where U > 0 and F~ > 0 (half the cube is below a texel's horizon,
-    U = 0 there), and a term with F~ = 1 is U whatever c is: only the others take the power.
-    The terms are kept in (texel, pixel) order and summed per pixel by `np.bincount`, which
-    adds in input order, so every pixel's total is the same sum, bit for bit, as the one
-    over the dense (texel, 6, res, res) arrays (which adds texel after texel and adds 0.0
-    for the dropped terms).
-    """
-
-    def __init__(self, u: np.ndarray, a: np.ndarray) -> None:
-        self.shape = u.shape[1:]
-        self.n_pix = int(np.prod(self.shape))
-        idx = np.flatnonzero((u > 0) & (a > 0))  # row-major: texel after texel
-        self.pix = idx % self.n_pix
-        self.u = u.reshape(-1)[idx]
-        logf = np.log(a.reshape(-1)[idx])
-        self.part = np.flatnonzero(logf < 0)  # the terms with F~ < 1
-        self.part_u = self.u[self.part]
-        self.part_pix = self.pix[self.part]
-        self.part_logf = logf[self.part]
-
-    def power_sum(self, g: np.ndarray) -> np.ndarray:
-        """sum_t U F~^exp(g) per pixel, g (6, res, res) the power's log-exponent."""
-        gamma = np.exp(g).reshape(-1)
-        terms = self.u.copy()
-        terms[self.part] = self.part_u * np.exp(gamma[self.part_pix] * self.part_logf)
-        return np.bincount(self.pix, weights=terms, minlength=self.n_pix).reshape(self.shape)
-
-    def total(self, c: np.ndarray) -> np.ndarray:
-        """The corrected total at every pixel for c (6, res, res)."""
-        g, scale = _power_and_scale(c)
-        return self.power_sum(g) * scale
-
-
-@dataclass
-class _ChunkSums:
-    """One chunk's share of `_Sums` (None where the chunk has no such texel)."""
-
-    target_b: np.ndarray | None = None
-    total_b: list[np.ndarray] | None = None
-    target_d: np.ndarray | None = None
-    have_d: np.ndarray | None = None
-
-
-class _Sums:
-    """The sum correction's level-wide sums (`table.sum_correction`'s rule, streamed)."""
-
-    def __init__(self, res: int) -> None:
-        shape = (6, res, res)
-        self.target_b = np.zeros(shape)
-        self.grid = np.linspace(_C_LO, _C_HI, C_GRID)
-        self.total_b = np.zeros((C_GRID, *shape))
-        self.target_d = np.zeros(shape)
-        self.have_d = np.zeros(shape)
-        self.has_bounded = self.has_direct = False
-
-    def of_chunk(self, c: _Chunk, approx: np.ndarray) -> _ChunkSums:
-        """Pass 2: one chunk's share of the targets and of the totals on the c grid."""
-        b = c.bounded
-        part = _ChunkSums()
-        if b.any():
-            u, a = c.unocc[b], np.clip(approx[b], 0.0, 1.0)
-            part.target_b = np.sum(u * c.stored[b], axis=0)
-            terms = _Terms(u, a)
-            same = None  # the grid values at and above the power's cap share one power sum
-            part.total_b = []
-            for cv in self.grid:  # a loop over the grid, each over the chunk
-                g, scale = _power_and_scale(np.full(u.shape[1:], cv))
-                if cv >= _LOG_GAMMA_MAX:
-                    same = terms.power_sum(g) if same is None else same
-                    part.total_b.append(same * scale)
-                else:
-                    part.total_b.append(terms.power_sum(g) * scale)
-        if (~b).any():
-            part.target_d = np.sum(c.stored[~b], axis=0)
-            part.have_d = np.sum(np.maximum(approx[~b], 0.0), axis=0)
-        return part
-
-    def add(self, part: _ChunkSums) -> None:
-        """A chunk's sums (`of_chunk`) added, in chunk order (the same float sums whatever
-        the threads)."""
-        if part.target_b is not None and part.total_b is not None:
-            self.has_bounded = True
-            self.target_b += part.target_b
-            for k, t in enumerate(part.total_b):  # a loop over the grid
-                self.total_b[k] += t
-        if part.target_d is not None and part.have_d is not None:
-            self.has_direct = True
-            self.target_d += part.target_d
-            self.have_d += part.have_d
-
-    def direct(self) -> np.ndarray:
-        """The direct texels' m = sum (a - a~) / sum a~, clipped to [-1, 1] (0 stays 0)."""
-        m = np.divide(self.target_d - self.have_d, self.have_d,
-                      out=np.zeros_like(self.have_d), where=self.have_d > 0)
-        return np.clip(m, -1.0, 1.0).astype(np.float32)
-
-    def refine(self, src: LevelChunks, haar: HaarCoeffs) -> np.ndarray:
-        """Pass 3: c per pixel, the total decreasing in c. The grid interval where the total
-        crosses the target (a target above the range: c = -8, as the bisection's), then
-        C_REFINE points inside it, then the secant inside the final interval."""
-        lo, width = self._bracket(self.total_b, self.grid[0], self.grid[1] - self.grid[0])
-        if np.all(width == 0):
-            return lo.astype(np.float32)
-        step = width / C_REFINE
-        pts = lo[None] + step[None] * np.arange(C_REFINE + 1)[:, None, None, None]
-        tot = np.zeros(pts.shape)
-        lv = src.level
-
-        def totals(i: int) -> np.ndarray | None:
-            rows = slice(int(src.bounds[i]), int(src.bounds[i + 1]))
-            texels = src.ray_texels[rows]
-            b = lv.bounded[texels]
-            if not b.any():
-                return None
-            u = closed_form_maps(lv.cf, lv.res, texels[b])
-            a = np.clip(decompress_haar(map_range(haar, rows.start * 6, rows.stop * 6,
-                                                (rows.stop - rows.start, 6)))[b], 0.0, 1.0)
-            terms = _Terms(u, a)
-            return np.stack([terms.total(pts[j]) for j in range(C_REFINE + 1)])
-
-        for part in in_order(totals, src.n_chunks):  # reduced in chunk order
-            if part is not None:
-                for j in range(C_REFINE + 1):  # a loop over the sub-grid
-                    tot[j] += part[j]
-        # the secant between the ends of the interval that holds the crossing
-        j = np.clip(np.sum(tot > self.target_b[None], axis=0) - 1, 0, C_REFINE - 1)
-        t0 = np.take_along_axis(tot, j[None], axis=0)[0]
-        t1 = np.take_along_axis(tot, j[None] + 1, axis=0)[0]
-        frac = np.clip(np.divide(t0 - self.target_b, t0 - t1, out=np.full(t0.shape, 0.5),
-                                 where=t0 > t1), 0.0, 1.0)
-        c = lo + step * (j + frac)
-        return np.where(width > 0, c, lo).astype(np.float32)
-
-    def _bracket(self, total: np.ndarray, start: float, step: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """Per pixel the grid interval [lo, lo + width] where total (k, ...) decreasing along
-        k crosses the target; width 0 where the target is at or above the first value (c at
-        the range's start)."""
-        above = np.sum(total > self.target_b[None], axis=0)  # grid values above the target
-        lo = start + step * np.maximum(above - 1, 0)
-        width = np.where(above == 0, 0.0, step)
-        return lo, width
 
 
 def texel_rel_errors(table_maps: np.ndarray, ref: np.ndarray) -> np.ndarray:
