@@ -36,6 +36,8 @@ import numpy as np
 
 from texelbake import brdf
 from texelbake.baselines.normal_maps import dilate
+from texelbake.brdf.common import as_scalar
+from texelbake.brdf.evaluate import material_inputs
 from texelbake.errors import ShapeError
 from texelbake.io.chunks import bincount_continued
 from texelbake.model import Material
@@ -166,9 +168,7 @@ def material_base(materials: Sequence[Material], sample_material: np.ndarray,
         alpha2[sel] = base_alpha2(mat)
         lobe = {"preview": "roughness", "phong": "exponent"}.get(mat.model)
         if lobe is not None and lobe in mat.textures:  # a textured lobe: per sample
-            from texelbake.brdf.textures import sample_texture
-
-            v = sample_texture(mat.textures[lobe], sample_uv[sel])[:, 0].astype(np.float64)
+            v = material_inputs(mat, (lobe,), sample_uv[sel], None)[lobe].astype(np.float64)
             alpha2[sel] = (np.clip(v, 1e-3, 1.0) ** 4 if lobe == "roughness"
                            else 2.0 / (np.maximum(v, 0.0) + 2.0))
         if mat.model == "preview":
@@ -199,13 +199,8 @@ def material_metallic(materials: Sequence[Material], sample_material: np.ndarray
         if not metallic_workflow(mat):
             continue
         sel = sample_material == mi
-        if "metallic" in mat.textures:
-            from texelbake.brdf.textures import sample_texture
-
-            v = sample_texture(mat.textures["metallic"], sample_uv[sel])[:, 0]
-        else:
-            v = np.full(int(sel.sum()), float(mat.params.get("metallic", 0.0)))
-        out[sel] = np.clip(v.astype(np.float64), 0.0, 1.0)
+        v = material_inputs(mat, ("metallic",), sample_uv[sel], None)["metallic"]
+        out[sel] = np.clip(as_scalar(v, int(sel.sum()), "metallic"), 0.0, 1.0)
     return out
 
 

@@ -288,18 +288,20 @@ def dense_fallback_levels(ctx: StageContext, res: int) -> tuple[list[np.ndarray]
     return maps, normal.astype(np.float32)
 
 
+def _page_texel(fs: dict, res: int) -> np.ndarray:  # each fallback sample's texel, (m,)
+    return fs["row"].astype(np.int64) * res + fs["col"]
+
+
 def _seen_means(fs: dict, res: int, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per texel of the res² fallback page (`fallback_samples` fs) the mean of per-sample
-    `values` (m, c) over the samples seen from outside (`fs["seen"]`). Returns (seen (res²,) bool:
-    some sample counted, means (res², c), meaningful where seen)."""
+    """Per texel of the res² fallback page (`fallback_samples` fs) the mean of `values` (m, c)
+    over the samples seen from outside: (seen (res²,) bool, means (res², c) where seen)."""
     smp = fs["smp"]
-    t0 = fs["row"].astype(np.int64) * res + fs["col"]
+    t0 = _page_texel(fs, res)
     w = smp.area * fs["seen"]
     wsum = np.bincount(t0, weights=w, minlength=res * res)
     seen = wsum > 1e-6 * np.bincount(t0, weights=smp.area, minlength=res * res).clip(1e-300)
-    means = np.stack([np.bincount(t0, weights=w * values[:, c], minlength=res * res)
-                      for c in range(values.shape[1])], axis=1) / np.where(seen, wsum,
-                                                                            1.0)[:, None]
+    means = np.stack([np.bincount(t0, weights=w * v, minlength=res * res) for v in values.T],
+                     axis=1) / np.where(seen, wsum, 1.0)[:, None]
     return seen, means
 
 
@@ -326,7 +328,7 @@ def fallback_metallic(ctx: StageContext, res: int) -> np.ndarray | None:
         met = material_metallic(mats, smp.material.astype(np.int32), smp.uv)
         arrays = {"varies": np.array(float(np.ptp(met)) > 1e-6)}
         if bool(arrays["varies"]):
-            t0 = fs["row"].astype(np.int64) * res + fs["col"]
+            t0 = _page_texel(fs, res)
             area = np.bincount(t0, weights=smp.area, minlength=res * res)
             mean = np.bincount(t0, weights=smp.area * met, minlength=res * res) / np.where(
                 area > 0, area, 1.0)
@@ -361,7 +363,7 @@ def lod_normal_maps(ctx: StageContext, res: int) -> list[np.ndarray]:
         return [d[f"lod{i}"] for i in range(len(lods))]
     fs = fallback_samples(ctx, res)
     smp = fs["smp"]
-    t0 = fs["row"].astype(np.int64) * res + fs["col"]
+    t0 = _page_texel(fs, res)
     filled = (np.bincount(t0, weights=smp.area, minlength=res * res) > 0).reshape(res, res)
     out = {}
     for i, (v, f, uv) in enumerate(lods):  # a loop over the few LODs
