@@ -169,6 +169,12 @@ class BakeSettings(BaseModel):
         "stands for where validation pairs favour it (its GGX or Phong lobe widened by its "
         "cell's slope variance; fit_method 'batched' only), 'narrow' keeps the sample's own "
         "lobe as the seed.")
+    lobe_class: Literal["off", "validated"] = _field(
+        "off", "fit",
+        "'validated' stores a classed texel of one material whose samples are unoccluded and "
+        "whose normals spread (a curved texel) as one point with its GGX or Phong lobe "
+        "widened by their slope variance (LEADR), where that lobe reaches eps_db on "
+        "validation pairs (fit_method 'batched' only); 'off' gives such texels to the fit.")
     identical_columns: Literal["keep", "merge"] = _field(
         "merge", "fit",
         "'merge' fits candidates with identical columns as one weighted column, 'keep' fits "
@@ -276,6 +282,10 @@ class BakeSettings(BaseModel):
         if self.point_lobe == "widened" and self.fit_method != "batched":
             raise ValueError("point_lobe 'widened' needs fit_method 'batched' (the seed's "
                              "per-texel loop keeps the narrow lobe)")
+        if self.lobe_class != "off" and (self.fit_method != "batched"
+                                         or self.texel_classes != "by_need"):
+            raise ValueError("lobe_class 'validated' needs fit_method 'batched' and "
+                             "texel_classes 'by_need' (it is a class of the classed texels)")
         # atlas_mode "lod1" chooses the atlas and keeps the tiles within it (resolve_settings)
         if self.atlas_mode == "fixed" and self.shard_texels > self.atlas_resolution:
             raise ValueError(

@@ -11,6 +11,7 @@ from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.avis.compress import LevelChunks, chunks_of, compress_chunks
 from texelbake.cpm.avis.table import avis_table_arrays
 from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP
+from texelbake.cpm.lobe_class import LOBE_SKIP
 
 #: an SNR of +inf (an exact reproduction) enters the report's percentiles as this many dB:
 #: float64 round-off alone stays below ~313 dB, so no measured value reaches it
@@ -102,21 +103,24 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
 
 def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     """The level's texels by class (`texelbake.cpm.level_by_need`): "exact" (one point, no
-    fit), "grouped" (a point per group of one facet, material and visibility pattern, no fit)
-    and "points" (the seed's fit), each with its texels, its mean stored points and its
-    held-out SNR. Empty when the bake classed no texel (texel_classes="points", or a level
-    coarser than classed_levels)."""
+    fit), "grouped" (a point per group of one facet, material and visibility pattern, no fit),
+    "lobe" (one point with its lobe widened, BakeSettings.lobe_class; only when on) and
+    "points" (the seed's fit), each with its texels, its mean stored points and its held-out
+    SNR. Empty when the bake classed no texel (texel_classes="points", or a level coarser
+    than classed_levels)."""
     if "classed" not in data:
         return {}
     skip = data["skip"][valid]
-    exact, grouped = skip == EXACT_SKIP, skip == GROUPED_SKIP
+    exact, grouped, lobe = skip == EXACT_SKIP, skip == GROUPED_SKIP, skip == LOBE_SKIP
     ho = data["snr_ho"][valid]
     c = data["c"][valid]
+    names = (("exact", exact), ("grouped", grouped)) + \
+        ((("lobe", lobe),) if "point_var" in data else ()) + \
+        (("points", ~exact & ~grouped & ~lobe),)
     return {name: {"texels": int(np.sum(sel)),
                    "points_mean": float(c[sel].mean()) if sel.any() else 0.0,
                    "snr_heldout_db": percentiles(ho[sel], SNR_EXACT_DB)}
-            for name, sel in (("exact", exact), ("grouped", grouped),
-                              ("points", ~exact & ~grouped))}
+            for name, sel in names}
 
 
 def fitted_shares(levels: Sequence[Mapping[str, np.ndarray]]) -> list[float] | None:
@@ -129,7 +133,8 @@ def fitted_shares(levels: Sequence[Mapping[str, np.ndarray]]) -> list[float] | N
         if "classed" not in data:
             break
         skip = np.asarray(data["skip"])[np.asarray(data["valid"], bool)]
-        out.append(float(np.mean((skip != EXACT_SKIP) & (skip != GROUPED_SKIP)))
+        out.append(float(np.mean((skip != EXACT_SKIP) & (skip != GROUPED_SKIP)
+                                 & (skip != LOBE_SKIP)))
                    if skip.size else 1.0)
     return out or None
 

@@ -119,10 +119,11 @@ def tile_texels(n: int, s: int, tile: int, level: int) -> np.ndarray:
 def direction_sets(settings: BakeSettings) -> dict[str, np.ndarray]:
     """The texel-frame direction sets of the bake: the N_i x N_o training grid and a held-out
     product grid of independent directions (16 x 16 by default: n_heldout pairs); with
-    widened lobes a VALIDATION x VALIDATION product grid of others (else empty)."""
+    widened lobes or the lobe class a VALIDATION x VALIDATION product grid of others (else
+    empty)."""
     s = settings
     n_h = max(1, int(round(np.sqrt(s.n_heldout)))) if s.n_heldout else 0
-    n_v = VALIDATION if s.point_lobe == "widened" else 0
+    n_v = VALIDATION if s.point_lobe == "widened" or s.lobe_class != "off" else 0
     return {
         "dirs_i": directions.hemisphere_directions(s.n_light_dirs, seed=s.seed * 1000 + _TAG_LIGHT),
         "dirs_o": directions.hemisphere_directions(s.n_view_dirs, seed=s.seed * 1000 + _TAG_VIEW),

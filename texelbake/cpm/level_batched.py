@@ -130,7 +130,7 @@ def fit_level_batched(
     cb_c = np.r_[0, np.cumsum(n_cand)]
 
     res = _Results(n_t, d if s.btf else 0, s.identical_columns == "merge",
-                   s.point_lobe == "widened")
+                   s.point_lobe == "widened" or s.lobe_class != "off")
     cap = max(lp.budget // (BYTES_PER_R_ENTRY * d * 3), 1)
     # a texel wider than n_batch holds one block of n_batch columns at a time (`Columns`)
     for a, b in chunk_bounds(np.minimum(n_cand, s.n_batch), cap):  # loop over chunks
@@ -168,9 +168,9 @@ class _Results:
     def __init__(self, n_t: int, d_btf: int, merged: bool = False, widened: bool = False):
         self.pts: list[list[np.ndarray]] = [[] for _ in range(n_t)]
         self.w: list[list[np.ndarray]] = [[] for _ in range(n_t)]
-        # point_lobe="widened" only: each point's lobe variance per axis (0: a dense
-        # sample's own lobe), and a texel's widened alternative until it is chosen or not:
-        # (fit, var, candidates, skip)
+        # point_lobe="widened" or lobe_class on only: each point's lobe variance per axis
+        # (0: a dense sample's own lobe); point_lobe="widened": a texel's widened
+        # alternative until it is chosen or not: (fit, var, candidates, skip)
         self.var: list[list[np.ndarray]] | None = [[] for _ in range(n_t)] if widened else None
         self.wide: dict[int, tuple] = {}
         self.k = np.zeros(n_t)
@@ -326,7 +326,7 @@ def _fit_chunk(lp: LevelPass, chunk: Chunk, res: _Results, counts: FitCounts | N
         own = cset.take(np.arange(a, b))
         _store(res, chunk.base + t, fit, own, SKIP_CODES[skip],
                None if own.var is None else own.var[fit.columns])
-        if res.var is not None:  # the widened alternative, chosen or not by `_choose_lobes`
+        if lp.src.settings.point_lobe == "widened":  # its alternative, for `_choose_lobes`
             alt = widen_fit(fit, own, cell_spread(lp.src.geo, own, fit), Fs[t], valid[t], lp,
                             partial(_columns_of, lp, inv_o, t))
             if alt is not None:

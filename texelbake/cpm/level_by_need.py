@@ -15,10 +15,17 @@ from collections.abc import Callable
 
 import numpy as np
 
-from texelbake.cpm.classify import CHECK_LIGHTS, CHECK_VIEWS, TexelClasses, classify_texels
+from texelbake.cpm.classify import (
+    CHECK_LIGHTS,
+    CHECK_VIEWS,
+    REASONS,
+    TexelClasses,
+    classify_texels,
+)
 from texelbake.cpm.dense import LevelPass, dense_of, heldout_from_samples, heldout_snr
 from texelbake.cpm.level import LEVEL_TOTALS, POINT_KEYS, FitInputs, PointSet, sort_by_texel
 from texelbake.cpm.level_batched import chunk_bounds
+from texelbake.cpm.lobe_class import lobe_arrays, lobes_bounded
 
 #: the `skip` codes of an exact texel and of a grouped one (after level_batched.SKIP_CODES' 0-3)
 EXACT_SKIP = 4
@@ -42,8 +49,13 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     dense, dseg = dense_of(lp, texels)
     cls = classes_bounded(lp, texels, dense, dseg)
     stored = cls.exact | cls.grouped
-    rest = texels[~stored]
     parts = [_stored_arrays(lp, texels, dense, dseg, cls)]
+    if src.settings.lobe_class != "off":
+        tried = ~stored & (cls.reason != REASONS["empty"]) & (cls.reason != REASONS["cut"])
+        lob = lobes_bounded(lp, texels, dense, dseg, tried)
+        parts.append(lobe_arrays(lp, texels, dense, dseg, lob))
+        stored = stored | lob.lobe
+    rest = texels[~stored]
     if rest.size:
         keep = np.isin(candidates.texel, rest)
         parts.append(fit(rest, candidates.take(np.flatnonzero(keep))))
@@ -103,7 +115,7 @@ def _stored_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: n
     # the batched fit's optional arrays, so that every tile's level has the same keys
     extra = {"merged": np.zeros(n_e, np.int32)} \
         if s.identical_columns == "merge" and s.fit_method == "batched" else {}
-    if s.point_lobe == "widened":  # one facet per point: each keeps its sample's own lobe
+    if s.point_lobe == "widened" or s.lobe_class != "off":  # each keeps its sample's lobe
         extra["point_var"] = np.zeros(len(cls.points), np.float32)
     return extra | {
         "texel": texels[ex], "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),

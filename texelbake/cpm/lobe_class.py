@@ -1,0 +1,300 @@
+"""Texels stored as a few filtered lobes around their mean normal, no R, Gram or trial
+(BakeSettings.lobe_class = "validated"): the "lobe" class between the exact texels and the
+seed's fit (`texelbake.cpm.level_by_need`).
+
+A texel of one material over a smoothly curved surface is not exact (its samples' normals
+differ), yet its Eq. 7 sum, sum_j a_j f_r(n_j; w_i, w_o) V (n_j . w_i)+ V (n_j . w_o)+, is
+close to a lobe at its mean normal convolved with the distribution of the samples' slopes, as
+LEAN/LEADR filter a normal map (Olano & Baker 2010; Dupuy et al. 2013;
+`texelbake.brdf.widened.widen_inputs`: alpha'^2 = alpha^2 + 2 var for GGX, the Phong exponent
+through the Phong <-> Beckmann mapping). One sample's lobe stands for that only to first order
+in its normal's offset from the mean, which for a narrow lobe is most of the error (measured:
+docs/decisions.md, "A curved texel of one material is a few lobes"). So the texel is stored as
+
+- a point per cell: the samples split by the quadrant of their shading normal's and of their
+  geometric normal's offset from the texel's area-weighted means, in the mean shading normal's
+  tangent plane (up to 16 cells: the view cosine and a_vis read the geometric normal); each
+  cell's point its sample nearest both means (lowest id on a tie), its lobe widened by the
+  cell's slope variance about it (`texelbake.cpm.lobe.cell_variance`'s rule, areas as
+  weights);
+- weights by NNLS per channel against the texel's truth on the fit pairs, about
+  `level.VALIDATION` x `level.VALIDATION` pairs of the training grid;
+- kept where, with those weights, it reproduces the truth on the validation pairs (their own
+  seeds: neither the grid's nor the held-out pairs') to at least BakeSettings.eps_db, the SNR
+  the seed's fit stops at on its own grid.
+
+Only a texel of one material, with no cut-out sample, every normal within 90 degrees of the
+mean, and one visibility pattern is tried: on every training direction either every sample
+above its horizons is occluded or none is (bounded from the geometry, `unoccluded_samples`,
+else by the samples' own rays). A point is shaded with its own rays, so a shadow edge across
+the texel, which the fit's points carry, is not a lobe. Every other texel goes on to the
+seed's fit; the held-out pairs then measure each lobe texel as they measure a fitted one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import nnls
+
+from texelbake.cpm.avis.closed_form import unoccluded_samples
+from texelbake.cpm.dense import (
+    VAL_KEYS,
+    LevelPass,
+    heldout_from_samples,
+    heldout_snr,
+    points_on,
+    to_texel,
+    validation_sums,
+)
+from texelbake.cpm.level import VALIDATION, segment_sum, visibility_cos, world_dirs
+from texelbake.cpm.level_batched import chunk_bounds
+from texelbake.cpm.lobe import FLAT_COS, VAR_MAX
+from texelbake.tol import TOL
+
+#: the `skip` code of a texel stored as one filtered lobe (after level_by_need's exact 4 and
+#: grouped 5)
+LOBE_SKIP = 6
+
+#: the fit pairs, on which the points' weights are solved: about `level.VALIDATION` light and
+#: view directions of the training grid, every (n // VALIDATION)-th (8 x 8 of 64 x 64)
+FIT_KEYS = ("fit_i", "fit_o")
+
+#: bytes per (dense sample, training direction) while the lobe class is tested: world
+#: directions, cosines and visibility (float64), with the validation pass's own batches
+BYTES_PER_LOBE_ENTRY = 8 * 12
+
+
+@dataclass(frozen=True)
+class LobeTexels:
+    """The lobe class of a chunk's texels: lobe (t,) bool stored so; offsets (t + 1,) int64,
+    points (p,) int64 sample ids, weights (p, 3) float64 and var (p,) float64 the lobes'
+    slope variance per axis, CSR over the texels (none for the others); snr_val (t,) the
+    SNR on the validation pairs (NaN: not tried)."""
+
+    lobe: np.ndarray
+    offsets: np.ndarray
+    points: np.ndarray
+    weights: np.ndarray
+    var: np.ndarray
+    snr_val: np.ndarray
+
+    @classmethod
+    def none(cls, n_t: int) -> LobeTexels:
+        return cls(np.zeros(n_t, bool), np.zeros(n_t + 1, np.int64), np.zeros(0, np.int64),
+                   np.zeros((0, 3)), np.zeros(0), np.full(n_t, np.nan))
+
+
+def _seg_all(ok: np.ndarray, seg: np.ndarray, n_t: int) -> np.ndarray:
+    return np.bincount(seg[~ok], minlength=n_t) == 0
+
+
+def _quadrant_points(nrm: np.ndarray, mean: np.ndarray, gnrm: np.ndarray, gmean: np.ndarray,
+                     dseg: np.ndarray, dense: np.ndarray,
+                     rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cells of the sample rows `rows` (module docstring: per texel, the quadrant of the
+    shading normal `nrm`'s offset from the mean `mean` (t, 3) and of the geometric normal
+    `gnrm`'s from `gmean` (t, 3), both in the mean shading normal's tangent plane) and each
+    cell's sample nearest both means, lowest id on a tie: (point rows (p,) grouped by texel,
+    each row's cell (r,) as a position in the point rows)."""
+    m = mean[dseg[rows]]
+    # a tangent frame of each mean normal (any one: the quadrants only need to split the plane)
+    axis = np.where((np.abs(m[:, 0]) < 0.6)[:, None], [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(m, axis)
+    t1 /= np.linalg.norm(t1, axis=1)[:, None]
+    t2 = np.cross(m, t1)
+    du = np.einsum("ij,ij->i", nrm[rows], t1)
+    dv = np.einsum("ij,ij->i", nrm[rows], t2)
+    gd = gnrm[rows] - gmean[dseg[rows]]
+    gu = np.einsum("ij,ij->i", gd, t1)
+    gv = np.einsum("ij,ij->i", gd, t2)
+    key = dseg[rows] * 16 + (du >= 0) + 2 * (dv >= 0) + 4 * ((gu >= 0) + 2 * (gv >= 0))
+    order = np.lexsort((dense[rows], du * du + dv * dv + gu * gu + gv * gv, key))
+    head = np.r_[True, key[order][1:] != key[order][:-1]]
+    pts = rows[order[head]]
+    cell = np.empty(rows.size, np.int64)
+    cell[order] = np.cumsum(head) - 1
+    return pts, cell
+
+
+def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                tried: np.ndarray) -> LobeTexels:
+    """The lobe class (module docstring) of the `tried` (t,) bool texels among `texels` (flat
+    ids at lp.level; their dense samples `dense` grouped by texel, positions `dseg`
+    ascending)."""
+    src, geo = lp.src, lp.src.geo
+    n_t = len(texels)
+    out = LobeTexels.none(n_t)
+    if dense.size == 0 or not tried.any():
+        return out
+    count = np.bincount(dseg, minlength=n_t)
+    area = geo["sample_area"][dense]
+    mat = geo["sample_mat"][dense]
+    nrm = geo["sample_nrm"][dense]
+    first = np.r_[0, np.cumsum(count)][:-1]
+    m0 = mat[np.minimum(first, dense.size - 1)]
+    # one material and no cut-out sample (no area: its texel is fitted, as in classify)
+    cand = tried & (count > 0) & _seg_all((mat == m0[dseg]) & (area > 0), dseg, n_t)
+    mean = segment_sum(nrm * area[:, None], dseg, n_t, 0)
+    length = np.linalg.norm(mean, axis=1)
+    # every sample within 90 degrees of the mean normal
+    cand &= (length > 0) & _seg_all(
+        np.einsum("ij,ij->i", nrm, mean[dseg]) > TOL.grazing_cos * length[dseg], dseg, n_t)
+    mean = mean / np.where(length > 0, length, 1.0)[:, None]
+    cand &= _unoccluded(lp, texels, dense, dseg, cand)
+    if not cand.any():
+        return out
+    loc = np.flatnonzero(cand)
+    pos = np.full(n_t, -1, np.int64)
+    pos[loc] = np.arange(loc.size)
+    rows = np.flatnonzero(pos[dseg] >= 0)
+    gn = geo["sample_gnrm"][dense]
+    gmean = segment_sum(gn * area[:, None], dseg, n_t, 0)
+    gmean /= np.maximum(np.linalg.norm(gmean, axis=1), 1e-300)[:, None]
+    pts, cell = _quadrant_points(nrm, mean, gn, gmean, dseg, dense, rows)
+    # each point's lobe variance: its cell's slope variance (`cell_variance`, areas as weights)
+    c = np.clip(np.einsum("ij,ij->i", nrm[rows], nrm[pts[cell]]), -1.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope2 = np.where(c > 0, (1.0 - c * c) / (c * c), VAR_MAX)
+    slope2[c >= 1.0 - FLAT_COS] = 0.0
+    a_r = area[rows]
+    var = np.bincount(cell, weights=a_r * np.minimum(0.5 * slope2, VAR_MAX),
+                      minlength=pts.size) / np.bincount(cell, weights=a_r, minlength=pts.size)
+
+    # the truth on the fit pairs and on the validation pairs, and each point's unit-weight
+    # column on both
+    tot = np.bincount(dseg, weights=area, minlength=n_t)[loc]
+    sub = dataclasses.replace(lp, dirs=lp.dirs | {
+        k: lp.dirs[d][::max(len(lp.dirs[d]) // VALIDATION, 1)]
+        for k, d in zip(FIT_KEYS, ("dirs_i", "dirs_o"), strict=True)})
+    pseg = pos[dseg[pts]]
+    truth, cols = [], []
+    for keys in (FIT_KEYS, VAL_KEYS):  # the fit pairs, then the validation pairs
+        t_ref, t_avis, t_area = validation_sums(sub, texels[loc], dense[rows], pos[dseg[rows]],
+                                                keys)
+        truth.append(to_texel(t_ref, t_avis, tot, t_area))
+        cols.append(points_on(sub, texels[loc][pseg], dense[pts], np.arange(pts.size),
+                              np.ones((pts.size, 3)), var, keys))  # (p, a, b, 3)
+    (fit_ref, _), (ref, avis) = truth
+    bounds = np.r_[0, np.cumsum(np.bincount(pseg, minlength=loc.size))]
+    w = np.zeros((pts.size, 3))
+    snr = np.full(loc.size, np.nan)
+    for t in range(loc.size):  # loop over texels: a few points' NNLS and one SNR each
+        a, b = bounds[t], bounds[t + 1]
+        F = cols[0][a:b].reshape(b - a, -1, 3)
+        for ch in range(3):  # colour channels
+            w[a:b, ch] = nnls(F[:, :, ch].T, fit_ref[t, ..., ch].ravel())[0]
+        w[a:b] = w[a:b].astype(np.float32)  # as stored and rendered
+        apx = np.einsum("pabc,pc->abc", cols[1][a:b], w[a:b])
+        snr[t] = heldout_snr(ref[t], apx, avis[t], tot[t])
+    live = np.any(w > 0, axis=1)
+    keep = (snr >= src.settings.eps_db) & (np.bincount(pseg, weights=live,
+                                                       minlength=loc.size) > 0)
+    lobe = np.zeros(n_t, bool)
+    lobe[loc[keep]] = True
+    sel = keep[pseg] & live
+    counts = np.bincount(loc[pseg[sel]], minlength=n_t)
+    snr_val = np.full(n_t, np.nan)
+    snr_val[loc] = snr
+    return LobeTexels(lobe, np.r_[0, np.cumsum(counts)].astype(np.int64), dense[pts[sel]],
+                      w[sel], var[sel], snr_val)
+
+
+def lobes_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                  tried: np.ndarray) -> LobeTexels:
+    """`lobe_texels` over chunks of texels whose samples' rays on the training directions fit
+    the worker's memory budget (a texel's samples are never split), joined as one."""
+    n_t = len(texels)
+    n_dense = np.bincount(dseg, minlength=n_t)
+    starts = np.r_[0, np.cumsum(n_dense)]
+    n_dirs = len(lp.dirs["dirs_i"]) + len(lp.dirs["dirs_o"])
+    cap = max(lp.budget // (BYTES_PER_LOBE_ENTRY * n_dirs), 1)
+    parts = [lobe_texels(lp, texels[a:b], dense[starts[a]:starts[b]],
+                         dseg[starts[a]:starts[b]] - a, tried[a:b])
+             for a, b in chunk_bounds(n_dense, cap)]  # loop over chunks (memory bound)
+    if not parts:
+        return lobe_texels(lp, texels, dense, dseg, tried)
+    counts = np.concatenate([np.diff(p.offsets) for p in parts])
+    return LobeTexels(
+        np.concatenate([p.lobe for p in parts]), np.r_[0, np.cumsum(counts)].astype(np.int64),
+        *(np.concatenate([getattr(p, f) for p in parts])
+          for f in ("points", "weights", "var", "snr_val")))
+
+
+def lobe_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                lob: LobeTexels) -> dict[str, np.ndarray]:
+    """The fit's arrays for the lobe texels (`lob`): their points with their lobe variances,
+    and their held-out SNR against brute-force Eq. 7 over each texel's dense samples."""
+    ex = np.flatnonzero(lob.lobe)
+    n_e = ex.size
+    counts = np.diff(lob.offsets)[ex]
+    pseg = np.repeat(np.arange(n_e), counts)
+    w32 = lob.weights.astype(np.float32)
+    var32 = lob.var.astype(np.float32)
+    snr = np.full(n_e, np.nan)
+    if n_e and len(lp.dirs["held_i"]):
+        pos = np.full(len(texels), -1, np.int64)
+        pos[ex] = np.arange(n_e)
+        rows = np.flatnonzero(pos[dseg] >= 0)
+        sub_dense, sub_seg = dense[rows], pos[dseg[rows]]
+        # the stored (float32) weights and variances: what the renderer reads
+        ref, apx, avis_h = heldout_from_samples(lp, texels[ex], sub_dense, sub_seg,
+                                                lob.points, pseg, w32.astype(np.float64),
+                                                var32.astype(np.float64))
+        area = np.bincount(sub_seg, weights=lp.src.geo["sample_area"][sub_dense],
+                           minlength=n_e)
+        snr = np.array([heldout_snr(ref[t], apx[t], avis_h[t], area[t])
+                        for t in range(n_e)])  # loop over texels: one SNR each
+    s = lp.src.settings
+    extra = {"merged": np.zeros(n_e, np.int32)} if s.identical_columns == "merge" else {}
+    return extra | {
+        "texel": texels[ex], "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
+        "point_sample": lob.points.astype(np.int64), "point_weight": w32,
+        "point_var": var32, "k": counts.astype(np.int32), "c": counts.astype(np.int32),
+        # the points' weights are fitted on the validation pairs: their in-sample SNR
+        "snr_in": lob.snr_val[ex].astype(np.float32), "snr_ho": snr.astype(np.float32),
+        "mode": np.zeros(n_e, np.int8), "valid": np.ones(n_e, bool),
+        "skip": np.full(n_e, LOBE_SKIP, np.int8),
+    }
+
+
+def _unoccluded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                cand: np.ndarray) -> np.ndarray:
+    """(t,) bool: each `cand` texel has one visibility pattern on the training directions
+    (on each, every sample above its shading and geometric horizons occluded, or none):
+    bounded from the geometry (every sample's whole mesh below its tangent plane: none), else
+    by the samples' own rays."""
+    src, dirs = lp.src, lp.dirs
+    n_t = len(texels)
+    rows = np.flatnonzero(cand[dseg])
+    ok = np.zeros(n_t, bool)
+    if rows.size == 0:
+        return ok
+    pos = src.geo["sample_pos"][dense[rows]]
+    gn = src.geo["sample_gnrm"][dense[rows]]
+    bound = unoccluded_samples(pos, gn, src.caster.points,
+                               eps=TOL.ray_offset * src.caster.bbox_diag)
+    open_t = _seg_all(bound, dseg[rows], n_t) & cand
+    cast = rows[~open_t[dseg[rows]]]
+    ok |= open_t
+    if cast.size == 0:
+        return ok
+    smp, tex = dense[cast], texels[dseg[cast]]
+    sn, gnc = src.geo["sample_nrm"][smp], src.geo["sample_gnrm"][smp]
+    mixed = np.zeros(n_t, bool)
+    for key, cosine in (("dirs_i", "shading"), ("dirs_o", "geometric")):  # light, view
+        w = world_dirs(lp.frames, tex, dirs[key])
+        above = (np.einsum("pk,pdk->pd", sn, w) > TOL.grazing_cos) & \
+            (np.einsum("pk,pdk->pd", gnc, w) > TOL.grazing_cos)
+        lit = visibility_cos(src, smp, w, cosine) > 0
+        # per texel and direction: some sample above its horizon occluded, another not
+        n_occ = segment_sum((above & ~lit).astype(np.float64), dseg[cast], n_t, 0)
+        n_lit = segment_sum(lit.astype(np.float64), dseg[cast], n_t, 0)
+        mixed |= np.any((n_occ > 0) & (n_lit > 0), axis=1)
+    return ok | (cand & ~open_t & ~mixed)
+
+
+__all__ = ["BYTES_PER_LOBE_ENTRY", "LOBE_SKIP", "LobeTexels", "lobe_arrays", "lobe_texels",
+           "lobes_bounded"]
