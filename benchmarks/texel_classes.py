@@ -1,7 +1,9 @@
 """Texels classed by need against the seed's fit of every texel, on one level's tiles: the
-seconds of the cpm stage's `fit_level` (classes and fit), the exact and grouped texels, and the
-held-out SNR and stored points of each class, for `texel_classes="by_need"` and `"points"` on
-the same geometry; the "points" run also scores the seed's fit on the texels by need groups.
+seconds of the cpm stage's `fit_level` (classes and fit), the exact, grouped and lobe texels,
+and the held-out SNR and stored points of each class, for `texel_classes="by_need"` with
+`lobe_class="validated"` ("lobes"), `"by_need"` alone and `"points"` on the same geometry; the
+"points" run also scores the seed's fit on the texels by need groups, and the two later runs
+("fit_on_lobe") their fit of the texels the first stored as lobes.
 
     python benchmarks/texel_classes.py --scene cylinder --size full --atlas 64 --tiles 4 \
         --json benchmarks/results/texel_classes_cylinder_64.json
@@ -26,6 +28,7 @@ from texelbake import stages
 from texelbake.cpm.assemble import SNR_EXACT_DB, percentiles
 from texelbake.cpm.level import level_candidates, tile_texels
 from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP
+from texelbake.cpm.lobe_class import LOBE_SKIP
 from texelbake.stages.cpm import fit_level
 from texelbake.testscenes import write_scene
 
@@ -53,10 +56,14 @@ def main() -> None:
     out: dict = {"scene": str(args.scene), "size": args.size, "atlas": args.atlas,
                  "tiles": tiles, "geometry_seconds": geo_s}
     grouped_texels: set[int] = set()
-    for mode in ("by_need", "points"):  # the two paths, same tiles
-        src_m = dataclasses.replace(src, settings=s.model_copy(update={"texel_classes": mode}))
+    lobe_texels: set[int] = set()
+    modes = {"lobes": {"texel_classes": "by_need", "lobe_class": "validated"},
+             "by_need": {"texel_classes": "by_need"}, "points": {"texel_classes": "points"}}
+    for mode, update in modes.items():  # the three paths, same tiles
+        src_m = dataclasses.replace(src, settings=s.model_copy(update=update))
         sec, cpu = 0.0, 0.0
-        cls: dict[str, list] = {k: [] for k in ("exact", "grouped", "fitted", "seed_on_grouped")}
+        cls: dict[str, list] = {k: [] for k in ("exact", "grouped", "lobe", "fitted",
+                                                "seed_on_grouped", "fit_on_lobe")}
         pts: dict[str, list] = {k: [] for k in cls}
         for tile in tiles:  # loop over tiles
             texels = tile_texels(args.atlas, s.shard_texels, tile, 0)
@@ -68,11 +75,17 @@ def main() -> None:
             v = res["valid"].astype(bool)
             e = v & (res["skip"] == EXACT_SKIP)
             g = v & (res["skip"] == GROUPED_SKIP)
-            grouped_texels |= set(res["texel"][g].tolist())
+            lo = v & (res["skip"] == LOBE_SKIP)
+            if mode == "by_need":
+                grouped_texels |= set(res["texel"][g].tolist())
+            lobe_texels |= set(res["texel"][lo].tolist())
             on_g = v & np.isin(res["texel"], list(grouped_texels)) if mode == "points" \
                 else np.zeros_like(v)
-            for name, sel in (("exact", e), ("grouped", g), ("fitted", v & ~e & ~g),
-                              ("seed_on_grouped", on_g)):
+            on_l = v & np.isin(res["texel"], list(lobe_texels)) if mode != "lobes" \
+                else np.zeros_like(v)
+            for name, sel in (("exact", e), ("grouped", g), ("lobe", lo),
+                              ("fitted", v & ~e & ~g & ~lo), ("seed_on_grouped", on_g),
+                              ("fit_on_lobe", on_l)):
                 cls[name] += res["snr_ho"][sel].tolist()
                 pts[name] += res["c"][sel].tolist()
         out[mode] = {"seconds": sec, "cpu_seconds": cpu} | {
@@ -80,7 +93,8 @@ def main() -> None:
             f"snr_heldout_{k}": percentiles(np.array(v), SNR_EXACT_DB) for k, v in cls.items()} | {
             f"points_mean_{k}": float(np.mean(v)) if v else None for k, v in pts.items()} | {
             "snr_heldout_all": percentiles(np.array(cls["exact"] + cls["grouped"]
-                                                    + cls["fitted"]), SNR_EXACT_DB)}
+                                                    + cls["lobe"] + cls["fitted"]),
+                                           SNR_EXACT_DB)}
         for name in cls:
             a = out[mode][f"snr_heldout_{name}"]
             if not cls[name]:

@@ -84,8 +84,8 @@ class DenseSums:
     ref: np.ndarray  # (t, h_i, h_o, 3)
     avis_h: np.ndarray  # (t, h_o)
     area_held: np.ndarray  # (t,)
-    # the truth on the validation pairs (`level.VALIDATION`, widened lobes only; zero or
-    # empty otherwise) over every texel's truth samples, and their area
+    # the truth on the validation pairs (`level.VALIDATION`, widened lobes only; empty
+    # otherwise) over every texel's truth samples, and their area
     val_ref: np.ndarray  # (t, v_i, v_o, 3)
     val_avis: np.ndarray  # (t, v_o)
     val_area: np.ndarray  # (t,)
@@ -284,7 +284,7 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
     out = DenseSums.zeros(n_t, lp.dirs)
     ref, avis_h, area_held = out.ref, out.avis_h, out.area_held
     val_ref, val_avis, val_area = out.val_ref, out.val_avis, out.val_area
-    if len(lp.dirs["val_i"]) and s.point_lobe == "widened":  # the widened lobes' choice
+    if len(lp.dirs["val_i"]):
         val_ref, val_avis, val_area = validation_sums(lp, texels, dense, dseg)
     if len(lp.dirs["held_i"]):
         none = np.zeros(0, np.int64)
@@ -303,10 +303,10 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
 def validation_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
                     keys: tuple[str, str] = VAL_KEYS
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The truth on the validation pairs (`level.VALIDATION`; or the pairs of the direction
-    sets `keys` of lp.dirs) of every one of `texels` (their dense samples `dense`, positions
-    `dseg` ascending), summed over the truth's samples (`truth_samples`): (ref (t, v_i, v_o,
-    3), a_vis (t, v_o), their area (t,)), which `to_texel` scales to each texel."""
+    """The truth on the validation pairs (`level.VALIDATION`), or on the pairs of the
+    direction sets `keys` of lp.dirs, of every one of `texels` (their dense samples `dense`,
+    positions `dseg` ascending), summed over the truth's samples (`truth_samples`): (ref (t,
+    v_i, v_o, 3), a_vis (t, v_o), their area (t,)), which `to_texel` scales to each texel."""
     none = np.zeros(0, np.int64)
     keep = truth_samples(lp.src, lp.level, texels, dense, dseg)
     ref, _, avis = held_pass(lp, texels, dense[keep], dseg[keep], none, none, np.zeros((0, 3)),

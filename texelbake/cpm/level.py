@@ -32,11 +32,16 @@ from texelbake.tol import TOL
 
 _TAG_LIGHT, _TAG_VIEW, _TAG_HELD_I, _TAG_HELD_O = 0x11, 0x22, 0x33, 0x44
 _TAG_VAL_I, _TAG_VAL_O = 0x55, 0x66
+_TAG_LOBE_I, _TAG_LOBE_O = 0x77, 0x88
 
 #: light and view directions of the validation pairs (VALIDATION x VALIDATION), on which
 #: point_lobe="widened" chooses each texel's lobes (`texelbake.cpm.lobe`): independent of the
 #: training grid and of the held-out pairs, which stay the measure
 VALIDATION = 8
+#: light and view directions of the pairs on which BakeSettings.lobe_class keeps a texel's
+#: lobes (`texelbake.cpm.lobe_class`): 8 x 8 let texels through whose held-out SNR was near
+#: 0 dB (docs/decisions.md, "A curved texel of one material is a few lobes")
+LOBE_VALIDATION = 16
 
 
 @dataclass(frozen=True)
@@ -119,11 +124,12 @@ def tile_texels(n: int, s: int, tile: int, level: int) -> np.ndarray:
 def direction_sets(settings: BakeSettings) -> dict[str, np.ndarray]:
     """The texel-frame direction sets of the bake: the N_i x N_o training grid and a held-out
     product grid of independent directions (16 x 16 by default: n_heldout pairs); with
-    widened lobes or the lobe class a VALIDATION x VALIDATION product grid of others (else
-    empty)."""
+    widened lobes a VALIDATION x VALIDATION product grid of others, and with the lobe class a
+    LOBE_VALIDATION x LOBE_VALIDATION one of others again (else empty)."""
     s = settings
     n_h = max(1, int(round(np.sqrt(s.n_heldout)))) if s.n_heldout else 0
-    n_v = VALIDATION if s.point_lobe == "widened" or s.lobe_class != "off" else 0
+    n_v = VALIDATION if s.point_lobe == "widened" else 0
+    n_l = LOBE_VALIDATION if s.lobe_class != "off" else 0
     return {
         "dirs_i": directions.hemisphere_directions(s.n_light_dirs, seed=s.seed * 1000 + _TAG_LIGHT),
         "dirs_o": directions.hemisphere_directions(s.n_view_dirs, seed=s.seed * 1000 + _TAG_VIEW),
@@ -131,6 +137,8 @@ def direction_sets(settings: BakeSettings) -> dict[str, np.ndarray]:
         "held_o": directions.heldout_pairs(n_h, seed=s.seed * 1000 + _TAG_HELD_O)[1],
         "val_i": directions.heldout_pairs(n_v, seed=s.seed * 1000 + _TAG_VAL_I)[0],
         "val_o": directions.heldout_pairs(n_v, seed=s.seed * 1000 + _TAG_VAL_O)[1],
+        "lobe_i": directions.heldout_pairs(n_l, seed=s.seed * 1000 + _TAG_LOBE_I)[0],
+        "lobe_o": directions.heldout_pairs(n_l, seed=s.seed * 1000 + _TAG_LOBE_O)[1],
     }
 
 

@@ -19,16 +19,22 @@ docs/decisions.md, "A curved texel of one material is a few lobes"). So the texe
   weights);
 - weights by NNLS per channel against the texel's truth on the fit pairs, about
   `level.VALIDATION` x `level.VALIDATION` pairs of the training grid;
-- kept where, with those weights, it reproduces the truth on the validation pairs (their own
-  seeds: neither the grid's nor the held-out pairs') to at least BakeSettings.eps_db, the SNR
-  the seed's fit stops at on its own grid.
+- kept where, with those weights, it reproduces the truth on the validation pairs
+  (`level.LOBE_VALIDATION` x `level.LOBE_VALIDATION`, their own seeds: neither the grid's
+  nor the held-out pairs') to at least BakeSettings.eps_db, the SNR the seed's fit stops at
+  on its own grid.
 
 Only a texel of one material, with no cut-out sample, every normal within 90 degrees of the
-mean, and one visibility pattern is tried: on every training direction either every sample
-above its horizons is occluded or none is (bounded from the geometry, `unoccluded_samples`,
-else by the samples' own rays). A point is shaded with its own rays, so a shadow edge across
-the texel, which the fit's points carry, is not a lobe. Every other texel goes on to the
-seed's fit; the held-out pairs then measure each lobe texel as they measure a fitted one.
+mean, and one visibility pattern is tried: a point is shaded with its own rays, so a shadow
+edge across the texel, which the fit's points carry, is not a lobe. A training direction
+"splits" a texel where one of its samples above its horizons is occluded and another is not
+(found by the samples' own rays, or bounded from the geometry: none where the whole mesh lies
+below every sample's tangent plane, `unoccluded_samples`). The split directions' share of the
+texel's light, sum of (n_mean . w)+ over them against over all the grid's light and view
+directions, may be at most 10^(-eps_db / 20): a shadow edge there changes no more of the
+texel's light, in amplitude, than eps_db allows in all (a grazing edge, on a few directions
+near the horizon, is so). Every other texel goes on to the seed's fit; the held-out pairs then
+measure each lobe texel as they measure a fitted one.
 """
 
 from __future__ import annotations
@@ -41,10 +47,10 @@ from scipy.optimize import nnls
 
 from texelbake.cpm.avis.closed_form import unoccluded_samples
 from texelbake.cpm.dense import (
-    VAL_KEYS,
     LevelPass,
     heldout_from_samples,
     heldout_snr,
+    inv_avis,
     points_on,
     to_texel,
     validation_sums,
@@ -61,6 +67,8 @@ LOBE_SKIP = 6
 #: the fit pairs, on which the points' weights are solved: about `level.VALIDATION` light and
 #: view directions of the training grid, every (n // VALIDATION)-th (8 x 8 of 64 x 64)
 FIT_KEYS = ("fit_i", "fit_o")
+#: the validation pairs, on which a texel's lobes are kept or not (`level.LOBE_VALIDATION`)
+LOBE_KEYS = ("lobe_i", "lobe_o")
 
 #: bytes per (dense sample, training direction) while the lobe class is tested: world
 #: directions, cosines and visibility (float64), with the validation pass's own batches
@@ -143,7 +151,7 @@ def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
     cand &= (length > 0) & _seg_all(
         np.einsum("ij,ij->i", nrm, mean[dseg]) > TOL.grazing_cos * length[dseg], dseg, n_t)
     mean = mean / np.where(length > 0, length, 1.0)[:, None]
-    cand &= _unoccluded(lp, texels, dense, dseg, cand)
+    cand &= _one_pattern(lp, texels, dense, dseg, cand, mean)
     if not cand.any():
         return out
     loc = np.flatnonzero(cand)
@@ -171,21 +179,26 @@ def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
         for k, d in zip(FIT_KEYS, ("dirs_i", "dirs_o"), strict=True)})
     pseg = pos[dseg[pts]]
     truth, cols = [], []
-    for keys in (FIT_KEYS, VAL_KEYS):  # the fit pairs, then the validation pairs
+    for keys in (FIT_KEYS, LOBE_KEYS):  # the fit pairs, then the validation pairs
         t_ref, t_avis, t_area = validation_sums(sub, texels[loc], dense[rows], pos[dseg[rows]],
                                                 keys)
         truth.append(to_texel(t_ref, t_avis, tot, t_area))
         cols.append(points_on(sub, texels[loc][pseg], dense[pts], np.arange(pts.size),
                               np.ones((pts.size, 3)), var, keys))  # (p, a, b, 3)
-    (fit_ref, _), (ref, avis) = truth
+    (fit_ref, fit_avis), (ref, avis) = truth
+    # the fit is on the filtered reflectance, Eq. 7 over a_vis, as the seed's F = diag(1/a_vis) R
+    # and the held-out SNR read it: each view's rows scaled by 1/a_vis, those under the
+    # texel's a_vis floor left out
+    _, inv = inv_avis(fit_avis, tot)  # (t, b)
     bounds = np.r_[0, np.cumsum(np.bincount(pseg, minlength=loc.size))]
     w = np.zeros((pts.size, 3))
     snr = np.full(loc.size, np.nan)
     for t in range(loc.size):  # loop over texels: a few points' NNLS and one SNR each
         a, b = bounds[t], bounds[t + 1]
-        F = cols[0][a:b].reshape(b - a, -1, 3)
+        F = (cols[0][a:b] * inv[t][None, None, :, None]).reshape(b - a, -1, 3)
+        target = (fit_ref[t] * inv[t][None, :, None]).reshape(-1, 3)
         for ch in range(3):  # colour channels
-            w[a:b, ch] = nnls(F[:, :, ch].T, fit_ref[t, ..., ch].ravel())[0]
+            w[a:b, ch] = nnls(F[:, :, ch].T, target[:, ch])[0]
         w[a:b] = w[a:b].astype(np.float32)  # as stored and rendered
         apx = np.einsum("pabc,pc->abc", cols[1][a:b], w[a:b])
         snr[t] = heldout_snr(ref[t], apx, avis[t], tot[t])
@@ -260,12 +273,13 @@ def lobe_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
     }
 
 
-def _unoccluded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-                cand: np.ndarray) -> np.ndarray:
-    """(t,) bool: each `cand` texel has one visibility pattern on the training directions
-    (on each, every sample above its shading and geometric horizons occluded, or none):
-    bounded from the geometry (every sample's whole mesh below its tangent plane: none), else
-    by the samples' own rays."""
+def _one_pattern(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                 cand: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """(t,) bool: each `cand` texel has one visibility pattern on the training directions up
+    to a share of its light no larger than the amplitude eps_db allows (module docstring):
+    bounded from the geometry (every sample's whole mesh below its tangent plane: no
+    direction split), else by the samples' own rays. `mean` (t, 3) the texels' mean shading
+    normals, whose cosines weigh the split directions."""
     src, dirs = lp.src, lp.dirs
     n_t = len(texels)
     rows = np.flatnonzero(cand[dseg])
@@ -283,17 +297,23 @@ def _unoccluded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
         return ok
     smp, tex = dense[cast], texels[dseg[cast]]
     sn, gnc = src.geo["sample_nrm"][smp], src.geo["sample_gnrm"][smp]
-    mixed = np.zeros(n_t, bool)
+    split = np.zeros(n_t)
+    total = np.zeros(n_t)
+    cast_t = np.unique(dseg[cast])
     for key, cosine in (("dirs_i", "shading"), ("dirs_o", "geometric")):  # light, view
         w = world_dirs(lp.frames, tex, dirs[key])
         above = (np.einsum("pk,pdk->pd", sn, w) > TOL.grazing_cos) & \
             (np.einsum("pk,pdk->pd", gnc, w) > TOL.grazing_cos)
         lit = visibility_cos(src, smp, w, cosine) > 0
-        # per texel and direction: some sample above its horizon occluded, another not
+        # per texel and direction: some sample above its horizons occluded, another not
         n_occ = segment_sum((above & ~lit).astype(np.float64), dseg[cast], n_t, 0)
         n_lit = segment_sum(lit.astype(np.float64), dseg[cast], n_t, 0)
-        mixed |= np.any((n_occ > 0) & (n_lit > 0), axis=1)
-    return ok | (cand & ~open_t & ~mixed)
+        cos_t = np.maximum(np.einsum("tk,tdk->td", mean[cast_t],
+                                     world_dirs(lp.frames, texels[cast_t], dirs[key])), 0.0)
+        split[cast_t] += np.sum(cos_t * ((n_occ > 0) & (n_lit > 0))[cast_t], axis=1)
+        total[cast_t] += cos_t.sum(axis=1)
+    share = np.divide(split, total, out=np.ones(n_t), where=total > 0)
+    return ok | (cand & ~open_t & (share <= 10.0 ** (-src.settings.eps_db / 20.0)))
 
 
 __all__ = ["BYTES_PER_LOBE_ENTRY", "LOBE_SKIP", "LobeTexels", "lobe_arrays", "lobe_texels",
