@@ -44,7 +44,10 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="texel-classes-"))
     scene = Path(args.scene) if Path(args.scene).is_file() else \
         write_scene(args.scene, work / f"{args.scene}.usda", args.size)
-    s = BakeSettings(atlas_resolution=args.atlas, shard_texels=min(16, args.atlas))
+    # every texel of the fitted tiles measured (the bake measures a seeded sample of the
+    # level's, most of them in other tiles)
+    s = BakeSettings(atlas_resolution=args.atlas, shard_texels=min(16, args.atlas),
+                     heldout_texels=0)
     ctx = stages.StageContext.create(work / "work", scene, s)
     stages.run_ingest(ctx, 0)
     t0 = time.perf_counter()
