@@ -171,10 +171,11 @@ class BakeSettings(BaseModel):
         "lobe as the seed.")
     lobe_class: Literal["off", "validated"] = _field(
         "off", "fit",
-        "'validated' stores a classed texel of one material whose samples are unoccluded and "
-        "whose normals spread (a curved texel) as one point with its GGX or Phong lobe "
-        "widened by their slope variance (LEADR), where that lobe reaches eps_db on "
-        "validation pairs (fit_method 'batched' only); 'off' gives such texels to the fit.")
+        "'validated' stores a classed texel of one material and one visibility pattern "
+        "whose normals spread (a curved texel) as a few points about its mean normals, each "
+        "GGX or Phong lobe widened by its cell's slope variance (LEADR), where they reach "
+        "eps_db on validation pairs without the fit (fit_method 'batched' and texel_classes "
+        "'by_need' only); 'off' gives such texels to the fit.")
     identical_columns: Literal["keep", "merge"] = _field(
         "merge", "fit",
         "'merge' fits candidates with identical columns as one weighted column, 'keep' fits "

@@ -90,12 +90,21 @@ def test_strong_curvature_goes_to_the_fit():
 
 def test_a_shadow_edge_is_not_a_lobe():
     """A tall wall at x = 0.3 splits texels 0 and 2 into samples that see the -x half of the
-    sky and samples that do not (two visibility patterns, found by their own rays): not tried
-    as lobes; texels 1 and 3, all right of the wall, have one pattern and are lobes."""
+    sky and samples that do not: the visibility-pattern rule refuses them on its own (half
+    the light's directions split, found by the samples' own rays), and their lobes miss
+    eps_db on the fit pairs anyway; texels 1 and 3, all right of the wall, have one pattern
+    and are lobes."""
+    from texelbake.cpm.lobe_class import _one_pattern
+
     src = _strip(0.1, mesh=_walled(100.0, -100.0, 100.0))
     lob = _lobes(src)
     assert list(lob.lobe) == [False, True, False, True]
-    assert np.isnan(lob.snr_val[[0, 2]]).all()
+    assert np.all(lob.snr_val[[0, 2]] < src.settings.eps_db)
+    lp = LevelPass.of(src, 0)
+    dense, dseg = dense_of(lp, TEXELS)
+    mean = np.tile([0.0, 0.0, 1.0], (4, 1))
+    assert list(_one_pattern(lp, TEXELS, dense, dseg, np.ones(4, bool), mean)) == \
+        [False, True, False, True]
     out = _by_need(src)
     assert list(out["skip"] == LOBE_SKIP) == [False, True, False, True]
 
@@ -232,3 +241,21 @@ def test_lobes_need_the_batched_classed_fit():
     with pytest.raises(ValueError, match="texel_classes 'by_need'"):
         BakeSettings(lobe_class="validated", texel_classes="points")
     assert REASONS["exact"] == 0
+
+
+def test_the_report_counts_the_lobe_class():
+    """The level's report entry counts the lobe texels with their mean points and held-out
+    SNR, and the cost model's fitted share leaves them out (no fit); a level without lobe
+    variances (lobe_class off) has no such entry."""
+    from texelbake.cpm.assemble import _classes as report_classes
+    from texelbake.cpm.assemble import fitted_shares
+
+    out = _by_need(_strip(0.1))
+    rep = report_classes(out, out["valid"].astype(bool))
+    assert rep["lobe"]["texels"] == 4 and rep["points"]["texels"] == 0
+    assert rep["lobe"]["points_mean"] == float(np.mean(out["c"]))
+    assert rep["lobe"]["snr_heldout_db"]["p50"] >= 25.0
+    assert fitted_shares([out]) == [0.0]
+    off = _by_need(_strip(0.1, lobes="off"))
+    assert "lobe" not in report_classes(off, off["valid"].astype(bool))
+    assert fitted_shares([off]) == [1.0]

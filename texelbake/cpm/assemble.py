@@ -104,10 +104,10 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
 def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     """The level's texels by class (`texelbake.cpm.level_by_need`): "exact" (one point, no
     fit), "grouped" (a point per group of one facet, material and visibility pattern, no fit),
-    "lobe" (one point with its lobe widened, BakeSettings.lobe_class; only when on) and
-    "points" (the seed's fit), each with its texels, its mean stored points and its held-out
-    SNR. Empty when the bake classed no texel (texel_classes="points", or a level coarser
-    than classed_levels)."""
+    "lobe" (a few widened lobes, no fit: BakeSettings.lobe_class; where the level carries lobe
+    variances) and "points" (the seed's fit), each with its texels, its mean stored points and
+    its held-out SNR. Empty when the bake classed no texel (texel_classes="points", or a level
+    coarser than classed_levels)."""
     if "classed" not in data:
         return {}
     skip = data["skip"][valid]

@@ -19,14 +19,16 @@ docs/decisions.md, "A curved texel of one material is a few lobes"). So the texe
   weights);
 - weights by NNLS per channel against the texel's truth on the fit pairs, about
   `level.VALIDATION` x `level.VALIDATION` pairs of the training grid;
-- kept where, with those weights, it reproduces the truth on the validation pairs
-  (`level.LOBE_VALIDATION` x `level.LOBE_VALIDATION`, their own seeds: neither the grid's
-  nor the held-out pairs') to at least BakeSettings.eps_db, the SNR the seed's fit stops at
-  on its own grid.
+- kept where, with those weights, it reproduces the truth to at least BakeSettings.eps_db
+  (the SNR the seed's fit stops at on its own grid) on the fit pairs and then on the
+  validation pairs (`level.LOBE_VALIDATION` x `level.LOBE_VALIDATION`, their own seeds:
+  neither the grid's nor the held-out pairs'; only the texels that passed the first are
+  validated).
 
-Only a texel of one material, with no cut-out sample, every normal within 90 degrees of the
-mean, and one visibility pattern is tried: a point is shaded with its own rays, so a shadow
-edge across the texel, which the fit's points carry, is not a lobe. A training direction
+Only a texel of one material, with no cut-out sample and every normal within 90 degrees of
+the mean is tried, and only one of one visibility pattern is validated (tested after the fit
+pairs, the cheaper test): a point is shaded with its own rays, so a shadow edge across the
+texel, which the fit's points carry, is not a lobe. A training direction
 "splits" a texel where one of its samples above its horizons is occluded and another is not
 (found by the samples' own rays, or bounded from the geometry: none where the whole mesh lies
 below every sample's tangent plane, `unoccluded_samples`). The split directions' share of the
@@ -60,8 +62,8 @@ from texelbake.cpm.level_batched import chunk_bounds
 from texelbake.cpm.lobe import FLAT_COS, VAR_MAX
 from texelbake.tol import TOL
 
-#: the `skip` code of a texel stored as one filtered lobe (after level_by_need's exact 4 and
-#: grouped 5)
+#: the `skip` code of a texel stored as a few filtered lobes (after level_by_need's exact 4
+#: and grouped 5)
 LOBE_SKIP = 6
 
 #: the fit pairs, on which the points' weights are solved: about `level.VALIDATION` light and
@@ -79,8 +81,9 @@ BYTES_PER_LOBE_ENTRY = 8 * 12
 class LobeTexels:
     """The lobe class of a chunk's texels: lobe (t,) bool stored so; offsets (t + 1,) int64,
     points (p,) int64 sample ids, weights (p, 3) float64 and var (p,) float64 the lobes'
-    slope variance per axis, CSR over the texels (none for the others); snr_val (t,) the
-    SNR on the validation pairs (NaN: not tried)."""
+    slope variance per axis, CSR over the texels (none for the others); snr_val (t,) the SNR
+    that decided: on the validation pairs, or on the fit pairs where it missed eps_db there
+    (NaN: not tried)."""
 
     lobe: np.ndarray
     offsets: np.ndarray
@@ -151,7 +154,6 @@ def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
     cand &= (length > 0) & _seg_all(
         np.einsum("ij,ij->i", nrm, mean[dseg]) > TOL.grazing_cos * length[dseg], dseg, n_t)
     mean = mean / np.where(length > 0, length, 1.0)[:, None]
-    cand &= _one_pattern(lp, texels, dense, dseg, cand, mean)
     if not cand.any():
         return out
     loc = np.flatnonzero(cand)
@@ -171,40 +173,58 @@ def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
     var = np.bincount(cell, weights=a_r * np.minimum(0.5 * slope2, VAR_MAX),
                       minlength=pts.size) / np.bincount(cell, weights=a_r, minlength=pts.size)
 
-    # the truth on the fit pairs and on the validation pairs, and each point's unit-weight
-    # column on both
     tot = np.bincount(dseg, weights=area, minlength=n_t)[loc]
     sub = dataclasses.replace(lp, dirs=lp.dirs | {
         k: lp.dirs[d][::max(len(lp.dirs[d]) // VALIDATION, 1)]
         for k, d in zip(FIT_KEYS, ("dirs_i", "dirs_o"), strict=True)})
     pseg = pos[dseg[pts]]
-    truth, cols = [], []
-    for keys in (FIT_KEYS, LOBE_KEYS):  # the fit pairs, then the validation pairs
-        t_ref, t_avis, t_area = validation_sums(sub, texels[loc], dense[rows], pos[dseg[rows]],
-                                                keys)
-        truth.append(to_texel(t_ref, t_avis, tot, t_area))
-        cols.append(points_on(sub, texels[loc][pseg], dense[pts], np.arange(pts.size),
-                              np.ones((pts.size, 3)), var, keys))  # (p, a, b, 3)
-    (fit_ref, fit_avis), (ref, avis) = truth
-    # the fit is on the filtered reflectance, Eq. 7 over a_vis, as the seed's F = diag(1/a_vis) R
-    # and the held-out SNR read it: each view's rows scaled by 1/a_vis, those under the
-    # texel's a_vis floor left out
+    rseg = pos[dseg[rows]]
+
+    def on_pairs(keys: tuple[str, str], on: np.ndarray):
+        """The truth of the texels loc[on] on the pairs `keys` (ref, a_vis) and their points'
+        unit-weight columns (p_on, a, b, 3)."""
+        at = np.cumsum(on) - 1  # loc position -> position among loc[on]
+        r, q = rows[on[rseg]], pts[on[pseg]]
+        t_ref, t_avis, t_area = validation_sums(sub, texels[loc[on]], dense[r],
+                                                at[pos[dseg[r]]], keys)
+        cols = points_on(sub, texels[loc][pseg[on[pseg]]], dense[q], np.arange(q.size),
+                         np.ones((q.size, 3)), var[on[pseg]], keys)
+        return (*to_texel(t_ref, t_avis, tot[on], t_area), cols)
+
+    # the weights, on the filtered reflectance (Eq. 7 over a_vis, as the seed's F = diag(1 /
+    # a_vis) R and the held-out SNR read it: each view's rows scaled by 1/a_vis, those under
+    # the texel's a_vis floor left out)
+    fit_ref, fit_avis, cols = on_pairs(FIT_KEYS, np.ones(loc.size, bool))
     _, inv = inv_avis(fit_avis, tot)  # (t, b)
     bounds = np.r_[0, np.cumsum(np.bincount(pseg, minlength=loc.size))]
     w = np.zeros((pts.size, 3))
     snr = np.full(loc.size, np.nan)
     for t in range(loc.size):  # loop over texels: a few points' NNLS and one SNR each
         a, b = bounds[t], bounds[t + 1]
-        F = (cols[0][a:b] * inv[t][None, None, :, None]).reshape(b - a, -1, 3)
+        F = (cols[a:b] * inv[t][None, None, :, None]).reshape(b - a, -1, 3)
         target = (fit_ref[t] * inv[t][None, :, None]).reshape(-1, 3)
         for ch in range(3):  # colour channels
             w[a:b, ch] = nnls(F[:, :, ch].T, target[:, ch])[0]
         w[a:b] = w[a:b].astype(np.float32)  # as stored and rendered
-        apx = np.einsum("pabc,pc->abc", cols[1][a:b], w[a:b])
-        snr[t] = heldout_snr(ref[t], apx, avis[t], tot[t])
+        snr[t] = heldout_snr(fit_ref[t], np.einsum("pabc,pc->abc", cols[a:b], w[a:b]),
+                             fit_avis[t], tot[t])
+    # only the texels whose lobes reach eps_db on the pairs they were fitted on are tested for
+    # one visibility pattern (their samples' rays on the whole grid), and only those validated
+    on = snr >= src.settings.eps_db
+    one = np.zeros(n_t, bool)
+    one[loc[on]] = True
+    on &= _one_pattern(lp, texels, dense, dseg, one, mean)[loc]
+    if on.any():
+        ref, avis, cols = on_pairs(LOBE_KEYS, on)
+        w_on = w[on[pseg]]
+        b_on = np.r_[0, np.cumsum(np.bincount(pseg[on[pseg]], minlength=loc.size)[on])]
+        for j, t in enumerate(np.flatnonzero(on)):  # loop over texels: one SNR each
+            a, b = b_on[j], b_on[j + 1]
+            snr[t] = heldout_snr(ref[j], np.einsum("pabc,pc->abc", cols[a:b], w_on[a:b]),
+                                 avis[j], tot[t])
     live = np.any(w > 0, axis=1)
-    keep = (snr >= src.settings.eps_db) & (np.bincount(pseg, weights=live,
-                                                       minlength=loc.size) > 0)
+    keep = on & (snr >= src.settings.eps_db) & (np.bincount(pseg, weights=live,
+                                                            minlength=loc.size) > 0)
     lobe = np.zeros(n_t, bool)
     lobe[loc[keep]] = True
     sel = keep[pseg] & live
