@@ -171,7 +171,7 @@ class BakeSettings(BaseModel):
         "lobe as the seed.")
     lobe_class: Literal["off", "validated"] = _field(
         "off", "fit",
-        "'validated' stores a classed texel of one material and one visibility pattern "
+        "'validated' stores a finest texel of one material and one visibility pattern "
         "whose normals spread (a curved texel) as a few points about its mean normals, each "
         "GGX or Phong lobe widened by its cell's slope variance (LEADR), where they reach "
         "eps_db on validation pairs without the fit (fit_method 'batched' and texel_classes "

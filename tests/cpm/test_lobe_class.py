@@ -217,7 +217,8 @@ def test_lobes_do_not_depend_on_the_memory_chunks(monkeypatch):
 def test_the_coarser_level_reads_the_lobes_variances():
     """Level 1 (the square's one texel, fitted: classed_levels 1) takes its children's points
     as candidates with their lobe variances: its points keep the variance of the child point
-    they are, and its held-out SNR is measured."""
+    they are, and its held-out SNR is measured. Classed (classed_levels 2), it holds no
+    lobe: only the finest level is tried."""
     src = _strip(0.1, classed_levels=1)
     from texelbake.stages.cpm import fit_level
 
@@ -231,6 +232,10 @@ def test_the_coarser_level_reads_the_lobes_variances():
     var_of = dict(zip(fine["point_sample"].tolist(), fine["point_var"].tolist(), strict=True))
     assert [var_of[int(p)] for p in coarse["point_sample"]] == coarse["point_var"].tolist()
     assert np.isfinite(coarse["snr_ho"]).all()
+    # a classed coarser level is not tried: only the finest level holds lobes
+    src2 = _strip(0.1, classed_levels=2)
+    classed = fit_level(src2, 1, one, level_candidates(src2, 1, one, fine))
+    assert "classed" in classed and not np.any(classed["skip"] == LOBE_SKIP)
 
 
 def test_lobes_need_the_batched_classed_fit():

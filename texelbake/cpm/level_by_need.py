@@ -50,7 +50,7 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     cls = classes_bounded(lp, texels, dense, dseg)
     stored = cls.exact | cls.grouped
     parts = [_stored_arrays(lp, texels, dense, dseg, cls)]
-    if src.settings.lobe_class != "off":
+    if src.settings.lobe_class != "off" and level == 0:  # `texelbake.cpm.lobe_class`
         tried = ~stored & (cls.reason != REASONS["empty"]) & (cls.reason != REASONS["cut"])
         lob = lobes_bounded(lp, texels, dense, dseg, tried)
         parts.append(lobe_arrays(lp, texels, dense, dseg, lob))

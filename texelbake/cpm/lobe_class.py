@@ -37,6 +37,11 @@ directions, may be at most 10^(-eps_db / 20): a shadow edge there changes no mor
 texel's light, in amplitude, than eps_db allows in all (a grazing edge, on a few directions
 near the horizon, is so). Every other texel goes on to the seed's fit; the held-out pairs then
 measure each lobe texel as they measure a fitted one.
+
+Only the finest level is tried (`level_by_need`): a coarser classed texel holds 4^level times
+the samples, whose truth on the fit pairs costs as much as its fit from its children's points,
+and few of them were kept (docs/decisions.md, "A curved texel of one material is a few
+lobes").
 """
 
 from __future__ import annotations
