@@ -27,8 +27,7 @@ from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm.assemble import SNR_EXACT_DB, percentiles
 from texelbake.cpm.level import level_candidates, tile_texels
-from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP
-from texelbake.cpm.lobe_class import LOBE_SKIP
+from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP, LOBE_SKIP
 from texelbake.stages.cpm import fit_level
 from texelbake.testscenes import write_scene
 

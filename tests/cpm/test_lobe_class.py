@@ -20,8 +20,8 @@ from texelbake.cpm.classify import REASONS
 from texelbake.cpm.dense import LevelPass, dense_of
 from texelbake.cpm.level import FitInputs, level_candidates
 from texelbake.cpm.level_batched import fit_level_batched
-from texelbake.cpm.level_by_need import EXACT_SKIP, fit_level_by_need
-from texelbake.cpm.lobe_class import LOBE_SKIP, lobe_texels, lobes_bounded
+from texelbake.cpm.level_by_need import EXACT_SKIP, LOBE_SKIP, fit_level_by_need
+from texelbake.cpm.lobe_class import lobe_texels, lobes_bounded
 from texelbake.model import Material
 
 GLOSS = Material("/m/gloss", "preview", {"diffuseColor": (0.2, 0.2, 0.2), "roughness": 0.3})

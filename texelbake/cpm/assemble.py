@@ -10,8 +10,7 @@ import numpy as np
 from texelbake.cpm import avis as avis_mod
 from texelbake.cpm.avis.compress import LevelChunks, chunks_of, compress_chunks
 from texelbake.cpm.avis.table import avis_table_arrays
-from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP
-from texelbake.cpm.lobe_class import LOBE_SKIP
+from texelbake.cpm.level_by_need import EXACT_SKIP, GROUPED_SKIP, LOBE_SKIP
 
 #: an SNR of +inf (an exact reproduction) enters the report's percentiles as this many dB:
 #: float64 round-off alone stays below ~313 dB, so no measured value reaches it

@@ -25,11 +25,13 @@ from texelbake.cpm.classify import (
 from texelbake.cpm.dense import LevelPass, dense_of, heldout_from_samples, heldout_snr
 from texelbake.cpm.level import LEVEL_TOTALS, POINT_KEYS, FitInputs, PointSet, sort_by_texel
 from texelbake.cpm.level_batched import chunk_bounds
-from texelbake.cpm.lobe_class import lobe_arrays, lobes_bounded
+from texelbake.cpm.lobe_class import LobeTexels, lobes_bounded
 
-#: the `skip` codes of an exact texel and of a grouped one (after level_batched.SKIP_CODES' 0-3)
+#: the `skip` codes of an exact texel, a grouped one and a lobe one (after
+#: level_batched.SKIP_CODES' 0-3)
 EXACT_SKIP = 4
 GROUPED_SKIP = 5
+LOBE_SKIP = 6
 
 #: bytes per (sample, direction or check pair) while texels are classed: world directions,
 #: visibility and cosines, the BRDF and its copies (float64)
@@ -53,7 +55,7 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     if src.settings.lobe_class != "off" and level == 0:  # `texelbake.cpm.lobe_class`
         tried = ~stored & (cls.reason != REASONS["empty"]) & (cls.reason != REASONS["cut"])
         lob = lobes_bounded(lp, texels, dense, dseg, tried)
-        parts.append(lobe_arrays(lp, texels, dense, dseg, lob))
+        parts.append(_lobe_arrays(lp, texels, dense, dseg, lob))
         stored = stored | lob.lobe
     rest = texels[~stored]
     if rest.size:
@@ -89,28 +91,38 @@ def classes_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
         weights=cat("weights"), reason=cat("reason"), rays=sum(c.rays for c in parts))
 
 
+def _heldout_of(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                ex: np.ndarray, points: np.ndarray, counts: np.ndarray, w32: np.ndarray,
+                var32: np.ndarray | None, unmeasured: float) -> np.ndarray:
+    """(e,) the held-out SNR of the texels at positions `ex` of `texels`, stored without a
+    fit as `points` (p,) with `counts` (e,) per texel, their stored (float32: what the renderer
+    reads) weights (p, 3) and lobe variances (p,) or None, against brute-force Eq. 7 over each
+    texel's dense samples; `unmeasured` where the level has no held-out pairs."""
+    n_e = ex.size
+    if not (n_e and len(lp.dirs["held_i"])):
+        return np.full(n_e, unmeasured)
+    pos = np.full(len(texels), -1, np.int64)
+    pos[ex] = np.arange(n_e)
+    rows = np.flatnonzero(pos[dseg] >= 0)
+    sub_dense, sub_seg = dense[rows], pos[dseg[rows]]
+    ref, apx, avis_h = heldout_from_samples(
+        lp, texels[ex], sub_dense, sub_seg, points, np.repeat(np.arange(n_e), counts),
+        w32.astype(np.float64), None if var32 is None else var32.astype(np.float64))
+    area = np.bincount(sub_seg, weights=lp.src.geo["sample_area"][sub_dense], minlength=n_e)
+    return np.array([heldout_snr(ref[t], apx[t], avis_h[t], area[t])
+                     for t in range(n_e)])  # loop over texels: one SNR each
+
+
 def _stored_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
                    cls: TexelClasses) -> dict[str, np.ndarray]:
     """The fit's arrays for the exact and grouped texels (`cls`): their points, and their
-    held-out SNR against brute-force Eq. 7 over each texel's dense samples."""
+    held-out SNR (`_heldout_of`)."""
     ex = np.flatnonzero(cls.exact | cls.grouped)
     n_e = ex.size
     counts = np.diff(cls.offsets)[ex]
-    pseg = np.repeat(np.arange(n_e), counts)
-    snr = np.full(n_e, np.inf)
     w32 = cls.weights.astype(np.float32)
-    if n_e and len(lp.dirs["held_i"]):
-        pos = np.full(len(texels), -1, np.int64)
-        pos[ex] = np.arange(n_e)
-        rows = np.flatnonzero(pos[dseg] >= 0)
-        sub_dense, sub_seg = dense[rows], pos[dseg[rows]]
-        # the stored (float32) weights: what the renderer reads
-        ref, apx, avis_h = heldout_from_samples(lp, texels[ex], sub_dense, sub_seg,
-                                                cls.points, pseg, w32.astype(np.float64))
-        area = np.bincount(sub_seg, weights=lp.src.geo["sample_area"][sub_dense],
-                           minlength=n_e)
-        snr = np.array([heldout_snr(ref[t], apx[t], avis_h[t], area[t])
-                        for t in range(n_e)])  # loop over texels: one SNR each
+    # exact on the grid by construction: +inf where no held-out pair measures it
+    snr = _heldout_of(lp, texels, dense, dseg, ex, cls.points, counts, w32, None, np.inf)
     s = lp.src.settings
     # the batched fit's optional arrays, so that every tile's level has the same keys
     extra = {"merged": np.zeros(n_e, np.int32)} \
@@ -126,6 +138,29 @@ def _stored_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: n
         "snr_in": np.full(n_e, np.inf, np.float32), "snr_ho": snr.astype(np.float32),
         "mode": np.zeros(n_e, np.int8), "valid": np.ones(n_e, bool),
         "skip": np.where(cls.grouped[ex], GROUPED_SKIP, EXACT_SKIP).astype(np.int8),
+    }
+
+
+def _lobe_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                 lob: LobeTexels) -> dict[str, np.ndarray]:
+    """The fit's arrays for the lobe texels (`lob`, `texelbake.cpm.lobe_class`): their points
+    with their lobe variances, and their held-out SNR (`_heldout_of`)."""
+    ex = np.flatnonzero(lob.lobe)
+    n_e = ex.size
+    counts = np.diff(lob.offsets)[ex]
+    w32 = lob.weights.astype(np.float32)
+    var32 = lob.var.astype(np.float32)
+    snr = _heldout_of(lp, texels, dense, dseg, ex, lob.points, counts, w32, var32, np.nan)
+    extra = {"merged": np.zeros(n_e, np.int32)} \
+        if lp.src.settings.identical_columns == "merge" else {}
+    return extra | {
+        "texel": texels[ex], "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
+        "point_sample": lob.points.astype(np.int64), "point_weight": w32,
+        "point_var": var32, "k": counts.astype(np.int32), "c": counts.astype(np.int32),
+        # weights fitted on the fit pairs, kept on the validation pairs: the SNR that decided
+        "snr_in": lob.snr_val[ex].astype(np.float32), "snr_ho": snr.astype(np.float32),
+        "mode": np.zeros(n_e, np.int8), "valid": np.ones(n_e, bool),
+        "skip": np.full(n_e, LOBE_SKIP, np.int8),
     }
 
 
@@ -153,4 +188,5 @@ def merge_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return sort_by_texel(out)
 
 
-__all__ = ["EXACT_SKIP", "GROUPED_SKIP", "classes_bounded", "fit_level_by_need", "merge_levels"]
+__all__ = ["EXACT_SKIP", "GROUPED_SKIP", "LOBE_SKIP", "classes_bounded", "fit_level_by_need",
+           "merge_levels"]

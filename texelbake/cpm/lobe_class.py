@@ -1,6 +1,6 @@
 """Texels stored as a few filtered lobes around their mean normal, no R, Gram or trial
 (BakeSettings.lobe_class = "validated"): the "lobe" class between the exact texels and the
-seed's fit (`texelbake.cpm.level_by_need`).
+seed's fit (`texelbake.cpm.level_by_need` stores them, `skip` LOBE_SKIP).
 
 A texel of one material over a smoothly curved surface is not exact (its samples' normals
 differ), yet its Eq. 7 sum, sum_j a_j f_r(n_j; w_i, w_o) V (n_j . w_i)+ V (n_j . w_o)+, is
@@ -55,7 +55,6 @@ from scipy.optimize import nnls
 from texelbake.cpm.avis.closed_form import unoccluded_samples
 from texelbake.cpm.dense import (
     LevelPass,
-    heldout_from_samples,
     heldout_snr,
     inv_avis,
     points_on,
@@ -66,10 +65,6 @@ from texelbake.cpm.level import VALIDATION, segment_sum, visibility_cos, world_d
 from texelbake.cpm.level_batched import chunk_bounds
 from texelbake.cpm.lobe import FLAT_COS, VAR_MAX
 from texelbake.tol import TOL
-
-#: the `skip` code of a texel stored as a few filtered lobes (after level_by_need's exact 4
-#: and grouped 5)
-LOBE_SKIP = 6
 
 #: the fit pairs, on which the points' weights are solved: about `level.VALIDATION` light and
 #: view directions of the training grid, every (n // VALIDATION)-th (8 x 8 of 64 x 64)
@@ -261,43 +256,6 @@ def lobes_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np
           for f in ("points", "weights", "var", "snr_val")))
 
 
-def lobe_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-                lob: LobeTexels) -> dict[str, np.ndarray]:
-    """The fit's arrays for the lobe texels (`lob`): their points with their lobe variances,
-    and their held-out SNR against brute-force Eq. 7 over each texel's dense samples."""
-    ex = np.flatnonzero(lob.lobe)
-    n_e = ex.size
-    counts = np.diff(lob.offsets)[ex]
-    pseg = np.repeat(np.arange(n_e), counts)
-    w32 = lob.weights.astype(np.float32)
-    var32 = lob.var.astype(np.float32)
-    snr = np.full(n_e, np.nan)
-    if n_e and len(lp.dirs["held_i"]):
-        pos = np.full(len(texels), -1, np.int64)
-        pos[ex] = np.arange(n_e)
-        rows = np.flatnonzero(pos[dseg] >= 0)
-        sub_dense, sub_seg = dense[rows], pos[dseg[rows]]
-        # the stored (float32) weights and variances: what the renderer reads
-        ref, apx, avis_h = heldout_from_samples(lp, texels[ex], sub_dense, sub_seg,
-                                                lob.points, pseg, w32.astype(np.float64),
-                                                var32.astype(np.float64))
-        area = np.bincount(sub_seg, weights=lp.src.geo["sample_area"][sub_dense],
-                           minlength=n_e)
-        snr = np.array([heldout_snr(ref[t], apx[t], avis_h[t], area[t])
-                        for t in range(n_e)])  # loop over texels: one SNR each
-    s = lp.src.settings
-    extra = {"merged": np.zeros(n_e, np.int32)} if s.identical_columns == "merge" else {}
-    return extra | {
-        "texel": texels[ex], "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
-        "point_sample": lob.points.astype(np.int64), "point_weight": w32,
-        "point_var": var32, "k": counts.astype(np.int32), "c": counts.astype(np.int32),
-        # the points' weights are fitted on the validation pairs: their in-sample SNR
-        "snr_in": lob.snr_val[ex].astype(np.float32), "snr_ho": snr.astype(np.float32),
-        "mode": np.zeros(n_e, np.int8), "valid": np.ones(n_e, bool),
-        "skip": np.full(n_e, LOBE_SKIP, np.int8),
-    }
-
-
 def _one_pattern(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
                  cand: np.ndarray, mean: np.ndarray) -> np.ndarray:
     """(t,) bool: each `cand` texel has one visibility pattern on the training directions up
@@ -341,5 +299,4 @@ def _one_pattern(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.
     return ok | (cand & ~open_t & (share <= 10.0 ** (-src.settings.eps_db / 20.0)))
 
 
-__all__ = ["BYTES_PER_LOBE_ENTRY", "LOBE_SKIP", "LobeTexels", "lobe_arrays", "lobe_texels",
-           "lobes_bounded"]
+__all__ = ["BYTES_PER_LOBE_ENTRY", "LobeTexels", "lobe_texels", "lobes_bounded"]
