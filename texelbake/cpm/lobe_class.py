@@ -218,10 +218,10 @@ def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
         ref, avis, cols = on_pairs(LOBE_KEYS, on)
         w_on = w[on[pseg]]
         b_on = np.r_[0, np.cumsum(np.bincount(pseg[on[pseg]], minlength=loc.size)[on])]
-        for j, t in enumerate(np.flatnonzero(on)):  # loop over texels: one SNR each
+        for j, i in enumerate(np.flatnonzero(on).tolist()):  # loop over texels: one SNR each
             a, b = b_on[j], b_on[j + 1]
-            snr[t] = heldout_snr(ref[j], np.einsum("pabc,pc->abc", cols[a:b], w_on[a:b]),
-                                 avis[j], tot[t])
+            snr[i] = heldout_snr(ref[j], np.einsum("pabc,pc->abc", cols[a:b], w_on[a:b]),
+                                 avis[j], tot[i])
     live = np.any(w > 0, axis=1)
     keep = on & (snr >= src.settings.eps_db) & (np.bincount(pseg, weights=live,
                                                             minlength=loc.size) > 0)
