@@ -87,9 +87,22 @@ class TexelClasses:
         return out
 
 
-def _seg_all(ok: np.ndarray, seg: np.ndarray, n_t: int) -> np.ndarray:
+def seg_all(ok: np.ndarray, seg: np.ndarray, n_t: int) -> np.ndarray:
     """(n_t,) bool: every row of each segment is ok (an empty segment is True)."""
     return np.bincount(seg[~ok], minlength=n_t) == 0
+
+
+def open_texels(lp: LevelPass, dense: np.ndarray, dseg: np.ndarray, rows: np.ndarray,
+                n_t: int) -> np.ndarray:
+    """(n_t,) bool: every sample of the rows `rows` (positions in `dense`, texel positions
+    `dseg`) of each texel is unoccluded in its whole hemisphere, bounded from the geometry
+    (`unoccluded_samples`: the whole mesh below its tangent plane); True for a texel with no
+    such row."""
+    src = lp.src
+    bound = unoccluded_samples(src.geo["sample_pos"][dense[rows]],
+                               src.geo["sample_gnrm"][dense[rows]], src.caster.points,
+                               eps=TOL.ray_offset * src.caster.bbox_diag)
+    return seg_all(bound, dseg[rows], n_t)
 
 
 def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
@@ -110,7 +123,7 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     # a sample on a cut-out (brdf.opacity) carries no area: a texel cut in part or whole is
     # fitted by the seed's path, which weighs by area (its reference sample could be a cut
     # one, and a wholly cut texel holds no surface, which one stored point would paint black)
-    reason[(reason == 0) & ~_seg_all(area > 0, dseg, n_t)] = REASONS["cut"]
+    reason[(reason == 0) & ~seg_all(area > 0, dseg, n_t)] = REASONS["cut"]
     # the reference sample: the one nearest the texel's area-weighted centroid (lowest id on a
     # tie), where the renderer shades the point
     first, _ = _nearest_centroid(dseg, np.arange(dense.size), pos, area, dense)
@@ -138,21 +151,18 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
         s_ratio[rows] = s_rows
         # a facet whose reference is black on every check pair (below the texel's horizon
         # there) gives no factor to scale by: fitted
-        bad = ~_seg_all(ok_f & has, dseg[rows], n_t)
+        bad = ~seg_all(ok_f & has, dseg[rows], n_t)
         reason[(reason == 0) & bad] = REASONS["inputs"]
     # visibility patterns: bounded from the geometry (one), else the texel's own rays
     rays = 0
     group = np.zeros(dense.size, np.int64)  # a sample's pattern, numbered over the chunk
     rows = np.flatnonzero((reason == 0)[dseg])
     if rows.size:
-        bound = unoccluded_samples(pos[rows], geo["sample_gnrm"][dense[rows]],
-                                   src.caster.points,
-                                   eps=TOL.ray_offset * src.caster.bbox_diag)
-        open_t = _seg_all(bound, dseg[rows], n_t)
+        open_t = open_texels(lp, dense, dseg, rows, n_t)
         cast = rows[~open_t[dseg[rows]]]
         group[rows] = fac[rows]  # an open texel: one pattern, a group per facet
         if cast.size:
-            vis, rays = _patterns(lp, texels, dense, dseg, cast)
+            vis, rays = visibility_patterns(lp, texels, dense, dseg, cast)
             # (facet, pattern bits) as one key per row: big-endian facet bytes sort first
             key = np.concatenate([fac[cast].astype(">i8").view(np.uint8).reshape(-1, 8),
                                   np.packbits(vis, axis=1)], axis=1)
@@ -295,8 +305,8 @@ def _proportional(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np
     return s, ok, rr.sum(axis=1) > 0
 
 
-def _patterns(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-              rows: np.ndarray) -> tuple[np.ndarray, int]:
+def visibility_patterns(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
+                        dseg: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, int]:
     """(vis (r, n_i + n_o) bool: sample rows[j] visible on each training direction, light
     then view; rays cast), by the samples' own rays."""
     src, dirs = lp.src, lp.dirs
@@ -310,4 +320,5 @@ def _patterns(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
     return vis, src.caster.rays_cast - rays0
 
 
-__all__ = ["CHECK_LIGHTS", "CHECK_VIEWS", "REASONS", "TexelClasses", "classify_texels"]
+__all__ = ["CHECK_LIGHTS", "CHECK_VIEWS", "REASONS", "TexelClasses", "classify_texels",
+           "open_texels", "seg_all", "visibility_patterns"]

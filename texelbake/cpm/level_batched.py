@@ -165,13 +165,13 @@ def fit_level_batched(
 
 
 class _Results:
-    def __init__(self, n_t: int, d_btf: int, merged: bool = False, widened: bool = False):
+    def __init__(self, n_t: int, d_btf: int, merged: bool = False, lobe_var: bool = False):
         self.pts: list[list[np.ndarray]] = [[] for _ in range(n_t)]
         self.w: list[list[np.ndarray]] = [[] for _ in range(n_t)]
         # point_lobe="widened" or lobe_class on only: each point's lobe variance per axis
         # (0: a dense sample's own lobe); point_lobe="widened": a texel's widened
         # alternative until it is chosen or not: (fit, var, candidates, skip)
-        self.var: list[list[np.ndarray]] | None = [[] for _ in range(n_t)] if widened else None
+        self.var: list[list[np.ndarray]] | None = [[] for _ in range(n_t)] if lobe_var else None
         self.wide: dict[int, tuple] = {}
         self.k = np.zeros(n_t)
         self.c = np.zeros(n_t)

@@ -65,6 +65,19 @@ VAR_MAX = 1.0
 FLAT_COS = 1e-12
 
 
+def slope_variance(cos: np.ndarray, own: np.ndarray | float = 0.0) -> np.ndarray:
+    """The variance per axis a normal at cosine `cos` (n,) from its point's adds to the
+    point's cell, on top of its own `own`: own + tan^2 / 2, VAR_MAX at or past 90 degrees and
+    at most VAR_MAX (module docstring)."""
+    c = np.clip(cos, -1.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope2 = np.where(c > 0, (1.0 - c * c) / (c * c), np.inf)
+    # normals equal up to rounding (a unit vector's dot with itself can be 1 - 1e-16): no
+    # slope, so that a flat cell's point keeps its own lobe bit for bit
+    slope2[c >= 1.0 - FLAT_COS] = 0.0
+    return np.minimum(own + 0.5 * slope2, VAR_MAX)
+
+
 def cell_variance(nrm: np.ndarray, mat: np.ndarray, weight: np.ndarray,
                   var: np.ndarray | None, points: np.ndarray) -> np.ndarray:
     """The slope variance per axis of each point of one texel (module docstring).
@@ -81,14 +94,8 @@ def cell_variance(nrm: np.ndarray, mat: np.ndarray, weight: np.ndarray,
     score = np.where(mat[:, None] == mat[points][None, :], cos, -np.inf)
     best = np.argmax(score, axis=1)  # first maximum: lowest point on a tie
     has = np.isfinite(score[np.arange(len(nrm)), best])
-    c = np.clip(cos[np.arange(len(nrm)), best], -1.0, 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope2 = np.where(c > 0, (1.0 - c * c) / (c * c), np.inf)
-    # normals equal up to rounding (a unit vector's dot with itself can be 1 - 1e-16): no
-    # slope, so that a flat cell's point keeps its own lobe bit for bit
-    slope2[c >= 1.0 - FLAT_COS] = 0.0
     own = np.zeros(len(nrm)) if var is None else np.asarray(var, np.float64)
-    contrib = np.minimum(own + 0.5 * slope2, VAR_MAX)
+    contrib = slope_variance(cos[np.arange(len(nrm)), best], own)
     w = np.abs(weight).mean(axis=1) * has
     tot = np.bincount(best, weights=w, minlength=k)
     num = np.bincount(best, weights=w * np.where(has, contrib, 0.0), minlength=k)
@@ -96,7 +103,7 @@ def cell_variance(nrm: np.ndarray, mat: np.ndarray, weight: np.ndarray,
     return np.maximum(out, 0.0)
 
 
-def _nnls(F: np.ndarray, target: np.ndarray, rows: np.ndarray) -> np.ndarray:
+def nnls_channels(F: np.ndarray, target: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Per channel the nonnegative weights (k, ch) of F's columns (ch, k, d) that fit target
     (ch, d) on `rows` in least squares."""
     ch, k = F.shape[:2]
@@ -131,7 +138,7 @@ def widen_fit(fit: TexelFit, cset: PointSet, var: np.ndarray, F: np.ndarray | Co
         return None
     F_wide = columns(PointSet(cset.sample[cols], cset.weight[cols], cset.texel[cols], var))
     target = F.sum(axis=1)
-    w32 = storable_weights(_nnls(F_wide, target, np.flatnonzero(valid)))
+    w32 = storable_weights(nnls_channels(F_wide, target, np.flatnonzero(valid)))
     live = np.any(w32 != 0.0, axis=1)
     if not live.any():
         return None
@@ -186,5 +193,5 @@ def wider_wins(lp: LevelPass, texels: np.ndarray, area: np.ndarray,
     return snr(wide_pts) > snr(own)
 
 
-__all__ = ["FLAT_COS", "VAR_MAX", "cell_spread", "cell_variance", "validation_truth", "widen_fit",
-           "wider_wins"]
+__all__ = ["FLAT_COS", "VAR_MAX", "cell_spread", "cell_variance", "nnls_channels",
+           "slope_variance", "validation_truth", "widen_fit", "wider_wins"]

@@ -50,9 +50,8 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import nnls
 
-from texelbake.cpm.avis.closed_form import unoccluded_samples
+from texelbake.cpm.classify import open_texels, seg_all, visibility_patterns
 from texelbake.cpm.dense import (
     LevelPass,
     heldout_snr,
@@ -61,9 +60,9 @@ from texelbake.cpm.dense import (
     to_texel,
     validation_sums,
 )
-from texelbake.cpm.level import VALIDATION, segment_sum, visibility_cos, world_dirs
+from texelbake.cpm.level import VALIDATION, segment_sum, world_dirs
 from texelbake.cpm.level_batched import chunk_bounds
-from texelbake.cpm.lobe import FLAT_COS, VAR_MAX
+from texelbake.cpm.lobe import nnls_channels, slope_variance
 from texelbake.tol import TOL
 
 #: the fit pairs, on which the points' weights are solved: about `level.VALIDATION` light and
@@ -98,10 +97,6 @@ class LobeTexels:
                    np.zeros((0, 3)), np.zeros(0), np.full(n_t, np.nan))
 
 
-def _seg_all(ok: np.ndarray, seg: np.ndarray, n_t: int) -> np.ndarray:
-    return np.bincount(seg[~ok], minlength=n_t) == 0
-
-
 def _quadrant_points(nrm: np.ndarray, mean: np.ndarray, gnrm: np.ndarray, gmean: np.ndarray,
                      dseg: np.ndarray, dense: np.ndarray,
                      rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -110,18 +105,19 @@ def _quadrant_points(nrm: np.ndarray, mean: np.ndarray, gnrm: np.ndarray, gmean:
     `gnrm`'s from `gmean` (t, 3), both in the mean shading normal's tangent plane) and each
     cell's sample nearest both means, lowest id on a tie: (point rows (p,) grouped by texel,
     each row's cell (r,) as a position in the point rows)."""
-    m = mean[dseg[rows]]
-    # a tangent frame of each mean normal (any one: the quadrants only need to split the plane)
-    axis = np.where((np.abs(m[:, 0]) < 0.6)[:, None], [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    t1 = np.cross(m, axis)
+    # a tangent frame of each texel's mean normal (any one: the quadrants only need to split
+    # the plane), per texel, read by its rows
+    axis = np.where((np.abs(mean[:, 0]) < 0.6)[:, None], [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(mean, axis)
     t1 /= np.linalg.norm(t1, axis=1)[:, None]
-    t2 = np.cross(m, t1)
-    du = np.einsum("ij,ij->i", nrm[rows], t1)
-    dv = np.einsum("ij,ij->i", nrm[rows], t2)
-    gd = gnrm[rows] - gmean[dseg[rows]]
-    gu = np.einsum("ij,ij->i", gd, t1)
-    gv = np.einsum("ij,ij->i", gd, t2)
-    key = dseg[rows] * 16 + (du >= 0) + 2 * (dv >= 0) + 4 * ((gu >= 0) + 2 * (gv >= 0))
+    t2 = np.cross(mean, t1)
+    seg = dseg[rows]
+    du = np.einsum("ij,ij->i", nrm[rows], t1[seg])
+    dv = np.einsum("ij,ij->i", nrm[rows], t2[seg])
+    gd = gnrm[rows] - gmean[seg]
+    gu = np.einsum("ij,ij->i", gd, t1[seg])
+    gv = np.einsum("ij,ij->i", gd, t2[seg])
+    key = seg * 16 + (du >= 0) + 2 * (dv >= 0) + 4 * ((gu >= 0) + 2 * (gv >= 0))
     order = np.lexsort((dense[rows], du * du + dv * dv + gu * gu + gv * gv, key))
     head = np.r_[True, key[order][1:] != key[order][:-1]]
     pts = rows[order[head]]
@@ -147,11 +143,11 @@ def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
     first = np.r_[0, np.cumsum(count)][:-1]
     m0 = mat[np.minimum(first, dense.size - 1)]
     # one material and no cut-out sample (no area: its texel is fitted, as in classify)
-    cand = tried & (count > 0) & _seg_all((mat == m0[dseg]) & (area > 0), dseg, n_t)
+    cand = tried & (count > 0) & seg_all((mat == m0[dseg]) & (area > 0), dseg, n_t)
     mean = segment_sum(nrm * area[:, None], dseg, n_t, 0)
     length = np.linalg.norm(mean, axis=1)
     # every sample within 90 degrees of the mean normal
-    cand &= (length > 0) & _seg_all(
+    cand &= (length > 0) & seg_all(
         np.einsum("ij,ij->i", nrm, mean[dseg]) > TOL.grazing_cos * length[dseg], dseg, n_t)
     mean = mean / np.where(length > 0, length, 1.0)[:, None]
     if not cand.any():
@@ -165,13 +161,10 @@ def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
     gmean /= np.maximum(np.linalg.norm(gmean, axis=1), 1e-300)[:, None]
     pts, cell = _quadrant_points(nrm, mean, gn, gmean, dseg, dense, rows)
     # each point's lobe variance: its cell's slope variance (`cell_variance`, areas as weights)
-    c = np.clip(np.einsum("ij,ij->i", nrm[rows], nrm[pts[cell]]), -1.0, 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope2 = np.where(c > 0, (1.0 - c * c) / (c * c), VAR_MAX)
-    slope2[c >= 1.0 - FLAT_COS] = 0.0
     a_r = area[rows]
-    var = np.bincount(cell, weights=a_r * np.minimum(0.5 * slope2, VAR_MAX),
-                      minlength=pts.size) / np.bincount(cell, weights=a_r, minlength=pts.size)
+    contrib = slope_variance(np.einsum("ij,ij->i", nrm[rows], nrm[pts[cell]]))
+    var = np.bincount(cell, weights=a_r * contrib, minlength=pts.size) / np.bincount(
+        cell, weights=a_r, minlength=pts.size)
 
     tot = np.bincount(dseg, weights=area, minlength=n_t)[loc]
     sub = dataclasses.replace(lp, dirs=lp.dirs | {
@@ -203,8 +196,7 @@ def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
         a, b = bounds[t], bounds[t + 1]
         F = (cols[a:b] * inv[t][None, None, :, None]).reshape(b - a, -1, 3)
         target = (fit_ref[t] * inv[t][None, :, None]).reshape(-1, 3)
-        for ch in range(3):  # colour channels
-            w[a:b, ch] = nnls(F[:, :, ch].T, target[:, ch])[0]
+        w[a:b] = nnls_channels(F.transpose(2, 0, 1), target.T, np.arange(target.shape[0]))
         w[a:b] = w[a:b].astype(np.float32)  # as stored and rendered
         snr[t] = heldout_snr(fit_ref[t], np.einsum("pabc,pc->abc", cols[a:b], w[a:b]),
                              fit_avis[t], tot[t])
@@ -260,34 +252,29 @@ def _one_pattern(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.
                  cand: np.ndarray, mean: np.ndarray) -> np.ndarray:
     """(t,) bool: each `cand` texel has one visibility pattern on the training directions up
     to a share of its light no larger than the amplitude eps_db allows (module docstring):
-    bounded from the geometry (every sample's whole mesh below its tangent plane: no
-    direction split), else by the samples' own rays. `mean` (t, 3) the texels' mean shading
+    bounded from the geometry (`classify.open_texels`: no direction split), else by the
+    samples' own rays (`classify.visibility_patterns`). `mean` (t, 3) the texels' mean shading
     normals, whose cosines weigh the split directions."""
     src, dirs = lp.src, lp.dirs
     n_t = len(texels)
     rows = np.flatnonzero(cand[dseg])
-    ok = np.zeros(n_t, bool)
     if rows.size == 0:
-        return ok
-    pos = src.geo["sample_pos"][dense[rows]]
-    gn = src.geo["sample_gnrm"][dense[rows]]
-    bound = unoccluded_samples(pos, gn, src.caster.points,
-                               eps=TOL.ray_offset * src.caster.bbox_diag)
-    open_t = _seg_all(bound, dseg[rows], n_t) & cand
+        return np.zeros(n_t, bool)
+    open_t = open_texels(lp, dense, dseg, rows, n_t) & cand
     cast = rows[~open_t[dseg[rows]]]
-    ok |= open_t
     if cast.size == 0:
-        return ok
+        return open_t
+    lit_all, _ = visibility_patterns(lp, texels, dense, dseg, cast)  # light, then view
     smp, tex = dense[cast], texels[dseg[cast]]
     sn, gnc = src.geo["sample_nrm"][smp], src.geo["sample_gnrm"][smp]
     split = np.zeros(n_t)
     total = np.zeros(n_t)
     cast_t = np.unique(dseg[cast])
-    for key, cosine in (("dirs_i", "shading"), ("dirs_o", "geometric")):  # light, view
+    n_i = len(dirs["dirs_i"])
+    for key, lit in (("dirs_i", lit_all[:, :n_i]), ("dirs_o", lit_all[:, n_i:])):
         w = world_dirs(lp.frames, tex, dirs[key])
         above = (np.einsum("pk,pdk->pd", sn, w) > TOL.grazing_cos) & \
             (np.einsum("pk,pdk->pd", gnc, w) > TOL.grazing_cos)
-        lit = visibility_cos(src, smp, w, cosine) > 0
         # per texel and direction: some sample above its horizons occluded, another not
         n_occ = segment_sum((above & ~lit).astype(np.float64), dseg[cast], n_t, 0)
         n_lit = segment_sum(lit.astype(np.float64), dseg[cast], n_t, 0)
@@ -296,7 +283,7 @@ def _one_pattern(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.
         split[cast_t] += np.sum(cos_t * ((n_occ > 0) & (n_lit > 0))[cast_t], axis=1)
         total[cast_t] += cos_t.sum(axis=1)
     share = np.divide(split, total, out=np.ones(n_t), where=total > 0)
-    return ok | (cand & ~open_t & (share <= 10.0 ** (-src.settings.eps_db / 20.0)))
+    return open_t | (cand & ~open_t & (share <= 10.0 ** (-src.settings.eps_db / 20.0)))
 
 
 __all__ = ["BYTES_PER_LOBE_ENTRY", "LobeTexels", "lobe_texels", "lobes_bounded"]

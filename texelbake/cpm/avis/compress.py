@@ -147,7 +147,9 @@ def compress_chunks(src: LevelChunks, frames: np.ndarray, keep_fraction: float, 
             haar, scale = compress_haar(c.stored, keep_fraction), None
         else:
             haar, scale = _select(c, tau)
-        return haar, scale, (None if sums is None else sums.of_chunk(c.bounded, c.unocc, c.stored, decompress_haar(haar)))
+        part = None if sums is None else sums.of_chunk(c.bounded, c.unocc, c.stored,
+                                                        decompress_haar(haar))
+        return haar, scale, part
 
     for haar, scale, part in in_order(pass2, src.n_chunks):  # pass 2, reduced in chunk order
         parts.append(haar)

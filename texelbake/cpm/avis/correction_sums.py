@@ -114,8 +114,7 @@ class CorrectionSums:
         if part.target_b is not None and part.total_b is not None:
             self.has_bounded = True
             self.target_b += part.target_b
-            for k, t in enumerate(part.total_b):  # a loop over the grid
-                self.total_b[k] += t
+            self.total_b += np.stack(part.total_b)
         if part.target_d is not None and part.have_d is not None:
             self.has_direct = True
             self.target_d += part.target_d
@@ -153,8 +152,7 @@ class CorrectionSums:
 
         for part in in_order(totals, len(bounds) - 1):  # reduced in chunk order
             if part is not None:
-                for j in range(C_REFINE + 1):  # a loop over the sub-grid
-                    tot[j] += part[j]
+                tot += part
         # the secant between the ends of the interval that holds the crossing
         j = np.clip(np.sum(tot > self.target_b[None], axis=0) - 1, 0, C_REFINE - 1)
         t0 = np.take_along_axis(tot, j[None], axis=0)[0]
