@@ -62,11 +62,20 @@ def run_avis_tile(ctx: StageContext, shard: int) -> str:
     return ctx.store.write_arrays(key, out)
 
 
-def avis_rays(ctx: StageContext) -> int:
-    """Rays the a_vis tiles cast (closed-form texels cast none)."""
+def avis_tile_meta(ctx: StageContext) -> list[dict[str, np.ndarray]]:
+    """Every tile's a_vis artifact without its maps (the per-texel arrays of all its levels and
+    its ray count), one read per tile: what `avis_level_chunks` and `avis_rays` need of every
+    tile, read once for all levels."""
     per_row = ctx.settings.atlas_resolution // ctx.settings.shard_texels
-    return int(sum(int(ctx.store.read_arrays(_avis_key(ctx, t)).get("rays", np.zeros(1)).sum())
-                   for t in range(per_row * per_row)))
+    return [ctx.store.read_arrays(_avis_key(ctx, t), lambda name: not name.endswith("ray_maps"))
+            for t in range(per_row * per_row)]  # a loop over tiles
+
+
+def avis_rays(ctx: StageContext, meta: list[dict[str, np.ndarray]] | None = None) -> int:
+    """Rays the a_vis tiles cast (closed-form texels cast none). meta : `avis_tile_meta`, if
+    already read."""
+    meta = avis_tile_meta(ctx) if meta is None else meta
+    return int(sum(int(d.get("rays", np.zeros(1)).sum()) for d in meta))
 
 
 def run_avis_top(ctx: StageContext, shard: int = 0) -> str:
@@ -104,11 +113,13 @@ def avis_levels(ctx: StageContext) -> list[avis_mod.AvisLevel]:
     return levels
 
 
-def avis_level_chunks(ctx: StageContext, lvl: int) -> LevelChunks:
+def avis_level_chunks(ctx: StageContext, lvl: int,
+                      meta: list[dict[str, np.ndarray]] | None = None) -> LevelChunks:
     """One level's a_vis for the export's compression (`cpm.avis.compress`), its ray maps read
     a tile at a time (at most `CHUNK_ROWS` ray texels per chunk) instead of stacked: the
     per-texel arrays of every tile, each tile's maps only when its chunk is read (memory
-    bounded whatever the atlas size). Levels coarser than a tile are one artifact, read whole."""
+    bounded whatever the atlas size). Levels coarser than a tile are one artifact, read whole.
+    meta : `avis_tile_meta`, if already read (the export reads it once for every level)."""
     s = ctx.settings
     prefix = f"L{lvl:02d}_"
     if lvl >= ctx.tile_levels:
@@ -117,9 +128,8 @@ def avis_level_chunks(ctx: StageContext, lvl: int) -> LevelChunks:
     per_row = s.atlas_resolution // s.shard_texels
     keys = [_avis_key(ctx, t) for t in range(per_row * per_row)]
     maps_name = f"{prefix}ray_maps"
-    metas = [_avis_level_from(ctx.store.read_arrays(
-        k, lambda name: name.startswith(prefix) and name != maps_name), prefix, maps=False)
-        for k in keys]  # a loop over tiles: their per-texel arrays
+    meta = avis_tile_meta(ctx) if meta is None else meta
+    metas = [_avis_level_from(d, prefix, maps=False) for d in meta]  # a loop over tiles
     level, ids = avis_mod.tile_layout(metas, per_row)
     pieces = [(t, a, min(a + CHUNK_ROWS, len(ids[t])))  # (tile, rows a..b of its maps)
               for t in range(len(ids)) for a in range(0, len(ids[t]), CHUNK_ROWS)]

@@ -21,7 +21,7 @@ from texelbake.geometry.build import geometry_chunk, lod_meshes, lod_report
 from texelbake.geometry.lodnormals import lod_corner_normals
 from texelbake.io.atomic import atomic_json
 from texelbake.io.chunks import chunk_ranges, sample_rows
-from texelbake.stages.avis import avis_level_chunks, avis_rays
+from texelbake.stages.avis import avis_level_chunks, avis_rays, avis_tile_meta
 from texelbake.stages.btf import export_btf
 from texelbake.stages.context import StageContext
 from texelbake.stages.cpm import cpm_levels
@@ -88,9 +88,10 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
     asset = ctx.asset()
     cpm_lv = cpm_levels(ctx)
     levels, level_reports = [], []
+    avis_meta = avis_tile_meta(ctx)
     for lvl in range(ctx.n_levels):
         arrays, rep = assemble_level(geo, s.atlas_resolution, s.avis_keep_fraction, lvl, cpm_lv[lvl],
-                                   avis_level_chunks(ctx, lvl), s.avis_selection)
+                                     avis_level_chunks(ctx, lvl, avis_meta), s.avis_selection)
         levels.append(arrays)
         level_reports.append(rep)
     dirs = direction_sets(s)
@@ -131,7 +132,7 @@ def export_to(ctx: StageContext, out_dir: Path, *, plan=None, source: str = "cop
         "settings": s.model_dump(),
         "levels": level_reports,
         "samples": int(len(geo["sample_area"])),
-        "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx)},
+        "rays": {"cpm": int(sum(r["rays"] for r in level_reports)), "avis": avis_rays(ctx, avis_meta)},
         "surface_area": float(geo["sample_area"].sum()),
         "lods": lods,
         # where the CPM maps apply, and what the atlas LOD1 asks for would cost (the

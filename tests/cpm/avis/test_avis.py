@@ -714,3 +714,37 @@ def test_visible_fraction_nearest_fill_brute_force():
         if col.size:
             k = col[np.argmin(np.abs(col - i) + 1e-9 * (col > i))]  # ties: lower index
             assert f[idx] == a[r, fc, k, j]
+
+
+def _nearest(defined: np.ndarray, i: int) -> int | None:
+    """Index of the defined entry nearest i (ties: the lower), None when there is none."""
+    at = np.flatnonzero(defined)
+    return int(at[np.argmin(np.abs(at - i) + 1e-9 * (at > i))]) if at.size else None
+
+
+def test_visible_fraction_fill_faces_brute_force():
+    """Faces defined everywhere, nowhere, and in part, with columns that hold no defined entry
+    (filled along their row from the filled columns): every entry against a loop over the
+    rule (nearest defined entry of the column, else of the row after the column fill, else 0)."""
+    rng = np.random.default_rng(7)
+    for res in (2, 4, 16):
+        u = (rng.random((4, 6, res, res)) > rng.random((4, 6, 1, 1))) * rng.random((4, 6, res, res))
+        u[:, 0] = rng.random((4, res, res)) + 0.1  # defined everywhere
+        u[:, 1] = 0.0  # defined nowhere
+        u[:, 2, :, : res // 2] = 0.0  # columns without a defined entry
+        a = rng.random(u.shape) * u * 1.5  # F above 1 is clipped
+        f = visible_fraction(a, u)
+        for r, fc in np.ndindex(4, 6):  # reference: a loop over faces and entries
+            ok = u[r, fc] > 0
+            g = np.clip(np.divide(a[r, fc], u[r, fc], out=np.zeros((res, res)), where=ok), 0, 1)
+            col = g.copy()
+            ok_col = ok.copy()
+            for i, j in np.ndindex(res, res):
+                if not ok[i, j] and (k := _nearest(ok[:, j], i)) is not None:
+                    col[i, j], ok_col[i, j] = g[k, j], True
+            want = col.copy()
+            for i, j in np.ndindex(res, res):
+                if not ok_col[i, j]:
+                    k = _nearest(ok_col[i, :], j)
+                    want[i, j] = 0.0 if k is None else col[i, k]
+            np.testing.assert_array_equal(f[r, fc], want)
