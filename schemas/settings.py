@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -164,11 +164,11 @@ class BakeSettings(BaseModel):
         "each must lie inside a shard's tile: shard_texels >= 2^(classed_levels - 1) or the "
         "atlas side.", ge=1, le=13)
     point_lobe: Literal["narrow", "widened"] = _field(
-        "narrow", "fit",
+        "widened", "fit",
         "'widened' gives a fitted characteristic point the normal spread of the surface it "
         "stands for where validation pairs favour it (its GGX or Phong lobe widened by its "
-        "cell's slope variance; fit_method 'batched' only), 'narrow' keeps the sample's own "
-        "lobe as the seed.")
+        "cell's slope variance; fit_method 'batched' only, and 'narrow' when unset under "
+        "'per_texel'), 'narrow' keeps the sample's own lobe as the seed.")
     lobe_class: Literal["off", "validated"] = _field(
         "off", "fit",
         "'validated' stores a finest texel of one material and one visibility pattern "
@@ -258,6 +258,16 @@ class BakeSettings(BaseModel):
         16, "optional stages", "Eye rays per pixel of a capture image.", ge=1, le=4096)
     srf_shard_cameras: int = _field(
         24, "optional stages", "Number of capture cameras per srf shard.", ge=1, le=4096)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _seed_lobe_with_seed_loop(cls, data: Any) -> Any:
+        """point_lobe left unset takes 'narrow' under fit_method 'per_texel' (the seed's loop
+        has no widened lobes); set explicitly, the pair is checked below."""
+        if isinstance(data, dict) and "point_lobe" not in data \
+                and data.get("fit_method") == "per_texel":
+            return {**data, "point_lobe": "narrow"}
+        return data
 
     @model_validator(mode="after")
     def _check(self) -> BakeSettings:

@@ -200,9 +200,10 @@ def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):
     src = small_scene.fit_inputs()
     texels = tile_texels(16, 8, 1, 0)
     cands = level_candidates(src, 0, texels, None)
-    # identical_columns "keep": the per-texel loop is the seed's fit, column for column
+    # identical_columns "keep" and narrow lobes: the per-texel loop is the seed's fit, column
+    # for column
     src = dataclasses.replace(src, settings=src.settings.model_copy(
-        update={"small_texels": "fit", "identical_columns": "keep"}))
+        update={"small_texels": "fit", "identical_columns": "keep", "point_lobe": "narrow"}))
     ref = fit_level_per_texel(src, 0, texels, cands)
     got = fit_level_batched(src, 0, texels, cands)
     np.testing.assert_array_equal(got["valid"], ref["valid"])

@@ -191,10 +191,10 @@ def test_normals_past_90_degrees_are_not_tried(monkeypatch):
 
 def test_flat_texels_stay_exact_and_the_setting_off_fits_curved_ones():
     """A flat texel is exact before any lobe is tried; with lobe_class "off" the curved strip
-    is fitted and the level carries no lobe variance (the narrow lobes' arrays)."""
+    is fitted and, with the seed's narrow lobes, the level carries no lobe variance."""
     flat = _strip(0.0)
     assert np.all(_by_need(flat)["skip"] == EXACT_SKIP)
-    off = _by_need(_strip(0.1, lobes="off"))
+    off = _by_need(_strip(0.1, lobes="off", point_lobe="narrow"))
     assert not np.any(off["skip"] == LOBE_SKIP) and "point_var" not in off
 
 
@@ -251,7 +251,7 @@ def test_lobes_need_the_batched_classed_fit():
 def test_the_report_counts_the_lobe_class():
     """The level's report entry counts the lobe texels with their mean points and held-out
     SNR, and the cost model's fitted share leaves them out (no fit); a level without lobe
-    variances (lobe_class off) has no such entry."""
+    texels (lobe_class off) has no such entry."""
     from texelbake.cpm.assemble import _classes as report_classes
     from texelbake.cpm.assemble import fitted_shares
 

@@ -236,12 +236,14 @@ def test_the_cell_table_is_priced_at_level_0():
     btf_cell x r_entry each (by hand from the uniform sizes); "point" and btf off add nothing."""
     c = costmodel.Coefficients()
     point = BakeSettings(atlas_resolution=32, btf=True)
-    off = BakeSettings(atlas_resolution=32, texel_classes="points")  # a BTF bake classes none
+    off = BakeSettings(atlas_resolution=32, texel_classes="points",  # a BTF bake classes none
+                       point_lobe=point.point_lobe)
     cell = BakeSettings(atlas_resolution=32, btf=True, btf_table="cell", btf_cell_draws=6)
     m, _, mult = costmodel._uniform_sizes(32, point.samples_per_texel, point.c_max)[0]
     d = point.n_light_dirs * point.n_view_dirs
     brdf = 1.0 + (c.brdf_ggx - 1.0) * 0.5
     extra = mult * 7 * c.btf_cell * brdf * c.r_entry * float((m * d).sum())
+    extra *= c.widened if cell.point_lobe == "widened" else 1.0  # the fit's factor (default)
     e_point, e_cell = (costmodel.estimate(s, 2) for s in (point, cell))
     assert costmodel.estimate(off, 2).cpm_seconds == e_point.cpm_seconds
     assert e_cell.cpm_seconds - e_point.cpm_seconds == pytest.approx(extra, rel=1e-9)
@@ -252,7 +254,7 @@ def test_widened_lobes_price_the_fit_at_its_measured_ratio():
     """point_lobe "widened" multiplies every level's fit seconds by `widened` and nothing
     else (by hand against the narrow estimate)."""
     c = costmodel.Coefficients()
-    narrow = BakeSettings(atlas_resolution=32)
+    narrow = BakeSettings(atlas_resolution=32, point_lobe="narrow")
     wide = BakeSettings(atlas_resolution=32, point_lobe="widened")
     e_n, e_w = (costmodel.estimate(s, 2) for s in (narrow, wide))
     for a, b in zip(e_n.per_level, e_w.per_level, strict=True):

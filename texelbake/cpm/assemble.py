@@ -103,8 +103,8 @@ def _skips(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
 def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     """The level's texels by class (`texelbake.cpm.level_by_need`): "exact" (one point, no
     fit), "grouped" (a point per group of one facet, material and visibility pattern, no fit),
-    "lobe" (a few widened lobes, no fit: BakeSettings.lobe_class; where the level carries lobe
-    variances) and "points" (the seed's fit), each with its texels, its mean stored points and
+    "lobe" (a few widened lobes, no fit: BakeSettings.lobe_class; where the level holds
+    such texels) and "points" (the seed's fit), each with its texels, its mean stored points and
     its held-out SNR. Empty when the bake classed no texel (texel_classes="points", or a level
     coarser than classed_levels)."""
     if "classed" not in data:
@@ -114,7 +114,7 @@ def _classes(data: Mapping[str, np.ndarray], valid: np.ndarray) -> dict:
     ho = data["snr_ho"][valid]
     c = data["c"][valid]
     names = (("exact", exact), ("grouped", grouped)) + \
-        ((("lobe", lobe),) if "point_var" in data else ()) + \
+        ((("lobe", lobe),) if lobe.any() else ()) + \
         (("points", ~exact & ~grouped & ~lobe),)
     return {name: {"texels": int(np.sum(sel)),
                    "points_mean": float(c[sel].mean()) if sel.any() else 0.0,

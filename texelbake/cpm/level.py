@@ -36,8 +36,10 @@ _TAG_LOBE_I, _TAG_LOBE_O = 0x77, 0x88
 
 #: light and view directions of the validation pairs (VALIDATION x VALIDATION), on which
 #: point_lobe="widened" chooses each texel's lobes (`texelbake.cpm.lobe`): independent of the
-#: training grid and of the held-out pairs, which stay the measure
-VALIDATION = 8
+#: training grid and of the held-out pairs, which stay the measure; 8 x 8 chose the widened
+#: lobes on the bolt's shadowing bumps where the held-out pairs did not (docs/decisions.md,
+#: "A characteristic point carries the normal spread…")
+VALIDATION = 16
 #: light and view directions of the pairs on which BakeSettings.lobe_class keeps a texel's
 #: lobes (`texelbake.cpm.lobe_class`): 8 x 8 let texels through whose held-out SNR was near
 #: 0 dB (docs/decisions.md, "A curved texel of one material is a few lobes")

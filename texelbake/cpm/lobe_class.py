@@ -18,7 +18,7 @@ docs/decisions.md, "A curved texel of one material is a few lobes"). So the texe
   cell's slope variance about it (`texelbake.cpm.lobe.cell_variance`'s rule, areas as
   weights);
 - weights by NNLS per channel against the texel's truth on the fit pairs, about
-  `level.VALIDATION` x `level.VALIDATION` pairs of the training grid;
+  `FIT_PAIRS` x `FIT_PAIRS` pairs of the training grid;
 - kept where, with those weights, it reproduces the truth to at least BakeSettings.eps_db
   (the SNR the seed's fit stops at on its own grid) on the fit pairs and then on the
   validation pairs (`level.LOBE_VALIDATION` x `level.LOBE_VALIDATION`, their own seeds:
@@ -60,13 +60,14 @@ from texelbake.cpm.dense import (
     to_texel,
     validation_sums,
 )
-from texelbake.cpm.level import VALIDATION, segment_sum, world_dirs
+from texelbake.cpm.level import segment_sum, world_dirs
 from texelbake.cpm.level_batched import chunk_bounds
 from texelbake.cpm.lobe import nnls_channels, slope_variance
 from texelbake.tol import TOL
 
-#: the fit pairs, on which the points' weights are solved: about `level.VALIDATION` light and
-#: view directions of the training grid, every (n // VALIDATION)-th (8 x 8 of 64 x 64)
+#: the fit pairs, on which the points' weights are solved: about FIT_PAIRS light and view
+#: directions of the training grid, every (n // FIT_PAIRS)-th (8 x 8 of 64 x 64)
+FIT_PAIRS = 8
 FIT_KEYS = ("fit_i", "fit_o")
 #: the validation pairs, on which a texel's lobes are kept or not (`level.LOBE_VALIDATION`)
 LOBE_KEYS = ("lobe_i", "lobe_o")
@@ -168,7 +169,7 @@ def lobe_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
 
     tot = np.bincount(dseg, weights=area, minlength=n_t)[loc]
     sub = dataclasses.replace(lp, dirs=lp.dirs | {
-        k: lp.dirs[d][::max(len(lp.dirs[d]) // VALIDATION, 1)]
+        k: lp.dirs[d][::max(len(lp.dirs[d]) // FIT_PAIRS, 1)]
         for k, d in zip(FIT_KEYS, ("dirs_i", "dirs_o"), strict=True)})
     pseg = pos[dseg[pts]]
     rseg = pos[dseg[rows]]
