@@ -343,16 +343,19 @@ def _fill_along(f: np.ndarray, ok: np.ndarray, axis: int) -> tuple[np.ndarray, n
     index). Vectorized: forward and backward running maxima of the defined indices, in int16
     (a cube face's side is far below 2^14), a quarter of int64's memory traffic."""
     n = f.shape[axis]
-    it = np.int16 if n < (1 << 14) else np.int64
+    it = np.dtype(np.int16 if n < (1 << 14) else np.int64)
     shape = [1] * f.ndim
     shape[axis] = n
     pos = np.arange(n, dtype=it).reshape(shape)
-    prev = np.maximum.accumulate(np.where(ok, pos, it(-1)), axis=axis)
-    back = np.flip(np.where(ok, it(n - 1) - pos, it(-1)), axis=axis)
-    nxt = it(n - 1) - np.flip(np.maximum.accumulate(back, axis=axis), axis=axis)
+    # 0-d arrays of that type: they keep the arithmetic in it (a Python int is weak too, but
+    # spelled so the type checker sees one dtype)
+    none, last, far = (np.array(v, it) for v in (-1, n - 1, n + 1))
+    prev = np.maximum.accumulate(np.where(ok, pos, none), axis=axis)
+    back = np.flip(np.where(ok, last - pos, none), axis=axis)
+    nxt = last - np.flip(np.maximum.accumulate(back, axis=axis), axis=axis)
     # nxt: index of the next defined entry, n when none
-    d_prev = np.where(prev >= 0, pos - prev, it(n + 1))
-    d_next = np.where(nxt < n, nxt - pos, it(n + 1))
+    d_prev = np.where(prev >= 0, pos - prev, far)
+    d_next = np.where(nxt < n, nxt - pos, far)
     src = np.where(d_prev <= d_next, prev, nxt)
     found = np.minimum(d_prev, d_next) <= n
     filled = np.take_along_axis(f, np.clip(src, 0, n - 1).astype(np.intp), axis=axis)
@@ -381,7 +384,7 @@ def visible_fraction(maps: np.ndarray, unoccluded: np.ndarray) -> np.ndarray:
     faces = f.reshape(-1, *f.shape[-2:])
     ok = defined.reshape(faces.shape)
     n_ok = ok.sum(axis=(1, 2))
-    part = np.flatnonzero((n_ok > 0) & (n_ok < ok.shape[1] * ok.shape[2]))
+    part = np.flatnonzero((n_ok > 0) & (n_ok < f.shape[-2] * f.shape[-1]))
     if part.size:
         g, ok_g = _fill_along(faces[part], ok[part], axis=-2)  # along columns (iv)
         rows = np.flatnonzero(~ok_g.all(axis=(1, 2)))  # faces with a column without values
