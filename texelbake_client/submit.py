@@ -123,6 +123,21 @@ def iter_events(
             time.sleep(retry)
 
 
+def settled_status(client: httpx.Client, job_id: str, deadline: float, *,
+                   lag: float = 10.0, interval: float = 0.05) -> dict[str, Any]:
+    """The job's status once it is terminal, read after its event stream ended. A status
+    read may lag the stream: an API process answers it from a version cached for
+    `status_cache_seconds` (farm.config), so right after the terminal event it can still say
+    "running". A non-terminal read is repeated every `interval` seconds for up to `lag`
+    seconds (and not past `deadline`); the last read is returned whatever it says."""
+    end = min(deadline, time.monotonic() + lag)
+    while True:  # a loop over status reads, a few at most
+        job = check_response(client.get(f"{API}/jobs/{job_id}"), "job status").json()
+        if job["state"] in TERMINAL or time.monotonic() >= end:
+            return job
+        time.sleep(interval)
+
+
 def check_response(r: httpx.Response, what: str) -> httpx.Response:
     if r.status_code >= 400:
         try:
@@ -202,7 +217,7 @@ def submit(
                     raise StageError(f"job {job_id} did not finish within {timeout} s")
         finally:
             bar.close()
-        job = check_response(c.get(f"{API}/jobs/{job_id}"), "job status").json()
+        job = settled_status(c, job_id, deadline)
         if job["state"] != "succeeded":
             raise StageError(f"job {job_id} ended {job['state']}: {job.get('error')}")
         r = check_response(c.get(f"{API}/jobs/{job_id}/result"), "download result")
