@@ -23,7 +23,7 @@ def _server(stale: int, final: str = "succeeded") -> tuple[httpx.MockTransport, 
     """A transport answering upload, create, events (one terminal job event), status
     ("running" for the first `stale` reads after the stream ended, then `final`) and
     result (a zip of one baked root layer); `seen` counts the status reads."""
-    seen = {"status": 0, "ended": False}
+    seen = {"status": 0}
     zbuf = io.BytesIO()
     with zipfile.ZipFile(zbuf, "w") as z:
         z.writestr("asset_baked.usda", "#usda 1.0\n")
@@ -35,7 +35,6 @@ def _server(stale: int, final: str = "succeeded") -> tuple[httpx.MockTransport, 
         if path.endswith("/jobs") and req.method == "POST":
             return httpx.Response(201, json={"id": "j1", "state": "queued"})
         if path.endswith("/events"):
-            seen["ended"] = True
             ev = {"seq": 1, "kind": "job", "data": {"state": final}}
             return httpx.Response(200, text=f"data: {json.dumps(ev)}\n\n",
                                   headers={"content-type": "text/event-stream"})

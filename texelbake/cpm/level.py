@@ -123,6 +123,13 @@ def tile_texels(n: int, s: int, tile: int, level: int) -> np.ndarray:
     return (rows[:, None] * n_l + cols[None, :]).ravel().astype(np.int64)
 
 
+def carries_lobe_var(settings: BakeSettings) -> bool:
+    """Whether a level's points carry their lobe's slope variance (`point_var`): widened
+    points (point_lobe "widened") or lobe texels (lobe_class), and then every texel's, a
+    stored or narrow point's at 0, so that every tile's level has the same arrays."""
+    return settings.point_lobe == "widened" or settings.lobe_class != "off"
+
+
 def direction_sets(settings: BakeSettings) -> dict[str, np.ndarray]:
     """The texel-frame direction sets of the bake: the N_i x N_o training grid and a held-out
     product grid of independent directions (16 x 16 by default: n_heldout pairs); with

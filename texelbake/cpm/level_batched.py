@@ -44,6 +44,7 @@ from texelbake.cpm.gram.fit import GramTexel, correlation_from_sums, fit_many
 from texelbake.cpm.level import (
     FitInputs,
     PointSet,
+    carries_lobe_var,
     segment_sum,
     texel_seed,
     visibility_cos,
@@ -129,8 +130,7 @@ def fit_level_batched(
     n_cand = np.bincount(seg_c, minlength=n_t)
     cb_c = np.r_[0, np.cumsum(n_cand)]
 
-    res = _Results(n_t, d if s.btf else 0, s.identical_columns == "merge",
-                   s.point_lobe == "widened" or s.lobe_class != "off")
+    res = _Results(n_t, d if s.btf else 0, s.identical_columns == "merge", carries_lobe_var(s))
     cap = max(lp.budget // (BYTES_PER_R_ENTRY * d * 3), 1)
     # a texel wider than n_batch holds one block of n_batch columns at a time (`Columns`)
     for a, b in chunk_bounds(np.minimum(n_cand, s.n_batch), cap):  # loop over chunks

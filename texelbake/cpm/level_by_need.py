@@ -23,7 +23,14 @@ from texelbake.cpm.classify import (
     classify_texels,
 )
 from texelbake.cpm.dense import LevelPass, dense_of, heldout_from_samples, heldout_snr
-from texelbake.cpm.level import LEVEL_TOTALS, POINT_KEYS, FitInputs, PointSet, sort_by_texel
+from texelbake.cpm.level import (
+    LEVEL_TOTALS,
+    POINT_KEYS,
+    FitInputs,
+    PointSet,
+    carries_lobe_var,
+    sort_by_texel,
+)
 from texelbake.cpm.level_batched import chunk_bounds
 from texelbake.cpm.lobe_class import LobeTexels, lobes_bounded
 
@@ -118,27 +125,15 @@ def _stored_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: n
     """The fit's arrays for the exact and grouped texels (`cls`): their points, and their
     held-out SNR (`_heldout_of`)."""
     ex = np.flatnonzero(cls.exact | cls.grouped)
-    n_e = ex.size
     counts = np.diff(cls.offsets)[ex]
     w32 = cls.weights.astype(np.float32)
     # exact on the grid by construction: +inf where no held-out pair measures it
     snr = _heldout_of(lp, texels, dense, dseg, ex, cls.points, counts, w32, None, np.inf)
-    s = lp.src.settings
-    # the batched fit's optional arrays, so that every tile's level has the same keys
-    extra = {"merged": np.zeros(n_e, np.int32)} \
-        if s.identical_columns == "merge" and s.fit_method == "batched" else {}
-    if s.point_lobe == "widened" or s.lobe_class != "off":  # each keeps its sample's lobe
-        extra["point_var"] = np.zeros(len(cls.points), np.float32)
-    return extra | {
-        "texel": texels[ex], "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
-        "point_sample": cls.points.astype(np.int64), "point_weight": w32,
-        "k": counts.astype(np.int32), "c": counts.astype(np.int32),
-        # exact on the grid by construction (a point per group of one facet, one pattern and
-        # f_r proportional on the check pairs); the held-out pairs are the measurement
-        "snr_in": np.full(n_e, np.inf, np.float32), "snr_ho": snr.astype(np.float32),
-        "mode": np.zeros(n_e, np.int8), "valid": np.ones(n_e, bool),
-        "skip": np.where(cls.grouped[ex], GROUPED_SKIP, EXACT_SKIP).astype(np.int8),
-    }
+    # exact on the grid by construction (a point per group of one facet, one pattern and f_r
+    # proportional on the check pairs); the held-out pairs are the measurement
+    return _point_arrays(lp, texels[ex], counts, cls.points, w32, None,
+                         np.full(ex.size, np.inf), snr,
+                         np.where(cls.grouped[ex], GROUPED_SKIP, EXACT_SKIP))
 
 
 def _lobe_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
@@ -146,21 +141,35 @@ def _lobe_arrays(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.
     """The fit's arrays for the lobe texels (`lob`, `texelbake.cpm.lobe_class`): their points
     with their lobe variances, and their held-out SNR (`_heldout_of`)."""
     ex = np.flatnonzero(lob.lobe)
-    n_e = ex.size
     counts = np.diff(lob.offsets)[ex]
     w32 = lob.weights.astype(np.float32)
     var32 = lob.var.astype(np.float32)
     snr = _heldout_of(lp, texels, dense, dseg, ex, lob.points, counts, w32, var32, np.nan)
+    # weights fitted on the fit pairs, kept on the validation pairs: the SNR that decided
+    return _point_arrays(lp, texels[ex], counts, lob.points, w32, var32, lob.snr_val[ex], snr,
+                         np.full(ex.size, LOBE_SKIP))
+
+
+def _point_arrays(lp: LevelPass, texels: np.ndarray, counts: np.ndarray, points: np.ndarray,
+                  w32: np.ndarray, var32: np.ndarray | None, snr_in: np.ndarray,
+                  snr_ho: np.ndarray, skip: np.ndarray) -> dict[str, np.ndarray]:
+    """The fit's arrays for texels stored without a fit: `texels` (e,) with `counts` (e,)
+    points each, `points` (p,) their samples, stored weights (p, 3) and lobe variances (p,)
+    (None: each keeps its sample's lobe, 0), and per texel the SNRs and `skip` code; with the
+    batched fit's optional arrays, so that every tile's level has the same keys."""
+    s = lp.src.settings
+    n_e = len(texels)
     extra = {"merged": np.zeros(n_e, np.int32)} \
-        if lp.src.settings.identical_columns == "merge" else {}
+        if s.identical_columns == "merge" and s.fit_method == "batched" else {}
+    if var32 is not None or carries_lobe_var(s):
+        extra["point_var"] = np.zeros(len(points), np.float32) if var32 is None else var32
     return extra | {
-        "texel": texels[ex], "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
-        "point_sample": lob.points.astype(np.int64), "point_weight": w32,
-        "point_var": var32, "k": counts.astype(np.int32), "c": counts.astype(np.int32),
-        # weights fitted on the fit pairs, kept on the validation pairs: the SNR that decided
-        "snr_in": lob.snr_val[ex].astype(np.float32), "snr_ho": snr.astype(np.float32),
+        "texel": texels, "offsets": np.r_[0, np.cumsum(counts)].astype(np.int64),
+        "point_sample": points.astype(np.int64), "point_weight": w32,
+        "k": counts.astype(np.int32), "c": counts.astype(np.int32),
+        "snr_in": snr_in.astype(np.float32), "snr_ho": snr_ho.astype(np.float32),
         "mode": np.zeros(n_e, np.int8), "valid": np.ones(n_e, bool),
-        "skip": np.full(n_e, LOBE_SKIP, np.int8),
+        "skip": skip.astype(np.int8),
     }
 
 
