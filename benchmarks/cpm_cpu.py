@@ -79,6 +79,13 @@ BREAKDOWN = (
     ("texelbake.cpm.gram.fit", "search_c"),
     ("texelbake.cpm.gram.fit", "_assemble"),
     ("texelbake.cpm.level_batched", "heldout_from_samples"),
+    ("texelbake.cpm.level_batched", "_choose_lobes"),
+    ("texelbake.cpm.level_batched", "widen_fit"),
+    ("texelbake.cpm.level_batched", "wider_wins"),
+    ("texelbake.cpm.level_batched", "validation_truth"),
+    ("texelbake.cpm.level_by_need", "classes_bounded"),
+    ("texelbake.cpm.level_by_need", "_stored_arrays"),
+    ("texelbake.cpm.level_by_need", "cluster_candidates"),
 )
 
 

@@ -119,9 +119,10 @@ def brdf_product(
             if v_sel is not None:  # per-sample inputs (n_s,), textured ones included
                 inp = widen_inputs("preview", inp, v_sel)
             prm = preview_surface_params(inp, n_s)
-            for b0 in range(0, n_s, GRID_BLOCK):  # loop over sample blocks (cache-sized)
-                blk = sel[b0:b0 + GRID_BLOCK]
-                pb = {k: (v if v.shape[0] == 1 else v[b0:b0 + GRID_BLOCK]) for k, v in prm.items()}
+            nb = grid_block(A, B)
+            for b0 in range(0, n_s, nb):  # loop over sample blocks (cache-sized)
+                blk = sel[b0:b0 + nb]
+                pb = {k: (v if v.shape[0] == 1 else v[b0:b0 + nb]) for k, v in prm.items()}
                 fg = preview_grid(pb, wi_loc[:, blk].transpose(1, 0, 2),
                                   wo_loc[:, blk].transpose(1, 0, 2), eps)  # (3, nb, A, B)
                 _store_finite(out, blk, fg, live, material)
@@ -135,11 +136,12 @@ def brdf_product(
             ex = as_scalar(prm["exponent"], n_s, "exponent")
             if np.any(ex < 0):
                 raise SettingsError(f"material {material.path!r}: phong exponent must be >= 0")
-            for b0 in range(0, n_s, GRID_BLOCK):  # loop over sample blocks (cache-sized)
-                blk = sel[b0:b0 + GRID_BLOCK]
+            nb = grid_block(A, B)
+            for b0 in range(0, n_s, nb):  # loop over sample blocks (cache-sized)
+                blk = sel[b0:b0 + nb]
 
-                def rows(v: np.ndarray, b0: int = b0) -> np.ndarray:
-                    return v if v.shape[0] == 1 else v[b0:b0 + GRID_BLOCK]
+                def rows(v: np.ndarray, b0: int = b0, nb: int = nb) -> np.ndarray:
+                    return v if v.shape[0] == 1 else v[b0:b0 + nb]
                 fg = phong_grid(rows(kd), rows(ks), rows(ex), wi_loc[:, blk].transpose(1, 0, 2),
                                 wo_loc[:, blk].transpose(1, 0, 2), eps)
                 _store_finite(out, blk, fg, live, material)
@@ -167,8 +169,16 @@ def brdf_product(
     return out
 
 
-#: samples per block of `preview_grid` (64 x 64 pairs: temporaries of ~0.5 MB each)
-GRID_BLOCK = 16
+#: sample x direction-pair entries per block of `preview_grid` / `phong_grid` (16 samples of
+#: 64 x 64 pairs: temporaries of ~0.5 MB each; a block of the classes' 4 x 4 check pairs holds
+#: 4,096 samples, where blocks of 16 spent most of their time in numpy's per-call overhead).
+#: Every entry depends on its own sample only: the block changes no bit
+GRID_ENTRIES = 16 * 64 * 64
+
+
+def grid_block(A: int, B: int) -> int:
+    """Samples per block of a grid kernel on A x B pairs (`GRID_ENTRIES`)."""
+    return max(GRID_ENTRIES // max(A * B, 1), 1)
 
 
 def preview_grid(p: dict[str, np.ndarray], wi: np.ndarray, wo: np.ndarray, eps: float

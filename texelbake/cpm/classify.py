@@ -50,6 +50,10 @@ from texelbake.tol import TOL
 CHECK_LIGHTS = 4
 CHECK_VIEWS = 4
 
+#: every this many light and view directions the visibility patterns are probed on first
+#: (`_patterns_bounded`): a texel of too many groups there casts none of the others
+PROBE_STRIDE = 4
+
 #: why a texel is not exact, as stored in `TexelClasses.reason`
 #: ("facets": more facets, each one material, than c_max; "visibility": more groups of a facet
 #: and a visibility pattern than c_max; "exact" also for a grouped texel)
@@ -162,12 +166,9 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
         cast = rows[~open_t[dseg[rows]]]
         group[rows] = fac[rows]  # an open texel: one pattern, a group per facet
         if cast.size:
-            vis, rays = visibility_patterns(lp, texels, dense, dseg, cast)
-            # (facet, pattern bits) as one key per row: big-endian facet bytes sort first
-            key = np.concatenate([fac[cast].astype(">i8").view(np.uint8).reshape(-1, 8),
-                                  np.packbits(vis, axis=1)], axis=1)
-            _, inv = np.unique(key, axis=0, return_inverse=True)
-            group[cast] = int(fac.max()) + 1 + inv.ravel()
+            vis, cast, rays = _patterns_bounded(lp, texels, dense, dseg, cast, fac, c_max,
+                                                reason)
+            group[cast] = int(fac.max()) + 1 + _pattern_groups(fac[cast], vis)
     live = (reason == 0)[dseg]
     g_ids, g_of = np.unique(group[live], return_inverse=True)
     g_texel = np.zeros(g_ids.size, np.int64)
@@ -306,18 +307,61 @@ def _proportional(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np
 
 
 def visibility_patterns(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
-                        dseg: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, int]:
+                        dseg: np.ndarray, rows: np.ndarray, light: np.ndarray | None = None,
+                        view: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """(vis (r, n_i + n_o) bool: sample rows[j] visible on each training direction, light
-    then view; rays cast), by the samples' own rays."""
+    then view; rays cast), by the samples' own rays; on the light and view directions of
+    the indices `light`, `view` only when given."""
     src, dirs = lp.src, lp.dirs
     smp = dense[rows]
     tex = texels[dseg[rows]]
+    d_i = dirs["dirs_i"] if light is None else dirs["dirs_i"][light]
+    d_o = dirs["dirs_o"] if view is None else dirs["dirs_o"][view]
     rays0 = src.caster.rays_cast
     vis = np.concatenate([
-        visibility_cos(src, smp, world_dirs(lp.frames, tex, dirs["dirs_i"])) > 0,
-        visibility_cos(src, smp, world_dirs(lp.frames, tex, dirs["dirs_o"]), "geometric") > 0,
+        visibility_cos(src, smp, world_dirs(lp.frames, tex, d_i)) > 0,
+        visibility_cos(src, smp, world_dirs(lp.frames, tex, d_o), "geometric") > 0,
     ], axis=1)
     return vis, src.caster.rays_cast - rays0
+
+
+def _pattern_groups(fac: np.ndarray, vis: np.ndarray) -> np.ndarray:
+    """(r,) int64 the group 0.. of each row's (facet, visibility pattern) pair."""
+    # one key per row: big-endian facet bytes sort first, then the pattern's bits
+    key = np.concatenate([fac.astype(">i8").view(np.uint8).reshape(-1, 8),
+                          np.packbits(vis, axis=1)], axis=1)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    return inv.ravel()
+
+
+def _patterns_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                      cast: np.ndarray, fac: np.ndarray, c_max: int, reason: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The visibility patterns of the rows `cast`, a probe first: every PROBE_STRIDE-th light
+    and view direction. A texel whose rows form more than c_max (facet, pattern) groups on the
+    probe has more on every direction (a pattern's part distinguishes no fewer rows than the
+    whole): its reason is set to "visibility" in `reason` and it casts no more rays. Returns
+    (vis (r', n_i + n_o) in the directions' order, the rows left r', rays cast)."""
+    n_i, n_o = len(lp.dirs["dirs_i"]), len(lp.dirs["dirs_o"])
+    li, vi = np.arange(0, n_i, PROBE_STRIDE), np.arange(0, n_o, PROBE_STRIDE)
+    probe, rays = visibility_patterns(lp, texels, dense, dseg, cast, li, vi)
+    g = _pattern_groups(fac[cast], probe)
+    # groups per texel: the distinct (texel, group) pairs
+    n_t = len(reason)
+    pairs = np.unique(dseg[cast] * (int(g.max()) + 1) + g)
+    over = np.bincount(pairs // (int(g.max()) + 1), minlength=n_t) > c_max
+    reason[(reason == REASONS["exact"]) & over] = REASONS["visibility"]
+    keep = ~over[dseg[cast]]
+    cast, probe = cast[keep], probe[keep]
+    rest_i = np.setdiff1d(np.arange(n_i), li)
+    rest_o = np.setdiff1d(np.arange(n_o), vi)
+    vis = np.zeros((cast.size, n_i + n_o), bool)
+    vis[:, li], vis[:, n_i + vi] = probe[:, :li.size], probe[:, li.size:]
+    if cast.size and (rest_i.size or rest_o.size):
+        more, r2 = visibility_patterns(lp, texels, dense, dseg, cast, rest_i, rest_o)
+        vis[:, rest_i], vis[:, n_i + rest_o] = more[:, :rest_i.size], more[:, rest_i.size:]
+        rays += r2
+    return vis, cast, rays
 
 
 __all__ = ["CHECK_LIGHTS", "CHECK_VIEWS", "REASONS", "TexelClasses", "classify_texels",
