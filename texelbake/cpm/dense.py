@@ -173,12 +173,13 @@ def _sample_keys(seed: int, level: int, samples: np.ndarray) -> np.ndarray:
 
 
 def truth_samples(src: FitInputs, level: int, texels: np.ndarray, dense: np.ndarray,
-                  dseg: np.ndarray) -> np.ndarray:
+                  dseg: np.ndarray, cap: int | None = None) -> np.ndarray:
     """(n,) bool: which of the dense samples `dense` (of texels[dseg]) the held-out truth sums.
     A sample is kept when its seeded key (seed, level, sample id) falls below
-    p = heldout_samples / its texel's samples in the whole atlas, so every tile and chunk that
-    holds it agrees (p >= 1, or heldout_samples 0: every sample)."""
-    k = int(src.settings.heldout_samples)
+    p = heldout_samples (or `cap`) / its texel's samples in the whole atlas, so every tile and
+    chunk that holds it agrees (p >= 1, or a cap of 0: every sample). A smaller cap keeps a
+    subset of a larger one's samples."""
+    k = int(src.settings.heldout_samples if cap is None else cap)
     if k == 0 or dense.size == 0:
         return np.ones(dense.size, bool)
     s = src.settings
@@ -300,15 +301,30 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
                      avis_h, area_held, val_ref, val_avis, val_area)
 
 
+#: most dense samples per texel the validation pairs' truth sums (a seeded subset beyond,
+#: scaled by area as the held-out truth's): it decides between two sets of points, widened or
+#: not, which the held-out truth then measures on its own samples
+VALIDATION_SAMPLES = 1024
+
+
+def _validation_cap(heldout_samples: int) -> int:
+    """The validation truth's cap: VALIDATION_SAMPLES, or the held-out truth's when that is
+    smaller (0: every sample)."""
+    return VALIDATION_SAMPLES if heldout_samples == 0 else min(VALIDATION_SAMPLES,
+                                                               heldout_samples)
+
+
 def validation_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
                     keys: tuple[str, str] = VAL_KEYS
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The truth on the validation pairs (`level.VALIDATION`), or on the pairs of the
     direction sets `keys` of lp.dirs, of every one of `texels` (their dense samples `dense`,
     positions `dseg` ascending), summed over the truth's samples (`truth_samples`): (ref (t,
-    v_i, v_o, 3), a_vis (t, v_o), their area (t,)), which `to_texel` scales to each texel."""
+    v_i, v_o, 3), a_vis (t, v_o), their area (t,)), which `to_texel` scales to each texel;
+    at most about VALIDATION_SAMPLES samples per texel."""
     none = np.zeros(0, np.int64)
-    keep = truth_samples(lp.src, lp.level, texels, dense, dseg)
+    keep = truth_samples(lp.src, lp.level, texels, dense, dseg,
+                         _validation_cap(lp.src.settings.heldout_samples))
     ref, _, avis = held_pass(lp, texels, dense[keep], dseg[keep], none, none, np.zeros((0, 3)),
                              want_ref=True, keys=keys)
     return ref, avis, segment_sum(lp.src.geo["sample_area"][dense[keep]], dseg[keep],
@@ -436,4 +452,5 @@ def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: floa
 __all__ = ["BYTES_PER_HELD_ENTRY", "DenseSums", "LevelPass", "avis_sums", "dense_of",
            "dense_sums", "held_pass", "heldout_from_samples", "heldout_from_sums",
            "held_scale", "points_on", "to_texel", "truth_samples", "validation_sums",
-           "HELD_KEYS", "VAL_KEYS", "heldout_snr", "inv_avis", "measured_texels", "positions"]
+           "HELD_KEYS", "VAL_KEYS", "VALIDATION_SAMPLES", "heldout_snr", "inv_avis",
+           "measured_texels", "positions"]
