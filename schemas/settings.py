@@ -176,6 +176,14 @@ class BakeSettings(BaseModel):
         "GGX or Phong lobe widened by its cell's slope variance (LEADR), where they reach "
         "eps_db on validation pairs without the fit (fit_method 'batched' and texel_classes "
         "'by_need' only); 'off' gives such texels to the fit.")
+    level0_candidates: Literal["dense", "clustered"] = _field(
+        "clustered", "fit",
+        "'clustered' offers a fitted finest texel one candidate per group of its dense samples "
+        "of one material and normals within a few degrees (and, where the texel may be "
+        "shadowed, one part of its extent; the group's area its weight, its normal spread its "
+        "point's lobe widening; fit_method 'batched', texel_classes 'by_need' and lobe "
+        "variances only, and 'dense' when unset without them), 'dense' every dense sample as "
+        "the seed.")
     identical_columns: Literal["keep", "merge"] = _field(
         "merge", "fit",
         "'merge' fits candidates with identical columns as one weighted column, 'keep' fits "
@@ -263,10 +271,18 @@ class BakeSettings(BaseModel):
     @classmethod
     def _seed_lobe_with_seed_loop(cls, data: Any) -> Any:
         """point_lobe left unset takes 'narrow' under fit_method 'per_texel' (the seed's loop
-        has no widened lobes); set explicitly, the pair is checked below."""
-        if isinstance(data, dict) and "point_lobe" not in data \
-                and data.get("fit_method") == "per_texel":
-            return {**data, "point_lobe": "narrow"}
+        has no widened lobes), and level0_candidates left unset 'dense' where its groups'
+        lobes cannot be carried (narrow lobes, no lobe class) or no texel is classed (the
+        seed's path); set explicitly, the pairs are checked below."""
+        if not isinstance(data, dict):
+            return data
+        if "point_lobe" not in data and data.get("fit_method") == "per_texel":
+            data = {**data, "point_lobe": "narrow"}
+        if "level0_candidates" not in data and (
+                data.get("point_lobe") == "narrow" and data.get("lobe_class", "off") == "off"
+                or data.get("texel_classes") == "points"
+                or data.get("fit_method") == "per_texel"):
+            data = {**data, "level0_candidates": "dense"}
         return data
 
     @model_validator(mode="after")
@@ -293,6 +309,13 @@ class BakeSettings(BaseModel):
         if self.point_lobe == "widened" and self.fit_method != "batched":
             raise ValueError("point_lobe 'widened' needs fit_method 'batched' (the seed's "
                              "per-texel loop keeps the narrow lobe)")
+        if self.level0_candidates == "clustered" and (
+                self.fit_method != "batched" or self.texel_classes != "by_need"
+                or (self.point_lobe == "narrow" and self.lobe_class == "off")):
+            raise ValueError("level0_candidates 'clustered' needs fit_method 'batched', "
+                             "texel_classes 'by_need' and lobes that carry their spread "
+                             "(point_lobe 'widened' or a lobe_class): a group's point is "
+                             "widened by its normals' spread")
         if self.lobe_class != "off" and (self.fit_method != "batched"
                                          or self.texel_classes != "by_need"):
             raise ValueError("lobe_class 'validated' needs fit_method 'batched' and "

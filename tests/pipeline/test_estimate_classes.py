@@ -24,8 +24,9 @@ def test_the_sampled_share_matches_the_whole_level(tmp_path):
     ctx = stages.StageContext.create(tmp_path / "w", scene, s)
     stages.run_ingest(ctx, 0)
     stages.run_geometry(ctx, 0)
-    got = sampled_fitted_shares(ctx)
-    assert got is not None and len(got) == s.classed_levels
+    sampled = sampled_fitted_shares(ctx)
+    assert sampled is not None and len(sampled.shares) == s.classed_levels
+    got = sampled.shares
     src, geo = ctx.fit_inputs(), ctx.geometry()
     whole_sampled = False
     for level, phi in enumerate(got):

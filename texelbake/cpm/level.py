@@ -130,6 +130,14 @@ def carries_lobe_var(settings: BakeSettings) -> bool:
     return settings.point_lobe == "widened" or settings.lobe_class != "off"
 
 
+def clusters_level0(settings: BakeSettings) -> bool:
+    """Whether a fitted finest texel's candidates are its samples' groups
+    (`texelbake.cpm.cluster`): level0_candidates "clustered", on the batched fit of classed
+    texels whose points carry their lobe's spread (the settings' check refuses the rest)."""
+    return (settings.level0_candidates == "clustered" and settings.fit_method == "batched"
+            and settings.texel_classes == "by_need" and carries_lobe_var(settings))
+
+
 def direction_sets(settings: BakeSettings) -> dict[str, np.ndarray]:
     """The texel-frame direction sets of the bake: the N_i x N_o training grid and a held-out
     product grid of independent directions (16 x 16 by default: n_heldout pairs); with

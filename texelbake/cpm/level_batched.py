@@ -19,6 +19,7 @@ the full SVD) still builds a texel's whole R.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -45,6 +46,7 @@ from texelbake.cpm.level import (
     FitInputs,
     PointSet,
     carries_lobe_var,
+    clusters_level0,
     segment_sum,
     texel_seed,
     visibility_cos,
@@ -260,6 +262,10 @@ def _fit_chunk(lp: LevelPass, chunk: Chunk, res: _Results, counts: FitCounts | N
     without candidates or dense samples)."""
     s = lp.src.settings
     params = FitParams.of(s)
+    if lp.level == 0 and clusters_level0(s):
+        # a group of samples is no sample: keeping every group is not exact between the
+        # grid's directions as keeping every sample is, so the fit chooses among them
+        params = dataclasses.replace(params, small="fit")
     texels, cset, cseg, n_cand = chunk.texels, chunk.cset, chunk.cseg, chunk.n_cand
     n_i = len(lp.dirs["dirs_i"])
     n_t = len(texels)

@@ -22,6 +22,7 @@ from texelbake.cpm.classify import (
     TexelClasses,
     classify_texels,
 )
+from texelbake.cpm.cluster import cluster_candidates
 from texelbake.cpm.dense import LevelPass, dense_of, heldout_from_samples, heldout_snr
 from texelbake.cpm.level import (
     LEVEL_TOTALS,
@@ -29,6 +30,7 @@ from texelbake.cpm.level import (
     FitInputs,
     PointSet,
     carries_lobe_var,
+    clusters_level0,
     sort_by_texel,
 )
 from texelbake.cpm.level_batched import chunk_bounds
@@ -65,7 +67,13 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
         parts.append(_lobe_arrays(lp, texels, dense, dseg, lob))
         stored = stored | lob.lobe
     rest = texels[~stored]
-    if rest.size:
+    if rest.size and level == 0 and clusters_level0(src.settings):
+        on = np.flatnonzero(~stored)  # `texelbake.cpm.cluster`
+        at = np.full(len(texels), -1, np.int64)
+        at[on] = np.arange(on.size)
+        rows = np.flatnonzero(at[dseg] >= 0)
+        parts.append(fit(rest, cluster_candidates(lp, rest, dense[rows], at[dseg[rows]])))
+    elif rest.size:
         keep = np.isin(candidates.texel, rest)
         parts.append(fit(rest, candidates.take(np.flatnonzero(keep))))
     out = merge_levels(parts)

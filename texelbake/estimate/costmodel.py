@@ -178,6 +178,7 @@ def estimate(
     speed: MachineSpeed | None = None,
     fitted: Sequence[float] | None = None,
     avis_ray_samples: float | None = None,
+    level0_ratio: float | None = None,
 ) -> Estimate:
     """Predict a bake's seconds.
 
@@ -197,6 +198,9 @@ def estimate(
         (texel_classes "by_need"); None or a level beyond it: every texel (an upper bound)
     avis_ray_samples : the samples that cast level 0's a_vis rays (avis_level0 "by_need": a
         few strata per texel, `texelbake.pipeline.estimate`); None: every dense sample
+    level0_ratio : a fitted finest texel's candidates over its dense samples (its groups,
+        level0_candidates "clustered", measured on a sample by `texelbake.pipeline.estimate`);
+        None: 1, every sample a candidate
     """
     coef = coef or Coefficients()
     if speed is not None:
@@ -229,6 +233,8 @@ def estimate(
         phi = 1.0
         if level < classed and fitted is not None and level < len(fitted):
             phi = float(np.clip(fitted[level], 0.0, 1.0))
+        if level == 0 and level0_ratio is not None:
+            m = m * float(np.clip(level0_ratio, 0.0, 1.0))  # the fit's candidates, not samples
         sec = held + phi * mult * float(brdf * coef.r_entry * (m * d).sum()
                                         + coef.gram * (m * m * d).sum()
                                         + coef.eigh * (m ** 3).sum()

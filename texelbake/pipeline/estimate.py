@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -65,14 +66,28 @@ def runnable_tasks(exclude_pid: int | None = None, proc: Path = Path("/proc")
     return out
 
 
-def sampled_fitted_shares(ctx: stages.StageContext) -> list[float] | None:
+@dataclass(frozen=True)
+class SampledFit:
+    """What the fit gets, measured on a seeded sample of texels (`sampled_fitted_shares`):
+    shares per classed level, the fraction of its texels the classes leave to the fit;
+    level0_ratio the candidates of a fitted finest texel over its dense samples (its groups,
+    level0_candidates "clustered"), None where they are its samples or no sampled texel is
+    fitted."""
+
+    shares: list[float]
+    level0_ratio: float | None
+
+
+def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
     """Per classed level (texel_classes "by_need", the finest `classed_levels`), the fraction
     of a seeded sample of `CLASS_SAMPLE` occupied texels (all when fewer) that the classes
     (`texelbake.cpm.classify`) leave to the fit: what the cost model's fit terms are priced
-    on. None when the bake classes no texel. Costs the sample's classing rays (a few seconds at
-    a 128^2 atlas) and the ray caster's build."""
+    on; and at level 0 the fitted texels' candidates over their samples (`SampledFit`). None
+    when the bake classes no texel. Costs the sample's classing rays (a few seconds at a 128^2
+    atlas) and the ray caster's build."""
+    from texelbake.cpm.cluster import cluster_candidates
     from texelbake.cpm.dense import LevelPass, dense_of
-    from texelbake.cpm.level import texel_ids
+    from texelbake.cpm.level import clusters_level0, texel_ids
     from texelbake.cpm.level_by_need import classes_bounded
 
     s = ctx.settings
@@ -82,6 +97,7 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> list[float] | None:
     geo, n = src.geo, s.atlas_resolution
     rng = np.random.default_rng(s.seed)
     out = []
+    ratio = None
     for level in range(min(s.classed_levels, ctx.n_levels)):  # a loop over a few levels
         occupied = np.unique(texel_ids(geo, n, level))
         if not occupied.size:
@@ -91,8 +107,15 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> list[float] | None:
         lp = LevelPass.of(src, level)
         dense, dseg = dense_of(lp, texels)
         cls = classes_bounded(lp, texels, dense, dseg)
-        out.append(float(np.mean(~(cls.exact | cls.grouped))))
-    return out
+        fit = ~(cls.exact | cls.grouped)
+        out.append(float(np.mean(fit)))
+        rows = np.flatnonzero(fit[dseg])
+        if level == 0 and clusters_level0(s) and rows.size:
+            on = np.flatnonzero(fit)
+            cands = cluster_candidates(lp, texels[on], dense[rows],
+                                       np.searchsorted(on, dseg[rows]))
+            ratio = len(cands.sample) / rows.size
+    return SampledFit(out, ratio)
 
 
 def avis_ray_samples(settings, counts: np.ndarray) -> float | None:
@@ -119,12 +142,14 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
     cores = os.cpu_count() or 1
     speed = machinespeed.this_machine()  # before the load reading: ~1 s of this process's CPU
     other = _other_runnable()
-    fitted = sampled_fitted_shares(ctx)
+    sampled = sampled_fitted_shares(ctx)
+    fitted = None if sampled is None else sampled.shares
     counts = costmodel.sample_counts(geo, s.atlas_resolution)
     e = costmodel.estimate(s, jobs, counts,
                            ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
                            load=other, cores=cores, speed=speed, fitted=fitted,
-                           avis_ray_samples=avis_ray_samples(s, counts))
+                           avis_ray_samples=avis_ray_samples(s, counts),
+                           level0_ratio=None if sampled is None else sampled.level0_ratio)
     w = max(int(jobs), 1)
     # made after the geometry stage: its measured seconds (`elapsed`, with ingest) replace the
     # model's geometry term (the bolt's xatlas packing took 42 s where the model says 1)

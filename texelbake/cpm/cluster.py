@@ -1,0 +1,113 @@
+"""A finest texel's dense samples merged into a few weighted candidates before its fit
+(BakeSettings.level0_candidates = "clustered"): the candidates follow the texel's detail, not
+its sample count.
+
+Seed 000 §3.3 offers every dense sample of a finest texel as a candidate column of R. Over a
+texel of a large atlas the samples of a curved surface differ only in their normals, by a few
+degrees, and their columns are nearly collinear: the fit's cost (R at m x d entries, the Gram
+at m^2 d) pays for 100-200 candidates where a few carry the texel. Here the samples are
+grouped by material and by their shading and geometric normals on a grid of step
+`CLUSTER_SLOPE` in the slopes (x/z, y/z) of the texel's frame; each group is one candidate:
+its sample whose shading normal is nearest the group's area-weighted mean (lowest id on a tie),
+with the group's area as its weight and the group's slope variance about it as its lobe's
+widening (`texelbake.cpm.lobe`: the group's sum of lobes is, to second order in the slopes,
+the point's lobe convolved with their distribution, as LEAN/LEADR filter a normal map; the
+first-order term cancels about the mean). The fit's target, the sum of every candidate's
+column, is then the sum of the groups' widened lobes: the error of merging is of higher order
+in the group's slope spread (at most `CLUSTER_SLOPE` / 2 per axis). A coarse level's
+candidates are its children's points the same way (BakeSettings.hierarchy = "children").
+
+What a group cannot carry stays apart: a sample whose normal is more than `STEEP_COS` from
+the texel's frame (a fold, a silhouette) is a candidate of its own, and each material its
+own groups. A texture varying within a group (an albedo map) is carried by the group's point
+only: the held-out pairs, summed over every dense sample, measure it. Visibility is not a
+key: the point's own rays stand for the group's, which the held-out pairs measure too.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from texelbake.cpm.classify import open_texels
+from texelbake.cpm.dense import LevelPass
+from texelbake.cpm.level import PointSet, segment_sum
+from texelbake.cpm.lobe import slope_variance
+
+#: step of the grid in the slopes (tan of the angle from the texel's frame normal, per axis)
+#: on which a texel's samples are grouped: 0.05 is 2.9 degrees at the frame normal
+CLUSTER_SLOPE = 0.05
+
+#: decimals of the cosine to a group's mean normal below which its samples tie for its point
+TIE_DIGITS = 12
+
+#: cells per side of the position grid on which a texel that may be shadowed is grouped too
+POSITION_CELLS = 4
+
+#: cosine to the texel's frame normal at or below which a sample is a candidate of its own
+#: (76 degrees: a slope of 4, where the grid's cells shrink to under a degree anyway)
+STEEP_COS = 0.25
+
+
+def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                       step: float = CLUSTER_SLOPE) -> PointSet:
+    """The candidates of `texels` (flat ids at lp.level) from their dense samples (`dense`
+    (n,) int64 grouped by texel, `dseg` (n,) their texel positions, ascending): one per group
+    of one material and shading and geometric normals in one cell of the slope grid (module
+    docstring), grouped by texel, by sample id within a texel. Weights are the groups' areas
+    (3 channels), `var` their slope variances about their points."""
+    geo = lp.src.geo
+    if dense.size == 0:
+        return PointSet(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64),
+                        np.zeros(0))
+    fr = lp.frames[texels[dseg]]  # (n, 3, 3) rows t, b, n
+    nrm = geo["sample_nrm"][dense]
+    area = geo["sample_area"][dense]
+    keys = [dseg.astype(np.int64), np.asarray(geo["sample_mat"][dense], np.int64)]
+    steep = np.zeros(dense.size, bool)
+    for n in (nrm, geo["sample_gnrm"][dense]):  # shading, then geometric normal
+        loc = np.einsum("nij,nj->ni", fr, n)
+        steep |= loc[:, 2] <= STEEP_COS
+        z = np.maximum(loc[:, 2], STEEP_COS)
+        keys += [np.floor(loc[:, 0] / z / step).astype(np.int64),
+                 np.floor(loc[:, 1] / z / step).astype(np.int64)]
+    # a texel the geometry does not bound as open: its samples also grouped by position, on
+    # a POSITION_CELLS^2 grid of its frame over its extent, where visibility changes
+    n_t = int(dseg.max()) + 1
+    shut = ~open_texels(lp, dense, dseg, np.arange(dense.size), n_t)
+    if POSITION_CELLS > 1 and shut.any():
+        pos = geo["sample_pos"][dense]
+        a_t = segment_sum(area, dseg, n_t, 0)
+        cen = segment_sum(pos * area[:, None], dseg, n_t, 0) / np.maximum(a_t, 1e-300)[:, None]
+        cell = np.sqrt(np.maximum(a_t, 1e-300)) / POSITION_CELLS
+        uv = np.einsum("nij,nj->ni", fr[:, :2], pos - cen[dseg]) / cell[dseg][:, None]
+        q = np.floor(uv).astype(np.int64)
+        keys += [np.where(shut[dseg], q[:, 0], 0), np.where(shut[dseg], q[:, 1], 0)]
+    # a steep sample is its own group: its row number as one more key (-1 for the others)
+    keys.append(np.where(steep, np.arange(dense.size), -1))
+    _, grp = np.unique(np.stack(keys, axis=1), axis=0, return_inverse=True)
+    grp = grp.ravel()
+    n_g = int(grp.max()) + 1
+    tot = np.bincount(grp, weights=area, minlength=n_g)
+    mean = segment_sum(nrm[np.argsort(grp, kind="stable")]
+                       * area[np.argsort(grp, kind="stable")][:, None],
+                       np.sort(grp), n_g, 0)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
+    # each group's point: nearest its mean normal, lowest sample id on a tie (cosines equal to
+    # TIE_DIGITS decimals: two samples are equally near their bisector, up to rounding)
+    cos_mean_exact = np.einsum("ij,ij->i", nrm, mean[grp])
+    cos_mean = np.round(cos_mean_exact, TIE_DIGITS)
+    order = np.lexsort((dense, -cos_mean, grp))
+    first = order[np.r_[True, grp[order][1:] != grp[order][:-1]]]  # one row per group
+    rep = np.empty(n_g, np.int64)
+    rep[grp[first]] = first
+    # the spread about the group's mean normal: the point's offset from the mean is a shift
+    # of the lobe, not a spread, and is left out of the widening
+    var = np.bincount(grp, weights=area * slope_variance(cos_mean_exact), minlength=n_g)
+    var = np.divide(var, tot, out=np.zeros(n_g), where=tot > 0)
+    out = np.lexsort((dense[rep], dseg[rep]))
+    rep = rep[out]
+    return PointSet(dense[rep], np.repeat(tot[out][:, None], 3, axis=1),
+                    texels[dseg[rep]], var[out])
+
+
+__all__ = ["CLUSTER_SLOPE", "POSITION_CELLS", "STEEP_COS", "TIE_DIGITS", "cluster_candidates"]
