@@ -9,12 +9,14 @@ texel on a regular grid, the normals set per case."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from schemas.settings import BakeSettings
 from tests.cpm.test_classify import SETTINGS, _grid_samples, _inputs, _up, _walled
-from texelbake.cpm.classify import open_texels
+from texelbake.cpm.classify import open_texels, visibility_patterns
 from texelbake.cpm.cluster import (
     CLUSTER_SLOPE,
     POSITION_CELLS,
@@ -25,7 +27,7 @@ from texelbake.cpm.cluster import (
 from texelbake.cpm.dense import HELD_KEYS, LevelPass, dense_of, points_on
 from texelbake.cpm.level import FitInputs, level_candidates
 from texelbake.cpm.level_batched import fit_level_batched
-from texelbake.cpm.level_by_need import fit_level_by_need
+from texelbake.cpm.level_by_need import classes_bounded, fit_level_by_need
 from texelbake.cpm.lobe import slope_variance
 from texelbake.model import Material
 
@@ -110,6 +112,35 @@ def test_groups_equal_a_loop_over_the_rule(shadowed):
         assert h[:2] == w[:2]
         np.testing.assert_allclose(h[2:], w[2:], rtol=1e-12, atol=1e-15)
     np.testing.assert_array_equal(got.weight[:, 0], got.weight[:, 2])
+
+
+def test_a_shadowed_texel_is_grouped_by_its_visibility_patterns():
+    """A wall across texels 0 and 2 (`test_classify`'s): with c_max = 1 their two patterns
+    send them to the fit, and the classes' own rays group them: two candidates each, one per
+    side of the wall, each of the side's area (8 samples of 1/64), every sample of a group of
+    one pattern on every training direction (a second cast, brute force) where the position
+    grid alone would make 16 of 16 samples."""
+    pos = _grid_samples()
+    src = _inputs(pos, _up(len(pos)), mesh=_walled(100.0, -100.0, 100.0))
+    src = dataclasses.replace(src, settings=src.settings.model_copy(update={"c_max": 1}))
+    lp = LevelPass.of(src, 0)
+    dense, dseg = dense_of(lp, TEXELS)
+    cls = classes_bounded(lp, TEXELS, dense, dseg)
+    fitted = np.flatnonzero(~(cls.exact | cls.grouped))
+    assert fitted.tolist() == [0, 2] and np.all(cls.pattern[np.isin(dseg, fitted)] >= 0)
+    rows = np.flatnonzero(np.isin(dseg, fitted))
+    seg = np.searchsorted(fitted, dseg[rows])
+    got = cluster_candidates(lp, TEXELS[fitted], dense[rows], seg, cls.pattern[rows])
+    assert np.bincount(np.searchsorted(TEXELS, got.texel)).tolist() == [2, 0, 2]
+    np.testing.assert_allclose(got.weight, 0.125, rtol=1e-12)
+    vis, _ = visibility_patterns(lp, TEXELS, dense, dseg, rows)
+    for p in got.sample.tolist():  # loop over the four groups: their members' patterns
+        side = pos[p, 0] < 0.3
+        members = rows[(pos[dense[rows], 0] < 0.3) == side]
+        members = members[dseg[members] == dseg[np.flatnonzero(dense == p)[0]]]
+        assert (vis[np.searchsorted(rows, members)] == vis[np.searchsorted(rows, members)][0]
+                ).all()
+    assert len(cluster_candidates(lp, TEXELS[fitted], dense[rows], seg).sample) == 32
 
 
 def test_one_normal_is_one_candidate_of_the_texels_area():

@@ -41,7 +41,7 @@ import numpy as np
 from texelbake.cpm.avis.closed_form import unoccluded_samples
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.dense import LevelPass
-from texelbake.cpm.level import segment_sum, visibility_cos, world_dirs
+from texelbake.cpm.level import clusters_level0, segment_sum, visibility_cos, world_dirs
 from texelbake.tol import TOL
 
 #: light and view directions of the training grid on whose product the BRDF's
@@ -66,7 +66,10 @@ class TexelClasses:
     point per group of one facet, material and visibility pattern; offsets (t + 1,) int64,
     points (p,) int64 and weights (p, 3) float64 the stored points of the exact and grouped
     texels (CSR over the texels, none for the others); reason (t,) int8 (`REASONS`, "exact"
-    for both stored classes); rays (int) the visibility rays the test cast."""
+    for both stored classes); rays (int) the visibility rays the test cast; pattern (n,)
+    int64 per dense sample its (facet, visibility pattern) group on the directions it was
+    cast on (numbered per texel; -1 where no ray was cast), what a fitted texel's candidates
+    are grouped by (`texelbake.cpm.cluster`)."""
 
     exact: np.ndarray
     grouped: np.ndarray
@@ -75,6 +78,7 @@ class TexelClasses:
     weights: np.ndarray
     reason: np.ndarray
     rays: int
+    pattern: np.ndarray
 
     @property
     def point(self) -> np.ndarray:
@@ -121,7 +125,7 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     if dense.size == 0:
         return TexelClasses(np.zeros(n_t, bool), np.zeros(n_t, bool),
                             np.zeros(n_t + 1, np.int64), np.zeros(0, np.int64),
-                            np.zeros((0, 3)), reason, 0)
+                            np.zeros((0, 3)), reason, 0, np.zeros(0, np.int64))
     area = geo["sample_area"][dense]
     pos = geo["sample_pos"][dense]
     # a sample on a cut-out (brdf.opacity) carries no area: a texel cut in part or whole is
@@ -160,15 +164,19 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     # visibility patterns: bounded from the geometry (one), else the texel's own rays
     rays = 0
     group = np.zeros(dense.size, np.int64)  # a sample's pattern, numbered over the chunk
+    pattern = np.full(dense.size, -1, np.int64)
     rows = np.flatnonzero((reason == 0)[dseg])
     if rows.size:
         open_t = open_texels(lp, dense, dseg, rows, n_t)
         cast = rows[~open_t[dseg[rows]]]
         group[rows] = fac[rows]  # an open texel: one pattern, a group per facet
         if cast.size:
+            # a fitted finest texel's candidates are grouped by its full patterns
+            full = lp.level == 0 and clusters_level0(src.settings)
             vis, cast, rays = _patterns_bounded(lp, texels, dense, dseg, cast, fac, c_max,
-                                                reason)
+                                                reason, pattern, full)
             group[cast] = int(fac.max()) + 1 + _pattern_groups(fac[cast], vis)
+            pattern[cast] = group[cast]
     live = (reason == 0)[dseg]
     g_ids, g_of = np.unique(group[live], return_inverse=True)
     g_texel = np.zeros(g_ids.size, np.int64)
@@ -195,7 +203,8 @@ def classify_texels(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     pts = np.r_[point, g_pts[keep]][order]
     wts = np.concatenate([weight, g_w[keep]])[order]
     offsets = np.r_[0, np.cumsum(np.bincount(t_of, minlength=n_t))].astype(np.int64)
-    return TexelClasses(exact, grouped, offsets, pts, wts, reason, rays)
+    return TexelClasses(exact, grouped, offsets, pts, wts, reason, rays,
+                        _per_texel(pattern, dseg))
 
 
 def _facet_groups(nrm: np.ndarray, gnrm: np.ndarray, mat: np.ndarray, dseg: np.ndarray,
@@ -325,6 +334,20 @@ def visibility_patterns(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
     return vis, src.caster.rays_cast - rays0
 
 
+def _per_texel(ids: np.ndarray, dseg: np.ndarray) -> np.ndarray:
+    """`ids` (n,) (-1: none) renumbered 0.. within each texel in their order, so that they
+    do not depend on which texels share the chunk."""
+    out = np.full(ids.size, -1, np.int64)
+    on = ids >= 0
+    if not on.any():
+        return out
+    span = int(ids.max()) + 1
+    u, inv = np.unique(dseg[on] * span + ids[on], return_inverse=True)
+    tex = u // span
+    out[on] = (np.arange(u.size) - np.searchsorted(tex, tex))[inv.ravel()]
+    return out
+
+
 def _pattern_groups(fac: np.ndarray, vis: np.ndarray) -> np.ndarray:
     """(r,) int64 the group 0.. of each row's (facet, visibility pattern) pair."""
     # one key per row: big-endian facet bytes sort first, then the pattern's bits
@@ -335,13 +358,15 @@ def _pattern_groups(fac: np.ndarray, vis: np.ndarray) -> np.ndarray:
 
 
 def _patterns_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-                      cast: np.ndarray, fac: np.ndarray, c_max: int, reason: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, int]:
+                      cast: np.ndarray, fac: np.ndarray, c_max: int, reason: np.ndarray,
+                      pattern: np.ndarray, full: bool) -> tuple[np.ndarray, np.ndarray, int]:
     """The visibility patterns of the rows `cast`, a probe first: every PROBE_STRIDE-th light
     and view direction. A texel whose rows form more than c_max (facet, pattern) groups on the
     probe has more on every direction (a pattern's part distinguishes no fewer rows than the
-    whole): its reason is set to "visibility" in `reason` and it casts no more rays. Returns
-    (vis (r', n_i + n_o) in the directions' order, the rows left r', rays cast)."""
+    whole): its reason is set to "visibility" in `reason` and, unless `full` (its patterns
+    on every direction wanted: they group its candidates, `texelbake.cpm.cluster`), its rows'
+    probe groups are written to `pattern` and it casts no more rays. Returns (vis (r',
+    n_i + n_o) in the directions' order, the rows cast on every direction r', rays cast)."""
     n_i, n_o = len(lp.dirs["dirs_i"]), len(lp.dirs["dirs_o"])
     li, vi = np.arange(0, n_i, PROBE_STRIDE), np.arange(0, n_o, PROBE_STRIDE)
     probe, rays = visibility_patterns(lp, texels, dense, dseg, cast, li, vi)
@@ -351,8 +376,10 @@ def _patterns_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg
     pairs = np.unique(dseg[cast] * (int(g.max()) + 1) + g)
     over = np.bincount(pairs // (int(g.max()) + 1), minlength=n_t) > c_max
     reason[(reason == REASONS["exact"]) & over] = REASONS["visibility"]
-    keep = ~over[dseg[cast]]
-    cast, probe = cast[keep], probe[keep]
+    if not full:
+        keep = ~over[dseg[cast]]
+        pattern[cast[~keep]] = g[~keep]
+        cast, probe = cast[keep], probe[keep]
     rest_i = np.setdiff1d(np.arange(n_i), li)
     rest_o = np.setdiff1d(np.arange(n_o), vi)
     vis = np.zeros((cast.size, n_i + n_o), bool)

@@ -19,9 +19,15 @@ candidates are its children's points the same way (BakeSettings.hierarchy = "chi
 
 What a group cannot carry stays apart: a sample whose normal is more than `STEEP_COS` from
 the texel's frame (a fold, a silhouette) is a candidate of its own, and each material its
-own groups. A texture varying within a group (an albedo map) is carried by the group's point
-only: the held-out pairs, summed over every dense sample, measure it. Visibility is not a
-key: the point's own rays stand for the group's, which the held-out pairs measure too.
+own groups. Visibility: a texel the geometry bounds as open (`classify.open_texels`) needs no
+key; in another, the samples whose visibility patterns the classes found with their own rays
+on every training direction (`classify.TexelClasses.pattern`) are grouped by pattern too
+(one of 32 probe directions merged samples of different patterns and cost the full
+cylinder's level-0 p5 5 dB at 32²), and the others (a texel sent to the fit before any ray,
+for its facets or inputs) by their part of a
+`POSITION_CELLS` x `POSITION_CELLS` grid over the texel's extent, where shadows change. A
+texture varying within a group (an albedo map) is carried by the group's point only; the
+held-out pairs, summed over every dense sample, measure all of it.
 """
 
 from __future__ import annotations
@@ -40,7 +46,8 @@ CLUSTER_SLOPE = 0.05
 #: decimals of the cosine to a group's mean normal below which its samples tie for its point
 TIE_DIGITS = 12
 
-#: cells per side of the position grid on which a texel that may be shadowed is grouped too
+#: cells per side of the position grid on which a texel that may be shadowed, and whose
+#: samples cast no ray in the classes, is grouped too
 POSITION_CELLS = 4
 
 #: cosine to the texel's frame normal at or below which a sample is a candidate of its own
@@ -49,12 +56,15 @@ STEEP_COS = 0.25
 
 
 def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-                       step: float = CLUSTER_SLOPE) -> PointSet:
+                       pattern: np.ndarray | None = None, step: float = CLUSTER_SLOPE
+                       ) -> PointSet:
     """The candidates of `texels` (flat ids at lp.level) from their dense samples (`dense`
     (n,) int64 grouped by texel, `dseg` (n,) their texel positions, ascending): one per group
-    of one material and shading and geometric normals in one cell of the slope grid (module
-    docstring), grouped by texel, by sample id within a texel. Weights are the groups' areas
-    (3 channels), `var` their slope variances about their points."""
+    of one material and shading and geometric normals in one cell of the slope grid and,
+    where the texel may be shadowed, one visibility pattern (`pattern` (n,), the classes'
+    groups by the samples' own rays, -1 where none was cast) or else one part of its extent
+    (module docstring); grouped by texel, by sample id within a texel. Weights are the
+    groups' areas (3 channels), `var` their slope variances about their mean normals."""
     geo = lp.src.geo
     if dense.size == 0:
         return PointSet(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64),
@@ -70,10 +80,14 @@ def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dse
         z = np.maximum(loc[:, 2], STEEP_COS)
         keys += [np.floor(loc[:, 0] / z / step).astype(np.int64),
                  np.floor(loc[:, 1] / z / step).astype(np.int64)]
-    # a texel the geometry does not bound as open: its samples also grouped by position, on
-    # a POSITION_CELLS^2 grid of its frame over its extent, where visibility changes
+    # a texel the geometry does not bound as open: its samples also grouped by the
+    # visibility pattern the classes found with their rays, and where they cast none by
+    # position, on a POSITION_CELLS^2 grid of its frame over its extent
     n_t = int(dseg.max()) + 1
-    shut = ~open_texels(lp, dense, dseg, np.arange(dense.size), n_t)
+    cast = np.zeros(dense.size, bool) if pattern is None else pattern >= 0
+    if pattern is not None:
+        keys.append(pattern)
+    shut = ~open_texels(lp, dense, dseg, np.arange(dense.size), n_t)[dseg] & ~cast
     if POSITION_CELLS > 1 and shut.any():
         pos = geo["sample_pos"][dense]
         a_t = segment_sum(area, dseg, n_t, 0)
@@ -81,7 +95,7 @@ def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dse
         cell = np.sqrt(np.maximum(a_t, 1e-300)) / POSITION_CELLS
         uv = np.einsum("nij,nj->ni", fr[:, :2], pos - cen[dseg]) / cell[dseg][:, None]
         q = np.floor(uv).astype(np.int64)
-        keys += [np.where(shut[dseg], q[:, 0], 0), np.where(shut[dseg], q[:, 1], 0)]
+        keys += [np.where(shut, q[:, 0], 0), np.where(shut, q[:, 1], 0)]
     # a steep sample is its own group: its row number as one more key (-1 for the others)
     keys.append(np.where(steep, np.arange(dense.size), -1))
     _, grp = np.unique(np.stack(keys, axis=1), axis=0, return_inverse=True)

@@ -72,7 +72,8 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
         at = np.full(len(texels), -1, np.int64)
         at[on] = np.arange(on.size)
         rows = np.flatnonzero(at[dseg] >= 0)
-        parts.append(fit(rest, cluster_candidates(lp, rest, dense[rows], at[dseg[rows]])))
+        parts.append(fit(rest, cluster_candidates(lp, rest, dense[rows], at[dseg[rows]],
+                                                  cls.pattern[rows])))
     elif rest.size:
         keep = np.isin(candidates.texel, rest)
         parts.append(fit(rest, candidates.take(np.flatnonzero(keep))))
@@ -103,7 +104,8 @@ def classes_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     return TexelClasses(
         exact=cat("exact"), grouped=cat("grouped"),
         offsets=np.r_[0, np.cumsum(counts)].astype(np.int64), points=cat("points"),
-        weights=cat("weights"), reason=cat("reason"), rays=sum(c.rays for c in parts))
+        weights=cat("weights"), reason=cat("reason"), rays=sum(c.rays for c in parts),
+        pattern=cat("pattern"))
 
 
 def _heldout_of(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
