@@ -15,11 +15,15 @@ import numpy as np
 import pytest
 
 from schemas.settings import BakeSettings
-from tests.cpm.test_classify import SETTINGS, _grid_samples, _inputs, _up, _walled
+from tests.cpm.test_classify import SETTINGS, _grid_samples, _inputs, _ramp, _up, _walled
+from texelbake.brdf import evaluate
 from texelbake.cpm.classify import open_texels, visibility_patterns
 from texelbake.cpm.cluster import (
     CLUSTER_SLOPE,
     POSITION_CELLS,
+    RESPONSE_FLOOR,
+    RESPONSE_PAIRS,
+    RESPONSE_STEP,
     STEEP_COS,
     TIE_DIGITS,
     cluster_candidates,
@@ -72,6 +76,11 @@ def _brute_force(lp: LevelPass, dense: np.ndarray, dseg: np.ndarray) -> list[tup
             cell = np.sqrt(a.sum()) / POSITION_CELLS
             uv = fr[:2] @ (geo["sample_pos"][j] - cen) / cell
             key += [int(np.floor(uv[0])), int(np.floor(uv[1]))]
+        m = lp.src.materials[int(geo["sample_mat"][j])]
+        for wi, wo in RESPONSE_PAIRS:  # the sample's own response, per pair and channel
+            f = evaluate(m, wi[None], wo[None], geo["sample_uv"][j][None])[0]
+            key += [int(np.floor(np.log(max(v, RESPONSE_FLOOR)) / np.log1p(RESPONSE_STEP)))
+                    for v in f]
         key.append(r if steep else -1)
         groups.setdefault(tuple(key), []).append(r)
     out = []
@@ -90,14 +99,16 @@ def _brute_force(lp: LevelPass, dense: np.ndarray, dseg: np.ndarray) -> list[tup
 
 @pytest.mark.parametrize("shadowed", [False, True])
 def test_groups_equal_a_loop_over_the_rule(shadowed):
-    """Shading normals tilted up to 12 degrees, two materials (by column), on the open square or
-    beside a wall (then the texels by it are grouped by position too): the groups, their
-    points, areas and slope variances equal the rule applied sample by sample."""
+    """Shading normals tilted up to 12 degrees, two materials (by column, one with an albedo
+    texture rising along x), on the open square or beside a wall (then the texels by it are
+    grouped by position too): the groups, their points, areas and slope variances equal the
+    rule applied sample by sample."""
     pos = _grid_samples(8)
     mat = (pos[:, 0] * 4).astype(np.int64) % 2
     mesh = _walled(0.5, 0.0, 1.0) if shadowed else None
-    src = _inputs(pos, _tilted(pos, 12.0), materials=(Material("/m/a", "lambert", {}),
-                                                       Material("/m/b", "lambert", {})),
+    src = _inputs(pos, _tilted(pos, 12.0),
+                  materials=(Material("/m/a", "lambert", {}, {"diffuseColor": _ramp(3)}),
+                             Material("/m/b", "lambert", {})),
                   mat=mat, **({"mesh": mesh} if mesh else {}))
     src.geo["sample_gnrm"] = _up(len(pos))  # flat facets, smooth shading normals
     lp, dense, dseg, got = _clusters(src)
@@ -141,6 +152,23 @@ def test_a_shadowed_texel_is_grouped_by_its_visibility_patterns():
         assert (vis[np.searchsorted(rows, members)] == vis[np.searchsorted(rows, members)][0]
                 ).all()
     assert len(cluster_candidates(lp, TEXELS[fitted], dense[rows], seg).sample) == 32
+
+
+def test_a_texture_splits_the_groups_by_its_values():
+    """A flat texel of one Lambertian material whose albedo ramps along x: its samples fall
+    into several groups (a group per 2 % of albedo), whose points reproduce the sum over
+    every sample on the held-out pairs to better than the step (34 dB); the texel's area is
+    shared out whole; the same texel untextured is one group."""
+    pos = _grid_samples(8)
+    tex = Material("/m/tex", "lambert", {}, {"diffuseColor": _ramp(3)})
+    src = _inputs(pos, _up(len(pos)), materials=(tex,))
+    _, _, _, got = _clusters(src)
+    per = np.searchsorted(TEXELS, got.texel)
+    assert np.all(np.bincount(per) > 1)
+    np.testing.assert_allclose(np.bincount(per, weights=got.weight[:, 0]), 0.25, rtol=1e-12)
+    snr, _ = _grouped_snr(src, widen=True)
+    assert np.all(snr >= 20 * np.log10(1.0 / RESPONSE_STEP)), snr
+    assert len(_clusters(_inputs(pos, _up(len(pos))))[3].sample) == 4
 
 
 def test_one_normal_is_one_candidate_of_the_texels_area():
@@ -238,6 +266,28 @@ def test_a_fitted_texel_chooses_among_its_groups():
     var = dict(zip(got.sample.tolist(), got.var.tolist(), strict=True))
     own = np.array([var[p] for p in out["point_sample"].tolist()])
     assert np.all(out["point_var"] >= own.astype(np.float32) - 1e-7)
+
+
+def test_a_texel_of_single_sample_groups_is_fitted_as_the_seed():
+    """Normals up to 30 degrees apart, 16 samples a texel (more facets than c_max 8: the
+    classes send it to the fit): every sample is its own group, so the texel is fitted on
+    its samples exactly as under "dense" (the same arrays, bit for bit; a texel of at most
+    c_max samples would keep them all, as the seed's path does)."""
+    pos = _grid_samples()
+    src = _inputs(pos, _sphere(pos, 30.0), materials=(GLOSSY,))
+    src.geo["sample_gnrm"] = _up(len(pos))
+
+    def run(mode: str) -> dict:
+        s = BakeSettings.model_validate({**SETTINGS.model_dump(), "level0_candidates": mode})
+        sub = FitInputs(s, src.geo, src.caster, src.materials)
+        return fit_level_by_need(sub, 0, TEXELS, level_candidates(sub, 0, TEXELS, None),
+                                 lambda t, c: fit_level_batched(sub, 0, t, c))
+
+    dense, clus = run("dense"), run("clustered")
+    assert np.all(clus["skip"] == 0)  # fitted
+    assert dense.keys() == clus.keys()
+    for k in dense:
+        np.testing.assert_array_equal(dense[k], clus[k], err_msg=k)
 
 
 def test_clustered_needs_lobes_that_carry_the_spread():

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from texelbake import brdf as brdf_mod
 from texelbake.cpm.classify import open_texels
 from texelbake.cpm.dense import LevelPass
 from texelbake.cpm.level import PointSet, segment_sum
@@ -42,6 +43,19 @@ from texelbake.cpm.lobe import slope_variance
 #: step of the grid in the slopes (tan of the angle from the texel's frame normal, per axis)
 #: on which a texel's samples are grouped: 0.05 is 2.9 degrees at the frame normal
 CLUSTER_SLOPE = 0.05
+
+#: local (w_i, w_o) pairs on which a sample's response keys its group: normal incidence, a
+#: mirror pair at 45 degrees (a specular lobe's peak) and a skew pair at 60 degrees
+RESPONSE_PAIRS = np.array([
+    [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]],
+    [[0.7071067811865476, 0.0, 0.7071067811865476], [-0.7071067811865476, 0.0, 0.7071067811865476]],
+    [[0.8660254037844386, 0.0, 0.5], [0.0, 0.8660254037844386, 0.5]],
+])
+#: relative step of the log grid of responses within which samples share a group (2 %: the
+#: group's point stands for its members to within that, ~34 dB)
+RESPONSE_STEP = 0.02
+#: responses below this (a black channel) share the grid's lowest cell
+RESPONSE_FLOOR = 1e-6
 
 #: decimals of the cosine to a group's mean normal below which its samples tie for its point
 TIE_DIGITS = 12
@@ -96,6 +110,7 @@ def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dse
         uv = np.einsum("nij,nj->ni", fr[:, :2], pos - cen[dseg]) / cell[dseg][:, None]
         q = np.floor(uv).astype(np.int64)
         keys += [np.where(shut, q[:, 0], 0), np.where(shut, q[:, 1], 0)]
+    keys += list(_response_keys(lp, dense).T)
     # a steep sample is its own group: its row number as one more key (-1 for the others)
     keys.append(np.where(steep, np.arange(dense.size), -1))
     _, grp = np.unique(np.stack(keys, axis=1), axis=0, return_inverse=True)
@@ -124,4 +139,21 @@ def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dse
                     texels[dseg[rep]], var[out])
 
 
-__all__ = ["CLUSTER_SLOPE", "POSITION_CELLS", "STEEP_COS", "TIE_DIGITS", "cluster_candidates"]
+def _response_keys(lp: LevelPass, dense: np.ndarray) -> np.ndarray:
+    """(n, 3 len(RESPONSE_PAIRS)) int64 each sample's BRDF on `RESPONSE_PAIRS` (local
+    directions of its own frame: what its inputs make of it whatever its normal), per channel
+    on a log grid of relative step RESPONSE_STEP: samples of one material whose textured or
+    patterned inputs differ land in different cells."""
+    geo = lp.src.geo
+    k = len(RESPONSE_PAIRS)
+    wi = np.repeat(RESPONSE_PAIRS[:, 0][None], dense.size, axis=0).reshape(-1, 3)
+    wo = np.repeat(RESPONSE_PAIRS[:, 1][None], dense.size, axis=0).reshape(-1, 3)
+    idx = np.repeat(np.arange(dense.size), k)
+    f = brdf_mod.evaluate_by_face(lp.src.materials, geo["sample_mat"][dense][idx], wi, wo,
+                                  geo["sample_uv"][dense], sample_index=idx)  # (n k, 3)
+    q = np.floor(np.log(np.maximum(f, RESPONSE_FLOOR)) / np.log1p(RESPONSE_STEP))
+    return q.astype(np.int64).reshape(dense.size, 3 * k)
+
+
+__all__ = ["CLUSTER_SLOPE", "POSITION_CELLS", "RESPONSE_PAIRS", "RESPONSE_STEP", "STEEP_COS",
+           "TIE_DIGITS", "cluster_candidates"]

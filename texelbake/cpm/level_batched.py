@@ -262,11 +262,12 @@ def _fit_chunk(lp: LevelPass, chunk: Chunk, res: _Results, counts: FitCounts | N
     without candidates or dense samples)."""
     s = lp.src.settings
     params = FitParams.of(s)
-    if lp.level == 0 and clusters_level0(s):
-        # a group of samples is no sample: keeping every group is not exact between the
-        # grid's directions as keeping every sample is, so the fit chooses among them
-        params = dataclasses.replace(params, small="fit")
     texels, cset, cseg, n_cand = chunk.texels, chunk.cset, chunk.cseg, chunk.n_cand
+    if lp.level == 0 and clusters_level0(s) and cset.var is not None:
+        # groups of samples (`texelbake.cpm.cluster`; samples carry no lobe variance): a
+        # group is no sample, keeping every group is not exact between the grid's directions
+        # as keeping every sample is, so the fit chooses among them
+        params = dataclasses.replace(params, small="fit")
     n_i = len(lp.dirs["dirs_i"])
     n_t = len(texels)
     valid_o, inv_o = inv_avis(chunk.avis_o, chunk.area)  # (t, n_o)

@@ -72,8 +72,17 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
         at = np.full(len(texels), -1, np.int64)
         at[on] = np.arange(on.size)
         rows = np.flatnonzero(at[dseg] >= 0)
-        parts.append(fit(rest, cluster_candidates(lp, rest, dense[rows], at[dseg[rows]],
-                                                  cls.pattern[rows])))
+        groups = cluster_candidates(lp, rest, dense[rows], at[dseg[rows]], cls.pattern[rows])
+        # a texel whose every group is one sample is fitted on its samples as the seed's (a
+        # texel of at most c_max of them keeps them all, exact); the others on their groups
+        single = np.bincount(np.searchsorted(rest, groups.texel), minlength=rest.size) == \
+            np.bincount(at[dseg[rows]], minlength=rest.size)
+        if single.any():
+            keep = np.isin(candidates.texel, rest[single])
+            parts.append(fit(rest[single], candidates.take(np.flatnonzero(keep))))
+        if not single.all():
+            keep = np.isin(groups.texel, rest[~single])
+            parts.append(fit(rest[~single], groups.take(np.flatnonzero(keep))))
     elif rest.size:
         keep = np.isin(candidates.texel, rest)
         parts.append(fit(rest, candidates.take(np.flatnonzero(keep))))
