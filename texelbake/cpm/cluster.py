@@ -18,16 +18,17 @@ in the group's slope spread (at most `CLUSTER_SLOPE` / 2 per axis). A coarse lev
 candidates are its children's points the same way (BakeSettings.hierarchy = "children").
 
 What a group cannot carry stays apart: a sample whose normal is more than `STEEP_COS` from
-the texel's frame (a fold, a silhouette) is a candidate of its own, and each material its
-own groups. Visibility: a texel the geometry bounds as open (`classify.open_texels`) needs no
-key; in another, the samples whose visibility patterns the classes found with their own rays
-on every training direction (`classify.TexelClasses.pattern`) are grouped by pattern too
-(one of 32 probe directions merged samples of different patterns and cost the full
-cylinder's level-0 p5 5 dB at 32²), and the others (a texel sent to the fit before any ray,
-for its facets or inputs) by their part of a
-`POSITION_CELLS` x `POSITION_CELLS` grid over the texel's extent, where shadows change. A
-texture varying within a group (an albedo map) is carried by the group's point only; the
-held-out pairs, summed over every dense sample, measure all of it.
+the texel's frame (a fold, a silhouette) is a candidate of its own, each material has its own
+groups, and within a material each sample's own response (its BRDF on `RESPONSE_PAIRS`, local
+directions of its own frame, on a log grid of `RESPONSE_STEP`: a texture, a cellular pattern)
+its own cells. Visibility: a texel the geometry bounds as open (`classify.open_texels`) needs
+no key; in another, the samples whose visibility patterns the classes found with their own
+rays on every training direction (`classify.TexelClasses.pattern`) are grouped by pattern too
+(not the probe's: a pattern on a quarter of the directions merges samples that differ on the
+rest), and the others (a texel sent to the fit before any ray, for its facets or inputs) by their part of a `POSITION_CELLS` x `POSITION_CELLS` grid over
+the texel's extent, where shadows change. The held-out pairs, summed over every dense sample,
+measure what the groups lose. A texel whose groups are each one sample is fitted on its
+samples as the seed's (`level_by_need.fit_level_by_need`).
 """
 
 from __future__ import annotations
