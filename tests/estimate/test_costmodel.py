@@ -300,6 +300,22 @@ def test_classed_levels_price_the_classing_and_the_fitted_share():
     assert costmodel.estimate(points, 1, counts, coef=_only(classify=1e-6)).seconds == 0.0
 
 
+def test_level_0_groups_price_its_fit_on_the_groups():
+    """By hand on an even 8^2 atlas of 10 samples a texel: with `level0_ratio` r, level 0's R
+    term is paid on r m candidates (r d m) and its Gram term on (r m)^2 d; the other levels and
+    the held-out truth (on the samples) are unchanged; no ratio prices every sample."""
+    n, spt = 8, 10
+    s = BakeSettings(atlas_resolution=n, shard_texels=8, samples_per_texel=spt, c_max=64)
+    counts = np.full((n, n), spt)
+    for coef in (_only(r_entry=1e-6), _only(gram=1e-9), _only(held=1e-7)):
+        base = costmodel.estimate(s, 1, counts, coef=coef, ggx_fraction=0.0)
+        grp = costmodel.estimate(s, 1, counts, coef=coef, ggx_fraction=0.0, level0_ratio=0.25)
+        power = 1 if coef.r_entry else 2 if coef.gram else 0
+        for lv, lb in zip(grp.per_level, base.per_level, strict=True):
+            want = lb["seconds"] * (0.25 ** power if lv["level"] == 0 else 1.0)
+            assert lv["seconds"] == pytest.approx(want, rel=1e-12), (coef, lv)
+
+
 def test_the_held_out_truth_is_priced_on_its_samples():
     """The held-out term counts the measured texels (`heldout_texels` of a level's occupied
     ones) and at most `heldout_samples` samples of each: on an even 16^2 atlas of 64 samples a

@@ -9,8 +9,8 @@ at m^2 d) pays for 100-200 candidates where a few carry the texel. Here the samp
 grouped by material and by their shading and geometric normals on a grid of step
 `CLUSTER_SLOPE` in the slopes (x/z, y/z) of the texel's frame; each group is one candidate:
 its sample whose shading normal is nearest the group's area-weighted mean (lowest id on a tie),
-with the group's area as its weight and the group's slope variance about it as its lobe's
-widening (`texelbake.cpm.lobe`: the group's sum of lobes is, to second order in the slopes,
+with the group's area as its weight and the group's slope variance about that mean as its
+lobe's widening (`texelbake.cpm.lobe`: the group's sum of lobes is, to second order in the slopes,
 the point's lobe convolved with their distribution, as LEAN/LEADR filter a normal map; the
 first-order term cancels about the mean). The fit's target, the sum of every candidate's
 column, is then the sum of the groups' widened lobes: the error of merging is of higher order
@@ -25,8 +25,9 @@ its own cells. Visibility: a texel the geometry bounds as open (`classify.open_t
 no key; in another, the samples whose visibility patterns the classes found with their own
 rays on every training direction (`classify.TexelClasses.pattern`) are grouped by pattern too
 (not the probe's: a pattern on a quarter of the directions merges samples that differ on the
-rest), and the others (a texel sent to the fit before any ray, for its facets or inputs) by their part of a `POSITION_CELLS` x `POSITION_CELLS` grid over
-the texel's extent, where shadows change. The held-out pairs, summed over every dense sample,
+rest), and the others (a texel sent to the fit before any ray, for its facets or inputs)
+by their part of a `POSITION_CELLS` x `POSITION_CELLS` grid over the texel's extent, where
+shadows change. The held-out pairs, summed over every dense sample,
 measure what the groups lose. A texel whose groups are each one sample is fitted on its
 samples as the seed's (`level_by_need.fit_level_by_need`).
 """
@@ -47,10 +48,11 @@ CLUSTER_SLOPE = 0.05
 
 #: local (w_i, w_o) pairs on which a sample's response keys its group: normal incidence, a
 #: mirror pair at 45 degrees (a specular lobe's peak) and a skew pair at 60 degrees
+_S45, _S60 = np.sqrt(0.5), np.sqrt(0.75)
 RESPONSE_PAIRS = np.array([
     [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]],
-    [[0.7071067811865476, 0.0, 0.7071067811865476], [-0.7071067811865476, 0.0, 0.7071067811865476]],
-    [[0.8660254037844386, 0.0, 0.5], [0.0, 0.8660254037844386, 0.5]],
+    [[_S45, 0.0, _S45], [-_S45, 0.0, _S45]],
+    [[_S60, 0.0, 0.5], [0.0, _S60, 0.5]],
 ])
 #: relative step of the log grid of responses within which samples share a group (2 %: the
 #: group's point stands for its members to within that, ~34 dB)
@@ -71,8 +73,7 @@ STEEP_COS = 0.25
 
 
 def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-                       pattern: np.ndarray | None = None, step: float = CLUSTER_SLOPE
-                       ) -> PointSet:
+                       pattern: np.ndarray | None = None) -> PointSet:
     """The candidates of `texels` (flat ids at lp.level) from their dense samples (`dense`
     (n,) int64 grouped by texel, `dseg` (n,) their texel positions, ascending): one per group
     of one material and shading and geometric normals in one cell of the slope grid and,
@@ -93,8 +94,8 @@ def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dse
         loc = np.einsum("nij,nj->ni", fr, n)
         steep |= loc[:, 2] <= STEEP_COS
         z = np.maximum(loc[:, 2], STEEP_COS)
-        keys += [np.floor(loc[:, 0] / z / step).astype(np.int64),
-                 np.floor(loc[:, 1] / z / step).astype(np.int64)]
+        keys += [np.floor(loc[:, 0] / z / CLUSTER_SLOPE).astype(np.int64),
+                 np.floor(loc[:, 1] / z / CLUSTER_SLOPE).astype(np.int64)]
     # a texel the geometry does not bound as open: its samples also grouped by the
     # visibility pattern the classes found with their rays, and where they cast none by
     # position, on a POSITION_CELLS^2 grid of its frame over its extent

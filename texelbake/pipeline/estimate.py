@@ -113,7 +113,7 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
         if level == 0 and clusters_level0(s) and rows.size:
             on = np.flatnonzero(fit)
             cands = cluster_candidates(lp, texels[on], dense[rows],
-                                       np.searchsorted(on, dseg[rows]))
+                                       np.searchsorted(on, dseg[rows]), cls.pattern[rows])
             ratio = len(cands.sample) / rows.size
     return SampledFit(out, ratio)
 
