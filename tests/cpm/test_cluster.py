@@ -1,11 +1,11 @@
 """A fitted finest texel's candidates as groups of its samples (`texelbake.cpm.cluster`,
 BakeSettings.level0_candidates = "clustered"): the grouping against a loop over its rule, the
 closed forms of a flat texel, the hard cases (a steep sample, a single sample, two
-materials, a shadowed texel), and the fit on the groups against the fit on every sample of a
-curved glossy texel.
+materials, a texture, a shadowed texel), the groups' sum against every sample's on the
+held-out pairs, and the fit on them (single-sample groups as the seed's, bit for bit).
 
-The scenes are `test_classify`'s: the unit square z = 0 on a 2 x 2 atlas, 16 samples per
-texel on a regular grid, the normals set per case."""
+The scenes are `test_classify`'s: the unit square z = 0 on a 2 x 2 atlas, 16 or 64 samples
+per texel on a regular grid, the normals set per case."""
 
 from __future__ import annotations
 
