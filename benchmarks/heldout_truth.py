@@ -30,11 +30,10 @@ from texelbake.cpm.dense import (
     dense_of,
     held_pass,
     heldout_snr,
-    measured_texels,
     to_texel,
-    truth_samples,
 )
 from texelbake.cpm.level import segment_sum, texel_ids
+from texelbake.cpm.truth_sample import measured_texels, truth_samples
 from texelbake.pipeline.process import setup_bake_process
 
 #: the split's seed (any: the halves are a seeded draw per level)

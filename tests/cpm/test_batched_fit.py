@@ -14,6 +14,7 @@ from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm import level_batched as lb
 from texelbake.cpm.brdf_product import brdf_product
+from texelbake.cpm.build_r import build_R
 from texelbake.cpm.fit import channel_correlation, fit_texel
 from texelbake.cpm.gram import linalg as gram_linalg
 from texelbake.cpm.gram.fit import GramTexel, fit_many
@@ -293,7 +294,7 @@ def test_a_wide_texel_read_by_blocks_is_fitted_as_if_held(small_scene, monkeypat
     built = []
 
     def held(lp, cset, rows, cseg, inv_o, s1, s2):
-        F, s1[rows], s2[rows] = lb.build_R(lp, cset.take(rows), inv_o, cseg[rows])
+        F, s1[rows], s2[rows] = build_R(lp, cset.take(rows), inv_o, cseg[rows])
         built.append(F.shape[1])
         return lb.Columns.of_array(F, lp.src.settings.n_batch)
 

@@ -11,7 +11,8 @@ from scipy.stats import binom
 
 from schemas.settings import BakeSettings
 from texelbake.cpm.assemble import heldout_stats, quantile_ci
-from texelbake.cpm.dense import heldout_snr, measured_texels
+from texelbake.cpm.dense import heldout_snr
+from texelbake.cpm.truth_sample import measured_texels
 
 
 def _src(n=32, want=40, seed=0, fill=0.6, rng=None):

@@ -157,6 +157,7 @@ def test_a_merged_level_stores_eq7_where_it_reports_it_exact(tmp_path):
     from schemas.settings import BakeSettings
     from texelbake import stages
     from texelbake.cpm import level_batched as lb
+    from texelbake.cpm.build_r import build_R
     from texelbake.cpm.dense import LevelPass
     from texelbake.cpm.level import direction_sets, level_candidates, tile_texels
     from texelbake.testscenes import write_scene
@@ -182,13 +183,13 @@ def test_a_merged_level_stores_eq7_where_it_reports_it_exact(tmp_path):
     checked = 0
     for i in np.flatnonzero(out["valid"] & (merged > 0) & (out["snr_in"] >= 100.0)):
         mine = np.flatnonzero(cands.texel == out["texel"][i])
-        R_all = lb.build_R(LevelPass(src, 0, frames, dirs, 1 << 26), cands.take(mine)).sum(axis=1)
+        R_all = build_R(LevelPass(src, 0, frames, dirs, 1 << 26), cands.take(mine)).sum(axis=1)
         a, b = out["offsets"][i], out["offsets"][i + 1]
         pts = out["point_sample"][a:b]
         order = np.argsort(cands.sample[mine])  # the stored points among the candidates
         at = order[np.searchsorted(cands.sample[mine][order], pts)]
         assert np.array_equal(cands.sample[mine][at], pts)
-        R_pts = lb.build_R(LevelPass(src, 0, frames, dirs, 1 << 26), cands.take(mine[at]))
+        R_pts = build_R(LevelPass(src, 0, frames, dirs, 1 << 26), cands.take(mine[at]))
         alpha = out["point_weight"][a:b].astype(np.float64) / cands.weight[mine[at]]
         approx = np.einsum("cpd,pc->cd", R_pts, alpha)
         np.testing.assert_allclose(approx, R_all, rtol=1e-5, atol=1e-6 * np.abs(R_all).max())

@@ -1,5 +1,5 @@
 """The held-out truth of a texel of many samples summed over a seeded subset
-(`texelbake.cpm.dense.truth_samples`, `held_scale`, BakeSettings.heldout_samples), on the walled square of
+(`texelbake.cpm.truth_sample.truth_samples`, `held_scale`, BakeSettings.heldout_samples), on the walled square of
 tests/cpm/test_classify.py: level 1's one texel holds its 64 samples, a quarter of them in the
 wall's shadow for some held-out directions."""
 
@@ -10,7 +10,8 @@ import dataclasses
 import numpy as np
 
 from tests.cpm.test_classify import _grid_samples, _inputs, _up, _walled
-from texelbake.cpm.dense import LevelPass, dense_of, dense_sums, held_scale, truth_samples
+from texelbake.cpm.dense import LevelPass, dense_of, dense_sums, held_scale
+from texelbake.cpm.truth_sample import truth_samples
 from texelbake.tol import TOL
 
 ONE = np.zeros(1, np.int64)

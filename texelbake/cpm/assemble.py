@@ -68,7 +68,7 @@ def quantile_ci(x: np.ndarray, q: float, population: int, *,
 
 def heldout_stats(snr: np.ndarray, population: int) -> dict:
     """The report's held-out SNR of one level: `percentiles` over the measured texels (the
-    seeded sample, `cpm.dense.measured_texels`; NaN entries are the others) and the
+    seeded sample, `cpm.truth_sample.measured_texels`; NaN entries are the others) and the
     intervals of the median and the 5th percentile (`quantile_ci`)."""
     x = np.asarray(snr, np.float64)
     x = np.where(np.isposinf(x), SNR_EXACT_DB, x)

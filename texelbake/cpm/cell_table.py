@@ -30,7 +30,7 @@ from texelbake.tol import TOL
 
 _TAG_CELL_I, _TAG_CELL_O = 0x55, 0x66
 #: bytes of temporaries per (sample, direction pair) entry of one draw (brdf_product's own
-#: temporaries and the running sum), as `level_batched.BYTES_PER_EVAL_ENTRY` budgets R
+#: temporaries and the running sum), as `build_r.BYTES_PER_EVAL_ENTRY` budgets R
 BYTES_PER_ENTRY = 8 * 48
 
 

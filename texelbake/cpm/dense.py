@@ -7,12 +7,12 @@ A coarse texel's sums do not depend on the fit, so a tile shard can sum its own 
 the texels above it (`DenseSums`, `dense_sums`) and the top shard add the tiles' sums.
 
 The held-out truth is measured on a seeded sample of each level's texels
-(`BakeSettings.heldout_texels`, `measured_texels`): the same texels whichever tile or chunk
+(`BakeSettings.heldout_texels`, `truth_sample.measured_texels`): the same texels whichever tile or chunk
 holds them, every texel of a level that has fewer occupied texels than the sample. A texel
 outside the sample has its held-out a_vis NaN and its SNR NaN (not measured), which the
 report's percentiles leave out. Within a measured texel of more than
 `BakeSettings.heldout_samples` dense samples the truth is summed over a seeded subset of them
-(`truth_samples`) and scaled by the texel's area over the subset's (`held_scale`): a coarse
+(`truth_sample.truth_samples`) and scaled by the texel's area over the subset's (`held_scale`): a coarse
 texel's truth costs a bounded number of samples instead of every sample below it, once per
 level.
 """
@@ -29,14 +29,13 @@ from texelbake.cpm.level import (
     direction_sets,
     samples_in,
     segment_sum,
-    texel_counts,
     texel_ids,
     visibility_cos,
     world_dirs,
 )
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
+from texelbake.cpm.truth_sample import measured_texels, truth_samples, validation_cap
 from texelbake.errors import ShapeError
-from texelbake.geometry.texels import morton
 
 #: bytes per (dense sample, held-out pair, channel) in the held-out pass
 BYTES_PER_HELD_ENTRY = 8 * 12
@@ -145,50 +144,6 @@ def dense_of(lp: LevelPass, texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return ids[np.argsort(pos, kind="stable")], np.sort(pos, kind="stable")
 
 
-def _mix64(x: np.ndarray) -> np.ndarray:
-    """splitmix64's finalizer on uint64: a stateless random key per index (numpy's generators
-    draw sequences, not a value at an arbitrary index, which a texel in any tile needs)."""
-    x = np.asarray(x, np.uint64).copy()
-    with np.errstate(over="ignore"):
-        x ^= x >> np.uint64(30)
-        x *= np.uint64(0xBF58476D1CE4E5B9)
-        x ^= x >> np.uint64(27)
-        x *= np.uint64(0x94D049BB133111EB)
-        x ^= x >> np.uint64(31)
-    return x
-
-
-def _texel_keys(seed: int, level: int, first_codes: np.ndarray) -> np.ndarray:
-    """(k,) uint64 random keys of level texels named by their first finest Z-order code."""
-    salt = _mix64(np.array([(int(seed) << 8) + int(level) + 0x5EED], np.uint64))[0]
-    with np.errstate(over="ignore"):
-        return _mix64(np.asarray(first_codes, np.uint64) ^ salt)
-
-
-def _sample_keys(seed: int, level: int, samples: np.ndarray) -> np.ndarray:
-    """(n,) uint64 random keys of dense samples at a level (their draw for the truth)."""
-    salt = _mix64(np.array([(int(seed) << 8) + int(level) + 0x7A0B], np.uint64))[0]
-    with np.errstate(over="ignore"):
-        return _mix64(np.asarray(samples, np.uint64) ^ salt)
-
-
-def truth_samples(src: FitInputs, level: int, texels: np.ndarray, dense: np.ndarray,
-                  dseg: np.ndarray, cap: int | None = None) -> np.ndarray:
-    """(n,) bool: which of the dense samples `dense` (of texels[dseg]) the held-out truth sums.
-    A sample is kept when its seeded key (seed, level, sample id) falls below
-    p = heldout_samples (or `cap`) / its texel's samples in the whole atlas, so every tile and
-    chunk that holds it agrees (p >= 1, or a cap of 0: every sample). A smaller cap keeps a
-    subset of a larger one's samples."""
-    k = int(src.settings.heldout_samples if cap is None else cap)
-    if k == 0 or dense.size == 0:
-        return np.ones(dense.size, bool)
-    s = src.settings
-    n_t = texel_counts(src.geo, s.atlas_resolution, level, texels)
-    p = (k / np.maximum(n_t, 1).astype(np.float64))[dseg]
-    u = (_sample_keys(s.seed, level, dense) >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
-    return u < p
-
-
 def held_scale(area: np.ndarray, area_held: np.ndarray) -> np.ndarray:
     """(t,) the factor from a truth summed over the kept samples (`truth_samples`, of area
     `area_held` (t,)) to the texel (area (t,)): the ratio estimator, exact whenever the texel's
@@ -204,31 +159,6 @@ def to_texel(ref: np.ndarray, avis_h: np.ndarray, area: np.ndarray, area_held: n
     to each texel (`held_scale`)."""
     scale = held_scale(area, area_held)
     return ref * scale[:, None, None, None], avis_h * scale[:, None]
-
-
-def measured_texels(src: FitInputs, level: int, texels: np.ndarray) -> np.ndarray:
-    """(t,) bool: which of `texels` (flat ids at `level`) carry the held-out measurement, a
-    seeded sample of `BakeSettings.heldout_texels` of the level's occupied texels (all of
-    them when there are no more than that, or when it is 0). Depends only on (seed, level,
-    texel), so every tile and chunk agrees."""
-    s, geo = src.settings, src.geo
-    texels = np.asarray(texels, np.int64)
-    want = int(s.heldout_texels)
-    n = int(s.atlas_resolution)
-    if want == 0 or texels.size == 0:
-        return np.ones(texels.size, bool)
-    if "texel_zoffsets" in geo:
-        zoff = np.asarray(geo["texel_zoffsets"])
-        occupied = np.flatnonzero(np.diff(zoff[::1 << (2 * level)]) > 0) << (2 * level)
-    else:  # artifacts from before the Z-order index
-        row, col = geo["sample_row"] >> level, geo["sample_col"] >> level
-        occupied = np.unique(morton(row << level, col << level))
-    if occupied.size <= want:
-        return np.ones(texels.size, bool)
-    keys = _texel_keys(s.seed, level, occupied)
-    threshold = np.partition(keys, want - 1)[want - 1]
-    r, c = np.divmod(texels, n >> level)
-    return _texel_keys(s.seed, level, morton(r << level, c << level)) <= threshold
 
 
 def inv_avis(avis_o: np.ndarray, area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -301,19 +231,6 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
                      avis_h, area_held, val_ref, val_avis, val_area)
 
 
-#: most dense samples per texel the validation pairs' truth sums (a seeded subset beyond,
-#: scaled by area as the held-out truth's): it decides between two sets of points, widened or
-#: not, which the held-out truth then measures on its own samples
-VALIDATION_SAMPLES = 1024
-
-
-def _validation_cap(heldout_samples: int) -> int:
-    """The validation truth's cap: VALIDATION_SAMPLES, or the held-out truth's when that is
-    smaller (0: every sample)."""
-    return VALIDATION_SAMPLES if heldout_samples == 0 else min(VALIDATION_SAMPLES,
-                                                               heldout_samples)
-
-
 def validation_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
                     keys: tuple[str, str] = VAL_KEYS
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -324,7 +241,7 @@ def validation_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: 
     at most about VALIDATION_SAMPLES samples per texel."""
     none = np.zeros(0, np.int64)
     keep = truth_samples(lp.src, lp.level, texels, dense, dseg,
-                         _validation_cap(lp.src.settings.heldout_samples))
+                         validation_cap(lp.src.settings.heldout_samples))
     ref, _, avis = held_pass(lp, texels, dense[keep], dseg[keep], none, none, np.zeros((0, 3)),
                              want_ref=True, keys=keys)
     return ref, avis, segment_sum(lp.src.geo["sample_area"][dense[keep]], dseg[keep],
@@ -451,6 +368,5 @@ def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: floa
 
 __all__ = ["BYTES_PER_HELD_ENTRY", "DenseSums", "LevelPass", "avis_sums", "dense_of",
            "dense_sums", "held_pass", "heldout_from_samples", "heldout_from_sums",
-           "held_scale", "points_on", "to_texel", "truth_samples", "validation_sums",
-           "HELD_KEYS", "VAL_KEYS", "VALIDATION_SAMPLES", "heldout_snr", "inv_avis",
-           "measured_texels", "positions"]
+           "held_scale", "points_on", "to_texel", "validation_sums", "HELD_KEYS", "VAL_KEYS",
+           "heldout_snr", "inv_avis", "positions"]

@@ -68,15 +68,12 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
         stored = stored | lob.lobe
     rest = texels[~stored]
     if rest.size and level == 0 and clusters_level0(src.settings):
-        on = np.flatnonzero(~stored)  # `texelbake.cpm.cluster`
-        at = np.full(len(texels), -1, np.int64)
-        at[on] = np.arange(on.size)
-        rows = np.flatnonzero(at[dseg] >= 0)
-        groups = cluster_candidates(lp, rest, dense[rows], at[dseg[rows]], cls.pattern[rows])
+        rows, seg = texel_rows(dseg, np.flatnonzero(~stored), len(texels))  # `cpm.cluster`
+        groups = cluster_candidates(lp, rest, dense[rows], seg, cls.pattern[rows])
         # a texel whose every group is one sample is fitted on its samples as the seed's (a
         # texel of at most c_max of them keeps them all, exact); the others on their groups
         single = np.bincount(np.searchsorted(rest, groups.texel), minlength=rest.size) == \
-            np.bincount(at[dseg[rows]], minlength=rest.size)
+            np.bincount(seg, minlength=rest.size)
         if single.any():
             keep = np.isin(candidates.texel, rest[single])
             parts.append(fit(rest[single], candidates.take(np.flatnonzero(keep))))
@@ -89,6 +86,15 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     out = merge_levels(parts)
     out["classed"] = np.ones(1, np.int64)
     return out
+
+
+def texel_rows(dseg: np.ndarray, on: np.ndarray, n_t: int) -> tuple[np.ndarray, np.ndarray]:
+    """The dense rows (of texel positions `dseg`, n_t texels) of the texels at positions `on`
+    (ascending), and each row's texel position among `on`."""
+    at = np.full(n_t, -1, np.int64)
+    at[on] = np.arange(on.size)
+    rows = np.flatnonzero(at[dseg] >= 0)
+    return rows, at[dseg[rows]]
 
 
 def classes_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
@@ -127,10 +133,8 @@ def _heldout_of(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.n
     n_e = ex.size
     if not (n_e and len(lp.dirs["held_i"])):
         return np.full(n_e, unmeasured)
-    pos = np.full(len(texels), -1, np.int64)
-    pos[ex] = np.arange(n_e)
-    rows = np.flatnonzero(pos[dseg] >= 0)
-    sub_dense, sub_seg = dense[rows], pos[dseg[rows]]
+    rows, sub_seg = texel_rows(dseg, ex, len(texels))
+    sub_dense = dense[rows]
     ref, apx, avis_h = heldout_from_samples(
         lp, texels[ex], sub_dense, sub_seg, points, np.repeat(np.arange(n_e), counts),
         w32.astype(np.float64), None if var32 is None else var32.astype(np.float64))
@@ -217,4 +221,4 @@ def merge_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
 
 
 __all__ = ["EXACT_SKIP", "GROUPED_SKIP", "LOBE_SKIP", "classes_bounded", "fit_level_by_need",
-           "merge_levels"]
+           "merge_levels", "texel_rows"]

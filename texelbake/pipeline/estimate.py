@@ -88,7 +88,7 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
     from texelbake.cpm.cluster import cluster_candidates
     from texelbake.cpm.dense import LevelPass, dense_of
     from texelbake.cpm.level import clusters_level0, texel_ids
-    from texelbake.cpm.level_by_need import classes_bounded
+    from texelbake.cpm.level_by_need import classes_bounded, texel_rows
 
     s = ctx.settings
     if s.texel_classes != "by_need" or s.btf:
@@ -109,11 +109,10 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
         cls = classes_bounded(lp, texels, dense, dseg)
         fit = ~(cls.exact | cls.grouped)
         out.append(float(np.mean(fit)))
-        rows = np.flatnonzero(fit[dseg])
+        on = np.flatnonzero(fit)
+        rows, seg = texel_rows(dseg, on, len(texels))
         if level == 0 and clusters_level0(s) and rows.size:
-            on = np.flatnonzero(fit)
-            cands = cluster_candidates(lp, texels[on], dense[rows],
-                                       np.searchsorted(on, dseg[rows]), cls.pattern[rows])
+            cands = cluster_candidates(lp, texels[on], dense[rows], seg, cls.pattern[rows])
             ratio = len(cands.sample) / rows.size
     return SampledFit(out, ratio)
 
