@@ -34,6 +34,10 @@ _REPO = Path(__file__).resolve().parents[1]
 HEALTH_PATH = "/api/v1/utils/health-check/"
 
 
+#: tries of the API on a new free port when the one chosen was taken before uvicorn bound it
+API_BIND_ATTEMPTS = 4
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -146,10 +150,45 @@ class Stack:
             proc = self.procs.get("api")
             if proc is not None and proc.poll() is not None:
                 raise StageError(
-                    f"the API exited with {proc.returncode}; see {self.workdir}/logs/api.log"
+                    f"the API exited with {proc.returncode}; see {self.workdir}/logs/api.log; "
+                    f"it ends: {self._log_tail('api')!r}"
                 )
             time.sleep(0.2)
         raise StageError(f"the API at {self.api_url} was not healthy within {timeout} s")
+
+    def start_api(self, timeout: float, *, new_port_if_taken: bool) -> None:
+        """Start the API and wait until it is healthy. A port chosen by `free_port` is free only
+        when it is chosen: another process (any client's outgoing connection takes an ephemeral
+        port from the same range) can hold it by the time uvicorn binds. With
+        `new_port_if_taken`, a bind refused as "address already in use" is retried on another
+        free port, a few times; any other exit is raised with the end of the API's log."""
+        log = self.workdir / "logs" / "api.log"
+        for attempt in range(API_BIND_ATTEMPTS):
+            start = log.stat().st_size if log.is_file() else 0
+            self.start("api")
+            try:
+                self.wait_healthy(timeout)
+                return
+            except StageError:
+                proc = self.procs.get("api")
+                said = log.read_bytes()[start:].decode(errors="replace").lower()
+                taken = (proc is not None and proc.poll() is not None
+                         and "address already in use" in said)
+                if not (new_port_if_taken and taken) or attempt + 1 == API_BIND_ATTEMPTS:
+                    raise
+            port = free_port()
+            cmd = self.commands["api"]
+            cmd[cmd.index("--port") + 1] = str(port)
+            self.api_url = f"http://127.0.0.1:{port}"
+
+    def _log_tail(self, name: str, nbytes: int = 600) -> str:
+        path = self.workdir / "logs" / f"{name}.log"
+        try:
+            with open(path, "rb") as f:
+                f.seek(max(0, path.stat().st_size - nbytes))
+                return f.read().decode(errors="replace").strip()
+        except OSError:
+            return ""
 
     def wait_redis(self, timeout: float = 20.0) -> None:
         deadline = time.monotonic() + timeout
@@ -273,6 +312,7 @@ def stack_up(
             exe, "--port", str(rport), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
             "--daemonize", "no", "--dir", str(workdir),
         ]  # fmt: skip
+    port_given = port is not None
     port = port or free_port()
     env = dict(os.environ)
     env.update(
@@ -311,8 +351,7 @@ def stack_up(
             stack.start("redis")
             stack.wait_redis()
         if api:
-            stack.start("api")
-            stack.wait_healthy(timeout)
+            stack.start_api(timeout, new_port_if_taken=not port_given)
         for name in commands:
             if name.startswith("worker-"):
                 stack.start(name)

@@ -9,7 +9,7 @@ import httpx
 import pytest
 
 from farm.stack import free_port, redis_ping, stack_down, stack_up
-from texelbake.errors import SettingsError
+from texelbake.errors import SettingsError, StageError
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(120)]
 
@@ -63,3 +63,30 @@ def test_stack_up_starts_its_own_redis_without_a_url_and_refuses_bad_tokens(
         assert redis_ping(st.redis_url)
     finally:
         stack_down(tmp_path / "b")
+
+
+def test_api_port_taken_before_uvicorn_binds_it(tmp_path, monkeypatch):
+    """A free port can be taken between `free_port` choosing it and uvicorn binding it: the
+    stack starts the API again on another port. A port the caller named is not changed: the
+    error quotes the API's log."""
+    import socket
+
+    import farm.stack as fs
+
+    monkeypatch.setenv("TEXELBAKE_REDIS_URL", f"redis://127.0.0.1:{free_port()}/0")
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        taken = holder.getsockname()[1]
+        with pytest.raises(StageError, match="address already in use"):
+            stack_up(tmp_path / "named", port=taken, workers={}, environment="test")
+        ports = iter([taken])
+        monkeypatch.setattr(fs, "free_port", lambda: next(ports, None) or free_port())
+        stack = stack_up(tmp_path / "a", workers={}, environment="test")
+        try:
+            assert stack.api_url != f"http://127.0.0.1:{taken}"
+            assert httpx.get(stack.api_url + fs.HEALTH_PATH, timeout=30).status_code == 200
+            assert "address already in use" in (tmp_path / "a/logs/api.log").read_text().lower()
+            assert json.loads((tmp_path / "a/stack.json").read_text())["api_url"] == stack.api_url
+        finally:
+            stack_down(tmp_path / "a")
