@@ -22,6 +22,7 @@ import sys
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlparse
@@ -34,8 +35,13 @@ _REPO = Path(__file__).resolve().parents[1]
 HEALTH_PATH = "/api/v1/utils/health-check/"
 
 
-#: tries of the API on a new free port when the one chosen was taken before uvicorn bound it
-API_BIND_ATTEMPTS = 4
+#: tries of the API or Redis on a new free port when the one chosen was taken before the
+#: server bound it
+BIND_ATTEMPTS = 4
+
+#: `stack_up(redis_url=OWN_REDIS)`: a redis-server of the stack's own on a free port, whatever
+#: TEXELBAKE_REDIS_URL says
+OWN_REDIS = "own"
 
 
 def free_port() -> int:
@@ -53,6 +59,23 @@ def redis_ping(url: str, timeout: float = 0.5) -> bool:
             return s.recv(64).startswith((b"+PONG", b"-NOAUTH"))
     except OSError:
         return False
+
+
+def redis_pid(url: str, timeout: float = 0.5) -> int | None:
+    """The process id of the Redis server at `url` (`INFO server`), None where none answers."""
+    u = urlparse(url)
+    try:
+        with socket.create_connection((u.hostname or "127.0.0.1", u.port or 6379), timeout) as s:
+            s.sendall(b"*2\r\n$4\r\nINFO\r\n$6\r\nserver\r\n")
+            data = b""
+            while b"process_id:" not in data or not data.split(b"process_id:", 1)[1].count(b"\r\n"):
+                chunk = s.recv(4096)
+                if not chunk:
+                    return None
+                data += chunk
+    except OSError:
+        return None
+    return int(data.split(b"process_id:", 1)[1].split(b"\r\n", 1)[0])
 
 
 @dataclass
@@ -156,30 +179,35 @@ class Stack:
             time.sleep(0.2)
         raise StageError(f"the API at {self.api_url} was not healthy within {timeout} s")
 
-    def start_api(self, timeout: float, *, new_port_if_taken: bool) -> None:
-        """Start the API and wait until it is healthy. A port chosen by `free_port` is free only
-        when it is chosen: another process (any client's outgoing connection takes an ephemeral
-        port from the same range) can hold it by the time uvicorn binds. With
-        `new_port_if_taken`, a bind refused as "address already in use" is retried on another
-        free port, a few times; any other exit is raised with the end of the API's log."""
-        log = self.workdir / "logs" / "api.log"
-        for attempt in range(API_BIND_ATTEMPTS):
+    def start_bound(self, name: str, wait: Callable[[], None], *,
+                    new_port_if_taken: bool) -> None:
+        """Start `name` (`api` or `redis`) and `wait()` until it answers. A port chosen by
+        `free_port` is free only when it is chosen: another process (any client's outgoing
+        connection takes an ephemeral port from the same range) can hold it by the time the
+        server binds. With `new_port_if_taken`, a bind refused as "address already in use" is
+        retried on another free port, a few times; any other failure is raised."""
+        log = self.workdir / "logs" / f"{name}.log"
+        for attempt in range(BIND_ATTEMPTS):
             start = log.stat().st_size if log.is_file() else 0
-            self.start("api")
+            self.start(name)
             try:
-                self.wait_healthy(timeout)
+                wait()
                 return
             except StageError:
-                proc = self.procs.get("api")
+                proc = self.procs.get(name)
                 said = log.read_bytes()[start:].decode(errors="replace").lower()
                 taken = (proc is not None and proc.poll() is not None
                          and "address already in use" in said)
-                if not (new_port_if_taken and taken) or attempt + 1 == API_BIND_ATTEMPTS:
+                if not (new_port_if_taken and taken) or attempt + 1 == BIND_ATTEMPTS:
                     raise
             port = free_port()
-            cmd = self.commands["api"]
+            cmd = self.commands[name]
             cmd[cmd.index("--port") + 1] = str(port)
-            self.api_url = f"http://127.0.0.1:{port}"
+            if name == "api":
+                self.api_url = f"http://127.0.0.1:{port}"
+            else:  # every process started after Redis reads its URL from the environment
+                self.redis_url = f"redis://127.0.0.1:{port}/0"
+                self.env["TEXELBAKE_REDIS_URL"] = self.redis_url
 
     def _log_tail(self, name: str, nbytes: int = 600) -> str:
         path = self.workdir / "logs" / f"{name}.log"
@@ -191,8 +219,17 @@ class Stack:
             return ""
 
     def wait_redis(self, timeout: float = 20.0) -> None:
+        """Until Redis answers at redis_url: the stack's own redis-server where it started one
+        (its process id, so another Redis that took the port first is not mistaken for it)."""
         deadline = time.monotonic() + timeout
-        while not redis_ping(self.redis_url):
+        proc = self.procs.get("redis")
+        while not (redis_ping(self.redis_url)
+                   and (proc is None or redis_pid(self.redis_url) == proc.pid)):
+            if proc is not None and proc.poll() is not None:
+                raise StageError(
+                    f"redis-server exited with {proc.returncode}; see "
+                    f"{self.workdir}/logs/redis.log; it ends: {self._log_tail('redis')!r}"
+                )
             if time.monotonic() > deadline:
                 raise StageError(f"redis at {self.redis_url} did not answer within {timeout} s")
             time.sleep(0.1)
@@ -268,8 +305,10 @@ def stack_up(
     workers : worker process count per queue family (default one each of prep, numeric,
         render); `{}` starts none. Names are `worker-<family>-<i>`.
     redis_url : default `TEXELBAKE_REDIS_URL`, else a redis-server of the stack's own on a free
-        port (never one it did not start unless named). A local URL where nothing answers gets
-        a redis-server of the stack's own there.
+        port (never one it did not start unless named; `OWN_REDIS`: always so). A local URL
+        where nothing answers gets a redis-server of the stack's own there. A port the stack
+        chose (the API's too) that another process takes before the server binds it is
+        replaced by another (`Stack.start_bound`).
     tokens : bearer token -> tenant (default `TEXELBAKE_TOKENS`, JSON as the server reads it,
         else one fresh token for tenant `dev`; written to stack.json under env
         TEXELBAKE_TOKENS). `secret_key`, `database_url` and `artifact_root` default to their
@@ -292,7 +331,11 @@ def stack_up(
     commands: dict[str, list[str]] = {}
     start_redis = False
     tokens, tokens_from = _tokens(tokens)
-    redis_url = redis_url or os.environ.get("TEXELBAKE_REDIS_URL") or None
+    if redis_url == OWN_REDIS:
+        redis_url = None
+    else:
+        redis_url = redis_url or os.environ.get("TEXELBAKE_REDIS_URL") or None
+    redis_port_chosen = redis_url is None
     secret_key = secret_key or os.environ.get("TEXELBAKE_SECRET_KEY") or None
     database_url = database_url or os.environ.get("TEXELBAKE_DATABASE_URL") or None
     artifact_root = artifact_root or os.environ.get("TEXELBAKE_ARTIFACT_ROOT") or None
@@ -348,10 +391,10 @@ def stack_up(
                   tokens_from=tokens_from)
     try:
         if start_redis:
-            stack.start("redis")
-            stack.wait_redis()
+            stack.start_bound("redis", stack.wait_redis, new_port_if_taken=redis_port_chosen)
         if api:
-            stack.start_api(timeout, new_port_if_taken=not port_given)
+            stack.start_bound("api", lambda: stack.wait_healthy(timeout),
+                              new_port_if_taken=not port_given)
         for name in commands:
             if name.startswith("worker-"):
                 stack.start(name)

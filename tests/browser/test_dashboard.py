@@ -20,7 +20,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from farm.stack import free_port, stack_down, stack_up
+from farm.stack import OWN_REDIS, stack_down, stack_up
 from schemas.queues import QUEUE_FAMILIES
 from tests.helpers.service import CHEAP_SETTINGS, backend_missing, make_zip, usda
 
@@ -56,7 +56,7 @@ def stack(tmp_path_factory):
     work = tmp_path_factory.mktemp("stack")
     st = stack_up(
         work,
-        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        redis_url=OWN_REDIS,
         tokens={TOKEN_A: "studio-a", TOKEN_B: "studio-b"},
         workers={"prep": 1, "numeric": 1, "render": 1},
         environment="test",

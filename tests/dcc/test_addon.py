@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from farm.stack import free_port, stack_down, stack_up
+from farm.stack import OWN_REDIS, free_port, stack_down, stack_up
 from tests.helpers.dcc import bpy_python, run_blender
 from tests.helpers.panel_picture import draw_panel, parse_line
 from tests.helpers.service import usda
@@ -157,7 +157,7 @@ def stack(tmp_path_factory):
     work = tmp_path_factory.mktemp("stack")
     st = stack_up(
         work,
-        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        redis_url=OWN_REDIS,
         tokens={TOKEN: "studio"},
         workers={"prep": 1, "numeric": 1, "render": 1},
         environment="test",

@@ -13,7 +13,7 @@ import httpx
 from sqlalchemy import select
 
 from farm.db import Shard, session_factory
-from farm.stack import free_port, stack_down, stack_up
+from farm.stack import OWN_REDIS, stack_down, stack_up
 
 TOKEN = "farm-token-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -23,7 +23,7 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 def farm(workdir: Path, database_url: str | None = None, **kw):
     stack = stack_up(
         workdir,
-        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        redis_url=OWN_REDIS,
         database_url=database_url,
         tokens=kw.pop("tokens", {TOKEN: "farm"}),
         workers=kw.pop("workers", {"prep": 1, "numeric": 1}),

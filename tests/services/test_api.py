@@ -11,7 +11,7 @@ import httpx
 import pytest
 
 from farm.config import Settings
-from farm.stack import free_port, stack_down, stack_up
+from farm.stack import OWN_REDIS, stack_down, stack_up
 from tests.helpers.service import dir_listing, make_zip, usda
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(120)]
@@ -27,7 +27,7 @@ def api(tmp_path_factory):
     work = tmp_path_factory.mktemp("stack")
     stack = stack_up(
         work,
-        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        redis_url=OWN_REDIS,
         workers={},
         tokens={TOK_A: "tenant-a", TOK_B: "tenant-b"},
         environment="test",
@@ -430,7 +430,7 @@ def test_stack_down_stops_exactly_what_stack_up_started(tmp_path):
     work = tmp_path / "s"
     stack = stack_up(
         work,
-        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        redis_url=OWN_REDIS,
         workers={"prep": 1},
         environment="test",
     )

@@ -14,7 +14,7 @@ import pytest
 from sqlalchemy import select
 
 from farm.db import Job, Shard, session_factory
-from farm.stack import free_port, stack_down, stack_up
+from farm.stack import OWN_REDIS, stack_down, stack_up
 from schemas.queues import QUEUES
 from tests.helpers.farm import AUTH, TOKEN, download, wait_for
 from tests.helpers.service import CHEAP_SETTINGS, assert_same_bake
@@ -26,7 +26,7 @@ pytestmark = [pytest.mark.service, pytest.mark.timeout(400)]
 def test_tenant_limit_serializes_a_tenants_shards(cylinder, reference, tmp_path):
     db = f"sqlite:///{tmp_path / 'fair.db'}"
     stack = stack_up(
-        tmp_path / "stack", redis_url=f"redis://127.0.0.1:{free_port()}/0", database_url=db,
+        tmp_path / "stack", redis_url=OWN_REDIS, database_url=db,
         tokens={TOKEN: "farm"}, environment="test", workers={"all": 2},
         queues={"all": QUEUES},
         extra_env={"TEXELBAKE_TENANT_MAX_RUNNING_SHARDS": "1", "TEXELBAKE_QUEUE_BACKLOG": "1",

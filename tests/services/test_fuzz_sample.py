@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from farm.stack import free_port, stack_down, stack_up
+from farm.stack import OWN_REDIS, stack_down, stack_up
 from tests.helpers.fuzz_cases import generate
 from tests.helpers.fuzz_run import run
 
@@ -31,7 +31,7 @@ def test_seeded_fuzz_sample(tmp_path):
     canary = tmp_path / "canary.usda"
     canary.write_text('#usda 1.0\n# CANARY-fuzz-sample-never-read\ndef "X" {}\n')
     work = tmp_path / "stack"
-    stack = stack_up(work, redis_url=f"redis://127.0.0.1:{free_port()}/0", workers={},
+    stack = stack_up(work, redis_url=OWN_REDIS, workers={},
                      tokens={TOK: "fuzz"}, environment="test",
                      database_url=f"sqlite:///{tmp_path / 'ledger.sqlite'}")  # fmt: skip
     try:

@@ -11,7 +11,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from farm.stack import free_port, stack_down, stack_up
+from farm.stack import OWN_REDIS, stack_down, stack_up
 from tests.helpers.service import backend_missing, usda
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(300)]
@@ -24,7 +24,7 @@ def test_openapi_no_server_errors(tmp_path):
         backend_missing("schemathesis is not installed in this environment")
     stack = stack_up(
         tmp_path / "stack",
-        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        redis_url=OWN_REDIS,
         workers={},
         tokens={TOKEN: "fuzz"},
         environment="test",

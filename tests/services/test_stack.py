@@ -8,7 +8,7 @@ import json
 import httpx
 import pytest
 
-from farm.stack import free_port, redis_ping, stack_down, stack_up
+from farm.stack import OWN_REDIS, free_port, redis_ping, stack_down, stack_up
 from texelbake.errors import SettingsError, StageError
 
 pytestmark = [pytest.mark.service, pytest.mark.timeout(120)]
@@ -65,10 +65,11 @@ def test_stack_up_starts_its_own_redis_without_a_url_and_refuses_bad_tokens(
         stack_down(tmp_path / "b")
 
 
-def test_api_port_taken_before_uvicorn_binds_it(tmp_path, monkeypatch):
-    """A free port can be taken between `free_port` choosing it and uvicorn binding it: the
-    stack starts the API again on another port. A port the caller named is not changed: the
-    error quotes the API's log."""
+def test_ports_taken_before_the_servers_bind_them(tmp_path, monkeypatch):
+    """A free port can be taken between `free_port` choosing it and uvicorn or redis-server
+    binding it: the stack starts that server again on another port (Redis's new URL in the
+    environment every later process gets). A port the caller named is not changed: the
+    error quotes the server's log."""
     import socket
 
     import farm.stack as fs
@@ -78,7 +79,7 @@ def test_api_port_taken_before_uvicorn_binds_it(tmp_path, monkeypatch):
         holder.bind(("127.0.0.1", 0))
         holder.listen()
         taken = holder.getsockname()[1]
-        with pytest.raises(StageError, match="address already in use"):
+        with pytest.raises(StageError, match="(?i)address already in use"):
             stack_up(tmp_path / "named", port=taken, workers={}, environment="test")
         ports = iter([taken])
         monkeypatch.setattr(fs, "free_port", lambda: next(ports, None) or free_port())
@@ -90,3 +91,29 @@ def test_api_port_taken_before_uvicorn_binds_it(tmp_path, monkeypatch):
             assert json.loads((tmp_path / "a/stack.json").read_text())["api_url"] == stack.api_url
         finally:
             stack_down(tmp_path / "a")
+        with pytest.raises(StageError, match="(?i)address already in use"):
+            stack_up(tmp_path / "named-redis", redis_url=f"redis://127.0.0.1:{taken}/0",
+                     workers={}, api=False, environment="test")
+        ports = iter([taken])
+        stack = stack_up(tmp_path / "r", redis_url=OWN_REDIS, workers={}, environment="test")
+        try:
+            assert stack.redis_url != f"redis://127.0.0.1:{taken}/0" and redis_ping(stack.redis_url)
+            assert stack.env["TEXELBAKE_REDIS_URL"] == stack.redis_url
+            assert "address already in use" in (tmp_path / "r/logs/redis.log").read_text().lower()
+            assert httpx.get(stack.api_url + fs.HEALTH_PATH, timeout=30).status_code == 200
+        finally:
+            stack_down(tmp_path / "r")
+    # the port taken by another Redis, which answers PING: not mistaken for the stack's own
+    other = stack_up(tmp_path / "other", redis_url=OWN_REDIS, workers={}, api=False,
+                     environment="test")
+    try:
+        ports = iter([int(other.redis_url.split(":")[2].split("/")[0])])
+        stack = stack_up(tmp_path / "s", redis_url=OWN_REDIS, workers={}, api=False,
+                         environment="test")
+        try:
+            assert stack.redis_url != other.redis_url
+            assert fs.redis_pid(stack.redis_url) == stack.pids["redis"]
+        finally:
+            stack_down(tmp_path / "s")
+    finally:
+        stack_down(tmp_path / "other")

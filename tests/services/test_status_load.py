@@ -13,7 +13,7 @@ import pytest
 
 from farm.db import session_factory
 from farm.ledger import cancel_job
-from farm.stack import free_port, stack_down, stack_up
+from farm.stack import OWN_REDIS, free_port, stack_down, stack_up
 from services import checkserver, uploads
 from tests.helpers.service import proc_cpu, usda
 
@@ -72,7 +72,7 @@ def api(tmp_path_factory):
     work = tmp_path_factory.mktemp("stack")
     db = f"sqlite:///{work / 'ledger.sqlite'}"
     stack = stack_up(
-        work, redis_url=f"redis://127.0.0.1:{free_port()}/0", workers={},
+        work, redis_url=OWN_REDIS, workers={},
         tokens={TOK_A: "tenant-a", TOK_B: "tenant-b"}, environment="test", database_url=db,
         extra_env={"TEXELBAKE_STATUS_CACHE_SECONDS": "3"},
     )  # fmt: skip
@@ -174,7 +174,7 @@ def _alive(pid: int) -> bool:
 def test_check_server_leaves_nothing_behind_when_the_api_stops(tmp_path):
     """The check server lives with its API process: a stack stop ends it and removes its
     socket folder."""
-    stack = stack_up(tmp_path / "stack", redis_url=f"redis://127.0.0.1:{free_port()}/0",
+    stack = stack_up(tmp_path / "stack", redis_url=OWN_REDIS,
                      workers={}, tokens={TOK_A: "tenant-a"}, environment="test")
     try:
         with _client(stack, TOK_A) as a:

@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
-from farm.stack import free_port, stack_down, stack_up
+from farm.stack import OWN_REDIS, stack_down, stack_up
 from services import uploads
 from tests.helpers.hostile_zips import cases, understated
 from tests.helpers.service import dir_listing, usda
@@ -30,7 +30,7 @@ MAX_UPLOAD = 8 << 20
 def api(tmp_path_factory):
     work = tmp_path_factory.mktemp("stack")
     stack = stack_up(
-        work, redis_url=f"redis://127.0.0.1:{free_port()}/0", workers={}, tokens={TOK: "t"},
+        work, redis_url=OWN_REDIS, workers={}, tokens={TOK: "t"},
         environment="test", extra_env={"TEXELBAKE_MAX_UPLOAD_BYTES": str(MAX_UPLOAD)},
     )  # fmt: skip
     try:
