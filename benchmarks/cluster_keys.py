@@ -1,7 +1,7 @@
 """What splits a level's fitted finest texels into many candidates: the groups that
 `texelbake.cpm.cluster` would make of their dense samples under all its keys, without each key
-in turn, and with the visibility pattern keyed only on the directions above a cosine (the
-light share those directions drop beside it). A key whose removal collapses the groups is
+in turn, and with the samples' own visibility patterns on the directions above a cosine in
+place of the visibility keys (the light share those directions drop beside it). A key whose removal collapses the groups is
 where the candidates' count comes from.
 
     python benchmarks/cluster_keys.py --scene bolt --atlas 128 [--stride 4] [--json PATH]
@@ -101,7 +101,9 @@ def main() -> None:
            "texel_material_normals": count(k["texel"] + k["material"] + k["normals"])}
     vis, _ = visibility_patterns(lp, texels, dense, dseg, rows)
     z = np.r_[lp.dirs["dirs_i"][:, 2], lp.dirs["dirs_o"][:, 2]].clip(0.0)
-    base = [c for n, v in k.items() if n != "pattern" for c in v]
+    # the samples' own patterns in place of both visibility keys (the classes' groups and, where
+    # they cast no ray, the position cells)
+    base = [c for n, v in k.items() if n not in ("pattern", "position") for c in v]
     res["pattern_above_cos"] = []
     for cut in COS_CUTS:  # a loop over a few cut-offs
         on = z > cut
@@ -117,7 +119,7 @@ def main() -> None:
     for name, c in res["without"].items():
         print(f"  without {name:9s} {c:8d}")
     for e in res["pattern_above_cos"]:
-        print(f"  pattern on the {e['directions']} directions above cos {e['cos']} (dropping "
+        print(f"  own pattern on the {e['directions']} directions above cos {e['cos']} (dropping "
               f"{e['dropped_light_share']:.1%} of the light): {e['groups']}")
     if args.json:
         atomic_json(args.json, res)
