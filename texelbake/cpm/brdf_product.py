@@ -33,6 +33,7 @@ value at a dead entry is set to 0.
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
+from typing import NamedTuple
 
 import numpy as np
 
@@ -249,17 +250,24 @@ def _at(a: np.ndarray, loc: np.ndarray | None) -> np.ndarray:
     return a if loc is None else a[loc]
 
 
+class PreviewShape(NamedTuple):
+    """`preview_shape`'s (n, A, B) terms."""
+
+    fres: np.ndarray  # Schlick's weight
+    dv: np.ndarray  # the GGX D V product
+    fc: np.ndarray | None  # the clearcoat lobe (None where no sample has one)
+    dead: np.ndarray  # either direction under the horizon (or not finite)
+
+
 def preview_shape(p: dict[str, np.ndarray], wi: np.ndarray, wo: np.ndarray, eps: float
-                  ) -> dict[str, np.ndarray | None]:
+                  ) -> PreviewShape:
     """UsdPreviewSurface's terms on the product grid that do not depend on its colours:
     `brdf.analytic.preview_surface` (with `_half_terms`, `_ggx_dv`, `schlick_weight`) term by
     term, in the same order of operations, per-direction terms on (n, A) or (n, B) and
     per-sample parameters broadcast.
 
     p : `preview_surface_params` arrays with leading dimension 1 or n; wi (n, A, 3), wo (n, B, 3)
-    local. Returns (n, A, B) arrays: "fres" the Schlick weight, "dv" the GGX D V product,
-    "fc" the clearcoat lobe (None where no sample has one), "dead" either direction under
-    the horizon (or not finite)."""
+    local."""
     zi = np.maximum(wi[:, :, 2], 0.0)[:, :, None]  # (n, A, 1)
     zo = np.maximum(wo[:, :, 2], 0.0)[:, None, :]  # (n, 1, B)
     c = wi[:, :, None, 0] * wo[:, None, :, 0]
@@ -289,16 +297,16 @@ def preview_shape(p: dict[str, np.ndarray], wi: np.ndarray, wo: np.ndarray, eps:
         fc += r2c
         fc *= sca(cc)
         fc *= _ggx_dv_grid(nh2, zi, zo, sca(p["alpha_c"]))
-    return {"fres": fres, "dv": dv, "fc": fc, "dead": _horizon_dead(wi, wo, eps)}
+    return PreviewShape(fres, dv, fc, _horizon_dead(wi, wo, eps))
 
 
-def preview_colour(p: dict[str, np.ndarray], shape: dict[str, np.ndarray | None],
+def preview_colour(p: dict[str, np.ndarray], shape: PreviewShape,
                    loc: np.ndarray | None) -> np.ndarray:
     """UsdPreviewSurface on the product grid for n samples (`p` their parameters, leading
     dimension 1 or n) whose shapes are `shape`'s rows `loc` (None: its rows in order),
     `preview_surface`'s colour terms in its order of operations. Returns (3, n, A, B)
     float64, 0 where either direction is under the horizon."""
-    fres, dv = _at(shape["fres"], loc), _at(shape["dv"], loc)
+    fres, dv = _at(shape.fres, loc), _at(shape.dv, loc)
 
     def col(v: np.ndarray) -> np.ndarray:  # (1 or n, 3) -> (3, 1 or n, 1, 1)
         return v.T[:, :, None, None]
@@ -321,9 +329,9 @@ def preview_colour(p: dict[str, np.ndarray], shape: dict[str, np.ndarray | None]
         np.subtract(1.0, fr, out=fr)
         fr *= dpi[ch]
         o += fr
-    if shape["fc"] is not None:
-        out += _at(shape["fc"], loc)[None]
-    dead = _at(shape["dead"], loc)
+    if shape.fc is not None:
+        out += _at(shape.fc, loc)[None]
+    dead = _at(shape.dead, loc)
     if dead.any():
         out[:, dead] = 0.0
     return out
