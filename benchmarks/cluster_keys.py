@@ -1,8 +1,8 @@
 """What splits a level's fitted finest texels into many candidates: the groups that
 `texelbake.cpm.cluster` would make of their dense samples under all its keys, without each key
 in turn, and with the samples' own visibility patterns on the directions above a cosine in
-place of the visibility keys (the light share those directions drop beside it). A key whose removal collapses the groups is
-where the candidates' count comes from.
+place of the visibility keys (the light share those directions drop beside it). A key whose
+removal collapses the groups is where the candidates' count comes from.
 
     python benchmarks/cluster_keys.py --scene bolt --atlas 128 [--stride 4] [--json PATH]
 
@@ -58,7 +58,7 @@ def keys(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
     cell = np.sqrt(np.maximum(a_t, 1e-300)) / cluster.POSITION_CELLS
     q = np.floor(np.einsum("nij,nj->ni", fr[:, :2], pos - cen[dseg]) / cell[dseg][:, None])
     out["position"] = [np.where(shut, q[:, k], 0).astype(np.int64) for k in (0, 1)]
-    out["response"] = list(cluster._response_keys(lp, dense).T)
+    out["response"] = list(cluster.response_keys(lp, dense).T)
     out["steep"] = [np.where(steep, np.arange(dense.size), -1)]
     return out
 

@@ -112,7 +112,7 @@ def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dse
         uv = np.einsum("nij,nj->ni", fr[:, :2], pos - cen[dseg]) / cell[dseg][:, None]
         q = np.floor(uv).astype(np.int64)
         keys += [np.where(shut, q[:, 0], 0), np.where(shut, q[:, 1], 0)]
-    keys += list(_response_keys(lp, dense).T)
+    keys += list(response_keys(lp, dense).T)
     # a steep sample is its own group: its row number as one more key (-1 for the others)
     keys.append(np.where(steep, np.arange(dense.size), -1))
     _, grp = np.unique(np.stack(keys, axis=1), axis=0, return_inverse=True)
@@ -141,7 +141,7 @@ def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dse
                     texels[dseg[rep]], var[out])
 
 
-def _response_keys(lp: LevelPass, dense: np.ndarray) -> np.ndarray:
+def response_keys(lp: LevelPass, dense: np.ndarray) -> np.ndarray:
     """(n, 3 len(RESPONSE_PAIRS)) int64 each sample's BRDF on `RESPONSE_PAIRS` (local
     directions of its own frame: what its inputs make of it whatever its normal), per channel
     on a log grid of relative step RESPONSE_STEP: samples of one material whose textured or
@@ -158,4 +158,4 @@ def _response_keys(lp: LevelPass, dense: np.ndarray) -> np.ndarray:
 
 
 __all__ = ["CLUSTER_SLOPE", "POSITION_CELLS", "RESPONSE_PAIRS", "RESPONSE_STEP", "STEEP_COS",
-           "TIE_DIGITS", "cluster_candidates"]
+           "TIE_DIGITS", "cluster_candidates", "response_keys"]
