@@ -23,44 +23,14 @@ from cpm_cpu import stages_asset
 from schemas.settings import BakeSettings
 from texelbake import stages
 from texelbake.cpm import cluster
-from texelbake.cpm.classify import REASONS, open_texels, visibility_patterns
+from texelbake.cpm.classify import REASONS, visibility_patterns
 from texelbake.cpm.dense import LevelPass, dense_of
-from texelbake.cpm.level import segment_sum, texel_ids
+from texelbake.cpm.level import texel_ids
 from texelbake.cpm.level_by_need import classes_bounded
 from texelbake.io.atomic import atomic_json
 
 #: cosines above which the pattern key is tried alone
 COS_CUTS = (0.1, 0.2, 0.3, 0.5)
-
-
-def keys(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
-         pattern: np.ndarray) -> dict[str, list[np.ndarray]]:
-    """`cluster.cluster_candidates`' keys by name, for the samples `dense` (texel positions
-    `dseg`)."""
-    geo = lp.src.geo
-    fr = lp.frames[texels[dseg]]
-    out: dict[str, list[np.ndarray]] = {"texel": [dseg.astype(np.int64)],
-                                        "material": [np.asarray(geo["sample_mat"][dense],
-                                                                np.int64)], "normals": []}
-    steep = np.zeros(dense.size, bool)
-    for n in (geo["sample_nrm"][dense], geo["sample_gnrm"][dense]):
-        loc = np.einsum("nij,nj->ni", fr, n)
-        steep |= loc[:, 2] <= cluster.STEEP_COS
-        z = np.maximum(loc[:, 2], cluster.STEEP_COS)
-        out["normals"] += [np.floor(loc[:, k] / z / cluster.CLUSTER_SLOPE).astype(np.int64)
-                           for k in (0, 1)]
-    out["pattern"] = [pattern]
-    n_t = int(dseg.max()) + 1
-    shut = ~open_texels(lp, dense, dseg, np.arange(dense.size), n_t)[dseg] & (pattern < 0)
-    pos, area = geo["sample_pos"][dense], geo["sample_area"][dense]
-    a_t = segment_sum(area, dseg, n_t, 0)
-    cen = segment_sum(pos * area[:, None], dseg, n_t, 0) / np.maximum(a_t, 1e-300)[:, None]
-    cell = np.sqrt(np.maximum(a_t, 1e-300)) / cluster.POSITION_CELLS
-    q = np.floor(np.einsum("nij,nj->ni", fr[:, :2], pos - cen[dseg]) / cell[dseg][:, None])
-    out["position"] = [np.where(shut, q[:, k], 0).astype(np.int64) for k in (0, 1)]
-    out["response"] = list(cluster.response_keys(lp, dense).T)
-    out["steep"] = [np.where(steep, np.arange(dense.size), -1)]
-    return out
 
 
 def count(cols: list[np.ndarray]) -> int:
@@ -91,7 +61,7 @@ def main() -> None:
     fit = np.flatnonzero(~(cls.exact | cls.grouped))
     rows = np.flatnonzero(np.isin(dseg, fit))
     reasons = {k: int((cls.reason[fit] == v).sum()) for k, v in REASONS.items()}
-    k = keys(lp, texels, dense[rows], dseg[rows], cls.pattern[rows])
+    k = cluster.group_keys(lp, texels, dense[rows], dseg[rows], cls.pattern[rows])
     every = [c for v in k.values() for c in v]
     res = {"scene": args.scene, "atlas": args.atlas, "stride": args.stride,
            "fitted_texels": int(fit.size), "fitted_reasons": reasons, "samples": int(rows.size),

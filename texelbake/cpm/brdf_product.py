@@ -144,12 +144,11 @@ def brdf_product(
             if np.any(ex < 0):
                 raise SettingsError(f"material {material.path!r}: phong exponent must be >= 0")
             for rows, reps in shape_blocks(wi_loc, wo_loc, sel, [ex]):
-                lobe, dead = phong_shape(ex if ex.shape[0] == 1 else ex[reps],
+                lobe, dead = phong_shape(_row(ex, reps),
                                          wi_loc[:, sel[reps]].transpose(1, 0, 2),
                                          wo_loc[:, sel[reps]].transpose(1, 0, 2), eps)
                 for mb, lb in rows:  # loop over blocks of the samples of these shapes
-                    fg = phong_colour(kd if kd.shape[0] == 1 else kd[mb],
-                                      ks if ks.shape[0] == 1 else ks[mb], lobe, dead, lb)
+                    fg = phong_colour(_row(kd, mb), _row(ks, mb), lobe, dead, lb)
                     _store_finite(out, sel[mb], fg, live, material)
             continue
         lv = live[:, :, sel].transpose(2, 0, 1)  # (n_s, A, B)
@@ -241,9 +240,14 @@ def _distinct(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, inv.ravel()
 
 
+def _row(v: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """A parameter array at rows `idx` (one of a single row, shared, as it is)."""
+    return v if v.shape[0] == 1 else v[idx]
+
+
 def _rows(p: dict[str, np.ndarray], idx: np.ndarray) -> dict[str, np.ndarray]:
-    """The parameter arrays at rows `idx` (those of one row, shared, as they are)."""
-    return {k: (v if v.shape[0] == 1 else v[idx]) for k, v in p.items()}
+    """Every parameter array of `p` at rows `idx` (`_row`)."""
+    return {k: _row(v, idx) for k, v in p.items()}
 
 
 def _at(a: np.ndarray, loc: np.ndarray | None) -> np.ndarray:

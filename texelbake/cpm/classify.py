@@ -373,8 +373,9 @@ def _patterns_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg
     g = _pattern_groups(fac[cast], probe)
     # groups per texel: the distinct (texel, group) pairs
     n_t = len(reason)
-    pairs = np.unique(dseg[cast] * (int(g.max()) + 1) + g)
-    over = np.bincount(pairs // (int(g.max()) + 1), minlength=n_t) > c_max
+    span = int(g.max()) + 1
+    pairs = np.unique(dseg[cast] * span + g)
+    over = np.bincount(pairs // span, minlength=n_t) > c_max
     reason[(reason == REASONS["exact"]) & over] = REASONS["visibility"]
     if not full:
         keep = ~over[dseg[cast]]

@@ -85,43 +85,15 @@ def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dse
     if dense.size == 0:
         return PointSet(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64),
                         np.zeros(0))
-    fr = lp.frames[texels[dseg]]  # (n, 3, 3) rows t, b, n
     nrm = geo["sample_nrm"][dense]
     area = geo["sample_area"][dense]
-    keys = [dseg.astype(np.int64), np.asarray(geo["sample_mat"][dense], np.int64)]
-    steep = np.zeros(dense.size, bool)
-    for n in (nrm, geo["sample_gnrm"][dense]):  # shading, then geometric normal
-        loc = np.einsum("nij,nj->ni", fr, n)
-        steep |= loc[:, 2] <= STEEP_COS
-        z = np.maximum(loc[:, 2], STEEP_COS)
-        keys += [np.floor(loc[:, 0] / z / CLUSTER_SLOPE).astype(np.int64),
-                 np.floor(loc[:, 1] / z / CLUSTER_SLOPE).astype(np.int64)]
-    # a texel the geometry does not bound as open: its samples also grouped by the
-    # visibility pattern the classes found with their rays, and where they cast none by
-    # position, on a POSITION_CELLS^2 grid of its frame over its extent
-    n_t = int(dseg.max()) + 1
-    cast = np.zeros(dense.size, bool) if pattern is None else pattern >= 0
-    if pattern is not None:
-        keys.append(pattern)
-    shut = ~open_texels(lp, dense, dseg, np.arange(dense.size), n_t)[dseg] & ~cast
-    if POSITION_CELLS > 1 and shut.any():
-        pos = geo["sample_pos"][dense]
-        a_t = segment_sum(area, dseg, n_t, 0)
-        cen = segment_sum(pos * area[:, None], dseg, n_t, 0) / np.maximum(a_t, 1e-300)[:, None]
-        cell = np.sqrt(np.maximum(a_t, 1e-300)) / POSITION_CELLS
-        uv = np.einsum("nij,nj->ni", fr[:, :2], pos - cen[dseg]) / cell[dseg][:, None]
-        q = np.floor(uv).astype(np.int64)
-        keys += [np.where(shut, q[:, 0], 0), np.where(shut, q[:, 1], 0)]
-    keys += list(response_keys(lp, dense).T)
-    # a steep sample is its own group: its row number as one more key (-1 for the others)
-    keys.append(np.where(steep, np.arange(dense.size), -1))
+    keys = [c for cols in group_keys(lp, texels, dense, dseg, pattern).values() for c in cols]
     _, grp = np.unique(np.stack(keys, axis=1), axis=0, return_inverse=True)
     grp = grp.ravel()
     n_g = int(grp.max()) + 1
     tot = np.bincount(grp, weights=area, minlength=n_g)
-    mean = segment_sum(nrm[np.argsort(grp, kind="stable")]
-                       * area[np.argsort(grp, kind="stable")][:, None],
-                       np.sort(grp), n_g, 0)
+    by_grp = np.argsort(grp, kind="stable")
+    mean = segment_sum(nrm[by_grp] * area[by_grp][:, None], grp[by_grp], n_g, 0)
     mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
     # each group's point: nearest its mean normal, lowest sample id on a tie (cosines equal to
     # TIE_DIGITS decimals: two samples are equally near their bisector, up to rounding)
@@ -141,7 +113,49 @@ def cluster_candidates(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dse
                     texels[dseg[rep]], var[out])
 
 
-def response_keys(lp: LevelPass, dense: np.ndarray) -> np.ndarray:
+def group_keys(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+               pattern: np.ndarray | None = None) -> dict[str, list[np.ndarray]]:
+    """The keys whose equal values make a group of `cluster_candidates`, by name (each a list
+    of (n,) int64 columns, empty where it does not apply): the texel, the material, the
+    shading and geometric normals' slope cells, the visibility pattern (`pattern`), the
+    position cells of a texel not bounded open where no ray was cast, the response cells and
+    a steep sample's own row (module docstring)."""
+    geo = lp.src.geo
+    fr = lp.frames[texels[dseg]]  # (n, 3, 3) rows t, b, n
+    keys: dict[str, list[np.ndarray]] = {
+        "texel": [dseg.astype(np.int64)],
+        "material": [np.asarray(geo["sample_mat"][dense], np.int64)], "normals": []}
+    steep = np.zeros(dense.size, bool)
+    for n in (geo["sample_nrm"][dense], geo["sample_gnrm"][dense]):  # shading, geometric
+        loc = np.einsum("nij,nj->ni", fr, n)
+        steep |= loc[:, 2] <= STEEP_COS
+        z = np.maximum(loc[:, 2], STEEP_COS)
+        keys["normals"] += [np.floor(loc[:, 0] / z / CLUSTER_SLOPE).astype(np.int64),
+                            np.floor(loc[:, 1] / z / CLUSTER_SLOPE).astype(np.int64)]
+    # a texel the geometry does not bound as open: its samples also grouped by the
+    # visibility pattern the classes found with their rays, and where they cast none by
+    # position, on a POSITION_CELLS^2 grid of its frame over its extent
+    n_t = int(dseg.max()) + 1
+    cast = np.zeros(dense.size, bool) if pattern is None else pattern >= 0
+    keys["pattern"] = [] if pattern is None else [pattern]
+    shut = ~open_texels(lp, dense, dseg, np.arange(dense.size), n_t)[dseg] & ~cast
+    keys["position"] = []
+    if POSITION_CELLS > 1 and shut.any():
+        pos = geo["sample_pos"][dense]
+        area = geo["sample_area"][dense]
+        a_t = segment_sum(area, dseg, n_t, 0)
+        cen = segment_sum(pos * area[:, None], dseg, n_t, 0) / np.maximum(a_t, 1e-300)[:, None]
+        cell = np.sqrt(np.maximum(a_t, 1e-300)) / POSITION_CELLS
+        uv = np.einsum("nij,nj->ni", fr[:, :2], pos - cen[dseg]) / cell[dseg][:, None]
+        q = np.floor(uv).astype(np.int64)
+        keys["position"] = [np.where(shut, q[:, 0], 0), np.where(shut, q[:, 1], 0)]
+    keys["response"] = list(_response_keys(lp, dense).T)
+    # a steep sample is its own group: its row number as one more key (-1 for the others)
+    keys["steep"] = [np.where(steep, np.arange(dense.size), -1)]
+    return keys
+
+
+def _response_keys(lp: LevelPass, dense: np.ndarray) -> np.ndarray:
     """(n, 3 len(RESPONSE_PAIRS)) int64 each sample's BRDF on `RESPONSE_PAIRS` (local
     directions of its own frame: what its inputs make of it whatever its normal), per channel
     on a log grid of relative step RESPONSE_STEP: samples of one material whose textured or
@@ -158,4 +172,4 @@ def response_keys(lp: LevelPass, dense: np.ndarray) -> np.ndarray:
 
 
 __all__ = ["CLUSTER_SLOPE", "POSITION_CELLS", "RESPONSE_PAIRS", "RESPONSE_STEP", "STEEP_COS",
-           "TIE_DIGITS", "cluster_candidates", "response_keys"]
+           "TIE_DIGITS", "cluster_candidates", "group_keys"]

@@ -68,8 +68,7 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
         stored = stored | lob.lobe
     rest = texels[~stored]
     if rest.size and level == 0 and clusters_level0(src.settings):
-        rows, seg = texel_rows(dseg, np.flatnonzero(~stored), len(texels))  # `cpm.cluster`
-        groups = cluster_candidates(lp, rest, dense[rows], seg, cls.pattern[rows])
+        groups, seg = fitted_groups(lp, texels, dense, dseg, cls, np.flatnonzero(~stored))
         # a texel whose every group is one sample is fitted on its samples as the seed's (a
         # texel of at most c_max of them keeps them all, exact); the others on their groups
         single = np.bincount(np.searchsorted(rest, groups.texel), minlength=rest.size) == \
@@ -86,6 +85,15 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     out = merge_levels(parts)
     out["classed"] = np.ones(1, np.int64)
     return out
+
+
+def fitted_groups(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
+                  cls: TexelClasses, on: np.ndarray) -> tuple[PointSet, np.ndarray]:
+    """The candidates of the texels at positions `on` (ascending) as groups of their dense
+    samples (`texelbake.cpm.cluster`, by the classes' patterns), and each of those samples'
+    texel position among `on`."""
+    rows, seg = texel_rows(dseg, on, len(texels))
+    return cluster_candidates(lp, texels[on], dense[rows], seg, cls.pattern[rows]), seg
 
 
 def texel_rows(dseg: np.ndarray, on: np.ndarray, n_t: int) -> tuple[np.ndarray, np.ndarray]:
@@ -221,4 +229,4 @@ def merge_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
 
 
 __all__ = ["EXACT_SKIP", "GROUPED_SKIP", "LOBE_SKIP", "classes_bounded", "fit_level_by_need",
-           "merge_levels", "texel_rows"]
+           "fitted_groups", "merge_levels", "texel_rows"]

@@ -85,10 +85,9 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
     on; and at level 0 the fitted texels' candidates over their samples (`SampledFit`). None
     when the bake classes no texel. Costs the sample's classing rays (a few seconds at a 128^2
     atlas) and the ray caster's build."""
-    from texelbake.cpm.cluster import cluster_candidates
     from texelbake.cpm.dense import LevelPass, dense_of
     from texelbake.cpm.level import clusters_level0, texel_ids
-    from texelbake.cpm.level_by_need import classes_bounded, texel_rows
+    from texelbake.cpm.level_by_need import classes_bounded, fitted_groups
 
     s = ctx.settings
     if s.texel_classes != "by_need" or s.btf:
@@ -109,11 +108,9 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
         cls = classes_bounded(lp, texels, dense, dseg)
         fit = ~(cls.exact | cls.grouped)
         out.append(float(np.mean(fit)))
-        on = np.flatnonzero(fit)
-        rows, seg = texel_rows(dseg, on, len(texels))
-        if level == 0 and clusters_level0(s) and rows.size:
-            cands = cluster_candidates(lp, texels[on], dense[rows], seg, cls.pattern[rows])
-            ratio = len(cands.sample) / rows.size
+        if level == 0 and clusters_level0(s) and fit.any():
+            cands, seg = fitted_groups(lp, texels, dense, dseg, cls, np.flatnonzero(fit))
+            ratio = len(cands.sample) / seg.size if seg.size else None
     return SampledFit(out, ratio)
 
 
