@@ -126,10 +126,10 @@ def brdf_product(
             if v_sel is not None:  # per-sample inputs (n_s,), textured ones included
                 inp = widen_inputs("preview", inp, v_sel)
             prm = preview_surface_params(inp, n_s)
-            for rows, reps in shape_blocks(wi_loc, wo_loc, sel,
-                                           [prm[k] for k in PREVIEW_SHAPE_INPUTS]):
-                shape = preview_shape(_rows(prm, reps), wi_loc[:, sel[reps]].transpose(1, 0, 2),
-                                      wo_loc[:, sel[reps]].transpose(1, 0, 2), eps)
+            shp = {k: prm[k] for k in PREVIEW_SHAPE_INPUTS}
+            for rows, reps in shape_blocks(wi_loc, wo_loc, sel, list(shp.values())):
+                shape = preview_shape(_rows(shp, reps), _local(wi_loc, sel[reps]),
+                                      _local(wo_loc, sel[reps]), eps)
                 for mb, lb in rows:  # loop over blocks of the samples of these shapes
                     fg = preview_colour(_rows(prm, mb), shape, lb)  # (3, nb, A, B)
                     _store_finite(out, sel[mb], fg, live, material)
@@ -144,9 +144,8 @@ def brdf_product(
             if np.any(ex < 0):
                 raise SettingsError(f"material {material.path!r}: phong exponent must be >= 0")
             for rows, reps in shape_blocks(wi_loc, wo_loc, sel, [ex]):
-                lobe, dead = phong_shape(_row(ex, reps),
-                                         wi_loc[:, sel[reps]].transpose(1, 0, 2),
-                                         wo_loc[:, sel[reps]].transpose(1, 0, 2), eps)
+                lobe, dead = phong_shape(_row(ex, reps), _local(wi_loc, sel[reps]),
+                                         _local(wo_loc, sel[reps]), eps)
                 for mb, lb in rows:  # loop over blocks of the samples of these shapes
                     fg = phong_colour(_row(kd, mb), _row(ks, mb), lobe, dead, lb)
                     _store_finite(out, sel[mb], fg, live, material)
@@ -216,8 +215,8 @@ def shape_blocks(wi_loc: np.ndarray, wo_loc: np.ndarray, sel: np.ndarray,
     first = _distinct(np.concatenate([wi_loc[0, sel], wo_loc[0, sel]] + scalars, axis=1))[0]
     if first.size <= SHAPE_SHARE * n_s:
         first, inv = _distinct(np.concatenate(
-            [wi_loc[:, sel].transpose(1, 0, 2).reshape(n_s, -1),
-             wo_loc[:, sel].transpose(1, 0, 2).reshape(n_s, -1)] + scalars, axis=1))
+            [_local(wi_loc, sel).reshape(n_s, -1), _local(wo_loc, sel).reshape(n_s, -1)]
+            + scalars, axis=1))
     if first.size > SHAPE_SHARE * n_s:
         for b0 in range(0, n_s, nb):  # loop over sample blocks (cache-sized)
             blk = np.arange(b0, min(b0 + nb, n_s))
@@ -250,6 +249,11 @@ def _rows(p: dict[str, np.ndarray], idx: np.ndarray) -> dict[str, np.ndarray]:
     return {k: _row(v, idx) for k, v in p.items()}
 
 
+def _local(w_loc: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """(n, A, 3) the local directions w_loc (A, p, 3) of the samples `idx`, sample first."""
+    return w_loc[:, idx].transpose(1, 0, 2)
+
+
 def _at(a: np.ndarray, loc: np.ndarray | None) -> np.ndarray:
     return a if loc is None else a[loc]
 
@@ -270,8 +274,8 @@ def preview_shape(p: dict[str, np.ndarray], wi: np.ndarray, wo: np.ndarray, eps:
     term, in the same order of operations, per-direction terms on (n, A) or (n, B) and
     per-sample parameters broadcast.
 
-    p : `preview_surface_params` arrays with leading dimension 1 or n; wi (n, A, 3), wo (n, B, 3)
-    local."""
+    p : the `PREVIEW_SHAPE_INPUTS` of `preview_surface_params`, arrays with leading dimension 1
+    or n; wi (n, A, 3), wo (n, B, 3) local."""
     zi = np.maximum(wi[:, :, 2], 0.0)[:, :, None]  # (n, A, 1)
     zo = np.maximum(wo[:, :, 2], 0.0)[:, None, :]  # (n, 1, B)
     c = wi[:, :, None, 0] * wo[:, None, :, 0]
