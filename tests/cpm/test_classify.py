@@ -13,7 +13,7 @@ import pytest
 
 from schemas.settings import BakeSettings
 from texelbake.brdf.evaluate import diffuse_albedo
-from texelbake.cpm.classify import REASONS, classify_texels
+from texelbake.cpm.classify import REASONS, _pattern_groups, classify_texels
 from texelbake.cpm.dense import LevelPass, dense_of
 from texelbake.cpm.level import FitInputs, level_candidates
 from texelbake.cpm.level_batched import fit_level_batched
@@ -356,3 +356,20 @@ def test_classes_do_not_depend_on_the_memory_chunks(monkeypatch):
         np.testing.assert_array_equal(getattr(whole, f.name), getattr(parts, f.name))
     assert list(whole.grouped) == [True, False, True, True]
     assert list(whole.exact) == [False, True, False, False]
+
+
+def test_pattern_groups_number_the_pairs_in_byte_order():
+    """A row's (facet, pattern) group is its rank among the distinct pairs in the order of
+    their bytes (the facet's big-endian two's complement, then the packed pattern): the same
+    numbering as `np.unique(axis=0)` on those bytes, for patterns of 0 to 130 directions
+    (padding at every byte boundary), negative facets and no rows."""
+    rng = np.random.default_rng(5)
+    for n_dirs in (0, 1, 7, 8, 9, 64, 65, 130):
+        fac = rng.integers(-3, 5, 3000)
+        vis = rng.random((3000, n_dirs)) < 0.9
+        vis[rng.random(3000) < 0.3] = True  # many equal patterns
+        key = np.concatenate([fac.astype(">i8").view(np.uint8).reshape(-1, 8),
+                              np.packbits(vis, axis=1)], axis=1)
+        want = np.unique(key, axis=0, return_inverse=True)[1].ravel()
+        assert np.array_equal(_pattern_groups(fac, vis), want)
+    assert _pattern_groups(np.zeros(0, np.int64), np.zeros((0, 4), bool)).shape == (0,)

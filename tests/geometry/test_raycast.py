@@ -8,7 +8,7 @@ import pytest
 from tests.helpers.meshes import box, icosphere
 from texelbake.errors import NumericalError, ShapeError
 from texelbake.geometry.closest import closest_point_on_triangles
-from texelbake.geometry.raycast import RayCaster, offset_origins
+from texelbake.geometry.raycast import RayCaster, _finite_rows, _nonzero_rows, offset_origins
 from texelbake.tol import TOL
 
 # Embree works in float32: distances of order 1 carry ~1e-7 relative error, and an
@@ -242,3 +242,17 @@ def test_occluded_pairs_equals_occluded_on_the_gathered_rays():
         caster.occluded_pairs(o, d, jj, dd[:-1])
     with pytest.raises(ShapeError):
         caster.occluded_pairs(o[:, :2], d, jj, dd)
+
+
+def test_row_checks_on_the_bits_equal_numpys_reductions():
+    """`_finite_rows` and `_nonzero_rows` answer `np.isfinite(a).all(axis=1)` and
+    `np.any(a != 0, axis=1)` on every kind of float32: random bit patterns (NaNs, infinities,
+    denormals among them) and rows of ±0, inf, NaN and the smallest denormal."""
+    rng = np.random.default_rng(11)
+    bits = rng.integers(0, 2**32, size=(20000, 3), dtype=np.uint64).astype(np.uint32)
+    special = np.array([0.0, -0.0, np.inf, -np.inf, np.nan, 1e-45, 1.0], np.float32)
+    rows = special[np.stack(np.meshgrid(*[np.arange(7)] * 3), -1).reshape(-1, 3)]
+    for a in (bits.view(np.float32), rows):
+        with np.errstate(invalid="ignore"):
+            assert np.array_equal(_finite_rows(a), np.isfinite(a).all(axis=1))
+            assert np.array_equal(_nonzero_rows(a), np.any(a != 0, axis=1))

@@ -349,12 +349,25 @@ def _per_texel(ids: np.ndarray, dseg: np.ndarray) -> np.ndarray:
 
 
 def _pattern_groups(fac: np.ndarray, vis: np.ndarray) -> np.ndarray:
-    """(r,) int64 the group 0.. of each row's (facet, visibility pattern) pair."""
-    # one key per row: big-endian facet bytes sort first, then the pattern's bits
-    key = np.concatenate([fac.astype(">i8").view(np.uint8).reshape(-1, 8),
-                          np.packbits(vis, axis=1)], axis=1)
-    _, inv = np.unique(key, axis=0, return_inverse=True)
-    return inv.ravel()
+    """(r,) int64 the group 0.. of each row's (facet, visibility pattern) pair, numbered in
+    the order of the pairs (the facet's two's-complement bits, then the pattern's bits)."""
+    bits = np.packbits(vis, axis=1)
+    n, nb = bits.shape
+    if n == 0:
+        return np.zeros(0, np.int64)
+    # one key per row as 64-bit words, the facet first, then the pattern's bytes big-endian
+    # and zero-padded: sorting the words sorts the bytes, and a lexsort of a few integer
+    # columns is ~30x `np.unique(axis=0)` on the bytes (a fifth of the classes' time)
+    words = np.zeros((n, 1 + (nb + 7) // 8), np.uint64)
+    words[:, 0] = fac.astype(np.int64).view(np.uint64)
+    pad = np.zeros((n, 8 * (words.shape[1] - 1)), np.uint8)
+    pad[:, :nb] = bits
+    words[:, 1:] = pad.view(">u8")
+    order = np.lexsort(words.T[::-1])
+    w = words[order]
+    out = np.empty(n, np.int64)
+    out[order] = np.cumsum(np.r_[True, (w[1:] != w[:-1]).any(axis=1)]) - 1
+    return out
 
 
 def _patterns_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,

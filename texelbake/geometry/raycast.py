@@ -122,6 +122,27 @@ def _escape_block(o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return rays, live
 
 
+_EXPONENT = np.uint32(0x7F800000)
+_MAGNITUDE = np.uint32(0x7FFFFFFF)
+
+
+def _finite_rows(a32: np.ndarray) -> np.ndarray:
+    """(k,) bool: every entry of the row of (k, 3) float32 `a32` is finite, read off the bits
+    (all exponent bits set: inf or NaN). The same as `np.isfinite(a32).all(axis=1)`, whose
+    reduction over rows of three cost a fifth of `occluded_pairs` on the sample-direction
+    pairs of R's visibility."""
+    u = a32.view(np.uint32)
+    return ((u[:, 0] & _EXPONENT) != _EXPONENT) & ((u[:, 1] & _EXPONENT) != _EXPONENT) & \
+        ((u[:, 2] & _EXPONENT) != _EXPONENT)
+
+
+def _nonzero_rows(a32: np.ndarray) -> np.ndarray:
+    """(k,) bool: the row of (k, 3) float32 `a32` has an entry other than ±0 (NaN counts),
+    as `np.any(a32 != 0, axis=1)` but on the bits (`_finite_rows`)."""
+    u = a32.view(np.uint32)
+    return ((u[:, 0] | u[:, 1] | u[:, 2]) & _MAGNITUDE) != 0
+
+
 def _ray_block(o: np.ndarray, d: np.ndarray, scale: np.ndarray | None, live: np.ndarray | None):
     """(b, 6) float32 rays [o, d * scale]; rays not `live` become harmless (origin 0, dir +z)."""
     rays = np.empty((o.shape[0], 6), dtype=np.float32)
@@ -281,9 +302,12 @@ class RayCaster:
         self.rays_cast += n
         with np.errstate(invalid="ignore", over="ignore"):
             o32, d32 = o.astype(np.float32), d.astype(np.float32)
-        live_o = np.all(np.isfinite(o32), axis=1)
-        live_d = np.all(np.isfinite(d32), axis=1) & np.any(d32 != 0, axis=1)
-        o32[~live_o], d32[~live_d] = _HARMLESS[:3], _HARMLESS[3:]
+        live_o = _finite_rows(o32)
+        live_d = _finite_rows(d32) & _nonzero_rows(d32)
+        if not live_o.all():
+            o32[~live_o] = _HARMLESS[:3]
+        if not live_d.all():
+            d32[~live_d] = _HARMLESS[3:]
         # a point as one 12-byte item: np.take of items (indices checked above, so mode
         # "clip" clips nothing and skips the buffered bounds check) is ~4x numpy's fancy
         # indexing of (k, 3) rows into the strided halves of the ray block
