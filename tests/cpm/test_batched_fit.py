@@ -19,7 +19,15 @@ from texelbake.cpm.fit import channel_correlation, fit_texel
 from texelbake.cpm.gram import linalg as gram_linalg
 from texelbake.cpm.gram.fit import GramTexel, fit_many
 from texelbake.cpm.gram.linalg import batched_eigh
-from texelbake.cpm.level import brdf_grid, direction_sets, level_candidates, tile_texels, world_dirs
+from texelbake.cpm.level import (
+    brdf_grid,
+    direction_sets,
+    level_candidates,
+    texel_dirs,
+    tile_texels,
+    visibility_cos,
+    world_dirs,
+)
 from texelbake.cpm.level_batched import chunk_bounds, fit_level_batched
 from texelbake.cpm.level_per_texel import fit_level_per_texel
 from texelbake.cpm.texel_fit import FitParams
@@ -191,6 +199,30 @@ def test_brdf_product_equals_brdf_grid_on_live_entries(small_scene):
     got = brdf_product(src.geo, src.materials, cands.sample, wi, wo, sparse)
     ref = brdf_grid(src, cands.sample, wi, wo, sparse)
     np.testing.assert_array_equal(got.transpose(2, 3, 1, 0)[sparse], ref[sparse])
+
+
+def test_directions_shared_by_a_texels_samples_equal_their_own(small_scene):
+    """`texel_dirs` gives each run of a texel's samples one row of world directions, equal bit
+    for bit to `world_dirs` per sample (grouped texels, and texels that recur out of order),
+    and `visibility_cos` on those rows equals it on every sample's own directions (the same
+    rays: its occlusion is a step function of them)."""
+    src = small_scene.fit_inputs()
+    cands = level_candidates(src, 0, tile_texels(16, 8, 0, 0), None)
+    dirs = direction_sets(src.settings)
+    frames = src.geo["frames_L0"]
+    for order in (np.arange(len(cands.sample)),
+                  np.random.default_rng(2).permutation(len(cands.sample))):
+        tex, smp = cands.texel[order], cands.sample[order]
+        for key, cosine in (("dirs_i", "shading"), ("dirs_o", "geometric")):
+            per = world_dirs(frames, tex, dirs[key])
+            shared, row = texel_dirs(frames, tex, dirs[key])
+            np.testing.assert_array_equal(shared[row], per)
+            assert len(shared) == 1 + np.count_nonzero(tex[1:] != tex[:-1])
+            want = visibility_cos(src, smp, per, cosine)
+            assert 0 < np.count_nonzero(want == 0) < want.size
+            np.testing.assert_array_equal(visibility_cos(src, smp, shared, cosine, row), want)
+    empty = texel_dirs(frames, np.zeros(0, np.int64), dirs["dirs_o"])
+    assert empty[0].shape == (0, len(dirs["dirs_o"]), 3) and empty[1].shape == (0,)
 
 
 def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):

@@ -9,7 +9,7 @@ import numpy as np
 
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.dense import LevelPass
-from texelbake.cpm.level import PointSet, visibility_cos, world_dirs
+from texelbake.cpm.level import PointSet, texel_dirs, visibility_cos
 
 #: bytes of temporaries per (sample, direction pair) while the BRDF is evaluated (local
 #: directions, the model's intermediates, f): a sample batch uses a quarter of the budget
@@ -39,10 +39,11 @@ def build_R(lp: LevelPass, cset: PointSet, inv_o: np.ndarray | None = None,
     for s0 in range(0, P, step):  # loop over sample batches (memory bound)
         part = cset.take(np.arange(s0, min(s0 + step, P)))
         p = len(part.sample)
-        wi = world_dirs(frames, part.texel, dirs["dirs_i"])
-        wo = world_dirs(frames, part.texel, dirs["dirs_o"])
-        vi = visibility_cos(src, part.sample, wi)
-        vo = visibility_cos(src, part.sample, wo, "geometric")
+        wi_t, row = texel_dirs(frames, part.texel, dirs["dirs_i"])  # once per texel
+        wo_t, _ = texel_dirs(frames, part.texel, dirs["dirs_o"])
+        vi = visibility_cos(src, part.sample, wi_t, row=row)
+        vo = visibility_cos(src, part.sample, wo_t, "geometric", row)
+        wi, wo = wi_t[row], wo_t[row]  # (p, n_i, 3), (p, n_o, 3) for the BRDF
         live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)  # (n_i, n_o, p)
         f = brdf_product(src.geo, src.materials, part.sample, wi, wo, live,
                          var=part.var)  # (3, p, n_i, n_o)

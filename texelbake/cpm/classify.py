@@ -41,7 +41,13 @@ import numpy as np
 from texelbake.cpm.avis.closed_form import unoccluded_samples
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.dense import LevelPass
-from texelbake.cpm.level import clusters_level0, segment_sum, visibility_cos, world_dirs
+from texelbake.cpm.level import (
+    clusters_level0,
+    segment_sum,
+    texel_dirs,
+    visibility_cos,
+    world_dirs,
+)
 from texelbake.tol import TOL
 
 #: light and view directions of the training grid on whose product the BRDF's
@@ -327,9 +333,10 @@ def visibility_patterns(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
     d_i = dirs["dirs_i"] if light is None else dirs["dirs_i"][light]
     d_o = dirs["dirs_o"] if view is None else dirs["dirs_o"][view]
     rays0 = src.caster.rays_cast
+    (w_i, row), (w_o, _) = texel_dirs(lp.frames, tex, d_i), texel_dirs(lp.frames, tex, d_o)
     vis = np.concatenate([
-        visibility_cos(src, smp, world_dirs(lp.frames, tex, d_i)) > 0,
-        visibility_cos(src, smp, world_dirs(lp.frames, tex, d_o), "geometric") > 0,
+        visibility_cos(src, smp, w_i, row=row) > 0,
+        visibility_cos(src, smp, w_o, "geometric", row) > 0,
     ], axis=1)
     return vis, src.caster.rays_cast - rays0
 

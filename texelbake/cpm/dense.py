@@ -29,9 +29,9 @@ from texelbake.cpm.level import (
     direction_sets,
     samples_in,
     segment_sum,
+    texel_dirs,
     texel_ids,
     visibility_cos,
-    world_dirs,
 )
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
 from texelbake.cpm.truth_sample import measured_texels, truth_samples, validation_cap
@@ -181,8 +181,8 @@ def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
     avis = np.zeros((n_t, n_o))
     for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
         sl = slice(s0, s0 + step)
-        vc = visibility_cos(src, dense[sl], world_dirs(lp.frames, tex_l[sl], lp.dirs["dirs_o"]),
-                            "geometric")
+        wo, row = texel_dirs(lp.frames, tex_l[sl], lp.dirs["dirs_o"])
+        vc = visibility_cos(src, dense[sl], wo, "geometric", row)
         avis += segment_sum(vc * area_all[sl, None], dseg[sl], n_t, 0)
     area = segment_sum(area_all, dseg, n_t, 0)
     return avis, area
@@ -282,10 +282,11 @@ def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
     for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
         sl = slice(s0, s0 + step)
         smp, seg = dense[sl], dseg[sl]
-        wi = world_dirs(lp.frames, tex_l[sl], d_i)  # (p, h_i, 3), once per batch
-        wo = world_dirs(lp.frames, tex_l[sl], d_o)
-        vi = visibility_cos(src, smp, wi)
-        vo = visibility_cos(src, smp, wo, "geometric")
+        wi_t, row = texel_dirs(lp.frames, tex_l[sl], d_i)  # once per texel of the batch
+        wo_t, _ = texel_dirs(lp.frames, tex_l[sl], d_o)
+        vi = visibility_cos(src, smp, wi_t, row=row)
+        vo = visibility_cos(src, smp, wo_t, "geometric", row)
+        wi, wo = wi_t[row], wo_t[row]  # (p, h_i, 3), (p, h_o, 3) for the BRDF
         live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)
         f = brdf_product(src.geo, src.materials, smp, wi, wo, live)
         f *= vi[None, :, :, None]

@@ -180,10 +180,14 @@ def visibility_cos(
     sample: np.ndarray,
     dirs_world: np.ndarray,
     cosine: str = "shading",
+    row: np.ndarray | None = None,
 ) -> np.ndarray:
     """V(x, w) (n . w)+ for samples x and per-sample world directions.
 
-    sample : (p,) int64; dirs_world : (p, D, 3) float64
+    sample : (p,) int64; dirs_world : (p, D, 3) float64, or (u, D, 3) with `row`
+    row : (p,) int64 each sample's row of `dirs_world` (`texel_dirs`: the samples of a texel
+        share its directions), or None: row j for sample j. Shared rows are converted and
+        checked once for the rays, not once per sample.
     cosine : "shading" — (n_s . w)+ with the interpolated shading normal, for light directions
         (irradiance, as the `gt` renderer shades); "geometric" — (n_g . w)+ with the triangle's
         normal, for view directions (projected area, Eq. 3, as `texelbake.cpm.avis` defines a_vis), so that
@@ -191,21 +195,23 @@ def visibility_cos(
     returns : (p, D) float64 — visibility by rays against M_org times the clamped cosine; zero
         below the geometric or the shading horizon.
     """
-    p, n_dirs = dirs_world.shape[:2]
+    p, n_dirs = len(sample), dirs_world.shape[1]
     if p == 0 or n_dirs == 0:
         return np.zeros((p, n_dirs))
     geo = src.geo
     pos = geo["sample_pos"][sample]
     gn = geo["sample_gnrm"][sample]
     sn = geo["sample_nrm"][sample]
-    cos_g = np.einsum("pk,pdk->pd", gn, dirs_world)  # (p, D)
-    cos_s = np.einsum("pk,pdk->pd", sn, dirs_world)
+    per = dirs_world if row is None else dirs_world[row]  # (p, D, 3)
+    cos_g = np.einsum("pk,pdk->pd", gn, per)  # (p, D)
+    cos_s = np.einsum("pk,pdk->pd", sn, per)
     caster = src.caster
     live = (cos_g > TOL.grazing_cos) & (cos_s > TOL.grazing_cos)
     pi, di = np.nonzero(live)
     # offset once per sample; the caster pairs origins and directions into its float32 rays
     origins = pos + (TOL.ray_offset * caster.bbox_diag) * gn
-    occ = caster.occluded_pairs(origins, dirs_world.reshape(-1, 3), pi, pi * n_dirs + di)
+    occ = caster.occluded_pairs(origins, dirs_world.reshape(-1, 3), pi,
+                                (pi if row is None else row[pi]) * n_dirs + di)
     cos = cos_s if cosine == "shading" else cos_g
     # the live entries kept whole, only the occluded ones scattered (most rays escape)
     out = np.where(live, cos, 0.0)
@@ -231,6 +237,16 @@ def segment_sum(values: np.ndarray, seg: np.ndarray, n_seg: int, axis: int) -> n
 def world_dirs(frames: np.ndarray, texel: np.ndarray, dirs_local: np.ndarray) -> np.ndarray:
     """(p, D, 3) world directions of texel-frame `dirs_local` (D, 3) for points in `texel`."""
     return grid_to_world(frames[texel], dirs_local)
+
+
+def texel_dirs(frames: np.ndarray, texel: np.ndarray, dirs_local: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """`world_dirs` once per run of equal texels (points grouped by texel): (u, D, 3) world
+    directions and (p,) each point's row, `world_dirs(frames, texel, dirs_local)` equal to
+    `out[row]` bit for bit (each frame's product is computed alone either way)."""
+    texel = np.asarray(texel, np.int64)
+    first = np.r_[True, texel[1:] != texel[:-1]] if texel.size else np.zeros(0, bool)
+    return grid_to_world(frames[texel[first]], dirs_local), np.cumsum(first) - 1
 
 
 def brdf_grid(
