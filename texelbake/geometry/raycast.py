@@ -128,9 +128,9 @@ _MAGNITUDE = np.uint32(0x7FFFFFFF)
 
 def _finite_rows(a32: np.ndarray) -> np.ndarray:
     """(k,) bool: every entry of the row of (k, 3) float32 `a32` is finite, read off the bits
-    (all exponent bits set: inf or NaN). The same as `np.isfinite(a32).all(axis=1)`, whose
-    reduction over rows of three cost a fifth of `occluded_pairs` on the sample-direction
-    pairs of R's visibility."""
+    (all exponent bits set: inf or NaN). The same as `np.isfinite(a32).all(axis=1)`, without
+    numpy's slow reduction over rows of three (docs/decisions.md, "A ray's checks and
+    directions are paid once per texel")."""
     u = a32.view(np.uint32)
     return ((u[:, 0] & _EXPONENT) != _EXPONENT) & ((u[:, 1] & _EXPONENT) != _EXPONENT) & \
         ((u[:, 2] & _EXPONENT) != _EXPONENT)
