@@ -81,7 +81,7 @@ def test_point_eval_equals_full_inverse(rng, res):
     mi = rng.integers(0, c.n_maps, n)
     iu = rng.integers(0, res, n)
     iv = rng.integers(0, res, n)
-    for dense_limit in (0, 1 << 30):  # sparse search and dense gather paths
+    for dense_limit in (0, 1 << 30):  # the read maps and the whole table gathered
         pts = eval_haar_point(c, mi, iu, iv, dense_limit=dense_limit)
         assert pts.shape == (n,) and pts.dtype == np.float64
         np.testing.assert_allclose(pts, full[mi, iv, iu], rtol=0, atol=1e-12)
@@ -169,3 +169,17 @@ def test_float16_values_round_trip_exactly(rng):
     q2, deq2 = quantize_values(deq, scale)  # re-storing a read table changes nothing
     np.testing.assert_array_equal(q2, q)
     np.testing.assert_array_equal(dequantize_values(q2, scale), deq)
+
+
+def test_point_eval_on_the_read_maps_equals_the_whole_table_bit_for_bit(rng):
+    """A large table's pixels are gathered from the maps they read, scattered dense in blocks
+    of at most `dense_limit` entries (one map a block, a few, all): the same values, bit for
+    bit, as the whole table's dense array, for pixels of repeated and unsorted maps."""
+    res = 16
+    c = compress_haar(_smooth_maps(rng, (30, 6), res), 0.05)
+    n = 3000
+    mi = rng.integers(0, c.n_maps, n)
+    iu, iv = rng.integers(0, res, n), rng.integers(0, res, n)
+    want = eval_haar_point(c, mi, iu, iv, dense_limit=1 << 30)
+    for limit in (0, 3 * res * res, 50 * res * res):
+        np.testing.assert_array_equal(eval_haar_point(c, mi, iu, iv, dense_limit=limit), want)

@@ -119,12 +119,9 @@ class RenderScene(OrgScene):
         self._nm: dict[str, np.ndarray] | None = None
         self._btf: Any = None
         # the per-scene layout of the maps, like the ray-tracing structures: float64 points of
-        # every level and the a_vis tables' search keys (0.13 s of the full wall's first cpm
-        # frame when left to it)
+        # every level
         for j in range(len(self.baked.levels)):
             self.points(j)
-        for table in self._tables:
-            _ = table.haar.sorted_keys
         self.setup_seconds = time.perf_counter() - t0
 
     def avis_table(self, level: int):
