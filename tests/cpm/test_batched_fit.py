@@ -215,14 +215,14 @@ def test_directions_shared_by_a_texels_samples_equal_their_own(small_scene):
         tex, smp = cands.texel[order], cands.sample[order]
         for key, cosine in (("dirs_i", "shading"), ("dirs_o", "geometric")):
             per = world_dirs(frames, tex, dirs[key])
-            shared, row = texel_dirs(frames, tex, dirs[key])
-            np.testing.assert_array_equal(shared[row], per)
-            assert len(shared) == 1 + np.count_nonzero(tex[1:] != tex[:-1])
+            shared = texel_dirs(frames, tex, dirs[key])
+            np.testing.assert_array_equal(shared.per_sample, per)
+            assert len(shared.rows) == 1 + np.count_nonzero(tex[1:] != tex[:-1])
             want = visibility_cos(src, smp, per, cosine)
             assert 0 < np.count_nonzero(want == 0) < want.size
-            np.testing.assert_array_equal(visibility_cos(src, smp, shared, cosine, row), want)
+            np.testing.assert_array_equal(visibility_cos(src, smp, shared, cosine), want)
     empty = texel_dirs(frames, np.zeros(0, np.int64), dirs["dirs_o"])
-    assert empty[0].shape == (0, len(dirs["dirs_o"]), 3) and empty[1].shape == (0,)
+    assert empty.rows.shape == (0, len(dirs["dirs_o"]), 3) and empty.row.shape == (0,)
 
 
 def test_batched_level_against_per_texel_loop_and_memory_bound(small_scene):

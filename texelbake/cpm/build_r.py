@@ -39,11 +39,11 @@ def build_R(lp: LevelPass, cset: PointSet, inv_o: np.ndarray | None = None,
     for s0 in range(0, P, step):  # loop over sample batches (memory bound)
         part = cset.take(np.arange(s0, min(s0 + step, P)))
         p = len(part.sample)
-        wi_t, row = texel_dirs(frames, part.texel, dirs["dirs_i"])  # once per texel
-        wo_t, _ = texel_dirs(frames, part.texel, dirs["dirs_o"])
-        vi = visibility_cos(src, part.sample, wi_t, row=row)
-        vo = visibility_cos(src, part.sample, wo_t, "geometric", row)
-        wi, wo = wi_t[row], wo_t[row]  # (p, n_i, 3), (p, n_o, 3) for the BRDF
+        wi_d = texel_dirs(frames, part.texel, dirs["dirs_i"])  # once per texel
+        wo_d = texel_dirs(frames, part.texel, dirs["dirs_o"])
+        vi = visibility_cos(src, part.sample, wi_d)
+        vo = visibility_cos(src, part.sample, wo_d, "geometric")
+        wi, wo = wi_d.per_sample, wo_d.per_sample  # (p, n_i, 3), (p, n_o, 3) for the BRDF
         live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)  # (n_i, n_o, p)
         f = brdf_product(src.geo, src.materials, part.sample, wi, wo, live,
                          var=part.var)  # (3, p, n_i, n_o)

@@ -333,10 +333,9 @@ def visibility_patterns(lp: LevelPass, texels: np.ndarray, dense: np.ndarray,
     d_i = dirs["dirs_i"] if light is None else dirs["dirs_i"][light]
     d_o = dirs["dirs_o"] if view is None else dirs["dirs_o"][view]
     rays0 = src.caster.rays_cast
-    (w_i, row), (w_o, _) = texel_dirs(lp.frames, tex, d_i), texel_dirs(lp.frames, tex, d_o)
     vis = np.concatenate([
-        visibility_cos(src, smp, w_i, row=row) > 0,
-        visibility_cos(src, smp, w_o, "geometric", row) > 0,
+        visibility_cos(src, smp, texel_dirs(lp.frames, tex, d_i)) > 0,
+        visibility_cos(src, smp, texel_dirs(lp.frames, tex, d_o), "geometric") > 0,
     ], axis=1)
     return vis, src.caster.rays_cast - rays0
 

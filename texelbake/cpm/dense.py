@@ -181,8 +181,8 @@ def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
     avis = np.zeros((n_t, n_o))
     for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
         sl = slice(s0, s0 + step)
-        wo, row = texel_dirs(lp.frames, tex_l[sl], lp.dirs["dirs_o"])
-        vc = visibility_cos(src, dense[sl], wo, "geometric", row)
+        vc = visibility_cos(src, dense[sl], texel_dirs(lp.frames, tex_l[sl], lp.dirs["dirs_o"]),
+                            "geometric")
         avis += segment_sum(vc * area_all[sl, None], dseg[sl], n_t, 0)
     area = segment_sum(area_all, dseg, n_t, 0)
     return avis, area
@@ -282,11 +282,11 @@ def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
     for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
         sl = slice(s0, s0 + step)
         smp, seg = dense[sl], dseg[sl]
-        wi_t, row = texel_dirs(lp.frames, tex_l[sl], d_i)  # once per texel of the batch
-        wo_t, _ = texel_dirs(lp.frames, tex_l[sl], d_o)
-        vi = visibility_cos(src, smp, wi_t, row=row)
-        vo = visibility_cos(src, smp, wo_t, "geometric", row)
-        wi, wo = wi_t[row], wo_t[row]  # (p, h_i, 3), (p, h_o, 3) for the BRDF
+        wi_d = texel_dirs(lp.frames, tex_l[sl], d_i)  # once per texel of the batch
+        wo_d = texel_dirs(lp.frames, tex_l[sl], d_o)
+        vi = visibility_cos(src, smp, wi_d)
+        vo = visibility_cos(src, smp, wo_d, "geometric")
+        wi, wo = wi_d.per_sample, wo_d.per_sample  # (p, h_i, 3), (p, h_o, 3) for the BRDF
         live = (vi.T[:, None, :] > 0) & (vo.T[None, :, :] > 0)
         f = brdf_product(src.geo, src.materials, smp, wi, wo, live)
         f *= vi[None, :, :, None]

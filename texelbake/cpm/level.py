@@ -15,6 +15,7 @@ does not depend on how texels are sharded.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -178,16 +179,13 @@ class PointSet:
 def visibility_cos(
     src: FitInputs,
     sample: np.ndarray,
-    dirs_world: np.ndarray,
+    dirs_world: np.ndarray | TexelDirs,
     cosine: str = "shading",
-    row: np.ndarray | None = None,
 ) -> np.ndarray:
     """V(x, w) (n . w)+ for samples x and per-sample world directions.
 
-    sample : (p,) int64; dirs_world : (p, D, 3) float64, or (u, D, 3) with `row`
-    row : (p,) int64 each sample's row of `dirs_world` (`texel_dirs`: the samples of a texel
-        share its directions), or None: row j for sample j. Shared rows are converted and
-        checked once for the rays, not once per sample.
+    sample : (p,) int64; dirs_world : (p, D, 3) float64, or `TexelDirs` (the samples of a
+        texel share its directions: converted and checked once for the rays, not per sample)
     cosine : "shading" — (n_s . w)+ with the interpolated shading normal, for light directions
         (irradiance, as the `gt` renderer shades); "geometric" — (n_g . w)+ with the triangle's
         normal, for view directions (projected area, Eq. 3, as `texelbake.cpm.avis` defines a_vis), so that
@@ -195,14 +193,18 @@ def visibility_cos(
     returns : (p, D) float64 — visibility by rays against M_org times the clamped cosine; zero
         below the geometric or the shading horizon.
     """
-    p, n_dirs = len(sample), dirs_world.shape[1]
+    # the rays' directions (a texel's shared rows, or each sample's own) and each sample's row
+    if isinstance(dirs_world, TexelDirs):
+        per, flat, rid = dirs_world.per_sample, dirs_world.rows, dirs_world.row
+    else:
+        per, flat, rid = dirs_world, dirs_world, None
+    p, n_dirs = len(sample), flat.shape[1]
     if p == 0 or n_dirs == 0:
         return np.zeros((p, n_dirs))
     geo = src.geo
     pos = geo["sample_pos"][sample]
     gn = geo["sample_gnrm"][sample]
     sn = geo["sample_nrm"][sample]
-    per = dirs_world if row is None else dirs_world[row]  # (p, D, 3)
     cos_g = np.einsum("pk,pdk->pd", gn, per)  # (p, D)
     cos_s = np.einsum("pk,pdk->pd", sn, per)
     caster = src.caster
@@ -210,8 +212,8 @@ def visibility_cos(
     pi, di = np.nonzero(live)
     # offset once per sample; the caster pairs origins and directions into its float32 rays
     origins = pos + (TOL.ray_offset * caster.bbox_diag) * gn
-    occ = caster.occluded_pairs(origins, dirs_world.reshape(-1, 3), pi,
-                                (pi if row is None else row[pi]) * n_dirs + di)
+    occ = caster.occluded_pairs(origins, flat.reshape(-1, 3), pi,
+                                (pi if rid is None else rid[pi]) * n_dirs + di)
     cos = cos_s if cosine == "shading" else cos_g
     # the live entries kept whole, only the occluded ones scattered (most rays escape)
     out = np.where(live, cos, 0.0)
@@ -239,14 +241,28 @@ def world_dirs(frames: np.ndarray, texel: np.ndarray, dirs_local: np.ndarray) ->
     return grid_to_world(frames[texel], dirs_local)
 
 
-def texel_dirs(frames: np.ndarray, texel: np.ndarray, dirs_local: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """`world_dirs` once per run of equal texels (points grouped by texel): (u, D, 3) world
-    directions and (p,) each point's row, `world_dirs(frames, texel, dirs_local)` equal to
-    `out[row]` bit for bit (each frame's product is computed alone either way)."""
+@dataclass
+class TexelDirs:
+    """World directions shared by runs of points of one texel: rows (u, D, 3) and each
+    point's row (p,) (`texel_dirs`)."""
+
+    rows: np.ndarray
+    row: np.ndarray
+
+    @functools.cached_property
+    def per_sample(self) -> np.ndarray:
+        """(p, D, 3) each point's directions, gathered once (the cosines and the BRDF read
+        them)."""
+        return self.rows[self.row]
+
+
+def texel_dirs(frames: np.ndarray, texel: np.ndarray, dirs_local: np.ndarray) -> TexelDirs:
+    """`world_dirs` once per run of equal texels (points grouped by texel), its `per_sample`
+    equal to `world_dirs(frames, texel, dirs_local)` bit for bit (each frame's product is
+    computed alone either way)."""
     texel = np.asarray(texel, np.int64)
     first = np.r_[True, texel[1:] != texel[:-1]] if texel.size else np.zeros(0, bool)
-    return grid_to_world(frames[texel[first]], dirs_local), np.cumsum(first) - 1
+    return TexelDirs(grid_to_world(frames[texel[first]], dirs_local), np.cumsum(first) - 1)
 
 
 def brdf_grid(
