@@ -61,12 +61,9 @@ def test_budget_within_a_grid_step_of_the_exact_bisection(bumpy):
     grid step (1.4 %) of the exact bisection's largest (`haar.budget_mask`, the rule before)."""
     src = cz.chunks_of(bumpy, 10 ** 6)
     c = cz._chunk(src, 0)
-    _, order, tail, nonzero = cz._shares(c)
+    _, share, _, tail, nonzero = cz._shares(c)
     r = bumpy.ray_texels.shape[0]
     budget = max(r, int(np.ceil(KEEP * r * 6 * bumpy.res ** 2)))
-    share = np.take_along_axis(  # the shares in their original layout
-        -np.diff(np.concatenate([tail, np.zeros((r, 1))], axis=1), axis=1),
-        np.argsort(order, axis=1), axis=1)
     exact = budget_mask(share, budget)
     tau = cz._level_tau(cz.chunks_of(bumpy, 7), KEEP)
     kept = np.clip((tail > tau).sum(axis=1), 1, np.maximum(nonzero, 1))
@@ -217,3 +214,22 @@ def test_threads_do_not_change_the_table(bumpy, monkeypatch):
         monkeypatch.setenv("TEXELBAKE_COMPRESS_THREADS", bad)
         with pytest.raises(SettingsError, match="TEXELBAKE_COMPRESS_THREADS"):
             compress_threads()
+
+
+def test_top_mask_keeps_a_stable_argsorts_first_entries():
+    """Which coefficients a count keeps, from the sorted values alone, against the first `cnt`
+    of a stable argsort of -share (the order the selection is defined by): rows with many
+    ties (shares on a coarse grid, zeros), every count from 1 to n."""
+    rng = np.random.default_rng(3)
+    k, n = 64, 96
+    share = rng.integers(0, 6, (k, n)).astype(np.float64) / 8.0  # ties in every row
+    share[:4] = 0.0  # rows of zeros only
+    share[4:8] = rng.random((4, n))  # rows without ties
+    srt = np.sort(share, axis=1)[:, ::-1]
+    order = np.argsort(-share, axis=1, kind="stable")
+    for cnt in (np.ones(k, np.int64), np.full(k, n), rng.integers(1, n + 1, k)):
+        want = np.zeros((k, n), bool)
+        np.put_along_axis(want, order, np.arange(n)[None, :] < cnt[:, None], axis=1)
+        got = cz._top_mask(share, srt, cnt)
+        assert np.array_equal(got, want)
+        assert np.array_equal(got.sum(axis=1), cnt)
