@@ -236,6 +236,9 @@ def test_occluded_pairs_equals_occluded_on_the_gathered_rays():
     assert np.array_equal(caster.occluded_pairs(o, d, jj, dd), want)
     assert np.array_equal(caster.occluded_pairs(o, d, jj, dd, batch=7), want)
     assert not caster.occluded_pairs(o, d, jj[-4:], dd[-4:]).any()
+    ok = (jj < 40) & (dd < 30)  # every ray live: the path that skips the liveness gathers
+    assert np.array_equal(caster.occluded_pairs(o[:40], d[:30], jj[ok], dd[ok], batch=64),
+                          want[ok])
     with pytest.raises(ShapeError):
         caster.occluded_pairs(o, d, np.array([42]), np.array([0]))
     with pytest.raises(ShapeError):

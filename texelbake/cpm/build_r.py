@@ -31,11 +31,12 @@ def build_R(lp: LevelPass, cset: PointSet, inv_o: np.ndarray | None = None,
     src, frames, dirs = lp.src, lp.frames, lp.dirs
     n_i, n_o = len(dirs["dirs_i"]), len(dirs["dirs_o"])
     P = len(cset.sample)
-    Rt = np.empty((3, P, n_i * n_o))
+    step = max(lp.budget // 4 // (BYTES_PER_EVAL_ENTRY * n_i * n_o), 1)
+    # one batch: R is its f itself (no copy); several: each batch's f copied into R
+    Rt = None if step >= P else np.empty((3, P, n_i * n_o))
     fused = inv_o is not None
     s1 = np.zeros((P, 3))
     s2 = np.zeros((P, 3, 3))
-    step = max(lp.budget // 4 // (BYTES_PER_EVAL_ENTRY * n_i * n_o), 1)
     for s0 in range(0, P, step):  # loop over sample batches (memory bound)
         part = cset.take(np.arange(s0, min(s0 + step, P)))
         p = len(part.sample)
@@ -54,7 +55,12 @@ def build_R(lp: LevelPass, cset: PointSet, inv_o: np.ndarray | None = None,
             s1[s0:s0 + p] = f2.sum(axis=2).T
             s2[s0:s0 + p] = np.matmul(f2.transpose(1, 0, 2), f2.transpose(1, 2, 0))
             f *= inv_o[seg[s0:s0 + p]][None, :, None, :]
-        Rt[:, s0:s0 + p] = f2
+        if Rt is None:
+            Rt = f2
+        else:
+            Rt[:, s0:s0 + p] = f2
+    if Rt is None:  # no candidate
+        Rt = np.empty((3, 0, n_i * n_o))
     if fused:
         return Rt, s1, s2
     return Rt

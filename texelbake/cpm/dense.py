@@ -304,8 +304,8 @@ def held_pass(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
                                n_t, 1).transpose(1, 2, 3, 0)
         if want_ref:
             avis_h += segment_sum(vo * area_all[sl, None], seg, n_t, 0)
-            ref += segment_sum(f * area_all[sl][None, :, None, None], seg, n_t, 1
-                               ).transpose(1, 2, 3, 0)
+            f *= area_all[sl][None, :, None, None]  # f is not read again: weighted in place
+            ref += segment_sum(f, seg, n_t, 1).transpose(1, 2, 3, 0)
     return ref, apx, avis_h
 
 

@@ -309,18 +309,22 @@ class RayCaster:
         if not live_d.all():
             d32[~live_d] = _HARMLESS[3:]
         # a point as one 12-byte item: np.take of items (indices checked above, so mode
-        # "clip" clips nothing and skips the buffered bounds check) is ~4x numpy's fancy
-        # indexing of (k, 3) rows into the strided halves of the ray block
+        # "clip" clips nothing and skips the buffered bounds check) into a contiguous block,
+        # then copied as float32 columns into the ray block's halves: ~4x numpy's fancy
+        # indexing of (k, 3) rows, and ~1.7x a take straight into the strided halves (numpy
+        # copies void items to a strided `out` one by one)
         o_item = o32.view("V12").ravel()
         d_item = d32.view("V12").ravel()
+        all_live = bool(live_o.all() and live_d.all())
         batch = max(int(batch), 1)
         for start in range(0, n, batch):  # a loop over large batches, not rays
             sl = slice(start, start + batch)
-            items = np.empty((jj[sl].shape[0], 2), dtype="V12")
-            np.take(o_item, jj[sl], out=items[:, 0], mode="clip")
-            np.take(d_item, dd[sl], out=items[:, 1], mode="clip")
-            rays = items.view(np.float32).reshape(-1, 6)
-            out[sl] = self._test(rays, np.inf) & live_o[jj[sl]] & live_d[dd[sl]]
+            k = jj[sl].shape[0]
+            rays = np.empty((k, 6), dtype=np.float32)
+            rays[:, :3] = np.take(o_item, jj[sl], mode="clip").view(np.float32).reshape(k, 3)
+            rays[:, 3:] = np.take(d_item, dd[sl], mode="clip").view(np.float32).reshape(k, 3)
+            hit = self._test(rays, np.inf)
+            out[sl] = hit if all_live else hit & live_o[jj[sl]] & live_d[dd[sl]]
         if self.cutout is not None and out.any():
             idx = np.flatnonzero(out)
             out[idx] = self._cast_through(o[jj[idx]], d[dd[idx]], batch).hit
