@@ -337,3 +337,22 @@ def test_a_wide_texel_read_by_blocks_is_fitted_as_if_held(small_scene, monkeypat
     assert lazy["valid"].sum() >= 5
     for k in lazy:
         np.testing.assert_array_equal(lazy[k], whole[k], err_msg=k)
+
+
+def test_segment_sum_adds_each_segments_terms_in_their_order():
+    """`segment_sum` against a loop that adds every term to its segment's row in input
+    order, bit for bit: along a middle axis and the first, ids ascending with empty
+    segments, ids unsorted (a segment's terms still in their order), and no terms."""
+    from texelbake.cpm.level import segment_sum
+
+    rng = np.random.default_rng(4)
+    seg = np.sort(rng.integers(0, 9, 300))
+    seg = seg[seg != 4]  # an empty segment inside, and 9..11 empty at the end
+    v = rng.normal(size=(3, seg.size, 4, 5)) * 10.0 ** rng.integers(-8, 8, (3, seg.size, 1, 1))
+    for ids in (seg, rng.permutation(seg)):
+        want = np.zeros((3, 12, 4, 5))
+        for j, s in enumerate(ids):  # the reference: one term at a time
+            want[:, s] += v[:, j]
+        assert np.array_equal(segment_sum(v, ids, 12, 1), want)
+        assert np.array_equal(segment_sum(v[1], ids, 12, 0), want[1])
+    assert segment_sum(np.zeros((0, 2)), np.zeros(0, np.int64), 3, 0).shape == (3, 2)

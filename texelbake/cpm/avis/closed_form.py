@@ -81,8 +81,7 @@ def unoccluded_samples(positions: np.ndarray, normals: np.ndarray, mesh_points: 
     #   upper: with centre c, R = max |y - c| and the hull facet (e, off) nearest to n,
     #          h(n) <= n.c + (-off - e.c) + |n - e| R  (a sample on a hull facet passes);
     #   exact: max over all hull vertices, for the undecided normals only.
-    uniq, inv = np.unique(nrm + 0.0, axis=0, return_inverse=True)
-    inv = inv.ravel()
+    uniq, inv = unique_rows(nrm + 0.0)
     thresh = np.einsum("ji,ji->j", nrm, pos) + eps  # sample passes iff h(n_j) <= thresh_j
     sub = cand[np.linspace(0, cand.shape[0] - 1, min(cand.shape[0], 256)).astype(np.int64)]
     lower = (uniq @ sub.T).max(axis=1)  # (U,)
@@ -157,6 +156,18 @@ class ClosedForm:
         return out
 
 
+def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`np.unique(a, axis=0, return_inverse=True)` of a finite (n, k) float array without
+    -0.0 entries (the same rows in the same order, the inverse flat), by a lexsort of its
+    columns: ~4x faster than numpy's sort of rows as structured items."""
+    order = np.lexsort(a.T[::-1])
+    srt = a[order]
+    new = np.r_[True, (srt[1:] != srt[:-1]).any(axis=1)] if a.shape[0] else np.zeros(0, bool)
+    inv = np.empty(a.shape[0], np.int64)
+    inv[order] = np.cumsum(new) - 1
+    return srt[new], inv
+
+
 def merge_terms(owner: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                  n_texels: int) -> ClosedForm:
     """Merge terms with equal (owner, normal), (n.w)^+ a1 + (n.w)^+ a2 = (n.w)^+ (a1 + a2)."""
@@ -165,8 +176,7 @@ def merge_terms(owner: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     if owner.size == 0:
         return ClosedForm(np.zeros(n_texels + 1, np.int64), np.zeros((0, 3)), np.zeros(0))
     rows = np.column_stack([owner.astype(np.float64), normals + 0.0])  # +0.0: -0.0 -> 0.0
-    uniq, inv = np.unique(rows, axis=0, return_inverse=True)
-    inv = inv.ravel()
+    uniq, inv = unique_rows(rows)
     merged_area = np.bincount(inv, weights=areas, minlength=uniq.shape[0])
     u_owner = uniq[:, 0].astype(np.int64)
     offsets = np.searchsorted(u_owner, np.arange(n_texels + 1)).astype(np.int64)
