@@ -765,3 +765,36 @@ def test_unique_rows_equals_numpys_unique_of_rows():
         got, inv = unique_rows(a)
         assert got.tobytes() == want.tobytes() and got.shape == want.shape
         assert np.array_equal(inv, want_inv.ravel())
+
+
+def test_table_through_a_usdc_file_and_the_packed_layout_read_alike(tmp_path):
+    """The table's arrays authored on a prim of a .usdc layer, saved and read back
+    (`author_array`, `_read_arrays`: indices as uint[], values as half[]) give the same
+    table, bit for bit; the packed layout of earlier bakes (index and value bits in one
+    uint32) still reads to it."""
+    from pxr import Usd
+
+    from texelbake.usd.read import _read_arrays
+    from texelbake.usd.write import author_array
+
+    s = _plate_scene(hole=True)
+    lvl = avis_level(s["pos"], s["nrm"], s["ar"], s["tex"], 4, 4, s["caster"].occluded,
+                     s["pts"])
+    table = compress_level(lvl, _frames_identity(16), 0.1)
+    arrays = table.to_arrays()
+    assert arrays["haar_half"].dtype == np.float16 and "haar_packed" not in arrays
+    path = tmp_path / "table.usdc"
+    stage = Usd.Stage.CreateNew(str(path))
+    prim = stage.DefinePrim("/T")
+    for name, arr in arrays.items():
+        author_array(prim, name, arr)
+    stage.GetRootLayer().Save()
+    back = Usd.Stage.Open(str(path))
+    read = _read_arrays(back.GetPrimAtPath("/T"))
+    packed = dict(arrays)
+    packed["haar_packed"] = (packed.pop("haar_index")
+                             | (packed.pop("haar_half").view(np.uint16).astype(np.uint32) << 16))
+    for got in (AvisTable.from_arrays(read), AvisTable.from_arrays(packed)):
+        assert np.array_equal(got.haar.indices, table.haar.indices)
+        assert got.haar.values.tobytes() == table.haar.values.tobytes()
+        assert np.array_equal(got.haar.offsets, table.haar.offsets)
