@@ -336,7 +336,8 @@ def test_the_held_out_truth_is_priced_on_its_samples():
 def test_a_vis_rays_are_priced_on_the_samples_that_cast_them():
     """avis_level0 "by_need" casts level 0's cube from a few strata per texel: the a_vis
     stage's ray term scales with the samples given (`avis_ray_samples`), its per-sample maps
-    term does not; the pipeline counts at most K_SAMPLES per texel."""
+    term does not; the pipeline counts at most `strata_for(side)` per texel (16 up to 128²,
+    8 at 512²)."""
     from texelbake.pipeline.estimate import avis_ray_samples
 
     n, spt = 8, 40
@@ -350,6 +351,8 @@ def test_a_vis_rays_are_priced_on_the_samples_that_cast_them():
     assert rays.avis_seconds == pytest.approx(every.avis_seconds * 16 / spt, rel=1e-12)
     maps = costmodel.estimate(s, 1, counts, coef=_only(avis_fixed=1e-6), avis_ray_samples=k)
     assert maps.avis_seconds == pytest.approx(1e-6 * n * n * spt, rel=1e-12)
+    fine = s.model_copy(update={"atlas_resolution": 512})
+    assert avis_ray_samples(fine, counts) == 8 * n * n
 
 
 def test_atlas_trade_prices_the_classes_by_texel_size():

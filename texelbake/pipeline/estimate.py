@@ -116,13 +116,14 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
 
 def avis_ray_samples(settings, counts: np.ndarray) -> float | None:
     """The samples that cast level 0's a_vis rays with avis_level0 "by_need": at most
-    `K_SAMPLES` strata of each texel (one for a one-facet, one-pattern texel: an upper bound);
-    None with "dense" (every sample)."""
-    from texelbake.cpm.avis.by_need import K_SAMPLES
+    `strata_for(atlas side)` strata of each texel (one for a one-facet, one-pattern texel:
+    an upper bound); None with "dense" (every sample)."""
+    from texelbake.cpm.avis.by_need import strata_for
 
     if settings.avis_level0 != "by_need":
         return None
-    return float(np.minimum(np.asarray(counts), K_SAMPLES).sum())
+    k = strata_for(settings.atlas_resolution)
+    return float(np.minimum(np.asarray(counts), k).sum())
 
 
 def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> dict:

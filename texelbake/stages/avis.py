@@ -8,6 +8,7 @@ import threading
 import numpy as np
 
 from texelbake.cpm import avis as avis_mod
+from texelbake.cpm.avis.by_need import strata_for
 from texelbake.cpm.avis.compress import CHUNK_ROWS, LevelChunks, chunks_of
 from texelbake.cpm.avis.resample import avis_at
 from texelbake.cpm.level import direction_sets, samples_in
@@ -53,6 +54,7 @@ def run_avis_tile(ctx: StageContext, shard: int) -> str:
         geo["sample_pos"][idx], geo["sample_gnrm"][idx], geo["sample_area"][idx], local, side,
         s.avis_resolution, caster.occluded, ctx.asset().points,
         ray_eps=TOL.ray_offset * caster.bbox_diag, samples=s.avis_level0,
+        k_samples=strata_for(n),
     )
     out = _avis_level_arrays(level, "L00_")
     out["rays"] = np.array([caster.rays_cast - rays0], np.int64)

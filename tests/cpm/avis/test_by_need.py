@@ -158,3 +158,11 @@ def test_unknown_samples_mode_raises():
     pos, nrm, ar, tex, n_side, mp = _flat_ground()
     with pytest.raises(SettingsError):
         avis_level(pos, nrm, ar, tex, n_side, RES, _far_wall, mp, samples="every")
+
+
+def test_strata_follow_the_atlas_side():
+    """K_SAMPLES up to 128², then ceil(16 sqrt(128 / side)) down to K_MIN: by hand."""
+    from texelbake.cpm.avis.by_need import K_MIN, K_SAMPLES, strata_for
+
+    assert [strata_for(s) for s in (1, 16, 64, 128)] == [K_SAMPLES] * 4
+    assert [strata_for(s) for s in (256, 512, 1024, 2048, 1 << 16)] == [12, 8, 6, 4, K_MIN]

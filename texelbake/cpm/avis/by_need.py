@@ -16,7 +16,9 @@ How many samples a texel's rays come from (`need_samples`):
   them (the a_vis of `texelbake.cpm.classify`'s exact class; material does not enter a_vis,
   and the a_vis stage runs before the cpm stage classes its texels). Exact wherever the
   pattern holds at the fine cube's directions too;
-* `K_SAMPLES` strata for every other texel (all its samples when it has fewer).
+* `strata_for(atlas side)` strata for every other texel (all its samples when it has fewer):
+  `K_SAMPLES` up to a 128² atlas, fewer on finer atlases, whose texels vary less across
+  their strata.
 
 The maps (`by_need_maps`) are a ratio estimate: the unoccluded projected area
 U(w) = sum_j (n_j . w)^+ dA_j is known without rays (the closed-form terms, or every
@@ -46,6 +48,23 @@ from texelbake.tol import TOL
 #: smallest K within ~6 % of the dense maps per texel (median) on the cylinder and the bolt at
 #: 64²–128², 9–12x fewer rays (`benchmarks/avis_level0.py`, docs/decisions.md "Level 0's a_vis")
 K_SAMPLES = 16
+#: the atlas side up to which a texel casts from K_SAMPLES strata
+K_SIDE = 128
+#: the fewest strata on any atlas
+K_MIN = 4
+
+
+def strata_for(atlas_resolution: int) -> int:
+    """Strata of a by-need texel at this atlas side: K_SAMPLES up to K_SIDE, then
+    ceil(K_SAMPLES sqrt(K_SIDE / side)), at least K_MIN (256²: 12, 512²: 8, 1024²: 6). The
+    per-texel error of the maps goes as side^-0.47 at fixed K and K^-0.77 at a fixed side
+    (median against the dense maps, the full cylinder and bolt at 128²-512²), so K ~ side^-0.6
+    holds the error 128²'s K_SAMPLES gives (docs/decisions.md, "Strata that follow the
+    atlas")."""
+    side = max(int(atlas_resolution), 1)
+    if side <= K_SIDE:
+        return K_SAMPLES
+    return max(K_MIN, int(np.ceil(K_SAMPLES * np.sqrt(K_SIDE / side) - 1e-9)))
 #: world directions that test the visibility pattern (a Fibonacci sphere: even over the
 #: sphere down to the horizon, where shadows of rims and ridges fall and a coarse cube's
 #: centres are not; measured against 4 x 4 cube faces, docs/decisions.md "Level 0's a_vis")
@@ -212,4 +231,4 @@ def by_need_maps(positions: np.ndarray, normals: np.ndarray, areas: np.ndarray,
 
 
 __all__ = ["K_SAMPLES", "PATTERN_DIRS", "NeedSamples", "by_need_maps", "need_samples",
-           "pattern_directions"]
+           "pattern_directions", "strata_for"]
