@@ -59,12 +59,14 @@ def strata_for(atlas_resolution: int) -> int:
     ceil(K_SAMPLES sqrt(K_SIDE / side)), at least K_MIN (256²: 12, 512²: 8, 1024²: 6). The
     per-texel error of the maps goes as side^-0.47 at fixed K and K^-0.77 at a fixed side
     (median against the dense maps, the full cylinder and bolt at 128²-512²), so K ~ side^-0.6
-    holds the error 128²'s K_SAMPLES gives (docs/decisions.md, "Strata that follow the
-    atlas")."""
+    holds the error 128²'s K_SAMPLES gives (docs/decisions.md, "The by-need strata follow
+    the atlas side")."""
     side = max(int(atlas_resolution), 1)
     if side <= K_SIDE:
         return K_SAMPLES
     return max(K_MIN, int(np.ceil(K_SAMPLES * np.sqrt(K_SIDE / side) - 1e-9)))
+
+
 #: world directions that test the visibility pattern (a Fibonacci sphere: even over the
 #: sphere down to the horizon, where shadows of rims and ridges fall and a coarse cube's
 #: centres are not; measured against 4 x 4 cube faces, docs/decisions.md "Level 0's a_vis")

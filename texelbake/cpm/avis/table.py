@@ -143,7 +143,7 @@ class AvisTable:
         ray_row = np.asarray(arrays["ray_row"], np.int64)
         n_ray = int(ray_row.max()) + 1 if ray_row.size else 0
         n_maps = n_ray * 6
-        if "haar_counts" in arrays:  # meta[2] = 1: uint16 pairs in uint32 words
+        if "haar_counts" in arrays:  # meta[2] >= 1: uint16 pairs in uint32 words
             raw = np.asarray(arrays["haar_counts"])
             counts = (raw.astype(np.uint32).view(np.uint16) if raw.size * 2 == n_maps
                       else raw).astype(np.int64)
