@@ -146,7 +146,9 @@ def bake_scene(scene: str, work: Path, settings: BakeSettings, *, size: str = "s
         return root
     t0 = time.perf_counter()
     root = bake(src, out, settings, progress=False, jobs=2)
-    print(f"baked {scene} ({size}, atlas {settings.atlas_resolution}, eps "
+    # the atlas the bake used (atlas_mode "lod1" chooses it from the LOD chain)
+    atlas = json.loads((out / "report.json").read_text())["settings"]["atlas_resolution"]
+    print(f"baked {scene} ({size}, atlas {atlas}, eps "
           f"{settings.eps_db:g} dB) in {time.perf_counter() - t0:.0f} s", flush=True)
     return root
 

@@ -109,6 +109,9 @@ def _draw_gain(scene, cam) -> dict:
 #: how far equal-time's seconds may be from cpm's for the comparison to count (its frames of
 #: a few hundred pixels are dominated by per-call overheads: `trace.tracer.progressive`)
 EQUAL_TIME_TOL = 0.05
+#: cpm@16 this many dB above cpm@4 says cpm@4's error is mostly noise (4x the eye rays take
+#: 6 dB off pure noise and nothing off pure bias; 3 dB is where the two are equal)
+NOISE_GAIN_DB = 3.0
 
 
 def _notes(scene_name: str, px: int, rep: dict) -> list[str]:
@@ -132,9 +135,19 @@ def _notes(scene_name: str, px: int, rep: dict) -> list[str]:
                    f"gt@{SPP} plus the look-ups' cost")
         else:
             c16 = [x for x in rep["sweep"] if x["mode"] == "cpm" and x["spp"] == 16]
-            why = (f"cpm's error is bias, not noise (fallback {fb:.0%}; cpm@16 "
-                   f"{c16[0]['psnr_db_object']:.2f} dB)" if c16
-                   else f"cpm's error is bias (fallback {fb:.0%})")
+            gain = c16[0]["psnr_db_object"] - cpm["psnr_db_object"] if c16 else None
+            if gain is not None and gain > NOISE_GAIN_DB and "gt" in m:
+                # 4x the eye rays removes noise (+6 dB) but no bias: cpm@4's error is noise,
+                # and what loses is its cost per eye ray
+                spp = f", {eq['mean_spp']:.0f} eye rays a pixel" if eq and other == "equal-time" \
+                    else ""
+                why = (f"cpm@{SPP} costs {cpm['seconds'] / m['gt']['seconds']:.1f}x gt@{SPP} "
+                       f"(fallback {fb:.0%}){spp}, and its error is mostly noise (cpm@16 "
+                       f"{c16[0]['psnr_db_object']:.2f} dB, +{gain:.1f})")
+            else:
+                why = (f"cpm's error is bias, not noise (fallback {fb:.0%}; cpm@16 "
+                       f"{c16[0]['psnr_db_object']:.2f} dB)" if c16
+                       else f"cpm's error is bias (fallback {fb:.0%})")
         out.append(f"{scene_name} at {px} px: {other} {e['psnr_db_object']:.2f} dB "
                    f"({e['seconds'] / cpm['seconds']:.2f}x cpm's time) >= cpm@{SPP} "
                    f"{cpm['psnr_db_object']:.2f} dB over {rep['object_pixels']} object "
