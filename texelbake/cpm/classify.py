@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from texelbake.arrays import unique_rows
 from texelbake.cpm.avis.closed_form import unoccluded_samples
 from texelbake.cpm.brdf_product import brdf_product
 from texelbake.cpm.dense import LevelPass
@@ -363,17 +364,13 @@ def _pattern_groups(fac: np.ndarray, vis: np.ndarray) -> np.ndarray:
         return np.zeros(0, np.int64)
     # one key per row as 64-bit words, the facet first, then the pattern's bytes big-endian
     # and zero-padded: sorting the words sorts the bytes, and a lexsort of a few integer
-    # columns is far cheaper than `np.unique(axis=0)` on the bytes (docs/decisions.md)
+    # columns (`unique_rows`) is far cheaper than `np.unique(axis=0)` on the bytes
     words = np.zeros((n, 1 + (nb + 7) // 8), np.uint64)
     words[:, 0] = fac.astype(np.int64).view(np.uint64)
     pad = np.zeros((n, 8 * (words.shape[1] - 1)), np.uint8)
     pad[:, :nb] = bits
     words[:, 1:] = pad.view(">u8")
-    order = np.lexsort(words.T[::-1])
-    w = words[order]
-    out = np.empty(n, np.int64)
-    out[order] = np.cumsum(np.r_[True, (w[1:] != w[:-1]).any(axis=1)]) - 1
-    return out
+    return unique_rows(words)[1]
 
 
 def _patterns_bounded(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,

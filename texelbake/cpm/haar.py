@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import pywt
 
+from texelbake.arrays import concat_ranges
 from texelbake.errors import NumericalError, SettingsError, ShapeError
 
 _WAVELET = "haar"
@@ -251,8 +252,7 @@ def _gather_read_maps(coeffs: HaarCoeffs, map_index: np.ndarray, flat_idx: np.nd
         start = coeffs.offsets[block]
         count = coeffs.offsets[block + 1] - start
         row = np.repeat(np.arange(block.size), count)
-        src = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count) + \
-            np.repeat(start, count)
+        src = concat_ranges(start, count)
         dense = np.zeros((block.size, n_coef))
         dense[row, coeffs.indices[src]] = coeffs.values[src]
         q = np.flatnonzero((inv >= b0) & (inv < b0 + block.size))

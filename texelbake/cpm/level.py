@@ -25,6 +25,7 @@ import scipy.sparse as sp
 
 from schemas.settings import BakeSettings
 from texelbake import brdf as brdf_mod
+from texelbake.arrays import concat_ranges
 from texelbake.geometry import directions
 from texelbake.geometry.basis import grid_to_local, grid_to_world, tangent_frames
 from texelbake.geometry.raycast import RayCaster
@@ -107,8 +108,7 @@ def samples_in(geo: Mapping[str, np.ndarray], n: int, level: int,
     if not size.sum():
         return np.zeros(0, np.int64)
     # the runs' positions in sample_zorder, concatenated: lo_j, lo_j + 1, ..., hi_j - 1
-    pos = np.arange(int(size.sum()), dtype=np.int64) - np.repeat(np.cumsum(size) - size, size)
-    pos += np.repeat(lo, size)
+    pos = concat_ranges(lo, size)
     order = geo["sample_zorder"]
     # runs sorted by position: a mapped index is read front to back
     return np.sort(np.asarray(order[np.sort(pos)], dtype=np.int64))
@@ -387,10 +387,7 @@ def sort_by_texel(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     order = np.argsort(data["texel"], kind="stable")
     counts = np.diff(data["offsets"])[order]
     starts = data["offsets"][:-1][order]
-    # the CSR ranges in the new texel order, gathered without a loop per texel
-    base = np.cumsum(counts) - counts
-    point_idx = (np.arange(int(counts.sum())) - np.repeat(base, counts)
-                 + np.repeat(starts, counts))
+    point_idx = concat_ranges(starts, counts)  # the CSR ranges in the new texel order
     out = {k: v[order] for k, v in data.items()
            if k not in ("offsets", *POINT_KEYS, *LEVEL_TOTALS)}
     out.update({k: data[k] for k in LEVEL_TOTALS if k in data})

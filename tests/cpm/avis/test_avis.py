@@ -754,7 +754,7 @@ def test_unique_rows_equals_numpys_unique_of_rows():
     """The lexsort of columns gives numpy's `unique(axis=0, return_inverse=True)`: the same
     rows, bit for bit, in the same order, on repeated rows with zeros and ties in the first
     columns, one row and none."""
-    from texelbake.cpm.avis.closed_form import unique_rows
+    from texelbake.arrays import unique_rows
 
     rng = np.random.default_rng(5)
     base = np.round(rng.normal(size=(40, 3)), 1)
