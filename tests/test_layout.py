@@ -167,7 +167,7 @@ def test_packages_import_downwards_only():
 #: package of a lower layer (two packages of one layer do not import each other)
 CORE_LAYERS: tuple[tuple[str, ...], ...] = (
     ("schemas",),
-    ("texelbake", "texelbake.errors", "texelbake.tol"),
+    ("texelbake", "texelbake.arrays", "texelbake.errors", "texelbake.tol"),
     ("texelbake.model", "texelbake.io"),
     ("texelbake.brdf", "texelbake.geometry", "texelbake.estimate"),
     ("texelbake.baselines", "texelbake.cpm", "texelbake.deform"),
