@@ -199,6 +199,12 @@ class BakeSettings(BaseModel):
         "Where the fit of a coarse level gets its a_vis: 'children' from its children's summed "
         "cube maps read at its own directions, 'dense' from rays of every dense sample as the "
         "seed.")
+    avis_fit_samples: int = _field(
+        16384, "a_vis",
+        "Dense samples per texel from which a coarse level's fit casts its a_vis rays "
+        "(avis_coarse 'dense'): a texel with more casts from every k-th of its samples in "
+        "Z-order, scaled by its area over theirs; 0 casts from every sample as the seed.",
+        ge=0, le=1 << 30)
     avis_level0: Literal["dense", "by_need"] = _field(
         "dense", "a_vis",
         "Which samples cast the finest level's a_vis rays: 'dense' every dense sample, "

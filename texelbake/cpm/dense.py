@@ -34,7 +34,12 @@ from texelbake.cpm.level import (
     visibility_cos,
 )
 from texelbake.cpm.matrix import avis_floor, filtered_reflectance, snr_db
-from texelbake.cpm.truth_sample import measured_texels, truth_samples, validation_cap
+from texelbake.cpm.truth_sample import (
+    avis_samples,
+    measured_texels,
+    truth_samples,
+    validation_cap,
+)
 from texelbake.errors import ShapeError
 
 #: bytes per (dense sample, held-out pair, channel) in the held-out pass
@@ -171,12 +176,18 @@ def inv_avis(avis_o: np.ndarray, area: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
-    """(a_vis(w_o) (t, n_o), area (t,)) per texel: Eq. 3 on all its dense samples (`dense`,
-    their texel positions `dseg` ascending), in sample batches."""
+    """(a_vis(w_o) (t, n_o), area (t,)) per texel: Eq. 3 on its dense samples (`dense`,
+    their texel positions `dseg` ascending), in sample batches. A texel of more than
+    `BakeSettings.avis_fit_samples` samples sums the rays of a systematic subset of them
+    (`truth_sample.avis_samples`) and is scaled by its area over theirs."""
     src, n_t = lp.src, len(texels)
     n_o = len(lp.dirs["dirs_o"])
-    tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
     area_all = src.geo["sample_area"][dense]
+    area = segment_sum(area_all, dseg, n_t, 0)
+    keep = avis_samples(src, lp.level, texels, dense, dseg)
+    if keep is not None:
+        dense, dseg, area_all = dense[keep], dseg[keep], area_all[keep]
+    tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
     step = max(lp.budget // (8 * 16 * n_o), 1)
     avis = np.zeros((n_t, n_o))
     for s0 in range(0, dense.size, step):  # loop over sample batches (memory bound)
@@ -184,7 +195,9 @@ def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
         vc = visibility_cos(src, dense[sl], texel_dirs(lp.frames, tex_l[sl], lp.dirs["dirs_o"]),
                             "geometric")
         avis += segment_sum(vc * area_all[sl, None], dseg[sl], n_t, 0)
-    area = segment_sum(area_all, dseg, n_t, 0)
+    if keep is not None:  # the subset's a_vis per unit of its area, times the texel's area
+        cast = segment_sum(area_all, dseg, n_t, 0)
+        avis *= np.divide(area, cast, out=np.ones_like(area), where=cast > 0)[:, None]
     return avis, area
 
 

@@ -71,7 +71,7 @@ def texel_ids(geo: Mapping[str, np.ndarray], n: int, level: int,
     return (row >> level) * n_l + (col >> level)
 
 
-def _zorder_runs(geo: Mapping[str, np.ndarray], n: int, level: int,
+def zorder_runs(geo: Mapping[str, np.ndarray], n: int, level: int,
                  texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) (t,) int64: each of `texels` (flat ids at `level`) as its run
     sample_zorder[lo:hi] of the geometry stage's Z-order index (4^level finest codes)."""
@@ -89,7 +89,7 @@ def texel_counts(geo: Mapping[str, np.ndarray], n: int, level: int,
     texels = np.asarray(texels, np.int64)
     if "sample_zorder" not in geo:  # artifacts from before the Z-order index
         return np.bincount(texel_ids(geo, n, level), minlength=(n >> level) ** 2)[texels]
-    lo, hi = _zorder_runs(geo, n, level, texels)
+    lo, hi = zorder_runs(geo, n, level, texels)
     return hi - lo
 
 
@@ -103,7 +103,7 @@ def samples_in(geo: Mapping[str, np.ndarray], n: int, level: int,
     texels = np.unique(np.asarray(texels, dtype=np.int64))
     if "sample_zorder" not in geo:
         return np.flatnonzero(np.isin(texel_ids(geo, n, level), texels))
-    lo, hi = _zorder_runs(geo, n, level, texels)
+    lo, hi = zorder_runs(geo, n, level, texels)
     size = hi - lo
     if not size.sum():
         return np.zeros(0, np.int64)

@@ -1,6 +1,7 @@
 """Which texels and which of their dense samples the held-out and validation truths sum
 (`texelbake.cpm.dense`), chosen by stateless seeded keys of (seed, level, texel or sample):
-the same texels and samples whichever tile or chunk holds them.
+the same texels and samples whichever tile or chunk holds them; and which samples a coarse
+texel's fit casts its a_vis rays from (`avis_samples`), every k-th of its Z-order run.
 
 The held-out truth is measured on a seeded sample of each level's texels
 (`BakeSettings.heldout_texels`, `measured_texels`); within a measured texel of more than
@@ -12,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from texelbake.cpm.level import FitInputs, texel_counts
+from texelbake.arrays import concat_ranges
+from texelbake.cpm.level import FitInputs, texel_counts, zorder_runs
 from texelbake.geometry.texels import morton
 
 
@@ -98,4 +100,40 @@ def validation_cap(heldout_samples: int) -> int:
                                                                heldout_samples)
 
 
-__all__ = ["VALIDATION_SAMPLES", "measured_texels", "truth_samples", "validation_cap"]
+def avis_samples(src: FitInputs, level: int, texels: np.ndarray, dense: np.ndarray,
+                 dseg: np.ndarray) -> np.ndarray | None:
+    """(n,) bool: which of the dense samples `dense` (of texels[dseg]) a level's fit casts its
+    a_vis rays from (`texelbake.cpm.dense.avis_sums`); None: every one. A texel of more than
+    k = `BakeSettings.avis_fit_samples` samples in the whole atlas keeps every
+    ceil(samples / k)-th of its run of the geometry stage's Z-order index, counted from the
+    run's start: systematic sampling, spatially stratified (the run walks the texel's finest
+    texels in Z-order, each face's samples in its stratified order), and the same samples
+    whichever tile holds them. Unlike the held-out truth's seeded draw (`truth_samples`),
+    whose error at the same count is 3-8x larger on a_vis, which a coarse fit divides by
+    (`benchmarks/avis_fit_samples.py`). Rows of a texel that keep no sample of positive area
+    here (a tile's few samples of a top texel) are all kept."""
+    cap = int(src.settings.avis_fit_samples)
+    geo = src.geo
+    if cap == 0 or dense.size == 0 or "sample_zorder" not in geo:
+        return None
+    texels = np.asarray(texels, np.int64)
+    lo, hi = zorder_runs(geo, src.settings.atlas_resolution, level, texels)
+    stride = -(-(hi - lo) // cap)
+    big = np.flatnonzero(stride > 1)
+    if big.size == 0:
+        return None
+    count = -(-(hi[big] - lo[big]) // stride[big])
+    ranks = (concat_ranges(np.zeros(big.size, np.int64), count) * np.repeat(stride[big], count)
+             + np.repeat(lo[big], count))
+    chosen = np.sort(np.asarray(geo["sample_zorder"][ranks], np.int64))
+    on_big = np.zeros(texels.size, bool)
+    on_big[big] = True
+    keep = ~on_big[dseg] | np.isin(dense, chosen, assume_unique=False)
+    area = np.asarray(geo["sample_area"][dense], np.float64)
+    kept = np.bincount(dseg, weights=np.where(keep, area, 0.0), minlength=texels.size)
+    keep |= (kept <= 0.0)[dseg]
+    return keep
+
+
+__all__ = ["VALIDATION_SAMPLES", "avis_samples", "measured_texels", "truth_samples",
+           "validation_cap"]

@@ -167,6 +167,16 @@ def _uniform_sizes(n: int, spt: int, c_max: int) -> list[tuple[np.ndarray, np.nd
     return out
 
 
+def avis_cast(dense: np.ndarray, cap: int) -> np.ndarray:
+    """The samples a fit casts a_vis rays from, per texel of `dense` samples: every
+    ceil(dense / cap)-th (`texelbake.cpm.truth_sample.avis_samples`; cap 0: all)."""
+    dense = np.asarray(dense, np.float64)
+    if not cap:
+        return dense
+    stride = np.maximum(np.ceil(dense / cap), 1.0)
+    return np.ceil(dense / stride)
+
+
 def estimate(
     settings: BakeSettings,
     workers: int = 1,
@@ -242,7 +252,8 @@ def estimate(
         if level < classed:
             sec += mult * coef.classify * n_dirs * float(dense.sum())
         if level > 0 and s.avis_coarse == "dense":
-            sec += phi * mult * coef.fit_avis * s.n_view_dirs * float(dense.sum())
+            sec += phi * mult * coef.fit_avis * s.n_view_dirs * float(
+                avis_cast(dense, s.avis_fit_samples).sum())
         if level == 0 and cell_grids:
             sec += mult * cell_grids * coef.btf_cell * brdf * coef.r_entry * float((m * d).sum())
         if s.point_lobe == "widened":
