@@ -56,15 +56,20 @@ def test_tile_ancestors_hold_their_tiles(scene, tmp_path):
                 assert ids.tolist() == [cpm_stage.tile_ancestor(ctx, tile, level)]
 
 
-@pytest.mark.parametrize(("heldout_samples", "point_lobe"),
-                         [(0, "narrow"), (64, "narrow"), (64, "widened")])
-def test_dense_sums_add_over_disjoint_samples(scene, tmp_path, heldout_samples, point_lobe):
+@pytest.mark.parametrize(("heldout_samples", "point_lobe", "avis_fit_samples"),
+                         [(0, "narrow", 0), (64, "narrow", 16384), (64, "widened", 16384),
+                          (0, "narrow", 100)])
+def test_dense_sums_add_over_disjoint_samples(scene, tmp_path, heldout_samples, point_lobe,
+                                              avis_fit_samples):
     """Sums over every sample of the coarse texels equal the tiles' shares added (same rays,
     same BRDF values; only the order of the floating-point sums differs: 1e-12 relative),
     also where the truth is summed over a seeded subset of a texel's samples (64 of its
-    hundreds: each tile draws its share of the same subset, with the same weights), and the
-    validation pairs' truth of widened lobes with it."""
-    ctx = _ctx(tmp_path, scene, heldout_samples=heldout_samples, point_lobe=point_lobe)
+    hundreds: each tile draws its share of the same subset, with the same weights), the
+    validation pairs' truth of widened lobes with it, and a_vis cast from every k-th sample
+    of a texel's Z-order run (100 of its hundreds: each tile casts its share of them, and
+    the area they cover adds up with it)."""
+    ctx = _ctx(tmp_path, scene, heldout_samples=heldout_samples, point_lobe=point_lobe,
+               avis_fit_samples=avis_fit_samples)
     src = ctx.fit_inputs()
     level = ctx.tile_levels
     texels = np.arange((32 >> level) ** 2, dtype=np.int64)
@@ -77,7 +82,9 @@ def test_dense_sums_add_over_disjoint_samples(scene, tmp_path, heldout_samples, 
         parts.add_row(anc, dense_sums(src, level, np.array([anc]), smp))
     np.testing.assert_array_equal(parts.count, whole.count)
     assert whole.count.sum() == len(src.geo["sample_area"])
-    fields = ["area", "avis_o", "ref", "avis_h"]
+    fields = ["area", "avis_o", "ref", "avis_h", "area_avis"]
+    subset = whole.area_avis < whole.area * (1 - 1e-9)
+    assert subset.all() if avis_fit_samples == 100 else not subset.any()
     if point_lobe == "widened":
         fields += ["val_ref", "val_avis", "val_area"]
         assert whole.val_ref.max() > 0
@@ -90,14 +97,16 @@ def test_dense_sums_add_over_disjoint_samples(scene, tmp_path, heldout_samples, 
     assert whole.ref.max() > 0 and whole.avis_o.max() > 0
 
 
-@pytest.mark.parametrize("point_lobe", ["narrow", "widened"])
-def test_top_shard_from_tile_sums_reads_no_sample(scene, tmp_path, monkeypatch, point_lobe):
+@pytest.mark.parametrize(("point_lobe", "avis_fit_samples"),
+                         [("narrow", 16384), ("widened", 16384), ("narrow", 100)])
+def test_top_shard_from_tile_sums_reads_no_sample(scene, tmp_path, monkeypatch, point_lobe,
+                                                  avis_fit_samples):
     """The same bake's top shard twice: from the tiles' sums (with `samples_in` made to fail:
     it reads no dense sample) and, one tile's sums removed, from every sample itself. The sums
     differ by the order of their floating-point additions only, so the same points, weights
     to 1e-6 and held-out SNR to 1e-4 dB; with widened lobes the same choices (their lobes'
     variances equal) from the validation pairs' truth in the sums."""
-    ctx = _ctx(tmp_path / "a", scene, point_lobe=point_lobe)
+    ctx = _ctx(tmp_path / "a", scene, point_lobe=point_lobe, avis_fit_samples=avis_fit_samples)
     for tile in range(16):  # the tile shards
         cpm_stage.run_cpm_tile(ctx, tile)
         assert ctx.store.exists(cpm_stage.sums_key(ctx, tile))
@@ -111,7 +120,8 @@ def test_top_shard_from_tile_sums_reads_no_sample(scene, tmp_path, monkeypatch, 
         cpm_stage.run_cpm_top(ctx, 0)
     from_sums = cpm_stage.cpm_levels(ctx)
 
-    ctx_b = _ctx(tmp_path / "b", scene, point_lobe=point_lobe)
+    ctx_b = _ctx(tmp_path / "b", scene, point_lobe=point_lobe,
+                 avis_fit_samples=avis_fit_samples)
     for tile in range(16):
         cpm_stage.run_cpm_tile(ctx_b, tile)
     ctx_b.store.path(cpm_stage.sums_key(ctx_b, 5)).unlink()  # one tile's sums missing

@@ -10,8 +10,9 @@ import dataclasses
 import numpy as np
 
 from tests.cpm.test_classify import _grid_samples, _inputs, _up, _walled
-from texelbake.cpm.dense import LevelPass, dense_of, dense_sums, held_scale
-from texelbake.cpm.truth_sample import truth_samples
+from texelbake.cpm.dense import LevelPass, avis_sums, dense_of, dense_sums, held_scale
+from texelbake.cpm.truth_sample import avis_samples, truth_samples
+from texelbake.geometry.texels import morton
 from texelbake.tol import TOL
 
 ONE = np.zeros(1, np.int64)
@@ -130,3 +131,77 @@ def test_a_texel_with_no_sample_kept_is_not_measured():
     ref, avis_h = _scaled(d)
     assert d.area_held[0] == 0 and np.isnan(avis_h).all()
     assert np.isnan(heldout_snr(ref[0], np.zeros_like(ref[0]), avis_h[0], float(d.area[0])))
+
+
+def _zordered(src):
+    """`src` with the geometry stage's Z-order index of its 2 x 2 atlas (`sample_zorder`,
+    `texel_zoffsets`), built here from the samples' finest codes."""
+    geo = dict(src.geo)
+    code = morton(geo["sample_row"], geo["sample_col"])
+    geo["sample_zorder"] = np.argsort(code, kind="stable")
+    geo["texel_zoffsets"] = np.r_[0, np.cumsum(np.bincount(code, minlength=4))]
+    return dataclasses.replace(src, geo=geo)
+
+
+def test_avis_samples_keep_every_kth_of_the_zorder_run():
+    """A texel over avis_fit_samples keeps ranks lo, lo + k, ... of its Z-order run, k =
+    ceil(samples / cap), by hand at both levels of the walled square; a texel's part (a
+    tile's share) keeps its part of the same samples, none when it holds none of them; a cap
+    at or above the count (or 0) keeps every sample (None)."""
+    src = _zordered(_src(avis_fit_samples=10))
+    zo = src.geo["sample_zorder"]
+    dense, dseg = dense_of(LevelPass.of(src, 1), ONE)
+    keep = avis_samples(src, 1, ONE, dense, dseg)
+    np.testing.assert_array_equal(keep, np.isin(dense, zo[0:64:7]))  # ceil(64 / 10) = 7
+    assert keep.sum() == 10
+    four = np.arange(4, dtype=np.int64)
+    dense0, dseg0 = dense_of(LevelPass.of(src, 0), four)
+    want = np.zeros(dense0.size, bool)
+    for t in range(4):  # loop over the four finest texels, each a run of 16: every 2nd
+        run = zo[src.geo["texel_zoffsets"][morton(np.array([t // 2]), np.array([t % 2]))[0]]
+                 + np.arange(0, 16, 2)]
+        want |= (dseg0 == t) & np.isin(dense0, run)
+    np.testing.assert_array_equal(avis_samples(src, 0, four, dense0, dseg0), want)
+    part = dense[dense != zo[0]][:20]  # a tile's share of the level-1 texel
+    seg = np.zeros(part.size, np.int64)
+    np.testing.assert_array_equal(avis_samples(src, 1, ONE, part, seg),
+                                  np.isin(part, zo[0:64:7]))
+    lone = np.array([zo[1]])  # not among the kept
+    assert avis_samples(src, 1, ONE, lone, np.zeros(1, np.int64)).tolist() == [False]
+    for cap in (0, 64, 1000):
+        assert avis_samples(_zordered(_src(avis_fit_samples=cap)), 1, ONE, dense, dseg) is None
+
+
+def test_avis_sums_over_the_subset_scaled_to_the_texel():
+    """a_vis over the subset is its samples' own a_vis times the texel's area over theirs
+    (each sample summed alone with every sample cast); at or above the count it is the sum
+    over every sample bit for bit; on the flat square, with every sample's a_vis per unit
+    area A cos(theta), it is that closed form whichever samples are kept."""
+    src = _zordered(_src(avis_fit_samples=10))
+    lp = LevelPass.of(src, 1)
+    dense, dseg = dense_of(lp, ONE)
+    keep = avis_samples(src, 1, ONE, dense, dseg)
+    every = _zordered(_src(avis_fit_samples=0))
+    lp0 = LevelPass.of(every, 1)
+    got, area = avis_sums(lp, ONE, dense, dseg)
+    each = np.array([avis_sums(lp0, ONE, dense[j:j + 1], np.zeros(1, np.int64))[0][0]
+                     for j in range(dense.size)])  # (64, n_o)
+    a = src.geo["sample_area"][dense]
+    np.testing.assert_allclose(got[0], a.sum() / a[keep].sum() * each[keep].sum(axis=0),
+                               rtol=1e-12, atol=1e-15)
+    full, area0 = avis_sums(lp0, ONE, dense, dseg)
+    assert area[0] == area0[0] and np.abs(got - full).max() > 0  # the wall's shadow differs
+    for cap in (64, 1000):
+        same, _ = avis_sums(LevelPass.of(_zordered(_src(avis_fit_samples=cap)), 1), ONE,
+                            dense, dseg)
+        np.testing.assert_array_equal(same, full)
+    pos = _grid_samples()
+    flat = _zordered(_inputs(pos, _up(len(pos))))
+    flat = dataclasses.replace(flat, settings=flat.settings.model_copy(
+        update={"avis_fit_samples": 10}))
+    lpf = LevelPass.of(flat, 1)
+    dense, dseg = dense_of(lpf, ONE)
+    got, area = avis_sums(lpf, ONE, dense, dseg)
+    cos = lpf.dirs["dirs_o"][:, 2]
+    np.testing.assert_allclose(got[0], np.where(cos > TOL.grazing_cos, area[0] * cos, 0.0),
+                               rtol=1e-12, atol=1e-15)

@@ -93,13 +93,16 @@ class DenseSums:
     val_ref: np.ndarray  # (t, v_i, v_o, 3)
     val_avis: np.ndarray  # (t, v_o)
     val_area: np.ndarray  # (t,)
+    # the area of the samples that cast avis_o's rays (`avis_parts`; `avis_scale` scales
+    # avis_o to the texel)
+    area_avis: np.ndarray  # (t,)
 
     FIELDS = ("count", "area", "avis_o", "ref", "avis_h", "area_held", "val_ref", "val_avis",
-              "val_area")
+              "val_area", "area_avis")
 
     def add_row(self, i: int, part: DenseSums) -> None:
         """Add `part`'s one texel into texel i of these sums, in place."""
-        for f in self.FIELDS:  # nine fields
+        for f in self.FIELDS:  # ten fields
             getattr(self, f)[i] += getattr(part, f)[0]
 
     def rows(self, idx) -> DenseSums:
@@ -111,7 +114,8 @@ class DenseSums:
         v_i, v_o = len(dirs["val_i"]), len(dirs["val_o"])
         return cls(np.zeros(n_t, np.int64), np.zeros(n_t), np.zeros((n_t, n_o)),
                    np.zeros((n_t, h_i, h_o, 3)), np.zeros((n_t, h_o)), np.zeros(n_t),
-                   np.zeros((n_t, v_i, v_o, 3)), np.zeros((n_t, v_o)), np.zeros(n_t))
+                   np.zeros((n_t, v_i, v_o, 3)), np.zeros((n_t, v_o)), np.zeros(n_t),
+                   np.zeros(n_t))
 
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
         """The arrays to store (the validation fields only where there are validation pairs:
@@ -127,6 +131,7 @@ class DenseSums:
         got.setdefault("val_ref", np.zeros((n_t, 0, 0, 3)))
         got.setdefault("val_avis", np.zeros((n_t, 0)))
         got.setdefault("val_area", np.zeros(n_t))
+        got.setdefault("area_avis", got["area"])  # stored before the subset: every sample
         return cls(**got)
 
 
@@ -176,17 +181,31 @@ def inv_avis(avis_o: np.ndarray, area: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
-    """(a_vis(w_o) (t, n_o), area (t,)) per texel: Eq. 3 on its dense samples (`dense`,
-    their texel positions `dseg` ascending), in sample batches. A texel of more than
-    `BakeSettings.avis_fit_samples` samples sums the rays of a systematic subset of them
-    (`truth_sample.avis_samples`) and is scaled by its area over theirs."""
+    """(a_vis(w_o) (t, n_o), area (t,)) per texel: Eq. 3 on all its dense samples (`dense`,
+    their texel positions `dseg` ascending), in sample batches; a texel of more than
+    `BakeSettings.avis_fit_samples` samples from a systematic subset of them
+    (`truth_sample.avis_samples`), scaled by its area over theirs (`avis_scale`)."""
+    avis, area, area_avis = avis_parts(lp, texels, dense, dseg)
+    if area_avis is not area:
+        avis *= avis_scale(area, area_avis)[:, None]
+    return avis, area
+
+
+def avis_parts(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(a_vis (t, n_o) summed over the samples that cast its rays, area (t,) of every
+    sample, area_avis (t,) of those that cast; `area` itself when every sample casts):
+    sums over `dense` that add over disjoint sample sets of the same texels (a tile's share of
+    a top texel casts its share of the texel's subset)."""
     src, n_t = lp.src, len(texels)
     n_o = len(lp.dirs["dirs_o"])
     area_all = src.geo["sample_area"][dense]
     area = segment_sum(area_all, dseg, n_t, 0)
+    area_avis = area
     keep = avis_samples(src, lp.level, texels, dense, dseg)
     if keep is not None:
         dense, dseg, area_all = dense[keep], dseg[keep], area_all[keep]
+        area_avis = segment_sum(area_all, dseg, n_t, 0)
     tex_l = texels[dseg] if dense.size else np.zeros(0, np.int64)
     step = max(lp.budget // (8 * 16 * n_o), 1)
     avis = np.zeros((n_t, n_o))
@@ -195,10 +214,15 @@ def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
         vc = visibility_cos(src, dense[sl], texel_dirs(lp.frames, tex_l[sl], lp.dirs["dirs_o"]),
                             "geometric")
         avis += segment_sum(vc * area_all[sl, None], dseg[sl], n_t, 0)
-    if keep is not None:  # the subset's a_vis per unit of its area, times the texel's area
-        cast = segment_sum(area_all, dseg, n_t, 0)
-        avis *= np.divide(area, cast, out=np.ones_like(area), where=cast > 0)[:, None]
-    return avis, area
+    return avis, area, area_avis
+
+
+def avis_scale(area: np.ndarray, area_avis: np.ndarray) -> np.ndarray:
+    """(t,) the factor from a_vis summed over the samples that cast its rays (of area
+    `area_avis` (t,)) to the texel (area (t,)): the ratio estimator, exact whenever the
+    texel's a_vis per unit area is the same on every sample; 1 where every sample cast (the
+    two areas equal bit for bit) or none did (a_vis 0: the texel has no valid direction)."""
+    return np.divide(area, area_avis, out=np.ones_like(area), where=area_avis > 0)
 
 
 def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
@@ -221,10 +245,10 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
     dense, dseg = samples[order], pos[order]
     n_t = len(texels)
     if avis:
-        avis_o, area = avis_sums(lp, texels, dense, dseg)
+        avis_o, area, area_avis = avis_parts(lp, texels, dense, dseg)
     else:
         avis_o = np.zeros((n_t, len(lp.dirs["dirs_o"])))
-        area = segment_sum(geo["sample_area"][dense], dseg, n_t, 0)
+        area = area_avis = segment_sum(geo["sample_area"][dense], dseg, n_t, 0)
     out = DenseSums.zeros(n_t, lp.dirs)
     ref, avis_h, area_held = out.ref, out.avis_h, out.area_held
     val_ref, val_avis, val_area = out.val_ref, out.val_avis, out.val_area
@@ -241,7 +265,7 @@ def dense_sums(src: FitInputs, level: int, texels: np.ndarray,
         avis_h[~meas] = np.nan
         area_held = segment_sum(geo["sample_area"][d_m], s_m, n_t, 0)
     return DenseSums(np.bincount(dseg, minlength=n_t).astype(np.int64), area, avis_o, ref,
-                     avis_h, area_held, val_ref, val_avis, val_area)
+                     avis_h, area_held, val_ref, val_avis, val_area, area_avis.copy())
 
 
 def validation_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
@@ -380,7 +404,8 @@ def heldout_snr(ref: np.ndarray, apx: np.ndarray, avis_h: np.ndarray, area: floa
     return float(snr_db(f_ref, f_apx, ok))
 
 
-__all__ = ["BYTES_PER_HELD_ENTRY", "DenseSums", "LevelPass", "avis_sums", "dense_of",
+__all__ = ["BYTES_PER_HELD_ENTRY", "DenseSums", "LevelPass", "avis_parts", "avis_scale",
+           "avis_sums", "dense_of",
            "dense_sums", "held_pass", "heldout_from_samples", "heldout_from_sums",
            "held_scale", "points_on", "to_texel", "validation_sums", "HELD_KEYS", "VAL_KEYS",
            "heldout_snr", "inv_avis", "positions"]

@@ -31,6 +31,7 @@ from texelbake.cpm.cell_table import cell_fbar, direction_cells
 from texelbake.cpm.dense import (
     DenseSums,
     LevelPass,
+    avis_scale,
     avis_sums,
     dense_of,
     heldout_from_samples,
@@ -140,7 +141,8 @@ def fit_level_batched(
                 avis_c = avis_o[a:b]
                 area = segment_sum(src.geo["sample_area"][dense], dseg, b - a, 0)
         else:
-            avis_c, area = sums.avis_o[a:b], sums.area[a:b]
+            area = sums.area[a:b]
+            avis_c = sums.avis_o[a:b] * avis_scale(area, sums.area_avis[a:b])[:, None]
         chunk = Chunk(texels[a:b], candidates.take(rows), seg_c[cb_c[a]:cb_c[b]] - a,
                       n_cand[a:b], n_dense[a:b], avis_c, area, a)
         fits = _fit_chunk(lp, chunk, res, counts)

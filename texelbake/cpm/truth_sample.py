@@ -108,10 +108,9 @@ def avis_samples(src: FitInputs, level: int, texels: np.ndarray, dense: np.ndarr
     ceil(samples / k)-th of its run of the geometry stage's Z-order index, counted from the
     run's start: systematic sampling, spatially stratified (the run walks the texel's finest
     texels in Z-order, each face's samples in its stratified order), and the same samples
-    whichever tile holds them. Unlike the held-out truth's seeded draw (`truth_samples`),
-    whose error at the same count is 3-8x larger on a_vis, which a coarse fit divides by
-    (`benchmarks/avis_fit_samples.py`). Rows of a texel that keep no sample of positive area
-    here (a tile's few samples of a top texel) are all kept."""
+    whichever tile holds them (a tile's share of a top texel may hold none). The held-out
+    truth's seeded draw (`truth_samples`) errs several times more on a_vis at the same count,
+    and a coarse fit divides by a_vis (`benchmarks/avis_fit_samples.py`)."""
     cap = int(src.settings.avis_fit_samples)
     geo = src.geo
     if cap == 0 or dense.size == 0 or "sample_zorder" not in geo:
@@ -128,11 +127,7 @@ def avis_samples(src: FitInputs, level: int, texels: np.ndarray, dense: np.ndarr
     chosen = np.sort(np.asarray(geo["sample_zorder"][ranks], np.int64))
     on_big = np.zeros(texels.size, bool)
     on_big[big] = True
-    keep = ~on_big[dseg] | np.isin(dense, chosen, assume_unique=False)
-    area = np.asarray(geo["sample_area"][dense], np.float64)
-    kept = np.bincount(dseg, weights=np.where(keep, area, 0.0), minlength=texels.size)
-    keep |= (kept <= 0.0)[dseg]
-    return keep
+    return ~on_big[dseg] | np.isin(dense, chosen)
 
 
 __all__ = ["VALIDATION_SAMPLES", "avis_samples", "measured_texels", "truth_samples",

@@ -235,7 +235,7 @@ def run_cpm_top(ctx: StageContext, shard: int = 0) -> str:
         avis_o = fit_avis_o(ctx, level, texels, None) if coarse_avis(s) else None
         lsums = sums[level] if sums is not None else None
         if lsums is not None and avis_o is not None:
-            lsums = dataclasses.replace(lsums, avis_o=avis_o)
+            lsums = dataclasses.replace(lsums, avis_o=avis_o, area_avis=lsums.area)
         children = fit_level(ctx.fit_inputs(), level, texels, cands, lsums, avis_o=avis_o)
         ctx.store.write_arrays(key, children)
     return last
