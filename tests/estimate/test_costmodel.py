@@ -355,6 +355,31 @@ def test_a_vis_rays_are_priced_on_the_samples_that_cast_them():
     assert avis_ray_samples(fine, counts) == 8 * n * n
 
 
+def test_a_coarse_fit_prices_its_a_vis_rays_on_the_capped_samples():
+    """avis_coarse "dense": a coarse level's fit casts a_vis from every ceil(n / cap)-th of a
+    texel's n samples (`avis_cast`, by hand), so on an even 16^2 atlas of 64 samples a texel
+    with avis_fit_samples=1000 level 1 (64 texels of 256) casts from all, level 2 (16 of
+    1,024) from 16 x 512, level 3 (4 of 4,096) from 4 x 820 and level 4 (one of 16,384) from
+    964; 0 casts from every one."""
+    np.testing.assert_array_equal(costmodel.avis_cast(np.array([100, 16384, 16385, 40000]),
+                                                      16384), [100, 16384, 8193, 13334])
+    np.testing.assert_array_equal(costmodel.avis_cast(np.array([5, 40000]), 0), [5, 40000])
+    n, spt = 16, 64
+    s = BakeSettings(atlas_resolution=n, samples_per_texel=spt, avis_coarse="dense",
+                     texel_classes="points", point_lobe="narrow", avis_fit_samples=1000)
+    counts = np.full((n, n), spt)
+    per = {lv["level"]: lv["seconds"] for lv in costmodel.estimate(
+        s, 1, counts, coef=_only(fit_avis=1e-6), ggx_fraction=0.0).per_level}
+    every = {lv["level"]: lv["seconds"] for lv in costmodel.estimate(
+        s.model_copy(update={"avis_fit_samples": 0}), 1, counts, coef=_only(fit_avis=1e-6),
+        ggx_fraction=0.0).per_level}
+    nv = s.n_view_dirs
+    assert per[0] == every[0] == 0.0
+    for lv, cast in ((1, 64 * 256), (2, 16 * 512), (3, 4 * 820), (4, 964)):
+        assert per[lv] == pytest.approx(1e-6 * nv * cast, rel=1e-12), lv
+        assert every[lv] == pytest.approx(1e-6 * nv * n * n * spt, rel=1e-12), lv
+
+
 def test_atlas_trade_prices_the_classes_by_texel_size():
     """The LOD1 projection with this bake's classed shares: this atlas priced at them, the
     larger atlas's classed levels at the share of this bake's level of the same texel size, a
