@@ -72,7 +72,7 @@ def texel_ids(geo: Mapping[str, np.ndarray], n: int, level: int,
 
 
 def zorder_runs(geo: Mapping[str, np.ndarray], n: int, level: int,
-                 texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) (t,) int64: each of `texels` (flat ids at `level`) as its run
     sample_zorder[lo:hi] of the geometry stage's Z-order index (4^level finest codes)."""
     zoff = geo["texel_zoffsets"]

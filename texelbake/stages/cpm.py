@@ -149,7 +149,7 @@ def top_level_sums(src, level: int, texels: np.ndarray, samples: np.ndarray) -> 
 
 def coarse_avis(settings) -> bool:
     """Whether coarse levels take their fit's a_vis from the a_vis stage's maps (the
-    children's summed) rather than from rays of every dense sample."""
+    children's summed) rather than from rays of its dense samples (`cpm.dense.avis_sums`)."""
     return settings.avis_coarse == "children" and settings.fit_method == "batched"
 
 

@@ -7,8 +7,9 @@ children's frames: `avis_at` reads the summed maps there, losslessly stored, by 
 renderer uses (`AvisTable.evaluate`: closed-form texels exact at any direction, ray texels
 bilinear over the unoccluded bound times the visible fraction at the four taps). The seed
 instead recasts every dense sample's visibility rays at every level (`cpm.dense.avis_sums`,
-BakeSettings.avis_coarse = "dense"); the difference between the two is the look-up's
-resampling error, measured in benchmarks/avis_methods.py (`--coarse`).
+BakeSettings.avis_coarse = "dense", with avis_fit_samples=0; by default a texel of more
+samples casts from a systematic subset of them); the difference between the two is the
+look-up's resampling error, measured in benchmarks/avis_methods.py (`--coarse`).
 """
 
 from __future__ import annotations
