@@ -1,19 +1,37 @@
 """Array idioms several stages share, each vectorized over whole arrays: the positions of
-concatenated index runs (CSR ranges) and the distinct rows of a 2-D array by a lexsort of its
-columns."""
+concatenated index runs (CSR ranges), a systematic subset's stride and size per run, and the
+distinct rows of a 2-D array by a lexsort of its columns."""
 
 from __future__ import annotations
 
 import numpy as np
 
 
-def concat_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """(sum(counts),) int64 the runs [starts_j, starts_j + counts_j) concatenated in order
-    (the entries of CSR rows gathered without a loop per row)."""
+def concat_ranges(starts: np.ndarray, counts: np.ndarray, step: np.ndarray | int = 1
+                  ) -> np.ndarray:
+    """(sum(counts),) int64 the runs starts_j, starts_j + step_j, ... (counts_j entries each)
+    concatenated in order (the entries of CSR rows gathered without a loop per row; step
+    (t,) or one int, 1: consecutive)."""
     starts = np.asarray(starts, np.int64)
     counts = np.asarray(counts, np.int64)
-    return (np.arange(int(counts.sum()), dtype=np.int64)
-            - np.repeat(np.cumsum(counts) - counts, counts) + np.repeat(starts, counts))
+    within = np.arange(int(counts.sum()), dtype=np.int64) - np.repeat(np.cumsum(counts) - counts,
+                                                                        counts)
+    if np.ndim(step):
+        within *= np.repeat(np.asarray(step, np.int64), counts)
+    elif step != 1:
+        within *= int(step)
+    return within + np.repeat(starts, counts)
+
+
+def every_kth(n: np.ndarray, cap: int) -> tuple[np.ndarray, np.ndarray]:
+    """A systematic subset of each of `n` (t,) runs, at most about `cap` of a run: (stride,
+    count) (t,), every stride = ceil(n / cap)-th entry from the run's start (1 where n <= cap,
+    and everywhere for cap 0), count = ceil(n / stride) of them; integer or float n alike."""
+    n = np.asarray(n)
+    if not cap:
+        return np.ones_like(n), n
+    stride = np.maximum(-(-n // cap), 1)
+    return stride, -(-n // stride)
 
 
 def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -29,4 +47,4 @@ def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return srt[new], inv
 
 
-__all__ = ["concat_ranges", "unique_rows"]
+__all__ = ["concat_ranges", "every_kth", "unique_rows"]

@@ -131,7 +131,7 @@ class DenseSums:
         got.setdefault("val_ref", np.zeros((n_t, 0, 0, 3)))
         got.setdefault("val_avis", np.zeros((n_t, 0)))
         got.setdefault("val_area", np.zeros(n_t))
-        got.setdefault("area_avis", got["area"])  # stored before the subset: every sample
+        got.setdefault("area_avis", got["area"].copy())  # stored before the subset: all cast
         return cls(**got)
 
 
@@ -186,15 +186,14 @@ def avis_sums(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.nda
     `BakeSettings.avis_fit_samples` samples from a systematic subset of them
     (`truth_sample.avis_samples`), scaled by its area over theirs (`avis_scale`)."""
     avis, area, area_avis = avis_parts(lp, texels, dense, dseg)
-    if area_avis is not area:
-        avis *= avis_scale(area, area_avis)[:, None]
+    avis *= avis_scale(area, area_avis)[:, None]  # exactly 1 where every sample cast
     return avis, area
 
 
 def avis_parts(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(a_vis (t, n_o) summed over the samples that cast its rays, area (t,) of every
-    sample, area_avis (t,) of those that cast; `area` itself when every sample casts):
+    sample, area_avis (t,) of those that cast, equal to `area` where every sample casts):
     sums over `dense` that add over disjoint sample sets of the same texels (a tile's share of
     a top texel casts its share of the texel's subset)."""
     src, n_t = lp.src, len(texels)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from texelbake.arrays import concat_ranges
+from texelbake.arrays import concat_ranges, every_kth
 from texelbake.cpm.level import FitInputs, texel_counts, zorder_runs
 from texelbake.geometry.texels import morton
 
@@ -117,13 +117,11 @@ def avis_samples(src: FitInputs, level: int, texels: np.ndarray, dense: np.ndarr
         return None
     texels = np.asarray(texels, np.int64)
     lo, hi = zorder_runs(geo, src.settings.atlas_resolution, level, texels)
-    stride = -(-(hi - lo) // cap)
+    stride, count = every_kth(hi - lo, cap)
     big = np.flatnonzero(stride > 1)
     if big.size == 0:
         return None
-    count = -(-(hi[big] - lo[big]) // stride[big])
-    ranks = (concat_ranges(np.zeros(big.size, np.int64), count) * np.repeat(stride[big], count)
-             + np.repeat(lo[big], count))
+    ranks = concat_ranges(lo[big], count[big], stride[big])
     chosen = np.sort(np.asarray(geo["sample_zorder"][ranks], np.int64))
     on_big = np.zeros(texels.size, bool)
     on_big[big] = True

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from schemas.settings import BakeSettings
+from texelbake.arrays import every_kth
 
 if TYPE_CHECKING:
     from texelbake.estimate.machinespeed import MachineSpeed
@@ -170,11 +171,7 @@ def _uniform_sizes(n: int, spt: int, c_max: int) -> list[tuple[np.ndarray, np.nd
 def avis_cast(dense: np.ndarray, cap: int) -> np.ndarray:
     """The samples a fit casts a_vis rays from, per texel of `dense` samples: every
     ceil(dense / cap)-th (`texelbake.cpm.truth_sample.avis_samples`; cap 0: all)."""
-    dense = np.asarray(dense, np.float64)
-    if not cap:
-        return dense
-    stride = np.maximum(np.ceil(dense / cap), 1.0)
-    return np.ceil(dense / stride)
+    return every_kth(np.asarray(dense, np.float64), cap)[1]
 
 
 def estimate(
