@@ -2,7 +2,7 @@
 per-level CPU seconds of the CPM fit (`benchmarks/cpm_cpu.py --json`), and print prediction
 against measurement per (scene, level) and summed.
 
-    python benchmarks/calibrate_costmodel.py RUN.json [RUN.json ...] [--scale-only]
+    python benchmarks/calibrate_costmodel.py RUN.json [RUN.json ...] [--scale-only | --terms]
 
 Each run's levels carry the sizes the model uses (candidates m and dense samples per texel on
 cheap (Lambert / Phong) and costly materials, m^2, texels); the direction pairs d and the
@@ -12,6 +12,13 @@ alike. The fitted values are printed as a `Coefficients(...)` line to paste into
 texelbake/estimate/costmodel.py; the table then shows the current model's prediction too. Runs that
 record the machine they were made on (`machine_speed`, `texelbake.estimate.machinespeed`) are priced on
 it, so the fitted coefficients stay the reference machine's seconds.
+
+`--terms` fits one factor per group of the model's terms as it stands (`GROUPS` of
+`costmodel.TERMS`: the fitted texels' fit, the held-out truth, the classing, the coarse fit's
+a_vis rays) instead: each level's prediction split by term is recorded by cpm_cpu.py
+(`model_terms`, whole-atlas runs), so every part the model prices is fitted, the classing and
+a_vis terms included, from the bake's own sizes (sampled classes, capped a_vis samples). NNLS
+on the same relative residuals; a group no run exercises keeps its value.
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 
-from texelbake.estimate.costmodel import Coefficients
+from texelbake.estimate.costmodel import TERMS, Coefficients
 from texelbake.estimate.machinespeed import REFERENCE_SPEED, MachineSpeed
 
 #: the coefficient each column of `design` is priced by (its kind of work's machine factor)
@@ -57,13 +64,85 @@ def predict(coef: Coefficients, X: np.ndarray) -> np.ndarray:
             + coef.held * X[:, 3] + coef.held * coef.held_ggx * X[:, 4] + coef.texel * X[:, 5])
 
 
+#: the groups a factor is fitted per (`--terms`): the fitted texels' fit (its terms' ratios
+#: are the full fit's, over many runs), the held-out truth, the classing and the coarse fit's
+#: a_vis rays. One factor per group, not per term: R entries, Gram and texel terms all grow
+#: with the fitted texels, and apart they are collinear (a fit per term put r_entry at 0)
+GROUPS = {"fit": ("r_entry", "gram", "eigh", "texel", "btf_cell"), "held": ("held",),
+          "classify": ("classify",), "fit_avis": ("fit_avis",)}
+#: a term priced by another coefficient's kind of work (btf_cell is a multiple of r_entry)
+PRICED_BY = {"btf_cell": "r_entry"}
+
+
+def term_design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Per level of a cpm_cpu.py run: the model's seconds by group (`GROUPS`) on the run's
+    machine (`model_terms` at the coefficients' prices times the machine's factor of each),
+    the measured CPU seconds and the level's name."""
+    f = (run.get("machine_speed") or {}).get("factors")
+    speed = MachineSpeed(factors=f, seconds={}) if f else REFERENCE_SPEED
+    rows, y, names = [], [], []
+    for lv in run["levels"]:
+        if "model_terms" not in lv:
+            raise SystemExit(f"{run['scene']} level {lv['level']}: no model_terms (a run of "
+                             "every tile by this cpm_cpu.py records them)")
+        terms = lv["model_terms"]
+        rows.append([sum(terms[t] * speed.factor(PRICED_BY.get(t, t)) for t in group)
+                     for group in GROUPS.values()])
+        y.append(lv["cpu_seconds"])
+        names.append(f"{run['scene']} {run['settings']['atlas_resolution']} L{lv['level']}")
+    return np.array(rows, float), np.array(y, float), names
+
+
+def fit_per_term(paths: list[Path]) -> None:
+    """--terms: a factor per group of terms (`GROUPS`), NNLS on relative residuals; printed
+    with the fit and the coefficients it gives."""
+    parts = [term_design(json.loads(p.read_text())) for p in paths]
+    X = np.vstack([p[0] for p in parts])
+    y = np.concatenate([p[1] for p in parts])
+    names = [n for p in parts for n in p[2]]
+    # each level weighted by 1 / its run's measured total: every run counts alike and, within
+    # a run, a level by its share of the bake (a bake's seconds are what the model predicts)
+    w = np.concatenate([np.full(p[1].size, 1.0 / max(float(p[1].sum()), 1e-3)) for p in parts])
+    used = np.flatnonzero(np.abs(X).sum(axis=0) > 0)
+    k = np.ones(len(GROUPS))
+    scale = np.abs(X[:, used]).max(axis=0)
+    sol, _ = scipy.optimize.nnls((X[:, used] * w[:, None]) / scale, y * w)
+    k[used] = sol / scale
+    now = Coefficients()
+    # btf_cell is a ratio to r_entry: it moves with r_entry's factor, so it keeps its value
+    fitted = dataclasses.replace(now, **{t: getattr(now, t) * k[i]
+                                         for i, group in enumerate(GROUPS.values())
+                                         for t in group if t != "btf_cell"})
+    p_fit, p_now = X @ k, X.sum(axis=1)
+    print(f"{'level':<20} {'measured s':>10} {'fitted':>8} {'ratio':>6} {'current':>8} {'ratio':>6}")
+    for n, a, b, e in zip(names, y, p_fit, p_now, strict=True):
+        print(f"{n:<20} {a:>10.2f} {b:>8.2f} {b / a:>6.2f} {e:>8.2f} {e / a:>6.2f}")
+    start = 0
+    for path, (_, yy, _) in zip(paths, parts, strict=True):
+        sel = slice(start, start + yy.size)
+        start += yy.size
+        print(f"{path.name:<40} summed: measured {yy.sum():.2f} s, fitted "
+              f"{p_fit[sel].sum():.2f} ({p_fit[sel].sum() / yy.sum():.2f}x), current "
+              f"{p_now[sel].sum():.2f} ({p_now[sel].sum() / yy.sum():.2f}x)")
+    print("factors: " + ", ".join(f"{g} {k[i]:.3f}" for i, g in enumerate(GROUPS)
+                                  if i in set(used.tolist())))
+    print("Coefficients(" + ", ".join(f"{t}={getattr(fitted, t):.3g}" for t in TERMS
+                                      if getattr(now, t) and t != "btf_cell") + ")")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--scale-only", action="store_true",
                     help="keep the current terms' ratios and fit one factor on them (few runs: "
                          "the full fit is underdetermined)")
+    ap.add_argument("--terms", action="store_true",
+                    help="fit a factor per term of the model (costmodel.TERMS) to the runs' "
+                         "model_terms")
     args = ap.parse_args()
+    if args.terms:
+        fit_per_term(args.runs)
+        return
     parts = [design(json.loads(p.read_text())) for p in args.runs]
     X = np.vstack([p[0] for p in parts])
     y = np.concatenate([p[1] for p in parts])

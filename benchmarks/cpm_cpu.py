@@ -233,9 +233,33 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
             "digest": digest(data),
             "sizes": dict(zip(FEATURES, feats[level].tolist(), strict=True)),
         })
+    if len(tiles) == n_tiles:
+        # the cost model's prediction of each level, by term, priced on the coefficients'
+        # machine, as the bake makes it (from the placed samples and the sampled classes):
+        # what `calibrate_costmodel.py --terms` fits a factor per term to
+        for lv, pred in zip(levels, model_levels(ctx), strict=True):
+            lv["model_seconds"], lv["model_terms"] = pred["seconds"], pred["terms"]
     return {"scene": scene, "size": size, "settings": json.loads(settings.model_dump_json()),
             "tiles": tiles, "levels": levels, "trial_counts": counts.as_dict(),
             "cpu_seconds": sum(lv["cpu_seconds"] for lv in levels)}
+
+
+def model_levels(ctx: stages.StageContext) -> list[dict]:
+    """The cost model's per-level CPU seconds of the fit and their terms (`costmodel.TERMS`)
+    for this bake, at the coefficients' machine (no speed factor), with the fitted shares
+    and level-0 candidate ratio the bake's own estimate samples (`pipeline.estimate`)."""
+    from texelbake.estimate import costmodel
+    from texelbake.pipeline.estimate import sampled_fitted_shares
+
+    s = ctx.settings
+    geo = ctx.geometry()
+    sampled = sampled_fitted_shares(ctx)
+    return costmodel.estimate(
+        s, 1, costmodel.sample_counts(geo, s.atlas_resolution),
+        ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
+        fitted=None if sampled is None else sampled.shares,
+        level0_ratio=None if sampled is None else sampled.level0_ratio,
+        classed_points=None if sampled is None else sampled.points).per_level
 
 
 def stages_asset(scene: str, size: str, work: Path) -> Path:

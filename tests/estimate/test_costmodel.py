@@ -404,3 +404,61 @@ def test_atlas_trade_prices_the_classes_by_texel_size():
                                  fitted=shares)
     assert half["estimated_seconds_for_lod1"] == costmodel.estimate(
         s.model_copy(update={"atlas_resolution": 32}), fitted=[0.5, 0.5, 0.7]).seconds
+
+
+@pytest.mark.parametrize("update", [
+    {"avis_coarse": "dense", "point_lobe": "widened"},
+    {"btf": True, "btf_table": "cell", "point_lobe": "narrow"},
+])
+def test_a_levels_terms_are_each_coefficients_share_of_its_seconds(update):
+    """Each level's `terms` (what calibrate_costmodel.py --terms fits a factor to) add up to
+    its seconds, and each term is the level's seconds with that coefficient alone (every other
+    seconds field 0; btf_cell, a ratio to r_entry, with r_entry's value set and its own R
+    subtracted), on an uneven atlas with sampled fitted shares below 1."""
+    n = 16
+    counts = np.random.default_rng(3).integers(0, 90, (n, n))
+    s = BakeSettings(atlas_resolution=n, **update)
+    kw = {"ggx_fraction": 0.3, "fitted": [0.5, 0.7, 0.9], "level0_ratio": 0.6}
+    c = costmodel.Coefficients()
+    ratios = {"brdf_ggx": c.brdf_ggx, "held_ggx": c.held_ggx, "widened": c.widened}
+    full = costmodel.estimate(s, 1, counts, coef=c, **kw).per_level
+    used = set()
+    for name in costmodel.TERMS:
+        if name == "btf_cell":
+            both = costmodel.estimate(s, 1, counts, coef=_only(
+                r_entry=c.r_entry, btf_cell=c.btf_cell, **ratios), **kw)
+            alone = costmodel.estimate(s, 1, counts, coef=_only(r_entry=c.r_entry, btf_cell=0.0,
+                                                                **ratios), **kw)
+            only = [a["seconds"] - b["seconds"] for a, b in zip(both.per_level,
+                                                                alone.per_level, strict=True)]
+        else:
+            only = [lv["seconds"] for lv in costmodel.estimate(
+                s, 1, counts, coef=_only(**{name: getattr(c, name)}, btf_cell=0.0, **ratios),
+                **kw).per_level]
+        for lv, want in zip(full, only, strict=True):
+            assert lv["terms"][name] == pytest.approx(want, rel=1e-9, abs=1e-12), (name, lv)
+            used |= {name} if lv["terms"][name] > 0 else set()
+    for lv in full:
+        assert sum(lv["terms"].values()) == pytest.approx(lv["seconds"], rel=1e-12)
+    # the two settings exercise every term but eigh (0 in the coefficients)
+    assert used >= ({"held", "r_entry", "gram", "texel", "classify", "fit_avis"}
+                    if update.get("avis_coarse") else {"r_entry", "btf_cell"})
+
+
+def test_a_coarse_texels_candidates_are_its_childrens_points_fitted_and_classed():
+    """By hand on an even 4^2 atlas of 10 samples a texel: a level-1 texel's candidates are its
+    4 children's points, each min(10, c) with c = C_LEVEL[0] = 27 for a fitted child; with a
+    fitted share of 1/4 at level 0 and 2 points per classed texel, c = 27 / 4 + 3 / 4 x 2 =
+    8.25 (33 candidates); level 2 (not classed) takes C_LEVEL[1] of its children either way."""
+    counts = np.full((4, 4), 10)
+    plain = costmodel.level_sizes(counts, 64)
+    mixed = costmodel.level_sizes(counts, 64, fitted=[0.25], classed_points=[2.0])
+    np.testing.assert_allclose(plain[1][0], np.full(4, 40.0))
+    np.testing.assert_allclose(mixed[1][0], np.full(4, 33.0))
+    np.testing.assert_allclose(plain[2][0], [4 * 27.0])
+    np.testing.assert_allclose(mixed[2][0], [4 * 27.0])
+    for a, b in zip(plain, mixed, strict=True):  # the dense samples do not change
+        np.testing.assert_array_equal(a[1], b[1])
+    # a classed texel never stores more than a fitted one's C_LEVEL
+    big = costmodel.level_sizes(counts, 64, fitted=[0.0], classed_points=[99.0])
+    np.testing.assert_allclose(big[1][0], np.full(4, 40.0))

@@ -87,6 +87,9 @@ class Coefficients:
     avis_fixed: float = 1.74e-5  # s per dense sample at any face resolution (maps, coarsening)
     avis_stage: float = 4.8  # wall s of the a_vis stage on any atlas (each worker's set-up)
     export: float = 3.3e-5  # s per dense sample at 32^2 faces, x (res / 32)^2 (a_vis tables)
+    # the export's filtered maps (`stages.filtered.run_filtered`: AO rays and the LEADR, AO and
+    # base sums of every dense sample), whatever the cube faces: wall s per dense sample
+    filtered: float = 5.1e-6
     geometry: float = 2.0e-5  # s per dense sample (sampling, texel assignment)
     process: float = 3.5  # s per process pool's start (imports, scene, ray caster)
     fixed: float = 2.0  # s (ingest, plan, the export's USD and LODs)
@@ -97,6 +100,9 @@ class Coefficients:
         return replace(self, **{f.name: getattr(self, f.name) * speed.factor(f.name)
                                 for f in fields(self)})
 
+
+#: the coefficients a level's seconds are priced by (`Estimate.per_level`'s "terms")
+TERMS = ("held", "r_entry", "gram", "eigh", "texel", "classify", "fit_avis", "btf_cell")
 
 #: typical characteristic points per texel at level L (children hierarchy), capped by c_max:
 #: measured means at levels 0-4 at 32^2 (defaults): cylinder 32, 35, 42, 51, 82,
@@ -131,9 +137,14 @@ def _pool2(a: np.ndarray) -> np.ndarray:
     return a.reshape(n, 2, n, 2).sum(axis=(1, 3))
 
 
-def level_sizes(counts: np.ndarray, c_max: int) -> list[tuple[np.ndarray, np.ndarray]]:
+def level_sizes(counts: np.ndarray, c_max: int, fitted: Sequence[float] | None = None,
+                classed_points: Sequence[float] | None = None
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
     """(m (t,), n_dense (t,)) of the texels with samples at every level, from the finest
-    level's dense sample counts (N, N)."""
+    level's dense sample counts (N, N). A texel's candidates are its children's points: a
+    fitted child's `C_LEVEL`, and at a classed level (`fitted` its fitted share,
+    `classed_points` the points a classed texel stores, both per classed level) the mean of
+    the fitted and the classed children's (a one-facet texel stores one point)."""
     out = []
     m = counts.astype(np.float64)
     dense = counts.astype(np.float64)
@@ -144,6 +155,10 @@ def level_sizes(counts: np.ndarray, c_max: int) -> list[tuple[np.ndarray, np.nda
         if dense.shape[0] == 1:
             return out
         c_l = min(float(c_max), C_LEVEL[min(level, len(C_LEVEL) - 1)])
+        if fitted is not None and classed_points is not None and level < min(
+                len(fitted), len(classed_points)):
+            phi = float(np.clip(fitted[level], 0.0, 1.0))
+            c_l = phi * c_l + (1.0 - phi) * min(float(classed_points[level]), c_l)
         m = _pool2(np.minimum(m, c_l))
         dense = _pool2(dense)
         level += 1
@@ -186,6 +201,7 @@ def estimate(
     fitted: Sequence[float] | None = None,
     avis_ray_samples: float | None = None,
     level0_ratio: float | None = None,
+    classed_points: Sequence[float] | None = None,
 ) -> Estimate:
     """Predict a bake's seconds.
 
@@ -208,6 +224,9 @@ def estimate(
     level0_ratio : a fitted finest texel's candidates over its dense samples (its groups,
         level0_candidates "clustered", measured on a sample by `texelbake.pipeline.estimate`);
         None: 1, every sample a candidate
+    classed_points : per classed level, the mean points a texel the classes store holds
+        (measured on the same sample); with `fitted` they set the next level's candidates
+        (`level_sizes`); None: every child holds `C_LEVEL` points
     """
     coef = coef or Coefficients()
     if speed is not None:
@@ -216,7 +235,8 @@ def estimate(
     n = s.atlas_resolution
     workers = max(int(workers), 1)
     sizes = ([(m, dn, 1.0) for m, dn in level_sizes(
-        np.asarray(sample_counts, dtype=np.float64).reshape(n, n), s.c_max)]
+        np.asarray(sample_counts, dtype=np.float64).reshape(n, n), s.c_max,
+        fitted, classed_points)]
         if sample_counts is not None else _uniform_sizes(n, s.samples_per_texel, s.c_max))
     d = s.n_light_dirs * s.n_view_dirs
     n_h = int(round(np.sqrt(s.n_heldout))) ** 2 if s.n_heldout else 0
@@ -242,21 +262,27 @@ def estimate(
             phi = float(np.clip(fitted[level], 0.0, 1.0))
         if level == 0 and level0_ratio is not None:
             m = m * float(np.clip(level0_ratio, 0.0, 1.0))  # the fit's candidates, not samples
-        sec = held + phi * mult * float(brdf * coef.r_entry * (m * d).sum()
-                                        + coef.gram * (m * m * d).sum()
-                                        + coef.eigh * (m ** 3).sum()
-                                        + coef.texel * m.size)
+        # the level's seconds by the coefficient that prices them (`TERMS`), so that
+        # benchmarks/calibrate_costmodel.py --terms can fit a factor per term
+        terms = dict.fromkeys(TERMS, 0.0)
+        terms["held"] = held
+        terms["r_entry"] = phi * mult * float(brdf * coef.r_entry * (m * d).sum())
+        terms["gram"] = phi * mult * float(coef.gram * (m * m * d).sum())
+        terms["eigh"] = phi * mult * float(coef.eigh * (m ** 3).sum())
+        terms["texel"] = phi * mult * float(coef.texel * m.size)
         if level < classed:
-            sec += mult * coef.classify * n_dirs * float(dense.sum())
+            terms["classify"] = mult * coef.classify * n_dirs * float(dense.sum())
         if level > 0 and s.avis_coarse == "dense":
-            sec += phi * mult * coef.fit_avis * s.n_view_dirs * float(
+            terms["fit_avis"] = phi * mult * coef.fit_avis * s.n_view_dirs * float(
                 avis_cast(dense, s.avis_fit_samples).sum())
         if level == 0 and cell_grids:
-            sec += mult * cell_grids * coef.btf_cell * brdf * coef.r_entry * float((m * d).sum())
+            terms["btf_cell"] = (mult * cell_grids * coef.btf_cell * brdf * coef.r_entry
+                                 * float((m * d).sum()))
         if s.point_lobe == "widened":
-            sec *= coef.widened
+            terms = {k: v * coef.widened for k, v in terms.items()}
+        sec = sum(terms.values())
         n_tex = int(round(mult * m.size))
-        per_level.append({"level": level, "texels": n_tex, "seconds": sec})
+        per_level.append({"level": level, "texels": n_tex, "seconds": sec, "terms": terms})
         cpm += sec
         if level >= tile_levels:
             # a top level's dense sums (a_vis, held-out truth) are made by the tile shards
@@ -267,7 +293,7 @@ def estimate(
     faces = (s.avis_resolution / 32.0) ** 2
     ray_samples = total_samples if avis_ray_samples is None else float(avis_ray_samples)
     avis = coef.avis * faces * ray_samples + coef.avis_fixed * total_samples
-    export = coef.export * faces * total_samples
+    export = (coef.export * faces + coef.filtered) * total_samples
     geom = coef.geometry * total_samples
     par = min(workers, cores or workers)
     cpm_wall = (cpm - serial) / par + serial

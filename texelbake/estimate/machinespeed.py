@@ -46,7 +46,7 @@ PART_OF = {
     "r_entry": "grid", "held": "grid", "avis_fixed": "grid",
     "export": "grid", "geometry": "grid",
     "gram": "blas", "eigh": "blas",
-    "avis": "rays", "classify": "rays", "fit_avis": "rays",
+    "avis": "rays", "classify": "rays", "fit_avis": "rays", "filtered": "rays",
     "texel": "python", "process": "python", "fixed": "python", "avis_stage": "python",
 }
 

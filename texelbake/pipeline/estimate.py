@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -72,10 +72,12 @@ class SampledFit:
     shares per classed level, the fraction of its texels the classes leave to the fit;
     level0_ratio the candidates of a fitted finest texel over its dense samples (its groups,
     level0_candidates "clustered"), None where they are its samples or no sampled texel is
-    fitted."""
+    fitted. points: per classed level, the mean points a texel the classes store holds (1
+    where none of the sample is classed)."""
 
     shares: list[float]
     level0_ratio: float | None
+    points: list[float] = field(default_factory=list)
 
 
 def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
@@ -95,12 +97,14 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
     src = ctx.fit_inputs()
     geo, n = src.geo, s.atlas_resolution
     rng = np.random.default_rng(s.seed)
-    out = []
+    out: list[float] = []
+    points: list[float] = []
     ratio = None
     for level in range(min(s.classed_levels, ctx.n_levels)):  # a loop over a few levels
         occupied = np.unique(texel_ids(geo, n, level))
         if not occupied.size:
             out.append(1.0)
+            points.append(1.0)
             continue
         texels = np.sort(rng.choice(occupied, min(CLASS_SAMPLE, occupied.size), replace=False))
         lp = LevelPass.of(src, level)
@@ -108,10 +112,12 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
         cls = classes_bounded(lp, texels, dense, dseg)
         fit = ~(cls.exact | cls.grouped)
         out.append(float(np.mean(fit)))
+        stored = np.diff(cls.offsets)[~fit]
+        points.append(float(stored.mean()) if stored.size else 1.0)
         if level == 0 and clusters_level0(s) and fit.any():
             cands, seg = fitted_groups(lp, texels, dense, dseg, cls, np.flatnonzero(fit))
             ratio = len(cands.sample) / seg.size if seg.size else None
-    return SampledFit(out, ratio)
+    return SampledFit(out, ratio, points)
 
 
 def avis_ray_samples(settings, counts: np.ndarray) -> float | None:
@@ -146,7 +152,8 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
                            ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
                            load=other, cores=cores, speed=speed, fitted=fitted,
                            avis_ray_samples=avis_ray_samples(s, counts),
-                           level0_ratio=None if sampled is None else sampled.level0_ratio)
+                           level0_ratio=None if sampled is None else sampled.level0_ratio,
+                           classed_points=None if sampled is None else sampled.points)
     w = max(int(jobs), 1)
     # made after the geometry stage: its measured seconds (`elapsed`, with ingest) replace the
     # model's geometry term (the bolt's xatlas packing took 42 s where the model says 1)
