@@ -2,7 +2,7 @@
 per-level CPU seconds of the CPM fit (`benchmarks/cpm_cpu.py --json`), and print prediction
 against measurement per (scene, level) and summed.
 
-    python benchmarks/calibrate_costmodel.py RUN.json [RUN.json ...] [--scale-only | --terms]
+    python benchmarks/calibrate_costmodel.py RUN.json [RUN.json ...] [--scale-only | --terms | --parts]
 
 Each run's levels carry the sizes the model uses (candidates m and dense samples per texel on
 cheap (Lambert / Phong) and costly materials, m^2, texels); the direction pairs d and the
@@ -18,7 +18,11 @@ it, so the fitted coefficients stay the reference machine's seconds.
 a_vis rays) instead: each level's prediction split by term is recorded by cpm_cpu.py
 (`model_terms`, whole-atlas runs), so every part the model prices is fitted, the classing and
 a_vis terms included, from the bake's own sizes (sampled classes, capped a_vis samples). NNLS
-on the same relative residuals; a group no run exercises keeps its value.
+on the same relative residuals; a group no run exercises keeps its value. The groups' terms
+are nearly collinear over the level totals (the fit and the coarse a_vis grow together), so
+`--parts` fits each group to its own measured seconds instead, from `cpm_cpu.py --breakdown`
+runs (`PARTS`: the held-out truth, the classing and the coarse a_vis are timed functions, the
+fit the rest of each level).
 """
 
 from __future__ import annotations
@@ -130,6 +134,60 @@ def fit_per_term(paths: list[Path]) -> None:
                                       if getattr(now, t) and t != "btf_cell") + ")")
 
 
+#: the functions `cpm_cpu.py --breakdown` times that are each group's measured seconds (the
+#: fit's group is the rest of the level); avis_sums is the coarse fit's a_vis only where it
+#: casts rays (avis_coarse "dense"), else it reads maps and counts with the fit
+PARTS = {"held": ("heldout_from_samples", "texelbake.cpm.level_by_need.heldout_from_samples"),
+         "classify": ("classes_bounded",), "fit_avis": ("avis_sums",)}
+
+
+def part_seconds(run: dict) -> tuple[np.ndarray, np.ndarray]:
+    """A --breakdown run's measured CPU seconds per group (`GROUPS` order, summed over its
+    levels) and the model's (its `model_terms` on the run's machine)."""
+    if "breakdown_by_level" not in run:
+        raise SystemExit(f"{run['scene']}: no breakdown (run cpm_cpu.py with --breakdown)")
+    X, y, _ = term_design(run)
+    model = X.sum(axis=0)
+    names = list(GROUPS)
+    measured = np.zeros(len(names))
+    dense_avis = run["settings"].get("avis_coarse") == "dense"
+    for parts in run["breakdown_by_level"].values():
+        for group, funcs in PARTS.items():
+            if group == "fit_avis" and not dense_avis:
+                continue
+            measured[names.index(group)] += sum(parts.get(f, 0.0) for f in funcs)
+    measured[names.index("fit")] = y.sum() - measured.sum()
+    return measured, model
+
+
+def fit_parts(paths: list[Path]) -> None:
+    """--parts: each group's factor from its own measured seconds (`PARTS`), every run
+    weighted alike (its seconds over its measured total): sum(measured) / sum(model)."""
+    names = list(GROUPS)
+    rows = [(p, *part_seconds(json.loads(p.read_text()))) for p in paths]
+    num, den = np.zeros(len(names)), np.zeros(len(names))
+    print(f"{'run':<32} " + " ".join(f"{g + ' meas/model':>22}" for g in names))
+    for path, meas, model in rows:
+        total = max(float(meas.sum()), 1e-9)
+        num += meas / total
+        den += model / total
+        print(f"{path.name:<32} " + " ".join(
+            f"{m:>9.1f} /{p:>8.1f} {m / p if p else float('nan'):>4.2f}"
+            for m, p in zip(meas, model, strict=True)))
+    k = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+    for path, meas, model in rows:
+        print(f"{path.name:<32} total measured {meas.sum():.1f} s, model now {model.sum():.1f} "
+              f"({model.sum() / meas.sum():.2f}x), refitted {(model * k).sum():.1f} "
+              f"({(model * k).sum() / meas.sum():.2f}x)")
+    print("factors: " + ", ".join(f"{g} {k[i]:.3f}" for i, g in enumerate(names)))
+    now = Coefficients()
+    fitted = dataclasses.replace(now, **{t: getattr(now, t) * k[i]
+                                         for i, group in enumerate(GROUPS.values())
+                                         for t in group if t != "btf_cell"})
+    print("Coefficients(" + ", ".join(f"{t}={getattr(fitted, t):.3g}" for t in TERMS
+                                      if getattr(now, t) and t != "btf_cell") + ")")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", type=Path)
@@ -139,7 +197,13 @@ def main() -> None:
     ap.add_argument("--terms", action="store_true",
                     help="fit a factor per term of the model (costmodel.TERMS) to the runs' "
                          "model_terms")
+    ap.add_argument("--parts", action="store_true",
+                    help="each group's factor from its own measured seconds (runs made with "
+                         "cpm_cpu.py --breakdown)")
     args = ap.parse_args()
+    if args.parts:
+        fit_parts(args.runs)
+        return
     if args.terms:
         fit_per_term(args.runs)
         return

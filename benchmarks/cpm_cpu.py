@@ -79,6 +79,7 @@ BREAKDOWN = (
     ("texelbake.cpm.gram.fit", "search_c"),
     ("texelbake.cpm.gram.fit", "_assemble"),
     ("texelbake.cpm.level_batched", "heldout_from_samples"),
+    ("texelbake.cpm.level_by_need", "heldout_from_samples"),  # the classed texels' truth
     ("texelbake.cpm.level_batched", "_choose_lobes"),
     ("texelbake.cpm.level_batched", "widen_fit"),
     ("texelbake.cpm.level_batched", "wider_wins"),
