@@ -160,6 +160,18 @@ def part_seconds(run: dict) -> tuple[np.ndarray, np.ndarray]:
     return measured, model
 
 
+def recorded_coefficients(paths: list[Path]) -> Coefficients:
+    """The coefficients the runs' `model_terms` were priced with (one set for all: the
+    factors scale them); the current ones for runs that did not record theirs."""
+    sets = {json.dumps(json.loads(p.read_text()).get("model_coefficients"), sort_keys=True)
+            for p in paths}
+    if len(sets) > 1:
+        raise SystemExit("the runs' model terms were priced with different coefficients: "
+                         "re-run them with one tree")
+    rec = json.loads(sets.pop())
+    return Coefficients(**rec) if rec else Coefficients()
+
+
 def fit_parts(paths: list[Path]) -> None:
     """--parts: each group's factor from its own measured seconds (`PARTS`), every run
     weighted alike (its seconds over its measured total): sum(measured) / sum(model)."""
@@ -175,12 +187,12 @@ def fit_parts(paths: list[Path]) -> None:
             f"{m:>9.1f} /{p:>8.1f} {m / p if p else float('nan'):>4.2f}"
             for m, p in zip(meas, model, strict=True)))
     k = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+    now = recorded_coefficients(paths)
     for path, meas, model in rows:
         print(f"{path.name:<32} total measured {meas.sum():.1f} s, model now {model.sum():.1f} "
               f"({model.sum() / meas.sum():.2f}x), refitted {(model * k).sum():.1f} "
               f"({(model * k).sum() / meas.sum():.2f}x)")
     print("factors: " + ", ".join(f"{g} {k[i]:.3f}" for i, g in enumerate(names)))
-    now = Coefficients()
     fitted = dataclasses.replace(now, **{t: getattr(now, t) * k[i]
                                          for i, group in enumerate(GROUPS.values())
                                          for t in group if t != "btf_cell"})

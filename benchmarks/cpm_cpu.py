@@ -240,9 +240,14 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
         # what `calibrate_costmodel.py --terms` fits a factor per term to
         for lv, pred in zip(levels, model_levels(ctx), strict=True):
             lv["model_seconds"], lv["model_terms"] = pred["seconds"], pred["terms"]
+    from dataclasses import asdict
+
+    from texelbake.estimate.costmodel import Coefficients
+
     return {"scene": scene, "size": size, "settings": json.loads(settings.model_dump_json()),
             "tiles": tiles, "levels": levels, "trial_counts": counts.as_dict(),
-            "cpu_seconds": sum(lv["cpu_seconds"] for lv in levels)}
+            "cpu_seconds": sum(lv["cpu_seconds"] for lv in levels),
+            "model_coefficients": asdict(Coefficients())}
 
 
 def model_levels(ctx: stages.StageContext) -> list[dict]:

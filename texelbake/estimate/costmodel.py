@@ -52,28 +52,31 @@ DEFAULT_FILL = 0.4
 @dataclass(frozen=True)
 class Coefficients:
     """Seconds per unit on the reference machine (`texelbake.estimate.machinespeed`: an estimate on
-    another machine scales them by its reference workload's factors). The fit terms (r_entry,
-    brdf_ggx, gram, held, held_ggx, texel) are fitted by NNLS on relative residuals
-    (`benchmarks/calibrate_costmodel.py`) to the CPU seconds of every level's fit in
-    `benchmarks/cpm_cpu.py` runs; the a_vis, export, process and fixed terms to the stage
-    seconds of `benchmarks/costmodel_check.py`, which also checks prediction against outcome
-    out of sample (docs/profile.md)."""
+    another machine scales them by its reference workload's factors). The fit's groups (the
+    fitted texels' fit: r_entry, gram, eigh, texel; the held-out truth: held; the classing:
+    classify; the coarse fit's a_vis: fit_avis) are scaled each to its own measured CPU seconds
+    in whole-atlas `benchmarks/cpm_cpu.py --breakdown` runs (`benchmarks/calibrate_costmodel.py
+    --parts`: cylinder and bolt at 64^2 and 128^2 defaults and the cylinder at 512^2 with
+    LOD1's settings, benchmarks/results/cpm_cpu_*_parts.json); the ratios within a group
+    (brdf_ggx, held_ggx, gram and texel to r_entry) come from the earlier NNLS fit of every
+    level's seconds; the a_vis, export, process and fixed terms to the stage seconds of
+    `benchmarks/costmodel_check.py`, which also checks prediction against outcome out of
+    sample (docs/profile.md)."""
 
-    r_entry: float = 4.9e-8  # s per (candidate, direction pair), Lambert / Phong
-    gram: float = 7.21e-11  # s per m^2 d
+    r_entry: float = 7.16e-8  # s per (candidate, direction pair), Lambert / Phong
+    gram: float = 1.05e-10  # s per m^2 d
     eigh: float = 0.0  # s per m^3
-    held: float = 7.73e-8  # s per (dense sample, held-out pair), Lambert / Phong (+ a_vis)
-    texel: float = 3.28e-3  # s per fitted texel
+    held: float = 1.65e-8  # s per (dense sample, held-out pair), Lambert / Phong (+ a_vis)
+    texel: float = 4.79e-3  # s per fitted texel
     brdf_ggx: float = 1.25  # R cost of a GGX (preview, merl, cellular) material, x r_entry
     held_ggx: float = 1.43  # held-out cost of such a material, x held
     # classing a texel by need (`cpm.classify`): s per (dense sample, grid direction), its
-    # visibility rays and pattern tests; fitted to the classed levels' CPU seconds less the
-    # fitted texels' terms (benchmarks/results/cpm_cpu_cylinder_128_heldout_samples_16384.json)
-    classify: float = 1.1e-7
+    # visibility rays and pattern tests (`classes_bounded`'s seconds)
+    classify: float = 7.09e-8
     # a coarse level's a_vis cast by the fit over its fitted texels' samples (avis_coarse
     # "dense"; "children" reads the a_vis stage's maps): s per (dense sample, grid view
-    # direction); fitted to levels 5-7 of the same run, whose cost is nearly all this
-    fit_avis: float = 5.5e-8
+    # direction) (`avis_sums`' seconds)
+    fit_avis: float = 5.28e-8
     # level 0's cell-averaged BTF table (btf_table "cell", `cpm.cell_table`): one BRDF grid per
     # draw and the pair's own, x r_entry per (sample, pair, grid); fitted to the cpm stage's
     # seconds cell / point (benchmarks/btf_tables.py)
