@@ -2,7 +2,7 @@
 per-level CPU seconds of the CPM fit (`benchmarks/cpm_cpu.py --json`), and print prediction
 against measurement per (scene, level) and summed.
 
-    python benchmarks/calibrate_costmodel.py RUN.json [RUN.json ...] [--scale-only | --terms | --parts]
+    python benchmarks/calibrate_costmodel.py RUN.json [RUN.json ...] [--scale-only | --parts]
 
 Each run's levels carry the sizes the model uses (candidates m and dense samples per texel on
 cheap (Lambert / Phong) and costly materials, m^2, texels); the direction pairs d and the
@@ -13,16 +13,15 @@ texelbake/estimate/costmodel.py; the table then shows the current model's predic
 record the machine they were made on (`machine_speed`, `texelbake.estimate.machinespeed`) are priced on
 it, so the fitted coefficients stay the reference machine's seconds.
 
-`--terms` fits one factor per group of the model's terms as it stands (`GROUPS` of
+`--parts` scales each group of the model's terms as it stands (`GROUPS` of
 `costmodel.TERMS`: the fitted texels' fit, the held-out truth, the classing, the coarse fit's
-a_vis rays) instead: each level's prediction split by term is recorded by cpm_cpu.py
-(`model_terms`, whole-atlas runs), so every part the model prices is fitted, the classing and
-a_vis terms included, from the bake's own sizes (sampled classes, capped a_vis samples). NNLS
-on the same relative residuals; a group no run exercises keeps its value. The groups' terms
-are nearly collinear over the level totals (the fit and the coarse a_vis grow together), so
-`--parts` fits each group to its own measured seconds instead, from `cpm_cpu.py --breakdown`
-runs (`PARTS`: the held-out truth, the classing and the coarse a_vis are timed functions, the
-fit the rest of each level).
+a_vis rays) to its own measured seconds, from whole-atlas `cpm_cpu.py --breakdown` runs: each
+level's prediction split by term is recorded by cpm_cpu.py (`model_terms`, priced as the bake
+prices them, with the sampled classes and the capped a_vis samples), and the held-out truth,
+the classing and the coarse a_vis are timed functions (`PARTS`; the fit is the rest of each
+level). Fitting the groups to the level totals instead cannot tell them apart: the fit and
+the coarse a_vis grow together (an NNLS over four runs put the coarse a_vis at 0 where it
+measured 64 s, docs/decisions.md).
 """
 
 from __future__ import annotations
@@ -68,10 +67,10 @@ def predict(coef: Coefficients, X: np.ndarray) -> np.ndarray:
             + coef.held * X[:, 3] + coef.held * coef.held_ggx * X[:, 4] + coef.texel * X[:, 5])
 
 
-#: the groups a factor is fitted per (`--terms`): the fitted texels' fit (its terms' ratios
+#: the groups a factor is fitted per (`--parts`): the fitted texels' fit (its terms' ratios
 #: are the full fit's, over many runs), the held-out truth, the classing and the coarse fit's
 #: a_vis rays. One factor per group, not per term: R entries, Gram and texel terms all grow
-#: with the fitted texels, and apart they are collinear (a fit per term put r_entry at 0)
+#: with the fitted texels and are timed together
 GROUPS = {"fit": ("r_entry", "gram", "eigh", "texel", "btf_cell"), "held": ("held",),
           "classify": ("classify",), "fit_avis": ("fit_avis",)}
 #: a term priced by another coefficient's kind of work (btf_cell is a multiple of r_entry)
@@ -95,43 +94,6 @@ def term_design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
         y.append(lv["cpu_seconds"])
         names.append(f"{run['scene']} {run['settings']['atlas_resolution']} L{lv['level']}")
     return np.array(rows, float), np.array(y, float), names
-
-
-def fit_per_term(paths: list[Path]) -> None:
-    """--terms: a factor per group of terms (`GROUPS`), NNLS on relative residuals; printed
-    with the fit and the coefficients it gives."""
-    parts = [term_design(json.loads(p.read_text())) for p in paths]
-    X = np.vstack([p[0] for p in parts])
-    y = np.concatenate([p[1] for p in parts])
-    names = [n for p in parts for n in p[2]]
-    # each level weighted by 1 / its run's measured total: every run counts alike and, within
-    # a run, a level by its share of the bake (a bake's seconds are what the model predicts)
-    w = np.concatenate([np.full(p[1].size, 1.0 / max(float(p[1].sum()), 1e-3)) for p in parts])
-    used = np.flatnonzero(np.abs(X).sum(axis=0) > 0)
-    k = np.ones(len(GROUPS))
-    scale = np.abs(X[:, used]).max(axis=0)
-    sol, _ = scipy.optimize.nnls((X[:, used] * w[:, None]) / scale, y * w)
-    k[used] = sol / scale
-    now = Coefficients()
-    # btf_cell is a ratio to r_entry: it moves with r_entry's factor, so it keeps its value
-    fitted = dataclasses.replace(now, **{t: getattr(now, t) * k[i]
-                                         for i, group in enumerate(GROUPS.values())
-                                         for t in group if t != "btf_cell"})
-    p_fit, p_now = X @ k, X.sum(axis=1)
-    print(f"{'level':<20} {'measured s':>10} {'fitted':>8} {'ratio':>6} {'current':>8} {'ratio':>6}")
-    for n, a, b, e in zip(names, y, p_fit, p_now, strict=True):
-        print(f"{n:<20} {a:>10.2f} {b:>8.2f} {b / a:>6.2f} {e:>8.2f} {e / a:>6.2f}")
-    start = 0
-    for path, (_, yy, _) in zip(paths, parts, strict=True):
-        sel = slice(start, start + yy.size)
-        start += yy.size
-        print(f"{path.name:<40} summed: measured {yy.sum():.2f} s, fitted "
-              f"{p_fit[sel].sum():.2f} ({p_fit[sel].sum() / yy.sum():.2f}x), current "
-              f"{p_now[sel].sum():.2f} ({p_now[sel].sum() / yy.sum():.2f}x)")
-    print("factors: " + ", ".join(f"{g} {k[i]:.3f}" for i, g in enumerate(GROUPS)
-                                  if i in set(used.tolist())))
-    print("Coefficients(" + ", ".join(f"{t}={getattr(fitted, t):.3g}" for t in TERMS
-                                      if getattr(now, t) and t != "btf_cell") + ")")
 
 
 #: the functions `cpm_cpu.py --breakdown` times that are each group's measured seconds (the
@@ -206,18 +168,12 @@ def main() -> None:
     ap.add_argument("--scale-only", action="store_true",
                     help="keep the current terms' ratios and fit one factor on them (few runs: "
                          "the full fit is underdetermined)")
-    ap.add_argument("--terms", action="store_true",
-                    help="fit a factor per term of the model (costmodel.TERMS) to the runs' "
-                         "model_terms")
     ap.add_argument("--parts", action="store_true",
                     help="each group's factor from its own measured seconds (runs made with "
                          "cpm_cpu.py --breakdown)")
     args = ap.parse_args()
     if args.parts:
         fit_parts(args.runs)
-        return
-    if args.terms:
-        fit_per_term(args.runs)
         return
     parts = [design(json.loads(p.read_text())) for p in args.runs]
     X = np.vstack([p[0] for p in parts])

@@ -24,6 +24,7 @@ import hashlib
 import json
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,7 @@ from texelbake.cpm.assemble import heldout_stats
 from texelbake.cpm.dense import dense_sums
 from texelbake.cpm.level import concat_levels, level_candidates, texel_ids, tile_texels
 from texelbake.cpm.texel_fit import FitCounts
+from texelbake.estimate import costmodel
 from texelbake.io.atomic import atomic_json
 from texelbake.pipeline.process import setup_bake_process
 from texelbake.stages import cpm as cpm_stage
@@ -237,24 +239,19 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
     if len(tiles) == n_tiles:
         # the cost model's prediction of each level, by term, priced on the coefficients'
         # machine, as the bake makes it (from the placed samples and the sampled classes):
-        # what `calibrate_costmodel.py --terms` fits a factor per term to
+        # what `calibrate_costmodel.py --parts` scales each group of terms by
         for lv, pred in zip(levels, model_levels(ctx), strict=True):
             lv["model_seconds"], lv["model_terms"] = pred["seconds"], pred["terms"]
-    from dataclasses import asdict
-
-    from texelbake.estimate.costmodel import Coefficients
-
     return {"scene": scene, "size": size, "settings": json.loads(settings.model_dump_json()),
             "tiles": tiles, "levels": levels, "trial_counts": counts.as_dict(),
             "cpu_seconds": sum(lv["cpu_seconds"] for lv in levels),
-            "model_coefficients": asdict(Coefficients())}
+            "model_coefficients": asdict(costmodel.Coefficients())}
 
 
 def model_levels(ctx: stages.StageContext) -> list[dict]:
     """The cost model's per-level CPU seconds of the fit and their terms (`costmodel.TERMS`)
     for this bake, at the coefficients' machine (no speed factor), with the fitted shares
     and level-0 candidate ratio the bake's own estimate samples (`pipeline.estimate`)."""
-    from texelbake.estimate import costmodel
     from texelbake.pipeline.estimate import sampled_fitted_shares
 
     s = ctx.settings

@@ -266,7 +266,7 @@ def estimate(
         if level == 0 and level0_ratio is not None:
             m = m * float(np.clip(level0_ratio, 0.0, 1.0))  # the fit's candidates, not samples
         # the level's seconds by the coefficient that prices them (`TERMS`), so that
-        # benchmarks/calibrate_costmodel.py --terms can fit a factor per term
+        # benchmarks/calibrate_costmodel.py --parts can scale each group to its measured share
         terms = dict.fromkeys(TERMS, 0.0)
         terms["held"] = held
         terms["r_entry"] = phi * mult * float(brdf * coef.r_entry * (m * d).sum())
