@@ -335,9 +335,9 @@ def test_the_held_out_truth_is_priced_on_its_samples():
 
 def test_a_vis_rays_are_priced_on_the_samples_that_cast_them():
     """avis_level0 "by_need" casts level 0's cube from a few strata per texel: the a_vis
-    stage's ray term scales with the samples given (`avis_ray_samples`), its per-sample maps
-    term does not; the pipeline counts at most `strata_for(side)` per texel (16 up to 128²,
-    8 at 512²)."""
+    stage's ray term scales with the samples given (`avis_ray_samples`), its maps term (per
+    occupied finest texel) does not; the pipeline counts at most `strata_for(side)` per
+    texel (16 up to 128², 8 at 512²)."""
     from texelbake.pipeline.estimate import avis_ray_samples
 
     n, spt = 8, 40
@@ -350,7 +350,7 @@ def test_a_vis_rays_are_priced_on_the_samples_that_cast_them():
     every = costmodel.estimate(s, 1, counts, coef=_only(avis=1e-6))
     assert rays.avis_seconds == pytest.approx(every.avis_seconds * 16 / spt, rel=1e-12)
     maps = costmodel.estimate(s, 1, counts, coef=_only(avis_fixed=1e-6), avis_ray_samples=k)
-    assert maps.avis_seconds == pytest.approx(1e-6 * n * n * spt, rel=1e-12)
+    assert maps.avis_seconds == pytest.approx(1e-6 * n * n, rel=1e-12)
     fine = s.model_copy(update={"atlas_resolution": 512})
     assert avis_ray_samples(fine, counts) == 8 * n * n
 
@@ -462,3 +462,20 @@ def test_a_coarse_texels_candidates_are_its_childrens_points_fitted_and_classed(
     # a classed texel never stores more than a fitted one's C_LEVEL
     big = costmodel.level_sizes(counts, 64, fitted=[0.0], classed_points=[99.0])
     np.testing.assert_allclose(big[1][0], np.full(4, 40.0))
+
+
+def test_the_exports_tables_are_priced_per_texel_and_its_filtered_maps_per_sample():
+    """By hand on an 8^2 atlas with samples on half its texels: the a_vis tables' term is
+    `export` x (faces / 32)^2 per occupied finest texel, whatever their samples; the filtered
+    maps' `filtered` per dense sample, whatever the faces."""
+    n = 8
+    counts = np.zeros((n, n), int)
+    counts[:, : n // 2] = 30
+    for res in (16, 32):
+        s = BakeSettings(atlas_resolution=n, avis_resolution=res)
+        tables = costmodel.estimate(s, 1, counts, coef=_only(export=1e-3)).export_seconds
+        assert tables == pytest.approx(1e-3 * (res / 32) ** 2 * (n * n // 2), rel=1e-12)
+        four = costmodel.estimate(s, 1, 4 * counts, coef=_only(export=1e-3)).export_seconds
+        assert four == pytest.approx(tables, rel=1e-12)
+        maps = costmodel.estimate(s, 1, counts, coef=_only(filtered=1e-6)).export_seconds
+        assert maps == pytest.approx(1e-6 * 30 * (n * n // 2), rel=1e-12)

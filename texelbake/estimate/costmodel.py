@@ -87,12 +87,19 @@ class Coefficients:
     # (benchmarks/results/cpm_cpu_*_seeds_point_lobe_{narrow,widened}.json)
     widened: float = 1.24
     avis: float = 1.76e-4  # s per dense sample at 32^2 cube faces, x (res / 32)^2 (rays)
-    avis_fixed: float = 1.74e-5  # s per dense sample at any face resolution (maps, coarsening)
+    # s per occupied finest texel at any face resolution (maps, coarsening); the residual of
+    # the 512^2 cylinder's and bolt's a_vis stages (LOD1's settings) past their rays, which
+    # match at the same texels and 4x the samples (docs/decisions.md)
+    avis_fixed: float = 2.5e-4
     avis_stage: float = 4.8  # wall s of the a_vis stage on any atlas (each worker's set-up)
-    export: float = 3.3e-5  # s per dense sample at 32^2 faces, x (res / 32)^2 (a_vis tables)
-    # the export's filtered maps (`stages.filtered.run_filtered`: AO rays and the LEADR, AO and
-    # base sums of every dense sample), whatever the cube faces: wall s per dense sample
-    filtered: float = 5.1e-6
+    # the export's a_vis tables (`cpm.avis.compress`, four passes over every level's ray
+    # texels): wall s per occupied finest texel at 32^2 faces, x (res / 32)^2; and its
+    # filtered maps (`stages.filtered.run_filtered`: AO rays and the LEADR, AO and base sums
+    # of every dense sample), whatever the faces: wall s per dense sample. Fitted to the
+    # export's seconds of the cylinder and bolt at 16^2, 64^2 (defaults) and 512^2 (LOD1's
+    # settings), whose samples per texel differ 4x at the same texels (docs/decisions.md)
+    export: float = 1.5e-3
+    filtered: float = 4.85e-6
     geometry: float = 2.0e-5  # s per dense sample (sampling, texel assignment)
     process: float = 3.5  # s per process pool's start (imports, scene, ray caster)
     fixed: float = 2.0  # s (ingest, plan, the export's USD and LODs)
@@ -293,10 +300,11 @@ def estimate(
             serial += sec - held
         texels += n_tex
     total_samples = float(sizes[0][1].sum() * sizes[0][2])
+    finest_texels = float(sizes[0][0].size * sizes[0][2])  # occupied finest texels
     faces = (s.avis_resolution / 32.0) ** 2
     ray_samples = total_samples if avis_ray_samples is None else float(avis_ray_samples)
-    avis = coef.avis * faces * ray_samples + coef.avis_fixed * total_samples
-    export = (coef.export * faces + coef.filtered) * total_samples
+    avis = coef.avis * faces * ray_samples + coef.avis_fixed * finest_texels
+    export = coef.export * faces * finest_texels + coef.filtered * total_samples
     geom = coef.geometry * total_samples
     par = min(workers, cores or workers)
     cpm_wall = (cpm - serial) / par + serial
