@@ -13,7 +13,8 @@ one part per kind of work the cost model prices, each sized like the fit's own c
             avis_fixed, export, geometry
     blas    Gram matrices (m x d by its transpose, m ~ 100, d = 4,096) and a stack of
             symmetric eigendecompositions: gram, eigh
-    rays    one batch of 2^18 rays against a 20k-triangle mesh in open3d's Embree scene: avis
+    rays    one batch of 2^18 rays against a 20k-triangle mesh in open3d's Embree scene: avis,
+            classify, fit_avis, filtered
     python  small NNLS solves and array bookkeeping, one call at a time (the per-texel draws,
             bisection and trials): texel, process, fixed
 
