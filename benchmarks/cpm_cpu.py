@@ -250,19 +250,11 @@ def run(scene: str, size: str, settings: BakeSettings, work: Path,
 
 def model_levels(ctx: stages.StageContext) -> list[dict]:
     """The cost model's per-level CPU seconds of the fit and their terms (`costmodel.TERMS`)
-    for this bake, at the coefficients' machine (no speed factor), with the fitted shares
-    and level-0 candidate ratio the bake's own estimate samples (`pipeline.estimate`)."""
-    from texelbake.pipeline.estimate import sampled_fitted_shares
+    for this bake, at the coefficients' machine (no speed factor), on the inputs the bake's
+    own estimate prices (`pipeline.estimate.estimate_inputs`)."""
+    from texelbake.pipeline.estimate import estimate_inputs
 
-    s = ctx.settings
-    geo = ctx.geometry()
-    sampled = sampled_fitted_shares(ctx)
-    return costmodel.estimate(
-        s, 1, costmodel.sample_counts(geo, s.atlas_resolution),
-        ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
-        fitted=None if sampled is None else sampled.shares,
-        level0_ratio=None if sampled is None else sampled.level0_ratio,
-        classed_points=None if sampled is None else sampled.points).per_level
+    return costmodel.estimate(ctx.settings, 1, **estimate_inputs(ctx)).per_level
 
 
 def stages_asset(scene: str, size: str, work: Path) -> Path:

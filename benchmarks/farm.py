@@ -20,7 +20,7 @@ Method (one run, ratios only):
   finished job every `--poll` seconds for `--seconds`; p50/p99 of all request latencies.
 - 4 cpm workers (issue 15, item 6): oversubscribes the 2 cores (two workers per CPU), so the
   figure that matters is speed-up per core: t_farm[1] / t_farm[n] / min(n, cores).
-- the N-machine prediction (issue 15, item 6): `texelbake.estimate.costmodel.simulate_farm`, a
+- the N-machine prediction (issue 15, item 6): `texelbake.estimate.farmsim.simulate_farm`, a
   discrete-event simulation of N workers draining the shard queue over one shared artifact
   store, fed with this run's measured per-shard durations (1-worker run), per-shard artifact
   bytes written, the geometry arrays each worker reads once and the farm's overhead per shard.
@@ -175,9 +175,9 @@ def artifact_bytes(work: Path) -> dict:
 
 def predict_farm(f1: dict, runs: dict[int, dict], n_shards: int, overhead: float,
                  atlas: int = 1024, counts: tuple[int, ...] = (8, 32, 128)) -> dict:
-    """`costmodel.simulate_farm` checked against the real runs, then the 1024^2 prediction."""
+    """`farmsim.simulate_farm` checked against the real runs, then the 1024^2 prediction."""
     from schemas.settings import BakeSettings
-    from texelbake.estimate import costmodel
+    from texelbake.estimate import costmodel, farmsim
 
     dur = np.asarray(f1["shard_seconds"], dtype=np.float64)
     ab = f1["artifact_bytes"]
@@ -187,7 +187,7 @@ def predict_farm(f1: dict, runs: dict[int, dict], n_shards: int, overhead: float
     zero = np.zeros(dur.size)
     check = {}
     for n, run in runs.items():
-        sim = costmodel.simulate_farm(dur, zero, wb, n, bandwidth=1.25e9, overhead=overhead,
+        sim = farmsim.simulate_farm(dur, zero, wb, n, bandwidth=1.25e9, overhead=overhead,
                                       startup_bytes=ab["geometry_bytes"], cores=os.cpu_count())
         check[n] = {"measured_s": run["stage_seconds"], "simulated_s": sim.seconds,
                     "ratio": sim.seconds / run["stage_seconds"]}
@@ -212,7 +212,7 @@ def predict_farm(f1: dict, runs: dict[int, dict], n_shards: int, overhead: float
     for name, bw in (("1GbE", 1.25e8), ("10GbE", 1.25e9)):
         rows = {}
         for n in (1, *counts):
-            sim = costmodel.simulate_farm(
+            sim = farmsim.simulate_farm(
                 dur[pick] + extra, np.zeros(S), wb[pick], n, bandwidth=bw, overhead=overhead,
                 startup_bytes=ab["geometry_bytes"] * scale, serial_seconds=top,
                 serial_read_bytes=ab["top_level_bytes"] / max(n_shards, 1) * S)

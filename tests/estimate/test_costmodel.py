@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from schemas.settings import BakeSettings
-from texelbake.estimate import costmodel
+from texelbake.estimate import costmodel, farmsim
 
 
 def test_uniform_prediction_equals_the_histogram_of_an_even_fill():
@@ -85,16 +85,16 @@ def test_farm_simulation_against_closed_forms():
     dur = np.full(S, 2.0)
     zero = np.zeros(S)
     for n in (1, 2, 4, 8, 64):
-        r = costmodel.simulate_farm(dur, zero, zero, n, bandwidth=1.0)
+        r = farmsim.simulate_farm(dur, zero, zero, n, bandwidth=1.0)
         assert r.seconds == pytest.approx(np.ceil(S / n) * 2.0)
-    r = costmodel.simulate_farm(dur, np.full(S, 10.0), np.full(S, 5.0), 1, bandwidth=5.0,
+    r = farmsim.simulate_farm(dur, np.full(S, 10.0), np.full(S, 5.0), 1, bandwidth=5.0,
                                 overhead=0.5, startup_bytes=50.0, serial_seconds=3.0,
                                 serial_read_bytes=20.0)
     assert r.seconds == pytest.approx(S * (2.0 + 0.5 + 3.0) + 50.0 / 5.0 + 3.0 + 4.0)
-    slow = costmodel.simulate_farm(dur, np.full(S, 100.0), zero, 32, bandwidth=10.0)
+    slow = farmsim.simulate_farm(dur, np.full(S, 100.0), zero, 32, bandwidth=10.0)
     assert slow.seconds == pytest.approx(S * 10.0 + 2.0)
     # oversubscribed: 4 workers on 2 cores stretch every shard 2x
-    over = costmodel.simulate_farm(dur, zero, zero, 4, bandwidth=1.0, cores=2)
+    over = farmsim.simulate_farm(dur, zero, zero, 4, bandwidth=1.0, cores=2)
     assert over.seconds == pytest.approx(np.ceil(S / 4) * 4.0)
 
 

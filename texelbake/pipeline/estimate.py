@@ -132,6 +132,25 @@ def avis_ray_samples(settings, counts: np.ndarray) -> float | None:
     return float(np.minimum(np.asarray(counts), k).sum())
 
 
+def estimate_inputs(ctx: stages.StageContext) -> dict:
+    """What `costmodel.estimate` prices a bake on once its samples are placed (keyword
+    arguments): the samples per finest texel, the costly materials' share, and on a seeded
+    sample of texels the classes' fitted shares, level-0 candidate ratio and stored points
+    (`sampled_fitted_shares`), and level 0's a_vis ray samples."""
+    from texelbake.estimate import costmodel
+
+    s = ctx.settings
+    geo = ctx.geometry()
+    sampled = sampled_fitted_shares(ctx)
+    counts = costmodel.sample_counts(geo, s.atlas_resolution)
+    return {"sample_counts": counts,
+            "ggx_fraction": costmodel.ggx_fraction_of(geo, ctx.asset().materials),
+            "fitted": None if sampled is None else sampled.shares,
+            "avis_ray_samples": avis_ray_samples(s, counts),
+            "level0_ratio": None if sampled is None else sampled.level0_ratio,
+            "classed_points": None if sampled is None else sampled.points}
+
+
 def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> dict:
     """The cost model's prediction (`texelbake.estimate.costmodel`) from the placed samples: total
     seconds, the cpm and avis stages' wall seconds on `jobs` workers, and the ETA (UTC) of the
@@ -140,20 +159,12 @@ def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> 
 
     from texelbake.estimate import costmodel, machinespeed
 
-    s = ctx.settings
-    geo = ctx.geometry()
     cores = os.cpu_count() or 1
     speed = machinespeed.this_machine()  # before the load reading: ~1 s of this process's CPU
     other = _other_runnable()
-    sampled = sampled_fitted_shares(ctx)
-    fitted = None if sampled is None else sampled.shares
-    counts = costmodel.sample_counts(geo, s.atlas_resolution)
-    e = costmodel.estimate(s, jobs, counts,
-                           ggx_fraction=costmodel.ggx_fraction_of(geo, ctx.asset().materials),
-                           load=other, cores=cores, speed=speed, fitted=fitted,
-                           avis_ray_samples=avis_ray_samples(s, counts),
-                           level0_ratio=None if sampled is None else sampled.level0_ratio,
-                           classed_points=None if sampled is None else sampled.points)
+    inputs = estimate_inputs(ctx)
+    fitted = inputs["fitted"]
+    e = costmodel.estimate(ctx.settings, jobs, load=other, cores=cores, speed=speed, **inputs)
     w = max(int(jobs), 1)
     # made after the geometry stage: its measured seconds (`elapsed`, with ingest) replace the
     # model's geometry term (the bolt's xatlas packing took 42 s where the model says 1)
