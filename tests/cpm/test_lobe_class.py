@@ -264,3 +264,20 @@ def test_the_report_counts_the_lobe_class():
     off = _by_need(_strip(0.1, lobes="off"))
     assert "lobe" not in report_classes(off, off["valid"].astype(bool))
     assert fitted_shares([off]) == [1.0]
+
+
+def test_a_texel_not_tried_among_tried_ones_raises_no_floating_point_warning():
+    """A chunk's texel that is not tried and holds no sample has a zero mean normal, hence no
+    tangent frame: its rows are never read, and building the chunk's frames must not divide
+    0 by 0 (a RuntimeWarning per chunk before)."""
+    import warnings
+
+    from texelbake.cpm.lobe_class import _quadrant_points
+
+    mean = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+    nrm = np.array([[0.1, 0.0, 0.995], [0.0, 0.1, 0.995]])
+    dseg = np.zeros(2, np.int64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pts, cell = _quadrant_points(nrm, mean, nrm, mean, dseg, np.arange(2), np.arange(2))
+    assert pts.size == 2 and np.isfinite(cell).all()

@@ -110,7 +110,8 @@ def _quadrant_points(nrm: np.ndarray, mean: np.ndarray, gnrm: np.ndarray, gmean:
     # the plane), per texel, read by its rows
     axis = np.where((np.abs(mean[:, 0]) < 0.6)[:, None], [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     t1 = np.cross(mean, axis)
-    t1 /= np.linalg.norm(t1, axis=1)[:, None]
+    # zero only where the mean is (a texel not tried, whose rows are not read)
+    t1 /= np.maximum(np.linalg.norm(t1, axis=1), 1e-300)[:, None]
     t2 = np.cross(mean, t1)
     seg = dseg[rows]
     du = np.einsum("ij,ij->i", nrm[rows], t1[seg])

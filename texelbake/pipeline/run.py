@@ -15,7 +15,7 @@ from texelbake import stages
 from texelbake.errors import SettingsError, StageError
 from texelbake.pipeline.estimate import bake_estimate
 from texelbake.pipeline.plan import Plan, StagePlan, atlas_note, plan_bake, resolve_settings
-from texelbake.pipeline.process import setup_bake_process
+from texelbake.pipeline.process import release_freed_memory, setup_bake_process
 
 #: stage -> shard body (the render stage needs the exported folder: `bake` and the farm call
 #: `stages.run_render` / `texelbake.render` directly)
@@ -145,6 +145,7 @@ def bake(
                         print(f"preview: {p}")
             elif i in pooled:
                 if pool is None:  # one pool for every sharded stage (see _shard_pool)
+                    release_freed_memory()  # this process waits while the pool works
                     pool = _shard_pool(jobs)
                 _run_parallel(pool, workdir, asset_path, settings, sp, progress, est)
             else:
