@@ -15,7 +15,7 @@ it, so the fitted coefficients stay the reference machine's seconds.
 
 `--parts` scales each group of the model's terms as it stands (`GROUPS` of
 `costmodel.TERMS`: the fitted texels' fit, the held-out truth, the classing, the coarse fit's
-a_vis rays) to its own measured seconds, from whole-atlas `cpm_cpu.py --breakdown` runs: each
+a_vis rays, the lobe class's tries) to its own measured seconds, from whole-atlas `cpm_cpu.py --breakdown` runs: each
 level's prediction split by term is recorded by cpm_cpu.py (`model_terms`, priced as the bake
 prices them, with the sampled classes and the capped a_vis samples), and the held-out truth,
 the classing and the coarse a_vis are timed functions (`PARTS`; the fit is the rest of each
@@ -68,11 +68,11 @@ def predict(coef: Coefficients, X: np.ndarray) -> np.ndarray:
 
 
 #: the groups a factor is fitted per (`--parts`): the fitted texels' fit (its terms' ratios
-#: are the full fit's, over many runs), the held-out truth, the classing and the coarse fit's
-#: a_vis rays. One factor per group, not per term: R entries, Gram and texel terms all grow
-#: with the fitted texels and are timed together
+#: are the full fit's, over many runs), the held-out truth, the classing, the coarse fit's
+#: a_vis rays and the lobe class's tries. One factor per group, not per term: R entries,
+#: Gram and texel terms all grow with the fitted texels and are timed together
 GROUPS = {"fit": ("r_entry", "gram", "eigh", "texel", "btf_cell"), "held": ("held",),
-          "classify": ("classify",), "fit_avis": ("fit_avis",)}
+          "classify": ("classify",), "fit_avis": ("fit_avis",), "lobe": ("lobe",)}
 #: a term priced by another coefficient's kind of work (btf_cell is a multiple of r_entry)
 PRICED_BY = {"btf_cell": "r_entry"}
 
@@ -89,7 +89,7 @@ def term_design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
             raise SystemExit(f"{run['scene']} level {lv['level']}: no model_terms (a run of "
                              "every tile by this cpm_cpu.py records them)")
         terms = lv["model_terms"]
-        rows.append([sum(terms[t] * speed.factor(PRICED_BY.get(t, t)) for t in group)
+        rows.append([sum(terms.get(t, 0.0) * speed.factor(PRICED_BY.get(t, t)) for t in group)
                      for group in GROUPS.values()])
         y.append(lv["cpu_seconds"])
         names.append(f"{run['scene']} {run['settings']['atlas_resolution']} L{lv['level']}")
@@ -100,7 +100,8 @@ def term_design(run: dict) -> tuple[np.ndarray, np.ndarray, list[str]]:
 #: fit's group is the rest of the level); avis_sums is the coarse fit's a_vis only where it
 #: casts rays (avis_coarse "dense"), else it reads maps and counts with the fit
 PARTS = {"held": ("heldout_from_samples", "texelbake.cpm.level_by_need.heldout_from_samples"),
-         "classify": ("classes_bounded",), "fit_avis": ("avis_sums",)}
+         "classify": ("classes_bounded",), "fit_avis": ("avis_sums",),
+         "lobe": ("lobes_bounded",)}
 
 
 def part_seconds(run: dict) -> tuple[np.ndarray, np.ndarray]:

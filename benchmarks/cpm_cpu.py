@@ -89,6 +89,7 @@ BREAKDOWN = (
     ("texelbake.cpm.level_by_need", "classes_bounded"),
     ("texelbake.cpm.level_by_need", "_stored_arrays"),
     ("texelbake.cpm.level_by_need", "cluster_candidates"),
+    ("texelbake.cpm.level_by_need", "lobes_bounded"),
 )
 
 

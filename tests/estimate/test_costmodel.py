@@ -202,8 +202,9 @@ def test_machine_speed_scales_each_term_by_its_kind_of_work():
     s = BakeSettings(atlas_resolution=32, avis_coarse="dense")  # every term priced
     for name, part in PART_OF.items():
         one = replace(zero, **{name: getattr(Coefficients(), name) or 1e-9})
-        base = costmodel.estimate(s, 1, coef=one, ggx_fraction=0.0)
-        fast = costmodel.estimate(s, 1, coef=one, ggx_fraction=0.0, speed=speed)
+        base = costmodel.estimate(s, 1, coef=one, ggx_fraction=0.0, lobe_tried=0.5)
+        fast = costmodel.estimate(s, 1, coef=one, ggx_fraction=0.0, speed=speed,
+                                  lobe_tried=0.5)
         assert base.seconds > 0, name
         assert fast.seconds == pytest.approx(factors[part] * base.seconds, rel=1e-12), name
         assert fast.speed == speed.to_dict() and base.speed is None
@@ -418,7 +419,8 @@ def test_a_levels_terms_are_each_coefficients_share_of_its_seconds(update):
     n = 16
     counts = np.random.default_rng(3).integers(0, 90, (n, n))
     s = BakeSettings(atlas_resolution=n, **update)
-    kw = {"ggx_fraction": 0.3, "fitted": [0.5, 0.7, 0.9], "level0_ratio": 0.6}
+    kw = {"ggx_fraction": 0.3, "fitted": [0.5, 0.7, 0.9], "level0_ratio": 0.6,
+          "lobe_tried": 0.4 if update.get("avis_coarse") else None}
     c = costmodel.Coefficients()
     ratios = {"brdf_ggx": c.brdf_ggx, "held_ggx": c.held_ggx, "widened": c.widened}
     full = costmodel.estimate(s, 1, counts, coef=c, **kw).per_level
@@ -441,7 +443,7 @@ def test_a_levels_terms_are_each_coefficients_share_of_its_seconds(update):
     for lv in full:
         assert sum(lv["terms"].values()) == pytest.approx(lv["seconds"], rel=1e-12)
     # the two settings exercise every term but eigh (0 in the coefficients)
-    assert used >= ({"held", "r_entry", "gram", "texel", "classify", "fit_avis"}
+    assert used >= ({"held", "r_entry", "gram", "texel", "classify", "fit_avis", "lobe"}
                     if update.get("avis_coarse") else {"r_entry", "btf_cell"})
 
 
@@ -479,3 +481,21 @@ def test_the_exports_tables_are_priced_per_texel_and_its_filtered_maps_per_sampl
         assert four == pytest.approx(tables, rel=1e-12)
         maps = costmodel.estimate(s, 1, counts, coef=_only(filtered=1e-6)).export_seconds
         assert maps == pytest.approx(1e-6 * 30 * (n * n // 2), rel=1e-12)
+
+
+def test_the_lobe_class_tries_are_priced_per_sample_of_a_tried_finest_texel():
+    """By hand on an 8^2 atlas of 20 samples on half its texels: trying level 0's lobe class
+    costs `lobe` x the tried share x level 0's dense samples, at level 0 only (x `widened`,
+    the point lobe's factor every term of a level carries); no share tried, no term."""
+    n = 8
+    counts = np.zeros((n, n), int)
+    counts[:, : n // 2] = 20
+    s = BakeSettings(atlas_resolution=n)
+    c = costmodel.Coefficients()
+    levels = costmodel.estimate(s, 1, counts, coef=c, lobe_tried=0.25).per_level
+    assert levels[0]["terms"]["lobe"] == pytest.approx(
+        c.lobe * 0.25 * 32 * 20 * (c.widened if s.point_lobe == "widened" else 1.0), rel=1e-12)
+    assert all(lv["terms"]["lobe"] == 0.0 for lv in levels[1:])
+    for tried in (None, 0.0):
+        none = costmodel.estimate(s, 1, counts, coef=c, lobe_tried=tried).per_level
+        assert none[0]["terms"]["lobe"] == 0.0

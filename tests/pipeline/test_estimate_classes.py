@@ -47,3 +47,39 @@ def test_the_sampled_share_matches_the_whole_level(tmp_path):
     points = stages.StageContext.create(tmp_path / "w", scene,
                                         s.model_copy(update={"texel_classes": "points"}))
     assert sampled_fitted_shares(points) is None
+
+
+def test_the_lobe_class_is_priced_on_the_same_sample(tmp_path):
+    """lobe_class "validated" on the small cloisonne (curved, one material a cell) at 16^2:
+    the share of level 0's texels the lobe class tries and the share it leaves to the fit
+    are each within 3 standard errors of the same shares over the whole level (the classes
+    and the lobes of every occupied texel, a second run); without the class, nothing is
+    tried."""
+    from texelbake.cpm.classify import REASONS
+    from texelbake.cpm.lobe_class import lobes_bounded
+
+    scene = write_scene("cloisonne", tmp_path / "c.usda", "small")
+    s = BakeSettings(atlas_resolution=16, samples_per_texel=16, n_light_dirs=16, n_view_dirs=16,
+                     lobe_class="validated", classed_levels=1)
+    ctx = stages.StageContext.create(tmp_path / "w", scene, s)
+    stages.run_ingest(ctx, 0)
+    stages.run_geometry(ctx, 0)
+    sampled = sampled_fitted_shares(ctx)
+    assert sampled is not None and sampled.lobe_tried is not None
+    src, geo = ctx.fit_inputs(), ctx.geometry()
+    occ = np.unique(geo["sample_row"] * 16 + geo["sample_col"])
+    assert occ.size > CLASS_SAMPLE
+    lp = LevelPass.of(src, 0)
+    dense, dseg = dense_of(lp, occ)
+    cls = classes_bounded(lp, occ, dense, dseg)
+    fit = ~(cls.exact | cls.grouped)
+    tried = fit & (cls.reason != REASONS["empty"]) & (cls.reason != REASONS["cut"])
+    lob = lobes_bounded(lp, occ, dense, dseg, tried)
+    fpc = (occ.size - CLASS_SAMPLE) / (occ.size - 1)
+    for got, truth in ((sampled.lobe_tried, float(np.mean(tried))),
+                       (sampled.shares[0], float(np.mean(fit & ~lob.lobe)))):
+        se = np.sqrt(max(truth * (1 - truth), 1.0 / CLASS_SAMPLE) / CLASS_SAMPLE * fpc)
+        assert abs(got - truth) <= 3 * se, (got, truth)
+    off = stages.StageContext.create(tmp_path / "w", scene,
+                                     s.model_copy(update={"lobe_class": "off"}))
+    assert sampled_fitted_shares(off).lobe_tried is None

@@ -77,6 +77,12 @@ class Coefficients:
     # "dense"; "children" reads the a_vis stage's maps): s per (dense sample, grid view
     # direction) (`avis_sums`' seconds)
     fit_avis: float = 5.28e-8
+    # trying level 0's lobe class (lobe_class "validated", `cpm.lobe_class`): s per dense
+    # sample of a tried texel (its truth on the fit pairs, the lobes' columns and NNLS, and
+    # for the texels that pass, their visibility rays and validation truth), x `widened`
+    # like every term; `lobes_bounded`'s CPU seconds on the Teapot at 64^2 (whole atlas)
+    # and 512^2 (16 tiles), 3.1e-5 and 3.5e-5 (docs/decisions.md)
+    lobe: float = 3.3e-5
     # level 0's cell-averaged BTF table (btf_table "cell", `cpm.cell_table`): one BRDF grid per
     # draw and the pair's own, x r_entry per (sample, pair, grid); fitted to the cpm stage's
     # seconds cell / point (benchmarks/btf_tables.py)
@@ -112,7 +118,8 @@ class Coefficients:
 
 
 #: the coefficients a level's seconds are priced by (`Estimate.per_level`'s "terms")
-TERMS = ("held", "r_entry", "gram", "eigh", "texel", "classify", "fit_avis", "btf_cell")
+TERMS = ("held", "r_entry", "gram", "eigh", "texel", "classify", "fit_avis", "btf_cell",
+         "lobe")
 
 #: typical characteristic points per texel at level L (children hierarchy), capped by c_max:
 #: measured means at levels 0-4 at 32^2 (defaults): cylinder 32, 35, 42, 51, 82,
@@ -212,6 +219,7 @@ def estimate(
     avis_ray_samples: float | None = None,
     level0_ratio: float | None = None,
     classed_points: Sequence[float] | None = None,
+    lobe_tried: float | None = None,
 ) -> Estimate:
     """Predict a bake's seconds.
 
@@ -237,6 +245,9 @@ def estimate(
     classed_points : per classed level, the mean points a texel the classes store holds
         (measured on the same sample); with `fitted` they set the next level's candidates
         (`level_sizes`); None: every child holds `C_LEVEL` points
+    lobe_tried : the fraction of level 0's texels the lobe class tries (lobe_class
+        "validated", measured on the same sample; its lobe texels are among the stored ones
+        of `fitted` and `classed_points`); None: the class is not tried
     """
     coef = coef or Coefficients()
     if speed is not None:
@@ -285,6 +296,9 @@ def estimate(
         if level > 0 and s.avis_coarse == "dense":
             terms["fit_avis"] = phi * mult * coef.fit_avis * s.n_view_dirs * float(
                 avis_cast(dense, s.avis_fit_samples).sum())
+        if level == 0 and lobe_tried:
+            terms["lobe"] = mult * coef.lobe * float(np.clip(lobe_tried, 0.0, 1.0)) * float(
+                dense.sum())
         if level == 0 and cell_grids:
             terms["btf_cell"] = (mult * cell_grids * coef.btf_cell * brdf * coef.r_entry
                                  * float((m * d).sum()))

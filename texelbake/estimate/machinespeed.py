@@ -44,7 +44,7 @@ import numpy as np
 #: part -> the cost model's coefficients it scales (`Coefficients` field names); the ratio
 #: fields (brdf_ggx, held_ggx, btf_cell) are not seconds and are not scaled
 PART_OF = {
-    "r_entry": "grid", "held": "grid", "avis_fixed": "grid",
+    "r_entry": "grid", "held": "grid", "avis_fixed": "grid", "lobe": "grid",
     "export": "grid", "geometry": "grid",
     "gram": "blas", "eigh": "blas",
     "avis": "rays", "classify": "rays", "fit_avis": "rays", "filtered": "rays",

@@ -73,11 +73,14 @@ class SampledFit:
     level0_ratio the candidates of a fitted finest texel over its dense samples (its groups,
     level0_candidates "clustered"), None where they are its samples or no sampled texel is
     fitted. points: per classed level, the mean points a texel the classes store holds (1
-    where none of the sample is classed)."""
+    where none of the sample is classed). lobe_tried: with lobe_class "validated", the
+    fraction of level 0's sample the lobe class tries (its lobe texels count as stored in
+    `shares` and `points`); None without it."""
 
     shares: list[float]
     level0_ratio: float | None
     points: list[float] = field(default_factory=list)
+    lobe_tried: float | None = None
 
 
 def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
@@ -87,9 +90,11 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
     on; and at level 0 the fitted texels' candidates over their samples (`SampledFit`). None
     when the bake classes no texel. Costs the sample's classing rays (a few seconds at a 128^2
     atlas) and the ray caster's build."""
+    from texelbake.cpm.classify import REASONS
     from texelbake.cpm.dense import LevelPass, dense_of
     from texelbake.cpm.level import clusters_level0, texel_ids
     from texelbake.cpm.level_by_need import classes_bounded, fitted_groups
+    from texelbake.cpm.lobe_class import lobes_bounded
 
     s = ctx.settings
     if s.texel_classes != "by_need" or s.btf:
@@ -99,7 +104,7 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
     rng = np.random.default_rng(s.seed)
     out: list[float] = []
     points: list[float] = []
-    ratio = None
+    ratio = tried_share = None
     for level in range(min(s.classed_levels, ctx.n_levels)):  # a loop over a few levels
         occupied = np.unique(texel_ids(geo, n, level))
         if not occupied.size:
@@ -111,13 +116,20 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
         dense, dseg = dense_of(lp, texels)
         cls = classes_bounded(lp, texels, dense, dseg)
         fit = ~(cls.exact | cls.grouped)
+        counts = np.diff(cls.offsets)
+        if level == 0 and s.lobe_class != "off":  # as `level_by_need.fit_level_by_need` tries
+            tried = fit & (cls.reason != REASONS["empty"]) & (cls.reason != REASONS["cut"])
+            lob = lobes_bounded(lp, texels, dense, dseg, tried)
+            tried_share = float(np.mean(tried))
+            counts = np.where(lob.lobe, np.diff(lob.offsets), counts)
+            fit &= ~lob.lobe
         out.append(float(np.mean(fit)))
-        stored = np.diff(cls.offsets)[~fit]
+        stored = counts[~fit]
         points.append(float(stored.mean()) if stored.size else 1.0)
         if level == 0 and clusters_level0(s) and fit.any():
             cands, seg = fitted_groups(lp, texels, dense, dseg, cls, np.flatnonzero(fit))
             ratio = len(cands.sample) / seg.size if seg.size else None
-    return SampledFit(out, ratio, points)
+    return SampledFit(out, ratio, points, tried_share)
 
 
 def avis_ray_samples(settings, counts: np.ndarray) -> float | None:
@@ -148,7 +160,8 @@ def estimate_inputs(ctx: stages.StageContext) -> dict:
             "fitted": None if sampled is None else sampled.shares,
             "avis_ray_samples": avis_ray_samples(s, counts),
             "level0_ratio": None if sampled is None else sampled.level0_ratio,
-            "classed_points": None if sampled is None else sampled.points}
+            "classed_points": None if sampled is None else sampled.points,
+            "lobe_tried": None if sampled is None else sampled.lobe_tried}
 
 
 def bake_estimate(ctx: stages.StageContext, jobs: int, elapsed: float = 0.0) -> dict:
