@@ -499,3 +499,22 @@ def test_the_lobe_class_tries_are_priced_per_sample_of_a_tried_finest_texel():
     for tried in (None, 0.0):
         none = costmodel.estimate(s, 1, counts, coef=c, lobe_tried=tried).per_level
         assert none[0]["terms"]["lobe"] == 0.0
+
+
+def test_a_fitted_finest_texel_holds_fewer_points_on_a_larger_atlas():
+    """By hand: up to 32^2 a fitted finest texel holds C_LEVEL[0] points; above, C_LEVEL[0] x
+    (n / 32)^C0_SLOPE (512^2: 27 x 16^-0.29 = 12.1); a 64^2 atlas of 100 samples a texel gives
+    level 1 four children of that many, and level 2 C_LEVEL[1] of each of its children as
+    before; the samples do not change."""
+    assert costmodel.finest_points(16) == costmodel.C_LEVEL[0]
+    assert costmodel.finest_points(32) == costmodel.C_LEVEL[0]
+    assert costmodel.finest_points(512) == pytest.approx(27.0 * 16.0 ** -0.29, rel=1e-12)
+    assert costmodel.finest_points(512) == pytest.approx(12.08, abs=0.01)
+    sizes = costmodel.level_sizes(np.full((64, 64), 100), 64)
+    c0 = 27.0 * 2.0 ** -0.29
+    np.testing.assert_allclose(sizes[1][0], np.full(32 * 32, 4 * c0))
+    np.testing.assert_allclose(sizes[2][0], np.full(16 * 16, 4 * costmodel.C_LEVEL[1]))
+    np.testing.assert_allclose(sizes[1][1], np.full(32 * 32, 400.0))
+    # the O(log n) estimate before the geometry prices the same points
+    uniform = costmodel._uniform_sizes(64, 100, 64)
+    assert uniform[1][0][0] == pytest.approx(min(uniform[0][0][0], c0) * 4, rel=1e-12)

@@ -19,7 +19,8 @@ the caller, `texelbake.pipeline.estimate`; 1 when not known) pays the fit's term
 Level 0's m are the dense samples per texel (known exactly once the geometry stage has placed
 them: `sample_counts`; before that the n^2 spt samples spread over an assumed atlas fill); a coarser
 texel selects among its children's points, m = sum over its children of min(c_L, m_child) with
-c_L the typical points per texel of a level (C_LEVEL, measured). The a_vis and geometry stages
+c_L the typical points per texel of a level (C_LEVEL, measured; a finest texel's fall with the
+atlas's side, `finest_points`). The a_vis and geometry stages
 scale with the dense samples. Tile shards spread over the workers; the levels above a tile
 are one shard (`run_cpm_top`), priced serially except for their dense samples' sums (the held
 term), which the tile shards make; each process pool pays its start once.
@@ -125,6 +126,21 @@ TERMS = ("held", "r_entry", "gram", "eigh", "texel", "classify", "fit_avis", "bt
 #: measured means at levels 0-4 at 32^2 (defaults): cylinder 32, 35, 42, 51, 82,
 #: bolt 21, 19, 19, 21, 31; their mean
 C_LEVEL = (27.0, 27.0, 31.0, 36.0, 56.0)
+#: a fitted finest texel's points fall as the atlas grows (a smaller texel spans fewer
+#: facets, shadows and normals): C_LEVEL[0] x (n / 32)^C0_SLOPE above 32^2; the fitted finest
+#: texels' measured means, Teapot 64^2 / 128^2 / 512^2 21.8 / 20 / 12, bolt 64^2 / 128^2 19 /
+#: 13 (`cpm_cpu.py`, docs/decisions.md)
+C0_SLOPE = -0.29
+
+
+def finest_points(n: int) -> float:
+    """The typical points of a fitted finest texel of an n x n atlas (uncapped)."""
+    return C_LEVEL[0] * min(1.0, (max(int(n), 1) / 32.0) ** C0_SLOPE)
+
+
+def _level_points(level: int, n: int) -> float:
+    """`finest_points` at level 0 of an n x n atlas, `C_LEVEL` above it."""
+    return finest_points(n) if level == 0 else C_LEVEL[min(level, len(C_LEVEL) - 1)]
 
 
 @dataclass
@@ -159,7 +175,7 @@ def level_sizes(counts: np.ndarray, c_max: int, fitted: Sequence[float] | None =
                 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """(m (t,), n_dense (t,)) of the texels with samples at every level, from the finest
     level's dense sample counts (N, N). A texel's candidates are its children's points: a
-    fitted child's `C_LEVEL`, and at a classed level (`fitted` its fitted share,
+    fitted child's `C_LEVEL` (`finest_points` at level 0), and at a classed level (`fitted` its fitted share,
     `classed_points` the points a classed texel stores, both per classed level) the mean of
     the fitted and the classed children's (a one-facet texel stores one point)."""
     out = []
@@ -171,7 +187,7 @@ def level_sizes(counts: np.ndarray, c_max: int, fitted: Sequence[float] | None =
         out.append((m[keep], dense[keep]))
         if dense.shape[0] == 1:
             return out
-        c_l = min(float(c_max), C_LEVEL[min(level, len(C_LEVEL) - 1)])
+        c_l = min(float(c_max), _level_points(level, counts.shape[0]))
         if fitted is not None and classed_points is not None and level < min(
                 len(fitted), len(classed_points)):
             phi = float(np.clip(fitted[level], 0.0, 1.0))
@@ -193,7 +209,7 @@ def _uniform_sizes(n: int, spt: int, c_max: int) -> list[tuple[np.ndarray, np.nd
     for level in range(int(n).bit_length()):
         out.append((np.full(1, m), np.full(1, dense), t))
         t_next = max(t / 4.0, 1.0)
-        c_l = min(float(c_max), C_LEVEL[min(level, len(C_LEVEL) - 1)])
+        c_l = min(float(c_max), _level_points(level, n))
         m = min(m, c_l) * t / t_next
         dense = dense * t / t_next
         t = t_next
