@@ -206,8 +206,18 @@ def test_machine_speed_scales_each_term_by_its_kind_of_work():
         fast = costmodel.estimate(s, 1, coef=one, ggx_fraction=0.0, speed=speed,
                                   lobe_tried=0.5)
         assert base.seconds > 0, name
-        assert fast.seconds == pytest.approx(factors[part] * base.seconds, rel=1e-12), name
+        # a mix of kinds (R's entries: the BRDF grid, rays and per-call work) by its weights
+        want = (sum(w * factors[p] for p, w in part.items()) if isinstance(part, dict)
+                else factors[part])
+        assert fast.seconds == pytest.approx(want * base.seconds, rel=1e-12), name
         assert fast.speed == speed.to_dict() and base.speed is None
+    # R's mix: its weights are shares (they add up to 1), so a machine of one speed in every
+    # kind of work scales R by that speed; by hand at these factors
+    from texelbake.estimate.machinespeed import R_MIX
+
+    assert sum(R_MIX.values()) == pytest.approx(1.0, rel=1e-12)
+    assert speed.factor("r_entry") == pytest.approx(
+        (1.60 * 2.0 + 1.04 * 5.0 + 2.28 * 7.0) / 4.92, rel=1e-12)
     # the ratio fields are not seconds: the GGX share of R is priced the same on any machine
     c = Coefficients().scaled(speed)
     assert (c.brdf_ggx, c.held_ggx) == (Coefficients().brdf_ggx, Coefficients().held_ggx)

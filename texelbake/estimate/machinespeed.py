@@ -41,11 +41,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: part -> the cost model's coefficients it scales (`Coefficients` field names); the ratio
-#: fields (brdf_ggx, held_ggx, btf_cell) are not seconds and are not scaled
-PART_OF = {
-    "r_entry": "grid", "held": "grid", "avis_fixed": "grid", "lobe": "grid",
-    "export": "grid", "geometry": "grid",
+#: the kernels of R's entries and of the held-out truth, as shares of `build_R`'s CPU seconds
+#: on the coefficients' machine (the full cylinder at 64^2, `cpm_cpu.py --breakdown`: the BRDF
+#: grid `brdf_product` 1.60 s, the rays of `visibility_cos` 1.04 s, the gathers, products and
+#: sums around them 2.28 s of 4.92 s, the last priced like the per-call work): a term of that
+#: mix is scaled by the parts' weighted factors, not the BRDF grid's alone (on an Intel Xeon the
+#: grid part read 1.92 where build_R ran 1.61x slower, and the weighted factors 1.61)
+R_MIX = {"grid": 1.60 / 4.92, "rays": 1.04 / 4.92, "python": 2.28 / 4.92}
+
+#: coefficient -> the part that scales it, or parts with weights (`Coefficients` field names);
+#: the ratio fields (brdf_ggx, held_ggx, btf_cell, widened) are not seconds and are not scaled
+PART_OF: dict[str, str | dict[str, float]] = {
+    "r_entry": R_MIX, "held": R_MIX, "lobe": R_MIX,
+    "avis_fixed": "grid", "export": "grid", "geometry": "grid",
     "gram": "blas", "eigh": "blas",
     "avis": "rays", "classify": "rays", "fit_avis": "rays", "filtered": "rays",
     "texel": "python", "process": "python", "fixed": "python", "avis_stage": "python",
@@ -79,6 +87,8 @@ class MachineSpeed:
     def factor(self, coefficient: str) -> float:
         """The factor that scales the cost model's `coefficient` (1 for a ratio field)."""
         part = PART_OF.get(coefficient)
+        if isinstance(part, dict):
+            return sum(w * self.factors[p] for p, w in part.items())
         return self.factors[part] if part else 1.0
 
     def to_dict(self) -> dict:
