@@ -15,11 +15,11 @@ it, so the fitted coefficients stay the reference machine's seconds.
 
 `--parts` scales each group of the model's terms as it stands (`GROUPS` of
 `costmodel.TERMS`: the fitted texels' fit, the held-out truth, the classing, the coarse fit's
-a_vis rays, the lobe class's tries) to its own measured seconds, from whole-atlas `cpm_cpu.py --breakdown` runs: each
-level's prediction split by term is recorded by cpm_cpu.py (`model_terms`, priced as the bake
-prices them, with the sampled classes and the capped a_vis samples), and the held-out truth,
-the classing and the coarse a_vis are timed functions (`PARTS`; the fit is the rest of each
-level). Fitting the groups to the level totals instead cannot tell them apart: the fit and
+a_vis rays, the lobe class's tries) to its own measured seconds, from whole-atlas
+`cpm_cpu.py --breakdown` runs: each level's prediction split by term is recorded by
+cpm_cpu.py (`model_terms`, priced as the bake prices them, with the sampled classes and the
+capped a_vis samples), and the held-out truth, the classing, the coarse a_vis and the lobe
+tries are timed functions (`PARTS`; the fit is the rest of each level). Fitting the groups to the level totals instead cannot tell them apart: the fit and
 the coarse a_vis grow together (an NNLS over four runs put the coarse a_vis at 0 where it
 measured 64 s, docs/decisions.md).
 """

@@ -15,6 +15,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from schemas.settings import BakeSettings
 from texelbake.cpm.classify import (
     CHECK_LIGHTS,
     CHECK_VIEWS,
@@ -61,8 +62,8 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     cls = classes_bounded(lp, texels, dense, dseg)
     stored = cls.exact | cls.grouped
     parts = [_stored_arrays(lp, texels, dense, dseg, cls)]
-    if src.settings.lobe_class != "off" and level == 0:  # `texelbake.cpm.lobe_class`
-        tried = ~stored & (cls.reason != REASONS["empty"]) & (cls.reason != REASONS["cut"])
+    tried = lobe_tried(src.settings, level, cls)
+    if tried is not None:
         lob = lobes_bounded(lp, texels, dense, dseg, tried)
         parts.append(_lobe_arrays(lp, texels, dense, dseg, lob))
         stored = stored | lob.lobe
@@ -85,6 +86,16 @@ def fit_level_by_need(src: FitInputs, level: int, texels: np.ndarray, candidates
     out = merge_levels(parts)
     out["classed"] = np.ones(1, np.int64)
     return out
+
+
+def lobe_tried(settings: BakeSettings, level: int, cls: TexelClasses) -> np.ndarray | None:
+    """(t,) bool the texels of a chunk classed `cls` that the lobe class tries
+    (`texelbake.cpm.lobe_class`: BakeSettings.lobe_class on, the finest level only): neither
+    exact nor grouped, holding samples, none cut; None where it tries none."""
+    if settings.lobe_class == "off" or level != 0:
+        return None
+    return (~(cls.exact | cls.grouped) & (cls.reason != REASONS["empty"])
+            & (cls.reason != REASONS["cut"]))
 
 
 def fitted_groups(lp: LevelPass, texels: np.ndarray, dense: np.ndarray, dseg: np.ndarray,
@@ -229,4 +240,4 @@ def merge_levels(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
 
 
 __all__ = ["EXACT_SKIP", "GROUPED_SKIP", "LOBE_SKIP", "classes_bounded", "fit_level_by_need",
-           "fitted_groups", "merge_levels", "texel_rows"]
+           "fitted_groups", "lobe_tried", "merge_levels", "texel_rows"]

@@ -20,8 +20,7 @@ Level 0's m are the dense samples per texel (known exactly once the geometry sta
 them: `sample_counts`; before that the n^2 spt samples spread over an assumed atlas fill); a coarser
 texel selects among its children's points, m = sum over its children of min(c_L, m_child) with
 c_L the typical points per texel of a level (C_LEVEL, measured; a finest texel's fall with the
-atlas's side, `finest_points`). The a_vis and geometry stages
-scale with the dense samples. Tile shards spread over the workers; the levels above a tile
+atlas's side, `finest_points`). The a_vis and geometry stages scale with the dense samples. Tile shards spread over the workers; the levels above a tile
 are one shard (`run_cpm_top`), priced serially except for their dense samples' sums (the held
 term), which the tile shards make; each process pool pays its start once.
 Coefficients are seconds measured on one 2-core machine (benchmarks/costmodel_check.py compares
@@ -175,9 +174,10 @@ def level_sizes(counts: np.ndarray, c_max: int, fitted: Sequence[float] | None =
                 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """(m (t,), n_dense (t,)) of the texels with samples at every level, from the finest
     level's dense sample counts (N, N). A texel's candidates are its children's points: a
-    fitted child's `C_LEVEL` (`finest_points` at level 0), and at a classed level (`fitted` its fitted share,
-    `classed_points` the points a classed texel stores, both per classed level) the mean of
-    the fitted and the classed children's (a one-facet texel stores one point)."""
+    fitted child's `C_LEVEL` (`finest_points` at level 0), and at a classed level (`fitted`
+    its fitted share, `classed_points` the points a classed texel stores, both per classed
+    level) the mean of the fitted and the classed children's (a one-facet texel stores one
+    point)."""
     out = []
     m = counts.astype(np.float64)
     dense = counts.astype(np.float64)

@@ -90,10 +90,9 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
     on; and at level 0 the fitted texels' candidates over their samples (`SampledFit`). None
     when the bake classes no texel. Costs the sample's classing rays (a few seconds at a 128^2
     atlas) and the ray caster's build."""
-    from texelbake.cpm.classify import REASONS
     from texelbake.cpm.dense import LevelPass, dense_of
     from texelbake.cpm.level import clusters_level0, texel_ids
-    from texelbake.cpm.level_by_need import classes_bounded, fitted_groups
+    from texelbake.cpm.level_by_need import classes_bounded, fitted_groups, lobe_tried
     from texelbake.cpm.lobe_class import lobes_bounded
 
     s = ctx.settings
@@ -117,8 +116,8 @@ def sampled_fitted_shares(ctx: stages.StageContext) -> SampledFit | None:
         cls = classes_bounded(lp, texels, dense, dseg)
         fit = ~(cls.exact | cls.grouped)
         counts = np.diff(cls.offsets)
-        if level == 0 and s.lobe_class != "off":  # as `level_by_need.fit_level_by_need` tries
-            tried = fit & (cls.reason != REASONS["empty"]) & (cls.reason != REASONS["cut"])
+        tried = lobe_tried(s, level, cls)
+        if tried is not None:
             lob = lobes_bounded(lp, texels, dense, dseg, tried)
             tried_share = float(np.mean(tried))
             counts = np.where(lob.lobe, np.diff(lob.offsets), counts)

@@ -18,11 +18,11 @@ a no-op off glibc. TEXELBAKE_MALLOC=system leaves glibc's defaults.
 Freed memory given back where a process only waits (`release_freed_memory`). The local
 bake's own process runs the ingest and geometry stages, then waits while its shard processes
 run the a_vis and CPM stages: the heap it kept from the geometry stage (~0.3 GB on the Teapot
-at 512², beside ~0.3 GB of imports) stayed resident beside theirs (docs/decisions.md: the
-bake's summed PSS 0.11–0.13 GB lower on the full cylinder at LOD1's 128² and 512²). malloc_trim(0) returns the
-heap's free pages before the shards start, so a bake's peak is its shard processes' and
-not theirs plus the waiting one's; the export touches fresh pages again (about a second per
-0.3 GB where first touch is slow).
+at 512², beside ~0.3 GB of imports) stayed resident beside theirs. malloc_trim(0) returns
+the heap's free pages before the shards start, so a bake's peak is its shard processes' and
+not theirs plus the waiting one's (the bake's summed PSS 0.11–0.13 GB lower on the full
+cylinder at LOD1's 128² and 512², docs/decisions.md); the export touches fresh pages again
+(about a second per 0.3 GB where first touch is slow).
 
 One BLAS thread (`blas_threads`, threadpoolctl). The BLAS products of a bake are small (a
 texel's Grams, a_vis blocks) or overlap with Embree's own ray threads, and shards run as one
